@@ -1,0 +1,1 @@
+"""What runs on one unit: MAVLink vehicle, per-rotor command intake, motor model, fault injection."""

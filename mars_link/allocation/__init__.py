@@ -1,0 +1,1 @@
+"""Per-rotor thrust allocation and fault-tolerant reallocation modes (paper 000 §II)."""

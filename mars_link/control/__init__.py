@@ -1,0 +1,1 @@
+"""Flight controllers: state + reference in, per-rotor thrust commands (N) out."""
