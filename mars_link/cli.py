@@ -1,0 +1,144 @@
+"""`mars-link` command line. Every user error is one line on stderr and exit code 2."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from mars_link.errors import UserInputError
+
+EXIT_USAGE = 2
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, no usage dump
+        raise UserInputError(f"{self.prog}: {message}")
+
+
+def _default_out(name: str) -> Path:
+    return Path("runs") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+def _apply_overrides(scenario, args) -> None:
+    from mars_link.scenario import FTC_MODES, parse_fault_arg, validate_fault
+
+    if getattr(args, "ftc", None):
+        if args.ftc not in FTC_MODES:
+            raise UserInputError(f"--ftc {args.ftc!r}: unknown mode (known: {', '.join(FTC_MODES)})")
+        scenario.ftc = args.ftc
+    if getattr(args, "controller", None):
+        scenario.controller = args.controller
+    for text in getattr(args, "fault", None) or []:
+        fault = parse_fault_arg(text)
+        validate_fault(fault, scenario.model(), f"--fault {text}")
+        scenario.faults.append(fault)
+    if getattr(args, "duration", None) is not None:
+        if args.duration <= 0:
+            raise UserInputError(f"--duration must be > 0, got {args.duration}")
+        scenario.sim.duration_s = args.duration
+    if getattr(args, "no_noise", False):
+        scenario.sim.noise = False
+
+
+def cmd_run(args) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from mars_link.runner import run_scenario
+    from mars_link.scenario import load_scenario
+
+    scenario = load_scenario(args.scenario)
+    _apply_overrides(scenario, args)
+    if args.trials < 1:
+        raise UserInputError(f"--trials must be >= 1, got {args.trials}")
+    if args.mode != "inproc":
+        raise UserInputError(f"--mode {args.mode}: only 'inproc' is available in this build")
+    from mars_link.allocation import check_controllable
+
+    model = scenario.model()
+    if scenario.faults:
+        from mars_link.runner import eta_after
+
+        check_controllable(model, eta_after(model, scenario.faults, float("inf")),
+                           (model.vehicle.rotor_min_thrust_n, model.vehicle.rotor_max_thrust_n))
+    out = Path(args.out) if args.out else _default_out(scenario.name)
+    console = Console(stderr=True)
+    with Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
+        TimeElapsedColumn(), console=console, transient=False, disable=args.quiet,
+    ) as progress:
+        task = progress.add_task(f"{scenario.name} x{args.trials}", total=args.trials)
+        summary = run_scenario(
+            scenario, out, trials=args.trials, seed=args.seed,
+            on_progress=lambda i, frac: progress.update(task, completed=i + frac),
+        )
+    print_summary(summary, out)
+    return 0 if summary["completed"] else 1
+
+
+def print_summary(summary: dict, out: Path) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"mars-link run: {summary['scenario']}", show_header=False)
+    rows = [
+        ("layout / preset", f"{','.join(summary['layout'])} / {summary['preset']}"),
+        ("controller / ftc", f"{summary['controller']} / {summary['ftc']}"),
+        ("trials (seed)", f"{summary['trials']} ({summary['seed']})"),
+        ("completed", str(summary["completed"])),
+        ("diverged", str(summary["diverged"])),
+        ("mean error", f"{summary['mean_error_m']:.4f} m ± {summary['mean_error_std_m']:.4f}"),
+        ("rmse / max error", f"{summary['rmse_m']:.4f} / {summary['max_error_m']:.4f} m"),
+        ("max tilt", f"{summary['max_tilt_deg']:.2f} deg"),
+        ("force integral", f"{summary['force_integral_n2s']:.1f} N²s"),
+        ("sim / wall time", f"{summary['sim_time_s']:.2f} s / {summary['wall_time_s']:.2f} s"),
+        ("real-time factor", f"{summary['real_time_factor']:.1f}x"),
+        ("events", str(len(summary["events"]))),
+        ("run directory", str(out)),
+    ]
+    for k, v in rows:
+        table.add_row(k, v)
+    Console().print(table)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="mars-link", description="SITL flight stack for modular aerial robots")
+    sub = parser.add_subparsers(dest="command", parser_class=_Parser)
+
+    run = sub.add_parser("run", help="fly a scenario (default: the bundled 3x2 spiral)")
+    run.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name")
+    run.add_argument("--out", help="run directory (default runs/<name>-<time>)")
+    run.add_argument("--seed", type=int, default=None)
+    run.add_argument("--trials", type=int, default=1)
+    run.add_argument("--ftc", help="allocation mode: none, unit, partial, full, hybrid, qp")
+    run.add_argument("--controller", choices=("cascaded", "mars-ftcc-paper"))
+    run.add_argument("--fault", action="append", metavar="UNIT[:ROTOR]=ETA[@T]")
+    run.add_argument("--duration", type=float, help="override the simulated duration [s]")
+    run.add_argument("--no-noise", action="store_true", help="perfect sensors (truth state)")
+    run.add_argument("--mode", default="inproc", help="inproc (default) or sitl")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(func=cmd_run)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+        if not getattr(args, "func", None):
+            parser.print_help()
+            return EXIT_USAGE
+        return args.func(args)
+    except UserInputError as exc:
+        print(f"mars-link: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except KeyboardInterrupt:
+        print("mars-link: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,395 @@
+"""In-process runner ("inproc" mode): world, unit motors and coordinator wired by direct calls.
+
+Lockstep and deterministic: physics steps at `physics_hz`; every `physics_hz / control_hz` steps the
+sensors are sampled, the coordinator estimates, controls and allocates, and the units' motor models
+take the new per-rotor commands. No sockets, no sleeps: this is the fast path used by tests, batch
+evaluation and the paper reproductions, and the multi-process SITL must reproduce it.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from mars_link.assembly import AssemblyModel
+from mars_link.control.base import Controller
+from mars_link.errors import UserInputError
+from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
+from mars_link.scenario import FaultSpec, Scenario
+from mars_link.state import RigidBodyState
+from mars_link.trajectories import Trajectory, build_trajectory
+
+#: a run is declared diverged when the tracked point is this far from its reference...
+DIVERGENCE_ERROR_M = 5.0
+#: ...or the assembly tilts beyond this
+DIVERGENCE_TILT_DEG = 80.0
+STAGES = ("physics", "sensors", "estimation", "control", "allocation", "motors", "logging")
+
+
+@dataclass
+class TrialResult:
+    seed: int
+    completed: bool
+    diverged: bool
+    mean_error_m: float
+    rmse_m: float
+    max_error_m: float
+    sim_time_s: float
+    wall_time_s: float
+    force_integral_n2s: float
+    max_tilt_deg: float
+    events: list[dict] = field(default_factory=list)
+    stage_time_s: dict[str, float] = field(default_factory=dict)
+    physics_steps: int = 0
+    control_steps: int = 0
+
+
+# ----------------------------------------------------------------------------- construction
+def tracked_offset(model: AssemblyModel, scenario: Scenario) -> np.ndarray:
+    unit = scenario.tracked_unit()
+    return np.zeros(3) if unit is None else model.unit_position(unit).copy()
+
+
+def make_trajectory(scenario: Scenario, model: AssemblyModel) -> Trajectory:
+    params = {k: v for k, v in scenario.trajectory.items() if k != "kind"}
+    return build_trajectory(
+        scenario.trajectory["kind"], params, rest_height_m=model.vehicle.gear_depth_m
+    )
+
+
+def make_controller(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> Controller:
+    v = model.vehicle
+    if scenario.controller == "cascaded":
+        from mars_link.allocation import make_allocator
+        from mars_link.control.cascaded import CascadedController
+
+        allocator = make_allocator(
+            scenario.ftc,
+            model,
+            eta=eta,
+            min_thrust_n=v.rotor_min_thrust_n,
+            max_thrust_n=v.rotor_max_thrust_n,
+        )
+        return CascadedController(
+            model, allocator, tracked_offset_frd_m=tracked_offset(model, scenario),
+            control_hz=scenario.sim.control_hz,
+        )
+    if scenario.controller == "mars-ftcc-paper":
+        from mars_link.control.paper import PaperController
+
+        return PaperController(
+            model,
+            tracked_unit_id=scenario.tracked_unit() or 1,
+            control_hz=scenario.sim.control_hz,
+            ftc=scenario.ftc,
+            eta=eta,
+        )
+    raise UserInputError(f"unknown controller {scenario.controller!r}")
+
+
+def eta_after(model: AssemblyModel, faults: list[FaultSpec], t_s: float) -> np.ndarray:
+    eta = model.nominal_eta()
+    for f in faults:
+        if f.t_s <= t_s:
+            sl = model.unit_slots(f.unit) if f.rotor is None else model.rotor_slot(f.unit, f.rotor)
+            eta[sl] = f.eta
+    return eta
+
+
+# ----------------------------------------------------------------------------- logging
+class RunLog:
+    """CSV time series written as the flight goes (flushed), so a crash loses nothing flown."""
+
+    def __init__(self, out_dir: Path | None, model: AssemblyModel, rotor_log_hz: float) -> None:
+        self.out_dir = out_dir
+        self.model = model
+        self.rotor_log_period_s = 1.0 / rotor_log_hz
+        self._next_rotor_t = 0.0
+        self._tel = self._rot = None
+        self.telemetry_rows: list[list[float]] = []
+        self.rotor_rows: list[np.ndarray] = []
+        if out_dir is None:
+            return
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self._tel = open(out_dir / "telemetry.csv", "w", encoding="utf-8")
+        self._tel.write(
+            "trial,t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,roll_deg,pitch_deg,yaw_deg,"
+            "error_m,est_n_m,est_e_m,est_d_m,est_roll_deg,est_pitch_deg,est_yaw_deg\n"
+        )
+        self._rot = open(out_dir / "rotors.csv", "w", encoding="utf-8")
+        cols = []
+        for kind in ("cmd", "thrust", "eta"):
+            cols += [f"{kind}_u{r.unit_id}r{r.index}" for r in model.rotors]
+        self._rot.write("trial,t_s," + ",".join(cols) + "\n")
+
+    def telemetry(self, row: list[float]) -> None:
+        self.telemetry_rows.append(row)
+        if self._tel:
+            self._tel.write(",".join(f"{x:.6g}" for x in row) + "\n")
+
+    def rotors(self, trial: int, t_s: float, cmd, thrust, eta) -> None:
+        if t_s + 1e-9 < self._next_rotor_t:
+            return
+        self._next_rotor_t = t_s + self.rotor_log_period_s
+        row = np.concatenate(([trial, t_s], cmd, thrust, eta))
+        self.rotor_rows.append(row)
+        if self._rot:
+            self._rot.write(",".join(f"{x:.5g}" for x in row) + "\n")
+
+    def new_trial(self) -> None:
+        self._next_rotor_t = 0.0
+
+    def flush(self) -> None:
+        for f in (self._tel, self._rot):
+            if f:
+                f.flush()
+
+    def close(self) -> None:
+        for f in (self._tel, self._rot):
+            if f:
+                f.close()
+        self._tel = self._rot = None
+
+
+# ----------------------------------------------------------------------------- one trial
+def run_trial(
+    scenario: Scenario,
+    seed: int,
+    trial_index: int = 0,
+    log: RunLog | None = None,
+    on_progress: Callable[[float], None] | None = None,
+) -> TrialResult:
+    from firmware_models.motor import MotorModel, MotorParams
+    from sitl.physics import JsbsimBody
+    from sitl.sensors import SensorModel, SensorParams
+
+    model = scenario.model()
+    trajectory = make_trajectory(scenario, model)
+    duration = scenario.sim.duration_s or trajectory.duration_s
+    physics_hz, control_hz = scenario.sim.physics_hz, scenario.sim.control_hz
+    dt_phys = 1.0 / physics_hz
+    ratio = int(round(physics_hz / control_hz))
+    dt_ctrl = ratio * dt_phys
+    n_steps = int(round(duration * physics_hz))
+
+    faults = sorted(scenario.faults, key=lambda f: f.t_s)
+    eta_true = eta_after(model, faults, 0.0)
+    eta_known = eta_true.copy() if scenario.faults_known else model.nominal_eta()
+    controller = make_controller(scenario, model, eta_known)
+
+    offset = tracked_offset(model, scenario)
+    start = trajectory.sample(0.0)
+    yaw0 = start.yaw_rad
+    r0 = quat_to_rotmat(_yaw_quat(yaw0))
+    com_start = start.position_ned_m - r0 @ offset
+    body = JsbsimBody(model, physics_hz=physics_hz, position_ned_m=(com_start[0], com_start[1], 0.0), yaw_rad=yaw0)
+    v = model.vehicle
+    motors = MotorModel(
+        MotorParams(
+            n_rotors=model.n_rotors,
+            time_constant_s=v.motor_time_constant_s,
+            min_thrust_n=v.rotor_min_thrust_n,
+            max_thrust_n=v.rotor_max_thrust_n,
+        )
+    )
+    motors.set_eta(eta_true)
+    sensors = SensorModel(SensorParams(), seed=seed, noise=scenario.sim.noise)
+    estimator = None
+    if scenario.sim.noise:
+        from mars_link.estimation import AssemblyEstimator
+
+        estimator = AssemblyEstimator(model)
+
+    unit_ids = model.unit_ids
+    unit_offsets = [model.unit_position(u) for u in unit_ids]
+    stage = dict.fromkeys(STAGES, 0.0)
+    events: list[dict] = []
+    next_fault = 0
+    errors_sum = errors_sq = 0.0
+    max_err = max_tilt = force_integral = 0.0
+    n_err = 0
+    diverged = False
+    commands = np.zeros(model.n_rotors)
+    actual = np.zeros(model.n_rotors)
+    wall0 = time.perf_counter()
+    clock = time.perf_counter
+    t = 0.0
+    step = 0
+    progress_every = max(1, n_steps // 200)
+    for step in range(n_steps):
+        t = step * dt_phys
+        # faults take effect at the first physics step at or after their time
+        while next_fault < len(faults) and faults[next_fault].t_s <= t + 1e-12:
+            f = faults[next_fault]
+            next_fault += 1
+            eta_true = eta_after(model, faults[:next_fault], t)
+            motors.set_eta(eta_true)
+            events.append({"t_s": round(t, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta})
+            if scenario.faults_known:
+                controller.set_faults(eta_true)
+                events.append({"t_s": round(t, 6), "type": "reallocation", "ftc": scenario.ftc, "reason": "fault told to the coordinator"})
+        if step % ratio == 0:
+            c0 = clock()
+            truth = body.state()
+            c1 = clock()
+            stage["physics"] += c1 - c0
+            if estimator is not None:
+                sf = body.specific_force_frd()
+                imus = [sensors.imu(t, truth, sf, r, u) for u, r in zip(unit_ids, unit_offsets)]
+                positions = [sensors.position(t, truth, r, u) for u, r in zip(unit_ids, unit_offsets)]
+                c2 = clock()
+                stage["sensors"] += c2 - c1
+                estimate = estimator.step(t, imus, positions)
+                c1 = clock()
+                stage["estimation"] += c1 - c2
+            else:
+                estimate = truth
+            ref = trajectory.sample(t)
+            out = controller.update(t, estimate, ref)
+            c2 = clock()
+            alloc = out.timings_s.get("allocation", 0.0)
+            stage["allocation"] += alloc
+            stage["control"] += (c2 - c1) - alloc
+            commands = out.rotor_thrusts_n
+            # metrics on the truth
+            rot = quat_to_rotmat(truth.quaternion_wxyz)
+            tracked = truth.position_ned_m + rot @ offset
+            err = float(np.linalg.norm(tracked - ref.position_ned_m))
+            tilt = tilt_deg(truth.quaternion_wxyz)
+            errors_sum += err
+            errors_sq += err * err
+            n_err += 1
+            max_err = max(max_err, err)
+            max_tilt = max(max_tilt, tilt)
+            if log is not None:
+                roll, pitch, yaw = quat_to_euler(truth.quaternion_wxyz)
+                er, ep, ey = quat_to_euler(estimate.quaternion_wxyz)
+                log.telemetry(
+                    [trial_index, t, *ref.position_ned_m, *tracked,
+                     math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
+                     *estimate.position_ned_m, math.degrees(er), math.degrees(ep), math.degrees(ey)]
+                )
+                log.rotors(trial_index, t, commands, actual, eta_true)
+                if step % (ratio * int(control_hz)) == 0:
+                    log.flush()
+            stage["logging"] += clock() - c2
+            if not (err < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG and math.isfinite(err)):
+                diverged = True
+                events.append({"t_s": round(t, 6), "type": "diverged", "error_m": err, "tilt_deg": tilt})
+                break
+            if on_progress is not None and step % progress_every == 0:
+                on_progress(t / duration)
+        c0 = clock()
+        actual = motors.step(commands, dt_phys)
+        c1 = clock()
+        body.set_rotor_thrusts(actual)
+        body.step()
+        c2 = clock()
+        stage["motors"] += c1 - c0
+        stage["physics"] += c2 - c1
+        force_integral += float(actual @ actual) * dt_phys
+    wall = time.perf_counter() - wall0
+    sim_time = (step + 1) * dt_phys
+    body.close()
+    if log is not None:
+        log.flush()
+    mean_err = errors_sum / max(n_err, 1)
+    return TrialResult(
+        seed=seed,
+        completed=not diverged,
+        diverged=diverged,
+        mean_error_m=mean_err,
+        rmse_m=math.sqrt(errors_sq / max(n_err, 1)),
+        max_error_m=max_err,
+        sim_time_s=sim_time,
+        wall_time_s=wall,
+        force_integral_n2s=force_integral,
+        max_tilt_deg=max_tilt,
+        events=events,
+        stage_time_s=stage,
+        physics_steps=step + 1,
+        control_steps=n_err,
+    )
+
+
+def _yaw_quat(yaw: float) -> np.ndarray:
+    return np.array([math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)])
+
+
+# ----------------------------------------------------------------------------- whole run
+def summarize(scenario: Scenario, results: list[TrialResult], seed: int) -> dict:
+    def mean(attr: str) -> float:
+        return float(np.mean([getattr(r, attr) for r in results]))
+
+    sim_time = sum(r.sim_time_s for r in results)
+    wall_time = sum(r.wall_time_s for r in results)
+    stage = {k: sum(r.stage_time_s.get(k, 0.0) for r in results) for k in STAGES}
+    return {
+        "scenario": scenario.name,
+        "source": scenario.source,
+        "mode": "inproc",
+        "layout": list(scenario.layout),
+        "preset": scenario.preset,
+        "controller": scenario.controller,
+        "ftc": scenario.ftc,
+        "seed": seed,
+        "trials": len(results),
+        "noise": scenario.sim.noise,
+        "physics_hz": scenario.sim.physics_hz,
+        "control_hz": scenario.sim.control_hz,
+        "completed": all(r.completed for r in results),
+        "diverged": any(r.diverged for r in results),
+        "mean_error_m": mean("mean_error_m"),
+        "mean_error_std_m": float(np.std([r.mean_error_m for r in results])),
+        "rmse_m": mean("rmse_m"),
+        "max_error_m": float(max(r.max_error_m for r in results)),
+        "sim_time_s": mean("sim_time_s"),
+        "wall_time_s": wall_time,
+        "real_time_factor": sim_time / wall_time if wall_time > 0 else float("inf"),
+        "force_integral_n2s": mean("force_integral_n2s"),
+        "max_tilt_deg": float(max(r.max_tilt_deg for r in results)),
+        "stage_time_s": stage,
+        "events": [dict(e, trial=i) for i, r in enumerate(results) for e in r.events],
+        "per_trial": [
+            {"seed": r.seed, "mean_error_m": r.mean_error_m, "rmse_m": r.rmse_m,
+             "max_error_m": r.max_error_m, "diverged": r.diverged}
+            for r in results
+        ],
+    }
+
+
+def run_scenario(
+    scenario: Scenario,
+    out_dir: Path | None = None,
+    trials: int = 1,
+    seed: int | None = None,
+    on_progress: Callable[[int, float], None] | None = None,
+    plots: bool = True,
+) -> dict:
+    """Fly `trials` trials (seeds seed, seed+1, ...); write the run directory if `out_dir` is given."""
+    seed = scenario.sim.seed if seed is None else seed
+    log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, 50.0))
+    results = []
+    try:
+        for i in range(trials):
+            log.new_trial()
+            cb = None if on_progress is None else (lambda frac, i=i: on_progress(i, frac))
+            results.append(run_trial(scenario, seed + i, i, log, cb))
+            if on_progress is not None:
+                on_progress(i, 1.0)
+    finally:
+        log.close()
+    summary = summarize(scenario, results, seed)
+    if out_dir is not None:
+        (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        if plots:
+            from mars_link.plots import write_run_plots
+
+            write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model())
+    return summary

@@ -1,0 +1,287 @@
+"""Scenario files (TOML): load, validate and turn into plain dataclasses.
+
+Every problem is reported as one `UserInputError` line that names the file and the key, so the CLI
+can print it and exit 2 without a traceback. The schema is documented in README.md.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mars_link.assembly import AssemblyModel, PRESETS, parse_layout, vehicle_preset
+from mars_link.errors import UserInputError
+
+CONTROLLERS = ("cascaded", "mars-ftcc-paper")
+FTC_MODES = ("none", "unit", "partial", "full", "hybrid", "qp")
+SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
+DEFAULT_SCENARIO = "spiral_3x2"
+
+
+@dataclass
+class FaultSpec:
+    """Rotor efficiency change: `rotor` None = the whole unit (all four rotors)."""
+
+    unit: int
+    rotor: int | None
+    eta: float
+    t_s: float = 0.0
+
+    def describe(self) -> str:
+        where = f"unit {self.unit}" + (f" rotor {self.rotor}" if self.rotor else "")
+        return f"{where} eta={self.eta:g} at t={self.t_s:g}s"
+
+
+@dataclass
+class SimSpec:
+    duration_s: float | None = None  # None = the trajectory's duration
+    physics_hz: float = 500.0
+    control_hz: float = 100.0
+    seed: int = 1
+    noise: bool = True
+
+
+@dataclass
+class Scenario:
+    name: str
+    preset: str = "mars-ftcc"
+    vehicle_options: dict[str, Any] = field(default_factory=dict)
+    layout: tuple[str, ...] = ("XXX", "XXX")
+    tracked: str = "unit:1"
+    trajectory: dict[str, Any] = field(default_factory=lambda: {"kind": "mars-ftcc-spiral"})
+    controller: str = "cascaded"
+    ftc: str = "none"
+    faults_known: bool = True
+    faults: list[FaultSpec] = field(default_factory=list)
+    sim: SimSpec = field(default_factory=SimSpec)
+    source: str = "<built-in>"
+
+    def model(self) -> AssemblyModel:
+        params = vehicle_preset(self.preset)
+        if self.vehicle_options:
+            params = params.with_options(**self.vehicle_options)
+        return AssemblyModel.from_layout(self.layout, params)
+
+    def tracked_unit(self) -> int | None:
+        return None if self.tracked == "com" else int(self.tracked.split(":")[1])
+
+
+# ----------------------------------------------------------------------------- parsing helpers
+_TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig"}
+_VEHICLE_KEYS = {
+    "preset",
+    "motor_time_constant_s",
+    "rotor_max_thrust_n",
+    "rotor_min_thrust_n",
+}
+_ASSEMBLY_KEYS = {"layout", "tracked"}
+_CONTROL_KEYS = {"controller", "ftc", "faults_known"}
+_FAULT_KEYS = {"t", "unit", "rotor", "eta"}
+_SIM_KEYS = {"duration_s", "physics_hz", "control_hz", "seed", "noise"}
+
+
+def _check_keys(table: dict, allowed: set[str], where: str, src: str) -> None:
+    for key in table:
+        if key not in allowed:
+            raise UserInputError(
+                f"{src}: unknown key {key!r} in {where} (allowed: {', '.join(sorted(allowed))})"
+            )
+
+
+def _number(value: Any, key: str, src: str, *, positive: bool = False, nonneg: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise UserInputError(f"{src}: {key} must be a finite number, got {value!r}")
+    if positive and value <= 0:
+        raise UserInputError(f"{src}: {key} must be > 0, got {value!r}")
+    if nonneg and value < 0:
+        raise UserInputError(f"{src}: {key} must be >= 0, got {value!r}")
+    return float(value)
+
+
+def _integer(value: Any, key: str, src: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise UserInputError(f"{src}: {key} must be an integer, got {value!r}")
+    return value
+
+
+def _table(doc: dict, key: str, src: str) -> dict:
+    value = doc.get(key, {})
+    if not isinstance(value, dict):
+        raise UserInputError(f"{src}: [{key}] must be a table")
+    return value
+
+
+def validate_fault(fault: FaultSpec, model: AssemblyModel, src: str = "fault") -> None:
+    if not 0.0 <= fault.eta <= 1.0 or not math.isfinite(fault.eta):
+        raise UserInputError(f"{src}: eta must be in [0, 1], got {fault.eta!r}")
+    if fault.t_s < 0 or not math.isfinite(fault.t_s):
+        raise UserInputError(f"{src}: fault time must be >= 0, got {fault.t_s!r}")
+    try:
+        model.check_rotor(fault.unit, fault.rotor)
+    except UserInputError as exc:
+        raise UserInputError(f"{src}: {exc}") from None
+
+
+_FAULT_RE = re.compile(
+    r"^\s*(?P<unit>\d+)(?::(?P<rotor>\d+))?\s*=\s*(?P<eta>[-+0-9.eE]+)(?:\s*@\s*(?P<t>[-+0-9.eE]+))?\s*$"
+)
+
+
+def parse_fault_arg(text: str) -> FaultSpec:
+    """`UNIT[:ROTOR]=ETA[@T]`, e.g. `2:2=0.5`, `3=0@10`."""
+    m = _FAULT_RE.match(text)
+    if not m:
+        raise UserInputError(
+            f"--fault {text!r}: expected UNIT[:ROTOR]=ETA[@T], e.g. 2:2=0.5 or 3=0@10"
+        )
+    try:
+        eta = float(m["eta"])
+        t = float(m["t"]) if m["t"] else 0.0
+    except ValueError:
+        raise UserInputError(f"--fault {text!r}: ETA and T must be numbers") from None
+    return FaultSpec(int(m["unit"]), int(m["rotor"]) if m["rotor"] else None, eta, t)
+
+
+def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
+    _check_keys(doc, _TOP_KEYS, "the top level", src)
+    name = doc.get("name", Path(src).stem if src.endswith(".toml") else "scenario")
+    if not isinstance(name, str) or not name:
+        raise UserInputError(f"{src}: name must be a non-empty string")
+    sc = Scenario(name=name, source=src)
+
+    vehicle = _table(doc, "vehicle", src)
+    _check_keys(vehicle, _VEHICLE_KEYS, "[vehicle]", src)
+    sc.preset = vehicle.get("preset", sc.preset)
+    if sc.preset not in PRESETS:
+        raise UserInputError(
+            f"{src}: unknown vehicle preset {sc.preset!r} (known: {', '.join(sorted(PRESETS))})"
+        )
+    for key in _VEHICLE_KEYS - {"preset"}:
+        if key in vehicle:
+            sc.vehicle_options[key] = _number(
+                vehicle[key], f"[vehicle] {key}", src, nonneg=key != "rotor_min_thrust_n"
+            )
+
+    assembly = _table(doc, "assembly", src)
+    _check_keys(assembly, _ASSEMBLY_KEYS, "[assembly]", src)
+    layout = assembly.get("layout", list(sc.layout))
+    if isinstance(layout, str):
+        layout = [layout]
+    if not isinstance(layout, list) or not all(isinstance(r, str) for r in layout):
+        raise UserInputError(f"{src}: [assembly] layout must be a list of strings like [\"XXX\", \"XXX\"]")
+    try:
+        sc.layout = parse_layout(layout)
+    except UserInputError as exc:
+        raise UserInputError(f"{src}: [assembly] {exc}") from None
+    sc.tracked = assembly.get("tracked", sc.tracked)
+    if not isinstance(sc.tracked, str) or not re.fullmatch(r"com|unit:\d+", sc.tracked):
+        raise UserInputError(f"{src}: [assembly] tracked must be \"com\" or \"unit:N\", got {sc.tracked!r}")
+
+    trajectory = _table(doc, "trajectory", src)
+    if trajectory:
+        if "kind" not in trajectory:
+            raise UserInputError(f"{src}: [trajectory] needs a kind")
+        sc.trajectory = dict(trajectory)
+
+    control = _table(doc, "control", src)
+    _check_keys(control, _CONTROL_KEYS, "[control]", src)
+    sc.controller = control.get("controller", sc.controller)
+    if sc.controller not in CONTROLLERS:
+        raise UserInputError(
+            f"{src}: unknown controller {sc.controller!r} (known: {', '.join(CONTROLLERS)})"
+        )
+    sc.ftc = control.get("ftc", sc.ftc)
+    if sc.ftc not in FTC_MODES:
+        raise UserInputError(f"{src}: unknown ftc mode {sc.ftc!r} (known: {', '.join(FTC_MODES)})")
+    fk = control.get("faults_known", True)
+    if not isinstance(fk, bool):
+        raise UserInputError(f"{src}: [control] faults_known must be true or false")
+    sc.faults_known = fk
+
+    faults = doc.get("faults", [])
+    if not isinstance(faults, list):
+        raise UserInputError(f"{src}: faults must be an array of tables ([[faults]])")
+    for i, f in enumerate(faults, 1):
+        where = f"[[faults]] #{i}"
+        if not isinstance(f, dict):
+            raise UserInputError(f"{src}: {where} must be a table")
+        _check_keys(f, _FAULT_KEYS, where, src)
+        for key in ("unit", "eta"):
+            if key not in f:
+                raise UserInputError(f"{src}: {where} needs {key!r}")
+        rotor = f.get("rotor")
+        sc.faults.append(
+            FaultSpec(
+                unit=_integer(f["unit"], f"{where} unit", src),
+                rotor=None if rotor is None else _integer(rotor, f"{where} rotor", src),
+                eta=_number(f["eta"], f"{where} eta", src),
+                t_s=_number(f.get("t", 0.0), f"{where} t", src),
+            )
+        )
+
+    sim = _table(doc, "sim", src)
+    _check_keys(sim, _SIM_KEYS, "[sim]", src)
+    if "duration_s" in sim:
+        sc.sim.duration_s = _number(sim["duration_s"], "[sim] duration_s", src, positive=True)
+    if "physics_hz" in sim:
+        sc.sim.physics_hz = _number(sim["physics_hz"], "[sim] physics_hz", src, positive=True)
+    if "control_hz" in sim:
+        sc.sim.control_hz = _number(sim["control_hz"], "[sim] control_hz", src, positive=True)
+    if "seed" in sim:
+        sc.sim.seed = _integer(sim["seed"], "[sim] seed", src)
+    if "noise" in sim:
+        if not isinstance(sim["noise"], bool):
+            raise UserInputError(f"{src}: [sim] noise must be true or false")
+        sc.sim.noise = sim["noise"]
+    check_rates(sc.sim, src)
+
+    model = sc.model()
+    tracked = sc.tracked_unit()
+    if tracked is not None:
+        try:
+            model.check_rotor(tracked, None)
+        except UserInputError as exc:
+            raise UserInputError(f"{src}: [assembly] tracked: {exc}") from None
+    for i, fault in enumerate(sc.faults, 1):
+        validate_fault(fault, model, f"{src}: [[faults]] #{i}")
+    return sc
+
+
+def check_rates(sim: SimSpec, src: str) -> None:
+    ratio = sim.physics_hz / sim.control_hz
+    if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
+        raise UserInputError(
+            f"{src}: [sim] physics_hz ({sim.physics_hz:g}) must be a whole multiple of control_hz "
+            f"({sim.control_hz:g})"
+        )
+
+
+def resolve_scenario_path(arg: str | None) -> Path:
+    """A path, or the name of a bundled scenario (`spiral_3x2`), or None for the default."""
+    if arg is None:
+        arg = DEFAULT_SCENARIO
+    path = Path(arg)
+    if path.exists():
+        return path
+    bundled = SCENARIO_DIR / (arg if arg.endswith(".toml") else f"{arg}.toml")
+    if bundled.exists():
+        return bundled
+    raise UserInputError(f"scenario {arg!r} not found (no such file, and no bundled scenario of that name)")
+
+
+def load_scenario(arg: str | None) -> Scenario:
+    path = resolve_scenario_path(arg)
+    src = str(path) if not path.is_relative_to(SCENARIO_DIR) else path.name
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserInputError(f"{src}: cannot read scenario: {exc}") from None
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise UserInputError(f"{src}: malformed TOML: {exc}") from None
+    return scenario_from_dict(doc, src)
