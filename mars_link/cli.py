@@ -46,11 +46,12 @@ def cmd_run(args) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from mars_link.runner import run_scenario
     from mars_link.scenario import load_scenario
 
     scenario = load_scenario(args.scenario)
     _apply_overrides(scenario, args)
+    from mars_link.runner import run_scenario
+
     if args.trials < 1:
         raise UserInputError(f"--trials must be >= 1, got {args.trials}")
     if args.mode != "inproc":

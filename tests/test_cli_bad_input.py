@@ -1,0 +1,67 @@
+"""Bad input to `mars-link run`: one readable line naming the problem, exit code 2, no traceback."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+GOOD = """
+name = "t"
+[vehicle]
+preset = "mars-ftcc"
+[assembly]
+layout = ["XXX", "XXX"]
+[trajectory]
+kind = "hover"
+[sim]
+duration_s = 1
+"""
+
+
+def run_cli(tmp_path: Path, toml_text: str | None, *extra: str) -> subprocess.CompletedProcess:
+    args = [sys.executable, "-m", "mars_link.cli", "run"]
+    if toml_text is not None:
+        path = tmp_path / "scenario.toml"
+        path.write_text(toml_text)
+        args.append(str(path))
+    args += ["--out", str(tmp_path / "out"), "--quiet", *extra]
+    return subprocess.run(args, capture_output=True, text=True, timeout=60)
+
+
+CASES = {
+    "malformed toml": (GOOD.replace('layout = ["XXX", "XXX"]', 'layout = ["XXX", "XXX"'), (), "malformed TOML"),
+    "unknown key": (GOOD + "\n[control]\nspeed = 3\n", (), "unknown key 'speed'"),
+    "unknown top-level key": ("colour = 'red'\n" + GOOD, (), "unknown key 'colour'"),
+    "unknown preset": (GOOD.replace("mars-ftcc", "mars-xyz"), (), "unknown vehicle preset 'mars-xyz'"),
+    "layout with a gap": (GOOD.replace('["XXX", "XXX"]', '["X X", "XXX"]'), (), "characters other than"),
+    "layout not connected": (GOOD.replace('["XXX", "XXX"]', '["X.X"]'), (), "not connected"),
+    "eta above 1": (GOOD + "\n[[faults]]\nunit = 2\nrotor = 1\neta = 1.5\n", (), "eta must be in [0, 1]"),
+    "eta below 0 on the CLI": (GOOD, ("--fault", "2:1=-0.2"), "eta must be in [0, 1]"),
+    "unit does not exist": (GOOD + "\n[[faults]]\nunit = 7\neta = 0\n", (), "unit 7 does not exist"),
+    "rotor does not exist": (GOOD, ("--fault", "2:5=0.5"), "rotor 5 does not exist"),
+    "negative duration": (GOOD.replace("duration_s = 1", "duration_s = -3"), (), "duration_s must be > 0"),
+    "missing scenario file": (None, ("no/such/file.toml",), "not found"),
+    "bad fault syntax": (GOOD, ("--fault", "two=half"), "expected UNIT[:ROTOR]=ETA[@T]"),
+    "bad seed": (GOOD, ("--seed", "abc"), "invalid int value"),
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bad_input_is_one_line_exit_2(tmp_path: Path, name: str) -> None:
+    text, extra, needle = CASES[name]
+    if text is None:
+        proc = subprocess.run(
+            [sys.executable, "-m", "mars_link.cli", "run", *extra, "--quiet"],
+            capture_output=True, text=True, timeout=60,
+        )
+    else:
+        proc = run_cli(tmp_path, text, *extra)
+    assert proc.returncode == 2, (proc.returncode, proc.stdout, proc.stderr)
+    err = proc.stderr.strip()
+    assert "Traceback" not in proc.stderr
+    assert len(err.splitlines()) == 1, err
+    assert needle in err, err
+    assert not (tmp_path / "out" / "summary.json").exists()
