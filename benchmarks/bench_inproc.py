@@ -1,0 +1,71 @@
+"""In-process real-time factor of a scenario, with a per-stage breakdown.
+
+    python benchmarks/bench_inproc.py [SCENARIO] [--duration S] [--no-log]
+
+Default: the bundled 3x2 spiral at 500 Hz physics / 100 Hz control, noise on (EKF in the loop).
+Also times bare JSBSim stepping of the same assembly in the same run, so the ratio to the physics
+bound is measured on the same (shared, noisy) machine state.
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mars_link.runner import run_scenario
+from mars_link.scenario import load_scenario
+
+
+def bare_physics_steps_per_s(scenario, seconds: float = 2.0) -> float:
+    from sitl.physics import JsbsimBody
+
+    model = scenario.model()
+    body = JsbsimBody(model, physics_hz=scenario.sim.physics_hz)
+    hover = np.full(model.n_rotors, model.hover_thrust_per_rotor_n())
+    n = int(seconds * scenario.sim.physics_hz)
+    t0 = time.perf_counter()
+    for i in range(n):
+        body.set_rotor_thrusts(hover * (1.0 + 1e-3 * (i % 2)))
+        body.step()
+    dt = time.perf_counter() - t0
+    body.close()
+    return n / dt
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("scenario", nargs="?", default="spiral_3x2")
+    ap.add_argument("--duration", type=float, default=None)
+    ap.add_argument("--no-log", action="store_true", help="do not write the run directory")
+    args = ap.parse_args()
+    sc = load_scenario(args.scenario)
+    if args.duration:
+        sc.sim.duration_s = args.duration
+    with tempfile.TemporaryDirectory() as tmp:
+        out = None if args.no_log else Path(tmp) / "run"
+        summary = run_scenario(sc, out, trials=1, plots=False)
+    phys_rate = bare_physics_steps_per_s(sc)
+    sim_t, wall = summary["sim_time_s"], summary["wall_time_s"]
+    steps = sim_t * sc.sim.physics_hz
+    print(f"scenario {sc.name}: {','.join(sc.layout)}, physics {sc.sim.physics_hz:g} Hz, "
+          f"control {sc.sim.control_hz:g} Hz, noise {sc.sim.noise}")
+    print(f"sim time {sim_t:.2f} s, wall {wall:.2f} s, real-time factor {summary['real_time_factor']:.1f}x "
+          f"(mean error {summary['mean_error_m']:.4f} m)")
+    bound = phys_rate / sc.sim.physics_hz
+    print(f"bare JSBSim stepping with per-step rotor writes: {phys_rate:,.0f} steps/s "
+          f"= {bound:.1f}x real time; full loop is {bound / summary['real_time_factor']:.2f}x slower")
+    print(f"{'stage':<12}{'total s':>9}{'share':>8}{'us/physics step':>17}")
+    stage = summary["stage_time_s"]
+    accounted = sum(stage.values())
+    for name, sec in stage.items():
+        print(f"{name:<12}{sec:>9.3f}{sec / wall:>8.1%}{1e6 * sec / steps:>17.1f}")
+    print(f"{'other':<12}{wall - accounted:>9.3f}{(wall - accounted) / wall:>8.1%}"
+          f"{1e6 * (wall - accounted) / steps:>17.1f}")
+
+
+if __name__ == "__main__":
+    main()
