@@ -1,0 +1,542 @@
+"""State estimation: one error-state EKF per rigid body, fusing every member unit's IMU and position.
+
+Why this shape:
+
+* All units of a rigid assembly share one motion, so their IMUs are combined into one CoM IMU
+  (`combine_imus`): gyros are averaged after removing each unit's bias *relative to the others*
+  (observable directly, since a rigid body has one angular rate), specific forces are averaged and
+  corrected for the lever arm of the mean position of the units that reported (zero when all
+  report, because identical units have their CoM at their centroid).
+* Each unit's position sample measures the unit centre, ``p_i = p_com + R r_i``. Stacking the units
+  in one update makes attitude, yaw included, observable from geometry alone.
+* The filter is an error-state (multiplicative quaternion) EKF built on filterpy's
+  `ExtendedKalmanFilter`: filterpy holds the 15-element error state and covariance and does the
+  Joseph-form update; the nominal state (p, v, q, gyro bias, accel bias) is propagated here and the
+  error is injected into it and reset to zero after every update (specs/dependencies.md §3:
+  filterpy's `predict()` is linear, so `predict_x` is overridden).
+
+Error state order: dp (NED), dv (NED), dtheta (body, R_true = R exp([dtheta]x)), dbg, dba.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from filterpy.kalman import ExtendedKalmanFilter
+
+from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
+from mars_link.errors import UserInputError
+from mars_link.rotations import euler_to_quat, quat_multiply, quat_to_rotmat, rotmat_to_quat, skew
+from mars_link.state import ImuSample, PositionSample, RigidBodyState
+
+N_ERR = 15
+P_, V_, TH_, BG_, BA_ = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
+
+
+@dataclass
+class EstimatorParams:
+    """Sensor noise (per unit, per sample, 1-sigma) and filter tuning. Defaults match sitl sensors."""
+
+    gyro_noise_radps: float = 0.003
+    accel_noise_mps2: float = 0.05
+    position_noise_m: float = 0.01
+    velocity_noise_mps: float = 0.05  # used only when a PositionSample carries a velocity
+    gyro_bias_walk_radps_per_sqrt_s: float = 1e-5
+    accel_bias_walk_mps2_per_sqrt_s: float = 1e-4
+    initial_gyro_bias_std_radps: float = 0.003
+    initial_accel_bias_std_mps2: float = 0.05
+    initial_velocity_std_mps: float = 0.1
+    initial_tilt_std_rad: float = 0.02
+    initial_yaw_std_rad: float = 0.5  # used when the geometry cannot give yaw (one unit)
+    estimate_accel_bias: bool = True
+    relative_bias_gain: float = 0.01  # per IMU sample, for each unit's gyro bias relative to the mean
+    position_gate_nis: float = 30.0  # a unit's position innovation beyond this NIS (3 dof) is rejected
+    nis_average_gain: float = 0.01  # exponential average of NIS (exposed for monitoring)
+    max_step_s: float = 0.1  # longer IMU gaps are propagated in pieces of this size
+    gravity_mps2: float = GRAVITY_MPS2
+
+    def __post_init__(self) -> None:
+        for name, value in vars(self).items():
+            if isinstance(value, bool):
+                continue
+            if not math.isfinite(value) or value < 0:
+                raise UserInputError(f"estimator parameter {name} must be a finite number >= 0, got {value!r}")
+        for name in ("gyro_noise_radps", "accel_noise_mps2", "position_noise_m", "velocity_noise_mps", "max_step_s"):
+            if getattr(self, name) <= 0:
+                raise UserInputError(f"estimator parameter {name} must be > 0, got {getattr(self, name)!r}")
+        if not 0 < self.relative_bias_gain <= 1 or not 0 < self.nis_average_gain <= 1:
+            raise UserInputError("estimator gains relative_bias_gain and nis_average_gain must be in (0, 1]")
+
+
+@dataclass
+class CombinedImu:
+    """The assembly's IMU at the CoM, from the units that reported at `t_s` (biases not removed)."""
+
+    t_s: float
+    gyro_frd_radps: np.ndarray
+    accel_frd_mps2: np.ndarray  # specific force at the CoM
+    units: tuple[int, ...]
+    gyro_residual_radps: np.ndarray  # (k, 3) per unit in `units`: own gyro - combined, relative bias removed
+    accel_residual_mps2: np.ndarray  # (k, 3) per unit: own specific force - rigid-body prediction
+
+
+@dataclass
+class InnovationStats:
+    """Residuals of the latest updates; fault detection and health monitoring read these."""
+
+    t_s: float = float("nan")
+    nis: float = float("nan")  # normalised innovation squared of the last position update
+    dof: int = 0  # its degrees of freedom (3 per accepted unit, +3 per velocity)
+    nis_mean_per_dof: float = 1.0  # exponential average of nis / dof (about 1 when consistent)
+    position_innovation_m: dict[int, np.ndarray] = field(default_factory=dict)  # unit -> NED
+    rejected: dict[str, int] = field(default_factory=dict)  # reason -> count of ignored inputs
+    imu: CombinedImu | None = None  # the last combined IMU, with per-unit residuals
+
+    def gyro_residual_radps(self) -> dict[int, np.ndarray]:
+        """unit -> its gyro minus the combined rate (relative bias removed): a unit sensor fault shows here."""
+        return {} if self.imu is None else dict(zip(self.imu.units, self.imu.gyro_residual_radps))
+
+    def accel_residual_mps2(self) -> dict[int, np.ndarray]:
+        """unit -> its specific force minus the rigid-body prediction at its lever arm."""
+        return {} if self.imu is None else dict(zip(self.imu.units, self.imu.accel_residual_mps2))
+
+
+def quat_from_rotvec(phi: np.ndarray) -> np.ndarray:
+    """exp map: rotation vector (rad) -> unit quaternion (w, x, y, z)."""
+    angle = math.sqrt(float(phi @ phi))
+    if angle < 1e-8:
+        q = np.array([1.0, 0.5 * phi[0], 0.5 * phi[1], 0.5 * phi[2]])
+        return q / np.linalg.norm(q)
+    s = math.sin(0.5 * angle) / angle
+    return np.array([math.cos(0.5 * angle), s * phi[0], s * phi[1], s * phi[2]])
+
+
+def _vec3(v) -> np.ndarray | None:
+    """v as a float 3-vector, or None when it is not one or holds NaN/inf (untrusted input)."""
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if a.shape != (3,) or not math.isfinite(a[0] + a[1] + a[2]):
+        return None
+    return a
+
+
+def _skews(rows: np.ndarray) -> np.ndarray:
+    """(k, 3) vectors -> (k, 3, 3) cross-product matrices."""
+    out = np.zeros((len(rows), 3, 3))
+    out[:, 0, 1], out[:, 0, 2], out[:, 1, 2] = -rows[:, 2], rows[:, 1], -rows[:, 0]
+    out[:, 1, 0], out[:, 2, 0], out[:, 2, 1] = rows[:, 2], -rows[:, 1], rows[:, 0]
+    return out
+
+
+class ImuCombiner:
+    """Turns per-unit IMU samples of one instant into one CoM IMU (see module docstring).
+
+    Keeps each unit's gyro bias relative to the assembly mean (`relative_gyro_bias`), so that the
+    average stays consistent when some units drop out; and the last angular rate, for the angular
+    acceleration in the lever-arm correction.
+    """
+
+    def __init__(self, model: AssemblyModel, gain: float) -> None:
+        self.gain = gain
+        self.set_model(model)
+
+    def set_model(self, model: AssemblyModel) -> None:
+        old = getattr(self, "relative_gyro_bias", None)
+        old_ids = getattr(self, "unit_ids", [])
+        self.unit_ids = list(model.unit_ids)
+        self.offsets_m = np.array(model.unit_positions_m, dtype=float)
+        self.relative_gyro_bias = np.zeros((len(self.unit_ids), 3))
+        if old is not None:
+            for k, uid in enumerate(self.unit_ids):
+                if uid in old_ids:
+                    self.relative_gyro_bias[k] = old[old_ids.index(uid)]
+        self._index = {uid: k for k, uid in enumerate(self.unit_ids)}
+        self._last: tuple[float, np.ndarray] | None = None
+
+    def combine(self, samples: list[ImuSample]) -> CombinedImu | None:
+        """Samples of one instant (distinct, known units) -> CoM IMU; updates the relative biases."""
+        if not samples:
+            return None
+        k = len(samples)
+        units = tuple(s.unit_id for s in samples)
+        every = k == len(self.unit_ids) and units == tuple(self.unit_ids)
+        idx = slice(None) if every else np.array([self._index[u] for u in units])
+        gyros = np.array([s.gyro_frd_radps for s in samples])
+        accels = np.array([s.accel_frd_mps2 for s in samples])
+        t = samples[0].t_s
+        d = self.relative_gyro_bias
+        inv_k = 1.0 / k
+        if k >= 2:  # rigid body: gyro differences are bias differences plus noise
+            dk = d[idx]
+            err = gyros - dk
+            err -= err.sum(axis=0) * inv_k
+            d[idx] = dk + self.gain * err
+            d -= d.sum(axis=0) * (1.0 / len(d))
+        corrected = gyros - d[idx]
+        omega = corrected.sum(axis=0) * inv_k
+        sw = skew(omega)
+        lever_map = sw @ sw
+        if self._last is not None and t > self._last[0]:
+            lever_map += skew((omega - self._last[1]) / (t - self._last[0]))  # angular acceleration
+        # rigid body: f_i = f_com + alpha x r_i + omega x (omega x r_i)
+        lever = self.offsets_m[idx] @ lever_map.T
+        accel_com = accels - lever
+        accel = accel_com.sum(axis=0) * inv_k
+        self._last = (t, omega)
+        return CombinedImu(t, omega, accel, units, corrected - omega, accel_com - accel)
+
+
+class _ErrorStateEkf(ExtendedKalmanFilter):
+    """filterpy EKF holding the error state; the nominal-state propagation lives in the estimator."""
+
+    def predict_x(self, u=0) -> None:  # the error state is zero after every reset: it stays zero
+        self.x = np.zeros(self.dim_x)
+
+
+class AssemblyEstimator:
+    """EKF for one rigid body (an assembly of docked units).
+
+    Use either `step(t_s, imu_samples, position_samples) -> RigidBodyState` once per control tick
+    (the runner's path), or the streaming path: `on_imu(sample)` / `on_position(sample)` as they
+    arrive, then `predict_to(t_s)` to process everything buffered up to `t_s`. Samples that share a
+    timestamp are processed together: the IMU group propagates the state to that time (trapezoidal
+    between consecutive IMU groups), then the position group is fused. The first instant that has
+    both an IMU and a position group initialises the filter (assumes the assembly at rest).
+    """
+
+    def __init__(self, model: AssemblyModel, params: EstimatorParams | None = None) -> None:
+        self.params = params or EstimatorParams()
+        self.model = model
+        self.combiner = ImuCombiner(model, self.params.relative_bias_gain)
+        self.stats = InnovationStats()
+        self._ekf = _ErrorStateEkf(dim_x=N_ERR, dim_z=3)
+        self._ekf.x = np.zeros(N_ERR)
+        self._pending_imu: list[ImuSample] = []
+        self._pending_pos: list[PositionSample] = []
+        self._imu: CombinedImu | None = None  # last IMU group used
+        self._init_imu: CombinedImu | None = None
+        self.initialised = False
+        self.t_s = 0.0
+        self.p = np.zeros(3)
+        self.v = np.zeros(3)
+        self.q = np.array([1.0, 0.0, 0.0, 0.0])
+        self.bg = np.zeros(3)
+        self.ba = np.zeros(3)
+        self._g = np.array([0.0, 0.0, self.params.gravity_mps2])
+        self._F = np.eye(N_ERR)
+        self._q_cache: dict[tuple[float, int], np.ndarray] = {}
+
+    # ----------------------------------------------------------------- inputs
+    def on_imu(self, sample: ImuSample) -> None:
+        if not self._accept(sample.unit_id, sample.t_s, "imu"):
+            return
+        gyro, accel = _vec3(sample.gyro_frd_radps), _vec3(sample.accel_frd_mps2)
+        if gyro is None or accel is None:
+            self._reject("imu_not_finite")
+            return
+        self._pending_imu.append(ImuSample(sample.t_s, sample.unit_id, gyro, accel))
+
+    def on_position(self, sample: PositionSample) -> None:
+        if not self._accept(sample.unit_id, sample.t_s, "position"):
+            return
+        pos = _vec3(sample.position_ned_m)
+        if pos is None:
+            self._reject("position_not_finite")
+            return
+        vel = None if sample.velocity_ned_mps is None else _vec3(sample.velocity_ned_mps)
+        self._pending_pos.append(PositionSample(sample.t_s, sample.unit_id, pos, vel))
+
+    def _accept(self, unit_id: int, t_s: float, kind: str) -> bool:
+        if unit_id not in self.combiner._index:
+            self._reject(f"{kind}_unknown_unit")
+            return False
+        if not math.isfinite(t_s) or (self.initialised and t_s < self.t_s - 1e-9):
+            self._reject(f"{kind}_stale_or_bad_time")
+            return False
+        return True
+
+    def _reject(self, reason: str) -> None:
+        self.stats.rejected[reason] = self.stats.rejected.get(reason, 0) + 1
+
+    def step(
+        self, t_s: float, imu_samples: list[ImuSample], position_samples: list[PositionSample]
+    ) -> RigidBodyState:
+        """Feed one tick's samples, process everything up to `t_s`, return the estimate at `t_s`."""
+        for s in imu_samples:
+            self.on_imu(s)
+        for s in position_samples:
+            self.on_position(s)
+        self.predict_to(t_s)
+        return self.state()
+
+    def predict_to(self, t_s: float) -> None:
+        """Process buffered samples with time <= t_s in time order, then propagate to t_s."""
+        limit = t_s + 1e-9
+        groups: dict[float, tuple[dict, dict]] = {}
+        for kind, pending in ((0, self._pending_imu), (1, self._pending_pos)):
+            for s in pending:
+                if s.t_s <= limit:
+                    groups.setdefault(s.t_s, ({}, {}))[kind][s.unit_id] = s  # last sample per unit wins
+        self._pending_imu = [s for s in self._pending_imu if s.t_s > limit]
+        self._pending_pos = [s for s in self._pending_pos if s.t_s > limit]
+        for tau in sorted(groups):
+            imu_group, pos_group = groups[tau]
+            imu = self.combiner.combine(list(imu_group.values()))
+            if imu is not None:
+                self.stats.imu = imu
+            pos = list(pos_group.values())
+            if not self.initialised:
+                self._init_imu = imu or self._init_imu
+                if self._init_imu is not None and pos:
+                    self._initialise(tau, self._init_imu, pos)
+                continue
+            self._propagate(tau, imu)
+            if pos:
+                self._fuse_positions(pos)
+        if self.initialised and t_s > self.t_s:
+            self._propagate(t_s, None)
+
+    # ----------------------------------------------------------------- outputs
+    def state(self) -> RigidBodyState:
+        omega = np.zeros(3) if self._imu is None else self._imu.gyro_frd_radps - self.bg
+        acc = np.zeros(3)
+        if self._imu is not None and self.initialised:
+            acc = quat_to_rotmat(self.q) @ (self._imu.accel_frd_mps2 - self.ba) + self._g
+        return RigidBodyState(
+            t_s=self.t_s,
+            position_ned_m=self.p.copy(),
+            velocity_ned_mps=self.v.copy(),
+            quaternion_wxyz=self.q.copy(),
+            angular_velocity_frd_radps=omega,
+            acceleration_ned_mps2=acc,
+        )
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """15 x 15 error-state covariance (order dp, dv, dtheta, dbg, dba)."""
+        return self._ekf.P.copy()
+
+    @property
+    def gyro_bias_radps(self) -> np.ndarray:
+        """Mean gyro bias over the units (each unit's relative part is in `combiner`)."""
+        return self.bg.copy()
+
+    @property
+    def accel_bias_mps2(self) -> np.ndarray:
+        return self.ba.copy()
+
+    def last_imu(self) -> CombinedImu | None:
+        """The last combined CoM IMU (raw, biases not removed)."""
+        return self._imu
+
+    # ----------------------------------------------------------------- reset / reconfigure
+    def reset(self, state: RigidBodyState, position_std_m: float = 0.05, attitude_std_rad: float = 0.05) -> None:
+        """Restart from a known state (biases kept); covariance from the given 1-sigma values."""
+        self.t_s = float(state.t_s)
+        self.p = np.array(state.position_ned_m, dtype=float)
+        self.v = np.array(state.velocity_ned_mps, dtype=float)
+        q = np.array(state.quaternion_wxyz, dtype=float)
+        self.q = q / np.linalg.norm(q)
+        self._set_initial_covariance(position_std_m, attitude_std_rad, attitude_std_rad)
+        self._pending_imu = [s for s in self._pending_imu if s.t_s > self.t_s]
+        self._pending_pos = [s for s in self._pending_pos if s.t_s > self.t_s]
+        self.initialised = True
+
+    def set_model(self, model: AssemblyModel) -> None:
+        """Switch to a new assembly (docking/undocking). The estimate moves to the new CoM.
+
+        The CoM shift is taken from the units common to both models (same id, same body axes):
+        r_old - r_new is the new CoM in the old body frame. Without common units the reference
+        point is kept.
+        """
+        common = [u for u in model.unit_ids if u in self.model.unit_cells]
+        if common and self.initialised:
+            shift = np.mean([self.model.unit_position(u) - model.unit_position(u) for u in common], axis=0)
+            rot = quat_to_rotmat(self.q)
+            omega = np.zeros(3) if self._imu is None else self._imu.gyro_frd_radps - self.bg
+            self.p = self.p + rot @ shift
+            self.v = self.v + rot @ np.cross(omega, shift)
+            jac = -rot @ skew(shift)  # d(R shift)/d theta
+            t = np.eye(N_ERR)
+            t[P_, TH_] = jac
+            self._ekf.P = t @ self._ekf.P @ t.T
+        self.model = model
+        self.combiner.set_model(model)
+        self._imu = None
+
+    # ----------------------------------------------------------------- filter internals
+    def _initialise(self, t_s: float, imu: CombinedImu, pos: list[PositionSample]) -> None:
+        f = imu.accel_frd_mps2
+        roll = math.atan2(-f[1], -f[2])
+        pitch = math.atan2(f[0], math.hypot(f[1], f[2]))
+        tilt = _euler_rotmat(roll, pitch, 0.0)
+        body = np.array([tilt @ self.model.unit_position(s.unit_id) for s in pos])
+        world = np.array([s.position_ned_m for s in pos], dtype=float)
+        b = body - body.mean(axis=0)
+        w = world - world.mean(axis=0)
+        spread = float(np.sum(b[:, :2] ** 2))
+        yaw_known = spread > (4 * self.params.position_noise_m) ** 2 * len(pos)
+        yaw = 0.0
+        if yaw_known:
+            yaw = math.atan2(float(np.sum(b[:, 0] * w[:, 1] - b[:, 1] * w[:, 0])), float(np.sum(b[:, 0] * w[:, 0] + b[:, 1] * w[:, 1])))
+        rot = _euler_rotmat(roll, pitch, yaw)
+        self.q = rotmat_to_quat(rot)
+        self.p = world.mean(axis=0) - rot @ np.mean([self.model.unit_position(s.unit_id) for s in pos], axis=0)
+        self.v = np.zeros(3)
+        self.t_s = t_s
+        self._imu = imu
+        sigma = self.params.position_noise_m
+        yaw_std = 2 * sigma / math.sqrt(spread) if yaw_known else self.params.initial_yaw_std_rad
+        self._set_initial_covariance(2 * sigma, self.params.initial_tilt_std_rad, yaw_std)
+        self.initialised = True
+
+    def _set_initial_covariance(self, pos_std: float, tilt_std: float, yaw_std: float) -> None:
+        pr = self.params
+        var = np.concatenate(
+            [
+                np.full(3, pos_std**2),
+                np.full(3, pr.initial_velocity_std_mps**2),
+                [tilt_std**2, tilt_std**2, yaw_std**2],
+                np.full(3, pr.initial_gyro_bias_std_radps**2),
+                np.full(3, pr.initial_accel_bias_std_mps2**2 if pr.estimate_accel_bias else 0.0),
+            ]
+        )
+        self._ekf.P = np.diag(var)
+        self._ekf.x = np.zeros(N_ERR)
+
+    def _propagate(self, t_s: float, imu: CombinedImu | None) -> None:
+        prev = self._imu
+        if prev is None:  # no IMU since (re)start: hold the state, only grow uncertainty
+            self._imu = imu
+            self.t_s = max(self.t_s, t_s)
+            return
+        while t_s - self.t_s > self.params.max_step_s + 1e-12:
+            self._propagate_once(self.t_s + self.params.max_step_s, prev.gyro_frd_radps, prev.accel_frd_mps2, prev.units)
+        cur = prev if imu is None else imu
+        dt = t_s - self.t_s
+        if dt > 0:
+            self._propagate_once(
+                t_s,
+                0.5 * (prev.gyro_frd_radps + cur.gyro_frd_radps),
+                0.5 * (prev.accel_frd_mps2 + cur.accel_frd_mps2),
+                cur.units,
+            )
+        if imu is not None:
+            self._imu = imu
+
+    def _process_noise(self, dt: float, n_imus: int) -> np.ndarray:
+        """Discrete Q for one step; averaging n IMUs divides the white-noise variances by n."""
+        pr = self.params
+        q_att = (pr.gyro_noise_radps * dt) ** 2 / n_imus
+        q_vel = (pr.accel_noise_mps2 * dt) ** 2 / n_imus
+        Q = np.zeros((N_ERR, N_ERR))
+        Q[P_, P_] = np.eye(3) * q_vel * dt * dt / 4
+        Q[P_, V_] = Q[V_, P_] = np.eye(3) * q_vel * dt / 2
+        Q[V_, V_] = np.eye(3) * q_vel
+        Q[TH_, TH_] = np.eye(3) * q_att
+        Q[BG_, BG_] = np.eye(3) * pr.gyro_bias_walk_radps_per_sqrt_s**2 * dt
+        if pr.estimate_accel_bias:
+            Q[BA_, BA_] = np.eye(3) * pr.accel_bias_walk_mps2_per_sqrt_s**2 * dt
+        return Q
+
+    def _propagate_once(self, t_s: float, gyro: np.ndarray, accel: np.ndarray, units: tuple[int, ...]) -> None:
+        dt = t_s - self.t_s
+        omega = gyro - self.bg
+        f = accel - self.ba
+        dq = quat_from_rotvec(omega * dt)
+        rot_mid = quat_to_rotmat(quat_multiply(self.q, quat_from_rotvec(omega * (0.5 * dt))))
+        a = rot_mid @ f + self._g
+        self.p = self.p + self.v * dt + 0.5 * a * dt * dt
+        self.v = self.v + a * dt
+        q = quat_multiply(self.q, dq)
+        self.q = q / np.linalg.norm(q)
+        self.t_s = t_s
+
+        F = self._F  # identity outside the blocks written here
+        F[P_, V_] = np.diag((dt, dt, dt))
+        F[V_, TH_] = rot_mid @ skew(f) * -dt
+        F[V_, BA_] = rot_mid * -dt
+        F[TH_, TH_] = quat_to_rotmat(dq).T
+        F[TH_, BG_] = np.diag((-dt, -dt, -dt))
+        key = (round(dt, 9), len(units))
+        if key not in self._q_cache:
+            if len(self._q_cache) > 64:
+                self._q_cache.clear()
+            self._q_cache[key] = self._process_noise(dt, max(len(units), 1))
+        ekf = self._ekf
+        ekf.F = F
+        ekf.Q = self._q_cache[key]
+        ekf.predict()
+
+    def _fuse_positions(self, samples: list[PositionSample]) -> None:
+        """One stacked update: z_i = p + R r_i per unit (+ v + R (omega x r_i) when given)."""
+        ekf = self._ekf
+        rot = quat_to_rotmat(self.q)
+        idx = np.array([self.combiner._index[s.unit_id] for s in samples])
+        k = len(idx)
+        offsets = self.combiner.offsets_m[idx]
+        h_theta = -np.matmul(rot, _skews(offsets))  # d(R r_i)/d theta, (k, 3, 3)
+        H3 = np.zeros((k, 3, N_ERR))
+        H3[:, :, P_] = np.eye(3)
+        H3[:, :, TH_] = h_theta
+        y3 = np.array([s.position_ned_m for s in samples]) - (self.p + offsets @ rot.T)
+        # gate each unit on its own 3x3 innovation block, so one bad receiver cannot pull the body
+        r_pos = self.params.position_noise_m**2
+        s_blocks = np.matmul(np.matmul(H3, ekf.P), H3.transpose(0, 2, 1)) + r_pos * np.eye(3)
+        nis_units = np.einsum("ki,ki->k", y3, np.linalg.solve(s_blocks, y3[:, :, None])[:, :, 0])
+        ok = nis_units <= self.params.position_gate_nis
+        self.stats.position_innovation_m = {s.unit_id: y3[i].copy() for i, s in enumerate(samples)}
+        if not ok.all():
+            self.stats.rejected["position_gate"] = self.stats.rejected.get("position_gate", 0) + int((~ok).sum())
+            if not ok.any():
+                return
+        H = H3[ok].reshape(-1, N_ERR)
+        y = y3[ok].reshape(-1)
+        rdiag = np.full(len(y), r_pos)
+        with_vel = [i for i, s in enumerate(samples) if ok[i] and s.velocity_ned_mps is not None]
+        if with_vel:
+            hv, yv = self._velocity_rows([samples[i] for i in with_vel], rot, offsets[with_vel])
+            H, y = np.vstack([H, hv]), np.concatenate([y, yv])
+            rdiag = np.concatenate([rdiag, np.full(len(yv), self.params.velocity_noise_mps**2)])
+        # filterpy computes z - Hx: hand it the innovation as z with Hx = 0
+        ekf.update(y, HJacobian=lambda _x: H, Hx=lambda _x: 0.0, R=np.diag(rdiag))
+        nis = float(ekf.y @ ekf.SI @ ekf.y)
+        st = self.stats
+        st.t_s, st.nis, st.dof = self.t_s, nis, len(y)
+        st.nis_mean_per_dof += self.params.nis_average_gain * (nis / len(y) - st.nis_mean_per_dof)
+        self._inject()
+
+    def _velocity_rows(self, samples: list[PositionSample], rot: np.ndarray, offsets: np.ndarray):
+        """Jacobian rows and innovations for unit velocities v_i = v + R (omega x r_i)."""
+        omega = np.zeros(3) if self._imu is None else self._imu.gyro_frd_radps - self.bg
+        wr = offsets @ skew(omega).T
+        H3 = np.zeros((len(samples), 3, N_ERR))
+        H3[:, :, V_] = np.eye(3)
+        H3[:, :, TH_] = -np.matmul(rot, _skews(wr))
+        H3[:, :, BG_] = np.matmul(rot, _skews(offsets))
+        y3 = np.array([s.velocity_ned_mps for s in samples]) - (self.v + wr @ rot.T)
+        return H3.reshape(-1, N_ERR), y3.reshape(-1)
+
+    def _inject(self) -> None:
+        """Move the error estimate into the nominal state and reset it (with the reset Jacobian)."""
+        dx = self._ekf.x
+        self.p = self.p + dx[P_]
+        self.v = self.v + dx[V_]
+        q = quat_multiply(self.q, quat_from_rotvec(dx[TH_]))
+        self.q = q / np.linalg.norm(q)
+        self.bg = self.bg + dx[BG_]
+        if self.params.estimate_accel_bias:
+            self.ba = self.ba + dx[BA_]
+        g = np.eye(3) - skew(0.5 * dx[TH_])  # reset Jacobian: only the attitude rows/columns change
+        P = self._ekf.P
+        P[TH_, :] = g @ P[TH_, :]
+        P[:, TH_] = P[:, TH_] @ g.T
+        self._ekf.x = np.zeros(N_ERR)
+
+
+def _euler_rotmat(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    return quat_to_rotmat(euler_to_quat(roll, pitch, yaw))
