@@ -90,9 +90,14 @@ class InnovationStats:
     nis: float = float("nan")  # normalised innovation squared of the last position update
     dof: int = 0  # its degrees of freedom (3 per accepted unit, +3 per velocity)
     nis_mean_per_dof: float = 1.0  # exponential average of nis / dof (about 1 when consistent)
-    position_innovation_m: dict[int, np.ndarray] = field(default_factory=dict)  # unit -> NED
+    position_units: tuple[int, ...] = ()  # units of the last position batch...
+    position_innovations_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ...their z - h, NED
     rejected: dict[str, int] = field(default_factory=dict)  # reason -> count of ignored inputs
     imu: CombinedImu | None = None  # the last combined IMU, with per-unit residuals
+
+    def position_innovation_m(self) -> dict[int, np.ndarray]:
+        """unit -> measured minus predicted position of the last batch (gated units included)."""
+        return dict(zip(self.position_units, self.position_innovations_m))
 
     def gyro_residual_radps(self) -> dict[int, np.ndarray]:
         """unit -> its gyro minus the combined rate (relative bias removed): a unit sensor fault shows here."""
@@ -472,54 +477,67 @@ class AssemblyEstimator:
         ekf.Q = self._q_cache[key]
         ekf.predict()
 
-    def _fuse_positions(self, samples: list[PositionSample]) -> None:
-        """One stacked update: z_i = p + R r_i per unit (+ v + R (omega x r_i) when given)."""
-        ekf = self._ekf
+    def measurement_model(
+        self, unit_ids: list[int], with_velocity: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """Predicted unit positions and velocities with their Jacobians wrt the error state.
+
+        Returns (pos (k, 3), H_pos (k, 3, 15), vel (k, 3), H_vel (k, 3, 15)) for
+        p_i = p + R r_i and v_i = v + R (omega x r_i), omega = combined gyro - bias
+        (vel and H_vel are None unless `with_velocity`).
+        """
         rot = quat_to_rotmat(self.q)
-        idx = np.array([self.combiner._index[s.unit_id] for s in samples])
-        k = len(idx)
-        offsets = self.combiner.offsets_m[idx]
-        h_theta = -np.matmul(rot, _skews(offsets))  # d(R r_i)/d theta, (k, 3, 3)
-        H3 = np.zeros((k, 3, N_ERR))
-        H3[:, :, P_] = np.eye(3)
-        H3[:, :, TH_] = h_theta
-        y3 = np.array([s.position_ned_m for s in samples]) - (self.p + offsets @ rot.T)
+        offsets = self.combiner.offsets_m[[self.combiner._index[u] for u in unit_ids]]
+        k = len(offsets)
+        hp = np.zeros((k, 3, N_ERR))
+        hp[:, :, P_] = np.eye(3)
+        hp[:, :, TH_] = np.matmul(rot, _skews(-offsets))  # R exp([dtheta]x) r = R r - R [r]x dtheta
+        pos = self.p + offsets @ rot.T
+        if not with_velocity:
+            return pos, hp, None, None
+        omega = np.zeros(3) if self._imu is None else self._imu.gyro_frd_radps - self.bg
+        wr = offsets @ skew(omega).T
+        hv = np.zeros((k, 3, N_ERR))
+        hv[:, :, V_] = np.eye(3)
+        hv[:, :, TH_] = np.matmul(rot, _skews(-wr))
+        hv[:, :, BG_] = np.matmul(rot, _skews(offsets))  # omega x r = -(r x omega)
+        return pos, hp, self.v + wr @ rot.T, hv
+
+    def _fuse_positions(self, samples: list[PositionSample]) -> None:
+        """One stacked update over the units' positions (and velocities when the samples carry them)."""
+        ekf = self._ekf
+        has_vel = [i for i, s in enumerate(samples) if s.velocity_ned_mps is not None]
+        units = [s.unit_id for s in samples]
+        pos, hp, vel, hv = self.measurement_model(units, with_velocity=bool(has_vel))
+        y3 = np.array([s.position_ned_m for s in samples]) - pos
         # gate each unit on its own 3x3 innovation block, so one bad receiver cannot pull the body
         r_pos = self.params.position_noise_m**2
-        s_blocks = np.matmul(np.matmul(H3, ekf.P), H3.transpose(0, 2, 1)) + r_pos * np.eye(3)
-        nis_units = np.einsum("ki,ki->k", y3, np.linalg.solve(s_blocks, y3[:, :, None])[:, :, 0])
+        s_blocks = np.matmul(np.matmul(hp, ekf.P), hp.transpose(0, 2, 1))
+        s_blocks[:, [0, 1, 2], [0, 1, 2]] += r_pos
+        nis_units = (y3 * np.linalg.solve(s_blocks, y3[:, :, None])[:, :, 0]).sum(axis=1)
         ok = nis_units <= self.params.position_gate_nis
-        self.stats.position_innovation_m = {s.unit_id: y3[i].copy() for i, s in enumerate(samples)}
-        if not ok.all():
+        self.stats.position_units, self.stats.position_innovations_m = tuple(units), y3
+        if ok.all():
+            H, y = hp.reshape(-1, N_ERR), y3.reshape(-1)
+        else:
             self.stats.rejected["position_gate"] = self.stats.rejected.get("position_gate", 0) + int((~ok).sum())
             if not ok.any():
                 return
-        H = H3[ok].reshape(-1, N_ERR)
-        y = y3[ok].reshape(-1)
+            H, y = hp[ok].reshape(-1, N_ERR), y3[ok].reshape(-1)
         rdiag = np.full(len(y), r_pos)
-        with_vel = [i for i, s in enumerate(samples) if ok[i] and s.velocity_ned_mps is not None]
+        with_vel = [i for i in has_vel if ok[i]]
         if with_vel:
-            hv, yv = self._velocity_rows([samples[i] for i in with_vel], rot, offsets[with_vel])
-            H, y = np.vstack([H, hv]), np.concatenate([y, yv])
-            rdiag = np.concatenate([rdiag, np.full(len(yv), self.params.velocity_noise_mps**2)])
-        # filterpy computes z - Hx: hand it the innovation as z with Hx = 0
+            yv = np.array([samples[i].velocity_ned_mps for i in with_vel]) - vel[with_vel]
+            H = np.vstack([H, hv[with_vel].reshape(-1, N_ERR)])
+            y = np.concatenate([y, yv.reshape(-1)])
+            rdiag = np.concatenate([rdiag, np.full(yv.size, self.params.velocity_noise_mps**2)])
+        # filterpy computes z - Hx(x): hand it the innovation as z with Hx = 0
         ekf.update(y, HJacobian=lambda _x: H, Hx=lambda _x: 0.0, R=np.diag(rdiag))
         nis = float(ekf.y @ ekf.SI @ ekf.y)
         st = self.stats
         st.t_s, st.nis, st.dof = self.t_s, nis, len(y)
         st.nis_mean_per_dof += self.params.nis_average_gain * (nis / len(y) - st.nis_mean_per_dof)
         self._inject()
-
-    def _velocity_rows(self, samples: list[PositionSample], rot: np.ndarray, offsets: np.ndarray):
-        """Jacobian rows and innovations for unit velocities v_i = v + R (omega x r_i)."""
-        omega = np.zeros(3) if self._imu is None else self._imu.gyro_frd_radps - self.bg
-        wr = offsets @ skew(omega).T
-        H3 = np.zeros((len(samples), 3, N_ERR))
-        H3[:, :, V_] = np.eye(3)
-        H3[:, :, TH_] = -np.matmul(rot, _skews(wr))
-        H3[:, :, BG_] = np.matmul(rot, _skews(offsets))
-        y3 = np.array([s.velocity_ned_mps for s in samples]) - (self.v + wr @ rot.T)
-        return H3.reshape(-1, N_ERR), y3.reshape(-1)
 
     def _inject(self) -> None:
         """Move the error estimate into the nominal state and reset it (with the reset Jacobian)."""

@@ -11,7 +11,7 @@ import pytest
 from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
 from mars_link.errors import UserInputError
 from mars_link.estimation import AssemblyEstimator, EstimatorParams
-from mars_link.rotations import euler_to_quat, quat_multiply, quat_to_rotmat, vee
+from mars_link.rotations import euler_to_quat, quat_to_rotmat, skew, vee
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
 
 G_NED = np.array([0.0, 0.0, GRAVITY_MPS2])
@@ -57,15 +57,16 @@ class Motion:
 
 
 def unit_measurements(model, tr, t, rng, biases, sig_g=0.003, sig_a=0.05, sig_p=0.01, units=None):
+    """Exact unit IMU (specific force at the unit centre, lever arm included) and position + noise."""
+    units = list(units or model.unit_ids)
+    r = np.array([model.unit_position(u) for u in units])
     f_com = tr["R"].T @ (tr["a"] - G_NED)
-    imus, poss = [], []
-    for uid in units or model.unit_ids:
-        r = model.unit_position(uid)
-        f = f_com + np.cross(tr["alpha"], r) + np.cross(tr["w"], np.cross(tr["w"], r))
-        imus.append(
-            ImuSample(t, uid, tr["w"] + biases[uid] + rng.normal(0, sig_g, 3), f + rng.normal(0, sig_a, 3))
-        )
-        poss.append(PositionSample(t, uid, tr["p"] + tr["R"] @ r + rng.normal(0, sig_p, 3)))
+    sw = skew(tr["w"])
+    f = f_com + r @ (skew(tr["alpha"]) + sw @ sw).T + rng.normal(0, sig_a, (len(units), 3))
+    g = tr["w"] + np.array([biases[u] for u in units]) + rng.normal(0, sig_g, (len(units), 3))
+    p = tr["p"] + r @ tr["R"].T + rng.normal(0, sig_p, (len(units), 3))
+    imus = [ImuSample(t, u, g[i], f[i]) for i, u in enumerate(units)]
+    poss = [PositionSample(t, u, p[i]) for i, u in enumerate(units)]
     return imus, poss
 
 
@@ -86,8 +87,9 @@ def fly(model, seconds=30.0, seed=3, imu_hz=100.0, pos_every=2, start_yaw=0.0, u
     for k in range(n):
         t = k / imu_hz
         tr = motion.truth(t)
-        imus, _ = unit_measurements(model, tr, t, rng, biases, units=units_imu)
-        _, poss = unit_measurements(model, tr, t, rng, biases, units=units_pos)
+        imus, poss = unit_measurements(model, tr, t, rng, biases)
+        imus = [s for s in imus if units_imu is None or s.unit_id in units_imu]
+        poss = [s for s in poss if units_pos is None or s.unit_id in units_pos]
         st = est.step(t, imus, poss if k % pos_every == 0 else [])
         pos_err.append(np.linalg.norm(st.position_ned_m - tr["p"]))
         att_err.append(attitude_error_deg(st.quaternion_wxyz, tr["R"]))
@@ -110,3 +112,167 @@ def test_3x2_meets_issue_targets_on_smooth_3d_motion():
     assert np.linalg.norm(est.gyro_bias_radps - mean_bias) < 5e-4
     # filter consistency: normalised innovation squared near its degrees of freedom
     assert 0.5 < est.stats.nis_mean_per_dof < 2.0
+
+
+def test_yaw_is_found_from_unit_geometry_at_start():
+    """Resting level at yaw 40 deg: the stacked unit positions give yaw before any motion."""
+    model = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
+    t, pe, ae, est, _ = fly(model, seconds=4.0, start_yaw=math.radians(40.0))
+    assert ae[0] < 3.0  # initial yaw from one position batch, before any filtering
+    assert rms(ae[t > 1.0]) < 0.5
+    assert rms(pe[t > 1.0]) < 0.02
+
+
+def test_missing_unit_imu_uses_lever_arm_correction():
+    """Only units 1 and 4 (the left column) send IMU: their average sits 0.35 m left of the CoM and
+    must be moved back to it (without the correction the attitude error is ~0.7 deg here)."""
+    model = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
+    t, pe, ae, est, _ = fly(model, seconds=15.0, units_imu=[1, 4])
+    settled = t > 1.0
+    assert rms(pe[settled]) < 0.02
+    assert rms(ae[settled]) < 0.5
+    assert est.last_imu().units == (1, 4)
+
+
+def test_two_units_positions_still_give_attitude():
+    model = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
+    t, pe, ae, _, _ = fly(model, seconds=15.0, units_pos=[1, 6])
+    settled = t > 1.0
+    assert rms(pe[settled]) < 0.02
+    assert rms(ae[settled]) < 0.5
+
+
+def test_single_unit_assembly_tracks_position():
+    model = AssemblyModel.from_layout(["X"], "mars-ftcc")
+    t, pe, ae, est, _ = fly(model, seconds=15.0)
+    assert rms(pe[t > 1.0]) < 0.02
+    assert est.stats.rejected == {}
+
+
+def test_unit_velocities_are_fused_and_jacobians_match_finite_differences():
+    model = AssemblyModel.from_layout(["XX", "XX"], "mars-ftcc")
+    rng = np.random.default_rng(5)
+    biases = {u: np.zeros(3) for u in model.unit_ids}
+    motion = Motion(rest_s=0.0)
+    est = AssemblyEstimator(model)
+    errs = []
+    for k in range(600):
+        t = k / 100.0
+        tr = motion.truth(t)
+        imus, poss = unit_measurements(model, tr, t, rng, biases)
+        for s in poss:
+            r = model.unit_position(s.unit_id)
+            s.velocity_ned_mps = tr["v"] + tr["R"] @ np.cross(tr["w"], r) + rng.normal(0, 0.05, 3)
+        st = est.step(t, imus, poss)
+        errs.append(np.linalg.norm(st.velocity_ned_mps - tr["v"]))
+    assert rms(np.array(errs[100:])) < 0.03
+    assert 0.5 < est.stats.nis_mean_per_dof < 2.0
+    # Jacobians of p_i = p + R r_i and v_i = v + R (omega x r_i) wrt the 15 error states
+    units = model.unit_ids
+    pos0, hp, vel0, hv = est.measurement_model(units)
+    eps = 1e-6
+    for j in range(15):
+        saved = (est.p.copy(), est.v.copy(), est.q.copy(), est.bg.copy(), est.ba.copy())
+        est._ekf.x = np.zeros(15)
+        est._ekf.x[j] = eps
+        est._inject()
+        pos1, _, vel1, _ = est.measurement_model(units)
+        est.p, est.v, est.q, est.bg, est.ba = saved
+        np.testing.assert_allclose((pos1 - pos0) / eps, hp[:, :, j], atol=1e-5)
+        np.testing.assert_allclose((vel1 - vel0) / eps, hv[:, :, j], atol=1e-5)
+
+
+def test_position_glitch_is_gated_and_bad_inputs_are_counted():
+    model = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
+    rng = np.random.default_rng(9)
+    biases = {u: np.zeros(3) for u in model.unit_ids}
+    motion = Motion()
+    est = AssemblyEstimator(model)
+    worst = 0.0
+    for k in range(300):
+        t = k / 100.0
+        tr = motion.truth(t)
+        imus, poss = unit_measurements(model, tr, t, rng, biases)
+        if k == 150:
+            poss[2].position_ned_m = poss[2].position_ned_m + np.array([1.0, 0.0, 0.0])
+            imus.append(ImuSample(t, 4, np.array([np.nan, 0, 0]), np.zeros(3)))
+            imus.append(ImuSample(t, 99, np.zeros(3), np.zeros(3)))
+            poss.append(PositionSample(t, 2, np.array([0.0, np.inf, 0.0])))
+        st = est.step(t, imus, poss)
+        if k > 50:
+            worst = max(worst, float(np.linalg.norm(st.position_ned_m - tr["p"])))
+    assert est.stats.rejected == {
+        "position_gate": 1, "imu_not_finite": 1, "imu_unknown_unit": 1, "position_not_finite": 1
+    }
+    assert worst < 0.02
+    # a stale sample (time going backwards) is ignored, not fused
+    est.on_position(PositionSample(1.0, 1, np.zeros(3)))
+    assert est.stats.rejected["position_stale_or_bad_time"] == 1
+
+
+def test_streaming_api_matches_step_and_handles_positions_between_imu_ticks():
+    model = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
+    rng = np.random.default_rng(2)
+    biases = {u: rng.uniform(-0.002, 0.002, 3) for u in model.unit_ids}
+    motion = Motion(rest_s=0.5)
+    a, b = AssemblyEstimator(model), AssemblyEstimator(model)
+    pe = []
+    for k in range(800):
+        t = k / 100.0
+        imus, _ = unit_measurements(model, motion.truth(t), t, rng, biases)
+        tp = t + 0.004  # positions arrive 4 ms after the IMU tick (first batch shares the tick)
+        _, poss = unit_measurements(model, motion.truth(tp if k else t), tp if k else t, rng, biases)
+        sa = a.step(tp if k else t, imus, poss)
+        for s in imus:
+            b.on_imu(s)
+        for s in poss:
+            b.on_position(s)
+        b.predict_to(tp if k else t)
+        sb = b.state()
+        np.testing.assert_allclose(sa.position_ned_m, sb.position_ned_m)
+        pe.append(np.linalg.norm(sa.position_ned_m - motion.truth(sa.t_s)["p"]))
+    assert rms(np.array(pe[100:])) < 0.02
+
+
+def test_reset_and_set_model_move_the_estimate_to_the_new_reference():
+    full = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
+    front = AssemblyModel.from_layout(["XXX"], "mars-ftcc")  # units 1..3 keep their ids and cells
+    rng = np.random.default_rng(4)
+    biases = {u: np.zeros(3) for u in full.unit_ids}
+    motion = Motion(rest_s=0.5)
+    est = AssemblyEstimator(full)
+    shift = full.unit_position(1) - front.unit_position(1)  # new CoM in the old body frame
+    errs_after = []
+    for k in range(800):
+        t = k / 100.0
+        tr = motion.truth(t)
+        if k == 400:
+            est.set_model(front)
+        model = full if k < 400 else front
+        # the physical units 1..3 keep moving with the same rigid motion; truth for `front` is its CoM
+        tr_front = dict(tr, p=tr["p"] + tr["R"] @ shift)
+        imus, poss = unit_measurements(model, tr if k < 400 else tr_front, t, rng, biases)
+        st = est.step(t, imus, poss)
+        if k >= 400:
+            errs_after.append(np.linalg.norm(st.position_ned_m - tr_front["p"]))
+    assert errs_after[0] < 0.01  # moved at once, not re-converged
+    assert rms(np.array(errs_after)) < 0.02
+    # reset to a (wrong by 0.3 m) state: the positions pull it back
+    t = 8.0
+    tr = dict(motion.truth(t), p=motion.truth(t)["p"] + shift)
+    wrong = RigidBodyState(t, tr["p"] + 0.3, tr["v"], est.state().quaternion_wxyz, np.zeros(3))
+    est.reset(wrong, position_std_m=0.5)
+    for k in range(801, 900):
+        t = k / 100.0
+        trk = motion.truth(t)
+        trk = dict(trk, p=trk["p"] + trk["R"] @ shift)
+        imus, poss = unit_measurements(front, trk, t, rng, biases)
+        st = est.step(t, imus, poss)
+    assert np.linalg.norm(st.position_ned_m - trk["p"]) < 0.02
+
+
+def test_bad_parameters_are_one_line_user_errors():
+    with pytest.raises(UserInputError, match="gyro_noise_radps"):
+        EstimatorParams(gyro_noise_radps=-1.0)
+    with pytest.raises(UserInputError, match="position_noise_m"):
+        EstimatorParams(position_noise_m=0.0)
