@@ -19,10 +19,10 @@ import numpy as np
 
 from mars_link.assembly import AssemblyModel
 from mars_link.control.base import Controller
+from mars_link.coordinator import Coordinator
 from mars_link.errors import UserInputError
 from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
 from mars_link.scenario import FaultSpec, Scenario
-from mars_link.state import RigidBodyState
 from mars_link.trajectories import Trajectory, build_trajectory
 
 #: a run is declared diverged when the tracked point is this far from its reference...
@@ -165,146 +165,115 @@ def run_trial(
     log: RunLog | None = None,
     on_progress: Callable[[float], None] | None = None,
 ) -> TrialResult:
-    from firmware_models.motor import MotorModel, MotorParams
-    from sitl.physics import JsbsimBody
-    from sitl.sensors import SensorModel, SensorParams
+    """World, units and coordinator wired by direct calls, one exchange per control period."""
+    from firmware_models.unit import UnitCore, UnitCoreParams
+    from sitl.world import World, WorldConfig
 
     model = scenario.model()
     trajectory = make_trajectory(scenario, model)
     duration = scenario.sim.duration_s or trajectory.duration_s
-    physics_hz, control_hz = scenario.sim.physics_hz, scenario.sim.control_hz
-    dt_phys = 1.0 / physics_hz
-    ratio = int(round(physics_hz / control_hz))
-    dt_ctrl = ratio * dt_phys
-    n_steps = int(round(duration * physics_hz))
+    control_hz = scenario.sim.control_hz
+    n_exchanges = int(round(duration * control_hz))
 
     faults = sorted(scenario.faults, key=lambda f: f.t_s)
-    eta_true = eta_after(model, faults, 0.0)
-    eta_known = eta_true.copy() if scenario.faults_known else model.nominal_eta()
+    eta_known = eta_after(model, faults, 0.0) if scenario.faults_known else model.nominal_eta()
     controller = make_controller(scenario, model, eta_known)
-
-    offset = tracked_offset(model, scenario)
-    start = trajectory.sample(0.0)
-    yaw0 = start.yaw_rad
-    r0 = quat_to_rotmat(_yaw_quat(yaw0))
-    com_start = start.position_ned_m - r0 @ offset
-    body = JsbsimBody(model, physics_hz=physics_hz, position_ned_m=(com_start[0], com_start[1], 0.0), yaw_rad=yaw0)
-    v = model.vehicle
-    motors = MotorModel(
-        MotorParams(
-            n_rotors=model.n_rotors,
-            time_constant_s=v.motor_time_constant_s,
-            min_thrust_n=v.rotor_min_thrust_n,
-            max_thrust_n=v.rotor_max_thrust_n,
-        )
-    )
-    motors.set_eta(eta_true)
-    sensors = SensorModel(SensorParams(), seed=seed, noise=scenario.sim.noise)
     estimator = None
     if scenario.sim.noise:
         from mars_link.estimation import AssemblyEstimator
 
         estimator = AssemblyEstimator(model)
+    coordinator = Coordinator(model, trajectory, controller, estimator)
 
-    unit_ids = model.unit_ids
-    unit_offsets = [model.unit_position(u) for u in unit_ids]
+    offset = tracked_offset(model, scenario)
+    start = trajectory.sample(0.0)
+    com_start = start.position_ned_m - quat_to_rotmat(_yaw_quat(start.yaw_rad)) @ offset
+    world = World(
+        model,
+        WorldConfig(physics_hz=scenario.sim.physics_hz, exchange_hz=control_hz, seed=seed, noise=scenario.sim.noise),
+        com_start,
+        start.yaw_rad,
+    )
+    unit_params = UnitCoreParams(control_period_s=1.0 / control_hz)
+    units = {u: UnitCore(u, model.vehicle, unit_params) for u in model.unit_ids}
+
     stage = dict.fromkeys(STAGES, 0.0)
     events: list[dict] = []
     next_fault = 0
-    errors_sum = errors_sq = 0.0
-    max_err = max_tilt = force_integral = 0.0
+    errors_sum = errors_sq = max_err = max_tilt = 0.0
     n_err = 0
     diverged = False
-    commands = np.zeros(model.n_rotors)
-    actual = np.zeros(model.n_rotors)
-    wall0 = time.perf_counter()
     clock = time.perf_counter
-    t = 0.0
-    step = 0
-    progress_every = max(1, n_steps // 200)
-    for step in range(n_steps):
-        t = step * dt_phys
-        # faults take effect at the first physics step at or after their time
-        while next_fault < len(faults) and faults[next_fault].t_s <= t + 1e-12:
+    wall0 = clock()
+    progress_every = max(1, n_exchanges // 200)
+    k = 0
+    for k in range(n_exchanges):
+        t = world.t_s
+        # faults act in the units' motor path at the first exchange at or after their time
+        while next_fault < len(faults) and faults[next_fault].t_s <= t + 1e-9:
             f = faults[next_fault]
             next_fault += 1
-            eta_true = eta_after(model, faults[:next_fault], t)
-            motors.set_eta(eta_true)
+            units[f.unit].inject_fault(f.rotor, f.eta)
             events.append({"t_s": round(t, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta})
             if scenario.faults_known:
-                controller.set_faults(eta_true)
-                events.append({"t_s": round(t, 6), "type": "reallocation", "ftc": scenario.ftc, "reason": "fault told to the coordinator"})
-        if step % ratio == 0:
-            c0 = clock()
-            truth = body.state()
-            c1 = clock()
-            stage["physics"] += c1 - c0
-            if estimator is not None:
-                sf = body.specific_force_frd()
-                imus = [sensors.imu(t, truth, sf, r, u) for u, r in zip(unit_ids, unit_offsets)]
-                positions = [sensors.position(t, truth, r, u) for u, r in zip(unit_ids, unit_offsets)]
-                c2 = clock()
-                stage["sensors"] += c2 - c1
-                estimate = estimator.step(t, imus, positions)
-                c1 = clock()
-                stage["estimation"] += c1 - c2
-            else:
-                estimate = truth
-            ref = trajectory.sample(t)
-            out = controller.update(t, estimate, ref)
-            c2 = clock()
-            alloc = out.timings_s.get("allocation", 0.0)
-            stage["allocation"] += alloc
-            stage["control"] += (c2 - c1) - alloc
-            commands = out.rotor_thrusts_n
-            # metrics on the truth
-            rot = quat_to_rotmat(truth.quaternion_wxyz)
-            tracked = truth.position_ned_m + rot @ offset
-            err = float(np.linalg.norm(tracked - ref.position_ned_m))
-            tilt = tilt_deg(truth.quaternion_wxyz)
-            errors_sum += err
-            errors_sq += err * err
-            n_err += 1
-            max_err = max(max_err, err)
-            max_tilt = max(max_tilt, tilt)
-            if log is not None:
-                roll, pitch, yaw = quat_to_euler(truth.quaternion_wxyz)
-                er, ep, ey = quat_to_euler(estimate.quaternion_wxyz)
-                log.telemetry(
-                    [trial_index, t, *ref.position_ned_m, *tracked,
-                     math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
-                     *estimate.position_ned_m, math.degrees(er), math.degrees(ep), math.degrees(ey)]
-                )
-                log.rotors(trial_index, t, commands, actual, eta_true)
-                if step % (ratio * int(control_hz)) == 0:
-                    log.flush()
-            stage["logging"] += clock() - c2
-            if not (err < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG and math.isfinite(err)):
-                diverged = True
-                events.append({"t_s": round(t, 6), "type": "diverged", "error_m": err, "tilt_deg": tilt})
-                break
-            if on_progress is not None and step % progress_every == 0:
-                on_progress(t / duration)
+                coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
         c0 = clock()
-        actual = motors.step(commands, dt_phys)
+        packets = world.sense()
         c1 = clock()
-        body.set_rotor_thrusts(actual)
-        body.step()
+        commands = coordinator.step(t, [units[p.unit_id].on_sensors(p) for p in packets])
         c2 = clock()
-        stage["motors"] += c1 - c0
-        stage["physics"] += c2 - c1
-        force_integral += float(actual @ actual) * dt_phys
-    wall = time.perf_counter() - wall0
-    sim_time = (step + 1) * dt_phys
-    body.close()
+        for cmd in commands:
+            units[cmd.unit_id].on_rotor_command(cmd)
+            world.actuate(units[cmd.unit_id].motor_output(t))
+        c3 = clock()
+        rec = coordinator.last
+        stage["sensors"] += c1 - c0
+        for name in ("estimation", "control", "allocation"):
+            stage[name] += rec.timings_s[name]
+        stage["motors"] += c3 - c2
+        # metrics on the truth
+        truth = world.truth()
+        tracked = world.tracked_point(offset, truth)
+        err = float(np.linalg.norm(tracked - rec.reference.position_ned_m))
+        tilt = tilt_deg(truth.quaternion_wxyz)
+        errors_sum += err
+        errors_sq += err * err
+        n_err += 1
+        max_err = max(max_err, err)
+        max_tilt = max(max_tilt, tilt)
+        if log is not None:
+            roll, pitch, yaw = quat_to_euler(truth.quaternion_wxyz)
+            er, ep, ey = quat_to_euler(rec.estimate.quaternion_wxyz)
+            log.telemetry(
+                [trial_index, t, *rec.reference.position_ned_m, *tracked,
+                 math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
+                 *rec.estimate.position_ned_m, math.degrees(er), math.degrees(ep), math.degrees(ey)]
+            )
+            log.rotors(trial_index, t, rec.thrusts_n, world.rotor_thrust_n, _eta_of(units, model))
+            if k % int(control_hz) == 0:
+                log.flush()
+        c4 = clock()
+        stage["logging"] += c4 - c3
+        if not (err < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG and math.isfinite(err)):
+            diverged = True
+            events.append({"t_s": round(t, 6), "type": "diverged", "error_m": err, "tilt_deg": tilt})
+            break
+        world.advance()
+        stage["physics"] += clock() - c4
+        if on_progress is not None and k % progress_every == 0:
+            on_progress(t / duration)
+    wall = clock() - wall0
+    sim_time = world.t_s
+    force_integral = world.force_integral_n2s
+    world.close()
     if log is not None:
         log.flush()
-    mean_err = errors_sum / max(n_err, 1)
+    events = sorted(events + coordinator.events, key=lambda e: e["t_s"])
     return TrialResult(
         seed=seed,
         completed=not diverged,
         diverged=diverged,
-        mean_error_m=mean_err,
+        mean_error_m=errors_sum / max(n_err, 1),
         rmse_m=math.sqrt(errors_sq / max(n_err, 1)),
         max_error_m=max_err,
         sim_time_s=sim_time,
@@ -313,9 +282,13 @@ def run_trial(
         max_tilt_deg=max_tilt,
         events=events,
         stage_time_s=stage,
-        physics_steps=step + 1,
+        physics_steps=world.exchange_index * world.substeps,
         control_steps=n_err,
     )
+
+
+def _eta_of(units: dict, model: AssemblyModel) -> np.ndarray:
+    return np.concatenate([units[u].eta for u in model.unit_ids])
 
 
 def _yaw_quat(yaw: float) -> np.ndarray:

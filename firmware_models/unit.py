@@ -1,0 +1,88 @@
+"""The flight-relevant core of one unit, sans-IO: sensor packets in -> telemetry out; rotor commands in
+-> motor outputs out, with the unit's own thrust limits, injected faults and command watchdog.
+
+Injected faults (eta) live here, in the unit's motor path: the coordinator is never told them.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mars_link.assembly import ROTORS_PER_UNIT, VehicleParams
+from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket
+
+
+@dataclass
+class UnitCoreParams:
+    command_timeout_periods: int = 3  # hold the last command this many control periods, then fail safe
+    control_period_s: float = 0.01
+
+
+@dataclass
+class UnitCounters:
+    accepted: int = 0
+    rejected: dict[str, int] = field(default_factory=dict)
+    failsafe_entries: int = 0
+
+    def reject(self, reason: str) -> None:
+        self.rejected[reason] = self.rejected.get(reason, 0) + 1
+
+
+class UnitCore:
+    def __init__(self, unit_id: int, vehicle: VehicleParams, params: UnitCoreParams | None = None) -> None:
+        self.unit_id = unit_id
+        self.vehicle = vehicle
+        self.params = params or UnitCoreParams()
+        self.eta = np.ones(ROTORS_PER_UNIT)
+        self.command_n = np.zeros(ROTORS_PER_UNIT)
+        self.last_command_t_s: float | None = None
+        self.failsafe = False
+        self.counters = UnitCounters()
+
+    # ----------------------------------------------------------------- faults
+    def inject_fault(self, rotor: int | None, eta: float) -> None:
+        """rotor 1..4, or None for all four (a unit failure)."""
+        if rotor is None:
+            self.eta[:] = eta
+        else:
+            self.eta[rotor - 1] = eta
+
+    # ----------------------------------------------------------------- messages
+    def on_sensors(self, packet: SensorPacket) -> SensorPacket:
+        """Forward what the unit measured to the coordinator (the unit's telemetry)."""
+        return packet
+
+    def on_rotor_command(self, cmd: RotorCommand) -> bool:
+        """Accept a command if it is for us, newer than the last one and finite; count drops."""
+        if cmd.unit_id != self.unit_id:
+            self.counters.reject("wrong_unit")
+            return False
+        thrusts = np.asarray(cmd.thrusts_n, dtype=float)
+        if thrusts.shape != (ROTORS_PER_UNIT,) or not np.all(np.isfinite(thrusts)) or not math.isfinite(cmd.t_s):
+            self.counters.reject("malformed")
+            return False
+        if self.last_command_t_s is not None and cmd.t_s <= self.last_command_t_s:
+            self.counters.reject("stale")
+            return False
+        self.command_n = thrusts
+        self.last_command_t_s = cmd.t_s
+        self.failsafe = False
+        self.counters.accepted += 1
+        return True
+
+    def motor_output(self, t_s: float) -> ActuatorOutput:
+        """What the motors are driven to for the step starting at t_s (limits, faults, watchdog)."""
+        p = self.params
+        age = math.inf if self.last_command_t_s is None else t_s - self.last_command_t_s
+        if age > p.command_timeout_periods * p.control_period_s + 1e-9:
+            if not self.failsafe and self.last_command_t_s is not None:
+                self.counters.failsafe_entries += 1
+            self.failsafe = True
+        thrust = np.zeros(ROTORS_PER_UNIT) if self.failsafe else self.command_n.copy()
+        v = self.vehicle
+        if v.rotor_min_thrust_n is not None or v.rotor_max_thrust_n is not None:
+            thrust = np.clip(thrust, v.rotor_min_thrust_n, v.rotor_max_thrust_n)
+        return ActuatorOutput(t_s, self.unit_id, thrust * self.eta).as_wire()

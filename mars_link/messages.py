@@ -1,0 +1,73 @@
+"""Messages exchanged between the world, the units and the coordinator.
+
+The in-process runner passes these objects by direct call; the SITL runners carry the same content
+as MAVLink frames (HIL_SENSOR / LOCAL_POSITION_NED up, SET_ACTUATOR_CONTROL_TARGET / HIL_ACTUATOR_CONTROLS
+down). MAVLink carries float32, so every message is rounded to float32 at its boundary *in both modes*
+(`as_wire`): that is what lets an in-process flight and a multi-process flight agree to the bit.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mars_link.state import ImuSample, PositionSample, RigidBodyState
+
+
+def f32(v) -> np.ndarray:
+    """Round to float32 and back: the precision of a MAVLink float field."""
+    return np.asarray(v, dtype=np.float32).astype(np.float64)
+
+
+@dataclass
+class SensorPacket:
+    """World -> unit (HIL link) and, forwarded, unit -> coordinator (telemetry)."""
+
+    t_s: float
+    unit_id: int
+    imu: ImuSample
+    position: PositionSample | None
+    truth: RigidBodyState | None = None  # ground truth (HIL_STATE_QUATERNION), only with noise off
+
+    def as_wire(self) -> "SensorPacket":
+        imu = ImuSample(self.t_s, self.unit_id, f32(self.imu.gyro_frd_radps), f32(self.imu.accel_frd_mps2))
+        pos = None
+        if self.position is not None:
+            vel = self.position.velocity_ned_mps
+            pos = PositionSample(
+                self.t_s, self.unit_id, f32(self.position.position_ned_m), None if vel is None else f32(vel)
+            )
+        truth = None
+        if self.truth is not None:
+            s = self.truth
+            truth = RigidBodyState(
+                s.t_s, f32(s.position_ned_m), f32(s.velocity_ned_mps), f32(s.quaternion_wxyz),
+                f32(s.angular_velocity_frd_radps), f32(s.acceleration_ned_mps2), s.on_ground,
+            )
+        return SensorPacket(self.t_s, self.unit_id, imu, pos, truth)
+
+
+@dataclass
+class RotorCommand:
+    """Coordinator -> unit: commanded thrust of the unit's four rotors (N), for sim time t_s."""
+
+    t_s: float
+    unit_id: int
+    thrusts_n: np.ndarray  # (4,)
+
+    def as_wire(self) -> "RotorCommand":
+        return RotorCommand(self.t_s, self.unit_id, f32(self.thrusts_n))
+
+
+@dataclass
+class ActuatorOutput:
+    """Unit -> world (HIL link): thrust the unit's motors are driven to (N), after its own limits and
+    injected faults, for the world step that starts at t_s."""
+
+    t_s: float
+    unit_id: int
+    thrusts_n: np.ndarray  # (4,)
+
+    def as_wire(self) -> "ActuatorOutput":
+        return ActuatorOutput(self.t_s, self.unit_id, f32(self.thrusts_n))
