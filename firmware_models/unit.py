@@ -85,4 +85,4 @@ class UnitCore:
         v = self.vehicle
         if v.rotor_min_thrust_n is not None or v.rotor_max_thrust_n is not None:
             thrust = np.clip(thrust, v.rotor_min_thrust_n, v.rotor_max_thrust_n)
-        return ActuatorOutput(t_s, self.unit_id, thrust * self.eta).as_wire()
+        return ActuatorOutput(t_s, self.unit_id, thrust * self.eta).as_wire(v.full_scale_thrust_n)

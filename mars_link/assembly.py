@@ -21,6 +21,7 @@ import numpy as np
 
 from mars_link.errors import UserInputError
 
+GRAVITY_MPS2 = 9.80665
 ROTORS_PER_UNIT = 4
 #: rotor index 0..3 (rotor 1..4) -> (sign of x, sign of y) of its offset in the unit, FRD
 ROTOR_QUADRANT_SIGNS: tuple[tuple[int, int], ...] = ((+1, +1), (+1, -1), (-1, -1), (-1, +1))
@@ -47,6 +48,17 @@ class VehicleParams:
 
     def with_options(self, **changes) -> "VehicleParams":
         return replace(self, **changes)
+
+    @property
+    def full_scale_thrust_n(self) -> float:
+        """Thrust that a normalised actuator command of 1.0 means on the wire (MAVLink controls).
+
+        The rotor's maximum when the preset has one; otherwise four times the single-unit hover
+        thrust per rotor (= unit weight), the paper-000 plant's implicit ceiling (specs/ftc.md §2.3).
+        """
+        if self.rotor_max_thrust_n is not None:
+            return self.rotor_max_thrust_n
+        return self.unit_mass_kg * GRAVITY_MPS2
 
 
 PRESETS: dict[str, VehicleParams] = {
@@ -239,11 +251,9 @@ class AssemblyModel:
     def wrench_from_thrusts(self, thrusts_n: np.ndarray, eta: np.ndarray | None = None) -> np.ndarray:
         return self.effectiveness(eta) @ np.asarray(thrusts_n, dtype=float)
 
-    def hover_thrust_per_rotor_n(self, g: float = 9.80665) -> float:
+    def hover_thrust_per_rotor_n(self, g: float = GRAVITY_MPS2) -> float:
         return self.mass_kg * g / self.n_rotors
 
     def nominal_eta(self) -> np.ndarray:
         return np.ones(self.n_rotors)
 
-
-GRAVITY_MPS2 = 9.80665

@@ -70,11 +70,12 @@ class Coordinator:
         c2 = time.perf_counter()
         thrusts = np.asarray(out.rotor_thrusts_n, dtype=float)
         alloc = out.timings_s.get("allocation", 0.0)
+        scale = self.model.vehicle.full_scale_thrust_n
         self.last = StepRecord(
             t_s, estimate, reference, thrusts,
             {"estimation": c1 - c0, "control": c2 - c1 - alloc, "allocation": alloc},
         )
         return [
-            RotorCommand(t_s, uid, thrusts[(uid - 1) * ROTORS_PER_UNIT : uid * ROTORS_PER_UNIT]).as_wire()
+            RotorCommand(t_s, uid, thrusts[(uid - 1) * ROTORS_PER_UNIT : uid * ROTORS_PER_UNIT]).as_wire(scale)
             for uid in self.model.unit_ids
         ]

@@ -20,6 +20,16 @@ def f32(v) -> np.ndarray:
     return np.asarray(v, dtype=np.float32).astype(np.float64)
 
 
+def wire_time(t_s: float) -> float:
+    """Sim time as carried on the wire (integer microseconds, MAVLink time_usec)."""
+    return round(t_s * 1e6) / 1e6
+
+
+def wire_thrust(thrusts_n, full_scale_n: float) -> np.ndarray:
+    """Thrust as carried in MAVLink actuator controls: float32 fraction of the unit's full scale."""
+    return f32(np.asarray(thrusts_n, dtype=float) / full_scale_n) * full_scale_n
+
+
 @dataclass
 class SensorPacket:
     """World -> unit (HIL link) and, forwarded, unit -> coordinator (telemetry)."""
@@ -31,21 +41,22 @@ class SensorPacket:
     truth: RigidBodyState | None = None  # ground truth (HIL_STATE_QUATERNION), only with noise off
 
     def as_wire(self) -> "SensorPacket":
-        imu = ImuSample(self.t_s, self.unit_id, f32(self.imu.gyro_frd_radps), f32(self.imu.accel_frd_mps2))
+        t = wire_time(self.t_s)
+        imu = ImuSample(t, self.unit_id, f32(self.imu.gyro_frd_radps), f32(self.imu.accel_frd_mps2))
         pos = None
         if self.position is not None:
             vel = self.position.velocity_ned_mps
             pos = PositionSample(
-                self.t_s, self.unit_id, f32(self.position.position_ned_m), None if vel is None else f32(vel)
+                t, self.unit_id, f32(self.position.position_ned_m), None if vel is None else f32(vel)
             )
         truth = None
         if self.truth is not None:
             s = self.truth
             truth = RigidBodyState(
-                s.t_s, f32(s.position_ned_m), f32(s.velocity_ned_mps), f32(s.quaternion_wxyz),
+                t, f32(s.position_ned_m), f32(s.velocity_ned_mps), f32(s.quaternion_wxyz),
                 f32(s.angular_velocity_frd_radps), f32(s.acceleration_ned_mps2), s.on_ground,
             )
-        return SensorPacket(self.t_s, self.unit_id, imu, pos, truth)
+        return SensorPacket(t, self.unit_id, imu, pos, truth)
 
 
 @dataclass
@@ -56,8 +67,8 @@ class RotorCommand:
     unit_id: int
     thrusts_n: np.ndarray  # (4,)
 
-    def as_wire(self) -> "RotorCommand":
-        return RotorCommand(self.t_s, self.unit_id, f32(self.thrusts_n))
+    def as_wire(self, full_scale_n: float) -> "RotorCommand":
+        return RotorCommand(wire_time(self.t_s), self.unit_id, wire_thrust(self.thrusts_n, full_scale_n))
 
 
 @dataclass
@@ -69,5 +80,5 @@ class ActuatorOutput:
     unit_id: int
     thrusts_n: np.ndarray  # (4,)
 
-    def as_wire(self) -> "ActuatorOutput":
-        return ActuatorOutput(self.t_s, self.unit_id, f32(self.thrusts_n))
+    def as_wire(self, full_scale_n: float) -> "ActuatorOutput":
+        return ActuatorOutput(wire_time(self.t_s), self.unit_id, wire_thrust(self.thrusts_n, full_scale_n))
