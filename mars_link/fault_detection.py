@@ -1,0 +1,502 @@
+"""Fault detection and isolation (FDI): which rotors lost how much thrust, from the rigid-body residuals.
+
+Why this design (details in the class docstrings):
+
+* **Measurements.** The units' IMUs, combined at the CoM (`estimation.ImuCombiner`), give the
+  thrust actually produced, ``F = -m f_z``, and the angular momentum ``h = J omega``. For commanded
+  thrusts ``u`` the model is ``F = sum_j eta_j u_j`` and ``J omega(t) + int omega x J omega =
+  h0 + int B_mom diag(eta) u dt``. The momentum form integrates the torque instead of
+  differentiating the gyro, so the white gyro noise is not amplified.
+* **Detection** (when): a two-sided CUSUM on the force residual, whose sign is known (a lost
+  rotor makes less thrust), alarms within a few control ticks and dates the onset.
+* **Isolation** (which, how much): a change-point least-squares fit of ``delta = eta_est - eta``
+  over the window around the onset, for a library of sparse hypotheses: any subset of the rotors of
+  one unit with free losses, one whole unit dead, two whole units dead. Nuisance intercepts absorb
+  constant model errors (mass, CoM offset, gyro bias). The best penalised fit wins when it beats
+  every *different* explanation by a margin; otherwise, after `max_isolation_s`, the best is
+  reported with its look-alikes in `Detection.ambiguous_with`.
+* **Identifiability.** Rotor j enters through the column ``u_j (1, -y_j, x_j, k_q s_j)``. Different
+  rotor sets with the same summed column are indistinguishable from wrench residuals alone while
+  the thrusts are symmetric: in a 3x2, units {2,5}, {1,6} and {3,4} (pairs mirrored through the
+  CoM) all look like a pure loss of lift, and {2,4} looks like {1,5}. Transients that make the
+  controller redistribute thrust separate them; otherwise `excitation_n` supplies a null-space
+  probe: per-rotor thrust offsets with zero net wrench on the believed-healthy assembly that make
+  the candidate explanations produce different wrenches. Units that stop reporting are declared
+  failed by `on_unit_silent` (heartbeat/telemetry loss is the transport's call).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from itertools import combinations
+
+import numpy as np
+
+from mars_link.assembly import GRAVITY_MPS2, ROTORS_PER_UNIT, AssemblyModel
+from mars_link.errors import UserInputError
+from mars_link.estimation import ImuCombiner
+from mars_link.rotations import skew
+from mars_link.state import ImuSample, RigidBodyState
+
+
+@dataclass
+class FaultDetectorParams:
+    """Noise levels (per unit, per sample, 1-sigma, as the sensors) and decision thresholds."""
+
+    accel_noise_mps2: float = 0.05
+    gyro_noise_radps: float = 0.003
+    force_model_error_fraction: float = 0.003  # unmodelled force per tick, fraction of weight
+    momentum_model_error_nms: float = 1e-4  # unmodelled angular momentum per tick, N m s
+    cusum_drift_sigma: float = 1.0  # CUSUM allowance, in force-noise sigmas per tick
+    cusum_threshold: float = 12.0  # CUSUM alarm level, in force-noise sigmas
+    baseline_time_s: float = 2.0  # slow average of the force residual (drag, mass error)
+    pre_onset_s: float = 0.3  # data before the onset kept in the isolation fit
+    min_isolation_s: float = 0.06  # earliest decision after the onset
+    max_isolation_s: float = 0.3  # latest decision: report the best even if ambiguous
+    detect_score: float = 30.0  # chi-square improvement over "no change" needed to report
+    decide_margin: float = 20.0  # lead over any different explanation needed to decide early
+    param_penalty: float = 8.0  # score cost of each free loss parameter
+    min_change: float = 0.1  # eta changes smaller than this are not reported
+    dead_eta: float = 0.1  # a unit whose four rotors are all below this is reported as failed
+    max_failed_units: int = 2  # unit-failure hypotheses: up to this many whole units at once
+    min_airborne_thrust_fraction: float = 0.6  # below this share of the weight: ground, no FDI
+    probe_thrust_fraction: float = 0.1  # null-space probe amplitude per rotor, share of hover thrust
+    probe_period_s: float = 0.2
+    buffer_s: float = 1.5
+
+    def __post_init__(self) -> None:
+        for name, value in vars(self).items():
+            if not isinstance(value, (int, float)) or not math.isfinite(value) or value < 0:
+                raise UserInputError(f"fault detector parameter {name} must be a finite number >= 0, got {value!r}")
+        if self.accel_noise_mps2 <= 0 or self.gyro_noise_radps <= 0:
+            raise UserInputError("fault detector noise levels must be > 0")
+        if self.max_isolation_s < self.min_isolation_s:
+            raise UserInputError("fault detector max_isolation_s must be >= min_isolation_s")
+
+
+@dataclass
+class Detection:
+    """One identified fault. `rotor` None = the whole unit failed."""
+
+    t_detected: float
+    unit: int
+    rotor: int | None
+    eta_estimated: float
+    t_onset: float = float("nan")  # when the residual started (nan for silent units)
+    ambiguous_with: tuple[str, ...] = ()  # other explanations that fitted nearly as well
+    reason: str = "residual"  # "residual" or "silent"
+
+
+@dataclass
+class _Tick:
+    t_s: float
+    omega: np.ndarray  # combined gyro (bias cancels in the momentum intercept)
+    force_n: float  # measured thrust -m f_z
+    thrust_n: np.ndarray  # expected per-rotor thrust at this instant (lag and limits applied), eta = 1
+    thrust_integral_ns: np.ndarray  # int of expected per-rotor thrust since the buffer start
+    gyroscopic_integral: np.ndarray  # int omega x J omega since the buffer start
+    n_imus: int
+
+
+@dataclass
+class _Fit:
+    score: float
+    improvement: float
+    delta: np.ndarray  # (n_rotors,) fitted loss eta_est - eta
+    key: frozenset  # slots with a reportable change
+    label: str
+    n_free: int  # free loss parameters of the hypothesis
+
+
+@dataclass
+class _Library:
+    """Hypotheses as slot-index arrays: free subsets grouped by size, and fixed unit failures."""
+
+    free: dict[int, np.ndarray] = field(default_factory=dict)  # size -> (H, size)
+    free_units: dict[int, np.ndarray] = field(default_factory=dict)  # size -> (H,) unit id
+    fixed: list[tuple[tuple[int, ...], np.ndarray]] = field(default_factory=list)  # (units, slots)
+
+
+class FaultDetector:
+    """Rotor/unit fault detection and identification for one rigid assembly.
+
+    Call `update(t_s, commanded_thrusts_n, state_estimate, imu_samples)` once per control tick, after
+    the controller: `commanded_thrusts_n` are the per-rotor thrusts sent at `t_s` (held until the
+    next tick, slot order of `AssemblyModel`), `imu_samples` the units' IMU samples taken at `t_s`.
+    It returns the new detections (usually none). `eta_estimate` holds the current belief; give it
+    to the allocator (FTC). `excitation_n(t_s)` is an optional probe to add to the commands while an
+    ambiguity is being resolved (zero otherwise).
+    """
+
+    def __init__(self, model: AssemblyModel, params: FaultDetectorParams | None = None) -> None:
+        self.params = params or FaultDetectorParams()
+        self.detections: list[Detection] = []
+        self.set_model(model)
+
+    # ----------------------------------------------------------------- configuration
+    def set_model(self, model: AssemblyModel, eta: np.ndarray | None = None) -> None:
+        """Use a new assembly (reconfiguration); `eta` = known rotor efficiencies (default: all 1)."""
+        self.model = model
+        v = model.vehicle
+        self.n = model.n_rotors
+        self.B = model.effectiveness()
+        self.B_mom = self.B[1:4]
+        self.J = np.array(model.inertia_kgm2, dtype=float)
+        self.mass_kg = model.mass_kg
+        self.tau_s = v.motor_time_constant_s
+        self.min_thrust_n, self.max_thrust_n = v.rotor_min_thrust_n, v.rotor_max_thrust_n
+        self.eta = model.nominal_eta() if eta is None else np.asarray(eta, dtype=float).copy()
+        if self.eta.shape != (self.n,):
+            raise UserInputError(f"eta must have {self.n} entries (one per rotor), got {self.eta.shape}")
+        self.combiner = ImuCombiner(model, gain=0.01)
+        self.silent_units: set[int] = set()
+        self.library = self._build_library()
+        self._restart()
+
+    def _build_library(self) -> _Library:
+        lib = _Library()
+        free: dict[int, list] = {s: [] for s in range(1, ROTORS_PER_UNIT + 1)}
+        units: dict[int, list] = {s: [] for s in free}
+        for uid in self.model.unit_ids:
+            base = (uid - 1) * ROTORS_PER_UNIT
+            for size in free:
+                for sub in combinations(range(ROTORS_PER_UNIT), size):
+                    free[size].append([base + r for r in sub])
+                    units[size].append(uid)
+        lib.free = {s: np.array(v, dtype=int) for s, v in free.items()}
+        lib.free_units = {s: np.array(v, dtype=int) for s, v in units.items()}
+        for k in range(1, min(self.params.max_failed_units, self.model.n_units) + 1):
+            for group in combinations(self.model.unit_ids, k):
+                slots = np.concatenate([np.arange((u - 1) * 4, u * 4) for u in group])
+                lib.fixed.append((group, slots))
+        return lib
+
+    def _restart(self) -> None:
+        """Forget the residual history (ground, gaps, new model)."""
+        self._ticks: deque[_Tick] = deque()
+        self._prev: tuple[float, np.ndarray, np.ndarray] | None = None  # t, omega, command
+        self._thrust_state: np.ndarray | None = None
+        self._thrust_integral = np.zeros(self.n)
+        self._gyro_integral = np.zeros(3)
+        self._cusum_loss = self._cusum_gain = 0.0
+        self._cusum_start: float | None = None
+        self._baseline_n = 0.0
+        self._baseline_count = 0
+        self._onset: float | None = None
+        self._probe = np.zeros(self.n)
+        self.last_fits: list[_Fit] = []
+        self.last_misfit = 1.0  # best fit's residual variance / noise model (1 = as expected)
+
+    @property
+    def eta_estimate(self) -> np.ndarray:
+        """Current belief of every rotor's efficiency (slot order)."""
+        return self.eta.copy()
+
+    @property
+    def isolating(self) -> bool:
+        """True between an alarm and its decision (the probe is active then if ambiguous)."""
+        return self._onset is not None
+
+    # ----------------------------------------------------------------- inputs
+    def on_unit_silent(self, unit_id: int, t_s: float) -> Detection | None:
+        """A unit stopped reporting (heartbeat/telemetry loss): declare it failed (eta 0)."""
+        self.model.check_rotor(unit_id, None)
+        if unit_id in self.silent_units:
+            return None
+        self.silent_units.add(unit_id)
+        self.eta[self.model.unit_slots(unit_id)] = 0.0
+        det = Detection(t_s, unit_id, None, 0.0, reason="silent")
+        self.detections.append(det)
+        self._onset = None
+        self._cusum_loss = self._cusum_gain = 0.0
+        return det
+
+    def update(
+        self,
+        t_s: float,
+        commanded_thrusts_n: np.ndarray,
+        state_estimate: RigidBodyState | None,
+        imu_samples: list[ImuSample],
+    ) -> list[Detection]:
+        cmd = np.asarray(commanded_thrusts_n, dtype=float)
+        if cmd.shape != (self.n,) or not np.all(np.isfinite(cmd)):
+            return []  # untrusted input: never act on it
+        samples = [
+            s for s in imu_samples
+            if s.unit_id in self.combiner._index and s.unit_id not in self.silent_units
+            and np.all(np.isfinite(s.gyro_frd_radps)) and np.all(np.isfinite(s.accel_frd_mps2))
+        ]
+        by_unit = {s.unit_id: s for s in samples}
+        imu = self.combiner.combine(list(by_unit.values()))
+        if imu is None:
+            return []
+        cmd = self._limit(cmd)
+        omega = imu.gyro_frd_radps
+        prev = self._prev
+        self._prev = (t_s, omega, cmd)
+        if prev is None or not 0 < t_s - prev[0] <= 0.2:
+            self._restart()
+            self._prev = (t_s, omega, cmd)
+            self._thrust_state = cmd.copy()
+            return []
+        dt = t_s - prev[0]
+        x0 = self._thrust_state
+        x1, mean = self._motor_response(x0, prev[2], dt)
+        self._thrust_state = x1
+        self._thrust_integral = self._thrust_integral + mean * dt
+        jw0, jw1 = self.J @ prev[1], self.J @ omega
+        self._gyro_integral = self._gyro_integral + 0.5 * dt * (np.cross(prev[1], jw0) + np.cross(omega, jw1))
+        airborne = float(x1 @ self.eta) >= self.params.min_airborne_thrust_fraction * self.mass_kg * GRAVITY_MPS2
+        if state_estimate is not None and state_estimate.on_ground:
+            airborne = False
+        if not airborne:
+            self._restart()
+            self._prev = (t_s, omega, cmd)
+            self._thrust_state = x1
+            return []
+        tick = _Tick(
+            t_s, omega, -self.mass_kg * float(imu.accel_frd_mps2[2]), x1, self._thrust_integral.copy(),
+            self._gyro_integral.copy(), len(by_unit),
+        )
+        self._dt_s = dt
+        self._ticks.append(tick)
+        while self._ticks and self._ticks[0].t_s < t_s - self.params.buffer_s:
+            self._ticks.popleft()
+        if self._onset is None:
+            self._watch(tick)
+        if self._onset is not None and t_s - self._onset >= self.params.min_isolation_s:
+            return self._isolate(t_s)
+        return []
+
+    def excitation_n(self, t_s: float) -> np.ndarray:
+        """Per-rotor thrust offsets to add to the commands while an ambiguity is being resolved.
+
+        Zero net wrench if the believed efficiencies are right; different wrenches under the
+        competing explanations, so the next residuals tell them apart. Zero when not needed.
+        """
+        if self._onset is None or not self._probe.any():
+            return np.zeros(self.n)
+        phase = math.floor(2.0 * t_s / self.params.probe_period_s)
+        return self._probe * (1.0 if phase % 2 == 0 else -1.0)
+
+    # ----------------------------------------------------------------- internals
+    def _limit(self, cmd: np.ndarray) -> np.ndarray:
+        if self.min_thrust_n is not None or self.max_thrust_n is not None:
+            return np.clip(cmd, self.min_thrust_n, self.max_thrust_n)
+        return cmd
+
+    def _motor_response(self, x0: np.ndarray, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+        """First-order motor lag: thrust at the end of the interval and its mean over the interval."""
+        if self.tau_s <= 0:
+            return u.copy(), u.copy()
+        decay = math.exp(-dt / self.tau_s)
+        x1 = u + (x0 - u) * decay
+        return x1, u + (x0 - u) * (self.tau_s / dt) * (1.0 - decay)
+
+    def _force_sigma(self, n_imus: int) -> float:
+        p = self.params
+        weight = self.mass_kg * GRAVITY_MPS2
+        return math.hypot(self.mass_kg * p.accel_noise_mps2 / math.sqrt(max(n_imus, 1)), p.force_model_error_fraction * weight)
+
+    def _watch(self, tick: _Tick) -> None:
+        """Two-sided CUSUM on the force residual; sets the onset on alarm."""
+        p = self.params
+        resid = tick.force_n - float(tick.thrust_n @ self.eta)
+        sigma = self._force_sigma(tick.n_imus)
+        if self._baseline_count < 10:  # warm-up: plain running mean, no decisions yet
+            self._baseline_count += 1
+            self._baseline_n += (resid - self._baseline_n) / self._baseline_count
+            return
+        e = (resid - self._baseline_n) / sigma
+        self._cusum_loss = max(0.0, self._cusum_loss - e - p.cusum_drift_sigma)
+        can_gain = bool(np.any(self.eta < 1.0))
+        self._cusum_gain = max(0.0, self._cusum_gain + e - p.cusum_drift_sigma) if can_gain else 0.0
+        self._baseline_n += min(1.0, self._dt_s / p.baseline_time_s) * (resid - self._baseline_n)
+        if self._cusum_loss == 0.0 and self._cusum_gain == 0.0:
+            self._cusum_start = None
+            return
+        if self._cusum_start is None:
+            self._cusum_start = tick.t_s
+        if max(self._cusum_loss, self._cusum_gain) > p.cusum_threshold:
+            self._onset = self._cusum_start_s = self._cusum_start
+            self._alarm_s = tick.t_s
+
+    def _window(self, onset: float) -> list[_Tick]:
+        return [k for k in self._ticks if k.t_s >= onset - self.params.pre_onset_s]
+
+    def _refine_onset(self, t_from: float, t_to: float) -> float:
+        """Date the change by the best single step in the force residual between t_from and t_to."""
+        ticks = [k for k in self._ticks if k.t_s >= t_from - self.params.pre_onset_s]
+        times = np.array([k.t_s for k in ticks])
+        resid = np.array([k.force_n for k in ticks]) - np.array([k.thrust_n for k in ticks]) @ self.eta
+        n = len(resid)
+        cands = np.array([i for i in range(1, n) if t_from - 1e-9 <= times[i] <= t_to + 1e-9], dtype=int)
+        if not len(cands):
+            return t_from
+        csum = np.cumsum(resid)
+        m_pre = csum[cands - 1] / cands
+        m_post = (csum[-1] - csum[cands - 1]) / (n - cands)
+        gain = cands * (n - cands) / n * (m_post - m_pre) ** 2  # LS improvement of a step at i
+        return float(times[cands[int(np.argmax(gain))]])
+
+    def _regression(self, onset: float) -> tuple[np.ndarray, np.ndarray, float, int]:
+        """Weighted normal equations (A, g, c, dof) of residual ~ Phi delta around a change at `onset`.
+
+        Nuisances projected out: a force offset, and a momentum offset before and another after the
+        onset (so the unknown instant of the change inside its tick does not bias the fit).
+        """
+        p = self.params
+        ticks = self._window(onset)
+        times = np.array([k.t_s for k in ticks])
+        post = times >= onset - 1e-9
+        i_on = int(np.argmax(post))
+        thrust = np.array([k.thrust_n for k in ticks])
+        integ = np.array([k.thrust_integral_ns for k in ticks])
+        u_post = np.where(post[:, None], integ - integ[i_on], 0.0)
+        n_imus = max(1, int(np.median([k.n_imus for k in ticks])))
+        # force rows: F - thrust . eta = -(post * thrust) . delta + offset
+        f_res = np.array([k.force_n for k in ticks]) - thrust @ self.eta
+        f_phi = -np.where(post[:, None], thrust, 0.0)
+        f_res -= f_res.mean()
+        f_phi -= f_phi.mean(axis=0)
+        w_f = 1.0 / self._force_sigma(n_imus) ** 2
+        # momentum rows: J w + int w x Jw - B_mom diag(eta) int u = h0 - B_mom diag(int_post u) delta
+        h = np.array([self.J @ k.omega + k.gyroscopic_integral for k in ticks])
+        m_res = h - integ @ (self.B_mom * self.eta).T
+        m_phi = -(self.B_mom[None, :, :] * u_post[:, None, :])  # (K, 3, n)
+        for grp in (~post, post):
+            if grp.any():
+                m_res[grp] -= m_res[grp].mean(axis=0)
+                m_phi[grp] -= m_phi[grp].mean(axis=0)
+        cov = (p.gyro_noise_radps**2 / n_imus) * (self.J @ self.J.T) + p.momentum_model_error_nms**2 * np.eye(3)
+        white = np.linalg.cholesky(np.linalg.inv(cov)).T  # white.T @ white = cov^-1
+        m_res_w = m_res @ white.T
+        m_phi_w = np.einsum("ij,kjn->kin", white, m_phi).reshape(-1, self.n)
+        A = w_f * (f_phi.T @ f_phi) + m_phi_w.T @ m_phi_w
+        g = w_f * (f_phi.T @ f_res) + m_phi_w.T @ m_res_w.reshape(-1)
+        c = w_f * float(f_res @ f_res) + float(np.sum(m_res_w**2))
+        dof = len(ticks) - 1 + 3 * (len(ticks) - 1 - int((~post).any()))
+        return A, g, c, dof
+
+    def _fits(self, A: np.ndarray, g: np.ndarray, c: float, dof: int) -> list[_Fit]:
+        """Best bounded least-squares fit of every hypothesis, scored (improvement - penalty).
+
+        Improvements are divided by the best fit's residual variance when that exceeds the noise
+        model (unmodelled effects), so decisions keep their meaning at any signal-to-noise ratio.
+        """
+        p = self.params
+        lo, hi = self.eta - 1.0, self.eta.copy()  # 0 <= eta_new <= 1
+        ridge = 1e-9 * (np.trace(A) / self.n + 1e-12)
+        fits: list[_Fit] = []
+        for size, idx in self.library.free.items():
+            a_sub = A[idx[:, :, None], idx[:, None, :]] + ridge * np.eye(size)
+            g_sub = g[idx]
+            d = np.linalg.solve(a_sub, g_sub[:, :, None])[:, :, 0]
+            for h in range(len(idx)):
+                slots = idx[h]
+                dh = self._bounded(a_sub[h], g_sub[h], d[h], lo[slots], hi[slots])
+                imp = float(2 * dh @ g_sub[h] - dh @ a_sub[h] @ dh)
+                fits.append(self._fit(slots, dh, imp, size))
+        for units, slots in self.library.fixed:
+            dh = self.eta[slots]
+            if not dh.any():
+                continue
+            imp = float(2 * dh @ g[slots] - dh @ A[np.ix_(slots, slots)] @ dh)
+            fits.append(self._fit(slots, dh, imp, 0, units))
+        if not fits:
+            return fits
+        scale = max(1.0, (c - max(f.improvement for f in fits)) / max(dof - ROTORS_PER_UNIT, 1))
+        self.last_misfit = scale
+        for f in fits:
+            f.score = f.improvement / scale - p.param_penalty * f.n_free
+        fits.sort(key=lambda f: -f.score)
+        return fits
+
+    @staticmethod
+    def _bounded(a: np.ndarray, g: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Box-constrained quadratic minimum by a few active-set passes (size <= 4)."""
+        for _ in range(4):
+            clipped = np.clip(d, lo, hi)
+            fixed = clipped != d
+            if not fixed.any():
+                return d
+            free = ~fixed
+            d = clipped
+            if free.any():
+                rhs = g[free] - a[np.ix_(free, fixed)] @ d[fixed]
+                d = d.copy()
+                d[free] = np.linalg.solve(a[np.ix_(free, free)], rhs)
+        return np.clip(d, lo, hi)
+
+    def _fit(self, slots: np.ndarray, dh: np.ndarray, imp: float, n_free: int, units: tuple[int, ...] = ()) -> _Fit:
+        delta = np.zeros(self.n)
+        delta[slots] = dh
+        key = frozenset(int(s) for s in slots[np.abs(dh) >= self.params.min_change])
+        if units:
+            label = "unit" + ("s " if len(units) > 1 else " ") + "+".join(map(str, units)) + " failed"
+        else:
+            parts = [f"u{s // 4 + 1}r{s % 4 + 1} eta {self.eta[s] - d:.2f}" for s, d in zip(slots, dh) if abs(d) >= self.params.min_change]
+            label = ", ".join(parts) or "no change"
+        return _Fit(0.0, imp, delta, key, label, n_free)
+
+    def _isolate(self, t_s: float) -> list[Detection]:
+        p = self.params
+        onset = self._onset = self._refine_onset(self._cusum_start_s - 3 * self._dt_s, self._alarm_s)
+        A, g, c, dof = self._regression(onset)
+        fits = [f for f in self._fits(A, g, c, dof) if f.key]
+        self.last_fits = fits[:10]
+        elapsed = t_s - onset
+        if not fits or fits[0].score < p.detect_score:
+            if elapsed >= p.max_isolation_s:  # false alarm: resume watching
+                self._onset = None
+                self._cusum_loss = self._cusum_gain = 0.0
+                self._probe = np.zeros(self.n)
+            return []
+        best = fits[0]
+        rivals = [f for f in fits[1:] if f.key != best.key]
+        margin = best.score - rivals[0].score if rivals else float("inf")
+        if margin < p.decide_margin and elapsed < p.max_isolation_s:
+            self._probe = self._probe_direction(best, [f for f in rivals if best.score - f.score < p.decide_margin][:3])
+            return []
+        close = tuple(f.label for f in rivals if best.score - f.score < p.decide_margin)
+        return self._declare(t_s, onset, best, close)
+
+    def _probe_direction(self, best: _Fit, rivals: list[_Fit]) -> np.ndarray:
+        """Thrust offsets in the null space of B diag(eta_est) that best separate best from rivals."""
+        amp = self.params.probe_thrust_fraction * self.model.hover_thrust_per_rotor_n()
+        if amp <= 0 or not rivals:
+            return np.zeros(self.n)
+        b_eta = self.B * self.eta
+        _, sv, vt = np.linalg.svd(b_eta)
+        rank = int(np.sum(sv > 1e-9 * sv[0]))
+        null = vt[rank:].T  # (n, n - rank)
+        diff = np.vstack([self.B * (best.delta - r.delta) for r in rivals])
+        scale = np.array([1.0 / (self.mass_kg * GRAVITY_MPS2)] + [1.0 / self.model.vehicle.pitch_m / (self.mass_kg * GRAVITY_MPS2)] * 3)
+        diff = diff * np.tile(scale, len(rivals))[:, None]
+        _, _, vz = np.linalg.svd(diff @ null)
+        direction = null @ vz[0]
+        return amp * direction / max(np.max(np.abs(direction)), 1e-12)
+
+    def _declare(self, t_s: float, onset: float, fit: _Fit, close: tuple[str, ...]) -> list[Detection]:
+        new_eta = np.clip(self.eta - fit.delta, 0.0, 1.0)
+        changed = sorted(fit.key)
+        self.eta = new_eta
+        out: list[Detection] = []
+        for uid in sorted({s // ROTORS_PER_UNIT + 1 for s in changed}):
+            sl = self.model.unit_slots(uid)
+            if np.all(new_eta[sl] <= self.params.dead_eta):
+                out.append(Detection(t_s, uid, None, float(np.mean(new_eta[sl])), onset, close))
+                continue
+            for s in changed:
+                if s // ROTORS_PER_UNIT + 1 == uid:
+                    out.append(Detection(t_s, uid, s % ROTORS_PER_UNIT + 1, float(new_eta[s]), onset, close))
+        self.detections.extend(out)
+        # residuals now refer to the new belief: restart the change detector on fresh data
+        self._onset = None
+        self._probe = np.zeros(self.n)
+        self._cusum_loss = self._cusum_gain = 0.0
+        self._cusum_start = None
+        self._baseline_n, self._baseline_count = 0.0, 0
+        return out
