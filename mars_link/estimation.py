@@ -118,7 +118,7 @@ def quat_from_rotvec(phi: np.ndarray) -> np.ndarray:
     return np.array([math.cos(0.5 * angle), s * phi[0], s * phi[1], s * phi[2]])
 
 
-def _vec3(v) -> np.ndarray | None:
+def finite_vec3(v) -> np.ndarray | None:
     """v as a float 3-vector, or None when it is not one or holds NaN/inf (untrusted input)."""
     try:
         a = np.asarray(v, dtype=float)
@@ -239,7 +239,7 @@ class AssemblyEstimator:
     def on_imu(self, sample: ImuSample) -> None:
         if not self._accept(sample.unit_id, sample.t_s, "imu"):
             return
-        gyro, accel = _vec3(sample.gyro_frd_radps), _vec3(sample.accel_frd_mps2)
+        gyro, accel = finite_vec3(sample.gyro_frd_radps), finite_vec3(sample.accel_frd_mps2)
         if gyro is None or accel is None:
             self._reject("imu_not_finite")
             return
@@ -248,11 +248,11 @@ class AssemblyEstimator:
     def on_position(self, sample: PositionSample) -> None:
         if not self._accept(sample.unit_id, sample.t_s, "position"):
             return
-        pos = _vec3(sample.position_ned_m)
+        pos = finite_vec3(sample.position_ned_m)
         if pos is None:
             self._reject("position_not_finite")
             return
-        vel = None if sample.velocity_ned_mps is None else _vec3(sample.velocity_ned_mps)
+        vel = None if sample.velocity_ned_mps is None else finite_vec3(sample.velocity_ned_mps)
         self._pending_pos.append(PositionSample(sample.t_s, sample.unit_id, pos, vel))
 
     def _accept(self, unit_id: int, t_s: float, kind: str) -> bool:

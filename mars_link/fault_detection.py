@@ -36,7 +36,7 @@ import numpy as np
 
 from mars_link.assembly import GRAVITY_MPS2, ROTORS_PER_UNIT, AssemblyModel
 from mars_link.errors import UserInputError
-from mars_link.estimation import ImuCombiner
+from mars_link.estimation import ImuCombiner, finite_vec3
 from mars_link.rotations import skew
 from mars_link.state import ImuSample, RigidBodyState
 
@@ -106,8 +106,14 @@ class _Fit:
     improvement: float
     delta: np.ndarray  # (n_rotors,) fitted loss eta_est - eta
     key: frozenset  # slots with a reportable change
-    label: str
     n_free: int  # free loss parameters of the hypothesis
+    units: tuple[int, ...] | None  # whole units failed (fixed hypothesis), else None
+
+    def label(self, eta_before: np.ndarray) -> str:
+        """Human-readable explanation, e.g. 'units 2+5 failed' or 'u2r2 eta 0.50'."""
+        if self.units:
+            return "unit" + ("s " if len(self.units) > 1 else " ") + "+".join(map(str, self.units)) + " failed"
+        return ", ".join(f"u{s // 4 + 1}r{s % 4 + 1} eta {eta_before[s] - self.delta[s]:.2f}" for s in sorted(self.key))
 
 
 @dataclass
@@ -116,7 +122,7 @@ class _Library:
 
     free: dict[int, np.ndarray] = field(default_factory=dict)  # size -> (H, size)
     free_units: dict[int, np.ndarray] = field(default_factory=dict)  # size -> (H,) unit id
-    fixed: list[tuple[tuple[int, ...], np.ndarray]] = field(default_factory=list)  # (units, slots)
+    fixed: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # k -> (units (H, k), slots (H, 4k))
 
 
 class FaultDetector:
@@ -168,15 +174,15 @@ class FaultDetector:
         lib.free = {s: np.array(v, dtype=int) for s, v in free.items()}
         lib.free_units = {s: np.array(v, dtype=int) for s, v in units.items()}
         for k in range(1, min(self.params.max_failed_units, self.model.n_units) + 1):
-            for group in combinations(self.model.unit_ids, k):
-                slots = np.concatenate([np.arange((u - 1) * 4, u * 4) for u in group])
-                lib.fixed.append((group, slots))
+            groups = np.array(list(combinations(self.model.unit_ids, k)), dtype=int)
+            slots = ((groups[:, :, None] - 1) * ROTORS_PER_UNIT + np.arange(ROTORS_PER_UNIT)).reshape(len(groups), -1)
+            lib.fixed[k] = (groups, slots)
         return lib
 
     def _restart(self) -> None:
         """Forget the residual history (ground, gaps, new model)."""
         self._ticks: deque[_Tick] = deque()
-        self._prev: tuple[float, np.ndarray, np.ndarray] | None = None  # t, omega, command
+        self._prev: tuple | None = None  # t, omega, command, omega x J omega
         self._thrust_state: np.ndarray | None = None
         self._thrust_integral = np.zeros(self.n)
         self._gyro_integral = np.zeros(3)
@@ -221,48 +227,45 @@ class FaultDetector:
         imu_samples: list[ImuSample],
     ) -> list[Detection]:
         cmd = np.asarray(commanded_thrusts_n, dtype=float)
-        if cmd.shape != (self.n,) or not np.all(np.isfinite(cmd)):
+        if cmd.shape != (self.n,) or not math.isfinite(float(cmd.sum())):
             return []  # untrusted input: never act on it
-        samples = [
-            s for s in imu_samples
-            if s.unit_id in self.combiner._index and s.unit_id not in self.silent_units
-            and np.all(np.isfinite(s.gyro_frd_radps)) and np.all(np.isfinite(s.accel_frd_mps2))
-        ]
-        by_unit = {s.unit_id: s for s in samples}
+        by_unit = {}
+        for s in imu_samples:
+            if s.unit_id in self.combiner._index and s.unit_id not in self.silent_units:
+                gyro, accel = finite_vec3(s.gyro_frd_radps), finite_vec3(s.accel_frd_mps2)
+                if gyro is not None and accel is not None:
+                    by_unit[s.unit_id] = ImuSample(s.t_s, s.unit_id, gyro, accel)
         imu = self.combiner.combine(list(by_unit.values()))
         if imu is None:
             return []
         cmd = self._limit(cmd)
         omega = imu.gyro_frd_radps
+        gyroscopic = skew(omega) @ (self.J @ omega)  # omega x J omega
         prev = self._prev
-        self._prev = (t_s, omega, cmd)
+        self._prev = (t_s, omega, cmd, gyroscopic)
         if prev is None or not 0 < t_s - prev[0] <= 0.2:
             self._restart()
-            self._prev = (t_s, omega, cmd)
+            self._prev = (t_s, omega, cmd, gyroscopic)
             self._thrust_state = cmd.copy()
             return []
         dt = t_s - prev[0]
-        x0 = self._thrust_state
-        x1, mean = self._motor_response(x0, prev[2], dt)
+        x1, mean = self._motor_response(self._thrust_state, prev[2], dt)
         self._thrust_state = x1
         self._thrust_integral = self._thrust_integral + mean * dt
-        jw0, jw1 = self.J @ prev[1], self.J @ omega
-        self._gyro_integral = self._gyro_integral + 0.5 * dt * (np.cross(prev[1], jw0) + np.cross(omega, jw1))
+        self._gyro_integral = self._gyro_integral + (0.5 * dt) * (prev[3] + gyroscopic)
         airborne = float(x1 @ self.eta) >= self.params.min_airborne_thrust_fraction * self.mass_kg * GRAVITY_MPS2
-        if state_estimate is not None and state_estimate.on_ground:
-            airborne = False
-        if not airborne:
+        if not airborne or (state_estimate is not None and state_estimate.on_ground):
             self._restart()
-            self._prev = (t_s, omega, cmd)
+            self._prev = (t_s, omega, cmd, gyroscopic)
             self._thrust_state = x1
             return []
         tick = _Tick(
-            t_s, omega, -self.mass_kg * float(imu.accel_frd_mps2[2]), x1, self._thrust_integral.copy(),
-            self._gyro_integral.copy(), len(by_unit),
+            t_s, omega, -self.mass_kg * float(imu.accel_frd_mps2[2]), x1, self._thrust_integral,
+            self._gyro_integral, len(by_unit),
         )
         self._dt_s = dt
         self._ticks.append(tick)
-        while self._ticks and self._ticks[0].t_s < t_s - self.params.buffer_s:
+        while self._ticks[0].t_s < t_s - self.params.buffer_s:
             self._ticks.popleft()
         if self._onset is None:
             self._watch(tick)
@@ -381,71 +384,62 @@ class FaultDetector:
         return A, g, c, dof
 
     def _fits(self, A: np.ndarray, g: np.ndarray, c: float, dof: int) -> list[_Fit]:
-        """Best bounded least-squares fit of every hypothesis, scored (improvement - penalty).
+        """Bounded least-squares fit of every hypothesis, scored (improvement - penalty), best first.
 
         Improvements are divided by the best fit's residual variance when that exceeds the noise
         model (unmodelled effects), so decisions keep their meaning at any signal-to-noise ratio.
+        Returns the best fit and every fit within `decide_margin` of it or up to the first
+        different explanation, whichever is longer (the rest cannot change the decision).
         """
         p = self.params
-        lo, hi = self.eta - 1.0, self.eta.copy()  # 0 <= eta_new <= 1
+        lo_all, hi_all = self.eta - 1.0, self.eta.copy()  # 0 <= eta_new <= 1
         ridge = 1e-9 * (np.trace(A) / self.n + 1e-12)
-        fits: list[_Fit] = []
+        groups: list[tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray | None]] = []
         for size, idx in self.library.free.items():
             a_sub = A[idx[:, :, None], idx[:, None, :]] + ridge * np.eye(size)
             g_sub = g[idx]
-            d = np.linalg.solve(a_sub, g_sub[:, :, None])[:, :, 0]
-            for h in range(len(idx)):
-                slots = idx[h]
-                dh = self._bounded(a_sub[h], g_sub[h], d[h], lo[slots], hi[slots])
-                imp = float(2 * dh @ g_sub[h] - dh @ a_sub[h] @ dh)
-                fits.append(self._fit(slots, dh, imp, size))
-        for units, slots in self.library.fixed:
-            dh = self.eta[slots]
-            if not dh.any():
-                continue
-            imp = float(2 * dh @ g[slots] - dh @ A[np.ix_(slots, slots)] @ dh)
-            fits.append(self._fit(slots, dh, imp, 0, units))
-        if not fits:
-            return fits
-        scale = max(1.0, (c - max(f.improvement for f in fits)) / max(dof - ROTORS_PER_UNIT, 1))
+            d = _box_qp(a_sub, g_sub, lo_all[idx], hi_all[idx])
+            imp = 2 * np.einsum("hi,hi->h", d, g_sub) - np.einsum("hi,hij,hj->h", d, a_sub, d)
+            groups.append((idx, d, imp, size, None))
+        for units, idx in self.library.fixed.values():
+            d = self.eta[idx]  # the whole units drop to eta 0
+            imp = 2 * np.einsum("hi,hi->h", d, g[idx]) - np.einsum("hi,hij,hj->h", d, A[idx[:, :, None], idx[:, None, :]], d)
+            imp[~d.any(axis=1)] = -np.inf  # already dead: nothing to explain
+            groups.append((idx, d, imp, 0, units))
+        imps = np.concatenate([grp[2] for grp in groups])
+        scale = max(1.0, (c - float(imps.max())) / max(dof - ROTORS_PER_UNIT, 1))
         self.last_misfit = scale
-        for f in fits:
-            f.score = f.improvement / scale - p.param_penalty * f.n_free
-        fits.sort(key=lambda f: -f.score)
+        penalties = np.concatenate([np.full(len(grp[2]), p.param_penalty * grp[3]) for grp in groups])
+        scores = imps / scale - penalties
+        where = [(k, h) for k, grp in enumerate(groups) for h in range(len(grp[2]))]
+        fits: list[_Fit] = []
+        for i in np.argsort(-scores):
+            if not math.isfinite(scores[i]):
+                break
+            k, h = where[i]
+            idx, d, imp, n_free, units = groups[k]
+            fit = self._fit(idx[h], d[h], float(imp[h]), float(scores[i]), n_free, None if units is None else units[h])
+            if not fit.key:
+                continue
+            fits.append(fit)
+            differs = any(f.key != fits[0].key for f in fits)
+            if differs and fits[0].score - fit.score >= p.decide_margin:
+                break
         return fits
 
-    @staticmethod
-    def _bounded(a: np.ndarray, g: np.ndarray, d: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-        """Box-constrained quadratic minimum by a few active-set passes (size <= 4)."""
-        for _ in range(4):
-            clipped = np.clip(d, lo, hi)
-            fixed = clipped != d
-            if not fixed.any():
-                return d
-            free = ~fixed
-            d = clipped
-            if free.any():
-                rhs = g[free] - a[np.ix_(free, fixed)] @ d[fixed]
-                d = d.copy()
-                d[free] = np.linalg.solve(a[np.ix_(free, free)], rhs)
-        return np.clip(d, lo, hi)
-
-    def _fit(self, slots: np.ndarray, dh: np.ndarray, imp: float, n_free: int, units: tuple[int, ...] = ()) -> _Fit:
+    def _fit(
+        self, slots: np.ndarray, dh: np.ndarray, imp: float, score: float, n_free: int, units: np.ndarray | None
+    ) -> _Fit:
         delta = np.zeros(self.n)
         delta[slots] = dh
         key = frozenset(int(s) for s in slots[np.abs(dh) >= self.params.min_change])
-        if units:
-            label = "unit" + ("s " if len(units) > 1 else " ") + "+".join(map(str, units)) + " failed"
-        else:
-            parts = [f"u{s // 4 + 1}r{s % 4 + 1} eta {self.eta[s] - d:.2f}" for s, d in zip(slots, dh) if abs(d) >= self.params.min_change]
-            label = ", ".join(parts) or "no change"
-        return _Fit(0.0, imp, delta, key, label, n_free)
+        return _Fit(score, imp, delta, key, n_free, None if units is None else tuple(int(u) for u in units))
 
     def _isolate(self, t_s: float) -> list[Detection]:
         p = self.params
         onset = self._onset = self._refine_onset(self._cusum_start_s - 3 * self._dt_s, self._alarm_s)
         A, g, c, dof = self._regression(onset)
-        fits = [f for f in self._fits(A, g, c, dof) if f.key]
+        fits = self._fits(A, g, c, dof)
         self.last_fits = fits[:10]
         elapsed = t_s - onset
         if not fits or fits[0].score < p.detect_score:
@@ -460,7 +454,7 @@ class FaultDetector:
         if margin < p.decide_margin and elapsed < p.max_isolation_s:
             self._probe = self._probe_direction(best, [f for f in rivals if best.score - f.score < p.decide_margin][:3])
             return []
-        close = tuple(f.label for f in rivals if best.score - f.score < p.decide_margin)
+        close = tuple(dict.fromkeys(f.label(self.eta) for f in rivals if best.score - f.score < p.decide_margin))
         return self._declare(t_s, onset, best, close)
 
     def _probe_direction(self, best: _Fit, rivals: list[_Fit]) -> np.ndarray:
@@ -500,3 +494,27 @@ class FaultDetector:
         self._cusum_start = None
         self._baseline_n, self._baseline_count = 0.0, 0
         return out
+
+
+def _box_qp(a: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, passes: int = 4) -> np.ndarray:
+    """Batched min of d'a d - 2 g'd subject to lo <= d <= hi, for many small problems at once.
+
+    Active-set passes: solve, clamp the variables that leave their box, re-solve the others with
+    those held. Held variables are not released again: exact whenever the bounds that the
+    unconstrained optimum violates stay active (the usual case for sparse faults).
+    """
+    d = np.linalg.solve(a, g[:, :, None])[:, :, 0]
+    eye = np.eye(a.shape[1], dtype=bool)
+    held = np.zeros(d.shape, dtype=bool)
+    value = np.zeros(d.shape)
+    for _ in range(passes):
+        viol = ((d < lo) | (d > hi)) & ~held
+        if not viol.any():
+            break
+        value = np.where(viol, np.clip(d, lo, hi), value)
+        held |= viol
+        rhs = np.where(held, value, g - np.einsum("hij,hj->hi", a, np.where(held, value, 0.0)))
+        m = np.where(held[:, None, :], 0.0, a)
+        m = np.where(held[:, :, None], eye[None, :, :], m)
+        d = np.linalg.solve(m, rhs[:, :, None])[:, :, 0]
+    return np.clip(d, lo, hi)
