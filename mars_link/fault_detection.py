@@ -62,6 +62,7 @@ class FaultDetectorParams:
     dead_eta: float = 0.1  # a unit whose four rotors are all below this is reported as failed
     max_failed_units: int = 2  # unit-failure hypotheses: up to this many whole units at once
     min_airborne_thrust_fraction: float = 0.6  # below this share of the weight: ground, no FDI
+    min_height_m: float = 0.15  # FDI starts this far above the ground level seen at low thrust
     probe_thrust_fraction: float = 0.1  # null-space probe amplitude per rotor, share of hover thrust
     probe_period_s: float = 0.2
     buffer_s: float = 1.5
@@ -120,8 +121,7 @@ class _Fit:
 class _Library:
     """Hypotheses as slot-index arrays: free subsets grouped by size, and fixed unit failures."""
 
-    free: dict[int, np.ndarray] = field(default_factory=dict)  # size -> (H, size)
-    free_units: dict[int, np.ndarray] = field(default_factory=dict)  # size -> (H,) unit id
+    free: dict[int, np.ndarray] = field(default_factory=dict)  # size -> (H, size) slots of one unit
     fixed: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # k -> (units (H, k), slots (H, 4k))
 
 
@@ -158,21 +158,19 @@ class FaultDetector:
             raise UserInputError(f"eta must have {self.n} entries (one per rotor), got {self.eta.shape}")
         self.combiner = ImuCombiner(model, gain=0.01)
         self.silent_units: set[int] = set()
+        self._ground_down_m: float | None = None
         self.library = self._build_library()
         self._restart()
 
     def _build_library(self) -> _Library:
         lib = _Library()
         free: dict[int, list] = {s: [] for s in range(1, ROTORS_PER_UNIT + 1)}
-        units: dict[int, list] = {s: [] for s in free}
         for uid in self.model.unit_ids:
             base = (uid - 1) * ROTORS_PER_UNIT
             for size in free:
                 for sub in combinations(range(ROTORS_PER_UNIT), size):
                     free[size].append([base + r for r in sub])
-                    units[size].append(uid)
         lib.free = {s: np.array(v, dtype=int) for s, v in free.items()}
-        lib.free_units = {s: np.array(v, dtype=int) for s, v in units.items()}
         for k in range(1, min(self.params.max_failed_units, self.model.n_units) + 1):
             groups = np.array(list(combinations(self.model.unit_ids, k)), dtype=int)
             slots = ((groups[:, :, None] - 1) * ROTORS_PER_UNIT + np.arange(ROTORS_PER_UNIT)).reshape(len(groups), -1)
@@ -253,8 +251,7 @@ class FaultDetector:
         self._thrust_state = x1
         self._thrust_integral = self._thrust_integral + mean * dt
         self._gyro_integral = self._gyro_integral + (0.5 * dt) * (prev[3] + gyroscopic)
-        airborne = float(x1 @ self.eta) >= self.params.min_airborne_thrust_fraction * self.mass_kg * GRAVITY_MPS2
-        if not airborne or (state_estimate is not None and state_estimate.on_ground):
+        if not self._airborne(float(x1 @ self.eta), state_estimate):
             self._restart()
             self._prev = (t_s, omega, cmd, gyroscopic)
             self._thrust_state = x1
@@ -285,6 +282,24 @@ class FaultDetector:
         return self._probe * (1.0 if phase % 2 == 0 else -1.0)
 
     # ----------------------------------------------------------------- internals
+    def _airborne(self, thrust_n: float, state: RigidBodyState | None) -> bool:
+        """Ground contact adds an unmodelled force: run FDI only clear of the ground.
+
+        Low thrust marks the ground level (the lowest point seen then); flying means enough thrust
+        and, once a ground level is known, `min_height_m` above it.
+        """
+        p = self.params
+        enough = thrust_n >= p.min_airborne_thrust_fraction * self.mass_kg * GRAVITY_MPS2
+        if state is None:
+            return enough
+        down = float(state.position_ned_m[2])
+        if not enough:
+            self._ground_down_m = down if self._ground_down_m is None else max(self._ground_down_m, down)
+            return False
+        if state.on_ground:
+            return False
+        return self._ground_down_m is None or self._ground_down_m - down >= p.min_height_m
+
     def _limit(self, cmd: np.ndarray) -> np.ndarray:
         if self.min_thrust_n is not None or self.max_thrust_n is not None:
             return np.clip(cmd, self.min_thrust_n, self.max_thrust_n)

@@ -32,13 +32,20 @@ class Sim:
     """Rigid assembly in hover at 2 m, PD control at 100 Hz, physics at 500 Hz, faults by eta."""
 
     def __init__(
-        self, model: AssemblyModel, seed: int, probe: bool = False, ftc: bool = False, moving: bool = True
+        self,
+        model: AssemblyModel,
+        seed: int,
+        probe: bool = False,
+        ftc: bool = False,
+        moving: bool = True,
+        idle_until_s: float | None = None,
     ) -> None:
         self.model = model
         self.moving = moving
+        self.idle_until_s = idle_until_s  # set: start on the ground (z = 0), motors idle until then
         self.rng = np.random.default_rng(seed)
         self.biases = {u: self.rng.uniform(-0.002, 0.002, 3) for u in model.unit_ids}
-        self.p = np.array([0.0, 0.0, -2.0])
+        self.p = np.array([0.0, 0.0, 0.0 if idle_until_s is not None else -2.0])
         self.v = np.zeros(3)
         self.R = np.eye(3)
         self.w = np.zeros(3)
@@ -94,6 +101,9 @@ class Sim:
             thrusts = np.clip(thrusts, v.rotor_min_thrust_n, v.rotor_max_thrust_n)
         wrench = self.B @ (self.eta * thrusts)
         self.acc = self.R @ np.array([0.0, 0.0, -wrench[0]]) / self.model.mass_kg + G_NED
+        if self.idle_until_s is not None and self.p[2] >= 0.0 and self.acc[2] >= 0.0:  # resting on the ground
+            self.acc, self.v, self.p[2] = np.zeros(3), np.zeros(3), 0.0
+            wrench = np.zeros(4)
         self.alpha = self.Jinv @ (wrench[1:] - np.cross(self.w, self.J @ self.w))
         self.v = self.v + self.acc * dt
         self.p = self.p + self.v * dt
@@ -115,6 +125,9 @@ class Sim:
                 imus, poss = self.sensors(t)
                 st = self.estimator.step(t, imus, poss)
                 cmd = self.control(st, t)
+                if self.idle_until_s is not None and t < self.idle_until_s + 1.0:  # idle, then 1 s spool-up
+                    ramp = min(max(t - self.idle_until_s, 0.0), 1.0)
+                    cmd = 0.05 * self.model.hover_thrust_per_rotor_n() + ramp * np.clip(cmd, 0.0, None)
                 if self.probe:
                     cmd = cmd + self.detector.excitation_n(t)
                 self.commands = cmd
@@ -246,3 +259,14 @@ def test_ground_and_bad_inputs_produce_nothing():
     assert det.update(2.0, np.full(24, np.nan), rest, []) == []
     with pytest.raises(UserInputError, match="cusum_threshold"):
         FaultDetectorParams(cusum_threshold=-1.0)
+
+
+def test_takeoff_from_the_ground_raises_no_alarm_and_a_later_fault_is_found():
+    """Ground contact makes the measured thrust differ from the commanded one: FDI waits until
+    the assembly is clear of the ground, then works as usual."""
+    model = AssemblyModel.from_layout(LAYOUT_3X2, "mars-ftcc")
+    truth = {model.rotor_slot(4, 3): 0.5}
+    sim = Sim(model, seed=8, idle_until_s=6.5)
+    sim.run(10.6, truth, t_start=6.0)
+    check(sim, model, truth)
+    assert [(d.unit, d.rotor) for d in sim.detections] == [(4, 3)]
