@@ -58,6 +58,8 @@ PAPER_CONTROL_HZ = 20.0
 FTC_MODES = ("none", "unit", "partial", "full", "hybrid")
 #: eta at or below this counts as a dead rotor; a unit with four dead rotors is a failed unit
 DEAD_ETA = 1e-9
+#: how far an eta (e.g. an estimate) may stray outside [0, 1] before it is refused
+_ETA_SLACK = 1e-6
 #: the hover command of the scene plant (0.52 kg, 0.23366 N per command) is 5.458
 _PAPER_HOVER_CMD = 0.52 * 9.81 / (4 * 0.23366)
 
@@ -131,9 +133,7 @@ def rotor_baselines(
     degraded = [i for i in range(n) if not failed[i] and np.any(e[i] < 1.0)]
     if ftc in ("none", "unit") or not degraded:
         return Reallocation(base, notes)
-    local = np.array(
-        [(sx, sy) for sx, sy in ROTOR_QUADRANT_SIGNS], dtype=float
-    ) * model.vehicle.rotor_offset_m
+    local = np.array(ROTOR_QUADRANT_SIGNS, dtype=float) * model.vehicle.rotor_offset_m
     yaw = np.array(ROTOR_YAW_SIGNS, dtype=float)
     rotor_xy = model.rotor_positions_m[:, :2].reshape(n, ROTORS_PER_UNIT, 2)
     residual = np.zeros(4)  # (thrust, Σ x, Σ y, Σ yaw-sign) still missing, command shares
@@ -243,9 +243,10 @@ class PaperController(Controller):
             raise UserInputError(
                 f"eta must be {self.model.n_rotors} finite rotor efficiencies, got shape {eta.shape}"
             )
-        if np.any(eta < 0.0) or np.any(eta > 1.0):
+        if np.any(eta < -_ETA_SLACK) or np.any(eta > 1.0 + _ETA_SLACK):
             raise UserInputError("eta values must be in [0, 1]")
-        self.eta = eta.copy()
+        eta = np.clip(eta, 0.0, 1.0)  # estimates may overshoot the bounds by rounding
+        self.eta = eta
         per_unit = eta.reshape(self.model.n_units, ROTORS_PER_UNIT)
         self.failed_units = frozenset(
             int(i + 1) for i in np.flatnonzero(np.all(per_unit <= DEAD_ETA, axis=1))
