@@ -3,7 +3,7 @@
 Why this shape:
 
 * All units of a rigid assembly share one motion, so their IMUs are combined into one CoM IMU
-  (`combine_imus`): gyros are averaged after removing each unit's bias *relative to the others*
+  (`ImuCombiner`): gyros are averaged after removing each unit's bias *relative to the others*
   (observable directly, since a rigid body has one angular rate), specific forces are averaged and
   corrected for the lever arm of the mean position of the units that reported (zero when all
   report, because identical units have their CoM at their centroid).
