@@ -161,6 +161,15 @@ def check(sim: Sim, model: AssemblyModel, truth: dict[int, float], t_fault: floa
     assert np.max(np.abs(est - expected)) <= 0.1, (est.reshape(-1, 4), [d.ambiguous_with for d in sim.detections])
 
 
+def fly_fault(model: AssemblyModel, truth: dict[int, float], seed: int, t_end: float = 10.6,
+              t_start: float = 8.0, **sim_options) -> Sim:
+    """Fly the synthetic loop with `truth` (slot -> eta) injected at 10 s and check the detector."""
+    sim = Sim(model, seed=seed, **sim_options)
+    sim.run(t_end, truth, t_start=t_start)
+    check(sim, model, truth)
+    return sim
+
+
 @pytest.mark.parametrize(
     "faulty",
     [[(2, 2)], [(2, 1), (2, 2)]],
@@ -169,9 +178,7 @@ def check(sim: Sim, model: AssemblyModel, truth: dict[int, float], t_fault: floa
 def test_table1_rotor_faults_are_identified_within_half_a_second(faulty):
     model = AssemblyModel.from_layout(LAYOUT_3X2, "mars-ftcc")
     truth = {s: 0.5 for s in slots(model, faulty)}
-    sim = Sim(model, seed=11)
-    sim.run(10.6, truth)
-    check(sim, model, truth)
+    sim = fly_fault(model, truth, seed=11)
     assert all(d.rotor is not None for d in sim.detections)
 
 
@@ -179,9 +186,7 @@ def test_table1_rotor_faults_are_identified_within_half_a_second(faulty):
 def test_unit_failures_are_identified_within_half_a_second(units):
     model = AssemblyModel.from_layout(LAYOUT_3X2, "mars-ftcc")
     truth = {s: 0.0 for s in slots(model, [(u, None) for u in units])}
-    sim = Sim(model, seed=5)
-    sim.run(10.6, truth)
-    check(sim, model, truth)
+    sim = fly_fault(model, truth, seed=5)
     assert sorted(d.unit for d in sim.detections) == units
     assert all(d.rotor is None for d in sim.detections)
 
@@ -192,9 +197,7 @@ def test_symmetric_unit_pairs_in_hover_are_separated_by_the_null_space_probe(uni
     them differ; without it the answer may come late and flagged ambiguous."""
     model = AssemblyModel.from_layout(LAYOUT_3X2, "mars-ftcc")
     truth = {s: 0.0 for s in slots(model, [(u, None) for u in units])}
-    sim = Sim(model, seed=5, moving=False, probe=True)
-    sim.run(10.6, truth)
-    check(sim, model, truth)
+    sim = fly_fault(model, truth, seed=5, moving=False, probe=True)
     assert sorted(d.unit for d in sim.detections) == units
     assert all(not d.ambiguous_with for d in sim.detections)
 
@@ -226,18 +229,14 @@ def test_motor_lag_is_modelled():
     vehicle = AssemblyModel.from_layout(["X"], "mars-ftcc").vehicle.with_options(motor_time_constant_s=0.03)
     model = AssemblyModel.from_layout(["XX", "XX"], vehicle)
     truth = {model.rotor_slot(1, 2): 0.3}
-    sim = Sim(model, seed=4)
-    sim.run(10.6, truth)
-    check(sim, model, truth)
+    sim = fly_fault(model, truth, seed=4)
     assert [(d.unit, d.rotor) for d in sim.detections] == [(1, 2)]
 
 
 def test_rotor_fault_with_thrust_limits_and_a_line_assembly():
     model = AssemblyModel.from_layout(["XXXX"], "modquad-cf2")  # saturating rotors, collinear units
     truth = {model.rotor_slot(3, 4): 0.4}
-    sim = Sim(model, seed=3)
-    sim.run(10.6, truth)
-    check(sim, model, truth)
+    sim = fly_fault(model, truth, seed=3)
     assert [(d.unit, d.rotor) for d in sim.detections] == [(3, 4)]
 
 
@@ -245,9 +244,7 @@ def test_reallocation_after_detection_keeps_flying_and_stays_quiet():
     """With the detector's eta fed to the allocator, the assembly recovers and no new alarm rises."""
     model = AssemblyModel.from_layout(LAYOUT_3X2, "mars-ftcc")
     truth = {s: 0.0 for s in slots(model, [(2, None)])}
-    sim = Sim(model, seed=7, ftc=True)
-    sim.run(14.0, truth)
-    check(sim, model, truth)
+    sim = fly_fault(model, truth, seed=7, t_end=14.0, ftc=True)
     assert [(d.unit, d.rotor) for d in sim.detections] == [(2, None)]
     assert sim.max_tilt_deg < 30.0
 
@@ -282,9 +279,7 @@ def test_takeoff_from_the_ground_raises_no_alarm_and_a_later_fault_is_found():
     the assembly is clear of the ground, then works as usual."""
     model = AssemblyModel.from_layout(LAYOUT_3X2, "mars-ftcc")
     truth = {model.rotor_slot(4, 3): 0.5}
-    sim = Sim(model, seed=8, idle_until_s=6.5)
-    sim.run(10.6, truth, t_start=6.0)
-    check(sim, model, truth)
+    sim = fly_fault(model, truth, seed=8, t_start=6.0, idle_until_s=6.5)
     assert [(d.unit, d.rotor) for d in sim.detections] == [(4, 3)]
 
 
