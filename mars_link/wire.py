@@ -1,0 +1,134 @@
+"""MAVLink encoding of the world/unit/coordinator messages (the boundary of every SITL link).
+
+| message | MAVLink | link |
+|---|---|---|
+| SensorPacket.imu | HIL_SENSOR (world -> unit), HIGHRES_IMU (unit -> coordinator) | accel, gyro float32, time_usec |
+| SensorPacket.position | ATT_POS_MOCAP (x, y, z; q unused = (1, 0, 0, 0)) | mocap-grade position of the unit centre, NED |
+| SensorPacket.truth | ODOMETRY, frame and child frame LOCAL_NED (velocity in NED) | ground truth, only with sensor noise off |
+| RotorCommand | SET_ACTUATOR_CONTROL_TARGET, group 0, controls[0..3] | thrust as a fraction of `full_scale_thrust_n` |
+| ActuatorOutput | HIL_ACTUATOR_CONTROLS, controls[0..3], flags = LOCKSTEP | same scale |
+
+A sensor packet travels as its optional position and truth frames first and the IMU frame last; the
+IMU frame's `fields_updated` carries two mars-link flags (bits 14, 15; unused by both messages) saying which of the optional
+frames belong to it, so a receiver knows when a packet is complete.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
+
+from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket
+from mars_link.state import ImuSample, PositionSample, RigidBodyState
+
+FLAG_HAS_POSITION = 1 << 14
+FLAG_HAS_TRUTH = 1 << 15
+IMU_FIELDS = 0x3F  # xacc..zgyro updated
+HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP = 1
+ARMED_CUSTOM_MODE = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+
+
+def usec(t_s: float) -> int:
+    return int(round(t_s * 1e6))
+
+
+def new_mav(system_id: int, component_id: int = 1) -> mavlink.MAVLink:
+    """A pymavlink encoder/decoder with no file behind it (we do the I/O)."""
+    mav = mavlink.MAVLink(None, srcSystem=system_id, srcComponent=component_id)
+    mav.robust_parsing = True
+    return mav
+
+
+# ----------------------------------------------------------------------------- sensor packets
+def sensor_packet_messages(packet: SensorPacket, upstream: bool = False) -> list[mavlink.MAVLink_message]:
+    """Messages for one packet; `upstream` = unit -> coordinator (HIGHRES_IMU instead of HIL_SENSOR)."""
+    t = usec(packet.t_s)
+    msgs: list[mavlink.MAVLink_message] = []
+    flags = IMU_FIELDS
+    if packet.position is not None:
+        p = packet.position.position_ned_m
+        msgs.append(mavlink.MAVLink_att_pos_mocap_message(t, [1.0, 0.0, 0.0, 0.0], *map(float, p), [math.nan] + [0.0] * 20))
+        flags |= FLAG_HAS_POSITION
+    if packet.truth is not None:
+        s = packet.truth
+        msgs.append(
+            mavlink.MAVLink_odometry_message(
+                t, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_NED,
+                *map(float, s.position_ned_m), [float(x) for x in s.quaternion_wxyz],
+                *map(float, s.velocity_ned_mps), *map(float, s.angular_velocity_frd_radps),
+                [math.nan] + [0.0] * 20, [math.nan] + [0.0] * 20, 0, mavlink.MAV_ESTIMATOR_TYPE_NAIVE, 100,
+            )
+        )
+        flags |= FLAG_HAS_TRUTH
+    a, g = packet.imu.accel_frd_mps2, packet.imu.gyro_frd_radps
+    cls = mavlink.MAVLink_highres_imu_message if upstream else mavlink.MAVLink_hil_sensor_message
+    msgs.append(cls(t, *map(float, a), *map(float, g), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, flags, 0))
+    return msgs
+
+
+class SensorPacketAssembler:
+    """Collects ATT_POS_MOCAP / ODOMETRY / HIL_SENSOR (or HIGHRES_IMU) frames into SensorPackets."""
+
+    def __init__(self) -> None:
+        self._position: dict[tuple[int, int], PositionSample] = {}
+        self._truth: dict[tuple[int, int], RigidBodyState] = {}
+        self.dropped_incomplete = 0
+
+    def feed(self, msg: mavlink.MAVLink_message) -> SensorPacket | None:
+        unit = msg.get_srcSystem()
+        kind = msg.get_type()
+        if kind == "ATT_POS_MOCAP":
+            t = msg.time_usec
+            self._position[(unit, t)] = PositionSample(t / 1e6, unit, np.array([msg.x, msg.y, msg.z]))
+        elif kind == "ODOMETRY":
+            t = msg.time_usec
+            self._truth[(unit, t)] = RigidBodyState(
+                t / 1e6, np.array([msg.x, msg.y, msg.z]), np.array([msg.vx, msg.vy, msg.vz]),
+                np.array(msg.q, dtype=float), np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed]),
+            )
+        elif kind in ("HIL_SENSOR", "HIGHRES_IMU"):
+            t = msg.time_usec
+            key = (unit, t)
+            pos = self._position.pop(key, None)
+            truth = self._truth.pop(key, None)
+            if (msg.fields_updated & FLAG_HAS_POSITION and pos is None) or (
+                msg.fields_updated & FLAG_HAS_TRUTH and truth is None
+            ):
+                self.dropped_incomplete += 1
+                return None
+            imu = ImuSample(
+                t / 1e6, unit, np.array([msg.xgyro, msg.ygyro, msg.zgyro]), np.array([msg.xacc, msg.yacc, msg.zacc])
+            )
+            self._prune(t)
+            return SensorPacket(t / 1e6, unit, imu, pos, truth)
+        return None
+
+    def _prune(self, t_usec: int) -> None:
+        for store in (self._position, self._truth):
+            for key in [k for k in store if k[1] < t_usec]:
+                del store[key]
+
+
+# ----------------------------------------------------------------------------- rotor commands
+def rotor_command_message(cmd: RotorCommand, full_scale_n: float) -> mavlink.MAVLink_message:
+    controls = [float(x) / full_scale_n for x in cmd.thrusts_n] + [0.0] * 4
+    return mavlink.MAVLink_set_actuator_control_target_message(usec(cmd.t_s), 0, cmd.unit_id, 1, controls)
+
+
+def rotor_command_from_message(msg, full_scale_n: float) -> RotorCommand:
+    thrusts = np.array(msg.controls[:4], dtype=np.float32).astype(np.float64) * full_scale_n
+    return RotorCommand(msg.time_usec / 1e6, msg.target_system, thrusts)
+
+
+def actuator_output_message(out: ActuatorOutput, full_scale_n: float) -> mavlink.MAVLink_message:
+    controls = [float(x) / full_scale_n for x in out.thrusts_n] + [0.0] * 12
+    return mavlink.MAVLink_hil_actuator_controls_message(
+        usec(out.t_s), controls, ARMED_CUSTOM_MODE, HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP
+    )
+
+
+def actuator_output_from_message(msg, full_scale_n: float) -> ActuatorOutput:
+    thrusts = np.array(msg.controls[:4], dtype=np.float32).astype(np.float64) * full_scale_n
+    return ActuatorOutput(msg.time_usec / 1e6, msg.get_srcSystem(), thrusts)
