@@ -1,0 +1,108 @@
+"""Generate a JSBSim aircraft definition for an assembly (specs/dependencies.md §1.2).
+
+One pointmass per unit (JSBSim sums the parallel-axis terms itself), a non-rotating spherical planet
+with g = 9.80665 m/s² at the surface, four ground contacts under each unit, and per rotor one BODY
+force (thrust) and one BODY moment (reaction torque) in `external_reactions`.
+
+JSBSim's structural frame is x aft, y right, z up; body FRD positions convert as x_s = -x, y_s = y,
+z_s = -z. That conversion happens here and nowhere else.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
+
+EARTH_RADIUS_M = 6371000.0
+#: tiny structural mass so JSBSim has an empty weight; compensated in `JsbsimBody` mass checks
+EMPTY_MASS_KG = 1e-6
+CONTACT_SPRING_N_PER_M_PER_KG = 20000.0  # per contact, scaled by assembly mass: ~1 mm static compression
+CONTACT_DAMPING_RATIO = 1.2
+
+
+def _structural(p_frd) -> tuple[float, float, float]:
+    return (-float(p_frd[0]), float(p_frd[1]), -float(p_frd[2]))
+
+
+def aircraft_xml(model: AssemblyModel, name: str) -> str:
+    v = model.vehicle
+    ju = v.unit_inertia_kgm2
+    n_contacts = 4 * model.n_units
+    mass = model.mass_kg
+    # stiffness scaled with mass so the static compression (g / 20000 ~ 0.5 mm) is the same for any size
+    k_total = CONTACT_SPRING_N_PER_M_PER_KG * mass
+    k = k_total / n_contacts
+    c = 2.0 * CONTACT_DAMPING_RATIO * (k_total * mass) ** 0.5 / n_contacts
+    lines = [
+        '<?xml version="1.0"?>',
+        f'<fdm_config name="{name}" version="2.0" release="ALPHA">',
+        "  <fileheader><author>mars-link</author><description>generated assembly</description></fileheader>",
+        "  <planet>",
+        f'    <equatorial_radius unit="M">{EARTH_RADIUS_M}</equatorial_radius>',
+        f'    <polar_radius unit="M">{EARTH_RADIUS_M}</polar_radius>',
+        '    <rotation_rate unit="RAD/SEC">0.0</rotation_rate>',
+        f'    <GM unit="M3/SEC2">{GRAVITY_MPS2 * EARTH_RADIUS_M ** 2:.10e}</GM>',
+        "    <J2>0.0</J2>",
+        "  </planet>",
+        "  <metrics>",
+        '    <wingarea unit="M2">0.1</wingarea><wingspan unit="M">0.3</wingspan><chord unit="M">0.3</chord>',
+        '    <htailarea unit="M2">0</htailarea><htailarm unit="M">0</htailarm>',
+        '    <vtailarea unit="M2">0</vtailarea><vtailarm unit="M">0</vtailarm>',
+        '    <location name="AERORP" unit="M"><x>0</x><y>0</y><z>0</z></location>',
+        '    <location name="EYEPOINT" unit="M"><x>0</x><y>0</y><z>0</z></location>',
+        '    <location name="VRP" unit="M"><x>0</x><y>0</y><z>0</z></location>',
+        "  </metrics>",
+        "  <mass_balance>",
+        f'    <ixx unit="KG*M2">1e-9</ixx><iyy unit="KG*M2">1e-9</iyy><izz unit="KG*M2">1e-9</izz>',
+        f'    <emptywt unit="KG">{EMPTY_MASS_KG}</emptywt>',
+        '    <location name="CG" unit="M"><x>0</x><y>0</y><z>0</z></location>',
+    ]
+    for uid in model.unit_ids:
+        x, y, z = _structural(model.unit_position(uid))
+        lines += [
+            f'    <pointmass name="unit{uid}">',
+            f'      <weight unit="KG">{v.unit_mass_kg}</weight>',
+            f'      <ixx unit="KG*M2">{ju[0]}</ixx><iyy unit="KG*M2">{ju[1]}</iyy><izz unit="KG*M2">{ju[2]}</izz>',
+            f'      <location unit="M"><x>{x:.9f}</x><y>{y:.9f}</y><z>{z:.9f}</z></location>',
+            "    </pointmass>",
+        ]
+    lines += ["  </mass_balance>", "  <ground_reactions>"]
+    a = v.rotor_offset_m
+    for uid in model.unit_ids:
+        for sx, sy in ((1, 1), (1, -1), (-1, -1), (-1, 1)):
+            p = model.unit_position(uid).copy()
+            p[0] += sx * a
+            p[1] += sy * a
+            p[2] += v.gear_depth_m  # feet below the unit centre (FRD z down)
+            x, y, z = _structural(p)
+            lines += [
+                f'    <contact type="STRUCTURE" name="foot_u{uid}_{sx:+d}{sy:+d}">',
+                f'      <location unit="M"><x>{x:.9f}</x><y>{y:.9f}</y><z>{z:.9f}</z></location>',
+                "      <static_friction>0.8</static_friction><dynamic_friction>0.5</dynamic_friction>",
+                f'      <spring_coeff unit="N/M">{k:.6f}</spring_coeff>',
+                f'      <damping_coeff unit="N/M/SEC">{c:.6f}</damping_coeff>',
+                "    </contact>",
+            ]
+    lines += ["  </ground_reactions>", "  <external_reactions>"]
+    for r in model.rotors:
+        x, y, z = _structural(r.position_m)
+        tag = f"u{r.unit_id}r{r.index}"
+        lines += [
+            f'    <force name="{tag}" frame="BODY" unit="LBS">',
+            f'      <location unit="M"><x>{x:.9f}</x><y>{y:.9f}</y><z>{z:.9f}</z></location>',
+            "      <direction><x>0</x><y>0</y><z>-1</z></direction>",
+            "    </force>",
+            f'    <moment name="{tag}_q" frame="BODY" unit="LBSFT">',
+            "      <direction><x>0</x><y>0</y><z>1</z></direction>",
+            "    </moment>",
+        ]
+    lines += ["  </external_reactions>", "  <aerodynamics/>", "</fdm_config>", ""]
+    return "\n".join(lines)
+
+
+def write_aircraft(model: AssemblyModel, root_dir: Path, name: str) -> Path:
+    path = Path(root_dir) / "aircraft" / name / f"{name}.xml"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(aircraft_xml(model, name), encoding="utf-8")
+    return path
