@@ -30,6 +30,14 @@ def wire_thrust(thrusts_n, full_scale_n: float) -> np.ndarray:
     return f32(np.asarray(thrusts_n, dtype=float) / full_scale_n) * full_scale_n
 
 
+def wire_state(s: RigidBodyState) -> RigidBodyState:
+    """Ground truth as carried by ODOMETRY (float32 fields, microsecond time)."""
+    return RigidBodyState(
+        wire_time(s.t_s), f32(s.position_ned_m), f32(s.velocity_ned_mps), f32(s.quaternion_wxyz),
+        f32(s.angular_velocity_frd_radps), f32(s.acceleration_ned_mps2), s.on_ground,
+    )
+
+
 @dataclass
 class SensorPacket:
     """World -> unit (HIL link) and, forwarded, unit -> coordinator (telemetry)."""
@@ -49,13 +57,7 @@ class SensorPacket:
             pos = PositionSample(
                 t, self.unit_id, f32(self.position.position_ned_m), None if vel is None else f32(vel)
             )
-        truth = None
-        if self.truth is not None:
-            s = self.truth
-            truth = RigidBodyState(
-                t, f32(s.position_ned_m), f32(s.velocity_ned_mps), f32(s.quaternion_wxyz),
-                f32(s.angular_velocity_frd_radps), f32(s.acceleration_ned_mps2), s.on_ground,
-            )
+        truth = None if self.truth is None else wire_state(self.truth)
         return SensorPacket(t, self.unit_id, imu, pos, truth)
 
 

@@ -26,6 +26,7 @@ FT = 0.3048
 LBF = 4.4482216152605
 SLUGFT2 = 1.3558179483314
 _quiet = False
+SETTLE_S = 0.3
 INTEGRATORS = {
     "simulation/integrator/rate/rotational": 1,  # rectangular Euler
     "simulation/integrator/rate/translational": 1,
@@ -115,6 +116,7 @@ class JsbsimBody:
             )
             self.set_rotor_thrusts(np.zeros(model.n_rotors))
             self._initialise(rest)
+            self._settle()
         else:
             self._initialise(state)
 
@@ -143,6 +145,14 @@ class JsbsimBody:
             raise RuntimeError("JSBSim run_ic failed")
         fdm.set_sim_time(s.t_s)
         self._prev_vel = np.asarray(s.velocity_ned_mps, dtype=float).copy()
+
+    def _settle(self, seconds: float = SETTLE_S) -> None:
+        """Let a landed body sink onto its contacts (~0.5 mm) before the clock starts at 0, so the
+        first sensor sample already reads the ground reaction."""
+        for _ in range(int(round(seconds / self.dt_s))):
+            self.fdm.run()
+        self.fdm.set_sim_time(0.0)
+        self._prev_vel = self.state().velocity_ned_mps
 
     # ----------------------------------------------------------------- inputs
     def set_rotor_thrusts(self, thrusts_n) -> None:

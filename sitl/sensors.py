@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.rotations import quat_to_rotmat
+from mars_link.rotations import cross3, quat_to_rotmat
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
 
 
@@ -61,7 +61,7 @@ class SensorModel:
         w = body.angular_velocity_frd_radps
         alpha = self._angular_acceleration(t_s, w)
         r = unit_offset_frd_m
-        accel = specific_force_frd + np.cross(alpha, r) + np.cross(w, np.cross(w, r))
+        accel = specific_force_frd + cross3(alpha, r) + cross3(w, cross3(w, r))
         gyro = w.copy()
         if self.noise:
             p = self.params
@@ -69,12 +69,39 @@ class SensorModel:
             accel = accel + self.rng.normal(0.0, p.accel_noise_mps2, 3)
         return ImuSample(t_s, unit_id, gyro, accel)
 
+    def sample_units(
+        self, t_s: float, body: RigidBodyState, specific_force_frd: np.ndarray, offsets_frd_m: np.ndarray,
+        unit_ids: list[int],
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """All units at once (the hot path): gyro, accel (N, 3) body; position, velocity (N, 3) NED."""
+        w = body.angular_velocity_frd_radps
+        alpha = self._angular_acceleration(t_s, w)
+        r = offsets_frd_m
+        n = len(unit_ids)
+        wx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+        ax = np.array([[0.0, -alpha[2], alpha[1]], [alpha[2], 0.0, -alpha[0]], [-alpha[1], alpha[0], 0.0]])
+        lever = (ax + wx @ wx) @ r.T  # (3, N)
+        accel = specific_force_frd[None, :] + lever.T
+        gyro = np.tile(w, (n, 1))
+        rot = quat_to_rotmat(body.quaternion_wxyz)
+        pos = body.position_ned_m[None, :] + (rot @ r.T).T
+        vel = body.velocity_ned_mps[None, :] + (rot @ (wx @ r.T)).T
+        if self.noise:
+            p = self.params
+            bias = np.array([self._gyro_bias(u) for u in unit_ids])
+            noise = self.rng.normal(0.0, 1.0, (n, 12))
+            gyro = gyro + bias + p.gyro_noise_radps * noise[:, 0:3]
+            accel = accel + p.accel_noise_mps2 * noise[:, 3:6]
+            pos = pos + p.position_noise_m * noise[:, 6:9]
+            vel = vel + p.velocity_noise_mps * noise[:, 9:12]
+        return gyro, accel, pos, vel
+
     def position(
         self, t_s: float, body: RigidBodyState, unit_offset_frd_m: np.ndarray, unit_id: int
     ) -> PositionSample:
         rot = quat_to_rotmat(body.quaternion_wxyz)
         pos = body.position_ned_m + rot @ unit_offset_frd_m
-        vel = body.velocity_ned_mps + rot @ np.cross(body.angular_velocity_frd_radps, unit_offset_frd_m)
+        vel = body.velocity_ned_mps + rot @ cross3(body.angular_velocity_frd_radps, unit_offset_frd_m)
         if self.noise:
             p = self.params
             pos = pos + self.rng.normal(0.0, p.position_noise_m, 3)

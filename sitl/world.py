@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from mars_link.assembly import AssemblyModel
-from mars_link.messages import ActuatorOutput, SensorPacket
+from mars_link.messages import ActuatorOutput, SensorPacket, f32, wire_state, wire_time
 from mars_link.rotations import quat_to_rotmat
-from mars_link.state import RigidBodyState
+from mars_link.state import ImuSample, PositionSample, RigidBodyState
 from sitl.physics import JsbsimBody
 from sitl.sensors import SensorModel, SensorParams
 
@@ -54,7 +54,8 @@ class World:
             yaw_rad=start_yaw_rad,
         )
         self.sensors = SensorModel(sensor_params or SensorParams(), seed=config.seed, noise=config.noise)
-        self.unit_offsets = {u: model.unit_position(u).copy() for u in model.unit_ids}
+        self._unit_ids = list(model.unit_ids)
+        self._offsets = np.array([model.unit_position(u) for u in self._unit_ids])
         tau = model.vehicle.motor_time_constant_s
         self._lag_alpha = 1.0 if tau <= 0 else 1.0 - math.exp(-self.dt_s / tau)
         self.rotor_setpoint_n = np.zeros(model.n_rotors)  # what the units drive their motors to
@@ -101,14 +102,18 @@ class World:
         truth = self.body.state()
         sf = self.body.specific_force_frd()
         with_position = self.exchange_index % self.config.position_every == 0
+        gyro, accel, pos, vel = (
+            f32(a) for a in self.sensors.sample_units(t, truth, sf, self._offsets, self._unit_ids)
+        )
+        tw = wire_time(t)
+        state = None if self.config.noise else wire_state(truth)
         packets = []
-        for unit_id, r in self.unit_offsets.items():
+        for i, unit_id in enumerate(self._unit_ids):
             if unit_id in self.dead_units:
                 continue
-            imu = self.sensors.imu(t, truth, sf, r, unit_id)
-            pos = self.sensors.position(t, truth, r, unit_id) if with_position else None
-            state = None if self.config.noise else truth
-            packets.append(SensorPacket(t, unit_id, imu, pos, state).as_wire())
+            imu = ImuSample(tw, unit_id, gyro[i], accel[i])
+            p = PositionSample(tw, unit_id, pos[i], vel[i]) if with_position else None
+            packets.append(SensorPacket(tw, unit_id, imu, p, state))
         return packets
 
     def tracked_point(self, offset_frd_m: np.ndarray, truth: RigidBodyState | None = None) -> np.ndarray:

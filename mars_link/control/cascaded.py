@@ -19,7 +19,7 @@ import numpy as np
 from mars_link.allocation.base import Allocator
 from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
 from mars_link.control.base import ControlOutput, Controller
-from mars_link.rotations import quat_to_rotmat
+from mars_link.rotations import cross3, quat_to_rotmat
 from mars_link.state import RigidBodyState
 from mars_link.trajectories import TrajectoryPoint
 
@@ -114,9 +114,9 @@ class CascadedController(Controller):
             b3 /= np.linalg.norm(b3)
         yaw = reference.yaw_rad
         b1c = np.array([math.cos(yaw), math.sin(yaw), 0.0])
-        b2 = np.cross(b3, b1c)
+        b2 = cross3(b3, b1c)
         b2 /= np.linalg.norm(b2)
-        b1 = np.cross(b2, b3)
+        b1 = cross3(b2, b3)
         r_des = np.column_stack((b1, b2, b3))
         thrust = max(0.0, float(-force @ rot[:, 2]))
         # geometric attitude error and rate error (desired rate: the yaw rate of the reference)
@@ -131,7 +131,7 @@ class CascadedController(Controller):
             -self.kr_yaw * e_r[2] - self.kw_yaw * e_w[2],
         ])
         j = self.inertia
-        moment = j @ alpha + np.cross(omega, j @ omega)
+        moment = j @ alpha + cross3(omega, j @ omega)
         wrench = np.array([thrust, moment[0], moment[1], moment[2]])
         c1 = time.perf_counter()
         thrusts = self.allocator.allocate(wrench)
