@@ -60,8 +60,12 @@ class UnitCore:
         if cmd.unit_id != self.unit_id:
             self.counters.reject("wrong_unit")
             return False
-        thrusts = np.asarray(cmd.thrusts_n, dtype=float)
-        if thrusts.shape != (ROTORS_PER_UNIT,) or not np.all(np.isfinite(thrusts)) or not math.isfinite(cmd.t_s):
+        thrusts = cmd.thrusts_n
+        if (
+            len(thrusts) != ROTORS_PER_UNIT
+            or not all(math.isfinite(x) for x in thrusts)
+            or not math.isfinite(cmd.t_s)
+        ):
             self.counters.reject("malformed")
             return False
         if self.last_command_t_s is not None and cmd.t_s <= self.last_command_t_s:
@@ -81,8 +85,11 @@ class UnitCore:
             if not self.failsafe and self.last_command_t_s is not None:
                 self.counters.failsafe_entries += 1
             self.failsafe = True
-        thrust = np.zeros(ROTORS_PER_UNIT) if self.failsafe else self.command_n.copy()
         v = self.vehicle
-        if v.rotor_min_thrust_n is not None or v.rotor_max_thrust_n is not None:
-            thrust = np.clip(thrust, v.rotor_min_thrust_n, v.rotor_max_thrust_n)
+        if self.failsafe:
+            thrust = np.zeros(ROTORS_PER_UNIT)
+        elif v.rotor_min_thrust_n is not None or v.rotor_max_thrust_n is not None:
+            thrust = np.clip(self.command_n, v.rotor_min_thrust_n, v.rotor_max_thrust_n)
+        else:
+            thrust = self.command_n
         return ActuatorOutput(t_s, self.unit_id, thrust * self.eta).as_wire(v.full_scale_thrust_n)

@@ -29,6 +29,8 @@ from mars_link.trajectories import Trajectory, build_trajectory
 DIVERGENCE_ERROR_M = 5.0
 #: ...or the assembly tilts beyond this
 DIVERGENCE_TILT_DEG = 80.0
+#: position (mocap) samples per second; the IMU comes at every control step
+POSITION_RATE_HZ = 50.0
 STAGES = ("physics", "sensors", "estimation", "control", "allocation", "motors", "logging")
 
 
@@ -190,7 +192,10 @@ def run_trial(
     com_start = start.position_ned_m - quat_to_rotmat(_yaw_quat(start.yaw_rad)) @ offset
     world = World(
         model,
-        WorldConfig(physics_hz=scenario.sim.physics_hz, exchange_hz=control_hz, seed=seed, noise=scenario.sim.noise),
+        WorldConfig(
+            physics_hz=scenario.sim.physics_hz, exchange_hz=control_hz, seed=seed, noise=scenario.sim.noise,
+            position_every=max(1, round(control_hz / POSITION_RATE_HZ)),
+        ),
         com_start,
         start.yaw_rad,
     )

@@ -103,7 +103,7 @@ class JsbsimBody:
             "udot": "accelerations/udot-ft_sec2", "vdot": "accelerations/vdot-ft_sec2",
             "wdot": "accelerations/wdot-ft_sec2",
         }.items()}
-        self._ground_h_ft = 0.0
+        self._cached_state: RigidBodyState | None = None
         self._prev_vel = np.zeros(3)
         self._accel_ned = np.zeros(3)
         if state is None:
@@ -141,6 +141,7 @@ class JsbsimBody:
         }
         for k, v in ic.items():
             fdm[k] = float(v)
+        self._cached_state = None
         if not fdm.run_ic():
             raise RuntimeError("JSBSim run_ic failed")
         fdm.set_sim_time(s.t_s)
@@ -152,6 +153,7 @@ class JsbsimBody:
         for _ in range(int(round(seconds / self.dt_s))):
             self.fdm.run()
         self.fdm.set_sim_time(0.0)
+        self._cached_state = None
         self._prev_vel = self.state().velocity_ned_mps
 
     # ----------------------------------------------------------------- inputs
@@ -167,6 +169,7 @@ class JsbsimBody:
                 self._moment_nodes[i].set_double_value(self._yaw_signs[i] * k * f / (LBF * FT))
 
     def step(self, n_steps: int = 1) -> None:
+        self._cached_state = None
         for _ in range(n_steps):
             self.fdm.run()
         n = self._n
@@ -184,6 +187,12 @@ class JsbsimBody:
         return self._n["t"].get_double_value()
 
     def state(self) -> RigidBodyState:
+        """The current state (cached until the next step; treat it as read-only)."""
+        if self._cached_state is None:
+            self._cached_state = self._read_state()
+        return self._cached_state
+
+    def _read_state(self) -> RigidBodyState:
         n = self._n
         g = lambda k: n[k].get_double_value()  # noqa: E731
         pos = np.array([g("lat") * EARTH_RADIUS_M, g("lon") * EARTH_RADIUS_M, -g("h") * FT])

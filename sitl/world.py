@@ -78,14 +78,17 @@ class World:
     def advance(self) -> None:
         """Integrate physics over one exchange period (`substeps` physics steps)."""
         a = self._lag_alpha
-        for _ in range(self.substeps):
-            if a >= 1.0:
-                self.rotor_thrust_n = self.rotor_setpoint_n.copy()
-            else:
-                self.rotor_thrust_n = self.rotor_thrust_n + a * (self.rotor_setpoint_n - self.rotor_thrust_n)
+        if a >= 1.0:  # no motor lag: thrust is constant over the exchange period
+            self.rotor_thrust_n = self.rotor_setpoint_n.copy()
             self.body.set_rotor_thrusts(self.rotor_thrust_n)
-            self.body.step()
-            self.force_integral_n2s += float(self.rotor_thrust_n @ self.rotor_thrust_n) * self.dt_s
+            self.body.step(self.substeps)
+            self.force_integral_n2s += float(self.rotor_thrust_n @ self.rotor_thrust_n) * self.dt_s * self.substeps
+        else:
+            for _ in range(self.substeps):
+                self.rotor_thrust_n = self.rotor_thrust_n + a * (self.rotor_setpoint_n - self.rotor_thrust_n)
+                self.body.set_rotor_thrusts(self.rotor_thrust_n)
+                self.body.step()
+                self.force_integral_n2s += float(self.rotor_thrust_n @ self.rotor_thrust_n) * self.dt_s
         self.exchange_index += 1
 
     # ----------------------------------------------------------------- outputs
