@@ -15,6 +15,7 @@ from pathlib import Path
 from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
 
 EARTH_RADIUS_M = 6371000.0
+SLUGFT2_PER_KGM2 = 14.593902937206364 * 0.3048**2  # kg·m² in one slug·ft²
 #: tiny structural mass so JSBSim has an empty weight; compensated in `JsbsimBody` mass checks
 EMPTY_MASS_KG = 1e-6
 CONTACT_SPRING_N_PER_M_PER_KG = 20000.0  # per contact, scaled by assembly mass: ~1 mm static compression
@@ -63,7 +64,10 @@ def aircraft_xml(model: AssemblyModel, name: str) -> str:
         lines += [
             f'    <pointmass name="unit{uid}">',
             f'      <weight unit="KG">{v.unit_mass_kg}</weight>',
-            f'      <ixx unit="KG*M2">{ju[0]}</ixx><iyy unit="KG*M2">{ju[1]}</iyy><izz unit="KG*M2">{ju[2]}</izz>',
+            # slug·ft² written directly: JSBSim's own KG*M2 factor is off by ~9e-5
+            f'      <ixx unit="SLUG*FT2">{ju[0] / SLUGFT2_PER_KGM2:.12e}</ixx>'
+            f'<iyy unit="SLUG*FT2">{ju[1] / SLUGFT2_PER_KGM2:.12e}</iyy>'
+            f'<izz unit="SLUG*FT2">{ju[2] / SLUGFT2_PER_KGM2:.12e}</izz>',
             f'      <location unit="M"><x>{x:.9f}</x><y>{y:.9f}</y><z>{z:.9f}</z></location>',
             "    </pointmass>",
         ]

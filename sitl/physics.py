@@ -20,11 +20,10 @@ import numpy as np
 from mars_link.assembly import AssemblyModel
 from mars_link.rotations import euler_to_quat, quat_to_euler
 from mars_link.state import RigidBodyState
-from sitl.jsbsim_model import EARTH_RADIUS_M, EMPTY_MASS_KG, write_aircraft
+from sitl.jsbsim_model import EARTH_RADIUS_M, EMPTY_MASS_KG, SLUGFT2_PER_KGM2, write_aircraft
 
 FT = 0.3048
 LBF = 4.4482216152605
-SLUGFT2 = 1.3558179483314
 _quiet = False
 SETTLE_S = 0.3
 INTEGRATORS = {
@@ -214,9 +213,9 @@ class JsbsimBody:
     def mass_properties(self) -> tuple[float, np.ndarray, np.ndarray]:
         """(mass kg, CoM FRD relative to the model origin, inertia FRD kg m²) as JSBSim sees them."""
         mb = self.fdm.get_mass_balance()
-        mass = self.fdm["inertia/mass-slugs"] * 14.593902937 - EMPTY_MASS_KG
-        j = np.array(mb.get_J()) * SLUGFT2
-        cg_in = np.array(mb.get_xyz_cg()) * 0.0254  # structural frame, inches
+        mass = self.fdm["inertia/mass-slugs"] * 14.593902937206364 - EMPTY_MASS_KG
+        j = np.asarray(mb.get_J()) * SLUGFT2_PER_KGM2
+        cg_in = np.asarray(mb.get_xyz_cg()).ravel() * 0.0254  # structural frame, inches
         com = np.array([-cg_in[0], cg_in[1], -cg_in[2]])
         return mass, com, j
 
