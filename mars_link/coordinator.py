@@ -38,11 +38,14 @@ class Coordinator:
         trajectory: Trajectory,
         controller: Controller,
         estimator=None,
+        detector=None,
     ) -> None:
         self.model = model
         self.trajectory = trajectory
         self.controller = controller
         self.estimator = estimator
+        self.detector = detector  # None: faults are told (set_faults), not detected
+        self.detections: list = []
         self.eta_believed = model.nominal_eta()
         self.events: list[dict] = []
         self.last: StepRecord | None = None
@@ -69,6 +72,16 @@ class Coordinator:
         out = self.controller.update(t_s, estimate, reference)
         c2 = time.perf_counter()
         thrusts = np.asarray(out.rotor_thrusts_n, dtype=float)
+        if self.detector is not None:
+            found = self.detector.update(t_s, thrusts, estimate, [p.imu for p in packets])
+            if found:
+                self.detections.extend(found)
+                what = ", ".join(
+                    f"unit {d.unit}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
+                    for d in found
+                )
+                self.set_faults(np.clip(self.detector.eta_estimate, 0.0, 1.0), t_s, f"detected: {what}")
+            c2 = time.perf_counter()
         alloc = out.timings_s.get("allocation", 0.0)
         scale = self.model.vehicle.full_scale_thrust_n
         self.last = StepRecord(

@@ -50,6 +50,7 @@ class TrialResult:
     stage_time_s: dict[str, float] = field(default_factory=dict)
     physics_steps: int = 0
     control_steps: int = 0
+    detections: list[dict] = field(default_factory=list)
 
 
 # ----------------------------------------------------------------------------- construction
@@ -185,7 +186,12 @@ def run_trial(
         from mars_link.estimation import AssemblyEstimator
 
         estimator = AssemblyEstimator(model)
-    coordinator = Coordinator(model, trajectory, controller, estimator)
+    detector = None
+    if not scenario.faults_known:
+        from mars_link.fault_detection import FaultDetector
+
+        detector = FaultDetector(model)
+    coordinator = Coordinator(model, trajectory, controller, estimator, detector)
 
     offset = tracked_offset(model, scenario)
     start = trajectory.sample(0.0)
@@ -274,6 +280,16 @@ def run_trial(
     if log is not None:
         log.flush()
     events = sorted(events + coordinator.events, key=lambda e: e["t_s"])
+    detections = [
+        {
+            "t_fault": _fault_time(faults, d.unit, d.rotor),
+            "t_detected": round(d.t_detected, 6),
+            "unit": d.unit,
+            "rotor": d.rotor,
+            "eta_estimated": round(float(d.eta_estimated), 4),
+        }
+        for d in coordinator.detections
+    ]
     return TrialResult(
         seed=seed,
         completed=not diverged,
@@ -289,7 +305,14 @@ def run_trial(
         stage_time_s=stage,
         physics_steps=world.exchange_index * world.substeps,
         control_steps=n_err,
+        detections=detections,
     )
+
+
+def _fault_time(faults: list[FaultSpec], unit: int, rotor: int | None) -> float | None:
+    """When the injected fault that a detection names happened (None: a false alarm)."""
+    times = [f.t_s for f in faults if f.unit == unit and (rotor is None or f.rotor in (None, rotor))]
+    return min(times) if times else None
 
 
 def _eta_of(units: dict, model: AssemblyModel) -> np.ndarray:
@@ -334,6 +357,7 @@ def summarize(scenario: Scenario, results: list[TrialResult], seed: int) -> dict
         "max_tilt_deg": float(max(r.max_tilt_deg for r in results)),
         "stage_time_s": stage,
         "events": [dict(e, trial=i) for i, r in enumerate(results) for e in r.events],
+        "detections": [dict(d, trial=i) for i, r in enumerate(results) for d in r.detections],
         "per_trial": [
             {"seed": r.seed, "mean_error_m": r.mean_error_m, "rmse_m": r.rmse_m,
              "max_error_m": r.max_error_m, "diverged": r.diverged}
