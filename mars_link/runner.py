@@ -88,7 +88,7 @@ def make_controller(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -
 
         return PaperController(
             model,
-            tracked_unit_id=scenario.tracked_unit() or 1,
+            tracked_unit_id=scenario.tracked_unit(),
             control_hz=scenario.sim.control_hz,
             ftc=scenario.ftc,
             eta=eta,
