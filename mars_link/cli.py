@@ -104,6 +104,37 @@ def print_summary(summary: dict, out: Path) -> None:
     Console().print(table)
 
 
+def cmd_reproduce(args) -> int:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from mars_link.reproduce import CASCADED_MODES, markdown_table, reproduce_table1, write_results
+
+    if args.what != "table1":
+        raise UserInputError(f"reproduce {args.what!r}: only 'table1' is available")
+    if args.seeds < 1:
+        raise UserInputError(f"--seeds must be >= 1, got {args.seeds}")
+    modes = tuple(args.modes.split(",")) if args.modes else CASCADED_MODES
+    for m in modes:
+        if m not in CASCADED_MODES:
+            raise UserInputError(f"--modes: unknown mode {m!r} (known: {', '.join(CASCADED_MODES)})")
+    controllers = tuple(args.controllers.split(","))
+    for c in controllers:
+        if c not in ("mars-ftcc-paper", "cascaded"):
+            raise UserInputError(f"--controllers: unknown controller {c!r}")
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                  TimeElapsedColumn(), disable=args.quiet) as progress:
+        task = progress.add_task("table1", total=None)
+
+        def on_progress(done: int, total: int, name: str) -> None:
+            progress.update(task, completed=done, total=total, description=name[:48])
+
+        rows = reproduce_table1(args.seeds, controllers, modes, args.duration, on_progress)
+    path = write_results(rows, args.seeds, Path(args.out))
+    print(markdown_table(rows, args.seeds))
+    print(f"saved {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mars-link", description="SITL flight stack for modular aerial robots")
     sub = parser.add_subparsers(dest="command", parser_class=_Parser)
@@ -121,6 +152,16 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--mode", default="inproc", help="inproc (default) or sitl")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
+
+    rep = sub.add_parser("reproduce", help="reproduce a paper table (table1: paper 000 Table I + Fig. 3)")
+    rep.add_argument("what", help="table1")
+    rep.add_argument("--seeds", type=int, default=10)
+    rep.add_argument("--controllers", default="mars-ftcc-paper,cascaded")
+    rep.add_argument("--modes", help="cascaded FTC modes, comma-separated (default: all)")
+    rep.add_argument("--duration", type=float, help="shorten every flight [s] (quick look)")
+    rep.add_argument("--out", default="runs/table1")
+    rep.add_argument("--quiet", action="store_true")
+    rep.set_defaults(func=cmd_reproduce)
     return parser
 
 
