@@ -1,14 +1,22 @@
-"""Reference trajectories for the tracked point (NED, SI). Kinds are filled in below.
+"""Reference trajectories for the tracked point (NED, SI).
 
 A trajectory answers `sample(t_s)` with position and its derivatives, so controllers can feed
-forward acceleration (and jerk where available). `t_s` runs from 0 at the start of the flight.
+forward acceleration. `t_s` runs from 0 at the start of the flight. Every kind starts ON THE GROUND
+at rest under its first point (down = -rest_height_m, the tracked point's height when landed), so the
+runner can place the assembly there (the paper's spiral alone already moves at t = 0, as published);
+`duration_s` is how long the flight lasts.
 """
 
 from __future__ import annotations
 
+import csv
+import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
+
+from mars_link.errors import UserInputError
 
 
 @dataclass
@@ -31,3 +39,338 @@ class Trajectory:
 
     def start(self) -> TrajectoryPoint:
         return self.sample(0.0)
+
+
+# ----------------------------------------------------------------------------- helpers
+def smoothstep(u: float) -> tuple[float, float, float, float]:
+    """Minimum-jerk blend s(u) on [0, 1] with ds, d2s, d3s (zero velocity/acceleration at both ends)."""
+    if u <= 0.0:
+        return 0.0, 0.0, 0.0, 0.0
+    if u >= 1.0:
+        return 1.0, 0.0, 0.0, 0.0
+    u2, u3 = u * u, u * u * u
+    return (
+        10 * u3 - 15 * u3 * u + 6 * u3 * u2,
+        30 * u2 - 60 * u3 + 30 * u3 * u,
+        60 * u - 180 * u2 + 120 * u3,
+        60 - 360 * u + 360 * u2,
+    )
+
+
+class TakeoffTrajectory(Trajectory):
+    """Minimum-jerk climb from the ground to `target` in `climb_s`, then hold (building block)."""
+
+    def __init__(self, ground_ned_m: np.ndarray, target_ned_m: np.ndarray, climb_s: float, duration_s: float, yaw_rad: float = 0.0):
+        self.p0 = np.asarray(ground_ned_m, dtype=float)
+        self.p1 = np.asarray(target_ned_m, dtype=float)
+        self.climb_s = climb_s
+        self.duration_s = duration_s
+        self.yaw_rad = yaw_rad
+
+    def sample(self, t_s: float) -> TrajectoryPoint:
+        s, ds, dds, ddds = smoothstep(t_s / self.climb_s)
+        d = self.p1 - self.p0
+        c = self.climb_s
+        return TrajectoryPoint(self.p0 + s * d, ds / c * d, dds / c**2 * d, ddds / c**3 * d, self.yaw_rad)
+
+
+class SpiralTrajectory(Trajectory):
+    """Paper 000's 4-revolution shrinking spiral (specs/ftc.md §7.1), converted to NED once.
+
+    Scene frame: a(t) = 1 - k t / T, x = a cos(kt) - 1, y = a sin(kt) + 0.35, z = 0.1 k t, starting at
+    the tracked unit's scene position (0, 0.35, 0) on the ground. NED: north = y_s, east = x_s,
+    down = -z_s, made relative to that start (placed at `start_ned_m`) and lowered by
+    `rest_height_m` so t = 0 is the landed tracked point. Yaw reference 0. Lasts revolutions·2π/k.
+    """
+
+    def __init__(self, rest_height_m: float, start_ned_m=(0.0, 0.0), k_radps: float = 0.5, T: float = 40.0, revolutions: float = 4.0):
+        self.k, self.T = k_radps, T
+        self.rest = rest_height_m
+        self.n0, self.e0 = float(start_ned_m[0]), float(start_ned_m[1])
+        self.duration_s = revolutions * 2 * math.pi / k_radps
+
+    def sample(self, t_s: float) -> TrajectoryPoint:
+        t = min(max(t_s, 0.0), self.duration_s)
+        k, T = self.k, self.T
+        a, da = 1 - k * t / T, -k / T
+        c, s = math.cos(k * t), math.sin(k * t)
+        x = a * c - 1
+        y = a * s
+        dx = da * c - a * k * s
+        dy = da * s + a * k * c
+        ddx = -2 * da * k * s - a * k * k * c
+        ddy = 2 * da * k * c - a * k * k * s
+        dddx = -3 * da * k * k * c + a * k**3 * s
+        dddy = -3 * da * k * k * s - a * k**3 * c
+        moving = 0.0 <= t_s <= self.duration_s
+        z, dz = 0.1 * k * t, 0.1 * k * moving
+        m = 1.0 if moving else 0.0
+        return TrajectoryPoint(
+            np.array([self.n0 + y, self.e0 + x, -z - self.rest]),
+            m * np.array([dy, dx, -dz]),
+            m * np.array([ddy, ddx, 0.0]),
+            m * np.array([dddy, dddx, 0.0]),
+        )
+
+
+class HoverTrajectory(TakeoffTrajectory):
+    """Take off to `height_m` over `climb_s` and hold until `duration_s`."""
+
+
+class HelixTrajectory(Trajectory):
+    """Take off to `start_height_m`, then a climbing circle of `radius_m` (centre one radius east of
+    the take-off point) for `turns` turns at `speed_mps`, the angular rate ramped smoothly up and down
+    over `ramp_s`; then hold. Yaw reference 0."""
+
+    def __init__(self, rest_height_m: float, start_ned_m=(0.0, 0.0), radius_m: float = 1.0, speed_mps: float = 0.5,
+                 climb_mps: float = 0.05, turns: float = 2.0, start_height_m: float = 1.0, climb_s: float = 3.0,
+                 ramp_s: float = 3.0, hold_s: float = 2.0):
+        self.r = radius_m
+        self.w = speed_mps / radius_m
+        self.climb_rate = climb_mps / self.w  # metres of climb per radian
+        self.ramp = ramp_s
+        angle = turns * 2 * math.pi
+        # the angle covered during the two ramps is w*ramp; cruise makes up the rest
+        self.cruise_s = max(0.0, (angle - self.w * ramp_s) / self.w)
+        self.t0 = climb_s
+        self.move_s = 2 * ramp_s + self.cruise_s
+        ground = np.array([start_ned_m[0], start_ned_m[1], -rest_height_m])
+        self.p_start = ground + np.array([0.0, 0.0, -start_height_m])
+        self.takeoff = TakeoffTrajectory(ground, self.p_start, climb_s, climb_s)
+        self.duration_s = climb_s + self.move_s + hold_s
+
+    def _phase(self, tau: float) -> tuple[float, float, float, float]:
+        """Angle and its derivatives; the rate follows a min-jerk ramp up, cruise, min-jerk ramp down."""
+        w, R, cr = self.w, self.ramp, self.cruise_s
+        if tau <= 0:
+            return 0.0, 0.0, 0.0, 0.0
+        if tau < R:
+            # angle = w * integral of s(u); closed form of the integral of the min-jerk polynomial
+            u = tau / R
+            integ = R * (2.5 * u**4 - 3 * u**5 + u**6)
+            s, ds, dds, _ = smoothstep(u)
+            return w * integ, w * s, w * ds / R, w * dds / R**2
+        a_ramp = w * R * 0.5
+        if tau < R + cr:
+            return a_ramp + w * (tau - R), w, 0.0, 0.0
+        if tau < 2 * R + cr:
+            u = (tau - R - cr) / R
+            integ = R * (u - (2.5 * u**4 - 3 * u**5 + u**6))
+            s, ds, dds, _ = smoothstep(u)
+            return a_ramp + w * cr + w * integ, w * (1 - s), -w * ds / R, -w * dds / R**2
+        return 2 * a_ramp + w * cr, 0.0, 0.0, 0.0
+
+    def sample(self, t_s: float) -> TrajectoryPoint:
+        if t_s < self.t0:
+            return self.takeoff.sample(t_s)
+        th, dth, ddth, dddth = self._phase(t_s - self.t0)
+        r, c, s = self.r, math.cos(th), math.sin(th)
+        # circle through the start point, centre one radius east: n = r sin th, e = r (1 - cos th)
+        pos = self.p_start + np.array([r * s, r * (1 - c), -self.climb_rate * th])
+        vel = np.array([r * c * dth, r * s * dth, -self.climb_rate * dth])
+        acc = np.array([r * (c * ddth - s * dth**2), r * (s * ddth + c * dth**2), -self.climb_rate * ddth])
+        jerk = np.array([
+            r * (c * dddth - 3 * s * dth * ddth - c * dth**3),
+            r * (s * dddth + 3 * c * dth * ddth - s * dth**3),
+            -self.climb_rate * dddth,
+        ])
+        return TrajectoryPoint(pos, vel, acc, jerk)
+
+
+class PiecewisePolynomial(Trajectory):
+    """Minimum-snap (7th order) polynomial through NED points with zero velocity/acceleration/jerk at
+    both ends and continuous derivatives up to the 6th at interior points."""
+
+    ORDER = 8  # coefficients per segment
+
+    def __init__(self, points: np.ndarray, durations: np.ndarray, hold_s: float = 1.0):
+        self.points = np.asarray(points, dtype=float)
+        self.durations = np.asarray(durations, dtype=float)
+        self.t_knots = np.concatenate(([0.0], np.cumsum(self.durations)))
+        self.coeffs = np.stack([self._solve_axis(self.points[:, a]) for a in range(3)], axis=-1)
+        self.duration_s = float(self.t_knots[-1] + hold_s)
+
+    def _solve_axis(self, x: np.ndarray) -> np.ndarray:
+        n_seg, k = len(self.durations), self.ORDER
+        n = n_seg * k
+        a = np.zeros((n, n))
+        b = np.zeros(n)
+        row = 0
+
+        def deriv_row(seg: int, tau: float, d: int) -> np.ndarray:
+            r = np.zeros(n)
+            for i in range(d, k):
+                r[seg * k + i] = math.factorial(i) / math.factorial(i - d) * tau ** (i - d)
+            return r
+
+        for seg in range(n_seg):  # positions at both ends of every segment
+            a[row] = deriv_row(seg, 0.0, 0)
+            b[row] = x[seg]
+            row += 1
+            a[row] = deriv_row(seg, self.durations[seg], 0)
+            b[row] = x[seg + 1]
+            row += 1
+        for d in (1, 2, 3):  # rest at both ends
+            a[row] = deriv_row(0, 0.0, d)
+            row += 1
+            a[row] = deriv_row(n_seg - 1, self.durations[-1], d)
+            row += 1
+        for seg in range(n_seg - 1):  # continuity of derivatives 1..6 at interior knots
+            for d in range(1, 7):
+                a[row] = deriv_row(seg, self.durations[seg], d) - deriv_row(seg + 1, 0.0, d)
+                row += 1
+        return np.linalg.solve(a, b).reshape(n_seg, k)
+
+    def sample(self, t_s: float) -> TrajectoryPoint:
+        t = min(max(t_s, 0.0), self.t_knots[-1])
+        seg = min(int(np.searchsorted(self.t_knots, t, side="right")) - 1, len(self.durations) - 1)
+        tau = t - self.t_knots[seg]
+        c = self.coeffs[seg]  # (8, 3)
+        out = []
+        for d in range(4):
+            v = np.zeros(3)
+            for i in range(d, self.ORDER):
+                v += math.factorial(i) / math.factorial(i - d) * tau ** (i - d) * c[i]
+            out.append(v)
+        if t_s > self.t_knots[-1]:
+            out[1:] = [np.zeros(3)] * 3
+        return TrajectoryPoint(*out)
+
+
+class WaypointsTrajectory(PiecewisePolynomial):
+    """Minimum-snap through `points` (NED) from the ground under the first point, at `cruise_mps`."""
+
+    def __init__(self, rest_height_m: float, points, cruise_mps: float = 0.5, min_segment_s: float = 2.0, hold_s: float = 2.0):
+        pts = np.asarray(points, dtype=float)
+        ground = np.array([pts[0, 0], pts[0, 1], -rest_height_m])
+        pts = np.vstack([ground, pts])
+        lengths = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        # a min-snap segment peaks at ~1.9x its mean speed: stretch durations so the peak is ~cruise
+        durations = np.maximum(1.9 * lengths / cruise_mps, min_segment_s)
+        super().__init__(pts, durations, hold_s)
+
+
+class CsvTrajectory(Trajectory):
+    """Replay t, n, e, d[, yaw_rad] (header optional, t from 0), linearly interpolated, with a smooth
+    take-off from the ground under the first point over `climb_s` when that point is in the air."""
+
+    def __init__(self, rest_height_m: float, path: str, climb_s: float = 4.0):
+        rows = _read_csv_rows(Path(path))
+        data = np.array(rows)
+        t, pos = data[:, 0], data[:, 1:4]
+        yaw = data[:, 4] if data.shape[1] > 4 else np.zeros(len(t))
+        ground = np.array([pos[0, 0], pos[0, 1], -rest_height_m])
+        self.climb_s = climb_s if pos[0, 2] < -rest_height_m - 1e-6 else 0.0
+        self.takeoff = TakeoffTrajectory(ground, pos[0], max(self.climb_s, 1e-9), self.climb_s, float(yaw[0]))
+        self.t, self.pos, self.yaw = t, pos, yaw
+        self.vel = np.gradient(pos, t, axis=0)
+        self.duration_s = float(self.climb_s + t[-1])
+
+    def sample(self, t_s: float) -> TrajectoryPoint:
+        if t_s < self.climb_s:
+            return self.takeoff.sample(t_s)
+        tau = t_s - self.climb_s
+        if tau >= self.t[-1]:
+            return TrajectoryPoint(self.pos[-1].copy(), yaw_rad=float(self.yaw[-1]))
+        i = max(int(np.searchsorted(self.t, tau, side="right")) - 1, 0)
+        f = (tau - self.t[i]) / (self.t[i + 1] - self.t[i])
+        p = self.pos[i] + f * (self.pos[i + 1] - self.pos[i])
+        v = self.vel[i] + f * (self.vel[i + 1] - self.vel[i])
+        yaw = float(self.yaw[i] + f * (self.yaw[i + 1] - self.yaw[i]))
+        rate = float((self.yaw[i + 1] - self.yaw[i]) / (self.t[i + 1] - self.t[i]))
+        return TrajectoryPoint(p, v, yaw_rad=yaw, yaw_rate_radps=rate)
+
+
+def _read_csv_rows(path: Path) -> list[list[float]]:
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserInputError(f"[trajectory] csv file {str(path)!r} cannot be read: {exc}") from None
+    rows = []
+    for n, row in enumerate(csv.reader(text.splitlines()), 1):
+        if not row or all(not c.strip() for c in row):
+            continue
+        try:
+            values = [float(c) for c in row]
+        except ValueError:
+            if not rows and n == 1:
+                continue  # header
+            raise UserInputError(f"[trajectory] csv {str(path)!r} line {n}: not numeric") from None
+        if len(values) not in (4, 5) or not all(math.isfinite(v) for v in values):
+            raise UserInputError(f"[trajectory] csv {str(path)!r} line {n}: expected t,n,e,d[,yaw_rad]")
+        rows.append(values)
+    if len(rows) < 2:
+        raise UserInputError(f"[trajectory] csv {str(path)!r} needs at least 2 rows")
+    times = [r[0] for r in rows]
+    if any(b <= a for a, b in zip(times, times[1:])):
+        raise UserInputError(f"[trajectory] csv {str(path)!r}: times must increase")
+    if len({len(r) for r in rows}) != 1:
+        raise UserInputError(f"[trajectory] csv {str(path)!r}: rows have different column counts")
+    return rows
+
+
+# ----------------------------------------------------------------------------- factory
+_KINDS: dict[str, tuple[type, dict[str, type], set[str]]] = {
+    # kind: (class, {param: type}, required params)
+    "mars-ftcc-spiral": (SpiralTrajectory, {"k_radps": float, "T": float, "revolutions": float}, set()),
+    "hover": (HoverTrajectory, {"height_m": float, "climb_s": float, "duration_s": float, "yaw_deg": float}, set()),
+    "helix": (HelixTrajectory, {"radius_m": float, "speed_mps": float, "climb_mps": float, "turns": float,
+                                "start_height_m": float, "climb_s": float, "ramp_s": float, "hold_s": float}, set()),
+    "waypoints": (WaypointsTrajectory, {"points": list, "cruise_mps": float, "min_segment_s": float, "hold_s": float},
+                  {"points"}),
+    "csv": (CsvTrajectory, {"path": str, "climb_s": float}, {"path"}),
+}
+TRAJECTORY_KINDS = tuple(_KINDS)
+_POSITIVE = {"k_radps", "T", "revolutions", "height_m", "climb_s", "duration_s", "radius_m", "speed_mps",
+             "turns", "ramp_s", "cruise_mps", "min_segment_s", "start_height_m"}
+
+
+def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=None) -> Trajectory:
+    """Build a trajectory kind from scenario parameters; every problem is one UserInputError line."""
+    if kind not in _KINDS:
+        raise UserInputError(f"[trajectory] unknown kind {kind!r} (known: {', '.join(TRAJECTORY_KINDS)})")
+    cls, schema, required = _KINDS[kind]
+    for key in params:
+        if key not in schema:
+            raise UserInputError(
+                f"[trajectory] unknown key {key!r} for kind {kind!r} (allowed: {', '.join(sorted(schema))})"
+            )
+    for key in required:
+        if key not in params:
+            raise UserInputError(f"[trajectory] kind {kind!r} needs {key!r}")
+    clean: dict = {}
+    for key, value in params.items():
+        want = schema[key]
+        if want is float:
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise UserInputError(f"[trajectory] {key} must be a number, got {value!r}")
+            if key in _POSITIVE and value <= 0:
+                raise UserInputError(f"[trajectory] {key} must be > 0, got {value!r}")
+            if key == "climb_mps" and value < 0:
+                raise UserInputError(f"[trajectory] climb_mps must be >= 0, got {value!r}")
+            clean[key] = float(value)
+        elif not isinstance(value, want):
+            raise UserInputError(f"[trajectory] {key} must be a {want.__name__}, got {value!r}")
+        else:
+            clean[key] = value
+    start = (0.0, 0.0) if start_ned_m is None else (float(start_ned_m[0]), float(start_ned_m[1]))
+    ground = np.array([start[0], start[1], -rest_height_m])
+    if kind == "hover":
+        height = clean.get("height_m", 2.0)
+        climb = clean.get("climb_s", 3.0)
+        duration = clean.get("duration_s", 10.0)
+        if duration < climb:
+            raise UserInputError("[trajectory] duration_s must be >= climb_s")
+        yaw = math.radians(clean.get("yaw_deg", 0.0))
+        return HoverTrajectory(ground, ground + np.array([0.0, 0.0, -height]), climb, duration, yaw)
+    if kind == "waypoints":
+        pts = clean["points"]
+        if len(pts) < 1 or not all(
+            isinstance(p, list) and len(p) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in p)
+            for p in pts
+        ):
+            raise UserInputError("[trajectory] points must be a list of [n, e, d] numbers")
+        return WaypointsTrajectory(rest_height_m, pts, **{k: v for k, v in clean.items() if k != "points"})
+    if kind == "csv":
+        return CsvTrajectory(rest_height_m, **clean)
+    return cls(rest_height_m, start, **clean)

@@ -1,0 +1,110 @@
+"""Trajectory kinds: derivatives, the paper's spiral after the frame map, ground starts, bad input."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mars_link.errors import UserInputError
+from mars_link.trajectories import TRAJECTORY_KINDS, build_trajectory
+
+REST = 0.05
+
+
+def make(kind, tmp_path=None, **params):
+    if kind == "waypoints" and "points" not in params:
+        params["points"] = [[0.0, 0.0, -1.5], [2.0, 1.0, -2.0], [3.0, -1.0, -1.0]]
+    if kind == "csv" and "path" not in params:
+        path = tmp_path / "ref.csv"
+        t = np.linspace(0, 10, 101)
+        path.write_text("t,n,e,d,yaw\n" + "\n".join(f"{a},{math.sin(a)},{0.1*a},{-1.0},{0.01*a}" for a in t))
+        params["path"] = str(path)
+    return build_trajectory(kind, params, REST)
+
+
+@pytest.mark.parametrize("kind", [k for k in TRAJECTORY_KINDS if k != "csv"])
+def test_derivatives_agree_with_finite_differences(kind: str) -> None:
+    traj = make(kind)
+    h = 1e-4
+    for t in np.linspace(0.3, traj.duration_s - 0.3, 37):
+        a, b = traj.sample(t - h), traj.sample(t + h)
+        mid = traj.sample(t)
+        np.testing.assert_allclose((b.position_ned_m - a.position_ned_m) / (2 * h), mid.velocity_ned_mps, atol=2e-5)
+        np.testing.assert_allclose((b.velocity_ned_mps - a.velocity_ned_mps) / (2 * h), mid.acceleration_ned_mps2, atol=2e-4)
+        np.testing.assert_allclose((b.acceleration_ned_mps2 - a.acceleration_ned_mps2) / (2 * h), mid.jerk_ned_mps3, atol=2e-3)
+
+
+@pytest.mark.parametrize("kind", TRAJECTORY_KINDS)
+def test_every_kind_starts_on_the_ground_at_rest(kind: str, tmp_path) -> None:
+    p = make(kind, tmp_path).sample(0.0)
+    assert p.position_ned_m[2] == pytest.approx(-REST)
+    if kind == "mars-ftcc-spiral":  # the paper's reference moves off at 0.5 m/s from t = 0 (ftc.md §7.1)
+        assert np.linalg.norm(p.velocity_ned_mps[:2]) == pytest.approx(0.5, rel=0.01)
+        return
+    np.testing.assert_allclose(p.velocity_ned_mps, 0.0, atol=1e-12)
+    np.testing.assert_allclose(p.acceleration_ned_mps2, 0.0, atol=1e-12)
+
+
+def test_spiral_matches_the_papers_formula_after_the_frame_map() -> None:
+    traj = build_trajectory("mars-ftcc-spiral", {}, REST, start_ned_m=(1.0, -2.0))
+    k, T = 0.5, 40.0
+    assert traj.duration_s == pytest.approx(4 * 2 * math.pi / k)
+    for t in (0.0, 3.7, 12.5, 31.0, 50.0):
+        a = 1 - k * t / T
+        xs, ys, zs = a * math.cos(k * t) - 1, a * math.sin(k * t) + 0.35, 0.1 * k * t
+        # scene start (0, 0.35, 0) is the tracked unit; NED: north = y_s, east = x_s, down = -z_s
+        expected = np.array([1.0 + (ys - 0.35), -2.0 + (xs - 0.0), -zs - REST])
+        np.testing.assert_allclose(traj.sample(t).position_ned_m, expected, atol=1e-12)
+
+
+def test_min_snap_passes_through_its_waypoints_with_continuous_derivatives() -> None:
+    pts = [[0.0, 0.0, -1.5], [2.0, 1.0, -2.0], [3.0, -1.0, -1.0]]
+    traj = make("waypoints", points=pts)
+    for knot, p in zip(traj.t_knots[1:], pts):
+        np.testing.assert_allclose(traj.sample(knot).position_ned_m, p, atol=1e-9)
+        a, b = traj.sample(knot - 1e-7), traj.sample(knot + 1e-7)
+        np.testing.assert_allclose(a.acceleration_ned_mps2, b.acceleration_ned_mps2, atol=1e-4)
+    end = traj.sample(traj.duration_s)
+    np.testing.assert_allclose(end.position_ned_m, pts[-1], atol=1e-9)
+    np.testing.assert_allclose(end.velocity_ned_mps, 0.0, atol=1e-9)
+
+
+def test_csv_replays_after_a_takeoff(tmp_path) -> None:
+    traj = make("csv", tmp_path)
+    c = traj.climb_s
+    assert c > 0
+    p = traj.sample(c + 2.55)
+    np.testing.assert_allclose(p.position_ned_m, [math.sin(2.5) + 0.5 * (math.sin(2.6) - math.sin(2.5)), 0.255, -1.0], atol=1e-9)
+    assert p.yaw_rad == pytest.approx(0.0255)
+    np.testing.assert_allclose(traj.sample(c + 99).position_ned_m, [math.sin(10.0), 1.0, -1.0])
+
+
+@pytest.mark.parametrize(
+    "kind,params,needle",
+    [
+        ("zigzag", {}, "unknown kind 'zigzag'"),
+        ("hover", {"radius_m": 1.0}, "unknown key 'radius_m' for kind 'hover'"),
+        ("helix", {"radius_m": -1.0}, "radius_m must be > 0"),
+        ("helix", {"turns": "two"}, "turns must be a number"),
+        ("waypoints", {}, "needs 'points'"),
+        ("waypoints", {"points": [[1, 2]]}, "points must be a list of [n, e, d]"),
+        ("csv", {"path": "no/such.csv"}, "cannot be read"),
+    ],
+)
+def test_bad_parameters_are_one_line_errors(kind, params, needle) -> None:
+    with pytest.raises(UserInputError, match=None) as exc:
+        build_trajectory(kind, params, REST)
+    assert needle in str(exc.value)
+
+
+@pytest.mark.parametrize("content,needle", [("t,n,e,d\n0,1,2,3\n", "at least 2 rows"),
+                                            ("0,0,0,-1\n0,1,0,-1\n", "times must increase"),
+                                            ("0,0,0,-1\n1,x,0,-1\n", "not numeric")])
+def test_bad_csv_files(tmp_path, content, needle) -> None:
+    path = tmp_path / "bad.csv"
+    path.write_text(content)
+    with pytest.raises(UserInputError) as exc:
+        build_trajectory("csv", {"path": str(path)}, REST)
+    assert needle in str(exc.value)
