@@ -214,8 +214,8 @@ class JsbsimBody:
         """(mass kg, CoM FRD relative to the model origin, inertia FRD kg m²) as JSBSim sees them."""
         mb = self.fdm.get_mass_balance()
         mass = self.fdm["inertia/mass-slugs"] * 14.593902937206364 - EMPTY_MASS_KG
-        j = np.asarray(mb.get_J()) * SLUGFT2_PER_KGM2
-        cg_in = np.asarray(mb.get_xyz_cg()).ravel() * 0.0254  # structural frame, inches
+        j = np.array(np.asarray(mb.get_J()), dtype=float).reshape(3, 3) * SLUGFT2_PER_KGM2
+        cg_in = np.array(mb.get_xyz_cg()).reshape(-1) * 0.0254  # structural frame, inches
         com = np.array([-cg_in[0], cg_in[1], -cg_in[2]])
         return mass, com, j
 
