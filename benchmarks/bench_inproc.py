@@ -41,10 +41,17 @@ def main() -> None:
     ap.add_argument("scenario", nargs="?", default="spiral_3x2")
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--no-log", action="store_true", help="do not write the run directory")
+    ap.add_argument("--no-noise", action="store_true", help="perfect sensors: the controller flies on the truth")
     args = ap.parse_args()
     sc = load_scenario(args.scenario)
     if args.duration:
         sc.sim.duration_s = args.duration
+    if args.no_noise:
+        sc.sim.noise = False
+    with tempfile.TemporaryDirectory() as tmp:  # warm-up: imports and first-use costs stay out of the figure
+        warm = load_scenario(args.scenario)
+        warm.sim.duration_s = 0.5
+        run_scenario(warm, Path(tmp) / "warm", plots=False)
     with tempfile.TemporaryDirectory() as tmp:
         out = None if args.no_log else Path(tmp) / "run"
         summary = run_scenario(sc, out, trials=1, plots=False)

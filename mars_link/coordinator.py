@@ -15,7 +15,7 @@ import numpy as np
 
 from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import Controller
-from mars_link.messages import RotorCommand, SensorPacket
+from mars_link.messages import RotorCommand, SensorPacket, wire_thrust, wire_time
 from mars_link.state import RigidBodyState
 from mars_link.trajectories import Trajectory, TrajectoryPoint
 
@@ -88,7 +88,9 @@ class Coordinator:
             t_s, estimate, reference, thrusts,
             {"estimation": c1 - c0, "control": c2 - c1 - alloc, "allocation": alloc},
         )
+        wired = wire_thrust(thrusts, scale)  # the whole vector at once: same rounding as RotorCommand.as_wire
+        t_w = wire_time(t_s)
         return [
-            RotorCommand(t_s, uid, thrusts[(uid - 1) * ROTORS_PER_UNIT : uid * ROTORS_PER_UNIT]).as_wire(scale)
+            RotorCommand(t_w, uid, wired[(uid - 1) * ROTORS_PER_UNIT : uid * ROTORS_PER_UNIT])
             for uid in self.model.unit_ids
         ]

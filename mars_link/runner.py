@@ -29,6 +29,8 @@ from mars_link.trajectories import Trajectory, build_trajectory
 DIVERGENCE_ERROR_M = 5.0
 #: ...or the assembly tilts beyond this
 DIVERGENCE_TILT_DEG = 80.0
+#: rotors.csv rows per second (telemetry.csv has every control step)
+ROTOR_LOG_HZ = 20.0
 #: position (mocap) samples per second; the IMU comes at every control step
 POSITION_RATE_HZ = 50.0
 STAGES = ("physics", "sensors", "estimation", "control", "allocation", "motors", "logging")
@@ -125,6 +127,7 @@ class RunLog:
             "trial,t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,roll_deg,pitch_deg,yaw_deg,"
             "error_m,est_n_m,est_e_m,est_d_m,est_roll_deg,est_pitch_deg,est_yaw_deg\n"
         )
+        self._tel_format = ",".join(["%.6g"] * 18) + "\n"
         self._rot = open(out_dir / "rotors.csv", "w", encoding="utf-8")
         cols = []
         for kind in ("cmd", "thrust", "eta"):
@@ -134,7 +137,7 @@ class RunLog:
     def telemetry(self, row: list[float]) -> None:
         self.telemetry_rows.append(row)
         if self._tel:
-            self._tel.write(",".join(f"{x:.6g}" for x in row) + "\n")
+            self._tel.write(self._tel_format % tuple(row))
 
     def rotors(self, trial: int, t_s: float, cmd, thrust, eta) -> None:
         if t_s + 1e-9 < self._next_rotor_t:
@@ -376,7 +379,7 @@ def run_scenario(
 ) -> dict:
     """Fly `trials` trials (seeds seed, seed+1, ...); write the run directory if `out_dir` is given."""
     seed = scenario.sim.seed if seed is None else seed
-    log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, 50.0))
+    log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ))
     results = []
     try:
         for i in range(trials):

@@ -82,7 +82,7 @@ class SensorModel:
         ax = np.array([[0.0, -alpha[2], alpha[1]], [alpha[2], 0.0, -alpha[0]], [-alpha[1], alpha[0], 0.0]])
         lever = (ax + wx @ wx) @ r.T  # (3, N)
         accel = specific_force_frd[None, :] + lever.T
-        gyro = np.tile(w, (n, 1))
+        gyro = np.broadcast_to(w, (n, 3))
         rot = quat_to_rotmat(body.quaternion_wxyz)
         pos = body.position_ned_m[None, :] + (rot @ r.T).T
         vel = body.velocity_ned_mps[None, :] + (rot @ (wx @ r.T)).T
