@@ -50,11 +50,11 @@ class CascadedGains:
         wn below about rate/8 and 1/(4·tau)); mass and inertia enter through the controller."""
         if not (control_hz > 0 and math.isfinite(control_hz)):
             raise UserInputError(f"control_hz must be a positive number, got {control_hz!r}")
-        att = min(12.0, control_hz / 8.0)
+        att = min(12.0, control_hz / 5.0)
         tau = model.vehicle.motor_time_constant_s
         if tau > 0:
             att = min(att, 0.25 / tau)
-        pos = min(2.0, att / 4.0)
+        pos = min(2.0, att / 3.5)
         return cls(
             position_wn_radps=pos,
             position_ki_per_s3=0.4 * pos,
