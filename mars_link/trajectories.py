@@ -114,28 +114,59 @@ class SpiralTrajectory(Trajectory):
 
 
 class HoverTrajectory(TakeoffTrajectory):
-    """Take off to `height_m` over `climb_s` and hold until `duration_s`."""
+    """Starts landed at the start point, climbs straight up by `height_m` over `climb_s` (minimum
+    jerk) and holds there, at yaw `yaw_deg`, until `duration_s` (the whole flight)."""
 
 
 class HelixTrajectory(Trajectory):
-    """Take off to `start_height_m`, then a climbing circle of `radius_m` (centre one radius east of
-    the take-off point) for `turns` turns at `speed_mps`, the angular rate ramped smoothly up and down
-    over `ramp_s`; then hold. Yaw reference 0."""
+    """Climbing circle from the ground.
 
-    def __init__(self, rest_height_m: float, start_ned_m=(0.0, 0.0), radius_m: float = 1.0, speed_mps: float = 0.5,
-                 climb_mps: float = 0.05, turns: float = 2.0, start_height_m: float = 1.0, climb_s: float = 3.0,
-                 ramp_s: float = 3.0, hold_s: float = 2.0):
+    Starts landed at `start_ned_m` (the take-off point), climbs straight up to `start_height_m` over
+    `climb_s` (minimum jerk), then circles the centre (`centre_ne_m` = [n, e] offset from the take-off
+    point; default one `radius_m` east) clockwise seen from above for `turns` turns at `speed_mps` (or
+    one turn per `period_s`), climbing at `climb_mps` (or so as to end at `height_m` above the
+    ground). The angular rate ramps up and down smoothly over `ramp_s` each; then it holds for
+    `hold_s`. Yaw reference 0. duration_s = climb_s + 2 ramp_s + cruise + hold_s.
+    """
+
+    def __init__(self, rest_height_m: float, start_ned_m=(0.0, 0.0), radius_m: float | None = None,
+                 speed_mps: float | None = None, climb_mps: float | None = None, turns: float = 2.0,
+                 start_height_m: float = 1.0, climb_s: float = 3.0, ramp_s: float = 3.0, hold_s: float = 2.0,
+                 period_s: float | None = None, height_m: float | None = None, centre_ne_m=None):
+        if centre_ne_m is not None:
+            if radius_m is not None:
+                raise UserInputError("[trajectory] helix: give radius_m or centre_ne_m, not both")
+            cn, ce = float(centre_ne_m[0]), float(centre_ne_m[1])
+            radius_m = math.hypot(cn, ce)
+            if radius_m <= 0:
+                raise UserInputError("[trajectory] helix: centre_ne_m must not be the take-off point")
+        else:
+            radius_m = 1.0 if radius_m is None else radius_m
+            cn, ce = 0.0, radius_m
+        if speed_mps is not None and period_s is not None:
+            raise UserInputError("[trajectory] helix: give speed_mps or period_s, not both")
+        if climb_mps is not None and height_m is not None:
+            raise UserInputError("[trajectory] helix: give climb_mps or height_m, not both")
+        if height_m is not None and height_m < start_height_m:
+            raise UserInputError("[trajectory] helix: height_m must be >= start_height_m")
         self.r = radius_m
-        self.w = speed_mps / radius_m
-        self.climb_rate = climb_mps / self.w  # metres of climb per radian
-        self.ramp = ramp_s
+        self.w = 2 * math.pi / period_s if period_s is not None else (0.5 if speed_mps is None else speed_mps) / radius_m
         angle = turns * 2 * math.pi
+        if height_m is not None:
+            self.climb_rate = (height_m - start_height_m) / angle  # metres of climb per radian
+        else:
+            self.climb_rate = (0.05 if climb_mps is None else climb_mps) / self.w
+        self.phi0 = math.atan2(-ce, -cn)  # bearing of the take-off point seen from the centre
+        self.ramp = ramp_s
         # the angle covered during the two ramps is w*ramp; cruise makes up the rest
-        self.cruise_s = max(0.0, (angle - self.w * ramp_s) / self.w)
+        if self.w * ramp_s > angle:
+            raise UserInputError("[trajectory] helix: turns too few for the ramps (lower ramp_s or raise turns)")
+        self.cruise_s = (angle - self.w * ramp_s) / self.w
         self.t0 = climb_s
         self.move_s = 2 * ramp_s + self.cruise_s
         ground = np.array([start_ned_m[0], start_ned_m[1], -rest_height_m])
         self.p_start = ground + np.array([0.0, 0.0, -start_height_m])
+        self.centre = self.p_start + np.array([cn, ce, 0.0])
         self.takeoff = TakeoffTrajectory(ground, self.p_start, climb_s, climb_s)
         self.duration_s = climb_s + self.move_s + hold_s
 
@@ -164,15 +195,15 @@ class HelixTrajectory(Trajectory):
         if t_s < self.t0:
             return self.takeoff.sample(t_s)
         th, dth, ddth, dddth = self._phase(t_s - self.t0)
-        r, c, s = self.r, math.cos(th), math.sin(th)
-        # circle through the start point, centre one radius east: n = r sin th, e = r (1 - cos th)
-        pos = self.p_start + np.array([r * s, r * (1 - c), -self.climb_rate * th])
-        vel = np.array([r * c * dth, r * s * dth, -self.climb_rate * dth])
-        acc = np.array([r * (c * ddth - s * dth**2), r * (s * ddth + c * dth**2), -self.climb_rate * ddth])
+        r, c, s = self.r, math.cos(self.phi0 + th), math.sin(self.phi0 + th)
+        k = self.climb_rate
+        pos = self.centre + np.array([r * c, r * s, -k * th])
+        vel = np.array([-r * s * dth, r * c * dth, -k * dth])
+        acc = np.array([-r * (s * ddth + c * dth**2), r * (c * ddth - s * dth**2), -k * ddth])
         jerk = np.array([
+            -r * (s * dddth + 3 * c * dth * ddth - s * dth**3),
             r * (c * dddth - 3 * s * dth * ddth - c * dth**3),
-            r * (s * dddth + 3 * c * dth * ddth - s * dth**3),
-            -self.climb_rate * dddth,
+            -k * dddth,
         ])
         return TrajectoryPoint(pos, vel, acc, jerk)
 
@@ -191,73 +222,155 @@ class PiecewisePolynomial(Trajectory):
         self.duration_s = float(self.t_knots[-1] + hold_s)
 
     def _solve_axis(self, x: np.ndarray) -> np.ndarray:
+        """Coefficients in normalised segment time u = tau / T in [0, 1] (well conditioned for any T)."""
         n_seg, k = len(self.durations), self.ORDER
         n = n_seg * k
         a = np.zeros((n, n))
         b = np.zeros(n)
         row = 0
 
-        def deriv_row(seg: int, tau: float, d: int) -> np.ndarray:
+        def deriv_row(seg: int, u: float, d: int) -> np.ndarray:
             r = np.zeros(n)
+            scale = self.durations[seg] ** -d
             for i in range(d, k):
-                r[seg * k + i] = math.factorial(i) / math.factorial(i - d) * tau ** (i - d)
+                r[seg * k + i] = math.factorial(i) / math.factorial(i - d) * u ** (i - d) * scale
             return r
 
         for seg in range(n_seg):  # positions at both ends of every segment
             a[row] = deriv_row(seg, 0.0, 0)
             b[row] = x[seg]
             row += 1
-            a[row] = deriv_row(seg, self.durations[seg], 0)
+            a[row] = deriv_row(seg, 1.0, 0)
             b[row] = x[seg + 1]
             row += 1
         for d in (1, 2, 3):  # rest at both ends
             a[row] = deriv_row(0, 0.0, d)
             row += 1
-            a[row] = deriv_row(n_seg - 1, self.durations[-1], d)
+            a[row] = deriv_row(n_seg - 1, 1.0, d)
             row += 1
         for seg in range(n_seg - 1):  # continuity of derivatives 1..6 at interior knots
             for d in range(1, 7):
-                a[row] = deriv_row(seg, self.durations[seg], d) - deriv_row(seg + 1, 0.0, d)
+                a[row] = deriv_row(seg, 1.0, d) - deriv_row(seg + 1, 0.0, d)
                 row += 1
         return np.linalg.solve(a, b).reshape(n_seg, k)
 
     def sample(self, t_s: float) -> TrajectoryPoint:
         t = min(max(t_s, 0.0), self.t_knots[-1])
         seg = min(int(np.searchsorted(self.t_knots, t, side="right")) - 1, len(self.durations) - 1)
-        tau = t - self.t_knots[seg]
+        dur = self.durations[seg]
+        u = (t - self.t_knots[seg]) / dur
         c = self.coeffs[seg]  # (8, 3)
         out = []
         for d in range(4):
             v = np.zeros(3)
             for i in range(d, self.ORDER):
-                v += math.factorial(i) / math.factorial(i - d) * tau ** (i - d) * c[i]
-            out.append(v)
+                v += math.factorial(i) / math.factorial(i - d) * u ** (i - d) * c[i]
+            out.append(v / dur**d)
         if t_s > self.t_knots[-1]:
             out[1:] = [np.zeros(3)] * 3
         return TrajectoryPoint(*out)
 
+    def lowest_point_m(self, samples: int = 100) -> np.ndarray:
+        """The sampled point with the largest down coordinate (for ground checks)."""
+        u = np.linspace(0.0, 1.0, samples)
+        pos = np.concatenate([sum(np.outer(u**i, c[i]) for i in range(self.ORDER)) for c in self.coeffs])
+        return pos[int(np.argmax(pos[:, 2]))]
 
-class WaypointsTrajectory(PiecewisePolynomial):
-    """Minimum-snap through `points` (NED) from the ground under the first point, at `cruise_mps`."""
+    def segment_peak_speeds(self, samples: int = 40) -> np.ndarray:
+        """Highest speed inside each segment (sampled), for retiming."""
+        u = np.linspace(0.0, 1.0, samples)
+        peaks = []
+        for c, dur in zip(self.coeffs, self.durations):
+            vel = sum(i * np.outer(u ** (i - 1), c[i]) for i in range(1, self.ORDER)) / dur
+            peaks.append(float(np.linalg.norm(vel, axis=1).max()))
+        return np.array(peaks)
+
+
+class WaypointsTrajectory(Trajectory):
+    """Minimum-snap through `points` (absolute NED, all above the ground) at about `cruise_mps`.
+
+    Starts landed under the first point and climbs straight up to it (minimum jerk, peak speed about
+    `cruise_mps`, at least `min_segment_s`); from there a minimum-snap polynomial (7th order, C6 at
+    the interior points: the unconstrained optimum for fixed segment times) runs from rest through
+    the other points to rest at the last. Segment times start from length / cruise and are retimed
+    a few times towards a peak speed of `cruise_mps` per segment (at least `min_segment_s` each, so
+    short hops fly slower). duration_s = climb + path + `hold_s` at the last point. `t_knots[i]` is
+    when the i-th point of [ground] + points is reached.
+    """
 
     def __init__(self, rest_height_m: float, points, cruise_mps: float = 0.5, min_segment_s: float = 2.0, hold_s: float = 2.0):
         pts = np.asarray(points, dtype=float)
         ground = np.array([pts[0, 0], pts[0, 1], -rest_height_m])
-        pts = np.vstack([ground, pts])
-        lengths = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-        # a min-snap segment peaks at ~1.9x its mean speed: stretch durations so the peak is ~cruise
-        durations = np.maximum(1.9 * lengths / cruise_mps, min_segment_s)
-        super().__init__(pts, durations, hold_s)
+        climb_m = float(np.linalg.norm(pts[0] - ground))
+        self.climb_s = max(min_segment_s, 1.875 * climb_m / cruise_mps)  # min-jerk peak = 1.875 x mean
+        self.takeoff = TakeoffTrajectory(ground, pts[0], self.climb_s, self.climb_s)
+        self.path: PiecewisePolynomial | None = None
+        knots = [0.0, self.climb_s]
+        if len(pts) > 1:
+            self.path = _retimed_min_snap(pts, cruise_mps, min_segment_s)
+            knots += list(self.climb_s + self.path.t_knots[1:])
+            lowest = self.path.lowest_point_m()
+            if lowest[2] > -rest_height_m:
+                raise UserInputError(
+                    f"[trajectory] the smooth path through the waypoints dips into the ground near "
+                    f"n={lowest[0]:.2f} e={lowest[1]:.2f}: raise the low waypoints"
+                )
+        self.t_knots = np.array(knots)
+        self.duration_s = float(self.t_knots[-1] + hold_s)
+
+    def sample(self, t_s: float) -> TrajectoryPoint:
+        if t_s < self.climb_s or self.path is None:
+            return self.takeoff.sample(t_s)
+        return self.path.sample(t_s - self.climb_s)
+
+
+def _retimed_min_snap(pts: np.ndarray, cruise_mps: float, min_segment_s: float) -> PiecewisePolynomial:
+    """Min-snap through `pts`; segment times scaled (bounded steps) towards peak speed = cruise."""
+    lengths = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+    factor = np.full(len(lengths), 1.2)
+    factor[0] = factor[-1] = 1.9  # end segments start or stop at rest
+    durations = _neighbour_bounded(np.maximum(factor * lengths / cruise_mps, min_segment_s))
+    best, best_miss = None, math.inf
+    for _ in range(6):
+        path = PiecewisePolynomial(pts, durations, 0.0)
+        peaks = path.segment_peak_speeds()
+        miss = float(np.max(np.abs(peaks / cruise_mps - 1.0) * (durations > min_segment_s + 1e-9)
+                            + np.maximum(peaks / cruise_mps - 1.0, 0.0)))
+        if miss < best_miss:
+            best, best_miss = path, miss
+        if miss < 0.03:
+            break
+        durations = _neighbour_bounded(np.maximum(durations * np.clip(peaks / cruise_mps, 0.7, 1.4), min_segment_s))
+    return best
+
+
+def _neighbour_bounded(durations: np.ndarray, ratio: float = 3.0) -> np.ndarray:
+    """No segment shorter than 1/ratio of a neighbour: C6 joins between very unequal segments swing wildly."""
+    d = durations.copy()
+    for _ in range(len(d)):
+        d[1:] = np.maximum(d[1:], d[:-1] / ratio)
+        d[:-1] = np.maximum(d[:-1], d[1:] / ratio)
+    return d
 
 
 class CsvTrajectory(Trajectory):
-    """Replay t, n, e, d[, yaw_rad] (header optional, t from 0), linearly interpolated, with a smooth
-    take-off from the ground under the first point over `climb_s` when that point is in the air."""
+    """Replay t, n, e, d[, yaw_rad] rows (header optional; times shifted so the first row is t = 0).
+
+    Starts landed under the first row's point; when that point is in the air, climbs to it over
+    `climb_s` (minimum jerk) first. Positions are interpolated linearly, velocity is the finite
+    difference of the rows (interpolated), acceleration and jerk are 0. duration_s = climb + last t.
+    """
 
     def __init__(self, rest_height_m: float, path: str, climb_s: float = 4.0):
         rows = _read_csv_rows(Path(path))
         data = np.array(rows)
-        t, pos = data[:, 0], data[:, 1:4]
+        t, pos = data[:, 0] - data[0, 0], data[:, 1:4]
+        below = np.nonzero(pos[:, 2] > -rest_height_m + 1e-6)[0]
+        if len(below):
+            raise UserInputError(
+                f"[trajectory] csv {path!r} row {below[0] + 1}: down {pos[below[0], 2]:g} is below the landed "
+                f"height (down must be <= {-rest_height_m:g})"
+            )
         yaw = data[:, 4] if data.shape[1] > 4 else np.zeros(len(t))
         ground = np.array([pos[0, 0], pos[0, 1], -rest_height_m])
         self.climb_s = climb_s if pos[0, 2] < -rest_height_m - 1e-6 else 0.0
@@ -315,14 +428,22 @@ _KINDS: dict[str, tuple[type, dict[str, type], set[str]]] = {
     "mars-ftcc-spiral": (SpiralTrajectory, {"k_radps": float, "T": float, "revolutions": float}, set()),
     "hover": (HoverTrajectory, {"height_m": float, "climb_s": float, "duration_s": float, "yaw_deg": float}, set()),
     "helix": (HelixTrajectory, {"radius_m": float, "speed_mps": float, "climb_mps": float, "turns": float,
-                                "start_height_m": float, "climb_s": float, "ramp_s": float, "hold_s": float}, set()),
+                                "start_height_m": float, "climb_s": float, "ramp_s": float, "hold_s": float,
+                                "period_s": float, "height_m": float, "centre_ne_m": list}, set()),
     "waypoints": (WaypointsTrajectory, {"points": list, "cruise_mps": float, "min_segment_s": float, "hold_s": float},
                   {"points"}),
     "csv": (CsvTrajectory, {"path": str, "climb_s": float}, {"path"}),
 }
 TRAJECTORY_KINDS = tuple(_KINDS)
 _POSITIVE = {"k_radps", "T", "revolutions", "height_m", "climb_s", "duration_s", "radius_m", "speed_mps",
-             "turns", "ramp_s", "cruise_mps", "min_segment_s", "start_height_m"}
+             "turns", "ramp_s", "cruise_mps", "min_segment_s", "start_height_m", "period_s"}
+_NON_NEGATIVE = {"climb_mps", "hold_s"}
+
+
+def _is_numbers(value, count: int) -> bool:
+    return isinstance(value, list) and len(value) == count and all(
+        isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in value
+    )
 
 
 def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=None) -> Trajectory:
@@ -346,8 +467,8 @@ def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=
                 raise UserInputError(f"[trajectory] {key} must be a number, got {value!r}")
             if key in _POSITIVE and value <= 0:
                 raise UserInputError(f"[trajectory] {key} must be > 0, got {value!r}")
-            if key == "climb_mps" and value < 0:
-                raise UserInputError(f"[trajectory] climb_mps must be >= 0, got {value!r}")
+            if key in _NON_NEGATIVE and value < 0:
+                raise UserInputError(f"[trajectory] {key} must be >= 0, got {value!r}")
             clean[key] = float(value)
         elif not isinstance(value, want):
             raise UserInputError(f"[trajectory] {key} must be a {want.__name__}, got {value!r}")
@@ -363,13 +484,17 @@ def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=
             raise UserInputError("[trajectory] duration_s must be >= climb_s")
         yaw = math.radians(clean.get("yaw_deg", 0.0))
         return HoverTrajectory(ground, ground + np.array([0.0, 0.0, -height]), climb, duration, yaw)
+    if "centre_ne_m" in clean and not _is_numbers(clean["centre_ne_m"], 2):
+        raise UserInputError("[trajectory] centre_ne_m must be [n, e] numbers (offset from the take-off point)")
     if kind == "waypoints":
         pts = clean["points"]
-        if len(pts) < 1 or not all(
-            isinstance(p, list) and len(p) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in p)
-            for p in pts
-        ):
+        if len(pts) < 1 or not all(_is_numbers(p, 3) for p in pts):
             raise UserInputError("[trajectory] points must be a list of [n, e, d] numbers")
+        for n, p in enumerate(pts, 1):
+            if p[2] > -rest_height_m + 1e-9:
+                raise UserInputError(
+                    f"[trajectory] waypoint {n} {p} is not above the ground (down must be < {-rest_height_m:g})"
+                )
         return WaypointsTrajectory(rest_height_m, pts, **{k: v for k, v in clean.items() if k != "points"})
     if kind == "csv":
         return CsvTrajectory(rest_height_m, **clean)
