@@ -24,9 +24,17 @@ def make(kind, tmp_path=None, **params):
     return build_trajectory(kind, params, REST)
 
 
-@pytest.mark.parametrize("kind", [k for k in TRAJECTORY_KINDS if k != "csv"])
-def test_derivatives_agree_with_finite_differences(kind: str) -> None:
-    traj = make(kind)
+VARIANTS = [(k, {}) for k in TRAJECTORY_KINDS if k != "csv"] + [
+    ("helix", {"centre_ne_m": [-0.6, 0.8], "period_s": 7.0, "height_m": 2.5, "turns": 1.5}),
+    ("waypoints", {"points": [[1.0, 1.0, -1.0], [6.0, 1.0, -1.0], [6.0, 1.5, -1.2], [2.0, 3.0, -2.0]],
+                   "cruise_mps": 1.2}),
+    ("hover", {"yaw_deg": 45.0, "height_m": 3.0}),
+]
+
+
+@pytest.mark.parametrize("kind,params", VARIANTS)
+def test_derivatives_agree_with_finite_differences(kind: str, params: dict) -> None:
+    traj = make(kind, **params)
     h = 1e-4
     for t in np.linspace(0.3, traj.duration_s - 0.3, 37):
         a, b = traj.sample(t - h), traj.sample(t + h)
@@ -71,6 +79,37 @@ def test_min_snap_passes_through_its_waypoints_with_continuous_derivatives() -> 
     np.testing.assert_allclose(end.velocity_ned_mps, 0.0, atol=1e-9)
 
 
+def test_min_snap_is_retimed_to_the_cruise_speed_and_stays_above_ground() -> None:
+    pts = [[0.0, 0.0, -1.0], [20.0, 0.0, -1.0], [20.0, 1.0, -1.0], [0.0, 2.0, -0.5]]
+    traj = make("waypoints", points=pts, cruise_mps=1.5)
+    ts = np.linspace(0.0, traj.duration_s, 4000)
+    samples = [traj.sample(t) for t in ts]
+    speeds = np.array([np.linalg.norm(p.velocity_ned_mps) for p in samples])
+    assert 1.4 < speeds.max() < 1.6  # peaks at the cruise speed, short hops slower
+    assert max(p.position_ned_m[2] for p in samples) <= -REST + 1e-9
+    # the take-off is straight up under the first point
+    climb = np.array([p.position_ned_m for p, t in zip(samples, ts) if t <= traj.t_knots[1]])
+    np.testing.assert_allclose(climb[:, :2], 0.0, atol=1e-12)
+    np.testing.assert_allclose(traj.sample(traj.t_knots[1]).position_ned_m, pts[0], atol=1e-12)
+    with pytest.raises(UserInputError, match="waypoint 2"):
+        make("waypoints", points=[[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+
+
+def test_helix_geometry_centre_period_and_height() -> None:
+    traj = make("helix", centre_ne_m=[0.0, -2.0], period_s=8.0, height_m=3.0, turns=2.0, start_height_m=1.0,
+                ramp_s=2.0, climb_s=3.0, hold_s=1.0)
+    centre = np.array([0.0, -2.0])
+    for t in np.linspace(3.0, traj.duration_s, 50):
+        p = traj.sample(t).position_ned_m
+        assert np.hypot(*(p[:2] - centre)) == pytest.approx(2.0, abs=1e-9)
+    end = traj.sample(traj.duration_s).position_ned_m
+    np.testing.assert_allclose(end, [0.0, 0.0, -3.0 - REST], atol=1e-9)  # two whole turns, 3 m up
+    # cruise angular rate is one turn per period_s
+    mid = traj.sample(3.0 + 2.0 + 4.0)
+    assert np.linalg.norm(mid.velocity_ned_mps[:2]) == pytest.approx(2.0 * 2 * math.pi / 8.0, rel=1e-9)
+    assert traj.duration_s == pytest.approx(3.0 + 2 * 2.0 + (4 * math.pi - 2 * math.pi / 8.0 * 2.0) / (2 * math.pi / 8.0) + 1.0)
+
+
 def test_csv_replays_after_a_takeoff(tmp_path) -> None:
     traj = make("csv", tmp_path)
     c = traj.climb_s
@@ -91,6 +130,12 @@ def test_csv_replays_after_a_takeoff(tmp_path) -> None:
         ("waypoints", {}, "needs 'points'"),
         ("waypoints", {"points": [[1, 2]]}, "points must be a list of [n, e, d]"),
         ("csv", {"path": "no/such.csv"}, "cannot be read"),
+        ("helix", {"radius_m": 1.0, "centre_ne_m": [0, 1]}, "radius_m or centre_ne_m"),
+        ("helix", {"speed_mps": 1.0, "period_s": 5.0}, "speed_mps or period_s"),
+        ("helix", {"centre_ne_m": [1]}, "centre_ne_m must be [n, e]"),
+        ("helix", {"turns": 0.1}, "turns too few"),
+        ("helix", {"hold_s": -1.0}, "hold_s must be >= 0"),
+        ("hover", {"climb_s": 5.0, "duration_s": 2.0}, "duration_s must be >= climb_s"),
     ],
 )
 def test_bad_parameters_are_one_line_errors(kind, params, needle) -> None:
@@ -99,9 +144,24 @@ def test_bad_parameters_are_one_line_errors(kind, params, needle) -> None:
     assert needle in str(exc.value)
 
 
+def test_csv_times_start_at_zero_and_finite_difference_velocity(tmp_path) -> None:
+    path = tmp_path / "late.csv"
+    path.write_text("10,0,0,-1\n11,2,0,-1\n12,2,1,-1\n")
+    traj = build_trajectory("csv", {"path": str(path), "climb_s": 2.0}, REST)
+    assert traj.duration_s == pytest.approx(2.0 + 2.0)
+    p = traj.sample(2.0 + 1.0)
+    np.testing.assert_allclose(p.position_ned_m, [2.0, 0.0, -1.0])
+    np.testing.assert_allclose(p.velocity_ned_mps, [1.0, 0.5, 0.0])  # central difference at a row
+    p = traj.sample(2.0 + 0.5)
+    np.testing.assert_allclose(p.position_ned_m, [1.0, 0.0, -1.0])
+    np.testing.assert_allclose(p.velocity_ned_mps, [1.5, 0.25, 0.0])  # one-sided at row 1, interpolated
+    np.testing.assert_allclose(traj.sample(0.0).position_ned_m, [0.0, 0.0, -REST])
+
+
 @pytest.mark.parametrize("content,needle", [("t,n,e,d\n0,1,2,3\n", "at least 2 rows"),
                                             ("0,0,0,-1\n0,1,0,-1\n", "times must increase"),
-                                            ("0,0,0,-1\n1,x,0,-1\n", "not numeric")])
+                                            ("0,0,0,-1\n1,x,0,-1\n", "not numeric"),
+                                            ("0,0,0,-1\n1,0,0,0.2\n", "row 2: down 0.2 is below")])
 def test_bad_csv_files(tmp_path, content, needle) -> None:
     path = tmp_path / "bad.csv"
     path.write_text(content)
