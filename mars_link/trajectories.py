@@ -9,6 +9,7 @@ runner can place the assembly there (the paper's spiral alone already moves at t
 
 from __future__ import annotations
 
+import bisect
 import csv
 import math
 from dataclasses import dataclass, field
@@ -219,6 +220,14 @@ class PiecewisePolynomial(Trajectory):
         self.durations = np.asarray(durations, dtype=float)
         self.t_knots = np.concatenate(([0.0], np.cumsum(self.durations)))
         self.coeffs = np.stack([self._solve_axis(self.points[:, a]) for a in range(3)], axis=-1)
+        # per segment and derivative order d = 0..3: coefficients of u^0.. in d^d x / dt^d
+        self._knots = self.t_knots.tolist()
+        self._exponents = np.arange(self.ORDER, dtype=float)
+        self._deriv_coeffs = [
+            [np.array([math.factorial(i) / math.factorial(i - d) * c[i] for i in range(d, self.ORDER)]) / dur**d
+             for d in range(4)]
+            for c, dur in zip(self.coeffs, self.durations)
+        ]
         self.duration_s = float(self.t_knots[-1] + hold_s)
 
     def _solve_axis(self, x: np.ndarray) -> np.ndarray:
@@ -256,16 +265,10 @@ class PiecewisePolynomial(Trajectory):
 
     def sample(self, t_s: float) -> TrajectoryPoint:
         t = min(max(t_s, 0.0), self.t_knots[-1])
-        seg = min(int(np.searchsorted(self.t_knots, t, side="right")) - 1, len(self.durations) - 1)
-        dur = self.durations[seg]
-        u = (t - self.t_knots[seg]) / dur
-        c = self.coeffs[seg]  # (8, 3)
-        out = []
-        for d in range(4):
-            v = np.zeros(3)
-            for i in range(d, self.ORDER):
-                v += math.factorial(i) / math.factorial(i - d) * u ** (i - d) * c[i]
-            out.append(v / dur**d)
+        seg = min(bisect.bisect_right(self._knots, t) - 1, len(self.durations) - 1)
+        u = (t - self._knots[seg]) / self.durations[seg]
+        powers = u ** self._exponents
+        out = [powers[: self.ORDER - d] @ c for d, c in enumerate(self._deriv_coeffs[seg])]
         if t_s > self.t_knots[-1]:
             out[1:] = [np.zeros(3)] * 3
         return TrajectoryPoint(*out)
