@@ -93,6 +93,7 @@ class CascadedController(Controller):
         self.kr_yaw = g.yaw_wn_radps**2
         self.kw_yaw = 2.0 * g.attitude_damping * g.yaw_wn_radps
         self.max_horizontal_acc = GRAVITY_MPS2 * math.tan(math.radians(g.max_tilt_deg))
+        self._update_thrust_cap()
         self.reset()
 
     def reset(self) -> None:
@@ -101,13 +102,14 @@ class CascadedController(Controller):
 
     def set_faults(self, eta: np.ndarray) -> None:
         self.allocator.set_eta(eta)
+        self._update_thrust_cap()
 
-    def _max_thrust_n(self) -> float:
+    def _update_thrust_cap(self) -> None:
         """Total thrust the live rotors can give (inf without rotor limits), derated for attitude."""
         cap = self.allocator.max_thrust_n
-        if cap is None:
-            return math.inf
-        return self.gains.max_thrust_fraction * cap * float(np.sum(self.allocator.eta))
+        self.max_total_thrust_n = (
+            math.inf if cap is None else self.gains.max_thrust_fraction * cap * float(np.sum(self.allocator.eta))
+        )
 
     # ----------------------------------------------------------------- control law
     def update(self, t_s: float, state: RigidBodyState, reference: TrajectoryPoint) -> ControlOutput:
@@ -173,7 +175,7 @@ class CascadedController(Controller):
         r20 = 2 * (qx * qz - qw * qy); r21 = 2 * (qy * qz + qw * qx); r22 = 1 - 2 * (qx * qx + qy * qy)
         # thrust: wanted force projected on the current thrust axis (-body z), capped
         thrust = max(0.0, -self.mass_kg * (fx * r02 + fy * r12 + fz * r22))
-        thrust = min(thrust, self._max_thrust_n())
+        thrust = min(thrust, self.max_total_thrust_n)
 
         # E = R_des^T R (columns b1 b2 b3 of R_des); e_R = vee(E - E^T) / 2
         e00 = b1x * r00 + b1y * r10 + b1z * r20; e01 = b1x * r01 + b1y * r11 + b1z * r21
