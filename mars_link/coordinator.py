@@ -52,7 +52,15 @@ class Coordinator:
 
     def set_faults(self, eta: np.ndarray, t_s: float, reason: str) -> None:
         """Switch the allocation to a new believed fault set (told, or detected)."""
+        from mars_link.allocation import check_controllable
+        from mars_link.errors import UserInputError
+
         self.eta_believed = np.asarray(eta, dtype=float).copy()
+        try:
+            v = self.model.vehicle
+            check_controllable(self.model, self.eta_believed, (v.rotor_min_thrust_n, v.rotor_max_thrust_n))
+        except UserInputError as exc:  # mid-flight: log it and allocate as well as possible, never stop
+            self.events.append({"t_s": round(t_s, 6), "type": "uncontrollable", "reason": str(exc)})
         self.controller.set_faults(self.eta_believed)
         self.events.append({"t_s": round(t_s, 6), "type": "reallocation", "reason": reason})
 

@@ -46,6 +46,9 @@ CASES = {
     "missing scenario file": (None, ("no/such/file.toml",), "not found"),
     "bad fault syntax": (GOOD, ("--fault", "two=half"), "expected UNIT[:ROTOR]=ETA[@T]"),
     "bad seed": (GOOD, ("--seed", "abc"), "invalid int value"),
+    "uncontrollable fault set": (GOOD.replace('["XXX", "XXX"]', '["X"]'), ("--fault", "1:1=0", "--fault", "1:2=0"),
+                                 "uncontrollable"),
+    "unknown ftc mode": (GOOD, ("--ftc", "magic"), "--ftc 'magic': unknown mode"),
 }
 
 

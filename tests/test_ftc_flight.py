@@ -36,3 +36,30 @@ def test_ignoring_the_faults_is_markedly_worse(case) -> None:
     # the cascaded loop's integral action absorbs much of a single half-power rotor (about 1.45x here);
     # unit failures are far worse (see the README table)
     assert none.diverged or none.mean_error_m > 1.3 * ftc.mean_error_m, (none.mean_error_m, ftc.mean_error_m)
+
+
+@pytest.mark.slow
+def test_a_mid_flight_fault_that_cannot_be_flown_is_logged_not_fatal() -> None:
+    from mars_link.scenario import scenario_from_dict
+
+    sc = scenario_from_dict({
+        "assembly": {"layout": ["XX"]},
+        "trajectory": {"kind": "hover", "duration_s": 6.0},
+        "control": {"ftc": "qp"},
+        "faults": [{"t": 3.0, "unit": 1, "rotor": 1, "eta": 0.0}, {"t": 3.0, "unit": 1, "rotor": 2, "eta": 0.0},
+                   {"t": 3.0, "unit": 2, "rotor": 1, "eta": 0.0}, {"t": 3.0, "unit": 2, "rotor": 2, "eta": 0.0}],
+        "sim": {"noise": False},
+    })
+    result = run_trial(sc, 1)
+    kinds = [e["type"] for e in result.events]
+    assert "uncontrollable" in kinds and "reallocation" in kinds
+    assert result.sim_time_s > 3.0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", [c for c in CASES if c.unit_failure] + [CASES[0]], ids=lambda c: c.name)
+def test_paper_controller_reproduces_the_reference_within_30_percent(case) -> None:
+    ftc = "unit" if case.faults else "none"
+    result = run_trial(scenario_for(case, "mars-ftcc-paper", ftc), SEED)
+    assert result.completed
+    assert 0.7 * case.paper_with_m <= result.mean_error_m <= 1.3 * case.paper_with_m, result.mean_error_m
