@@ -115,8 +115,9 @@ class SpiralTrajectory(Trajectory):
 
 
 class HoverTrajectory(TakeoffTrajectory):
-    """Starts landed at the start point, climbs straight up by `height_m` over `climb_s` (minimum
-    jerk) and holds there, at yaw `yaw_deg`, until `duration_s` (the whole flight)."""
+    """Starts landed at the take-off point (`north_m`, `east_m`; default `start_ned_m`, else the
+    origin), climbs straight up by `height_m` over `climb_s` (minimum jerk) and holds there, at yaw
+    `yaw_deg`, until `duration_s` (the whole flight)."""
 
 
 class HelixTrajectory(Trajectory):
@@ -429,7 +430,8 @@ def _read_csv_rows(path: Path) -> list[list[float]]:
 _KINDS: dict[str, tuple[type, dict[str, type], set[str]]] = {
     # kind: (class, {param: type}, required params)
     "mars-ftcc-spiral": (SpiralTrajectory, {"k_radps": float, "T": float, "revolutions": float}, set()),
-    "hover": (HoverTrajectory, {"height_m": float, "climb_s": float, "duration_s": float, "yaw_deg": float}, set()),
+    "hover": (HoverTrajectory, {"height_m": float, "climb_s": float, "duration_s": float, "yaw_deg": float,
+                                "north_m": float, "east_m": float}, set()),
     "helix": (HelixTrajectory, {"radius_m": float, "speed_mps": float, "climb_mps": float, "turns": float,
                                 "start_height_m": float, "climb_s": float, "ramp_s": float, "hold_s": float,
                                 "period_s": float, "height_m": float, "centre_ne_m": list}, set()),
@@ -450,7 +452,11 @@ def _is_numbers(value, count: int) -> bool:
 
 
 def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=None) -> Trajectory:
-    """Build a trajectory kind from scenario parameters; every problem is one UserInputError line."""
+    """Build a trajectory kind from scenario parameters; every problem is one UserInputError line.
+
+    `start_ned_m` ([n, e], a down component is ignored) is the take-off point of the spiral, hover
+    and helix (default the origin); waypoints and csv take off under their own first point.
+    """
     if kind not in _KINDS:
         raise UserInputError(f"[trajectory] unknown kind {kind!r} (known: {', '.join(TRAJECTORY_KINDS)})")
     cls, schema, required = _KINDS[kind]
@@ -486,6 +492,7 @@ def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=
         if duration < climb:
             raise UserInputError("[trajectory] duration_s must be >= climb_s")
         yaw = math.radians(clean.get("yaw_deg", 0.0))
+        ground = np.array([clean.get("north_m", start[0]), clean.get("east_m", start[1]), -rest_height_m])
         return HoverTrajectory(ground, ground + np.array([0.0, 0.0, -height]), climb, duration, yaw)
     if "centre_ne_m" in clean and not _is_numbers(clean["centre_ne_m"], 2):
         raise UserInputError("[trajectory] centre_ne_m must be [n, e] numbers (offset from the take-off point)")

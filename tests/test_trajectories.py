@@ -74,6 +74,11 @@ def test_min_snap_passes_through_its_waypoints_with_continuous_derivatives() -> 
         np.testing.assert_allclose(traj.sample(knot).position_ned_m, p, atol=1e-9)
         a, b = traj.sample(knot - 1e-7), traj.sample(knot + 1e-7)
         np.testing.assert_allclose(a.acceleration_ned_mps2, b.acceleration_ned_mps2, atol=1e-4)
+    for knot in traj.t_knots[2:-1]:  # interior min-snap points: C6, so jerk joins too
+        a, b = traj.sample(knot - 1e-7), traj.sample(knot + 1e-7)
+        assert np.linalg.norm(a.velocity_ned_mps) > 0.1  # flies through, does not stop
+        np.testing.assert_allclose(a.velocity_ned_mps, b.velocity_ned_mps, atol=1e-5)
+        np.testing.assert_allclose(a.jerk_ned_mps3, b.jerk_ned_mps3, atol=1e-3)
     end = traj.sample(traj.duration_s)
     np.testing.assert_allclose(end.position_ned_m, pts[-1], atol=1e-9)
     np.testing.assert_allclose(end.velocity_ned_mps, 0.0, atol=1e-9)
@@ -168,3 +173,59 @@ def test_bad_csv_files(tmp_path, content, needle) -> None:
     with pytest.raises(UserInputError) as exc:
         build_trajectory("csv", {"path": str(path)}, REST)
     assert needle in str(exc.value)
+
+
+def test_csv_velocity_agrees_with_finite_differences(tmp_path) -> None:
+    path = tmp_path / "fine.csv"
+    t = np.arange(0.0, 6.0 + 1e-9, 0.05)
+    path.write_text("\n".join(f"{a},{math.sin(a)},{0.2 * a},{-1.0 - 0.1 * a}" for a in t))
+    traj = build_trajectory("csv", {"path": str(path), "climb_s": 2.0}, REST)
+    h = 1e-4
+    for t_s in np.linspace(0.1, traj.climb_s - 0.1, 15):  # analytic take-off
+        a, b, mid = traj.sample(t_s - h), traj.sample(t_s + h), traj.sample(t_s)
+        np.testing.assert_allclose((b.position_ned_m - a.position_ned_m) / (2 * h), mid.velocity_ned_mps, atol=2e-5)
+    for tau in t[:-2] + 0.025:  # row midpoints: secant slope of the replayed points = reported velocity
+        a, b, mid = traj.sample(2.0 + tau - h), traj.sample(2.0 + tau + h), traj.sample(2.0 + tau)
+        np.testing.assert_allclose((b.position_ned_m - a.position_ned_m) / (2 * h), mid.velocity_ned_mps, atol=1e-3)
+        np.testing.assert_allclose(mid.velocity_ned_mps, [math.cos(tau), 0.2, -0.1], atol=1e-3)
+    np.testing.assert_allclose(traj.sample(traj.climb_s).position_ned_m, [0.0, 0.0, -1.0], atol=1e-12)
+
+
+def test_hover_defaults_and_take_off_point() -> None:
+    traj = build_trajectory("hover", {}, REST)
+    assert traj.duration_s == pytest.approx(10.0)
+    np.testing.assert_allclose(traj.sample(3.0).position_ned_m, [0.0, 0.0, -2.0 - REST])
+    np.testing.assert_allclose(traj.sample(1.5).position_ned_m, [0.0, 0.0, -1.0 - REST])  # min-jerk midpoint
+    traj = build_trajectory("hover", {"east_m": -1.5}, REST, start_ned_m=(4.0, 9.0))
+    np.testing.assert_allclose(traj.sample(0.0).position_ned_m, [4.0, -1.5, -REST])
+    np.testing.assert_allclose(traj.sample(10.0).position_ned_m, [4.0, -1.5, -2.0 - REST])
+
+
+def test_spiral_parameters_and_hold_after_the_end() -> None:
+    traj = build_trajectory("mars-ftcc-spiral", {"k_radps": 1.0, "revolutions": 1}, REST)
+    assert traj.duration_s == pytest.approx(2 * math.pi)
+    end = traj.sample(traj.duration_s)
+    after = traj.sample(traj.duration_s + 5.0)
+    np.testing.assert_allclose(after.position_ned_m, end.position_ned_m)
+    np.testing.assert_allclose(after.velocity_ned_mps, 0.0)
+    assert end.position_ned_m[2] == pytest.approx(-0.1 * 2 * math.pi - REST)
+
+
+@pytest.mark.parametrize(
+    "kind,params,needle",
+    [
+        ("csv", {}, "kind 'csv' needs 'path'"),
+        ("csv", {"path": 3}, "path must be a str"),
+        ("waypoints", {"points": "0,0,-1"}, "points must be a list"),
+        ("hover", {"height_m": True}, "height_m must be a number"),
+        ("hover", {"duration_s": 0}, "duration_s must be > 0"),
+        ("waypoints", {"points": [[0, 0, -1]], "cruise_mps": -0.5}, "cruise_mps must be > 0"),
+        ("mars-ftcc-spiral", {"T": 0.0}, "T must be > 0"),
+        ("mars-ftcc-spiral", {"radius_m": 1.0}, "unknown key 'radius_m' for kind 'mars-ftcc-spiral'"),
+    ],
+)
+def test_more_bad_parameters_name_the_key(kind, params, needle) -> None:
+    with pytest.raises(UserInputError) as exc:
+        build_trajectory(kind, params, REST)
+    assert needle in str(exc.value)
+    assert "\n" not in str(exc.value)
