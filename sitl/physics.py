@@ -8,41 +8,91 @@ The local NED origin is a fixed point on the ground at (lat, lon) = (0, 0).
 
 from __future__ import annotations
 
+import ctypes
 import math
 import os
 import shutil
+import sys
 import tempfile
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 import jsbsim
 import numpy as np
 
 from mars_link.assembly import AssemblyModel
+from mars_link.errors import UserInputError
 from mars_link.rotations import euler_to_quat, quat_to_euler
 from mars_link.state import RigidBodyState
 from sitl.jsbsim_model import EARTH_RADIUS_M, EMPTY_MASS_KG, SLUGFT2_PER_KGM2, write_aircraft
 
 FT = 0.3048
 LBF = 4.4482216152605
+SLUG_KG = 14.593902937206364
 _quiet = False
+_libc = ctypes.CDLL(None)
 SETTLE_S = 0.3
+#: JSBSim integrator codes: 1 = rectangular Euler, 3 = Adams-Bashforth 2 (FGPropagate.h)
 INTEGRATORS = {
-    "simulation/integrator/rate/rotational": 1,  # rectangular Euler
+    # Rotor thrusts are piecewise constant (held between writes). Euler rates integrate that exactly;
+    # the default AB2 rate integrator remembers the previous derivative and leaves a permanent
+    # ~0.5·dt·Δa velocity error at every thrust change.
+    "simulation/integrator/rate/rotational": 1,
     "simulation/integrator/rate/translational": 1,
-    "simulation/integrator/position/rotational": 2,  # trapezoidal
-    "simulation/integrator/position/translational": 2,
+    # Positions from the velocity history: AB2 gives x + v·dt + a·dt²/2, exact for constant
+    # acceleration (measured: free fall 7e-6 relative after 1 s; Euler lags half a step, JSBSim's
+    # trapezoidal a whole step, since both only see the velocities before the update).
+    "simulation/integrator/position/rotational": 3,
+    "simulation/integrator/position/translational": 3,
 }
 
 
 def _silence_jsbsim() -> None:
     global _quiet
     if not _quiet:
-        jsbsim.FGJSBBase().debug_lvl = 0
+        jsbsim.FGJSBBase().debug_lvl = 0  # must precede the first FDMExec (spec §1.7)
         _quiet = True
 
 
+@contextmanager
+def _quiet_fds():
+    """Mute fds 1 and 2: JSBSim prints "aerodynamic axis system" notices from C++ when loading."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    saved = os.dup(1), os.dup(2)
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.dup2(devnull, 1)
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        _libc.fflush(None)  # C++ output is buffered when stdout is not a terminal: drop it here
+        os.dup2(saved[0], 1)
+        os.dup2(saved[1], 2)
+        for fd in (devnull, *saved):
+            os.close(fd)
+
+
+_STATE_PROPERTIES = {
+    "lat": "position/lat-geod-rad", "lon": "position/long-gc-rad", "h": "position/h-sl-ft",
+    "vn": "velocities/v-north-fps", "ve": "velocities/v-east-fps", "vd": "velocities/v-down-fps",
+    "p": "velocities/p-rad_sec", "q": "velocities/q-rad_sec", "r": "velocities/r-rad_sec",
+    "pdot": "accelerations/pdot-rad_sec2", "qdot": "accelerations/qdot-rad_sec2",
+    "rdot": "accelerations/rdot-rad_sec2",
+    "phi": "attitude/phi-rad", "theta": "attitude/theta-rad", "psi": "attitude/psi-rad",
+    "ax": "accelerations/a-pilot-x-ft_sec2", "ay": "accelerations/a-pilot-y-ft_sec2",
+    "az": "accelerations/a-pilot-z-ft_sec2",
+    "gear": "forces/fbz-gear-lbs", "t": "simulation/sim-time-sec",
+}
+
+
 class JsbsimBody:
-    """A rigid body (a free unit or a docked assembly) in its own FDMExec."""
+    """A rigid body (a free unit or a docked assembly) in its own FDMExec.
+
+    SI, NED and FRD outside; lbf/ft and JSBSim's frames stay inside this class. The local NED origin
+    is on the ground at (lat, lon) = (0, 0), where north and east metres map isotropically.
+    """
 
     def __init__(
         self,
@@ -52,7 +102,15 @@ class JsbsimBody:
         yaw_rad: float = 0.0,
         state: RigidBodyState | None = None,
         work_dir: Path | None = None,
+        rotor_thrusts_n: np.ndarray | None = None,
     ) -> None:
+        """Rest on the ground at position_ned_m[:2] (feet touching), or start from `state` in the air.
+
+        `rotor_thrusts_n` are applied before `run_ic()` (an airborne start without them begins with
+        the rotors off).
+        """
+        if not (math.isfinite(physics_hz) and physics_hz > 0):
+            raise UserInputError(f"physics rate must be a positive number of Hz, got {physics_hz!r}")
         _silence_jsbsim()
         self.model = model
         self.dt_s = 1.0 / physics_hz
@@ -62,58 +120,40 @@ class JsbsimBody:
         write_aircraft(model, self._dir, name)
         fdm = jsbsim.FGFDMExec(str(self._dir))
         fdm.set_debug_level(0)
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        saved = os.dup(1), os.dup(2)
-        try:  # JSBSim prints "aerodynamic axis system" notices on load: keep the console clean
-            os.dup2(devnull, 1)
-            os.dup2(devnull, 2)
+        with _quiet_fds():
             ok = fdm.load_model(name)
-        finally:
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            os.close(devnull)
-            os.close(saved[0])
-            os.close(saved[1])
         if not ok:
+            self.close()
             raise RuntimeError("JSBSim could not load the generated assembly model")
         fdm.set_dt(self.dt_s)
-        # Rotor thrusts change stepwise at the control rate. The default Adams-Bashforth integrators
-        # remember the previous derivative and leave a permanent ~0.5·dt·Δa velocity error at every
-        # step change; Euler rates with trapezoidal positions integrate piecewise-constant forces exactly.
         for key, value in INTEGRATORS.items():
             fdm[key] = value
         self.fdm = fdm
-        pm = fdm.get_property_manager()
-        node = pm.get_node
+        node = fdm.get_property_manager().get_node
         self._force_nodes = [node(f"external_reactions/u{r.unit_id}r{r.index}/magnitude") for r in model.rotors]
-        self._moment_nodes = [node(f"external_reactions/u{r.unit_id}r{r.index}_q/magnitude-lbsft") for r in model.rotors]
-        self._yaw_arm = model.vehicle.yaw_moment_per_thrust_m
-        self._yaw_signs = [float(r.yaw_sign) for r in model.rotors]
+        self._moment_nodes = [
+            node(f"external_reactions/u{r.unit_id}r{r.index}_q/magnitude-lbsft") for r in model.rotors
+        ]
+        # thrust N -> force lbf and reaction moment lbf·ft per rotor, folded into one factor each
+        self._force_scale = 1.0 / LBF
+        self._moment_scales = [
+            r.yaw_sign * model.vehicle.yaw_moment_per_thrust_m / (LBF * FT) for r in model.rotors
+        ]
         self._last = [math.nan] * model.n_rotors
-        get = lambda p: node(p)  # noqa: E731
-        self._n = {k: get(p) for k, p in {
-            "lat": "position/lat-geod-rad", "lon": "position/long-gc-rad", "h": "position/h-sl-ft",
-            "vn": "velocities/v-north-fps", "ve": "velocities/v-east-fps", "vd": "velocities/v-down-fps",
-            "p": "velocities/p-rad_sec", "q": "velocities/q-rad_sec", "r": "velocities/r-rad_sec",
-            "phi": "attitude/phi-rad", "theta": "attitude/theta-rad", "psi": "attitude/psi-rad",
-            "ax": "accelerations/a-pilot-x-ft_sec2", "ay": "accelerations/a-pilot-y-ft_sec2",
-            "az": "accelerations/a-pilot-z-ft_sec2",
-            "gear": "forces/fbz-gear-lbs", "t": "simulation/sim-time-sec",
-            "udot": "accelerations/udot-ft_sec2", "vdot": "accelerations/vdot-ft_sec2",
-            "wdot": "accelerations/wdot-ft_sec2",
-        }.items()}
+        self._n = {k: node(p) for k, p in _STATE_PROPERTIES.items()}
         self._cached_state: RigidBodyState | None = None
-        self._prev_vel = np.zeros(3)
-        self._accel_ned = np.zeros(3)
+        self._vel_before = (0.0, 0.0, 0.0)  # NED ft/s before the last step() call
+        self._last_steps = 0
+        thrusts = np.zeros(model.n_rotors) if rotor_thrusts_n is None else rotor_thrusts_n
+        self.set_rotor_thrusts(thrusts)
         if state is None:
             rest = RigidBodyState(
                 0.0,
-                np.array([position_ned_m[0], position_ned_m[1], -model.vehicle.gear_depth_m]),
+                np.array([position_ned_m[0], position_ned_m[1], -model.vehicle.gear_depth_m], dtype=float),
                 np.zeros(3),
                 euler_to_quat(0.0, 0.0, yaw_rad),
                 np.zeros(3),
             )
-            self.set_rotor_thrusts(np.zeros(model.n_rotors))
             self._initialise(rest)
             self._settle()
         else:
@@ -127,9 +167,17 @@ class JsbsimBody:
         return lat, lon, -p_ned[2] / FT
 
     def _initialise(self, s: RigidBodyState) -> None:
+        """ic/* + run_ic() (spec §1.6); the rotor forces must already be set."""
+        values = np.concatenate([
+            np.asarray(s.position_ned_m, dtype=float), np.asarray(s.velocity_ned_mps, dtype=float),
+            np.asarray(s.quaternion_wxyz, dtype=float), np.asarray(s.angular_velocity_frd_radps, dtype=float),
+            [float(s.t_s)],
+        ])
+        if values.shape != (14,) or not np.all(np.isfinite(values)):
+            raise UserInputError("body state needs finite 3-vectors, a 4-element quaternion and a time")
         fdm = self.fdm
         lat, lon, h_ft = self._ned_to_geo(s.position_ned_m)
-        roll, pitch, yaw = quat_to_euler(s.quaternion_wxyz)
+        roll, pitch, yaw = quat_to_euler(np.asarray(s.quaternion_wxyz) / np.linalg.norm(s.quaternion_wxyz))
         ic = {
             "ic/lat-geod-rad": lat, "ic/long-gc-rad": lon, "ic/h-sl-ft": h_ft, "ic/terrain-elevation-ft": 0.0,
             "ic/phi-rad": roll, "ic/theta-rad": pitch, "ic/psi-true-rad": yaw % (2 * math.pi),
@@ -143,41 +191,49 @@ class JsbsimBody:
         self._cached_state = None
         if not fdm.run_ic():
             raise RuntimeError("JSBSim run_ic failed")
-        fdm.set_sim_time(s.t_s)
-        self._prev_vel = np.asarray(s.velocity_ned_mps, dtype=float).copy()
+        fdm.set_sim_time(float(s.t_s))
+        self._last_steps = 0
 
     def _settle(self, seconds: float = SETTLE_S) -> None:
-        """Let a landed body sink onto its contacts (~0.5 mm) before the clock starts at 0, so the
-        first sensor sample already reads the ground reaction."""
+        """Let a landed body sink onto its contacts (~0.5 mm, overdamped) before the clock starts at
+        0, so the first sensor sample already reads the ground reaction."""
         for _ in range(int(round(seconds / self.dt_s))):
             self.fdm.run()
         self.fdm.set_sim_time(0.0)
         self._cached_state = None
-        self._prev_vel = self.state().velocity_ned_mps
+        self._last_steps = 0
 
     # ----------------------------------------------------------------- inputs
     def set_rotor_thrusts(self, thrusts_n) -> None:
-        """Actual rotor thrusts (N, up positive) after faults and motor dynamics."""
+        """Actual rotor thrusts (N, up positive, slot order of the model) after faults and motor lag.
+
+        Each rotor also gets its reaction torque yaw_sign · yaw_moment_per_thrust_m · thrust. Only
+        changed values are written (node writes dominate the step cost for large assemblies).
+        """
+        values = thrusts_n.tolist() if isinstance(thrusts_n, np.ndarray) else [float(f) for f in thrusts_n]
         last = self._last
-        k = self._yaw_arm
-        for i, f in enumerate(thrusts_n):
-            f = float(f)
+        if len(values) != len(last):
+            raise ValueError(f"expected {len(last)} rotor thrusts, got {len(values)}")
+        fs = self._force_scale
+        for i, f in enumerate(values):
             if f != last[i]:
                 last[i] = f
-                self._force_nodes[i].set_double_value(f / LBF)
-                self._moment_nodes[i].set_double_value(self._yaw_signs[i] * k * f / (LBF * FT))
+                self._force_nodes[i].set_double_value(f * fs)
+                self._moment_nodes[i].set_double_value(f * self._moment_scales[i])
 
     def step(self, n_steps: int = 1) -> None:
-        self._cached_state = None
-        for _ in range(n_steps):
-            self.fdm.run()
+        """Advance n_steps physics steps with the thrusts held constant."""
         n = self._n
-        vel = np.array([n["vn"].get_double_value(), n["ve"].get_double_value(), n["vd"].get_double_value()]) * FT
-        self._accel_ned = (vel - self._prev_vel) / (self.dt_s * n_steps)
-        self._prev_vel = vel
+        self._vel_before = (n["vn"].get_double_value(), n["ve"].get_double_value(), n["vd"].get_double_value())
+        self._last_steps = n_steps
+        self._cached_state = None
+        run = self.fdm.run
+        for _ in range(n_steps):
+            run()
 
     def transfer_state(self, state: RigidBodyState) -> None:
-        """Re-initialise from a state (docking/undocking); rotor forces stay as last set."""
+        """Re-initialise from a state (docking/undocking); rotor forces stay as last set, so set the
+        new body's thrusts first."""
         self._initialise(state)
 
     # ----------------------------------------------------------------- outputs
@@ -186,7 +242,10 @@ class JsbsimBody:
         return self._n["t"].get_double_value()
 
     def state(self) -> RigidBodyState:
-        """The current state (cached until the next step; treat it as read-only)."""
+        """The current state (cached until the next step; treat it as read-only).
+
+        acceleration_ned_mps2 is the mean over the last step() call (exact for held thrusts).
+        """
         if self._cached_state is None:
             self._cached_state = self._read_state()
         return self._cached_state
@@ -195,12 +254,17 @@ class JsbsimBody:
         n = self._n
         g = lambda k: n[k].get_double_value()  # noqa: E731
         pos = np.array([g("lat") * EARTH_RADIUS_M, g("lon") * EARTH_RADIUS_M, -g("h") * FT])
-        vel = np.array([g("vn"), g("ve"), g("vd")]) * FT
+        vel_fps = (g("vn"), g("ve"), g("vd"))
+        vel = np.array(vel_fps) * FT
+        if self._last_steps:
+            vb = self._vel_before
+            k = FT / (self.dt_s * self._last_steps)
+            acc = np.array([(vel_fps[0] - vb[0]) * k, (vel_fps[1] - vb[1]) * k, (vel_fps[2] - vb[2]) * k])
+        else:  # right after (re)initialisation: nothing integrated yet
+            acc = np.zeros(3)
         q = euler_to_quat(g("phi"), g("theta"), g("psi"))
         omega = np.array([g("p"), g("q"), g("r")])
-        return RigidBodyState(
-            g("t"), pos, vel, q, omega, self._accel_ned.copy(), on_ground=abs(g("gear")) > 1e-6
-        )
+        return RigidBodyState(g("t"), pos, vel, q, omega, acc, on_ground=abs(g("gear")) > 1e-6)
 
     def specific_force_frd(self) -> np.ndarray:
         """Accelerometer reading at the CoM: (non-gravitational force) / mass, body FRD.
@@ -210,16 +274,34 @@ class JsbsimBody:
         n = self._n
         return np.array([n["ax"].get_double_value(), n["ay"].get_double_value(), n["az"].get_double_value()]) * FT
 
+    def angular_acceleration_frd(self) -> np.ndarray:
+        """Body angular acceleration (rad/s², FRD) of the last physics step: for lever-arm terms."""
+        n = self._n
+        return np.array([n["pdot"].get_double_value(), n["qdot"].get_double_value(), n["rdot"].get_double_value()])
+
     def mass_properties(self) -> tuple[float, np.ndarray, np.ndarray]:
-        """(mass kg, CoM FRD relative to the model origin, inertia FRD kg m²) as JSBSim sees them."""
+        """(mass kg, CoM FRD relative to the model origin, inertia FRD kg m²) as JSBSim sees them.
+
+        The inertia is the body-axes matrix J (J[0, 1] = -∫xy dm), the tiny `emptywt` excluded from
+        the mass.
+        """
         mb = self.fdm.get_mass_balance()
-        mass = self.fdm["inertia/mass-slugs"] * 14.593902937206364 - EMPTY_MASS_KG
-        j = np.array(np.asarray(mb.get_J()), dtype=float).reshape(3, 3) * SLUGFT2_PER_KGM2
-        cg_in = np.array(mb.get_xyz_cg()).reshape(-1) * 0.0254  # structural frame, inches
+        with warnings.catch_warnings():  # the binding returns np.matrix
+            warnings.simplefilter("ignore", PendingDeprecationWarning)
+            j = np.asarray(mb.get_J(), dtype=float).reshape(3, 3) * SLUGFT2_PER_KGM2
+            cg_in = np.asarray(mb.get_xyz_cg(), dtype=float).reshape(-1) * 0.0254  # structural, inches
+        mass = self.fdm["inertia/mass-slugs"] * SLUG_KG - EMPTY_MASS_KG
         com = np.array([-cg_in[0], cg_in[1], -cg_in[2]])
         return mass, com, j
 
     def close(self) -> None:
+        """Drop the FDMExec and remove the generated aircraft directory (if this body made it)."""
         self.fdm = None
         if self._own_dir:
             shutil.rmtree(self._dir, ignore_errors=True)
+
+    def __enter__(self) -> "JsbsimBody":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
