@@ -3,6 +3,14 @@
 Each mode is a small Allocator over the one effectiveness matrix of `AssemblyModel`. Columns are
 rotors (slot (unit-1)*4 + rotor-1); rows are (thrust N, roll, pitch, yaw) about the assembly CoM.
 Commands are what the units are asked for; the rotors deliver eta times that.
+
+The closed-form modes share one skeleton (`_Staged`): a first guess (eq. 1 shares, or the nominal
+pseudo-inverse), an optional intra-unit stage for faulty units (eq. 6), then the residual wrench
+to the healthy units (eq. 3-5) and, last resort, to every live rotor (so a fault set that leaves
+no healthy unit, e.g. a single degraded quadrotor or noisy detected efficiencies, is still
+served). Every stage is a precomputed matrix: `allocate` is a handful of 4N x 4 products.
+With thrust bounds these modes clip at the end (no redistribution); "qp" is the saturation-aware
+mode.
 """
 
 from __future__ import annotations
@@ -10,13 +18,11 @@ from __future__ import annotations
 import numpy as np
 
 from mars_link.allocation.base import Allocator
-from mars_link.assembly import ROTORS_PER_UNIT
+from mars_link.assembly import GRAVITY_MPS2, ROTORS_PER_UNIT, AssemblyModel
 
-_RANK_TOL = 1e-9
-
-
-def unit_groups(n_rotors: int) -> list[slice]:
-    return [slice(i, i + ROTORS_PER_UNIT) for i in range(0, n_rotors, ROTORS_PER_UNIT)]
+_RCOND = 1e-9
+#: relative priority of (thrust, roll, pitch, yaw) once each row is normalised to hover scale
+PRIORITY = np.array([10.0, 100.0, 100.0, 1.0])
 
 
 def failed_units(eta: np.ndarray) -> np.ndarray:
@@ -29,154 +35,233 @@ def faulty_units(eta: np.ndarray) -> np.ndarray:
     return np.any(eta.reshape(-1, ROTORS_PER_UNIT) < 1.0, axis=1)
 
 
-def clip(thrusts: np.ndarray, lo: float | None, hi: float | None, eta: np.ndarray | None = None) -> np.ndarray:
+def row_weights(model: AssemblyModel) -> np.ndarray:
+    """Weights of the wrench rows: each row divided by its hover-scale magnitude (squared), times
+    PRIORITY, so roll/pitch > thrust > yaw whatever the units and the assembly size."""
+    weight_n = model.mass_kg * GRAVITY_MPS2
+    arm = model.vehicle.pitch_m
+    scale = np.array([weight_n, weight_n * arm, weight_n * arm, weight_n * model.vehicle.yaw_moment_per_thrust_m])
+    return PRIORITY / scale**2
+
+
+def restricted_pinv(b: np.ndarray, columns: np.ndarray) -> np.ndarray:
+    """Minimum-norm right inverse using only `columns` (bool mask); other rows are zero."""
+    out = np.zeros((b.shape[1], b.shape[0]))
+    if columns.any():
+        out[columns] = np.linalg.pinv(b[:, columns], rcond=_RCOND)
+    return out
+
+
+def prioritised_pinv(b: np.ndarray, groups: list[list[int]], row_scale: np.ndarray) -> np.ndarray:
+    """X with t = X w meeting the row groups of b t = w lexicographically (earlier groups first,
+    least squares within a group after scaling by row_scale, minimum norm overall). Why: a rotor
+    set that cannot meet every row should drop the least important one (yaw), not smear the error."""
+    n, m = b.shape[1], b.shape[0]
+    x = np.zeros((n, m))
+    null = np.eye(n)
+    for rows in groups:
+        s = row_scale[rows][:, None]
+        bk = s * (b[rows] @ null)
+        pk = _pinv_abs(bk, _RCOND * max(np.linalg.norm(s * b[rows], 2), 1e-300))
+        select = np.zeros((len(rows), m))
+        select[np.arange(len(rows)), rows] = 1.0
+        x = x + null @ pk @ (s * (select - b[rows] @ x))
+        null = null @ (np.eye(n) - pk @ bk)
+    return x
+
+
+def _pinv_abs(a: np.ndarray, tol: float) -> np.ndarray:
+    """Pseudo-inverse dropping singular values below an absolute tol (a projected matrix can be
+    numerically zero, where a relative cutoff would invert rounding noise)."""
+    u, sv, vt = np.linalg.svd(a, full_matrices=False)
+    keep = sv > tol
+    return (vt[keep].T / sv[keep]) @ u[:, keep].T
+
+
+def clip(thrusts: np.ndarray, lo: float | None, hi: float | None, alive: np.ndarray) -> np.ndarray:
     """Respect the thrust bounds; dead rotors (eta 0) are commanded exactly 0."""
     if lo is not None or hi is not None:
         thrusts = np.clip(thrusts, lo, hi)
-    if eta is not None:
-        thrusts = np.where(eta > 0.0, thrusts, 0.0)
+    thrusts[~alive] = 0.0
     return thrusts
 
 
-class UnitShares(Allocator):
-    """Eq. 1 generalised: minimum-norm unit thrusts over the healthy units for (thrust, roll, pitch),
-    each unit's share split equally over its four rotors; yaw from the (+,-,+,-) rotor differential
-    of every healthy unit, which adds no force or roll/pitch moment. For hover this gives exactly the
-    minimum-variance shares of eq. 1. Rotor degradations inside a unit are not compensated."""
+class _Staged(Allocator):
+    """Skeleton of the closed-form modes (see the module docstring)."""
+
+    #: intra-unit stage for faulty units: None (partial), "always" (full), "when_balanced" (hybrid)
+    intra_unit: str | None = None
+
+    def set_eta(self, eta: np.ndarray) -> None:
+        super().set_eta(eta)
+        m = self.model
+        b = m.effectiveness()
+        self._b = b
+        self._b_eta = m.effectiveness(self.eta)
+        self._alive = self.eta > 0.0
+        faulty = faulty_units(self.eta)
+        self._first = self._first_guess()
+        self._to_healthy = restricted_pinv(self._b_eta, np.repeat(~faulty, ROTORS_PER_UNIT))
+        self._to_live = restricted_pinv(self._b_eta, self._alive)
+        self._stage_one = None
+        if self.intra_unit is not None and faulty.any():
+            self._setup_intra_unit(faulty)
+
+    def _first_guess(self) -> np.ndarray:
+        """n x 4 map from the wrench to the commands each unit would get if it were healthy."""
+        return np.linalg.pinv(self._b, rcond=_RCOND)
+
+    def _setup_intra_unit(self, faulty: np.ndarray) -> None:
+        """Eq. 6 stage one as matrices: each faulty unit maps its nominal share of the wrench to
+        its own live rotors, in its own frame, priority (thrust, roll, pitch) then yaw."""
+        m = self.model
+        a = m.vehicle.rotor_offset_m
+        own_scale = np.array([1.0, 1.0 / a, 1.0 / a, 1.0 / m.vehicle.yaw_moment_per_thrust_m])
+        stage = self._first.copy()
+        units = np.flatnonzero(faulty)
+        balanced = np.zeros(m.n_units, dtype=bool)
+        for u in units:
+            g = slice(u * ROTORS_PER_UNIT, (u + 1) * ROTORS_PER_UNIT)
+            x, y = m.unit_positions_m[u, :2]
+            # assembly-CoM wrench -> wrench about the unit's own centre (eq. 6b)
+            to_own = np.array([[1.0, 0, 0, 0], [y, 1.0, 0, 0], [-x, 0, 1.0, 0], [0, 0, 0, 1.0]])
+            b_own = to_own @ self._b_eta[:, g]
+            solve = prioritised_pinv(b_own, [[0, 1, 2], [3]], own_scale) @ to_own
+            share = self._b[:, g] @ self._first[g]  # 4 x 4: wrench -> this unit's nominal share
+            stage[g] = solve @ share
+            # "can balance itself": reproduces any nominal share with its live rotors alone
+            balanced[u] = np.linalg.matrix_rank(self._b_eta[:, g], tol=_RCOND) == 4
+        self._stage_one = stage
+        use = balanced if self.intra_unit == "when_balanced" else np.ones(m.n_units, dtype=bool)
+        self._intra_units = units[use[units]]
+        self._intra_rotors = np.zeros(m.n_rotors, dtype=bool)
+        for u in self._intra_units:
+            self._intra_rotors[u * ROTORS_PER_UNIT:(u + 1) * ROTORS_PER_UNIT] = True
+
+    def _bounded(self) -> bool:
+        return self.min_thrust_n is not None or self.max_thrust_n is not None
+
+    def _apply_intra_unit(self, w: np.ndarray, t: np.ndarray) -> np.ndarray:
+        """Full: every faulty unit rebalances, clipped to the bounds (what it cannot make goes on)."""
+        own = self._stage_one[self._intra_rotors] @ w
+        if self._bounded():
+            own = np.clip(own, self.min_thrust_n, self.max_thrust_n)
+        t[self._intra_rotors] = own
+        return t
+
+    def allocate(self, wrench: np.ndarray) -> np.ndarray:
+        w = np.asarray(wrench, dtype=float)
+        t = self._first @ w
+        if self._stage_one is not None and self._intra_rotors.any():
+            t = self._apply_intra_unit(w, t)
+        t += self._to_healthy @ (w - self._b_eta @ t)
+        t += self._to_live @ (w - self._b_eta @ t)
+        return clip(t, self.min_thrust_n, self.max_thrust_n, self._alive)
+
+
+class UnitShares(_Staged):
+    """Eq. 1 generalised: minimum-norm unit thrusts over the non-failed units for (thrust, roll,
+    pitch), each unit's share split equally over its four rotors; yaw from the (+,-,+,-) rotor
+    differential of those units, which adds no force or roll/pitch moment. For hover this is
+    exactly the minimum-variance shares of eq. 1 (`paper_tables.thrust_shares`). What the unit
+    level cannot make (e.g. collinear survivors) goes to their rotors by pseudo-inverse. Rotor
+    degradations inside a unit are not compensated (by definition of eq. 1)."""
 
     name = "unit"
 
     def set_eta(self, eta: np.ndarray) -> None:
         super().set_eta(eta)
+        # eq. 1 knows units as alive or failed: the residual uses the nominal columns of the
+        # survivors, so degraded rotors stay uncompensated; the live-rotor stage is not used
+        alive_units = np.repeat(~failed_units(self.eta), ROTORS_PER_UNIT)
+        self._to_healthy = restricted_pinv(self._b, alive_units)
+        self._b_eta = self._b * alive_units
+        self._to_live = np.zeros_like(self._to_live)
+
+    def _first_guess(self) -> np.ndarray:
         m = self.model
         healthy = ~failed_units(self.eta)
-        self._healthy_rotor = np.repeat(healthy, ROTORS_PER_UNIT).astype(float)
         pos = m.unit_positions_m
-        a = np.vstack([np.ones(m.n_units), -pos[:, 1], pos[:, 0]])[:, healthy]  # unit-level (T, L, M)
-        self._unit_pinv = np.zeros((m.n_units, 3))
-        self._unit_pinv[healthy] = np.linalg.pinv(a, rcond=1e-9)
+        a = np.vstack([np.ones(m.n_units), -pos[:, 1], pos[:, 0]])[:, healthy]  # unit (T, L, M)
+        unit_pinv = np.zeros((m.n_units, 4))
+        if healthy.any():
+            unit_pinv[healthy, :3] = np.linalg.pinv(a, rcond=_RCOND)
+        first = np.repeat(unit_pinv / ROTORS_PER_UNIT, ROTORS_PER_UNIT, axis=0)
         kq = m.vehicle.yaw_moment_per_thrust_m
         n_h = max(int(healthy.sum()), 1)
-        self._yaw_pattern = m.rotor_yaw_signs * self._healthy_rotor / (ROTORS_PER_UNIT * kq * n_h)
-
-    def allocate(self, wrench: np.ndarray) -> np.ndarray:
-        w = np.asarray(wrench, dtype=float)
-        unit_force = self._unit_pinv @ w[:3]
-        thrusts = np.repeat(unit_force / ROTORS_PER_UNIT, ROTORS_PER_UNIT) + self._yaw_pattern * w[3]
-        return clip(thrusts, self.min_thrust_n, self.max_thrust_n, self.eta)
+        first[:, 3] = m.rotor_yaw_signs * np.repeat(healthy, ROTORS_PER_UNIT) / (ROTORS_PER_UNIT * kq * n_h)
+        return first
 
 
-class Partial(Allocator):
+class Partial(_Staged):
     """Eq. 3-5: faulty units keep the commands they would get if healthy; the fully healthy units take
     the force and moments the faulty rotors fail to deliver (minimum norm)."""
 
     name = "partial"
 
-    def set_eta(self, eta: np.ndarray) -> None:
-        super().set_eta(eta)
-        b = self.model.effectiveness()
-        self._pinv_nominal = np.linalg.pinv(b)
-        self._b_eta = self.model.effectiveness(self.eta)
-        healthy_rotor = np.repeat(~faulty_units(self.eta), ROTORS_PER_UNIT)
-        self._pinv_healthy = np.zeros((b.shape[1], 4))
-        if healthy_rotor.any():
-            self._pinv_healthy[healthy_rotor] = np.linalg.pinv(b[:, healthy_rotor], rcond=1e-9)
 
-    def allocate(self, wrench: np.ndarray) -> np.ndarray:
-        w = np.asarray(wrench, dtype=float)
-        t = self._pinv_nominal @ w
-        missing = w - self._b_eta @ t
-        t = t + self._pinv_healthy @ missing
-        return clip(t, self.min_thrust_n, self.max_thrust_n, self.eta)
-
-
-class Full(Allocator):
+class Full(_Staged):
     """Eq. 6, two stages: every faulty unit re-produces its own nominal share of the wrench with its
-    remaining rotors (least squares over its effective columns); whatever it cannot produce goes to
-    the fully healthy units (minimum norm)."""
+    remaining rotors (about its own centre: thrust, roll, pitch first, yaw last, within the thrust
+    bounds); whatever it cannot produce goes to the fully healthy units (minimum norm)."""
 
     name = "full"
-    #: a faulty unit whose own least-squares leaves more than this fraction of its share unbalanced
-    #: "cannot balance itself" (used by Hybrid)
-    balance_tolerance = 1e-6
-
-    def set_eta(self, eta: np.ndarray) -> None:
-        super().set_eta(eta)
-        b = self.model.effectiveness()
-        self._pinv_nominal = np.linalg.pinv(b)
-        self._b = b
-        self._b_eta = self.model.effectiveness(self.eta)
-        faulty = faulty_units(self.eta)
-        self._faulty_groups = [g for g, f in zip(unit_groups(b.shape[1]), faulty) if f]
-        self._self_pinv = {}
-        self._self_balanced = {}
-        for g in self._faulty_groups:
-            be = self._b_eta[:, g]
-            p = np.linalg.pinv(be, rcond=1e-9)
-            self._self_pinv[g.start] = p
-            # can this unit reproduce any of its nominal wrenches on its own? (projection is identity)
-            proj = be @ p
-            self._self_balanced[g.start] = np.allclose(proj @ b[:, g], b[:, g], atol=1e-9)
-        healthy_rotor = np.repeat(~faulty, ROTORS_PER_UNIT)
-        self._pinv_healthy = np.zeros((b.shape[1], 4))
-        if healthy_rotor.any():
-            self._pinv_healthy[healthy_rotor] = np.linalg.pinv(b[:, healthy_rotor], rcond=1e-9)
-
-    def _stage_one(self, t: np.ndarray, only_balanced: bool) -> np.ndarray:
-        for g in self._faulty_groups:
-            if only_balanced and not self._self_balanced[g.start]:
-                continue  # hybrid: this unit cannot balance itself; keep its commands (partial)
-            share = self._b[:, g] @ t[g]
-            t[g] = self._self_pinv[g.start] @ share
-        return t
-
-    def allocate(self, wrench: np.ndarray, only_balanced: bool = False) -> np.ndarray:
-        w = np.asarray(wrench, dtype=float)
-        t = self._stage_one(self._pinv_nominal @ w, only_balanced)
-        residual = w - self._b_eta @ t
-        t = t + self._pinv_healthy @ residual
-        return clip(t, self.min_thrust_n, self.max_thrust_n, self.eta)
+    intra_unit = "always"
 
 
-class Hybrid(Full):
-    """Our reading of the paper's undefined "hybrid": full (intra-unit) reallocation inside every faulty
-    unit that can balance itself, partial (commands unchanged) for those that cannot, then the
-    residual to the healthy units."""
+class Hybrid(_Staged):
+    """Our reading of the paper's undefined "hybrid" (ftc.md §4.3 [R]): full (intra-unit)
+    reallocation inside every faulty unit that can balance itself, i.e. whose live rotors span all
+    four wrench axes and whose rebalanced commands fit the thrust bounds on this call; partial
+    (commands unchanged) for the others; then the residual to the healthy units."""
 
     name = "hybrid"
+    intra_unit = "when_balanced"
 
-    def allocate(self, wrench: np.ndarray) -> np.ndarray:
-        return super().allocate(wrench, only_balanced=True)
+    def _apply_intra_unit(self, w: np.ndarray, t: np.ndarray) -> np.ndarray:
+        own = self._stage_one[self._intra_rotors] @ w
+        if self._bounded():
+            lo = -np.inf if self.min_thrust_n is None else self.min_thrust_n
+            hi = np.inf if self.max_thrust_n is None else self.max_thrust_n
+            per_unit = own.reshape(-1, ROTORS_PER_UNIT)
+            fits = np.all((per_unit >= lo) & (per_unit <= hi), axis=1)
+            if not fits.all():  # that unit falls back to partial on this call
+                own = np.where(np.repeat(fits, ROTORS_PER_UNIT), own, t[self._intra_rotors])
+        t[self._intra_rotors] = own
+        return t
 
 
 class RedistributedPseudoInverse(Allocator):
-    """Fault-aware pseudo-inverse that fixes saturated rotors at their bound and re-solves for the rest
-    (at most one pass per rotor). Dependency-free fallback of "qp" and its test oracle."""
+    """Fault-aware weighted pseudo-inverse that fixes saturated rotors at their bound and re-solves
+    for the rest (at most one pass per rotor). Rows weighted as in "qp" (roll/pitch > thrust > yaw).
+    Dependency-free fallback of "qp" and its test oracle."""
 
     name = "rpi"
 
     def set_eta(self, eta: np.ndarray) -> None:
         super().set_eta(eta)
+        self._sqrt_w = np.sqrt(row_weights(self.model))
         self._b_eta = self.model.effectiveness(self.eta)
+        self._bw = self._sqrt_w[:, None] * self._b_eta
         self._alive = self.eta > 0.0
+        self._pinv_alive = restricted_pinv(self._bw, self._alive)
 
     def allocate(self, wrench: np.ndarray) -> np.ndarray:
-        w = np.asarray(wrench, dtype=float)
-        b = self._b_eta
-        n = b.shape[1]
+        ww = self._sqrt_w * np.asarray(wrench, dtype=float)
+        t = self._pinv_alive @ ww
         lo = -np.inf if self.min_thrust_n is None else self.min_thrust_n
         hi = np.inf if self.max_thrust_n is None else self.max_thrust_n
-        t = np.zeros(n)
         free = self._alive.copy()
-        for _ in range(n):
-            if not free.any():
-                break
-            rest = w - b[:, ~free] @ t[~free]
-            t[free] = np.linalg.pinv(b[:, free], rcond=1e-9) @ rest
+        bw = self._bw
+        for _ in range(len(t)):
             low, high = free & (t < lo), free & (t > hi)
             if not (low.any() or high.any()):
                 break
             t[low], t[high] = lo, hi
             free &= ~(low | high)
+            if not free.any():
+                break
+            rest = ww - bw[:, ~free] @ t[~free]
+            t[free] = np.linalg.pinv(bw[:, free], rcond=_RCOND) @ rest
         t[~self._alive] = 0.0
         return t

@@ -14,11 +14,8 @@ import osqp
 import scipy.sparse as sp
 
 from mars_link.allocation.base import Allocator
-from mars_link.allocation.modes import RedistributedPseudoInverse
-from mars_link.assembly import GRAVITY_MPS2
+from mars_link.allocation.modes import RedistributedPseudoInverse, row_weights
 
-#: relative priority of (thrust, roll, pitch, yaw) after normalisation
-PRIORITY = np.array([10.0, 100.0, 100.0, 1.0])
 VARIANCE_WEIGHT = 1e-4
 UNBOUNDED = 1e6  # N: stands for "no limit" (the paper plant) while keeping the problem well scaled
 
@@ -31,10 +28,7 @@ class QpAllocator(Allocator):
         m = self.model
         b = m.effectiveness(self.eta)
         n = b.shape[1]
-        weight_n = m.mass_kg * GRAVITY_MPS2
-        scale = np.array([weight_n, weight_n * m.vehicle.pitch_m, weight_n * m.vehicle.pitch_m,
-                          weight_n * m.vehicle.yaw_moment_per_thrust_m])
-        self._w = PRIORITY / scale**2
+        self._w = row_weights(m)
         hover = m.hover_thrust_per_rotor_n()
         lam = VARIANCE_WEIGHT * float(self._w[0]) * n
         p = 2.0 * (b.T @ (self._w[:, None] * b) + lam * (np.eye(n) - np.ones((n, n)) / n))
