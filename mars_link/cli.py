@@ -135,6 +135,20 @@ def cmd_reproduce(args) -> int:
     return 0
 
 
+def cmd_sitl(args) -> int:
+    from mars_link.scenario import load_scenario, resolve_scenario_path
+    from sitl.launcher import sitl_up
+
+    if args.action != "up":
+        raise UserInputError(f"sitl {args.action!r}: only 'up' is available")
+    path = resolve_scenario_path(args.scenario)
+    load_scenario(str(path))  # refuse a bad scenario before starting any process
+    out = Path(args.out) if args.out else _default_out(path.stem + "-sitl")
+    code = sitl_up(str(path), out, args.seed)
+    print(f"run directory: {out}")
+    return code
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mars-link", description="SITL flight stack for modular aerial robots")
     sub = parser.add_subparsers(dest="command", parser_class=_Parser)
@@ -152,6 +166,13 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--mode", default="inproc", help="inproc (default) or sitl")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
+
+    sitl = sub.add_parser("sitl", help="run a scenario as processes: world, one per unit, coordinator (lockstep)")
+    sitl.add_argument("action", help="up")
+    sitl.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default: spiral_3x2)")
+    sitl.add_argument("--out", help="run directory (default runs/<name>-sitl-<time>)")
+    sitl.add_argument("--seed", type=int, default=None)
+    sitl.set_defaults(func=cmd_sitl)
 
     rep = sub.add_parser("reproduce", help="reproduce a paper table (table1: paper 000 Table I + Fig. 3)")
     rep.add_argument("what", help="table1")

@@ -125,9 +125,9 @@ class RunLog:
         self._tel = open(out_dir / "telemetry.csv", "w", encoding="utf-8")
         self._tel.write(
             "trial,t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,roll_deg,pitch_deg,yaw_deg,"
-            "error_m,est_n_m,est_e_m,est_d_m,est_roll_deg,est_pitch_deg,est_yaw_deg\n"
+            "error_m,est_n_m,est_e_m,est_d_m,est_roll_deg,est_pitch_deg,est_yaw_deg,com_n_m,com_e_m,com_d_m\n"
         )
-        self._tel_format = ",".join(["%.6g"] * 18) + "\n"
+        self._tel_format = ",".join(["%.6g"] * 18 + ["%.9f"] * 3) + "\n"
         self._rot = open(out_dir / "rotors.csv", "w", encoding="utf-8")
         cols = []
         for kind in ("cmd", "thrust", "eta"):
@@ -261,7 +261,8 @@ def run_trial(
             log.telemetry(
                 [trial_index, t, *rec.reference.position_ned_m, *tracked,
                  math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
-                 *rec.estimate.position_ned_m, math.degrees(er), math.degrees(ep), math.degrees(ey)]
+                 *rec.estimate.position_ned_m, math.degrees(er), math.degrees(ep), math.degrees(ey),
+                 *truth.position_ned_m]
             )
             log.rotors(trial_index, t, rec.thrusts_n, world.rotor_thrust_n, _eta_of(units, model))
             if k % int(control_hz) == 0:

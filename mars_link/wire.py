@@ -3,8 +3,8 @@
 | message | MAVLink | link |
 |---|---|---|
 | SensorPacket.imu | HIL_SENSOR (world -> unit), HIGHRES_IMU (unit -> coordinator) | accel, gyro float32, time_usec |
-| SensorPacket.position | ATT_POS_MOCAP (x, y, z; q unused = (1, 0, 0, 0)) | mocap-grade position of the unit centre, NED |
-| SensorPacket.truth | ODOMETRY, frame and child frame LOCAL_NED (velocity in NED) | ground truth, only with sensor noise off |
+| SensorPacket.position | ODOMETRY, estimator_type MOCAP, frames LOCAL_NED (q unused) | mocap-grade position and velocity of the unit centre, NED |
+| SensorPacket.truth | ODOMETRY, estimator_type NAIVE, frames LOCAL_NED (velocity in NED) | ground truth, only with sensor noise off |
 | RotorCommand | SET_ACTUATOR_CONTROL_TARGET, group 0, controls[0..3] | thrust as a fraction of `full_scale_thrust_n` |
 | ActuatorOutput | HIL_ACTUATOR_CONTROLS, controls[0..3], flags = LOCKSTEP | same scale |
 
@@ -48,24 +48,28 @@ def sensor_packet_messages(packet: SensorPacket, upstream: bool = False) -> list
     msgs: list[mavlink.MAVLink_message] = []
     flags = IMU_FIELDS
     if packet.position is not None:
-        p = packet.position.position_ned_m
-        msgs.append(mavlink.MAVLink_att_pos_mocap_message(t, [1.0, 0.0, 0.0, 0.0], *map(float, p), [math.nan] + [0.0] * 20))
+        p = packet.position
+        vel = [math.nan] * 3 if p.velocity_ned_mps is None else p.velocity_ned_mps
+        msgs.append(_odometry(t, p.position_ned_m, (1.0, 0.0, 0.0, 0.0), vel, (math.nan,) * 3,
+                              mavlink.MAV_ESTIMATOR_TYPE_MOCAP))
         flags |= FLAG_HAS_POSITION
     if packet.truth is not None:
         s = packet.truth
-        msgs.append(
-            mavlink.MAVLink_odometry_message(
-                t, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_NED,
-                *map(float, s.position_ned_m), [float(x) for x in s.quaternion_wxyz],
-                *map(float, s.velocity_ned_mps), *map(float, s.angular_velocity_frd_radps),
-                [math.nan] + [0.0] * 20, [math.nan] + [0.0] * 20, 0, mavlink.MAV_ESTIMATOR_TYPE_NAIVE, 100,
-            )
-        )
+        msgs.append(_odometry(t, s.position_ned_m, s.quaternion_wxyz, s.velocity_ned_mps,
+                              s.angular_velocity_frd_radps, mavlink.MAV_ESTIMATOR_TYPE_NAIVE))
         flags |= FLAG_HAS_TRUTH
     a, g = packet.imu.accel_frd_mps2, packet.imu.gyro_frd_radps
     cls = mavlink.MAVLink_highres_imu_message if upstream else mavlink.MAVLink_hil_sensor_message
     msgs.append(cls(t, *map(float, a), *map(float, g), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, flags, 0))
     return msgs
+
+
+def _odometry(t_usec: int, pos, q, vel, rates, estimator_type: int) -> mavlink.MAVLink_message:
+    return mavlink.MAVLink_odometry_message(
+        t_usec, mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_NED,
+        *map(float, pos), [float(x) for x in q], *map(float, vel), *map(float, rates),
+        [math.nan] + [0.0] * 20, [math.nan] + [0.0] * 20, 0, estimator_type, 100,
+    )
 
 
 class SensorPacketAssembler:
@@ -79,9 +83,12 @@ class SensorPacketAssembler:
     def feed(self, msg: mavlink.MAVLink_message) -> SensorPacket | None:
         unit = msg.get_srcSystem()
         kind = msg.get_type()
-        if kind == "ATT_POS_MOCAP":
+        if kind == "ODOMETRY" and msg.estimator_type == mavlink.MAV_ESTIMATOR_TYPE_MOCAP:
             t = msg.time_usec
-            self._position[(unit, t)] = PositionSample(t / 1e6, unit, np.array([msg.x, msg.y, msg.z]))
+            vel = np.array([msg.vx, msg.vy, msg.vz])
+            self._position[(unit, t)] = PositionSample(
+                t / 1e6, unit, np.array([msg.x, msg.y, msg.z]), None if np.isnan(vel).any() else vel
+            )
         elif kind == "ODOMETRY":
             t = msg.time_usec
             self._truth[(unit, t)] = RigidBodyState(

@@ -30,7 +30,7 @@ def _bytes_roundtrip(sender_id: int, msgs):
 def _packet(rng, with_pos=True, with_truth=True) -> SensorPacket:
     t = 12.34
     imu = ImuSample(t, 3, rng.normal(size=3), rng.normal(size=3) - [0, 0, 9.8])
-    pos = PositionSample(t, 3, rng.normal(size=3) * 10) if with_pos else None
+    pos = PositionSample(t, 3, rng.normal(size=3) * 10, rng.normal(size=3)) if with_pos else None
     q = rng.normal(size=4)
     truth = RigidBodyState(t, rng.normal(size=3), rng.normal(size=3), q / np.linalg.norm(q), rng.normal(size=3)) if with_truth else None
     return SensorPacket(t, 3, imu, pos, truth).as_wire()
@@ -52,6 +52,7 @@ def test_sensor_packet_roundtrip_is_exact_at_wire_precision() -> None:
             assert (back.position is None) == (pkt.position is None)
             if pkt.position is not None:
                 np.testing.assert_array_equal(back.position.position_ned_m, pkt.position.position_ned_m)
+                np.testing.assert_array_equal(back.position.velocity_ned_mps, pkt.position.velocity_ned_mps)
             if pkt.truth is not None:
                 np.testing.assert_array_equal(back.truth.quaternion_wxyz, pkt.truth.quaternion_wxyz)
                 np.testing.assert_array_equal(back.truth.velocity_ned_mps, pkt.truth.velocity_ned_mps)
