@@ -7,48 +7,70 @@ product flies indoor-scale assemblies, and the coordinator fuses every unit's po
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, fields
 
 import numpy as np
 
+from mars_link.errors import UserInputError
 from mars_link.rotations import cross3, quat_to_rotmat
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
 
 
 @dataclass
 class SensorParams:
-    gyro_noise_radps: float = 0.003  # white noise per sample (1 sigma)
+    """Noise levels (1 sigma per sample, white) and the gyro bias bound; SI units."""
+
+    gyro_noise_radps: float = 0.003  # MEMS gyro at a few hundred Hz
     gyro_bias_max_radps: float = 0.002  # constant per-unit bias, uniform in +-max per axis
     accel_noise_mps2: float = 0.05
-    position_noise_m: float = 0.01
+    position_noise_m: float = 0.01  # motion capture / RTK: indoor-scale assemblies
     velocity_noise_mps: float = 0.02
+    report_velocity: bool = True  # position samples carry a velocity (RTK/mocap do)
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name != "report_velocity" and not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
+                raise UserInputError(f"sensor parameter {f.name} must be a finite number >= 0, got {v!r}")
 
 
 class SensorModel:
-    """Deterministic for a seed; `noise=False` returns the truth exactly."""
+    """Deterministic for a seed; `noise=False` returns the truth exactly.
+
+    The angular acceleration for the lever-arm term is taken from the caller when given (JSBSim
+    knows it), otherwise differenced from the body rates of successive calls, remembered per unit
+    (imu) or per unit group (sample_units) so that several bodies can share one model.
+    """
 
     def __init__(self, params: SensorParams, seed: int, noise: bool = True) -> None:
         self.params = params
+        self.seed = int(seed)
         self.noise = noise
-        self.rng = np.random.default_rng(seed)
+        self.rng = np.random.default_rng(self.seed)
         self._bias: dict[int, np.ndarray] = {}
-        self._last_omega: np.ndarray | None = None
-        self._last_t: float | None = None
-        self._alpha = np.zeros(3)
+        self._rates: dict[object, tuple[float, np.ndarray, np.ndarray]] = {}  # key -> (t, omega, alpha)
 
-    def _gyro_bias(self, unit_id: int) -> np.ndarray:
+    def gyro_bias(self, unit_id: int) -> np.ndarray:
+        """The unit's constant gyro bias: its own stream, independent of the sampling order."""
         if unit_id not in self._bias:
             b = self.params.gyro_bias_max_radps
-            self._bias[unit_id] = self.rng.uniform(-b, b, 3) if self.noise else np.zeros(3)
+            rng = np.random.default_rng([self.seed, int(unit_id)])
+            self._bias[unit_id] = rng.uniform(-b, b, 3) if self.noise else np.zeros(3)
         return self._bias[unit_id]
 
-    def _angular_acceleration(self, t_s: float, omega: np.ndarray) -> np.ndarray:
-        """Finite difference of the body rate between sensing instants (same for every unit)."""
-        if self._last_t is not None and t_s > self._last_t:
-            self._alpha = (omega - self._last_omega) / (t_s - self._last_t)
-        if self._last_t != t_s:
-            self._last_t, self._last_omega = t_s, omega.copy()
-        return self._alpha
+    def _angular_acceleration(self, key: object, t_s: float, omega: np.ndarray) -> np.ndarray:
+        """Finite difference of the body rate between sensing instants."""
+        last = self._rates.get(key)
+        if last is None:
+            alpha = np.zeros(3)
+        elif t_s > last[0]:
+            alpha = (omega - last[1]) / (t_s - last[0])
+        else:  # same instant again (or time went back): keep the last estimate
+            alpha = last[2]
+        if last is None or t_s != last[0]:
+            self._rates[key] = (t_s, omega.copy(), alpha)
+        return alpha
 
     def imu(
         self,
@@ -57,25 +79,34 @@ class SensorModel:
         specific_force_frd: np.ndarray,
         unit_offset_frd_m: np.ndarray,
         unit_id: int,
+        angular_accel_frd_radps2: np.ndarray | None = None,
     ) -> ImuSample:
+        """Gyro and accelerometer of the unit whose centre is `unit_offset_frd_m` from the CoM."""
         w = body.angular_velocity_frd_radps
-        alpha = self._angular_acceleration(t_s, w)
+        alpha = (
+            self._angular_acceleration(unit_id, t_s, w) if angular_accel_frd_radps2 is None
+            else angular_accel_frd_radps2
+        )
         r = unit_offset_frd_m
         accel = specific_force_frd + cross3(alpha, r) + cross3(w, cross3(w, r))
         gyro = w.copy()
         if self.noise:
             p = self.params
-            gyro = gyro + self._gyro_bias(unit_id) + self.rng.normal(0.0, p.gyro_noise_radps, 3)
+            gyro = gyro + self.gyro_bias(unit_id) + self.rng.normal(0.0, p.gyro_noise_radps, 3)
             accel = accel + self.rng.normal(0.0, p.accel_noise_mps2, 3)
         return ImuSample(t_s, unit_id, gyro, accel)
 
     def sample_units(
         self, t_s: float, body: RigidBodyState, specific_force_frd: np.ndarray, offsets_frd_m: np.ndarray,
-        unit_ids: list[int],
+        unit_ids: list[int], angular_accel_frd_radps2: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """All units at once (the hot path): gyro, accel (N, 3) body; position, velocity (N, 3) NED."""
+        """All units of one body at once (the hot path): gyro, accel (N, 3) FRD; position, velocity
+        (N, 3) NED. Same physics as imu() + position()."""
         w = body.angular_velocity_frd_radps
-        alpha = self._angular_acceleration(t_s, w)
+        alpha = (
+            self._angular_acceleration(tuple(unit_ids), t_s, w) if angular_accel_frd_radps2 is None
+            else angular_accel_frd_radps2
+        )
         r = offsets_frd_m
         n = len(unit_ids)
         wx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
@@ -88,7 +119,7 @@ class SensorModel:
         vel = body.velocity_ned_mps[None, :] + (rot @ (wx @ r.T)).T
         if self.noise:
             p = self.params
-            bias = np.array([self._gyro_bias(u) for u in unit_ids])
+            bias = np.array([self.gyro_bias(u) for u in unit_ids])
             noise = self.rng.normal(0.0, 1.0, (n, 12))
             gyro = gyro + bias + p.gyro_noise_radps * noise[:, 0:3]
             accel = accel + p.accel_noise_mps2 * noise[:, 3:6]
@@ -99,6 +130,7 @@ class SensorModel:
     def position(
         self, t_s: float, body: RigidBodyState, unit_offset_frd_m: np.ndarray, unit_id: int
     ) -> PositionSample:
+        """Position (and velocity) of the unit centre: CoM + R r, v + R (omega x r)."""
         rot = quat_to_rotmat(body.quaternion_wxyz)
         pos = body.position_ned_m + rot @ unit_offset_frd_m
         vel = body.velocity_ned_mps + rot @ cross3(body.angular_velocity_frd_radps, unit_offset_frd_m)
@@ -106,4 +138,4 @@ class SensorModel:
             p = self.params
             pos = pos + self.rng.normal(0.0, p.position_noise_m, 3)
             vel = vel + self.rng.normal(0.0, p.velocity_noise_mps, 3)
-        return PositionSample(t_s, unit_id, pos, vel)
+        return PositionSample(t_s, unit_id, pos, vel if self.params.report_velocity else None)
