@@ -9,13 +9,14 @@ The local NED origin is a fixed point on the ground at (lat, lon) = (0, 0).
 from __future__ import annotations
 
 import ctypes
+import io
 import math
 import os
 import shutil
 import sys
 import tempfile
 import warnings
-from contextlib import contextmanager
+from contextlib import contextmanager, redirect_stderr, redirect_stdout
 from pathlib import Path
 
 import jsbsim
@@ -56,18 +57,22 @@ def _silence_jsbsim() -> None:
 
 
 @contextmanager
-def _quiet_fds():
-    """Mute fds 1 and 2: JSBSim prints "aerodynamic axis system" notices from C++ when loading."""
+def _quiet_output():
+    """Mute JSBSim's load notices ("aerodynamic axis system ... set by default"): they reach the
+    C-level fds 1/2 or, through the binding, Python's sys.stdout/sys.stderr (e.g. under pytest)."""
     devnull = os.open(os.devnull, os.O_WRONLY)
     saved = os.dup(1), os.dup(2)
+    sys.stdout.flush()
+    sys.stderr.flush()
     try:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os.dup2(devnull, 1)
-        os.dup2(devnull, 2)
-        yield
+        with redirect_stdout(io.StringIO()), redirect_stderr(io.StringIO()):
+            os.dup2(devnull, 1)
+            os.dup2(devnull, 2)
+            try:
+                yield
+            finally:
+                _libc.fflush(None)  # C stdio buffers when stdout is not a terminal: drop it here
     finally:
-        _libc.fflush(None)  # C++ output is buffered when stdout is not a terminal: drop it here
         os.dup2(saved[0], 1)
         os.dup2(saved[1], 2)
         for fd in (devnull, *saved):
@@ -120,7 +125,7 @@ class JsbsimBody:
         write_aircraft(model, self._dir, name)
         fdm = jsbsim.FGFDMExec(str(self._dir))
         fdm.set_debug_level(0)
-        with _quiet_fds():
+        with _quiet_output():
             ok = fdm.load_model(name)
         if not ok:
             self.close()

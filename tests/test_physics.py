@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
-from mars_link.rotations import euler_to_quat
+from mars_link.errors import UserInputError
+from mars_link.rotations import euler_to_quat, quat_to_euler, tilt_deg
 from mars_link.state import RigidBodyState
 from sitl.physics import JsbsimBody
 
@@ -49,21 +50,31 @@ def test_open_loop_hover_drifts_less_than_5mm_in_5s(name: str) -> None:
     assert np.linalg.norm(s.angular_velocity_frd_radps) < 1e-6
 
 
-def test_pure_torque_step_gives_the_analytic_angular_acceleration() -> None:
-    model = AssemblyModel.from_layout(LAYOUTS["3x2"])
+@pytest.mark.parametrize("axis", ["roll", "pitch", "yaw"])
+def test_pure_torque_step_gives_the_analytic_angular_acceleration(axis: str) -> None:
+    model = AssemblyModel.from_layout(LAYOUTS["L"])
     hover = np.full(model.n_rotors, model.hover_thrust_per_rotor_n())
-    # roll torque with zero net force: push the left rotors (y < 0) up, the right ones down
-    delta = 0.05 * np.sign(-model.rotor_positions_m[:, 1])
+    # a torque about one axis with zero net force change (the L's CoM is off the unit grid)
+    pattern = {
+        "roll": -model.rotor_positions_m[:, 1],  # left rotors (y < 0) up: + roll
+        "pitch": model.rotor_positions_m[:, 0],  # front rotors up: + pitch (nose up)
+        "yaw": model.rotor_yaw_signs.astype(float),  # + yaw reaction torque
+    }[axis]
+    delta = 0.05 * (pattern - pattern.mean())
+    delta /= np.abs(delta).max() / 0.05
     thrusts = hover + delta
     wrench = model.wrench_from_thrusts(thrusts)
     assert wrench[0] == pytest.approx(model.mass_kg * GRAVITY_MPS2)
-    expected = np.linalg.solve(model.inertia_kgm2, wrench[1:])
+    k = ["roll", "pitch", "yaw"].index(axis)
+    assert wrench[1 + k] > 0
+    expected = np.linalg.solve(model.inertia_kgm2, wrench[1:])  # the L couples roll and pitch
     body = airborne(model, thrusts)
     dt = 0.02
     body.step(int(round(dt * 500)))
     measured = body.state().angular_velocity_frd_radps / dt
-    assert measured[0] == pytest.approx(expected[0], rel=0.01)
-    assert abs(measured[1]) < 0.01 * abs(expected[0])
+    np.testing.assert_allclose(measured, expected, rtol=0, atol=0.01 * abs(expected[k]))
+    assert measured[k] > 0
+    np.testing.assert_allclose(body.angular_acceleration_frd(), expected, rtol=0, atol=0.01 * abs(expected[k]))
 
 
 def test_free_fall_matches_g() -> None:
@@ -91,7 +102,70 @@ def test_ground_start_does_not_bounce() -> None:
     s = body.state()
     assert s.on_ground
     np.testing.assert_allclose(s.position_ned_m[:2], [3.0, -2.0], atol=1e-4)
+    assert quat_to_euler(s.quaternion_wxyz)[2] == pytest.approx(0.3, abs=1e-6)
     np.testing.assert_allclose(body.specific_force_frd(), [0, 0, -GRAVITY_MPS2], atol=1e-3)
+
+
+@pytest.mark.parametrize("name", ["1x1", "3x2", "L"])
+def test_touch_down_from_feet_on_the_ground_sinks_level_without_bounce(name: str) -> None:
+    """The settling that a ground start hides before t = 0, watched from its first step."""
+    model = AssemblyModel.from_layout(LAYOUTS[name])
+    depth = model.vehicle.gear_depth_m
+    touching = RigidBodyState(0.0, np.array([0.0, 0.0, -depth]), np.zeros(3), euler_to_quat(0, 0, 0), np.zeros(3))
+    with JsbsimBody(model, state=touching) as body:
+        downs, tilts = [], []
+        for _ in range(1000):
+            body.step()
+            s = body.state()
+            downs.append(s.position_ned_m[2] + depth)  # compression, m
+            tilts.append(tilt_deg(s.quaternion_wxyz))
+    downs = np.array(downs)
+    assert downs.min() > -1e-6  # never lifts off
+    assert 0.0 < downs.max() < 0.002  # sinks less than 2 mm
+    assert downs[-1] == pytest.approx(downs.max(), abs=2e-5)  # overdamped: no overshoot back up
+    assert max(tilts) < 0.01  # contact stiffness centred on the CoM, also for the L
+    assert s.on_ground
+
+
+def test_lift_off_with_more_than_hover_thrust() -> None:
+    model = AssemblyModel.from_layout(LAYOUTS["3x2"])
+    with JsbsimBody(model) as body:
+        assert body.state().on_ground
+        body.set_rotor_thrusts(np.full(model.n_rotors, 1.2 * model.hover_thrust_per_rotor_n()))
+        body.step(500)
+        body.step()  # acceleration_ned_mps2 is the mean over the last step() call
+        s = body.state()
+    assert not s.on_ground
+    # 0.2 g up for (nearly) 1 s after the springs let go: about a metre
+    assert -s.position_ned_m[2] - model.vehicle.gear_depth_m == pytest.approx(0.1 * GRAVITY_MPS2, rel=0.05)
+    np.testing.assert_allclose(s.acceleration_ned_mps2, [0, 0, -0.2 * GRAVITY_MPS2], atol=1e-4)
+
+
+def test_bodies_in_one_process_are_independent_and_clean_up() -> None:
+    a = JsbsimBody(AssemblyModel.from_layout(["X"]), position_ned_m=(0.0, 0.0, 0.0))
+    b = airborne(AssemblyModel.from_layout(["XX"]), np.zeros(8))
+    a_before = a.state().position_ned_m.copy()
+    b.step(250)
+    a.step(250)
+    np.testing.assert_allclose(a.state().position_ned_m, a_before, atol=1e-5)
+    assert b.state().velocity_ned_mps[2] == pytest.approx(0.5 * GRAVITY_MPS2, rel=1e-4)
+    assert a.t_s == pytest.approx(0.5) and b.t_s == pytest.approx(0.5)
+    work = b._dir
+    assert (work / "aircraft" / "assembly" / "assembly.xml").exists()
+    b.close()
+    a.close()
+    assert not work.exists()
+
+
+def test_bad_rate_state_and_thrust_count_are_refused() -> None:
+    model = AssemblyModel.from_layout(["X"])
+    with pytest.raises(UserInputError, match="physics rate"):
+        JsbsimBody(model, physics_hz=0.0)
+    bad = RigidBodyState(0.0, np.array([0.0, np.nan, -1.0]), np.zeros(3), euler_to_quat(0, 0, 0), np.zeros(3))
+    with pytest.raises(UserInputError, match="finite"):
+        JsbsimBody(model, state=bad)
+    with JsbsimBody(model) as body, pytest.raises(ValueError, match="4 rotor thrusts"):
+        body.set_rotor_thrusts(np.zeros(3))
 
 
 def test_state_transfer_into_a_new_body_is_exact() -> None:
