@@ -92,6 +92,9 @@ _STATE_PROPERTIES = {
 }
 
 
+_STATE_ORDER = ("lat", "lon", "h", "vn", "ve", "vd", "p", "q", "r", "phi", "theta", "psi", "gear", "t")
+
+
 class JsbsimBody:
     """A rigid body (a free unit or a docked assembly) in its own FDMExec.
 
@@ -146,6 +149,7 @@ class JsbsimBody:
         ]
         self._last = [math.nan] * model.n_rotors
         self._n = {k: node(p) for k, p in _STATE_PROPERTIES.items()}
+        self._state_nodes = [self._n[k] for k in _STATE_ORDER]
         self._cached_state: RigidBodyState | None = None
         self._vel_before = (0.0, 0.0, 0.0)  # NED ft/s before the last step() call
         self._last_steps = 0
@@ -256,20 +260,20 @@ class JsbsimBody:
         return self._cached_state
 
     def _read_state(self) -> RigidBodyState:
-        n = self._n
-        g = lambda k: n[k].get_double_value()  # noqa: E731
-        pos = np.array([g("lat") * EARTH_RADIUS_M, g("lon") * EARTH_RADIUS_M, -g("h") * FT])
-        vel_fps = (g("vn"), g("ve"), g("vd"))
-        vel = np.array(vel_fps) * FT
+        lat, lon, h, vn, ve, vd, p, q, r, phi, theta, psi, gear, t = [
+            node.get_double_value() for node in self._state_nodes
+        ]
+        pos = np.array([lat * EARTH_RADIUS_M, lon * EARTH_RADIUS_M, -h * FT])
+        vel = np.array([vn * FT, ve * FT, vd * FT])
         if self._last_steps:
             vb = self._vel_before
             k = FT / (self.dt_s * self._last_steps)
-            acc = np.array([(vel_fps[0] - vb[0]) * k, (vel_fps[1] - vb[1]) * k, (vel_fps[2] - vb[2]) * k])
+            acc = np.array([(vn - vb[0]) * k, (ve - vb[1]) * k, (vd - vb[2]) * k])
         else:  # right after (re)initialisation: nothing integrated yet
             acc = np.zeros(3)
-        q = euler_to_quat(g("phi"), g("theta"), g("psi"))
-        omega = np.array([g("p"), g("q"), g("r")])
-        return RigidBodyState(g("t"), pos, vel, q, omega, acc, on_ground=abs(g("gear")) > 1e-6)
+        return RigidBodyState(
+            t, pos, vel, euler_to_quat(phi, theta, psi), np.array([p, q, r]), acc, on_ground=abs(gear) > 1e-6
+        )
 
     def specific_force_frd(self) -> np.ndarray:
         """Accelerometer reading at the CoM: (non-gravitational force) / mass, body FRD.
