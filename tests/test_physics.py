@@ -180,3 +180,23 @@ def test_state_transfer_into_a_new_body_is_exact() -> None:
     np.testing.assert_allclose(got.angular_velocity_frd_radps, s.angular_velocity_frd_radps, atol=1e-9)
     assert got.t_s == pytest.approx(1.5)
     assert small.n_units == 1
+
+
+def test_a_transferred_body_flies_on_like_the_original() -> None:
+    """Thrusts set before run_ic: the copy continues the manoeuvre (no integrator kick)."""
+    model = AssemblyModel.from_layout(LAYOUTS["L"])
+    thrusts = np.full(model.n_rotors, model.hover_thrust_per_rotor_n()) + 0.03 * np.sign(-model.rotor_positions_m[:, 1])
+    start = RigidBodyState(0.0, np.array([0.0, 0.0, -10.0]), np.array([1.0, 0.0, 0.0]), euler_to_quat(0, 0, 0),
+                           np.array([0.0, 0.0, 0.5]))
+    with JsbsimBody(model, state=start, rotor_thrusts_n=thrusts) as original:
+        original.step(100)
+        with JsbsimBody(model, state=original.state(), rotor_thrusts_n=thrusts) as copy:
+            original.step(500)
+            copy.step(500)
+            a, b = original.state(), copy.state()
+    assert a.t_s == pytest.approx(b.t_s) and a.t_s == pytest.approx(1.2)
+    assert np.linalg.norm(a.angular_velocity_frd_radps) > 0.3  # it really manoeuvred
+    np.testing.assert_allclose(b.position_ned_m, a.position_ned_m, atol=1e-4)
+    np.testing.assert_allclose(b.velocity_ned_mps, a.velocity_ned_mps, atol=1e-4)
+    np.testing.assert_allclose(b.quaternion_wxyz, a.quaternion_wxyz, atol=1e-5)
+    np.testing.assert_allclose(b.angular_velocity_frd_radps, a.angular_velocity_frd_radps, atol=1e-9)
