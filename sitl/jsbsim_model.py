@@ -1,7 +1,7 @@
 """Generate a JSBSim aircraft definition for an assembly (specs/dependencies.md §1.2).
 
 One pointmass per unit (JSBSim sums the parallel-axis terms itself), a non-rotating spherical planet
-with g = 9.80665 m/s² at the surface, four ground contacts under each unit, and per rotor one BODY
+with g = 9.80665 m/s² at the surface, ground contacts on the hull of the units' feet, and per rotor one BODY
 force (thrust) and one BODY moment (reaction torque) in `external_reactions`.
 
 JSBSim's structural frame is x aft, y right, z up; body FRD positions convert as x_s = -x, y_s = y,
@@ -21,8 +21,8 @@ EARTH_RADIUS_M = 6371000.0
 SLUGFT2_PER_KGM2 = 14.593902937206364 * 0.3048**2  # kg·m² in one slug·ft²
 #: tiny structural mass so JSBSim has an empty weight; compensated in `JsbsimBody` mass checks
 EMPTY_MASS_KG = 1e-6
-CONTACT_SPRING_N_PER_M_PER_KG = 20000.0  # per contact, scaled by assembly mass: ~1 mm static compression
-CONTACT_DAMPING_RATIO = 1.2
+CONTACT_SPRING_N_PER_M_PER_KG = 20000.0  # total stiffness per kg of assembly: g / 20000 = 0.49 mm at rest
+CONTACT_DAMPING_RATIO = 1.2  # of the vertical mode: overdamped, a landed body sinks without bounce
 
 
 def _structural(p_frd) -> tuple[float, float, float]:
@@ -48,7 +48,7 @@ def contact_points(model: AssemblyModel) -> list[tuple[np.ndarray, float]]:
     lie in one plane, so on flat ground only the hull corners can ever touch first. An inner foot's
     stiffness is split over the corners of a hull triangle containing it by its barycentric
     coordinates: total stiffness and its first moment (the centroid of all feet = the CoM) are kept,
-    so a resting assembly sinks level, exactly as with every foot modelled.
+    so a resting assembly sinks level, as it would on all its feet.
     """
     feet = unit_feet_frd_m(model)
     xy = feet[:, :2]
@@ -151,6 +151,8 @@ def aircraft_xml(model: AssemblyModel, name: str) -> str:
 
 
 def write_aircraft(model: AssemblyModel, root_dir: Path, name: str) -> Path:
+    """Write <root_dir>/aircraft/<name>/<name>.xml (the layout `FGFDMExec(root_dir).load_model(name)`
+    expects) and return its path."""
     path = Path(root_dir) / "aircraft" / name / f"{name}.xml"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(aircraft_xml(model, name), encoding="utf-8")
