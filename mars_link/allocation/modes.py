@@ -22,7 +22,9 @@ from mars_link.assembly import GRAVITY_MPS2, ROTORS_PER_UNIT, AssemblyModel
 
 _RCOND = 1e-9
 #: relative priority of (thrust, roll, pitch, yaw) once each row is normalised to hover scale
-PRIORITY = np.array([10.0, 100.0, 100.0, 1.0])
+#: (weights, so a soft priority: 1e4 between roll/pitch and thrust keeps the leak into roll/pitch
+#: ~1e-4 of the thrust deficit; 1e2 lets yaw give way before thrust)
+PRIORITY = np.array([1.0, 1e4, 1e4, 1e-2])
 
 
 def failed_units(eta: np.ndarray) -> np.ndarray:
@@ -42,6 +44,15 @@ def row_weights(model: AssemblyModel) -> np.ndarray:
     arm = model.vehicle.pitch_m
     scale = np.array([weight_n, weight_n * arm, weight_n * arm, weight_n * model.vehicle.yaw_moment_per_thrust_m])
     return PRIORITY / scale**2
+
+
+def clean_wrench(wrench: np.ndarray, weight_n: float) -> np.ndarray:
+    """Best effort on a broken demand (allocate never raises): non-finite thrust -> the weight,
+    non-finite moments -> 0."""
+    w = np.asarray(wrench, dtype=float)
+    if np.isfinite(w).all():
+        return w
+    return np.where(np.isfinite(w), w, np.array([weight_n, 0.0, 0.0, 0.0]))
 
 
 def restricted_pinv(b: np.ndarray, columns: np.ndarray) -> np.ndarray:
@@ -99,6 +110,7 @@ class _Staged(Allocator):
         self._b = b
         self._b_eta = m.effectiveness(self.eta)
         self._alive = self.eta > 0.0
+        self._weight_n = m.mass_kg * GRAVITY_MPS2
         faulty = faulty_units(self.eta)
         self._first = self._first_guess()
         self._to_healthy = restricted_pinv(self._b_eta, np.repeat(~faulty, ROTORS_PER_UNIT))
@@ -150,7 +162,7 @@ class _Staged(Allocator):
         return t
 
     def allocate(self, wrench: np.ndarray) -> np.ndarray:
-        w = np.asarray(wrench, dtype=float)
+        w = clean_wrench(wrench, self._weight_n)
         t = self._first @ w
         if self._stage_one is not None and self._intra_rotors.any():
             t = self._apply_intra_unit(w, t)
@@ -245,9 +257,10 @@ class RedistributedPseudoInverse(Allocator):
         self._bw = self._sqrt_w[:, None] * self._b_eta
         self._alive = self.eta > 0.0
         self._pinv_alive = restricted_pinv(self._bw, self._alive)
+        self._weight_n = self.model.mass_kg * GRAVITY_MPS2
 
     def allocate(self, wrench: np.ndarray) -> np.ndarray:
-        ww = self._sqrt_w * np.asarray(wrench, dtype=float)
+        ww = self._sqrt_w * clean_wrench(wrench, self._weight_n)
         t = self._pinv_alive @ ww
         lo = -np.inf if self.min_thrust_n is None else self.min_thrust_n
         hi = np.inf if self.max_thrust_n is None else self.max_thrust_n
