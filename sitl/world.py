@@ -106,7 +106,10 @@ class World:
         sf = self.body.specific_force_frd()
         with_position = self.exchange_index % self.config.position_every == 0
         gyro, accel, pos, vel = (
-            f32(a) for a in self.sensors.sample_units(t, truth, sf, self._offsets, self._unit_ids, self.body.angular_acceleration_frd())
+            f32(a)
+            for a in self.sensors.sample_units(
+                t, truth, sf, self._offsets, self._unit_ids, self.body.angular_acceleration_frd()
+            )
         )
         tw = wire_time(t)
         state = None if self.config.noise else wire_state(truth)
