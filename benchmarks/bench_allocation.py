@@ -1,6 +1,11 @@
-"""Allocation cost per call for every FTC mode, 3x2 and 5x5, nominal and faulted.
+"""Allocation cost per call for every FTC mode, 3x2 and 5x5, nominal and faulted, without and
+with rotor thrust bounds; plus how well each mode meets the demand (max |B(eta) t - w| relative
+to the weight, over the same calls).
 
     python benchmarks/bench_allocation.py [--calls N]
+
+Demands are hover plus random moments, drawn independently each call (harder on a warm-started
+solver than a flight, where successive demands are close).
 """
 
 from __future__ import annotations
@@ -13,8 +18,11 @@ import numpy as np
 from mars_link.allocation import ALLOCATION_MODES, make_allocator
 from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
 
+LAYOUTS = (("3x2", ["XXX", "XXX"]), ("5x5", ["XXXXX"] * 5))
+
 
 def fault_eta(model: AssemblyModel) -> np.ndarray:
+    """Unit 2 dead, unit 1 rotor 1 at 50 %, last unit rotor 3 at 30 %."""
     eta = model.nominal_eta()
     eta[model.unit_slots(2)] = 0.0
     eta[model.rotor_slot(1, 1)] = 0.5
@@ -22,25 +30,57 @@ def fault_eta(model: AssemblyModel) -> np.ndarray:
     return eta
 
 
+def demands(model: AssemblyModel, calls: int) -> np.ndarray:
+    weight = model.mass_kg * GRAVITY_MPS2
+    arm = model.vehicle.pitch_m
+    kq = model.vehicle.yaw_moment_per_thrust_m
+    rng = np.random.default_rng(0)
+    scale = np.array([0.05 * weight, 0.02 * weight * arm, 0.02 * weight * arm, 0.05 * weight * kq])
+    return np.array([weight, 0.0, 0.0, 0.0]) + rng.normal(size=(calls, 4)) * scale
+
+
+def measure(mode: str, model: AssemblyModel, eta: np.ndarray, bounds, wrenches: np.ndarray):
+    alloc = make_allocator(mode, model, eta, *bounds)
+    for w in wrenches[:20]:
+        alloc.allocate(w)  # warm up (and warm start)
+    out = np.empty((len(wrenches), model.n_rotors))
+    t0 = time.perf_counter()
+    for i, w in enumerate(wrenches):
+        out[i] = alloc.allocate(w)
+    cost_us = 1e6 * (time.perf_counter() - t0) / len(wrenches)
+    err = np.abs(out @ model.effectiveness(eta).T - wrenches).max() / (model.mass_kg * GRAVITY_MPS2)
+    return cost_us, err, getattr(alloc, "fallbacks", None)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--calls", type=int, default=2000)
     args = ap.parse_args()
-    print(f"{'layout':<8}{'faults':<9}" + "".join(f"{m:>10}" for m in ALLOCATION_MODES) + "   (us per call)")
-    for name, layout in (("3x2", ["XXX", "XXX"]), ("5x5", ["XXXXX"] * 5)):
-        model = AssemblyModel.from_layout(layout)
-        rng = np.random.default_rng(0)
-        demands = np.array([model.mass_kg * GRAVITY_MPS2, 0, 0, 0]) + rng.normal(size=(args.calls, 4)) * [1, 0.05, 0.05, 0.01]
-        for label, eta in (("nominal", model.nominal_eta()), ("faulted", fault_eta(model))):
-            cells = []
-            for mode in ALLOCATION_MODES:
-                alloc = make_allocator(mode, model, eta)
-                alloc.allocate(demands[0])
-                t0 = time.perf_counter()
-                for d in demands:
-                    alloc.allocate(d)
-                cells.append(1e6 * (time.perf_counter() - t0) / len(demands))
-            print(f"{name:<8}{label:<9}" + "".join(f"{c:>10.1f}" for c in cells))
+    modes = ALLOCATION_MODES
+    header = f"{'preset':<13}{'layout':<7}{'faults':<9}" + "".join(f"{m:>9}" for m in modes)
+    rows_cost, rows_err, notes = [], [], []
+    for preset, bounded in (("mars-ftcc", False), ("modquad-cf2", True)):
+        for name, layout in LAYOUTS:
+            model = AssemblyModel.from_layout(layout, preset)
+            v = model.vehicle
+            bounds = (v.rotor_min_thrust_n, v.rotor_max_thrust_n) if bounded else (None, None)
+            wrenches = demands(model, args.calls)
+            for label, eta in (("nominal", model.nominal_eta()), ("faulted", fault_eta(model))):
+                cells = [measure(m, model, eta, bounds, wrenches) for m in modes]
+                lead = f"{preset:<13}{name:<7}{label:<9}"
+                rows_cost.append(lead + "".join(f"{c:>9.1f}" for c, _, _ in cells))
+                rows_err.append(lead + "".join(f"{e:>9.0e}" for _, e, _ in cells))
+                fb = cells[modes.index("qp")][2]
+                if fb:
+                    notes.append(f"{preset} {name} {label}: qp did not converge on {fb}/{args.calls} calls")
+    print(f"cost per allocate() call, us ({args.calls} calls; mars-ftcc unbounded, modquad-cf2 bounded)")
+    print(header)
+    print("\n".join(rows_cost))
+    print("\nmax |B(eta) t - w| / weight over the same calls ('none' ignores faults; 'unit' does not")
+    print("compensate degraded rotors; bounded closed forms clip)")
+    print(header)
+    print("\n".join(rows_err))
+    print("\n".join(notes) if notes else "\nqp converged on every call")
 
 
 if __name__ == "__main__":

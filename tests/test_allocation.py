@@ -272,3 +272,13 @@ def test_bad_efficiencies_and_bounds_are_user_errors() -> None:
         check_controllable(model, np.full(8, 1.5))
     with pytest.raises(UserInputError, match="reversed"):
         make_allocator("unit", model, None, 2.0, 1.0)
+
+
+@pytest.mark.parametrize("mode", ["unit", "partial", "full", "hybrid"])
+def test_folded_unbounded_gain_equals_the_staged_path(mode) -> None:
+    model = AssemblyModel.from_layout([".X.", "XXX", ".X."])
+    eta = eta_for(model, [2], [(3, 1, 0.0), (4, 2, 0.5), (5, 4, 0.8)])
+    demand = hover(model) + [0.4, 0.03, -0.02, 0.002]
+    folded = make_allocator(mode, model, eta).allocate(demand)
+    staged = make_allocator(mode, model, eta, -1e9, 1e9).allocate(demand)
+    np.testing.assert_allclose(folded, staged, atol=1e-9)

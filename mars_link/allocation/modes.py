@@ -8,7 +8,8 @@ The closed-form modes share one skeleton (`_Staged`): a first guess (eq. 1 share
 pseudo-inverse), an optional intra-unit stage for faulty units (eq. 6), then the residual wrench
 to the healthy units (eq. 3-5) and, last resort, to every live rotor (so a fault set that leaves
 no healthy unit, e.g. a single degraded quadrotor or noisy detected efficiencies, is still
-served). Every stage is a precomputed matrix: `allocate` is a handful of 4N x 4 products.
+served). Every stage is a precomputed matrix; without thrust bounds they fold into one 4N x 4
+gain, so `allocate` is one product.
 With thrust bounds these modes clip at the end (no redistribution); "qp" is the saturation-aware
 mode.
 """
@@ -118,6 +119,16 @@ class _Staged(Allocator):
         self._stage_one = None
         if self.intra_unit is not None and faulty.any():
             self._setup_intra_unit(faulty)
+        self._fold()
+
+    def _fold(self) -> None:
+        """Without bounds every stage is linear: fold them into one gain (one product per call)."""
+        eye = np.eye(4)
+        g = self._first.copy()
+        if self._stage_one is not None:
+            g[self._intra_rotors] = self._stage_one[self._intra_rotors]
+        g = g + self._to_healthy @ (eye - self._b_eta @ g)
+        self._gain = g + self._to_live @ (eye - self._b_eta @ g)
 
     def _first_guess(self) -> np.ndarray:
         """n x 4 map from the wrench to the commands each unit would get if it were healthy."""
@@ -163,6 +174,10 @@ class _Staged(Allocator):
 
     def allocate(self, wrench: np.ndarray) -> np.ndarray:
         w = clean_wrench(wrench, self._weight_n)
+        if not self._bounded():
+            t = self._gain @ w
+            t[~self._alive] = 0.0
+            return t
         t = self._first @ w
         if self._stage_one is not None and self._intra_rotors.any():
             t = self._apply_intra_unit(w, t)
@@ -189,6 +204,7 @@ class UnitShares(_Staged):
         self._to_healthy = restricted_pinv(self._b, alive_units)
         self._b_eta = self._b * alive_units
         self._to_live = np.zeros_like(self._to_live)
+        self._fold()
 
     def _first_guess(self) -> np.ndarray:
         m = self.model
