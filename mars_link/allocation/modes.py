@@ -90,14 +90,6 @@ def _pinv_abs(a: np.ndarray, tol: float) -> np.ndarray:
     return (vt[keep].T / sv[keep]) @ u[:, keep].T
 
 
-def clip(thrusts: np.ndarray, lo: float | None, hi: float | None, alive: np.ndarray) -> np.ndarray:
-    """Respect the thrust bounds; dead rotors (eta 0) are commanded exactly 0."""
-    if lo is not None or hi is not None:
-        thrusts = np.clip(thrusts, lo, hi)
-    thrusts[~alive] = 0.0
-    return thrusts
-
-
 class _Staged(Allocator):
     """Skeleton of the closed-form modes (see the module docstring)."""
 
@@ -112,6 +104,13 @@ class _Staged(Allocator):
         self._b_eta = m.effectiveness(self.eta)
         self._alive = self.eta > 0.0
         self._weight_n = m.mass_kg * GRAVITY_MPS2
+        lo = -np.inf if self.min_thrust_n is None else self.min_thrust_n
+        hi = np.inf if self.max_thrust_n is None else self.max_thrust_n
+        self._lo, self._hi = lo, hi
+        self._is_bounded = self.min_thrust_n is not None or self.max_thrust_n is not None
+        self._dead_idx = np.flatnonzero(~self._alive)
+        self._lo_live = np.where(self._alive, lo, -np.inf)  # dead rotors are zeroed, not checked
+        self._hi_live = np.where(self._alive, hi, np.inf)
         faulty = faulty_units(self.eta)
         self._first = self._first_guess()
         self._to_healthy = restricted_pinv(self._b_eta, np.repeat(~faulty, ROTORS_PER_UNIT))
@@ -160,30 +159,30 @@ class _Staged(Allocator):
         self._intra_rotors = np.zeros(m.n_rotors, dtype=bool)
         for u in self._intra_units:
             self._intra_rotors[u * ROTORS_PER_UNIT:(u + 1) * ROTORS_PER_UNIT] = True
-
-    def _bounded(self) -> bool:
-        return self.min_thrust_n is not None or self.max_thrust_n is not None
+        self._intra_idx = np.flatnonzero(self._intra_rotors)
+        self._stage_intra = stage[self._intra_idx]  # hot path: no fancy indexing of the full map
 
     def _apply_intra_unit(self, w: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Full: every faulty unit rebalances, clipped to the bounds (what it cannot make goes on)."""
-        own = self._stage_one[self._intra_rotors] @ w
-        if self._bounded():
-            own = np.clip(own, self.min_thrust_n, self.max_thrust_n)
-        t[self._intra_rotors] = own
+        own = self._stage_intra @ w
+        t[self._intra_idx] = np.minimum(np.maximum(own, self._lo), self._hi)
         return t
 
     def allocate(self, wrench: np.ndarray) -> np.ndarray:
         w = clean_wrench(wrench, self._weight_n)
-        if not self._bounded():
-            t = self._gain @ w
-            t[~self._alive] = 0.0
+        t = self._gain @ w
+        if not self._is_bounded or ((t >= self._lo_live).all() and (t <= self._hi_live).all()):
+            t[self._dead_idx] = 0.0  # the linear answer fits the bounds: it is the answer
             return t
+        # a bound bites: run the stages, so what a saturated stage cannot make moves on
         t = self._first @ w
-        if self._stage_one is not None and self._intra_rotors.any():
+        if self._stage_one is not None and len(self._intra_idx):
             t = self._apply_intra_unit(w, t)
         t += self._to_healthy @ (w - self._b_eta @ t)
         t += self._to_live @ (w - self._b_eta @ t)
-        return clip(t, self.min_thrust_n, self.max_thrust_n, self._alive)
+        t = np.minimum(np.maximum(t, self._lo), self._hi)
+        t[self._dead_idx] = 0.0
+        return t
 
 
 class UnitShares(_Staged):
@@ -247,15 +246,13 @@ class Hybrid(_Staged):
     intra_unit = "when_balanced"
 
     def _apply_intra_unit(self, w: np.ndarray, t: np.ndarray) -> np.ndarray:
-        own = self._stage_one[self._intra_rotors] @ w
-        if self._bounded():
-            lo = -np.inf if self.min_thrust_n is None else self.min_thrust_n
-            hi = np.inf if self.max_thrust_n is None else self.max_thrust_n
-            per_unit = own.reshape(-1, ROTORS_PER_UNIT)
-            fits = np.all((per_unit >= lo) & (per_unit <= hi), axis=1)
-            if not fits.all():  # that unit falls back to partial on this call
-                own = np.where(np.repeat(fits, ROTORS_PER_UNIT), own, t[self._intra_rotors])
-        t[self._intra_rotors] = own
+        own = self._stage_intra @ w
+        fits = ((own >= self._lo) & (own <= self._hi)).reshape(-1, ROTORS_PER_UNIT).all(axis=1)
+        if fits.all():
+            t[self._intra_idx] = own
+        else:  # a unit whose rebalance would saturate keeps its commands (partial) on this call
+            keep = np.repeat(fits, ROTORS_PER_UNIT)
+            t[self._intra_idx[keep]] = own[keep]
         return t
 
 

@@ -82,7 +82,7 @@ class QpAllocator(Allocator):
             res = self._solver.solve(raise_error=False)
             x = res.x
             if x is not None and np.all(np.isfinite(x)):
-                t = np.clip(x[: self._n], self._lo, self._hi)
+                t = np.minimum(np.maximum(x[: self._n], self._lo), self._hi)  # ADMM overshoots ~1e-5
                 if res.info.status_val in _OK:
                     return t
                 # not converged (hard saturation, e.g. iteration cap): the iterate is usually far
