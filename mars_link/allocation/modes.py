@@ -9,9 +9,10 @@ pseudo-inverse), an optional intra-unit stage for faulty units (eq. 6), then the
 to the healthy units (eq. 3-5) and, last resort, to every live rotor (so a fault set that leaves
 no healthy unit, e.g. a single degraded quadrotor or noisy detected efficiencies, is still
 served). Every stage is a precomputed matrix; without thrust bounds they fold into one 4N x 4
-gain, so `allocate` is one product.
-With thrust bounds these modes clip at the end (no redistribution); "qp" is the saturation-aware
-mode.
+gain, so `allocate` is one product. With thrust bounds that product is still the answer whenever
+it fits them; otherwise the stages run one by one, a faulty unit's own commands are clipped first
+(what it cannot make moves on) and the result is clipped at the end, without redistributing among
+saturated rotors: "qp" is the saturation-aware mode.
 """
 
 from __future__ import annotations
