@@ -521,7 +521,7 @@ def test_runner_flies_the_paper_spiral_within_30_percent_of_the_paper():
         name="spiral_3x2_paper",
         controller="mars-ftcc-paper",
         ftc="none",
-        sim=SimSpec(physics_hz=200.0, control_hz=20.0, seed=1, noise=False),
+        sim=SimSpec(physics_hz=1000.0, control_hz=20.0, seed=1, noise=False),
     )
     result = run_trial(scenario, seed=1)
     assert result.completed
