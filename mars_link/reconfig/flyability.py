@@ -12,7 +12,6 @@ which the sequencing DPs call hundreds of thousands of times.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from fractions import Fraction
 from typing import Iterable
@@ -35,15 +34,22 @@ class FlyabilityRule:
 def rotor_offsets_cells(model: AssemblyModel) -> list[tuple[Fraction, Fraction]]:
     """Rotor k (0..3) offset from its unit centre in grid units (x forward = -row, y right = col).
 
-    Read from the assembly's rotor table, so the quadrant rule uses the same geometry as the mixer.
+    Read from the assembly's rotor table, so the quadrant rule uses the same geometry as the mixer,
+    and snapped to the nearest fraction with denominator <= 10**6 so that float noise in the table
+    cannot decide a rotor that sits exactly on a CoM axis (e.g. rotors at a quarter pitch).
     """
+    hit = model._cache.get("reconfig_rotor_offsets")  # the model's own cache of derived tables
+    if hit is not None:
+        return hit
     pitch = model.vehicle.pitch_m
     uid = model.unit_ids[0]
     centre = model.unit_position(uid)
     offsets = []
     for rotor in model.rotors[:ROTORS_PER_UNIT]:
         d = (rotor.position_m - centre) / pitch
-        offsets.append((Fraction(float(d[0])), Fraction(float(d[1]))))
+        offsets.append((Fraction(float(d[0])).limit_denominator(10**6),
+                        Fraction(float(d[1])).limit_denominator(10**6)))
+    model._cache["reconfig_rotor_offsets"] = offsets
     return offsets
 
 
@@ -245,26 +251,16 @@ class CellMasks:
         return True
 
 
-def _last_int_below(total: int, n: int, off: float) -> int:
-    """Largest integer v with n*v < total + n*off."""
-    t = total + n * off
-    v = math.ceil(t / n) - 1
-    while n * (v + 1) < t:
-        v += 1
-    while n * v >= t:
-        v -= 1
-    return v
+def _last_int_below(total: int, n: int, off: Fraction) -> int:
+    """Largest integer v with n*v < total + n*off (exact)."""
+    t = total * off.denominator + n * off.numerator
+    return (t - 1) // (n * off.denominator)
 
 
-def _first_int_above(total: int, n: int, off: float) -> int:
-    """Smallest integer v with n*v > total + n*off."""
-    t = total + n * off
-    v = math.floor(t / n) + 1
-    while n * (v - 1) > t:
-        v -= 1
-    while n * v <= t:
-        v += 1
-    return v
+def _first_int_above(total: int, n: int, off: Fraction) -> int:
+    """Smallest integer v with n*v > total + n*off (exact)."""
+    t = total * off.denominator + n * off.numerator
+    return t // (n * off.denominator) + 1
 
 
 class FlyabilityChecker:
@@ -295,8 +291,8 @@ class FlyabilityChecker:
             if np.any(h < rule.faulty_below):
                 self.faulty |= b
         # x = -row, so "x_rotor > cx" is a condition on rows from above, and vice versa
-        self.row_off = [float(-ox) for ox, _ in offsets]  # x offset expressed along +row
-        self.col_off = [float(oy) for _, oy in offsets]
+        self.row_off = [-ox for ox, _ in offsets]  # x offset expressed along +row
+        self.col_off = [oy for _, oy in offsets]
         self._cache: dict[int, bool] = {}
 
     def __call__(self, mask: int) -> bool:

@@ -110,3 +110,31 @@ def build_configuration_tree(
                 count += 1
         frontier = nxt
     return ConfigurationTree(root, count, len(cache), time.perf_counter() - t0)
+
+
+def polyomino_layouts(n_cells: int) -> list[tuple[str, ...]]:
+    """Every connected layout of exactly `n_cells` units (fixed polyominoes: rotations and mirror
+    images count separately, because the front and the rotor geometry make them different).
+
+    For exhaustive sweeps: 1, 2, 6, 19, 63, 216 layouts for 1..6 cells.
+    """
+    if n_cells < 1:
+        raise UserInputError(f"a layout needs at least one unit, got {n_cells}")
+    shapes = {frozenset([(0, 0)])}
+    for _ in range(n_cells - 1):
+        grown = set()
+        for shape in shapes:
+            for r, c in shape:
+                for cell in ((r + 1, c), (r - 1, c), (r, c + 1), (r, c - 1)):
+                    if cell not in shape:
+                        new = shape | {cell}
+                        r0 = min(x for x, _ in new)
+                        c0 = min(y for _, y in new)
+                        grown.add(frozenset((x - r0, y - c0) for x, y in new))
+        shapes = grown
+    layouts = []
+    for shape in shapes:
+        n_rows = max(r for r, _ in shape) + 1
+        n_cols = max(c for _, c in shape) + 1
+        layouts.append(tuple("".join("X" if (r, c) in shape else "." for c in range(n_cols)) for r in range(n_rows)))
+    return sorted(layouts)
