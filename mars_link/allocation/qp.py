@@ -14,6 +14,16 @@ mean mu are variables,
 (minimising over mu gives exactly the variance). Per call only the equality bounds change. Set up
 once per fault set, warm-started; the redistributed pseudo-inverse takes over if OSQP does not
 solve (or raises).
+
+The variance weight is so small that ADMM's tolerances cannot resolve it: left alone, OSQP returns
+the right wrench but an arbitrary split between rotors (a fresh allocator asked to hover a
+nominal 3x2 spread its rotors over 60-110 % of the hover thrust), and that split jumps as a
+demand crosses into saturation. So the answer is the exact optimum:
+* no bound active: the optimum is linear in w, `gain @ w`, precomputed per fault set; returned
+  when it fits the bounds (always for the unbounded paper plant);
+* a bound active: a primal active-set method on the same objective (`box_qp_active_set`) starts
+  from that optimum clipped to the bounds (a better seed than OSQP's answer, measured) and takes
+  at most one step per live rotor; only if it does not settle does OSQP (warm-started) answer.
 """
 
 from __future__ import annotations
@@ -69,8 +79,40 @@ class QpAllocator(Allocator):
         self._solver.setup(p, np.zeros(n + 5), a, self._l, self._u, **SETTINGS)
         self._fallback = RedistributedPseudoInverse(m, self.eta, self.min_thrust_n, self.max_thrust_n)
         self.fallbacks = 0  # calls where OSQP did not solve since the last set_eta
+        self.saturated = 0  # calls with some bound active at the unconstrained optimum
+        self.solves = 0  # of those, calls the active-set method left to OSQP
+        # the same objective over the live rotors, dense, for the exact paths
+        self._live = alive
+        bl = b[:, alive]
+        k = bl.shape[1]
+        self._hess = bl.T @ (w[:, None] * bl) + lam * (np.eye(k) - np.ones((k, k)) / n)
+        self._bw = bl.T * w
+        # resolves 0.1 % of a hover thrust in the variance term's gradient 2 lam (t - mean)
+        self._grad_tol = 1e-3 * lam * m.hover_thrust_per_rotor_n()
+        self._gain = np.zeros((n, 4))
+        if k:
+            self._gain[alive] = np.linalg.solve(self._hess, self._bw)
 
     def allocate(self, wrench: np.ndarray) -> np.ndarray:
+        w = np.asarray(wrench, dtype=float)
+        if np.isfinite(w).all():
+            t = self._gain @ w
+            if np.all((t >= self._lo) & (t <= self._hi)):
+                return t
+            self.saturated += 1
+            live = self._live
+            x, done = box_qp_active_set(
+                self._hess, self._bw @ w, t[live], self._lo[live], self._hi[live], int(live.sum()),
+                self._grad_tol,
+            )
+            if done:
+                t[live] = x
+                return t
+            self.solves += 1
+        return self._solve(w)
+
+    def _solve(self, wrench: np.ndarray) -> np.ndarray:
+        """OSQP on the sparse form; the fallback when it does not solve (or raises)."""
         w = np.asarray(wrench, dtype=float)
         try:
             if not np.all(np.isfinite(w)):
@@ -98,3 +140,43 @@ class QpAllocator(Allocator):
     def _cost(self, t: np.ndarray, target: np.ndarray) -> float:
         r = self._sqrt_w * (self._b @ t) - target
         return float(r @ r)
+
+
+def box_qp_active_set(
+    h: np.ndarray, g: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_steps: int,
+    grad_tol: float,
+) -> tuple[np.ndarray, bool]:
+    """Exact minimiser of x'Hx/2 - g'x over lo <= x <= hi (H positive definite) by a primal
+    active-set method: one bound held or released per step, so it cannot cycle. Starts at the
+    feasible point clip(x) with the bounds it touches held; a held bound is released when the
+    gradient pulls away from it by more than grad_tol. Returns (x, converged)."""
+    span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
+    x = np.clip(x, lo, hi)
+    at_lo = x <= lo + 1e-6 * span
+    at_hi = ~at_lo & (x >= hi - 1e-6 * span)
+    x = np.where(at_lo, lo, np.where(at_hi, hi, x))
+    for _ in range(max_steps + 1):
+        held = at_lo | at_hi
+        free = ~held
+        target = x.copy()
+        if free.any():
+            rhs = g[free] - h[np.ix_(free, held)] @ x[held]
+            target[free] = np.linalg.solve(h[np.ix_(free, free)], rhs)
+        step = target - x
+        with np.errstate(divide="ignore", invalid="ignore"):
+            room = np.where(step < 0, (lo - x) / step, np.where(step > 0, (hi - x) / step, np.inf))
+        room[held] = np.inf
+        j = int(np.argmin(room))
+        if room[j] < 1.0:  # a free rotor reaches its bound on the way: hold it there
+            x = x + max(float(room[j]), 0.0) * step
+            at_lo[j], at_hi[j] = step[j] < 0, step[j] > 0
+            x[j] = lo[j] if step[j] < 0 else hi[j]
+            continue
+        x = target
+        grad = h @ x - g  # optimal when >= 0 at every held lower bound and <= 0 at every upper one
+        pull = np.where(at_lo, -grad, np.where(at_hi, grad, 0.0))
+        k = int(np.argmax(pull))
+        if pull[k] <= grad_tol:
+            return x, True
+        at_lo[k] = at_hi[k] = False  # release the bound that holds the optimum back most
+    return x, False
