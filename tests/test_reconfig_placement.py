@@ -154,7 +154,7 @@ def test_snap_weights_follow_the_trajectory():
         def sample(self, t):
             from types import SimpleNamespace
 
-            return SimpleNamespace(jerk=np.array([-math.cos(t), 0.0, 0.3]))
+            return SimpleNamespace(jerk_ned_mps3=np.array([-math.cos(t), 0.0, 0.3]))
 
     w = SnapWeights.from_trajectory(Sway())
     assert w.w_x == pytest.approx(1.0) and w.w_y == pytest.approx(0.0)
@@ -163,7 +163,7 @@ def test_snap_weights_follow_the_trajectory():
         def sample(self, t):
             from types import SimpleNamespace
 
-            return SimpleNamespace(jerk=np.array([math.sin(t), -math.cos(t), 0.0]))
+            return SimpleNamespace(jerk_ned_mps3=np.array([math.sin(t), -math.cos(t), 0.0]))
 
     w = SnapWeights.from_trajectory(Circle(), duration_s=8 * math.pi)
     assert w.w_x == pytest.approx(0.5, abs=1e-3)

@@ -49,13 +49,14 @@ class SnapWeights:
         """Full-length integrals (the paper's intent, not the code's 0.036 s window).
 
         The integral of |snap| is the total variation of jerk, summed from jerk samples, so no
-        numerical differentiation is needed. `trajectory.sample(t)` must return an object with `jerk`.
+        numerical differentiation is needed. `trajectory.sample(t)` returns a point with
+        `jerk_ned_mps3` (mars_link.trajectories); x = north, y = east.
         """
         t_end = getattr(trajectory, "duration_s", None) if duration_s is None else duration_s
         if t_end is None or not t_end > 0:
             raise UserInputError("snap weights need a trajectory with a positive duration")
         ts = np.linspace(0.0, t_end, max(2, int(math.ceil(t_end / dt_s)) + 1))
-        jerk = np.array([np.asarray(trajectory.sample(float(t)).jerk, dtype=float)[:2] for t in ts])
+        jerk = np.array([np.asarray(trajectory.sample(float(t)).jerk_ned_mps3, dtype=float)[:2] for t in ts])
         b = np.abs(np.diff(jerk, axis=0)).sum(axis=0)
         return cls.from_integrals(float(b[0]), float(b[1]))
 
