@@ -156,24 +156,28 @@ def box_qp_active_set(
     at_hi = ~at_lo & (x >= hi - 1e-6 * span)
     x = np.where(at_lo, lo, np.where(at_hi, hi, x))
     for _ in range(max_steps + 1):
-        held = at_lo | at_hi
-        free = ~held
-        target = x.copy()
-        if free.any():
-            rhs = g[free] - h[np.ix_(free, held)] @ x[held]
-            target[free] = np.linalg.solve(h[np.ix_(free, free)], rhs)
-        step = target - x
-        with np.errstate(divide="ignore", invalid="ignore"):
-            room = np.where(step < 0, (lo - x) / step, np.where(step > 0, (hi - x) / step, np.inf))
-        room[held] = np.inf
-        j = int(np.argmin(room))
-        if room[j] < 1.0:  # a free rotor reaches its bound on the way: hold it there
-            x = x + max(float(room[j]), 0.0) * step
-            at_lo[j], at_hi[j] = step[j] < 0, step[j] > 0
-            x[j] = lo[j] if step[j] < 0 else hi[j]
-            continue
-        x = target
-        grad = h @ x - g  # optimal when >= 0 at every held lower bound and <= 0 at every upper one
+        grad = h @ x - g
+        free = np.flatnonzero(~(at_lo | at_hi))
+        if free.size:
+            xf = x[free]
+            d = np.linalg.solve(h[free[:, None], free], -grad[free])  # to the optimum over the free
+            new = xf + d
+            above, below = new > hi[free], new < lo[free]
+            if above.any() or below.any():  # a free rotor reaches its bound first: hold it there
+                frac = np.full(free.size, np.inf)
+                frac[above] = (hi[free][above] - xf[above]) / d[above]
+                frac[below] = (lo[free][below] - xf[below]) / d[below]
+                i = int(np.argmin(frac))
+                x[free] = xf + max(float(frac[i]), 0.0) * d
+                j = free[i]
+                if above[i]:
+                    at_hi[j], x[j] = True, hi[j]
+                else:
+                    at_lo[j], x[j] = True, lo[j]
+                continue
+            x[free] = new
+            grad = h @ x - g
+        # optimal when the gradient is >= 0 at every held lower bound and <= 0 at every upper one
         pull = np.where(at_lo, -grad, np.where(at_hi, grad, 0.0))
         k = int(np.argmax(pull))
         if pull[k] <= grad_tol:
