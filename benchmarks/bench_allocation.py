@@ -56,6 +56,29 @@ def measure(mode: str, model: AssemblyModel, eta: np.ndarray, bounds, wrenches: 
     return cost_us, err, getattr(alloc, "fallbacks", None)
 
 
+def qp_saturation_rows(calls: int) -> list[str]:
+    """qp when rotors saturate (bounded preset, moments of about a third of weight x assembly
+    half-width): how many calls hit a bound, how many of those the active-set step left to OSQP,
+    and the cost per call over all calls."""
+    rows = []
+    for name, layout in LAYOUTS:
+        model = AssemblyModel.from_layout(layout, "modquad-cf2")
+        v = model.vehicle
+        weight = model.mass_kg * GRAVITY_MPS2
+        arm = 0.1 * len(layout[0]) * v.pitch_m
+        rng = np.random.default_rng(1)
+        scale = np.array([0.1 * weight, weight * arm, weight * arm, 0.1 * weight * v.yaw_moment_per_thrust_m])
+        wrenches = np.array([weight, 0.0, 0.0, 0.0]) + rng.normal(size=(calls, 4)) * scale
+        for label, eta in (("nominal", model.nominal_eta()), ("faulted", fault_eta(model))):
+            bounds = (v.rotor_min_thrust_n, v.rotor_max_thrust_n)
+            cost_us, _, _ = measure("qp", model, eta, bounds, wrenches)
+            alloc = make_allocator("qp", model, eta, *bounds)
+            for w in wrenches:
+                alloc.allocate(w)
+            rows.append(f"{name:<7}{label:<9}{cost_us:>9.1f}{alloc.saturated:>8}/{calls:<6}{alloc.solves:>6}")
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--calls", type=int, default=2000)
@@ -86,6 +109,11 @@ def main() -> None:
     print(header)
     print("\n".join(rows_err))
     print("\n".join(notes) if notes else "\nqp converged on every call")
+    calls = max(args.calls // 4, REPEATS)
+    print(f"\nqp under heavy saturation (modquad-cf2, {calls} calls): us per call, calls with a bound")
+    print("active, calls the active-set step left to OSQP")
+    print(f"{'layout':<7}{'faults':<9}{'us':>9}{'saturated':>14}{'osqp':>6}")
+    print("\n".join(qp_saturation_rows(calls)))
 
 
 if __name__ == "__main__":
