@@ -1,0 +1,127 @@
+"""Per-rotor command intake from the coordinator: SET_ACTUATOR_CONTROL_TARGET -> thrusts, with a watchdog.
+
+Wire contract (specs/mavlink.md §4.2): target_system/target_component = this unit, group_mlx 0,
+controls[0..3] = thrust of rotors 1..4 as a fraction 0..1 of the unit's MARS_ROT_TMAX, controls[4..7]
+unused, time_usec = the coordinator's (sim) time of the control step.
+
+A frame is acted on only if every check passes; otherwise it is dropped and counted under the first
+failing reason (signing is checked by the vehicle before the frame gets here):
+
+  wrong_source   not from the configured coordinator sysid/compid
+  wrong_target   addressed to another system/component
+  wrong_group    group_mlx != 0
+  non_finite     NaN/inf in controls[0..3] or time
+  out_of_range   a control outside 0..1
+  out_of_order   time_usec not newer than the last accepted frame (duplicate, replay, reordering)
+  future / late  time_usec more than `clock_tolerance_s` away from the coordinator clock as learnt
+                 from the first accepted frame (the clocks may have different origins)
+
+Watchdog, in the unit's sim time: the last command is held for `hold_periods` coordinator periods;
+after that the stream is *lost* and the vehicle applies its fail-safe (MARS_FS_ACT).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mars_link.assembly import ROTORS_PER_UNIT
+from mars_link.errors import UserInputError
+
+MSG_ID = 139  # SET_ACTUATOR_CONTROL_TARGET
+
+
+@dataclass(frozen=True)
+class IntakeParams:
+    unit_sysid: int
+    full_scale_thrust_n: float
+    unit_compid: int = 1
+    coordinator_sysid: int = 201
+    coordinator_compid: int = 1
+    period_s: float = 0.01  # expected coordinator command period
+    hold_periods: int = 3
+    clock_tolerance_s: float = 0.25
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.full_scale_thrust_n) and self.full_scale_thrust_n > 0):
+            raise UserInputError(f"full_scale_thrust_n must be > 0, got {self.full_scale_thrust_n!r}")
+        if not (math.isfinite(self.period_s) and self.period_s > 0):
+            raise UserInputError(f"period_s must be > 0, got {self.period_s!r}")
+        if self.hold_periods < 1:
+            raise UserInputError(f"hold_periods must be >= 1, got {self.hold_periods!r}")
+
+    @property
+    def hold_s(self) -> float:
+        return self.period_s * self.hold_periods
+
+
+class RotorIntake:
+    """State machine: `offer(msg, sim_time_s)` then `command_n(sim_time_s)` (None = lost / never)."""
+
+    def __init__(self, params: IntakeParams) -> None:
+        self.params = params
+        self.counters: dict[str, int] = {}
+        self.accepted = 0
+        self.lost_events = 0  # fresh -> lost transitions (fail-safe entries)
+        self.thrusts_n = np.zeros(ROTORS_PER_UNIT)
+        self.normalised = np.zeros(ROTORS_PER_UNIT)
+        self._last_usec: int | None = None
+        self._accepted_at_s: float | None = None  # unit sim time of the last accepted frame
+        self._clock_offset_s: float | None = None  # coordinator time - unit sim time
+        self._was_live = False
+
+    def drop(self, reason: str) -> bool:
+        self.counters[reason] = self.counters.get(reason, 0) + 1
+        return False
+
+    def offer(self, msg, sim_time_s: float) -> bool:
+        """Check one decoded SET_ACTUATOR_CONTROL_TARGET; True if it became the held command."""
+        p = self.params
+        if msg.get_srcSystem() != p.coordinator_sysid or msg.get_srcComponent() != p.coordinator_compid:
+            return self.drop("wrong_source")
+        if msg.target_system != p.unit_sysid or msg.target_component not in (p.unit_compid, 0):
+            return self.drop("wrong_target")
+        if msg.group_mlx != 0:
+            return self.drop("wrong_group")
+        c = msg.controls
+        c0, c1, c2, c3 = float(c[0]), float(c[1]), float(c[2]), float(c[3])
+        if not (math.isfinite(c0) and math.isfinite(c1) and math.isfinite(c2) and math.isfinite(c3)):
+            return self.drop("non_finite")
+        if not (0.0 <= c0 <= 1.0 and 0.0 <= c1 <= 1.0 and 0.0 <= c2 <= 1.0 and 0.0 <= c3 <= 1.0):
+            return self.drop("out_of_range")
+        t_usec = int(msg.time_usec)
+        if self._last_usec is not None and t_usec <= self._last_usec:
+            return self.drop("out_of_order")
+        live = self.is_live(sim_time_s)
+        t_s = t_usec * 1e-6
+        if live and self._clock_offset_s is not None:
+            skew = t_s - sim_time_s - self._clock_offset_s
+            if skew > p.clock_tolerance_s:
+                return self.drop("future")
+            if skew < -p.clock_tolerance_s:
+                return self.drop("late")
+        else:  # (re)learn the coordinator's clock origin when a stream starts
+            self._clock_offset_s = t_s - sim_time_s
+        self._last_usec = t_usec
+        self._accepted_at_s = sim_time_s
+        self.normalised[:] = (c0, c1, c2, c3)
+        self.thrusts_n = self.normalised * p.full_scale_thrust_n
+        self.accepted += 1
+        self._was_live = True
+        return True
+
+    def is_live(self, sim_time_s: float) -> bool:
+        """A command accepted within the hold window (sim time)."""
+        a = self._accepted_at_s
+        return a is not None and sim_time_s - a <= self.params.hold_s + 1e-9
+
+    def command_n(self, sim_time_s: float) -> np.ndarray | None:
+        """The held rotor thrusts (N), or None once the stream is lost (counts the transition)."""
+        if self.is_live(sim_time_s):
+            return self.thrusts_n
+        if self._was_live:
+            self._was_live = False
+            self.lost_events += 1
+        return None
