@@ -35,9 +35,10 @@ class GuidanceLimits:
     xy_speed_mps: float = 2.0
     up_speed_mps: float = 1.5
     down_speed_mps: float = 1.0
+    takeoff_speed_mps: float = 1.0
     accel_mps2: float = 2.0
     yaw_rate_radps: float = 1.0
-    position_gain_per_s: float = 1.2  # reference speed per metre of remaining distance
+    position_gain_per_s: float = 2.5  # reference speed per metre of remaining distance
 
 
 class Phase(Enum):
@@ -222,6 +223,8 @@ class UnitAutopilot:
         dt = self.dt_s
         s = self.shaper
         if ph in (Phase.TAKEOFF, Phase.HOLD, Phase.GOTO):
+            if ph == Phase.TAKEOFF:
+                lim = GuidanceLimits(**{**lim.__dict__, "up_speed_mps": min(lim.up_speed_mps, lim.takeoff_speed_mps)})
             ref = s.step(dt, lim, target_p=self.target_p, target_yaw=self.target_yaw)
             if ph == Phase.TAKEOFF and abs(state.position_ned_m[2] - self.target_p[2]) < TAKEOFF_DONE_M and abs(
                 ref.position_ned_m[2] - self.target_p[2]

@@ -463,6 +463,8 @@ class Vehicle:
             self._drop("own_sysid")  # an echo or a spoof of ourselves
             return
         t = msg.get_type()
+        if src == self.config.coordinator_sysid and msg.get_srcComponent() == self.config.coordinator_compid:
+            self._count("from_coordinator")  # (after signing, where required): runners learn the reply address
         if lk.policy.hil:
             if src != self.config.world_sysid:
                 self._drop("hil_wrong_source")
@@ -934,7 +936,7 @@ class Vehicle:
     # ================================================================= control
     def _limits(self) -> GuidanceLimits:
         p = self.params
-        return GuidanceLimits(p["MPC_XY_VEL_MAX"], p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"])
+        return GuidanceLimits(p["MPC_XY_VEL_MAX"], p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"], p["MPC_TKO_SPEED"])
 
     def _control_step(self) -> None:
         t = self.sim_s

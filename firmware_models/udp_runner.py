@@ -1,0 +1,302 @@
+"""Socket I/O for one unit: a `Vehicle` on UDP links, flying a JSBSim body of its own in real time.
+
+    python -m firmware_models.udp_runner --unit 1
+
+Links (PX4's SITL conventions, specs/mavlink.md §1.1; all on 127.0.0.1 and configurable):
+  gcs          the unit sends to --gcs-port (default 14550, where QGC/MAVProxy listen) from
+               --gcs-bind (default 18570+i), i = unit - 1
+  api          the unit sends to --api-port (default 14540+i, MAVSDK `udpin://`) from --api-bind
+               (default 14580+i)
+  coordinator  the unit listens on --coord-bind (default 14600+i) and answers the address of the
+               last frame that came from the configured coordinator and passed signing (if required)
+A port 0 means "any free port"; the chosen ports are printed as one JSON line on stdout once ready.
+
+Physics: this runner is for a lone unit (MAVSDK/MAVProxy/QGC tests and demos): a 1x1 JsbsimBody
+stepped at --physics-hz in real time (scaled by --speed), the vehicle's control at --control-hz and
+its motor model (limits, injected faults, lag) on every physics step. `--status-file` gets a JSON
+snapshot (truth, mode, counters) a few times per second for tests and operators; it is not a channel
+any coordinator reads.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import selectors
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from firmware_models.signing import DEFAULT_KEY_ENV, load_key
+from firmware_models.vehicle import LINK_API, LINK_COORDINATOR, LINK_GCS, Vehicle, VehicleConfig
+from mars_link.assembly import AssemblyModel
+from mars_link.errors import UserInputError
+
+LOOPBACK = "127.0.0.1"
+RECV_BUFFER_BYTES = 4 * 1024 * 1024
+MAX_DATAGRAMS_PER_WAKE = 4000  # per socket: keep the control loop on time during a flood
+STATUS_PERIOD_S = 0.2
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m firmware_models.udp_runner", description=__doc__.split("\n")[0])
+    p.add_argument("--unit", type=int, default=1, help="unit id = MAVLink system id (1..250)")
+    p.add_argument("--preset", default="mars-ftcc", help="vehicle preset (mars-ftcc, modquad-cf2)")
+    p.add_argument("--gcs-port", type=int, default=14550)
+    p.add_argument("--gcs-bind", type=int, default=None, help="default 18570 + unit - 1")
+    p.add_argument("--api-port", type=int, default=None, help="default 14540 + unit - 1")
+    p.add_argument("--api-bind", type=int, default=None, help="default 14580 + unit - 1")
+    p.add_argument("--coord-bind", type=int, default=None, help="default 14600 + unit - 1")
+    p.add_argument("--coordinator-sysid", type=int, default=201)
+    p.add_argument("--coordinator-compid", type=int, default=1)
+    p.add_argument("--signing-key-file", default=None,
+                   help=f"coordinator link signing key (else ${DEFAULT_KEY_ENV}); with a key, that link requires signing")
+    p.add_argument("--sign-client-links", action="store_true", help="require signing on gcs/api too")
+    p.add_argument("--physics-hz", type=float, default=500.0)
+    p.add_argument("--control-hz", type=float, default=100.0)
+    p.add_argument("--speed", type=float, default=1.0, help="simulation speed, x real time")
+    p.add_argument("--north", type=float, default=0.0, help="start position, m north of the origin")
+    p.add_argument("--east", type=float, default=0.0)
+    p.add_argument("--yaw-deg", type=float, default=0.0)
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
+    p.add_argument("--status-file", default=None)
+    p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    return p
+
+
+def _bind(port: int) -> socket.socket:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECV_BUFFER_BYTES)
+    except OSError:
+        pass
+    try:
+        s.bind((LOOPBACK, port))
+    except OSError as e:
+        s.close()
+        raise UserInputError(f"cannot bind UDP port {port} on {LOOPBACK}: {e.strerror}") from None
+    s.setblocking(False)
+    return s
+
+
+def _params(items: list[str]) -> dict[str, float]:
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        try:
+            out[name.strip()] = float(value)
+        except ValueError:
+            raise UserInputError(f"--param {item!r} is not NAME=NUMBER") from None
+        if not sep:
+            raise UserInputError(f"--param {item!r} is not NAME=NUMBER")
+    return out
+
+
+class UnitRunner:
+    """Owns the sockets, the body and the clocks; the vehicle decides everything else."""
+
+    def __init__(self, args: argparse.Namespace) -> None:
+        i = args.unit - 1
+        if not (args.physics_hz > 0 and args.control_hz > 0 and args.speed > 0):
+            raise UserInputError("--physics-hz, --control-hz and --speed must be positive")
+        ratio = args.physics_hz / args.control_hz
+        if abs(ratio - round(ratio)) > 1e-9 or ratio < 1:
+            raise UserInputError("--physics-hz must be a whole multiple of --control-hz")
+        key = load_key(args.signing_key_file)
+        self.vehicle = Vehicle(VehicleConfig(
+            unit_id=args.unit, vehicle=args.preset, coordinator_sysid=args.coordinator_sysid,
+            coordinator_compid=args.coordinator_compid, signing_key=key, sign_client_links=args.sign_client_links,
+            control_hz=args.control_hz, params=_params(args.param)), time.time())
+        self.substeps = int(round(ratio))
+        self.physics_dt_s = 1.0 / args.physics_hz
+        self.control_dt_s = 1.0 / args.control_hz
+        self.speed = args.speed
+        from sitl.physics import JsbsimBody  # the world's body model (no physics written here)
+
+        model = AssemblyModel.from_layout(["X"], self.vehicle.vehicle)
+        self.body = JsbsimBody(model, args.physics_hz, position_ned_m=(args.north, args.east, 0.0),
+                               yaw_rad=math.radians(args.yaw_deg))
+        self.vehicle.set_state(self.body.state())
+        pick = lambda v, d: d if v is None else v  # noqa: E731
+        self.socks = {
+            LINK_GCS: _bind(pick(args.gcs_bind, 18570 + i)),
+            LINK_API: _bind(pick(args.api_bind, 14580 + i)),
+            LINK_COORDINATOR: _bind(pick(args.coord_bind, 14600 + i)),
+        }
+        self.dest: dict[str, tuple[str, int] | None] = {
+            LINK_GCS: (LOOPBACK, args.gcs_port),
+            LINK_API: (LOOPBACK, pick(args.api_port, 14540 + i)),
+            LINK_COORDINATOR: None,  # learnt from authenticated coordinator frames
+        }
+        self.sel = selectors.DefaultSelector()
+        for name, s in self.socks.items():
+            self.sel.register(s, selectors.EVENT_READ, name)
+        self.status_path = Path(args.status_file) if args.status_file else None
+        self.duration_s = args.duration
+        self.running = True
+        self.sim_s = 0.0
+        self.overruns = 0
+        self.datagrams = 0
+        self.send_errors = 0
+        self.not_loopback = 0
+
+    def ports(self) -> dict[str, int]:
+        return {name: s.getsockname()[1] for name, s in self.socks.items()}
+
+    def _send(self, out) -> None:
+        for link, data in out:
+            dest = self.dest.get(link)
+            if dest is None:
+                continue
+            try:
+                self.socks[link].sendto(data, dest)
+            except OSError:  # nobody listening (ICMP refused) or buffer full: telemetry is best effort
+                self.send_errors += 1
+
+    def _drain(self, link: str, sock: socket.socket) -> None:
+        v = self.vehicle
+        for _ in range(MAX_DATAGRAMS_PER_WAKE):
+            try:
+                data, addr = sock.recvfrom(65536)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:  # e.g. ICMP port unreachable reported on a later recv
+                continue
+            self.datagrams += 1
+            if addr[0] != LOOPBACK:
+                self.not_loopback += 1
+                continue
+            before = v.stats.get("from_coordinator", 0)
+            self._send(v.handle(data, time.time(), link))
+            if link == LINK_COORDINATOR and v.stats.get("from_coordinator", 0) > before:
+                self.dest[LINK_COORDINATOR] = addr
+
+    def write_status(self) -> None:
+        if self.status_path is None:
+            return
+        v = self.vehicle
+        s = self.body.state()
+        status = {
+            "unit": v.sysid, "sim_time_s": self.sim_s, "wall_time_s": time.time(), "armed": v.armed,
+            "mode": list(v.mode), "source": v.source, "phase": v.autopilot.phase.value,
+            "truth_position_ned_m": [float(x) for x in s.position_ned_m],
+            "truth_velocity_ned_mps": [float(x) for x in s.velocity_ned_mps],
+            "truth_quaternion_wxyz": [float(x) for x in s.quaternion_wxyz],
+            "motor_eta": [float(x) for x in v.motors.eta], "motor_thrust_n": [float(x) for x in v.motors.thrust_n],
+            "drops": v.drop_counts(), "stats": v.stats, "intake_accepted": v.intake.accepted,
+            "datagrams": self.datagrams, "not_loopback": self.not_loopback, "overruns": self.overruns,
+            "send_errors": self.send_errors, "ports": self.ports(),
+        }
+        tmp = self.status_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(status))
+        os.replace(tmp, self.status_path)
+
+    def run(self) -> int:
+        print(json.dumps({"ready": True, "unit": self.vehicle.sysid, "ports": self.ports()}), flush=True)
+        start = time.monotonic()
+        anchor_wall, anchor_sim = start, 0.0
+        next_status = start
+        v, body = self.vehicle, self.body
+        while self.running:
+            now = time.monotonic()
+            if self.duration_s is not None and now - start >= self.duration_s:
+                break
+            due = anchor_wall + (self.sim_s - anchor_sim) / self.speed
+            for key, _ in self.sel.select(max(0.0, due - now)):
+                self._drain(key.data, key.fileobj)
+            now = time.monotonic()
+            if now >= due:
+                if now - due > 0.25:  # fell behind (a busy machine): re-anchor instead of racing
+                    self.overruns += 1
+                    anchor_wall, anchor_sim = now, self.sim_s
+                self._send(v.tick(time.time(), self.sim_s))
+                for _ in range(self.substeps):
+                    body.set_rotor_thrusts(v.step_motors(self.physics_dt_s))
+                    body.step(1)
+                self.sim_s = body.t_s
+                v.set_state(body.state())
+            if now >= next_status:
+                next_status = now + STATUS_PERIOD_S
+                self.write_status()
+        self.write_status()
+        return 0
+
+    def close(self) -> None:
+        self.sel.close()
+        for s in self.socks.values():
+            s.close()
+        self.body.close()
+
+
+def free_udp_port() -> int:
+    """A UDP port on loopback that was free a moment ago (for tests running side by side)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind((LOOPBACK, 0))
+        return s.getsockname()[1]
+
+
+def spawn_unit(args: list[str], timeout_s: float = 60.0, env: dict | None = None) -> tuple[subprocess.Popen, dict]:
+    """Start a runner process with these CLI arguments; return it and its ready line (ports) once it
+    is up. The caller stops it with `stop_unit` (by its PID)."""
+    proc = subprocess.Popen([sys.executable, "-m", "firmware_models.udp_runner", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env)
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    deadline = time.monotonic() + timeout_s
+    try:
+        while time.monotonic() < deadline:
+            if sel.select(max(0.0, deadline - time.monotonic())):
+                line = proc.stdout.readline()
+                if not line:
+                    break
+                if line.startswith("{"):
+                    return proc, json.loads(line)
+        stop_unit(proc)
+        raise RuntimeError(f"unit runner did not start: {proc.stderr.read()[-2000:]}")
+    finally:
+        sel.close()
+
+
+def stop_unit(proc: subprocess.Popen, timeout_s: float = 10.0) -> int:
+    """SIGTERM, wait, then SIGKILL: only this process (by PID)."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait(timeout_s)
+    for f in (proc.stdout, proc.stderr):
+        if f:
+            f.close()
+    return proc.returncode
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        runner = UnitRunner(args)
+    except UserInputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+
+    def stop(*_):
+        runner.running = False
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    try:
+        return runner.run()
+    finally:
+        runner.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
