@@ -500,8 +500,8 @@ class Vehicle:
                 self._ack(lk, msg, cmd, last[2], out)
                 return
         result, followups = self._execute(cmd, p, is_int, msg)
-        if cmd in ACTION_COMMANDS:
-            self._last_cmd[src] = (key, self.wall_s, result)
+        if cmd in ACTION_COMMANDS:  # only a success is replayed: a refused command may succeed now
+            self._last_cmd[src] = (key, self.wall_s, result) if result == mavlink.MAV_RESULT_ACCEPTED else (None, 0.0, 0)
             if len(self._last_cmd) > 64:
                 self._last_cmd.pop(next(iter(self._last_cmd)))
         self._ack(lk, msg, cmd, result, out)
