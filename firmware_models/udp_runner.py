@@ -174,9 +174,10 @@ class UnitRunner:
                 self.not_loopback += 1
                 continue
             before = v.stats.get("from_coordinator", 0)
-            self._send(v.handle(data, time.time(), link))
+            out = v.handle(data, time.time(), link)
             if link == LINK_COORDINATOR and v.stats.get("from_coordinator", 0) > before:
                 self.dest[LINK_COORDINATOR] = addr
+            self._send(out)
 
     def write_status(self) -> None:
         if self.status_path is None:
