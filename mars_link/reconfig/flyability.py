@@ -231,24 +231,12 @@ class CellMasks:
     def is_connected(self, mask: int) -> bool:
         return len(self.components(mask)) == 1
 
-    def orthogonally_convex_in(self, piece: int, region: int) -> bool:
-        """No cell of `region` outside `piece` lies between two cells of `piece` on a row or column."""
-        others = region & ~piece
-        r0, r1 = self.row_span(piece)
-        for r in range(r0, r1 + 1):
-            bits = (piece >> (r * self.stride)) & self.row_bits
-            if bits:
-                span = ((1 << bits.bit_length()) - 1) & ~((bits & -bits) - 1)
-                if span & (others >> (r * self.stride)):
-                    return False
-        c0, c1 = self.col_span(piece)
-        for c in range(c0, c1 + 1):
-            bits = piece & self.col[c]
-            if bits:
-                span = self.col[c] & ((1 << bits.bit_length()) - 1) & ~((bits & -bits) - 1)
-                if span & others:
-                    return False
-        return True
+    def box(self, mask: int) -> int:
+        """All grid cells of the mask's bounding box."""
+        r0, r1 = self.row_span(mask)
+        c0, c1 = self.col_span(mask)
+        rows = self.rows_below[r1 + 1] & ~self.rows_below[r0]
+        return rows & self.cols_below[c1 + 1] & ~self.cols_below[c0]
 
 
 def _last_int_below(total: int, n: int, off: Fraction) -> int:

@@ -12,12 +12,16 @@ every flying piece may split (disassembly) or every pair scheduled together dock
   current structure fix shape, health and which unit is where). Pruned by the lower bound
   ceil(log2(number of distinct target translations in P)), with balanced splits tried first.
 * Placeable = one translation takes every unit of the piece to its target cell, and no other
-  target cell lies between two of its cells on a row or column (a necessary part of the paper's
-  "non-enclosure"). The full condition is global: the final pieces must be re-assemblable by
+  target cell lies inside the bounding box of its target cells. That is the paper's
+  "non-enclosure" made exact as a local test: two pieces can only ever be docked (directly or as
+  parts of bigger bodies) if a straight grid line separates them, so a foreign cell inside the box
+  could never join. The full condition is global: the final pieces must be re-assemblable by
   straight-line docks (Algorithm 3). If the DP's pieces are not, the tree search continues over all
   split trees of the same depth, then deeper, so the reported layers stay minimal.
-* Algorithm 3 (assembly): guillotine merges; a line is valid if no piece crosses it and each side
-  is one connected body; cost = 1 + max (corrected: base case and +1 added).
+* Algorithm 3 (assembly): straight-line docks of two connected bodies; cost = 1 + max (corrected:
+  base case and +1 added). As in the spec, the body that docks lies wholly on one side of the line;
+  as the mirror image of the §6 undock, the other body may extend past the line beside it if the
+  slider's path is clear (see `_Assembler`).
 
 Costs are reported in layers: 0 = nothing to do (the paper counts the root call as 1 more).
 """
@@ -46,6 +50,7 @@ from mars_link.reconfig.placement import (
 INF = math.inf
 #: leaf sets tried per depth when the DP's pieces cannot be re-assembled (rare; see module doc)
 SEARCH_BUDGET = 20000
+SEARCH_TIME_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -76,6 +81,7 @@ class MergeStep:
     stationary: list[int]  # the larger body holds still
     mover: list[int]
     line: BreakLine  # in the target layout frame; the mover approaches across it
+    approach: str  # direction the mover travels to dock: "+row" (rearwards), "-row", "+col" (right), "-col"
 
 
 @dataclass
@@ -85,6 +91,7 @@ class Disassembly:
     pieces: list[list[int]]
     states: int
     exhaustive: bool = True  # False when the tree search hit its budget (layers may be above the minimum)
+    time_s: float = 0.0  # Algorithm 2 (and the tree search), without the assembly checks
 
 
 @dataclass
@@ -92,6 +99,7 @@ class AssemblyPlan:
     layers: int | float
     merges: list[MergeStep]
     states: int
+    time_s: float = 0.0  # every Algorithm 3 call made for this plan
 
 
 @dataclass
@@ -127,7 +135,8 @@ class ReconfigPlan:
             out.append({"kind": "move", "layer": m.layer, "body": m.mover, "altitude_slot": m.altitude_slot,
                         "to_cells": [[u, *self.target[u]] for u in m.mover], "beside": m.stationary})
             out.append({"kind": "dock", "layer": m.layer, "bodies": [m.stationary, m.mover],
-                        "line": m.line.to_json(), "result": sorted(m.stationary + m.mover)})
+                        "line": m.line.to_json(), "approach": m.approach,
+                        "result": sorted(m.stationary + m.mover)})
         return out
 
     def to_json(self) -> dict:
@@ -197,21 +206,10 @@ class Sequencer:
         hit = self._splits.get(piece)
         if hit is not None:
             return hit
-        g, gt = self.grid, self.grid_t
-        lines = []  # (line, side before it, side after it, parts before, parts after)
-        for r, above, below in g.row_line_components(piece):
-            side = piece & g.rows_below[r]
-            lines.append((BreakLine("row", r), side, piece ^ side, above, below))
-        tpiece = g.transpose_to(piece, gt)
-        for c, left, right in gt.row_line_components(tpiece):
-            side = piece & g.cols_below[c]
-            left = [side] if len(left) == 1 else [gt.transpose_to(m, g) for m in left]
-            right = [piece ^ side] if len(right) == 1 else [gt.transpose_to(m, g) for m in right]
-            lines.append((BreakLine("col", c), side, piece ^ side, left, right))
         seen = set()
         out = []
-        for line, side_a, side_b, comps_a, comps_b in lines:
-            for part in self._detachable(line, comps_a, comps_b):
+        for line, comps_a, comps_b in self.line_cuts(piece):
+            for part, _ in self.detachable(line, comps_a, comps_b):
                 rest = piece ^ part
                 key = min(part, rest)
                 if key not in seen:
@@ -222,19 +220,30 @@ class Sequencer:
         self._splits[piece] = out
         return out
 
-    def _detachable(self, line: BreakLine, comps_a: list[int], comps_b: list[int]) -> list[int]:
-        """Connected parts of either side whose removal leaves the piece connected (spec §6).
+    def line_cuts(self, mask: int) -> list[tuple[BreakLine, list[int], list[int]]]:
+        """Every break line through the mask's bounding box with the connected parts on each side
+        (before the line = lower row or column indices)."""
+        g, gt = self.grid, self.grid_t
+        out = [(BreakLine("row", r), above, below) for r, above, below in g.row_line_components(mask)]
+        for c, left, right in gt.row_line_components(g.transpose_to(mask, gt)):
+            side = mask & g.cols_below[c]
+            left = [side] if len(left) == 1 else [gt.transpose_to(m, g) for m in left]
+            right = [mask ^ side] if len(right) == 1 else [gt.transpose_to(m, g) for m in right]
+            out.append((BreakLine("col", c), left, right))
+        return out
 
-        The components of the two sides form a bipartite graph (edges across the line); a part may
-        leave iff it is not a cut vertex of that graph.
+    def detachable(self, line: BreakLine, comps_a: list[int], comps_b: list[int]) -> list[tuple[int, bool]]:
+        """(part, lies before the line) for the connected parts of either side whose removal leaves
+        the rest connected (spec §6).
+
+        The parts of the two sides form a bipartite graph (edges across the line); a part may leave
+        iff it is not a cut vertex of that graph.
         """
         g = self.grid
-        if len(comps_a) == 1 and len(comps_b) == 1:
-            return comps_a
-        if len(comps_b) == 1:
-            return comps_a
+        if len(comps_b) == 1:  # every part before the line leaves the rest joined through side b
+            return [(m, True) for m in comps_a]
         if len(comps_a) == 1:
-            return comps_b
+            return [(m, False) for m in comps_b]
         if line.axis == "row":  # side_a = rows above the line: its last row faces side_b's first
             edge = g.rows_below[line.index] & ~g.rows_below[line.index - 1]
             cross = lambda m: (m & edge) << g.stride  # noqa: E731
@@ -261,8 +270,27 @@ class Sequencer:
                         seen.add(nb)
                         stack.append(nb)
             if len(seen) == len(nodes):
-                out.append(nodes[skip])
+                out.append((nodes[skip], skip < na))
         return out
+
+    def path_blocked(self, line: BreakLine, part: int, others: int, before: bool) -> bool:
+        """Would `part`, sliding in perpendicular to the line from its own side, hit `others`?"""
+        g = self.grid
+        if line.axis == "col":  # work on columns as rows of the transposed grid
+            g = self.grid_t
+            part, others = self.grid.transpose_to(part, g), self.grid.transpose_to(others, g)
+        c0, c1 = g.col_span(part)
+        for c in range(c0, c1 + 1):
+            in_col = part & g.col[c]
+            if not in_col:
+                continue
+            if before:  # comes from low rows: nothing of the others may sit at a row below its last
+                ahead = (1 << (in_col.bit_length() - 1)) - 1
+            else:  # comes from high rows: nothing beyond its first row
+                ahead = ~((1 << (in_col & -in_col).bit_length()) - 1)
+            if others & g.col[c] & ahead:
+                return True
+        return False
 
     # ----------------------------------------------------------------- Algorithm 1
     def _shape_health_key(self, piece: int) -> tuple[tuple, int]:
@@ -333,39 +361,56 @@ class Sequencer:
 
     # ----------------------------------------------------------------- Algorithm 2
     def partial_disassembly(self, target: dict[int, Cell], budget: int = SEARCH_BUDGET,
-                            prune: bool = True) -> tuple[Disassembly, AssemblyPlan]:
+                            prune: bool = True, budget_s: float = SEARCH_TIME_S) -> tuple[Disassembly, AssemblyPlan]:
         """Fewest split layers after which every piece drops into its target and the pieces re-assemble.
 
         `prune=False` evaluates every split of every state, as the paper's DP does (for timing
-        comparisons only: the result is the same).
+        comparisons only: the result is the same). `budget` (leaf sets per depth) and `budget_s`
+        bound the rare search that runs when the DP's pieces cannot be docked back together; a
+        result found after the count budget ran out, or none found in time, has exhaustive=False.
         """
+        t_start = time.perf_counter()
+        t_asm = 0.0
+
+        def assemble(masks: list[int]) -> AssemblyPlan:
+            nonlocal t_asm
+            t0 = time.perf_counter()
+            out = search.assemble(masks)
+            t_asm += time.perf_counter() - t0
+            return out
+
+        def result(layers, splits, pieces, asm, exhaustive=True):
+            asm.time_s = t_asm
+            dis = Disassembly(layers, splits, pieces, len(search.memo), exhaustive,
+                              time.perf_counter() - t_start - t_asm)
+            return dis, asm
+
         search = _PartialSearch(self, target, prune)
         lower = search.cost(self.root)
-        t_asm = 0.0
         if lower == INF:
-            dis = Disassembly(INF, [], [], len(search.memo))
-            return dis, AssemblyPlan(INF, [], 0)
+            return result(INF, [], [], AssemblyPlan(INF, [], 0))
         splits, pieces = self._unfold(self.root, search.choice)
-        t0 = time.perf_counter()
-        asm = search.assemble([self.mask_of_units(p) for p in pieces])
-        t_asm += time.perf_counter() - t0
+        asm = assemble([self.mask_of_units(p) for p in pieces])
         if asm.layers < INF:
-            return Disassembly(lower, splits, pieces, len(search.memo)), asm
+            return result(lower, splits, pieces, asm)
         exhaustive = True
+        deadline = time.perf_counter() + budget_s
         for depth in range(int(lower), self.root.bit_count()):
             tried = set()
             for leaves, tree in search.leaf_sets(self.root, depth):
                 if leaves in tried:
                     continue
                 tried.add(leaves)
-                asm = search.assemble(sorted(leaves))
+                asm = assemble(sorted(leaves))
                 if asm.layers < INF:
                     splits, pieces = self._unfold(self.root, lambda p, t=tree: t.get(p))
-                    return Disassembly(depth, splits, pieces, len(search.memo), exhaustive), asm
+                    return result(depth, splits, pieces, asm, exhaustive)
                 if len(tried) >= budget:
                     exhaustive = False
                     break
-        return Disassembly(INF, [], [], len(search.memo), exhaustive), AssemblyPlan(INF, [], 0)
+                if time.perf_counter() > deadline:
+                    return result(INF, [], [], AssemblyPlan(INF, [], 0), False)
+        return result(INF, [], [], AssemblyPlan(INF, [], 0), exhaustive)
 
 
 class _PartialSearch:
@@ -399,8 +444,11 @@ class _PartialSearch:
         hit = self._placeable.get(piece)
         if hit is None:
             d = self.delta(piece)
-            hit = not piece & ~self.classes[d] and self.seq.grid.orthogonally_convex_in(
-                self.target_mask(piece), self.seq.root)
+            if piece & ~self.classes[d]:
+                hit = False
+            else:  # no other piece may sit inside its bounding box (it could never dock to it)
+                t = self.target_mask(piece)
+                hit = not self.seq.grid.box(t) & self.seq.root & ~t
             self._placeable[piece] = hit
         return hit
 
@@ -441,68 +489,100 @@ class _PartialSearch:
         return None if hit is None else hit[1]
 
     def leaf_sets(self, piece: int, depth: int) -> Iterator[tuple[frozenset, dict]]:
-        """Every set of final pieces reachable from `piece` in at most `depth` layers, with its tree."""
+        """Every set of final pieces reachable from `piece` in at most `depth` layers, with its tree.
+
+        Finer sets come first: smaller pieces are the likelier to dock back together.
+        """
+        if depth > 0:
+            for line, part, rest in self.seq.splits(piece):
+                if self.cost(part) > depth - 1 or self.cost(rest) > depth - 1:
+                    continue
+                for la, ta in self.leaf_sets(part, depth - 1):
+                    for lb, tb in self.leaf_sets(rest, depth - 1):
+                        yield la | lb, {**ta, **tb, piece: (line, part, rest)}
         if self.placeable(piece):
             yield frozenset([piece]), {}
-        if depth == 0:
-            return
-        for line, part, rest in self.seq.splits(piece):
-            if self.cost(part) > depth - 1 or self.cost(rest) > depth - 1:
-                continue
-            for la, ta in self.leaf_sets(part, depth - 1):
-                for lb, tb in self.leaf_sets(rest, depth - 1):
-                    yield la | lb, {**ta, **tb, piece: (line, part, rest)}
 
     def assemble(self, pieces: list[int]) -> AssemblyPlan:
         seq = self.seq
         targets = {self.target_mask(p): p for p in pieces}
-        asm = _Assembler(seq.grid, list(targets))
+        asm = _Assembler(seq, list(targets))
         layers = asm.cost(seq.root)
         if layers == INF:
             return AssemblyPlan(INF, [], len(asm.memo))
-        merges: list[MergeStep] = []
-        stack = [seq.root]
-        by_layer: dict[int, list] = {}
-        while stack:
-            region = stack.pop()
-            ch = asm.memo.get(region)
-            if region in asm.pieces or ch is None or ch[1] is None:
-                continue
-            line, a, b = ch[1]
-            by_layer.setdefault(int(ch[0]), []).append((line, a, b))
-            stack += [a, b]
         unit_of_target = {}
         for tmask, p in targets.items():
             for tc, pc in zip(seq.grid.cells(tmask), seq.grid.cells(p)):
                 unit_of_target[tc] = seq.unit_at[pc]
         units = lambda m: sorted(unit_of_target[c] for c in seq.grid.cells(m))  # noqa: E731
+        by_layer: dict[int, list] = {}
+        stack = [seq.root]
+        while stack:
+            region = stack.pop()
+            hit = asm.memo.get(region)
+            if region in asm.pieces or hit is None:
+                continue
+            by_layer.setdefault(int(hit[0]), []).append(hit[1])
+            stack += [hit[1][1], hit[1][2]]
+        merges: list[MergeStep] = []
         for layer in sorted(by_layer):
-            for slot, (line, a, b) in enumerate(sorted(by_layer[layer], key=lambda t: min(units(t[1] | t[2])))):
-                ua, ub = units(a), units(b)
-                if (len(ua), -min(ua)) < (len(ub), -min(ub)):
-                    ua, ub = ub, ua
-                merges.append(MergeStep(layer, slot, ua, ub, line))
+            order = sorted(by_layer[layer], key=lambda m: min(units(m[1] | m[2])))
+            for slot, (line, slider, other, before) in enumerate(order):
+                us, uo = units(slider), units(other)
+                towards = "+" if before else "-"  # the slider travels towards the line
+                if (len(us), -min(us)) > (len(uo), -min(uo)):  # the larger body holds still
+                    us, uo = uo, us
+                    towards = "-" if before else "+"
+                merges.append(MergeStep(layer, slot, uo, us, line, towards + line.axis))
         return AssemblyPlan(layers, merges, len(asm.memo))
 
 
 class _Assembler:
-    """Algorithm 3 over target-cell bitmasks: fewest docking layers for a set of pieces."""
+    """Algorithm 3 over target-cell bitmasks: fewest docking layers for a set of pieces.
 
-    def __init__(self, grid: CellMasks, pieces: list[int]):
-        self.grid = grid
+    A dock joins two bodies across one straight line: the body that lies wholly on one side of it
+    (no piece of it crosses the line) slides in perpendicular to the line and touches the other
+    only across it. The other body may reach past the line beside it, provided nothing of it lies
+    in the slider's way: the time-reverse of the component undock of spec §6. Each body must be
+    connected. With a single part on each side this is the spec's Algorithm 3 exactly.
+    """
+
+    def __init__(self, seq: Sequencer, pieces: list[int]):
+        self.seq = seq
+        grid = seq.grid
         self.pieces = set(pieces)
         self.reps = 0  # one bit per piece, to count pieces in a region with one popcount
-        self.cross_row = [0] * (grid.n_rows + 1)
-        self.cross_col = [0] * (grid.n_cols + 1)
+        self.cross = {}
         for p in pieces:
             self.reps |= p & -p
             r0, r1 = grid.row_span(p)
             c0, c1 = grid.col_span(p)
             for r in range(r0 + 1, r1 + 1):
-                self.cross_row[r] |= p
+                self.cross[("row", r)] = self.cross.get(("row", r), 0) | p
             for c in range(c0 + 1, c1 + 1):
-                self.cross_col[c] |= p
+                self.cross[("col", c)] = self.cross.get(("col", c), 0) | p
         self.memo: dict[int, tuple] = {}
+
+    def merges(self, region: int) -> list[tuple[BreakLine, int, int, bool]]:
+        """(line, slider, other body, slider before the line), most balanced first."""
+        seq = self.seq
+        out, seen = [], set()
+        for line, comps_a, comps_b in seq.line_cuts(region):
+            crossing = region & self.cross.get((line.axis, line.index), 0)
+            for part, before in seq.detachable(line, comps_a, comps_b):
+                if part & crossing:
+                    continue
+                rest = region ^ part
+                key = min(part, rest)
+                if key in seen:
+                    continue
+                side = comps_a if before else comps_b
+                if (len(side) > 1 or crossing) and seq.path_blocked(line, part, rest, before):
+                    continue
+                seen.add(key)
+                out.append((line, part, rest, before))
+        out.sort(key=lambda m: abs(2 * m[1].bit_count() - region.bit_count()))
+        return out
 
     def cost(self, region: int) -> int | float:
         if region in self.pieces:
@@ -510,26 +590,15 @@ class _Assembler:
         hit = self.memo.get(region)
         if hit is not None:
             return hit[0]
-        g = self.grid
         lb = _ceil_log2((region & self.reps).bit_count())
-        r0, r1 = g.row_span(region)
-        c0, c1 = g.col_span(region)
-        lines = [(BreakLine("row", r), region & g.rows_below[r]) for r in range(r0 + 1, r1 + 1)
-                 if not region & self.cross_row[r]]
-        lines += [(BreakLine("col", c), region & g.cols_below[c]) for c in range(c0 + 1, c1 + 1)
-                  if not region & self.cross_col[c]]
-        lines.sort(key=lambda t: abs(2 * t[1].bit_count() - region.bit_count()))
         best, choice = INF, None
-        for line, a in lines:
-            b = region ^ a
-            if not g.is_connected(a) or not g.is_connected(b):
-                continue
-            ca = self.cost(a)
+        for merge in self.merges(region):
+            ca = self.cost(merge[1])
             if 1 + ca >= best:
                 continue
-            c = 1 + max(ca, self.cost(b))
+            c = 1 + max(ca, self.cost(merge[2]))
             if c < best:
-                best, choice = c, (line, a, b)
+                best, choice = c, merge
                 if best <= lb:
                     break
         self.memo[region] = (best, choice)
@@ -581,9 +650,9 @@ def plan_reconfiguration(
     seq = sequencer if sequencer is not None else Sequencer(model, health, current, rule)
 
     def attempt(pl: Placement) -> tuple[Disassembly, AssemblyPlan]:
-        t0 = time.perf_counter()
         dis, asm = seq.partial_disassembly(pl.unit_cells)
-        timings["sequencing"] = timings.get("sequencing", 0.0) + time.perf_counter() - t0
+        timings["disassembly"] = timings.get("disassembly", 0.0) + dis.time_s
+        timings["assembly"] = timings.get("assembly", 0.0) + asm.time_s
         return dis, asm
 
     dis, asm = attempt(placement)
