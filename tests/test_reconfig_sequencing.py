@@ -412,3 +412,27 @@ def test_bitmask_flyability_equals_the_exact_rule(offset_fraction):
                 checked += 1
                 ties += exact
     assert checked > 300 and ties > 0
+
+
+# ----------------------------------------------------------------------------- configuration tree
+def test_configuration_tree_holds_a_plan_per_fault_sequence():
+    from mars_link.reconfig import FaultEvent, build_configuration_tree
+
+    model = AssemblyModel.from_layout(["XXX"], PRESET)
+    tree = build_configuration_tree(model, depth=2)
+    assert tree.n_nodes == 1 + 12 + 12 * 11  # a second failure of the same rotor changes nothing
+    assert tree.n_solves <= tree.n_nodes - 1
+    seq = [FaultEvent(1, 1), FaultEvent(3, 2)]
+    node = tree.lookup(seq)
+    parent = tree.lookup(seq[:1])
+    assert node.health[0, 0] == 0 and node.health[2, 1] == 0 and node.health.sum() == 10
+    again = plan_reconfiguration(model, node.health, current=parent.allocation)
+    assert node.plan.target == again.target and node.plan.disassembly_layers == again.disassembly_layers
+    assert node.allocation == (node.plan.target if node.plan.feasible else parent.allocation)
+    # after a feasible plan the units really are where the plan put them
+    if parent.plan.feasible:
+        assert parent.allocation == parent.plan.target
+    with pytest.raises(UserInputError, match="not in the configuration tree"):
+        tree.lookup([FaultEvent(2, 1, 0.5)])
+    with pytest.raises(UserInputError, match="unit 9 does not exist"):
+        build_configuration_tree(model, events=[FaultEvent(9, 1)])

@@ -37,9 +37,10 @@ def rotor_from_paper001(rotor: int) -> int:
 class HelixReference:
     """The Fig. 1 / Fig. 5 helix of paper 001's driver (spec §3, §12.1), for the flight comparisons.
 
-    A circle of `radius_m` around the start point's column... as the paper-era code drew it: start at
-    the origin on the ground, a radial leg of one radius along +x, then `turns` turns with the
-    height rising linearly by `rise_m`, waypoints every `angle_step_rad`, flown at `speed_mps`.
+    As the paper-era code drew it: start at the origin on the ground, a radial leg of one radius
+    along +x, then `turns` turns around the origin with the height rising linearly by `rise_m`,
+    waypoints every `angle_step_rad`, flown at `speed_mps` through a min-snap fit. (The driver's
+    final ~1 m exit leg is not in the text; spec §3 gives 35.5 m in total, this polyline 34.0 m.)
     Paper frame: x forward, y left, z up; `waypoints_ned` maps it once to NED (n = x, e = -y, d = -z).
     """
 
