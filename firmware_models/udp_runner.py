@@ -7,6 +7,8 @@ Links (PX4's SITL conventions, specs/mavlink.md §1.1; all on 127.0.0.1 and conf
                --gcs-bind (default 18570+i), i = unit - 1
   api          the unit sends to --api-port (default 14540+i, MAVSDK `udpin://`) from --api-bind
                (default 14580+i)
+               on both client links, whoever last sent a valid frame to the bound port (within 10 s)
+               also gets the traffic, as PX4 does (MAVProxy `--master=udpout:127.0.0.1:<bind>`)
   coordinator  the unit listens on --coord-bind (default 14600+i) and answers the address of the
                last frame that came from the configured coordinator and passed signing (if required)
 A port 0 means "any free port"; the chosen ports are printed as one JSON line on stdout once ready.
@@ -43,6 +45,7 @@ LOOPBACK = "127.0.0.1"
 RECV_BUFFER_BYTES = 4 * 1024 * 1024
 MAX_DATAGRAMS_PER_WAKE = 4000  # per socket: keep the control loop on time during a flood
 STATUS_PERIOD_S = 0.2
+PEER_TIMEOUT_S = 10.0  # a client link also serves the last sender of valid frames (MAVProxy udpout)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -135,6 +138,7 @@ class UnitRunner:
             LINK_API: (LOOPBACK, pick(args.api_port, 14540 + i)),
             LINK_COORDINATOR: None,  # learnt from authenticated coordinator frames
         }
+        self.peers: dict[str, tuple[tuple[str, int], float] | None] = {}  # client that last sent valid frames
         self.sel = selectors.DefaultSelector()
         for name, s in self.socks.items():
             self.sel.register(s, selectors.EVENT_READ, name)
@@ -151,14 +155,19 @@ class UnitRunner:
         return {name: s.getsockname()[1] for name, s in self.socks.items()}
 
     def _send(self, out) -> None:
+        now = time.monotonic()
         for link, data in out:
             dest = self.dest.get(link)
-            if dest is None:
-                continue
-            try:
-                self.socks[link].sendto(data, dest)
-            except OSError:  # nobody listening (ICMP refused) or buffer full: telemetry is best effort
-                self.send_errors += 1
+            peer = self.peers.get(link)
+            if peer is not None and now - peer[1] > PEER_TIMEOUT_S:
+                peer = self.peers[link] = None
+            for addr in (dest, peer[0] if peer is not None and peer[0] != dest else None):
+                if addr is None:
+                    continue
+                try:
+                    self.socks[link].sendto(data, addr)
+                except OSError:  # nobody listening (ICMP refused) or buffer full: best effort
+                    self.send_errors += 1
 
     def _drain(self, link: str, sock: socket.socket) -> None:
         v = self.vehicle
@@ -174,9 +183,13 @@ class UnitRunner:
                 self.not_loopback += 1
                 continue
             before = v.stats.get("from_coordinator", 0)
+            rx = v.stats.get("rx", 0)
             out = v.handle(data, time.time(), link)
-            if link == LINK_COORDINATOR and v.stats.get("from_coordinator", 0) > before:
-                self.dest[LINK_COORDINATOR] = addr
+            if link == LINK_COORDINATOR:
+                if v.stats.get("from_coordinator", 0) > before:
+                    self.dest[LINK_COORDINATOR] = addr
+            elif v.stats.get("rx", 0) > rx:  # a client that sends valid MAVLink also gets telemetry
+                self.peers[link] = (addr, time.monotonic())
             self._send(out)
 
     def write_status(self) -> None:

@@ -463,6 +463,7 @@ class Vehicle:
             self._drop("own_sysid")  # an echo or a spoof of ourselves
             return
         t = msg.get_type()
+        self._count("rx." + t)
         if src == self.config.coordinator_sysid and msg.get_srcComponent() == self.config.coordinator_compid:
             self._count("from_coordinator")  # (after signing, where required): runners learn the reply address
         if lk.policy.hil:

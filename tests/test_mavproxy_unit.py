@@ -1,0 +1,73 @@
+"""MAVProxy 1.8 (non-interactive) against a unit process: vehicle detected, PX4 mode decoded, the
+parameter list fetched quickly (the FTP NAK saves MAVProxy's 10 s FTP timeout), a parameter written
+and read back, SYS_STATUS shown, and an arm command acknowledged."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from firmware_models.udp_runner import free_udp_port, spawn_unit, stop_unit
+
+pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(120)]
+
+EXPECTED = {
+    "detected": "Detected vehicle 6:1",
+    "mode": "Mode LOITER",
+    "params": "Received 19 parameters",
+    "alt_default": "MIS_TAKEOFF_ALT  2.0",
+    "alt_written": "MIS_TAKEOFF_ALT  3.5",
+    "status": "SYS_STATUS {onboard_control_sensors_present",
+    "arm": "COMPONENT_ARM_DISARM: ACCEPTED",
+}
+
+
+@pytest.mark.skipif(shutil.which("mavproxy.py") is None, reason="MAVProxy not installed")
+def test_mavproxy_reads_parameters_and_status(tmp_path: Path) -> None:
+    bind = free_udp_port()
+    proc, _ = spawn_unit(["--unit", "6", "--gcs-port", str(free_udp_port()), "--gcs-bind", str(bind),
+                          "--api-port", str(free_udp_port()), "--api-bind", "0", "--coord-bind", "0"])
+    cmds = ["repeat add 2 param show MIS_TAKEOFF_ALT", "repeat add 3 status SYS_STATUS",
+            "repeat add 4 param set MIS_TAKEOFF_ALT 3.5", "repeat add 5 arm throttle"]
+    mp = subprocess.Popen(
+        ["mavproxy.py", f"--master=udpout:127.0.0.1:{bind}", "--non-interactive", "--no-state",
+         "--cmd=" + "; ".join(cmds)],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True)
+    seen: dict[str, float] = {}
+    lines: list[str] = []
+    t0 = time.monotonic()
+
+    def read() -> None:
+        for line in mp.stdout:
+            lines.append(line.rstrip())
+            for key, text in EXPECTED.items():
+                if text in line and key not in seen:
+                    seen[key] = time.monotonic() - t0
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        deadline = t0 + 40
+        while time.monotonic() < deadline and len(seen) < len(EXPECTED):
+            time.sleep(0.2)
+    finally:
+        mp.send_signal(signal.SIGTERM)
+        try:
+            mp.wait(10)
+        except subprocess.TimeoutExpired:
+            mp.kill()
+            mp.wait(5)
+        reader.join(5)
+        rc = stop_unit(proc)
+    print("\n".join(lines[:40]))
+    print({k: round(v, 2) for k, v in seen.items()})
+    assert set(seen) == set(EXPECTED), sorted(set(EXPECTED) - set(seen))
+    assert seen["params"] - seen["detected"] < 5.0  # no 10 s MAVFTP timeout before the list
+    assert seen["alt_written"] > seen["alt_default"]
+    assert rc == 0
