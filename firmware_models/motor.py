@@ -127,13 +127,15 @@ class MotorModel:
         c = np.array(commands_n, dtype=float)
         if c.shape != self.thrust_n.shape:
             raise ValueError(f"expected {self.params.n_rotors} rotor commands, got shape {c.shape}")
-        finite = np.isfinite(c)
-        if not finite.all():
+        if not math.isfinite(c.sum()):  # cheaper than isfinite().all(); NaN/inf somewhere
+            finite = np.isfinite(c)
             self.nonfinite_commands += int(c.size - np.count_nonzero(finite))
             c[~finite] = 0.0
-        if self._clamp:
-            np.clip(c, self._lo, self._hi, out=c)
-        c *= self.eta
+        if self._hi != math.inf:
+            np.minimum(c, self._hi, out=c)
+        if self._lo != -math.inf:
+            np.maximum(c, self._lo, out=c)
+        np.multiply(c, self.eta, out=c)
         return c
 
     def step(self, commands_n, dt_s: float) -> np.ndarray:
@@ -150,7 +152,9 @@ class MotorModel:
             self._alpha_dt = dt_s
             self._alpha = 1.0 - math.exp(-dt_s / tau)
         t = self.thrust_n
-        t += self._alpha * (sp - t)
+        np.subtract(sp, t, out=sp)
+        sp *= self._alpha
+        t += sp
         return t
 
     @property
