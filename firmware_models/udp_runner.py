@@ -34,8 +34,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from firmware_models.signing import DEFAULT_KEY_ENV, load_key
 from firmware_models.vehicle import LINK_API, LINK_COORDINATOR, LINK_GCS, Vehicle, VehicleConfig
 from mars_link.assembly import AssemblyModel
@@ -276,6 +274,18 @@ def spawn_unit(args: list[str], timeout_s: float = 60.0, env: dict | None = None
         raise RuntimeError(f"unit runner did not start: {proc.stderr.read()[-2000:]}")
     finally:
         sel.close()
+
+
+def read_status(path: str | os.PathLike, timeout_s: float = 2.0) -> dict:
+    """The runner's latest status snapshot (retries while the file is being replaced)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return json.loads(Path(path).read_text())
+        except (FileNotFoundError, json.JSONDecodeError):
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.02)
 
 
 def stop_unit(proc: subprocess.Popen, timeout_s: float = 10.0) -> int:

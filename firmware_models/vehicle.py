@@ -38,7 +38,6 @@ from firmware_models.signing import (
     SignatureVerifier,
     advance_outgoing_clock,
     enable_outgoing_signing,
-    is_signed,
 )
 from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
 from mars_link.assembly import GRAVITY_MPS2, VehicleParams, vehicle_preset

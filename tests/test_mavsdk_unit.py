@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware_models.udp_runner import free_udp_port, spawn_unit, stop_unit
+from firmware_models.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
 
 mavsdk = pytest.importorskip("mavsdk")
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
@@ -23,14 +23,6 @@ from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync  # noqa:
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(240)]
 
-
-def _status(path: Path) -> dict:
-    for _ in range(50):
-        try:
-            return json.loads(path.read_text())
-        except (FileNotFoundError, json.JSONDecodeError):
-            time.sleep(0.02)
-    raise AssertionError("no status file")
 
 
 async def _until(predicate, timeout_s: float, what: str, period_s: float = 0.1):
@@ -67,7 +59,7 @@ async def _fly(api_port: int, status_path: Path) -> dict:
         # telemetry on the ground: truth vs what MAVSDK shows
         await _until(lambda: telemetry.health_all_ok(), 10.0, "health_all_ok")
         p = (await pv()).position
-        truth = _status(status_path)["truth_position_ned_m"]
+        truth = read_status(status_path)["truth_position_ned_m"]
         results["ground_error_m"] = math.dist((p.north_m, p.east_m, p.down_m), truth)
         results["armed_before"] = await telemetry.armed()
         assert await action.get_takeoff_altitude() == pytest.approx(2.0)
@@ -83,7 +75,7 @@ async def _fly(api_port: int, status_path: Path) -> dict:
         errs = []
         for _ in range(5):
             p = (await pv()).position
-            truth = _status(status_path)["truth_position_ned_m"]
+            truth = read_status(status_path)["truth_position_ned_m"]
             errs.append(math.dist((p.north_m, p.east_m, p.down_m), truth))
             await asyncio.sleep(0.2)
         results["hover_error_m"] = min(errs)
@@ -111,16 +103,16 @@ async def _fly(api_port: int, status_path: Path) -> dict:
         await action.takeoff()
         await _until(lambda: _near(rel_alt, 2.0, 0.15), 20.0, "2 m altitude again")
         await asyncio.sleep(1.5)
-        tilt_before = _tilt_deg(_status(status_path))
+        tilt_before = _tilt_deg(read_status(status_path))
         alt_before = await rel_alt()
         await failure.inject(FailureUnit.SYSTEM_MOTOR, FailureType.OFF, 1)
         worst_tilt, lowest = tilt_before, alt_before
         for _ in range(30):
             await asyncio.sleep(0.1)
-            st = _status(status_path)
+            st = read_status(status_path)
             worst_tilt = max(worst_tilt, _tilt_deg(st))
             lowest = min(lowest, -st["truth_position_ned_m"][2])
-        st = _status(status_path)
+        st = read_status(status_path)
         results.update(tilt_before_deg=tilt_before, worst_tilt_deg=worst_tilt, alt_before_m=alt_before,
                        lowest_after_m=lowest, eta=st["motor_eta"], drops=st["drops"])
         await action.kill()

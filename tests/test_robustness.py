@@ -4,7 +4,6 @@ frame by reason, and its legitimate links keep working (also under a 10,000 fram
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import random
 import socket
@@ -15,22 +14,14 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.signing import enable_outgoing_signing
-from firmware_models.udp_runner import free_udp_port, spawn_unit, stop_unit
+from firmware_models.signing import advance_outgoing_clock, enable_outgoing_signing
+from firmware_models.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(180)]
 LOOP = "127.0.0.1"
 KEY = hashlib.sha256(b"robustness test passphrase").digest()
 FLOOD_HZ, FLOOD_S = 10_000, 2.0
 
-
-def _status(path: Path) -> dict:
-    for _ in range(100):
-        try:
-            return json.loads(path.read_text())
-        except (FileNotFoundError, json.JSONDecodeError):
-            time.sleep(0.02)
-    raise AssertionError("no status file")
 
 
 def _kernel_drops(port: int) -> int:
@@ -83,8 +74,6 @@ class Coordinator:
         self.dec = mavlink.MAVLink(None, 201, 1)
 
     def frame(self, msg) -> bytes:
-        from firmware_models.signing import advance_outgoing_clock
-
         advance_outgoing_clock(self.mav, time.time())
         return bytes(msg.pack(self.mav))
 
@@ -171,7 +160,7 @@ def test_hostile_traffic_is_counted_dropped_and_never_acted_on(tmp_path: Path) -
             attacker.sendto(coord.frame(mavlink.MAVLink_set_actuator_control_target_message(
                 2000 + k, 0, 7, 1, [2.0, 0.5, 0.5, 0.5, 0, 0, 0, 0])), (LOOP, ports["coordinator"]))
         time.sleep(0.5)
-        st = _status(status)
+        st = read_status(status)
         d = st["drops"]
         parse = sum(v for k, v in d.items() if k.startswith("parse."))
         assert parse >= 200 + 100 + 100, d
@@ -182,7 +171,7 @@ def test_hostile_traffic_is_counted_dropped_and_never_acted_on(tmp_path: Path) -
         # replays of the captured genuine frame
         to("coordinator", captured, 50)
         time.sleep(0.3)
-        assert _status(status)["drops"]["signing.coordinator.replay"] == 50
+        assert read_status(status)["drops"]["signing.coordinator.replay"] == 50
 
         # --- flood: 10,000 wrongly signed rotor commands per second for 2 s, while the real
         # coordinator keeps talking over the same link
@@ -199,7 +188,7 @@ def test_hostile_traffic_is_counted_dropped_and_never_acted_on(tmp_path: Path) -
             answered += coord.request_version(0.1)
         flooder.join()
         time.sleep(1.0)
-        st = _status(status)
+        st = read_status(status)
         kernel = _kernel_drops(ports["coordinator"]) - kernel_before
         bad = st["drops"]["signing.coordinator.bad_signature"] - 100
         print(f"flood: sent {sent[0]} in {sent[1]:.2f} s, unit counted {bad}, kernel dropped {kernel}; "
