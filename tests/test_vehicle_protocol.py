@@ -417,3 +417,51 @@ def test_hil_sensor_steps_the_unit_and_is_forwarded_to_the_coordinator() -> None
         spoof.send(m)
     Client(v, LINK_HIL, sysid=9).send(sensor_packet_messages(packet)[-1])
     assert v.drop_counts()["hil_wrong_link"] == 2 and v.drop_counts()["hil_wrong_source"] == 1
+
+
+def test_velocity_setpoints_reposition_by_command_int_and_return_to_launch() -> None:
+    v = _vehicle()
+    f = Flight(v)
+    api = Client(v, LINK_API)
+    api.command(400, 1, wall=f.wall)
+    api.command(22, wall=f.wall)
+    f.run(5.0)
+    # body-frame velocity 0.5 m/s forward (heading north) for 2 s, in OFFBOARD
+    vel = mavlink.MAVLink_set_position_target_local_ned_message(
+        0, 1, 1, mavlink.MAV_FRAME_BODY_NED, 0x0DC7, 0, 0, 0, 0.5, 0, 0, 0, 0, 0, 0, 0)
+
+    def stream(fl):
+        if round(fl.t * 100) % 5 == 0:
+            api.send(vel, fl.wall)
+
+    f.run(0.1, stream)
+    assert _ack(api.command(176, 129, 6, 0, wall=f.wall), 176) == 0
+    x0 = f.pos[0]
+    f.run(3.0, stream)
+    assert abs(f.body.state().velocity_ned_mps[0] - 0.5) < 0.05 and f.pos[0] - x0 > 1.0
+    # DO_REPOSITION as COMMAND_INT: lat/lon in degE7, altitude AMSL (origin at 0 m)
+    lat = int(round(math.degrees(-3.0 / 6371000.0) * 1e7))
+    lon = int(round(math.degrees(2.0 / 6371000.0) * 1e7))
+    reposition = mavlink.MAVLink_command_int_message(1, 1, mavlink.MAV_FRAME_GLOBAL, 192, 0, 0, -1, 0, 0, NAN,
+                                                     lat, lon, 3.0)
+    assert _ack(api.send(reposition, f.wall + 1), 192) == 0
+    assert v.mode == (4, 3)
+    f.run(8.0)
+    np.testing.assert_allclose(f.pos, [-3.0, 2.0, -3.0], atol=0.05)
+    # RTL: back over home at RTL_RETURN_ALT or higher, then land there
+    assert _ack(api.command(20, wall=f.wall + 2), 20) == 0
+    f.run(25.0)
+    assert v.landed and np.linalg.norm(f.pos[:2]) < 0.1 and f.pos[2] > -0.06
+
+
+def test_hil_state_quaternion_is_the_state_on_the_physics_link() -> None:
+    v = _vehicle()
+    world = Client(v, LINK_HIL, sysid=200, compid=1)
+    lat = int(round(math.degrees(5.0 / 6371000.0) * 1e7))
+    world.send(mavlink.MAVLink_hil_state_quaternion_message(
+        1_000_000, [1.0, 0.0, 0.0, 0.0], 0.1, 0.0, 0.0, lat, 0, -2000, 30, 0, -10, 0, 0, 0, 0, 0))
+    np.testing.assert_allclose(v.state.position_ned_m, [5.0, 0.0, 2.0], atol=0.01)
+    np.testing.assert_allclose(v.state.velocity_ned_mps, [0.3, 0.0, -0.1])
+    world.send(mavlink.MAVLink_hil_state_quaternion_message(
+        2_000_000, [NAN, 0.0, 0.0, 0.0], 0.1, 0.0, 0.0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0))
+    assert v.drop_counts()["hil_non_finite"] == 1 and v.state.t_s == 1.0
