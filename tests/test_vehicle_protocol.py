@@ -230,13 +230,19 @@ def test_arm_takeoff_offboard_watchdog_land_and_auto_disarm() -> None:
     assert not v.armed
 
 
-def test_disarm_in_flight_is_refused_unless_forced() -> None:
+def _airborne(seconds: float) -> tuple[Vehicle, Flight, Client]:
+    """Armed and taken off (MIS_TAKEOFF_ALT) through the api link, flown for `seconds`."""
     v = _vehicle()
     f = Flight(v)
     api = Client(v, LINK_API)
     api.command(400, 1, wall=f.wall)
     api.command(22, wall=f.wall)
-    f.run(3.0)
+    f.run(seconds)
+    return v, f, api
+
+
+def test_disarm_in_flight_is_refused_unless_forced() -> None:
+    v, f, api = _airborne(3.0)
     assert _ack(api.command(400, 0, wall=f.wall), 400) == mavlink.MAV_RESULT_DENIED and v.armed
     assert _ack(api.command(400, 0, 21196, wall=f.wall + 2), 400) == 0 and not v.armed
     f.run(0.4)
@@ -420,12 +426,7 @@ def test_hil_sensor_steps_the_unit_and_is_forwarded_to_the_coordinator() -> None
 
 
 def test_velocity_setpoints_reposition_by_command_int_and_return_to_launch() -> None:
-    v = _vehicle()
-    f = Flight(v)
-    api = Client(v, LINK_API)
-    api.command(400, 1, wall=f.wall)
-    api.command(22, wall=f.wall)
-    f.run(5.0)
+    v, f, api = _airborne(5.0)
     # body-frame velocity 0.5 m/s forward (heading north) for 2 s, in OFFBOARD
     vel = mavlink.MAVLink_set_position_target_local_ned_message(
         0, 1, 1, mavlink.MAV_FRAME_BODY_NED, 0x0DC7, 0, 0, 0, 0.5, 0, 0, 0, 0, 0, 0, 0)
