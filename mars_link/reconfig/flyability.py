@@ -6,8 +6,8 @@ module that has any degraded rotor is never flyable ("never isolate a faulty mod
 degraded rotor still counts as working for the quadrant rule.
 
 Two implementations: `is_flyable` is the plain, exact (rational arithmetic) one for checking plans;
-`CellMasks` + `FlyabilityChecker` do the same test on cell bitmasks in O(1) big-integer operations,
-which the sequencing DPs call hundreds of thousands of times.
+`CellMasks` + `FlyabilityChecker` do the same test on cell bitmasks in a few big-integer
+operations, which the sequencing DPs call hundreds of thousands of times.
 """
 
 from __future__ import annotations
@@ -165,13 +165,6 @@ class CellMasks:
         s = d_row * self.stride + d_col
         return mask << s if s >= 0 else mask >> -s
 
-    def components(self, mask: int) -> list[int]:
-        """4-connected components of a mask."""
-        if not mask:
-            return []
-        r0, r1 = self.row_span(mask)
-        return self._sweep(mask, range(r0, r1 + 1))[-1]
-
     def row_line_components(self, mask: int) -> list[tuple[int, list[int], list[int]]]:
         """For every line between rows r-1 | r inside the mask's rows: (r, parts above, parts below).
 
@@ -227,9 +220,6 @@ class CellMasks:
             out |= other.bit(c, r)
             mask ^= low
         return out
-
-    def is_connected(self, mask: int) -> bool:
-        return len(self.components(mask)) == 1
 
     def box(self, mask: int) -> int:
         """All grid cells of the mask's bounding box."""

@@ -198,9 +198,6 @@ class Sequencer:
     def mask_of_units(self, units) -> int:
         return self.grid.mask(self.current[u] for u in units)
 
-    def flyable(self, units) -> bool:
-        return self.fly(self.mask_of_units(units))
-
     def splits(self, piece: int) -> list[tuple[BreakLine, int, int]]:
         """Flyable splits (line, detached, rest), most balanced first."""
         hit = self._splits.get(piece)
