@@ -174,6 +174,8 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--seed", type=int, default=None)
     sitl.set_defaults(func=cmd_sitl)
 
+    sub.add_parser("reconfig", help="reconfig plan SCENARIO.toml [--fault ...] [--json]: paper 001 reconfiguration plan")
+
     rep = sub.add_parser("reproduce", help="reproduce a paper table (table1: paper 000 Table I + Fig. 3)")
     rep.add_argument("what", help="table1")
     rep.add_argument("--seeds", type=int, default=10)
@@ -188,6 +190,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if argv[:2] == ["reconfig", "plan"]:  # its own parser and exit codes (0 plan, 1 none feasible, 2 bad input)
+        from mars_link.reconfig.cli import reconfig_plan_command
+
+        return reconfig_plan_command(argv[2:])
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
