@@ -68,3 +68,13 @@ def test_bad_input_is_one_line_exit_2(tmp_path: Path, name: str) -> None:
     assert len(err.splitlines()) == 1, err
     assert needle in err, err
     assert not (tmp_path / "out" / "summary.json").exists()
+
+
+def test_reconfig_plan_is_reachable_from_the_main_cli() -> None:
+    ok = subprocess.run([sys.executable, "-m", "mars_link.cli", "reconfig", "plan", "--layout", "XX,XX", "--json"],
+                        capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0, ok.stderr
+    assert '"cost_layers"' in ok.stdout
+    bad = subprocess.run([sys.executable, "-m", "mars_link.cli", "reconfig", "plan", "--layout", "X.X"],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "not connected" in bad.stderr and "Traceback" not in bad.stderr
