@@ -1,0 +1,1 @@
+"""Collision-free planning for any assembly (paper 000 §III): maps, footprint, A*, back end, CLI."""
