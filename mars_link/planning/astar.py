@@ -90,29 +90,17 @@ class ClearanceTable:
         return int(round(yaw / (2 * np.pi / self.bins))) % self.bins
 
 
-def swept_clearance(sdf: SignedDistanceField, body_points: np.ndarray, a: np.ndarray, b: np.ndarray,
-                    step_m: float) -> float:
-    """Min SDF over the footprint samples along the straight (n, e, yaw) motion a -> b."""
-    r = float(np.max(np.linalg.norm(body_points, axis=1)))
-    travel = math.hypot(b[0] - a[0], b[1] - a[1]) + r * abs(b[2] - a[2])
-    n = max(2, int(math.ceil(travel / step_m)) + 1)
-    s = np.linspace(0.0, 1.0, n)[:, None]
-    poses = a[None, :] + s * (b - a)[None, :]
-    c, si = np.cos(poses[:, 2]), np.sin(poses[:, 2])
-    wn = poses[:, None, 0] + c[:, None] * body_points[None, :, 0] - si[:, None] * body_points[None, :, 1]
-    we = poses[:, None, 1] + si[:, None] * body_points[None, :, 0] + c[:, None] * body_points[None, :, 1]
-    d, _ = sdf.query(np.column_stack([wn.ravel(), we.ravel()]))
-    return float(d.min())
-
-
 class FrontEnd:
     """A* on one map for one footprint; `plan` answers start pose -> goal position."""
 
     def __init__(self, sdf: SignedDistanceField, body_points: np.ndarray, margin_m: float,
-                 params: AStarParams | None = None, body_spacing_m: float = 0.05):
+                 params: AStarParams | None = None, body_spacing_m: float = 0.05, outline: np.ndarray | None = None):
+        """`body_points`: outline + interior samples (node checks); `outline`: the outline alone,
+        enough between checked nodes (an obstacle can only get inside by crossing it)."""
         self.p = params or AStarParams()
         t0 = time.perf_counter()
         self.sdf, self.body = sdf, body_points
+        self.outline = body_points if outline is None else outline
         self.table = ClearanceTable(sdf, body_points, self.p.stride, self.p.yaw_bins)
         self.table_time_s = time.perf_counter() - t0
         self.r_fp = float(np.max(np.linalg.norm(body_points, axis=1)))
@@ -167,61 +155,92 @@ class FrontEnd:
         return self.p.heuristic_weight * self.table.res * math.hypot(gi - i, gj - j)
 
     def _search_ours(self, si, sj, k0, gi, gj, yaw_star):
+        """(cell, yaw bin) A*; one expansion handles its 26 candidates with array operations."""
         t, p = self.table, self.p
-        K, ni, nj = t.table.shape
+        K = t.table.shape[0]
+        # a border of -inf cells: neighbours never leave the array and never pass the check
+        table = np.pad(t.table, ((0, 0), (1, 1), (1, 1)), constant_values=-np.inf)
+        ni, nj = table.shape[1:]
+        table = table.ravel()
+        si, sj, gi, gj = si + 1, sj + 1, gi + 1, gj + 1
         dyaw_bin = 2 * np.pi / K
-        headings = [math.atan2(dj, di) for di, dj in MOVES]
-        star = [float(yaw_star(np.array([h]))[0]) if yaw_star is not None else None for h in headings]
-        # per move and yaw bin: attitude penalty factor (computed once)
-        att = np.zeros((len(MOVES), K))
-        if yaw_star is not None:
-            for m, s in enumerate(star):
-                att[m] = p.attitude_weight * np.abs(wrap_half_pi(t.yaws - s)) / (np.pi / 2)
-        yaw_cost = p.yaw_weight * self.r_fp * dyaw_bin
+        moves = [(di, dj, dk) for di, dj in MOVES for dk in (-1, 0, 1)] + [(0, 0, -1), (0, 0, 1)]
+        DI, DJ, DK = (np.array(c) for c in zip(*moves))
+        length = t.res * np.hypot(DI, DJ)
+        heading = np.arctan2(DJ, DI)
+        if yaw_star is not None:  # attitude factor per candidate move and child yaw bin
+            star = yaw_star(heading)
+            att = p.attitude_weight * np.abs(wrap_half_pi(t.yaws[None, :] - star[:, None])) / (np.pi / 2)
+            att[length == 0] = 0.0
+        else:
+            att = np.zeros((len(moves), K))
+        base = length + np.abs(DK) * p.yaw_weight * self.r_fp * dyaw_bin
+        need0 = self.margin + self.tol_node
+        slack = length / 2 + self.r_fp * np.abs(DK) * dyaw_bin / 2
+        rows = np.arange(len(moves))
+        n_states = K * ni * nj
+        g = np.full(n_states, np.inf)
+        parent = np.full(n_states, -1, dtype=np.int64)
+        closed = np.zeros(n_states, dtype=bool)
         start = (k0 * ni + si) * nj + sj
-        g = {start: 0.0}
-        parent = {start: -1}
-        closed = set()
-        heap = [(self._heuristic(si, sj, gi, gj), 0.0, start)]
+        g[start] = 0.0
+        heap = [(self._heuristic(si, sj, gi, gj), start)]
+        hw = p.heuristic_weight * t.res
         expansions = 0
         while heap:
-            _, gc, node = heapq.heappop(heap)
-            if node in closed:
+            _, node = heapq.heappop(heap)
+            if closed[node]:
                 continue
-            closed.add(node)
+            closed[node] = True
             k, rem = divmod(node, ni * nj)
             i, j = divmod(rem, nj)
             if i == gi and j == gj:
-                return self._unwind(parent, node, ni, nj, dyaw_bin), expansions
+                return [(a - 1, b - 1, y) for a, b, y in self._unwind(parent, node, ni, nj, dyaw_bin)], expansions
             expansions += 1
             if expansions > p.max_expansions:
                 break
-            cands = [(i + di, j + dj, m) for m, (di, dj) in enumerate(MOVES)] + [(i, j, -1)]
-            for i1, j1, m in cands:
-                if not (0 <= i1 < ni and 0 <= j1 < nj):
-                    continue
-                length = t.res * (1.4142135623730951 if m >= 0 and MOVES[m][0] and MOVES[m][1] else 1.0) if m >= 0 else 0.0
-                for dk in ((-1, 0, 1) if m >= 0 else (-1, 1)):
-                    k1 = (k + dk) % K
-                    child = (k1 * ni + i1) * nj + j1
-                    if child in closed:
-                        continue
-                    cost = gc + abs(dk) * yaw_cost + (length * (1.0 + att[m, k1]) if m >= 0 else 0.0)
-                    if cost >= g.get(child, math.inf):
-                        continue
-                    if not self.edge_ok(k, i, j, k1, i1, j1, dk * dyaw_bin):
-                        continue
-                    g[child] = cost
-                    parent[child] = node
-                    heapq.heappush(heap, (cost + self._heuristic(i1, j1, gi, gj), cost, child))
+            i1, j1, k1 = i + DI, j + DJ, (k + DK) % K
+            child = (k1 * ni + i1) * nj + j1
+            cost = g[node] + base + length * att[rows, k1]
+            c_child = table[child]
+            ok = (c_child >= need0) & ~closed[child] & (cost < g[child])
+            if not ok.any():
+                continue
+            c = np.minimum(c_child, table[node])
+            unsure = ok & (c < need0 + slack)
+            if unsure.any():
+                idx = np.nonzero(unsure)[0]
+                a = np.array([*t.position(i - 1, j - 1), t.yaws[k]])
+                ends = np.column_stack([a[0] + DI[idx] * t.res, a[1] + DJ[idx] * t.res, a[2] + DK[idx] * dyaw_bin])
+                ok[idx] = self._edges_clear(a, ends)
+            for m in np.nonzero(ok)[0]:
+                ch = int(child[m])
+                g[ch] = cost[m]
+                parent[ch] = node
+                heapq.heappush(heap, (cost[m] + hw * math.hypot(gi - int(i1[m]), gj - int(j1[m])), ch))
         raise NoPathError(f"no collision-free path from start to goal (A* expanded {expansions} states)")
 
-    def _unwind(self, parent: dict, node: int, ni: int, nj: int, dyaw_bin: float) -> list:
+    def _edges_clear(self, a: np.ndarray, ends: np.ndarray) -> np.ndarray:
+        """Swept check of the straight motions a -> ends[e] against the SDF, all edges in one query."""
+        self.edge_checks += len(ends)
+        res = self.sdf.resolution_m
+        travel = np.hypot(ends[:, 0] - a[0], ends[:, 1] - a[1]) + self.r_fp * np.abs(ends[:, 2] - a[2])
+        n = max(1, int(math.ceil(travel.max() / res)) - 1)  # interior samples; the ends are checked
+        s = (np.arange(n) + 1.0)[None, :, None] / (n + 1)
+        poses = a[None, None, :] + s * (ends - a)[:, None, :]  # (E, n, 3)
+        c, si = np.cos(poses[..., 2])[..., None], np.sin(poses[..., 2])[..., None]
+        b = self.outline
+        wn = poses[..., 0:1] + c * b[:, 0] - si * b[:, 1]
+        we = poses[..., 1:2] + si * b[:, 0] + c * b[:, 1]
+        d, _ = self.sdf.query(np.column_stack([wn.ravel(), we.ravel()]))
+        return d.reshape(len(ends), -1).min(axis=1) >= self.margin + self.tol_point
+
+    def _unwind(self, parent, node: int, ni: int, nj: int, dyaw_bin: float) -> list:
         chain = []
         while node != -1:
             k, rem = divmod(node, ni * nj)
             chain.append((*divmod(rem, nj), k))
-            node = parent[node]
+            node = int(parent[node])
         chain.reverse()
         K = self.table.bins
         out, yaw = [], chain[0][2] * dyaw_bin

@@ -47,7 +47,7 @@ class Footprint:
         s = self.shapes
         return float(np.max(np.hypot(np.abs(s[:, 0]) + s[:, 2], np.abs(s[:, 1]) + s[:, 3]) + s[:, 4]))
 
-    def body_points(self, spacing_m: float = 0.05, interior_spacing_m: float = 0.15) -> np.ndarray:
+    def body_points(self, spacing_m: float = 0.05, interior_spacing_m: float = 0.15, interior: bool = True) -> np.ndarray:
         """(M, 2) samples of the footprint: the outline of the union of unit boxes and protruding
         discs every `spacing_m`, plus an interior grid (catches obstacles smaller than the body)."""
         model = self.model
@@ -65,6 +65,8 @@ class Footprint:
                     pts.append(np.column_stack([np.full_like(t, cx + ax * half), cy + t]))
                 else:
                     pts.append(np.column_stack([cx + t, np.full_like(t, cy + ay * half)]))
+            if not interior:
+                continue
             n_in = max(1, int(math.ceil(pitch / interior_spacing_m)))
             g = (np.arange(n_in) + 0.5) / n_in * pitch - half
             gx, gy = np.meshgrid(g, g, indexing="ij")

@@ -259,7 +259,7 @@ class SignedDistanceField:
         g = (p - self.origin) / self.resolution_m
         hi = np.array(self.shape, dtype=float) - 1.0
         inside = (g >= 0.0) & (g <= hi)
-        g = np.clip(g, 0.0, hi - 1e-9)
+        g = np.minimum(np.maximum(g, 0.0), hi - 1e-9)
         i = g.astype(np.int64)
         f = g - i
         a = self.grid[i[:, 0], i[:, 1]]

@@ -1,0 +1,243 @@
+"""Planning pipeline: map -> SDF -> A* (ours / svsdf) -> back end -> exact validation -> retry.
+
+Planar at constant altitude (the down coordinate of start and goal). The back end is
+`mars_link.planning.backend.optimize_trajectory` (MINCO); this module only orchestrates it, checks the
+result against the exact obstacle geometry and retries with a stiffer obstacle weight when the
+footprint touches an obstacle.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mars_link.assembly import AssemblyModel
+from mars_link.errors import UserInputError
+from mars_link.planning.astar import AStarParams, FrontEnd, NoPathError
+from mars_link.planning.attitude import OptimalYaw
+from mars_link.planning.footprint import Footprint, footprint_clearance
+from mars_link.planning.maps import ObstacleMap, SignedDistanceField
+
+METHODS = ("ours", "svsdf")
+
+
+@dataclass
+class PlanParams:
+    margin_m: float = 0.1  # footprint inflation for planning
+    sdf_resolution_m: float = 0.05
+    astar: AStarParams = field(default_factory=AStarParams)
+    waypoint_spacing_m: float = 1.0  # A* nodes handed to the back end about this far apart
+    v_max_mps: float = 1.0
+    a_max_mps2: float = 1.0
+    backend_overrides: dict = field(default_factory=dict)  # extra BackendParams fields
+    retries: int = 2  # back-end reruns with 10x obstacle weight when validation fails
+    validate_step_m: float = 0.02  # no footprint point moves more than this between checks
+    output_dt_s: float = 0.01
+    map_pad_m: float = 2.0
+
+
+@dataclass
+class PlanResult:
+    success: bool
+    method: str
+    message: str
+    samples: np.ndarray  # (S, 4): t, n, e, yaw (unwrapped)
+    down_m: float
+    astar_poses: np.ndarray
+    min_clearance_m: float
+    length_m: float
+    duration_s: float
+    total_yaw_rad: float
+    max_yaw_rate_radps: float
+    stage_time_s: dict
+    attempts: int = 1
+    backend_iterations: int = 0
+    trajectory: object = None
+
+    def summary(self) -> dict:
+        return {
+            "success": self.success, "method": self.method, "message": self.message,
+            "length_m": round(self.length_m, 4), "duration_s": round(self.duration_s, 4),
+            "min_clearance_m": round(self.min_clearance_m, 4), "total_yaw_rad": round(self.total_yaw_rad, 4),
+            "total_yaw_deg": round(math.degrees(self.total_yaw_rad), 2),
+            "max_yaw_rate_radps": round(self.max_yaw_rate_radps, 4),
+            "astar_nodes": len(self.astar_poses), "attempts": self.attempts,
+            "backend_iterations": self.backend_iterations,
+            "stage_time_s": {k: round(v, 4) for k, v in self.stage_time_s.items()},
+        }
+
+
+class Planner:
+    """One map and one assembly (faults included); `plan` can be called for several start/goals."""
+
+    def __init__(self, obstacles: ObstacleMap, model: AssemblyModel, eta: np.ndarray | None = None,
+                 params: PlanParams | None = None):
+        self.p = params or PlanParams()
+        self.model = model
+        self.eta = model.nominal_eta() if eta is None else np.asarray(eta, dtype=float)
+        self.obstacles = obstacles
+        self.footprint = Footprint.from_model(model, self.p.margin_m)
+        self.body = self.footprint.body_points()
+        self.yaw_star = OptimalYaw(model, self.eta)
+        self.stage = {}
+        t0 = time.perf_counter()
+        self.sdf = SignedDistanceField(obstacles, self.p.sdf_resolution_m)
+        t1 = time.perf_counter()
+        self.front = FrontEnd(self.sdf, self.body, self.p.margin_m, self.p.astar,
+                              outline=self.footprint.body_points(interior=False))
+        self.stage = {"sdf": t1 - t0, "clearance_table": time.perf_counter() - t1}
+
+    # ------------------------------------------------------------------ checks
+    def check_endpoints(self, start: np.ndarray, goal: np.ndarray) -> None:
+        """Start pose and goal position must be inside the map and clear of obstacles."""
+        n0, n1, e0, e1 = self.obstacles.bounds
+        for name, p in (("start", start), ("goal", goal)):
+            if not (n0 <= p[0] <= n1 and e0 <= p[1] <= e1):
+                raise UserInputError(f"{name} ({p[0]:g}, {p[1]:g}) is outside the map (north {n0:.2f}..{n1:.2f}, east {e0:.2f}..{e1:.2f})")
+        c = footprint_clearance(self.footprint, self.obstacles, start[None, :3])[0]
+        if c < 0:
+            raise UserInputError(f"start ({start[0]:g}, {start[1]:g}) at yaw {math.degrees(start[2]):.0f} deg: the footprint overlaps an obstacle ({c:.3f} m)")
+        yaws = np.linspace(0, 2 * np.pi, 72, endpoint=False)
+        cg = footprint_clearance(self.footprint, self.obstacles, np.column_stack([np.full(72, goal[0]), np.full(72, goal[1]), yaws]))
+        if cg.max() < 0:
+            raise UserInputError(f"goal ({goal[0]:g}, {goal[1]:g}): the footprint overlaps an obstacle at every yaw")
+
+    # ------------------------------------------------------------------ plan
+    def plan(self, start: np.ndarray, goal: np.ndarray, method: str = "ours", down_m: float = -2.0) -> PlanResult:
+        if method not in METHODS:
+            raise UserInputError(f"--method {method!r}: known methods are {', '.join(METHODS)}")
+        start = np.asarray(start, dtype=float)
+        goal = np.asarray(goal, dtype=float)
+        self.check_endpoints(start, goal)
+        stage = dict(self.stage)
+        star = self.yaw_star if method == "ours" else None
+        t0 = time.perf_counter()
+        try:
+            front = self.front.plan(start, goal[:2], method, self.yaw_star if method == "ours" else None)
+        except NoPathError as exc:
+            stage["front_end"] = time.perf_counter() - t0
+            return self._failed(method, str(exc), down_m, stage)
+        stage["front_end"] = time.perf_counter() - t0
+        waypoints = thin_poses(front.poses, self.p.waypoint_spacing_m)
+        traj, ok, attempts, iters, clearance = None, False, 0, 0, -math.inf
+        stage["back_end"] = stage["validation"] = 0.0
+        params = self._backend_params()
+        for attempts in range(1, self.p.retries + 2):
+            t1 = time.perf_counter()
+            result = _optimize(waypoints, self.sdf, self.body, star, params)
+            t2 = time.perf_counter()
+            traj, iters = result.trajectory, iters + result.iterations
+            clearance, ok = self.validate(traj)
+            stage["back_end"] += t2 - t1
+            stage["validation"] += time.perf_counter() - t2
+            if ok:
+                break
+            params = _stiffer(params)
+        samples = sample_trajectory(traj, self.p.output_dt_s)
+        stage["total"] = sum(stage.values())
+        msg = "ok" if ok else f"the footprint touches an obstacle (clearance {clearance:.3f} m) after {attempts} back-end runs"
+        return PlanResult(ok, method, msg, samples, down_m, front.poses, clearance, path_length(samples),
+                          float(samples[-1, 0]), total_yaw(samples), max_yaw_rate(samples), stage,
+                          attempts, iters, traj)
+
+    def _failed(self, method: str, msg: str, down_m: float, stage: dict) -> PlanResult:
+        stage["total"] = sum(stage.values())
+        return PlanResult(False, method, msg, np.zeros((0, 4)), down_m, np.zeros((0, 3)), -math.inf,
+                          0.0, 0.0, 0.0, 0.0, stage)
+
+    def _backend_params(self):
+        try:
+            from mars_link.planning.backend import BackendParams
+        except ImportError:  # TEMPORARY until the MINCO back end lands
+            return None
+        p = BackendParams()
+        changes = {"margin_m": self.p.margin_m, "v_max_mps": self.p.v_max_mps, "a_max_mps2": self.p.a_max_mps2}
+        changes = {k: v for k, v in changes.items() if hasattr(p, k)}
+        changes.update(self.p.backend_overrides)
+        return dataclasses.replace(p, **changes)
+
+    def validate(self, traj) -> tuple[float, bool]:
+        """Exact clearance along the trajectory, sampled so that no footprint point moves more than
+        `validate_step_m` between samples; ok when the continuous lower bound is >= 0."""
+        coarse = sample_trajectory(traj, 0.05)
+        speed = np.abs(np.diff(coarse[:, 1:4], axis=0)) / 0.05
+        rate = float(np.max(np.hypot(speed[:, 0], speed[:, 1]) + self.footprint.radius_m * speed[:, 2], initial=1e-3))
+        dt = max(min(self.p.validate_step_m / rate, 0.05), 1e-3)
+        s = sample_trajectory(traj, dt)
+        poses = s[:, 1:4]
+        c = footprint_clearance(self.footprint, self.obstacles, poses)
+        travel = np.hypot(*np.diff(poses[:, :2], axis=0).T) + self.footprint.radius_m * np.abs(np.diff(poses[:, 2]))
+        bound = np.minimum(c[:-1], c[1:]) - travel / 2
+        return float(c.min()), bool(bound.min(initial=c.min()) >= 0.0)
+
+
+def _optimize(waypoints, sdf, body, star, params):
+    if params is None:  # TEMPORARY until the MINCO back end lands
+        return _SplineResult(waypoints)
+    from mars_link.planning.backend import optimize_trajectory
+
+    return optimize_trajectory(waypoints, sdf, body, yaw_star=star, params=params)
+
+
+class _SplineResult:
+    """TEMPORARY stand-in for the back end: a clamped cubic spline through the waypoints."""
+
+    def __init__(self, waypoints: np.ndarray, v_mps: float = 0.8):
+        from scipy.interpolate import CubicSpline
+
+        step = np.hypot(*np.diff(waypoints[:, :2], axis=0).T) + 0.5 * np.abs(np.diff(waypoints[:, 2]))
+        t = np.concatenate([[0.0], np.cumsum(np.maximum(step / v_mps, 0.2))])
+        t[1] += 1.0
+        t[-1] += 1.0
+        t[2:] += 1.0
+        self.spline = CubicSpline(t, waypoints, bc_type="clamped")
+        self.duration_s = float(t[-1])
+        self.trajectory, self.iterations, self.success = self, 0, True
+
+    def evaluate(self, t_s, order: int = 0):
+        return self.spline(np.clip(t_s, 0.0, self.duration_s), order)
+
+
+def _stiffer(params):
+    """10x every obstacle weight of the back-end parameters."""
+    if params is None:
+        return None
+    changes = {f.name: getattr(params, f.name) * 10 for f in dataclasses.fields(params)
+               if "obst" in f.name and isinstance(getattr(params, f.name), (int, float))}
+    return dataclasses.replace(params, **changes)
+
+
+# ----------------------------------------------------------------------------- helpers
+def thin_poses(poses: np.ndarray, spacing_m: float) -> np.ndarray:
+    """Keep the first and last pose and about one every `spacing_m` of path in between."""
+    seg = np.hypot(*np.diff(poses[:, :2], axis=0).T)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    n = max(1, int(round(s[-1] / spacing_m)))
+    idx = np.unique(np.searchsorted(s, np.linspace(0, s[-1], n + 1)).clip(0, len(poses) - 1))
+    idx[-1] = len(poses) - 1
+    return poses[np.unique(np.concatenate([[0], idx]))]
+
+
+def sample_trajectory(traj, dt_s: float) -> np.ndarray:
+    """(S, 4) t, n, e, yaw every dt (the end included)."""
+    t = np.arange(0.0, traj.duration_s, dt_s)
+    t = np.append(t, traj.duration_s) if traj.duration_s - t[-1] > 1e-9 else t
+    return np.column_stack([t, traj.evaluate(t)])
+
+
+def path_length(samples: np.ndarray) -> float:
+    return float(np.hypot(*np.diff(samples[:, 1:3], axis=0).T).sum()) if len(samples) > 1 else 0.0
+
+
+def total_yaw(samples: np.ndarray) -> float:
+    return float(np.abs(np.diff(samples[:, 3])).sum()) if len(samples) > 1 else 0.0
+
+
+def max_yaw_rate(samples: np.ndarray) -> float:
+    if len(samples) < 2:
+        return 0.0
+    return float(np.max(np.abs(np.diff(samples[:, 3]) / np.diff(samples[:, 0]))))
