@@ -124,10 +124,9 @@ class FrontEnd:
         length = t.res * math.hypot(i1 - i0, j1 - j0)
         if c >= need + length / 2 + self.r_fp * abs(dyaw) / 2:
             return True
-        self.edge_checks += 1
         a = np.array([*t.position(i0, j0), t.yaws[k0]])
         b = np.array([*t.position(i1, j1), t.yaws[k0] + dyaw])
-        return swept_clearance(self.sdf, self.body, a, b, self.sdf.resolution_m) >= self.margin + self.tol_point
+        return bool(self._edges_clear(a, b[None, :])[0])
 
     # ------------------------------------------------------------------ search
     def plan(self, start: np.ndarray, goal_ne: np.ndarray, method: str = "ours", yaw_star=None) -> AStarResult:
