@@ -174,6 +174,7 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--seed", type=int, default=None)
     sitl.set_defaults(func=cmd_sitl)
 
+    sub.add_parser("plan", help="plan MAP --layout ROWS --start N,E,D --goal N,E,D [--method ours|svsdf] --out DIR")
     sub.add_parser("reconfig", help="reconfig plan SCENARIO.toml [--fault ...] [--json]: paper 001 reconfiguration plan")
 
     rep = sub.add_parser("reproduce", help="reproduce a paper table (table1: paper 000 Table I + Fig. 3)")
@@ -194,6 +195,10 @@ def main(argv: list[str] | None = None) -> int:
         from mars_link.reconfig.cli import reconfig_plan_command
 
         return reconfig_plan_command(argv[2:])
+    if argv[:1] == ["plan"]:  # collision-free planning: its own parser (0 plan, 1 none found, 2 bad input)
+        from mars_link.planning.cli import plan_command
+
+        return plan_command(argv[1:])
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
