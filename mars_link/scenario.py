@@ -239,6 +239,11 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
         sc.sim.noise = sim["noise"]
     check_rates(sc.sim, src)
 
+    if sc.trajectory.get("kind") == "plan":  # the planner needs the assembly and its faults
+        sc.trajectory.setdefault("layout", list(sc.layout))
+        sc.trajectory.setdefault("preset", sc.preset)
+        sc.trajectory.setdefault("faults", [f"{f.unit}{f':{f.rotor}' if f.rotor else ''}={f.eta}" for f in sc.faults])
+
     model = sc.model()
     tracked = sc.tracked_unit()
     if tracked is not None:

@@ -438,6 +438,10 @@ _KINDS: dict[str, tuple[type, dict[str, type], set[str]]] = {
     "waypoints": (WaypointsTrajectory, {"points": list, "cruise_mps": float, "min_segment_s": float, "hold_s": float},
                   {"points"}),
     "csv": (CsvTrajectory, {"path": str, "climb_s": float}, {"path"}),
+    # planned in place by mars_link.planning (layout, preset, faults filled in from the scenario)
+    "plan": (Trajectory, {"map": str, "start": list, "goal": list, "method": str, "start_yaw_deg": float,
+                          "margin_m": float, "climb_s": float, "hold_s": float, "layout": list, "preset": str,
+                          "faults": list}, {"map", "start", "goal"}),
 }
 TRAJECTORY_KINDS = tuple(_KINDS)
 _POSITIVE = {"k_radps", "T", "revolutions", "height_m", "climb_s", "duration_s", "radius_m", "speed_mps",
@@ -508,4 +512,8 @@ def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=
         return WaypointsTrajectory(rest_height_m, pts, **{k: v for k, v in clean.items() if k != "points"})
     if kind == "csv":
         return CsvTrajectory(rest_height_m, **clean)
+    if kind == "plan":
+        from mars_link.planning.pipeline import build_plan_trajectory
+
+        return build_plan_trajectory(clean, rest_height_m)
     return cls(rest_height_m, start, **clean)
