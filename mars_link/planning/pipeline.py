@@ -12,6 +12,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -21,6 +22,7 @@ from mars_link.planning.astar import AStarParams, FrontEnd, NoPathError
 from mars_link.planning.attitude import OptimalYaw
 from mars_link.planning.footprint import Footprint, footprint_clearance
 from mars_link.planning.maps import ObstacleMap, SignedDistanceField
+from mars_link.trajectories import TakeoffTrajectory, Trajectory, TrajectoryPoint
 
 METHODS = ("ours", "svsdf")
 
@@ -241,3 +243,69 @@ def max_yaw_rate(samples: np.ndarray) -> float:
     if len(samples) < 2:
         return 0.0
     return float(np.max(np.abs(np.diff(samples[:, 3]) / np.diff(samples[:, 0]))))
+
+
+# ----------------------------------------------------------------------------- scenario hook
+class PlannedTrajectory(Trajectory):
+    """A planned flight as a scenario trajectory: climb at the start to the planning altitude
+    (minimum jerk, at the start yaw), fly the plan with its exact derivatives, hold at the goal."""
+
+    def __init__(self, traj, down_m: float, rest_height_m: float, climb_s: float = 4.0, hold_s: float = 3.0):
+        self.traj, self.down = traj, float(down_m)
+        p0 = traj.evaluate(np.array([0.0]))[0]
+        self.takeoff = TakeoffTrajectory(np.array([p0[0], p0[1], -rest_height_m]), np.array([p0[0], p0[1], down_m]),
+                                         climb_s, climb_s, float(p0[2]))
+        self.climb_s = climb_s
+        self.duration_s = climb_s + float(traj.duration_s) + hold_s
+
+    def sample(self, t_s: float) -> TrajectoryPoint:
+        if t_s < self.climb_s:
+            return self.takeoff.sample(t_s)
+        tau = np.array([min(t_s - self.climb_s, float(self.traj.duration_s))])
+        d = [self.traj.evaluate(tau, order)[0] for order in range(4)]
+        moving = t_s - self.climb_s < self.traj.duration_s
+        vec = [np.array([x[0], x[1], 0.0]) * (1.0 if (i == 0 or moving) else 0.0) for i, x in enumerate(d)]
+        vec[0][2] = self.down
+        return TrajectoryPoint(vec[0], vec[1], vec[2], vec[3], float(d[0][2]), float(d[1][2]) if moving else 0.0)
+
+
+def resolve_data_path(text: str) -> Path:
+    """A path as given (relative to the working directory), else relative to the repository root
+    (scenarios name shared data as ../shared/..., beside the repository)."""
+    path = Path(text)
+    if path.exists() or path.is_absolute():
+        return path
+    return Path(__file__).resolve().parents[2] / path
+
+
+def build_plan_trajectory(params: dict, rest_height_m: float):
+    """`[trajectory] kind = "plan"`: plan now (map, start, goal, method, ...) and fly the result."""
+    from mars_link.assembly import AssemblyModel, parse_layout, vehicle_preset
+    from mars_link.planning.maps import load_map
+    from mars_link.runner import eta_after
+    from mars_link.scenario import parse_fault_arg
+
+    def point(key):
+        v = params[key]
+        if not (isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) and math.isfinite(x) for x in v)):
+            raise UserInputError(f"[trajectory] plan: {key} must be [n, e, d] numbers")
+        return np.array(v, dtype=float)
+
+    start, goal = point("start"), point("goal")
+    if abs(start[2] - goal[2]) > 1e-6 or start[2] >= -rest_height_m:
+        raise UserInputError("[trajectory] plan: start and goal need the same d, above the ground (d < 0)")
+    method = params.get("method", "ours")
+    model = AssemblyModel.from_layout(parse_layout(params.get("layout", ["XXX", "XXX"])),
+                                      vehicle_preset(params.get("preset", "mars-ftcc")))
+    faults = [parse_fault_arg(f) for f in params.get("faults", [])]
+    pp = PlanParams()
+    if "margin_m" in params:
+        pp.margin_m = float(params["margin_m"])
+    obstacles = load_map(resolve_data_path(params["map"]), altitude_m=-start[2]).with_bounds_around(start, goal, pad_m=pp.map_pad_m)
+    planner = Planner(obstacles, model, eta_after(model, faults, math.inf), pp)
+    yaw0 = math.radians(float(params.get("start_yaw_deg", 0.0)))
+    result = planner.plan(np.array([start[0], start[1], yaw0]), goal[:2], method, start[2])
+    if not result.success:
+        raise UserInputError(f"[trajectory] plan: {result.message}")
+    return PlannedTrajectory(result.trajectory, start[2], rest_height_m,
+                             float(params.get("climb_s", 4.0)), float(params.get("hold_s", 3.0)))
