@@ -59,6 +59,7 @@ class Scenario:
     faults: list[FaultSpec] = field(default_factory=list)
     sim: SimSpec = field(default_factory=SimSpec)
     source: str = "<built-in>"
+    reconfig: dict[str, Any] = field(default_factory=dict)  # validated [reconfig] table (enabled, ...)
 
     def model(self) -> AssemblyModel:
         params = vehicle_preset(self.preset)
@@ -238,6 +239,7 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
             raise UserInputError(f"{src}: [sim] noise must be true or false")
         sc.sim.noise = sim["noise"]
     check_rates(sc.sim, src)
+    sc.reconfig = _reconfig_table(_table(doc, "reconfig", src), src)
 
     if sc.trajectory.get("kind") == "plan":  # the planner needs the assembly and its faults
         sc.trajectory.setdefault("layout", list(sc.layout))
@@ -253,7 +255,33 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
             raise UserInputError(f"{src}: [assembly] tracked: {exc}") from None
     for i, fault in enumerate(sc.faults, 1):
         validate_fault(fault, model, f"{src}: [[faults]] #{i}")
+    target = sc.reconfig.get("target")
+    if target is not None and sorted(target) != model.unit_ids:
+        raise UserInputError(
+            f"{src}: [reconfig] target must list each unit 1..{model.n_units} exactly once (one per cell, row-major)")
     return sc
+
+
+_RECONFIG_NUMBERS = {"at_s", "trigger_delay_s", "speed_mps", "approach_speed_mps", "stop_s", "settle_s",
+                     "altitude_step_m", "separation_m", "predock_m", "dock_timeout_s"}
+
+
+def _reconfig_table(table: dict, src: str) -> dict:
+    """[reconfig]: enabled (bool), target (unit ids per cell, row-major), and the executor's timing and
+    distances (mars_link.reconfig.execution.ExecutionParams); checked against the layout later."""
+    _check_keys(table, {"enabled", "target"} | _RECONFIG_NUMBERS, "[reconfig]", src)
+    out: dict[str, Any] = {"enabled": table.get("enabled", False)}
+    if not isinstance(out["enabled"], bool):
+        raise UserInputError(f"{src}: [reconfig] enabled must be true or false")
+    if "target" in table:
+        target = table["target"]
+        if not isinstance(target, list) or not all(isinstance(u, int) and not isinstance(u, bool) for u in target):
+            raise UserInputError(f"{src}: [reconfig] target must be a list of unit ids, e.g. [2, 3, 1]")
+        out["target"] = list(target)
+    for key in _RECONFIG_NUMBERS & set(table):
+        out[key] = _number(table[key], f"[reconfig] {key}", src, nonneg=key in ("at_s", "trigger_delay_s", "altitude_step_m"),
+                           positive=key not in ("at_s", "trigger_delay_s", "altitude_step_m"))
+    return out
 
 
 def check_rates(sim: SimSpec, src: str) -> None:
