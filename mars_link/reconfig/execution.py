@@ -1,0 +1,468 @@
+"""Executing a reconfiguration plan in flight, sans-IO: time and piece states in, actions out.
+
+The executor turns a `ReconfigPlan` (paper 001: disassembly layers, then docking layers) into timed
+references for every rigid piece and into split requests; the world (sitl/docking.py) closes a dock
+when the mover reaches its dock pose within the tolerance. Sequence (spec §10-§11):
+
+1. mission: the whole assembly follows the mission reference (as a CoM reference);
+2. stop: at the trigger (a fault known + `trigger_delay_s`) the mission clock pauses; the assembly
+   comes to rest on a smooth quintic and settles;
+3. disassembly, layer by layer: every split of the layer at once; the rest holds, the detached piece
+   moves `separation_m` away across the break line and climbs to an altitude level of its own
+   (each piece flies at its own altitude, so transits never cross another piece's level);
+4. assembly, layer by layer: every stationary piece holds; each mover flies at its own level to a
+   pre-dock point `predock_m` behind its dock pose, descends to the stationary's altitude, then
+   approaches at `approach_speed_mps` on a reference that follows the stationary piece's actual
+   pose and yaw (paper 000 §5 does the same); the world latches the dock;
+5. return: the final body flies back to where the mission paused, arriving with the mission's
+   velocity and acceleration, and the mission resumes, shifted by the time the reconfiguration took.
+
+Pieces are named by the frozenset of their global unit ids. Every piece is flown by its own
+AssemblyModel/Coordinator (built by the runner); references here are for the piece's CoM.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mars_link.assembly import AssemblyModel, VehicleParams
+from mars_link.errors import UserInputError
+from mars_link.reconfig.flyability import Cell
+from mars_link.reconfig.sequencing import ReconfigPlan
+from mars_link.rotations import quat_to_euler
+from mars_link.trajectories import Trajectory, TrajectoryPoint, smoothstep
+
+Key = frozenset
+
+
+# ----------------------------------------------------------------------------- geometry of a piece
+@dataclass
+class PieceShape:
+    """Which unit sits in which cell of a piece (cells in any frame: only differences matter)."""
+
+    cells: dict[int, Cell]
+
+    @property
+    def key(self) -> Key:
+        return frozenset(self.cells)
+
+    def units_local_order(self) -> list[int]:
+        """Global unit ids in the piece model's row-major order (= local ids 1..k)."""
+        return sorted(self.cells, key=lambda u: self.cells[u])
+
+    def layout(self) -> tuple[str, ...]:
+        r0 = min(r for r, _ in self.cells.values())
+        c0 = min(c for _, c in self.cells.values())
+        occupied = {(r - r0, c - c0) for r, c in self.cells.values()}
+        rows = max(r for r, _ in occupied) + 1
+        cols = max(c for _, c in occupied) + 1
+        return tuple("".join("X" if (r, c) in occupied else "." for c in range(cols)) for r in range(rows))
+
+    def model(self, vehicle: VehicleParams) -> AssemblyModel:
+        return AssemblyModel.from_layout(self.layout(), vehicle)
+
+    def com_frd(self, pitch_m: float) -> np.ndarray:
+        """CoM in the cells' frame, FRD (row -> -x, column -> +y), identical units."""
+        cells = np.array(list(self.cells.values()), dtype=float)
+        return np.array([-cells[:, 0].mean() * pitch_m, cells[:, 1].mean() * pitch_m, 0.0])
+
+    def subset(self, units) -> "PieceShape":
+        return PieceShape({u: self.cells[u] for u in units})
+
+
+def local_eta(shape: PieceShape, eta_global: dict[int, np.ndarray]) -> np.ndarray:
+    """Per-rotor efficiencies in the piece model's slot order."""
+    return np.concatenate([eta_global[u] for u in shape.units_local_order()])
+
+
+# ----------------------------------------------------------------------------- references
+def _quintic(p0, v0, a0, p1, v1, a1, T: float) -> np.ndarray:
+    """(6, 3) coefficients c0..c5 of p(s) = sum c_k s^k on [0, T] meeting both end states."""
+    p0, v0, a0, p1, v1, a1 = (np.asarray(x, dtype=float) for x in (p0, v0, a0, p1, v1, a1))
+    T2, T3, T4, T5 = T * T, T**3, T**4, T**5
+    m = np.array([[T3, T4, T5], [3 * T2, 4 * T3, 5 * T4], [6 * T, 12 * T2, 20 * T3]])
+    rhs = np.vstack([p1 - p0 - v0 * T - 0.5 * a0 * T2, v1 - v0 - a0 * T, a1 - a0])
+    c345 = np.linalg.solve(m, rhs)
+    return np.vstack([p0, v0, 0.5 * a0, c345])
+
+
+@dataclass
+class _Segment:
+    t0: float
+    t1: float
+    coeffs: np.ndarray
+
+    def sample(self, t: float) -> tuple[np.ndarray, ...]:
+        s = min(max(t - self.t0, 0.0), self.t1 - self.t0)
+        c = self.coeffs
+        pw = np.array([1, s, s**2, s**3, s**4, s**5])
+        p = pw @ c
+        v = np.array([0, 1, 2 * s, 3 * s**2, 4 * s**3, 5 * s**4]) @ c
+        a = np.array([0, 0, 2, 6 * s, 12 * s**2, 20 * s**3]) @ c
+        j = np.array([0, 0, 0, 6, 24 * s, 60 * s**2]) @ c
+        return p, v, a, j
+
+
+class ComMission(Trajectory):
+    """The mission reference (for the tracked point) turned into a CoM reference for one model:
+    p_com = p_ref - Rz(yaw) offset, with the yaw-rate terms (as the cascaded controller does)."""
+
+    def __init__(self, mission: Trajectory, offset_frd_m: np.ndarray) -> None:
+        self.mission = mission
+        self.offset = np.asarray(offset_frd_m, dtype=float)
+        self.duration_s = mission.duration_s
+
+    def sample(self, t_s: float) -> TrajectoryPoint:
+        r = self.mission.sample(t_s)
+        cy, sy = math.cos(r.yaw_rad), math.sin(r.yaw_rad)
+        ox, oy, oz = self.offset
+        dx, dy = cy * ox - sy * oy, sy * ox + cy * oy
+        w = r.yaw_rate_radps
+        p = r.position_ned_m - np.array([dx, dy, oz])
+        v = r.velocity_ned_mps + np.array([w * dy, -w * dx, 0.0])
+        a = r.acceleration_ned_mps2 + np.array([w * w * dx, w * w * dy, 0.0])
+        return TrajectoryPoint(p, v, a, r.jerk_ned_mps3, r.yaw_rad, w)
+
+
+class PieceReference(Trajectory):
+    """A piece's CoM reference: quintic segments, then optionally a mission tail (time-shifted), or a
+    live point the executor sets every step (docking approach)."""
+
+    def __init__(self, start: TrajectoryPoint, duration_s: float = math.inf) -> None:
+        self._hold = start
+        self.segments: list[_Segment] = []
+        self.tail: tuple[Trajectory, float, float] | None = None  # (trajectory, from_t, shift)
+        self.live: TrajectoryPoint | None = None
+        self.yaw_rad = start.yaw_rad
+        self.duration_s = duration_s
+
+    def end_time(self) -> float:
+        return self.segments[-1].t1 if self.segments else -math.inf
+
+    def end_position(self) -> np.ndarray:
+        return self.segments[-1].sample(self.segments[-1].t1)[0] if self.segments else self._hold.position_ned_m
+
+    def move(self, t0: float, target, speed_mps: float, min_s: float = 1.0, start: TrajectoryPoint | None = None,
+             end: TrajectoryPoint | None = None) -> float:
+        """Quintic from the current reference (or `start`) at t0 to `target` (or `end`, with its velocity
+        and acceleration); the duration gives a mean speed of `speed_mps`. Returns the end time."""
+        s = start or self.sample(t0)
+        target = end.position_ned_m if end is not None else np.asarray(target, dtype=float)
+        v1 = end.velocity_ned_mps if end is not None else np.zeros(3)
+        a1 = end.acceleration_ned_mps2 if end is not None else np.zeros(3)
+        dist = float(np.linalg.norm(target - s.position_ned_m))
+        T = max(min_s, dist / speed_mps)
+        self.segments = [_Segment(t0, t0 + T, _quintic(s.position_ned_m, s.velocity_ned_mps,
+                                                        s.acceleration_ned_mps2, target, v1, a1, T))]
+        self.tail = None
+        self.live = None
+        return t0 + T
+
+    def sample(self, t_s: float) -> TrajectoryPoint:
+        if self.live is not None:
+            return self.live
+        if self.tail is not None and t_s >= self.tail[1]:
+            traj, _, shift = self.tail
+            return traj.sample(t_s - shift)
+        if self.segments:
+            seg = self.segments[-1]
+            p, v, a, j = seg.sample(t_s)
+            if t_s >= seg.t1:
+                v, a, j = np.zeros(3), np.zeros(3), np.zeros(3)
+            return TrajectoryPoint(p, v, a, j, self.yaw_rad)
+        return TrajectoryPoint(self._hold.position_ned_m.copy(), yaw_rad=self.yaw_rad)
+
+
+# ----------------------------------------------------------------------------- parameters and actions
+@dataclass
+class ExecutionParams:
+    """Timing and geometry of the manoeuvre; distances default to multiples of the unit pitch."""
+
+    trigger_delay_s: float = 1.0  # after the fault is known
+    speed_mps: float = 0.4  # mean speed of every transit
+    approach_speed_mps: float = 0.1  # final docking approach
+    stop_s: float = 2.0  # mission -> rest
+    settle_s: float = 1.5  # after every move, before the next step
+    altitude_step_m: float | None = None  # default max(0.3, 2 pitch)
+    separation_m: float | None = None  # default 3 pitch
+    predock_m: float | None = None  # default 2 pitch
+    dock_timeout_s: float = 30.0
+
+    def resolved(self, pitch_m: float) -> "ExecutionParams":
+        return ExecutionParams(
+            self.trigger_delay_s, self.speed_mps, self.approach_speed_mps, self.stop_s, self.settle_s,
+            max(0.3, 2 * pitch_m) if self.altitude_step_m is None else self.altitude_step_m,
+            3 * pitch_m if self.separation_m is None else self.separation_m,
+            2 * pitch_m if self.predock_m is None else self.predock_m,
+            self.dock_timeout_s,
+        )
+
+
+@dataclass
+class SplitAction:
+    parent: Key
+    children: list[PieceShape]  # [detached, rest]
+    offsets_frd_m: list[np.ndarray]  # child CoM from the parent CoM
+
+
+@dataclass
+class DockRequest:
+    stationary: Key
+    mover: Key
+    offset_frd_m: np.ndarray  # mover CoM from stationary CoM, stationary body frame
+    merged: PieceShape
+
+
+_APPROACH = {"+row": np.array([-1.0, 0, 0]), "-row": np.array([1.0, 0, 0]),
+             "+col": np.array([0, 1.0, 0]), "-col": np.array([0, -1.0, 0])}
+
+
+def _rz(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass
+class _Docking:
+    request: DockRequest
+    stage: str  # "transit", "descend", "approach"
+    stage_end_t: float
+    approach_dir: np.ndarray
+    started_t: float
+    started_approach: float = 0.0
+
+
+class Executor:
+    """State machine over phases mission -> stop -> disassembly layers -> assembly layers -> return -> mission."""
+
+    def __init__(self, plan: ReconfigPlan, vehicle: VehicleParams, mission: Trajectory,
+                 tracked_unit: int | None, params: ExecutionParams = ExecutionParams()) -> None:
+        if not plan.feasible:
+            raise UserInputError(f"reconfiguration plan is not feasible: {plan.reason}")
+        self.plan = plan
+        self.vehicle = vehicle
+        self.pitch = vehicle.pitch_m
+        self.params = params.resolved(self.pitch)
+        self.mission = mission
+        self.tracked_unit = tracked_unit
+        whole = PieceShape(dict(plan.initial))
+        self.shapes: dict[Key, PieceShape] = {whole.key: whole}
+        self.refs: dict[Key, PieceReference] = {}
+        self.levels: dict[Key, int] = {whole.key: 0}
+        self.phase = "mission"
+        self.layer = 0
+        self.phase_end_t = math.inf
+        self.trigger_t = math.inf
+        self.pause_t: float | None = None  # mission time at which the mission paused
+        self.shift_s = 0.0
+        self.hold_down_m = 0.0
+        self.yaw = 0.0
+        self.docks: list[_Docking] = []
+        self.events: list[dict] = []
+        self.failed: str | None = None
+        self.refs[whole.key] = self._mission_reference(whole, 0.0)
+
+    # ----------------------------------------------------------------- helpers
+    def tracked_offset(self, shape: PieceShape) -> np.ndarray:
+        if self.tracked_unit is None or self.tracked_unit not in shape.cells:
+            return np.zeros(3)
+        local = shape.units_local_order().index(self.tracked_unit) + 1
+        return shape.model(self.vehicle).unit_position(local).copy()
+
+    def _mission_reference(self, shape: PieceShape, shift: float) -> PieceReference:
+        com = ComMission(self.mission, self.tracked_offset(shape))
+        ref = PieceReference(com.sample(0.0))
+        ref.tail = (com, -math.inf, shift)
+        return ref
+
+    def mission_active(self, t_s: float) -> bool:
+        """Whether the mission metric applies now (before the pause, and after the resume)."""
+        return self.phase == "mission"
+
+    def mission_time(self, t_s: float) -> float:
+        return t_s - self.shift_s
+
+    def _altitude(self, level: int) -> float:
+        return self.hold_down_m - level * self.params.altitude_step_m
+
+    def trigger(self, t_s: float) -> None:
+        """A fault became known: start the manoeuvre after the trigger delay (once)."""
+        if self.phase == "mission" and self.trigger_t == math.inf and self.pause_t is None:
+            self.trigger_t = t_s + self.params.trigger_delay_s
+
+    # ----------------------------------------------------------------- main step
+    def step(self, t_s: float, states: dict[Key, object]) -> list[SplitAction]:
+        """Advance the phase machine; returns the splits the world must perform now."""
+        if self.phase == "mission":
+            if t_s >= self.trigger_t:
+                self._stop(t_s)
+            return []
+        if self.phase == "stop" and t_s >= self.phase_end_t:
+            self.phase, self.layer = "disassembly", 0
+            return self._next_split_layer(t_s)
+        if self.phase == "disassembly" and t_s >= self.phase_end_t:
+            return self._next_split_layer(t_s)
+        if self.phase == "assembly":
+            self._advance_docks(t_s, states)
+            if not self.docks and t_s >= self.phase_end_t:
+                self._next_dock_layer(t_s)
+        if self.phase == "return" and t_s >= self.phase_end_t:
+            (key,) = self.shapes
+            shape = self.shapes[key]
+            ref = self.refs[key]
+            com = ComMission(self.mission, self.tracked_offset(shape))
+            ref.tail = (com, t_s, self.shift_s)
+            self.phase = "mission"
+            self.events.append({"t_s": round(t_s, 6), "type": "mission_resumed", "shift_s": round(self.shift_s, 4)})
+        return []
+
+    def _stop(self, t_s: float) -> None:
+        (key,) = self.shapes
+        ref = self.refs[key]
+        start = ref.sample(t_s)
+        self.trigger_t = math.inf
+        self.pause_t = t_s - self.shift_s
+        self.yaw = start.yaw_rad
+        stop_at = start.position_ned_m + start.velocity_ned_mps * self.params.stop_s / 2
+        ref.yaw_rad = self.yaw
+        end = ref.move(t_s, stop_at, math.inf, self.params.stop_s, start=start)
+        self.hold_down_m = float(stop_at[2])
+        self.phase, self.phase_end_t = "stop", end + self.params.settle_s
+        self.events.append({"t_s": round(t_s, 6), "type": "reconfig_start",
+                            "disassembly_layers": self.plan.disassembly_layers,
+                            "assembly_layers": self.plan.assembly_layers})
+
+    def _next_split_layer(self, t_s: float) -> list[SplitAction]:
+        self.layer += 1
+        splits = [s for s in self.plan.splits if s.layer == self.layer]
+        if not splits:
+            self.phase, self.layer = "assembly", 0
+            self.phase_end_t = t_s
+            self._next_dock_layer(t_s)
+            return []
+        p = self.params
+        actions = []
+        end = t_s
+        rz = _rz(self.yaw)
+        for s in splits:
+            parent = self.shapes.pop(Key(s.body))
+            pref = self.refs.pop(parent.key)
+            plevel = self.levels.pop(parent.key)
+            hold = pref.end_position()
+            det, rest = parent.subset(s.detached), parent.subset(s.rest)
+            com_p = parent.com_frd(self.pitch)
+            offsets = [det.com_frd(self.pitch) - com_p, rest.com_frd(self.pitch) - com_p]
+            # away from the rest, across the break line
+            axis = 0 if s.line.axis == "row" else 1
+            away = np.zeros(3)
+            away[axis] = math.copysign(1.0, offsets[0][axis] - offsets[1][axis])
+            level = max(self.levels.values(), default=plevel) + 1
+            level = max(level, plevel + 1)
+            for shape, off, lvl in ((det, offsets[0], level), (rest, offsets[1], plevel)):
+                start = hold + rz @ off
+                ref = PieceReference(TrajectoryPoint(start, yaw_rad=self.yaw))
+                self.shapes[shape.key], self.refs[shape.key], self.levels[shape.key] = shape, ref, lvl
+            target = hold + rz @ (offsets[0] + away * p.separation_m)
+            target[2] = self._altitude(level)
+            end = max(end, self.refs[det.key].move(t_s, target, p.speed_mps, start=TrajectoryPoint(
+                hold + rz @ offsets[0], yaw_rad=self.yaw)))
+            actions.append(SplitAction(parent.key, [det, rest], offsets))
+            self.events.append({"t_s": round(t_s, 6), "type": "split", "layer": self.layer, "body": sorted(s.body),
+                                "detached": sorted(s.detached), "rest": sorted(s.rest)})
+        self.phase_end_t = end + p.settle_s
+        return actions
+
+    def _next_dock_layer(self, t_s: float) -> None:
+        self.layer += 1
+        merges = [m for m in self.plan.merges if m.layer == self.layer]
+        if not merges:
+            self._return(t_s)
+            return
+        p = self.params
+        rz = _rz(self.yaw)
+        target = self.plan.target
+        for m in merges:
+            st, mv = self.shapes[Key(m.stationary)], self.shapes[Key(m.mover)]
+            u0 = m.stationary[0]
+            dr, dc = st.cells[u0][0] - target[u0][0], st.cells[u0][1] - target[u0][1]
+            moved = PieceShape({u: (target[u][0] + dr, target[u][1] + dc) for u in m.mover})
+            merged = PieceShape({**st.cells, **moved.cells})
+            offset = moved.com_frd(self.pitch) - st.com_frd(self.pitch)
+            direction = _APPROACH[m.approach]
+            s_hold = self.refs[st.key].end_position()
+            predock = s_hold + rz @ (offset - direction * p.predock_m)
+            transit = predock.copy()
+            transit[2] = self._altitude(self.levels[mv.key])
+            end = self.refs[mv.key].move(t_s, transit, p.speed_mps)
+            req = DockRequest(st.key, mv.key, offset, merged)
+            self.docks.append(_Docking(req, "transit", end + 0.5, direction, t_s))
+            self.events.append({"t_s": round(t_s, 6), "type": "dock_start", "layer": self.layer,
+                                "stationary": sorted(st.key), "mover": sorted(mv.key), "approach": m.approach})
+
+    def _advance_docks(self, t_s: float, states: dict) -> None:
+        p = self.params
+        rz = _rz(self.yaw)
+        for d in self.docks:
+            req = d.request
+            ref = self.refs[req.mover]
+            if d.stage == "transit" and t_s >= d.stage_end_t:
+                s_hold = self.refs[req.stationary].end_position()
+                predock = s_hold + rz @ (req.offset_frd_m - d.approach_dir * p.predock_m)
+                d.stage, d.stage_end_t = "descend", ref.move(t_s, predock, p.speed_mps) + p.settle_s
+            elif d.stage == "descend" and t_s >= d.stage_end_t:
+                d.stage = "approach"
+                d.started_approach = t_s
+                d.stage_end_t = t_s + max(2.0, p.predock_m / p.approach_speed_mps)
+            if d.stage == "approach":
+                st = states.get(req.stationary)
+                if st is None:
+                    continue
+                yaw = quat_to_euler(st.quaternion_wxyz)[2]
+                u = min(1.0, (t_s - d.started_approach) / (d.stage_end_t - d.started_approach))
+                s, ds, _, _ = smoothstep(u)
+                T = d.stage_end_t - d.started_approach
+                rs = _rz(yaw)
+                back = (1.0 - s) * p.predock_m
+                pos = st.position_ned_m + rs @ (req.offset_frd_m - d.approach_dir * back)
+                vel = st.velocity_ned_mps + rs @ (d.approach_dir * p.predock_m * ds / T)
+                ref.live = TrajectoryPoint(pos, vel, yaw_rad=yaw)
+                if t_s - d.started_t > p.dock_timeout_s + (d.stage_end_t - d.started_approach):
+                    self.failed = f"dock of {sorted(req.mover)} to {sorted(req.stationary)} timed out"
+
+    def awaiting_docks(self) -> list[DockRequest]:
+        """Docks the world should latch as soon as the tolerance holds."""
+        return [d.request for d in self.docks if d.stage == "approach"]
+
+    def on_docked(self, t_s: float, req: DockRequest) -> None:
+        """The world latched `req`: one piece now, holding the stationary's reference point."""
+        self.docks = [d for d in self.docks if d.request is not req]
+        st_shape = self.shapes.pop(req.stationary)
+        self.shapes.pop(req.mover)
+        st_ref = self.refs.pop(req.stationary)
+        self.refs.pop(req.mover)
+        level = self.levels.pop(req.stationary)
+        self.levels.pop(req.mover)
+        merged = req.merged
+        shift = merged.com_frd(self.pitch) - st_shape.com_frd(self.pitch)
+        hold = st_ref.end_position() + _rz(self.yaw) @ shift
+        ref = PieceReference(TrajectoryPoint(hold, yaw_rad=self.yaw))
+        self.shapes[merged.key], self.refs[merged.key], self.levels[merged.key] = merged, ref, level
+        self.phase_end_t = max(self.phase_end_t, t_s + self.params.settle_s)
+        self.events.append({"t_s": round(t_s, 6), "type": "dock", "layer": self.layer,
+                            "stationary": sorted(req.stationary), "mover": sorted(req.mover),
+                            "result": sorted(merged.key)})
+
+    def _return(self, t_s: float) -> None:
+        (key,) = self.shapes
+        shape = self.shapes[key]
+        com = ComMission(self.mission, self.tracked_offset(shape))
+        resume = com.sample(self.pause_t)
+        ref = self.refs[key]
+        end = ref.move(t_s, None, self.params.speed_mps, min_s=2.0, end=resume)
+        self.shift_s = end - self.pause_t
+        self.phase, self.phase_end_t = "return", end
+        self.events.append({"t_s": round(t_s, 6), "type": "reconfig_done",
+                            "cells": {str(u): list(c) for u, c in sorted(shape.cells.items())}})

@@ -1,0 +1,392 @@
+"""In-process runner for reconfiguration flights: several rigid bodies at once, split and docked.
+
+The whole assembly flies its mission with the scenario's controller and FTC mode; once the faults are
+known (and after `[reconfig] trigger_delay_s`, or at `[reconfig] at_s`) the plan of
+`plan_reconfiguration` is executed by `Executor`: every piece is its own JSBSim body
+(sitl/docking.py splits and merges them with momentum kept) flown by its own AssemblyModel,
+cascaded controller, allocator (FTC on the piece's known faults) and Coordinator. Faults act in the
+motor path (command clipped to the rotor limits, times the true eta), as in the single-body runner.
+
+Scope: the controller flies on the true state (`[sim] noise = false` is required: one EKF per piece
+is not wired here) and the faults must be told (`faults_known = true`). Deterministic for a seed.
+
+Outputs (like `mars_link.runner`): summary.json keys mean_error_m, rmse_m, max_error_m,
+force_integral_n2s (Σ rotors ∫ thrust² dt over every body), diverged, events (faults, each split and
+dock, reconfig start/done, mission resume); telemetry.csv (tracked point vs the mission, per control
+step), units.csv (every unit's position, velocity and attitude at 20 Hz) and plots/.
+The mission error is measured while the mission runs (before the pause and after the resume); the
+time the manoeuvre took is `reconfig_time_s`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from mars_link.allocation import make_allocator
+from mars_link.assembly import AssemblyModel
+from mars_link.control.cascaded import CascadedController
+from mars_link.coordinator import Coordinator
+from mars_link.errors import UserInputError
+from mars_link.messages import SensorPacket
+from mars_link.reconfig.execution import ExecutionParams, Executor, Key, PieceShape, local_eta
+from mars_link.reconfig.placement import SnapWeights, health_from_eta
+from mars_link.reconfig.sequencing import ReconfigPlan, plan_reconfiguration
+from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
+from mars_link.runner import DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, TrialResult, eta_after, make_trajectory
+from mars_link.scenario import Scenario
+
+UNIT_LOG_HZ = 20.0
+#: cap on the manoeuvre: the flight ends this long after the mission would have
+MAX_RECONFIG_S = 600.0
+
+
+@dataclass
+class _Piece:
+    shape: PieceShape
+    model: AssemblyModel
+    body: object  # sitl.physics.JsbsimBody
+    coordinator: Coordinator
+    thrust_n: np.ndarray  # actual rotor thrusts (after limits and faults), local slot order
+
+
+@dataclass
+class ReconfigResult(TrialResult):
+    """A trial's figures plus the manoeuvre: whether it completed, how long it took, the plan."""
+
+    reconfigured: bool = False
+    reconfig_time_s: float = 0.0
+    plan: dict | None = None
+    unit_rows: list[list[float]] = field(default_factory=list)
+    telemetry_rows: list[list[float]] = field(default_factory=list)
+
+
+def execution_params(scenario: Scenario) -> ExecutionParams:
+    keys = ExecutionParams.__dataclass_fields__
+    return ExecutionParams(**{k: v for k, v in scenario.reconfig.items() if k in keys})
+
+
+def check_reconfig_scenario(scenario: Scenario) -> None:
+    """What this runner cannot fly, refused before flight (one line each)."""
+    src = scenario.source
+    if scenario.sim.noise:
+        raise UserInputError(f"{src}: [reconfig] flights need [sim] noise = false (pieces fly on the true state)")
+    if not scenario.faults_known:
+        raise UserInputError(f"{src}: [reconfig] flights need [control] faults_known = true")
+    if scenario.controller != "cascaded":
+        raise UserInputError(f"{src}: [reconfig] flights need [control] controller = \"cascaded\"")
+    if not scenario.faults:
+        raise UserInputError(f"{src}: [reconfig] enabled but the scenario has no [[faults]] to react to")
+
+
+def make_plan(scenario: Scenario, model: AssemblyModel) -> ReconfigPlan:
+    """The plan for all the scenario's faults (precomputed, like paper 001's configuration tree).
+
+    A given `[reconfig] target` that cannot be reached is a UserInputError (exit 2)."""
+    eta = eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s), math.inf)
+    target = scenario.reconfig.get("target")
+    cells = None
+    if target is not None:
+        order = [model.unit_cells[u] for u in model.unit_ids]
+        cells = {u: c for u, c in zip(target, order)}
+    weights = SnapWeights.from_trajectory(make_trajectory(scenario, model))
+    try:
+        return plan_reconfiguration(model, health_from_eta(model, eta), weights, target=cells)
+    except UserInputError as exc:
+        raise UserInputError(f"{scenario.source}: [reconfig] {exc}") from None
+
+
+def _controller(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> CascadedController:
+    v = model.vehicle
+    allocator = make_allocator(scenario.ftc, model, eta=eta, min_thrust_n=v.rotor_min_thrust_n,
+                               max_thrust_n=v.rotor_max_thrust_n)
+    return CascadedController(model, allocator, control_hz=scenario.sim.control_hz)
+
+
+def run_reconfig_trial(
+    scenario: Scenario, seed: int, out_dir: Path | None = None,
+    on_progress: Callable[[float], None] | None = None,
+) -> ReconfigResult:
+    from sitl.docking import DockTolerance, dock_check, merge_bodies, split_body
+    from sitl.physics import JsbsimBody
+
+    check_reconfig_scenario(scenario)
+    model = scenario.model()
+    vehicle = model.vehicle
+    mission = make_trajectory(scenario, model)
+    duration = scenario.sim.duration_s or mission.duration_s
+    control_hz = scenario.sim.control_hz
+    dt = 1.0 / control_hz
+    substeps = int(round(scenario.sim.physics_hz / control_hz))
+    faults = sorted(scenario.faults, key=lambda f: f.t_s)
+    enabled = scenario.reconfig.get("enabled", False)
+    plan = make_plan(scenario, model) if enabled else None
+    can_reconfigure = bool(plan is not None and plan.feasible and plan.disassembly_layers)
+    if can_reconfigure:
+        executor = Executor(plan, vehicle, mission, scenario.tracked_unit(), execution_params(scenario))
+    else:  # nothing to execute: fly the mission as one body (still through the executor's references)
+        from mars_link.reconfig.placement import nominal_cells
+
+        stub = ReconfigPlan(model.layout, nominal_cells(model), None, True, 0, 0)  # type: ignore[arg-type]
+        executor = Executor(stub, vehicle, mission, scenario.tracked_unit(), execution_params(scenario))
+    tolerance = DockTolerance()
+
+    eta_true = {u: np.ones(4) for u in model.unit_ids}
+    pieces: dict[Key, _Piece] = {}
+
+    def new_piece(shape: PieceShape, body) -> _Piece:
+        m = body.model
+        eta = local_eta(shape, eta_true)
+        coord = Coordinator(m, executor.refs[shape.key], _controller(scenario, m, eta))
+        coord.set_faults(eta, body.t_s, "piece created")
+        return _Piece(shape, m, body, coord, np.zeros(m.n_rotors))
+
+    whole = next(iter(executor.shapes.values()))
+    start = executor.refs[whole.key].sample(0.0)
+    body0 = JsbsimBody(model, physics_hz=scenario.sim.physics_hz,
+                       position_ned_m=(float(start.position_ned_m[0]), float(start.position_ned_m[1]), 0.0),
+                       yaw_rad=start.yaw_rad)
+    pieces[whole.key] = new_piece(whole, body0)
+
+    events: list[dict] = []
+    if plan is not None:
+        events.append({"t_s": 0.0, "type": "plan", "feasible": plan.feasible,
+                       "disassembly_layers": plan.disassembly_layers, "assembly_layers": plan.assembly_layers,
+                       "reason": plan.reason})
+    next_fault = 0
+    at_s = scenario.reconfig.get("at_s")
+    err_sum = err_sq = max_err = max_tilt = force = 0.0
+    n_err = 0
+    diverged = failed = False
+    unit_rows: list[list[float]] = []
+    tel_rows: list[list[float]] = []
+    next_unit_log = 0.0
+    tel_f = units_f = None
+    if out_dir is not None:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        tel_f = open(out_dir / "telemetry.csv", "w", encoding="utf-8")
+        tel_f.write("t_s,mission_t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,error_m,pieces\n")
+        units_f = open(out_dir / "units.csv", "w", encoding="utf-8")
+        units_f.write("t_s,unit,n_m,e_m,d_m,vn_mps,ve_mps,vd_mps,roll_deg,pitch_deg,yaw_deg,piece_units\n")
+    wall0 = time.perf_counter()
+    k = 0
+    t = 0.0
+    try:
+        while True:
+            t = k * dt
+            end_t = duration + executor.shift_s if executor.phase == "mission" else duration + MAX_RECONFIG_S
+            if t >= end_t - 1e-9:
+                break
+            # faults: in the motor path; told to every piece's coordinator; they trigger the manoeuvre
+            while next_fault < len(faults) and faults[next_fault].t_s <= t + 1e-9:
+                f = faults[next_fault]
+                next_fault += 1
+                if f.rotor is None:
+                    eta_true[f.unit][:] = f.eta
+                else:
+                    eta_true[f.unit][f.rotor - 1] = f.eta
+                events.append({"t_s": round(t, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta})
+                for p in pieces.values():
+                    p.coordinator.set_faults(local_eta(p.shape, eta_true), t, "fault told to the coordinator")
+                if can_reconfigure and at_s is None and next_fault == len(faults):
+                    executor.trigger(t)
+            if can_reconfigure and at_s is not None and t >= at_s:
+                executor.trigger(t - executor.params.trigger_delay_s)
+            states = {key: p.body.state() for key, p in pieces.items()}
+            for action in executor.step(t, states):
+                parent = pieces.pop(action.parent)
+                parts = []
+                for shape, offset in zip(action.children, action.offsets_frd_m):
+                    thrusts = np.concatenate([
+                        parent.thrust_n[parent.model.unit_slots(parent.shape.units_local_order().index(u) + 1)]
+                        for u in shape.units_local_order()])
+                    parts.append((shape.model(vehicle), offset, thrusts))
+                for shape, body, part in zip(action.children, split_body(parent.body, parts), parts):
+                    pieces[shape.key] = new_piece(shape, body)
+                    pieces[shape.key].thrust_n = part[2]
+                states = {key: p.body.state() for key, p in pieces.items()}
+            if executor.failed and not failed:
+                failed = True
+                events.append({"t_s": round(t, 6), "type": "reconfig_failed", "reason": executor.failed})
+                break
+            # control every piece
+            for p in pieces.values():
+                state = states[p.shape.key]
+                p.coordinator.step(t, [SensorPacket(t, 1, None, None, state)])  # type: ignore[arg-type]
+                cmd = p.coordinator.last.thrusts_n
+                v = p.model.vehicle
+                if v.rotor_min_thrust_n is not None or v.rotor_max_thrust_n is not None:
+                    cmd = np.clip(cmd, v.rotor_min_thrust_n, v.rotor_max_thrust_n)
+                p.thrust_n = cmd * local_eta(p.shape, eta_true)
+                p.body.set_rotor_thrusts(p.thrust_n)
+                force += float(p.thrust_n @ p.thrust_n) * dt
+                ref = p.coordinator.last.reference.position_ned_m
+                tilt = tilt_deg(state.quaternion_wxyz)
+                max_tilt = max(max_tilt, tilt)
+                dev = float(np.linalg.norm(state.position_ned_m - ref))
+                if not (dev < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG):
+                    diverged = True
+            # docks the world latches
+            for req in executor.awaiting_docks():
+                chk = dock_check(states[req.stationary], states[req.mover], req.offset_frd_m, tolerance)
+                if chk.ready:
+                    st, mv = pieces.pop(req.stationary), pieces.pop(req.mover)
+                    merged_model = req.merged.model(vehicle)
+                    thrust_of = {}
+                    for p in (st, mv):
+                        for i, u in enumerate(p.shape.units_local_order()):
+                            thrust_of[u] = p.thrust_n[4 * i:4 * i + 4]
+                    thrusts = np.concatenate([thrust_of[u] for u in req.merged.units_local_order()])
+                    body = merge_bodies([st.body, mv.body], merged_model, thrusts)
+                    executor.on_docked(t, req)
+                    pieces[req.merged.key] = new_piece(req.merged, body)
+                    pieces[req.merged.key].thrust_n = thrusts
+                    events.append({"t_s": round(t, 6), "type": "dock_latched",
+                                   "position_error_m": round(chk.position_error_m, 4),
+                                   "speed_mps": round(chk.speed_mps, 4), "yaw_deg": round(chk.yaw_deg, 3)})
+                    states = {key: p.body.state() for key, p in pieces.items()}
+            # mission metric on the truth
+            if executor.mission_active(t):
+                tracked = scenario.tracked_unit()
+                key = next(kk for kk in pieces if tracked is None or tracked in kk)
+                p = pieces[key]
+                s = states[key]
+                off = executor.tracked_offset(p.shape)
+                pos = s.position_ned_m + quat_to_rotmat(s.quaternion_wxyz) @ off
+                ref = mission.sample(executor.mission_time(t)).position_ned_m
+                err = float(np.linalg.norm(pos - ref))
+                err_sum += err
+                err_sq += err * err
+                n_err += 1
+                max_err = max(max_err, err)
+                if err >= DIVERGENCE_ERROR_M or not math.isfinite(err):
+                    diverged = True
+                row = [t, executor.mission_time(t), *ref, *pos, err, len(pieces)]
+                tel_rows.append(row)
+                if tel_f:
+                    tel_f.write(",".join(f"{x:.6g}" for x in row) + "\n")
+            if t + 1e-9 >= next_unit_log:
+                next_unit_log = t + 1.0 / UNIT_LOG_HZ
+                for p in pieces.values():
+                    s = states[p.shape.key]
+                    r = quat_to_rotmat(s.quaternion_wxyz)
+                    w = r @ s.angular_velocity_frd_radps
+                    roll, pitch, yaw = (math.degrees(a) for a in quat_to_euler(s.quaternion_wxyz))
+                    for i, u in enumerate(p.shape.units_local_order()):
+                        rr = r @ p.model.unit_position(i + 1)
+                        row = [t, u, *(s.position_ned_m + rr), *(s.velocity_ned_mps + np.cross(w, rr)),
+                               roll, pitch, yaw, len(p.shape.cells)]
+                        unit_rows.append(row)
+                        if units_f:
+                            units_f.write(",".join(f"{x:.6g}" for x in row) + "\n")
+            if diverged:
+                events.append({"t_s": round(t, 6), "type": "diverged", "phase": executor.phase})
+                break
+            for p in pieces.values():
+                p.body.step(substeps)
+            k += 1
+            if on_progress is not None and k % 50 == 0:
+                on_progress(min(1.0, t / max(duration + executor.shift_s, 1e-9)))
+            if tel_f and k % int(control_hz) == 0:
+                tel_f.flush()
+                units_f.flush()
+    finally:
+        for p in pieces.values():
+            p.body.close()
+        for f in (tel_f, units_f):
+            if f:
+                f.close()
+    events = sorted(events + executor.events, key=lambda e: e["t_s"])
+    done = [e for e in events if e["type"] == "reconfig_done"]
+    begun = [e for e in events if e["type"] == "reconfig_start"]
+    reconfigured = bool(done)
+    return ReconfigResult(
+        seed=seed, completed=not (diverged or failed), diverged=diverged, reconfigured=reconfigured,
+        mean_error_m=err_sum / max(n_err, 1), rmse_m=math.sqrt(err_sq / max(n_err, 1)), max_error_m=max_err,
+        sim_time_s=t, wall_time_s=time.perf_counter() - wall0, force_integral_n2s=force, max_tilt_deg=max_tilt,
+        reconfig_time_s=executor.shift_s if reconfigured else (t - begun[0]["t_s"] if begun else 0.0),
+        plan=None if plan is None else plan.to_json(), events=events, unit_rows=unit_rows, telemetry_rows=tel_rows,
+    )
+
+
+def run_reconfig_scenario(
+    scenario: Scenario, out_dir: Path | None = None, seed: int | None = None,
+    on_progress: Callable[[int, float], None] | None = None, plots: bool = True,
+) -> dict:
+    """One reconfiguration flight; the run directory gets summary.json, CSVs and plots/."""
+    seed = scenario.sim.seed if seed is None else seed
+    cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
+    r = run_reconfig_trial(scenario, seed, out_dir, cb)
+    summary = {
+        "scenario": scenario.name, "source": scenario.source, "mode": "inproc-reconfig",
+        "layout": list(scenario.layout), "preset": scenario.preset, "controller": scenario.controller,
+        "ftc": scenario.ftc, "seed": seed, "trials": 1, "noise": False,
+        "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
+        "completed": r.completed, "diverged": r.diverged, "reconfigured": r.reconfigured,
+        "mean_error_m": r.mean_error_m, "rmse_m": r.rmse_m, "max_error_m": r.max_error_m,
+        "sim_time_s": r.sim_time_s, "wall_time_s": r.wall_time_s,
+        "real_time_factor": r.sim_time_s / r.wall_time_s if r.wall_time_s > 0 else float("inf"),
+        "force_integral_n2s": r.force_integral_n2s, "max_tilt_deg": r.max_tilt_deg,
+        "reconfig_time_s": r.reconfig_time_s, "plan": r.plan,
+        "events": [dict(e, trial=0) for e in r.events],
+        "per_trial": [{"seed": seed, "mean_error_m": r.mean_error_m, "rmse_m": r.rmse_m,
+                       "max_error_m": r.max_error_m, "diverged": r.diverged}],
+    }
+    if out_dir is not None:
+        (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n", encoding="utf-8")
+        if plots:
+            write_reconfig_plots(out_dir, r)
+    return summary
+
+
+def write_reconfig_plots(out_dir: Path, r: ReconfigResult) -> list[Path]:
+    """Top view of every unit's path (split/dock events marked) and the mission error vs time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plots = out_dir / "plots"
+    plots.mkdir(parents=True, exist_ok=True)
+    written = []
+    rows = np.array(r.unit_rows) if r.unit_rows else np.zeros((0, 12))
+    fig, (ax, az) = plt.subplots(1, 2, figsize=(12, 5))
+    for u in sorted(set(rows[:, 1].astype(int))) if len(rows) else []:
+        m = rows[:, 1] == u
+        ax.plot(rows[m, 3], rows[m, 2], lw=1, label=f"unit {u}")
+        az.plot(rows[m, 0], -rows[m, 4], lw=1, label=f"unit {u}")
+    for e in r.events:
+        if e["type"] in ("split", "dock"):
+            az.axvline(e["t_s"], color="k", ls=":", lw=0.8)
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title("units, top view")
+    az.set_xlabel("time [s]")
+    az.set_ylabel("up [m]")
+    az.set_title("altitude (dotted: split / dock)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = plots / "units.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    written.append(path)
+    if r.telemetry_rows:
+        tel = np.array(r.telemetry_rows)
+        fig, ax = plt.subplots(figsize=(8, 3.5))
+        ax.plot(tel[:, 0], tel[:, 8], lw=1)
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("mission error [m]")
+        ax.set_title("tracked point vs mission reference (paused during the reconfiguration)")
+        fig.tight_layout()
+        path = plots / "error.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    return written
