@@ -71,7 +71,13 @@ def cmd_run(args) -> int:
         TimeElapsedColumn(), console=console, transient=False, disable=args.quiet,
     ) as progress:
         task = progress.add_task(f"{scenario.name} x{args.trials}", total=args.trials)
-        summary = run_scenario(
+        runner = run_scenario
+        if scenario.reconfig.get("enabled"):  # several bodies: split, move, dock (mars_link.reconfig.flight)
+            from mars_link.reconfig.flight import run_reconfig_scenario as runner
+
+            if args.trials != 1:
+                raise UserInputError("--trials: a [reconfig] flight runs one trial (vary --seed instead)")
+        summary = runner(
             scenario, out, trials=args.trials, seed=args.seed,
             on_progress=lambda i, frac: progress.update(task, completed=i + frac),
         )
