@@ -316,7 +316,7 @@ def run_reconfig_trial(
 
 
 def run_reconfig_scenario(
-    scenario: Scenario, out_dir: Path | None = None, seed: int | None = None,
+    scenario: Scenario, out_dir: Path | None = None, trials: int = 1, seed: int | None = None,
     on_progress: Callable[[int, float], None] | None = None, plots: bool = True,
 ) -> dict:
     """One reconfiguration flight; the run directory gets summary.json, CSVs and plots/."""
@@ -329,13 +329,13 @@ def run_reconfig_scenario(
         "ftc": scenario.ftc, "seed": seed, "trials": 1, "noise": False,
         "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
         "completed": r.completed, "diverged": r.diverged, "reconfigured": r.reconfigured,
-        "mean_error_m": r.mean_error_m, "rmse_m": r.rmse_m, "max_error_m": r.max_error_m,
+        "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m, "max_error_m": r.max_error_m,
         "sim_time_s": r.sim_time_s, "wall_time_s": r.wall_time_s,
         "real_time_factor": r.sim_time_s / r.wall_time_s if r.wall_time_s > 0 else float("inf"),
         "force_integral_n2s": r.force_integral_n2s, "max_tilt_deg": r.max_tilt_deg,
         "reconfig_time_s": r.reconfig_time_s, "plan": r.plan,
         "events": [dict(e, trial=0) for e in r.events],
-        "per_trial": [{"seed": seed, "mean_error_m": r.mean_error_m, "rmse_m": r.rmse_m,
+        "per_trial": [{"seed": seed, "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m,
                        "max_error_m": r.max_error_m, "diverged": r.diverged}],
     }
     if out_dir is not None:
