@@ -102,6 +102,33 @@ def make_plan(scenario: Scenario, model: AssemblyModel) -> ReconfigPlan:
         raise UserInputError(f"{scenario.source}: [reconfig] {exc}") from None
 
 
+def unhoverable_pieces(plan: ReconfigPlan, model: AssemblyModel, eta: np.ndarray) -> list[str]:
+    """Pieces of the plan that cannot hover within the rotor limits with their faults.
+
+    The planner's four-quadrant rule (paper 001) is necessary, not sufficient (spec §5): e.g. a
+    1x3 piece with a dead end module passes it but, with thrust limits, cannot balance its roll.
+    Each piece the plan creates (both sides of every split, every docked result) gets the exact LP
+    hover test of `check_controllable`; the manoeuvre is refused if one fails.
+    """
+    from mars_link.allocation import check_controllable
+
+    eta_of = {u: eta[model.unit_slots(u)] for u in model.unit_ids}
+    pieces = [s.detached for s in plan.splits] + [s.rest for s in plan.splits]
+    pieces += [m.stationary + m.mover for m in plan.merges]
+    bad = []
+    for units in pieces:
+        cells = plan.initial if any(set(units) == set(s.detached) or set(units) == set(s.rest)
+                                    for s in plan.splits) else plan.target
+        shape = PieceShape({u: cells[u] for u in units})
+        piece = shape.model(model.vehicle)
+        try:
+            check_controllable(piece, local_eta(shape, eta_of),
+                               (piece.vehicle.rotor_min_thrust_n, piece.vehicle.rotor_max_thrust_n))
+        except UserInputError as exc:
+            bad.append(f"piece {sorted(units)}: {exc}")
+    return bad
+
+
 def _controller(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> CascadedController:
     v = model.vehicle
     allocator = make_allocator(scenario.ftc, model, eta=eta, min_thrust_n=v.rotor_min_thrust_n,
@@ -128,6 +155,10 @@ def run_reconfig_trial(
     enabled = scenario.reconfig.get("enabled", False)
     plan = make_plan(scenario, model) if enabled else None
     can_reconfigure = bool(plan is not None and plan.feasible and plan.disassembly_layers)
+    refused = []
+    if can_reconfigure:
+        refused = unhoverable_pieces(plan, model, eta_after(model, faults, math.inf))
+        can_reconfigure = not refused
     if can_reconfigure:
         executor = Executor(plan, vehicle, mission, scenario.tracked_unit(), execution_params(scenario))
     else:  # nothing to execute: fly the mission as one body (still through the executor's references)
@@ -159,6 +190,8 @@ def run_reconfig_trial(
         events.append({"t_s": 0.0, "type": "plan", "feasible": plan.feasible,
                        "disassembly_layers": plan.disassembly_layers, "assembly_layers": plan.assembly_layers,
                        "reason": plan.reason})
+        if refused:
+            events.append({"t_s": 0.0, "type": "reconfig_refused", "reason": "; ".join(refused)})
     next_fault = 0
     at_s = scenario.reconfig.get("at_s")
     err_sum = err_sq = max_err = max_tilt = force = 0.0
