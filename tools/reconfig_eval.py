@@ -17,9 +17,11 @@ force integral = Σ rotors ∫ thrust² dt (N²·s); diverged = the runner's fla
 deg) or a maximum error above 2 m (spec §12.1's benchmark definition). A diverged run stops at
 divergence, so its RMSE and force integral cover less time: read them as "failed", not as figures.
 
-In flight: for the donut the planner finds a reachable plan, so it is also flown with the manoeuvre
-executed mid-mission (fault at t = 5 s, pieces flown with `qp`); its RMSE excludes the paused
-manoeuvre, its force integral includes it.
+In flight: the donut cases are also flown with the manoeuvre executed mid-mission (faults at t = 5 s,
+every piece flown with `qp`); RMSE excludes the paused manoeuvre, the force integral includes it.
+With 4 faults the plan's intermediate piece (the dead module with its two row neighbours) passes the
+quadrant rule but cannot hover within the thrust limits, so the runner refuses the manoeuvre
+(event reconfig_refused) and flies on unchanged; with 3 faults it is executed.
 """
 
 from __future__ import annotations
@@ -45,8 +47,11 @@ CASES = [
     ("plus-5", [".X.", "XXX", ".X."], 3),
     ("plus-5", [".X.", "XXX", ".X."], 4),
     ("plus-5", [".X.", "XXX", ".X."], 6),
+    ("donut-4x4", ["XXXX", "X..X", "X..X", "XXXX"], 3),
     ("donut-4x4", ["XXXX", "X..X", "X..X", "XXXX"], 4),
 ]
+#: flown with the manoeuvre executed mid-mission (index into CASES)
+INFLIGHT = (3, 4)
 DIVERGED_MAX_ERROR_M = 2.0
 
 
@@ -107,7 +112,8 @@ def fly_inflight(layout, faults: list[FaultSpec], out: Path) -> dict:
             "max_error_m": r.max_error_m, "force_integral_n2s": r.force_integral_n2s,
             "diverged": bool(r.diverged or r.max_error_m > DIVERGED_MAX_ERROR_M), "reconfigured": r.reconfigured,
             "reconfig_time_s": r.reconfig_time_s, "splits": sum(e["type"] == "split" for e in r.events),
-            "docks": sum(e["type"] == "dock" for e in r.events), "sim_time_s": r.sim_time_s}
+            "docks": sum(e["type"] == "dock" for e in r.events), "sim_time_s": r.sim_time_s,
+            "refused": next((e["reason"] for e in r.events if e["type"] == "reconfig_refused"), None)}
 
 
 def fmt(res: dict) -> str:
@@ -179,14 +185,17 @@ def main(argv=None) -> int:
                 print(f"[{done}/{total}] {shape} {n} faults {mode} {which}: {fmt(res)}  "
                       f"force {res['force_integral_n2s']:.2f} N²s  ({time.perf_counter() - t0:.0f} s)", flush=True)
         rows.append(row)
-    inflight = None
+    inflight = []
     if not args.no_inflight:
-        shape, layout, n = CASES[-1]
-        print(f"in flight: {shape} {n} faults at t = 5 s, manoeuvre executed with qp ...", flush=True)
-        inflight = fly_inflight(layout, paper_faults(n), out / "donut_inflight")
-        print(f"  reconfigured={inflight['reconfigured']} splits={inflight['splits']} docks={inflight['docks']} "
-              f"manoeuvre {inflight['reconfig_time_s']:.1f} s, RMSE {fmt(inflight)}, "
-              f"force {inflight['force_integral_n2s']:.2f} N²s", flush=True)
+        for idx in INFLIGHT:
+            shape, layout, n = CASES[idx]
+            print(f"in flight: {shape} {n} faults at t = 5 s, manoeuvre executed with qp ...", flush=True)
+            res = fly_inflight(layout, paper_faults(n), out / f"{shape}_{n}_inflight")
+            res.update(shape=shape, faults=n)
+            inflight.append(res)
+            print(f"  reconfigured={res['reconfigured']} refused={res['refused']} splits={res['splits']} "
+                  f"docks={res['docks']} manoeuvre {res['reconfig_time_s']:.1f} s, RMSE {fmt(res)}, "
+                  f"force {res['force_integral_n2s']:.2f} N²s", flush=True)
 
     lines = ["| shape | faults | ftc | NR RMSE axes / 3-D [m] | R RMSE axes / 3-D [m] | NR force [N²s] | R force [N²s] "
              "| R <= NR | R force < NR |", "|---|---|---|---|---|---|---|---|---|"]
