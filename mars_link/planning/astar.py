@@ -33,8 +33,8 @@ class AStarParams:
     stride: int = 4  # A* cell = stride SDF cells
     yaw_bins: int = 36
     heuristic_weight: float = 1.3  # > 1: faster, at most this factor longer than optimal
-    attitude_weight: float = 1.0  # L_Phi: extra cost per metre at 90 deg from psi*
-    yaw_weight: float = 1.0  # cost per metre of footprint-edge travel due to yaw
+    attitude_weight: float = 0.3  # L_Phi: extra cost per metre at 90 deg from psi*
+    yaw_weight: float = 2.0  # cost per metre of footprint-edge travel due to yaw
     max_expansions: int = 400_000
 
 
@@ -297,14 +297,14 @@ class FrontEnd:
                 cost = gc + t.res * math.hypot(di, dj)
                 if cost >= g.get(child, math.inf):
                     continue
-                for dk in order:  # the feasible yaw closest to the parent's
-                    k1 = (k + dk) % K
-                    if self.node_ok(k1, i1, j1) and self.edge_ok(k, i, j, k1, i1, j1, dk * dyaw_bin):
-                        g[child] = cost
-                        yaw_of[child] = k1
-                        parent[child] = node
-                        heapq.heappush(heap, (cost + self._heuristic(i1, j1, gi, gj), cost, child))
-                        break
+                # the feasible yaw closest to the parent's, then SVSDF's sub-swept check of that move
+                dk = next((d for d in order if self.node_ok((k + d) % K, i1, j1)), None)
+                if dk is None or not self.edge_ok(k, i, j, (k + dk) % K, i1, j1, dk * dyaw_bin):
+                    continue
+                g[child] = cost
+                yaw_of[child] = (k + dk) % K
+                parent[child] = node
+                heapq.heappush(heap, (cost + self._heuristic(i1, j1, gi, gj), cost, child))
         raise NoPathError(f"no collision-free path from start to goal (A* expanded {expansions} states)")
 
     def _closest_feasible(self, k: int, i: int, j: int) -> int | None:

@@ -33,8 +33,8 @@ class PlanParams:
     sdf_resolution_m: float = 0.05
     astar: AStarParams = field(default_factory=AStarParams)
     waypoint_spacing_m: float = 1.0  # A* nodes handed to the back end about this far apart
-    v_max_mps: float = 1.0
-    a_max_mps2: float = 1.0
+    v_max_mps: float = 0.8
+    a_max_mps2: float = 0.5
     backend_overrides: dict = field(default_factory=dict)  # extra BackendParams fields
     retries: int = 2  # back-end reruns with 10x obstacle weight when validation fails
     validate_step_m: float = 0.02  # no footprint point moves more than this between checks
@@ -130,7 +130,8 @@ class Planner:
         params = self._backend_params()
         for attempts in range(1, self.p.retries + 2):
             t1 = time.perf_counter()
-            result = _optimize(waypoints, self.sdf, self.body, star, params)
+            result = _optimize(waypoints, self.sdf, self.body, star, params, front.poses, attempts - 1,
+                               self.footprint.radius_m, (self.p.v_max_mps, self.p.a_max_mps2))
             t2 = time.perf_counter()
             traj, iters = result.trajectory, iters + result.iterations
             clearance, ok = self.validate(traj)
@@ -177,27 +178,44 @@ class Planner:
         return float(c.min()), bool(bound.min(initial=c.min()) >= 0.0)
 
 
-def _optimize(waypoints, sdf, body, star, params):
+def _optimize(waypoints, sdf, body, star, params, dense=None, attempt=0, r_fp=0.5, limits=(1.0, 1.0)):
     if params is None:  # TEMPORARY until the MINCO back end lands
-        return _SplineResult(waypoints)
+        return SmoothedPath(dense, (0.3, 0.1, 0.0)[min(attempt, 2)], r_fp, *limits)
     from mars_link.planning.backend import optimize_trajectory
 
     return optimize_trajectory(waypoints, sdf, body, yaw_star=star, params=params)
 
 
-class _SplineResult:
-    """TEMPORARY stand-in for the back end: a clamped cubic spline through the waypoints."""
+class SmoothedPath:
+    """Plain smoothing of the dense A* poses (TEMPORARY stand-in for the back end): Gaussian blur of
+    (n, e, yaw) along the path by `smooth_m`, then a trapezoidal speed profile (v_max, a_max, and a
+    yaw rate such that no footprint point exceeds v_max) and a cubic spline in time."""
 
-    def __init__(self, waypoints: np.ndarray, v_mps: float = 0.8):
+    def __init__(self, poses: np.ndarray, smooth_m: float, r_fp: float, v_max: float, a_max: float):
         from scipy.interpolate import CubicSpline
+        from scipy.ndimage import gaussian_filter1d
 
-        step = np.hypot(*np.diff(waypoints[:, :2], axis=0).T) + 0.5 * np.abs(np.diff(waypoints[:, 2]))
-        t = np.concatenate([[0.0], np.cumsum(np.maximum(step / v_mps, 0.2))])
-        t[1] += 1.0
-        t[-1] += 1.0
-        t[2:] += 1.0
-        self.spline = CubicSpline(t, waypoints, bc_type="clamped")
-        self.duration_s = float(t[-1])
+        step = 0.05
+        du = np.maximum(np.hypot(*np.diff(poses[:, :2], axis=0).T), r_fp * np.abs(np.diff(poses[:, 2])))
+        u = np.concatenate([[0.0], np.cumsum(du)])
+        keep = np.concatenate([[True], du > 1e-9])
+        u, poses = u[keep], poses[keep]
+        uu = np.linspace(0.0, u[-1], max(3, int(np.ceil(u[-1] / step)) + 1))
+        dense = np.column_stack([np.interp(uu, u, poses[:, k]) for k in range(3)])
+        if smooth_m > 0:
+            pad = int(np.ceil(3 * smooth_m / step))
+            ext = np.vstack([np.repeat(dense[:1], pad, 0), dense, np.repeat(dense[-1:], pad, 0)])
+            smooth = gaussian_filter1d(ext, smooth_m / step, axis=0, mode="nearest")[pad:-pad]
+            lam = (uu / uu[-1])[:, None]  # a linear correction puts both ends back exactly
+            dense = smooth + (1 - lam) * (dense[0] - smooth[0]) + lam * (dense[-1] - smooth[-1])
+        seg = np.maximum(np.hypot(*np.diff(dense[:, :2], axis=0).T), r_fp * np.abs(np.diff(dense[:, 2])))
+        s = np.concatenate([[0.0], np.cumsum(seg)])
+        v = np.minimum(v_max, np.sqrt(2 * a_max * np.minimum(s, s[-1] - s) + 0.01))
+        t = np.concatenate([[0.0], np.cumsum(seg / np.maximum(0.5 * (v[1:] + v[:-1]), 1e-3))])
+        keep = np.concatenate([[True], np.diff(t) > 1e-6])
+        self.spline = CubicSpline(t[keep], dense[keep], bc_type="clamped")
+        self.duration_s = float(t[keep][-1])
+        self.durations_s = np.diff(t[keep])
         self.trajectory, self.iterations, self.success = self, 0, True
 
     def evaluate(self, t_s, order: int = 0):
