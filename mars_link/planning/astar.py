@@ -136,6 +136,12 @@ class FrontEnd:
         si, sj = t.cell(start[0], start[1])
         gi, gj = t.cell(goal_ne[0], goal_ne[1])
         k0 = t.yaw_bin(start[2])
+        # cheap test first: cells free at some yaw, 8-connected; no common region = no path
+        from scipy.ndimage import label
+
+        regions, _ = label(t.table.max(axis=0) >= self.margin + self.tol_node, structure=np.ones((3, 3)))
+        if regions[gi, gj] == 0 or regions[si, sj] != regions[gi, gj]:
+            raise NoPathError("no collision-free path from start to goal (the goal is not reachable at any yaw)")
         if method == "svsdf":
             path_nodes, expansions = self._search_svsdf(si, sj, k0, gi, gj)
         elif method == "ours":

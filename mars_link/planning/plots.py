@@ -70,7 +70,8 @@ def plot_plan(path: Path, obstacles: ObstacleMap, footprint: Footprint, results:
     ax.set_xlabel("east [m]")
     ax.set_ylabel("north [m]")
     ax.set_title(title, fontsize=9)
-    ax.legend(fontsize=7, loc="upper left")
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=7, loc="upper left")
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
