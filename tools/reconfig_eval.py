@@ -148,8 +148,10 @@ def plot(rows: list[dict], modes: list[str], out: Path) -> Path:
                                 fontsize=7)
             ax.set_xticks(x, labels, fontsize=8)
             ax.set_title(f"{title}, controller allocation '{mode}'", fontsize=9)
-            if metric == "rmse_axes_m":
-                ax.set_yscale("log")
+            if metric == "rmse_axes_m" and max(r[mode]["NR"][metric] for r in rows) > 0.01:
+                ax.set_yscale("log")  # divergence and sub-metre errors on one axis
+            else:
+                ax.set_ylim(bottom=0)
             ax.legend(fontsize=8)
     fig.tight_layout()
     path = out / "reconfig_eval.png"
