@@ -72,7 +72,7 @@ def report(name: str, runs: list[dict]) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=5)
-    ap.add_argument("--density", type=float, default=4.0)
+    ap.add_argument("--density", type=float, default=10.0)
     args = ap.parse_args()
     print(f"median of {args.repeats} runs per line, in process, OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}")
     for layout, unit in (("XXX,XXX", 2), ("XXXX", 3)):
