@@ -98,3 +98,26 @@ def test_walls_both_methods_collision_free_and_ours_turns_less(layout, unit):
         s = sample_trajectory(r.trajectory, 0.005)
         assert footprint_clearance(planner.footprint, planner.obstacles, s[:, 1:4]).min() > 0.0
     assert results["ours"].total_yaw_rad < results["svsdf"].total_yaw_rad
+
+
+def test_a_failing_back_end_falls_back_to_smoothing_and_says_so(monkeypatch):
+    """The pipeline survives a back end that raises: the A* poses are smoothed instead, recorded."""
+    import dataclasses
+    import sys
+    import types
+
+    @dataclasses.dataclass
+    class BackendParams:
+        margin_m: float = 0.1
+        w_obstacle: float = 1.0
+
+    def optimize_trajectory(poses, sdf, body_points_m, yaw_star=None, params=None):
+        raise RuntimeError(f"diverged (obstacle weight {params.w_obstacle:g})")
+
+    fake = types.ModuleType("mars_link.planning.backend")
+    fake.BackendParams, fake.optimize_trajectory = BackendParams, optimize_trajectory
+    monkeypatch.setitem(sys.modules, "mars_link.planning.backend", fake)
+    model = AssemblyModel.from_layout("XX")
+    res = Planner(gap_map(1.5, (-1.0, 7.0, -2.0, 2.0)), model).plan(np.array([0.0, 0.0, 0.0]), np.array([6.5, 0.0]), "ours", -2.0)
+    assert res.success and res.backend == "smoothing"
+    assert [e.split("(")[1] for e in res.backend_errors] == ["obstacle weight 1)", "obstacle weight 10)", "obstacle weight 100)"]

@@ -59,6 +59,8 @@ class PlanResult:
     attempts: int = 1
     backend_iterations: int = 0
     trajectory: object = None
+    backend: str = ""
+    backend_errors: list = field(default_factory=list)
 
     def summary(self) -> dict:
         return {
@@ -67,7 +69,8 @@ class PlanResult:
             "min_clearance_m": round(self.min_clearance_m, 4), "total_yaw_rad": round(self.total_yaw_rad, 4),
             "total_yaw_deg": round(math.degrees(self.total_yaw_rad), 2),
             "max_yaw_rate_radps": round(self.max_yaw_rate_radps, 4),
-            "astar_nodes": len(self.astar_poses), "attempts": self.attempts,
+            "astar_nodes": len(self.astar_poses), "attempts": self.attempts, "back_end": self.backend,
+            "back_end_errors": self.backend_errors,
             "backend_iterations": self.backend_iterations,
             "stage_time_s": {k: round(v, 4) for k, v in self.stage_time_s.items()},
         }
@@ -125,27 +128,47 @@ class Planner:
             return self._failed(method, str(exc), down_m, stage)
         stage["front_end"] = time.perf_counter() - t0
         waypoints = thin_poses(front.poses, self.p.waypoint_spacing_m)
-        traj, ok, attempts, iters, clearance = None, False, 0, 0, -math.inf
+        traj, ok, iters, clearance, backend, errors = None, False, 0, -math.inf, "", []
         stage["back_end"] = stage["validation"] = 0.0
-        params = self._backend_params()
-        for attempts in range(1, self.p.retries + 2):
+        for attempts, (backend, run) in enumerate(self._backend_runs(waypoints, front.poses, star), 1):
             t1 = time.perf_counter()
-            result = _optimize(waypoints, self.sdf, self.body, star, params, front.poses, attempts - 1,
-                               self.footprint.radius_m, (self.p.v_max_mps, self.p.a_max_mps2))
+            try:
+                result = run()
+            except Exception as exc:  # a back-end failure must not take the planner down: next run
+                errors.append(f"{backend}: {type(exc).__name__}: {exc}")
+                stage["back_end"] += time.perf_counter() - t1
+                continue
             t2 = time.perf_counter()
-            traj, iters = result.trajectory, iters + result.iterations
+            traj, iters = result.trajectory, iters + int(getattr(result, "iterations", 0))
             clearance, ok = self.validate(traj)
             stage["back_end"] += t2 - t1
             stage["validation"] += time.perf_counter() - t2
             if ok:
                 break
-            params = _stiffer(params)
+        if traj is None:
+            return self._failed(method, "back end failed: " + "; ".join(errors), down_m, stage)
         samples = sample_trajectory(traj, self.p.output_dt_s)
         stage["total"] = sum(stage.values())
         msg = "ok" if ok else f"the footprint touches an obstacle (clearance {clearance:.3f} m) after {attempts} back-end runs"
-        return PlanResult(ok, method, msg, samples, down_m, front.poses, clearance, path_length(samples),
-                          float(samples[-1, 0]), total_yaw(samples), max_yaw_rate(samples), stage,
-                          attempts, iters, traj)
+        res = PlanResult(ok, method, msg, samples, down_m, front.poses, clearance, path_length(samples),
+                         float(samples[-1, 0]), total_yaw(samples), max_yaw_rate(samples), stage,
+                         attempts, iters, traj)
+        res.backend, res.backend_errors = backend, errors
+        return res
+
+    def _backend_runs(self, waypoints: np.ndarray, dense: np.ndarray, star):
+        """(name, callable) in order: the MINCO back end, then with 10x obstacle weight (retries
+        times); a plain smoothing of the A* poses, less each time, only if all of those fail."""
+        params = self._backend_params()
+        if params is not None:
+            from mars_link.planning.backend import optimize_trajectory
+
+            for _ in range(self.p.retries + 1):
+                yield "minco", (lambda p=params: optimize_trajectory(waypoints, self.sdf, self.body, yaw_star=star, params=p))
+                params = _stiffer(params)
+        r_fp, lim = self.footprint.radius_m, (self.p.v_max_mps, self.p.a_max_mps2)
+        for smooth in (0.3, 0.1, 0.0):
+            yield "smoothing", (lambda m=smooth: SmoothedPath(dense, m, r_fp, *lim))
 
     def _failed(self, method: str, msg: str, down_m: float, stage: dict) -> PlanResult:
         stage["total"] = sum(stage.values())
@@ -155,7 +178,7 @@ class Planner:
     def _backend_params(self):
         try:
             from mars_link.planning.backend import BackendParams
-        except ImportError:  # TEMPORARY until the MINCO back end lands
+        except ImportError:  # the MINCO back end is not installed: smoothing only
             return None
         p = BackendParams()
         changes = {"margin_m": self.p.margin_m, "v_max_mps": self.p.v_max_mps, "a_max_mps2": self.p.a_max_mps2}
@@ -178,16 +201,9 @@ class Planner:
         return float(c.min()), bool(bound.min(initial=c.min()) >= 0.0)
 
 
-def _optimize(waypoints, sdf, body, star, params, dense=None, attempt=0, r_fp=0.5, limits=(1.0, 1.0)):
-    if params is None:  # TEMPORARY until the MINCO back end lands
-        return SmoothedPath(dense, (0.3, 0.1, 0.0)[min(attempt, 2)], r_fp, *limits)
-    from mars_link.planning.backend import optimize_trajectory
-
-    return optimize_trajectory(waypoints, sdf, body, yaw_star=star, params=params)
-
-
 class SmoothedPath:
-    """Plain smoothing of the dense A* poses (TEMPORARY stand-in for the back end): Gaussian blur of
+    """Plain smoothing of the dense A* poses (the fallback when the back end is missing or fails
+    validation): Gaussian blur of
     (n, e, yaw) along the path by `smooth_m`, then a trapezoidal speed profile (v_max, a_max, and a
     yaw rate such that no footprint point exceeds v_max) and a cubic spline in time."""
 
@@ -224,8 +240,6 @@ class SmoothedPath:
 
 def _stiffer(params):
     """10x every obstacle weight of the back-end parameters."""
-    if params is None:
-        return None
     changes = {f.name: getattr(params, f.name) * 10 for f in dataclasses.fields(params)
                if "obst" in f.name and isinstance(getattr(params, f.name), (int, float))}
     return dataclasses.replace(params, **changes)
