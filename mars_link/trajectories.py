@@ -443,7 +443,8 @@ _KINDS: dict[str, tuple[type, dict[str, type], set[str]]] = {
                           "margin_m": float, "climb_s": float, "hold_s": float, "layout": list, "preset": str,
                           "faults": list}, {"map", "start", "goal"}),
 }
-TRAJECTORY_KINDS = tuple(_KINDS)
+#: kinds that build from parameters alone ("plan" also needs a map file and the assembly)
+TRAJECTORY_KINDS = tuple(k for k in _KINDS if k != "plan")
 _POSITIVE = {"k_radps", "T", "revolutions", "height_m", "climb_s", "duration_s", "radius_m", "speed_mps",
              "turns", "ramp_s", "cruise_mps", "min_segment_s", "start_height_m", "period_s"}
 _NON_NEGATIVE = {"climb_mps", "hold_s"}
@@ -462,7 +463,7 @@ def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=
     and helix (default the origin); waypoints and csv take off under their own first point.
     """
     if kind not in _KINDS:
-        raise UserInputError(f"[trajectory] unknown kind {kind!r} (known: {', '.join(TRAJECTORY_KINDS)})")
+        raise UserInputError(f"[trajectory] unknown kind {kind!r} (known: {', '.join(_KINDS)})")
     cls, schema, required = _KINDS[kind]
     for key in params:
         if key not in schema:
