@@ -7,7 +7,9 @@ Two expansions share one clearance table C[k, i, j] (min SDF over the footprint 
   yaw bin closest to its parent's (yaw only changes when forced), cost = path length.
 * ``ours`` (paper 000 Algorithm 1 as read in specs/planning.md §4): the state is (cell, yaw bin),
   yaw may change one bin per step (or in place); the edge cost adds the optimal-attitude term
-  J_Phi = L_Phi·|wrap(psi - psi*(heading))| into g, plus a yaw-motion cost.
+  J_Phi = L_Phi·|wrap(psi - psi*(heading))| into g, a yaw-motion cost (every turn costs tracking),
+  and a soft preference for room (cost rising as the clearance slack falls below 0.3 m), because
+  a degraded assembly tracks less tightly.
 
 Edges: accepted outright when both ends clear the margin by the largest distance any footprint point
 can travel along the edge, otherwise the interpolated poses are checked against the SDF.
@@ -35,6 +37,8 @@ class AStarParams:
     heuristic_weight: float = 1.3  # > 1: faster, at most this factor longer than optimal
     attitude_weight: float = 0.3  # L_Phi: extra cost per metre at 90 deg from psi*
     yaw_weight: float = 2.0  # cost per metre of footprint-edge travel due to yaw
+    clearance_weight: float = 0.5  # ours: extra cost per metre at zero slack, fading out at clearance_soft_m
+    clearance_soft_m: float = 0.3
     max_expansions: int = 400_000
 
 
@@ -206,8 +210,10 @@ class FrontEnd:
                 break
             i1, j1, k1 = i + DI, j + DJ, (k + DK) % K
             child = (k1 * ni + i1) * nj + j1
-            cost = g[node] + base + length * att[rows, k1]
             c_child = table[child]
+            cost = g[node] + base + length * att[rows, k1]
+            if p.clearance_weight:  # prefer room: tracking errors need it
+                cost = cost + length * p.clearance_weight * np.clip(1.0 - (c_child - need0) / p.clearance_soft_m, 0.0, 1.0)
             ok = (c_child >= need0) & ~closed[child] & (cost < g[child])
             if not ok.any():
                 continue
