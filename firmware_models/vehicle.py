@@ -271,9 +271,15 @@ def _finite(*values) -> bool:
 
 
 class Vehicle:
-    """The unit firmware state machine. Not thread-safe: one runner drives it."""
+    """The unit firmware state machine. Not thread-safe: one runner drives it.
 
-    def __init__(self, config: VehicleConfig | None = None, wall_time_s: float = 0.0) -> None:
+    `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
+    object with UnitAutopilot's guidance methods, e.g. the assembly's (mars_link.assembly_vehicle).
+    """
+
+    motor_count = 4  # highest motor instance MAV_CMD_INJECT_FAILURE may name
+
+    def __init__(self, config: VehicleConfig | None = None, wall_time_s: float = 0.0, flight_core=None) -> None:
         c = (config or VehicleConfig()).checked()
         self.config = c
         self.vehicle = vehicle_preset(c.vehicle) if isinstance(c.vehicle, str) else c.vehicle
@@ -290,7 +296,7 @@ class Vehicle:
         self.full_scale_n = self.vehicle.full_scale_thrust_n
         self.motors = MotorModel(MotorParams.for_vehicle(self.vehicle))
         self.intake = RotorIntake(self._intake_params())
-        self.autopilot = UnitAutopilot(self.vehicle, c.control_hz)
+        self.autopilot = UnitAutopilot(self.vehicle, c.control_hz) if flight_core is None else flight_core
         self.control_dt_s = 1.0 / c.control_hz
         self.assembler = SensorPacketAssembler()
         # state
@@ -680,7 +686,7 @@ class Vehicle:
         if eta is None:
             return R.MAV_RESULT_UNSUPPORTED
         instance = int(p[2])
-        if instance != p[2] or not 0 <= instance <= 4:
+        if instance != p[2] or not 0 <= instance <= self.motor_count:
             return R.MAV_RESULT_DENIED
         self.inject_failure(instance, eta)
         self._count("failures_injected")
