@@ -1,0 +1,370 @@
+"""The whole assembly as one MAVLink vehicle: the coordinator behind a PX4-persona endpoint.
+
+Ground stations (MAVSDK, MAVProxy, QGroundControl) see one quadrotor-like system (default system id 1,
+component 1): they watch its position and attitude (the CoM estimate), arm it, take it off, send
+offboard position/velocity setpoints and land it as they would a single drone. The protocol side is
+the unit firmware's `Vehicle` (heartbeats, streams, commands with ACKs, parameters, offboard watchdog,
+untrusted-input counters), not a copy of it: `AssemblyVehicle` plugs a different flight core into
+that mode machine.
+
+    AssemblyFlightCore   the Vehicle's guidance phases (UnitAutopilot: hold / takeoff ramp / go-to /
+                         velocity / land / return, PX4's speed limits) shape a reference that a
+                         `SetpointSource` hands to the assembly's Coordinator as its trajectory;
+                         the coordinator's controller and FTC allocator give the 4N rotor thrusts.
+    AssemblyVehicle      Vehicle + that core; STATUSTEXT for every coordinator event (faults,
+                         reallocations, reconfigurations); assembly parameters; MAV_CMD_INJECT_FAILURE
+                         names motors 1..4N (unit u rotor r = 4 (u - 1) + r).
+    AssemblySim          sans-IO lockstep wiring of JSBSim world, unit motor paths, estimator,
+                         coordinator and vehicle: `step(wall_time_s)` advances one control period
+                         and returns the MAVLink bytes to send. `mars_link.realtime` paces it in
+                         real time behind UDP sockets.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
+
+from firmware_models.params import INT32, REAL32, ParamSpec, ParamStore, unit_param_specs
+from firmware_models.unit_controller import UnitAutopilot
+from firmware_models.vehicle import LINK_API, LINK_GCS, LinkPolicy, Outgoing, Vehicle, VehicleConfig
+from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
+from mars_link.control.base import ControlOutput
+from mars_link.coordinator import Coordinator
+from mars_link.errors import UserInputError
+from mars_link.messages import RotorCommand, wire_thrust, wire_time
+from mars_link.rotations import quat_to_rotmat
+from mars_link.scenario import FaultSpec, Scenario
+from mars_link.state import RigidBodyState
+from mars_link.trajectories import Trajectory, TrajectoryPoint
+
+DEFAULT_SYSID = 1
+#: coordinator event type -> STATUSTEXT severity
+EVENT_SEVERITY = {
+    "fault": mavlink.MAV_SEVERITY_WARNING,
+    "uncontrollable": mavlink.MAV_SEVERITY_CRITICAL,
+    "reallocation": mavlink.MAV_SEVERITY_NOTICE,
+    "detection": mavlink.MAV_SEVERITY_WARNING,
+    "diverged": mavlink.MAV_SEVERITY_EMERGENCY,
+    "estimator_reset": mavlink.MAV_SEVERITY_WARNING,
+}
+STATUSTEXT_MAX = 50  # one STATUSTEXT frame carries 50 characters
+#: consecutive position updates with every unit gated out before the EKF is restarted on them
+GATED_BATCHES_RESET = 5
+
+
+class SetpointSource(Trajectory):
+    """The coordinator's trajectory: whatever reference the flight core set last (held between)."""
+
+    duration_s = math.inf
+
+    def __init__(self, start: TrajectoryPoint) -> None:
+        self.point = start
+
+    def sample(self, t_s: float) -> TrajectoryPoint:
+        return self.point
+
+
+class _CoordinatorDrive:
+    """Stands where UnitAutopilot keeps its 1x1 controller: the shaped reference goes to the
+    coordinator (controller + FTC allocation over all rotors) instead."""
+
+    def __init__(self, coordinator: Coordinator, source: SetpointSource) -> None:
+        self.coordinator = coordinator
+        self.source = source
+        self.packets: list = []  # this control step's sensor packets (set by AssemblySim)
+
+    def reset(self) -> None:
+        reset = getattr(self.coordinator.controller, "reset", None)
+        if reset is not None:
+            reset()
+
+    def update(self, t_s: float, state: RigidBodyState, reference: TrajectoryPoint) -> ControlOutput:
+        self.source.point = reference
+        self.coordinator.step(t_s, self.packets)
+        return ControlOutput(self.coordinator.last.thrusts_n)
+
+
+class AssemblyFlightCore(UnitAutopilot):
+    """UnitAutopilot's guidance phases, flying the assembly through its coordinator."""
+
+    def __init__(self, coordinator: Coordinator, control_hz: float) -> None:
+        super().__init__(coordinator.model.vehicle, control_hz)
+        self.model = coordinator.model
+        start = TrajectoryPoint(np.zeros(3))
+        source = coordinator.trajectory if isinstance(coordinator.trajectory, SetpointSource) else SetpointSource(start)
+        coordinator.trajectory = source
+        self.drive = _CoordinatorDrive(coordinator, source)
+        self.controller = self.drive
+        self.zero = np.zeros(self.model.n_rotors)
+
+
+class _KnownEstimate:
+    """Given to the Coordinator as its estimator: the estimate AssemblySim already computed for this
+    step (the EKF runs once per step, also while the vehicle is disarmed and the coordinator idle)."""
+
+    def __init__(self) -> None:
+        self.estimate: RigidBodyState | None = None
+
+    def step(self, t_s, imu_samples, position_samples) -> RigidBodyState:
+        return self.estimate
+
+
+def assembly_param_specs(sysid: int, model: AssemblyModel, ftc: str) -> list[ParamSpec]:
+    """The unit's PX4-named parameters (takeoff altitude, speeds, landing, disarm, failure injection)
+    without the unit-only MARS_* ones, then the assembly's own (read-only)."""
+    from mars_link.scenario import FTC_MODES
+
+    px4 = [s for s in unit_param_specs(sysid, model.vehicle) if not s.name.startswith("MARS_")]
+    return px4 + [
+        ParamSpec("MARS_UNITS", model.n_units, INT32, 1, 1000, True, "units in the assembly"),
+        ParamSpec("MARS_ROTORS", model.n_rotors, INT32, 4, 4000, True, "rotors in the assembly (motor instances)"),
+        ParamSpec("MARS_MASS", float(model.mass_kg), REAL32, 0.0, 1e6, True, "assembly mass, kg"),
+        ParamSpec("MARS_FTC", FTC_MODES.index(ftc), INT32, 0, len(FTC_MODES) - 1, True,
+                  "allocation mode: " + ", ".join(f"{i} {m}" for i, m in enumerate(FTC_MODES))),
+    ]
+
+
+def event_text(event: dict) -> str:
+    """One line for a coordinator/runner event: its own text, else type and reason."""
+    text = event.get("text")
+    if text:
+        return str(text)
+    kind = str(event.get("type", "event"))
+    if kind == "fault" and "unit" in event:
+        rotor = event.get("rotor")
+        where = f"unit {event['unit']}" + (f" rotor {rotor}" if rotor else "")
+        return f"Fault: {where} eta {float(event.get('eta', 0.0)):g}"
+    kind = kind.replace("_", " ").capitalize()
+    reason = event.get("reason")
+    return f"{kind}: {reason}" if reason else kind
+
+
+def _chunks(text: str) -> list[str]:
+    return [text[i:i + STATUSTEXT_MAX] for i in range(0, len(text), STATUSTEXT_MAX)] or [""]
+
+
+class AssemblyVehicle(Vehicle):
+    """The PX4-persona Vehicle flying an assembly: client links only (gcs, api), no rotor intake."""
+
+    def __init__(self, coordinator: Coordinator, sysid: int = DEFAULT_SYSID, control_hz: float = 100.0,
+                 ftc: str = "none", params: dict[str, float] | None = None, wall_time_s: float = 0.0) -> None:
+        model = coordinator.model
+        client = LinkPolicy()
+        config = VehicleConfig(unit_id=sysid, vehicle=model.vehicle, control_hz=control_hz,
+                               links={LINK_GCS: client, LINK_API: client})
+        self.coordinator = coordinator
+        super().__init__(config, wall_time_s, flight_core=AssemblyFlightCore(coordinator, control_hz))
+        self.params = ParamStore(assembly_param_specs(sysid, model, ftc), params or {})
+        self.model = model
+        self.motor_count = model.n_rotors
+        self.motor_commands_n = np.zeros(model.n_rotors)
+        self.on_failure = None  # callable(unit, rotor | None, eta): the motor path (set by AssemblySim)
+        self._events_seen = 0
+
+    @property
+    def core(self) -> AssemblyFlightCore:
+        return self.autopilot
+
+    def rotor_thrusts_n(self) -> np.ndarray:
+        """The 4N thrusts to command this step (zeros when disarmed or idle)."""
+        cmd = self.motor_commands_n
+        if not self.armed or cmd.shape != (self.model.n_rotors,):
+            return np.zeros(self.model.n_rotors)
+        return cmd
+
+    def inject_failure(self, rotor: int, eta: float) -> None:
+        """MAV_CMD_INJECT_FAILURE: motor instance 1..4N (0 = all) into the units' motor path only."""
+        if self.on_failure is None:
+            return
+        if rotor == 0:
+            for u in self.model.unit_ids:
+                self.on_failure(u, None, eta)
+        else:
+            self.on_failure(self.model.unit_ids[(rotor - 1) // ROTORS_PER_UNIT], (rotor - 1) % ROTORS_PER_UNIT + 1, eta)
+
+    def step_motors(self, dt_s: float) -> np.ndarray:
+        raise NotImplementedError("the assembly's rotors are driven by its units (AssemblySim)")
+
+    def report_event(self, event: dict) -> None:
+        """STATUSTEXT for an event (longer texts go out as several frames)."""
+        severity = EVENT_SEVERITY.get(str(event.get("type")), mavlink.MAV_SEVERITY_INFO)
+        for part in _chunks(event_text(event)):
+            self._text(part, severity)
+
+    def tick(self, wall_time_s: float, sim_time_s: float) -> list[Outgoing]:
+        """Vehicle.tick, after queueing a STATUSTEXT for each event the coordinator recorded since
+        the last tick (reported one control period after the step that recorded it)."""
+        events = self.coordinator.events
+        for ev in events[self._events_seen:]:
+            self.report_event(ev)
+        self._events_seen = len(events)
+        return super().tick(wall_time_s, sim_time_s)
+
+    def _stream_message(self, mid: int):
+        if mid == mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS:
+            n = min(32, self.model.n_rotors)
+            cmd = np.clip(self.rotor_thrusts_n() / self.full_scale_n, 0.0, 1.0)[:n]
+            return mavlink.MAVLink_actuator_output_status_message(
+                int(self.sim_s * 1e6), (1 << n) - 1, [float(x) for x in cmd] + [0.0] * (32 - n))
+        return super()._stream_message(mid)
+
+
+# ----------------------------------------------------------------------------- in-process wiring
+@dataclass
+class SimConfig:
+    sysid: int = DEFAULT_SYSID
+    start_north_m: float = 0.0
+    start_east_m: float = 0.0
+    start_yaw_deg: float = 0.0
+    params: dict | None = None  # start-up parameter values (MIS_TAKEOFF_ALT, ...)
+
+
+def vehicle_scenario(scenario: Scenario) -> Scenario:
+    """The scenario as the vehicle flies it: setpoints are for the CoM; the trajectory is unused."""
+    if scenario.reconfig.get("enabled"):
+        raise UserInputError(f"{scenario.source}: [reconfig] scenarios cannot be flown as one vehicle")
+    s = copy.deepcopy(scenario)
+    s.tracked = "com"
+    return s
+
+
+class AssemblySim:
+    """World (one JSBSim body), unit motor paths, estimator, coordinator and the assembly vehicle,
+    wired by direct calls in lockstep. Sans-IO: `handle(bytes, wall, link)` and `step(wall)` return
+    the frames to send; `t_s` is simulation time (scenario faults fire at their `t` from the start)."""
+
+    def __init__(self, scenario: Scenario, config: SimConfig | None = None, wall_time_s: float = 0.0) -> None:
+        from firmware_models.unit import UnitCore, UnitCoreParams
+        from mars_link.runner import POSITION_RATE_HZ, make_controller
+        from sitl.world import World, WorldConfig
+
+        cfg = config or SimConfig()
+        self.scenario = s = vehicle_scenario(scenario)
+        self.model = model = s.model()
+        hz = s.sim.control_hz
+        self.control_dt_s = 1.0 / hz
+        self.faults = sorted(s.faults, key=lambda f: f.t_s)
+        self._next_fault = 0
+        self.eta_told = model.nominal_eta()
+        controller = make_controller(s, model, self.eta_told)
+        self.estimator = None
+        if s.sim.noise:
+            from mars_link.estimation import AssemblyEstimator
+
+            self.estimator = AssemblyEstimator(model)
+        detector = None
+        if not s.faults_known:
+            from mars_link.fault_detection import FaultDetector
+
+            detector = FaultDetector(model)
+        self._known = _KnownEstimate()
+        start = TrajectoryPoint(np.zeros(3))
+        self.coordinator = Coordinator(model, SetpointSource(start), controller, self._known, detector)
+        yaw = math.radians(cfg.start_yaw_deg)
+        self.world = World(
+            model,
+            WorldConfig(physics_hz=s.sim.physics_hz, exchange_hz=hz, seed=s.sim.seed, noise=s.sim.noise,
+                        position_every=max(1, round(hz / POSITION_RATE_HZ))),
+            np.array([cfg.start_north_m, cfg.start_east_m, 0.0]), yaw,
+        )
+        self.units = {u: UnitCore(u, model.vehicle, UnitCoreParams(control_period_s=self.control_dt_s))
+                      for u in model.unit_ids}
+        self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, cfg.params, wall_time_s)
+        self.vehicle.on_failure = self.inject
+        self.estimate: RigidBodyState | None = None
+        self.estimator_resets = 0
+        self._gated_batches = 0
+        self.events: list[dict] = []  # faults (scenario and MAVLink), with coordinator.events = the record
+
+    @property
+    def t_s(self) -> float:
+        return self.world.t_s
+
+    def handle(self, data: bytes, wall_time_s: float, link: str) -> list[Outgoing]:
+        return self.vehicle.handle(data, wall_time_s, link)
+
+    def inject(self, unit: int, rotor: int | None, eta: float) -> None:
+        """A fault in a unit's motor path; told to the coordinator only with `faults_known`."""
+        t = self.t_s
+        self.units[unit].inject_fault(rotor, eta)
+        event = {"t_s": round(t, 6), "type": "fault", "unit": unit, "rotor": rotor, "eta": eta}
+        self.events.append(event)
+        self.vehicle.report_event(event)
+        if self.scenario.faults_known:
+            sl = self.model.unit_slots(unit) if rotor is None else self.model.rotor_slot(unit, rotor)
+            self.eta_told[sl] = eta
+            self.coordinator.set_faults(self.eta_told, t, "fault told to the coordinator")
+
+    def step(self, wall_time_s: float) -> list[Outgoing]:
+        """One control period: faults due, sensing, estimate, vehicle (control when flying), motors,
+        physics."""
+        t = self.t_s
+        while self._next_fault < len(self.faults) and self.faults[self._next_fault].t_s <= t + 1e-9:
+            f: FaultSpec = self.faults[self._next_fault]
+            self._next_fault += 1
+            self.inject(f.unit, f.rotor, f.eta)
+        packets = self.world.sense()
+        self.vehicle.core.drive.packets = packets
+        est = self._estimate(t, packets)
+        self._known.estimate = est
+        if est is not None:
+            self.estimate = est
+            self.vehicle.set_state(est)
+        out = self.vehicle.tick(wall_time_s, t)
+        thrusts = self.vehicle.rotor_thrusts_n()
+        wired = wire_thrust(thrusts, self.model.vehicle.full_scale_thrust_n)
+        tw = wire_time(t)
+        for u in self.model.unit_ids:
+            unit = self.units[u]
+            unit.on_rotor_command(RotorCommand(tw, u, wired[self.model.unit_slots(u)]))
+            self.world.actuate(unit.motor_output(t))
+        self.world.advance()
+        return out
+
+    def _estimate(self, t: float, packets) -> RigidBodyState | None:
+        if self.estimator is None:
+            return next((p.truth for p in packets if p.truth is not None), None)
+        ekf = self.estimator
+        positions = [p.position for p in packets if p.position is not None]
+        gated = ekf.stats.rejected.get("position_gate", 0)
+        est = ekf.step(t, [p.imu for p in packets], positions)
+        if not ekf.initialised:
+            return None
+        if positions:  # a filter that gates every unit's position for a while no longer follows them
+            all_gated = ekf.stats.rejected.get("position_gate", 0) - gated >= len(positions)
+            self._gated_batches = self._gated_batches + 1 if all_gated else 0
+            if self._gated_batches >= GATED_BATCHES_RESET:
+                self._gated_batches = 0
+                est = self._reset_estimator(t, est, positions)
+        return est
+
+    def _reset_estimator(self, t: float, est: RigidBodyState, positions) -> RigidBodyState:
+        """Restart the EKF on the measured positions and velocities (attitude and biases kept)."""
+        rot = quat_to_rotmat(est.quaternion_wxyz)
+        offsets = np.array([self.model.unit_position(p.unit_id) for p in positions])
+        measured = np.array([p.position_ned_m for p in positions], dtype=float)
+        vels = [p.velocity_ned_mps for p in positions if p.velocity_ned_mps is not None]
+        state = RigidBodyState(est.t_s, measured.mean(axis=0) - rot @ offsets.mean(axis=0),
+                               np.mean(vels, axis=0) if vels else np.zeros(3), est.quaternion_wxyz,
+                               est.angular_velocity_frd_radps)
+        self.estimator.reset(state)
+        self.estimator_resets += 1
+        event = {"t_s": round(t, 6), "type": "estimator_reset",
+                 "reason": f"{GATED_BATCHES_RESET} updates gated"}
+        self.events.append(event)
+        self.vehicle.report_event(event)
+        return self.estimator.state()
+
+    def truth(self) -> RigidBodyState:
+        return self.world.truth()
+
+    def unit_eta(self) -> list[float]:
+        return [float(x) for u in self.model.unit_ids for x in self.units[u].eta]
+
+    def close(self) -> None:
+        self.world.close()
