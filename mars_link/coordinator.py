@@ -8,6 +8,7 @@ the in-process runner and in the SITL coordinator process.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -15,9 +16,33 @@ import numpy as np
 
 from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import Controller
+from mars_link.errors import UserInputError
+from mars_link.fault_detection import Detection
 from mars_link.messages import RotorCommand, SensorPacket, wire_thrust, wire_time
 from mars_link.state import RigidBodyState
 from mars_link.trajectories import Trajectory, TrajectoryPoint
+
+
+#: MAVLink STATUSTEXT carries 50 characters
+TEXT_MAX = 50
+
+
+def short_text(text: str, limit: int = TEXT_MAX) -> str:
+    """`text` as one STATUSTEXT frame: ASCII, one line, at most `limit` bytes ('...' marks a cut)."""
+    text = " ".join(str(text).split()).encode("ascii", "replace").decode("ascii")
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def fault_summary(model: AssemblyModel, eta: np.ndarray) -> str:
+    """Compact believed fault set, e.g. 'u2 dead, u4r1 .50' ('none' when healthy)."""
+    parts = []
+    for uid in model.unit_ids:
+        e = np.asarray(eta)[model.unit_slots(uid)]
+        if np.all(e <= 0.0):
+            parts.append(f"u{uid} dead")
+            continue
+        parts += [f"u{uid}r{r + 1} {x:.2f}".replace(" 0.", " .") for r, x in enumerate(e) if x < 1.0]
+    return ", ".join(parts) if parts else "none"
 
 
 @dataclass
@@ -39,33 +64,83 @@ class Coordinator:
         controller: Controller,
         estimator=None,
         detector=None,
+        telemetry_timeout_s: float | None = None,
     ) -> None:
+        """`telemetry_timeout_s`: a unit that sends no packet for this long while others do is
+        declared lost (`unit_lost`); None (default) leaves that call to the transport's heartbeat
+        watch, which knows its own link's loss and latency."""
         self.model = model
         self.trajectory = trajectory
         self.controller = controller
         self.estimator = estimator
         self.detector = detector  # None: faults are told (set_faults), not detected
-        self.detections: list = []
+        self.detections: list = []  # fault_detection.Detection, from residuals and lost units
         self.eta_believed = model.nominal_eta()
-        self.events: list[dict] = []
+        self.events: list[dict] = []  # every event has "t_s", "type" and "text" (<= 50 chars, STATUSTEXT)
         self.last: StepRecord | None = None
+        if telemetry_timeout_s is not None and not (math.isfinite(telemetry_timeout_s) and telemetry_timeout_s > 0):
+            raise UserInputError(f"telemetry_timeout_s must be a number > 0, got {telemetry_timeout_s!r}")
+        self.telemetry_timeout_s = telemetry_timeout_s
+        self.lost_units: set[int] = set()
+        self._last_seen_s: dict[int, float] = {}
+
+    def _event(self, t_s: float, kind: str, text: str, **fields) -> dict:
+        event = {"t_s": round(t_s, 6), "type": kind, **fields, "text": short_text(text)}
+        self.events.append(event)
+        return event
 
     def set_faults(self, eta: np.ndarray, t_s: float, reason: str) -> None:
         """Switch the allocation to a new believed fault set (told, or detected)."""
         from mars_link.allocation import check_controllable
-        from mars_link.errors import UserInputError
 
         self.eta_believed = np.asarray(eta, dtype=float).copy()
         try:
             v = self.model.vehicle
             check_controllable(self.model, self.eta_believed, (v.rotor_min_thrust_n, v.rotor_max_thrust_n))
         except UserInputError as exc:  # mid-flight: log it and allocate as well as possible, never stop
-            self.events.append({"t_s": round(t_s, 6), "type": "uncontrollable", "reason": str(exc)})
+            self._event(t_s, "uncontrollable", "Uncontrollable faults: best effort", reason=str(exc))
         self.controller.set_faults(self.eta_believed)
-        self.events.append({"t_s": round(t_s, 6), "type": "reallocation", "reason": reason})
+        self._event(t_s, "reallocation", "Realloc " + fault_summary(self.model, self.eta_believed), reason=reason)
+
+    def unit_lost(self, unit_id: int, t_s: float, reason: str = "telemetry lost") -> Detection | None:
+        """A unit stopped reporting (its process died, its link broke): it is a failed unit.
+
+        All its rotors are believed dead (eta 0), the allocation switches, a detection is recorded
+        and an event raised. A unit already lost returns None and changes nothing. Unknown unit ids
+        raise UserInputError (the caller names units from its own configuration).
+        """
+        self.model.check_rotor(unit_id, None)
+        if unit_id in self.lost_units:
+            return None
+        self.lost_units.add(unit_id)
+        det = None
+        if self.detector is not None:
+            det = self.detector.on_unit_silent(unit_id, t_s)
+        if det is None:
+            det = Detection(t_s, unit_id, None, 0.0, reason="silent")
+        self.detections.append(det)
+        self._event(t_s, "unit_lost", f"Unit {unit_id} lost: {reason}", unit=unit_id, reason=reason)
+        eta = self.eta_believed.copy()
+        eta[self.model.unit_slots(unit_id)] = 0.0
+        self.set_faults(eta, t_s, f"unit {unit_id} lost ({reason})")
+        return det
+
+    def _watch_telemetry(self, t_s: float, packets: list[SensorPacket]) -> None:
+        for p in packets:
+            self._last_seen_s[p.unit_id] = t_s
+        if not packets:  # nobody reported: our own input stalled, not the units
+            return
+        for uid in self.model.unit_ids:
+            seen = self._last_seen_s.setdefault(uid, t_s)  # the clock starts at the first step
+            if uid not in self.lost_units and t_s - seen > self.telemetry_timeout_s + 1e-9:
+                self.unit_lost(uid, t_s, f"no telemetry for {t_s - seen:.2f} s")
 
     def step(self, t_s: float, packets: list[SensorPacket]) -> list[RotorCommand]:
         c0 = time.perf_counter()
+        if self.telemetry_timeout_s is not None:
+            self._watch_telemetry(t_s, packets)
+        if self.lost_units:  # a lost unit's late or stray packets are not trusted
+            packets = [p for p in packets if p.unit_id not in self.lost_units]
         if self.estimator is None:
             truth = next((p.truth for p in packets if p.truth is not None), None)
             if truth is None:
@@ -84,6 +159,11 @@ class Coordinator:
             found = self.detector.update(t_s, thrusts, estimate, [p.imu for p in packets])
             if found:
                 self.detections.extend(found)
+                for d in found:
+                    where = f"Unit {d.unit}" + (f" rotor {d.rotor}" if d.rotor else "")
+                    what = f"{where} eta {d.eta_estimated:.2f}" if d.rotor else f"{where} failed"
+                    self._event(t_s, "fault_detected", f"Fault found: {what}", unit=d.unit, rotor=d.rotor,
+                                eta_estimated=round(float(d.eta_estimated), 4), t_onset=round(float(d.t_onset), 6))
                 what = ", ".join(
                     f"unit {d.unit}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
                     for d in found

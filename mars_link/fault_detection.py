@@ -136,9 +136,14 @@ class FaultDetector:
     ambiguity is being resolved (zero otherwise).
     """
 
-    def __init__(self, model: AssemblyModel, params: FaultDetectorParams | None = None) -> None:
+    def __init__(
+        self, model: AssemblyModel, params: FaultDetectorParams | None = None, ground_down_m: float | None = None
+    ) -> None:
+        """`ground_down_m`: the CoM's down coordinate when landed, if known (a flight that starts on the
+        ground: its contact force must not be read as a rotor fault). Unknown: learnt at low thrust."""
         self.params = params or FaultDetectorParams()
         self.detections: list[Detection] = []
+        self._ground_down_m: float | None = None if ground_down_m is None else float(ground_down_m)
         self.set_model(model)
 
     # ----------------------------------------------------------------- configuration
@@ -158,7 +163,6 @@ class FaultDetector:
             raise UserInputError(f"eta must have {self.n} entries (one per rotor), got {self.eta.shape}")
         self.combiner = ImuCombiner(model, gain=0.01)
         self.silent_units: set[int] = set()
-        self._ground_down_m: float | None = None
         self.library = self._build_library()
         self._restart()
 

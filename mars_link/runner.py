@@ -189,16 +189,15 @@ def run_trial(
         from mars_link.estimation import AssemblyEstimator
 
         estimator = AssemblyEstimator(model)
+    offset = tracked_offset(model, scenario)
+    start = trajectory.sample(0.0)
+    com_start = start.position_ned_m - quat_to_rotmat(_yaw_quat(start.yaw_rad)) @ offset
     detector = None
     if not scenario.faults_known:
         from mars_link.fault_detection import FaultDetector
 
-        detector = FaultDetector(model)
+        detector = FaultDetector(model, ground_down_m=float(com_start[2]))  # every flight starts landed
     coordinator = Coordinator(model, trajectory, controller, estimator, detector)
-
-    offset = tracked_offset(model, scenario)
-    start = trajectory.sample(0.0)
-    com_start = start.position_ned_m - quat_to_rotmat(_yaw_quat(start.yaw_rad)) @ offset
     world = World(
         model,
         WorldConfig(
@@ -228,7 +227,9 @@ def run_trial(
             f = faults[next_fault]
             next_fault += 1
             units[f.unit].inject_fault(f.rotor, f.eta)
-            events.append({"t_s": round(t, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta})
+            where = f"Unit {f.unit}" + (f" rotor {f.rotor}" if f.rotor else "")
+            events.append({"t_s": round(t, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta,
+                           "text": f"Fault: {where} " + ("failed" if f.rotor is None and f.eta == 0 else f"eta {f.eta:.2f}")})
             if scenario.faults_known:
                 coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
         c0 = clock()
