@@ -1,0 +1,94 @@
+"""The one interface every MAVLink link speaks: datagrams (one or more whole MAVLink frames) to and from
+named peers, with counters. Runners do the I/O through it; cores never see a transport.
+
+A peer address is whatever the transport uses to name an endpoint: `(host, port)` for UDP, a node name
+such as "world" or "unit/3" for Zenoh, the device path for serial.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Hashable
+
+Address = Hashable
+
+
+@dataclass
+class Counters:
+    """What went through a link; `dropped` counts discarded input by reason (shared with the Link)."""
+
+    sent: int = 0
+    received: int = 0
+    bytes_sent: int = 0
+    bytes_received: int = 0
+    dropped: dict[str, int] = field(default_factory=dict)
+
+    def drop(self, reason: str, n: int = 1) -> None:
+        self.dropped[reason] = self.dropped.get(reason, 0) + n
+
+    def as_dict(self) -> dict:
+        return {"sent": self.sent, "received": self.received, "bytes_sent": self.bytes_sent,
+                "bytes_received": self.bytes_received, "dropped": dict(self.dropped)}
+
+
+class Transport:
+    """Base class: subclasses implement `_send`, `_recv` and `_close`; this one keeps the counters."""
+
+    kind = "abstract"
+
+    def __init__(self) -> None:
+        self.counters = Counters()
+        self.closed = False
+
+    # -- interface ---------------------------------------------------------------------------
+    def send(self, data: bytes, peer: Address) -> None:
+        """Send one datagram to `peer`. Never blocks for long; a full link drops (counted)."""
+        if self.closed:
+            raise ValueError(f"{self.kind} transport is closed")
+        self._send(bytes(data), peer)
+        self.counters.sent += 1
+        self.counters.bytes_sent += len(data)
+
+    def recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
+        """The next datagram and its sender, or None when nothing arrives within `timeout_s`."""
+        deadline = time.monotonic() + max(timeout_s, 0.0)
+        while not self.closed:
+            got = self._recv(max(deadline - time.monotonic(), 0.0))
+            if got is not None:
+                self.counters.received += 1
+                self.counters.bytes_received += len(got[0])
+                return got
+            if time.monotonic() >= deadline:
+                return None
+        return None
+
+    def address_of(self, role: str, port: int | None = None) -> Address:
+        """The address of a well-known SITL endpoint ("world", "coordinator") on this transport."""
+        raise NotImplementedError
+
+    @property
+    def local_address(self) -> Address:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        if not self.closed:
+            self.closed = True
+            self._close()
+
+    def __enter__(self) -> "Transport":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- to implement --------------------------------------------------------------------------
+    def _send(self, data: bytes, peer: Address) -> None:
+        raise NotImplementedError
+
+    def _recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
+        """May return None before the timeout (e.g. input dropped); `recv` then waits on."""
+        raise NotImplementedError
+
+    def _close(self) -> None:
+        pass

@@ -1,0 +1,93 @@
+"""Command age at the motor, measured from the raw MAVLink bytes a unit receives.
+
+In real-time mode (the world paced to the wall clock, `--speed 1`) sim time t is wall time epoch + t.
+A unit estimates the epoch from its HIL link as min over steps of (sensor arrival wall time - t): the
+world sends step k no earlier than epoch + t_k, so the minimum is the epoch plus the smallest one-way
+delay (tens of microseconds on loopback; it makes the ages slightly optimistic by that much). The age of
+a per-rotor command (SET_ACTUATOR_CONTROL_TARGET, stamped with the sim time of the sensor data it was
+computed from) is then its arrival wall time - (epoch + t). Ages beyond one control period mean the
+100 Hz deadline was missed.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import time
+from pathlib import Path
+
+import numpy as np
+
+MSG_HIL_SENSOR = 107
+MSG_SET_ACTUATOR_CONTROL_TARGET = 139
+_U64 = struct.Struct("<Q")
+
+
+def percentiles_ms(values_s) -> dict:
+    a = np.asarray(values_s, dtype=float) * 1e3
+    if a.size == 0:
+        return {"n": 0}
+    return {"n": int(a.size), "p50_ms": float(np.percentile(a, 50)), "p99_ms": float(np.percentile(a, 99)),
+            "max_ms": float(a.max()), "mean_ms": float(a.mean())}
+
+
+def frame_times_usec(data: bytes, msgid: int) -> list[int]:
+    """time_usec (the first field, uint64) of every frame of `msgid` in a datagram; tolerant of junk."""
+    out = []
+    i, n = 0, len(data)
+    while i + 8 <= n:
+        magic = data[i]
+        if magic == 0xFD and i + 10 <= n:
+            plen, signed = data[i + 1], data[i + 2] & 1
+            mid = data[i + 7] | (data[i + 8] << 8) | (data[i + 9] << 16)
+            start, total = i + 10, 12 + plen + (13 if signed else 0)
+        elif magic == 0xFE and i + 6 <= n:
+            plen, mid, start, total = data[i + 1], data[i + 5], i + 6, 8 + plen
+        else:
+            i += 1
+            continue
+        if mid == msgid and i + total <= n:
+            payload = data[start:start + plen] + bytes(max(0, 8 - plen))  # MAVLink 2 trims trailing zeros
+            out.append(_U64.unpack_from(payload)[0])
+        i += total
+    return out
+
+
+class CommandAgeTap:
+    """Unit side: fed the datagrams of the unit's HIL and coordinator links; logs the command ages."""
+
+    def __init__(self, unit_id: int, control_period_s: float = 0.01) -> None:
+        self.unit_id = unit_id
+        self.control_period_s = control_period_s
+        self.offset_s = float("inf")  # epoch estimate: min(sensor arrival - t)
+        self.commands: list[tuple[float, float]] = []  # (t_s, arrival wall time)
+
+    def on_hil(self, data: bytes, now_s: float | None = None) -> None:
+        now_s = time.time() if now_s is None else now_s
+        for t_us in frame_times_usec(data, MSG_HIL_SENSOR):
+            self.offset_s = min(self.offset_s, now_s - t_us / 1e6)
+
+    def on_coordinator(self, data: bytes, now_s: float | None = None) -> None:
+        now_s = time.time() if now_s is None else now_s
+        for t_us in frame_times_usec(data, MSG_SET_ACTUATOR_CONTROL_TARGET):
+            self.commands.append((t_us / 1e6, now_s))
+
+    def ages_s(self) -> list[tuple[float, float]]:
+        return [(t, arrival - (self.offset_s + t)) for t, arrival in self.commands]
+
+    def summary(self) -> dict:
+        ages = [a for _, a in self.ages_s()]
+        stats = percentiles_ms(ages)
+        stats["deadline_misses"] = int(sum(a > self.control_period_s for a in ages))
+        return stats
+
+    def write(self, out: Path) -> dict:
+        """command_age_unit<i>.csv (t_s, age_s) and command_age_unit<i>.json (percentiles, misses)."""
+        out.mkdir(parents=True, exist_ok=True)
+        with open(out / f"command_age_unit{self.unit_id}.csv", "w", encoding="utf-8") as f:
+            f.write("t_s,age_s\n")
+            for t, age in self.ages_s():
+                f.write(f"{t:.6f},{age:.6f}\n")
+        stats = self.summary()
+        (out / f"command_age_unit{self.unit_id}.json").write_text(json.dumps(stats, indent=2) + "\n")
+        return stats

@@ -1,0 +1,201 @@
+"""MAVLink frames over Zenoh key expressions.
+
+Key space (one Zenoh sample = one datagram of whole MAVLink frames, payload = the raw frame bytes):
+
+| key | carries |
+|---|---|
+| `mars/<fleet>/unit/<id>/mavlink/up/<dst>` | unit <id> -> node <dst> (`world`, `coordinator`, ...) |
+| `mars/<fleet>/unit/<id>/mavlink/down/<src>` | node <src> -> unit <id> |
+| `mars/<fleet>/<node>/mavlink/down/<src>` | node <src> -> node <node> (e.g. coordinator -> world) |
+
+Node names are `world`, `coordinator` or any `[A-Za-z0-9_-]+` name, and `unit/<id>` (id 1..255). A unit
+subscribes to its own `down/*`; another node to `<node>/mavlink/down/*` and `unit/*/mavlink/up/<node>`.
+The sender is read from the key, so (as with a UDP source address) it is a claim the MAVLink layer above
+checks against the system id.
+
+Defaults keep everything on this machine: multicast scouting off, explicit `tcp/127.0.0.1` endpoints.
+Several hosts: pass their `connect`/`listen` endpoints, or run one session in router mode (`mode="router"`,
+no zenohd needed) and make the others clients. Sessions are closed by `close()` / the context manager:
+a process that exits with an open session and a callback subscriber hangs (specs/dependencies.md §2.4).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import queue
+import re
+import socket
+from dataclasses import dataclass
+
+import zenoh
+
+from mars_link.transport.base import Address, Transport
+
+_NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+_UNIT = re.compile(r"^unit/(\d{1,3})$")
+
+
+@dataclass
+class ZenohParams:
+    node: str                            # this endpoint: "world", "coordinator" or "unit/<id>"
+    fleet: str = "default"
+    mode: str = "peer"                   # peer | client | router
+    listen: tuple[str, ...] = ()         # e.g. ("tcp/127.0.0.1:7447",)
+    connect: tuple[str, ...] = ()
+    gossip: bool = True                  # gossip scouting over established links (not multicast)
+    multicast_scouting: bool = False     # off: nothing leaves the configured endpoints
+    queue_frames: int = 10000            # receive queue; a flood beyond it is dropped and counted
+    block_when_congested: bool = True    # lockstep must not lose frames; False: drop like a radio would
+    only_from: str | None = None         # a unit link that talks to one node only (e.g. its HIL link: "world")
+
+
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def make_config(p: ZenohParams) -> zenoh.Config:
+    if p.mode not in ("peer", "client", "router"):
+        raise ValueError(f"zenoh mode {p.mode!r}: expected peer, client or router")
+    cfg = zenoh.Config()
+
+    def put(key: str, value) -> None:
+        cfg.insert_json5(key, json.dumps(value))
+
+    put("mode", p.mode)
+    put("listen/endpoints", list(p.listen))
+    put("connect/endpoints", list(p.connect))
+    put("scouting/multicast/enabled", bool(p.multicast_scouting))
+    put("scouting/gossip/enabled", bool(p.gossip))
+    return cfg
+
+
+def _check_node(name: str) -> str:
+    if _UNIT.match(name):
+        uid = int(_UNIT.match(name).group(1))
+        if not 1 <= uid <= 255:
+            raise ValueError(f"zenoh node {name!r}: unit id must be 1..255")
+        return name
+    if not _NAME.match(name):
+        raise ValueError(f"zenoh node {name!r}: expected unit/<id> or a name of [A-Za-z0-9_-]")
+    return name
+
+
+def key_for(fleet: str, src: str, dst: str) -> str:
+    """The key a frame from node `src` to node `dst` is published on."""
+    src, dst = _check_node(src), _check_node(dst)
+    if src.startswith("unit/") and dst.startswith("unit/"):
+        raise ValueError("unit-to-unit frames have no key (units talk to the world and the coordinator)")
+    if src.startswith("unit/"):
+        return f"mars/{fleet}/{src}/mavlink/up/{dst}"
+    return f"mars/{fleet}/{dst}/mavlink/down/{src}"
+
+
+class ZenohTransport(Transport):
+    kind = "zenoh"
+
+    def __init__(self, params: ZenohParams) -> None:
+        super().__init__()
+        self.params = params
+        self.node = _check_node(params.node)
+        if not _NAME.match(params.fleet):
+            raise ValueError(f"zenoh fleet {params.fleet!r}: expected [A-Za-z0-9_-]")
+        self._queue: queue.Queue = queue.Queue(maxsize=params.queue_frames)
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._congestion = zenoh.CongestionControl.BLOCK if params.block_when_congested else zenoh.CongestionControl.DROP
+        # readable while frames wait, so a selector can wait on this link next to UDP sockets
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self.session = zenoh.open(make_config(params))
+        try:
+            f = params.fleet
+            src = _check_node(params.only_from) if params.only_from else "*"
+            self._subs = [self.session.declare_subscriber(f"mars/{f}/{self.node}/mavlink/down/{src}", self._on_down)]
+            if not self.node.startswith("unit/"):
+                self._subs.append(self.session.declare_subscriber(f"mars/{f}/unit/*/mavlink/up/{self.node}", self._on_up))
+        except BaseException:
+            self.session.close()
+            raise
+
+    # zenoh threads: keep these short
+    def _on_down(self, sample: zenoh.Sample) -> None:
+        self._enqueue(sample, str(sample.key_expr).rsplit("/", 1)[1])
+
+    def _on_up(self, sample: zenoh.Sample) -> None:
+        parts = str(sample.key_expr).split("/")  # mars, fleet, unit, <id>, mavlink, up, <node>
+        sender = f"unit/{parts[3]}"
+        if not _UNIT.match(sender) or not 1 <= int(parts[3]) <= 255:
+            self.counters.drop("bad_sender_key")
+            return
+        self._enqueue(sample, sender)
+
+    def _enqueue(self, sample: zenoh.Sample, sender: str) -> None:
+        try:
+            self._queue.put_nowait((sample.payload.to_bytes(), sender))
+        except queue.Full:
+            self.counters.drop("queue_full")
+            return
+        self._wake()
+
+    def _wake(self) -> None:
+        try:
+            self._wake_w.send(b"\0")
+        except OSError:  # full: it is readable anyway
+            pass
+
+    def fileno(self) -> int:
+        """A descriptor that is readable while received frames wait (for select/selectors)."""
+        return self._wake_r.fileno()
+
+    @property
+    def local_address(self) -> str:
+        return self.node
+
+    def address_of(self, role: str, port: int | None = None) -> Address:
+        return _check_node(role)
+
+    def _send(self, data: bytes, peer: Address) -> None:
+        key = key_for(self.params.fleet, self.node, str(peer))
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._publishers[key] = self.session.declare_publisher(
+                key, express=True, congestion_control=self._congestion)
+        pub.put(data)
+
+    def _recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
+        try:
+            item = self._queue.get(timeout=timeout_s) if timeout_s > 0 else self._queue.get_nowait()
+        except queue.Empty:
+            return None
+        if self._queue.empty():  # level-triggered readiness: clear, then re-arm if a frame slipped in
+            try:
+                while self._wake_r.recv(4096):
+                    pass
+            except OSError:
+                pass
+            if not self._queue.empty():
+                self._wake()
+        return item
+
+    def _close(self) -> None:
+        try:
+            for pub in self._publishers.values():
+                pub.undeclare()
+            for sub in self._subs:
+                sub.undeclare()
+        finally:
+            self.session.close()
+            self._wake_r.close()
+            self._wake_w.close()
+
+
+def open_router(port: int | None = None, listen: tuple[str, ...] = (), fleet: str = "default") -> tuple[zenoh.Session, str]:
+    """A router-mode session (no zenohd needed) that SITL clients connect to; returns it and its endpoint.
+    The caller closes it."""
+    port = port or free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    cfg = make_config(ZenohParams(node="router", fleet=fleet, mode="router", listen=(endpoint, *listen)))
+    return zenoh.open(cfg), endpoint
