@@ -155,6 +155,12 @@ def cmd_sitl(args) -> int:
     return code
 
 
+def cmd_vehicle(args) -> int:
+    from mars_link.realtime import vehicle_command
+
+    return vehicle_command(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mars-link", description="SITL flight stack for modular aerial robots")
     sub = parser.add_subparsers(dest="command", parser_class=_Parser)
@@ -179,6 +185,12 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--out", help="run directory (default runs/<name>-sitl-<time>)")
     sitl.add_argument("--seed", type=int, default=None)
     sitl.set_defaults(func=cmd_sitl)
+
+    veh = sub.add_parser("vehicle", help="the assembly as one MAVLink vehicle in real time (MAVSDK, MAVProxy, QGC)")
+    from mars_link.realtime import add_arguments
+
+    add_arguments(veh)
+    veh.set_defaults(func=cmd_vehicle)
 
     sub.add_parser("plan", help="plan MAP --layout ROWS --start N,E,D --goal N,E,D [--method ours|svsdf] --out DIR")
     sub.add_parser("reconfig", help="reconfig plan SCENARIO.toml [--fault ...] [--json]: paper 001 reconfiguration plan")

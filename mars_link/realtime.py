@@ -1,0 +1,255 @@
+"""Real-time runner: the assembly (in-process JSBSim physics + coordinator) behind its MAVLink endpoint.
+
+    mars-link vehicle [SCENARIO.toml] [--layout ROWS] [--gcs-port P] [--api-port P] [--sysid N]
+
+`AssemblySim` (mars_link.assembly_vehicle) is stepped once per control period, paced to wall time
+(scaled by --speed); between steps the UDP sockets are drained into the vehicle. Links, all on
+127.0.0.1 (PX4's SITL conventions, specs/mavlink.md §1.1):
+  gcs  the vehicle sends to --gcs-port (default 14550: QGroundControl, MAVProxy `udpin`) from
+       --gcs-bind (default 18560)
+  api  the vehicle sends to --api-port (default 14540: MAVSDK `udpin://127.0.0.1:14540`) from
+       --api-bind (default 14560)
+  On both, whoever last sent a valid frame to the bound port also gets the traffic (MAVProxy
+  `--master=udpout:127.0.0.1:18560`). A bind port 0 means any free port.
+Socket handling (flood limits, loopback-only senders, peers) is every Vehicle runner's
+(`firmware_models.vehicle_io.VehicleSockets`).
+Runs until Ctrl-C / SIGTERM (or --duration wall seconds). A machine too slow to keep up is re-anchored
+(counted as an overrun) instead of racing to catch up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import selectors
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from firmware_models.vehicle import LINK_API, LINK_GCS
+from mars_link.assembly_vehicle import DEFAULT_SYSID, AssemblySim, SimConfig
+from mars_link.errors import UserInputError
+
+LOOPBACK = "127.0.0.1"
+STATUS_PERIOD_S = 0.2
+DEFAULT_SCENARIO = "hover_3x2"
+GCS_PORT, API_PORT, GCS_BIND, API_BIND = 14550, 14540, 18560, 14560
+REANCHOR_S = 0.25  # this far behind wall time: re-anchor (an overrun) instead of racing
+
+
+class AssemblyRunner:
+    """Sockets (firmware_models.vehicle_io.VehicleSockets, as every Vehicle runner) and clocks for an
+    AssemblySim."""
+
+    def __init__(self, sim: AssemblySim, ports: dict[str, int], speed: float = 1.0,
+                 status_file: str | None = None, duration_s: float | None = None) -> None:
+        from firmware_models.vehicle_io import LinkSpec, VehicleSockets
+
+        self.sim = sim
+        self.vehicle = sim.vehicle
+        self.speed = speed
+        self.io = VehicleSockets(sim.vehicle, {
+            LINK_GCS: LinkSpec(ports["gcs_bind"], (LOOPBACK, ports["gcs_port"])),
+            LINK_API: LinkSpec(ports["api_bind"], (LOOPBACK, ports["api_port"])),
+        })
+        self.status_path = Path(status_file) if status_file else None
+        self.duration_s = duration_s
+        self.running = True
+        self.overruns = 0
+        self.steps = 0
+        self.late_steps = 0  # a step that started more than one control period after it was due
+        self._step_s: list[float] = []  # compute time per step (a rolling window)
+
+    def endpoints(self) -> dict:
+        p = self.io.ports()
+        return {"sysid": self.vehicle.sysid, "gcs": {"to": self.io.dest[LINK_GCS][1], "from": p[LINK_GCS]},
+                "api": {"to": self.io.dest[LINK_API][1], "from": p[LINK_API]}}
+
+    def write_status(self) -> None:
+        if self.status_path is None:
+            return
+        v, sim = self.vehicle, self.sim
+        s = sim.truth()
+        est = sim.estimate
+        steps = np.array(self._step_s[-2000:]) if self._step_s else np.zeros(1)
+        status = {
+            "sysid": v.sysid, "layout": list(sim.scenario.layout), "sim_time_s": sim.t_s, "wall_time_s": time.time(),
+            "armed": v.armed, "mode": list(v.mode), "phase": v.autopilot.phase.value, "landed": bool(v.landed),
+            "truth_position_ned_m": [float(x) for x in s.position_ned_m],
+            "truth_velocity_ned_mps": [float(x) for x in s.velocity_ned_mps],
+            "truth_quaternion_wxyz": [float(x) for x in s.quaternion_wxyz],
+            "estimate_position_ned_m": None if est is None else [float(x) for x in est.position_ned_m],
+            "unit_eta": sim.unit_eta(), "eta_believed": [float(x) for x in sim.coordinator.eta_believed],
+            "rotor_thrust_n": [float(x) for x in sim.world.rotor_thrust_n],
+            "events": (sim.events + sim.coordinator.events)[-50:], "statustext": [t for _, t in v.events[-50:]],
+            "drops": v.drop_counts(), "stats": v.stats, "estimator_resets": sim.estimator_resets,
+            **self.io.counters(), "overruns": self.overruns, "steps": self.steps, "late_steps": self.late_steps,
+            "step_p50_ms": float(np.percentile(steps, 50) * 1e3), "step_p99_ms": float(np.percentile(steps, 99) * 1e3),
+            "endpoints": self.endpoints(),
+        }
+        tmp = self.status_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(status))
+        os.replace(tmp, self.status_path)
+
+    def run(self) -> int:
+        start = time.monotonic()
+        anchor_wall, anchor_sim = start, self.sim.t_s
+        period = self.sim.control_dt_s / self.speed
+        next_status = start
+        self.write_status()
+        while self.running:
+            now = time.monotonic()
+            if self.duration_s is not None and now - start >= self.duration_s:
+                break
+            due = anchor_wall + (self.sim.t_s - anchor_sim) / self.speed
+            self.io.poll(due - now)
+            now = time.monotonic()
+            if now >= due:
+                if now - due > REANCHOR_S:
+                    self.overruns += 1
+                    anchor_wall, anchor_sim = now, self.sim.t_s
+                elif now - due > period:
+                    self.late_steps += 1
+                c0 = time.perf_counter()
+                self.io.send(self.sim.step(time.time()))
+                self._step_s.append(time.perf_counter() - c0)
+                if len(self._step_s) > 20000:
+                    del self._step_s[:10000]
+                self.steps += 1
+            if now >= next_status:
+                next_status = now + STATUS_PERIOD_S
+                self.write_status()
+        self.write_status()
+        return 0
+
+    def close(self) -> None:
+        self.io.close()
+        self.sim.close()
+
+
+# ----------------------------------------------------------------------------- command line
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenario", nargs="?", help=f"scenario TOML file or bundled name (default {DEFAULT_SCENARIO}); "
+                   "its vehicle, layout, control and faults are used, its trajectory is not")
+    p.add_argument("--layout", help="layout rows separated by commas, e.g. XXX,XXX (overrides the scenario)")
+    p.add_argument("--sysid", type=int, default=DEFAULT_SYSID, help=f"MAVLink system id (default {DEFAULT_SYSID})")
+    p.add_argument("--gcs-port", type=int, default=GCS_PORT, help=f"ground stations listen here (default {GCS_PORT})")
+    p.add_argument("--api-port", type=int, default=API_PORT, help=f"MAVSDK listens here (default {API_PORT})")
+    p.add_argument("--gcs-bind", type=int, default=GCS_BIND, help=f"local port of the gcs link (default {GCS_BIND}; 0 any)")
+    p.add_argument("--api-bind", type=int, default=API_BIND, help=f"local port of the api link (default {API_BIND}; 0 any)")
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--ftc", help="allocation mode: none, unit, partial, full, hybrid, qp")
+    p.add_argument("--fault", action="append", metavar="UNIT[:ROTOR]=ETA[@T]", help="T: seconds after start")
+    p.add_argument("--no-noise", action="store_true", help="perfect sensors (truth state)")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
+    p.add_argument("--speed", type=float, default=1.0, help="simulation speed, x real time")
+    p.add_argument("--status-file", help="JSON snapshot (truth, mode, counters) a few times a second")
+    p.add_argument("--duration", type=float, help="stop after this many wall seconds")
+
+
+def _check_port(name: str, value: int, allow_zero: bool) -> int:
+    lo = 0 if allow_zero else 1
+    if not lo <= value <= 65535:
+        raise UserInputError(f"{name} must be {lo}..65535, got {value}")
+    return value
+
+
+def build_sim(args: argparse.Namespace) -> AssemblySim:
+    """Scenario + command-line overrides -> AssemblySim; every problem is a UserInputError."""
+    from mars_link.assembly import parse_layout
+    from mars_link.scenario import FTC_MODES, load_scenario, parse_fault_arg, validate_fault
+
+    scenario = load_scenario(args.scenario or DEFAULT_SCENARIO)
+    if args.layout is not None:
+        scenario.layout = parse_layout(args.layout)
+    if args.ftc:
+        if args.ftc not in FTC_MODES:
+            raise UserInputError(f"--ftc {args.ftc!r}: unknown mode (known: {', '.join(FTC_MODES)})")
+        scenario.ftc = args.ftc
+    for text in args.fault or []:
+        scenario.faults.append(parse_fault_arg(text))
+    model = scenario.model()
+    for f in scenario.faults:
+        validate_fault(f, model, f"fault {f.describe()}")
+    if args.seed is not None:
+        scenario.sim.seed = args.seed
+    if args.no_noise:
+        scenario.sim.noise = False
+    if not (math.isfinite(args.speed) and 0.05 <= args.speed <= 20.0):
+        raise UserInputError(f"--speed must be 0.05..20, got {args.speed}")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise UserInputError(f"--duration must be > 0, got {args.duration}")
+    if scenario.controller != "cascaded":
+        raise UserInputError(f"controller {scenario.controller!r}: the vehicle flies setpoints with 'cascaded' only")
+    if not 1 <= args.sysid <= 250 or args.sysid in (200, 201):
+        raise UserInputError(f"--sysid must be 1..250 and not 200/201 (world, coordinator), got {args.sysid}")
+    from firmware_models.udp_runner import _params  # NAME=VALUE parsing, as the unit runner's --param
+
+    return AssemblySim(scenario, SimConfig(sysid=args.sysid, params=_params(args.param)), time.time())
+
+
+def vehicle_command(args: argparse.Namespace) -> int:
+    ports = {
+        "gcs_port": _check_port("--gcs-port", args.gcs_port, False),
+        "api_port": _check_port("--api-port", args.api_port, False),
+        "gcs_bind": _check_port("--gcs-bind", args.gcs_bind, True),
+        "api_bind": _check_port("--api-bind", args.api_bind, True),
+    }
+    sim = build_sim(args)
+    try:
+        runner = AssemblyRunner(sim, ports, args.speed, args.status_file, args.duration)
+    except UserInputError:
+        sim.close()
+        raise
+    ep = runner.endpoints()
+    s = sim.scenario
+    print(f"mars-link vehicle: {s.name}, layout {','.join(s.layout)} ({sim.model.n_units} units, "
+          f"{sim.model.n_rotors} rotors), ftc {s.ftc}, MAVLink system {ep['sysid']} component 1")
+    print(f"  GCS: udp {LOOPBACK}:{ep['gcs']['from']} -> {LOOPBACK}:{ep['gcs']['to']}  "
+          f"(QGroundControl; mavproxy.py --master=udpout:{LOOPBACK}:{ep['gcs']['from']})")
+    print(f"  API: udp {LOOPBACK}:{ep['api']['from']} -> {LOOPBACK}:{ep['api']['to']}  "
+          f"(MAVSDK udpin://{LOOPBACK}:{ep['api']['to']})")
+    print("  Ctrl-C to stop", flush=True)
+
+    def stop(*_):
+        runner.running = False
+
+    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        code = runner.run()
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+        runner.close()
+    print(f"stopped after {sim.t_s:.1f} s simulated; overruns {runner.overruns}, late steps {runner.late_steps}",
+          flush=True)
+    return code
+
+
+def spawn_vehicle(args: list[str], status_file: str | os.PathLike, timeout_s: float = 60.0) -> tuple[subprocess.Popen, dict]:
+    """Start `mars-link vehicle ARGS --status-file F` and return the process and its first status once
+    it is up (endpoints under "endpoints"). Stop it with `firmware_models.udp_runner.stop_unit`."""
+    from firmware_models.udp_runner import read_status, stop_unit
+
+    status_file = Path(status_file)
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "vehicle", *args, "--status-file", str(status_file)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if status_file.exists():
+            return proc, read_status(status_file)
+        if proc.poll() is not None:
+            break
+        time.sleep(0.05)
+    if proc.poll() is None:
+        stop_unit(proc)
+        raise RuntimeError("vehicle did not start in time")
+    err = proc.stderr.read()[-2000:]
+    stop_unit(proc)
+    raise RuntimeError(f"vehicle did not start: {err}")

@@ -1,0 +1,309 @@
+"""The 3x2 assembly as one MAVLink vehicle (`mars-link vehicle`): MAVSDK 4.x flies it like a single
+drone (telemetry against the JSBSim truth, arm, takeoff 2 m, offboard 1 m north and back, a motor
+failure reported by STATUSTEXT and reallocated around, land, disarm); hostile traffic on its endpoint is
+counted and dropped while the link keeps working; and the sans-IO core reports scenario faults."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import random
+import socket
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
+from mars_link.assembly_vehicle import AssemblySim
+from mars_link.realtime import spawn_vehicle
+from mars_link.scenario import FaultSpec, load_scenario
+from test_robustness import Listener, _flood, _kernel_drops  # the unit robustness test's helpers
+
+mavsdk = pytest.importorskip("mavsdk")
+from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
+from mavsdk.asyncio.plugins.action import ActionAsync  # noqa: E402
+from mavsdk.asyncio.plugins.failure import FailureAsync, FailureType, FailureUnit  # noqa: E402
+from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw  # noqa: E402
+from mavsdk.asyncio.plugins.param import ParamAsync  # noqa: E402
+from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync  # noqa: E402
+
+pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(120)]
+LOOP = "127.0.0.1"
+SYSID = 7
+
+
+# ----------------------------------------------------------------------------- sans-IO
+def test_scenario_fault_is_reported_and_reallocated_without_sockets() -> None:
+    """Lockstep, as fast as it computes: arm and take off by COMMAND_LONG bytes; a scenario fault
+    at 4 s gives STATUSTEXT frames for the fault and the coordinator's reallocation."""
+    scenario = load_scenario("hover_3x2")
+    scenario.ftc = "qp"
+    scenario.faults.append(FaultSpec(unit=2, rotor=2, eta=0.5, t_s=4.0))
+    sim = AssemblySim(scenario)
+    gcs = mavlink.MAVLink(None, 245, 190)
+    dec = mavlink.MAVLink(None, 0, 0)
+    got: list = []
+
+    def feed(out) -> None:
+        for o in out:
+            if o.link == "api":
+                got.extend(dec.parse_buffer(o.data) or [])
+
+    def run(seconds: float) -> None:
+        for _ in range(int(round(seconds / sim.control_dt_s))):
+            feed(sim.step(sim.t_s))
+
+    try:
+        run(0.3)
+        feed(sim.handle(bytes(mavlink.MAVLink_param_request_list_message(1, 1).pack(gcs)), sim.t_s, "api"))
+        params = {m.param_id: m.param_value for m in got if m.get_type() == "PARAM_VALUE"}
+        assert params["MIS_TAKEOFF_ALT"] == pytest.approx(2.0)
+        assert "MARS_UNITS" in params and "MARS_COORD_SYS" not in params  # the assembly's table
+        for cmd, p7 in ((400, 0.0), (22, math.nan)):  # arm, takeoff (MIS_TAKEOFF_ALT)
+            p1 = 1.0 if cmd == 400 else 0.0
+            msg = mavlink.MAVLink_command_long_message(1, 1, cmd, 0, p1, 0, 0, 0, 0, 0, p7)
+            feed(sim.handle(bytes(msg.pack(gcs)), sim.t_s, "api"))
+        acks = [(m.command, m.result) for m in got if m.get_type() == "COMMAND_ACK"]
+        assert acks == [(400, 0), (22, 0)]
+        z0 = float(sim.vehicle.home_ned[2])
+        run(5.0)
+        texts = [m.text for m in got if m.get_type() == "STATUSTEXT"]
+        assert "Fault: unit 2 rotor 2 eta 0.5" in texts
+        # the coordinator's own event text (or "Reallocation: <reason>" where it has none)
+        assert any(t.startswith("Realloc") for t in texts), texts
+        assert sim.unit_eta()[5] == 0.5 and sim.coordinator.eta_believed[5] == 0.5
+        assert z0 - sim.truth().position_ned_m[2] == pytest.approx(2.0, abs=0.1)  # still holding 2 m
+    finally:
+        sim.close()
+
+
+# ----------------------------------------------------------------------------- MAVSDK
+async def _until(predicate, timeout_s: float, what: str, period_s: float = 0.1):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = await predicate()
+        if value:
+            return value
+        await asyncio.sleep(period_s)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+async def _is(telemetry, *modes) -> bool:
+    return await telemetry.flight_mode() in modes
+
+
+async def _fly(api_port: int, status_path: Path) -> dict:
+    r: dict = {}
+    cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    async with Mavsdk(cfg) as sdk:
+        await sdk.add_any_connection(f"udpin://{LOOP}:{api_port}")
+        system = await sdk.first_autopilot(timeout_s=15.0)
+        assert system is not None, "MAVSDK did not find the assembly"
+        telemetry, action = TelemetryAsync(system), ActionAsync(system)
+        offboard, failure, param = OffboardAsync(system), FailureAsync(system), ParamAsync(system)
+        r["sysid"] = await system.get_system_id()
+        texts: list[str] = []
+
+        async def collect() -> None:
+            async for st in telemetry.subscribe_status_text():
+                texts.append(st.text)
+
+        collector = asyncio.ensure_future(collect())
+
+        async def pv():
+            return await telemetry.position_velocity_ned()
+
+        async def error_to_truth() -> float:
+            errs = []
+            for _ in range(5):  # MAVSDK's cached position vs the truth at (almost) the same moment
+                p = (await pv()).position
+                truth = read_status(status_path)["truth_position_ned_m"]
+                errs.append(math.dist((p.north_m, p.east_m, p.down_m), truth))
+                await asyncio.sleep(0.1)
+            return min(errs)
+
+        await _until(lambda: telemetry.health_all_ok(), 10.0, "health_all_ok")
+        r["ground_error_m"] = await error_to_truth()
+        r["units_param"] = await param.get_param_int("MARS_UNITS")
+        assert await action.get_takeoff_altitude() == pytest.approx(2.0)
+        ground_down = read_status(status_path)["truth_position_ned_m"][2]
+
+        await action.arm()
+        await _until(lambda: telemetry.armed(), 5.0, "armed telemetry")
+        await action.takeoff()
+        await _until(lambda: _is(telemetry, FlightMode.TAKEOFF), 5.0, "TAKEOFF mode")
+
+        async def at_2m() -> bool:
+            return abs((await telemetry.position()).relative_altitude_m - 2.0) < 0.05
+
+        await _until(at_2m, 15.0, "2 m altitude")
+        await _until(lambda: _is(telemetry, FlightMode.HOLD), 5.0, "HOLD after takeoff")
+        await asyncio.sleep(0.5)
+        r["hover_error_m"] = await error_to_truth()
+        r["climb_m"] = ground_down - read_status(status_path)["truth_position_ned_m"][2]
+        start = (await pv()).position
+
+        async def north_near(target: float) -> bool:
+            s = await pv()
+            return abs(s.position.north_m - target) < 0.05 and abs(s.velocity.north_m_s) < 0.1
+
+        await offboard.set_position_ned(PositionNedYaw(start.north_m + 1.0, start.east_m, start.down_m, 0.0))
+        await offboard.start()
+        await _until(lambda: _is(telemetry, FlightMode.OFFBOARD), 5.0, "OFFBOARD mode")
+        await _until(lambda: north_near(start.north_m + 1.0), 10.0, "1 m north")
+        r["north_truth_m"] = read_status(status_path)["truth_position_ned_m"][0] - start.north_m
+        r["north_error_m"] = await error_to_truth()
+
+        # motor 6 = unit 2 rotor 2 at half thrust, through MAVSDK's failure plugin
+        await failure.inject(FailureUnit.SYSTEM_MOTOR, FailureType.SLOW, 6)
+        await _until(lambda: _has(texts, "Realloc"), 3.0, "reallocation STATUSTEXT")
+        await offboard.set_position_ned(PositionNedYaw(start.north_m, start.east_m, start.down_m, 0.0))
+        await _until(lambda: north_near(start.north_m), 10.0, "back at the start")
+        st = read_status(status_path)
+        r["back_error_m"] = math.dist(st["truth_position_ned_m"], (start.north_m, start.east_m, start.down_m))
+        r["unit_eta"], r["eta_believed"] = st["unit_eta"], st["eta_believed"]
+        await offboard.stop()
+        await _until(lambda: _is(telemetry, FlightMode.HOLD), 5.0, "HOLD after offboard")
+
+        await action.land()
+        await _until(lambda: _not(telemetry.in_air), 15.0, "landed")
+        await _until(lambda: _not(telemetry.armed), 5.0, "auto-disarm after landing")
+        r["landed_down_m"] = read_status(status_path)["truth_position_ned_m"][2] - ground_down
+        r["texts"] = list(texts)
+        collector.cancel()
+        r["drops"] = read_status(status_path)["drops"]
+    return r
+
+
+async def _has(texts: list[str], prefix: str) -> bool:
+    return any(t.startswith(prefix) for t in texts)
+
+
+async def _not(getter) -> bool:
+    return not await getter()
+
+
+def test_mavsdk_flies_the_3x2_assembly_as_one_vehicle(tmp_path: Path) -> None:
+    api = free_udp_port()
+    status = tmp_path / "status.json"
+    proc, first = spawn_vehicle(["--layout", "XXX,XXX", "--ftc", "qp", "--sysid", str(SYSID),
+                                 "--api-port", str(api), "--api-bind", "0",
+                                 "--gcs-port", str(free_udp_port()), "--gcs-bind", "0"], status)
+    try:
+        r = asyncio.run(_fly(api, status))
+    finally:
+        assert stop_unit(proc) == 0
+    print({k: v for k, v in r.items() if k != "texts"}, r["texts"])
+    assert r["sysid"] == SYSID and r["units_param"] == 6
+    assert r["ground_error_m"] < 0.05 and r["hover_error_m"] < 0.05 and r["north_error_m"] < 0.05
+    assert abs(r["climb_m"] - 2.0) < 0.1
+    assert abs(r["north_truth_m"] - 1.0) < 0.08 and r["back_error_m"] < 0.1
+    # the failure went into unit 2's motor path; the coordinator was told and reallocated
+    assert r["unit_eta"][5] == 0.5 and sum(r["unit_eta"]) == 23.5 and r["eta_believed"][5] == 0.5
+    assert "Fault: unit 2 rotor 2 eta 0.5" in r["texts"] and "Takeoff complete: holding" in r["texts"]
+    assert abs(r["landed_down_m"]) < 0.05
+    assert not r["drops"], r["drops"]  # MAVSDK's own traffic is all understood
+
+
+# ----------------------------------------------------------------------------- hostile input
+class Gcs:
+    """A legitimate client on the api link: asks for AUTOPILOT_VERSION and waits for it."""
+
+    def __init__(self, port: int) -> None:
+        self.addr = (LOOP, port)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind((LOOP, 0))
+        self.sock.settimeout(0.05)
+        self.mav = mavlink.MAVLink(None, 245, 190)
+        self.dec = mavlink.MAVLink(None, 245, 190)
+
+    def request_version(self, timeout_s: float) -> bool:
+        msg = mavlink.MAVLink_command_long_message(SYSID, 1, 512, 0, 148, 0, 0, 0, 0, 0, 0)
+        self.sock.sendto(bytes(msg.pack(self.mav)), self.addr)
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            try:
+                data, _ = self.sock.recvfrom(65536)
+            except OSError:
+                continue
+            if any(m.get_type() == "AUTOPILOT_VERSION" for m in self.dec.parse_buffer(data) or []):
+                return True
+        return False
+
+
+def test_hostile_traffic_on_the_assembly_endpoint_is_counted_and_dropped(tmp_path: Path) -> None:
+    status = tmp_path / "status.json"
+    api = free_udp_port()
+    listener = Listener(api)
+    listener.start()
+    proc, first = spawn_vehicle(["--sysid", str(SYSID), "--api-port", str(api), "--api-bind", "0",
+                                 "--gcs-port", str(free_udp_port()), "--gcs-bind", "0"], status)
+    port = first["endpoints"]["api"]["from"]
+    rng = random.Random(5)
+    attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    evil = mavlink.MAVLink(None, 245, 190)
+
+    def to(data: bytes, n: int = 1) -> None:
+        for _ in range(n):
+            attacker.sendto(data, (LOOP, port))
+
+    try:
+        gcs = Gcs(port)
+        assert gcs.request_version(3.0), "the legitimate link does not work"
+        for _ in range(200):
+            to(bytes(rng.randrange(256) for _ in range(rng.randrange(1, 300))))
+        arm = bytes(mavlink.MAVLink_command_long_message(SYSID, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(evil))
+        to(arm[: len(arm) // 2], 100)  # truncated
+        corrupted = bytearray(arm)
+        corrupted[14] ^= 0x40
+        to(bytes(corrupted), 100)  # CRC no longer matches
+        to(bytes(mavlink.MAVLink_command_long_message(SYSID + 1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(evil)), 100)
+        nan_sp = mavlink.MAVLink_set_position_target_local_ned_message(
+            0, SYSID, 1, 1, 0x09F8, math.nan, 0, -2, 0, 0, 0, 0, 0, 0, 0, 0)
+        to(bytes(nan_sp.pack(evil)), 100)
+        huge_v = mavlink.MAVLink_set_position_target_local_ned_message(
+            0, SYSID, 1, 1, 0x0DC7, 0, 0, 0, 1e6, 0, 0, 0, 0, 0, 0, 0)
+        to(bytes(huge_v.pack(evil)), 100)
+        time.sleep(0.5)
+        d = read_status(status)["drops"]
+        assert d["parse.bad_crc"] >= 100 and d["parse.truncated"] >= 100 and d["parse.junk"] >= 150, d
+        assert d["wrong_target"] == 100 and d["setpoint_non_finite"] == 100 and d["setpoint_out_of_range"] == 100, d
+
+        # a flood of 5,000 arm commands per second for 1 s, addressed to another system, while the
+        # legitimate client keeps asking
+        flood = [bytes(mavlink.MAVLink_command_long_message(SYSID + 1, 1, 400, 0, 1, 0, 0, 0, 0, 0, k).pack(evil))
+                 for k in range(200)]
+        sent: list = []
+        kernel_before = _kernel_drops(port)
+        flooder = threading.Thread(target=_flood, args=(port, flood, 5000, 1.0, sent))
+        hb_before = len(listener.heartbeats)
+        flooder.start()
+        asked = answered = 0
+        while flooder.is_alive():
+            asked += 1
+            answered += gcs.request_version(0.1)
+        flooder.join()
+        time.sleep(1.0)
+        st = read_status(status)
+        counted = st["drops"]["wrong_target"] - 100
+        kernel = _kernel_drops(port) - kernel_before
+        print(f"flood: sent {sent[0]}, vehicle counted {counted}, kernel dropped {kernel}; answered {answered}/{asked}; "
+              f"step p99 {st['step_p99_ms']:.2f} ms, overruns {st['overruns']}")
+        assert sent[0] == 5000 and counted <= sent[0] and counted + kernel >= sent[0]
+        assert counted >= 0.5 * sent[0]
+        assert answered >= 0.8 * asked and gcs.request_version(1.0)
+        assert len(listener.heartbeats) - hb_before >= 2
+        # nothing was acted on
+        assert proc.poll() is None
+        assert st["armed"] is False and st["mode"] == [4, 3] and max(st["rotor_thrust_n"]) == 0.0
+        gaps = np.diff(listener.heartbeats)
+        assert gaps.max() < 1.6, gaps
+    finally:
+        attacker.close()
+        rc = stop_unit(proc)
+        listener.stop()
+    assert rc == 0
