@@ -8,7 +8,10 @@ from __future__ import annotations
 import asyncio
 import math
 import random
+import shutil
+import signal
 import socket
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -306,4 +309,64 @@ def test_hostile_traffic_on_the_assembly_endpoint_is_counted_and_dropped(tmp_pat
         attacker.close()
         rc = stop_unit(proc)
         listener.stop()
+    assert rc == 0
+
+
+# ----------------------------------------------------------------------------- MAVProxy
+@pytest.mark.skipif(shutil.which("mavproxy.py") is None, reason="MAVProxy not installed")
+def test_mavproxy_watches_the_assembly_on_the_gcs_link(tmp_path: Path) -> None:
+    """MAVProxy 1.8 (non-interactive, udpout to the gcs link): the assembly detected as one vehicle,
+    PX4 mode decoded, the assembly's parameter table fetched, attitude and position shown, arm ACKed."""
+    from mars_link.assembly import AssemblyModel, vehicle_preset
+    from mars_link.assembly_vehicle import assembly_param_specs
+
+    n_params = len(assembly_param_specs(SYSID, AssemblyModel.from_layout(["XXX", "XXX"], vehicle_preset("mars-ftcc")), "none"))
+    expected = {
+        "detected": f"Detected vehicle {SYSID}:1",
+        "mode": "Mode LOITER",
+        "params": f"Received {n_params} parameters",
+        "alt": "MIS_TAKEOFF_ALT  2.0",
+        "units": "MARS_UNITS       6",
+        "attitude": "ATTITUDE {",
+        "position": "GLOBAL_POSITION_INT {",
+        "arm": "COMPONENT_ARM_DISARM: ACCEPTED",
+    }
+    bind = free_udp_port()
+    proc, _ = spawn_vehicle(["--sysid", str(SYSID), "--gcs-port", str(free_udp_port()), "--gcs-bind", str(bind),
+                             "--api-port", str(free_udp_port()), "--api-bind", "0"], tmp_path / "status.json")
+    cmds = ["repeat add 2 param show MIS_TAKEOFF_ALT", "repeat add 2 param show MARS_UNITS",
+            "repeat add 2 status ATTITUDE", "repeat add 2 status GLOBAL_POSITION_INT", "repeat add 3 arm throttle"]
+    mp = subprocess.Popen(
+        ["mavproxy.py", f"--master=udpout:{LOOP}:{bind}", "--non-interactive", "--no-state", "--cmd=" + "; ".join(cmds)],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True)
+    seen: dict[str, float] = {}
+    lines: list[str] = []
+    t0 = time.monotonic()
+
+    def read() -> None:
+        for line in mp.stdout:
+            lines.append(line.rstrip())
+            for key, text in expected.items():
+                if text in line and key not in seen:
+                    seen[key] = time.monotonic() - t0
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    try:
+        deadline = t0 + 30
+        while time.monotonic() < deadline and len(seen) < len(expected):
+            time.sleep(0.2)
+    finally:
+        mp.send_signal(signal.SIGTERM)
+        try:
+            mp.wait(10)
+        except subprocess.TimeoutExpired:
+            mp.kill()
+            mp.wait(5)
+        reader.join(5)
+        rc = stop_unit(proc)
+    print("\n".join(lines[:40]))
+    print({k: round(v, 2) for k, v in seen.items()})
+    assert set(seen) == set(expected), sorted(set(expected) - set(seen))
+    assert seen["params"] - seen["detected"] < 5.0  # no 10 s MAVFTP timeout before the list
     assert rc == 0
