@@ -51,16 +51,21 @@ def paper_ftc(case: Case) -> str:
     return "unit" if case.unit_failure else "hybrid"
 
 
-def scenario_for(case: Case, controller: str, ftc: str, duration_s: float | None = None):
+def scenario_for(
+    case: Case, controller: str, ftc: str, duration_s: float | None = None, t_fault_s: float = 0.0,
+    faults_known: bool = True,
+):
+    """The case's scenario. Table I / Fig. 3 inject at t = 0 (the paper's scenes start faulty); the
+    FDI evaluation injects at `t_fault_s` and, with `faults_known` false, does not tell the coordinator."""
     paper = controller == "mars-ftcc-paper"
     doc = {
         "name": f"{case.name} / {controller} / {ftc}",
         "vehicle": {"preset": "mars-ftcc"},
         "assembly": {"layout": ["XXX", "XXX"], "tracked": "unit:1"},
         "trajectory": {"kind": "mars-ftcc-spiral"},
-        "control": {"controller": controller, "ftc": ftc},
+        "control": {"controller": controller, "ftc": ftc, "faults_known": faults_known},
         "faults": [
-            {"t": 0.0, "unit": u, "eta": eta} | ({} if r is None else {"rotor": r}) for u, r, eta in case.faults
+            {"t": t_fault_s, "unit": u, "eta": eta} | ({} if r is None else {"rotor": r}) for u, r, eta in case.faults
         ],
         # the paper's scenes fly on perfect state; its per-step differences amplify sensor noise, so
         # the paper controller gets the truth (deterministic: its spread over seeds is 0)
@@ -163,3 +168,114 @@ def write_results(rows: list[Row], seeds: int, out_dir: Path) -> Path:
     (out_dir / "table1.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
     return out_dir / "table1.md"
 
+
+
+# ----------------------------------------------------------------------------- fault detection (FDI)
+#: issue 5 acceptance: detection delay, eta accuracy, tracking with detected vs told faults
+FDI_MAX_DELAY_S = 0.5
+FDI_MAX_ETA_ERROR = 0.1
+FDI_MAX_ERROR_RATIO = 1.5
+FDI_T_FAULT_S = 10.0
+
+
+def fdi_ftc(case: Case, ftc: str) -> str:
+    """`ftc` for a case; "paper" = the paper's own choice (unit shares / hybrid)."""
+    return paper_ftc(case) if ftc == "paper" else ftc
+
+
+def eta_from_detections(n_rotors: int, detections: list[dict]) -> np.ndarray:
+    """The coordinator's final belief rebuilt from summary.json-style detection records, in order."""
+    eta = np.ones(n_rotors)
+    for d in detections:
+        base = (d["unit"] - 1) * 4
+        if d["rotor"] is None:
+            eta[base : base + 4] = d["eta_estimated"]
+        else:
+            eta[base + d["rotor"] - 1] = d["eta_estimated"]
+    return eta
+
+
+def true_eta(case: Case, n_rotors: int = 24) -> np.ndarray:
+    eta = np.ones(n_rotors)
+    for u, r, e in case.faults:
+        base = (u - 1) * 4
+        if r is None:
+            eta[base : base + 4] = e
+        else:
+            eta[base + r - 1] = e
+    return eta
+
+
+@dataclass
+class FdiTrial:
+    """One seed of one case: the detected-fault flight scored against the told-fault flight."""
+
+    case: Case
+    ftc: str
+    seed: int
+    t_fault_s: float
+    detections: list[dict]
+    error_told_m: float
+    error_detected_m: float
+    completed_told: bool
+    completed_detected: bool
+
+    @property
+    def false_alarms(self) -> int:
+        """Detections before the fault, or naming a unit/rotor that has no fault."""
+        truth = true_eta(self.case)
+        bad = 0
+        for d in self.detections:
+            base = (d["unit"] - 1) * 4
+            sl = slice(base, base + 4) if d["rotor"] is None else slice(base + d["rotor"] - 1, base + d["rotor"])
+            if d["t_detected"] < self.t_fault_s - 1e-9 or np.all(truth[sl] == 1.0):
+                bad += 1
+        return bad
+
+    @property
+    def delay_s(self) -> float:
+        """From the fault to the detection that completed the identification (inf: never)."""
+        truth = true_eta(self.case)
+        faulty = set(np.flatnonzero(truth < 1.0))
+        seen: set[int] = set()
+        for d in sorted(self.detections, key=lambda d: d["t_detected"]):
+            if d["t_detected"] < self.t_fault_s - 1e-9:
+                continue
+            base = (d["unit"] - 1) * 4
+            seen |= set(range(base, base + 4)) if d["rotor"] is None else {base + d["rotor"] - 1}
+            if faulty <= seen:
+                return d["t_detected"] - self.t_fault_s
+        return float("inf") if faulty else 0.0
+
+    @property
+    def eta_error(self) -> float:
+        """Largest |eta believed - eta true| over all rotors at the end of the flight."""
+        truth = true_eta(self.case)
+        return float(np.max(np.abs(eta_from_detections(len(truth), self.detections) - truth)))
+
+    @property
+    def error_ratio(self) -> float:
+        return self.error_detected_m / self.error_told_m if self.error_told_m > 0 else float("inf")
+
+    @property
+    def passed(self) -> bool:
+        return (
+            self.completed_told and self.completed_detected and self.false_alarms == 0
+            and self.delay_s < FDI_MAX_DELAY_S and self.eta_error <= FDI_MAX_ETA_ERROR
+            and self.error_ratio <= FDI_MAX_ERROR_RATIO
+        )
+
+
+def fdi_trial(case: Case, ftc: str = "qp", seed: int = 1, t_fault_s: float = FDI_T_FAULT_S,
+              duration_s: float | None = None) -> FdiTrial:
+    """Fly `case` twice with the same seed: faults told at `t_fault_s`, then detected (not told)."""
+    mode = fdi_ftc(case, ftc)
+    told = run_trial(scenario_for(case, "cascaded", mode, duration_s, t_fault_s, faults_known=True), seed)
+    found = run_trial(scenario_for(case, "cascaded", mode, duration_s, t_fault_s, faults_known=False), seed)
+    return FdiTrial(case, mode, seed, t_fault_s, found.detections, told.mean_error_m, found.mean_error_m,
+                    told.completed, found.completed)
+
+
+def fdi_false_alarm_flight(seed: int, ftc: str = "qp", duration_s: float | None = None) -> list[dict]:
+    """A fault-free spiral with the detector on: its detections (all false alarms)."""
+    return run_trial(scenario_for(CASES[0], "cascaded", ftc, duration_s, faults_known=False), seed).detections

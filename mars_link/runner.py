@@ -33,6 +33,8 @@ DIVERGENCE_TILT_DEG = 80.0
 ROTOR_LOG_HZ = 20.0
 #: position (mocap) samples per second; the IMU comes at every control step
 POSITION_RATE_HZ = 50.0
+#: a unit silent for this many control periods is declared lost (only with `unit_deaths`)
+UNIT_TIMEOUT_PERIODS = 5
 STAGES = ("physics", "sensors", "estimation", "control", "allocation", "motors", "logging")
 
 
@@ -170,8 +172,13 @@ def run_trial(
     trial_index: int = 0,
     log: RunLog | None = None,
     on_progress: Callable[[float], None] | None = None,
+    unit_deaths: dict[int, float] | None = None,
 ) -> TrialResult:
-    """World, units and coordinator wired by direct calls, one exchange per control period."""
+    """World, units and coordinator wired by direct calls, one exchange per control period.
+
+    `unit_deaths` (unit -> time): that unit's process dies then (no more telemetry, motors stop); the
+    coordinator, not told, declares it lost after `UNIT_TIMEOUT_PERIODS` silent control periods.
+    """
     from firmware_models.unit import UnitCore, UnitCoreParams
     from sitl.world import World, WorldConfig
 
@@ -197,7 +204,11 @@ def run_trial(
         from mars_link.fault_detection import FaultDetector
 
         detector = FaultDetector(model, ground_down_m=float(com_start[2]))  # every flight starts landed
-    coordinator = Coordinator(model, trajectory, controller, estimator, detector)
+    deaths = sorted((t_d, u) for u, t_d in (unit_deaths or {}).items())
+    for _, u in deaths:
+        model.check_rotor(u, None)
+    timeout = UNIT_TIMEOUT_PERIODS / control_hz if deaths else None
+    coordinator = Coordinator(model, trajectory, controller, estimator, detector, telemetry_timeout_s=timeout)
     world = World(
         model,
         WorldConfig(
@@ -232,6 +243,10 @@ def run_trial(
                            "text": f"Fault: {where} " + ("failed" if f.rotor is None and f.eta == 0 else f"eta {f.eta:.2f}")})
             if scenario.faults_known:
                 coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
+        while deaths and deaths[0][0] <= t + 1e-9:
+            _, u = deaths.pop(0)
+            world.declare_dead(u)
+            events.append({"t_s": round(t, 6), "type": "unit_died", "unit": u, "text": f"Unit {u} process died"})
         c0 = clock()
         packets = world.sense()
         c1 = clock()
@@ -287,7 +302,7 @@ def run_trial(
     events = sorted(events + coordinator.events, key=lambda e: e["t_s"])
     detections = [
         {
-            "t_fault": _fault_time(faults, d.unit, d.rotor),
+            "t_fault": _fault_time(faults, d.unit, d.rotor, unit_deaths),
             "t_detected": round(d.t_detected, 6),
             "unit": d.unit,
             "rotor": d.rotor,
@@ -314,9 +329,12 @@ def run_trial(
     )
 
 
-def _fault_time(faults: list[FaultSpec], unit: int, rotor: int | None) -> float | None:
+def _fault_time(
+    faults: list[FaultSpec], unit: int, rotor: int | None, deaths: dict[int, float] | None = None
+) -> float | None:
     """When the injected fault that a detection names happened (None: a false alarm)."""
     times = [f.t_s for f in faults if f.unit == unit and (rotor is None or f.rotor in (None, rotor))]
+    times += [t for u, t in (deaths or {}).items() if u == unit]
     return min(times) if times else None
 
 

@@ -283,71 +283,168 @@ def test_takeoff_from_the_ground_raises_no_alarm_and_a_later_fault_is_found():
     assert [(d.unit, d.rotor) for d in sim.detections] == [(4, 3)]
 
 
-def _runner_pieces():
+def _runner():
     try:
         import sitl.physics  # noqa: F401
-        import sitl.sensors  # noqa: F401
-        from firmware_models.unit import UnitCore, UnitCoreParams
-        from mars_link.coordinator import Coordinator
-        from mars_link.runner import make_controller, make_trajectory
-        from mars_link.scenario import load_scenario
-        from sitl.world import World, WorldConfig
+        import sitl.world  # noqa: F401
+        from mars_link import reproduce
     except ImportError as err:  # the runner's pieces are written by other engineers
         pytest.skip(f"in-process runner not complete yet: {err}")
-    return UnitCore, UnitCoreParams, Coordinator, make_controller, make_trajectory, load_scenario, World, WorldConfig
+    return reproduce
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(
-    reason="open (coordinator issue): on the JSBSim loop the detector false-alarms during the spiral's "
-    "take-off (ground contact), before the fault at 10 s",
-    strict=False,
-)
+@pytest.mark.parametrize("seed", [2, 3])
+def test_runner_fault_free_spiral_raises_no_alarm(seed):
+    """The whole noisy 3x2 spiral (JSBSim, take-off from the ground included) with the detector on
+    and no fault: not one detection."""
+    reproduce = _runner()
+    assert reproduce.fdi_false_alarm_flight(seed) == []
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize(
-    "faulty, eta",
-    [([(2, 2)], 0.5), ([(2, 1), (2, 2)], 0.5), ([(2, None)], 0.0), ([(3, None)], 0.0),
-     ([(2, None), (4, None)], 0.0), ([(2, None), (5, None)], 0.0), ([(3, None), (4, None)], 0.0)],
-    ids=["u2r2", "u2r1+u2r2", "u2", "u3", "u2+u4", "u2+u5", "u3+u4"],
+    "case_name", ["T1 u2 r2=0.5", "T1 u2 r1=r2=0.5", "F3 units {3}", "F3 units {2,5}"],
 )
-def test_runner_3x2_spiral_faults_at_10s_are_identified(faulty, eta):
-    """Table I rotor faults and the unit failures of Fig. 3 on the real in-process loop (JSBSim
-    world, unit cores with injected eta, coordinator with the EKF): the detector watches from
-    outside and is never told the truth."""
-    UnitCore, UnitCoreParams, Coordinator, make_controller, make_trajectory, load_scenario, World, WorldConfig = (
-        _runner_pieces()
-    )
+def test_runner_3x2_spiral_faults_at_10s_are_found_and_flown_like_told(case_name):
+    """Issue 5 acceptance on the real in-process loop, faults injected at 10 s in the units' motor
+    paths and never told: found < 0.5 s later, every rotor's eta within 0.1, no false alarm, flight
+    completed with a mean error within 1.5 x the same flight with the faults told. {2,5} is the
+    hardest Fig. 3 case: in a still hover it looks exactly like {1,6} or {3,4} (a pure lift loss)."""
+    reproduce = _runner()
+    case = next(c for c in reproduce.CASES if c.name == case_name)
+    trial = reproduce.fdi_trial(case, "qp", seed=1)
+    assert trial.completed_told and trial.completed_detected
+    assert trial.false_alarms == 0, trial.detections
+    assert trial.delay_s < 0.5, trial.detections
+    assert trial.eta_error <= 0.1, trial.detections
+    assert trial.error_ratio <= 1.5, (trial.error_told_m, trial.error_detected_m)
+    unit_failure = case.unit_failure
+    assert all((d["rotor"] is None) == unit_failure for d in trial.detections)
+    assert all(d["t_fault"] == 10.0 for d in trial.detections)
+
+
+def test_fdi_scoring_counts_false_alarms_delay_and_eta_error():
+    """The evaluation's own arithmetic, on hand-made detection records."""
+    from mars_link.reproduce import CASES, FdiTrial
+
+    case = next(c for c in CASES if c.name == "F3 units {2,4}")
+    dets = [{"t_detected": 10.2, "unit": 2, "rotor": None, "eta_estimated": 0.0},
+            {"t_detected": 10.4, "unit": 4, "rotor": None, "eta_estimated": 0.05}]
+    t = FdiTrial(case, "qp", 1, 10.0, dets, 0.01, 0.012, True, True)
+    assert t.delay_s == pytest.approx(0.4) and t.eta_error == pytest.approx(0.05) and t.false_alarms == 0
+    assert t.error_ratio == pytest.approx(1.2) and t.passed
+    early = FdiTrial(case, "qp", 1, 10.0, [dict(dets[0], t_detected=9.0)] + dets, 0.01, 0.01, True, True)
+    assert early.false_alarms == 1 and not early.passed
+    wrong = FdiTrial(case, "qp", 1, 10.0, dets[:1] + [{"t_detected": 10.1, "unit": 5, "rotor": 3,
+                                                       "eta_estimated": 0.5}], 0.01, 0.01, True, True)
+    assert wrong.false_alarms == 1 and wrong.delay_s == math.inf and wrong.eta_error == 1.0
+
+
+def _coordinator(detector: bool = True, **kwargs):
+    from mars_link.coordinator import Coordinator
+    from mars_link.runner import make_controller, make_trajectory
+    from mars_link.scenario import load_scenario
+
     scenario = load_scenario("spiral_3x2")
+    scenario.ftc = "qp"  # dead rotors get exactly zero
     model = scenario.model()
-    trajectory = make_trajectory(scenario, model)
-    coordinator = Coordinator(model, trajectory, make_controller(scenario, model, model.nominal_eta()),
-                              AssemblyEstimator(model))
-    start = trajectory.sample(0.0)
-    yaw_q = np.array([math.cos(start.yaw_rad / 2), 0.0, 0.0, math.sin(start.yaw_rad / 2)])
-    com = start.position_ned_m - quat_to_rotmat(yaw_q) @ model.unit_position(scenario.tracked_unit() or 1)
-    world = World(model, WorldConfig(physics_hz=500.0, exchange_hz=100.0, seed=1, noise=True), com, start.yaw_rad)
-    units = {u: UnitCore(u, model.vehicle, UnitCoreParams(control_period_s=0.01)) for u in model.unit_ids}
-    detector = FaultDetector(model)
-    detections, injected = [], False
-    try:
-        for _ in range(1060):
-            t = world.t_s
-            if t >= 10.0 - 1e-9 and not injected:
-                for unit, rotor in faulty:
-                    units[unit].inject_fault(rotor, eta)
-                injected = True
-            packets = [units[p.unit_id].on_sensors(p) for p in world.sense()]
-            for cmd in coordinator.step(t, packets):
-                units[cmd.unit_id].on_rotor_command(cmd)
-                world.actuate(units[cmd.unit_id].motor_output(t))
-            rec = coordinator.last
-            detections += detector.update(t, rec.thrusts_n, rec.estimate, [p.imu for p in packets])
-            world.advance()
-    finally:
-        world.close()
-    truth = {s: eta for s in slots(model, faulty)}
-    assert detections and min(d.t_detected for d in detections) >= 10.0, "false alarm before the fault"
-    assert min(d.t_detected for d in detections) < 10.5
-    expected = model.nominal_eta()
-    for s, e in truth.items():
-        expected[s] = e
-    assert np.max(np.abs(detector.eta_estimate - expected)) <= 0.1, [(d.unit, d.rotor, d.ambiguous_with) for d in detections]
+    controller = make_controller(scenario, model, model.nominal_eta())
+    det = FaultDetector(model) if detector else None
+    return Coordinator(model, make_trajectory(scenario, model), controller, AssemblyEstimator(model), det, **kwargs)
+
+
+@pytest.mark.parametrize("with_detector", [True, False], ids=["detector", "faults-told"])
+def test_unit_lost_is_a_failed_unit_with_a_detection_and_events(with_detector):
+    coord = _coordinator(with_detector)
+    model = coord.model
+    det = coord.unit_lost(3, 12.5)
+    assert (det.t_detected, det.unit, det.rotor, det.eta_estimated, det.reason) == (12.5, 3, None, 0.0, "silent")
+    assert coord.detections == [det]
+    assert np.all(coord.eta_believed[model.unit_slots(3)] == 0.0) and coord.eta_believed.sum() == 20
+    # the allocator was switched: unit 3's rotors get nothing, the others still hold the weight
+    np.testing.assert_allclose(coord.controller.allocator.eta, coord.eta_believed)
+    kinds = [e["type"] for e in coord.events]
+    assert kinds == ["unit_lost", "reallocation"]
+    assert coord.events[0]["text"] == "Unit 3 lost: telemetry lost" and coord.events[1]["text"] == "Realloc u3 dead"
+    if with_detector:
+        assert np.all(coord.detector.eta_estimate == coord.eta_believed)
+    assert coord.unit_lost(3, 13.0) is None and len(coord.events) == 2  # once only
+    with pytest.raises(UserInputError, match="unit 9 does not exist"):
+        coord.unit_lost(9, 1.0)
+
+
+def test_event_texts_fit_one_statustext():
+    from mars_link.coordinator import TEXT_MAX, fault_summary, short_text
+
+    coord = _coordinator()
+    model = coord.model
+    eta = model.nominal_eta()
+    eta[:] = 0.37  # every rotor degraded: the longest summary
+    coord.set_faults(eta, 1.0, "a reason far longer than fifty characters " * 3)
+    coord.unit_lost(6, 2.0, "no heartbeat for 1.23 s on the 57600-baud radio link")
+    assert coord.events and all(len(e["text"].encode("ascii")) <= TEXT_MAX for e in coord.events)
+    assert coord.events[-1]["text"].endswith("...")
+    assert short_text("Unit 2 r\u00f6tor\n 3") == "Unit 2 r?tor 3"
+    assert fault_summary(model, model.nominal_eta()) == "none"
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan")])
+def test_bad_telemetry_timeout_is_refused(bad):
+    with pytest.raises(UserInputError, match="telemetry_timeout_s"):
+        _coordinator(telemetry_timeout_s=bad)
+
+
+def test_silent_unit_is_declared_lost_after_the_timeout_and_its_late_packets_are_ignored():
+    """Sans-IO: packets from units 1, 2, 4, 5, 6 only; unit 3 is declared lost once it has been
+    silent longer than the timeout, not before; a stray packet of it afterwards changes nothing."""
+    from mars_link.messages import SensorPacket
+
+    coord = _coordinator(detector=False, telemetry_timeout_s=0.05)
+    model = coord.model
+    rng = np.random.default_rng(0)
+
+    def packets(t, units):
+        out = []
+        for u in units:
+            r = model.unit_position(u)
+            imu = ImuSample(t, u, rng.normal(0, 0.003, 3), np.array([0.0, 0.0, -GRAVITY_MPS2]) + rng.normal(0, 0.05, 3))
+            pos = PositionSample(t, u, np.array([r[0], r[1], -0.05]) + rng.normal(0, 0.01, 3))
+            out.append(SensorPacket(t, u, imu, pos, None))
+        return out
+
+    for k in range(10):
+        coord.step(k * 0.01, packets(k * 0.01, model.unit_ids))
+    alive = [u for u in model.unit_ids if u != 3]
+    lost_at = None
+    for k in range(10, 20):
+        t = k * 0.01
+        coord.step(t, packets(t, alive))
+        if lost_at is None and coord.lost_units:
+            lost_at = t
+    assert lost_at == pytest.approx(0.15)  # last heard at 0.09; 0.05 s later it is overdue
+    assert [(d.unit, d.reason) for d in coord.detections] == [(3, "silent")]
+    n_events = len(coord.events)
+    coord.step(0.20, packets(0.20, model.unit_ids))  # a late packet from the lost unit
+    assert coord.lost_units == {3} and len(coord.events) == n_events
+    assert not np.isnan(coord.last.thrusts_n).any()
+    assert np.all(coord.last.thrusts_n[model.unit_slots(3)] <= 1e-9)
+
+
+@pytest.mark.slow
+def test_runner_unit_process_death_mid_spiral_is_survived():
+    """In-process stand-in for SIGKILL of a unit process: at 10 s unit 3's telemetry stops and its
+    motors stop (sitl World.declare_dead). The coordinator, not told, declares it lost within the
+    timeout, reallocates and the assembly finishes the spiral."""
+    reproduce = _runner()
+    from mars_link.runner import UNIT_TIMEOUT_PERIODS, run_trial
+
+    sc = reproduce.scenario_for(reproduce.CASES[0], "cascaded", "qp", None, faults_known=False)
+    r = run_trial(sc, 1, unit_deaths={3: 10.0})
+    assert r.completed and r.sim_time_s > 50.0
+    assert [(d["unit"], d["rotor"], d["eta_estimated"], d["t_fault"]) for d in r.detections] == [(3, None, 0.0, 10.0)]
+    assert 10.0 < r.detections[0]["t_detected"] <= 10.0 + (UNIT_TIMEOUT_PERIODS + 1) / 100 + 1e-9
+    kinds = [e["type"] for e in r.events]
+    assert kinds[:3] == ["unit_died", "unit_lost", "reallocation"], r.events
+    assert all(e.get("text") for e in r.events)
+    assert r.mean_error_m < 0.015  # fault-free, same seed: 0.0102 m (1.5 x that)

@@ -1,0 +1,186 @@
+"""Fault detection and isolation on paper 000's 3x2 spiral: Table I rotor faults and Fig. 3 unit failures.
+
+    python tools/fdi_eval.py [--out runs/fdi_eval] [--seeds 3] [--ftc qp] [--t-fault 10] [--false-alarm-seeds 5]
+
+Every case is flown twice per seed with the in-process runner (JSBSim, sensor noise, EKF, cascaded
+controller): the faults act in the units' motor paths at `--t-fault` and are told to the coordinator
+(`faults_known = true`), then the same flight with `faults_known = false`, where the coordinator's
+FaultDetector has to find them. Per case: detection delay (fault -> the detection that completed the
+identification), the largest |eta believed - eta true| over all 24 rotors at the end, false alarms,
+and the mean tracking error of unit 1 over the whole flight, told vs detected. Acceptance (issue 5):
+delay < 0.5 s, eta within 0.1, flight completed, detected error <= 1.5 x told. Fault-free flights
+with the detector on count false alarms. `--ftc paper` uses the paper's own mode per case (unit
+shares for unit failures, hybrid for rotor faults).
+
+Writes fdi.md, fdi.json and fdi.png (detection delay and eta error per case; told vs detected error)
+to --out. Exit 0 when every case passed, 1 otherwise, 2 for bad arguments.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from mars_link.errors import UserInputError  # noqa: E402
+from mars_link.reproduce import (  # noqa: E402
+    CASES, FDI_MAX_DELAY_S, FDI_MAX_ETA_ERROR, FDI_MAX_ERROR_RATIO, FdiTrial, fdi_false_alarm_flight, fdi_trial,
+)
+
+FTC_CHOICES = ("qp", "paper", "unit", "partial", "full", "hybrid")
+
+
+def parse(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="runs/fdi_eval")
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--ftc", default="qp")
+    ap.add_argument("--t-fault", type=float, default=10.0)
+    ap.add_argument("--false-alarm-seeds", type=int, default=5)
+    ap.add_argument("--cases", default="", help="comma-separated case-name fragments (default: all faulty cases)")
+    ap.add_argument("--no-plot", action="store_true")
+    args = ap.parse_args(argv)
+    if not 1 <= args.seeds <= 100 or not 0 <= args.false_alarm_seeds <= 100:
+        raise UserInputError("--seeds must be in 1..100 and --false-alarm-seeds in 0..100")
+    if args.ftc not in FTC_CHOICES:
+        raise UserInputError(f"--ftc must be one of {', '.join(FTC_CHOICES)}, got {args.ftc!r}")
+    if not (math.isfinite(args.t_fault) and 1.0 <= args.t_fault <= 45.0):
+        raise UserInputError(f"--t-fault must be between 1 and 45 s (the spiral lasts 50.27 s), got {args.t_fault}")
+    return args
+
+
+def select_cases(spec: str):
+    faulty = [c for c in CASES if c.faults]
+    if not spec:
+        return faulty
+    wanted = [w.strip() for w in spec.split(",") if w.strip()]
+    chosen = [c for c in faulty if any(w in c.name for w in wanted)]
+    if not chosen:
+        raise UserInputError(f"--cases {spec!r} matches none of: {'; '.join(c.name for c in faulty)}")
+    return chosen
+
+
+def summarize(trials: list[FdiTrial]) -> dict:
+    import numpy as np
+
+    delays = [t.delay_s for t in trials]
+    return {
+        "case": trials[0].case.name,
+        "ftc": trials[0].ftc,
+        "seeds": [t.seed for t in trials],
+        "delay_s_max": float(max(delays)),
+        "delay_s_mean": float(np.mean(delays)),
+        "eta_error_max": float(max(t.eta_error for t in trials)),
+        "false_alarms": int(sum(t.false_alarms for t in trials)),
+        "error_told_m": float(np.mean([t.error_told_m for t in trials])),
+        "error_detected_m": float(np.mean([t.error_detected_m for t in trials])),
+        "error_ratio_max": float(max(t.error_ratio for t in trials)),
+        "completed": all(t.completed_told and t.completed_detected for t in trials),
+        "passed": all(t.passed for t in trials),
+        "detections": [t.detections for t in trials],
+    }
+
+
+def markdown(rows: list[dict], fa: dict, args: argparse.Namespace) -> str:
+    lines = [
+        f"Faults at t = {args.t_fault:g} s, {args.seeds} seed(s), ftc {args.ftc}; acceptance: delay < "
+        f"{FDI_MAX_DELAY_S} s, eta error <= {FDI_MAX_ETA_ERROR}, detected/told error <= {FDI_MAX_ERROR_RATIO}.",
+        "",
+        "| case | ftc | delay mean / max [s] | eta error max | false alarms | told error [m] | detected error [m] "
+        "| ratio max | pass |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['case']} | {r['ftc']} | {r['delay_s_mean']:.2f} / {r['delay_s_max']:.2f} | {r['eta_error_max']:.3f} "
+            f"| {r['false_alarms']} | {r['error_told_m']:.4f} | {r['error_detected_m']:.4f} | {r['error_ratio_max']:.2f} "
+            f"| {'yes' if r['passed'] else 'NO'} |"
+        )
+    lines += ["", f"Fault-free spiral with the detector on: {fa['false_alarms']} false alarm(s) in {fa['flights']} "
+              f"flight(s) (seeds {fa['seeds']})."]
+    return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    names = [r["case"].replace("T1 ", "").replace("F3 ", "") for r in rows]
+    x = np.arange(len(rows))
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    delays = [min(r["delay_s_max"], 1.0) for r in rows]
+    axes[0].bar(x, delays, color=["tab:green" if d < FDI_MAX_DELAY_S else "tab:red" for d in delays])
+    axes[0].axhline(FDI_MAX_DELAY_S, color="k", ls="--", lw=1, label="limit")
+    axes[0].set_ylabel("detection delay, worst seed [s]")
+    errs = [r["eta_error_max"] for r in rows]
+    axes[1].bar(x, errs, color=["tab:green" if e <= FDI_MAX_ETA_ERROR else "tab:red" for e in errs])
+    axes[1].axhline(FDI_MAX_ETA_ERROR, color="k", ls="--", lw=1, label="limit")
+    axes[1].set_ylabel("max |eta believed - eta true|")
+    w = 0.38
+    axes[2].bar(x - w / 2, [r["error_told_m"] * 100 for r in rows], w, label="faults told")
+    axes[2].bar(x + w / 2, [r["error_detected_m"] * 100 for r in rows], w, label="faults detected")
+    axes[2].set_ylabel("mean tracking error of unit 1 [cm]")
+    for ax in axes:
+        ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
+        ax.legend(fontsize=8)
+        ax.grid(axis="y", alpha=0.3)
+    fig.suptitle(f"FDI on the 3x2 spiral, faults at {rows[0].get('t_fault_s', 10):g} s, not told to the coordinator")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        args = parse(argv)
+        cases = select_cases(args.cases)
+    except UserInputError as exc:
+        print(f"fdi_eval: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.out)
+    rows = []
+    t0 = time.perf_counter()
+    print(f"{'case':<18} {'seed':>4} {'delay_s':>7} {'eta_err':>7} {'false':>5} {'told_m':>8} {'found_m':>8} "
+          f"{'ratio':>5}  detections")
+    for case in cases:
+        trials = []
+        for seed in range(1, args.seeds + 1):
+            t = fdi_trial(case, args.ftc, seed, args.t_fault)
+            trials.append(t)
+            found = ", ".join(f"u{d['unit']}" + (f"r{d['rotor']}" if d["rotor"] else "") + f"={d['eta_estimated']:.2f}"
+                              f"@{d['t_detected']:.2f}" for d in t.detections)
+            print(f"{case.name:<18} {seed:>4} {t.delay_s:>7.2f} {t.eta_error:>7.3f} {t.false_alarms:>5} "
+                  f"{t.error_told_m:>8.4f} {t.error_detected_m:>8.4f} {t.error_ratio:>5.2f}  {found}", flush=True)
+        row = summarize(trials)
+        row["t_fault_s"] = args.t_fault
+        rows.append(row)
+    fa_seeds = list(range(1, args.false_alarm_seeds + 1))
+    fa_found = [fdi_false_alarm_flight(s, "qp" if args.ftc == "paper" else args.ftc) for s in fa_seeds]
+    fa = {"flights": len(fa_seeds), "seeds": fa_seeds, "false_alarms": sum(len(f) for f in fa_found),
+          "detections": fa_found}
+    table = markdown(rows, fa, args)
+    print()
+    print(table)
+    print(f"wall time {time.perf_counter() - t0:.0f} s")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "fdi.md").write_text(table, encoding="utf-8")
+    (out / "fdi.json").write_text(json.dumps({"cases": rows, "fault_free": fa, "ftc": args.ftc,
+                                              "t_fault_s": args.t_fault}, indent=2) + "\n", encoding="utf-8")
+    if not args.no_plot:
+        plot(rows, out / "fdi.png")
+        print(f"wrote {out / 'fdi.md'}, {out / 'fdi.json'}, {out / 'fdi.png'}")
+    ok = all(r["passed"] for r in rows) and fa["false_alarms"] == 0
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
