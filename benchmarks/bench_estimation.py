@@ -2,12 +2,17 @@
 
 Synthetic noisy hover at 100 Hz, IMU and position of every unit each tick. The detector is timed
 while watching (every tick) and while isolating (the few ticks after an alarm), the latter by
-replaying one alarm state. Run: python benchmarks/bench_estimation.py
+replaying one alarm state. The EKF step is split into its parts (IMU combination, propagation with
+filterpy's predict, the stacked position update with filterpy's update). Last, the real loop: the
+runner's noisy 3x2 spiral (JSBSim), the estimator's cost per control step there and its accuracy
+against the truth (issue 5: position RMS < 2 cm, attitude RMS < 0.5 deg).
+Run: python benchmarks/bench_estimation.py [--no-flight]
 """
 
 from __future__ import annotations
 
 import copy
+import sys
 import time
 
 import numpy as np
@@ -82,6 +87,48 @@ def bench_detector(model: AssemblyModel, n: int = 1000) -> tuple[np.ndarray, np.
     return np.array(watch[100:]) * 1e6, np.array(iso) * 1e6
 
 
+def bench_parts(model: AssemblyModel, n: int = 2000) -> dict[str, np.ndarray]:
+    """Per-tick time of the EKF's parts, by wrapping the instance's methods (microseconds)."""
+    est = AssemblyEstimator(model)
+    spent = {"combine": 0.0, "propagate": 0.0, "update": 0.0}
+    per_tick: dict[str, list[float]] = {k: [] for k in spent}
+
+    def timed(name, fn):
+        def wrapper(*args, **kwargs):
+            c = time.perf_counter()
+            out = fn(*args, **kwargs)
+            spent[name] += time.perf_counter() - c
+            return out
+        return wrapper
+
+    est.combiner.combine = timed("combine", est.combiner.combine)
+    est._propagate_once = timed("propagate", est._propagate_once)
+    est._fuse_positions = timed("update", est._fuse_positions)
+    for t, imus, poss, _ in ticks(model, n):
+        for k in spent:
+            spent[k] = 0.0
+        est.step(t, imus, poss)
+        for k, v in spent.items():
+            per_tick[k].append(v)
+    return {k: np.array(v[100:]) * 1e6 for k, v in per_tick.items()}
+
+
+def bench_flight(seed: int = 1) -> None:
+    from mars_link.reproduce import ekf_accuracy
+
+    c = time.perf_counter()
+    acc = ekf_accuracy("spiral_3x2", seed)
+    wall = time.perf_counter() - c
+    print()
+    print(f"real loop: 3x2 spiral (runner, JSBSim, default sensor noise, seed {seed}, {acc['control_steps']} steps, "
+          f"{wall:.1f} s wall)")
+    print(f"  estimator per control step  {acc['estimation_s_per_step'] * 1e6:.0f} us (mean, incl. IMU combination)")
+    print(f"  position error (CoM)        RMS {acc['position_rms_m'] * 100:.2f} cm, max {acc['position_max_m'] * 100:.2f} cm"
+          "   (target RMS < 2 cm)")
+    print(f"  attitude error              RMS {acc['attitude_rms_deg']:.3f} deg, max {acc['attitude_max_deg']:.3f} deg"
+          "   (target RMS < 0.5 deg)")
+
+
 def main() -> None:
     print(f"per control tick at {RATE_HZ:.0f} Hz, every unit's IMU and position each tick (microseconds)")
     print(f"{'layout':>6} {'units':>5} {'est_median':>10} {'est_p99':>8} {'fdi_watch':>9} {'fdi_isolate':>11} {'cpu_share':>9}")
@@ -96,6 +143,15 @@ def main() -> None:
         )
     print("cpu_share = (estimator + detector watching) x rate, of one core; isolation runs only for")
     print("the <= 0.3 s after an alarm")
+    print()
+    print("EKF step split (median microseconds per tick; update = one stacked position update of every unit)")
+    print(f"{'layout':>6} {'combine':>8} {'propagate':>9} {'update':>7}")
+    for name in ("1x1", "3x2", "3x3"):
+        parts = bench_parts(AssemblyModel.from_layout(LAYOUTS[name], "mars-ftcc"))
+        print(f"{name:>6} {np.median(parts['combine']):>8.0f} {np.median(parts['propagate']):>9.0f} "
+              f"{np.median(parts['update']):>7.0f}")
+    if "--no-flight" not in sys.argv[1:]:
+        bench_flight()
 
 
 if __name__ == "__main__":

@@ -279,3 +279,43 @@ def fdi_trial(case: Case, ftc: str = "qp", seed: int = 1, t_fault_s: float = FDI
 def fdi_false_alarm_flight(seed: int, ftc: str = "qp", duration_s: float | None = None) -> list[dict]:
     """A fault-free spiral with the detector on: its detections (all false alarms)."""
     return run_trial(scenario_for(CASES[0], "cascaded", ftc, duration_s, faults_known=False), seed).detections
+
+
+# ----------------------------------------------------------------------------- EKF accuracy
+def ekf_accuracy(scenario_name: str = "spiral_3x2", seed: int = 1, after_s: float = 1.0) -> dict:
+    """Fly a scenario (sensor noise on, EKF in the loop) and compare the estimate with the truth.
+
+    Position: estimated CoM vs true CoM; attitude: angle of R_true^T R_est. Both as RMS and maximum
+    over the control steps after `after_s` (the first second is the filter settling on the ground).
+    Also the estimator's cost per control step (the runner's stage timer).
+    """
+    from mars_link.rotations import euler_to_quat, quat_to_rotmat
+    from mars_link.runner import RunLog
+    from mars_link.scenario import load_scenario
+
+    scenario = load_scenario(scenario_name)
+    if not scenario.sim.noise:
+        raise ValueError(f"scenario {scenario_name} flies without sensor noise: no estimator to check")
+    log = RunLog(None, scenario.model(), rotor_log_hz=1.0)
+    result = run_trial(scenario, seed, log=log)
+    rows = np.array(log.telemetry_rows)
+    rows = rows[rows[:, 1] > after_s]
+    pos_err = np.linalg.norm(rows[:, 12:15] - rows[:, 18:21], axis=1)
+    att_err = []
+    for row in rows:
+        r_true = quat_to_rotmat(euler_to_quat(*np.radians(row[8:11])))
+        r_est = quat_to_rotmat(euler_to_quat(*np.radians(row[15:18])))
+        c = (np.trace(r_true.T @ r_est) - 1.0) / 2.0
+        att_err.append(math.degrees(math.acos(min(1.0, max(-1.0, c)))))
+    att = np.array(att_err)
+    return {
+        "scenario": scenario_name,
+        "seed": seed,
+        "completed": result.completed,
+        "position_rms_m": float(np.sqrt(np.mean(pos_err**2))),
+        "position_max_m": float(pos_err.max()),
+        "attitude_rms_deg": float(np.sqrt(np.mean(att**2))),
+        "attitude_max_deg": float(att.max()),
+        "estimation_s_per_step": result.stage_time_s["estimation"] / max(result.control_steps, 1),
+        "control_steps": result.control_steps,
+    }

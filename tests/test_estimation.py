@@ -279,29 +279,20 @@ def test_bad_parameters_are_one_line_user_errors():
 
 
 @pytest.mark.slow
-def test_closed_loop_3x2_spiral_through_the_runner_meets_issue_targets(tmp_path):
-    """Issue targets on the real flight: the runner's noisy 3x2 spiral (JSBSim, sitl sensors, the
-    estimator in the loop). telemetry.csv logs the tracked point (unit 1) truth with the truth
-    Euler angles and the estimated CoM: the truth CoM is tracked - R_true r_1."""
+@pytest.mark.parametrize("seed", [1, 2])
+def test_closed_loop_3x2_spiral_through_the_runner_meets_issue_targets(seed):
+    """Issue 5 EKF claim on the real flight: the runner's noisy 3x2 spiral (JSBSim, sitl sensors with
+    their default noise, the estimator in the loop flying the controller): estimated vs true CoM
+    position RMS < 2 cm and attitude RMS < 0.5 deg (after the first second on the ground)."""
     try:
         import sitl.physics  # noqa: F401
         import sitl.sensors  # noqa: F401
-        from mars_link.runner import run_scenario
-        from mars_link.scenario import load_scenario
+        from mars_link.reproduce import ekf_accuracy
     except ImportError as err:  # the runner's pieces are written by other engineers
         pytest.skip(f"in-process runner not complete yet: {err}")
-    scenario = load_scenario("spiral_3x2")
-    assert scenario.sim.noise
-    run_scenario(scenario, out_dir=tmp_path, trials=1, plots=False)
-    model = scenario.model()
-    offset = model.unit_position(scenario.tracked_unit() or 1)
-    data = np.genfromtxt(tmp_path / "telemetry.csv", delimiter=",", names=True)
-    pos_err, att_err = [], []
-    for row in data[data["t_s"] > 1.0]:
-        r_true = quat_to_rotmat(euler_to_quat(*np.radians([row["roll_deg"], row["pitch_deg"], row["yaw_deg"]])))
-        com_true = np.array([row["pos_n_m"], row["pos_e_m"], row["pos_d_m"]]) - r_true @ offset
-        q_est = euler_to_quat(*np.radians([row["est_roll_deg"], row["est_pitch_deg"], row["est_yaw_deg"]]))
-        pos_err.append(np.linalg.norm(np.array([row["est_n_m"], row["est_e_m"], row["est_d_m"]]) - com_true))
-        att_err.append(attitude_error_deg(q_est, r_true))
-    assert rms(np.array(pos_err)) < 0.02
-    assert rms(np.array(att_err)) < 0.5
+    acc = ekf_accuracy("spiral_3x2", seed)
+    assert acc["completed"] and acc["control_steps"] > 5000
+    assert acc["position_rms_m"] < 0.02, acc
+    assert acc["attitude_rms_deg"] < 0.5, acc
+    # and no outlier hides in the average: the worst step stays within the same limits
+    assert acc["position_max_m"] < 0.02 and acc["attitude_max_deg"] < 0.5, acc
