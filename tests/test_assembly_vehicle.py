@@ -1,6 +1,6 @@
 """The 3x2 assembly as one MAVLink vehicle (`mars-link vehicle`): MAVSDK 4.x flies it like a single
 drone (telemetry against the JSBSim truth, arm, takeoff 2 m, offboard 1 m north and back, a motor
-failure reported by STATUSTEXT and reallocated around, land, disarm); hostile traffic on its endpoint is
+failure reported by STATUSTEXT and reallocated around, velocity setpoints, land, disarm); hostile traffic on its endpoint is
 counted and dropped while the link keeps working; and the sans-IO core reports scenario faults."""
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ mavsdk = pytest.importorskip("mavsdk")
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
 from mavsdk.asyncio.plugins.action import ActionAsync  # noqa: E402
 from mavsdk.asyncio.plugins.failure import FailureAsync, FailureType, FailureUnit  # noqa: E402
-from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw  # noqa: E402
+from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw, VelocityNedYaw  # noqa: E402
 from mavsdk.asyncio.plugins.param import ParamAsync  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync  # noqa: E402
 
@@ -169,6 +169,15 @@ async def _fly(api_port: int, status_path: Path) -> dict:
         st = read_status(status_path)
         r["back_error_m"] = math.dist(st["truth_position_ned_m"], (start.north_m, start.east_m, start.down_m))
         r["unit_eta"], r["eta_believed"] = st["unit_eta"], st["eta_believed"]
+        # velocity setpoints: 0.5 m/s east for 2 s, then stop
+        await offboard.set_velocity_ned(VelocityNedYaw(0.0, 0.5, 0.0, 0.0))
+        await asyncio.sleep(2.0)
+        r["east_speed_mps"] = (await pv()).velocity.east_m_s
+        await offboard.set_velocity_ned(VelocityNedYaw(0.0, 0.0, 0.0, 0.0))
+        await asyncio.sleep(1.0)
+        st = read_status(status_path)
+        r["east_moved_m"] = st["truth_position_ned_m"][1] - start.east_m
+        r["east_final_speed_mps"] = st["truth_velocity_ned_mps"][1]
         await offboard.stop()
         await _until(lambda: _is(telemetry, FlightMode.HOLD), 5.0, "HOLD after offboard")
 
@@ -205,6 +214,7 @@ def test_mavsdk_flies_the_3x2_assembly_as_one_vehicle(tmp_path: Path) -> None:
     assert r["ground_error_m"] < 0.05 and r["hover_error_m"] < 0.05 and r["north_error_m"] < 0.05
     assert abs(r["climb_m"] - 2.0) < 0.1
     assert abs(r["north_truth_m"] - 1.0) < 0.08 and r["back_error_m"] < 0.1
+    assert abs(r["east_speed_mps"] - 0.5) < 0.05 and 0.8 < r["east_moved_m"] < 1.3 and abs(r["east_final_speed_mps"]) < 0.15
     # the failure went into unit 2's motor path; the coordinator was told and reallocated
     assert r["unit_eta"][5] == 0.5 and sum(r["unit_eta"]) == 23.5 and r["eta_believed"][5] == 0.5
     assert "Fault: unit 2 rotor 2 eta 0.5" in r["texts"] and "Takeoff complete: holding" in r["texts"]
