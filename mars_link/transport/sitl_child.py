@@ -16,12 +16,14 @@ from pathlib import Path
 from mars_link.transport import LinkSpec
 from mars_link.transport.socket_shim import AddressMap, TransportSocket
 
+FIRST_SEND_WAIT_S = 20.0  # the lockstep sends some hellos once: wait for the other process to be up
+
 
 def _zenoh(spec: LinkSpec, node: str, only_from: str | None = None, seed: int = 0):
     from mars_link.transport.zenoh_link import ZenohParams, ZenohTransport
 
     t = ZenohTransport(ZenohParams(node=node, fleet=spec.fleet, mode=spec.zenoh_mode, connect=spec.connect,
-                                   listen=spec.listen, only_from=only_from))
+                                   listen=spec.listen, only_from=only_from, first_send_wait_s=FIRST_SEND_WAIT_S))
     if spec.profile:
         import zlib
 
@@ -68,6 +70,7 @@ def install(spec: LinkSpec, addresses: AddressMap, out: Path | None, control_per
             self.sel.unregister(old)
             old.close()
             self.socks[name] = TransportSocket(_zenoh(spec, f"unit/{unit}", only_from=peers[name]), addresses, taps[name])
+            self.socks[name].setblocking(False)  # VehicleSockets drains until BlockingIOError
             self.sel.register(self.socks[name], selectors.EVENT_READ, name)
 
     def patched_sockets_close(self):

@@ -26,6 +26,7 @@ import os
 import queue
 import re
 import socket
+import time
 from dataclasses import dataclass
 
 import zenoh
@@ -48,6 +49,7 @@ class ZenohParams:
     queue_frames: int = 10000            # receive queue; a flood beyond it is dropped and counted
     block_when_congested: bool = True    # lockstep must not lose frames; False: drop like a radio would
     only_from: str | None = None         # a unit link that talks to one node only (e.g. its HIL link: "world")
+    first_send_wait_s: float = 0.0       # first frame to a node: wait up to this long for it to subscribe
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:
@@ -163,6 +165,9 @@ class ZenohTransport(Transport):
         if pub is None:
             pub = self._publishers[key] = self.session.declare_publisher(
                 key, express=True, congestion_control=self._congestion)
+            deadline = time.monotonic() + self.params.first_send_wait_s
+            while not pub.matching_status.matching and time.monotonic() < deadline:
+                time.sleep(0.005)  # a process still starting up; later frames go out at once
         pub.put(data)
 
     def _recv(self, timeout_s: float) -> tuple[bytes, Address] | None:

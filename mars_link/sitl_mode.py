@@ -1,0 +1,304 @@
+"""The multi-process SITL on a chosen transport, `mars-link run --mode sitl`, and `mars-link coordinator`.
+
+`start_sitl` starts the same processes as sitl.launcher (world, one per unit, coordinator), each through
+mars_link.transport.sitl_child so their MAVLink links run on Zenoh (default) or UDP. With Zenoh and no
+endpoints given, this process hosts a router session on 127.0.0.1 that every child joins as a client;
+it is closed when the run ends, also on Ctrl-C.
+
+`run_sitl_scenario` flies a scenario that way (lockstep: the same flight as inproc for the same seed)
+and writes the inproc outputs from the world's truth: summary.json (mode "sitl"), telemetry.csv
+(estimate columns empty: the estimate lives in the coordinator process), rotors.csv (header only) and
+the plots.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from mars_link.errors import UserInputError
+from mars_link.transport import LinkSpec
+
+CHILD = [sys.executable, "-m", "mars_link.transport.sitl_child"]
+
+
+@dataclass
+class SitlSession:
+    run: object  # sitl.launcher.SitlRun
+    link: LinkSpec
+    router: object | None = None  # zenoh.Session in router mode, or None
+    router_endpoint: str | None = None
+
+    def wait(self, timeout_s: float | None = None) -> int:
+        from sitl.launcher import wait
+
+        try:
+            return wait(self.run, timeout_s)
+        finally:
+            self.close()
+
+    def stop(self) -> None:
+        try:
+            self.run.stop()
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        if self.router is not None:
+            self.router.close()
+            self.router = None
+
+
+def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, seed: int | None = None,
+               units: int | None = None, layout: str | None = None, realtime: bool = False,
+               clients=None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units")) -> SitlSession:
+    """Start the SITL processes on `link` (default Zenoh). `unit_prefix(u)` -> argv to run unit u under
+    (e.g. `ip netns exec NS`); `roles` leaves some out (e.g. a coordinator started elsewhere)."""
+    from sitl.launcher import ClientPorts, SitlRun, free_udp_port
+    from sitl.lockstep import load_setup
+
+    link = link or LinkSpec("zenoh")
+    setup = load_setup(scenario, units, layout)
+    out.mkdir(parents=True, exist_ok=True)
+    clients = clients or ClientPorts(bind_any=True)
+    session = SitlSession(SitlRun(out, setup, free_udp_port(), free_udp_port() if setup.docked else 0, clients), link)
+    if link.kind == "zenoh" and not link.connect:
+        from mars_link.transport.zenoh_link import open_router
+
+        session.router, session.router_endpoint = open_router(listen=link.listen, fleet=link.fleet)
+        link = replace(link, zenoh_mode="client", connect=(session.router_endpoint,), listen=())
+    run = session.run
+    common = [scenario or "-", "--world-port", str(run.world_port), "--coordinator-port", str(run.coordinator_port),
+              "--out", str(out), *link.to_args(), "--control-period-s", repr(1.0 / setup.scenario.sim.control_hz)]
+    if units is not None:
+        common += ["--units", str(units)]
+    if layout is not None:
+        common += ["--layout", layout]
+    if realtime:
+        common.append("--realtime")
+
+    def spawn(name: str, argv: list[str], prefix: list[str] = ()) -> None:
+        with open(out / f"{name}.log", "w") as log:
+            run.processes[name] = subprocess.Popen([*prefix, *CHILD, *argv], stdout=log, stderr=subprocess.STDOUT,
+                                                   stdin=subprocess.DEVNULL)
+
+    try:
+        if setup.docked and "coordinator" in roles:
+            spawn("coordinator", ["coordinator", *common])
+        if "world" in roles:
+            spawn("world", ["world", *common] + ([] if seed is None else ["--seed", str(seed)]))
+        if "units" in roles:
+            for i, u in enumerate(setup.unit_ids):
+                argv = ["unit", *common, "--unit", str(u), "--gcs-port", str(clients.gcs_port),
+                        "--api-port", str(clients.api_port(i))]
+                if clients.bind_any:
+                    argv += ["--gcs-bind", "0", "--api-bind", "0"]
+                spawn(f"unit{u}", argv, list(unit_prefix(u)) if unit_prefix else [])
+    except BaseException:
+        session.stop()
+        raise
+    return session
+
+
+# ----------------------------------------------------------------------------- run --mode sitl
+def write_scenario_copy(scenario, path: Path) -> Path:
+    """The (possibly overridden) scenario as a TOML file the child processes can load."""
+    doc = {
+        "name": scenario.name,
+        "vehicle": {"preset": scenario.preset, **scenario.vehicle_options},
+        "assembly": {"layout": list(scenario.layout), "tracked": scenario.tracked},
+        "trajectory": dict(scenario.trajectory),
+        "control": {"controller": scenario.controller, "ftc": scenario.ftc, "faults_known": scenario.faults_known},
+        "sim": {k: v for k, v in vars(scenario.sim).items() if v is not None},
+        "faults": [{k: v for k, v in (("t", f.t_s), ("unit", f.unit), ("rotor", f.rotor), ("eta", f.eta)) if v is not None}
+                   for f in scenario.faults],
+    }
+    if not doc["faults"]:
+        del doc["faults"]
+    path.write_text(_toml(doc), encoding="utf-8")
+    return path
+
+
+
+
+def _toml(doc: dict) -> str:
+    def value(v) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, float)):
+            return repr(v)
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        raise TypeError(f"cannot write {v!r} to TOML")
+
+    lines = []
+    for k, v in doc.items():
+        if not isinstance(v, (dict, list)) or (isinstance(v, list) and not (v and isinstance(v[0], dict))):
+            lines.append(f"{k} = {value(v)}")
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            lines.append(f"\n[{k}]")
+            lines += [f"{kk} = {value(vv)}" for kk, vv in v.items()]
+        elif isinstance(v, list) and v and isinstance(v[0], dict):
+            for item in v:
+                lines.append(f"\n[[{k}]]")
+                lines += [f"{kk} = {value(vv)}" for kk, vv in item.items()]
+    return "\n".join(lines) + "\n"
+
+
+def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSpec | None = None,
+                      realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
+                      on_progress=None) -> dict:
+    """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary."""
+    if scenario.reconfig.get("enabled"):
+        raise UserInputError("--mode sitl: a [reconfig] flight (several bodies) runs in-process only")
+    seed = scenario.sim.seed if seed is None else seed
+    out.mkdir(parents=True, exist_ok=True)
+    copy = write_scenario_copy(_absolute_paths(scenario), out / "scenario.toml")
+    wall0 = time.perf_counter()
+    session = start_sitl(str(copy), out, link, seed, realtime=realtime)
+    watcher = _ProgressWatcher(out / "world_status.json", scenario, on_progress)
+    try:
+        code = session.wait(timeout_s)
+    finally:
+        watcher.stop()
+    wall = time.perf_counter() - wall0
+    if code != 0 or not (out / "world_truth.csv").exists():
+        logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
+        raise RuntimeError(f"SITL run failed (exit {code}); process logs in {out}: {logs}")
+    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots)
+
+
+def _absolute_paths(scenario):
+    traj = dict(scenario.trajectory)
+    if "path" in traj and not Path(traj["path"]).is_absolute() and scenario.source not in ("", "<built-in>"):
+        traj["path"] = str((Path(scenario.source).parent / traj["path"]).resolve())
+    return replace(scenario, trajectory=traj)
+
+
+class _ProgressWatcher:
+    """Reports the world's sim time (world_status.json) to `on_progress(fraction)` from a thread."""
+
+    def __init__(self, path: Path, scenario, on_progress) -> None:
+        import threading
+
+        self._stop = threading.Event()
+        self._thread = None
+        if on_progress is None:
+            return
+        from mars_link.runner import make_trajectory
+
+        duration = scenario.sim.duration_s or make_trajectory(scenario, scenario.model()).duration_s
+
+        def loop() -> None:
+            while not self._stop.wait(0.25):
+                try:
+                    t = json.loads(path.read_text())["sim_time_s"]
+                except (OSError, ValueError, KeyError):
+                    continue
+                on_progress(min(1.0, t / duration))
+
+        self._thread = threading.Thread(target=loop, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(1.0)
+
+
+def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True) -> dict:
+    """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them."""
+    from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
+    from mars_link.runner import (DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, ROTOR_LOG_HZ, RunLog, TrialResult,
+                                  make_trajectory, summarize, tracked_offset)
+
+    model = scenario.model()
+    trajectory = make_trajectory(scenario, model)
+    offset = tracked_offset(model, scenario)
+    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, ndmin=1)
+    world = _read_json(out / "world_summary.json")
+    coordinator = _read_json(out / "coordinator_summary.json")
+    log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ))
+    errs, tilts, diverged, events = [], [], False, []
+    nan3 = [math.nan] * 3
+    try:
+        for row in truth:
+            t = float(row["t_s"])
+            pos = np.array([row["pos_n_m"], row["pos_e_m"], row["pos_d_m"]])
+            q = np.array([row["qw"], row["qx"], row["qy"], row["qz"]])
+            tracked = pos + quat_to_rotmat(q) @ offset
+            ref = trajectory.sample(t).position_ned_m
+            err = float(np.linalg.norm(tracked - ref))
+            tilt = tilt_deg(q)
+            errs.append(err)
+            tilts.append(tilt)
+            roll, pitch, yaw = quat_to_euler(q)
+            log.telemetry([0, t, *ref, *tracked, math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
+                           *nan3, *nan3, *pos])
+            if not (err < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG and math.isfinite(err)):
+                diverged = True
+                events.append({"t_s": round(t, 6), "type": "diverged", "error_m": err, "tilt_deg": tilt})
+                break
+    finally:
+        log.close()
+    errors = np.asarray(errs) if errs else np.array([math.nan])
+    coord_events = coordinator.get("events", [])
+    for lost in coordinator.get("lost_units", []):
+        events.append({"t_s": lost["t_s"], "type": "unit_lost", "unit": lost["unit"]})
+    result = TrialResult(
+        seed=seed, completed=not diverged and not world.get("stopped", False), diverged=diverged,
+        mean_error_m=float(errors.mean()), rmse_m=float(np.sqrt((errors ** 2).mean())), max_error_m=float(errors.max()),
+        sim_time_s=float(world.get("sim_time_s", 0.0)), wall_time_s=wall_s,
+        force_integral_n2s=float(world.get("force_integral_n2s", math.nan)), max_tilt_deg=float(max(tilts, default=math.nan)),
+        events=sorted(events + list(coord_events), key=lambda e: e.get("t_s", 0.0)),
+        control_steps=len(errs),
+    )
+    summary = summarize(scenario, [result], seed)
+    summary["mode"] = "sitl"
+    summary["sitl"] = {
+        "transport": link.kind,
+        "link_profile": link.profile,
+        "world_real_time_factor": world.get("real_time_factor"),
+        "dead_units": world.get("dead_units", []),
+        "world_dropped": world.get("dropped", {}),
+        "coordinator_dropped": coordinator.get("dropped", {}),
+        "command_age": command_age_summary(out),
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n", encoding="utf-8")
+    if plots and log.telemetry_rows:
+        from mars_link.plots import write_run_plots
+
+        write_run_plots(out, log.telemetry_rows, log.rotor_rows, model)
+    return summary
+
+
+def command_age_summary(out: Path) -> dict:
+    """Command age at the motor over every unit (from the units' command_age_unit<i>.csv)."""
+    from mars_link.transport.realtime import percentiles_ms
+
+    ages, misses = [], 0
+    for path in sorted(out.glob("command_age_unit*.json")):
+        misses += _read_json(path).get("deadline_misses", 0)
+    for path in sorted(out.glob("command_age_unit*.csv")):
+        a = np.genfromtxt(path, delimiter=",", names=True, ndmin=1)
+        ages += list(np.atleast_1d(a["age_s"]))
+    stats = percentiles_ms(ages)
+    stats["deadline_misses"] = misses
+    return stats
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
