@@ -54,8 +54,8 @@ def cmd_run(args) -> int:
 
     if args.trials < 1:
         raise UserInputError(f"--trials must be >= 1, got {args.trials}")
-    if args.mode != "inproc":
-        raise UserInputError(f"--mode {args.mode}: only 'inproc' is available in this build")
+    if args.mode not in ("inproc", "sitl"):
+        raise UserInputError(f"--mode {args.mode!r}: expected inproc or sitl")
     from mars_link.allocation import check_controllable
 
     model = scenario.model()
@@ -77,6 +77,10 @@ def cmd_run(args) -> int:
 
             if args.trials != 1:
                 raise UserInputError("--trials: a [reconfig] flight runs one trial (vary --seed instead)")
+        if args.mode == "sitl":  # the multi-process SITL (mars_link.sitl_mode), lockstep, Zenoh by default
+            from mars_link.sitl_mode import sitl_runner
+
+            runner = sitl_runner(args)
         summary = runner(
             scenario, out, trials=args.trials, seed=args.seed,
             on_progress=lambda i, frac: progress.update(task, completed=i + frac),
@@ -150,6 +154,11 @@ def cmd_sitl(args) -> int:
     path = resolve_scenario_path(args.scenario)
     load_scenario(str(path))  # refuse a bad scenario before starting any process
     out = Path(args.out) if args.out else _default_out(path.stem + "-sitl")
+    if getattr(args, "transport", None) not in (None, "udp") or getattr(args, "external_coordinator", False) \
+            or getattr(args, "realtime", False) or getattr(args, "link_profile", None):
+        from mars_link.sitl_mode import sitl_up_command
+
+        return sitl_up_command(args, str(path), out)
     code = sitl_up(str(path), out, args.seed)
     print(f"run directory: {out}")
     return code
@@ -176,6 +185,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--duration", type=float, help="override the simulated duration [s]")
     run.add_argument("--no-noise", action="store_true", help="perfect sensors (truth state)")
     run.add_argument("--mode", default="inproc", help="inproc (default) or sitl")
+    from mars_link.sitl_mode import add_sitl_run_arguments, add_coordinator_arguments, cmd_coordinator
+
+    add_sitl_run_arguments(run)  # --transport, --realtime, --link-profile (with --mode sitl)
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
 
@@ -185,6 +197,13 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--out", help="run directory (default runs/<name>-sitl-<time>)")
     sitl.add_argument("--seed", type=int, default=None)
     sitl.set_defaults(func=cmd_sitl)
+    from mars_link.sitl_mode import add_sitl_up_arguments
+
+    add_sitl_up_arguments(sitl)  # --transport zenoh|udp and its options (mars_link.sitl_mode)
+
+    coord = sub.add_parser("coordinator", help="the coordinator process alone, attaching to running units")
+    add_coordinator_arguments(coord)
+    coord.set_defaults(func=cmd_coordinator)
 
     veh = sub.add_parser("vehicle", help="the assembly as one MAVLink vehicle in real time (MAVSDK, MAVProxy, QGC)")
     from mars_link.realtime import add_arguments

@@ -302,3 +302,143 @@ def _read_json(path: Path) -> dict:
         return json.loads(path.read_text())
     except (OSError, ValueError):
         return {}
+
+
+# ----------------------------------------------------------------------------- command line
+def _endpoint(text: str) -> str:
+    import re
+
+    if not re.match(r"^(tcp|udp|tls|quic)/[^/\s]+:\d{1,5}$", text):
+        raise UserInputError(f"zenoh endpoint {text!r}: expected e.g. tcp/127.0.0.1:7447")
+    return text
+
+
+def _link_from_args(args, default_kind: str) -> LinkSpec:
+    kind = getattr(args, "transport", None) or default_kind
+    if kind not in ("udp", "zenoh"):
+        raise UserInputError(f"--transport {kind!r}: expected zenoh or udp")
+    profile = getattr(args, "link_profile", None)
+    if profile:
+        from mars_link.transport.profiles import profile_from_name
+
+        try:
+            profile_from_name(profile)
+        except ValueError as e:
+            raise UserInputError(f"--link-profile: {e}") from None
+        if kind != "zenoh":
+            raise UserInputError("--link-profile applies to the zenoh transport")
+    connect = tuple(_endpoint(e) for e in getattr(args, "zenoh_connect", None) or [])
+    listen = tuple(_endpoint(e) for e in getattr(args, "zenoh_listen", None) or [])
+    fleet = getattr(args, "fleet", "default")
+    import re
+
+    if not re.match(r"^[A-Za-z0-9_-]+$", fleet):
+        raise UserInputError(f"--fleet {fleet!r}: letters, digits, _ and - only")
+    return LinkSpec(kind, fleet, "client", connect, listen, profile)
+
+
+def _add_link_options(p, default_kind: str) -> None:
+    p.add_argument("--transport", default=None, help=f"zenoh or udp (default {default_kind})")
+    p.add_argument("--fleet", default="default", help="Zenoh key prefix mars/<fleet>/...")
+    p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447 (repeatable)")
+    p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT", help="extra router endpoint (repeatable)")
+    p.add_argument("--link-profile", help="ideal | lan | wifi | radio57600 [,key=value...] on every Zenoh link")
+
+
+def add_sitl_run_arguments(p) -> None:
+    _add_link_options(p, "zenoh")
+    p.add_argument("--realtime", action="store_true", help="with --mode sitl: pace the world to the wall clock")
+
+
+def sitl_runner(args):
+    """`run_scenario`'s signature for `mars-link run --mode sitl`."""
+    link = _link_from_args(args, "zenoh")
+
+    def runner(scenario, out, trials=1, seed=None, on_progress=None):
+        if trials != 1:
+            raise UserInputError("--mode sitl runs one trial (vary --seed instead)")
+        cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
+        try:
+            return run_sitl_scenario(scenario, out, seed, link, realtime=args.realtime, on_progress=cb)
+        except RuntimeError as e:
+            raise UserInputError(str(e)) from None
+
+    return runner
+
+
+def add_sitl_up_arguments(p) -> None:
+    _add_link_options(p, "udp")
+    p.add_argument("--realtime", action="store_true", help="pace the world to the wall clock")
+    p.add_argument("--external-coordinator", action="store_true",
+                   help="start no coordinator: attach one with `mars-link coordinator`")
+
+
+def sitl_up_command(args, scenario_path: str, out: Path) -> int:
+    """`mars-link sitl up --transport zenoh ...`: start, print the endpoints, run to the end or Ctrl-C."""
+    import signal
+
+    link = _link_from_args(args, "udp")
+    roles = ("world", "units") if args.external_coordinator else ("coordinator", "world", "units")
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def interrupt(*_):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
+    session = None
+    try:
+        session = start_sitl(scenario_path, out, link, args.seed, realtime=args.realtime, roles=roles)
+        for line in session.run.endpoints() if "coordinator" in roles else _endpoints_without_coordinator(session):
+            print(line, flush=True)
+        if link.kind == "zenoh":
+            where = session.router_endpoint or ", ".join(link.connect)
+            print(f"zenoh: fleet {link.fleet!r}, router {where}" + (f" (+ {', '.join(link.listen)})" if link.listen else "")
+                  + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>", flush=True)
+        if args.external_coordinator:
+            attach = f"mars-link coordinator {scenario_path} --out {out}"
+            attach += (f" --transport zenoh --zenoh-connect {(link.listen or (session.router_endpoint,))[0]}" if link.kind == "zenoh"
+                       else f" --transport udp --world-port {session.run.world_port} --coordinator-port {session.run.coordinator_port}")
+            print(f"waiting for a coordinator: {attach}", flush=True)
+        code = session.wait()
+        print(f"run directory: {out}")
+        return code
+    except KeyboardInterrupt:
+        print("sitl: interrupted, stopping every child", file=sys.stderr)
+        if session is not None:
+            session.stop()
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _endpoints_without_coordinator(session) -> list[str]:
+    run = session.run
+    return [line for line in run.endpoints() if not line.startswith("coordinator")] if "coordinator" in run.processes \
+        else [f"world: pid {run.processes['world'].pid}"] + [f"unit {u}: pid {run.processes[f'unit{u}'].pid}, system id {u}"
+                                                             for u in run.setup.unit_ids]
+
+
+def add_coordinator_arguments(p) -> None:
+    p.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default: spiral_3x2)")
+    p.add_argument("--out", default=".", help="where coordinator_summary.json goes")
+    p.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port (printed by sitl up)")
+    p.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to")
+    _add_link_options(p, "zenoh")
+
+
+def cmd_coordinator(args) -> int:
+    """`mars-link coordinator ...`: the coordinator process alone, in this process (Ctrl-C ends it)."""
+    from mars_link.scenario import load_scenario, resolve_scenario_path
+
+    path = resolve_scenario_path(args.scenario)
+    load_scenario(str(path))
+    link = _link_from_args(args, "zenoh")
+    if link.kind == "zenoh" and not link.connect:
+        raise UserInputError("coordinator --transport zenoh needs --zenoh-connect ENDPOINT (the router `sitl up` prints)")
+    if link.kind == "udp" and not (0 < args.world_port < 65536 and 0 < args.coordinator_port < 65536):
+        raise UserInputError("coordinator --transport udp needs --world-port and --coordinator-port (printed by sitl up)")
+    from mars_link.transport.sitl_child import main as child_main
+
+    argv = ["coordinator", str(path), "--world-port", str(args.world_port or 1000),
+            "--coordinator-port", str(args.coordinator_port or 1001), "--out", args.out, *link.to_args()]
+    return child_main(argv)
