@@ -257,14 +257,6 @@ class AssemblySim:
             from mars_link.estimation import AssemblyEstimator
 
             self.estimator = AssemblyEstimator(model)
-        detector = None
-        if not s.faults_known:
-            from mars_link.fault_detection import FaultDetector
-
-            detector = FaultDetector(model)
-        self._known = _KnownEstimate()
-        start = TrajectoryPoint(np.zeros(3))
-        self.coordinator = Coordinator(model, SetpointSource(start), controller, self._known, detector)
         yaw = math.radians(cfg.start_yaw_deg)
         self.world = World(
             model,
@@ -272,6 +264,15 @@ class AssemblySim:
                         position_every=max(1, round(hz / POSITION_RATE_HZ))),
             np.array([cfg.start_north_m, cfg.start_east_m, 0.0]), yaw,
         )
+        detector = None
+        if not s.faults_known:
+            from mars_link.fault_detection import FaultDetector
+
+            # the vehicle starts landed: ground contact at take-off is not a rotor fault
+            detector = FaultDetector(model, ground_down_m=float(self.world.truth().position_ned_m[2]))
+        self._known = _KnownEstimate()
+        start = TrajectoryPoint(np.zeros(3))
+        self.coordinator = Coordinator(model, SetpointSource(start), controller, self._known, detector)
         self.units = {u: UnitCore(u, model.vehicle, UnitCoreParams(control_period_s=self.control_dt_s))
                       for u in model.unit_ids}
         self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, cfg.params, wall_time_s)

@@ -380,3 +380,39 @@ def test_mavproxy_watches_the_assembly_on_the_gcs_link(tmp_path: Path) -> None:
     assert set(seen) == set(expected), sorted(set(expected) - set(seen))
     assert seen["params"] - seen["detected"] < 5.0  # no 10 s MAVFTP timeout before the list
     assert rc == 0
+
+
+def test_undeclared_fault_is_detected_and_reported_without_sockets() -> None:
+    """`faults_known = false`: the coordinator finds a half-power rotor on its own while the vehicle
+    hovers; the client gets the detection and the reallocation as STATUSTEXT, and the hover holds."""
+    scenario = load_scenario("hover_3x2")
+    scenario.ftc, scenario.faults_known = "qp", False
+    scenario.faults.append(FaultSpec(unit=2, rotor=2, eta=0.5, t_s=4.0))
+    sim = AssemblySim(scenario)
+    gcs, dec = mavlink.MAVLink(None, 245, 190), mavlink.MAVLink(None, 0, 0)
+    texts: list[tuple[float, str]] = []
+
+    def feed(out) -> None:
+        for o in out:
+            if o.link == "api":
+                texts.extend((sim.t_s, m.text) for m in dec.parse_buffer(o.data) or [] if m.get_type() == "STATUSTEXT")
+
+    try:
+        for _ in range(30):
+            feed(sim.step(sim.t_s))
+        for cmd, p1, p7 in ((400, 1.0, 0.0), (22, 0.0, math.nan)):
+            msg = mavlink.MAVLink_command_long_message(1, 1, cmd, 0, p1, 0, 0, 0, 0, 0, p7)
+            feed(sim.handle(bytes(msg.pack(gcs)), sim.t_s, "api"))
+        z0 = float(sim.vehicle.home_ned[2])
+        for _ in range(500):
+            feed(sim.step(sim.t_s))
+        d = sim.coordinator.detections
+        assert [(x.unit, x.rotor) for x in d] == [(2, 2)] and abs(d[0].eta_estimated - 0.5) < 0.1
+        assert 4.0 <= d[0].t_detected < 4.5
+        assert sim.coordinator.eta_believed[5] == pytest.approx(d[0].eta_estimated)
+        after = [t for ts, t in texts if ts > d[0].t_detected]
+        assert any(t.startswith("Realloc") for t in after), texts
+        assert len(after) >= 2  # the detection itself, then the reallocation
+        assert z0 - sim.truth().position_ned_m[2] == pytest.approx(2.0, abs=0.1)
+    finally:
+        sim.close()
