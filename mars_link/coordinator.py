@@ -156,6 +156,11 @@ class Coordinator:
         c2 = time.perf_counter()
         thrusts = np.asarray(out.rotor_thrusts_n, dtype=float)
         if self.detector is not None:
+            # while explanations tie (e.g. units {2,5}, {1,6}, {3,4} of a 3x2: each a pure lift loss),
+            # the detector asks for a probe with zero net wrench on the believed assembly
+            probe = self.detector.excitation_n(t_s)
+            if probe.any():
+                thrusts = np.maximum(thrusts + probe, 0.0)
             found = self.detector.update(t_s, thrusts, estimate, [p.imu for p in packets])
             if found:
                 self.detections.extend(found)

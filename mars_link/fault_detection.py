@@ -481,10 +481,12 @@ class FaultDetector:
         amp = self.params.probe_thrust_fraction * self.model.hover_thrust_per_rotor_n()
         if amp <= 0 or not rivals:
             return np.zeros(self.n)
-        b_eta = self.B * self.eta
+        live = np.flatnonzero(self.eta > 0.0)  # rotors believed dead get no probe (no negative thrust)
+        b_eta = self.B[:, live] * self.eta[live]
         _, sv, vt = np.linalg.svd(b_eta)
         rank = int(np.sum(sv > 1e-9 * sv[0]))
-        null = vt[rank:].T  # (n, n - rank)
+        null = np.zeros((self.n, len(live) - rank))
+        null[live] = vt[rank:].T  # (n, n_live - rank)
         diff = np.vstack([self.B * (best.delta - r.delta) for r in rivals])
         scale = np.array([1.0 / (self.mass_kg * GRAVITY_MPS2)] + [1.0 / self.model.vehicle.pitch_m / (self.mass_kg * GRAVITY_MPS2)] * 3)
         diff = diff * np.tile(scale, len(rivals))[:, None]
