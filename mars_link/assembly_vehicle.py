@@ -34,7 +34,7 @@ from firmware_models.unit_controller import UnitAutopilot
 from firmware_models.vehicle import LINK_API, LINK_GCS, LinkPolicy, Outgoing, Vehicle, VehicleConfig
 from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import ControlOutput
-from mars_link.coordinator import Coordinator
+from mars_link.coordinator import Coordinator, short_text
 from mars_link.errors import UserInputError
 from mars_link.messages import RotorCommand, wire_thrust, wire_time
 from mars_link.rotations import quat_to_rotmat
@@ -48,11 +48,13 @@ EVENT_SEVERITY = {
     "fault": mavlink.MAV_SEVERITY_WARNING,
     "uncontrollable": mavlink.MAV_SEVERITY_CRITICAL,
     "reallocation": mavlink.MAV_SEVERITY_NOTICE,
-    "detection": mavlink.MAV_SEVERITY_WARNING,
+    "fault_detected": mavlink.MAV_SEVERITY_WARNING,
+    "unit_lost": mavlink.MAV_SEVERITY_CRITICAL,
+    "unit_died": mavlink.MAV_SEVERITY_CRITICAL,
+    "reconfig_failed": mavlink.MAV_SEVERITY_ERROR,
     "diverged": mavlink.MAV_SEVERITY_EMERGENCY,
     "estimator_reset": mavlink.MAV_SEVERITY_WARNING,
 }
-STATUSTEXT_MAX = 50  # one STATUSTEXT frame carries 50 characters
 #: consecutive position updates with every unit gated out before the EKF is restarted on them
 GATED_BATCHES_RESET = 5
 
@@ -130,10 +132,10 @@ def assembly_param_specs(sysid: int, model: AssemblyModel, ftc: str) -> list[Par
 
 
 def event_text(event: dict) -> str:
-    """One line for a coordinator/runner event: its own text, else type and reason."""
+    """One STATUSTEXT line for a coordinator/runner event: its own text, else type and reason."""
     text = event.get("text")
     if text:
-        return str(text)
+        return short_text(text)
     kind = str(event.get("type", "event"))
     if kind == "fault" and "unit" in event:
         rotor = event.get("rotor")
@@ -141,11 +143,7 @@ def event_text(event: dict) -> str:
         return f"Fault: {where} eta {float(event.get('eta', 0.0)):g}"
     kind = kind.replace("_", " ").capitalize()
     reason = event.get("reason")
-    return f"{kind}: {reason}" if reason else kind
-
-
-def _chunks(text: str) -> list[str]:
-    return [text[i:i + STATUSTEXT_MAX] for i in range(0, len(text), STATUSTEXT_MAX)] or [""]
+    return short_text(f"{kind}: {reason}" if reason else kind)
 
 
 class AssemblyVehicle(Vehicle):
@@ -191,10 +189,8 @@ class AssemblyVehicle(Vehicle):
         raise NotImplementedError("the assembly's rotors are driven by its units (AssemblySim)")
 
     def report_event(self, event: dict) -> None:
-        """STATUSTEXT for an event (longer texts go out as several frames)."""
-        severity = EVENT_SEVERITY.get(str(event.get("type")), mavlink.MAV_SEVERITY_INFO)
-        for part in _chunks(event_text(event)):
-            self._text(part, severity)
+        """STATUSTEXT for an event (severity by its type)."""
+        self._text(event_text(event), EVENT_SEVERITY.get(str(event.get("type")), mavlink.MAV_SEVERITY_INFO))
 
     def tick(self, wall_time_s: float, sim_time_s: float) -> list[Outgoing]:
         """Vehicle.tick, after queueing a STATUSTEXT for each event the coordinator recorded since
