@@ -70,9 +70,14 @@ def test_unit_one_really_flew_round():
     assert abs(u1[-1, 4] - u3[-1, 4]) < 0.01
 
 
-def test_plan_with_an_unhoverable_piece_is_refused():
-    """Donut 4x4 with a dead corner module: the plan's piece [1, 2, 3] passes the quadrant rule but
-    cannot hover within the ModQuad thrust limits; with 3 dead rotors every piece can."""
+def test_flight_plans_only_use_pieces_that_can_hover():
+    """Donut 4x4 with a dead corner module: paper 001's quadrant rule alone plans a piece [1, 2, 3]
+    that cannot hover within the ModQuad thrust limits (the executor's guard names it); the flight
+    planner adds the exact hover LP to the rule, so none of its pieces fails, and with the dead
+    module no reachable allocation beats the current one. With 3 dead rotors both rules agree."""
+    from mars_link.reconfig.placement import SnapWeights, health_from_eta
+    from mars_link.reconfig.sequencing import plan_reconfiguration
+
     def donut(faults):
         return scenario_from_dict({
             "vehicle": {"preset": "modquad-cf2"}, "assembly": {"layout": ["XXXX", "X..X", "X..X", "XXXX"]},
@@ -80,15 +85,19 @@ def test_plan_with_an_unhoverable_piece_is_refused():
             "faults": [{"unit": 1, "rotor": r, "eta": 0.0} for r in faults],
             "sim": {"noise": False}, "reconfig": {"enabled": True}})
 
-    for faults, expect_bad in (((1, 2, 3, 4), True), ((1, 3, 4), False)):
+    for faults, quadrant_rule_bad in (((1, 2, 3, 4), True), ((1, 3, 4), False)):
         sc = donut(faults)
         model = sc.model()
-        plan = make_plan(sc, model)
-        assert plan.feasible and plan.disassembly_layers >= 1
-        bad = unhoverable_pieces(plan, model, eta_after(model, sc.faults, math.inf))
-        assert bool(bad) is expect_bad, bad
-        if expect_bad:
+        eta = eta_after(model, sc.faults, math.inf)
+        paper = plan_reconfiguration(model, health_from_eta(model, eta), SnapWeights())
+        bad = unhoverable_pieces(paper, model, eta)
+        assert paper.feasible and paper.disassembly_layers >= 1
+        assert bool(bad) is quadrant_rule_bad, bad
+        if quadrant_rule_bad:
             assert "piece [1, 2, 3]" in bad[0] and "cannot hover" in bad[0]
+        flight = make_plan(sc, model)
+        assert flight.feasible and unhoverable_pieces(flight, model, eta) == []
+        assert (flight.disassembly_layers == 0) is quadrant_rule_bad
 
 
 def _cli(tmp_path: Path, text: str, *extra: str) -> subprocess.CompletedProcess:

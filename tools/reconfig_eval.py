@@ -19,9 +19,10 @@ divergence, so its RMSE and force integral cover less time: read them as "failed
 
 In flight: the donut cases are also flown with the manoeuvre executed mid-mission (faults at t = 5 s,
 every piece flown with `qp`); RMSE excludes the paused manoeuvre, the force integral includes it.
-With 4 faults the plan's intermediate piece (the dead module with its two row neighbours) passes the
-quadrant rule but cannot hover within the thrust limits, so the runner refuses the manoeuvre
-(event reconfig_refused) and flies on unchanged; with 3 faults it is executed.
+With 4 faults, paper 001's quadrant rule alone would plan an intermediate piece (the dead module
+with its two row neighbours) that cannot hover within the thrust limits; the flight planner also
+requires an exact hover of every piece, finds no reachable allocation better than the current one
+(0 layers) and the assembly flies on with FTC; with 3 faults it is executed.
 """
 
 from __future__ import annotations

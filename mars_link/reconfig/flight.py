@@ -35,6 +35,7 @@ from mars_link.control.cascaded import CascadedController
 from mars_link.coordinator import Coordinator
 from mars_link.errors import UserInputError
 from mars_link.messages import SensorPacket
+from mars_link.reconfig.flyability import FlyabilityRule
 from mars_link.reconfig.execution import ExecutionParams, Executor, Key, PieceShape, local_eta
 from mars_link.reconfig.placement import SnapWeights, health_from_eta
 from mars_link.reconfig.sequencing import ReconfigPlan, plan_reconfiguration
@@ -96,8 +97,10 @@ def make_plan(scenario: Scenario, model: AssemblyModel) -> ReconfigPlan:
         order = [model.unit_cells[u] for u in model.unit_ids]
         cells = {u: c for u, c in zip(target, order)}
     weights = SnapWeights.from_trajectory(make_trajectory(scenario, model))
+    v = model.vehicle  # pieces must hover within the real thrust limits, not only pass the quadrant rule
+    rule = FlyabilityRule(hover_thrust_limits_n=(v.rotor_min_thrust_n, v.rotor_max_thrust_n))
     try:
-        return plan_reconfiguration(model, health_from_eta(model, eta), weights, target=cells)
+        return plan_reconfiguration(model, health_from_eta(model, eta), weights, target=cells, rule=rule)
     except UserInputError as exc:
         raise UserInputError(f"{scenario.source}: [reconfig] {exc}") from None
 
@@ -189,7 +192,7 @@ def run_reconfig_trial(
     if plan is not None:
         events.append({"t_s": 0.0, "type": "plan", "feasible": plan.feasible,
                        "disassembly_layers": plan.disassembly_layers, "assembly_layers": plan.assembly_layers,
-                       "reason": plan.reason})
+                       "fallback_used": plan.fallback_used, "reason": plan.reason})
         if refused:
             events.append({"t_s": 0.0, "type": "reconfig_refused", "reason": "; ".join(refused)})
     next_fault = 0

@@ -29,6 +29,10 @@ class FlyabilityRule:
 
     working_threshold: float = 0.0  # a rotor counts for its quadrant iff health > this
     faulty_below: float = 1.0  # a module with any rotor health below this is "faulty"
+    # Flight planning: also require an exact hover of the piece within these rotor thrust limits [N]
+    # (the LP of `check_controllable`). The quadrant rule is necessary only: a 1x3 piece with a dead
+    # end module passes it and still cannot balance its roll when thrust is bounded. None = paper 001.
+    hover_thrust_limits_n: tuple[float | None, float | None] | None = None
 
 
 def rotor_offsets_cells(model: AssemblyModel) -> list[tuple[Fraction, Fraction]]:
@@ -271,6 +275,9 @@ class FlyabilityChecker:
         # x = -row, so "x_rotor > cx" is a condition on rows from above, and vice versa
         self.row_off = [-ox for ox, _ in offsets]  # x offset expressed along +row
         self.col_off = [oy for _, oy in offsets]
+        self._vehicle = model.vehicle
+        self._health = health
+        self._unit_at = unit_at
         self._cache: dict[int, bool] = {}
 
     def __call__(self, mask: int) -> bool:
@@ -280,6 +287,30 @@ class FlyabilityChecker:
         return hit
 
     def _check(self, mask: int) -> bool:
+        if not self._quadrants(mask):
+            return False
+        return self.rule.hover_thrust_limits_n is None or self._hovers(mask)
+
+    def _hovers(self, mask: int) -> bool:
+        """Exact hover LP of the piece (its own model, rotor healths in its row-major slot order)."""
+        from mars_link.allocation import check_controllable
+        from mars_link.errors import UserInputError
+
+        cells = sorted(self.grid.cells(mask))
+        r0, c0 = min(r for r, _ in cells), min(c for _, c in cells)
+        rows = max(r for r, _ in cells) - r0 + 1
+        cols = max(c for _, c in cells) - c0 + 1
+        occupied = {(r - r0, c - c0) for r, c in cells}
+        layout = tuple("".join("X" if (r, c) in occupied else "." for c in range(cols)) for r in range(rows))
+        piece = AssemblyModel.from_layout(layout, self._vehicle)
+        eta = np.concatenate([self._health[self._unit_at[c] - 1] for c in cells])
+        try:
+            check_controllable(piece, eta, self.rule.hover_thrust_limits_n)
+        except UserInputError:
+            return False
+        return True
+
+    def _quadrants(self, mask: int) -> bool:
         g = self.grid
         n, sr, sc = g.sums(mask)
         if n == 1:
