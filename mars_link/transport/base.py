@@ -37,9 +37,10 @@ class Transport:
 
     kind = "abstract"
 
-    def __init__(self) -> None:
+    def __init__(self, validate_frames: bool = False) -> None:
         self.counters = Counters()
         self.closed = False
+        self.validate_frames = validate_frames  # drop datagrams' bad frames here (framing.check_datagram)
 
     # -- interface ---------------------------------------------------------------------------
     def send(self, data: bytes, peer: Address) -> None:
@@ -58,10 +59,21 @@ class Transport:
             if got is not None:
                 self.counters.received += 1
                 self.counters.bytes_received += len(got[0])
-                return got
+                if self.validate_frames:
+                    got = self._validated(*got)
+                if got is not None:
+                    return got
             if time.monotonic() >= deadline:
                 return None
         return None
+
+    def _validated(self, data: bytes, peer: Address) -> tuple[bytes, Address] | None:
+        from mars_link.transport.framing import check_datagram
+
+        good, problems = check_datagram(data)
+        for reason, n in problems.items():
+            self.counters.drop(reason, n)
+        return (good, peer) if good else None
 
     def address_of(self, role: str, port: int | None = None) -> Address:
         """The address of a well-known SITL endpoint ("world", "coordinator") on this transport."""

@@ -97,3 +97,16 @@ def _find_magic(buf: bytearray) -> int:
     if b < 0:
         return a
     return min(a, b)
+
+
+def check_datagram(data: bytes) -> tuple[bytes, dict[str, int]]:
+    """The valid frames of one datagram (a datagram holds whole frames) and what was thrown away."""
+    f = MavlinkFramer()
+    good = b"".join(f.feed(data))
+    c = f.counters
+    leftover = len(f.buf)  # a truncated last frame
+    problems = {k: v for k, v in (("garbage_bytes", c.garbage_bytes + leftover), ("bad_crc", c.bad_crc),
+                                  ("unknown_msgid", c.unknown_msgid)) if v}
+    if leftover:
+        problems["truncated"] = 1
+    return good, problems

@@ -16,14 +16,15 @@ class UdpParams:
     bind_host: str = LOOPBACK
     port: int = 0  # 0: an ephemeral port
     allowed_hosts: tuple[str, ...] | None = (LOOPBACK,)  # None: accept any sender host
+    validate_frames: bool = True  # drop bad MAVLink frames here (counted), pass whole valid ones
 
 
 class UdpTransport(Transport):
     kind = "udp"
 
     def __init__(self, params: UdpParams | None = None) -> None:
-        super().__init__()
         self.params = params or UdpParams()
+        super().__init__(self.params.validate_frames)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.bind((self.params.bind_host, self.params.port))
 

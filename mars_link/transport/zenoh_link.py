@@ -49,6 +49,7 @@ class ZenohParams:
     queue_frames: int = 10000            # receive queue; a flood beyond it is dropped and counted
     block_when_congested: bool = True    # lockstep must not lose frames; False: drop like a radio would
     only_from: str | None = None         # a unit link that talks to one node only (e.g. its HIL link: "world")
+    validate_frames: bool = True         # drop bad MAVLink frames here (counted), pass whole valid ones
     first_send_wait_s: float = 0.0       # first frame to a node: wait up to this long for it to subscribe
 
 
@@ -99,7 +100,7 @@ class ZenohTransport(Transport):
     kind = "zenoh"
 
     def __init__(self, params: ZenohParams) -> None:
-        super().__init__()
+        super().__init__(params.validate_frames)
         self.params = params
         self.node = _check_node(params.node)
         if not _NAME.match(params.fleet):

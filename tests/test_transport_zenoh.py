@@ -1,0 +1,139 @@
+"""MAVLink frames over Zenoh between two real sessions on loopback: round trip, no multicast scouting,
+no listener off loopback, bad input counted and dropped, sessions closed on exit and Ctrl-C."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from mars_link.transport.zenoh_link import ZenohParams, ZenohTransport, free_tcp_port, key_for, make_config
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _frame(sysid: int, t_us: int = 123456) -> bytes:
+    mav = mavlink.MAVLink(None, sysid, 1)
+    return mavlink.MAVLink_set_actuator_control_target_message(t_us, 0, 3, 1, [0.1, 0.2, 0.3, 0.4, 0, 0, 0, 0]).pack(mav)
+
+
+@pytest.fixture()
+def pair():
+    port = free_tcp_port()
+    ep = f"tcp/127.0.0.1:{port}"
+    a = ZenohTransport(ZenohParams("coordinator", fleet="t1", listen=(ep,)))
+    b = ZenohTransport(ZenohParams("unit/3", fleet="t1", connect=(ep,), first_send_wait_s=5.0))
+    a.params.first_send_wait_s = 5.0
+    try:
+        yield a, b
+    finally:
+        b.close()
+        a.close()
+
+
+def test_round_trip_between_two_sessions_is_byte_exact(pair) -> None:
+    a, b = pair
+    down = _frame(201)
+    a.send(down, "unit/3")
+    assert b.recv(5.0) == (down, "coordinator")
+    up = _frame(3, 999) * 2  # one datagram, two frames
+    b.send(up, "coordinator")
+    assert a.recv(5.0) == (up, "unit/3")
+    assert a.counters.sent == 1 and a.counters.received == 1 and a.counters.bytes_received == len(up)
+    assert b.recv(0.05) is None  # nothing else arrived
+
+
+def test_key_space() -> None:
+    assert key_for("f", "unit/3", "world") == "mars/f/unit/3/mavlink/up/world"
+    assert key_for("f", "coordinator", "unit/3") == "mars/f/unit/3/mavlink/down/coordinator"
+    assert key_for("f", "coordinator", "world") == "mars/f/world/mavlink/down/coordinator"
+    for bad in (("unit/3", "unit/4"), ("unit/0", "world"), ("a/b", "world"), ("world", "x*")):
+        with pytest.raises(ValueError):
+            key_for("f", *bad)
+
+
+def _own_sockets() -> tuple[list[tuple[str, int]], list[tuple[str, int]]]:
+    """(UDP sockets, listening TCP sockets) of this process as (ip hex, port)."""
+    inodes = set()
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            link = os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            continue
+        if link.startswith("socket:["):
+            inodes.add(link[8:-1])
+
+    def rows(table: str, want_state: str | None):
+        out = []
+        for path in (f"/proc/self/net/{table}", f"/proc/self/net/{table}6"):
+            if not os.path.exists(path):
+                continue
+            for line in open(path).read().splitlines()[1:]:
+                f = line.split()
+                if f[9] in inodes and (want_state is None or f[3] == want_state):
+                    ip, port = f[1].split(":")
+                    out.append((ip, int(port, 16)))
+        return out
+
+    return rows("udp", None), rows("tcp", "0A")  # 0A = LISTEN
+
+
+def test_scouting_is_off_and_nothing_listens_off_loopback(pair) -> None:
+    a, _ = pair
+    cfg = make_config(a.params)
+    assert cfg.get_json("scouting/multicast/enabled") == "false"
+    udp, listening = _own_sockets()
+    assert not any(port == 7446 for _, port in udp), udp  # no multicast scouting socket
+    assert listening, "the listening session should have a TCP socket"
+    assert all(ip == "0100007F" for ip, _ in listening), listening  # 127.0.0.1 only
+
+
+def test_malformed_and_spoofed_input_is_counted_and_dropped(pair) -> None:
+    a, b = pair
+    good = _frame(201)
+    a.send(good, "unit/3")  # make sure the route exists
+    assert b.recv(5.0) is not None
+    s = a.session
+    s.put("mars/t1/unit/3/mavlink/down/coordinator", b"\x00garbage\xff" * 5)
+    corrupted = bytearray(good)
+    corrupted[12] ^= 0xFF
+    s.put("mars/t1/unit/3/mavlink/down/coordinator", bytes(corrupted))
+    s.put("mars/t1/unit/3/mavlink/down/coordinator", good[:-4])  # truncated
+    s.put("mars/t1/unit/3/mavlink/down/coordinator", b"\x00junk" + good)  # junk, then a valid frame
+    b_to_a_spoof = "mars/t1/unit/999/mavlink/up/coordinator"  # unit ids are 1..255
+    b.session.put(b_to_a_spoof, good)
+    assert b.recv(2.0) == (good, "coordinator")  # only the valid frame of the last datagram
+    assert b.recv(0.2) is None
+    d = b.counters.dropped
+    assert d["garbage_bytes"] > 0 and d["bad_crc"] >= 1 and d["truncated"] == 1, d
+    time.sleep(0.2)
+    assert a.recv(0.2) is None
+    assert a.counters.dropped.get("bad_sender_key") == 1
+
+
+def _child(code: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", textwrap.dedent(code)], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+
+
+def test_sessions_close_on_error_and_on_ctrl_c() -> None:
+    """A process with a Zenoh callback subscriber hangs at exit unless the session is closed."""
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    head = f"""
+        from mars_link.transport.zenoh_link import ZenohParams, ZenohTransport
+        with ZenohTransport(ZenohParams("world", fleet="t2", listen=("{ep}",))) as t:
+            print("up", flush=True)
+    """
+    err = _child(head + "        raise RuntimeError('boom')\n")
+    waiting = _child(head + "        t.recv(60.0)\n")
+    assert waiting.stdout.readline().strip() == "up"
+    waiting.send_signal(signal.SIGINT)
+    assert err.wait(20) == 1 and "boom" in err.stderr.read()
+    assert waiting.wait(20) != 0  # KeyboardInterrupt, not a hang
