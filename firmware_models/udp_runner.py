@@ -35,15 +35,20 @@ import time
 from pathlib import Path
 
 from firmware_models.signing import DEFAULT_KEY_ENV, load_key
-from firmware_models.vehicle import LINK_API, LINK_COORDINATOR, LINK_GCS, Vehicle, VehicleConfig
+from firmware_models.vehicle import LINK_COORDINATOR, Vehicle, VehicleConfig
+from firmware_models.vehicle_io import (
+    COORD_BIND_BASE,
+    LOOPBACK,
+    LinkSpec,
+    VehicleSockets,
+    client_links,
+    vehicle_status,
+    write_json_atomic,
+)
 from mars_link.assembly import AssemblyModel
 from mars_link.errors import UserInputError
 
-LOOPBACK = "127.0.0.1"
-RECV_BUFFER_BYTES = 4 * 1024 * 1024
-MAX_DATAGRAMS_PER_WAKE = 4000  # per socket: keep the control loop on time during a flood
 STATUS_PERIOD_S = 0.2
-PEER_TIMEOUT_S = 10.0  # a client link also serves the last sender of valid frames (MAVProxy udpout)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -70,21 +75,6 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--status-file", default=None)
     p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
     return p
-
-
-def _bind(port: int) -> socket.socket:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECV_BUFFER_BYTES)
-    except OSError:
-        pass
-    try:
-        s.bind((LOOPBACK, port))
-    except OSError as e:
-        s.close()
-        raise UserInputError(f"cannot bind UDP port {port} on {LOOPBACK}: {e.strerror}") from None
-    s.setblocking(False)
-    return s
 
 
 def _params(items: list[str]) -> dict[str, float]:
@@ -126,89 +116,24 @@ class UnitRunner:
                                yaw_rad=math.radians(args.yaw_deg))
         self.vehicle.set_state(self.body.state())
         pick = lambda v, d: d if v is None else v  # noqa: E731
-        self.socks = {
-            LINK_GCS: _bind(pick(args.gcs_bind, 18570 + i)),
-            LINK_API: _bind(pick(args.api_bind, 14580 + i)),
-            LINK_COORDINATOR: _bind(pick(args.coord_bind, 14600 + i)),
-        }
-        self.dest: dict[str, tuple[str, int] | None] = {
-            LINK_GCS: (LOOPBACK, args.gcs_port),
-            LINK_API: (LOOPBACK, pick(args.api_port, 14540 + i)),
-            LINK_COORDINATOR: None,  # learnt from authenticated coordinator frames
-        }
-        self.peers: dict[str, tuple[tuple[str, int], float] | None] = {}  # client that last sent valid frames
-        self.sel = selectors.DefaultSelector()
-        for name, s in self.socks.items():
-            self.sel.register(s, selectors.EVENT_READ, name)
+        links = client_links(i, args.gcs_port, args.api_port, args.gcs_bind, args.api_bind)
+        links[LINK_COORDINATOR] = LinkSpec(pick(args.coord_bind, COORD_BIND_BASE + i), None, learn_clients=False)
+        self.io = VehicleSockets(self.vehicle, links)
         self.status_path = Path(args.status_file) if args.status_file else None
         self.duration_s = args.duration
         self.running = True
         self.sim_s = 0.0
         self.overruns = 0
-        self.datagrams = 0
-        self.send_errors = 0
-        self.not_loopback = 0
 
     def ports(self) -> dict[str, int]:
-        return {name: s.getsockname()[1] for name, s in self.socks.items()}
-
-    def _send(self, out) -> None:
-        now = time.monotonic()
-        for link, data in out:
-            dest = self.dest.get(link)
-            peer = self.peers.get(link)
-            if peer is not None and now - peer[1] > PEER_TIMEOUT_S:
-                peer = self.peers[link] = None
-            for addr in (dest, peer[0] if peer is not None and peer[0] != dest else None):
-                if addr is None:
-                    continue
-                try:
-                    self.socks[link].sendto(data, addr)
-                except OSError:  # nobody listening (ICMP refused) or buffer full: best effort
-                    self.send_errors += 1
-
-    def _drain(self, link: str, sock: socket.socket) -> None:
-        v = self.vehicle
-        for _ in range(MAX_DATAGRAMS_PER_WAKE):
-            try:
-                data, addr = sock.recvfrom(65536)
-            except (BlockingIOError, InterruptedError):
-                return
-            except OSError:  # e.g. ICMP port unreachable reported on a later recv
-                continue
-            self.datagrams += 1
-            if addr[0] != LOOPBACK:
-                self.not_loopback += 1
-                continue
-            before = v.stats.get("from_coordinator", 0)
-            rx = v.stats.get("rx", 0)
-            out = v.handle(data, time.time(), link)
-            if link == LINK_COORDINATOR:
-                if v.stats.get("from_coordinator", 0) > before:
-                    self.dest[LINK_COORDINATOR] = addr
-            elif v.stats.get("rx", 0) > rx:  # a client that sends valid MAVLink also gets telemetry
-                self.peers[link] = (addr, time.monotonic())
-            self._send(out)
+        return self.io.ports()
 
     def write_status(self) -> None:
         if self.status_path is None:
             return
-        v = self.vehicle
-        s = self.body.state()
-        status = {
-            "unit": v.sysid, "sim_time_s": self.sim_s, "wall_time_s": time.time(), "armed": v.armed,
-            "mode": list(v.mode), "source": v.source, "phase": v.autopilot.phase.value,
-            "truth_position_ned_m": [float(x) for x in s.position_ned_m],
-            "truth_velocity_ned_mps": [float(x) for x in s.velocity_ned_mps],
-            "truth_quaternion_wxyz": [float(x) for x in s.quaternion_wxyz],
-            "motor_eta": [float(x) for x in v.motors.eta], "motor_thrust_n": [float(x) for x in v.motors.thrust_n],
-            "drops": v.drop_counts(), "stats": v.stats, "intake_accepted": v.intake.accepted,
-            "datagrams": self.datagrams, "not_loopback": self.not_loopback, "overruns": self.overruns,
-            "send_errors": self.send_errors, "ports": self.ports(),
-        }
-        tmp = self.status_path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(status))
-        os.replace(tmp, self.status_path)
+        write_json_atomic(self.status_path, vehicle_status(
+            self.vehicle, self.body.state(), self.sim_s, overruns=self.overruns, ports=self.ports(),
+            **self.io.counters()))
 
     def run(self) -> int:
         print(json.dumps({"ready": True, "unit": self.vehicle.sysid, "ports": self.ports()}), flush=True)
@@ -221,14 +146,13 @@ class UnitRunner:
             if self.duration_s is not None and now - start >= self.duration_s:
                 break
             due = anchor_wall + (self.sim_s - anchor_sim) / self.speed
-            for key, _ in self.sel.select(max(0.0, due - now)):
-                self._drain(key.data, key.fileobj)
+            self.io.poll(due - now)
             now = time.monotonic()
             if now >= due:
                 if now - due > 0.25:  # fell behind (a busy machine): re-anchor instead of racing
                     self.overruns += 1
                     anchor_wall, anchor_sim = now, self.sim_s
-                self._send(v.tick(time.time(), self.sim_s))
+                self.io.send(v.tick(time.time(), self.sim_s))
                 for _ in range(self.substeps):
                     body.set_rotor_thrusts(v.step_motors(self.physics_dt_s))
                     body.step(1)
@@ -241,9 +165,7 @@ class UnitRunner:
         return 0
 
     def close(self) -> None:
-        self.sel.close()
-        for s in self.socks.values():
-            s.close()
+        self.io.close()
         self.body.close()
 
 

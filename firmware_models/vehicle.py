@@ -167,6 +167,9 @@ class VehicleConfig:
     origin_lat_deg: float = 0.0  # local NED origin (on the ground)
     origin_lon_deg: float = 0.0
     origin_amsl_m: float = 0.0
+    # lockstep with a coordinator: answer each HIL step only once the coordinator's rotor command for
+    # that step has arrived (the runner calls `release_hil` when it gives up waiting)
+    hil_await_coordinator: bool = False
 
     def checked(self) -> "VehicleConfig":
         if not (isinstance(self.unit_id, int) and 1 <= self.unit_id <= 250):
@@ -325,6 +328,10 @@ class Vehicle:
         self._last_cmd: dict[tuple, tuple] = {}
         self._pending_text: list[tuple[int, str]] = []
         self.battery_used_c = 0.0  # coulombs
+        self._hil_pending: tuple[int, str] | None = None  # (time_usec, link) of an unanswered HIL step
+        self._last_rotor_usec: int | None = None  # time of the last accepted coordinator command
+        self._await_coordinator = c.hil_await_coordinator
+        self._scheduled_failures: list[tuple[float, int, float]] = []  # (sim time, rotor, eta), sorted
 
     def _intake_params(self) -> IntakeParams:
         p = self.params
@@ -369,6 +376,12 @@ class Vehicle:
         """Local fault injection (rotor 1..4, 0 = all): the motor model only."""
         self.motors.set_rotor_eta(0, rotor, eta)
 
+    def schedule_failure(self, t_s: float, rotor: int, eta: float) -> None:
+        """A scenario fault (rotor 1..4, 0 = all) that enters the motor model at the first HIL step at
+        or after sim time t_s, before that step's motor outputs are computed."""
+        self._scheduled_failures.append((t_s, rotor, eta))
+        self._scheduled_failures.sort()
+
     def step_motors(self, dt_s: float) -> np.ndarray:
         """Produced rotor thrusts (N) after one physics step of dt_s (limits, eta, lag)."""
         return self.motors.step(self.motor_commands_n if self.armed else np.zeros(4), dt_s)
@@ -400,7 +413,33 @@ class Vehicle:
                 self._dispatch(msg, lk, out)
             except (ValueError, TypeError, OverflowError, struct.error):
                 self._drop("malformed_fields")  # a decoded frame whose fields we cannot use
+        pending = self._hil_pending
+        if pending is not None and self._last_rotor_usec == pending[0]:
+            self._answer_hil(out)  # the coordinator's command for the pending step (and any arm/mode
+            # command in the same datagram) is in: run the step
         return out
+
+    @property
+    def hil_pending(self) -> bool:
+        """A HIL step waits for the coordinator's command (`hil_await_coordinator`)."""
+        return self._hil_pending is not None
+
+    def release_hil(self, wall_time_s: float) -> list[Outgoing]:
+        """The runner gave up waiting for the coordinator: answer the pending step with what the unit
+        holds (the last command within MARS_CMD_MISS periods, then the fail-safe), and stop waiting
+        until the coordinator's commands come back."""
+        self.wall_s = max(self.wall_s, wall_time_s)
+        out: list[Outgoing] = []
+        if self._hil_pending is not None:
+            self._count("hil_released")
+            self._await_coordinator = False
+            self._answer_hil(out)
+        return out
+
+    def hello(self, link: str) -> Outgoing:
+        """A HEARTBEAT on a non-telemetry link (HIL, coordinator): peers learn the unit's address."""
+        lk = self.links[link]
+        return Outgoing(link, self._pack(lk, self._heartbeat()))
 
     def tick(self, wall_time_s: float, sim_time_s: float) -> list[Outgoing]:
         """Advance both clocks: heartbeats and streams on wall time, control on sim time."""
@@ -805,6 +844,9 @@ class Vehicle:
             return
         if self.intake.offer(msg, self.sim_s):
             self._count("rotor_commands")
+            self._last_rotor_usec = int(msg.time_usec)
+            if self.config.hil_await_coordinator:
+                self._await_coordinator = True  # the coordinator is back: lockstep with it again
 
     # ----------------------------------------------------------------- parameters
     def _on_param_list(self, msg, lk: _Link, out: list[Outgoing]) -> None:
@@ -931,13 +973,26 @@ class Vehicle:
                     out.append(Outgoing(name, self._pack(other, m)))
         # lockstep: the sensor time stamps the step; answer with the motor outputs for it
         self.sim_s = packet.t_s
-        self._control_step()
         self._next_control = packet.t_s + self.control_dt_s
+        self._hil_pending = (int(msg.time_usec), lk.name)
+        if self._await_coordinator:
+            return  # answered when the coordinator's command for this step arrives (or on release)
+        self._answer_hil(out)
+
+    def _answer_hil(self, out: list[Outgoing]) -> None:
+        time_usec, name = self._hil_pending
+        self._hil_pending = None
+        lk = self.links[name]
+        while self._scheduled_failures and self._scheduled_failures[0][0] <= self.sim_s + 1e-9:
+            _, rotor, eta = self._scheduled_failures.pop(0)
+            self.inject_failure(rotor, eta)
+        self._count("hil_steps")
+        self._control_step()
         sp = self.motors.setpoint(self.motor_commands_n if self.armed else np.zeros(4)) / self.full_scale_n
         mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
         controls = [float(x) for x in sp] + [0.0] * 12
         out.append(Outgoing(lk.name, self._pack(lk, mavlink.MAVLink_hil_actuator_controls_message(
-            msg.time_usec, controls, mode, 1))))
+            time_usec, controls, mode, 1))))
 
     # ================================================================= control
     def _limits(self) -> GuidanceLimits:

@@ -146,20 +146,29 @@ def cmd_reproduce(args) -> int:
 
 
 def cmd_sitl(args) -> int:
-    from mars_link.scenario import load_scenario, resolve_scenario_path
+    from mars_link.scenario import resolve_scenario_path
     from sitl.launcher import sitl_up
+    from sitl.lockstep import load_setup
 
     if args.action != "up":
         raise UserInputError(f"sitl {args.action!r}: only 'up' is available")
-    path = resolve_scenario_path(args.scenario)
-    load_scenario(str(path))  # refuse a bad scenario before starting any process
-    out = Path(args.out) if args.out else _default_out(path.stem + "-sitl")
+    if args.units is not None and args.layout is not None:
+        raise UserInputError("--units and --layout exclude each other")
+    if args.speed is not None and not (args.speed >= 0 and args.speed < float("inf")):
+        raise UserInputError(f"--speed must be >= 0, got {args.speed}")
+    if args.units is not None and args.scenario is None:
+        path, name = None, "units"  # free units: built-in defaults unless a scenario is given
+    else:
+        path = str(resolve_scenario_path(args.scenario))
+        name = Path(path).stem
+    load_setup(path, args.units, args.layout)  # refuse bad input before starting any process
+    out = Path(args.out) if args.out else _default_out(name + "-sitl")
     if getattr(args, "transport", None) not in (None, "udp") or getattr(args, "external_coordinator", False) \
             or getattr(args, "realtime", False) or getattr(args, "link_profile", None):
         from mars_link.sitl_mode import sitl_up_command
 
         return sitl_up_command(args, str(path), out)
-    code = sitl_up(str(path), out, args.seed)
+    code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed)
     print(f"run directory: {out}")
     return code
 
@@ -191,11 +200,16 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
 
-    sitl = sub.add_parser("sitl", help="run a scenario as processes: world, one per unit, coordinator (lockstep)")
+    sitl = sub.add_parser("sitl", help="up [SCENARIO] [--units N | --layout ROWS]: world, one process per unit (MAVLink), coordinator; lockstep")
     sitl.add_argument("action", help="up")
     sitl.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default: spiral_3x2)")
     sitl.add_argument("--out", help="run directory (default runs/<name>-sitl-<time>)")
     sitl.add_argument("--seed", type=int, default=None)
+    sitl.add_argument("--units", type=int, default=None,
+                      help="N free units side by side on the ground, each flying itself (no coordinator)")
+    sitl.add_argument("--layout", default=None, help="docked assembly of these rows, e.g. XXX,XXX (with coordinator)")
+    sitl.add_argument("--speed", type=float, default=None,
+                      help="world pacing, x real time (default 1 for --units, 0 = as fast as possible otherwise)")
     sitl.set_defaults(func=cmd_sitl)
     from mars_link.sitl_mode import add_sitl_up_arguments
 

@@ -1,7 +1,9 @@
-"""Start the world, one process per unit and the coordinator; stop every child cleanly.
+"""Start the world, one process per unit and (for a docked assembly) the coordinator; stop every child
+cleanly.
 
-Children are ended by PID (terminate, then kill after a grace period) on normal exit, on Ctrl-C and
-when any one of them dies with an error.
+Children are ended by PID (SIGTERM, then SIGKILL after a grace period) on normal exit, on Ctrl-C /
+SIGTERM and, with `stop_on_child_death` (what `mars-link sitl up` does), as soon as any one of them
+dies before the world finished.
 """
 
 from __future__ import annotations
@@ -14,8 +16,14 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from mars_link.errors import UserInputError
-from sitl.lockstep import LOOPBACK
+from sitl.lockstep import LOOPBACK, SitlSetup, load_setup
+
+
+def bound_udp_socket() -> socket.socket:
+    """A socket bound to a free loopback port, to hand down to a child (no race for the port)."""
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind((LOOPBACK, 0))
+    return s
 
 
 def free_udp_port() -> int:
@@ -25,13 +33,30 @@ def free_udp_port() -> int:
 
 
 @dataclass
+class ClientPorts:
+    """Where each unit's client links go: GCS to `gcs_port` (QGC/MAVProxy), API of unit index i to
+    `api_ports[i]` (default 14540+i); `bind_any` binds the unit side to free ports instead of PX4's
+    18570+i / 14580+i (tests running side by side)."""
+
+    gcs_port: int = 14550
+    api_ports: list[int] | None = None
+    bind_any: bool = False
+
+    def api_port(self, index: int) -> int:
+        return self.api_ports[index] if self.api_ports else 14540 + index
+
+
+@dataclass
 class SitlRun:
     out: Path
+    setup: SitlSetup
     world_port: int
     coordinator_port: int
+    clients: ClientPorts
     processes: dict[str, subprocess.Popen] = field(default_factory=dict)
 
     def stop(self, grace_s: float = 3.0) -> None:
+        """SIGTERM every child still running, wait, SIGKILL the ones that did not end (by PID)."""
         for proc in self.processes.values():
             if proc.poll() is None:
                 proc.terminate()
@@ -43,25 +68,67 @@ class SitlRun:
                 proc.kill()
                 proc.wait()
 
+    def endpoints(self) -> list[str]:
+        lines = [f"world: pid {self.processes['world'].pid}, HIL link udp {LOOPBACK}:{self.world_port} (lockstep)"]
+        if "coordinator" in self.processes:
+            lines.append(f"coordinator: pid {self.processes['coordinator'].pid}, udp {LOOPBACK}:{self.coordinator_port} "
+                         "(unit telemetry in, per-rotor commands out)")
+        for i, u in enumerate(self.setup.unit_ids):
+            lines.append(f"unit {u}: pid {self.processes[f'unit{u}'].pid}, system id {u}, "
+                         f"GCS udp {LOOPBACK}:{self.clients.gcs_port}, API udp {LOOPBACK}:{self.clients.api_port(i)} "
+                         f"(MAVSDK udpin://{LOOPBACK}:{self.clients.api_port(i)}), log {self.out / f'unit{u}.tlog'}")
+        return lines
 
-def start(scenario_path: str, out: Path, unit_ids: list[int], seed: int | None = None) -> SitlRun:
+
+def start(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
+          seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None) -> SitlRun:
+    """Start every process of one run (returns at once; `wait` follows it)."""
+    setup = load_setup(scenario, units, layout)  # refuses bad input before any process starts
     out.mkdir(parents=True, exist_ok=True)
-    run = SitlRun(out, free_udp_port(), free_udp_port())
-    common = [scenario_path, "--world-port", str(run.world_port), "--coordinator-port",
-              str(run.coordinator_port), "--out", str(out)]
+    clients = clients or ClientPorts()
+    world_sock = bound_udp_socket()
+    coord_sock = bound_udp_socket() if setup.docked else None
+    run = SitlRun(out, setup, world_sock.getsockname()[1], coord_sock.getsockname()[1] if coord_sock else 0, clients)
+    common = [scenario or "-", "--world-port", str(run.world_port), "--coordinator-port", str(run.coordinator_port),
+              "--out", str(out)]
+    if units is not None:
+        common += ["--units", str(units)]
+    if layout is not None:
+        common += ["--layout", layout]
+    if setup.docked:
+        common += ["--steps", str(setup.steps)]
     py = [sys.executable, "-m", "sitl.lockstep"]
-    log = lambda name: open(out / f"{name}.log", "w")  # noqa: E731
-    run.processes["coordinator"] = subprocess.Popen(py + ["coordinator", *common], stdout=log("coordinator"), stderr=subprocess.STDOUT)
-    world = py + ["world", *common] + ([] if seed is None else ["--seed", str(seed)])
-    run.processes["world"] = subprocess.Popen(world, stdout=log("world"), stderr=subprocess.STDOUT)
-    for u in unit_ids:
-        run.processes[f"unit{u}"] = subprocess.Popen(py + ["unit", *common, "--unit", str(u)],
-                                                     stdout=log(f"unit{u}"), stderr=subprocess.STDOUT)
+
+    def spawn(name: str, argv: list[str], sock: socket.socket | None = None) -> None:
+        fds = () if sock is None else (sock.fileno(),)
+        with open(out / f"{name}.log", "w") as log:
+            run.processes[name] = subprocess.Popen(py + argv, stdout=log, stderr=subprocess.STDOUT,
+                                                   stdin=subprocess.DEVNULL, pass_fds=fds)
+
+    try:
+        if coord_sock is not None:
+            spawn("coordinator", ["coordinator", *common, "--coordinator-fd", str(coord_sock.fileno())], coord_sock)
+        world = ["world", *common, "--world-fd", str(world_sock.fileno())] + ([] if seed is None else ["--seed", str(seed)])
+        spawn("world", world + ([] if speed is None else ["--speed", str(speed)]), world_sock)
+        for i, u in enumerate(setup.unit_ids):
+            argv = ["unit", *common, "--unit", str(u), "--gcs-port", str(clients.gcs_port),
+                    "--api-port", str(clients.api_port(i))]
+            if clients.bind_any:
+                argv += ["--gcs-bind", "0", "--api-bind", "0"]
+            spawn(f"unit{u}", argv)
+    except BaseException:
+        run.stop()
+        raise
+    finally:  # the children hold their own copies
+        world_sock.close()
+        if coord_sock is not None:
+            coord_sock.close()
     return run
 
 
-def wait(run: SitlRun, timeout_s: float | None = None) -> int:
-    """Until the world ends (the scenario's end), a child fails, or the timeout; then stop all."""
+def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool = True) -> int:
+    """Until the world ends (the scenario's end), a child dies (with `stop_on_child_death`) or the
+    timeout; then stop all. 0 = the world finished, 1 = a child died first, 124 = timeout."""
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
     code = 0
     try:
@@ -70,10 +137,10 @@ def wait(run: SitlRun, timeout_s: float | None = None) -> int:
             if world is not None:
                 code = world
                 break
-            failed = [n for n, p in run.processes.items() if p.poll() not in (None, 0)]
-            if failed:
-                print(f"sitl: {', '.join(failed)} exited with an error; stopping the rest "
-                      f"(logs in {run.out})", file=sys.stderr)
+            dead = [n for n, p in run.processes.items() if p.poll() not in (None, 0)]  # killed or failed
+            if dead and stop_on_child_death:
+                print(f"sitl: {', '.join(dead)} died (exit {[run.processes[n].returncode for n in dead]}); "
+                      f"stopping the rest (logs in {run.out})", file=sys.stderr)
                 code = 1
                 break
             if deadline is not None and time.monotonic() > deadline:
@@ -91,25 +158,29 @@ def wait(run: SitlRun, timeout_s: float | None = None) -> int:
     return code
 
 
-def sitl_up(scenario_path: str, out: Path, seed: int | None = None) -> int:
-    from mars_link.scenario import load_scenario
-
-    sc = load_scenario(scenario_path)
-    if sc.controller != "cascaded" and sc.controller != "mars-ftcc-paper":
-        raise UserInputError(f"unknown controller {sc.controller!r}")
-    model = sc.model()
-    run = start(str(scenario_path), out, model.unit_ids, seed)
-    print(f"world: udp {LOOPBACK}:{run.world_port} (HIL link, lockstep)")
-    print(f"coordinator: udp {LOOPBACK}:{run.coordinator_port} (unit telemetry in, per-rotor commands out)")
-    for u in model.unit_ids:
-        print(f"unit {u}: system id {u}, MAVLink log {out / f'unit{u}.tlog'}")
+def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
+            seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None) -> int:
+    """`mars-link sitl up`: start, print the endpoints, run until the end, Ctrl-C or a child's death."""
     previous = signal.getsignal(signal.SIGTERM)
-    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    signal.signal(signal.SIGTERM, _raise_interrupt)
+    run = None
     try:
+        run = start(scenario, out, units, layout, seed, speed, clients)
+        for line in run.endpoints():
+            print(line, flush=True)
+        steps = run.setup.steps
+        sc = run.setup.scenario
+        print(f"running {'until Ctrl-C' if steps is None else f'{steps / sc.sim.control_hz:.1f} s of sim time'}; "
+              f"run directory {out}", flush=True)
         return wait(run)
     except KeyboardInterrupt:
         print("sitl: interrupted, stopping every child", file=sys.stderr)
-        run.stop()
+        if run is not None:
+            run.stop()
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def _raise_interrupt(*_) -> None:
+    raise KeyboardInterrupt

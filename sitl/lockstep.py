@@ -1,39 +1,60 @@
-"""Multi-process lockstep SITL: the same World, UnitCore and Coordinator as `inproc`, one process each,
-exchanging real MAVLink frames over loopback UDP.
+"""Multi-process lockstep SITL: the same World and Coordinator as `inproc`, and each unit's full
+firmware (`firmware_models.vehicle.Vehicle`), one process each, exchanging real MAVLink frames over
+loopback UDP.
 
 Contract per exchange k (PX4's simulator lockstep, specs/mavlink.md §1.1):
-  world --HIL_SENSOR (+ATT_POS_MOCAP, +ODOMETRY)--> unit i      (sensor time stamps the step)
-  unit i --HIGHRES_IMU (+ATT_POS_MOCAP, +ODOMETRY)--> coordinator
-  coordinator --SET_ACTUATOR_CONTROL_TARGET--> unit i           (per-rotor thrust for that time)
+  world --[HIL_STATE_QUATERNION] ODOMETRY.. HIL_SENSOR--> unit i   (one datagram; sensor time stamps the step)
+  unit i --HIGHRES_IMU (+ODOMETRY)--> coordinator                   (docked assembly only)
+  coordinator --SET_ACTUATOR_CONTROL_TARGET--> unit i               (per-rotor thrust for that time)
   unit i --HIL_ACTUATOR_CONTROLS (LOCKSTEP)--> world
 The world steps only when every live unit has answered for step k; a unit that stays silent for
-`unit_timeout_s` of wall time is declared dead (motors off, the flight goes on).
+`unit_timeout_s` of wall time is declared dead (motors off, the flight goes on). HIL_STATE_QUATERNION
+(the unit centre's ground truth, as PX4's simulators send it) goes only when the sensor packet carries
+no truth (sensor noise on): the unit uses it for its own telemetry and arming checks; the coordinator
+never sees it.
 
-Every process starts by sending HEARTBEATs, so peers learn each other's addresses; sockets bind to
-127.0.0.1 only. Frames from unknown addresses or with unexpected ids are counted and dropped.
+Two set-ups (`SitlSetup`):
+  docked   one rigid assembly (the scenario's layout or --layout ROWS) and a coordinator process; at
+           the first step the coordinator arms every unit and switches it to OFFBOARD with
+           COMMAND_LONGs on its link, in the same datagram as the first rotor command; each unit
+           answers a HIL step only once the coordinator's command for that step is in
+           (`VehicleConfig.hil_await_coordinator`), or after `command_timeout_s`.
+  free     --units N: N separate 1x1 bodies side by side on the ground, no coordinator; each unit
+           flies itself (takeoff, offboard, land from MAVSDK/QGC/MAVProxy), the world paced to
+           real time (--speed).
+Every unit also serves PX4's client links: GCS to UDP 14550 (bound 18570+i), API to 14540+i (bound
+14580+i), i = unit index from 0, and logs every frame it sends or receives to unit<id>.tlog.
+
+Timeouts (wall time): coordinator 1 s < unit 2 s < world 3 s, so that when a unit process dies the
+coordinator gives up on it first, the other units still get their commands, and only the dead unit is
+declared dead by the world.
+
+Socket I/O of the world and coordinator is behind `Link` (one UDP socket, MAVLink parser, peer
+table, counters), of a unit behind `firmware_models.vehicle_io.VehicleSockets`: the two places to
+swap for another transport.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
+import signal
 import socket
 import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from mars_link.errors import UserInputError
 from mars_link.messages import SensorPacket
 from mars_link.wire import (
     SensorPacketAssembler,
     actuator_output_from_message,
-    actuator_output_message,
     new_mav,
-    rotor_command_from_message,
     rotor_command_message,
     sensor_packet_messages,
     usec,
@@ -42,24 +63,107 @@ from mars_link.wire import (
 WORLD_SYSID = 200
 COORDINATOR_SYSID = 201
 LOOPBACK = "127.0.0.1"
+MAX_FREE_UNITS = 10  # API ports 14540..14549 (14550 is the GCS port)
+COORDINATOR_TIMEOUT_S = 1.0
+UNIT_COMMAND_TIMEOUT_S = 2.0
+WORLD_UNIT_TIMEOUT_S = 3.0
+STATUS_PERIOD_S = 0.2
 
 
 @dataclass
 class Ports:
     world: int
     coordinator: int
+    world_fd: int | None = None  # sockets already bound by the launcher (inherited descriptors)
+    coordinator_fd: int | None = None
 
 
+# ----------------------------------------------------------------------------- set-up
+@dataclass
+class SitlSetup:
+    scenario: object  # mars_link.scenario.Scenario
+    model: object  # AssemblyModel of the docked assembly, or of one free unit
+    free_units: int | None  # N free units (no coordinator), or None for a docked assembly
+    steps: int | None  # exchanges to run; None = until stopped
+
+    @property
+    def docked(self) -> bool:
+        return self.free_units is None
+
+    @property
+    def unit_ids(self) -> list[int]:
+        return list(range(1, self.free_units + 1)) if self.free_units else list(self.model.unit_ids)
+
+
+def load_setup(scenario: str | None, units: int | None = None, layout: str | None = None,
+               steps: int | None = None) -> SitlSetup:
+    """The run's set-up from a scenario (None or "-": built-in defaults) and the CLI overrides.
+    `steps` given (the launcher computed it once) spares a unit process building the trajectory
+    (importing the whole coordinator stack costs each process over a second)."""
+    from mars_link.assembly import AssemblyModel, parse_layout
+    from mars_link.scenario import Scenario, load_scenario, validate_fault
+
+    if units is not None and layout is not None:
+        raise UserInputError("--units and --layout exclude each other")
+    sc = Scenario(name="free-units") if scenario in (None, "-") else load_scenario(scenario)
+    if units is not None:
+        if not 1 <= units <= MAX_FREE_UNITS:
+            raise UserInputError(f"--units must be 1..{MAX_FREE_UNITS}, got {units}")
+        if sc.faults:
+            sc = dataclasses.replace(sc, faults=[f for f in sc.faults if f.unit <= units])
+        model = AssemblyModel.from_layout(["X"], sc.model().vehicle)
+        steps = None if sc.sim.duration_s is None else int(round(sc.sim.duration_s * sc.sim.control_hz))
+        return SitlSetup(sc, model, units, steps)
+    if layout is not None:
+        rows = parse_layout(layout)
+        tracked = sc.tracked
+        if tracked != "com" and sc.tracked_unit() > sum(r.count("X") for r in rows):
+            tracked = "com"
+        sc = dataclasses.replace(sc, layout=rows, tracked=tracked)
+    model = sc.model()
+    for f in sc.faults:
+        validate_fault(f, model, sc.source)
+    if steps is None:
+        steps = int(round((sc.sim.duration_s or _trajectory(sc, model).duration_s) * sc.sim.control_hz))
+    return SitlSetup(sc, model, None, steps)
+
+
+def _start_pose(setup: SitlSetup):
+    """Where the assembly's CoM starts (as the in-process runner puts it) and its yaw."""
+    from mars_link.rotations import quat_to_rotmat
+    from mars_link.runner import _yaw_quat, tracked_offset
+
+    start = _trajectory(setup.scenario, setup.model).sample(0.0)
+    com = start.position_ned_m - quat_to_rotmat(_yaw_quat(start.yaw_rad)) @ tracked_offset(setup.model, setup.scenario)
+    return com, start.yaw_rad
+
+
+def _trajectory(sc, model):
+    from mars_link.runner import make_trajectory
+
+    return make_trajectory(sc, model)
+
+
+# ----------------------------------------------------------------------------- link
 class Link:
     """A UDP socket on loopback with a MAVLink parser, a peer table keyed by system id, and counters."""
 
-    def __init__(self, port: int, sysid: int, tlog: Path | None = None) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.bind((LOOPBACK, port))
+    def __init__(self, port: int, sysid: int, tlog: Path | None = None, fd: int | None = None) -> None:
+        """Bind `port` on loopback, or adopt the already bound socket `fd` (handed down by the launcher,
+        so no other process can take the port in between)."""
+        if fd is not None:
+            self.sock = socket.socket(fileno=fd)
+        else:
+            self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            self.sock.bind((LOOPBACK, port))
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 1024 * 1024)
+        except OSError:
+            pass
         self.mav = new_mav(sysid)
         self.peers: dict[int, tuple[str, int]] = {}
         self.dropped: dict[str, int] = {}
-        self._tlog = open(tlog, "ab") if tlog else None
+        self._tlog = open(tlog, "ab", buffering=0) if tlog else None
 
     @property
     def port(self) -> int:
@@ -69,8 +173,15 @@ class Link:
         self.dropped[reason] = self.dropped.get(reason, 0) + 1
 
     def send(self, msg, addr: tuple[str, int]) -> None:
-        data = msg.pack(self.mav)
-        self.sock.sendto(data, addr)
+        self.send_many([msg], addr)
+
+    def send_many(self, msgs: list, addr: tuple[str, int]) -> None:
+        """Several frames in one datagram (one syscall; the receiver splits them)."""
+        data = b"".join(m.pack(self.mav) for m in msgs)
+        try:
+            self.sock.sendto(data, addr)
+        except OSError:  # the peer is gone (ICMP refused): its silence is handled by the timeouts
+            self.drop("send_failed")
         self._log(data)
 
     def heartbeat(self, addr: tuple[str, int]) -> None:
@@ -83,6 +194,8 @@ class Link:
         try:
             data, addr = self.sock.recvfrom(65536)
         except (TimeoutError, socket.timeout):
+            return []
+        except OSError:  # ICMP port unreachable from an earlier send to a dead peer
             return []
         if addr[0] != LOOPBACK:
             self.drop("not_loopback")
@@ -109,8 +222,10 @@ class Link:
         return out
 
     def _log(self, data: bytes) -> None:
-        if self._tlog:  # pymavlink .tlog: 8-byte big-endian microsecond timestamp, then the frame
-            self._tlog.write(int(time.time() * 1e6).to_bytes(8, "big") + data)
+        if self._tlog:
+            from firmware_models.vehicle_io import tlog_records
+
+            self._tlog.write(tlog_records(data))
 
     def close(self) -> None:
         if self._tlog:
@@ -118,50 +233,79 @@ class Link:
         self.sock.close()
 
 
-def _scenario(path: str):
-    from mars_link.scenario import load_scenario
+class _Stop:
+    """SIGTERM/SIGINT -> a flag the loops poll (the process ends cleanly, summaries written)."""
 
-    return load_scenario(path)
+    def __init__(self) -> None:
+        self.requested = False
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, self._set)
+
+    def _set(self, *_) -> None:
+        self.requested = True
+
+
+def _await_peers(link: Link, wanted: set[int], timeout_s: float, stop: _Stop | None = None) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not wanted <= set(link.peers) and time.monotonic() < deadline and not (stop and stop.requested):
+        link.receive(0.05)
+    missing = wanted - set(link.peers)
+    if missing and not (stop and stop.requested):
+        raise SystemExit(f"timed out waiting for {sorted(missing)} to say hello")
 
 
 # ----------------------------------------------------------------------------- world
-def run_world(scenario_path: str, ports: Ports, out: Path, seed: int, unit_timeout_s: float = 2.0) -> int:
-    from mars_link.runner import make_trajectory, tracked_offset, _yaw_quat
-    from mars_link.rotations import quat_to_rotmat
-    from sitl.world import World, WorldConfig
+def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout_s: float = WORLD_UNIT_TIMEOUT_S,
+              speed: float = 0.0) -> int:
+    """Own the bodies, run the lockstep; `speed` > 0 paces sim time to that many x wall time."""
     from mars_link.runner import POSITION_RATE_HZ
+    from sitl.hil import hil_state_message
+    from sitl.world import FreeUnitsWorld, World, WorldConfig
 
-    sc = _scenario(scenario_path)
-    model = sc.model()
-    trajectory = make_trajectory(sc, model)
-    duration = sc.sim.duration_s or trajectory.duration_s
-    n = int(round(duration * sc.sim.control_hz))
-    offset = tracked_offset(model, sc)
-    start = trajectory.sample(0.0)
-    com = start.position_ned_m - quat_to_rotmat(_yaw_quat(start.yaw_rad)) @ offset
-    world = World(model, WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise,
-                                     max(1, round(sc.sim.control_hz / POSITION_RATE_HZ))), com, start.yaw_rad)
-    link = Link(ports.world, WORLD_SYSID)
-    scale = model.vehicle.full_scale_thrust_n
-    live = set(model.unit_ids)
-    _await_peers(link, live | {COORDINATOR_SYSID}, 60.0)  # the coordinator says hello once it hears every unit
+    sc = setup.scenario
+    cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise,
+                      max(1, round(sc.sim.control_hz / POSITION_RATE_HZ)))
+    if setup.docked:
+        com, yaw = _start_pose(setup)
+        world = World(setup.model, cfg, com, yaw)
+        columns = "pos_n_m,pos_e_m,pos_d_m,qw,qx,qy,qz"
+    else:
+        world = FreeUnitsWorld(setup.free_units, setup.model.vehicle, cfg)
+        columns = ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("pos_n_m", "pos_e_m", "pos_d_m", "qw", "qx", "qy", "qz"))
+    stop = _Stop()
+    link = Link(ports.world, WORLD_SYSID, fd=ports.world_fd)
+    scale = setup.model.vehicle.full_scale_thrust_n
+    live = set(setup.unit_ids)
     out.mkdir(parents=True, exist_ok=True)
+    status_path = out / "world_status.json"
     truth_log = open(out / "world_truth.csv", "w", encoding="utf-8")
-    truth_log.write("t_s,pos_n_m,pos_e_m,pos_d_m,qw,qx,qy,qz\n")
+    truth_log.write("t_s," + columns + "\n")
     wall0 = time.perf_counter()
+    next_status = 0.0
+    stalls = 0
     try:
-        for _ in range(n):
+        _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
+        wall0 = time.perf_counter()
+        k = 0
+        while (setup.steps is None or k < setup.steps) and not stop.requested:
             t = world.t_s
-            s = world.truth()
-            truth_log.write("%.6f,%.9f,%.9f,%.9f,%.9f,%.9f,%.9f,%.9f\n" % (t, *s.position_ned_m, *s.quaternion_wxyz))
+            if speed > 0:
+                ahead = t / speed - (time.perf_counter() - wall0)
+                if ahead > 0:
+                    time.sleep(ahead)
+            truth_log.write("%.6f," % t + ",".join("%.9f" % x for x in world.truth_row()) + "\n")
+            if time.monotonic() >= next_status:
+                next_status = time.monotonic() + STATUS_PERIOD_S
+                _write_world_status(status_path, world, setup, live, t, time.perf_counter() - wall0)
+                truth_log.flush()
             for p in world.sense():
                 if p.unit_id in live:
-                    for m in sensor_packet_messages(p):
-                        link.send(m, link.peers[p.unit_id])
+                    msgs = [] if p.truth is not None else [hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
+                    link.send_many(msgs + sensor_packet_messages(p), link.peers[p.unit_id])
             waiting = set(live)
             deadline = time.monotonic() + unit_timeout_s
             t_us = usec(t)
-            while waiting and time.monotonic() < deadline:
+            while waiting and time.monotonic() < deadline and not stop.requested:
                 for m in link.receive(deadline - time.monotonic()):
                     if m.get_type() != "HIL_ACTUATOR_CONTROLS":
                         continue
@@ -170,14 +314,20 @@ def run_world(scenario_path: str, ports: Ports, out: Path, seed: int, unit_timeo
                         continue
                     world.actuate(actuator_output_from_message(m, scale))
                     waiting.discard(m.get_srcSystem())
-            for unit in waiting:  # silent units are dead: motors off, the assembly flies on
+            if stop.requested:
+                break
+            for unit in sorted(waiting):  # silent units are dead: motors off, the flight goes on
                 world.declare_dead(unit)
                 live.discard(unit)
+                stalls += 1
                 print(f"world: unit {unit} silent for {unit_timeout_s:.1f} s at t={t:.2f}: declared dead", file=sys.stderr)
             world.advance()
+            k += 1
         wall = time.perf_counter() - wall0
-        summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / wall,
-                   "dead_units": sorted(set(model.unit_ids) - live), "dropped": link.dropped}
+        _write_world_status(status_path, world, setup, live, world.t_s, wall)
+        summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
+                   "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
+                   "dropped": link.dropped, "stopped": stop.requested}
         (out / "world_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     finally:
         truth_log.close()
@@ -186,130 +336,162 @@ def run_world(scenario_path: str, ports: Ports, out: Path, seed: int, unit_timeo
     return 0
 
 
-def _await_peers(link: Link, wanted: set[int], timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not wanted <= set(link.peers) and time.monotonic() < deadline:
-        link.receive(0.05)
-    missing = wanted - set(link.peers)
-    if missing:
-        raise SystemExit(f"timed out waiting for units {sorted(missing)} to say hello")
+def _write_world_status(path: Path, world, setup: SitlSetup, live: set[int], t_s: float, wall_s: float) -> None:
+    """The world's truth for operators and tests (units' centres, NED), replaced atomically."""
+    from firmware_models.vehicle_io import write_json_atomic
+
+    units = {}
+    for u in setup.unit_ids:
+        s = world.unit_truth(u)
+        units[str(u)] = {"position_ned_m": [float(x) for x in s.position_ned_m],
+                         "velocity_ned_mps": [float(x) for x in s.velocity_ned_mps],
+                         "quaternion_wxyz": [float(x) for x in s.quaternion_wxyz]}
+    write_json_atomic(path, {"sim_time_s": t_s, "wall_time_s": wall_s, "wall_clock_s": time.time(),
+                             "real_time_factor": t_s / wall_s if wall_s > 0 else None,
+                             "dead_units": sorted(set(setup.unit_ids) - live), "units": units})
 
 
 # ----------------------------------------------------------------------------- unit
-def run_unit(scenario_path: str, unit_id: int, ports: Ports, out: Path, command_timeout_s: float = 2.0) -> int:
-    from firmware_models.unit import UnitCore, UnitCoreParams
+@dataclass
+class UnitPorts:
+    gcs_port: int = 14550
+    api_port: int | None = None  # None: 14540 + index
+    gcs_bind: int | None = None  # None: 18570 + index
+    api_bind: int | None = None  # None: 14580 + index
 
-    sc = _scenario(scenario_path)
-    model = sc.model()
-    core = UnitCore(unit_id, model.vehicle, UnitCoreParams(control_period_s=1.0 / sc.sim.control_hz))
-    faults = sorted((f for f in sc.faults if f.unit == unit_id), key=lambda f: f.t_s)
+
+def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: UnitPorts | None = None,
+             command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S) -> int:
+    """The unit's full firmware on its HIL, coordinator and client links."""
+    from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL, Vehicle, VehicleConfig
+    from firmware_models.vehicle_io import LinkSpec, VehicleSockets, client_links, vehicle_status, write_json_atomic
+
+    sc = setup.scenario
+    client = client or UnitPorts()
+    index = setup.unit_ids.index(unit_id)
+    vehicle = Vehicle(VehicleConfig(unit_id=unit_id, vehicle=setup.model.vehicle, control_hz=sc.sim.control_hz,
+                                    coordinator_sysid=COORDINATOR_SYSID, world_sysid=WORLD_SYSID,
+                                    hil_await_coordinator=setup.docked), time.time())
+    for f in sc.faults:
+        if f.unit == unit_id:
+            vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta)
+    links = client_links(index, client.gcs_port, client.api_port, client.gcs_bind, client.api_bind)
+    links[LINK_HIL] = LinkSpec(0, (LOOPBACK, ports.world), learn_clients=False)
+    if setup.docked:
+        links[LINK_COORDINATOR] = LinkSpec(0, (LOOPBACK, ports.coordinator), learn_clients=False)
     out.mkdir(parents=True, exist_ok=True)
-    link = Link(0, unit_id, tlog=out / f"unit{unit_id}.tlog")
-    world = (LOOPBACK, ports.world)
-    coordinator = (LOOPBACK, ports.coordinator)
-    link.peers[WORLD_SYSID] = world
-    link.peers[COORDINATOR_SYSID] = coordinator
-    scale = model.vehicle.full_scale_thrust_n
-    assembler = SensorPacketAssembler()
-    n = int(round((sc.sim.duration_s or _duration(sc, model)) * sc.sim.control_hz))
-    done = 0
-    last_hello = 0.0
+    stop = _Stop()
+    io = VehicleSockets(vehicle, links, tlog=out / f"unit{unit_id}.tlog")
+    hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.docked else [])
+    status_path = out / f"unit{unit_id}_status.json"
+    next_hello = next_tick = next_status = 0.0
+    pending_since = None
+    print(json.dumps({"ready": True, "unit": unit_id, "ports": io.ports()}), flush=True)
     try:
-        while done < n:
+        while not stop.requested:
+            steps = vehicle.stats.get("hil_steps", 0)
+            if setup.steps is not None and steps >= setup.steps:
+                break
             now = time.monotonic()
-            if now - last_hello > (0.2 if done == 0 else 1.0):  # hello, then 1 Hz wall-clock heartbeat
-                link.heartbeat(world)
-                link.heartbeat(coordinator)
-                last_hello = now
-            msgs = link.receive(0.05 if done == 0 else 0.5)
-            for m in msgs:
-                if m.get_srcSystem() != WORLD_SYSID:
-                    continue
-                packet = assembler.feed(m)
-                if packet is None:
-                    continue
-                while faults and faults[0].t_s <= packet.t_s + 1e-9:
-                    f = faults.pop(0)
-                    core.inject_fault(f.rotor, f.eta)
-                for up in sensor_packet_messages(core.on_sensors(packet), upstream=True):
-                    link.send(up, coordinator)
-                _await_command(link, core, packet.t_s, scale, command_timeout_s)
-                link.send(actuator_output_message(core.motor_output(packet.t_s), scale), world)
-                done += 1
+            if now >= next_hello:  # hello until the world talks, then the 1 Hz wall-clock heartbeat
+                io.send([vehicle.hello(name) for name in hello_links])
+                next_hello = now + (0.2 if steps == 0 else 1.0)
+            if now >= next_tick:  # heartbeats and streams on wall time, even while the lockstep waits
+                io.send(vehicle.tick(time.time(), vehicle.sim_s))
+                next_tick = now + 0.01
+            if now >= next_status:
+                next_status = now + STATUS_PERIOD_S
+                write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **io.counters()))
+            wake = min(next_hello, next_tick, next_status)
+            if vehicle.hil_pending:
+                pending_since = pending_since if pending_since is not None else now
+                wake = min(wake, pending_since + command_timeout_s)
+            io.poll(wake - now)
+            if vehicle.hil_pending and pending_since is not None and time.monotonic() - pending_since > command_timeout_s:
+                print(f"unit {unit_id}: no coordinator command for {command_timeout_s:.1f} s at "
+                      f"t={vehicle.sim_s:.2f}: answering with the held command / fail-safe", file=sys.stderr)
+                io.send(vehicle.release_hil(time.time()))
+            if not vehicle.hil_pending:
+                pending_since = None
+        write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **io.counters()))
     finally:
-        link.close()
+        io.close()
     return 0
 
 
-def _await_command(link: Link, core, t_s: float, scale: float, timeout_s: float) -> None:
-    t_us = usec(t_s)
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        for m in link.receive(deadline - time.monotonic()):
-            if m.get_type() != "SET_ACTUATOR_CONTROL_TARGET" or m.get_srcSystem() != COORDINATOR_SYSID:
-                continue
-            if m.target_system != core.unit_id:
-                link.drop("wrong_target")
-                continue
-            if core.on_rotor_command(rotor_command_from_message(m, scale)) and m.time_usec == t_us:
-                return
-    # no fresh command: the unit core holds the last one, then fails safe
-
-
-def _duration(sc, model) -> float:
-    from mars_link.runner import make_trajectory
-
-    return make_trajectory(sc, model).duration_s
-
-
 # ----------------------------------------------------------------------------- coordinator
-def run_coordinator(scenario_path: str, ports: Ports, out: Path, unit_timeout_s: float = 2.0) -> int:
-    from mars_link.coordinator import Coordinator
-    from mars_link.runner import eta_after, make_controller, make_trajectory
+def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S) -> int:
+    import numpy as np
 
-    sc = _scenario(scenario_path)
-    model = sc.model()
-    trajectory = make_trajectory(sc, model)
+    from mars_link.coordinator import Coordinator
+    from mars_link.runner import eta_after, make_controller
+
+    sc = setup.scenario
+    model = setup.model
+    trajectory = _trajectory(sc, model)
     faults = sorted(sc.faults, key=lambda f: f.t_s)
     eta0 = eta_after(model, faults, 0.0) if sc.faults_known else model.nominal_eta()
-    estimator = None
+    estimator = detector = None
     if sc.sim.noise:
         from mars_link.estimation import AssemblyEstimator
 
         estimator = AssemblyEstimator(model)
-    coordinator = Coordinator(model, trajectory, make_controller(sc, model, eta0), estimator)
-    link = Link(ports.coordinator, COORDINATOR_SYSID)
+    if not sc.faults_known:
+        detector = _fault_detector(model, float(_start_pose(setup)[0][2]))
+    coordinator = Coordinator(model, trajectory, make_controller(sc, model, eta0), estimator, detector)
+    stop = _Stop()
+    link = Link(ports.coordinator, COORDINATOR_SYSID, fd=ports.coordinator_fd)
     scale = model.vehicle.full_scale_thrust_n
     assembler = SensorPacketAssembler()
-    n = int(round((sc.sim.duration_s or trajectory.duration_s) * sc.sim.control_hz))
     live = set(model.unit_ids)
-    _await_peers(link, live, 60.0)
-    link.heartbeat((LOOPBACK, ports.world))
+    lost: list[dict] = []
+    accepted: dict[int, set[int]] = {u: set() for u in model.unit_ids}  # commands each unit acknowledged
     next_fault = 0
     out.mkdir(parents=True, exist_ok=True)
     try:
-        for k in range(n):
+        _await_peers(link, live, 60.0, stop)
+        world = (LOOPBACK, ports.world)
+        link.heartbeat(world)
+        next_hello = time.monotonic() + 0.2
+        for k in range(setup.steps):
+            if stop.requested:
+                break
             packets: dict[int, SensorPacket] = {}
             deadline = time.monotonic() + unit_timeout_s
             t_expected = None
-            while set(packets) < live and time.monotonic() < deadline:
-                for m in link.receive(deadline - time.monotonic()):
+            while set(packets) < live and time.monotonic() < deadline and not stop.requested:
+                if k == 0 and not packets:  # hello until the world starts (it may bind after us)
+                    deadline = time.monotonic() + unit_timeout_s
+                    if time.monotonic() >= next_hello:
+                        link.heartbeat(world)
+                        next_hello = time.monotonic() + 0.2
+                for m in link.receive(min(0.2, deadline - time.monotonic())):
+                    if m.get_type() == "COMMAND_ACK":
+                        if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in accepted:
+                            accepted[m.get_srcSystem()].add(m.command)
+                        continue
                     p = assembler.feed(m)
                     if p is None:
                         continue
                     if t_expected is None:
                         t_expected = p.t_s
-                    if p.t_s == t_expected:
+                    if p.t_s == t_expected and p.unit_id in live:
                         packets[p.unit_id] = p
                     else:
                         link.drop("stale_telemetry")
-            silent = live - set(packets)
-            for unit in silent:
-                live.discard(unit)
-                print(f"coordinator: unit {unit} silent: treated as failed", file=sys.stderr)
             if not packets:
                 break
             t = t_expected
+            for unit in sorted(live - set(packets)):  # telemetry stopped: the unit is lost
+                live.discard(unit)
+                lost.append({"t_s": round(t, 6), "unit": unit})
+                print(f"coordinator: unit {unit} silent for {unit_timeout_s:.1f} s at t={t:.2f}: lost", file=sys.stderr)
+                if hasattr(coordinator, "unit_lost"):  # issue 5's hook (estimation / fault handling)
+                    coordinator.unit_lost(unit, t)
+                else:
+                    eta = np.asarray(coordinator.eta_believed, dtype=float).copy()
+                    eta[model.unit_slots(unit)] = 0.0
+                    coordinator.set_faults(eta, t, f"unit {unit} lost")
             if sc.faults_known:
                 while next_fault < len(faults) and faults[next_fault].t_s <= t + 1e-9:
                     next_fault += 1
@@ -317,33 +499,80 @@ def run_coordinator(scenario_path: str, ports: Ports, out: Path, unit_timeout_s:
             ordered = [packets[u] for u in sorted(packets)]
             for cmd in coordinator.step(t, ordered):
                 if cmd.unit_id in live:
-                    link.send(rotor_command_message(cmd, scale), link.peers[cmd.unit_id])
-        (out / "coordinator_summary.json").write_text(
-            json.dumps({"events": coordinator.events, "dropped": link.dropped}, indent=2) + "\n")
+                    link.send_many(_with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale)),
+                                   link.peers[cmd.unit_id])
+        (out / "coordinator_summary.json").write_text(json.dumps(
+            {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped,
+             "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}}, indent=2, default=float) + "\n")
     finally:
         link.close()
     return 0
+
+
+def _with_takeover(unit: int, accepted: set[int], rotor_cmd) -> list:
+    """Until the unit acknowledged them: ARM before the rotor command, OFFBOARD after it (PX4 refuses
+    OFFBOARD without a live setpoint stream); one datagram, so the unit runs the step with all three."""
+    R = mavlink
+    before, after = [], []
+    if R.MAV_CMD_COMPONENT_ARM_DISARM not in accepted:
+        before.append(R.MAVLink_command_long_message(unit, 1, R.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
+    if R.MAV_CMD_DO_SET_MODE not in accepted:
+        after.append(R.MAVLink_command_long_message(unit, 1, R.MAV_CMD_DO_SET_MODE, 0,
+                                                    R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6, 0, 0, 0, 0, 0))
+    return before + [rotor_cmd] + after
+
+
+def _fault_detector(model, ground_down_m: float):
+    from mars_link.fault_detection import FaultDetector
+
+    try:  # every flight starts landed (the in-process runner tells the detector the ground height)
+        return FaultDetector(model, ground_down_m=ground_down_m)
+    except TypeError:
+        return FaultDetector(model)
 
 
 # ----------------------------------------------------------------------------- entry point
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m sitl.lockstep")
     ap.add_argument("role", choices=("world", "unit", "coordinator"))
-    ap.add_argument("scenario")
-    ap.add_argument("--unit", type=int, default=0)
+    ap.add_argument("scenario", help="scenario file or bundled name; - for built-in defaults")
+    ap.add_argument("--units", type=int, default=None)
+    ap.add_argument("--layout", default=None)
+    ap.add_argument("--unit", type=int, default=1)
+    ap.add_argument("--steps", type=int, default=None, help="exchanges of a docked run (else from the scenario)")
     ap.add_argument("--world-port", type=int, required=True)
-    ap.add_argument("--coordinator-port", type=int, required=True)
+    ap.add_argument("--coordinator-port", type=int, default=0)
+    ap.add_argument("--world-fd", type=int, default=None, help="inherited bound socket of the world")
+    ap.add_argument("--coordinator-fd", type=int, default=None, help="inherited bound socket of the coordinator")
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument("--speed", type=float, default=None, help="world pacing, x real time (0: as fast as possible)")
+    ap.add_argument("--gcs-port", type=int, default=14550)
+    ap.add_argument("--api-port", type=int, default=None)
+    ap.add_argument("--gcs-bind", type=int, default=None)
+    ap.add_argument("--api-bind", type=int, default=None)
     args = ap.parse_args(argv)
-    ports = Ports(args.world_port, args.coordinator_port)
+    try:
+        setup = load_setup(args.scenario, args.units, args.layout, args.steps)
+    except UserInputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    ports = Ports(args.world_port, args.coordinator_port, args.world_fd, args.coordinator_fd)
     out = Path(args.out)
     if args.role == "world":
-        seed = args.seed if args.seed is not None else _scenario(args.scenario).sim.seed
-        return run_world(args.scenario, ports, out, seed)
+        seed = args.seed if args.seed is not None else setup.scenario.sim.seed
+        speed = args.speed if args.speed is not None else (0.0 if setup.docked else 1.0)
+        return run_world(setup, ports, out, seed, speed=speed)
     if args.role == "unit":
-        return run_unit(args.scenario, args.unit, ports, out)
-    return run_coordinator(args.scenario, ports, out)
+        if args.unit not in setup.unit_ids:
+            print(f"error: unit {args.unit} is not in this run (units {setup.unit_ids})", file=sys.stderr)
+            return 2
+        try:
+            return run_unit(setup, args.unit, ports, out, UnitPorts(args.gcs_port, args.api_port, args.gcs_bind, args.api_bind))
+        except UserInputError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+    return run_coordinator(setup, ports, out)
 
 
 if __name__ == "__main__":

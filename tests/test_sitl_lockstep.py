@@ -12,7 +12,7 @@ import pytest
 from mars_link.runner import run_scenario
 from mars_link.scenario import load_scenario
 from pymavlink import mavutil
-from sitl.launcher import start, wait
+from sitl.launcher import ClientPorts, free_udp_port, start, wait
 
 SCENARIO = str(Path(__file__).resolve().parent.parent / "scenarios" / "hover_3x2.toml")
 
@@ -21,7 +21,8 @@ SCENARIO = str(Path(__file__).resolve().parent.parent / "scenarios" / "hover_3x2
 @pytest.mark.sitl
 def test_six_unit_processes_hold_a_3x2_hover_identical_to_inproc(tmp_path: Path) -> None:
     sitl_out = tmp_path / "sitl"
-    run = start(SCENARIO, sitl_out, [1, 2, 3, 4, 5, 6], seed=4)
+    clients = ClientPorts(free_udp_port(), [free_udp_port() for _ in range(6)], bind_any=True)
+    run = start(SCENARIO, sitl_out, seed=4, clients=clients)
     assert wait(run, timeout_s=240) == 0, [(sitl_out / f"{n}.log").read_text()[-400:] for n in run.processes]
     assert all(p.returncode is not None for p in run.processes.values())  # every child ended
     world = json.loads((sitl_out / "world_summary.json").read_text())
