@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize
 
-from mars_link.planning.minco import Minco, MincoSpline, basis
+from mars_link.planning.minco import Minco, MincoSpline, bases
 
 
 @dataclass
@@ -91,7 +91,8 @@ class _Cost:
         self.a = np.linspace(0.0, 1.0, k + 1)
         self.w = np.full(k + 1, 1.0 / k)
         self.w[[0, -1]] *= 0.5
-        self.r_body = float(np.max(np.linalg.norm(body, axis=1))) if len(body) else 0.0
+        self.body_r = np.linalg.norm(body, axis=1)
+        self.r_body = float(self.body_r.max()) if len(body) else 0.0
         self.cull_m = self.r_body + p.margin_m + 2.5 * sdf.resolution_m
         self.energy_w = np.array([1.0, 1.0, math.sqrt(p.yaw_energy_scale)])
         self.evaluations = 0
@@ -118,15 +119,16 @@ class _Cost:
         terms = {"energy": p.w_energy * energy, "time": p.rho_time * T.sum()}
         # samples: (N, K+1) local times, derivatives 0..4 at each
         t = self.a[None, :] * T[:, None]
-        B = [basis(t, o) for o in range(5)]
-        D = [np.einsum("nkj,njd->nkd", b, sp.coeffs) for b in B]
+        B = bases(t, 5)
+        D = np.matmul(B, sp.coeffs[None])  # (5, N, K+1, 3): position .. snap
         f, g = self.integrand(D[0], D[1], D[2], D[3], terms)
         wT = self.w[None, :] * T[:, None]  # quadrature weight of each sample
         cost += float((wT * f).sum())
         terms.update({k: float((wT * v).sum()) for k, v in terms.items() if np.ndim(v) == 2})
-        for o in range(4):
-            dc += np.einsum("nkj,nkd->njd", wT[..., None] * B[o], g[o]).reshape(-1, 3)
-        dfdt = sum((g[o] * D[o + 1]).sum(-1) for o in range(4))  # (N, K+1)
+        G = np.stack(g) * wT[None, :, :, None]  # (4, N, K+1, 3)
+        dc += np.matmul(B[:4].transpose(1, 3, 0, 2).reshape(len(T), 6, -1),
+                        G.transpose(1, 0, 2, 3).reshape(len(T), -1, 3)).reshape(-1, 3)
+        dfdt = (np.stack(g) * D[1:]).sum((0, 3))  # (N, K+1)
         dT = dT + (self.w[None, :] * f).sum(1) + (wT * self.a[None, :] * dfdt).sum(1)
         gq, gT = self.minco.grad(dc, dT)
         self.terms = terms
@@ -185,6 +187,9 @@ class _Cost:
         return val
 
     def _obstacle(self, P, g, terms):
+        """w·sum (margin - sdf(p + R(yaw) b))_+^3 over body points b. Exact culls (the SDF is
+        1-Lipschitz): samples whose centre is farther than radius + margin from everything, and body
+        points nearer the centre than its distance minus the margin."""
         p = self.p
         shape = P.shape[:2]
         flat = P.reshape(-1, 3)
@@ -192,20 +197,20 @@ class _Cost:
         near = np.nonzero(dc < self.cull_m)[0]
         f = np.zeros(len(flat))
         if len(near) and len(self.body):
-            pn = flat[near]
-            c, s = np.cos(pn[:, 2])[:, None], np.sin(pn[:, 2])[:, None]
-            bx, by = self.body[None, :, 0], self.body[None, :, 1]
-            rn, re = c * bx - s * by, s * bx + c * by  # (S, M) rotated body points
-            pts = np.stack([pn[:, 0:1] + rn, pn[:, 1:2] + re], axis=-1).reshape(-1, 2)
-            d, gr = self.sdf.query(pts)
-            x = np.maximum(p.margin_m - d, 0.0).reshape(len(near), -1)
-            f[near] = p.w_obstacle * (x ** 3).sum(1)
-            k = (-3 * p.w_obstacle * x ** 2)  # d f / d sdf
-            gn, ge = gr[:, 0].reshape(x.shape) * k, gr[:, 1].reshape(x.shape) * k
+            slack = self.cull_m - self.r_body
+            si, mi = np.nonzero(self.body_r[None, :] > dc[near, None] - slack)  # (sample, point) pairs
+            pn = flat[near[si]]
+            c, s = np.cos(pn[:, 2]), np.sin(pn[:, 2])
+            bx, by = self.body[mi, 0], self.body[mi, 1]
+            rn, re = c * bx - s * by, s * bx + c * by  # rotated body points
+            d, gr = self.sdf.query(np.column_stack([pn[:, 0] + rn, pn[:, 1] + re]))
+            x = np.maximum(p.margin_m - d, 0.0)
+            idx = near[si]
+            np.add.at(f, idx, p.w_obstacle * x ** 3)
+            k = -3 * p.w_obstacle * x ** 2  # d f / d sdf
+            gn, ge = gr[:, 0] * k, gr[:, 1] * k
             gp = np.zeros((len(flat), 3))
-            gp[near, 0] = gn.sum(1)
-            gp[near, 1] = ge.sum(1)
-            gp[near, 2] = (gn * -re + ge * rn).sum(1)  # d(R b)/d yaw = (-e_rel, n_rel)
+            np.add.at(gp, idx, np.column_stack([gn, ge, gn * -re + ge * rn]))  # d(R b)/d yaw = (-e, n)
             g[0] += gp.reshape(*shape, 3)
         f = f.reshape(shape)
         terms["obstacle"] = f

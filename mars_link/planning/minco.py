@@ -24,10 +24,22 @@ _POW = np.array([[0, 1, 2, 3, 4, 5], [0, 0, 1, 2, 3, 4], [0, 0, 0, 1, 2, 3],
                  [0, 0, 0, 0, 1, 2], [0, 0, 0, 0, 0, 1], [0, 0, 0, 0, 0, 0]])
 
 
+def bases(t: np.ndarray, orders: int) -> np.ndarray:
+    """(orders, ..., 6): derivatives 0 .. orders-1 of [1, t, ..., t^5] at local times t."""
+    t = np.asarray(t, dtype=float)
+    pw = np.empty(t.shape + (6,))
+    pw[..., 0] = 1.0
+    for j in range(1, 6):
+        pw[..., j] = pw[..., j - 1] * t
+    out = np.zeros((orders,) + t.shape + (6,))
+    for o in range(orders):
+        out[o, ..., o:] = _FACT[o, o:] * pw[..., :6 - o]
+    return out
+
+
 def basis(t: np.ndarray, order: int) -> np.ndarray:
     """(..., 6) d^order/dt^order of [1, t, ..., t^5] at local times t."""
-    t = np.asarray(t, dtype=float)[..., None]
-    return _FACT[order] * np.where(_FACT[order] > 0, t ** _POW[order], 0.0)
+    return bases(t, order + 1)[order]
 
 
 @dataclass
@@ -95,36 +107,41 @@ class Minco:
         return self.spline
 
     def _entries(self, T: np.ndarray):
-        """Triplets (row, col, value) of A(T)."""
+        """Triplets (row, col, value) of A(T); the pattern is built once per piece count."""
         n = len(T)
-        r, c, v = [], [], []
+        if getattr(self, "_pattern_n", None) != n:
+            self._pattern(n)
+        b_end = bases(T, 5)  # (5, N, 6) at the end of every piece
+        knot = b_end[:, :-1][list(self._knot_orders)]  # (6, N-1, 6): rows jerk, snap, q, p, v, a
+        vals = np.concatenate([self._head_vals, np.transpose(knot, (1, 0, 2)).ravel(), self._cont_vals,
+                               b_end[:3, -1].ravel()])
+        return self._rows, self._cols, vals[self._in_band]
 
-        def put(row, col0, coeffs):  # row (K,), col0 (K,), coeffs (K, 6)
-            k = len(row)
-            r.append(np.repeat(row, 6))
-            c.append((col0[:, None] + np.arange(6)).ravel())
-            v.append(coeffs.ravel())
-            assert coeffs.shape == (k, 6)
+    _knot_orders = (3, 4, 0, 0, 1, 2)
 
-        zero = np.zeros(1)
-        for o in range(3):  # head: piece 0 at t = 0
-            put(np.array([o]), np.array([0]), basis(zero, o))
-        if n > 1:
-            i = np.arange(n - 1)
-            Ti = T[:-1]
-            base = 6 * i + 3
-            for k, o in enumerate((3, 4)):  # jerk, snap continuity
-                put(base + k, 6 * i, basis(Ti, o))
-                put(base + k, 6 * (i + 1), -np.repeat(basis(zero, o), n - 1, axis=0))
-            put(base + 2, 6 * i, basis(Ti, 0))  # p_i(T_i) = q_i
-            for k, o in enumerate((0, 1, 2)):  # position, velocity, acceleration continuity
-                put(base + 3 + k, 6 * i, basis(Ti, o))
-                put(base + 3 + k, 6 * (i + 1), -np.repeat(basis(zero, o), n - 1, axis=0))
-        for o in range(3):  # tail: last piece at T
-            put(np.array([6 * n - 3 + o]), np.array([6 * (n - 1)]), basis(T[-1:], o))
-        rows, cols, vals = (np.concatenate(x) for x in (r, c, v))
-        keep = vals != 0.0
-        return rows[keep], cols[keep], vals[keep]
+    def _pattern(self, n: int) -> None:
+        """Row/column indices of A for n pieces (values at T filled by `_entries`)."""
+        six = np.arange(6)
+        b0 = bases(np.zeros(1), 5)[:, 0]  # (5, 6) at t = 0
+        rows = [np.repeat(np.arange(3), 6)]
+        cols = [np.tile(six, 3)]
+        self._head_vals = b0[:3].ravel()
+        i = np.arange(n - 1)
+        # piece i's end, rows 6i+3 .. 6i+8 (order of _knot_orders), in (knot, row, coeff) order
+        rows.append(np.repeat((6 * i[:, None] + 3 + six[None, :]).ravel(), 6))
+        cols.append(np.broadcast_to(6 * i[:, None, None] + six[None, None, :], (n - 1, 6, 6)).ravel())
+        # piece i+1's start (minus): jerk, snap rows and the three continuity rows
+        cont_rows, cont_orders = (0, 1, 3, 4, 5), (3, 4, 0, 1, 2)
+        r = 6 * i[:, None] + 3 + np.array(cont_rows)[None, :]
+        rows.append(np.repeat(r.ravel(), 6))
+        cols.append(np.broadcast_to(6 * (i[:, None, None] + 1) + six[None, None, :], (n - 1, 5, 6)).ravel())
+        self._cont_vals = np.tile(-b0[list(cont_orders)].ravel(), n - 1)
+        rows.append(np.repeat(6 * n - 3 + np.arange(3), 6))
+        cols.append(np.tile(6 * (n - 1) + six, 3))
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        self._in_band = np.abs(rows - cols) <= BAND  # the rest are structural zeros
+        self._rows, self._cols = rows[self._in_band], cols[self._in_band]
+        self._pattern_n = n
 
     # ------------------------------------------------------------------ energy
     def jerk_energy(self, weights: np.ndarray | None = None) -> tuple[float, np.ndarray, np.ndarray]:
@@ -154,15 +171,11 @@ class Minco:
         c = self.c.reshape(n, 6, self.dim)
         gT = np.array(dJ_dT, dtype=float, copy=True)
         # d(A c)/dT_i: row of derivative o at piece i's end becomes derivative o + 1 there
+        ends = np.einsum("onj,njd->ond", bases(self.T, 6)[1:], c)  # derivative o+1 at each piece end
         if n > 1:
-            Ti = self.T[:-1]
-            ci = c[:-1]
             lam_rows = lam[3:3 + 6 * (n - 1)].reshape(n - 1, 6, self.dim)
-            for k, o in enumerate((3, 4, 0, 0, 1, 2)):
-                d = np.einsum("ij,ijd->id", basis(Ti, o + 1), ci)
-                gT[:-1] -= np.einsum("id,id->i", lam_rows[:, k], d)
-        cl = c[-1]
-        for k, o in enumerate((0, 1, 2)):
-            d = basis(self.T[-1:], o + 1)[0] @ cl
-            gT[-1] -= lam[6 * n - 3 + k] @ d
+            for k, o in enumerate(self._knot_orders):
+                gT[:-1] -= np.einsum("id,id->i", lam_rows[:, k], ends[o, :-1])
+        for k in range(3):
+            gT[-1] -= lam[6 * n - 3 + k] @ ends[k, -1]
         return gq, gT
