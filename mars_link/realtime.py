@@ -48,7 +48,7 @@ class AssemblyRunner:
     AssemblySim."""
 
     def __init__(self, sim: AssemblySim, ports: dict[str, int], speed: float = 1.0,
-                 status_file: str | None = None, duration_s: float | None = None) -> None:
+                 status_file: str | None = None, duration_s: float | None = None, tlog: str | None = None) -> None:
         from firmware_models.vehicle_io import LinkSpec, VehicleSockets
 
         self.sim = sim
@@ -57,7 +57,7 @@ class AssemblyRunner:
         self.io = VehicleSockets(sim.vehicle, {
             LINK_GCS: LinkSpec(ports["gcs_bind"], (LOOPBACK, ports["gcs_port"])),
             LINK_API: LinkSpec(ports["api_bind"], (LOOPBACK, ports["api_port"])),
-        })
+        }, Path(tlog) if tlog else None)
         self.status_path = Path(status_file) if status_file else None
         self.duration_s = duration_s
         self.running = True
@@ -150,6 +150,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
     p.add_argument("--speed", type=float, default=1.0, help="simulation speed, x real time")
     p.add_argument("--status-file", help="JSON snapshot (truth, mode, counters) a few times a second")
+    p.add_argument("--tlog", help="MAVLink log of both links (pymavlink .tlog), appended and flushed as it goes")
     p.add_argument("--duration", type=float, help="stop after this many wall seconds")
 
 
@@ -203,9 +204,11 @@ def vehicle_command(args: argparse.Namespace) -> int:
     }
     sim = build_sim(args)
     try:
-        runner = AssemblyRunner(sim, ports, args.speed, args.status_file, args.duration)
-    except UserInputError:
+        runner = AssemblyRunner(sim, ports, args.speed, args.status_file, args.duration, args.tlog)
+    except (UserInputError, OSError) as exc:
         sim.close()
+        if isinstance(exc, OSError):
+            raise UserInputError(f"cannot open {exc.filename}: {exc.strerror}") from None
         raise
     ep = runner.endpoints()
     s = sim.scenario
