@@ -157,7 +157,12 @@ class AssemblyVehicle(Vehicle):
                                links={LINK_GCS: client, LINK_API: client})
         self.coordinator = coordinator
         super().__init__(config, wall_time_s, flight_core=AssemblyFlightCore(coordinator, control_hz))
-        self.params = ParamStore(assembly_param_specs(sysid, model, ftc), params or {})
+        specs = assembly_param_specs(sysid, model, ftc)
+        fixed = {sp.name for sp in specs if sp.read_only}
+        for name in params or {}:
+            if name in fixed:
+                raise UserInputError(f"parameter {name} is read-only (it follows from the assembly and options)")
+        self.params = ParamStore(specs, params or {})
         self.model = model
         self.motor_count = model.n_rotors
         self.motor_commands_n = np.zeros(model.n_rotors)

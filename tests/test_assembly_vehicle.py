@@ -416,3 +416,25 @@ def test_undeclared_fault_is_detected_and_reported_without_sockets() -> None:
         assert z0 - sim.truth().position_ned_m[2] == pytest.approx(2.0, abs=0.1)
     finally:
         sim.close()
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--layout", "X.X"], "not connected"),
+    (["--layout", "XQX"], "other than 'X'"),
+    (["--gcs-port", "0"], "--gcs-port must be 1..65535"),
+    (["--api-bind", "70000"], "--api-bind must be 0..65535"),
+    (["no_such_scenario"], "not found"),
+    (["--fault", "9:1=0.5"], "unit 9 does not exist"),
+    (["--fault", "2:1=1.5"], "eta must be in [0, 1]"),
+    (["--param", "MIS_TAKEOFF_ALT=500"], "outside"),
+    (["--param", "MARS_UNITS=3"], "read-only"),
+    (["--sysid", "201"], "--sysid"),
+    (["--speed", "nan"], "--speed"),
+    (["--ftc", "magic"], "unknown mode"),
+])
+def test_bad_vehicle_arguments_are_one_line_and_exit_2(argv, needle, capsys) -> None:
+    from mars_link.cli import main
+
+    assert main(["vehicle", "--gcs-bind", "0", "--api-bind", "0", "--duration", "0.1", *argv]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err and "Traceback" not in err, err
