@@ -56,6 +56,11 @@ def cmd_run(args) -> int:
         raise UserInputError(f"--trials must be >= 1, got {args.trials}")
     if args.mode not in ("inproc", "sitl"):
         raise UserInputError(f"--mode {args.mode!r}: expected inproc or sitl")
+    sitl_run = None
+    if args.mode == "sitl":  # the multi-process SITL (mars_link.sitl_mode); options checked before any output
+        from mars_link.sitl_mode import sitl_runner
+
+        sitl_run = sitl_runner(args)
     from mars_link.allocation import check_controllable
 
     model = scenario.model()
@@ -77,10 +82,8 @@ def cmd_run(args) -> int:
 
             if args.trials != 1:
                 raise UserInputError("--trials: a [reconfig] flight runs one trial (vary --seed instead)")
-        if args.mode == "sitl":  # the multi-process SITL (mars_link.sitl_mode), lockstep, Zenoh by default
-            from mars_link.sitl_mode import sitl_runner
-
-            runner = sitl_runner(args)
+        if sitl_run is not None:
+            runner = sitl_run
         summary = runner(
             scenario, out, trials=args.trials, seed=args.seed,
             on_progress=lambda i, frac: progress.update(task, completed=i + frac),
@@ -161,14 +164,21 @@ def cmd_sitl(args) -> int:
     else:
         path = str(resolve_scenario_path(args.scenario))
         name = Path(path).stem
-    load_setup(path, args.units, args.layout)  # refuse bad input before starting any process
+    setup = load_setup(path, args.units, args.layout)  # refuse bad input before starting any process
     out = Path(args.out) if args.out else _default_out(name + "-sitl")
     if getattr(args, "transport", None) not in (None, "udp") or getattr(args, "external_coordinator", False) \
             or getattr(args, "realtime", False) or getattr(args, "link_profile", None):
         from mars_link.sitl_mode import sitl_up_command
 
         return sitl_up_command(args, str(path), out)
-    code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed)
+    from sitl.launcher import ClientPorts
+
+    n = len(setup.unit_ids)
+    for name, port in (("--gcs-port", args.gcs_port), ("--api-port", args.api_port), ("--api-port + units", args.api_port + n - 1)):
+        if not 1 <= port <= 65535:
+            raise UserInputError(f"{name} must be 1..65535, got {port}")
+    clients = ClientPorts(args.gcs_port, [args.api_port + i for i in range(n)], args.any_bind)
+    code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients)
     print(f"run directory: {out}")
     return code
 
@@ -210,6 +220,10 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--layout", default=None, help="docked assembly of these rows, e.g. XXX,XXX (with coordinator)")
     sitl.add_argument("--speed", type=float, default=None,
                       help="world pacing, x real time (default 1 for --units, 0 = as fast as possible otherwise)")
+    sitl.add_argument("--gcs-port", type=int, default=14550, help="UDP port the units send GCS traffic to (QGC, MAVProxy)")
+    sitl.add_argument("--api-port", type=int, default=14540, help="API port of unit index 0 (MAVSDK); unit i uses this + i")
+    sitl.add_argument("--any-bind", action="store_true",
+                      help="bind the units' client sockets to free ports instead of PX4's 18570+i / 14580+i")
     sitl.set_defaults(func=cmd_sitl)
     from mars_link.sitl_mode import add_sitl_up_arguments
 
