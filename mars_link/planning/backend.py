@@ -56,6 +56,12 @@ class BackendParams:
     memory: int = 16
 
 
+#: per-method changes applied by the pipeline. The "svsdf" baseline keeps SVSDF's released back-end
+#: costs (jerk, time, obstacle; specs/planning.md §2.6): no yaw-motion or attitude (eq. 12b) term.
+#: The v/a/j/yaw-rate limits stay for both, so both fly the same speed envelope.
+METHOD_OVERRIDES = {"svsdf": {"w_yaw_motion": 0.0, "w_attitude": 0.0}}
+
+
 @dataclass
 class BackendResult:
     trajectory: MincoSpline

@@ -136,7 +136,7 @@ def forest_sweep(seeds, layout: str = "XXX,XXX", failed_unit: int | None = 2, pa
             res = planner.plan(np.array([start[0], start[1], 0.0]), goal, method, -2.0)
             row = {"seed": seed, "method": method, "success": res.success, "message": res.message,
                    "min_clearance_m": res.min_clearance_m, "total_yaw_deg": math.degrees(res.total_yaw_rad),
-                   "length_m": res.length_m, "duration_s": res.duration_s, **{f"t_{k}": v for k, v in res.stage_time_s.items()}}
+                   "length_m": res.length_m, "duration_s": res.duration_s, "back_end": res.backend, **{f"t_{k}": v for k, v in res.stage_time_s.items()}}
             rows.append(row)
             if on_result is not None:
                 on_result(row)

@@ -9,6 +9,7 @@ footprint touches an obstacle.
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import math
 import time
 from dataclasses import dataclass, field
@@ -130,7 +131,7 @@ class Planner:
         waypoints = thin_poses(front.poses, self.p.waypoint_spacing_m)
         traj, ok, iters, clearance, backend, errors = None, False, 0, -math.inf, "", []
         stage["back_end"] = stage["validation"] = 0.0
-        for attempts, (backend, run) in enumerate(self._backend_runs(waypoints, front.poses, star), 1):
+        for attempts, (backend, run) in enumerate(self._backend_runs(waypoints, front.poses, star, method), 1):
             t1 = time.perf_counter()
             try:
                 result = run()
@@ -156,10 +157,10 @@ class Planner:
         res.backend, res.backend_errors = backend, errors
         return res
 
-    def _backend_runs(self, waypoints: np.ndarray, dense: np.ndarray, star):
+    def _backend_runs(self, waypoints: np.ndarray, dense: np.ndarray, star, method: str = "ours"):
         """(name, callable) in order: the MINCO back end, then with 10x obstacle weight (retries
         times); a plain smoothing of the A* poses, less each time, only if all of those fail."""
-        params = self._backend_params()
+        params = self._backend_params(method)
         if params is not None:
             from mars_link.planning.backend import optimize_trajectory
 
@@ -175,13 +176,17 @@ class Planner:
         return PlanResult(False, method, msg, np.zeros((0, 4)), down_m, np.zeros((0, 3)), -math.inf,
                           0.0, 0.0, 0.0, 0.0, stage)
 
-    def _backend_params(self):
+    def _backend_params(self, method: str = "ours"):
+        """BackendParams for a method: the baseline gets the back end's `METHOD_OVERRIDES[method]`
+        (SVSDF's own cost terms), then the planner's margin and limits, then `backend_overrides`."""
         try:
-            from mars_link.planning.backend import BackendParams
-        except ImportError:  # the MINCO back end is not installed: smoothing only
+            backend = importlib.import_module("mars_link.planning.backend")
+            BackendParams = backend.BackendParams
+        except (ImportError, AttributeError):  # the MINCO back end is not installed: smoothing only
             return None
         p = BackendParams()
-        changes = {"margin_m": self.p.margin_m, "v_max_mps": self.p.v_max_mps, "a_max_mps2": self.p.a_max_mps2}
+        changes = dict(getattr(backend, "METHOD_OVERRIDES", {}).get(method, {}))
+        changes.update({"margin_m": self.p.margin_m, "v_max_mps": self.p.v_max_mps, "a_max_mps2": self.p.a_max_mps2})
         changes = {k: v for k, v in changes.items() if hasattr(p, k)}
         changes.update(self.p.backend_overrides)
         return dataclasses.replace(p, **changes)
