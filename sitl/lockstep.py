@@ -282,7 +282,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     truth_log.write("t_s," + columns + "\n")
     wall0 = time.perf_counter()
     next_status = 0.0
-    stalls = 0
+    deaths: list[dict] = []
     try:
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
         wall0 = time.perf_counter()
@@ -319,7 +319,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             for unit in sorted(waiting):  # silent units are dead: motors off, the flight goes on
                 world.declare_dead(unit)
                 live.discard(unit)
-                stalls += 1
+                deaths.append({"unit": unit, "t_s": round(t, 6)})
                 print(f"world: unit {unit} silent for {unit_timeout_s:.1f} s at t={t:.2f}: declared dead", file=sys.stderr)
             world.advance()
             k += 1
@@ -327,7 +327,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         _write_world_status(status_path, world, setup, live, world.t_s, wall)
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
                    "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
-                   "dropped": link.dropped, "stopped": stop.requested}
+                   "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested}
         (out / "world_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     finally:
         truth_log.close()
@@ -345,7 +345,8 @@ def _write_world_status(path: Path, world, setup: SitlSetup, live: set[int], t_s
         s = world.unit_truth(u)
         units[str(u)] = {"position_ned_m": [float(x) for x in s.position_ned_m],
                          "velocity_ned_mps": [float(x) for x in s.velocity_ned_mps],
-                         "quaternion_wxyz": [float(x) for x in s.quaternion_wxyz]}
+                         "quaternion_wxyz": [float(x) for x in s.quaternion_wxyz],
+                         "rotor_thrust_n": [float(x) for x in world.unit_rotor_thrust_n(u)]}
     write_json_atomic(path, {"sim_time_s": t_s, "wall_time_s": wall_s, "wall_clock_s": time.time(),
                              "real_time_factor": t_s / wall_s if wall_s > 0 else None,
                              "dead_units": sorted(set(setup.unit_ids) - live), "units": units})

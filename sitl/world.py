@@ -137,6 +137,10 @@ class World:
         s = self.body.state()
         return [*s.position_ned_m, *s.quaternion_wxyz]
 
+    def unit_rotor_thrust_n(self, unit_id: int) -> np.ndarray:
+        """What the unit's four rotors produce now (N)."""
+        return self.rotor_thrust_n[self.model.unit_slots(unit_id)]
+
 
 def point_state(s: RigidBodyState, offset_frd_m: np.ndarray) -> RigidBodyState:
     """The state of a point fixed in the body at `offset_frd_m` from the CoM (v + R (w x r))."""
@@ -198,6 +202,9 @@ class FreeUnitsWorld:
 
     def unit_truth(self, unit_id: int) -> RigidBodyState:
         return self.worlds[unit_id].body.state()
+
+    def unit_rotor_thrust_n(self, unit_id: int) -> np.ndarray:
+        return self.worlds[unit_id].rotor_thrust_n
 
     def truth_row(self) -> list[float]:
         row: list[float] = []

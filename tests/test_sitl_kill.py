@@ -1,0 +1,123 @@
+"""A unit process dies (SIGKILL) during a lockstep run: the world declares it dead after its timeout,
+its motors give zero thrust, the other units and the run go on; `mars-link sitl up` stops every
+child when one dies, and on Ctrl-C. Only processes this test started are signalled, by PID."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from firmware_models.udp_runner import read_status
+from sitl.launcher import ClientPorts, free_udp_port, start, wait
+
+pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(120)]
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _short_hover(tmp_path: Path, duration_s: float) -> str:
+    text = (ROOT / "scenarios" / "hover_3x2.toml").read_text()
+    path = tmp_path / "hover_short.toml"
+    path.write_text(text.replace("[sim]", f"[sim]\nduration_s = {duration_s}"))
+    return str(path)
+
+
+def _until(predicate, timeout_s: float, what: str):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def _sim_time(out: Path) -> float:
+    try:
+        return read_status(out / "world_status.json", 0.5)["sim_time_s"]
+    except (FileNotFoundError, json.JSONDecodeError):
+        return 0.0
+
+
+def test_killed_unit_is_declared_dead_and_the_run_finishes(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    clients = ClientPorts(free_udp_port(), [free_udp_port() for _ in range(6)], bind_any=True)
+    run = start(_short_hover(tmp_path, 3.0), out, seed=2, clients=clients)
+    try:
+        _until(lambda: _sim_time(out) >= 1.0, 60.0, "the flight to get going")
+        run.processes["unit3"].send_signal(signal.SIGKILL)
+        code = wait(run, timeout_s=90, stop_on_child_death=False)
+    finally:
+        run.stop()
+    logs = {n: (out / f"{n}.log").read_text()[-300:] for n in run.processes}
+    assert code == 0, logs
+    assert run.processes["unit3"].returncode == -signal.SIGKILL
+    assert all(p.returncode == 0 for n, p in run.processes.items() if n != "unit3"), logs
+    world = json.loads((out / "world_summary.json").read_text())
+    assert world["steps"] == 300 and world["dead_units"] == [3]  # the run finished without unit 3
+    assert 1.0 <= world["deaths"][0]["t_s"] < 2.5
+    status = read_status(out / "world_status.json")
+    assert status["units"]["3"]["rotor_thrust_n"] == [0.0] * 4  # a dead unit's motors give no thrust
+    coordinator = json.loads((out / "coordinator_summary.json").read_text())
+    assert [e["unit"] for e in coordinator["lost_units"]] == [3]
+    for u in (1, 2, 4, 5, 6):  # the others answered every step
+        assert read_status(out / f"unit{u}_status.json")["stats"]["hil_steps"] == 300
+
+
+def _spawn_sitl_up(tmp_path: Path, *extra: str) -> tuple[subprocess.Popen, dict[str, int]]:
+    argv = [sys.executable, "-m", "mars_link.cli", "sitl", "up", *extra, "--gcs-port", str(free_udp_port()),
+            "--api-port", str(free_udp_port()), "--any-bind", "--out", str(tmp_path / "up")]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    pids: dict[str, int] = {}
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if not line:
+            break
+        m = re.match(r"(world|coordinator|unit \d+): pid (\d+)", line)
+        if m:
+            pids[m.group(1)] = int(m.group(2))
+        if line.startswith("running "):
+            return proc, pids
+    proc.kill()
+    raise AssertionError(f"sitl up did not start: {proc.stderr.read()[-1000:]}")
+
+
+def _gone(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(")")[-1].split()[0] == "Z"  # a zombie has ended
+    except FileNotFoundError:
+        return True
+
+
+def test_sitl_up_stops_every_child_when_one_dies_and_on_ctrl_c(tmp_path: Path) -> None:
+    proc, pids = _spawn_sitl_up(tmp_path / "a", "--units", "2")
+    try:
+        assert set(pids) == {"world", "unit 1", "unit 2"}
+        _until(lambda: _sim_time(tmp_path / "a" / "up") >= 0.5, 30.0, "the world to step")
+        os.kill(pids["unit 2"], signal.SIGKILL)
+        assert proc.wait(20) == 1
+        assert "unit2 died" in proc.stderr.read()
+        assert all(_gone(p) for p in pids.values())
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+
+    proc, pids = _spawn_sitl_up(tmp_path / "b", "--units", "1")
+    try:
+        _until(lambda: _sim_time(tmp_path / "b" / "up") >= 0.5, 30.0, "the world to step")
+        proc.send_signal(signal.SIGINT)  # Ctrl-C
+        assert proc.wait(20) == 130
+        assert all(_gone(p) for p in pids.values())
+        assert json.loads((tmp_path / "b" / "up" / "world_summary.json").read_text())["stopped"] is True
+    finally:
+        if proc.poll() is None:
+            proc.kill()
