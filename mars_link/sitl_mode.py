@@ -162,6 +162,10 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     if scenario.reconfig.get("enabled"):
         raise UserInputError("--mode sitl: a [reconfig] flight (several bodies) runs in-process only")
     seed = scenario.sim.seed if seed is None else seed
+    v = scenario.model().vehicle
+    if v.rotor_min_thrust_n is None or v.rotor_max_thrust_n is None:
+        print("note: the unit firmware drops rotor commands outside [0, full scale]; set [vehicle] "
+              "rotor_min_thrust_n / rotor_max_thrust_n for a flight identical to --mode inproc", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
     copy = write_scenario_copy(_absolute_paths(scenario), out / "scenario.toml")
     wall0 = time.perf_counter()
