@@ -187,7 +187,9 @@ async def _fly(api_port: int, status_path: Path) -> dict:
         r["landed_down_m"] = read_status(status_path)["truth_position_ned_m"][2] - ground_down
         r["texts"] = list(texts)
         collector.cancel()
-        r["drops"] = read_status(status_path)["drops"]
+        st = read_status(status_path)
+        r["drops"] = st["drops"]
+        r["runner"] = {k: st[k] for k in ("steps", "late_steps", "overruns", "step_p50_ms", "step_p99_ms", "estimator_resets")}
     return r
 
 
