@@ -23,7 +23,6 @@ import argparse
 import json
 import math
 import os
-import selectors
 import signal
 import subprocess
 import sys
