@@ -170,7 +170,7 @@ def cmd_sitl(args) -> int:
             or getattr(args, "realtime", False) or getattr(args, "link_profile", None):
         from mars_link.sitl_mode import sitl_up_command
 
-        return sitl_up_command(args, str(path), out)
+        return sitl_up_command(args, path, out)
     from sitl.launcher import ClientPorts
 
     n = len(setup.unit_ids)

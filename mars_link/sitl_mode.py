@@ -58,7 +58,7 @@ class SitlSession:
 
 def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, seed: int | None = None,
                units: int | None = None, layout: str | None = None, realtime: bool = False,
-               clients=None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units")) -> SitlSession:
+               clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units")) -> SitlSession:
     """Start the SITL processes on `link` (default Zenoh). `unit_prefix(u)` -> argv to run unit u under
     (e.g. `ip netns exec NS`); `roles` leaves some out (e.g. a coordinator started elsewhere)."""
     from sitl.launcher import ClientPorts, SitlRun, free_udp_port
@@ -83,6 +83,8 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
         common += ["--layout", layout]
     if realtime:
         common.append("--realtime")
+    elif speed is not None:
+        common += ["--speed", repr(float(speed))]
 
     def spawn(name: str, argv: list[str], prefix: list[str] = ()) -> None:
         with open(out / f"{name}.log", "w") as log:
@@ -377,12 +379,20 @@ def add_sitl_up_arguments(p) -> None:
                    help="start no coordinator: attach one with `mars-link coordinator`")
 
 
-def sitl_up_command(args, scenario_path: str, out: Path) -> int:
+def sitl_up_command(args, scenario_path: str | None, out: Path) -> int:
     """`mars-link sitl up --transport zenoh ...`: start, print the endpoints, run to the end or Ctrl-C."""
     import signal
 
     link = _link_from_args(args, "udp")
     roles = ("world", "units") if args.external_coordinator else ("coordinator", "world", "units")
+    from sitl.launcher import ClientPorts
+
+    units, layout = getattr(args, "units", None), getattr(args, "layout", None)
+    from sitl.lockstep import load_setup
+
+    n = len(load_setup(scenario_path, units, layout).unit_ids)
+    clients = ClientPorts(getattr(args, "gcs_port", 14550), [getattr(args, "api_port", 14540) + i for i in range(n)],
+                          getattr(args, "any_bind", False))
     previous = signal.getsignal(signal.SIGTERM)
 
     def interrupt(*_):
@@ -391,15 +401,16 @@ def sitl_up_command(args, scenario_path: str, out: Path) -> int:
     signal.signal(signal.SIGTERM, interrupt)
     session = None
     try:
-        session = start_sitl(scenario_path, out, link, args.seed, realtime=args.realtime, roles=roles)
-        for line in session.run.endpoints() if "coordinator" in roles else _endpoints_without_coordinator(session):
+        session = start_sitl(scenario_path, out, link, args.seed, units=units, layout=layout, realtime=args.realtime,
+                             clients=clients, speed=getattr(args, "speed", None), roles=roles)
+        for line in _endpoints(session, link):
             print(line, flush=True)
         if link.kind == "zenoh":
             where = session.router_endpoint or ", ".join(link.connect)
             print(f"zenoh: fleet {link.fleet!r}, router {where}" + (f" (+ {', '.join(link.listen)})" if link.listen else "")
                   + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>", flush=True)
         if args.external_coordinator:
-            attach = f"mars-link coordinator {scenario_path} --out {out}"
+            attach = f"mars-link coordinator {scenario_path or ''} --out {out}"
             attach += (f" --transport zenoh --zenoh-connect {(link.listen or (session.router_endpoint,))[0]}" if link.kind == "zenoh"
                        else f" --transport udp --world-port {session.run.world_port} --coordinator-port {session.run.coordinator_port}")
             print(f"waiting for a coordinator: {attach}", flush=True)
@@ -415,11 +426,17 @@ def sitl_up_command(args, scenario_path: str, out: Path) -> int:
         signal.signal(signal.SIGTERM, previous)
 
 
-def _endpoints_without_coordinator(session) -> list[str]:
+def _endpoints(session, link: LinkSpec) -> list[str]:
     run = session.run
-    return [line for line in run.endpoints() if not line.startswith("coordinator")] if "coordinator" in run.processes \
-        else [f"world: pid {run.processes['world'].pid}"] + [f"unit {u}: pid {run.processes[f'unit{u}'].pid}, system id {u}"
-                                                             for u in run.setup.unit_ids]
+    if link.kind == "udp":
+        return run.endpoints()
+    lines = [f"{name}: pid {run.processes[name].pid}, zenoh node {name!r}" for name in ("world", "coordinator")
+             if name in run.processes]
+    for i, u in enumerate(run.setup.unit_ids):
+        lines.append(f"unit {u}: pid {run.processes[f'unit{u}'].pid}, system id {u}, zenoh node 'unit/{u}', "
+                     f"GCS udp 127.0.0.1:{run.clients.gcs_port}, API udp 127.0.0.1:{run.clients.api_port(i)}, "
+                     f"log {run.out / f'unit{u}.tlog'}")
+    return lines
 
 
 def add_coordinator_arguments(p) -> None:
