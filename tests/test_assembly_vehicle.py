@@ -33,6 +33,7 @@ from mavsdk.asyncio.plugins.failure import FailureAsync, FailureType, FailureUni
 from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw, VelocityNedYaw  # noqa: E402
 from mavsdk.asyncio.plugins.param import ParamAsync  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync  # noqa: E402
+from test_mavsdk_unit import _is, _not, _until  # noqa: E402  (the unit MAVSDK test's helpers)
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(120)]
 LOOP = "127.0.0.1"
@@ -85,20 +86,6 @@ def test_scenario_fault_is_reported_and_reallocated_without_sockets() -> None:
 
 
 # ----------------------------------------------------------------------------- MAVSDK
-async def _until(predicate, timeout_s: float, what: str, period_s: float = 0.1):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = await predicate()
-        if value:
-            return value
-        await asyncio.sleep(period_s)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
-async def _is(telemetry, *modes) -> bool:
-    return await telemetry.flight_mode() in modes
-
-
 async def _fly(api_port: int, status_path: Path) -> dict:
     r: dict = {}
     cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
@@ -195,10 +182,6 @@ async def _fly(api_port: int, status_path: Path) -> dict:
 
 async def _has(texts: list[str], prefix: str) -> bool:
     return any(t.startswith(prefix) for t in texts)
-
-
-async def _not(getter) -> bool:
-    return not await getter()
 
 
 def test_mavsdk_flies_the_3x2_assembly_as_one_vehicle(tmp_path: Path) -> None:
