@@ -67,6 +67,7 @@ MAX_FREE_UNITS = 10  # API ports 14540..14549 (14550 is the GCS port)
 COORDINATOR_TIMEOUT_S = 1.0
 UNIT_COMMAND_TIMEOUT_S = 2.0
 WORLD_UNIT_TIMEOUT_S = 3.0
+WORLD_IDLE_TIMEOUT_S = 30.0  # coordinator: no telemetry from any unit for this long = the world is gone
 STATUS_PERIOD_S = 0.2
 
 
@@ -458,15 +459,19 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             if stop.requested:
                 break
             packets: dict[int, SensorPacket] = {}
-            deadline = time.monotonic() + unit_timeout_s
+            # a unit is lost when it stays silent for unit_timeout_s after the first telemetry of the
+            # step came in; before that, the world may be waiting for a dead unit (it drives the clock)
+            idle_deadline = time.monotonic() + WORLD_IDLE_TIMEOUT_S
+            deadline = None
             t_expected = None
-            while set(packets) < live and time.monotonic() < deadline and not stop.requested:
-                if k == 0 and not packets:  # hello until the world starts (it may bind after us)
-                    deadline = time.monotonic() + unit_timeout_s
-                    if time.monotonic() >= next_hello:
-                        link.heartbeat(world)
-                        next_hello = time.monotonic() + 0.2
-                for m in link.receive(min(0.2, deadline - time.monotonic())):
+            while set(packets) < live and not stop.requested:
+                now = time.monotonic()
+                if (deadline is not None and now >= deadline) or now >= idle_deadline:
+                    break
+                if k == 0 and not packets and now >= next_hello:  # hello until the world starts
+                    link.heartbeat(world)
+                    next_hello = now + 0.2
+                for m in link.receive(min(0.2, (deadline or idle_deadline) - now)):
                     if m.get_type() == "COMMAND_ACK":
                         if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in accepted:
                             accepted[m.get_srcSystem()].add(m.command)
@@ -476,11 +481,14 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                         continue
                     if t_expected is None:
                         t_expected = p.t_s
+                        deadline = time.monotonic() + unit_timeout_s
                     if p.t_s == t_expected and p.unit_id in live:
                         packets[p.unit_id] = p
                     else:
                         link.drop("stale_telemetry")
-            if not packets:
+            if not packets:  # no telemetry at all for WORLD_IDLE_TIMEOUT_S: the world is gone
+                if not stop.requested:
+                    print(f"coordinator: no telemetry for {WORLD_IDLE_TIMEOUT_S:.0f} s: ending", file=sys.stderr)
                 break
             t = t_expected
             for unit in sorted(live - set(packets)):  # telemetry stopped: the unit is lost
