@@ -4,6 +4,11 @@ One control step: fuse the units' sensor packets into a rigid-body estimate (EKF
 the world provides when sensor noise is off), sample the trajectory, run the controller and its
 allocator, and split the 4N rotor thrusts into one `RotorCommand` per unit. The same object runs in
 the in-process runner and in the SITL coordinator process.
+
+Faults reach the allocation three ways: told (`set_faults`), found in the residuals by the
+`detector` (faults_known = false), or a unit that stops reporting (`unit_lost`, called by the
+transport's heartbeat watch or by the optional telemetry timeout here). Each records an event whose
+"text" fits one MAVLink STATUSTEXT (50 characters).
 """
 
 from __future__ import annotations
