@@ -219,6 +219,7 @@ class FdiTrial:
     error_detected_m: float
     completed_told: bool
     completed_detected: bool
+    controller: str = "cascaded"
 
     @property
     def false_alarms(self) -> int:
@@ -267,18 +268,20 @@ class FdiTrial:
 
 
 def fdi_trial(case: Case, ftc: str = "qp", seed: int = 1, t_fault_s: float = FDI_T_FAULT_S,
-              duration_s: float | None = None) -> FdiTrial:
+              duration_s: float | None = None, controller: str = "cascaded") -> FdiTrial:
     """Fly `case` twice with the same seed: faults told at `t_fault_s`, then detected (not told)."""
     mode = fdi_ftc(case, ftc)
-    told = run_trial(scenario_for(case, "cascaded", mode, duration_s, t_fault_s, faults_known=True), seed)
-    found = run_trial(scenario_for(case, "cascaded", mode, duration_s, t_fault_s, faults_known=False), seed)
+    told = run_trial(scenario_for(case, controller, mode, duration_s, t_fault_s, faults_known=True), seed)
+    found = run_trial(scenario_for(case, controller, mode, duration_s, t_fault_s, faults_known=False), seed)
     return FdiTrial(case, mode, seed, t_fault_s, found.detections, told.mean_error_m, found.mean_error_m,
-                    told.completed, found.completed)
+                    told.completed, found.completed, controller)
 
 
-def fdi_false_alarm_flight(seed: int, ftc: str = "qp", duration_s: float | None = None) -> list[dict]:
+def fdi_false_alarm_flight(seed: int, ftc: str = "qp", duration_s: float | None = None,
+                           controller: str = "cascaded") -> list[dict]:
     """A fault-free spiral with the detector on: its detections (all false alarms)."""
-    return run_trial(scenario_for(CASES[0], "cascaded", ftc, duration_s, faults_known=False), seed).detections
+    sc = scenario_for(CASES[0], controller, ftc, duration_s, faults_known=False)
+    return run_trial(sc, seed).detections
 
 
 # ----------------------------------------------------------------------------- EKF accuracy

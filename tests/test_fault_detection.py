@@ -448,3 +448,45 @@ def test_runner_unit_process_death_mid_spiral_is_survived():
     assert kinds[:3] == ["unit_died", "unit_lost", "reallocation"], r.events
     assert all(e.get("text") for e in r.events)
     assert r.mean_error_m < 0.015  # fault-free, same seed: 0.0102 m (1.5 x that)
+
+
+def _fdi_tool():
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "tools" / "fdi_eval.py"
+    spec = importlib.util.spec_from_file_location("fdi_eval", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [(["--seeds", "0"], "--seeds"), (["--ftc", "magic"], "--ftc must be one of"),
+     (["--t-fault", "nan"], "--t-fault"), (["--cases", "nothing"], "matches none of"),
+     (["--controller", "mars-ftcc-paper", "--ftc", "qp"], "flies --ftc paper")],
+)
+def test_fdi_eval_bad_arguments_are_one_line_and_exit_2(argv, message, capsys):
+    assert _fdi_tool().main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_fdi_eval_report_and_plot_from_trials(tmp_path):
+    """The table and the PNG from hand-made trials (the flights themselves are the slow tests')."""
+    from mars_link.reproduce import CASES, FdiTrial
+
+    tool = _fdi_tool()
+    rows = []
+    for case in CASES[1:3]:
+        dets = [{"t_detected": 10.07, "unit": u, "rotor": r, "eta_estimated": e} for u, r, e in case.faults]
+        row = tool.summarize([FdiTrial(case, "qp", 1, 10.0, dets, 0.010, 0.011, True, True)])
+        row["t_fault_s"] = 10.0
+        rows.append(row)
+    args = tool.parse(["--seeds", "1"])
+    text = tool.markdown(rows, {"flights": 2, "seeds": [1, 2], "false_alarms": 0}, args)
+    assert "| T1 u2 r2=0.5 | qp | 0.07 / 0.07 | 0.000 | 0 | 0.0100 | 0.0110 | 1.10 | yes |" in text
+    assert "0 false alarm(s) in 2 flight(s)" in text
+    tool.plot(rows, tmp_path / "fdi.png")
+    assert (tmp_path / "fdi.png").stat().st_size > 10_000

@@ -1,6 +1,7 @@
 """Fault detection and isolation on paper 000's 3x2 spiral: Table I rotor faults and Fig. 3 unit failures.
 
     python tools/fdi_eval.py [--out runs/fdi_eval] [--seeds 3] [--ftc qp] [--t-fault 10] [--false-alarm-seeds 5]
+                             [--controller cascaded | mars-ftcc-paper] [--cases "{2,5},r2=0.5"]
 
 Every case is flown twice per seed with the in-process runner (JSBSim, sensor noise, EKF, cascaded
 controller): the faults act in the units' motor paths at `--t-fault` and are told to the coordinator
@@ -10,7 +11,9 @@ identification), the largest |eta believed - eta true| over all 24 rotors at the
 and the mean tracking error of unit 1 over the whole flight, told vs detected. Acceptance (issue 5):
 delay < 0.5 s, eta within 0.1, flight completed, detected error <= 1.5 x told. Fault-free flights
 with the detector on count false alarms. `--ftc paper` uses the paper's own mode per case (unit
-shares for unit failures, hybrid for rotor faults).
+shares for unit failures, hybrid for rotor faults). `--controller mars-ftcc-paper` flies paper 000's
+own controller instead, as `mars-link reproduce table1` does (20 Hz, physics 1 kHz, sensor noise off:
+the controller flies on the true state, the detector reads the noise-free unit IMUs at 20 Hz).
 
 Writes fdi.md, fdi.json and fdi.png (detection delay and eta error per case; told vs detected error)
 to --out. Exit 0 when every case passed, 1 otherwise, 2 for bad arguments.
@@ -34,6 +37,7 @@ from mars_link.reproduce import (  # noqa: E402
 )
 
 FTC_CHOICES = ("qp", "paper", "unit", "partial", "full", "hybrid")
+CONTROLLERS = ("cascaded", "mars-ftcc-paper")
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
@@ -44,12 +48,17 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--t-fault", type=float, default=10.0)
     ap.add_argument("--false-alarm-seeds", type=int, default=5)
     ap.add_argument("--cases", default="", help="comma-separated case-name fragments (default: all faulty cases)")
+    ap.add_argument("--controller", default="cascaded")
     ap.add_argument("--no-plot", action="store_true")
     args = ap.parse_args(argv)
     if not 1 <= args.seeds <= 100 or not 0 <= args.false_alarm_seeds <= 100:
         raise UserInputError("--seeds must be in 1..100 and --false-alarm-seeds in 0..100")
     if args.ftc not in FTC_CHOICES:
         raise UserInputError(f"--ftc must be one of {', '.join(FTC_CHOICES)}, got {args.ftc!r}")
+    if args.controller not in CONTROLLERS:
+        raise UserInputError(f"--controller must be one of {', '.join(CONTROLLERS)}, got {args.controller!r}")
+    if args.controller == "mars-ftcc-paper" and args.ftc not in ("paper", "unit", "hybrid"):
+        raise UserInputError("--controller mars-ftcc-paper flies --ftc paper, unit or hybrid")
     if not (math.isfinite(args.t_fault) and 1.0 <= args.t_fault <= 45.0):
         raise UserInputError(f"--t-fault must be between 1 and 45 s (the spiral lasts 50.27 s), got {args.t_fault}")
     return args
@@ -72,6 +81,7 @@ def summarize(trials: list[FdiTrial]) -> dict:
     delays = [t.delay_s for t in trials]
     return {
         "case": trials[0].case.name,
+        "controller": trials[0].controller,
         "ftc": trials[0].ftc,
         "seeds": [t.seed for t in trials],
         "delay_s_max": float(max(delays)),
@@ -89,7 +99,7 @@ def summarize(trials: list[FdiTrial]) -> dict:
 
 def markdown(rows: list[dict], fa: dict, args: argparse.Namespace) -> str:
     lines = [
-        f"Faults at t = {args.t_fault:g} s, {args.seeds} seed(s), ftc {args.ftc}; acceptance: delay < "
+        f"Faults at t = {args.t_fault:g} s, {args.seeds} seed(s), {args.controller}, ftc {args.ftc}; acceptance: delay < "
         f"{FDI_MAX_DELAY_S} s, eta error <= {FDI_MAX_ETA_ERROR}, detected/told error <= {FDI_MAX_ERROR_RATIO}.",
         "",
         "| case | ftc | delay mean / max [s] | eta error max | false alarms | told error [m] | detected error [m] "
@@ -133,7 +143,8 @@ def plot(rows: list[dict], path: Path) -> None:
         ax.set_xticks(x, names, rotation=30, ha="right", fontsize=8)
         ax.legend(fontsize=8)
         ax.grid(axis="y", alpha=0.3)
-    fig.suptitle(f"FDI on the 3x2 spiral, faults at {rows[0].get('t_fault_s', 10):g} s, not told to the coordinator")
+    fig.suptitle(f"FDI on the 3x2 spiral ({rows[0]['controller']}), faults at {rows[0].get('t_fault_s', 10):g} s, "
+                 "not told to the coordinator")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -154,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     for case in cases:
         trials = []
         for seed in range(1, args.seeds + 1):
-            t = fdi_trial(case, args.ftc, seed, args.t_fault)
+            t = fdi_trial(case, args.ftc, seed, args.t_fault, controller=args.controller)
             trials.append(t)
             found = ", ".join(f"u{d['unit']}" + (f"r{d['rotor']}" if d["rotor"] else "") + f"={d['eta_estimated']:.2f}"
                               f"@{d['t_detected']:.2f}" for d in t.detections)
@@ -164,7 +175,8 @@ def main(argv: list[str] | None = None) -> int:
         row["t_fault_s"] = args.t_fault
         rows.append(row)
     fa_seeds = list(range(1, args.false_alarm_seeds + 1))
-    fa_found = [fdi_false_alarm_flight(s, "qp" if args.ftc == "paper" else args.ftc) for s in fa_seeds]
+    fa_ftc = ("hybrid" if args.controller == "mars-ftcc-paper" else "qp") if args.ftc == "paper" else args.ftc
+    fa_found = [fdi_false_alarm_flight(s, fa_ftc, controller=args.controller) for s in fa_seeds]
     fa = {"flights": len(fa_seeds), "seeds": fa_seeds, "false_alarms": sum(len(f) for f in fa_found),
           "detections": fa_found}
     table = markdown(rows, fa, args)
@@ -174,6 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "fdi.md").write_text(table, encoding="utf-8")
     (out / "fdi.json").write_text(json.dumps({"cases": rows, "fault_free": fa, "ftc": args.ftc,
+                                              "controller": args.controller,
                                               "t_fault_s": args.t_fault}, indent=2) + "\n", encoding="utf-8")
     if not args.no_plot:
         plot(rows, out / "fdi.png")
