@@ -7,6 +7,7 @@ that starts and ends at rest at the A* start and goal poses, with scipy's L-BFGS
         w_obstacle·sum_body-points (margin - sdf)_+^3          (footprint samples against the map SDF)
       + w_velocity·(|v|^2 - v_max^2)_+^3 + w_yaw_rate·(yaw_rate^2 - w_max^2)_+^3
       + w_acceleration·(|a|^2 - a_max^2)_+^3 + w_jerk·(|j|^2 - j_max^2)_+^3
+      + w_room·sum_body-points (margin + room - sdf)_+^2     ("ours": keep the A*'s room where it is cheap)
       + w_yaw_motion·yaw_rate^2
       + w_attitude·s(|v|)·sin^2(yaw - psi*(heading))         (eq. 12b, smooth and pi-periodic like psi*)
 
@@ -39,12 +40,14 @@ class BackendParams:
     w_energy: float = 1.0
     yaw_energy_scale: float = 1.0  # weight of yaw jerk energy relative to n, e
     w_obstacle: float = 3e4
+    w_room: float = 0.0  # soft preference for room beyond the margin (set for "ours"), per body point
+    room_m: float = 0.3  # ... fading out this far beyond the margin (like the A*'s clearance_soft_m)
     w_velocity: float = 1e3
     w_yaw_rate: float = 1e3
     w_yaw_motion: float = 20.0  # integral of yaw_rate^2: every turn of the assembly costs tracking
     w_acceleration: float = 1e3
     w_jerk: float = 1e2
-    w_attitude: float = 0.5  # eq. 12b, per second at 90 deg from psi* (0 = off)
+    w_attitude: float = 0.2  # eq. 12b, per second at 90 deg from psi* (0 = off)
     attitude_speed_mps: float = 0.1  # psi* fades in above about this speed (heading undefined at rest)
     samples_per_piece: int = 8
     body_spacing_m: float = 0.1  # footprint samples thinned to about this spacing
@@ -59,7 +62,8 @@ class BackendParams:
 #: per-method changes applied by the pipeline. The "svsdf" baseline keeps SVSDF's released back-end
 #: costs (jerk, time, obstacle; specs/planning.md §2.6): no yaw-motion or attitude (eq. 12b) term.
 #: The v/a/j/yaw-rate limits stay for both, so both fly the same speed envelope.
-METHOD_OVERRIDES = {"svsdf": {"w_yaw_motion": 0.0, "w_attitude": 0.0}}
+METHOD_OVERRIDES = {"svsdf": {"w_yaw_motion": 0.0, "w_attitude": 0.0, "w_room": 0.0},
+                    "ours": {"w_room": 1.0}}
 
 
 @dataclass
@@ -99,7 +103,8 @@ class _Cost:
         self.w[[0, -1]] *= 0.5
         self.body_r = np.linalg.norm(body, axis=1)
         self.r_body = float(self.body_r.max()) if len(body) else 0.0
-        self.cull_m = self.r_body + p.margin_m + 2.5 * sdf.resolution_m
+        self.reach_m = p.margin_m + (p.room_m if p.w_room > 0 else 0.0)  # penalties start this far out
+        self.cull_m = self.r_body + self.reach_m + 2.5 * sdf.resolution_m
         self.energy_w = np.array([1.0, 1.0, math.sqrt(p.yaw_energy_scale)])
         self.evaluations = 0
         self.terms = {}
@@ -212,8 +217,13 @@ class _Cost:
             d, gr = self.sdf.query(np.column_stack([pn[:, 0] + rn, pn[:, 1] + re]))
             x = np.maximum(p.margin_m - d, 0.0)
             idx = near[si]
-            np.add.at(f, idx, p.w_obstacle * x ** 3)
+            val = p.w_obstacle * x ** 3
             k = -3 * p.w_obstacle * x ** 2  # d f / d sdf
+            if p.w_room > 0:
+                r = np.maximum(self.reach_m - d, 0.0)
+                val = val + p.w_room * r ** 2
+                k = k - 2 * p.w_room * r
+            np.add.at(f, idx, val)
             gn, ge = gr[:, 0] * k, gr[:, 1] * k
             gp = np.zeros((len(flat), 3))
             np.add.at(gp, idx, np.column_stack([gn, ge, gn * -re + ge * rn]))  # d(R b)/d yaw = (-e, n)
