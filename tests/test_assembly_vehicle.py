@@ -1,7 +1,8 @@
 """The 3x2 assembly as one MAVLink vehicle (`mars-link vehicle`): MAVSDK 4.x flies it like a single
 drone (telemetry against the JSBSim truth, arm, takeoff 2 m, offboard 1 m north and back, a motor
-failure reported by STATUSTEXT and reallocated around, velocity setpoints, land, disarm); hostile traffic on its endpoint is
-counted and dropped while the link keeps working; and the sans-IO core reports scenario faults."""
+failure reported by STATUSTEXT and reallocated around, velocity setpoints, land, disarm); MAVProxy and
+QGroundControl's connect sequence on the gcs link; hostile traffic on its endpoint counted and dropped
+while the link keeps working; the sans-IO core reports told and detected faults; bad CLI input."""
 
 from __future__ import annotations
 
@@ -187,7 +188,7 @@ async def _has(texts: list[str], prefix: str) -> bool:
 def test_mavsdk_flies_the_3x2_assembly_as_one_vehicle(tmp_path: Path) -> None:
     api = free_udp_port()
     status = tmp_path / "status.json"
-    proc, first = spawn_vehicle(["--layout", "XXX,XXX", "--ftc", "qp", "--sysid", str(SYSID),
+    proc, first = spawn_vehicle(["--layout", "XXX,XXX", "--ftc", "qp", "--sysid", str(SYSID), "--param", "COM_DISARM_LAND=0.5",
                                  "--api-port", str(api), "--api-bind", "0",
                                  "--gcs-port", str(free_udp_port()), "--gcs-bind", "0"], status)
     try:
@@ -205,6 +206,36 @@ def test_mavsdk_flies_the_3x2_assembly_as_one_vehicle(tmp_path: Path) -> None:
     assert "Fault: unit 2 rotor 2 eta 0.5" in r["texts"] and "Takeoff complete: holding" in r["texts"]
     assert abs(r["landed_down_m"]) < 0.05
     assert not r["drops"], r["drops"]  # MAVSDK's own traffic is all understood
+
+
+# ----------------------------------------------------------------------------- QGroundControl
+def _qgc_connect_sequence(qgc, n_params: int) -> dict[str, float]:
+    """QGroundControl's connect-time requests (specs/mavlink.md §2.3), as QGC (255/190) listening on
+    the GCS port: the assembly's identity, then each request answered; returns the latencies (s)."""
+    beats = qgc.receive(lambda m: m.get_type() == "HEARTBEAT", 1.5)
+    assert beats, "no heartbeat on the GCS port"
+    hb = beats[0][1]
+    assert (hb.get_srcSystem(), hb.get_srcComponent()) == (SYSID, 1)
+    assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
+
+    def request_message(msgid: int):
+        return mavlink.MAVLink_command_long_message(SYSID, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0, msgid, 0, 0, 0, 0, 0, 0)
+
+    latency = {}
+    got, latency["autopilot_version"] = qgc.request(
+        request_message(148), lambda m: m.get_type() in ("COMMAND_ACK", "AUTOPILOT_VERSION"), 2)
+    assert {m.get_type() for m in got} == {"COMMAND_ACK", "AUTOPILOT_VERSION"}
+    got, latency["protocol_version"] = qgc.request(
+        request_message(300), lambda m: m.get_type() == "COMMAND_ACK" and m.command == mavlink.MAV_CMD_REQUEST_MESSAGE)
+    assert [m.result for m in got] == [mavlink.MAV_RESULT_UNSUPPORTED]
+    got, latency["param_list"] = qgc.request(mavlink.MAVLink_param_request_list_message(SYSID, 1),
+                                             lambda m: m.get_type() == "PARAM_VALUE", n_params, timeout_s=1.0)
+    assert sorted(m.param_index for m in got) == list(range(n_params)) and {m.param_count for m in got} == {n_params}
+    for kind in (mavlink.MAV_MISSION_TYPE_MISSION, mavlink.MAV_MISSION_TYPE_FENCE, mavlink.MAV_MISSION_TYPE_RALLY):
+        got, latency[f"mission_{kind}"] = qgc.request(mavlink.MAVLink_mission_request_list_message(SYSID, 1, kind),
+                                                      lambda m: m.get_type() == "MISSION_COUNT")
+        assert [(m.count, m.mission_type) for m in got] == [(0, kind)]
+    return latency
 
 
 # ----------------------------------------------------------------------------- hostile input
@@ -233,13 +264,20 @@ class Gcs:
         return False
 
 
-def test_hostile_traffic_on_the_assembly_endpoint_is_counted_and_dropped(tmp_path: Path) -> None:
+def test_qgc_connect_then_hostile_traffic_counted_and_dropped(tmp_path: Path) -> None:
+    """QGC's connect sequence on the gcs link gets timely answers; then hostile traffic on the api
+    link is counted by reason and never acted on while the legitimate client keeps being answered."""
+    from mars_link.assembly import AssemblyModel, vehicle_preset
+    from mars_link.assembly_vehicle import assembly_param_specs
+    from test_qgc_connect import TIMELY_S, Qgc
+
     status = tmp_path / "status.json"
-    api = free_udp_port()
+    api, gcs_port = free_udp_port(), free_udp_port()
     listener = Listener(api)
     listener.start()
+    qgc = Qgc(gcs_port)
     proc, first = spawn_vehicle(["--sysid", str(SYSID), "--api-port", str(api), "--api-bind", "0",
-                                 "--gcs-port", str(free_udp_port()), "--gcs-bind", "0"], status)
+                                 "--gcs-port", str(gcs_port), "--gcs-bind", "0"], status)
     port = first["endpoints"]["api"]["from"]
     rng = random.Random(5)
     attacker = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -250,6 +288,10 @@ def test_hostile_traffic_on_the_assembly_endpoint_is_counted_and_dropped(tmp_pat
             attacker.sendto(data, (LOOP, port))
 
     try:
+        model = AssemblyModel.from_layout(["XXX", "XXX"], vehicle_preset("mars-ftcc"))
+        latency = _qgc_connect_sequence(qgc, len(assembly_param_specs(SYSID, model, "none")))
+        print("QGC connect:", {k: round(v * 1000, 1) for k, v in latency.items()}, "ms")
+        assert max(latency.values()) < TIMELY_S
         gcs = Gcs(port)
         assert gcs.request_version(3.0), "the legitimate link does not work"
         for _ in range(200):
@@ -285,7 +327,7 @@ def test_hostile_traffic_on_the_assembly_endpoint_is_counted_and_dropped(tmp_pat
             asked += 1
             answered += gcs.request_version(0.1)
         flooder.join()
-        time.sleep(1.0)
+        time.sleep(0.5)
         st = read_status(status)
         counted = st["drops"]["wrong_target"] - 100
         kernel = _kernel_drops(port) - kernel_before
@@ -304,6 +346,7 @@ def test_hostile_traffic_on_the_assembly_endpoint_is_counted_and_dropped(tmp_pat
         attacker.close()
         rc = stop_unit(proc)
         listener.stop()
+        qgc.sock.close()
     assert rc == 0
 
 
