@@ -49,6 +49,20 @@ def client_links(index: int, gcs_port: int = GCS_PORT, api_port: int | None = No
     }
 
 
+BATCH_BYTES = 1400  # one Ethernet-sized datagram
+
+
+def _coalesce(out: list[Outgoing]) -> list[Outgoing]:
+    """Frames per link joined into datagrams of at most BATCH_BYTES, order kept within each link."""
+    chunks: dict[str, list[bytearray]] = {}
+    for link, data in out:
+        parts = chunks.setdefault(link, [bytearray()])
+        if parts[-1] and len(parts[-1]) + len(data) > BATCH_BYTES:
+            parts.append(bytearray())
+        parts[-1] += data
+    return [Outgoing(link, bytes(b)) for link, parts in chunks.items() for b in parts]
+
+
 def bind_udp(port: int) -> socket.socket:
     s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
@@ -67,8 +81,13 @@ def bind_udp(port: int) -> socket.socket:
 class VehicleSockets:
     """One non-blocking UDP socket per vehicle link, fed into `Vehicle.handle`, answering `Outgoing`."""
 
-    def __init__(self, vehicle: Vehicle, links: dict[str, LinkSpec], tlog: Path | None = None) -> None:
+    def __init__(self, vehicle: Vehicle, links: dict[str, LinkSpec], tlog: Path | None = None,
+                 batch: bool = False) -> None:
+        """`batch`: frames for the same link from one `send` call share datagrams (up to
+        `BATCH_BYTES`), as PX4 fills its UDP buffer: one syscall (and one wake-up of the receiver)
+        instead of one per frame."""
         self.vehicle = vehicle
+        self.batch = batch
         self.specs = links
         self.socks: dict[str, socket.socket] = {}
         self.sel: selectors.BaseSelector | None = None
@@ -93,6 +112,8 @@ class VehicleSockets:
         return {name: s.getsockname()[1] for name, s in self.socks.items()}
 
     def send(self, out: list[Outgoing]) -> None:
+        if self.batch and len(out) > 1:
+            out = _coalesce(out)
         now = time.monotonic()
         for link, data in out:
             dest = self.dest.get(link)

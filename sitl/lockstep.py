@@ -68,7 +68,9 @@ COORDINATOR_TIMEOUT_S = 1.0
 UNIT_COMMAND_TIMEOUT_S = 2.0
 WORLD_UNIT_TIMEOUT_S = 3.0
 WORLD_IDLE_TIMEOUT_S = 30.0  # coordinator: no telemetry from any unit for this long = the world is gone
-STATUS_PERIOD_S = 0.2
+STATUS_PERIOD_S = 0.2  # world status (truth) file
+UNIT_STATUS_PERIOD_S = 1.0  # unit status files (a file replace costs milliseconds here)
+TICK_PERIOD_S = 0.02  # unit: heartbeats and streams (<= 20 Hz) served on this wall-clock grid
 
 
 @dataclass
@@ -300,8 +302,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                 _write_world_status(status_path, world, setup, live, t, time.perf_counter() - wall0)
                 truth_log.flush()
             for p in world.sense():
-                if p.unit_id in live:
-                    msgs = [] if p.truth is not None else [hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
+                if p.unit_id in live:  # ground truth for the unit's own telemetry at the mocap rate
+                    msgs = [] if p.truth is not None or p.position is None else [
+                        hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
                     link.send_many(msgs + sensor_packet_messages(p), link.peers[p.unit_id])
             waiting = set(live)
             deadline = time.monotonic() + unit_timeout_s
@@ -328,7 +331,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         _write_world_status(status_path, world, setup, live, world.t_s, wall)
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
                    "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
-                   "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested}
+                   "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time()}
         (out / "world_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     finally:
         truth_log.close()
@@ -383,7 +386,7 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
         links[LINK_COORDINATOR] = LinkSpec(0, (LOOPBACK, ports.coordinator), learn_clients=False)
     out.mkdir(parents=True, exist_ok=True)
     stop = _Stop()
-    io = VehicleSockets(vehicle, links, tlog=out / f"unit{unit_id}.tlog")
+    io = VehicleSockets(vehicle, links, tlog=out / f"unit{unit_id}.tlog", batch=True)
     hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.docked else [])
     status_path = out / f"unit{unit_id}_status.json"
     next_hello = next_tick = next_status = 0.0
@@ -400,9 +403,9 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
                 next_hello = now + (0.2 if steps == 0 else 1.0)
             if now >= next_tick:  # heartbeats and streams on wall time, even while the lockstep waits
                 io.send(vehicle.tick(time.time(), vehicle.sim_s))
-                next_tick = now + 0.01
+                next_tick = now + TICK_PERIOD_S
             if now >= next_status:
-                next_status = now + STATUS_PERIOD_S
+                next_status = now + UNIT_STATUS_PERIOD_S
                 write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **io.counters()))
             wake = min(next_hello, next_tick, next_status)
             if vehicle.hil_pending:
@@ -415,7 +418,8 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
                 io.send(vehicle.release_hil(time.time()))
             if not vehicle.hil_pending:
                 pending_since = None
-        write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **io.counters()))
+        write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, cpu_s=time.process_time(),
+                                                      **io.counters()))
     finally:
         io.close()
     return 0
@@ -511,7 +515,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     link.send_many(_with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale)),
                                    link.peers[cmd.unit_id])
         (out / "coordinator_summary.json").write_text(json.dumps(
-            {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped,
+            {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}}, indent=2, default=float) + "\n")
     finally:
         link.close()
