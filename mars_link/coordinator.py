@@ -87,6 +87,7 @@ class Coordinator:
             raise UserInputError(f"telemetry_timeout_s must be a number > 0, got {telemetry_timeout_s!r}")
         self.telemetry_timeout_s = telemetry_timeout_s
         self.lost_units: set[int] = set()
+        self.rejected: dict[str, int] = {}  # reason -> packets dropped here
         self._last_seen_s: dict[int, float] = {}
 
     def _event(self, t_s: float, kind: str, text: str, **fields) -> dict:
@@ -132,7 +133,8 @@ class Coordinator:
 
     def _watch_telemetry(self, t_s: float, packets: list[SensorPacket]) -> None:
         for p in packets:
-            self._last_seen_s[p.unit_id] = t_s
+            if p.unit_id in self.model.unit_cells:  # unknown ids (untrusted input) are not remembered
+                self._last_seen_s[p.unit_id] = t_s
         if not packets:  # nobody reported: our own input stalled, not the units
             return
         for uid in self.model.unit_ids:
@@ -144,8 +146,11 @@ class Coordinator:
         c0 = time.perf_counter()
         if self.telemetry_timeout_s is not None:
             self._watch_telemetry(t_s, packets)
-        if self.lost_units:  # a lost unit's late or stray packets are not trusted
-            packets = [p for p in packets if p.unit_id not in self.lost_units]
+        if self.lost_units:  # a lost unit's late or stray packets are not trusted: counted, dropped
+            kept = [p for p in packets if p.unit_id not in self.lost_units]
+            if len(kept) != len(packets):
+                self.rejected["lost_unit"] = self.rejected.get("lost_unit", 0) + len(packets) - len(kept)
+            packets = kept
         if self.estimator is None:
             truth = next((p.truth for p in packets if p.truth is not None), None)
             if truth is None:
@@ -153,7 +158,8 @@ class Coordinator:
             estimate = truth
         else:
             estimate = self.estimator.step(
-                t_s, [p.imu for p in packets], [p.position for p in packets if p.position is not None]
+                t_s, [p.imu for p in packets if p.imu is not None],
+                [p.position for p in packets if p.position is not None],
             )
         c1 = time.perf_counter()
         reference = self.trajectory.sample(t_s)
@@ -166,7 +172,7 @@ class Coordinator:
             probe = self.detector.excitation_n(t_s)
             if probe.any():
                 thrusts = np.maximum(thrusts + probe, 0.0)
-            found = self.detector.update(t_s, thrusts, estimate, [p.imu for p in packets])
+            found = self.detector.update(t_s, thrusts, estimate, [p.imu for p in packets if p.imu is not None])
             if found:
                 self.detections.extend(found)
                 for d in found:

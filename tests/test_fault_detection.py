@@ -426,7 +426,12 @@ def test_silent_unit_is_declared_lost_after_the_timeout_and_its_late_packets_are
     assert [(d.unit, d.reason) for d in coord.detections] == [(3, "silent")]
     n_events = len(coord.events)
     coord.step(0.20, packets(0.20, model.unit_ids))  # a late packet from the lost unit
-    assert coord.lost_units == {3} and len(coord.events) == n_events
+    assert coord.lost_units == {3} and len(coord.events) == n_events and coord.rejected == {"lost_unit": 1}
+    stray = packets(0.21, [1])[0]
+    stray.unit_id = stray.imu.unit_id = stray.position.unit_id = 42  # a unit id nobody configured
+    coord.step(0.21, packets(0.21, alive) + [stray, SensorPacket(0.21, 5, None, None, None)])
+    assert 42 not in coord._last_seen_s and coord.lost_units == {3}
+    assert coord.estimator.stats.rejected["imu_unknown_unit"] == 1
     assert not np.isnan(coord.last.thrusts_n).any()
     assert np.all(coord.last.thrusts_n[model.unit_slots(3)] <= 1e-9)
 
