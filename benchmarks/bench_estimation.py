@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
+from mars_link.assembly import AssemblyModel
 from mars_link.estimation import AssemblyEstimator
 from mars_link.fault_detection import FaultDetector
 from mars_link.state import ImuSample, PositionSample
