@@ -20,7 +20,6 @@ Runs until Ctrl-C / SIGTERM (or --duration wall seconds). A machine too slow to 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import signal
@@ -32,13 +31,14 @@ from pathlib import Path
 import numpy as np
 
 from firmware_models.vehicle import LINK_API, LINK_GCS
+from firmware_models.vehicle_io import API_PORT_BASE, GCS_PORT, LOOPBACK, LinkSpec, VehicleSockets, write_json_atomic
 from mars_link.assembly_vehicle import DEFAULT_SYSID, AssemblySim, SimConfig
 from mars_link.errors import UserInputError
 
-LOOPBACK = "127.0.0.1"
 STATUS_PERIOD_S = 0.2
 DEFAULT_SCENARIO = "hover_3x2"
-GCS_PORT, API_PORT, GCS_BIND, API_BIND = 14550, 14540, 18560, 14560
+API_PORT = API_PORT_BASE  # the assembly takes instance 0's ports, like a single PX4 SITL drone
+GCS_BIND, API_BIND = 18560, 14560  # below the units' 18570+i / 14580+i
 REANCHOR_S = 0.25  # this far behind wall time: re-anchor (an overrun) instead of racing
 
 
@@ -48,8 +48,6 @@ class AssemblyRunner:
 
     def __init__(self, sim: AssemblySim, ports: dict[str, int], speed: float = 1.0,
                  status_file: str | None = None, duration_s: float | None = None, tlog: str | None = None) -> None:
-        from firmware_models.vehicle_io import LinkSpec, VehicleSockets
-
         self.sim = sim
         self.vehicle = sim.vehicle
         self.speed = speed
@@ -92,9 +90,7 @@ class AssemblyRunner:
             "step_p50_ms": float(np.percentile(steps, 50) * 1e3), "step_p99_ms": float(np.percentile(steps, 99) * 1e3),
             "endpoints": self.endpoints(),
         }
-        tmp = self.status_path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(status))
-        os.replace(tmp, self.status_path)
+        write_json_atomic(self.status_path, status)
 
     def run(self) -> int:
         start = time.monotonic()
