@@ -30,6 +30,7 @@ API_PORT_BASE = 14540  # + unit index (0-based)
 GCS_BIND_BASE = 18570
 API_BIND_BASE = 14580
 COORD_BIND_BASE = 14600
+SOCKETS_HOOK = None  # (VehicleSockets) -> None; may swap or tap entries of .socks (mars_link.transport.sitl_child)
 
 
 @dataclass
@@ -100,6 +101,8 @@ class VehicleSockets:
             raise
         self.dest = {name: spec.dest for name, spec in links.items()}
         self.peers: dict[str, tuple[tuple[str, int], float] | None] = {}
+        if SOCKETS_HOOK is not None:
+            SOCKETS_HOOK(self)
         self.sel = selectors.DefaultSelector()
         for name, s in self.socks.items():
             self.sel.register(s, selectors.EVENT_READ, name)

@@ -58,9 +58,15 @@ class SitlSession:
 
 def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, seed: int | None = None,
                units: int | None = None, layout: str | None = None, realtime: bool = False,
-               clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units")) -> SitlSession:
+               clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units"),
+               topology: str = "peer") -> SitlSession:
     """Start the SITL processes on `link` (default Zenoh). `unit_prefix(u)` -> argv to run unit u under
-    (e.g. `ip netns exec NS`); `roles` leaves some out (e.g. a coordinator started elsewhere)."""
+    (e.g. `ip netns exec NS`); `roles` leaves some out (e.g. a coordinator started elsewhere).
+
+    Zenoh without connect endpoints: `topology` "peer" (default, one hop): the world and the coordinator
+    listen on 127.0.0.1, the coordinator connects to the world, units connect to both; "router": this
+    process hosts a router session every child joins as a client (two hops; what an external
+    coordinator attaches to)."""
     from sitl.launcher import ClientPorts, SitlRun, free_udp_port
     from sitl.lockstep import load_setup
 
@@ -69,14 +75,24 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     out.mkdir(parents=True, exist_ok=True)
     clients = clients or ClientPorts(bind_any=True)
     session = SitlSession(SitlRun(out, setup, free_udp_port(), free_udp_port() if setup.docked else 0, clients), link)
+    role_links = {role: link for role in ("world", "coordinator", "unit")}
     if link.kind == "zenoh" and not link.connect:
-        from mars_link.transport.zenoh_link import open_router
+        from mars_link.transport.zenoh_link import free_tcp_port, open_router
 
-        session.router, session.router_endpoint = open_router(listen=link.listen, fleet=link.fleet)
-        link = replace(link, zenoh_mode="client", connect=(session.router_endpoint,), listen=())
+        if topology == "router" or link.listen:
+            session.router, session.router_endpoint = open_router(listen=link.listen, fleet=link.fleet)
+            link = replace(link, zenoh_mode="client", connect=(session.router_endpoint,), listen=())
+            role_links = {role: link for role in role_links}
+        elif topology == "peer":
+            w, c = (f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2))
+            role_links = {"world": replace(link, zenoh_mode="peer", listen=(w,)),
+                          "coordinator": replace(link, zenoh_mode="peer", listen=(c,), connect=(w,)),
+                          "unit": replace(link, zenoh_mode="peer", connect=(w, c))}
+        else:
+            raise UserInputError(f"zenoh topology {topology!r}: expected peer or router")
     run = session.run
     common = [scenario or "-", "--world-port", str(run.world_port), "--coordinator-port", str(run.coordinator_port),
-              "--out", str(out), *link.to_args(), "--control-period-s", repr(1.0 / setup.scenario.sim.control_hz)]
+              "--out", str(out), "--control-period-s", repr(1.0 / setup.scenario.sim.control_hz)]
     if units is not None:
         common += ["--units", str(units)]
     if layout is not None:
@@ -93,12 +109,12 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
 
     try:
         if setup.docked and "coordinator" in roles:
-            spawn("coordinator", ["coordinator", *common])
+            spawn("coordinator", ["coordinator", *common, *role_links["coordinator"].to_args()])
         if "world" in roles:
-            spawn("world", ["world", *common] + ([] if seed is None else ["--seed", str(seed)]))
+            spawn("world", ["world", *common, *role_links["world"].to_args()] + ([] if seed is None else ["--seed", str(seed)]))
         if "units" in roles:
             for i, u in enumerate(setup.unit_ids):
-                argv = ["unit", *common, "--unit", str(u), "--gcs-port", str(clients.gcs_port),
+                argv = ["unit", *common, *role_links["unit"].to_args(), "--unit", str(u), "--gcs-port", str(clients.gcs_port),
                         "--api-port", str(clients.api_port(i))]
                 if clients.bind_any:
                     argv += ["--gcs-bind", "0", "--api-bind", "0"]
@@ -402,11 +418,12 @@ def sitl_up_command(args, scenario_path: str | None, out: Path) -> int:
     session = None
     try:
         session = start_sitl(scenario_path, out, link, args.seed, units=units, layout=layout, realtime=args.realtime,
-                             clients=clients, speed=getattr(args, "speed", None), roles=roles)
+                             clients=clients, speed=getattr(args, "speed", None), roles=roles,
+                             topology="router" if args.external_coordinator else "peer")
         for line in _endpoints(session, link):
             print(line, flush=True)
         if link.kind == "zenoh":
-            where = session.router_endpoint or ", ".join(link.connect)
+            where = session.router_endpoint or ", ".join(link.connect) or "none (peers: world and coordinator listen on 127.0.0.1)"
             print(f"zenoh: fleet {link.fleet!r}, router {where}" + (f" (+ {', '.join(link.listen)})" if link.listen else "")
                   + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>", flush=True)
         if args.external_coordinator:

@@ -69,6 +69,7 @@ UNIT_COMMAND_TIMEOUT_S = 2.0
 WORLD_UNIT_TIMEOUT_S = 3.0
 WORLD_IDLE_TIMEOUT_S = 30.0  # coordinator: no telemetry from any unit for this long = the world is gone
 STATUS_PERIOD_S = 0.2  # world status (truth) file
+SOCKET_HOOK = None  # (sock, sysid) -> socket-like; puts another transport behind Link (mars_link.transport.sitl_child)
 UNIT_STATUS_PERIOD_S = 1.0  # unit status files (a file replace costs milliseconds here)
 TICK_PERIOD_S = 0.02  # unit: heartbeats and streams (<= 20 Hz) served on this wall-clock grid
 
@@ -163,6 +164,8 @@ class Link:
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 1024 * 1024)
         except OSError:
             pass
+        if SOCKET_HOOK is not None:
+            self.sock = SOCKET_HOOK(self.sock, sysid)
         self.mav = new_mav(sysid)
         self.peers: dict[int, tuple[str, int]] = {}
         self.dropped: dict[str, int] = {}

@@ -1,8 +1,9 @@
 """`python -m mars_link.transport.sitl_child ROLE ... --transport zenoh [...]`: one lockstep SITL process
 (sitl.lockstep) with its MAVLink links on Zenoh instead of UDP.
 
-The lockstep code is not changed: its world/coordinator `Link` socket and a unit's HIL and coordinator
-sockets are swapped for TransportSockets right after they are made. A unit's client links (GCS 14550,
+The lockstep code is not changed: its hooks (sitl.lockstep.SOCKET_HOOK, firmware_models.vehicle_io.
+SOCKETS_HOOK) swap the world/coordinator `Link` socket and a unit's HIL and coordinator sockets for
+TransportSockets right after they are made. A unit's client links (GCS 14550,
 API 14540+i) stay on UDP, as ground stations expect. Units also log the command age at the motor
 (mars_link.transport.realtime).
 """
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 
 from mars_link.transport import LinkSpec
@@ -19,11 +21,35 @@ from mars_link.transport.socket_shim import AddressMap, TransportSocket
 FIRST_SEND_WAIT_S = 20.0  # the lockstep sends some hellos once: wait for the other process to be up
 
 
-def _zenoh(spec: LinkSpec, node: str, only_from: str | None = None, seed: int = 0):
-    from mars_link.transport.zenoh_link import ZenohParams, ZenohTransport
+class TappedSocket:
+    """A UDP socket whose received datagrams are also shown to a tap (command age on the UDP path)."""
 
-    t = ZenohTransport(ZenohParams(node=node, fleet=spec.fleet, mode=spec.zenoh_mode, connect=spec.connect,
-                                   listen=spec.listen, only_from=only_from, first_send_wait_s=FIRST_SEND_WAIT_S))
+    def __init__(self, sock, tap) -> None:
+        self._sock = sock
+        self._tap = tap
+
+    def recvfrom(self, bufsize: int):
+        data, addr = self._sock.recvfrom(bufsize)
+        self._tap(data, time.time())
+        return data, addr
+
+    def __getattr__(self, name):
+        return getattr(self._sock, name)
+
+
+_SESSION: list = []  # this process's one Zenoh session, shared by its links; closed in main()
+
+
+def _zenoh(spec: LinkSpec, node: str, only_from: str | None = None, seed: int = 0):
+    from mars_link.transport.zenoh_link import ZenohParams, ZenohTransport, make_config
+
+    params = ZenohParams(node=node, fleet=spec.fleet, mode=spec.zenoh_mode, connect=spec.connect,
+                         listen=spec.listen, only_from=only_from, first_send_wait_s=FIRST_SEND_WAIT_S)
+    if not _SESSION:
+        import zenoh
+
+        _SESSION.append(zenoh.open(make_config(params)))
+    t = ZenohTransport(params, session=_SESSION[0])
     if spec.profile:
         import zlib
 
@@ -33,55 +59,41 @@ def _zenoh(spec: LinkSpec, node: str, only_from: str | None = None, seed: int = 
     return t
 
 
-def install(spec: LinkSpec, addresses: AddressMap, out: Path | None, control_period_s: float = 0.01) -> None:
-    """Patch sitl.lockstep.Link and firmware_models.vehicle_io.VehicleSockets to use `spec` links."""
+_TAPS: list = []  # this process's command-age taps, written in main()
+
+
+def install(spec: LinkSpec, addresses: AddressMap, control_period_s: float = 0.01) -> None:
+    """Set the lockstep's socket hooks: `Link` sockets (world, coordinator) on Zenoh; a unit's HIL and
+    coordinator sockets on Zenoh (UDP: kept), both tapped for the command age."""
     import sitl.lockstep as lockstep
-
-    link_init = lockstep.Link.__init__
-
-    def patched_link_init(self, port, sysid, *a, **kw):
-        link_init(self, port, sysid, *a, **kw)
-        node = "world" if sysid == lockstep.WORLD_SYSID else "coordinator" if sysid == lockstep.COORDINATOR_SYSID else f"unit/{sysid}"
-        self.sock.close()
-        self.sock = TransportSocket(_zenoh(spec, node), addresses)
-
-    lockstep.Link.__init__ = patched_link_init
-
     from firmware_models import vehicle_io
-    from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL
 
-    sockets_init = vehicle_io.VehicleSockets.__init__
-    sockets_close = vehicle_io.VehicleSockets.close
+    if spec.kind == "zenoh":
+        def link_socket(sock, sysid):
+            sock.close()
+            node = "world" if sysid == lockstep.WORLD_SYSID else "coordinator" if sysid == lockstep.COORDINATOR_SYSID else f"unit/{sysid}"
+            return TransportSocket(_zenoh(spec, node), addresses)
 
-    def patched_sockets_init(self, vehicle, links, tlog=None):
-        import selectors
+        lockstep.SOCKET_HOOK = link_socket
 
+    def unit_sockets(io) -> None:
+        from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL
         from mars_link.transport.realtime import CommandAgeTap
 
-        sockets_init(self, vehicle, links, tlog)
-        unit = vehicle.config.unit_id if hasattr(vehicle, "config") else vehicle.sysid
-        self.age_tap = CommandAgeTap(unit, control_period_s)
-        taps = {LINK_HIL: self.age_tap.on_hil, LINK_COORDINATOR: self.age_tap.on_coordinator}
-        peers = {LINK_HIL: "world", LINK_COORDINATOR: "coordinator"}
-        for name in (LINK_HIL, LINK_COORDINATOR):
-            if name not in self.socks:
+        unit = io.vehicle.config.unit_id
+        tap = CommandAgeTap(unit, control_period_s)
+        _TAPS.append(tap)
+        for name, peer, feed in ((LINK_HIL, "world", tap.on_hil), (LINK_COORDINATOR, "coordinator", tap.on_coordinator)):
+            if name not in io.socks:
                 continue
-            old = self.socks[name]
-            self.sel.unregister(old)
-            old.close()
-            self.socks[name] = TransportSocket(_zenoh(spec, f"unit/{unit}", only_from=peers[name]), addresses, taps[name])
-            self.socks[name].setblocking(False)  # VehicleSockets drains until BlockingIOError
-            self.sel.register(self.socks[name], selectors.EVENT_READ, name)
+            if spec.kind == "zenoh":
+                io.socks[name].close()
+                io.socks[name] = TransportSocket(_zenoh(spec, f"unit/{unit}", only_from=peer), addresses, feed)
+                io.socks[name].setblocking(False)  # VehicleSockets drains until BlockingIOError
+            else:
+                io.socks[name] = TappedSocket(io.socks[name], feed)
 
-    def patched_sockets_close(self):
-        try:
-            if out is not None and getattr(self, "age_tap", None) is not None and self.age_tap.commands:
-                self.age_tap.write(out)
-        finally:
-            sockets_close(self)
-
-    vehicle_io.VehicleSockets.__init__ = patched_sockets_init
-    vehicle_io.VehicleSockets.close = patched_sockets_close
+    vehicle_io.SOCKETS_HOOK = unit_sockets
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -100,12 +112,19 @@ def main(argv: list[str] | None = None) -> int:
         lockstep_argv += ["--out", args.out]
     if args.realtime:
         lockstep_argv += ["--speed", "1"]
-    if spec.kind != "udp":
-        install(spec, AddressMap(args.world_port, args.coordinator_port), Path(args.out) if args.out else None,
-                args.control_period_s)
+    if spec.kind != "udp" or args.realtime:
+        install(spec, AddressMap(args.world_port, args.coordinator_port), args.control_period_s)
     import sitl.lockstep as lockstep
 
-    return lockstep.main(lockstep_argv)
+    try:
+        return lockstep.main(lockstep_argv)
+    finally:  # a process with an open session and callback subscribers would hang at exit
+        for tap in _TAPS:
+            if args.out and tap.commands:
+                tap.write(Path(args.out))
+        for s in _SESSION:
+            s.close()
+        _SESSION.clear()
 
 
 if __name__ == "__main__":

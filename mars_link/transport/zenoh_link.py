@@ -99,7 +99,8 @@ def key_for(fleet: str, src: str, dst: str) -> str:
 class ZenohTransport(Transport):
     kind = "zenoh"
 
-    def __init__(self, params: ZenohParams) -> None:
+    def __init__(self, params: ZenohParams, session: zenoh.Session | None = None) -> None:
+        """`session`: share one already open session (several links of one process); its owner closes it."""
         super().__init__(params.validate_frames)
         self.params = params
         self.node = _check_node(params.node)
@@ -112,7 +113,8 @@ class ZenohTransport(Transport):
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
-        self.session = zenoh.open(make_config(params))
+        self._owns_session = session is None
+        self.session = session if session is not None else zenoh.open(make_config(params))
         try:
             f = params.fleet
             src = _check_node(params.only_from) if params.only_from else "*"
@@ -120,7 +122,8 @@ class ZenohTransport(Transport):
             if not self.node.startswith("unit/"):
                 self._subs.append(self.session.declare_subscriber(f"mars/{f}/unit/*/mavlink/up/{self.node}", self._on_up))
         except BaseException:
-            self.session.close()
+            if self._owns_session:
+                self.session.close()
             raise
 
     # zenoh threads: keep these short
@@ -193,7 +196,8 @@ class ZenohTransport(Transport):
             for sub in self._subs:
                 sub.undeclare()
         finally:
-            self.session.close()
+            if self._owns_session:
+                self.session.close()
             self._wake_r.close()
             self._wake_w.close()
 

@@ -1,0 +1,235 @@
+"""Transport benchmarks (issue 5): what the MAVLink links cost.
+
+1. Command latency coordinator -> unit -> world over Zenoh (peers, as the SITL runs; and through a router)
+   and over UDP: this process is the coordinator
+   and the world; six unit relay processes decode each SET_ACTUATOR_CONTROL_TARGET and answer the world
+   with a HIL_ACTUATOR_CONTROLS, as the unit firmware does. 100 Hz cycles, one command per unit; latency
+   = world receive time - coordinator send time (one clock). p50 / p99 / max.
+2. Real-time mode: the 3x2 hover through the full multi-process SITL with the world paced to the wall
+   clock (`--realtime`): command age at the motor (p50, p99) over all six units and missed 100 Hz
+   deadlines, Zenoh and UDP.
+3. Per-frame cost per transport: pymavlink pack and parse, frame validation, and one frame's send ->
+   receive inside one process (UDP sockets, two Zenoh peer sessions, two through a router, a pty pair).
+
+    python benchmarks/bench_transport.py [--cycles 1000] [--realtime-s 5] [--skip-sitl]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from mars_link.transport.framing import check_datagram  # noqa: E402
+from mars_link.transport.realtime import percentiles_ms  # noqa: E402
+from mars_link.transport.udp import UdpParams, UdpTransport  # noqa: E402
+from mars_link.transport.zenoh_link import ZenohParams, ZenohTransport, free_tcp_port, open_router  # noqa: E402
+
+UNITS = [1, 2, 3, 4, 5, 6]
+
+
+# ----------------------------------------------------------------------------- 1. relay latency
+def relay(kind: str, unit: int, where: str, world_port: int) -> None:
+    """A unit stand-in: command in (decode), actuator output out (encode), until told to stop."""
+    mav_rx = mavlink.MAVLink(None, unit, 1)
+    mav_tx = mavlink.MAVLink(None, unit, 1)
+    if kind.startswith("zenoh"):
+        mode = "client" if kind == "zenoh-router" else "peer"
+        t = ZenohTransport(ZenohParams(f"unit/{unit}", fleet="bench", mode=mode, connect=tuple(where.split(",")),
+                                       first_send_wait_s=10))
+        world, coordinator = "world", "coordinator"
+    else:
+        t = UdpTransport(UdpParams())
+        world, coordinator = ("127.0.0.1", world_port), ("127.0.0.1", int(where))
+    with t:
+        hello = mavlink.MAVLink_heartbeat_message(2, 0, 0, 0, 4, 3).pack(mav_tx)
+        t.send(hello, coordinator)
+        t.send(hello, world)
+        while True:
+            got = t.recv(0.5)
+            if got is None:
+                t.send(hello, coordinator)
+                continue
+            for m in mav_rx.parse_buffer(got[0]) or []:
+                if m.get_type() == "SET_ACTUATOR_CONTROL_TARGET":
+                    if m.group_mlx == 255:  # stop
+                        return
+                    out = mavlink.MAVLink_hil_actuator_controls_message(m.time_usec, list(m.controls[:4]) + [0.0] * 12, 0, 1)
+                    t.send(out.pack(mav_tx), world)
+
+
+def bench_latency(kind: str, cycles: int) -> dict:
+    router = None
+    if kind == "zenoh-router":  # every frame through a router session (two hops)
+        router, ep = open_router(fleet="bench")
+        coord = ZenohTransport(ZenohParams("coordinator", fleet="bench", mode="client", connect=(ep,), first_send_wait_s=10))
+        world = ZenohTransport(ZenohParams("world", fleet="bench", mode="client", connect=(ep,)))
+        where, world_port = ep, 0
+    elif kind == "zenoh":  # the SITL's default: peers, world and coordinator listen, units connect to both
+        w, c = (f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2))
+        coord = ZenohTransport(ZenohParams("coordinator", fleet="bench", listen=(c,), first_send_wait_s=10))
+        world = ZenohTransport(ZenohParams("world", fleet="bench", listen=(w,)))
+        where, world_port = f"{w},{c}", 0
+    else:
+        coord, world = UdpTransport(UdpParams()), UdpTransport(UdpParams())
+        where, world_port = str(coord.port), world.port
+    procs = [subprocess.Popen([sys.executable, __file__, "--relay", kind, str(u), where, str(world_port)], cwd=ROOT)
+             for u in UNITS]
+    mav = mavlink.MAVLink(None, 201, 1)
+    peers = {}
+    try:
+        deadline = time.monotonic() + 60
+        while len(peers) < len(UNITS) and time.monotonic() < deadline:
+            got = coord.recv(0.1)
+            if got:
+                for m in mavlink.MAVLink(None, 201, 1).parse_buffer(got[0]) or []:
+                    peers[m.get_srcSystem()] = got[1]
+        lat = []
+        dec = mavlink.MAVLink(None, 200, 1)
+        t0 = time.monotonic()
+        for k in range(cycles):
+            target = t0 + 0.01 * k
+            time.sleep(max(0.0, target - time.monotonic()))
+            sent = {}
+            for u in UNITS:
+                frame = mavlink.MAVLink_set_actuator_control_target_message(k, 0, u, 1, [0.25] * 8).pack(mav)
+                sent[u] = time.perf_counter()
+                coord.send(frame, peers[u])
+            waiting = set(UNITS)
+            end = time.monotonic() + 1.0
+            while waiting and time.monotonic() < end:
+                got = world.recv(end - time.monotonic())
+                if got is None:
+                    continue
+                now = time.perf_counter()
+                for m in dec.parse_buffer(got[0]) or []:
+                    if m.get_type() == "HIL_ACTUATOR_CONTROLS" and m.time_usec == k and m.get_srcSystem() in waiting:
+                        waiting.discard(m.get_srcSystem())
+                        lat.append(now - sent[m.get_srcSystem()])
+        stop = mavlink.MAVLink_set_actuator_control_target_message(0, 255, 0, 1, [0.0] * 8).pack(mav)
+        for u in UNITS:
+            coord.send(stop, peers[u])
+        for p in procs:
+            p.wait(10)
+        return {"transport": kind, "cycles": cycles, "units": len(UNITS), **percentiles_ms(lat)}
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        coord.close()
+        world.close()
+        if router is not None:
+            router.close()
+
+
+# ----------------------------------------------------------------------------- 2. real-time SITL
+def bench_realtime(kind: str, seconds: float) -> dict:
+    from mars_link.scenario import load_scenario
+    from mars_link.sitl_mode import run_sitl_scenario
+    from mars_link.transport import LinkSpec
+
+    sc = load_scenario(str(ROOT / "scenarios" / "hover_3x2.toml"))
+    sc.sim.duration_s = seconds
+    with tempfile.TemporaryDirectory() as d:
+        s = run_sitl_scenario(sc, Path(d) / kind, seed=4, link=LinkSpec(kind), realtime=True, timeout_s=300, plots=False)
+        world = json.loads((Path(d) / kind / "world_summary.json").read_text())
+    age = s["sitl"]["command_age"]
+    return {"transport": kind, "sim_s": seconds, "world_real_time_factor": world.get("real_time_factor"),
+            "command_age_p50_ms": age.get("p50_ms"), "command_age_p99_ms": age.get("p99_ms"),
+            "command_age_max_ms": age.get("max_ms"), "commands": age.get("n"),
+            "deadline_misses": age.get("deadline_misses"), "dead_units": s["sitl"]["dead_units"]}
+
+
+# ----------------------------------------------------------------------------- 3. per-frame costs
+def best_us(fn, n: int, repeats: int = 5) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        t = time.perf_counter()
+        for _ in range(n):
+            fn()
+        best = min(best, (time.perf_counter() - t) / n * 1e6)
+    return best
+
+
+def bench_frames(n: int) -> dict:
+    mav = mavlink.MAVLink(None, 201, 1)
+    msg = mavlink.MAVLink_set_actuator_control_target_message(123, 0, 3, 1, [0.25] * 8)
+    frame = msg.pack(mav)
+    parser = mavlink.MAVLink(None, 3, 1)
+    out = {"frame_bytes": len(frame),
+           "pymavlink_pack_us": best_us(lambda: msg.pack(mav), n),
+           "pymavlink_parse_us": best_us(lambda: parser.parse_buffer(frame), n),
+           "validate_us": best_us(lambda: check_datagram(frame), n)}
+
+    def round_trip(tx, rx, peer) -> float:
+        def once():
+            tx.send(frame, peer)
+            assert rx.recv(1.0) is not None
+        return best_us(once, n // 2)
+
+    with UdpTransport(UdpParams()) as a, UdpTransport(UdpParams()) as b:
+        out["udp_send_recv_us"] = round_trip(a, b, b.local_address)
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with ZenohTransport(ZenohParams("coordinator", fleet="benchp", listen=(ep,), first_send_wait_s=5)) as a, \
+            ZenohTransport(ZenohParams("unit/3", fleet="benchp", connect=(ep,))) as b:
+        out["zenoh_peer_send_recv_us"] = round_trip(a, b, "unit/3")
+    router, ep = open_router(fleet="benchf")
+    try:
+        with ZenohTransport(ZenohParams("coordinator", fleet="benchf", mode="client", connect=(ep,), first_send_wait_s=5)) as a, \
+                ZenohTransport(ZenohParams("unit/3", fleet="benchf", mode="client", connect=(ep,))) as b:
+            out["zenoh_router_send_recv_us"] = round_trip(a, b, "unit/3")
+    finally:
+        router.close()
+    from mars_link.transport.serial_link import FdStream, SerialParams, SerialTransport
+
+    master, slave = os.openpty()
+    a = SerialTransport(SerialParams(os.ttyname(slave), 57600))
+    os.close(slave)
+    b = SerialTransport(stream=FdStream(master, "pty"))
+    with a, b:
+        out["serial_pty_send_recv_us"] = round_trip(b, a, "unit")
+    return out
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--relay", nargs=4, help=argparse.SUPPRESS)
+    ap.add_argument("--cycles", type=int, default=1000)
+    ap.add_argument("--realtime-s", type=float, default=5.0)
+    ap.add_argument("--frames", type=int, default=2000)
+    ap.add_argument("--skip-sitl", action="store_true")
+    args = ap.parse_args()
+    if args.relay:
+        kind, unit, where, world_port = args.relay
+        relay(kind, int(unit), where, int(world_port))
+        return 0
+    results = {"frames": bench_frames(args.frames)}
+    print("per frame (best of 5):", json.dumps(results["frames"], indent=1))
+    results["latency"] = [bench_latency(k, args.cycles) for k in ("zenoh", "zenoh-router", "udp")]
+    for r in results["latency"]:
+        print(f"command latency coordinator -> unit -> world, {r['transport']:12s}: p50 {r['p50_ms']:.3f} ms, "
+              f"p99 {r['p99_ms']:.3f} ms, max {r['max_ms']:.3f} ms ({r['n']} commands, 6 unit processes, 100 Hz)")
+    if not args.skip_sitl:
+        results["realtime"] = [bench_realtime(k, args.realtime_s) for k in ("zenoh", "udp")]
+        for r in results["realtime"]:
+            print(f"real-time 3x2 SITL, {r['transport']:5s}: command age at the motor p50 {r['command_age_p50_ms']:.2f} ms, "
+                  f"p99 {r['command_age_p99_ms']:.2f} ms, max {r['command_age_max_ms']:.2f} ms; "
+                  f"missed 10 ms deadlines {r['deadline_misses']} of {r['commands']}; world RTF {r['world_real_time_factor']:.3f}")
+    print(json.dumps(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
