@@ -121,6 +121,9 @@ class ProfiledTransport(Transport):
     def address_of(self, role: str, port: int | None = None) -> Address:
         return self.inner.address_of(role, port)
 
+    def fileno(self) -> int:
+        return self.inner.fileno()
+
     def model(self, peer: Address) -> LinkModel:
         m = self._models.get(peer)
         if m is None:
