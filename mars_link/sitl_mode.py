@@ -1,14 +1,15 @@
 """The multi-process SITL on a chosen transport, `mars-link run --mode sitl`, and `mars-link coordinator`.
 
 `start_sitl` starts the same processes as sitl.launcher (world, one per unit, coordinator), each through
-mars_link.transport.sitl_child so their MAVLink links run on Zenoh (default) or UDP. With Zenoh and no
-endpoints given, this process hosts a router session on 127.0.0.1 that every child joins as a client;
-it is closed when the run ends, also on Ctrl-C.
+mars_link.transport.sitl_child so their MAVLink links run on Zenoh (default) or UDP. Zenoh with no
+endpoints given: peers on 127.0.0.1 (world and coordinator listen, units connect to both), or a router
+session hosted by this process (closed when the run ends, also on Ctrl-C) that the children join.
 
 `run_sitl_scenario` flies a scenario that way (lockstep: the same flight as inproc for the same seed)
-and writes the inproc outputs from the world's truth: summary.json (mode "sitl"), telemetry.csv
-(estimate columns empty: the estimate lives in the coordinator process), rotors.csv (header only) and
-the plots.
+and writes the inproc outputs: summary.json (mode "sitl", plus a "sitl" block: transport, dead units,
+drops, command age at the motor), telemetry.csv from the world's truth (estimate columns empty: the
+estimate lives in the coordinator process), rotors.csv and the force integral from the units' .tlogs
+(the coordinator's command in, what the unit drove its motors with out) and the plots.
 """
 
 from __future__ import annotations
@@ -271,6 +272,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
                 diverged = True
                 events.append({"t_s": round(t, 6), "type": "diverged", "error_m": err, "tilt_deg": tilt})
                 break
+        force_integral = _write_rotor_log(log, scenario, model, out)
     finally:
         log.close()
     errors = np.asarray(errs) if errs else np.array([math.nan])
@@ -281,7 +283,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         seed=seed, completed=not diverged and not world.get("stopped", False), diverged=diverged,
         mean_error_m=float(errors.mean()), rmse_m=float(np.sqrt((errors ** 2).mean())), max_error_m=float(errors.max()),
         sim_time_s=float(world.get("sim_time_s", 0.0)), wall_time_s=wall_s,
-        force_integral_n2s=float(world.get("force_integral_n2s", math.nan)), max_tilt_deg=float(max(tilts, default=math.nan)),
+        force_integral_n2s=float(world.get("force_integral_n2s", force_integral)), max_tilt_deg=float(max(tilts, default=math.nan)),
         events=sorted(events + list(coord_events), key=lambda e: e.get("t_s", 0.0)),
         control_steps=len(errs),
     )
@@ -302,6 +304,65 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
 
         write_run_plots(out, log.telemetry_rows, log.rotor_rows, model)
     return summary
+
+
+def tlog_frames(path: Path):
+    """(wall time s, frame bytes) of a .tlog whose records may hold several frames (batched datagrams)."""
+    data = path.read_bytes()
+    i, n = 0, len(data)
+    while i + 8 <= n:
+        t = int.from_bytes(data[i:i + 8], "big") / 1e6
+        i += 8
+        while i < n and data[i] in (0xFD, 0xFE):
+            if data[i] == 0xFD:
+                if i + 10 > n:
+                    return
+                total = 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
+            else:
+                total = 8 + data[i + 1]
+            yield t, data[i:i + total]
+            i += total
+
+
+def _write_rotor_log(log, scenario, model, out: Path) -> float:
+    """rotors.csv from the units' .tlogs: the coordinator's command (SET_ACTUATOR_CONTROL_TARGET in) and
+    what each unit drove its motors with (HIL_ACTUATOR_CONTROLS out, faults included); returns the force
+    integral Σ rotors ∫ thrust² dt over the control steps."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from mars_link.runner import eta_after
+
+    scale = model.vehicle.full_scale_thrust_n
+    cmd: dict[int, dict[int, np.ndarray]] = {}
+    drv: dict[int, dict[int, np.ndarray]] = {}
+    for u in model.unit_ids:
+        path = out / f"unit{u}.tlog"
+        if not path.exists():
+            continue
+        parser = mavlink.MAVLink(None, 255, 0)
+        cmd[u], drv[u] = {}, {}
+        for _, frame in tlog_frames(path):
+            msgid = frame[7] | (frame[8] << 8) | (frame[9] << 16) if frame[0] == 0xFD else frame[5]
+            if msgid not in (139, 93):  # SET_ACTUATOR_CONTROL_TARGET, HIL_ACTUATOR_CONTROLS
+                continue
+            try:
+                m = parser.decode(bytearray(frame))
+            except Exception:  # a frame the unit itself dropped as malformed
+                continue
+            if msgid == 139 and m.get_srcSystem() != u:
+                cmd[u][m.time_usec] = np.array(m.controls[:4]) * scale
+            elif msgid == 93 and m.get_srcSystem() == u:
+                drv[u][m.time_usec] = np.array(m.controls[:4]) * scale
+    steps = sorted(set().union(*[set(d) for d in drv.values()])) if drv else []
+    dt = 1.0 / scenario.sim.control_hz
+    nan4 = np.full(4, np.nan)
+    integral = 0.0
+    for t_us in steps:
+        c = np.concatenate([cmd.get(u, {}).get(t_us, nan4) for u in model.unit_ids])
+        d = np.concatenate([drv.get(u, {}).get(t_us, np.zeros(4)) for u in model.unit_ids])
+        integral += float(np.sum(d * d)) * dt
+        log.rotors(0, t_us / 1e6, c, d, eta_after(model, scenario.faults, t_us / 1e6))
+    return integral if steps else math.nan
 
 
 def command_age_summary(out: Path) -> dict:

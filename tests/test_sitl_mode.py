@@ -46,6 +46,10 @@ def test_sitl_over_zenoh_matches_inproc_within_1mm_on_the_3x2_spiral(tmp_path: P
     assert com_a[:, 2].min() < com_a[0, 2] - 0.05  # it took off and climbed
     assert np.linalg.norm(com_a - com_b, axis=1).max() < 1e-3
     assert abs(sitl["mean_error_m"] - inproc["mean_error_m"]) < 1e-3
+    # rotors.csv and the force integral come from the units' MAVLink logs (what each drove its motors with)
+    assert sitl["force_integral_n2s"] == pytest.approx(inproc["force_integral_n2s"], rel=1e-4)
+    rot = np.genfromtxt(tmp_path / "sitl" / "rotors.csv", delimiter=",", names=True)
+    assert len(rot) == int(DURATION_S * 20) and np.isfinite(rot["cmd_u6r4"]).all()
     # the same run files as inproc
     for name in ("summary.json", "telemetry.csv", "rotors.csv"):
         assert (tmp_path / "sitl" / name).exists()
