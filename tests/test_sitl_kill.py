@@ -8,14 +8,17 @@ import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+from pymavlink import mavutil
 
 from firmware_models.udp_runner import read_status
+from mars_link.wire import new_mav
 from sitl.launcher import ClientPorts, free_udp_port, start, wait
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(120)]
@@ -71,8 +74,8 @@ def test_killed_unit_is_declared_dead_and_the_run_finishes(tmp_path: Path) -> No
         assert read_status(out / f"unit{u}_status.json")["stats"]["hil_steps"] == 300
 
 
-def _spawn_sitl_up(tmp_path: Path, *extra: str) -> tuple[subprocess.Popen, dict[str, int]]:
-    argv = [sys.executable, "-m", "mars_link.cli", "sitl", "up", *extra, "--gcs-port", str(free_udp_port()),
+def _spawn_sitl_up(tmp_path: Path, *extra: str, gcs_port: int | None = None) -> tuple[subprocess.Popen, dict[str, int]]:
+    argv = [sys.executable, "-m", "mars_link.cli", "sitl", "up", *extra, "--gcs-port", str(gcs_port or free_udp_port()),
             "--api-port", str(free_udp_port()), "--any-bind", "--out", str(tmp_path / "up")]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     pids: dict[str, int] = {}
@@ -98,16 +101,52 @@ def _gone(pid: int) -> bool:
         return True
 
 
+def _heartbeats(sock: socket.socket, seconds: float) -> dict[int, int]:
+    """HEARTBEATs per system id received on the GCS socket within `seconds` of wall time."""
+    mav = new_mav(255)
+    counts: dict[int, int] = {}
+    deadline = time.monotonic() + seconds
+    while (left := deadline - time.monotonic()) > 0:
+        sock.settimeout(left)
+        try:
+            data = sock.recv(65536)
+        except (TimeoutError, socket.timeout):
+            break
+        for m in mav.parse_buffer(data) or []:
+            if m.get_type() == "HEARTBEAT":
+                counts[m.get_srcSystem()] = counts.get(m.get_srcSystem(), 0) + 1
+    return counts
+
+
 def test_sitl_up_stops_every_child_when_one_dies_and_on_ctrl_c(tmp_path: Path) -> None:
-    proc, pids = _spawn_sitl_up(tmp_path / "a", "--units", "2")
+    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gcs.bind(("127.0.0.1", 0))
+    out = tmp_path / "a" / "up"
+    proc, pids = _spawn_sitl_up(tmp_path / "a", "--units", "2", gcs_port=gcs.getsockname()[1])
     try:
         assert set(pids) == {"world", "unit 1", "unit 2"}
-        _until(lambda: _sim_time(tmp_path / "a" / "up") >= 0.5, 30.0, "the world to step")
+        _until(lambda: _sim_time(out) >= 0.5, 30.0, "the world to step")
+        # the lockstep paused (world stopped): the units still send 1 Hz heartbeats of wall time
+        os.kill(pids["world"], signal.SIGSTOP)
+        try:
+            paused_at = _sim_time(out)
+            counts = _heartbeats(gcs, 2.6)
+            assert _sim_time(out) == paused_at
+        finally:
+            os.kill(pids["world"], signal.SIGCONT)
+        assert counts.get(1, 0) >= 2 and counts.get(2, 0) >= 2, counts
+        # per-unit tlogs are written as the run goes, in pymavlink's format
+        log = mavutil.mavlink_connection(str(out / "unit1.tlog"))
+        types = set()
+        while (m := log.recv_match()) is not None:
+            types.add(m.get_type())
+        assert {"HIL_SENSOR", "HIL_ACTUATOR_CONTROLS", "HEARTBEAT", "ATTITUDE"} <= types, types
         os.kill(pids["unit 2"], signal.SIGKILL)
         assert proc.wait(20) == 1
         assert "unit2 died" in proc.stderr.read()
         assert all(_gone(p) for p in pids.values())
     finally:
+        gcs.close()
         if proc.poll() is None:
             proc.kill()
 
