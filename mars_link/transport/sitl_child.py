@@ -55,7 +55,7 @@ def _zenoh(spec: LinkSpec, node: str, only_from: str | None = None, seed: int = 
 
         from mars_link.transport.profiles import ProfiledTransport, profile_from_name
 
-        t = ProfiledTransport(t, profile_from_name(spec.profile), seed=spec.seed + zlib.crc32(node.encode()))
+        t = ProfiledTransport(t, profile_from_name(spec.profile), seed=spec.seed + zlib.crc32(f"{node}<{only_from}".encode()))
     return t
 
 
