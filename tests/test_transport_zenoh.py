@@ -137,3 +137,20 @@ def test_sessions_close_on_error_and_on_ctrl_c() -> None:
     waiting.send_signal(signal.SIGINT)
     assert err.wait(20) == 1 and "boom" in err.stderr.read()
     assert waiting.wait(20) != 0  # KeyboardInterrupt, not a hang
+
+
+def test_a_flood_is_dropped_at_the_queue_and_the_link_keeps_working() -> None:
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with ZenohTransport(ZenohParams("world", fleet="t3", listen=(ep,))) as rx, \
+            ZenohTransport(ZenohParams("unit/2", fleet="t3", connect=(ep,), first_send_wait_s=5.0)) as tx:
+        rx._queue.maxsize = 500  # small queue: the flood below overflows it while nobody reads
+        frame = _frame(2)
+        for _ in range(5000):
+            tx.send(frame, "world")
+        time.sleep(0.5)
+        got = 0
+        while rx.recv(0.05) is not None:
+            got += 1
+        assert got == 500 and rx.counters.dropped["queue_full"] == 4500
+        tx.send(_frame(2, 7), "world")
+        assert rx.recv(2.0) == (_frame(2, 7), "unit/2")
