@@ -54,7 +54,7 @@ class BackendParams:
     init_speed_fraction: float = 0.7  # initial durations: distance / (this · v_max)
     min_duration_s: float = 0.05
     max_duration_s: float = 30.0
-    max_iterations: int = 150  # the cost is within about 1 % of its optimum after ~100 on the walls
+    max_iterations: int = 120  # the cost is within about 1 % of its optimum after ~100 on the walls
     ftol: float = 1e-6  # L-BFGS-B relative decrease per iteration that counts as converged
     memory: int = 16
 

@@ -33,7 +33,7 @@ class PlanParams:
     margin_m: float = 0.1  # footprint inflation for planning
     sdf_resolution_m: float = 0.05
     astar: AStarParams = field(default_factory=AStarParams)
-    waypoint_spacing_m: float = 1.0  # A* nodes handed to the back end about this far apart
+    waypoint_spacing_m: float = 1.5  # A* nodes handed to the back end about this far apart (MINCO knots)
     v_max_mps: float = 0.8
     a_max_mps2: float = 0.5
     backend_overrides: dict = field(default_factory=dict)  # extra BackendParams fields
