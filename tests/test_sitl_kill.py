@@ -52,9 +52,9 @@ def _sim_time(out: Path) -> float:
 def test_killed_unit_is_declared_dead_and_the_run_finishes(tmp_path: Path) -> None:
     out = tmp_path / "run"
     clients = ClientPorts(free_udp_port(), [free_udp_port() for _ in range(6)], bind_any=True)
-    run = start(_short_hover(tmp_path, 3.0), out, seed=2, clients=clients)
+    run = start(_short_hover(tmp_path, 2.0), out, seed=2, clients=clients)
     try:
-        _until(lambda: _sim_time(out) >= 1.0, 60.0, "the flight to get going")
+        _until(lambda: _sim_time(out) >= 0.5, 60.0, "the flight to get going")
         run.processes["unit3"].send_signal(signal.SIGKILL)
         code = wait(run, timeout_s=90, stop_on_child_death=False)
     finally:
@@ -64,14 +64,14 @@ def test_killed_unit_is_declared_dead_and_the_run_finishes(tmp_path: Path) -> No
     assert run.processes["unit3"].returncode == -signal.SIGKILL
     assert all(p.returncode == 0 for n, p in run.processes.items() if n != "unit3"), logs
     world = json.loads((out / "world_summary.json").read_text())
-    assert world["steps"] == 300 and world["dead_units"] == [3]  # the run finished without unit 3
-    assert 1.0 <= world["deaths"][0]["t_s"] < 2.5
+    assert world["steps"] == 200 and world["dead_units"] == [3]  # the run finished without unit 3
+    assert 0.5 <= world["deaths"][0]["t_s"] < 1.9
     status = read_status(out / "world_status.json")
     assert status["units"]["3"]["rotor_thrust_n"] == [0.0] * 4  # a dead unit's motors give no thrust
     coordinator = json.loads((out / "coordinator_summary.json").read_text())
     assert [e["unit"] for e in coordinator["lost_units"]] == [3]
     for u in (1, 2, 4, 5, 6):  # the others answered every step
-        assert read_status(out / f"unit{u}_status.json")["stats"]["hil_steps"] == 300
+        assert read_status(out / f"unit{u}_status.json")["stats"]["hil_steps"] == 200
 
 
 def _spawn_sitl_up(tmp_path: Path, *extra: str, gcs_port: int | None = None) -> tuple[subprocess.Popen, dict[str, int]]:
@@ -130,7 +130,7 @@ def test_sitl_up_stops_every_child_when_one_dies_and_on_ctrl_c(tmp_path: Path) -
         os.kill(pids["world"], signal.SIGSTOP)
         try:
             paused_at = _sim_time(out)
-            counts = _heartbeats(gcs, 2.6)
+            counts = _heartbeats(gcs, 2.3)
             assert _sim_time(out) == paused_at
         finally:
             os.kill(pids["world"], signal.SIGCONT)
