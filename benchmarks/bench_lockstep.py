@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import sys
 import tempfile
@@ -137,7 +138,8 @@ def main() -> None:
         print(f"\nlockstep SITL, {runs[0]['units']} unit processes + world + coordinator, {runs[0]['sim_s']:.1f} s simulated:")
         for i, r in enumerate(runs):
             print(f"  run {i}: RTF {r['rtf']:.2f}x (stepping {r['wall_s']:.2f} s wall, start-up {r['startup_s']:.1f} s)")
-        print(f"  RTF best {max(rtf):.2f}x, median {statistics.median(rtf):.2f}x (target >= 2x)")
+        print(f"  RTF best {max(rtf):.2f}x, median {statistics.median(rtf):.2f}x (target >= 2x); "
+              f"load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (the machine is shared)")
 
 
 if __name__ == "__main__":

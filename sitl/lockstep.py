@@ -389,7 +389,8 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
         links[LINK_COORDINATOR] = LinkSpec(0, (LOOPBACK, ports.coordinator), learn_clients=False)
     out.mkdir(parents=True, exist_ok=True)
     stop = _Stop()
-    io = VehicleSockets(vehicle, links, tlog=out / f"unit{unit_id}.tlog", batch=True)
+    io = VehicleSockets(vehicle, links, tlog=out / f"unit{unit_id}.tlog")
+    io.batch = True  # (an attribute, not an argument: transports wrap VehicleSockets' constructor)
     hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.docked else [])
     status_path = out / f"unit{unit_id}_status.json"
     next_hello = next_tick = next_status = 0.0
