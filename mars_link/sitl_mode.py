@@ -198,7 +198,7 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     if code != 0 or not (out / "world_truth.csv").exists():
         logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
         raise RuntimeError(f"SITL run failed (exit {code}); process logs in {out}: {logs}")
-    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots)
+    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime)
 
 
 def _absolute_paths(scenario):
@@ -239,7 +239,8 @@ class _ProgressWatcher:
             self._thread.join(1.0)
 
 
-def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True) -> dict:
+def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True,
+                       realtime: bool = False) -> dict:
     """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them."""
     from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
     from mars_link.runner import (DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, ROTOR_LOG_HZ, RunLog, TrialResult,
@@ -296,7 +297,9 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "dead_units": world.get("dead_units", []),
         "world_dropped": world.get("dropped", {}),
         "coordinator_dropped": coordinator.get("dropped", {}),
-        "command_age": command_age_summary(out),
+        "realtime": realtime,
+        # sim time is wall time only when paced: as fast as possible, an age would mean nothing
+        "command_age": command_age_summary(out) if realtime else {"n": 0, "note": "measured with --realtime only"},
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n", encoding="utf-8")
     if plots and log.telemetry_rows:
