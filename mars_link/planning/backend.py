@@ -63,7 +63,7 @@ class BackendParams:
 #: costs (jerk, time, obstacle; specs/planning.md §2.6): no yaw-motion or attitude (eq. 12b) term.
 #: The v/a/j/yaw-rate limits stay for both, so both fly the same speed envelope.
 METHOD_OVERRIDES = {"svsdf": {"w_yaw_motion": 0.0, "w_attitude": 0.0, "w_room": 0.0},
-                    "ours": {"w_room": 1.0}}
+                    "ours": {"w_room": 10.0}}
 
 
 @dataclass
