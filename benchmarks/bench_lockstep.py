@@ -35,6 +35,7 @@ from mars_link.wire import (
     sensor_packet_messages,
 )
 from sitl.hil import hil_state_message
+from sitl.lockstep import _with_takeover
 
 ROOT = Path(__file__).resolve().parent.parent
 FULL_SCALE_N = 10.0
@@ -82,15 +83,22 @@ def message_costs(n: int, repeats: int) -> list[tuple[str, float]]:
 
     holder = {}
 
+    takeover = _with_takeover  # the coordinator's first datagram: ARM, rotor command, OFFBOARD
+
     def unit_step(i):
         if i == 0:
             v = Vehicle(VehicleConfig(unit_id=1, vehicle="mars-ftcc", hil_await_coordinator=True), 0.0)
-            v.handle(bytes(mavlink.MAVLink_command_long_message(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(coord_mav)), 0.0,
-                     LINK_COORDINATOR)
+            v.handle(sensor_datagrams[0], 0.0, LINK_HIL)
+            first = takeover(1, set(), rotor_command_message(RotorCommand(1.0, 1, np.full(4, 4.0)), FULL_SCALE_N))
+            out = v.handle(b"".join(m.pack(coord_mav) for m in first), 0.0, LINK_COORDINATOR)
+            assert v.mode == (6, 0) and v.armed and any(o.link == LINK_HIL for o in out), "takeover failed"
             holder["v"] = v
+            return
         v = holder["v"]
         v.handle(sensor_datagrams[i], 0.0, LINK_HIL)
-        v.handle(cmd_datagrams[i], 0.0, LINK_COORDINATOR)
+        out = v.handle(cmd_datagrams[i], 0.0, LINK_COORDINATOR)
+        if i == 1:
+            assert v.source == "coordinator" and out and out[-1].link == LINK_HIL, "no HIL answer"
 
     rows.append(("unit: Vehicle.handle sensor datagram + rotor command -> HIL_ACTUATOR_CONTROLS",
                  best_us(unit_step, n, repeats)))
