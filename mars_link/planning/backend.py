@@ -68,6 +68,8 @@ METHOD_OVERRIDES = {"svsdf": {"w_yaw_motion": 0.0, "w_attitude": 0.0, "w_room": 
 
 @dataclass
 class BackendResult:
+    """What the pipeline reads (`trajectory`, `iterations`) plus diagnostics: integrated cost terms."""
+
     trajectory: MincoSpline
     iterations: int
     evaluations: int
@@ -77,13 +79,13 @@ class BackendResult:
 
 
 def thin_body_points(points: np.ndarray, spacing_m: float) -> np.ndarray:
-    """One point per `spacing_m` grid cell (the one nearest the cell centre), extremes kept."""
+    """One point per `spacing_m` grid cell: the one farthest from the body origin, so the outline
+    wins over interior samples sharing its cell (the clearance error stays below the spacing)."""
     pts = np.asarray(points, dtype=float).reshape(-1, 2)
     if spacing_m <= 0 or len(pts) < 2:
         return pts
     cell = np.floor(pts / spacing_m).astype(np.int64)
-    off = np.linalg.norm(pts / spacing_m - cell - 0.5, axis=1)
-    order = np.lexsort((off, cell[:, 1], cell[:, 0]))
+    order = np.lexsort((-np.linalg.norm(pts, axis=1), cell[:, 1], cell[:, 0]))
     keys = cell[order]
     first = np.concatenate([[True], np.any(keys[1:] != keys[:-1], axis=1)])
     return pts[order[first]]
