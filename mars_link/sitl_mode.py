@@ -5,7 +5,8 @@ mars_link.transport.sitl_child so their MAVLink links run on Zenoh (default) or 
 endpoints given: peers on 127.0.0.1 (world and coordinator listen, units connect to both), or a router
 session hosted by this process (closed when the run ends, also on Ctrl-C) that the children join.
 
-`run_sitl_scenario` flies a scenario that way (lockstep: the same flight as inproc for the same seed)
+`run_sitl_scenario` flies a scenario that way (lockstep: the same flight as inproc for the same seed;
+the coordinator is not told the faults unless the scenario file sets [control] faults_known)
 and writes the inproc outputs: summary.json (mode "sitl", plus a "sitl" block: transport, dead units,
 drops, command age at the motor), telemetry.csv from the world's truth (estimate columns empty: the
 estimate lives in the coordinator process), rotors.csv and the force integral from the units' .tlogs
@@ -181,6 +182,8 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     if scenario.reconfig.get("enabled"):
         raise UserInputError("--mode sitl: a [reconfig] flight (several bodies) runs in-process only")
     seed = scenario.sim.seed if seed is None else seed
+    if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
+        scenario = replace(scenario, faults_known=False)
     v = scenario.model().vehicle
     if v.rotor_min_thrust_n is None or v.rotor_max_thrust_n is None:
         print("note: the unit firmware drops rotor commands outside [0, full scale]; set [vehicle] "
@@ -199,6 +202,17 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
         logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
         raise RuntimeError(f"SITL run failed (exit {code}); process logs in {out}: {logs}")
     return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime)
+
+
+def _sets_faults_known(scenario) -> bool:
+    """Whether the scenario file says [control] faults_known itself (else --mode sitl uses false)."""
+    import tomllib
+
+    try:
+        with open(scenario.source, "rb") as f:
+            return "faults_known" in tomllib.load(f).get("control", {})
+    except (OSError, ValueError):
+        return True  # built in or not a file: keep what the scenario object says
 
 
 def _absolute_paths(scenario):
@@ -298,6 +312,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "world_dropped": world.get("dropped", {}),
         "coordinator_dropped": coordinator.get("dropped", {}),
         "realtime": realtime,
+        "faults_known": scenario.faults_known,
         # sim time is wall time only when paced: as fast as possible, an age would mean nothing
         "command_age": command_age_summary(out) if realtime else {"n": 0, "note": "measured with --realtime only"},
     }

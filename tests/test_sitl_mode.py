@@ -37,6 +37,7 @@ def test_sitl_over_zenoh_matches_inproc_within_1mm_on_the_3x2_spiral(tmp_path: P
     inproc = run_scenario(sc, tmp_path / "inproc", seed=5, plots=False)
 
     assert sitl["mode"] == "sitl" and sitl["sitl"]["transport"] == "zenoh"
+    assert sitl["sitl"]["faults_known"] is False  # SITL: the coordinator detects faults itself (none here)
     assert sitl["completed"] and sitl["sitl"]["dead_units"] == [] and sitl["sitl"]["world_dropped"] == {}
     a = np.genfromtxt(tmp_path / "inproc" / "telemetry.csv", delimiter=",", names=True)
     b = np.genfromtxt(tmp_path / "sitl" / "telemetry.csv", delimiter=",", names=True)
