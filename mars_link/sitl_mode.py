@@ -452,8 +452,10 @@ def add_sitl_run_arguments(p) -> None:
 
 
 def sitl_runner(args):
-    """`run_scenario`'s signature for `mars-link run --mode sitl`."""
+    """`run_scenario`'s signature for `mars-link run --mode sitl` (options checked here, before any output)."""
     link = _link_from_args(args, "zenoh")
+    if getattr(args, "trials", 1) != 1:
+        raise UserInputError("--mode sitl runs one trial (vary --seed instead)")
 
     def runner(scenario, out, trials=1, seed=None, on_progress=None):
         if trials != 1:

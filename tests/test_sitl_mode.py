@@ -65,6 +65,7 @@ def test_bad_sitl_options_are_one_line_and_exit_2(tmp_path: Path) -> None:
                  ["run", "hover_1x1", "--mode", "warp"],
                  ["run", "hover_1x1", "--mode", "sitl", "--zenoh-connect", "not-an-endpoint"],
                  ["run", "hover_1x1", "--mode", "sitl", "--link-profile", "radio9600"],
+                 ["run", "hover_1x1", "--mode", "sitl", "--trials", "3"],
                  ["coordinator", "hover_1x1"]):
         p = subprocess.run([sys.executable, "-m", "mars_link.cli", *args, "--out", str(tmp_path / "o")],
                            cwd=ROOT, capture_output=True, text=True, timeout=60)
