@@ -76,15 +76,16 @@ def walls(out: Path, margin: float, seeds: int) -> list[dict]:
 
 
 def walls_table(rows: list[dict]) -> str:
-    head = ("| case | method | success | total yaw [deg] | max yaw rate [deg/s] | min clearance [m] | length / duration | "
-            "plan time [s] | cascaded+hybrid mean err [m] | collisions | paper ctrl+hybrid mean err [m] | collisions |\n"
+    head = ("| case | method | success (back end) | total yaw [deg] | max yaw rate [deg/s] | min clearance [m] | length / duration | "
+            "plan time [s] | cascaded+hybrid mean / max err [m] | collisions | paper ctrl+hybrid mean err [m] | collisions |\n"
             "|---|---|---|---|---|---|---|---|---|---|---|---|\n")
     lines = []
     for r in rows:
         lines.append(
-            f"| {r['layout']} u{r['failed_unit']} | {r['method']} | {r['success']} | {r['total_yaw_deg']:.0f} | "
+            f"| {r['layout']} u{r['failed_unit']} | {r['method']} | {r['success']} ({r['back_end']}) | {r['total_yaw_deg']:.0f} | "
             f"{math.degrees(r['max_yaw_rate_radps']):.1f} | {r['min_clearance_m']:.3f} | {r['length_m']:.1f} m / {r['duration_s']:.1f} s | "
-            f"{r['stage_time_s']['total']:.2f} | {r.get('casc_mean_error_m', float('nan')):.4f} | {r.get('casc_collisions', '-')} | "
+            f"{r['stage_time_s']['total']:.2f} | {r.get('casc_mean_error_m', float('nan')):.5f} / {r.get('casc_max_error_m', float('nan')):.4f} | "
+            f"{r.get('casc_collisions', '-')} | "
             f"{r.get('paper_mean_error_m', float('nan')):.3f} | {r.get('paper_collisions', '-')}"
             f"{' (diverged)' if r.get('paper_diverged') else ''} |")
     return head + "\n".join(lines)
@@ -127,8 +128,8 @@ def forest(out: Path, seeds: int, density: float, margin: float) -> list[dict]:
 
 def forest_table(rows: list[dict], density: float) -> str:
     out = [f"Forest 50 x 20 m, {density:g} trunks per 100 m² (radius 0.15-0.4 m), 3x2 unit 2 failed, {len(rows) // 2} seeds:\n",
-           "| method | success | min clearance [m] (median / worst of successes) | sdf [s] | table [s] | A* [s] | back end [s] | validation [s] | total [s] (median / max) |",
-           "|---|---|---|---|---|---|---|---|---|"]
+           "| method | success | by MINCO | min clearance [m] (median / worst of successes) | total yaw [deg] (median) | sdf [s] | table [s] | A* [s] | back end [s] | validation [s] | total [s] (median / max) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
     for method in ("ours", "svsdf"):
         rs = [r for r in rows if r["method"] == method]
         ok = [r for r in rs if r["success"]]
@@ -137,7 +138,9 @@ def forest_table(rows: list[dict], density: float) -> str:
         def med(key):
             vals = [r.get(key, 0.0) for r in rs]
             return f"{np.median(vals):.3f}"
-        out.append(f"| {method} | {len(ok)}/{len(rs)} | {np.median(clr) if clr else float('nan'):.3f} / {min(clr) if clr else float('nan'):.3f} | "
+        minco = sum(r.get("back_end") == "minco" for r in ok)
+        yaw = np.median([r["total_yaw_deg"] for r in ok]) if ok else float("nan")
+        out.append(f"| {method} | {len(ok)}/{len(rs)} | {minco} | {np.median(clr) if clr else float('nan'):.3f} / {min(clr) if clr else float('nan'):.3f} | {yaw:.0f} | "
                    f"{med('t_sdf')} | {med('t_clearance_table')} | {med('t_front_end')} | {med('t_back_end')} | {med('t_validation')} | "
                    f"{med('t_total')} / {max(r.get('t_total', 0.0) for r in rs):.2f} |")
     return "\n".join(out)
