@@ -2,6 +2,11 @@
 -> motor outputs out, with the unit's own thrust limits, injected faults and command watchdog.
 
 Injected faults (eta) live here, in the unit's motor path: the coordinator is never told them.
+
+This is the unit model of the in-process runner. The multi-process lockstep SITL runs each unit's full
+firmware instead (`firmware_models.vehicle.Vehicle` on its HIL and coordinator links); on the
+coordinator-driven path both apply the same limits, eta and float32 wire rounding, so the two flights
+agree to the bit (tests/test_sitl_lockstep.py).
 """
 
 from __future__ import annotations

@@ -46,6 +46,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pymavlink.dialects.v20 import common as mavlink
 
@@ -59,6 +60,10 @@ from mars_link.wire import (
     sensor_packet_messages,
     usec,
 )
+
+if TYPE_CHECKING:
+    from mars_link.assembly import AssemblyModel
+    from mars_link.scenario import Scenario
 
 WORLD_SYSID = 200
 COORDINATOR_SYSID = 201
@@ -85,8 +90,8 @@ class Ports:
 # ----------------------------------------------------------------------------- set-up
 @dataclass
 class SitlSetup:
-    scenario: object  # mars_link.scenario.Scenario
-    model: object  # AssemblyModel of the docked assembly, or of one free unit
+    scenario: Scenario
+    model: AssemblyModel  # of the docked assembly, or of one free unit
     free_units: int | None  # N free units (no coordinator), or None for a docked assembly
     steps: int | None  # exchanges to run; None = until stopped
 
