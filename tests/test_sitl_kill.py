@@ -70,6 +70,8 @@ def test_killed_unit_is_declared_dead_and_the_run_finishes(tmp_path: Path) -> No
     assert status["units"]["3"]["rotor_thrust_n"] == [0.0] * 4  # a dead unit's motors give no thrust
     coordinator = json.loads((out / "coordinator_summary.json").read_text())
     assert [e["unit"] for e in coordinator["lost_units"]] == [3]
+    # the coordinator was told (Coordinator.unit_lost): its allocation treats unit 3's rotors as dead
+    assert [e["unit"] for e in coordinator["events"] if e.get("type") == "unit_lost"] == [3]
     for u in (1, 2, 4, 5, 6):  # the others answered every step
         assert read_status(out / f"unit{u}_status.json")["stats"]["hil_steps"] == 200
 
