@@ -239,8 +239,9 @@ def run_trial(
             next_fault += 1
             units[f.unit].inject_fault(f.rotor, f.eta)
             where = f"Unit {f.unit}" + (f" rotor {f.rotor}" if f.rotor else "")
+            what = "failed" if f.rotor is None and f.eta == 0 else f"eta {f.eta:.2f}"
             events.append({"t_s": round(t, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta,
-                           "text": f"Fault: {where} " + ("failed" if f.rotor is None and f.eta == 0 else f"eta {f.eta:.2f}")})
+                           "text": f"Fault: {where} {what}"})
             if scenario.faults_known:
                 coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
         while deaths and deaths[0][0] <= t + 1e-9:
