@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sitl.lockstep import LOOPBACK, SitlSetup, load_setup
+from sitl.lockstep import LOOPBACK, SitlSetup, _start_pose, load_setup, position_every
 
 
 def bound_udp_socket() -> socket.socket:
@@ -108,7 +108,11 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
     try:
         if coord_sock is not None:
             spawn("coordinator", ["coordinator", *common, "--coordinator-fd", str(coord_sock.fileno())], coord_sock)
-        world = ["world", *common, "--world-fd", str(world_sock.fileno())] + ([] if seed is None else ["--seed", str(seed)])
+        world = ["world", *common, "--world-fd", str(world_sock.fileno()), "--position-every", str(position_every(setup))]
+        world += [] if seed is None else ["--seed", str(seed)]
+        if setup.docked:
+            com, yaw = _start_pose(setup)
+            world.append("--start-pose=" + ",".join(repr(float(x)) for x in (*com, yaw)))  # "=": may start with "-"
         spawn("world", world + ([] if speed is None else ["--speed", str(speed)]), world_sock)
         for i, u in enumerate(setup.unit_ids):
             argv = ["unit", *common, "--unit", str(u), "--gcs-port", str(clients.gcs_port),

@@ -48,6 +48,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from mars_link.errors import UserInputError
@@ -94,6 +95,7 @@ class SitlSetup:
     model: AssemblyModel  # of the docked assembly, or of one free unit
     free_units: int | None  # N free units (no coordinator), or None for a docked assembly
     steps: int | None  # exchanges to run; None = until stopped
+    position_every: int | None = None  # filled in by `position_every()`
 
     @property
     def docked(self) -> bool:
@@ -135,6 +137,15 @@ def load_setup(scenario: str | None, units: int | None = None, layout: str | Non
     if steps is None:
         steps = int(round((sc.sim.duration_s or _trajectory(sc, model).duration_s) * sc.sim.control_hz))
     return SitlSetup(sc, model, None, steps)
+
+
+def position_every(setup: SitlSetup) -> int:
+    """Mocap position samples every n-th exchange (the in-process runner's rate)."""
+    if setup.position_every is None:
+        from mars_link.runner import POSITION_RATE_HZ
+
+        setup.position_every = max(1, round(setup.scenario.sim.control_hz / POSITION_RATE_HZ))
+    return setup.position_every
 
 
 def _start_pose(setup: SitlSetup):
@@ -267,17 +278,18 @@ def _await_peers(link: Link, wanted: set[int], timeout_s: float, stop: _Stop | N
 
 # ----------------------------------------------------------------------------- world
 def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout_s: float = WORLD_UNIT_TIMEOUT_S,
-              speed: float = 0.0) -> int:
-    """Own the bodies, run the lockstep; `speed` > 0 paces sim time to that many x wall time."""
-    from mars_link.runner import POSITION_RATE_HZ
+              speed: float = 0.0, start: tuple[np.ndarray, float] | None = None) -> int:
+    """Own the bodies, run the lockstep; `speed` > 0 paces sim time to that many x wall time. `start`
+    (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory."""
+    world_start = start
     from sitl.hil import hil_state_message
     from sitl.world import FreeUnitsWorld, World, WorldConfig
 
     sc = setup.scenario
     cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise,
-                      max(1, round(sc.sim.control_hz / POSITION_RATE_HZ)))
+                      position_every(setup))
     if setup.docked:
-        com, yaw = _start_pose(setup)
+        com, yaw = world_start or _start_pose(setup)
         world = World(setup.model, cfg, com, yaw)
         columns = "pos_n_m,pos_e_m,pos_d_m,qw,qx,qy,qz"
     else:
@@ -436,8 +448,6 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
 
 # ----------------------------------------------------------------------------- coordinator
 def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S) -> int:
-    import numpy as np
-
     from mars_link.coordinator import Coordinator
     from mars_link.runner import eta_after, make_controller
 
@@ -562,6 +572,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--layout", default=None)
     ap.add_argument("--unit", type=int, default=1)
     ap.add_argument("--steps", type=int, default=None, help="exchanges of a docked run (else from the scenario)")
+    ap.add_argument("--start-pose", default=None, help="world: N,E,D,YAW of the assembly's CoM (else from the scenario)")
+    ap.add_argument("--position-every", type=int, default=None, help="world: mocap samples every n-th exchange")
     ap.add_argument("--world-port", type=int, required=True)
     ap.add_argument("--coordinator-port", type=int, default=0)
     ap.add_argument("--world-fd", type=int, default=None, help="inherited bound socket of the world")
@@ -584,7 +596,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.role == "world":
         seed = args.seed if args.seed is not None else setup.scenario.sim.seed
         speed = args.speed if args.speed is not None else (0.0 if setup.docked else 1.0)
-        return run_world(setup, ports, out, seed, speed=speed)
+        setup.position_every = args.position_every
+        start = None
+        if args.start_pose:  # the launcher computed them: spares the world importing the coordinator stack
+            n, e, d, yaw = (float(x) for x in args.start_pose.split(","))
+            start = (np.array([n, e, d]), yaw)
+        return run_world(setup, ports, out, seed, speed=speed, start=start)
     if args.role == "unit":
         if args.unit not in setup.unit_ids:
             print(f"error: unit {args.unit} is not in this run (units {setup.unit_ids})", file=sys.stderr)
