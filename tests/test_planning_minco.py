@@ -212,3 +212,15 @@ def test_plan_command_reports_the_minco_back_end(tmp_path):
     assert code == 0
     summary = json.loads((out / "plan.json").read_text())
     assert summary["success"] and summary["back_end"] == "minco"
+
+
+def test_pipeline_retry_stiffens_only_the_obstacle_weight():
+    """The pipeline's retry multiplies every field named like "obst": that must be w_obstacle alone."""
+    import dataclasses
+
+    from mars_link.planning.pipeline import _stiffer
+
+    p = B.BackendParams()
+    q = _stiffer(p)
+    assert q.w_obstacle == 10 * p.w_obstacle
+    assert {f.name for f in dataclasses.fields(p) if getattr(p, f.name) != getattr(q, f.name)} == {"w_obstacle"}
