@@ -277,6 +277,22 @@ def fdi_trial(case: Case, ftc: str = "qp", seed: int = 1, t_fault_s: float = FDI
                     told.completed, found.completed, controller)
 
 
+def fdi_lost_trial(case: Case, ftc: str = "qp", seed: int = 1, t_fault_s: float = FDI_T_FAULT_S,
+                   duration_s: float | None = None, controller: str = "cascaded") -> FdiTrial:
+    """A Fig. 3 unit-failure case as process deaths: the units stop reporting and their motors stop
+    at `t_fault_s` (runner `unit_deaths`), scored against the same failure told to the coordinator."""
+    if not case.unit_failure:
+        raise ValueError(f"{case.name}: only unit failures can be flown as lost units")
+    mode = fdi_ftc(case, ftc)
+    told = run_trial(scenario_for(case, controller, mode, duration_s, t_fault_s, faults_known=True), seed)
+    healthy = Case(case.name, (), None, None, case.source, True)
+    sc = scenario_for(healthy, controller, mode, duration_s, t_fault_s, faults_known=False)
+    found = run_trial(sc, seed, unit_deaths={u: t_fault_s for u, _, _ in case.faults})
+    return FdiTrial(Case("lost " + case.name.replace("F3 ", ""), case.faults, None, None, case.source, True), mode,
+                    seed, t_fault_s, found.detections, told.mean_error_m, found.mean_error_m, told.completed,
+                    found.completed, controller)
+
+
 def fdi_false_alarm_flight(seed: int, ftc: str = "qp", duration_s: float | None = None,
                            controller: str = "cascaded") -> list[dict]:
     """A fault-free spiral with the detector on: its detections (all false alarms)."""

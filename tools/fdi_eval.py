@@ -1,7 +1,7 @@
 """Fault detection and isolation on paper 000's 3x2 spiral: Table I rotor faults and Fig. 3 unit failures.
 
     python tools/fdi_eval.py [--out runs/fdi_eval] [--seeds 3] [--ftc qp] [--t-fault 10] [--false-alarm-seeds 5]
-                             [--controller cascaded | mars-ftcc-paper] [--cases "{2,5},r2=0.5"]
+                             [--controller cascaded | mars-ftcc-paper] [--cases "{2,5};r2=0.5"] [--lost]
 
 Every case is flown twice per seed with the in-process runner (JSBSim, sensor noise, EKF, cascaded
 controller): the faults act in the units' motor paths at `--t-fault` and are told to the coordinator
@@ -11,7 +11,9 @@ identification), the largest |eta believed - eta true| over all 24 rotors at the
 and the mean tracking error of unit 1 over the whole flight, told vs detected. Acceptance (issue 5):
 delay < 0.5 s, eta within 0.1, flight completed, detected error <= 1.5 x told. Fault-free flights
 with the detector on count false alarms. `--ftc paper` uses the paper's own mode per case (unit
-shares for unit failures, hybrid for rotor faults). `--controller mars-ftcc-paper` flies paper 000's
+shares for unit failures, hybrid for rotor faults). `--lost` adds the Fig. 3 unit failures as process
+deaths ("lost units {2}" ...): the units stop reporting and their motors stop at the fault time, and
+the coordinator must notice the silence (5 control periods) instead of the residuals. `--controller mars-ftcc-paper` flies paper 000's
 own controller instead, as `mars-link reproduce table1` does (20 Hz, physics 1 kHz, sensor noise off:
 the controller flies on the true state, the detector reads the noise-free unit IMUs at 20 Hz).
 
@@ -33,7 +35,8 @@ sys.path.insert(0, str(ROOT))
 
 from mars_link.errors import UserInputError  # noqa: E402
 from mars_link.reproduce import (  # noqa: E402
-    CASES, FDI_MAX_DELAY_S, FDI_MAX_ETA_ERROR, FDI_MAX_ERROR_RATIO, FdiTrial, fdi_false_alarm_flight, fdi_trial,
+    CASES, FDI_MAX_DELAY_S, FDI_MAX_ETA_ERROR, FDI_MAX_ERROR_RATIO, FdiTrial, fdi_false_alarm_flight, fdi_lost_trial,
+    fdi_trial,
 )
 
 FTC_CHOICES = ("qp", "paper", "unit", "partial", "full", "hybrid")
@@ -47,8 +50,9 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--ftc", default="qp")
     ap.add_argument("--t-fault", type=float, default=10.0)
     ap.add_argument("--false-alarm-seeds", type=int, default=5)
-    ap.add_argument("--cases", default="", help="comma-separated case-name fragments (default: all faulty cases)")
+    ap.add_argument("--cases", default="", help="';'-separated case-name fragments, e.g. '{2,5};r2=0.5' (default: all faulty cases)")
     ap.add_argument("--controller", default="cascaded")
+    ap.add_argument("--lost", action="store_true", help="also fly the unit failures as process deaths")
     ap.add_argument("--no-plot", action="store_true")
     args = ap.parse_args(argv)
     if not 1 <= args.seeds <= 100 or not 0 <= args.false_alarm_seeds <= 100:
@@ -68,7 +72,7 @@ def select_cases(spec: str):
     faulty = [c for c in CASES if c.faults]
     if not spec:
         return faulty
-    wanted = [w.strip() for w in spec.split(",") if w.strip()]
+    wanted = [w.strip() for w in spec.split(";") if w.strip()]
     chosen = [c for c in faulty if any(w in c.name for w in wanted)]
     if not chosen:
         raise UserInputError(f"--cases {spec!r} matches none of: {'; '.join(c.name for c in faulty)}")
@@ -162,14 +166,17 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.perf_counter()
     print(f"{'case':<18} {'seed':>4} {'delay_s':>7} {'eta_err':>7} {'false':>5} {'told_m':>8} {'found_m':>8} "
           f"{'ratio':>5}  detections")
-    for case in cases:
+    plan = [(case, fdi_trial) for case in cases]
+    if args.lost:
+        plan += [(case, fdi_lost_trial) for case in cases if case.unit_failure]
+    for case, fly in plan:
         trials = []
         for seed in range(1, args.seeds + 1):
-            t = fdi_trial(case, args.ftc, seed, args.t_fault, controller=args.controller)
+            t = fly(case, args.ftc, seed, args.t_fault, controller=args.controller)
             trials.append(t)
             found = ", ".join(f"u{d['unit']}" + (f"r{d['rotor']}" if d["rotor"] else "") + f"={d['eta_estimated']:.2f}"
                               f"@{d['t_detected']:.2f}" for d in t.detections)
-            print(f"{case.name:<18} {seed:>4} {t.delay_s:>7.2f} {t.eta_error:>7.3f} {t.false_alarms:>5} "
+            print(f"{t.case.name:<18} {seed:>4} {t.delay_s:>7.2f} {t.eta_error:>7.3f} {t.false_alarms:>5} "
                   f"{t.error_told_m:>8.4f} {t.error_detected_m:>8.4f} {t.error_ratio:>5.2f}  {found}", flush=True)
         row = summarize(trials)
         row["t_fault_s"] = args.t_fault
