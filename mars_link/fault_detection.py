@@ -8,7 +8,8 @@ Why this design (details in the class docstrings):
   h0 + int B_mom diag(eta) u dt``. The momentum form integrates the torque instead of
   differentiating the gyro, so the white gyro noise is not amplified.
 * **Detection** (when): a two-sided CUSUM on the force residual, whose sign is known (a lost
-  rotor makes less thrust), alarms within a few control ticks and dates the onset.
+  rotor makes less thrust), alarms within a few control ticks and dates the onset. It watches only
+  clear of the ground (see `_airborne`): ground contact is an unmodelled force, not a fault.
 * **Isolation** (which, how much): a change-point least-squares fit of ``delta = eta_est - eta``
   over the window around the onset, for a library of sparse hypotheses: any subset of the rotors of
   one unit with free losses, one whole unit dead, two whole units dead. Nuisance intercepts absorb
@@ -289,8 +290,11 @@ class FaultDetector:
     def _airborne(self, thrust_n: float, state: RigidBodyState | None) -> bool:
         """Ground contact adds an unmodelled force: run FDI only clear of the ground.
 
-        Low thrust marks the ground level (the lowest point seen then); flying means enough thrust
-        and, once a ground level is known, `min_height_m` above it.
+        The ground level is given (`ground_down_m`: a flight that starts landed) or learnt at low
+        thrust (the lowest point seen then); flying means enough thrust and, once a ground level is
+        known, `min_height_m` above it. Without a known ground level a take-off that goes straight
+        to full thrust would be watched while the gear still touches: its contact force pollutes
+        the residual baseline, and the CUSUM fires once the contact ends (issue 5's false alarm).
         """
         p = self.params
         enough = thrust_n >= p.min_airborne_thrust_fraction * self.mass_kg * GRAVITY_MPS2
