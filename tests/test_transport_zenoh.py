@@ -125,14 +125,14 @@ def _child(code: str) -> subprocess.Popen:
 
 def test_sessions_close_on_error_and_on_ctrl_c() -> None:
     """A process with a Zenoh callback subscriber hangs at exit unless the session is closed."""
-    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    head = f"""
+    def head() -> str:  # each child listens on its own port
+        return f"""
         from mars_link.transport.zenoh_link import ZenohParams, ZenohTransport
-        with ZenohTransport(ZenohParams("world", fleet="t2", listen=("{ep}",))) as t:
+        with ZenohTransport(ZenohParams("world", fleet="t2", listen=("tcp/127.0.0.1:{free_tcp_port()}",))) as t:
             print("up", flush=True)
     """
-    err = _child(head + "        raise RuntimeError('boom')\n")
-    waiting = _child(head + "        t.recv(60.0)\n")
+    err = _child(head() + "        raise RuntimeError('boom')\n")
+    waiting = _child(head() + "        t.recv(60.0)\n")
     assert waiting.stdout.readline().strip() == "up"
     waiting.send_signal(signal.SIGINT)
     assert err.wait(20) == 1 and "boom" in err.stderr.read()
