@@ -208,10 +208,12 @@ def _sets_faults_known(scenario) -> bool:
     """Whether the scenario file says [control] faults_known itself (else --mode sitl uses false)."""
     import tomllib
 
-    try:
-        with open(scenario.source, "rb") as f:
+    from mars_link.scenario import resolve_scenario_path
+
+    try:  # source: a path, or a bundled scenario's file name
+        with open(resolve_scenario_path(scenario.source), "rb") as f:
             return "faults_known" in tomllib.load(f).get("control", {})
-    except (OSError, ValueError):
+    except (OSError, ValueError, UserInputError):
         return True  # built in or not a file: keep what the scenario object says
 
 
