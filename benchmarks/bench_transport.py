@@ -7,7 +7,7 @@
    = world receive time - coordinator send time (one clock). p50 / p99 / max.
 2. Real-time mode: the 3x2 hover through the full multi-process SITL with the world paced to the wall
    clock (`--realtime`): command age at the motor (p50, p99) over all six units and missed 100 Hz
-   deadlines, Zenoh and UDP.
+   deadlines, Zenoh and UDP, and Zenoh with the lan and Wi-Fi link profiles on the coordinator links.
 3. Per-frame cost per transport: pymavlink pack and parse, frame validation, and one frame's send ->
    receive inside one process (UDP sockets, two Zenoh peer sessions, two through a router, a pty pair).
 
@@ -135,7 +135,7 @@ def bench_latency(kind: str, cycles: int) -> dict:
 
 
 # ----------------------------------------------------------------------------- 2. real-time SITL
-def bench_realtime(kind: str, seconds: float) -> dict:
+def bench_realtime(kind: str, seconds: float, profile: str | None = None) -> dict:
     from mars_link.scenario import load_scenario
     from mars_link.sitl_mode import run_sitl_scenario
     from mars_link.transport import LinkSpec
@@ -143,10 +143,11 @@ def bench_realtime(kind: str, seconds: float) -> dict:
     sc = load_scenario(str(ROOT / "scenarios" / "hover_3x2.toml"))
     sc.sim.duration_s = seconds
     with tempfile.TemporaryDirectory() as d:
-        s = run_sitl_scenario(sc, Path(d) / kind, seed=4, link=LinkSpec(kind), realtime=True, timeout_s=300, plots=False)
+        s = run_sitl_scenario(sc, Path(d) / kind, seed=4, link=LinkSpec(kind, profile=profile), realtime=True,
+                              timeout_s=300, plots=False)
         world = json.loads((Path(d) / kind / "world_summary.json").read_text())
     age = s["sitl"]["command_age"]
-    return {"transport": kind, "sim_s": seconds, "world_real_time_factor": world.get("real_time_factor"),
+    return {"transport": kind + (f" [{profile}]" if profile else ""), "sim_s": seconds, "world_real_time_factor": world.get("real_time_factor"),
             "command_age_p50_ms": age.get("p50_ms"), "command_age_p99_ms": age.get("p99_ms"),
             "command_age_max_ms": age.get("max_ms"), "commands": age.get("n"),
             "deadline_misses": age.get("deadline_misses"), "dead_units": s["sitl"]["dead_units"]}
@@ -222,9 +223,12 @@ def main() -> int:
         print(f"command latency coordinator -> unit -> world, {r['transport']:12s}: p50 {r['p50_ms']:.3f} ms, "
               f"p99 {r['p99_ms']:.3f} ms, max {r['max_ms']:.3f} ms ({r['n']} commands, 6 unit processes, 100 Hz)")
     if not args.skip_sitl:
-        results["realtime"] = [bench_realtime(k, args.realtime_s) for k in ("zenoh", "udp")]
+        # profiles on the coordinator <-> unit links; a lost frame would stall the lockstep for its timeouts,
+        # so Wi-Fi is run with its latency and jitter but no loss
+        runs = [("zenoh", None), ("udp", None), ("zenoh", "lan"), ("zenoh", "wifi,loss=0")]
+        results["realtime"] = [bench_realtime(k, args.realtime_s, p) for k, p in runs]
         for r in results["realtime"]:
-            print(f"real-time 3x2 SITL, {r['transport']:5s}: command age at the motor p50 {r['command_age_p50_ms']:.2f} ms, "
+            print(f"real-time 3x2 SITL, {r['transport']:18s}: command age at the motor p50 {r['command_age_p50_ms']:.2f} ms, "
                   f"p99 {r['command_age_p99_ms']:.2f} ms, max {r['command_age_max_ms']:.2f} ms; "
                   f"missed 10 ms deadlines {r['deadline_misses']} of {r['commands']}; world RTF {r['world_real_time_factor']:.3f}")
     print(json.dumps(results))

@@ -445,7 +445,7 @@ def _add_link_options(p, default_kind: str) -> None:
     p.add_argument("--fleet", default="default", help="Zenoh key prefix mars/<fleet>/...")
     p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447 (repeatable)")
     p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT", help="extra router endpoint (repeatable)")
-    p.add_argument("--link-profile", help="ideal | lan | wifi | radio57600 [,key=value...] on every Zenoh link")
+    p.add_argument("--link-profile", help="ideal | lan | wifi | radio57600 [,key=value...] on the coordinator <-> unit links")
 
 
 def add_sitl_run_arguments(p) -> None:

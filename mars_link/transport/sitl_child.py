@@ -50,7 +50,8 @@ def _zenoh(spec: LinkSpec, node: str, only_from: str | None = None, seed: int = 
 
         _SESSION.append(zenoh.open(make_config(params)))
     t = ZenohTransport(params, session=_SESSION[0])
-    if spec.profile:
+    if spec.profile and (node == "coordinator" or only_from == "coordinator"):  # the radio/network link only
+        # (the HIL link world <-> unit stands for wires inside the simulated vehicle: never profiled)
         import zlib
 
         from mars_link.transport.profiles import ProfiledTransport, profile_from_name
