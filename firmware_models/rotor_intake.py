@@ -11,7 +11,8 @@ failing reason (signing is checked by the vehicle before the frame gets here):
   wrong_target   addressed to another system/component
   wrong_group    group_mlx != 0
   non_finite     NaN/inf in controls[0..3] or time
-  out_of_range   a control outside 0..1
+  out_of_range   a control outside control_min..control_max (0..1; from -1 for a plant without a
+                 rotor minimum, which may reverse thrust)
   out_of_order   time_usec not newer than the last accepted frame (duplicate, replay, reordering)
   future / late  time_usec more than `clock_tolerance_s` away from the coordinator clock as learnt
                  from the first accepted frame (the clocks may have different origins)
@@ -43,6 +44,8 @@ class IntakeParams:
     period_s: float = 0.01  # expected coordinator command period
     hold_periods: int = 3
     clock_tolerance_s: float = 0.25
+    control_min: float = 0.0  # accepted range of controls[0..3]; a plant without a rotor minimum
+    control_max: float = 1.0  # (paper 000's) may be sent reversed thrust (control_min < 0)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.full_scale_thrust_n) and self.full_scale_thrust_n > 0):
@@ -89,7 +92,8 @@ class RotorIntake:
         c0, c1, c2, c3 = float(c[0]), float(c[1]), float(c[2]), float(c[3])
         if not (math.isfinite(c0) and math.isfinite(c1) and math.isfinite(c2) and math.isfinite(c3)):
             return self.drop("non_finite")
-        if not (0.0 <= c0 <= 1.0 and 0.0 <= c1 <= 1.0 and 0.0 <= c2 <= 1.0 and 0.0 <= c3 <= 1.0):
+        lo, hi = p.control_min, p.control_max
+        if not (lo <= c0 <= hi and lo <= c1 <= hi and lo <= c2 <= hi and lo <= c3 <= hi):
             return self.drop("out_of_range")
         t_usec = int(msg.time_usec)
         if self._last_usec is not None and t_usec <= self._last_usec:

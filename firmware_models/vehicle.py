@@ -339,6 +339,8 @@ class Vehicle:
             unit_sysid=self.sysid, full_scale_thrust_n=self.full_scale_n, unit_compid=self.compid,
             coordinator_sysid=int(p["MARS_COORD_SYS"]), coordinator_compid=int(p["MARS_COORD_COMP"]),
             period_s=1.0 / p["MARS_CMD_HZ"], hold_periods=int(p["MARS_CMD_MISS"]),
+            # a plant without a rotor minimum (paper 000's) takes reversed thrust, down to -full scale
+            control_min=0.0 if self.vehicle.rotor_min_thrust_n is not None else -1.0,
         )
 
     # ================================================================= public API

@@ -1,0 +1,91 @@
+"""The lockstep unit's coordinator-driven path, sans-IO: a HIL step waits for the coordinator's command
+for that step, the coordinator takes the unit over with ARM + rotor command + OFFBOARD in one
+datagram, reversed thrust is accepted only for a plant without a rotor minimum, scenario faults enter
+the motor model at their step, and a silent coordinator releases the step."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL, Vehicle, VehicleConfig
+from mars_link.messages import ImuSample, PositionSample, RotorCommand, SensorPacket
+from mars_link.state import RigidBodyState
+from mars_link.wire import new_mav, rotor_command_message, sensor_packet_messages, usec
+from sitl.hil import hil_state_message
+from sitl.lockstep import _with_takeover
+
+WORLD, COORD = new_mav(200), new_mav(201)
+
+
+def _sensors(t_s: float) -> bytes:
+    state = RigidBodyState(t_s, np.array([0.0, 0.0, -0.05]), np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3))
+    imu = ImuSample(t_s, 1, np.zeros(3), np.array([0.0, 0.0, -9.81]))
+    packet = SensorPacket(t_s, 1, imu, PositionSample(t_s, 1, state.position_ned_m, np.zeros(3)), None)
+    msgs = [hil_state_message(state, usec(t_s))] + sensor_packet_messages(packet)
+    return b"".join(m.pack(WORLD) for m in msgs)
+
+
+def _command(t_s: float, controls: list[float], vehicle: Vehicle) -> mavlink.MAVLink_message:
+    return rotor_command_message(RotorCommand(t_s, 1, np.array(controls) * vehicle.full_scale_n), vehicle.full_scale_n)
+
+
+def _hil_answers(out, vehicle: Vehicle) -> list:
+    return [m for o in out if o.link == LINK_HIL for m in (new_mav(200).parse_buffer(o.data) or [])]
+
+
+def _taken_over(preset: str, controls: list[float]) -> tuple[Vehicle, list]:
+    v = Vehicle(VehicleConfig(unit_id=1, vehicle=preset, hil_await_coordinator=True), 0.0)
+    out = v.handle(_sensors(0.0), 0.0, LINK_HIL)
+    assert v.hil_pending and not _hil_answers(out, v)  # no answer before the coordinator's command
+    assert any(o.link == LINK_COORDINATOR for o in out)  # the unit's telemetry went to the coordinator
+    first = _with_takeover(1, set(), _command(0.0, controls, v))
+    return v, v.handle(b"".join(m.pack(COORD) for m in first), 0.0, LINK_COORDINATOR)
+
+
+def test_coordinator_takes_the_unit_over_in_one_datagram_and_the_step_is_answered() -> None:
+    v, out = _taken_over("mars-ftcc", [0.3, 0.31, 0.32, 0.33])
+    (answer,) = _hil_answers(out, v)
+    assert answer.get_type() == "HIL_ACTUATOR_CONTROLS" and answer.time_usec == 0 and answer.flags == 1
+    assert answer.mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+    np.testing.assert_array_equal(answer.controls[:4], np.float32([0.3, 0.31, 0.32, 0.33]))
+    assert v.armed and v.mode == (6, 0) and v.source == "coordinator" and not v.hil_pending
+    acks = [m for o in out if o.link == LINK_COORDINATOR for m in new_mav(201).parse_buffer(o.data) or []]
+    assert sorted(m.command for m in acks if m.result == 0) == [176, 400]  # DO_SET_MODE, ARM accepted
+
+
+@pytest.mark.parametrize("preset, accepted", [("mars-ftcc", True), ("modquad-cf2", False)])
+def test_reversed_thrust_only_for_a_plant_without_a_rotor_minimum(preset: str, accepted: bool) -> None:
+    v, out = _taken_over(preset, [0.5, 0.5, 0.5, 0.5])
+    v.handle(_sensors(0.01), 0.0, LINK_HIL)
+    out = v.handle(_command(0.01, [-0.1, 0.5, 0.5, 0.5], v).pack(COORD), 0.0, LINK_COORDINATOR)
+    answers = _hil_answers(out, v)
+    if accepted:  # the paper-000 plant: reversed thrust is flown (as the in-process runner does)
+        assert answers[0].controls[0] == pytest.approx(-0.1, abs=1e-7)
+    else:  # a real rotor: dropped and counted, the step still waits
+        assert not answers and v.hil_pending and v.drop_counts()["intake.out_of_range"] == 1
+
+
+def test_scenario_fault_enters_the_motor_model_at_its_step() -> None:
+    v, _ = _taken_over("mars-ftcc", [0.4] * 4)
+    v.schedule_failure(0.02, 2, 0.0)
+    got = []
+    for k in (1, 2):
+        v.handle(_sensors(k * 0.01), 0.0, LINK_HIL)
+        out = v.handle(_command(k * 0.01, [0.4] * 4, v).pack(COORD), 0.0, LINK_COORDINATOR)
+        got.append(list(_hil_answers(out, v)[0].controls[:4]))
+    assert got[0][1] == pytest.approx(0.4) and got[1][1] == 0.0 and got[1][0] == pytest.approx(0.4)
+
+
+def test_silent_coordinator_releases_the_step_then_the_unit_stops_waiting() -> None:
+    v, _ = _taken_over("mars-ftcc", [0.4] * 4)
+    assert not _hil_answers(v.handle(_sensors(0.01), 1.0, LINK_HIL), v)
+    (answer,) = _hil_answers(v.release_hil(3.0), v)
+    assert answer.time_usec == 10_000 and answer.controls[0] == pytest.approx(0.4)  # held command
+    assert v.stats["hil_released"] == 1
+    assert _hil_answers(v.handle(_sensors(0.02), 3.1, LINK_HIL), v)  # answered at once now
+    v.handle(_sensors(0.03), 3.2, LINK_HIL)  # until the coordinator's commands come back
+    v.handle(_command(0.03, [0.4] * 4, v).pack(COORD), 3.2, LINK_COORDINATOR)
+    v.handle(_sensors(0.04), 3.3, LINK_HIL)
+    assert v.hil_pending
