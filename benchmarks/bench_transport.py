@@ -25,7 +25,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 ROOT = Path(__file__).resolve().parent.parent

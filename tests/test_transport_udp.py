@@ -8,7 +8,7 @@ import socket
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.transport.udp import UdpParams, UdpTransport
+from mars_link.transport.udp import UdpTransport
 
 
 def _frame(sysid: int) -> bytes:

@@ -10,8 +10,7 @@ and `profiles.ProfiledTransport`, which makes any of them behave like a LAN, Wi-
 
 from __future__ import annotations
 
-import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from mars_link.transport.base import Address, Counters, Transport
 
@@ -24,11 +23,11 @@ class LinkSpec:
 
     kind: str = "udp"                      # udp | zenoh
     fleet: str = "default"
-    zenoh_mode: str = "client"             # SITL children are clients of the launcher's router by default
+    zenoh_mode: str = "client"             # peer | client | router (start_sitl sets it per role)
     connect: tuple[str, ...] = ()
     listen: tuple[str, ...] = ()
-    profile: str | None = None             # a profiles.PRESETS name (+ overrides) on every link
-    seed: int = 0
+    profile: str | None = None             # a profiles.PRESETS name (+ overrides): coordinator <-> unit links
+    seed: int = 0                          # link-profile randomness (mixed with each link's name)
 
     def to_args(self) -> list[str]:
         args = ["--transport", self.kind]
@@ -41,34 +40,6 @@ class LinkSpec:
         if self.profile:
             args += ["--link-profile", self.profile]
         return args
-
-
-def node_name(sysid: int, world_sysid: int = 200, coordinator_sysid: int = 201) -> str:
-    if sysid == world_sysid:
-        return "world"
-    if sysid == coordinator_sysid:
-        return "coordinator"
-    return f"unit/{sysid}"
-
-
-def open_transport(spec: LinkSpec, port: int, node: str) -> Transport:
-    """The transport for one SITL endpoint (`port` is used by UDP only, `node` by Zenoh)."""
-    if spec.kind == "udp":
-        from mars_link.transport.udp import UdpParams, UdpTransport
-
-        t: Transport = UdpTransport(UdpParams(port=port))
-    elif spec.kind == "zenoh":
-        from mars_link.transport.zenoh_link import ZenohParams, ZenohTransport
-
-        t = ZenohTransport(ZenohParams(node=node, fleet=spec.fleet, mode=spec.zenoh_mode,
-                                       connect=spec.connect, listen=spec.listen))
-    else:
-        raise ValueError(f"transport {spec.kind!r}: expected one of {', '.join(TRANSPORTS)}")
-    if spec.profile:
-        from mars_link.transport.profiles import ProfiledTransport, profile_from_name
-
-        t = ProfiledTransport(t, profile_from_name(spec.profile), seed=spec.seed + zlib.crc32(f"{node}:{port}".encode()) % 100000)
-    return t
 
 
 def add_link_args(ap) -> None:
@@ -87,4 +58,4 @@ def spec_from_args(args) -> LinkSpec:
                     tuple(args.zenoh_listen), args.link_profile)
 
 
-__all__ = ["add_link_args", "spec_from_args", "Address", "Counters", "LinkSpec", "Transport", "TRANSPORTS", "node_name", "open_transport"]
+__all__ = ["add_link_args", "spec_from_args", "Address", "Counters", "LinkSpec", "Transport", "TRANSPORTS"]

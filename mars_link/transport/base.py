@@ -75,9 +75,6 @@ class Transport:
             self.counters.drop(reason, n)
         return (good, peer) if good else None
 
-    def address_of(self, role: str, port: int | None = None) -> Address:
-        """The address of a well-known SITL endpoint ("world", "coordinator") on this transport."""
-        raise NotImplementedError
 
     @property
     def local_address(self) -> Address:

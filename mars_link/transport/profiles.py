@@ -118,8 +118,6 @@ class ProfiledTransport(Transport):
     def local_address(self) -> Address:
         return self.inner.local_address
 
-    def address_of(self, role: str, port: int | None = None) -> Address:
-        return self.inner.address_of(role, port)
 
     def fileno(self) -> int:
         return self.inner.fileno()

@@ -83,8 +83,6 @@ class SerialTransport(Transport):
     def local_address(self) -> str:
         return self.stream.name
 
-    def address_of(self, role: str, port: int | None = None) -> Address:
-        return self.stream.name  # point to point: every peer is behind the one line
 
     def _send(self, data: bytes, peer: Address) -> None:
         self.stream.write(data)

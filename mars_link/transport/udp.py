@@ -36,8 +36,6 @@ class UdpTransport(Transport):
     def port(self) -> int:
         return self.sock.getsockname()[1]
 
-    def address_of(self, role: str, port: int | None = None) -> Address:
-        return (LOOPBACK, int(port))
 
     def _send(self, data: bytes, peer: Address) -> None:
         try:

@@ -22,7 +22,6 @@ a process that exits with an open session and a callback subscriber hangs (specs
 from __future__ import annotations
 
 import json
-import os
 import queue
 import re
 import socket
@@ -164,8 +163,6 @@ class ZenohTransport(Transport):
     def local_address(self) -> str:
         return self.node
 
-    def address_of(self, role: str, port: int | None = None) -> Address:
-        return _check_node(role)
 
     def _send(self, data: bytes, peer: Address) -> None:
         key = key_for(self.params.fleet, self.node, str(peer))
