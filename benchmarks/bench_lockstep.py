@@ -56,8 +56,12 @@ def rtf_runs(scenario: str, runs: int) -> list[dict]:
             if code != 0:
                 sys.exit(f"run {i}: exit {code}; see the logs of a failed run with `mars-link sitl up`")
             s = json.loads((out / "world_summary.json").read_text())
+            c = json.loads((out / "coordinator_summary.json").read_text())
+            units = [json.loads((out / f"unit{u}_status.json").read_text()) for u in s["units"]]
+            cpu = {"world": s["cpu_loop_s"], "coordinator": c["cpu_loop_s"],
+                   "units": sum(u["cpu_loop_s"] for u in units)}
             rows.append({"rtf": s["real_time_factor"], "sim_s": s["sim_time_s"], "wall_s": s["wall_time_s"],
-                         "startup_s": total - s["wall_time_s"], "units": len(s["units"])})
+                         "startup_s": total - s["wall_time_s"], "units": len(s["units"]), "cpu": cpu})
     return rows
 
 
@@ -145,7 +149,12 @@ def main() -> None:
         rtf = [r["rtf"] for r in runs]
         print(f"\nlockstep SITL, {runs[0]['units']} unit processes + world + coordinator, {runs[0]['sim_s']:.1f} s simulated:")
         for i, r in enumerate(runs):
-            print(f"  run {i}: RTF {r['rtf']:.2f}x (stepping {r['wall_s']:.2f} s wall, start-up {r['startup_s']:.1f} s)")
+            cpu = r["cpu"]
+            per_sim = sum(cpu.values()) / r["sim_s"]
+            print(f"  run {i}: RTF {r['rtf']:.2f}x (stepping {r['wall_s']:.2f} s wall, start-up {r['startup_s']:.1f} s); "
+                  f"CPU per simulated s: world {cpu['world'] / r['sim_s']:.3f}, coordinator {cpu['coordinator'] / r['sim_s']:.3f}, "
+                  f"6 units {cpu['units'] / r['sim_s']:.3f}, total {per_sim:.3f} s "
+                  f"(CPU bound on 2 idle cores: {2 / per_sim:.1f}x)")
         print(f"  RTF best {max(rtf):.2f}x, median {statistics.median(rtf):.2f}x (target >= 2x); "
               f"load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (the machine is shared)")
 

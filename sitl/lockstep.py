@@ -309,6 +309,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     try:
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
         wall0 = time.perf_counter()
+        cpu0 = time.process_time()  # CPU of the stepping loop alone (start-up excluded)
         k = 0
         while (setup.steps is None or k < setup.steps) and not stop.requested:
             t = world.t_s
@@ -351,7 +352,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         _write_world_status(status_path, world, setup, live, world.t_s, wall)
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
                    "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
-                   "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time()}
+                   "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time(),
+                   "cpu_loop_s": time.process_time() - cpu0}
         (out / "world_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     finally:
         truth_log.close()
@@ -413,6 +415,7 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
     next_hello = next_tick = next_status = 0.0
     pending_since = None
     print(json.dumps({"ready": True, "unit": unit_id, "ports": io.ports()}), flush=True)
+    cpu0 = time.process_time()
     try:
         while not stop.requested:
             steps = vehicle.stats.get("hil_steps", 0)
@@ -440,6 +443,7 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
             if not vehicle.hil_pending:
                 pending_since = None
         write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, cpu_s=time.process_time(),
+                                                      cpu_loop_s=time.process_time() - cpu0,
                                                       **io.counters()))
     finally:
         io.close()
@@ -475,6 +479,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     out.mkdir(parents=True, exist_ok=True)
     try:
         _await_peers(link, live, 60.0, stop)
+        cpu0 = time.process_time()
         world = (LOOPBACK, ports.world)
         link.heartbeat(world)
         next_hello = time.monotonic() + 0.2
@@ -535,6 +540,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                                    link.peers[cmd.unit_id])
         (out / "coordinator_summary.json").write_text(json.dumps(
             {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
+             "cpu_loop_s": time.process_time() - cpu0,
              "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}}, indent=2, default=float) + "\n")
     finally:
         link.close()
