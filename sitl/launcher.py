@@ -145,6 +145,10 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
             if dead and stop_on_child_death:
                 print(f"sitl: {', '.join(dead)} died (exit {[run.processes[n].returncode for n in dead]}); "
                       f"stopping the rest (logs in {run.out})", file=sys.stderr)
+                for name in dead:
+                    last = _last_line(run.out / f"{name}.log")
+                    if last:
+                        print(f"sitl: {name}: {last}", file=sys.stderr)
                 code = 1
                 break
             if deadline is not None and time.monotonic() > deadline:
@@ -184,6 +188,14 @@ def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: s
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def _last_line(path: Path) -> str:
+    try:
+        lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return ""
+    return lines[-1][:300] if lines else ""
 
 
 def _raise_interrupt(*_) -> None:
