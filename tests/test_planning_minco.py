@@ -143,13 +143,13 @@ def test_back_end_cost_gradient_with_obstacle_limits_and_attitude_terms_active()
     sdf = SignedDistanceField(gap_map(), 0.05)
     wp = np.column_stack([np.linspace(0, 10, 9), 0.4 * np.sin(np.linspace(0, 3, 9)), np.linspace(0, 1.0, 9)])
     p = B.BackendParams(margin_m=0.2, v_max_mps=0.3, a_max_mps2=0.05, j_max_mps3=0.05, yaw_rate_max_radps=0.02,
-                        w_room=2.0)
+                        w_room=2.0, w_accel_effort=3.0)
     cost = B._Cost(wp[0], wp[-1], len(wp) - 1, sdf, B.thin_body_points(fp.body_points(), 0.1), OptimalYaw(model, eta), p)
     q0, T0 = B.initial_guess(wp, cost.r_body, p)
     rng = np.random.default_rng(5)
     x = np.concatenate([q0.ravel() + rng.normal(scale=0.05, size=q0.size), np.log(T0) - 0.6])
     cost(x)
-    for term in ("obstacle", "velocity", "acceleration", "jerk", "yaw_rate", "attitude", "yaw_motion"):
+    for term in ("obstacle", "velocity", "acceleration", "jerk", "yaw_rate", "attitude", "yaw_motion", "accel_effort"):
         assert cost.terms[term] > 0, term  # every term takes part in the check
     assert cost_gradient_check(cost, x, rng, picks=40) < 1e-5
 
