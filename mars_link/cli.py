@@ -178,7 +178,8 @@ def cmd_sitl(args) -> int:
         if not 1 <= port <= 65535:
             raise UserInputError(f"{name} must be 1..65535, got {port}")
     clients = ClientPorts(args.gcs_port, [args.api_port + i for i in range(n)], args.any_bind)
-    code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients)
+    code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,
+                   signing_key_file=args.signing_key_file)
     print(f"run directory: {out}")
     return code
 
@@ -222,6 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="world pacing, x real time (default 1 for --units, 0 = as fast as possible otherwise)")
     sitl.add_argument("--gcs-port", type=int, default=14550, help="UDP port the units send GCS traffic to (QGC, MAVProxy)")
     sitl.add_argument("--api-port", type=int, default=14540, help="API port of unit index 0 (MAVSDK); unit i uses this + i")
+    sitl.add_argument("--signing-key-file", default=None,
+                      help="sign the coordinator <-> unit links with this key (else $MARS_LINK_SIGNING_KEY)")
     sitl.add_argument("--any-bind", action="store_true",
                       help="bind the units' client sockets to free ports instead of PX4's 18570+i / 14580+i")
     sitl.set_defaults(func=cmd_sitl)

@@ -16,6 +16,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from firmware_models.signing import load_key
 from sitl.lockstep import LOOPBACK, SitlSetup, _start_pose, load_setup, position_every
 
 
@@ -81,9 +82,12 @@ class SitlRun:
 
 
 def start(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
-          seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None) -> SitlRun:
-    """Start every process of one run (returns at once; `wait` follows it)."""
+          seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
+          signing_key_file: str | None = None) -> SitlRun:
+    """Start every process of one run (returns at once; `wait` follows it). The coordinator <-> unit
+    links are signed with the key of `signing_key_file`, else of $MARS_LINK_SIGNING_KEY (inherited)."""
     setup = load_setup(scenario, units, layout)  # refuses bad input before any process starts
+    load_key(signing_key_file)  # a bad key file too
     out.mkdir(parents=True, exist_ok=True)
     clients = clients or ClientPorts()
     world_sock = bound_udp_socket()
@@ -97,6 +101,8 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
         common += ["--layout", layout]
     if setup.docked:
         common += ["--steps", str(setup.steps)]
+    if signing_key_file is not None:
+        common += ["--signing-key-file", str(Path(signing_key_file).resolve())]
     py = [sys.executable, "-m", "sitl.lockstep"]
 
     def spawn(name: str, argv: list[str], sock: socket.socket | None = None) -> None:
@@ -167,13 +173,14 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
 
 
 def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
-            seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None) -> int:
+            seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
+            signing_key_file: str | None = None) -> int:
     """`mars-link sitl up`: start, print the endpoints, run until the end, Ctrl-C or a child's death."""
     previous = signal.getsignal(signal.SIGTERM)
     signal.signal(signal.SIGTERM, _raise_interrupt)
     run = None
     try:
-        run = start(scenario, out, units, layout, seed, speed, clients)
+        run = start(scenario, out, units, layout, seed, speed, clients, signing_key_file)
         for line in run.endpoints():
             print(line, flush=True)
         steps = run.setup.steps

@@ -51,6 +51,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from firmware_models.signing import load_key
 from mars_link.errors import UserInputError
 from mars_link.messages import SensorPacket
 from mars_link.wire import (
@@ -166,9 +167,15 @@ def _trajectory(sc, model):
 
 # ----------------------------------------------------------------------------- link
 class Link:
-    """A UDP socket on loopback with a MAVLink parser, a peer table keyed by system id, and counters."""
+    """A UDP socket on loopback with a MAVLink parser, a peer table keyed by system id, and counters.
 
-    def __init__(self, port: int, sysid: int, tlog: Path | None = None, fd: int | None = None) -> None:
+    With a signing `key`, every frame sent is signed and every frame received must carry a genuine
+    signature (checked HMAC-first, before decoding: firmware_models.signing); the rest is dropped and
+    counted as signing.<reason>.
+    """
+
+    def __init__(self, port: int, sysid: int, tlog: Path | None = None, fd: int | None = None,
+                 key: bytes | None = None) -> None:
         """Bind `port` on loopback, or adopt the already bound socket `fd` (handed down by the launcher,
         so no other process can take the port in between)."""
         if fd is not None:
@@ -182,7 +189,15 @@ class Link:
             pass
         if SOCKET_HOOK is not None:
             self.sock = SOCKET_HOOK(self.sock, sysid)
-        self.mav = new_mav(sysid)
+        self.mav = new_mav(sysid)  # decoder, never given a key (pymavlink's own check can be poisoned)
+        self.enc = self.mav
+        self.verifier = None
+        if key is not None:
+            from firmware_models.signing import SignatureVerifier, enable_outgoing_signing
+
+            self.enc = new_mav(sysid)
+            enable_outgoing_signing(self.enc, key, 1, time.time())
+            self.verifier = SignatureVerifier(key)
         self.peers: dict[int, tuple[str, int]] = {}
         self.dropped: dict[str, int] = {}
         self._tlog = open(tlog, "ab", buffering=0) if tlog else None
@@ -199,7 +214,11 @@ class Link:
 
     def send_many(self, msgs: list, addr: tuple[str, int]) -> None:
         """Several frames in one datagram (one syscall; the receiver splits them)."""
-        data = b"".join(m.pack(self.mav) for m in msgs)
+        if self.verifier is not None:
+            from firmware_models.signing import advance_outgoing_clock
+
+            advance_outgoing_clock(self.enc, time.time())
+        data = b"".join(m.pack(self.enc) for m in msgs)
         try:
             self.sock.sendto(data, addr)
         except OSError:  # the peer is gone (ICMP refused): its silence is handled by the timeouts
@@ -223,11 +242,25 @@ class Link:
             self.drop("not_loopback")
             return []
         self._log(data)
-        try:
-            msgs = self.mav.parse_buffer(data) or []
-        except Exception:  # malformed bytes: count and go on
-            self.drop("malformed")
-            return []
+        if self.verifier is not None:
+            from firmware_models.signing import ACCEPTED
+            from firmware_models.vehicle import split_frames
+
+            verifier, now = self.verifier, time.time()
+
+            def genuine(raw) -> bool:
+                result = verifier.verify(raw, now)
+                if result != ACCEPTED:
+                    self.drop(f"signing.{result}")
+                return result == ACCEPTED
+
+            msgs = [m for m, _ in split_frames(data, self.mav, self.drop, genuine)]
+        else:
+            try:
+                msgs = self.mav.parse_buffer(data) or []
+            except Exception:  # malformed bytes: count and go on
+                self.drop("malformed")
+                return []
         out = []
         for m in msgs:
             if m.get_type() == "BAD_DATA":
@@ -388,8 +421,9 @@ class UnitPorts:
 
 
 def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: UnitPorts | None = None,
-             command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S) -> int:
-    """The unit's full firmware on its HIL, coordinator and client links."""
+             command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None) -> int:
+    """The unit's full firmware on its HIL, coordinator and client links; with a signing `key` the
+    coordinator link accepts only genuinely signed frames (and signs what it sends)."""
     from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL, Vehicle, VehicleConfig
     from firmware_models.vehicle_io import LinkSpec, VehicleSockets, client_links, vehicle_status, write_json_atomic
 
@@ -398,7 +432,7 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
     index = setup.unit_ids.index(unit_id)
     vehicle = Vehicle(VehicleConfig(unit_id=unit_id, vehicle=setup.model.vehicle, control_hz=sc.sim.control_hz,
                                     coordinator_sysid=COORDINATOR_SYSID, world_sysid=WORLD_SYSID,
-                                    hil_await_coordinator=setup.docked), time.time())
+                                    hil_await_coordinator=setup.docked, signing_key=key), time.time())
     for f in sc.faults:
         if f.unit == unit_id:
             vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta)
@@ -451,7 +485,9 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
 
 
 # ----------------------------------------------------------------------------- coordinator
-def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S) -> int:
+def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S,
+                    key: bytes | None = None) -> int:
+    """Drive the docked assembly; with a signing `key` its link to the units is signed both ways."""
     from mars_link.coordinator import Coordinator
     from mars_link.runner import eta_after, make_controller
 
@@ -469,7 +505,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         detector = _fault_detector(model, float(_start_pose(setup)[0][2]))
     coordinator = Coordinator(model, trajectory, make_controller(sc, model, eta0), estimator, detector)
     stop = _Stop()
-    link = Link(ports.coordinator, COORDINATOR_SYSID, fd=ports.coordinator_fd)
+    link = Link(ports.coordinator, COORDINATOR_SYSID, fd=ports.coordinator_fd, key=key)
     scale = model.vehicle.full_scale_thrust_n
     assembler = SensorPacketAssembler()
     live = set(model.unit_ids)
@@ -587,6 +623,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--speed", type=float, default=None, help="world pacing, x real time (0: as fast as possible)")
+    ap.add_argument("--signing-key-file", default=None,
+                    help="sign the coordinator <-> unit links (else $MARS_LINK_SIGNING_KEY; neither: unsigned)")
     ap.add_argument("--gcs-port", type=int, default=14550)
     ap.add_argument("--api-port", type=int, default=None)
     ap.add_argument("--gcs-bind", type=int, default=None)
@@ -594,6 +632,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     try:
         setup = load_setup(args.scenario, args.units, args.layout, args.steps)
+        key = load_key(args.signing_key_file)
     except UserInputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -613,11 +652,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: unit {args.unit} is not in this run (units {setup.unit_ids})", file=sys.stderr)
             return 2
         try:
-            return run_unit(setup, args.unit, ports, out, UnitPorts(args.gcs_port, args.api_port, args.gcs_bind, args.api_bind))
+            return run_unit(setup, args.unit, ports, out, UnitPorts(args.gcs_port, args.api_port, args.gcs_bind, args.api_bind),
+                            key=key)
         except UserInputError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
-    return run_coordinator(setup, ports, out)
+    return run_coordinator(setup, ports, out, key=key)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ BAD_SITL_UP = [
     (["nosuch-scenario"], "not found"),
     (["--units", "1", "--speed", "-1"], "--speed must be >= 0"),
     (["--units", "3", "--api-port", "65534"], "--api-port + units must be 1..65535"),
+    (["--units", "1", "--signing-key-file", "no-such-key-file"], "does not exist"),
 ]
 
 
