@@ -49,7 +49,6 @@ class ZenohParams:
     block_when_congested: bool = True    # lockstep must not lose frames; False: drop like a radio would
     only_from: str | None = None         # a unit link that talks to one node only (e.g. its HIL link: "world")
     validate_frames: bool = True         # drop bad MAVLink frames here (counted), pass whole valid ones
-    direct_callbacks: bool = True        # run the (short) receive callback on Zenoh's network thread: one thread hop less
     first_send_wait_s: float = 0.0       # first frame to a node: wait up to this long for it to subscribe
 
 
@@ -118,12 +117,9 @@ class ZenohTransport(Transport):
         try:
             f = params.fleet
             src = _check_node(params.only_from) if params.only_from else "*"
-            indirect = not params.direct_callbacks
-            self._subs = [self.session.declare_subscriber(f"mars/{f}/{self.node}/mavlink/down/{src}",
-                                                          zenoh.handlers.Callback(self._on_down, indirect=indirect))]
+            self._subs = [self.session.declare_subscriber(f"mars/{f}/{self.node}/mavlink/down/{src}", self._on_down)]
             if not self.node.startswith("unit/"):
-                self._subs.append(self.session.declare_subscriber(f"mars/{f}/unit/*/mavlink/up/{self.node}",
-                                                                  zenoh.handlers.Callback(self._on_up, indirect=indirect)))
+                self._subs.append(self.session.declare_subscriber(f"mars/{f}/unit/*/mavlink/up/{self.node}", self._on_up))
         except BaseException:
             if self._owns_session:
                 self.session.close()
