@@ -25,6 +25,10 @@ Two set-ups (`SitlSetup`):
 Every unit also serves PX4's client links: GCS to UDP 14550 (bound 18570+i), API to 14540+i (bound
 14580+i), i = unit index from 0, and logs every frame it sends or receives to unit<id>.tlog.
 
+Signing: with a key (--signing-key-file, else $MARS_LINK_SIGNING_KEY) the coordinator <-> unit links
+are MAVLink-2 signed both ways and verified HMAC-first (firmware_models.signing); the HIL link to the
+world and the client links stay unsigned (stock MAVSDK cannot sign).
+
 Timeouts (wall time): coordinator 1 s < unit 2 s < world 3 s, so that when a unit process dies the
 coordinator gives up on it first, the other units still get their commands, and only the dead unit is
 declared dead by the world.
