@@ -8,6 +8,7 @@
 2. Real-time mode: the 3x2 hover through the full multi-process SITL with the world paced to the wall
    clock (`--realtime`): command age at the motor (p50, p99) over all six units and missed 100 Hz
    deadlines, Zenoh and UDP, and Zenoh with the lan and Wi-Fi link profiles on the coordinator links.
+   Also the CPU time all SITL processes spend per lockstep step, Zenoh vs UDP.
 3. Per-frame cost per transport: pymavlink pack and parse, frame validation, and one frame's send ->
    receive inside one process (UDP sockets, two Zenoh peer sessions, two through a router, a pty pair).
 
@@ -152,6 +153,38 @@ def bench_realtime(kind: str, seconds: float, profile: str | None = None) -> dic
             "deadline_misses": age.get("deadline_misses"), "dead_units": s["sitl"]["dead_units"]}
 
 
+def bench_step_cpu(kind: str, seconds: float) -> dict:
+    """CPU time (user + system, all eight processes) per 100 Hz lockstep step of the 3x2 hover: a run of
+    `seconds` minus a 5-step run, so start-up is left out."""
+    from mars_link.scenario import load_scenario
+    from mars_link.sitl_mode import start_sitl, write_scenario_copy
+    from mars_link.transport import LinkSpec
+
+    def run(duration: float) -> tuple[float, int]:
+        sc = load_scenario(str(ROOT / "scenarios" / "hover_3x2.toml"))
+        sc.sim.duration_s = duration
+        with tempfile.TemporaryDirectory() as d:
+            out = Path(d)
+            session = start_sitl(str(write_scenario_copy(sc, out / "scenario.toml")), out, LinkSpec(kind), seed=4)
+            pids = {n: p.pid for n, p in session.run.processes.items()}
+            cpu: dict[str, float] = {}
+            while session.run.processes["world"].poll() is None:  # sample until the world ends
+                for n, pid in pids.items():
+                    try:
+                        f = open(f"/proc/{pid}/stat").read().split()
+                        cpu[n] = (int(f[13]) + int(f[14])) / os.sysconf("SC_CLK_TCK")
+                    except OSError:
+                        pass
+                time.sleep(0.05)
+            session.wait(120)
+            steps = json.loads((out / "world_summary.json").read_text())["steps"]
+        return sum(cpu.values()), steps
+
+    c0, n0 = run(0.05)
+    c1, n1 = run(seconds)
+    return {"transport": kind, "cpu_ms_per_step": (c1 - c0) / (n1 - n0) * 1e3}
+
+
 # ----------------------------------------------------------------------------- 3. per-frame costs
 def best_us(fn, n: int, repeats: int = 5) -> float:
     best = float("inf")
@@ -222,6 +255,10 @@ def main() -> int:
         print(f"command latency coordinator -> unit -> world, {r['transport']:12s}: p50 {r['p50_ms']:.3f} ms, "
               f"p99 {r['p99_ms']:.3f} ms, max {r['max_ms']:.3f} ms ({r['n']} commands, 6 unit processes, 100 Hz)")
     if not args.skip_sitl:
+        results["step_cpu"] = [bench_step_cpu(k, args.realtime_s) for k in ("zenoh", "udp")]
+        for r in results["step_cpu"]:
+            print(f"lockstep SITL CPU per 100 Hz step (world + 6 units + coordinator), {r['transport']:5s}: "
+                  f"{r['cpu_ms_per_step']:.2f} ms")
         # profiles on the coordinator <-> unit links; a lost frame would stall the lockstep for its timeouts,
         # so Wi-Fi is run with its latency and jitter but no loss
         runs = [("zenoh", None), ("udp", None), ("zenoh", "lan"), ("zenoh", "wifi,loss=0")]
