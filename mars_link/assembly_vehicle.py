@@ -37,7 +37,6 @@ from mars_link.control.base import ControlOutput
 from mars_link.coordinator import Coordinator, short_text
 from mars_link.errors import UserInputError
 from mars_link.messages import RotorCommand, wire_thrust, wire_time
-from mars_link.rotations import quat_to_rotmat
 from mars_link.scenario import FaultSpec, Scenario
 from mars_link.state import RigidBodyState
 from mars_link.trajectories import Trajectory, TrajectoryPoint
@@ -56,7 +55,6 @@ EVENT_SEVERITY = {
     "estimator_reset": mavlink.MAV_SEVERITY_WARNING,
 }
 #: consecutive position updates with every unit gated out before the EKF is restarted on them
-GATED_BATCHES_RESET = 5
 
 
 class SetpointSource(Trajectory):
@@ -279,8 +277,7 @@ class AssemblySim:
         self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, cfg.params, wall_time_s)
         self.vehicle.on_failure = self.inject
         self.estimate: RigidBodyState | None = None
-        self.estimator_resets = 0
-        self._gated_batches = 0
+        self.estimator_resets = 0  # the EKF's own restarts on the measured positions (after gated batches)
         self.events: list[dict] = []  # faults (scenario and MAVLink), with coordinator.events = the record
 
     @property
@@ -333,34 +330,16 @@ class AssemblySim:
             return next((p.truth for p in packets if p.truth is not None), None)
         ekf = self.estimator
         positions = [p.position for p in packets if p.position is not None]
-        gated = ekf.stats.rejected.get("position_gate", 0)
         est = ekf.step(t, [p.imu for p in packets], positions)
         if not ekf.initialised:
             return None
-        if positions:  # a filter that gates every unit's position for a while no longer follows them
-            all_gated = ekf.stats.rejected.get("position_gate", 0) - gated >= len(positions)
-            self._gated_batches = self._gated_batches + 1 if all_gated else 0
-            if self._gated_batches >= GATED_BATCHES_RESET:
-                self._gated_batches = 0
-                est = self._reset_estimator(t, est, positions)
+        if ekf.stats.position_resets > self.estimator_resets:  # e.g. after a touchdown shock
+            self.estimator_resets = ekf.stats.position_resets
+            event = {"t_s": round(t, 6), "type": "estimator_reset", "text": "EKF reset on positions",
+                     "reason": f"{ekf.params.position_reset_after_batches} position updates gated"}
+            self.events.append(event)
+            self.vehicle.report_event(event)
         return est
-
-    def _reset_estimator(self, t: float, est: RigidBodyState, positions) -> RigidBodyState:
-        """Restart the EKF on the measured positions and velocities (attitude and biases kept)."""
-        rot = quat_to_rotmat(est.quaternion_wxyz)
-        offsets = np.array([self.model.unit_position(p.unit_id) for p in positions])
-        measured = np.array([p.position_ned_m for p in positions], dtype=float)
-        vels = [p.velocity_ned_mps for p in positions if p.velocity_ned_mps is not None]
-        state = RigidBodyState(est.t_s, measured.mean(axis=0) - rot @ offsets.mean(axis=0),
-                               np.mean(vels, axis=0) if vels else np.zeros(3), est.quaternion_wxyz,
-                               est.angular_velocity_frd_radps)
-        self.estimator.reset(state)
-        self.estimator_resets += 1
-        event = {"t_s": round(t, 6), "type": "estimator_reset",
-                 "reason": f"{GATED_BATCHES_RESET} updates gated"}
-        self.events.append(event)
-        self.vehicle.report_event(event)
-        return self.estimator.state()
 
     def truth(self) -> RigidBodyState:
         return self.world.truth()

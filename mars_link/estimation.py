@@ -53,6 +53,10 @@ class EstimatorParams:
     estimate_accel_bias: bool = True
     relative_bias_gain: float = 0.01  # per IMU sample, for each unit's gyro bias relative to the mean
     position_gate_nis: float = 30.0  # a unit's position innovation beyond this NIS (3 dof) is rejected
+    # A filter that gates every unit's position this many batches in a row no longer follows them (e.g.
+    # after a touchdown shock): its position and velocity restart on the measurements (PX4's EKF2
+    # resets to GPS the same way); attitude and biases are kept.
+    position_reset_after_batches: int = 5
     nis_average_gain: float = 0.01  # exponential average of NIS (exposed for monitoring)
     max_step_s: float = 0.1  # longer IMU gaps are propagated in pieces of this size
     gravity_mps2: float = GRAVITY_MPS2
@@ -93,6 +97,8 @@ class InnovationStats:
     position_units: tuple[int, ...] = ()  # units of the last position batch...
     position_innovations_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))  # ...their z - h, NED
     rejected: dict[str, int] = field(default_factory=dict)  # reason -> count of ignored inputs
+    position_resets: int = 0  # restarts on the measured positions after a run of gated batches
+    gated_batches: int = 0  # consecutive position batches with every unit gated
     imu: CombinedImu | None = None  # the last combined IMU, with per-unit residuals
 
     def position_innovation_m(self) -> dict[int, np.ndarray]:
@@ -522,8 +528,12 @@ class AssemblyEstimator:
         else:
             self.stats.rejected["position_gate"] = self.stats.rejected.get("position_gate", 0) + int((~ok).sum())
             if not ok.any():
+                self.stats.gated_batches += 1
+                if self.stats.gated_batches >= max(1, self.params.position_reset_after_batches):
+                    self._reset_to_positions(samples, offsets_rot=pos - self.p)
                 return
             H, y = hp[ok].reshape(-1, N_ERR), y3[ok].reshape(-1)
+        self.stats.gated_batches = 0
         rdiag = np.full(len(y), r_pos)
         with_vel = [i for i in has_vel if ok[i]]
         if with_vel:
@@ -538,6 +548,25 @@ class AssemblyEstimator:
         st.t_s, st.nis, st.dof = self.t_s, nis, len(y)
         st.nis_mean_per_dof += self.params.nis_average_gain * (nis / len(y) - st.nis_mean_per_dof)
         self._inject()
+
+    def _reset_to_positions(self, samples: list[PositionSample], offsets_rot: np.ndarray) -> None:
+        """Restart position and velocity on the measurements (lever arms from the current attitude)."""
+        self.p = np.mean([s.position_ned_m for s in samples], axis=0) - offsets_rot.mean(axis=0)
+        vels = [s.velocity_ned_mps for s in samples if s.velocity_ned_mps is not None]
+        # without measured velocities the old one is not trusted either: zero, wide, learnt from positions
+        self.v = np.mean(vels, axis=0) if vels else np.zeros(3)
+        v_std = self.params.initial_velocity_std_mps if vels else max(self.params.initial_velocity_std_mps, 2.0)
+        P = self._ekf.P
+        blocks = [(P_, self.params.position_noise_m * 3), (V_, v_std)]
+        if self.params.estimate_accel_bias:  # a shock may have been learnt as accelerometer bias
+            self.ba = np.zeros(3)
+            blocks.append((BA_, self.params.initial_accel_bias_std_mps2))
+        for block, std in blocks:
+            P[block, :] = 0.0
+            P[:, block] = 0.0
+            P[block, block] = np.eye(3) * std**2
+        self.stats.position_resets += 1
+        self.stats.gated_batches = 0
 
     def _inject(self) -> None:
         """Move the error estimate into the nominal state and reset it (with the reset Jacobian)."""

@@ -210,6 +210,30 @@ def test_position_glitch_is_gated_and_bad_inputs_are_counted():
     assert est.stats.rejected["position_stale_or_bad_time"] == 1
 
 
+def test_filter_that_gates_every_position_restarts_on_them():
+    """A touchdown-like shock (0.3 s of IMU specific force off by 30 m/s^2) throws the estimate far
+    enough that every unit's position is gated; after `position_reset_after_batches` such batches
+    the filter restarts position and velocity on the measurements instead of drifting away."""
+    model = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
+    rng = np.random.default_rng(4)
+    biases = {u: np.zeros(3) for u in model.unit_ids}
+    motion = Motion(rest_s=100.0)  # at rest on the ground the whole time
+    est = AssemblyEstimator(model)
+    errors = []
+    for k in range(400):
+        t = k / 100.0
+        imus, poss = unit_measurements(model, motion.truth(t), t, rng, biases)
+        if 150 <= k < 180:
+            for s in imus:
+                s.accel_frd_mps2 = s.accel_frd_mps2 + np.array([0.0, 0.0, -30.0])
+        st = est.step(t, imus, poss if k % 2 == 0 else [])
+        errors.append(float(np.linalg.norm(st.position_ned_m - motion.truth(t)["p"])))
+    assert max(errors[150:200]) > 0.1  # the shock did throw it off...
+    assert est.stats.rejected["position_gate"] >= 6 * est.params.position_reset_after_batches
+    assert est.stats.position_resets >= 1  # ...and it came back
+    assert max(errors[300:]) < 0.02
+
+
 def test_streaming_api_matches_step_and_handles_positions_between_imu_ticks():
     model = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
     rng = np.random.default_rng(2)
