@@ -121,6 +121,9 @@ def test_mars_link_run_dispatches_reconfig_scenarios(tmp_path):
         assert key in summary
     assert summary["reconfigured"] and not summary["diverged"]
     assert {"split", "dock", "fault"} <= {e["type"] for e in summary["events"]}
+    texts = [e["text"] for e in summary["events"]]  # each fits one MAVLink STATUSTEXT
+    assert len(texts) == len(summary["events"]) and all(0 < len(x) <= 50 and x.isascii() for x in texts)
+    assert "Split L1: u1 off" in texts and "Docked L1: u1-3" in texts
     assert summary["force_integral_n2s"] > 0 and summary["reconfig_time_s"] > 5
     for name in ("telemetry.csv", "units.csv", "plots/units.png", "plots/error.png"):
         assert (out / name).stat().st_size > 0
@@ -143,3 +146,10 @@ def test_bad_reconfig_input_is_one_line_exit_2(tmp_path, edit, needle):
     err = proc.stderr.strip()
     assert "Traceback" not in proc.stderr and len(err.splitlines()) == 1 and needle in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_unit_sets_are_written_as_ranges():
+    from mars_link.reconfig.execution import units_text
+
+    assert units_text([3, 1, 2, 4, 9, 11, 12]) == "1-4,9,11-12"
+    assert units_text({5}) == "5"

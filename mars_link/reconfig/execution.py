@@ -78,6 +78,19 @@ def local_eta(shape: PieceShape, eta_global: dict[int, np.ndarray]) -> np.ndarra
     return np.concatenate([eta_global[u] for u in shape.units_local_order()])
 
 
+def units_text(units) -> str:
+    """Unit ids as compact ranges ("1-4,9") for the <= 50-character event texts (MAVLink STATUSTEXT)."""
+    ids = sorted(units)
+    parts, start = [], None
+    for i, u in enumerate(ids):
+        if start is None:
+            start = u
+        if i + 1 == len(ids) or ids[i + 1] != u + 1:
+            parts.append(str(start) if start == u else f"{start}-{u}")
+            start = None
+    return ",".join(parts)
+
+
 # ----------------------------------------------------------------------------- references
 def _quintic(p0, v0, a0, p1, v1, a1, T: float) -> np.ndarray:
     """(6, 3) coefficients c0..c5 of p(s) = sum c_k s^k on [0, T] meeting both end states."""
@@ -316,7 +329,8 @@ class Executor:
             com = ComMission(self.mission, self.tracked_offset(shape))
             ref.tail = (com, t_s, self.shift_s)
             self.phase = "mission"
-            self.events.append({"t_s": round(t_s, 6), "type": "mission_resumed", "shift_s": round(self.shift_s, 4)})
+            self.events.append({"t_s": round(t_s, 6), "type": "mission_resumed", "shift_s": round(self.shift_s, 4),
+                                "text": "Reconfig: mission resumed"})
         return []
 
     def _stop(self, t_s: float) -> None:
@@ -333,7 +347,8 @@ class Executor:
         self.phase, self.phase_end_t = "stop", end + self.params.settle_s
         self.events.append({"t_s": round(t_s, 6), "type": "reconfig_start",
                             "disassembly_layers": self.plan.disassembly_layers,
-                            "assembly_layers": self.plan.assembly_layers})
+                            "assembly_layers": self.plan.assembly_layers,
+                            "text": f"Reconfig: {self.plan.disassembly_layers} split, {self.plan.assembly_layers} dock layers"})
 
     def _next_split_layer(self, t_s: float) -> list[SplitAction]:
         self.layer += 1
@@ -371,7 +386,8 @@ class Executor:
                 hold + rz @ offsets[0], yaw_rad=self.yaw)))
             actions.append(SplitAction(parent.key, [det, rest], offsets))
             self.events.append({"t_s": round(t_s, 6), "type": "split", "layer": self.layer, "body": sorted(s.body),
-                                "detached": sorted(s.detached), "rest": sorted(s.rest)})
+                                "detached": sorted(s.detached), "rest": sorted(s.rest),
+                                "text": f"Split L{self.layer}: u{units_text(s.detached)} off"[:50]})
         self.phase_end_t = end + p.settle_s
         return actions
 
@@ -400,7 +416,8 @@ class Executor:
             req = DockRequest(st.key, mv.key, offset, merged)
             self.docks.append(_Docking(req, "transit", end + 0.5, direction, t_s))
             self.events.append({"t_s": round(t_s, 6), "type": "dock_start", "layer": self.layer,
-                                "stationary": sorted(st.key), "mover": sorted(mv.key), "approach": m.approach})
+                                "stationary": sorted(st.key), "mover": sorted(mv.key), "approach": m.approach,
+                                "text": f"Dock L{self.layer}: u{units_text(mv.key)} to u{units_text(st.key)}"[:50]})
 
     def _advance_docks(self, t_s: float, states: dict) -> None:
         p = self.params
@@ -453,7 +470,7 @@ class Executor:
         self.phase_end_t = max(self.phase_end_t, t_s + self.params.settle_s)
         self.events.append({"t_s": round(t_s, 6), "type": "dock", "layer": self.layer,
                             "stationary": sorted(req.stationary), "mover": sorted(req.mover),
-                            "result": sorted(merged.key)})
+                            "result": sorted(merged.key), "text": f"Docked L{self.layer}: u{units_text(merged.key)}"[:50]})
 
     def _return(self, t_s: float) -> None:
         (key,) = self.shapes
@@ -465,4 +482,5 @@ class Executor:
         self.shift_s = end - self.pause_t
         self.phase, self.phase_end_t = "return", end
         self.events.append({"t_s": round(t_s, 6), "type": "reconfig_done",
-                            "cells": {str(u): list(c) for u, c in sorted(shape.cells.items())}})
+                            "cells": {str(u): list(c) for u, c in sorted(shape.cells.items())},
+                            "text": "Reconfig done: returning to the mission"})

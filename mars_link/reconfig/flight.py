@@ -192,9 +192,12 @@ def run_reconfig_trial(
     if plan is not None:
         events.append({"t_s": 0.0, "type": "plan", "feasible": plan.feasible,
                        "disassembly_layers": plan.disassembly_layers, "assembly_layers": plan.assembly_layers,
-                       "fallback_used": plan.fallback_used, "reason": plan.reason})
+                       "fallback_used": plan.fallback_used, "reason": plan.reason,
+                       "text": (f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers"
+                                if plan.feasible else "Reconfig: no feasible plan")})
         if refused:
-            events.append({"t_s": 0.0, "type": "reconfig_refused", "reason": "; ".join(refused)})
+            events.append({"t_s": 0.0, "type": "reconfig_refused", "reason": "; ".join(refused),
+                           "text": "Reconfig refused: a piece cannot hover"})
     next_fault = 0
     at_s = scenario.reconfig.get("at_s")
     err_sum = err_sq = max_err = max_tilt = force = 0.0
@@ -227,7 +230,8 @@ def run_reconfig_trial(
                     eta_true[f.unit][:] = f.eta
                 else:
                     eta_true[f.unit][f.rotor - 1] = f.eta
-                events.append({"t_s": round(t, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta})
+                events.append({"t_s": round(t, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta,
+                               "text": f"Fault: unit {f.unit} rotor {f.rotor or 'all'} eta {f.eta:.2f}"})
                 for p in pieces.values():
                     p.coordinator.set_faults(local_eta(p.shape, eta_true), t, "fault told to the coordinator")
                 if can_reconfigure and at_s is None and next_fault == len(faults):
@@ -249,7 +253,8 @@ def run_reconfig_trial(
                 states = {key: p.body.state() for key, p in pieces.items()}
             if executor.failed and not failed:
                 failed = True
-                events.append({"t_s": round(t, 6), "type": "reconfig_failed", "reason": executor.failed})
+                events.append({"t_s": round(t, 6), "type": "reconfig_failed", "reason": executor.failed,
+                               "text": f"Reconfig failed: {executor.failed}"[:50]})
                 break
             # control every piece
             for p in pieces.values():
@@ -285,7 +290,8 @@ def run_reconfig_trial(
                     pieces[req.merged.key].thrust_n = thrusts
                     events.append({"t_s": round(t, 6), "type": "dock_latched",
                                    "position_error_m": round(chk.position_error_m, 4),
-                                   "speed_mps": round(chk.speed_mps, 4), "yaw_deg": round(chk.yaw_deg, 3)})
+                                   "speed_mps": round(chk.speed_mps, 4), "yaw_deg": round(chk.yaw_deg, 3),
+                                   "text": f"Dock latched: {chk.position_error_m * 100:.1f} cm"})
                     states = {key: p.body.state() for key, p in pieces.items()}
             # mission metric on the truth
             if executor.mission_active(t):
@@ -322,7 +328,7 @@ def run_reconfig_trial(
                         if units_f:
                             units_f.write(",".join(f"{x:.6g}" for x in row) + "\n")
             if diverged:
-                events.append({"t_s": round(t, 6), "type": "diverged", "phase": executor.phase})
+                events.append({"t_s": round(t, 6), "type": "diverged", "phase": executor.phase, "text": f"Diverged ({executor.phase})"[:50]})
                 break
             for p in pieces.values():
                 p.body.step(substeps)
