@@ -24,7 +24,7 @@ AssemblyModel/Coordinator (built by the runner); references here are for the pie
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
