@@ -335,6 +335,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     stop = _Stop()
     link = Link(ports.world, WORLD_SYSID, fd=ports.world_fd)
     scale = setup.model.vehicle.full_scale_thrust_n
+    control_min = 0.0 if setup.model.vehicle.rotor_min_thrust_n is not None else -1.0  # as the units' intake
     live = set(setup.unit_ids)
     out.mkdir(parents=True, exist_ok=True)
     status_path = out / "world_status.json"
@@ -374,6 +375,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                     if m.time_usec != t_us or m.get_srcSystem() not in waiting:
                         link.drop("stale_actuator")
                         continue
+                    if not actuator_controls_ok(m.controls, control_min):
+                        link.drop("bad_actuator")  # NaN/inf/out of range: never into the physics
+                        continue
                     world.actuate(actuator_output_from_message(m, scale))
                     waiting.discard(m.get_srcSystem())
             if stop.requested:
@@ -397,6 +401,13 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         world.close()
         link.close()
     return 0
+
+
+def actuator_controls_ok(controls, control_min: float = 0.0) -> bool:
+    """A unit's HIL_ACTUATOR_CONTROLS rotor outputs (controls[0..3]) are finite and within
+    control_min..1 of full scale (the world never integrates a broken unit's NaN)."""
+    c = controls[:4]
+    return len(c) == 4 and all(math.isfinite(x) and control_min <= x <= 1.0 for x in c)
 
 
 def _write_world_status(path: Path, world, setup: SitlSetup, live: set[int], t_s: float, wall_s: float) -> None:

@@ -89,3 +89,12 @@ def test_silent_coordinator_releases_the_step_then_the_unit_stops_waiting() -> N
     v.handle(_command(0.03, [0.4] * 4, v).pack(COORD), 3.2, LINK_COORDINATOR)
     v.handle(_sensors(0.04), 3.3, LINK_HIL)
     assert v.hil_pending
+
+
+def test_world_refuses_broken_actuator_outputs() -> None:
+    from sitl.lockstep import actuator_controls_ok
+
+    assert actuator_controls_ok([0.2, 0.3, 0.4, 1.0] + [0.0] * 12)
+    assert actuator_controls_ok([-0.5, 0.3, 0.4, 0.5], control_min=-1.0)  # paper plant: reversed thrust
+    for bad in ([float("nan"), 0, 0, 0], [0, float("inf"), 0, 0], [0, 0, 1.5, 0], [-0.1, 0, 0, 0], [0.1, 0.2]):
+        assert not actuator_controls_ok(bad)
