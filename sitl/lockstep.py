@@ -403,6 +403,16 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     return 0
 
 
+def telemetry_ok(p: SensorPacket) -> bool:
+    """A unit's forwarded sensor packet is finite where it matters (IMU, position, truth)."""
+    arrays = [p.imu.gyro_frd_radps, p.imu.accel_frd_mps2]
+    if p.position is not None:
+        arrays.append(p.position.position_ned_m)
+    if p.truth is not None:
+        arrays += [p.truth.position_ned_m, p.truth.quaternion_wxyz]
+    return math.isfinite(p.t_s) and all(bool(np.isfinite(a).all()) for a in arrays)
+
+
 def actuator_controls_ok(controls, control_min: float = 0.0) -> bool:
     """A unit's HIL_ACTUATOR_CONTROLS rotor outputs (controls[0..3]) are finite and within
     control_min..1 of full scale (the world never integrates a broken unit's NaN)."""
@@ -557,6 +567,9 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                         continue
                     p = assembler.feed(m)
                     if p is None:
+                        continue
+                    if not telemetry_ok(p):
+                        link.drop("bad_telemetry")  # non-finite: never into the estimator
                         continue
                     if t_expected is None:
                         t_expected = p.t_s

@@ -98,3 +98,13 @@ def test_world_refuses_broken_actuator_outputs() -> None:
     assert actuator_controls_ok([-0.5, 0.3, 0.4, 0.5], control_min=-1.0)  # paper plant: reversed thrust
     for bad in ([float("nan"), 0, 0, 0], [0, float("inf"), 0, 0], [0, 0, 1.5, 0], [-0.1, 0, 0, 0], [0.1, 0.2]):
         assert not actuator_controls_ok(bad)
+
+
+def test_coordinator_refuses_non_finite_telemetry() -> None:
+    from sitl.lockstep import telemetry_ok
+
+    imu = ImuSample(0.0, 1, np.zeros(3), np.array([0.0, 0.0, -9.81]))
+    assert telemetry_ok(SensorPacket(0.0, 1, imu, PositionSample(0.0, 1, np.zeros(3), None), None))
+    bad_imu = ImuSample(0.0, 1, np.array([np.nan, 0, 0]), np.zeros(3))
+    assert not telemetry_ok(SensorPacket(0.0, 1, bad_imu, None, None))
+    assert not telemetry_ok(SensorPacket(0.0, 1, imu, PositionSample(0.0, 1, np.array([0, np.inf, 0]), None), None))
