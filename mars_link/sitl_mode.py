@@ -560,6 +560,7 @@ def cmd_coordinator(args) -> int:
         raise UserInputError("coordinator --transport udp needs --world-port and --coordinator-port (printed by sitl up)")
     from mars_link.transport.sitl_child import main as child_main
 
+    # on Zenoh the ports only name the nodes (world: an id above the unit range; own socket: any free port)
     argv = ["coordinator", str(path), "--world-port", str(args.world_port or 1000),
-            "--coordinator-port", str(args.coordinator_port or 1001), "--out", args.out, *link.to_args()]
+            "--coordinator-port", str(args.coordinator_port), "--out", args.out, *link.to_args()]
     return child_main(argv)

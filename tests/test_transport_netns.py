@@ -1,13 +1,16 @@
 """Distributed SITL: the six units of a 3x2 run in their own network namespaces, joined to the host by
 veth pairs on a bridge the test creates; Zenoh over TCP between them (the host's router listens on the
-bridge). The hover is the same flight as in-process. Skipped where namespaces cannot be made (needs
+bridge); the coordinator is `mars-link coordinator`, started on its own and attaching to the running
+units. The hover is the same flight as in-process. Skipped where namespaces cannot be made (needs
 root and `ip`); everything the test makes is removed afterwards."""
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -69,21 +72,32 @@ def test_units_in_their_own_namespaces_fly_the_hover_over_zenoh_tcp(namespaces, 
     endpoint = f"tcp/{host_ip}:{port}"
     router, _ = open_router(listen=(endpoint,), fleet="netns")
     out = tmp_path / "sitl"
+    coordinator = None
     try:
         from mars_link.sitl_mode import write_scenario_copy
 
         out.mkdir()
         copy = write_scenario_copy(sc, out / "scenario.toml")
         link = LinkSpec("zenoh", fleet="netns", connect=(endpoint,))  # every process reaches the router on the bridge
-        session = start_sitl(str(copy), out, link, seed=4, unit_prefix=lambda u: ["ip", "netns", "exec", ns_of[u]])
+        session = start_sitl(str(copy), out, link, seed=4, unit_prefix=lambda u: ["ip", "netns", "exec", ns_of[u]],
+                             roles=("world", "units"))
+        with open(out / "coordinator.log", "w") as log:
+            coordinator = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "coordinator", str(copy), "--fleet", "netns",
+                                            "--zenoh-connect", endpoint, "--out", str(out)], cwd=ROOT, stdout=log,
+                                           stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
         time.sleep(1.0)
         own = os.readlink("/proc/self/ns/net")
         unit_ns = {u: os.readlink(f"/proc/{session.run.processes[f'unit{u}'].pid}/ns/net") for u in UNITS}
         assert len(set(unit_ns.values())) == 6 and own not in unit_ns.values()  # six namespaces, none ours
         code = session.wait(150)
+        assert coordinator.wait(30) == 0, (out / "coordinator.log").read_text()[-500:]
     finally:
+        if coordinator is not None and coordinator.poll() is None:
+            coordinator.kill()
+            coordinator.wait()
         router.close()
     assert code == 0, [(out / f"{n}.log").read_text()[-300:] for n in session.run.processes]
+    assert json.loads((out / "coordinator_summary.json").read_text())["lost_units"] == []
     sitl = summarize_sitl_run(sc, out, 4, 0.0, link, plots=False)
     assert sitl["completed"] and sitl["sitl"]["dead_units"] == []
     inproc = run_scenario(sc, tmp_path / "inproc", seed=4, plots=False)
