@@ -20,8 +20,6 @@ from scipy.linalg import lapack
 BAND = 6  # lower = upper bandwidth of A
 _FACT = np.array([[1, 1, 1, 1, 1, 1], [0, 1, 2, 3, 4, 5], [0, 0, 2, 6, 12, 20],
                   [0, 0, 0, 6, 24, 60], [0, 0, 0, 0, 24, 120], [0, 0, 0, 0, 0, 120]], dtype=float)
-_POW = np.array([[0, 1, 2, 3, 4, 5], [0, 0, 1, 2, 3, 4], [0, 0, 0, 1, 2, 3],
-                 [0, 0, 0, 0, 1, 2], [0, 0, 0, 0, 0, 1], [0, 0, 0, 0, 0, 0]])
 
 
 def bases(t: np.ndarray, orders: int) -> np.ndarray:
