@@ -1,6 +1,6 @@
 """Planning evidence (issue 7): walls-map table, replay of the published planner CSVs, forest sweep.
 
-    python tools/planning_eval.py [--what walls,replay,forest] [--seeds 20] [--density 4] [--out runs/planning_eval]
+    python tools/planning_eval.py [--what walls,replay,forest] [--seeds 20] [--density 10] [--flight-seeds 3] [--out runs/planning_eval]
 
 Walls: for 4x1 (unit 3 failed), 4x1 (unit 4 failed), 3x2 (unit 2 failed) both planners plan on the
 paper's walls at 2.3 m; each plan is flown with FTC (cascaded + hybrid allocation with sensor noise,
