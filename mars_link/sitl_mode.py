@@ -6,8 +6,7 @@ endpoints given: peers on 127.0.0.1 (world and coordinator listen, units connect
 session hosted by this process (closed when the run ends, also on Ctrl-C) that the children join.
 
 `run_sitl_scenario` flies a scenario that way (lockstep: the same flight as inproc for the same seed;
-the coordinator is not told the faults unless the scenario file sets [control] faults_known; rotor
-thrust bounded to what the unit firmware accepts, [0, full scale], when the preset has no bounds)
+the coordinator is not told the faults unless the scenario file sets [control] faults_known)
 and writes the inproc outputs: summary.json (mode "sitl", plus a "sitl" block: transport, dead units,
 drops, command age at the motor), telemetry.csv from the world's truth (estimate columns empty: the
 estimate lives in the coordinator process), rotors.csv and the force integral from the units' .tlogs
@@ -185,7 +184,6 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     seed = scenario.sim.seed if seed is None else seed
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
         scenario = replace(scenario, faults_known=False)
-    scenario = _firmware_thrust_bounds(scenario)
     out.mkdir(parents=True, exist_ok=True)
     copy = write_scenario_copy(_absolute_paths(scenario), out / "scenario.toml")
     wall0 = time.perf_counter()
@@ -200,23 +198,6 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
         logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
         raise RuntimeError(f"SITL run failed (exit {code}); process logs in {out}: {logs}")
     return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime)
-
-
-def _firmware_thrust_bounds(scenario):
-    """The unit firmware accepts per-rotor commands in [0, full scale] only (firmware_models/rotor_intake.py):
-    a preset without bounds gets those, so the coordinator allocates within what the units will fly."""
-    v = scenario.model().vehicle
-    if v.rotor_min_thrust_n is not None and v.rotor_max_thrust_n is not None:
-        return scenario
-    options = dict(scenario.vehicle_options)
-    if v.rotor_min_thrust_n is None:
-        options["rotor_min_thrust_n"] = 0.0
-    if v.rotor_max_thrust_n is None:
-        options["rotor_max_thrust_n"] = v.full_scale_thrust_n
-    print(f"note: --mode sitl bounds rotor thrust to [{options.get('rotor_min_thrust_n', v.rotor_min_thrust_n)}, "
-          f"{options.get('rotor_max_thrust_n', v.rotor_max_thrust_n):.4f}] N, what the unit firmware accepts; "
-          "--mode inproc flies the same with these [vehicle] rotor_min_thrust_n / rotor_max_thrust_n", file=sys.stderr)
-    return replace(scenario, vehicle_options=options)
 
 
 def _sets_faults_known(scenario) -> bool:

@@ -1,11 +1,7 @@
 """`mars-link run --mode sitl`: the scenario through the multi-process SITL (world, six unit firmware
-processes, coordinator; MAVLink frames on Zenoh through a router session, lockstep) flies the same flight
+processes, coordinator; MAVLink frames on Zenoh between peer sessions, lockstep) flies the same flight
 as `--mode inproc` for the same seed. The 3x2 spiral is cut to its first 2 s to keep the test short
-(process start-up dominates; the lockstep makes every later step the same kind of exchange).
-
-The unit firmware drops per-rotor commands outside 0..1 of full scale (firmware_models/rotor_intake.py)
-while the unbounded mars-ftcc allocation asks for negative thrust in the spiral's first steps, so
---mode sitl bounds an unbounded preset to [0, full scale]; inproc with the same bounds is the reference."""
+(process start-up dominates; the lockstep makes every later step the same kind of exchange)."""
 
 from __future__ import annotations
 
@@ -30,9 +26,6 @@ def test_sitl_over_zenoh_matches_inproc_within_1mm_on_the_3x2_spiral(tmp_path: P
     sc = load_scenario(str(SPIRAL))
     sc.sim.duration_s = DURATION_S
     sitl = run_sitl_scenario(sc, tmp_path / "sitl", seed=5, link=LinkSpec("zenoh"), timeout_s=150, plots=False)
-    full_scale = sc.model().vehicle.full_scale_thrust_n
-    assert sitl["sitl"]["rotor_bounds_n"] == [0.0, full_scale]  # what the firmware accepts, added for SITL
-    sc.vehicle_options = {"rotor_min_thrust_n": 0.0, "rotor_max_thrust_n": full_scale}
     inproc = run_scenario(sc, tmp_path / "inproc", seed=5, plots=False)
 
     assert sitl["mode"] == "sitl" and sitl["sitl"]["transport"] == "zenoh"
