@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -61,22 +60,21 @@ class SitlSession:
 def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, seed: int | None = None,
                units: int | None = None, layout: str | None = None, realtime: bool = False,
                clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units"),
-               topology: str = "peer") -> SitlSession:
-    """Start the SITL processes on `link` (default Zenoh). `unit_prefix(u)` -> argv to run unit u under
-    (e.g. `ip netns exec NS`); `roles` leaves some out (e.g. a coordinator started elsewhere).
+               topology: str = "peer", signing_key_file: str | None = None) -> SitlSession:
+    """Start the SITL processes (sitl.launcher.start) with their links on `link` (default Zenoh).
+    `unit_prefix(u)` -> argv to run unit u under (e.g. `ip netns exec NS`); `roles` may leave out the
+    coordinator (one started elsewhere attaches).
 
     Zenoh without connect endpoints: `topology` "peer" (default, one hop): the world and the coordinator
     listen on 127.0.0.1, the coordinator connects to the world, units connect to both; "router": this
     process hosts a router session every child joins as a client (two hops; what an external
     coordinator attaches to)."""
-    from sitl.launcher import ClientPorts, SitlRun, free_udp_port
+    from sitl.launcher import ClientPorts, start
     from sitl.lockstep import load_setup
 
     link = link or LinkSpec("zenoh")
     setup = load_setup(scenario, units, layout)
-    out.mkdir(parents=True, exist_ok=True)
-    clients = clients or ClientPorts(bind_any=True)
-    session = SitlSession(SitlRun(out, setup, free_udp_port(), free_udp_port() if setup.docked else 0, clients), link)
+    session = SitlSession(None, link)
     role_links = {role: link for role in ("world", "coordinator", "unit")}
     if link.kind == "zenoh" and not link.connect:
         from mars_link.transport.zenoh_link import free_tcp_port, open_router
@@ -92,37 +90,14 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
                           "unit": replace(link, zenoh_mode="peer", connect=(w, c))}
         else:
             raise UserInputError(f"zenoh topology {topology!r}: expected peer or router")
-    run = session.run
-    common = [scenario or "-", "--world-port", str(run.world_port), "--coordinator-port", str(run.coordinator_port),
-              "--out", str(out), "--control-period-s", repr(1.0 / setup.scenario.sim.control_hz)]
-    if units is not None:
-        common += ["--units", str(units)]
-    if layout is not None:
-        common += ["--layout", layout]
-    if realtime:
-        common.append("--realtime")
-    elif speed is not None:
-        common += ["--speed", repr(float(speed))]
-
-    def spawn(name: str, argv: list[str], prefix: list[str] = ()) -> None:
-        with open(out / f"{name}.log", "w") as log:
-            run.processes[name] = subprocess.Popen([*prefix, *CHILD, *argv], stdout=log, stderr=subprocess.STDOUT,
-                                                   stdin=subprocess.DEVNULL)
-
+    tap = ["--control-period-s", repr(1.0 / setup.scenario.sim.control_hz)]
+    role_args = {role: [*spec.to_args(), *tap] for role, spec in role_links.items()}
     try:
-        if setup.docked and "coordinator" in roles:
-            spawn("coordinator", ["coordinator", *common, *role_links["coordinator"].to_args()])
-        if "world" in roles:
-            spawn("world", ["world", *common, *role_links["world"].to_args()] + ([] if seed is None else ["--seed", str(seed)]))
-        if "units" in roles:
-            for i, u in enumerate(setup.unit_ids):
-                argv = ["unit", *common, *role_links["unit"].to_args(), "--unit", str(u), "--gcs-port", str(clients.gcs_port),
-                        "--api-port", str(clients.api_port(i))]
-                if clients.bind_any:
-                    argv += ["--gcs-bind", "0", "--api-bind", "0"]
-                spawn(f"unit{u}", argv, list(unit_prefix(u)) if unit_prefix else [])
+        session.run = start(scenario, out, units, layout, seed, 1.0 if realtime else speed,
+                            clients or ClientPorts(bind_any=True), signing_key_file, child=CHILD, role_args=role_args,
+                            unit_prefix=unit_prefix, skip=() if "coordinator" in roles else ("coordinator",))
     except BaseException:
-        session.stop()
+        session.close()
         raise
     return session
 
@@ -499,7 +474,8 @@ def sitl_up_command(args, scenario_path: str | None, out: Path) -> int:
     try:
         session = start_sitl(scenario_path, out, link, args.seed, units=units, layout=layout, realtime=args.realtime,
                              clients=clients, speed=getattr(args, "speed", None), roles=roles,
-                             topology="router" if args.external_coordinator else "peer")
+                             topology="router" if args.external_coordinator else "peer",
+                             signing_key_file=getattr(args, "signing_key_file", None))
         for line in _endpoints(session, link):
             print(line, flush=True)
         if link.kind == "zenoh":
@@ -508,6 +484,8 @@ def sitl_up_command(args, scenario_path: str | None, out: Path) -> int:
                   + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>", flush=True)
         if args.external_coordinator:
             attach = f"mars-link coordinator {scenario_path or ''} --out {out}"
+            if getattr(args, "signing_key_file", None):
+                attach += f" --signing-key-file {Path(args.signing_key_file).resolve()}"
             attach += (f" --transport zenoh --zenoh-connect {(link.listen or (session.router_endpoint,))[0]}" if link.kind == "zenoh"
                        else f" --transport udp --world-port {session.run.world_port} --coordinator-port {session.run.coordinator_port}")
             print(f"waiting for a coordinator: {attach}", flush=True)
@@ -541,6 +519,7 @@ def add_coordinator_arguments(p) -> None:
     p.add_argument("--out", default=".", help="where coordinator_summary.json goes")
     p.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port (printed by sitl up)")
     p.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to")
+    p.add_argument("--signing-key-file", default=None, help="sign the unit links (else $MARS_LINK_SIGNING_KEY)")
     _add_link_options(p, "zenoh")
 
 
@@ -560,4 +539,9 @@ def cmd_coordinator(args) -> int:
     # on Zenoh the ports only name the nodes (world: an id above the unit range; own socket: any free port)
     argv = ["coordinator", str(path), "--world-port", str(args.world_port or 1000),
             "--coordinator-port", str(args.coordinator_port), "--out", args.out, *link.to_args()]
+    if args.signing_key_file:
+        from firmware_models.signing import load_key
+
+        load_key(args.signing_key_file)  # a bad key file: one line, exit 2
+        argv += ["--signing-key-file", str(Path(args.signing_key_file).resolve())]
     return child_main(argv)

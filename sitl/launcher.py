@@ -83,9 +83,13 @@ class SitlRun:
 
 def start(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
           seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
-          signing_key_file: str | None = None) -> SitlRun:
+          signing_key_file: str | None = None, child: list[str] | None = None,
+          role_args: dict[str, list[str]] | None = None, unit_prefix=None, skip: tuple[str, ...] = ()) -> SitlRun:
     """Start every process of one run (returns at once; `wait` follows it). The coordinator <-> unit
-    links are signed with the key of `signing_key_file`, else of $MARS_LINK_SIGNING_KEY (inherited)."""
+    links are signed with the key of `signing_key_file`, else of $MARS_LINK_SIGNING_KEY (inherited).
+    Hooks for other wirings (mars_link.sitl_mode): `child` replaces `python -m sitl.lockstep`,
+    `role_args` adds arguments per role ("world", "coordinator", "unit"), `unit_prefix(u)` is an argv
+    to run unit u under (e.g. `ip netns exec NS`), `skip` leaves roles out (a coordinator run elsewhere)."""
     setup = load_setup(scenario, units, layout)  # refuses bad input before any process starts
     load_key(signing_key_file)  # a bad key file too
     out.mkdir(parents=True, exist_ok=True)
@@ -103,29 +107,31 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
         common += ["--steps", str(setup.steps)]
     if signing_key_file is not None:
         common += ["--signing-key-file", str(Path(signing_key_file).resolve())]
-    py = [sys.executable, "-m", "sitl.lockstep"]
+    py = list(child) if child else [sys.executable, "-m", "sitl.lockstep"]
+    extra = role_args or {}
 
-    def spawn(name: str, argv: list[str], sock: socket.socket | None = None) -> None:
+    def spawn(name: str, argv: list[str], sock: socket.socket | None = None, prefix: list[str] = ()) -> None:
         fds = () if sock is None else (sock.fileno(),)
         with open(out / f"{name}.log", "w") as log:
-            run.processes[name] = subprocess.Popen(py + argv, stdout=log, stderr=subprocess.STDOUT,
+            run.processes[name] = subprocess.Popen([*prefix, *py, *argv], stdout=log, stderr=subprocess.STDOUT,
                                                    stdin=subprocess.DEVNULL, pass_fds=fds)
 
     try:
-        if coord_sock is not None:
-            spawn("coordinator", ["coordinator", *common, "--coordinator-fd", str(coord_sock.fileno())], coord_sock)
+        if coord_sock is not None and "coordinator" not in skip:
+            spawn("coordinator", ["coordinator", *common, "--coordinator-fd", str(coord_sock.fileno()),
+                                  *extra.get("coordinator", [])], coord_sock)
         world = ["world", *common, "--world-fd", str(world_sock.fileno()), "--position-every", str(position_every(setup))]
         world += [] if seed is None else ["--seed", str(seed)]
         if setup.docked:
             com, yaw = _start_pose(setup)
             world.append("--start-pose=" + ",".join(repr(float(x)) for x in (*com, yaw)))  # "=": may start with "-"
-        spawn("world", world + ([] if speed is None else ["--speed", str(speed)]), world_sock)
+        spawn("world", world + ([] if speed is None else ["--speed", str(speed)]) + extra.get("world", []), world_sock)
         for i, u in enumerate(setup.unit_ids):
             argv = ["unit", *common, "--unit", str(u), "--gcs-port", str(clients.gcs_port),
                     "--api-port", str(clients.api_port(i))]
             if clients.bind_any:
                 argv += ["--gcs-bind", "0", "--api-bind", "0"]
-            spawn(f"unit{u}", argv)
+            spawn(f"unit{u}", argv + extra.get("unit", []), prefix=list(unit_prefix(u)) if unit_prefix else [])
     except BaseException:
         run.stop()
         raise

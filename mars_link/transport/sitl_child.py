@@ -113,8 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         lockstep_argv += ["--out", args.out]
     if args.realtime:
         lockstep_argv += ["--speed", "1"]
-    if spec.kind != "udp" or args.realtime:
-        install(spec, AddressMap(args.world_port, args.coordinator_port), args.control_period_s)
+    install(spec, AddressMap(args.world_port, args.coordinator_port), args.control_period_s)  # UDP: taps only
     import sitl.lockstep as lockstep
 
     try:
