@@ -12,7 +12,7 @@
 3. Per-frame cost per transport: pymavlink pack and parse, frame validation, and one frame's send ->
    receive inside one process (UDP sockets, two Zenoh peer sessions, two through a router, a pty pair).
 
-    python benchmarks/bench_transport.py [--cycles 1000] [--realtime-s 5] [--skip-sitl]
+    python benchmarks/bench_transport.py [--cycles 1000] [--realtime-s 5] [--cpu-s 10] [--skip-sitl]
 """
 
 from __future__ import annotations
@@ -155,7 +155,7 @@ def bench_realtime(kind: str, seconds: float, profile: str | None = None) -> dic
 
 def bench_step_cpu(kind: str, seconds: float) -> dict:
     """CPU time (user + system, all eight processes) per 100 Hz lockstep step of the 3x2 hover: a run of
-    `seconds` minus a 5-step run, so start-up is left out."""
+    `seconds` minus a 1 s run, so start-up (about 0.6 CPU-s per process, and noisy) is left out."""
     from mars_link.scenario import load_scenario
     from mars_link.sitl_mode import start_sitl, write_scenario_copy
     from mars_link.transport import LinkSpec
@@ -180,7 +180,7 @@ def bench_step_cpu(kind: str, seconds: float) -> dict:
             steps = json.loads((out / "world_summary.json").read_text())["steps"]
         return sum(cpu.values()), steps
 
-    c0, n0 = run(0.05)
+    c0, n0 = run(1.0)
     c1, n1 = run(seconds)
     return {"transport": kind, "cpu_ms_per_step": (c1 - c0) / (n1 - n0) * 1e3}
 
@@ -242,6 +242,7 @@ def main() -> int:
     ap.add_argument("--cycles", type=int, default=1000)
     ap.add_argument("--realtime-s", type=float, default=5.0)
     ap.add_argument("--frames", type=int, default=2000)
+    ap.add_argument("--cpu-s", type=float, default=10.0, help="sim seconds of the CPU-per-step run")
     ap.add_argument("--skip-sitl", action="store_true")
     args = ap.parse_args()
     if args.relay:
@@ -255,7 +256,7 @@ def main() -> int:
         print(f"command latency coordinator -> unit -> world, {r['transport']:12s}: p50 {r['p50_ms']:.3f} ms, "
               f"p99 {r['p99_ms']:.3f} ms, max {r['max_ms']:.3f} ms ({r['n']} commands, 6 unit processes, 100 Hz)")
     if not args.skip_sitl:
-        results["step_cpu"] = [bench_step_cpu(k, args.realtime_s) for k in ("zenoh", "udp")]
+        results["step_cpu"] = [bench_step_cpu(k, args.cpu_s) for k in ("zenoh", "udp")]
         for r in results["step_cpu"]:
             print(f"lockstep SITL CPU per 100 Hz step (world + 6 units + coordinator), {r['transport']:5s}: "
                   f"{r['cpu_ms_per_step']:.2f} ms")

@@ -92,6 +92,8 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
             raise UserInputError(f"zenoh topology {topology!r}: expected peer or router")
     tap = ["--control-period-s", repr(1.0 / setup.scenario.sim.control_hz)]
     role_args = {role: [*spec.to_args(), *tap] for role, spec in role_links.items()}
+    if realtime:  # the units then measure the command age also on UDP
+        role_args["unit"].append("--realtime")
     try:
         session.run = start(scenario, out, units, layout, seed, 1.0 if realtime else speed,
                             clients or ClientPorts(bind_any=True), signing_key_file, child=CHILD, role_args=role_args,

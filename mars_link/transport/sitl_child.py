@@ -113,7 +113,8 @@ def main(argv: list[str] | None = None) -> int:
         lockstep_argv += ["--out", args.out]
     if args.realtime:
         lockstep_argv += ["--speed", "1"]
-    install(spec, AddressMap(args.world_port, args.coordinator_port), args.control_period_s)  # UDP: taps only
+    if spec.kind != "udp" or args.realtime:  # Zenoh: swap the links; UDP in real time: tap them (command age)
+        install(spec, AddressMap(args.world_port, args.coordinator_port), args.control_period_s)
     import sitl.lockstep as lockstep
 
     try:
