@@ -165,9 +165,13 @@ def cmd_sitl(args) -> int:
         path = str(resolve_scenario_path(args.scenario))
         name = Path(path).stem
     setup = load_setup(path, args.units, args.layout)  # refuse bad input before starting any process
+    vehicle = _vehicle_ports(args, setup)
     out = Path(args.out) if args.out else _default_out(name + "-sitl")
     if getattr(args, "transport", None) not in (None, "udp") or getattr(args, "external_coordinator", False) \
             or getattr(args, "realtime", False) or getattr(args, "link_profile", None):
+        if vehicle is not None:
+            raise UserInputError("--vehicle runs on the plain UDP set-up only (no --transport zenoh, --realtime, "
+                                 "--link-profile or --external-coordinator; it is paced to real time already)")
         from mars_link.sitl_mode import sitl_up_command
 
         return sitl_up_command(args, path, out)
@@ -179,9 +183,25 @@ def cmd_sitl(args) -> int:
             raise UserInputError(f"{name} must be 1..65535, got {port}")
     clients = ClientPorts(args.gcs_port, [args.api_port + i for i in range(n)], args.any_bind)
     code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,
-                   signing_key_file=args.signing_key_file)
+                   signing_key_file=args.signing_key_file, vehicle=vehicle)
     print(f"run directory: {out}")
     return code
+
+
+def _vehicle_ports(args, setup):
+    """`sitl up --vehicle` options -> sitl.vehicle_host.VehiclePorts (None without --vehicle)."""
+    if not args.vehicle:
+        return None
+    from sitl.vehicle_host import VEHICLE_API_BIND, VEHICLE_GCS_BIND, VehiclePorts
+
+    if not setup.docked:
+        raise UserInputError("--vehicle needs a docked assembly (a scenario or --layout), not --units")
+    if args.speed is not None and args.speed <= 0:
+        raise UserInputError("--vehicle is flown in real time: --speed must be > 0")
+    ports = VehiclePorts(args.vehicle_sysid, args.gcs_port if args.vehicle_gcs_port is None else args.vehicle_gcs_port,
+                         args.vehicle_api_port, 0 if args.any_bind else VEHICLE_GCS_BIND, 0 if args.any_bind else VEHICLE_API_BIND)
+    ports.check(setup.unit_ids)
+    return ports
 
 
 def cmd_vehicle(args) -> int:
@@ -227,6 +247,18 @@ def build_parser() -> argparse.ArgumentParser:
                       help="sign the coordinator <-> unit links with this key (else $MARS_LINK_SIGNING_KEY)")
     sitl.add_argument("--any-bind", action="store_true",
                       help="bind the units' client sockets to free ports instead of PX4's 18570+i / 14580+i")
+    from sitl.vehicle_host import DEFAULT_VEHICLE_API_PORT, DEFAULT_VEHICLE_SYSID
+
+    sitl.add_argument("--vehicle", action="store_true",
+                      help="the docked assembly as ONE MAVLink vehicle (served by the coordinator; arm, takeoff, "
+                           "offboard, land from MAVSDK/QGC); runs in real time until Ctrl-C")
+    sitl.add_argument("--vehicle-sysid", type=int, default=DEFAULT_VEHICLE_SYSID,
+                      help=f"with --vehicle: its MAVLink system id (default {DEFAULT_VEHICLE_SYSID})")
+    sitl.add_argument("--vehicle-api-port", type=int, default=DEFAULT_VEHICLE_API_PORT,
+                      help=f"with --vehicle: MAVSDK's port (default {DEFAULT_VEHICLE_API_PORT}: udpin://127.0.0.1:"
+                           f"{DEFAULT_VEHICLE_API_PORT})")
+    sitl.add_argument("--vehicle-gcs-port", type=int, default=None,
+                      help="with --vehicle: its ground-station port (default: --gcs-port, 14550)")
     sitl.set_defaults(func=cmd_sitl)
     from mars_link.sitl_mode import add_sitl_up_arguments
 

@@ -84,12 +84,14 @@ class SitlRun:
 def start(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
           seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
           signing_key_file: str | None = None, child: list[str] | None = None,
-          role_args: dict[str, list[str]] | None = None, unit_prefix=None, skip: tuple[str, ...] = ()) -> SitlRun:
+          role_args: dict[str, list[str]] | None = None, unit_prefix=None, skip: tuple[str, ...] = (),
+          forever: bool = False) -> SitlRun:
     """Start every process of one run (returns at once; `wait` follows it). The coordinator <-> unit
     links are signed with the key of `signing_key_file`, else of $MARS_LINK_SIGNING_KEY (inherited).
     Hooks for other wirings (mars_link.sitl_mode): `child` replaces `python -m sitl.lockstep`,
     `role_args` adds arguments per role ("world", "coordinator", "unit"), `unit_prefix(u)` is an argv
-    to run unit u under (e.g. `ip netns exec NS`), `skip` leaves roles out (a coordinator run elsewhere)."""
+    to run unit u under (e.g. `ip netns exec NS`), `skip` leaves roles out (a coordinator run elsewhere);
+    `forever`: a docked run goes on until stopped (a flight flown from a ground station)."""
     setup = load_setup(scenario, units, layout)  # refuses bad input before any process starts
     load_key(signing_key_file)  # a bad key file too
     out.mkdir(parents=True, exist_ok=True)
@@ -104,7 +106,9 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
     if layout is not None:
         common += ["--layout", layout]
     if setup.docked:
-        common += ["--steps", str(setup.steps)]
+        common += ["--steps", str(setup.steps)] + (["--forever"] if forever else [])
+    if forever:
+        setup.steps = None
     if signing_key_file is not None:
         common += ["--signing-key-file", str(Path(signing_key_file).resolve())]
     py = list(child) if child else [sys.executable, "-m", "sitl.lockstep"]
@@ -180,15 +184,25 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
 
 def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
             seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
-            signing_key_file: str | None = None) -> int:
-    """`mars-link sitl up`: start, print the endpoints, run until the end, Ctrl-C or a child's death."""
+            signing_key_file: str | None = None, vehicle=None) -> int:
+    """`mars-link sitl up`: start, print the endpoints, run until the end, Ctrl-C or a child's death.
+    With `vehicle` (sitl.vehicle_host.VehiclePorts) the coordinator serves the docked assembly as one
+    MAVLink vehicle and the run goes on, paced to real time (unless `speed`), until stopped."""
     previous = signal.getsignal(signal.SIGTERM)
     signal.signal(signal.SIGTERM, _raise_interrupt)
     run = None
     try:
-        run = start(scenario, out, units, layout, seed, speed, clients, signing_key_file)
+        if vehicle is None:
+            run = start(scenario, out, units, layout, seed, speed, clients, signing_key_file)
+        else:
+            run = start(scenario, out, units, layout, seed, 1.0 if speed is None else speed, clients, signing_key_file,
+                        role_args={"coordinator": vehicle.argv()}, forever=True)
         for line in run.endpoints():
             print(line, flush=True)
+        if vehicle is not None:
+            print(f"assembly vehicle: MAVLink system {vehicle.sysid} component 1 (served by the coordinator), "
+                  f"GCS udp {LOOPBACK}:{vehicle.gcs_port}, API udp {LOOPBACK}:{vehicle.api_port} "
+                  f"(MAVSDK udpin://{LOOPBACK}:{vehicle.api_port}), log {out / 'vehicle.tlog'}", flush=True)
         steps = run.setup.steps
         sc = run.setup.scenario
         print(f"running {'until Ctrl-C' if steps is None else f'{steps / sc.sim.control_hz:.1f} s of sim time'}; "

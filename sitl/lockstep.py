@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import math
 import signal
@@ -511,8 +512,10 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
 
 # ----------------------------------------------------------------------------- coordinator
 def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S,
-                    key: bytes | None = None) -> int:
-    """Drive the docked assembly; with a signing `key` its link to the units is signed both ways."""
+                    key: bytes | None = None, vehicle=None) -> int:
+    """Drive the docked assembly; with a signing `key` its link to the units is signed both ways.
+    With `vehicle` (sitl.vehicle_host.VehiclePorts) the assembly is one MAVLink vehicle on those ports
+    and its guidance, not the scenario's trajectory, is the coordinator's reference."""
     from mars_link.coordinator import Coordinator
     from mars_link.runner import eta_after, make_controller
 
@@ -522,13 +525,26 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     faults = sorted(sc.faults, key=lambda f: f.t_s)
     eta0 = eta_after(model, faults, 0.0) if sc.faults_known else model.nominal_eta()
     estimator = detector = None
-    if sc.sim.noise:
+    if sc.sim.noise and vehicle is None:  # (the hosted vehicle runs its own, also while disarmed)
         from mars_link.estimation import AssemblyEstimator
 
         estimator = AssemblyEstimator(model)
     if not sc.faults_known:
         detector = _fault_detector(model, float(_start_pose(setup)[0][2]))
-    coordinator = Coordinator(model, trajectory, make_controller(sc, model, eta0), estimator, detector)
+    hosted = None
+    if vehicle is not None:
+        from sitl.vehicle_host import HostedVehicle
+
+        out.mkdir(parents=True, exist_ok=True)
+        try:
+            hosted = HostedVehicle(sc, model, make_controller(sc, model, eta0), detector, vehicle, out)
+        except UserInputError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        coordinator = hosted.coordinator
+        print(json.dumps({"vehicle": hosted.endpoints()}), flush=True)
+    else:
+        coordinator = Coordinator(model, trajectory, make_controller(sc, model, eta0), estimator, detector)
     stop = _Stop()
     link = Link(ports.coordinator, COORDINATOR_SYSID, fd=ports.coordinator_fd, key=key)
     scale = model.vehicle.full_scale_thrust_n
@@ -544,7 +560,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         world = (LOOPBACK, ports.world)
         link.heartbeat(world)
         next_hello = time.monotonic() + 0.2
-        for k in range(setup.steps):
+        for k in (range(setup.steps) if setup.steps is not None else itertools.count()):
             if stop.requested:
                 break
             packets: dict[int, SensorPacket] = {}
@@ -560,7 +576,10 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                 if k == 0 and not packets and now >= next_hello:  # hello until the world starts
                     link.heartbeat(world)
                     next_hello = now + 0.2
-                for m in link.receive(min(0.2, (deadline or idle_deadline) - now)):
+                if hosted is not None:  # client links and wall-clock heartbeats while the lockstep waits
+                    hosted.serve()
+                wait_s = min(0.2 if hosted is None else 0.01, (deadline or idle_deadline) - now)
+                for m in link.receive(wait_s):
                     if m.get_type() == "COMMAND_ACK":
                         if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in accepted:
                             accepted[m.get_srcSystem()].add(m.command)
@@ -598,7 +617,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     next_fault += 1
                     coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
             ordered = [packets[u] for u in sorted(packets)]
-            for cmd in coordinator.step(t, ordered):
+            commands = coordinator.step(t, ordered) if hosted is None else hosted.step(t, ordered, live)
+            for cmd in commands:
                 if cmd.unit_id in live:
                     link.send_many(_with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale)),
                                    link.peers[cmd.unit_id])
@@ -608,6 +628,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
              "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}}, indent=2, default=float) + "\n")
     finally:
         link.close()
+        if hosted is not None:
+            hosted.close()
     return 0
 
 
@@ -657,6 +679,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--api-port", type=int, default=None)
     ap.add_argument("--gcs-bind", type=int, default=None)
     ap.add_argument("--api-bind", type=int, default=None)
+    ap.add_argument("--forever", action="store_true", help="docked: run until stopped (ignores --steps)")
+    ap.add_argument("--vehicle", action="store_true", help="coordinator: serve the assembly as one MAVLink vehicle")
+    ap.add_argument("--vehicle-sysid", type=int, default=None)
+    ap.add_argument("--vehicle-gcs-port", type=int, default=None)
+    ap.add_argument("--vehicle-api-port", type=int, default=None)
+    ap.add_argument("--vehicle-gcs-bind", type=int, default=None)
+    ap.add_argument("--vehicle-api-bind", type=int, default=None)
     args = ap.parse_args(argv)
     try:
         setup = load_setup(args.scenario, args.units, args.layout, args.steps)
@@ -664,6 +693,8 @@ def main(argv: list[str] | None = None) -> int:
     except UserInputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    if args.forever:
+        setup.steps = None
     ports = Ports(args.world_port, args.coordinator_port, args.world_fd, args.coordinator_fd)
     out = Path(args.out)
     if args.role == "world":
@@ -685,7 +716,19 @@ def main(argv: list[str] | None = None) -> int:
         except UserInputError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
-    return run_coordinator(setup, ports, out, key=key)
+    vehicle = None
+    if args.vehicle:
+        from sitl.vehicle_host import VehiclePorts
+
+        given = {"sysid": args.vehicle_sysid, "gcs_port": args.vehicle_gcs_port, "api_port": args.vehicle_api_port,
+                 "gcs_bind": args.vehicle_gcs_bind, "api_bind": args.vehicle_api_bind}
+        vehicle = VehiclePorts(**{k: v for k, v in given.items() if v is not None})
+        try:
+            vehicle.check(setup.unit_ids)
+        except UserInputError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+    return run_coordinator(setup, ports, out, key=key, vehicle=vehicle)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,156 @@
+"""The docked assembly as ONE MAVLink vehicle inside the lockstep coordinator process (`sitl up --vehicle`).
+
+The coordinator keeps its lockstep job (unit telemetry in, per-rotor commands out); what changes is
+where its trajectory comes from: an `AssemblyVehicle` (mars_link.assembly_vehicle) whose guidance
+(takeoff, hold, offboard, land) sets the coordinator's `SetpointSource`. Ground stations see the
+assembly on its own system id (default 202, above the units' range, ARCHITECTURE.md) and ports:
+
+  gcs  the vehicle sends to --vehicle-gcs-port (default 14550) from bind 18560
+  api  the vehicle sends to --vehicle-api-port (default 14539, next to the units' 14540+i) from bind 14560
+
+Both sockets are non-blocking and served from the coordinator's wait loop, so heartbeats and streams
+go out on wall time even while the lockstep waits for the units. The estimate is computed every step
+(also while disarmed, for telemetry) and handed to the coordinator, which then runs no EKF of its own.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mars_link.errors import UserInputError
+from mars_link.messages import RotorCommand, SensorPacket
+from mars_link.state import RigidBodyState
+
+DEFAULT_VEHICLE_SYSID = 202
+DEFAULT_VEHICLE_API_PORT = 14539
+VEHICLE_GCS_BIND, VEHICLE_API_BIND = 18560, 14560  # below the units' 18570+i / 14580+i
+TICK_PERIOD_S = 0.02  # heartbeats and streams (<= 20 Hz) on this wall-clock grid
+STATUS_PERIOD_S = 0.2
+RESERVED_SYSIDS = (200, 201)  # world, coordinator
+
+
+@dataclass
+class VehiclePorts:
+    sysid: int = DEFAULT_VEHICLE_SYSID
+    gcs_port: int = 14550
+    api_port: int = DEFAULT_VEHICLE_API_PORT
+    gcs_bind: int = VEHICLE_GCS_BIND  # 0: any free port
+    api_bind: int = VEHICLE_API_BIND
+
+    def argv(self) -> list[str]:
+        """The coordinator's command-line arguments for these ports."""
+        return ["--vehicle", "--vehicle-sysid", str(self.sysid), "--vehicle-gcs-port", str(self.gcs_port),
+                "--vehicle-api-port", str(self.api_port), "--vehicle-gcs-bind", str(self.gcs_bind),
+                "--vehicle-api-bind", str(self.api_bind)]
+
+    def check(self, unit_ids: list[int]) -> None:
+        """Every problem as one UserInputError (before any process starts)."""
+        if not 1 <= self.sysid <= 250 or self.sysid in RESERVED_SYSIDS or self.sysid in unit_ids:
+            raise UserInputError(f"--vehicle-sysid must be 1..250, not 200/201 (world, coordinator) and not a unit's "
+                                 f"id ({min(unit_ids)}..{max(unit_ids)}), got {self.sysid}")
+        for name, port, lo in (("--vehicle-gcs-port", self.gcs_port, 1), ("--vehicle-api-port", self.api_port, 1),
+                               ("vehicle gcs bind", self.gcs_bind, 0), ("vehicle api bind", self.api_bind, 0)):
+            if not lo <= port <= 65535:
+                raise UserInputError(f"{name} must be {lo}..65535, got {port}")
+
+
+class HostedVehicle:
+    """AssemblyVehicle + its client sockets, stepped by the lockstep coordinator."""
+
+    def __init__(self, scenario, model, controller, detector, ports: VehiclePorts, out: Path) -> None:
+        from firmware_models.vehicle import LINK_API, LINK_GCS
+        from firmware_models.vehicle_io import LOOPBACK, LinkSpec, VehicleSockets
+        from mars_link.assembly_vehicle import AssemblyVehicle, SetpointSource, _KnownEstimate, vehicle_scenario
+        from mars_link.coordinator import Coordinator
+        from mars_link.trajectories import TrajectoryPoint
+
+        self.scenario = sc = vehicle_scenario(scenario)  # refuses [reconfig]; setpoints are for the CoM
+        if sc.controller != "cascaded":
+            raise UserInputError(f"controller {sc.controller!r}: the vehicle flies setpoints with 'cascaded' only")
+        self.model = model
+        self.estimator = None
+        if sc.sim.noise:
+            from mars_link.estimation import AssemblyEstimator
+
+            self.estimator = AssemblyEstimator(model)
+        self.estimator_resets = 0
+        self._known = _KnownEstimate()
+        self.coordinator = Coordinator(model, SetpointSource(TrajectoryPoint(np.zeros(3))), controller, self._known,
+                                       detector)
+        self.vehicle = AssemblyVehicle(self.coordinator, ports.sysid, sc.sim.control_hz, sc.ftc, None, time.time())
+        self.io = VehicleSockets(self.vehicle, {
+            LINK_GCS: LinkSpec(ports.gcs_bind, (LOOPBACK, ports.gcs_port)),
+            LINK_API: LinkSpec(ports.api_bind, (LOOPBACK, ports.api_port)),
+        }, out / "vehicle.tlog")
+        self.status_path = out / "vehicle_status.json"
+        self.estimate: RigidBodyState | None = None
+        self.steps = 0
+        self._next_tick = 0.0
+        self._next_status = 0.0
+
+    def endpoints(self) -> dict:
+        from firmware_models.vehicle import LINK_API, LINK_GCS
+
+        p = self.io.ports()
+        return {"sysid": self.vehicle.sysid, "gcs": {"to": self.io.dest[LINK_GCS][1], "from": p[LINK_GCS]},
+                "api": {"to": self.io.dest[LINK_API][1], "from": p[LINK_API]}}
+
+    def serve(self) -> None:
+        """Client input handled and wall-clock heartbeats/streams sent; never blocks."""
+        now = time.monotonic()
+        if now >= self._next_tick:
+            self._next_tick = now + TICK_PERIOD_S
+            self.io.send(self.vehicle.tick(time.time(), self.vehicle.sim_s))
+        self.io.poll(0.0)
+        if now >= self._next_status:
+            self._next_status = now + STATUS_PERIOD_S
+            self.write_status()
+
+    def step(self, t_s: float, packets: list[SensorPacket], live: set[int]) -> list[RotorCommand]:
+        """One control period (as AssemblySim.step): estimate, vehicle (control when flying), the
+        commands for the live units (zero thrust when disarmed)."""
+        self.vehicle.core.drive.packets = packets
+        est = self._estimate(t_s, packets)
+        self._known.estimate = est
+        if est is not None:
+            self.estimate = est
+            self.vehicle.set_state(est)
+        self.io.send(self.vehicle.tick(time.time(), t_s))
+        self.steps += 1
+        thrusts = self.vehicle.rotor_thrusts_n()
+        return [RotorCommand(t_s, u, np.asarray(thrusts[self.model.unit_slots(u)], dtype=float))
+                for u in self.model.unit_ids if u in live]
+
+    def _estimate(self, t_s: float, packets: list[SensorPacket]) -> RigidBodyState | None:
+        if self.estimator is None:
+            return next((p.truth for p in packets if p.truth is not None), None)
+        ekf = self.estimator
+        est = ekf.step(t_s, [p.imu for p in packets], [p.position for p in packets if p.position is not None])
+        if not ekf.initialised:
+            return None
+        if ekf.stats.position_resets > self.estimator_resets:
+            self.estimator_resets = ekf.stats.position_resets
+            self.vehicle.report_event({"t_s": round(t_s, 6), "type": "estimator_reset", "text": "EKF reset on positions"})
+        return est
+
+    def write_status(self) -> None:
+        from firmware_models.vehicle_io import write_json_atomic
+
+        v, est = self.vehicle, self.estimate
+        write_json_atomic(self.status_path, {
+            "sysid": v.sysid, "sim_time_s": v.sim_s, "wall_time_s": time.time(), "armed": v.armed,
+            "mode": list(v.mode), "phase": v.autopilot.phase.value, "landed": bool(v.landed),
+            "estimate_position_ned_m": None if est is None else [float(x) for x in est.position_ned_m],
+            "eta_believed": [float(x) for x in self.coordinator.eta_believed],
+            "statustext": [t for _, t in v.events[-50:]], "drops": v.drop_counts(), "stats": v.stats,
+            "estimator_resets": self.estimator_resets, "steps": self.steps, **self.io.counters(),
+            "endpoints": self.endpoints(),
+        })
+
+    def close(self) -> None:
+        self.write_status()
+        self.io.close()

@@ -1,0 +1,175 @@
+"""`mars-link sitl up hover_3x2 --vehicle`: the docked 3x2 as ONE MAVLink vehicle served by the lockstep
+coordinator process, while the six units stay separate firmware processes and the JSBSim world steps
+in lockstep, paced to real time. MAVSDK 4.x connects to the assembly's own endpoint (system 202),
+checks its telemetry against the world's truth, arms, takes off 2 m, flies offboard 1 m north and
+back, lands and disarms; every child process is gone (by PID) after `sitl up` is stopped. Bad
+--vehicle options are refused with one line before anything starts."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from firmware_models.udp_runner import free_udp_port, read_status
+from mars_link.cli import main as cli_main
+
+mavsdk = pytest.importorskip("mavsdk")
+from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
+from mavsdk.asyncio.plugins.action import ActionAsync  # noqa: E402
+from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw  # noqa: E402
+from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync  # noqa: E402
+from test_mavsdk_unit import _is, _not, _until  # noqa: E402  (the unit MAVSDK test's helpers)
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(90)]
+LOOP = "127.0.0.1"
+SYSID = 202  # the default: above the units' ids and the world (200) / coordinator (201)
+REPO = Path(__file__).resolve().parents[1]
+
+
+def truth_com_ned(out: Path) -> list[float]:
+    """The assembly's CoM from the world's truth file (mean of the six identical units' centres)."""
+    units = read_status(out / "world_status.json")["units"].values()
+    pos = [u["position_ned_m"] for u in units]
+    return [sum(p[i] for p in pos) / len(pos) for i in range(3)]
+
+
+async def _fly(api_port: int, out: Path) -> dict:
+    r: dict = {}
+    cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    async with Mavsdk(cfg) as sdk:
+        await sdk.add_any_connection(f"udpin://{LOOP}:{api_port}")
+        system = await sdk.first_autopilot(timeout_s=20.0)
+        assert system is not None, "MAVSDK did not find the assembly"
+        telemetry, action, offboard = TelemetryAsync(system), ActionAsync(system), OffboardAsync(system)
+        r["sysid"] = await system.get_system_id()
+
+        async def pv():
+            return await telemetry.position_velocity_ned()
+
+        async def error_to_truth() -> float:
+            errs = []
+            for _ in range(5):  # MAVSDK's cached position vs the truth file (both a few Hz)
+                p = (await pv()).position
+                errs.append(math.dist((p.north_m, p.east_m, p.down_m), truth_com_ned(out)))
+                await asyncio.sleep(0.1)
+            return min(errs)
+
+        await _until(lambda: telemetry.health_all_ok(), 15.0, "health_all_ok")
+        r["ground_error_m"] = await error_to_truth()
+        ground_down = truth_com_ned(out)[2]
+        await action.arm()
+        await _until(lambda: telemetry.armed(), 5.0, "armed telemetry")
+        await action.takeoff()
+
+        async def at_2m() -> bool:
+            return abs((await telemetry.position()).relative_altitude_m - 2.0) < 0.05
+
+        await _until(at_2m, 15.0, "2 m altitude")
+        await _until(lambda: _is(telemetry, FlightMode.HOLD), 5.0, "HOLD after takeoff")
+        await asyncio.sleep(0.5)
+        r["hover_error_m"] = await error_to_truth()
+        r["climb_m"] = ground_down - truth_com_ned(out)[2]
+        start = (await pv()).position
+
+        async def north_near(target: float) -> bool:
+            s = await pv()
+            return abs(s.position.north_m - target) < 0.05 and abs(s.velocity.north_m_s) < 0.1
+
+        await offboard.set_position_ned(PositionNedYaw(start.north_m + 1.0, start.east_m, start.down_m, 0.0))
+        await offboard.start()
+        await _until(lambda: _is(telemetry, FlightMode.OFFBOARD), 5.0, "OFFBOARD mode")
+        await _until(lambda: north_near(start.north_m + 1.0), 10.0, "1 m north")
+        r["north_truth_m"] = truth_com_ned(out)[0] - start.north_m
+        r["north_error_m"] = await error_to_truth()
+        await offboard.set_position_ned(PositionNedYaw(start.north_m, start.east_m, start.down_m, 0.0))
+        await _until(lambda: north_near(start.north_m), 10.0, "back at the start")
+        r["back_error_m"] = math.dist(truth_com_ned(out), (start.north_m, start.east_m, start.down_m))
+        await offboard.stop()
+        await action.land()
+        await _until(lambda: _not(telemetry.in_air), 15.0, "landed")
+        await _until(lambda: _not(telemetry.armed), 5.0, "auto-disarm after landing")
+        r["landed_down_m"] = truth_com_ned(out)[2] - ground_down
+    return r
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:  # a zombie (exited, not yet reaped by its parent) counts as gone
+        return Path(f"/proc/{pid}/stat").read_text().split()[2] != "Z"
+    except OSError:
+        return False
+
+
+def test_mavsdk_flies_the_multiprocess_3x2_as_one_vehicle(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    api = free_udp_port()
+    cmd = [sys.executable, "-m", "mars_link.cli", "sitl", "up", "hover_3x2", "--vehicle", "--any-bind",
+           "--vehicle-api-port", str(api), "--gcs-port", str(free_udp_port()), "--api-port", str(free_udp_port()),
+           "--out", str(out)]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    lines: list[str] = []
+    try:
+        while True:  # the endpoint lines, up to "running ..."
+            line = proc.stdout.readline()
+            assert line, f"sitl up ended early: {lines}"
+            lines.append(line.strip())
+            if line.startswith("running"):
+                break
+        children = [int(p) for p in re.findall(r"pid (\d+)", "\n".join(lines))]
+        assert len(children) == 8  # world, coordinator, six units
+        assert any(f"MAVLink system {SYSID}" in ln and f"udpin://{LOOP}:{api}" in ln for ln in lines), lines
+        t0 = time.monotonic()
+        r = asyncio.run(_fly(api, out))
+        flight_s = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)  # sitl up stops every child by PID
+        try:
+            proc.wait(15.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130
+    deadline = time.monotonic() + 5.0
+    while any(_alive(p) for p in children) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not [p for p in children if _alive(p)], "children left running"
+    world = read_status(out / "world_summary.json")
+    vehicle = read_status(out / "vehicle_status.json")
+    print({**r, "flight_wall_s": round(flight_s, 1), "real_time_factor": world["real_time_factor"],
+           "dead_units": world["dead_units"], "vehicle_drops": vehicle["drops"], "steps": vehicle["steps"]})
+    assert r["sysid"] == SYSID
+    assert r["ground_error_m"] < 0.1 and r["hover_error_m"] < 0.1 and r["north_error_m"] < 0.1
+    assert abs(r["climb_m"] - 2.0) < 0.1
+    assert abs(r["north_truth_m"] - 1.0) < 0.1 and r["back_error_m"] < 0.1
+    assert abs(r["landed_down_m"]) < 0.05
+    assert world["dead_units"] == [] and 0.9 < world["real_time_factor"] < 1.05  # lockstep, paced to real time
+    assert "Takeoff complete: holding" in vehicle["statustext"] and not vehicle["drops"]
+
+
+@pytest.mark.parametrize("args,text", [
+    (["--units", "2", "--vehicle"], "--vehicle needs a docked assembly"),
+    (["hover_3x2", "--vehicle", "--vehicle-sysid", "4"], "--vehicle-sysid must be 1..250"),
+    (["hover_3x2", "--vehicle", "--vehicle-sysid", "201"], "--vehicle-sysid must be 1..250"),
+    (["hover_3x2", "--vehicle", "--vehicle-api-port", "70000"], "--vehicle-api-port must be 1..65535"),
+    (["hover_3x2", "--vehicle", "--speed", "0"], "--speed must be > 0"),
+    (["hover_3x2", "--vehicle", "--transport", "zenoh"], "--vehicle runs on the plain UDP set-up only"),
+])
+def test_sitl_up_vehicle_bad_arguments_one_line_exit_2(args, text, capsys, tmp_path) -> None:
+    code = cli_main(["sitl", "up", *args, "--out", str(tmp_path / "run")])
+    err = capsys.readouterr().err
+    assert code == 2
+    assert text in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not (tmp_path / "run").exists()  # nothing started
