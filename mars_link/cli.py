@@ -169,12 +169,11 @@ def cmd_sitl(args) -> int:
     out = Path(args.out) if args.out else _default_out(name + "-sitl")
     if getattr(args, "transport", None) not in (None, "udp") or getattr(args, "external_coordinator", False) \
             or getattr(args, "realtime", False) or getattr(args, "link_profile", None):
-        if vehicle is not None:
-            raise UserInputError("--vehicle runs on the plain UDP set-up only (no --transport zenoh, --realtime, "
-                                 "--link-profile or --external-coordinator; it is paced to real time already)")
+        if vehicle is not None and getattr(args, "external_coordinator", False):
+            raise UserInputError("--vehicle is served by the coordinator sitl up starts: not with --external-coordinator")
         from mars_link.sitl_mode import sitl_up_command
 
-        return sitl_up_command(args, path, out)
+        return sitl_up_command(args, path, out, vehicle)
     from sitl.launcher import ClientPorts
 
     n = len(setup.unit_ids)

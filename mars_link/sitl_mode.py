@@ -60,7 +60,7 @@ class SitlSession:
 def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, seed: int | None = None,
                units: int | None = None, layout: str | None = None, realtime: bool = False,
                clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units"),
-               topology: str = "peer", signing_key_file: str | None = None) -> SitlSession:
+               topology: str = "peer", signing_key_file: str | None = None, vehicle=None) -> SitlSession:
     """Start the SITL processes (sitl.launcher.start) with their links on `link` (default Zenoh).
     `unit_prefix(u)` -> argv to run unit u under (e.g. `ip netns exec NS`); `roles` may leave out the
     coordinator (one started elsewhere attaches).
@@ -68,7 +68,9 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     Zenoh without connect endpoints: `topology` "peer" (default, one hop): the world and the coordinator
     listen on 127.0.0.1, the coordinator connects to the world, units connect to both; "router": this
     process hosts a router session every child joins as a client (two hops; what an external
-    coordinator attaches to)."""
+    coordinator attaches to). `vehicle` (sitl.vehicle_host.VehiclePorts): the coordinator serves the
+    assembly as one MAVLink vehicle (its client links on UDP) and the run goes on, paced to real time
+    unless `speed` says otherwise, until stopped."""
     from sitl.launcher import ClientPorts, start
     from sitl.lockstep import load_setup
 
@@ -94,10 +96,14 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     role_args = {role: [*spec.to_args(), *tap] for role, spec in role_links.items()}
     if realtime:  # the units then measure the command age also on UDP
         role_args["unit"].append("--realtime")
+    if vehicle is not None:
+        role_args["coordinator"] += vehicle.argv()
+        speed = 1.0 if speed is None else speed
     try:
         session.run = start(scenario, out, units, layout, seed, 1.0 if realtime else speed,
                             clients or ClientPorts(bind_any=True), signing_key_file, child=CHILD, role_args=role_args,
-                            unit_prefix=unit_prefix, skip=() if "coordinator" in roles else ("coordinator",))
+                            unit_prefix=unit_prefix, skip=() if "coordinator" in roles else ("coordinator",),
+                            forever=vehicle is not None)
     except BaseException:
         session.close()
         raise
@@ -452,7 +458,7 @@ def add_sitl_up_arguments(p) -> None:
                    help="start no coordinator: attach one with `mars-link coordinator`")
 
 
-def sitl_up_command(args, scenario_path: str | None, out: Path) -> int:
+def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None) -> int:
     """`mars-link sitl up --transport zenoh ...`: start, print the endpoints, run to the end or Ctrl-C."""
     import signal
 
@@ -477,9 +483,11 @@ def sitl_up_command(args, scenario_path: str | None, out: Path) -> int:
         session = start_sitl(scenario_path, out, link, args.seed, units=units, layout=layout, realtime=args.realtime,
                              clients=clients, speed=getattr(args, "speed", None), roles=roles,
                              topology="router" if args.external_coordinator else "peer",
-                             signing_key_file=getattr(args, "signing_key_file", None))
+                             signing_key_file=getattr(args, "signing_key_file", None), vehicle=vehicle)
         for line in _endpoints(session, link):
             print(line, flush=True)
+        if vehicle is not None:
+            print(vehicle.describe(out), flush=True)
         if link.kind == "zenoh":
             where = session.router_endpoint or ", ".join(link.connect) or "none (peers: world and coordinator listen on 127.0.0.1)"
             print(f"zenoh: fleet {link.fleet!r}, router {where}" + (f" (+ {', '.join(link.listen)})" if link.listen else "")

@@ -200,9 +200,7 @@ def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: s
         for line in run.endpoints():
             print(line, flush=True)
         if vehicle is not None:
-            print(f"assembly vehicle: MAVLink system {vehicle.sysid} component 1 (served by the coordinator), "
-                  f"GCS udp {LOOPBACK}:{vehicle.gcs_port}, API udp {LOOPBACK}:{vehicle.api_port} "
-                  f"(MAVSDK udpin://{LOOPBACK}:{vehicle.api_port}), log {out / 'vehicle.tlog'}", flush=True)
+            print(vehicle.describe(out), flush=True)
         steps = run.setup.steps
         sc = run.setup.scenario
         print(f"running {'until Ctrl-C' if steps is None else f'{steps / sc.sim.control_hz:.1f} s of sim time'}; "

@@ -47,6 +47,12 @@ class VehiclePorts:
                 "--vehicle-api-port", str(self.api_port), "--vehicle-gcs-bind", str(self.gcs_bind),
                 "--vehicle-api-bind", str(self.api_bind)]
 
+    def describe(self, out: Path) -> str:
+        """The endpoint line `sitl up` prints."""
+        return (f"assembly vehicle: MAVLink system {self.sysid} component 1 (served by the coordinator), "
+                f"GCS udp 127.0.0.1:{self.gcs_port}, API udp 127.0.0.1:{self.api_port} "
+                f"(MAVSDK udpin://127.0.0.1:{self.api_port}), log {out / 'vehicle.tlog'}")
+
     def check(self, unit_ids: list[int]) -> None:
         """Every problem as one UserInputError (before any process starts)."""
         if not 1 <= self.sysid <= 250 or self.sysid in RESERVED_SYSIDS or self.sysid in unit_ids:
