@@ -10,16 +10,19 @@ from __future__ import annotations
 import asyncio
 import math
 import os
+import random
 import re
 import signal
+import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.udp_runner import free_udp_port, read_status
+from firmware_models.udp_runner import read_status
 from mars_link.cli import main as cli_main
 
 mavsdk = pytest.importorskip("mavsdk")
@@ -107,6 +110,62 @@ async def _land(r: dict, telemetry, action, out: Path, ground_down: float) -> di
     return r
 
 
+HOSTILE_EACH = 50
+FLOOD = 2000
+
+
+def _hostile(port: int) -> None:
+    """Untrusted traffic at the vehicle's api socket: junk, truncated and corrupted frames, an ARM for
+    another system, a NaN setpoint; then a flood of 2,000 wrong-target commands in about 0.5 s."""
+    rng = random.Random(5)
+    evil = mavlink.MAVLink(None, 245, 190)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        def to(data: bytes, n: int = HOSTILE_EACH) -> None:
+            for k in range(n):
+                s.sendto(data, (LOOP, port))
+                if k % 10 == 9:
+                    time.sleep(0.01)  # within the socket's buffer: what is sent is what the vehicle counts
+
+        for _ in range(HOSTILE_EACH):
+            to(bytes(rng.randrange(256) for _ in range(rng.randrange(1, 300))), 1)
+        arm = bytes(mavlink.MAVLink_command_long_message(SYSID, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(evil))
+        to(arm[: len(arm) // 2])
+        corrupted = bytearray(arm)
+        corrupted[14] ^= 0x40
+        to(bytes(corrupted))
+        to(bytes(mavlink.MAVLink_command_long_message(SYSID + 1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(evil)))
+        to(bytes(mavlink.MAVLink_set_position_target_local_ned_message(
+            0, SYSID, 1, 1, 0x09F8, math.nan, 0, -2, 0, 0, 0, 0, 0, 0, 0, 0).pack(evil)))
+        flood = bytes(mavlink.MAVLink_command_long_message(SYSID + 1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(evil))
+        t0 = time.monotonic()
+        for k in range(FLOOD):
+            s.sendto(flood, (LOOP, port))
+            if k % 100 == 99:
+                time.sleep(max(0.0, t0 + (k + 1) / (2 * FLOOD) - time.monotonic()))
+
+
+def _port_block(n: int) -> int:
+    """The first of n consecutive free UDP ports below the kernel's ephemeral range (where the
+    --any-bind sockets land), so the units' API ports P..P+n-1 never hit one of them."""
+    lo = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
+    rng = random.Random()
+    for _ in range(100):
+        base = rng.randrange(20000, lo - n)
+        socks = []
+        try:
+            for k in range(n):
+                sk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(sk)
+                sk.bind((LOOP, base + k))
+            return base
+        except OSError:
+            continue
+        finally:
+            for sk in socks:
+                sk.close()
+    raise RuntimeError("no block of free UDP ports")
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -123,10 +182,11 @@ def test_mavsdk_flies_the_multiprocess_3x2_as_one_vehicle(transport: str, offboa
     """UDP: the whole flight; Zenoh (units <-> coordinator/world on Zenoh, the vehicle's client links
     on UDP): telemetry, arm, takeoff, land (the offboard leg is the same code, left out for time)."""
     out = tmp_path / "run"
-    api = free_udp_port()
+    base = _port_block(8)  # vehicle API, GCS, the units' API ports
+    api = base
     cmd = [sys.executable, "-m", "mars_link.cli", "sitl", "up", "hover_3x2", "--vehicle", "--transport", transport,
            "--any-bind",
-           "--vehicle-api-port", str(api), "--gcs-port", str(free_udp_port()), "--api-port", str(free_udp_port()),
+           "--vehicle-api-port", str(api), "--gcs-port", str(base + 1), "--api-port", str(base + 2),
            "--out", str(out)]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []
@@ -140,6 +200,14 @@ def test_mavsdk_flies_the_multiprocess_3x2_as_one_vehicle(transport: str, offboa
         children = [int(p) for p in re.findall(r"pid (\d+)", "\n".join(lines))]
         assert len(children) == 8  # world, coordinator, six units
         assert any(f"MAVLink system {SYSID}" in ln and f"udpin://{LOOP}:{api}" in ln for ln in lines), lines
+        if transport == "udp":  # hostile input first: counted, dropped, never acted on; the lockstep keeps pace
+            deadline = time.monotonic() + 10.0
+            while not (out / "vehicle_status.json").exists() and time.monotonic() < deadline:
+                time.sleep(0.1)
+            _hostile(read_status(out / "vehicle_status.json")["endpoints"]["api"]["from"])
+            time.sleep(0.3)
+            hostile = read_status(out / "vehicle_status.json")
+            assert not hostile["armed"]
         t0 = time.monotonic()
         r = asyncio.run(_fly(api, out, offboard_leg))
         flight_s = time.monotonic() - t0
@@ -167,7 +235,15 @@ def test_mavsdk_flies_the_multiprocess_3x2_as_one_vehicle(transport: str, offboa
         assert r["north_error_m"] < 0.1 and abs(r["north_truth_m"] - 1.0) < 0.1 and r["back_error_m"] < 0.1
     assert abs(r["landed_down_m"]) < 0.05
     assert world["dead_units"] == [] and 0.9 < world["real_time_factor"] < 1.05  # lockstep, paced to real time
-    assert "Takeoff complete: holding" in vehicle["statustext"] and not vehicle["drops"]
+    assert "Takeoff complete: holding" in vehicle["statustext"]
+    d = vehicle["drops"]
+    if transport == "udp":
+        print("hostile drops:", hostile["drops"], "kernel-level losses are not counted here")
+        assert d["parse.bad_crc"] >= HOSTILE_EACH and d["parse.truncated"] >= HOSTILE_EACH and d["parse.junk"] >= HOSTILE_EACH
+        assert d["setpoint_non_finite"] == HOSTILE_EACH and HOSTILE_EACH + 0.5 * FLOOD <= d["wrong_target"] <= HOSTILE_EACH + FLOOD
+        assert d == hostile["drops"], d  # the flight itself (MAVSDK's traffic) added no drops
+    else:
+        assert not d, d  # MAVSDK's own traffic is all understood
 
 
 @pytest.mark.parametrize("args,text", [
