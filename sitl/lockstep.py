@@ -576,9 +576,9 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                 if k == 0 and not packets and now >= next_hello:  # hello until the world starts
                     link.heartbeat(world)
                     next_hello = now + 0.2
+                wait_s = min(0.2, (deadline or idle_deadline) - now)
                 if hosted is not None:  # client links and wall-clock heartbeats while the lockstep waits
-                    hosted.serve()
-                wait_s = min(0.2 if hosted is None else 0.01, (deadline or idle_deadline) - now)
+                    wait_s = hosted.wait(link.sock, wait_s)
                 for m in link.receive(wait_s):
                     if m.get_type() == "COMMAND_ACK":
                         if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in accepted:
