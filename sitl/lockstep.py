@@ -19,6 +19,9 @@ Two set-ups (`SitlSetup`):
            COMMAND_LONGs on its link, in the same datagram as the first rotor command; each unit
            answers a HIL step only once the coordinator's command for that step is in
            (`VehicleConfig.hil_await_coordinator`), or after `command_timeout_s`.
+           With --vehicle (sitl.vehicle_host) the coordinator also serves the assembly as ONE MAVLink
+           vehicle (system 202, API 14539, GCS 14550): its guidance is the coordinator's reference,
+           the run goes on until stopped (--forever) and the world is paced to real time.
   free     --units N: N separate 1x1 bodies side by side on the ground, no coordinator; each unit
            flies itself (takeoff, offboard, land from MAVSDK/QGC/MAVProxy), the world paced to
            real time (--speed).
