@@ -623,8 +623,10 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             commands = coordinator.step(t, ordered) if hosted is None else hosted.step(t, ordered, live)
             for cmd in commands:
                 if cmd.unit_id in live:
-                    link.send_many(_with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale)),
-                                   link.peers[cmd.unit_id])
+                    msgs = _with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale))
+                    if hosted is not None:  # e.g. a failure injected on the vehicle, for this unit's motors
+                        msgs += hosted.unit_commands(cmd.unit_id)
+                    link.send_many(msgs, link.peers[cmd.unit_id])
         (out / "coordinator_summary.json").write_text(json.dumps(
             {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "cpu_loop_s": time.process_time() - cpu0,

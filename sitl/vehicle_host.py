@@ -11,6 +11,9 @@ assembly on its own system id (default 202, above the units' range, ARCHITECTURE
 Both sockets are non-blocking and served from the coordinator's wait loop, so heartbeats and streams
 go out on wall time even while the lockstep waits for the units. The estimate is computed every step
 (also while disarmed, for telemetry) and handed to the coordinator, which then runs no EKF of its own.
+MAV_CMD_INJECT_FAILURE on the vehicle (motor 4(u-1)+r) is forwarded to unit u's firmware as its own
+MAV_CMD_INJECT_FAILURE (rotor r) on the coordinator link; the coordinator is told only with
+`faults_known`, otherwise it has to detect it.
 """
 
 from __future__ import annotations
@@ -90,6 +93,8 @@ class HostedVehicle:
         self.coordinator = Coordinator(model, SetpointSource(TrajectoryPoint(np.zeros(3))), controller, self._known,
                                        detector)
         self.vehicle = AssemblyVehicle(self.coordinator, ports.sysid, sc.sim.control_hz, sc.ftc, None, time.time())
+        self.vehicle.on_failure = self._inject
+        self._unit_commands: dict[int, list] = {}
         self.io = VehicleSockets(self.vehicle, {
             LINK_GCS: LinkSpec(ports.gcs_bind, (LOOPBACK, ports.gcs_port)),
             LINK_API: LinkSpec(ports.api_bind, (LOOPBACK, ports.api_port)),
@@ -153,6 +158,27 @@ class HostedVehicle:
         thrusts = self.vehicle.rotor_thrusts_n()
         return [RotorCommand(t_s, u, np.asarray(thrusts[self.model.unit_slots(u)], dtype=float))
                 for u in self.model.unit_ids if u in live]
+
+    def _inject(self, unit: int, rotor: int | None, eta: float) -> None:
+        """A failure injected on the vehicle: to that unit's motor path (a COMMAND_LONG with the next
+        rotor command), STATUSTEXT, and told to the coordinator with `faults_known`."""
+        from pymavlink.dialects.v20 import common as mavlink
+
+        from firmware_models.vehicle import FAILURE_TYPE_ETA, FAILURE_UNIT_SYSTEM_MOTOR
+
+        kind = next(k for k, e in FAILURE_TYPE_ETA.items() if e == eta)
+        self._unit_commands.setdefault(unit, []).append(mavlink.MAVLink_command_long_message(
+            unit, 1, mavlink.MAV_CMD_INJECT_FAILURE, 0, FAILURE_UNIT_SYSTEM_MOTOR, kind, rotor or 0, 0, 0, 0, 0))
+        t = self.vehicle.sim_s
+        self.vehicle.report_event({"t_s": round(t, 6), "type": "fault", "unit": unit, "rotor": rotor, "eta": eta})
+        if self.scenario.faults_known:
+            told = self.coordinator.eta_believed.copy()
+            told[self.model.unit_slots(unit) if rotor is None else self.model.rotor_slot(unit, rotor)] = eta
+            self.coordinator.set_faults(told, t, "fault told to the coordinator")
+
+    def unit_commands(self, unit: int) -> list:
+        """Commands for `unit` to go out with its next rotor command (then forgotten)."""
+        return self._unit_commands.pop(unit, [])
 
     def _estimate(self, t_s: float, packets: list[SensorPacket]) -> RigidBodyState | None:
         if self.estimator is None:
