@@ -37,11 +37,11 @@ class SitlSession:
     router: object | None = None  # zenoh.Session in router mode, or None
     router_endpoint: str | None = None
 
-    def wait(self, timeout_s: float | None = None) -> int:
+    def wait(self, timeout_s: float | None = None, units_may_die: bool = False) -> int:
         from sitl.launcher import wait
 
         try:
-            return wait(self.run, timeout_s)
+            return wait(self.run, timeout_s, units_may_die=units_may_die)
         finally:
             self.close()
 
@@ -173,7 +173,7 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     session = start_sitl(str(copy), out, link, seed, realtime=realtime)
     watcher = _ProgressWatcher(out / "world_status.json", scenario, on_progress)
     try:
-        code = session.wait(timeout_s)
+        code = session.wait(timeout_s, units_may_die=True)  # a dead unit process is a failed unit
     finally:
         watcher.stop()
     wall = time.perf_counter() - wall0
@@ -273,8 +273,9 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         log.close()
     errors = np.asarray(errs) if errs else np.array([math.nan])
     coord_events = coordinator.get("events", [])
-    for lost in coordinator.get("lost_units", []):
-        events.append({"t_s": lost["t_s"], "type": "unit_lost", "unit": lost["unit"]})
+    for death in world.get("deaths", []):
+        events.append({"t_s": death["t_s"], "type": "unit_died", "unit": death["unit"],
+                       "text": f"Unit {death['unit']} silent: motors off"})
     result = TrialResult(
         seed=seed, completed=not diverged and not world.get("stopped", False), diverged=diverged,
         mean_error_m=float(errors.mean()), rmse_m=float(np.sqrt((errors ** 2).mean())), max_error_m=float(errors.max()),
@@ -282,6 +283,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         force_integral_n2s=float(world.get("force_integral_n2s", force_integral)), max_tilt_deg=float(max(tilts, default=math.nan)),
         events=sorted(events + list(coord_events), key=lambda e: e.get("t_s", 0.0)),
         control_steps=len(errs),
+        detections=_detections(scenario, coordinator, world),
     )
     summary = summarize(scenario, [result], seed)
     summary["mode"] = "sitl"
@@ -363,6 +365,16 @@ def _write_rotor_log(log, scenario, model, out: Path) -> float:
         integral += float(np.sum(d * d)) * dt
         log.rotors(0, t_us / 1e6, c, d, eta_after(model, scenario.faults, t_us / 1e6))
     return integral if steps else math.nan
+
+
+def _detections(scenario, coordinator: dict, world: dict) -> list[dict]:
+    """summary.json `detections` as in-process: t_fault from the scenario's faults or the world's
+    declared deaths (a killed unit process), None for a false alarm."""
+    from mars_link.runner import _fault_time
+
+    deaths = {d["unit"]: d["t_s"] for d in world.get("deaths", [])}
+    return [{"t_fault": _fault_time(scenario.faults, d["unit"], d["rotor"], deaths), **d}
+            for d in coordinator.get("detections", [])]
 
 
 def command_age_summary(out: Path) -> dict:

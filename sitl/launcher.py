@@ -146,11 +146,15 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
     return run
 
 
-def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool = True) -> int:
+def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool = True,
+         units_may_die: bool = False) -> int:
     """Until the world ends (the scenario's end), a child dies (with `stop_on_child_death`) or the
-    timeout; then stop all. 0 = the world finished, 1 = a child died first, 124 = timeout."""
+    timeout; then stop all. 0 = the world finished, 1 = a child died first, 124 = timeout.
+    `units_may_die`: a unit process that dies is a failed unit, not a failed run (the world declares
+    it dead, the coordinator reallocates, the flight goes on); only the world or coordinator stop it."""
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
     code = 0
+    reported: set[str] = set()
     try:
         while True:
             world = run.processes["world"].poll()
@@ -158,6 +162,12 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
                 code = world
                 break
             dead = [n for n, p in run.processes.items() if p.poll() not in (None, 0)]  # killed or failed
+            if units_may_die:
+                for name in sorted(n for n in dead if n.startswith("unit") and n not in reported):
+                    reported.add(name)
+                    print(f"sitl: {name} died (exit {run.processes[name].returncode}): a failed unit, "
+                          "the flight goes on", file=sys.stderr)
+                dead = [n for n in dead if not n.startswith("unit")]
             if dead and stop_on_child_death:
                 print(f"sitl: {', '.join(dead)} died (exit {[run.processes[n].returncode for n in dead]}); "
                       f"stopping the rest (logs in {run.out})", file=sys.stderr)

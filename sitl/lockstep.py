@@ -629,6 +629,9 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     link.send_many(msgs, link.peers[cmd.unit_id])
         (out / "coordinator_summary.json").write_text(json.dumps(
             {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
+             "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,
+                             "eta_estimated": round(float(d.eta_estimated), 4), "reason": d.reason}
+                            for d in coordinator.detections],
              "cpu_loop_s": time.process_time() - cpu0,
              "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}}, indent=2, default=float) + "\n")
     finally:

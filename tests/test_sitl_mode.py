@@ -65,3 +65,48 @@ def test_bad_sitl_options_are_one_line_and_exit_2(tmp_path: Path, capsys) -> Non
         err = capsys.readouterr().err
         assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
         assert not (tmp_path / "o").exists()  # refused before anything started
+
+
+@pytest.mark.sitl
+def test_a_killed_unit_process_is_a_failed_unit_and_the_flight_goes_on(tmp_path: Path) -> None:
+    """SIGKILL of unit 3's process mid-flight (`run --mode sitl`, UDP, qp): the run is not aborted;
+    the world declares the unit dead, the coordinator finds it silent, reallocates and completes."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    scenario = tmp_path / "hover.toml"
+    scenario.write_text((ROOT / "scenarios" / "hover_3x2.toml").read_text().replace("[sim]", "[sim]\nduration_s = 4.0"))
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "run", str(scenario), "--mode", "sitl",
+                             "--transport", "udp", "--ftc", "qp", "--out", str(out), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline, victim = time.monotonic() + 90, None
+        while victim is None and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.1)
+            try:
+                t = json.loads((out / "world_status.json").read_text())["sim_time_s"]
+            except (FileNotFoundError, ValueError, KeyError):
+                continue
+            if t >= 1.0:  # the children of the process this test started: find unit 3's PID
+                kids = subprocess.run(["ps", "-o", "pid=", "--ppid", str(proc.pid)], capture_output=True, text=True).stdout
+                argv = {int(k): Path(f"/proc/{int(k)}/cmdline").read_bytes().split(b"\0") for k in kids.split()}
+                victim = next(k for k, a in argv.items() if b"unit" in a and a[a.index(b"--unit") + 1] == b"3")
+        assert victim is not None, "the flight did not get going"
+        os.kill(victim, signal.SIGKILL)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "unit3 died" in err and "the flight goes on" in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] and not summary["diverged"] and summary["sitl"]["dead_units"] == [3]
+    assert summary["max_error_m"] < 0.2
+    (det,) = summary["detections"]
+    assert det["unit"] == 3 and det["rotor"] is None and det["eta_estimated"] == 0.0 and det["reason"] == "silent"
+    assert 1.0 <= det["t_fault"] <= det["t_detected"] < det["t_fault"] + 0.5
+    assert {"unit_died", "unit_lost", "reallocation"} <= {e["type"] for e in summary["events"]}
