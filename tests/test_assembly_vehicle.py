@@ -10,9 +10,7 @@ import asyncio
 import math
 import random
 import shutil
-import signal
 import socket
-import subprocess
 import threading
 import time
 from pathlib import Path
@@ -25,6 +23,7 @@ from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
 from mars_link.assembly_vehicle import AssemblySim
 from mars_link.realtime import spawn_vehicle
 from mars_link.scenario import FaultSpec, load_scenario
+from test_mavproxy_unit import run_mavproxy  # the unit MAVProxy test's harness
 from test_robustness import Listener, _flood, _kernel_drops  # the unit robustness test's helpers
 
 mavsdk = pytest.importorskip("mavsdk")
@@ -34,7 +33,7 @@ from mavsdk.asyncio.plugins.failure import FailureAsync, FailureType, FailureUni
 from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw, VelocityNedYaw  # noqa: E402
 from mavsdk.asyncio.plugins.param import ParamAsync  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync  # noqa: E402
-from test_mavsdk_unit import _is, _not, _until  # noqa: E402  (the unit MAVSDK test's helpers)
+from test_mavsdk_unit import _at_altitude, _is, _north_near, _not, _until  # noqa: E402  (the unit MAVSDK test's helpers)
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(120)]
 LOOP = "127.0.0.1"
@@ -128,24 +127,17 @@ async def _fly(api_port: int, status_path: Path) -> dict:
         await action.takeoff()
         await _until(lambda: _is(telemetry, FlightMode.TAKEOFF), 5.0, "TAKEOFF mode")
 
-        async def at_2m() -> bool:
-            return abs((await telemetry.position()).relative_altitude_m - 2.0) < 0.05
-
-        await _until(at_2m, 15.0, "2 m altitude")
+        await _until(lambda: _at_altitude(telemetry, 2.0), 15.0, "2 m altitude")
         await _until(lambda: _is(telemetry, FlightMode.HOLD), 5.0, "HOLD after takeoff")
         await asyncio.sleep(0.5)
         r["hover_error_m"] = await error_to_truth()
         r["climb_m"] = ground_down - read_status(status_path)["truth_position_ned_m"][2]
         start = (await pv()).position
 
-        async def north_near(target: float) -> bool:
-            s = await pv()
-            return abs(s.position.north_m - target) < 0.05 and abs(s.velocity.north_m_s) < 0.1
-
         await offboard.set_position_ned(PositionNedYaw(start.north_m + 1.0, start.east_m, start.down_m, 0.0))
         await offboard.start()
         await _until(lambda: _is(telemetry, FlightMode.OFFBOARD), 5.0, "OFFBOARD mode")
-        await _until(lambda: north_near(start.north_m + 1.0), 10.0, "1 m north")
+        await _until(lambda: _north_near(pv, start.north_m + 1.0), 10.0, "1 m north")
         r["north_truth_m"] = read_status(status_path)["truth_position_ned_m"][0] - start.north_m
         r["north_error_m"] = await error_to_truth()
 
@@ -153,7 +145,7 @@ async def _fly(api_port: int, status_path: Path) -> dict:
         await failure.inject(FailureUnit.SYSTEM_MOTOR, FailureType.SLOW, 6)
         await _until(lambda: _has(texts, "Realloc"), 3.0, "reallocation STATUSTEXT")
         await offboard.set_position_ned(PositionNedYaw(start.north_m, start.east_m, start.down_m, 0.0))
-        await _until(lambda: north_near(start.north_m), 10.0, "back at the start")
+        await _until(lambda: _north_near(pv, start.north_m), 10.0, "back at the start")
         st = read_status(status_path)
         r["back_error_m"] = math.dist(st["truth_position_ned_m"], (start.north_m, start.east_m, start.down_m))
         r["unit_eta"], r["eta_believed"] = st["unit_eta"], st["eta_believed"]
@@ -374,34 +366,9 @@ def test_mavproxy_watches_the_assembly_on_the_gcs_link(tmp_path: Path) -> None:
                              "--api-port", str(free_udp_port()), "--api-bind", "0"], tmp_path / "status.json")
     cmds = ["repeat add 2 param show MIS_TAKEOFF_ALT", "repeat add 2 param show MARS_UNITS",
             "repeat add 2 status ATTITUDE", "repeat add 2 status GLOBAL_POSITION_INT", "repeat add 3 arm throttle"]
-    mp = subprocess.Popen(
-        ["mavproxy.py", f"--master=udpout:{LOOP}:{bind}", "--non-interactive", "--no-state", "--cmd=" + "; ".join(cmds)],
-        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True)
-    seen: dict[str, float] = {}
-    lines: list[str] = []
-    t0 = time.monotonic()
-
-    def read() -> None:
-        for line in mp.stdout:
-            lines.append(line.rstrip())
-            for key, text in expected.items():
-                if text in line and key not in seen:
-                    seen[key] = time.monotonic() - t0
-
-    reader = threading.Thread(target=read, daemon=True)
-    reader.start()
     try:
-        deadline = t0 + 30
-        while time.monotonic() < deadline and len(seen) < len(expected):
-            time.sleep(0.2)
+        seen, lines = run_mavproxy(bind, cmds, expected, tmp_path, timeout_s=30)
     finally:
-        mp.send_signal(signal.SIGTERM)
-        try:
-            mp.wait(10)
-        except subprocess.TimeoutExpired:
-            mp.kill()
-            mp.wait(5)
-        reader.join(5)
         rc = stop_unit(proc)
     print("\n".join(lines[:40]))
     print({k: round(v, 2) for k, v in seen.items()})

@@ -28,17 +28,14 @@ EXPECTED = {
 }
 
 
-@pytest.mark.skipif(shutil.which("mavproxy.py") is None, reason="MAVProxy not installed")
-def test_mavproxy_reads_parameters_and_status(tmp_path: Path) -> None:
-    bind = free_udp_port()
-    proc, _ = spawn_unit(["--unit", "6", "--gcs-port", str(free_udp_port()), "--gcs-bind", str(bind),
-                          "--api-port", str(free_udp_port()), "--api-bind", "0", "--coord-bind", "0"])
-    cmds = ["repeat add 2 param show MIS_TAKEOFF_ALT", "repeat add 3 status SYS_STATUS",
-            "repeat add 4 param set MIS_TAKEOFF_ALT 3.5", "repeat add 5 arm throttle"]
+def run_mavproxy(bind_port: int, cmds: list[str], expected: dict[str, str], cwd: Path,
+                 timeout_s: float = 30.0) -> tuple[dict[str, float], list[str]]:
+    """Run MAVProxy non-interactively against a vehicle's link (udpout to `bind_port`) with `cmds`
+    until every `expected` text was printed or the timeout; (key -> seconds after start, output lines)."""
     mp = subprocess.Popen(
-        ["mavproxy.py", f"--master=udpout:127.0.0.1:{bind}", "--non-interactive", "--no-state",
+        ["mavproxy.py", f"--master=udpout:127.0.0.1:{bind_port}", "--non-interactive", "--no-state",
          "--cmd=" + "; ".join(cmds)],
-        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True)
+        cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, text=True)
     seen: dict[str, float] = {}
     lines: list[str] = []
     t0 = time.monotonic()
@@ -46,15 +43,15 @@ def test_mavproxy_reads_parameters_and_status(tmp_path: Path) -> None:
     def read() -> None:
         for line in mp.stdout:
             lines.append(line.rstrip())
-            for key, text in EXPECTED.items():
+            for key, text in expected.items():
                 if text in line and key not in seen:
                     seen[key] = time.monotonic() - t0
 
     reader = threading.Thread(target=read, daemon=True)
     reader.start()
     try:
-        deadline = t0 + 40
-        while time.monotonic() < deadline and len(seen) < len(EXPECTED):
+        deadline = t0 + timeout_s
+        while time.monotonic() < deadline and len(seen) < len(expected):
             time.sleep(0.2)
     finally:
         mp.send_signal(signal.SIGTERM)
@@ -64,6 +61,19 @@ def test_mavproxy_reads_parameters_and_status(tmp_path: Path) -> None:
             mp.kill()
             mp.wait(5)
         reader.join(5)
+    return seen, lines
+
+
+@pytest.mark.skipif(shutil.which("mavproxy.py") is None, reason="MAVProxy not installed")
+def test_mavproxy_reads_parameters_and_status(tmp_path: Path) -> None:
+    bind = free_udp_port()
+    proc, _ = spawn_unit(["--unit", "6", "--gcs-port", str(free_udp_port()), "--gcs-bind", str(bind),
+                          "--api-port", str(free_udp_port()), "--api-bind", "0", "--coord-bind", "0"])
+    cmds = ["repeat add 2 param show MIS_TAKEOFF_ALT", "repeat add 3 status SYS_STATUS",
+            "repeat add 4 param set MIS_TAKEOFF_ALT 3.5", "repeat add 5 arm throttle"]
+    try:
+        seen, lines = run_mavproxy(bind, cmds, EXPECTED, tmp_path, timeout_s=40)
+    finally:
         rc = stop_unit(proc)
     print("\n".join(lines[:40]))
     print({k: round(v, 2) for k, v in seen.items()})

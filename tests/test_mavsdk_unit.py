@@ -136,6 +136,10 @@ async def _near(getter, value: float, tol: float) -> bool:
     return abs(await getter() - value) < tol
 
 
+async def _at_altitude(telemetry, altitude_m: float, tol_m: float = 0.05) -> bool:
+    return abs((await telemetry.position()).relative_altitude_m - altitude_m) < tol_m
+
+
 async def _north_near(pv, north: float) -> bool:
     s = await pv()
     return abs(s.position.north_m - north) < 0.05 and abs(s.velocity.north_m_s) < 0.1

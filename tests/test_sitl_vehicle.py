@@ -31,7 +31,7 @@ from mavsdk.asyncio.plugins.action import ActionAsync  # noqa: E402
 from mavsdk.asyncio.plugins.failure import FailureAsync, FailureType, FailureUnit  # noqa: E402
 from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync  # noqa: E402
-from test_mavsdk_unit import _is, _not, _until  # noqa: E402  (the unit MAVSDK test's helpers)
+from test_mavsdk_unit import _at_altitude, _is, _north_near, _not, _until  # noqa: E402  (the unit MAVSDK test's helpers)
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(90)]
 LOOP = "127.0.0.1"
@@ -80,28 +80,21 @@ async def _fly(api_port: int, out: Path, full: bool = True) -> dict:
             return r
         await action.takeoff()
 
-        async def at_2m() -> bool:
-            return abs((await telemetry.position()).relative_altitude_m - 2.0) < 0.05
-
-        await _until(at_2m, 15.0, "2 m altitude")
+        await _until(lambda: _at_altitude(telemetry, 2.0), 15.0, "2 m altitude")
         await _until(lambda: _is(telemetry, FlightMode.HOLD), 5.0, "HOLD after takeoff")
         await asyncio.sleep(0.2)
         r["hover_error_m"] = await error_to_truth()
         r["climb_m"] = ground_down - truth_com_ned(out)[2]
         start = (await pv()).position
 
-        async def north_near(target: float) -> bool:
-            s = await pv()
-            return abs(s.position.north_m - target) < 0.05 and abs(s.velocity.north_m_s) < 0.1
-
         await offboard.set_position_ned(PositionNedYaw(start.north_m + 1.0, start.east_m, start.down_m, 0.0))
         await offboard.start()
         await _until(lambda: _is(telemetry, FlightMode.OFFBOARD), 5.0, "OFFBOARD mode")
-        await _until(lambda: north_near(start.north_m + 1.0), 10.0, "1 m north")
+        await _until(lambda: _north_near(pv, start.north_m + 1.0), 10.0, "1 m north")
         r["north_truth_m"] = truth_com_ned(out)[0] - start.north_m
         r["north_error_m"] = await error_to_truth()
         await offboard.set_position_ned(PositionNedYaw(start.north_m, start.east_m, start.down_m, 0.0))
-        await _until(lambda: north_near(start.north_m), 10.0, "back at the start")
+        await _until(lambda: _north_near(pv, start.north_m), 10.0, "back at the start")
         r["back_error_m"] = math.dist(truth_com_ned(out), (start.north_m, start.east_m, start.down_m))
         # motor 6 = unit 2 rotor 2 at half thrust, through MAVSDK's failure plugin: into unit 2's process
         texts: list[str] = []
