@@ -170,8 +170,11 @@ class Coordinator:
             # while explanations tie (e.g. units {2,5}, {1,6}, {3,4} of a 3x2: each a pure lift loss),
             # the detector asks for a probe with zero net wrench on the believed assembly
             probe = self.detector.excitation_n(t_s)
-            if probe.any():
-                thrusts = np.maximum(thrusts + probe, 0.0)
+            if probe.any():  # within the rotors' own limits (none configured: unbounded, as the allocator)
+                v = self.model.vehicle
+                lo = -np.inf if v.rotor_min_thrust_n is None else v.rotor_min_thrust_n
+                hi = np.inf if v.rotor_max_thrust_n is None else v.rotor_max_thrust_n
+                thrusts = np.clip(thrusts + probe, lo, hi)
             found = self.detector.update(t_s, thrusts, estimate, [p.imu for p in packets if p.imu is not None])
             if found:
                 self.detections.extend(found)
