@@ -136,9 +136,7 @@ def event_text(event: dict) -> str:
         return short_text(text)
     kind = str(event.get("type", "event"))
     if kind == "fault" and "unit" in event:
-        rotor = event.get("rotor")
-        where = f"unit {event['unit']}" + (f" rotor {rotor}" if rotor else "")
-        return f"Fault: {where} eta {float(event.get('eta', 0.0)):g}"
+        return FaultSpec(event["unit"], event.get("rotor"), float(event.get("eta", 0.0))).event_text()
     kind = kind.replace("_", " ").capitalize()
     reason = event.get("reason")
     return short_text(f"{kind}: {reason}" if reason else kind)

@@ -238,10 +238,8 @@ def run_trial(
             f = faults[next_fault]
             next_fault += 1
             units[f.unit].inject_fault(f.rotor, f.eta)
-            where = f"Unit {f.unit}" + (f" rotor {f.rotor}" if f.rotor else "")
-            what = "failed" if f.rotor is None and f.eta == 0 else f"eta {f.eta:.2f}"
             events.append({"t_s": round(t, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta,
-                           "text": f"Fault: {where} {what}"})
+                           "text": f.event_text()})
             if scenario.faults_known:
                 coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
         while deaths and deaths[0][0] <= t + 1e-9:

@@ -32,8 +32,15 @@ class FaultSpec:
     t_s: float = 0.0
 
     def describe(self) -> str:
-        where = f"unit {self.unit}" + (f" rotor {self.rotor}" if self.rotor else "")
-        return f"{where} eta={self.eta:g} at t={self.t_s:g}s"
+        return f"{self._where()} eta={self.eta:g} at t={self.t_s:g}s"
+
+    def event_text(self) -> str:
+        """The fault event's STATUSTEXT line, e.g. 'Fault: unit 2 rotor 2 eta 0.5'."""
+        what = "failed" if self.rotor is None and self.eta == 0 else f"eta {self.eta:g}"
+        return f"Fault: {self._where()} {what}"
+
+    def _where(self) -> str:
+        return f"unit {self.unit}" + (f" rotor {self.rotor}" if self.rotor else "")
 
 
 @dataclass

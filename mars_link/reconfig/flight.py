@@ -231,7 +231,7 @@ def run_reconfig_trial(
                 else:
                     eta_true[f.unit][f.rotor - 1] = f.eta
                 events.append({"t_s": round(t, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta,
-                               "text": f"Fault: unit {f.unit} rotor {f.rotor or 'all'} eta {f.eta:.2f}"})
+                               "text": f.event_text()})
                 for p in pieces.values():
                     p.coordinator.set_faults(local_eta(p.shape, eta_true), t, "fault told to the coordinator")
                 if can_reconfigure and at_s is None and next_fault == len(faults):
