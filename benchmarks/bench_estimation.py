@@ -6,7 +6,10 @@ replaying one alarm state. The EKF step is split into its parts (IMU combination
 filterpy's predict, the stacked position update with filterpy's update). Last, the real loop: the
 runner's noisy 3x2 spiral (JSBSim), the estimator's cost per control step there and its accuracy
 against the truth (issue 5: position RMS < 2 cm, attitude RMS < 0.5 deg).
-Run: python benchmarks/bench_estimation.py [--no-flight]
+The step split is the runner's rhythm: IMU every tick, positions with velocities every second tick
+(50 Hz), so a "fusion" step propagates and fuses and a "plain" step only propagates; both are timed
+hot (median of many) on the synthetic hover and on the real spiral.
+Run: python benchmarks/bench_estimation.py [--no-flight] [--split-only]
 """
 
 from __future__ import annotations
@@ -59,6 +62,68 @@ def bench_estimator(model: AssemblyModel, n: int = 2000) -> np.ndarray:
         est.step(t, imus, poss)
         out.append(time.perf_counter() - c)
     return np.array(out[100:]) * 1e6
+
+
+def bench_step_split(model: AssemblyModel, n: int = 4000, repeats: int = 3) -> tuple[float, float]:
+    """Median microseconds of a fusion step and of a plain (IMU only) step, positions at 50 Hz.
+
+    The best median of `repeats` runs: other load on the machine only ever adds time.
+    """
+    rng = np.random.default_rng(0)
+    offsets = np.array([model.unit_position(u) for u in model.unit_ids])
+    best_fuse, best_plain = float("inf"), float("inf")
+    for _ in range(repeats):
+        est = AssemblyEstimator(model)
+        fuse, plain = [], []
+        for k in range(n):
+            t = k / RATE_HZ
+            imus = [ImuSample(t, u, rng.normal(0, 0.003, 3), np.array([0.0, 0.0, -9.81]) + rng.normal(0, 0.05, 3))
+                    for u in model.unit_ids]
+            poss = []
+            if k % 2 == 0:
+                poss = [PositionSample(t, u, np.array([*offsets[i, :2], -1.0]) + rng.normal(0, 0.01, 3),
+                                       rng.normal(0, 0.02, 3)) for i, u in enumerate(model.unit_ids)]
+            c = time.perf_counter()
+            est.step(t, imus, poss)
+            (fuse if poss else plain).append(time.perf_counter() - c)
+        best_fuse = min(best_fuse, float(np.median(fuse[50:])) * 1e6)
+        best_plain = min(best_plain, float(np.median(plain[50:])) * 1e6)
+    return best_fuse, best_plain
+
+
+def bench_flight_split(scenario_name: str = "spiral_3x2", seed: int = 1) -> tuple[float, float, int]:
+    """The real loop: median microseconds of AssemblyEstimator.step on fusion and plain steps."""
+    from mars_link.runner import run_trial
+    from mars_link.scenario import load_scenario
+
+    fuse, plain = [], []
+    original = AssemblyEstimator.step
+
+    def timed_step(self, t_s, imu_samples, position_samples):
+        c = time.perf_counter()
+        out = original(self, t_s, imu_samples, position_samples)
+        (fuse if position_samples else plain).append(time.perf_counter() - c)
+        return out
+
+    AssemblyEstimator.step = timed_step
+    try:
+        run_trial(load_scenario(scenario_name), seed)
+    finally:
+        AssemblyEstimator.step = original
+    return float(np.median(fuse)) * 1e6, float(np.median(plain)) * 1e6, len(fuse) + len(plain)
+
+
+def print_split(flight: bool) -> None:
+    print("AssemblyEstimator.step, hot, median microseconds (fusion = propagate + stacked position/velocity")
+    print("update of every unit; plain = IMU propagation only; positions at 50 Hz, IMU at 100 Hz)")
+    print(f"{'case':>22} {'fusion':>7} {'plain':>7} {'mean':>7}")
+    for name in ("1x1", "3x2"):
+        fuse, plain = bench_step_split(AssemblyModel.from_layout(LAYOUTS[name], "mars-ftcc"))
+        print(f"{'synthetic hover ' + name:>22} {fuse:>7.0f} {plain:>7.0f} {(fuse + plain) / 2:>7.0f}")
+    if flight:
+        for scenario in ("hover_1x1", "spiral_3x2"):
+            fuse, plain, steps = bench_flight_split(scenario)
+            print(f"{scenario + ' (runner)':>22} {fuse:>7.0f} {plain:>7.0f} {(fuse + plain) / 2:>7.0f}")
 
 
 def bench_detector(model: AssemblyModel, n: int = 1000) -> tuple[np.ndarray, np.ndarray]:
@@ -130,6 +195,11 @@ def bench_flight(seed: int = 1) -> None:
 
 
 def main() -> None:
+    flight = "--no-flight" not in sys.argv[1:]
+    print_split(flight)
+    if "--split-only" in sys.argv[1:]:
+        return
+    print()
     print(f"per control tick at {RATE_HZ:.0f} Hz, every unit's IMU and position each tick (microseconds)")
     print(f"{'layout':>6} {'units':>5} {'est_median':>10} {'est_p99':>8} {'fdi_watch':>9} {'fdi_isolate':>11} {'cpu_share':>9}")
     for name, layout in LAYOUTS.items():
@@ -150,7 +220,7 @@ def main() -> None:
         parts = bench_parts(AssemblyModel.from_layout(LAYOUTS[name], "mars-ftcc"))
         print(f"{name:>6} {np.median(parts['combine']):>8.0f} {np.median(parts['propagate']):>9.0f} "
               f"{np.median(parts['update']):>7.0f}")
-    if "--no-flight" not in sys.argv[1:]:
+    if flight:
         bench_flight()
 
 
