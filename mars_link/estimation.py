@@ -10,10 +10,19 @@ Why this shape:
 * Each unit's position sample measures the unit centre, ``p_i = p_com + R r_i``. Stacking the units
   in one update makes attitude, yaw included, observable from geometry alone.
 * The filter is an error-state (multiplicative quaternion) EKF built on filterpy's
-  `ExtendedKalmanFilter`: filterpy holds the 15-element error state and covariance and does the
-  Joseph-form update; the nominal state (p, v, q, gyro bias, accel bias) is propagated here and the
-  error is injected into it and reset to zero after every update (specs/dependencies.md §3:
-  filterpy's `predict()` is linear, so `predict_x` is overridden).
+  `ExtendedKalmanFilter`: filterpy holds the 15-element error state and covariance (its x and P are
+  the state of record) and does the prediction; the nominal state (p, v, q, gyro bias, accel bias)
+  is propagated here and the error is injected into it and reset to zero after every update
+  (specs/dependencies.md §3: filterpy's `predict()` is linear, so `predict_x` is overridden).
+* The update is filterpy's Joseph form with the generic parts it cannot know about left out
+  (`_ErrorStateEkf.update_innovation`): one Cholesky solve of S instead of inverting it, S and
+  P H^T shared with the per-unit gate, no deep copy of z; tests hold it equal to filterpy's own
+  `update` to 1e-10.
+* The step is on the coordinator's critical path (issue 5: sensor sample -> rotor command), so the
+  per-tick work avoids Python loops over units and numpy calls on 3-vectors: a tick's samples are
+  checked and stacked in one go (`step`'s batch path; anything unusual takes the per-sample path),
+  quaternion and 3-vector arithmetic is done on floats, and per-model constants (lever-arm skews,
+  the fixed part of H) are cached until `set_model`.
 
 Error state order: dp (NED), dv (NED), dtheta (body, R_true = R exp([dtheta]x)), dbg, dba.
 """
@@ -25,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
+from scipy.linalg import lapack
 
 from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
 from mars_link.errors import UserInputError
@@ -135,6 +145,44 @@ def finite_vec3(v) -> np.ndarray | None:
     return a
 
 
+def _quat_rotvec(x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    """`quat_from_rotvec` on floats (numpy costs more than it saves on 3-vectors)."""
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle < 1e-8:
+        w, x, y, z = 1.0, 0.5 * x, 0.5 * y, 0.5 * z
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        return w / n, x / n, y / n, z / n
+    s = math.sin(0.5 * angle) / angle
+    return math.cos(0.5 * angle), s * x, s * y, s * z
+
+
+def _quat_mul(a, b) -> tuple[float, float, float, float]:
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return (
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+    )
+
+
+def _quat_unit(q) -> np.ndarray:
+    w, x, y, z = q
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    return np.array((w / n, x / n, y / n, z / n))
+
+
+def _rotmat_rows(q) -> tuple[float, ...]:
+    """`quat_to_rotmat` on floats, row-major 9-tuple."""
+    w, x, y, z = q
+    return (
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    )
+
+
 def _skews(rows: np.ndarray) -> np.ndarray:
     """(k, 3) vectors -> (k, 3, 3) cross-product matrices."""
     out = np.zeros((len(rows), 3, 3))
@@ -166,19 +214,25 @@ class ImuCombiner:
                 if uid in old_ids:
                     self.relative_gyro_bias[k] = old[old_ids.index(uid)]
         self._index = {uid: k for k, uid in enumerate(self.unit_ids)}
+        self._all = tuple(self.unit_ids)
         self._last: tuple[float, np.ndarray] | None = None
 
     def combine(self, samples: list[ImuSample]) -> CombinedImu | None:
         """Samples of one instant (distinct, known units) -> CoM IMU; updates the relative biases."""
         if not samples:
             return None
-        k = len(samples)
-        units = tuple(s.unit_id for s in samples)
-        every = k == len(self.unit_ids) and units == tuple(self.unit_ids)
-        idx = slice(None) if every else np.array([self._index[u] for u in units])
-        gyros = np.array([s.gyro_frd_radps for s in samples])
-        accels = np.array([s.accel_frd_mps2 for s in samples])
-        t = samples[0].t_s
+        gyros = np.array([s.gyro_frd_radps for s in samples], dtype=float)
+        accels = np.array([s.accel_frd_mps2 for s in samples], dtype=float)
+        return self.combine_arrays(samples[0].t_s, tuple(s.unit_id for s in samples), gyros, accels)
+
+    def combine_arrays(
+        self, t_s: float, units: tuple[int, ...], gyros: np.ndarray, accels: np.ndarray
+    ) -> CombinedImu | None:
+        """`combine` on stacked (k, 3) gyros and specific forces of the distinct, known `units`."""
+        k = len(units)
+        if k == 0:
+            return None
+        idx = slice(None) if units == self._all else np.array([self._index[u] for u in units])
         d = self.relative_gyro_bias
         inv_k = 1.0 / k
         if k >= 2:  # rigid body: gyro differences are bias differences plus noise
@@ -191,21 +245,83 @@ class ImuCombiner:
         omega = corrected.sum(axis=0) * inv_k
         sw = skew(omega)
         lever_map = sw @ sw
-        if self._last is not None and t > self._last[0]:
-            lever_map += skew((omega - self._last[1]) / (t - self._last[0]))  # angular acceleration
+        if self._last is not None and t_s > self._last[0]:
+            lever_map += skew((omega - self._last[1]) / (t_s - self._last[0]))  # angular acceleration
         # rigid body: f_i = f_com + alpha x r_i + omega x (omega x r_i)
         lever = self.offsets_m[idx] @ lever_map.T
         accel_com = accels - lever
         accel = accel_com.sum(axis=0) * inv_k
-        self._last = (t, omega)
-        return CombinedImu(t, omega, accel, units, corrected - omega, accel_com - accel)
+        self._last = (t_s, omega)
+        return CombinedImu(t_s, omega, accel, units, corrected - omega, accel_com - accel)
 
 
 class _ErrorStateEkf(ExtendedKalmanFilter):
-    """filterpy EKF holding the error state; the nominal-state propagation lives in the estimator."""
+    """filterpy EKF holding the error state; the nominal-state propagation lives in the estimator.
+
+    `SI` (S^-1) is computed when read: the update solves with S instead of inverting it.
+    """
+
+    @property
+    def SI(self) -> np.ndarray:
+        if self._si is None:
+            self._si = np.linalg.inv(self.S)
+        return self._si
+
+    @SI.setter
+    def SI(self, value: np.ndarray | None) -> None:
+        self._si = value
 
     def predict_x(self, u=0) -> None:  # the error state is zero after every reset: it stays zero
         self.x = np.zeros(self.dim_x)
+
+    def update_innovation(
+        self, y: np.ndarray, H: np.ndarray, r_diag: np.ndarray,
+        pht: np.ndarray | None = None, s: np.ndarray | None = None,
+    ) -> float:
+        """filterpy's `update` (Joseph form) for the innovation y = z - h(x), diagonal R; returns the NIS.
+
+        Same equations and attributes (x, P, y, z, S, K, SI, x_post, P_post) as
+        `ExtendedKalmanFilter.update(y, HJacobian=lambda _x: H, Hx=lambda _x: 0.0, R=diag(r_diag))`,
+        but S is Cholesky-solved (one LAPACK call) instead of inverted, and P H^T and S may be given
+        (the caller's gate already formed them).
+        """
+        if pht is None:
+            pht = self.P @ H.T
+        if s is None:
+            s = H @ pht
+            s.flat[:: len(s) + 1] += r_diag
+        n = self.dim_x
+        rhs = np.empty((len(y), n + 1))
+        rhs[:, :n] = pht.T
+        rhs[:, n] = y
+        _, sol, info = lapack.dposv(s, rhs)
+        if info != 0:  # not positive definite to working precision: the general solve
+            sol = np.linalg.solve(s, rhs)
+        K = sol[:, :n].T  # (S^-1 H P)^T = P H^T S^-1 (S symmetric)
+        self.x = self.x + K @ y
+        i_kh = self._I - K @ H
+        self.P = i_kh @ self.P @ i_kh.T + (K * r_diag) @ K.T
+        self.S, self.SI, self.K, self.y, self.z = s, None, K, y, y
+        self._log_likelihood = self._likelihood = self._mahalanobis = None
+        self.x_post = self.x.copy()
+        self.P_post = self.P.copy()
+        return float(y @ sol[:, n])
+
+
+@dataclass
+class _UnitRows:
+    """Per-model constants of the stacked measurement of some units (cached until `set_model`).
+
+    Rows of H: 3 per unit position (unit order), then 3 per unit velocity.
+    """
+
+    offsets_m: np.ndarray  # (k, 3) unit centres in the body frame, from the CoM
+    skew_offsets: np.ndarray  # (k, 3, 3) [r_i]x
+    template: np.ndarray  # (6k, 15) H with its constant identity blocks, zeros elsewhere
+    block_rows: np.ndarray  # (k, 3, 3) row/column indices of each unit's position block of S
+    block_cols: np.ndarray
+    pos_rows: np.ndarray  # (k, 3) rows of each unit's position
+    vel_rows: np.ndarray  # (k, 3) rows of each unit's velocity
 
 
 class AssemblyEstimator:
@@ -239,7 +355,9 @@ class AssemblyEstimator:
         self.ba = np.zeros(3)
         self._g = np.array([0.0, 0.0, self.params.gravity_mps2])
         self._F = np.eye(N_ERR)
+        self._F_flat = self._F.reshape(-1)  # a view: the blocks of F written per step, in one go
         self._q_cache: dict[tuple[float, int], np.ndarray] = {}
+        self._rows: dict[tuple[int, ...], _UnitRows] = {}
 
     # ----------------------------------------------------------------- inputs
     def on_imu(self, sample: ImuSample) -> None:
@@ -277,12 +395,75 @@ class AssemblyEstimator:
         self, t_s: float, imu_samples: list[ImuSample], position_samples: list[PositionSample]
     ) -> RigidBodyState:
         """Feed one tick's samples, process everything up to `t_s`, return the estimate at `t_s`."""
+        if not self._pending_imu and not self._pending_pos:
+            batch = self._batch(t_s, imu_samples, position_samples)
+            if batch is not None:  # the usual tick: checked and stacked at once, same result
+                tau, imu_arrays, pos_group = batch
+                if tau is not None:
+                    imu = None if imu_arrays is None else self.combiner.combine_arrays(tau, *imu_arrays)
+                    self._process_group(tau, imu, pos_group)
+                if self.initialised and t_s > self.t_s:
+                    self._propagate(t_s, None)
+                return self.state()
         for s in imu_samples:
             self.on_imu(s)
         for s in position_samples:
             self.on_position(s)
         self.predict_to(t_s)
         return self.state()
+
+    def _batch(self, t_s: float, imus: list[ImuSample], poss: list[PositionSample]):
+        """The tick's samples stacked, when they are one instant <= t_s of distinct known units with
+        finite values and none stale: (tau, (units, gyros, accels) | None, position group | None).
+        None for anything else, which the per-sample path then counts and drops as usual."""
+        tau = None
+        imu_arrays = pos_group = None
+        try:
+            if imus:
+                tau = imus[0].t_s
+                units = tuple([s.unit_id for s in imus])
+                if not self._instant_ok(t_s, tau, imus, units):
+                    return None
+                gyros = np.array([s.gyro_frd_radps for s in imus], dtype=float)
+                accels = np.array([s.accel_frd_mps2 for s in imus], dtype=float)
+                if gyros.shape != (len(units), 3) or accels.shape != gyros.shape:
+                    return None
+                if not math.isfinite(float(gyros.sum() + accels.sum())):
+                    return None
+                imu_arrays = (units, gyros, accels)
+            if poss:
+                tp = poss[0].t_s
+                if tau is not None and tp != tau:
+                    return None
+                tau = tp
+                units = tuple([s.unit_id for s in poss])
+                if not self._instant_ok(t_s, tau, poss, units):
+                    return None
+                pos = np.array([s.position_ned_m for s in poss], dtype=float)
+                if pos.shape != (len(units), 3) or not math.isfinite(float(pos.sum())):
+                    return None
+                vels = [s.velocity_ned_mps for s in poss]
+                vel = None
+                if any(v is not None for v in vels):
+                    if any(v is None for v in vels):
+                        return None
+                    vel = np.array(vels, dtype=float)
+                    if vel.shape != pos.shape or not math.isfinite(float(vel.sum())):
+                        return None
+                pos_group = (units, pos, vel, None)
+        except (TypeError, ValueError, AttributeError):
+            return None
+        return tau, imu_arrays, pos_group
+
+    def _instant_ok(self, t_s: float, tau: float, samples: list, units: tuple) -> bool:
+        if not math.isfinite(tau) or tau > t_s + 1e-9 or (self.initialised and tau < self.t_s - 1e-9):
+            return False
+        if any(s.t_s != tau for s in samples):
+            return False
+        if units == self.combiner._all:
+            return True
+        index = self.combiner._index
+        return len(set(units)) == len(units) and all(u in index for u in units)
 
     def predict_to(self, t_s: float) -> None:
         """Process buffered samples with time <= t_s in time order, then propagate to t_s."""
@@ -297,26 +478,49 @@ class AssemblyEstimator:
         for tau in sorted(groups):
             imu_group, pos_group = groups[tau]
             imu = self.combiner.combine(list(imu_group.values()))
-            if imu is not None:
-                self.stats.imu = imu
-            pos = list(pos_group.values())
-            if not self.initialised:
-                self._init_imu = imu or self._init_imu
-                if self._init_imu is not None and pos:
-                    self._initialise(tau, self._init_imu, pos)
-                continue
-            self._propagate(tau, imu)
-            if pos:
-                self._fuse_positions(pos)
+            pos = None
+            if pos_group:
+                samples = list(pos_group.values())
+                has_vel = np.array([s.velocity_ned_mps is not None for s in samples])
+                vel = None
+                if has_vel.any():
+                    vel = np.array([np.zeros(3) if s.velocity_ned_mps is None else s.velocity_ned_mps for s in samples])
+                pos = (
+                    tuple(pos_group), np.array([s.position_ned_m for s in samples], dtype=float), vel,
+                    None if vel is None or has_vel.all() else has_vel,
+                )
+            self._process_group(tau, imu, pos)
         if self.initialised and t_s > self.t_s:
             self._propagate(t_s, None)
 
+    def _process_group(self, tau: float, imu: CombinedImu | None, pos) -> None:
+        """One instant: the IMU group propagates to it, then the position group is fused."""
+        if imu is not None:
+            self.stats.imu = imu
+        if not self.initialised:
+            if imu is not None:
+                self._init_imu = imu
+            if self._init_imu is not None and pos is not None:
+                self._initialise(tau, self._init_imu, pos[0], pos[1])
+            return
+        self._propagate(tau, imu)
+        if pos is not None:
+            self._fuse_positions(*pos)
+
     # ----------------------------------------------------------------- outputs
     def state(self) -> RigidBodyState:
-        omega = np.zeros(3) if self._imu is None else self._imu.gyro_frd_radps - self.bg
+        imu = self._imu
+        omega = np.zeros(3) if imu is None else imu.gyro_frd_radps - self.bg
         acc = np.zeros(3)
-        if self._imu is not None and self.initialised:
-            acc = quat_to_rotmat(self.q) @ (self._imu.accel_frd_mps2 - self.ba) + self._g
+        if imu is not None and self.initialised:
+            r = _rotmat_rows(self.q.tolist())
+            fx, fy, fz = (imu.accel_frd_mps2 - self.ba).tolist()
+            gx, gy, gz = self._g.tolist()
+            acc = np.array((
+                r[0] * fx + r[1] * fy + r[2] * fz + gx,
+                r[3] * fx + r[4] * fy + r[5] * fz + gy,
+                r[6] * fx + r[7] * fy + r[8] * fz + gz,
+            ))
         return RigidBodyState(
             t_s=self.t_s,
             position_ned_m=self.p.copy(),
@@ -377,26 +581,26 @@ class AssemblyEstimator:
             self._ekf.P = t @ self._ekf.P @ t.T
         self.model = model
         self.combiner.set_model(model)
+        self._rows = {}
         self._imu = None
 
     # ----------------------------------------------------------------- filter internals
-    def _initialise(self, t_s: float, imu: CombinedImu, pos: list[PositionSample]) -> None:
+    def _initialise(self, t_s: float, imu: CombinedImu, units: tuple[int, ...], world: np.ndarray) -> None:
         f = imu.accel_frd_mps2
         roll = math.atan2(-f[1], -f[2])
         pitch = math.atan2(f[0], math.hypot(f[1], f[2]))
         tilt = _euler_rotmat(roll, pitch, 0.0)
-        body = np.array([tilt @ self.model.unit_position(s.unit_id) for s in pos])
-        world = np.array([s.position_ned_m for s in pos], dtype=float)
+        body = np.array([tilt @ self.model.unit_position(u) for u in units])
         b = body - body.mean(axis=0)
         w = world - world.mean(axis=0)
         spread = float(np.sum(b[:, :2] ** 2))
-        yaw_known = spread > (4 * self.params.position_noise_m) ** 2 * len(pos)
+        yaw_known = spread > (4 * self.params.position_noise_m) ** 2 * len(units)
         yaw = 0.0
         if yaw_known:
             yaw = math.atan2(float(np.sum(b[:, 0] * w[:, 1] - b[:, 1] * w[:, 0])), float(np.sum(b[:, 0] * w[:, 0] + b[:, 1] * w[:, 1])))
         rot = _euler_rotmat(roll, pitch, yaw)
         self.q = rotmat_to_quat(rot)
-        self.p = world.mean(axis=0) - rot @ np.mean([self.model.unit_position(s.unit_id) for s in pos], axis=0)
+        self.p = world.mean(axis=0) - rot @ np.mean([self.model.unit_position(u) for u in units], axis=0)
         self.v = np.zeros(3)
         self.t_s = t_s
         self._imu = imu
@@ -426,14 +630,18 @@ class AssemblyEstimator:
             self.t_s = max(self.t_s, t_s)
             return
         while t_s - self.t_s > self.params.max_step_s + 1e-12:
-            self._propagate_once(self.t_s + self.params.max_step_s, prev.gyro_frd_radps, prev.accel_frd_mps2, prev.units)
+            self._propagate_once(
+                self.t_s + self.params.max_step_s, prev.gyro_frd_radps.tolist(), prev.accel_frd_mps2.tolist(), prev.units
+            )
         cur = prev if imu is None else imu
         dt = t_s - self.t_s
         if dt > 0:
+            g0, g1 = prev.gyro_frd_radps.tolist(), cur.gyro_frd_radps.tolist()
+            a0, a1 = prev.accel_frd_mps2.tolist(), cur.accel_frd_mps2.tolist()
             self._propagate_once(
                 t_s,
-                0.5 * (prev.gyro_frd_radps + cur.gyro_frd_radps),
-                0.5 * (prev.accel_frd_mps2 + cur.accel_frd_mps2),
+                [0.5 * (g0[0] + g1[0]), 0.5 * (g0[1] + g1[1]), 0.5 * (g0[2] + g1[2])],
+                [0.5 * (a0[0] + a1[0]), 0.5 * (a0[1] + a1[1]), 0.5 * (a0[2] + a1[2])],
                 cur.units,
             )
         if imu is not None:
@@ -454,34 +662,93 @@ class AssemblyEstimator:
             Q[BA_, BA_] = np.eye(3) * pr.accel_bias_walk_mps2_per_sqrt_s**2 * dt
         return Q
 
-    def _propagate_once(self, t_s: float, gyro: np.ndarray, accel: np.ndarray, units: tuple[int, ...]) -> None:
+    def _propagate_once(self, t_s: float, gyro, accel, units: tuple[int, ...]) -> None:
+        """Nominal state over one step (midpoint attitude for the velocity), then filterpy's predict.
+
+        gyro, accel: 3-sequences (floats: this runs every tick and numpy is slow on 3-vectors).
+        """
         dt = t_s - self.t_s
-        omega = gyro - self.bg
-        f = accel - self.ba
-        dq = quat_from_rotvec(omega * dt)
-        rot_mid = quat_to_rotmat(quat_multiply(self.q, quat_from_rotvec(omega * (0.5 * dt))))
-        a = rot_mid @ f + self._g
-        self.p = self.p + self.v * dt + 0.5 * a * dt * dt
-        self.v = self.v + a * dt
-        q = quat_multiply(self.q, dq)
-        self.q = q / np.linalg.norm(q)
+        b0, b1, b2 = self.bg.tolist()
+        c0, c1, c2 = self.ba.tolist()
+        wx, wy, wz = gyro[0] - b0, gyro[1] - b1, gyro[2] - b2
+        fx, fy, fz = accel[0] - c0, accel[1] - c1, accel[2] - c2
+        q = self.q.tolist()
+        dq = _quat_rotvec(wx * dt, wy * dt, wz * dt)
+        h = 0.5 * dt
+        r = _rotmat_rows(_quat_mul(q, _quat_rotvec(wx * h, wy * h, wz * h)))
+        gx, gy, gz = self._g.tolist()
+        ax = r[0] * fx + r[1] * fy + r[2] * fz + gx
+        ay = r[3] * fx + r[4] * fy + r[5] * fz + gy
+        az = r[6] * fx + r[7] * fy + r[8] * fz + gz
+        px, py, pz = self.p.tolist()
+        vx, vy, vz = self.v.tolist()
+        self.p = np.array((px + vx * dt + 0.5 * ax * dt * dt, py + vy * dt + 0.5 * ay * dt * dt, pz + vz * dt + 0.5 * az * dt * dt))
+        self.v = np.array((vx + ax * dt, vy + ay * dt, vz + az * dt))
+        self.q = _quat_unit(_quat_mul(q, dq))
         self.t_s = t_s
 
-        F = self._F  # identity outside the blocks written here
-        F[P_, V_] = np.diag((dt, dt, dt))
-        F[V_, TH_] = rot_mid @ skew(f) * -dt
-        F[V_, BA_] = rot_mid * -dt
-        F[TH_, TH_] = quat_to_rotmat(dq).T
-        F[TH_, BG_] = np.diag((-dt, -dt, -dt))
+        # F is identity outside these blocks: dv/dtheta = -R [f]x dt, dv/dba = -R dt,
+        # dtheta/dtheta = R(dq)^T, dp/dv = I dt, dtheta/dbg = -I dt (_F_INDEX order)
+        m = -dt
+        d = _rotmat_rows(dq)
+        self._F_flat[_F_INDEX] = (
+            (r[1] * fz - r[2] * fy) * m, (r[2] * fx - r[0] * fz) * m, (r[0] * fy - r[1] * fx) * m,
+            (r[4] * fz - r[5] * fy) * m, (r[5] * fx - r[3] * fz) * m, (r[3] * fy - r[4] * fx) * m,
+            (r[7] * fz - r[8] * fy) * m, (r[8] * fx - r[6] * fz) * m, (r[6] * fy - r[7] * fx) * m,
+            r[0] * m, r[1] * m, r[2] * m, r[3] * m, r[4] * m, r[5] * m, r[6] * m, r[7] * m, r[8] * m,
+            d[0], d[3], d[6], d[1], d[4], d[7], d[2], d[5], d[8],
+            dt, dt, dt, m, m, m,
+        )
         key = (round(dt, 9), len(units))
-        if key not in self._q_cache:
+        Q = self._q_cache.get(key)
+        if Q is None:
             if len(self._q_cache) > 64:
                 self._q_cache.clear()
-            self._q_cache[key] = self._process_noise(dt, max(len(units), 1))
+            Q = self._q_cache[key] = self._process_noise(dt, max(len(units), 1))
         ekf = self._ekf
-        ekf.F = F
-        ekf.Q = self._q_cache[key]
+        ekf.F = self._F
+        ekf.Q = Q
         ekf.predict()
+
+    def _unit_rows(self, units: tuple[int, ...]) -> _UnitRows:
+        rows = self._rows.get(units)
+        if rows is None:
+            if len(self._rows) > 64:
+                self._rows.clear()
+            index = self.combiner._index
+            offsets = self.combiner.offsets_m[[index[u] for u in units]]
+            k = len(units)
+            template = np.zeros((6 * k, N_ERR))
+            template[np.arange(3 * k), np.tile(np.arange(3), k)] = 1.0
+            template[np.arange(3 * k, 6 * k), np.tile(np.arange(3, 6), k)] = 1.0
+            pos_rows = np.arange(3 * k).reshape(k, 3)
+            rows = self._rows[units] = _UnitRows(
+                offsets_m=offsets,
+                skew_offsets=_skews(offsets),
+                template=template,
+                block_rows=np.repeat(pos_rows[:, :, None], 3, axis=2),
+                block_cols=np.repeat(pos_rows[:, None, :], 3, axis=1),
+                pos_rows=pos_rows,
+                vel_rows=pos_rows + 3 * k,
+            )
+        return rows
+
+    def _predict_units(self, units: tuple[int, ...], with_velocity: bool):
+        """(rows, predicted positions (k, 3), stacked H (3k or 6k, 15), predicted velocities or None)."""
+        rows = self._unit_rows(units)
+        k = len(units)
+        rot = np.array(_rotmat_rows(self.q.tolist())).reshape(3, 3)
+        H = rows.template.copy() if with_velocity else rows.template[: 3 * k].copy()
+        r_skew = np.matmul(rot, rows.skew_offsets).reshape(3 * k, 3)  # R [r]x
+        H[: 3 * k, TH_] = -r_skew  # R exp([dtheta]x) r = R r - R [r]x dtheta
+        pos = self.p + rows.offsets_m @ rot.T
+        if not with_velocity:
+            return rows, pos, H, None
+        omega = np.zeros(3) if self._imu is None else self._imu.gyro_frd_radps - self.bg
+        wr = rows.offsets_m @ skew(omega).T
+        H[3 * k :, TH_] = -np.matmul(rot, _skews(wr)).reshape(3 * k, 3)
+        H[3 * k :, BG_] = r_skew  # omega x r = -(r x omega)
+        return rows, pos, H, self.v + wr @ rot.T
 
     def measurement_model(
         self, unit_ids: list[int], with_velocity: bool = True
@@ -492,70 +759,66 @@ class AssemblyEstimator:
         p_i = p + R r_i and v_i = v + R (omega x r_i), omega = combined gyro - bias
         (vel and H_vel are None unless `with_velocity`).
         """
-        rot = quat_to_rotmat(self.q)
-        offsets = self.combiner.offsets_m[[self.combiner._index[u] for u in unit_ids]]
-        k = len(offsets)
-        hp = np.zeros((k, 3, N_ERR))
-        hp[:, :, P_] = np.eye(3)
-        hp[:, :, TH_] = np.matmul(rot, _skews(-offsets))  # R exp([dtheta]x) r = R r - R [r]x dtheta
-        pos = self.p + offsets @ rot.T
-        if not with_velocity:
-            return pos, hp, None, None
-        omega = np.zeros(3) if self._imu is None else self._imu.gyro_frd_radps - self.bg
-        wr = offsets @ skew(omega).T
-        hv = np.zeros((k, 3, N_ERR))
-        hv[:, :, V_] = np.eye(3)
-        hv[:, :, TH_] = np.matmul(rot, _skews(-wr))
-        hv[:, :, BG_] = np.matmul(rot, _skews(offsets))  # omega x r = -(r x omega)
-        return pos, hp, self.v + wr @ rot.T, hv
+        k = len(unit_ids)
+        _, pos, H, vel = self._predict_units(tuple(unit_ids), with_velocity)
+        hp = H[: 3 * k].reshape(k, 3, N_ERR)
+        return pos, hp, vel, None if vel is None else H[3 * k :].reshape(k, 3, N_ERR)
 
-    def _fuse_positions(self, samples: list[PositionSample]) -> None:
-        """One stacked update over the units' positions (and velocities when the samples carry them)."""
+    def _fuse_positions(
+        self, units: tuple[int, ...], pos_m: np.ndarray, vel_mps: np.ndarray | None = None,
+        has_vel: np.ndarray | None = None,
+    ) -> None:
+        """One stacked update over the units' positions (k, 3) and velocities (k, 3) when given
+        (`has_vel` marks the units that carry one; None = all)."""
         ekf = self._ekf
-        has_vel = [i for i, s in enumerate(samples) if s.velocity_ned_mps is not None]
-        units = [s.unit_id for s in samples]
-        pos, hp, vel, hv = self.measurement_model(units, with_velocity=bool(has_vel))
-        y3 = np.array([s.position_ned_m for s in samples]) - pos
-        # gate each unit on its own 3x3 innovation block, so one bad receiver cannot pull the body
+        k = len(units)
+        rows, pos, H, vel = self._predict_units(units, vel_mps is not None)
+        y3 = pos_m - pos
         r_pos = self.params.position_noise_m**2
-        s_blocks = np.matmul(np.matmul(hp, ekf.P), hp.transpose(0, 2, 1))
-        s_blocks[:, [0, 1, 2], [0, 1, 2]] += r_pos
+        if vel is None:
+            y = y3.reshape(-1)
+            r_diag = np.full(3 * k, r_pos)
+        else:
+            y = np.concatenate([y3.reshape(-1), (vel_mps - vel).reshape(-1)])
+            r_diag = np.repeat((r_pos, self.params.velocity_noise_mps**2), 3 * k)
+        pht = ekf.P @ H.T
+        S = H @ pht
+        S.flat[:: len(S) + 1] += r_diag
+        # gate each unit on its own 3x3 innovation block, so one bad receiver cannot pull the body
+        s_blocks = S[rows.block_rows, rows.block_cols]
         nis_units = (y3 * np.linalg.solve(s_blocks, y3[:, :, None])[:, :, 0]).sum(axis=1)
         ok = nis_units <= self.params.position_gate_nis
         self.stats.position_units, self.stats.position_innovations_m = tuple(units), y3
-        if ok.all():
-            H, y = hp.reshape(-1, N_ERR), y3.reshape(-1)
-        else:
+        all_ok = bool(ok.all())
+        if not all_ok:
             self.stats.rejected["position_gate"] = self.stats.rejected.get("position_gate", 0) + int((~ok).sum())
             if not ok.any():
                 self.stats.gated_batches += 1
                 if self.stats.gated_batches >= max(1, self.params.position_reset_after_batches):
-                    self._reset_to_positions(samples, offsets_rot=pos - self.p)
+                    self._reset_to_positions(pos_m, vel_mps, has_vel, offsets_rot=pos - self.p)
                 return
-            H, y = hp[ok].reshape(-1, N_ERR), y3[ok].reshape(-1)
         self.stats.gated_batches = 0
-        rdiag = np.full(len(y), r_pos)
-        with_vel = [i for i in has_vel if ok[i]]
-        if with_vel:
-            yv = np.array([samples[i].velocity_ned_mps for i in with_vel]) - vel[with_vel]
-            H = np.vstack([H, hv[with_vel].reshape(-1, N_ERR)])
-            y = np.concatenate([y, yv.reshape(-1)])
-            rdiag = np.concatenate([rdiag, np.full(yv.size, self.params.velocity_noise_mps**2)])
-        # filterpy computes z - Hx(x): hand it the innovation as z with Hx = 0
-        ekf.update(y, HJacobian=lambda _x: H, Hx=lambda _x: 0.0, R=np.diag(rdiag))
-        nis = float(ekf.y @ ekf.SI @ ekf.y)
+        if not all_ok or has_vel is not None:  # fuse the accepted units' rows only
+            take = rows.pos_rows[ok].reshape(-1)
+            if vel is not None:
+                with_vel = ok if has_vel is None else ok & has_vel
+                take = np.concatenate([take, rows.vel_rows[with_vel].reshape(-1)])
+            H, y, r_diag, pht, S = H[take], y[take], r_diag[take], pht[:, take], S[np.ix_(take, take)]
+        nis = ekf.update_innovation(y, H, r_diag, pht, S)
         st = self.stats
         st.t_s, st.nis, st.dof = self.t_s, nis, len(y)
         st.nis_mean_per_dof += self.params.nis_average_gain * (nis / len(y) - st.nis_mean_per_dof)
         self._inject()
 
-    def _reset_to_positions(self, samples: list[PositionSample], offsets_rot: np.ndarray) -> None:
+    def _reset_to_positions(
+        self, pos_m: np.ndarray, vel_mps: np.ndarray | None, has_vel: np.ndarray | None, offsets_rot: np.ndarray
+    ) -> None:
         """Restart position and velocity on the measurements (lever arms from the current attitude)."""
-        self.p = np.mean([s.position_ned_m for s in samples], axis=0) - offsets_rot.mean(axis=0)
-        vels = [s.velocity_ned_mps for s in samples if s.velocity_ned_mps is not None]
+        self.p = pos_m.mean(axis=0) - offsets_rot.mean(axis=0)
+        vels = None if vel_mps is None else (vel_mps if has_vel is None else vel_mps[has_vel])
         # without measured velocities the old one is not trusted either: zero, wide, learnt from positions
-        self.v = np.mean(vels, axis=0) if vels else np.zeros(3)
-        v_std = self.params.initial_velocity_std_mps if vels else max(self.params.initial_velocity_std_mps, 2.0)
+        self.v = vels.mean(axis=0) if vels is not None else np.zeros(3)
+        v_std = self.params.initial_velocity_std_mps if vels is not None else max(self.params.initial_velocity_std_mps, 2.0)
         P = self._ekf.P
         blocks = [(P_, self.params.position_noise_m * 3), (V_, v_std)]
         if self.params.estimate_accel_bias:  # a shock may have been learnt as accelerometer bias
@@ -573,16 +836,27 @@ class AssemblyEstimator:
         dx = self._ekf.x
         self.p = self.p + dx[P_]
         self.v = self.v + dx[V_]
-        q = quat_multiply(self.q, quat_from_rotvec(dx[TH_]))
-        self.q = q / np.linalg.norm(q)
+        tx, ty, tz = dx[TH_].tolist()
+        self.q = _quat_unit(_quat_mul(self.q.tolist(), _quat_rotvec(tx, ty, tz)))
         self.bg = self.bg + dx[BG_]
         if self.params.estimate_accel_bias:
             self.ba = self.ba + dx[BA_]
-        g = np.eye(3) - skew(0.5 * dx[TH_])  # reset Jacobian: only the attitude rows/columns change
+        hx, hy, hz = 0.5 * tx, 0.5 * ty, 0.5 * tz
+        g = np.array(((1.0, hz, -hy), (-hz, 1.0, hx), (hy, -hx, 1.0)))  # reset Jacobian I - [dtheta/2]x
         P = self._ekf.P
-        P[TH_, :] = g @ P[TH_, :]
+        P[TH_, :] = g @ P[TH_, :]  # only the attitude rows/columns change
         P[:, TH_] = P[:, TH_] @ g.T
         self._ekf.x = np.zeros(N_ERR)
+
+
+# flat indices into the 15 x 15 F of the blocks `_propagate_once` writes, in its order
+_F_INDEX = np.array(
+    [r * N_ERR + c for r in range(3, 6) for c in range(6, 9)]  # dv/dtheta
+    + [r * N_ERR + c for r in range(3, 6) for c in range(12, 15)]  # dv/dba
+    + [r * N_ERR + c for r in range(6, 9) for c in range(6, 9)]  # dtheta/dtheta
+    + [i * N_ERR + 3 + i for i in range(3)]  # dp/dv
+    + [(6 + i) * N_ERR + 9 + i for i in range(3)]  # dtheta/dbg
+)
 
 
 def _euler_rotmat(roll: float, pitch: float, yaw: float) -> np.ndarray:
