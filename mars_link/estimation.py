@@ -354,8 +354,7 @@ class AssemblyEstimator:
         self.bg = np.zeros(3)
         self.ba = np.zeros(3)
         self._g = np.array([0.0, 0.0, self.params.gravity_mps2])
-        self._F = np.eye(N_ERR)
-        self._F_flat = self._F.reshape(-1)  # a view: the blocks of F written per step, in one go
+        self._F = np.eye(N_ERR)  # identity outside the blocks `_propagate_once` writes
         self._q_cache: dict[tuple[float, int], np.ndarray] = {}
         self._rows: dict[tuple[int, ...], _UnitRows] = {}
 
@@ -691,14 +690,14 @@ class AssemblyEstimator:
         # dtheta/dtheta = R(dq)^T, dp/dv = I dt, dtheta/dbg = -I dt (_F_INDEX order)
         m = -dt
         d = _rotmat_rows(dq)
-        self._F_flat[_F_INDEX] = (
+        self._F.put(_F_INDEX, (
             (r[1] * fz - r[2] * fy) * m, (r[2] * fx - r[0] * fz) * m, (r[0] * fy - r[1] * fx) * m,
             (r[4] * fz - r[5] * fy) * m, (r[5] * fx - r[3] * fz) * m, (r[3] * fy - r[4] * fx) * m,
             (r[7] * fz - r[8] * fy) * m, (r[8] * fx - r[6] * fz) * m, (r[6] * fy - r[7] * fx) * m,
             r[0] * m, r[1] * m, r[2] * m, r[3] * m, r[4] * m, r[5] * m, r[6] * m, r[7] * m, r[8] * m,
             d[0], d[3], d[6], d[1], d[4], d[7], d[2], d[5], d[8],
             dt, dt, dt, m, m, m,
-        )
+        ))
         key = (round(dt, 9), len(units))
         Q = self._q_cache.get(key)
         if Q is None:

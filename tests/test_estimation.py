@@ -320,3 +320,157 @@ def test_closed_loop_3x2_spiral_through_the_runner_meets_issue_targets(seed):
     assert acc["attitude_rms_deg"] < 0.5, acc
     # and no outlier hides in the average: the worst step stays within the same limits
     assert acc["position_max_m"] < 0.02 and acc["attitude_max_deg"] < 0.5, acc
+
+
+# ----------------------------------------------------------------------------- the update against filterpy's own
+def _filterpy_generic_update(ekf):
+    """`update_innovation` done by filterpy's generic ExtendedKalmanFilter.update (the reference)."""
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    def update(y, H, r_diag, pht=None, s=None):
+        ExtendedKalmanFilter.update(ekf, y, HJacobian=lambda _x: H, Hx=lambda _x: 0.0, R=np.diag(r_diag))
+        return float(ekf.y @ ekf.SI @ ekf.y)
+
+    return update
+
+
+def _assert_close(a, b, rel=1e-10):
+    """Equal to `rel` of the larger magnitude (element-wise tolerance scaled by the array's size)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    assert a.shape == b.shape
+    scale = max(float(np.abs(b).max(initial=0.0)), 1e-300)
+    assert float(np.abs(a - b).max(initial=0.0)) <= rel * scale, (np.abs(a - b).max(), scale)
+
+
+def test_update_innovation_equals_filterpy_update_on_random_filters():
+    import copy
+
+    from mars_link.estimation import _ErrorStateEkf
+
+    rng = np.random.default_rng(11)
+    for m in (3, 6, 12, 18, 36):
+        ekf = _ErrorStateEkf(dim_x=15, dim_z=3)
+        a = rng.normal(size=(15, 15)) * np.logspace(-5, -1, 15)
+        ekf.P = a @ a.T + np.diag(np.logspace(-10, -4, 15))
+        ekf.x = np.zeros(15)
+        ref = copy.deepcopy(ekf)
+        H = rng.normal(size=(m, 15))
+        y = rng.normal(size=m) * 0.01
+        r_diag = rng.uniform(1e-4, 3e-3, m)
+        nis = ekf.update_innovation(y, H, r_diag)
+        nis_ref = _filterpy_generic_update(ref)(y, H, r_diag)
+        assert nis == pytest.approx(nis_ref, rel=1e-10)
+        for name in ("x", "P", "y", "S", "K", "SI", "x_post", "P_post"):
+            _assert_close(getattr(ekf, name), getattr(ref, name))
+        np.testing.assert_array_equal(ekf.z, y)
+
+
+def _flown_estimator(units_model, seconds=1.5, seed=7):
+    """An estimator 1.5 s into the synthetic flight (velocities fused), and the generator state."""
+    rng = np.random.default_rng(seed)
+    biases = {u: rng.uniform(-0.002, 0.002, 3) for u in units_model.unit_ids}
+    motion = Motion(rest_s=0.3)
+    est = AssemblyEstimator(units_model)
+    for k in range(int(seconds * 100)):
+        t = k / 100.0
+        tr = motion.truth(t)
+        imus, poss = unit_measurements(units_model, tr, t, rng, biases)
+        _with_velocities(units_model, tr, poss, rng)
+        est.step(t, imus, poss if k % 2 == 0 else [])
+    return est, rng, biases, motion
+
+
+def _with_velocities(model, tr, poss, rng):
+    for s in poss:
+        r = model.unit_position(s.unit_id)
+        s.velocity_ned_mps = tr["v"] + tr["R"] @ np.cross(tr["w"], r) + rng.normal(0, 0.02, 3)
+
+
+@pytest.mark.parametrize(
+    "case",
+    ["1 unit", "2 units", "3 units", "4 units", "5 units", "6 units", "6 units, no velocity", "unit 3 gated",
+     "unit 5 missing", "some without velocity"],
+)
+def test_fusion_equals_filterpy_generic_update(case):
+    """The estimator's fusion with its own update vs the same estimator (a copy, same inputs) whose
+    update is filterpy's generic ExtendedKalmanFilter.update: same filter state to 1e-10."""
+    import copy
+
+    model = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
+    est, rng, biases, motion = _flown_estimator(model)
+    t = 1.5
+    tr = motion.truth(t)
+    imus, poss = unit_measurements(model, tr, t, rng, biases)
+    _with_velocities(model, tr, poss, rng)
+    if case.endswith("units") or case == "1 unit":
+        poss = poss[: int(case.split()[0])]
+    elif case == "6 units, no velocity":
+        for s in poss:
+            s.velocity_ned_mps = None
+    elif case == "unit 3 gated":
+        poss[2].position_ned_m = poss[2].position_ned_m + np.array([0.5, 0.0, 0.0])
+    elif case == "unit 5 missing":
+        poss = [s for s in poss if s.unit_id != 5]
+    elif case == "some without velocity":
+        poss[1].velocity_ned_mps = poss[4].velocity_ned_mps = None
+    ref = copy.deepcopy(est)
+    ref._ekf.update_innovation = _filterpy_generic_update(ref._ekf)
+    a = est.step(t, copy.deepcopy(imus), copy.deepcopy(poss))
+    b = ref.step(t, copy.deepcopy(imus), copy.deepcopy(poss))
+    assert est.stats.rejected == ref.stats.rejected
+    assert est.stats.rejected.get("position_gate", 0) == (1 if case == "unit 3 gated" else 0)
+    n_pos = {"unit 3 gated": 5, "unit 5 missing": 5}.get(case, len(poss))
+    n_vel = 0 if case == "6 units, no velocity" else n_pos - (2 if case == "some without velocity" else 0)
+    assert est.stats.dof == ref.stats.dof == 3 * (n_pos + n_vel)
+    assert est.stats.nis == pytest.approx(ref.stats.nis, rel=1e-10)
+    for name in ("x_post", "P", "P_post", "y", "S", "K", "SI"):
+        _assert_close(getattr(est._ekf, name), getattr(ref._ekf, name))
+    for got, want in ((a.position_ned_m, b.position_ned_m), (a.velocity_ned_mps, b.velocity_ned_mps),
+                      (a.quaternion_wxyz, b.quaternion_wxyz), (est.bg, ref.bg), (est.ba, ref.ba)):
+        assert np.abs(got - want).max() <= 1e-10
+
+
+def test_stacked_tick_path_equals_per_sample_path():
+    """`step` stacks a usual tick's samples at once; the streaming calls take them one by one. Same
+    flight, including ticks with a missing unit, a glitch that is gated, a duplicated and a stale
+    sample, a NaN: the same estimate bit for bit and the same counts of dropped inputs."""
+    model = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
+    rng = np.random.default_rng(21)
+    biases = {u: rng.uniform(-0.002, 0.002, 3) for u in model.unit_ids}
+    motion = Motion(rest_s=0.5)
+    a, b = AssemblyEstimator(model), AssemblyEstimator(model)
+    stacked = []
+    batch = a._batch
+    a._batch = lambda *args: stacked.append(batch(*args)) or stacked[-1]
+    for k in range(400):
+        t = k / 100.0
+        tr = motion.truth(t)
+        imus, poss = unit_measurements(model, tr, t, rng, biases)
+        _with_velocities(model, tr, poss, rng)
+        poss = poss if k % 2 == 0 else []
+        if k % 7 == 3:
+            imus = imus[1:]
+        if k == 200:
+            poss[3].position_ned_m = poss[3].position_ned_m + np.array([0.0, 1.0, 0.0])
+        if k == 250:
+            imus.append(ImuSample(t, 2, imus[0].gyro_frd_radps + 0.01, imus[0].accel_frd_mps2))
+        if k == 300:
+            poss.append(PositionSample(t - 0.5, 4, np.zeros(3)))
+        if k == 350:
+            imus[0].gyro_frd_radps = np.array([np.nan, 0.0, 0.0])
+        sa = a.step(t, imus, poss)
+        for s in imus:
+            b.on_imu(s)
+        for s in poss:
+            b.on_position(s)
+        b.predict_to(t)
+        sb = b.state()
+        np.testing.assert_array_equal(sa.position_ned_m, sb.position_ned_m)
+        np.testing.assert_array_equal(sa.quaternion_wxyz, sb.quaternion_wxyz)
+        np.testing.assert_array_equal(sa.velocity_ned_mps, sb.velocity_ned_mps)
+        np.testing.assert_array_equal(a.covariance, b.covariance)
+    assert a.stats.rejected == b.stats.rejected == {
+        "position_gate": 1, "position_stale_or_bad_time": 1, "imu_not_finite": 1
+    }
+    # both paths were compared: the odd ticks (duplicate, stale, NaN) went sample by sample
+    assert sum(x is None for x in stacked) == 3 and len(stacked) == 400
