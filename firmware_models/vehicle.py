@@ -40,6 +40,7 @@ from firmware_models.signing import (
     enable_outgoing_signing,
 )
 from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
+from mars_link import mavlink_codec
 from mars_link.assembly import GRAVITY_MPS2, VehicleParams, vehicle_preset
 from mars_link.errors import UserInputError
 from mars_link.messages import SensorPacket
@@ -254,7 +255,7 @@ def split_frames(data: bytes | bytearray, decoder: mavlink.MAVLink, drop, pre_ch
             i += flen
             continue
         try:
-            msg = decoder.decode(frame)
+            msg = mavlink_codec.decode(frame, decoder)
         except Exception as e:  # pymavlink raises MAVError and, on odd payloads, others
             drop("parse.bad_crc" if "CRC" in str(e) else "parse.malformed")
             i += 1
@@ -274,6 +275,7 @@ def _finite(*values) -> bool:
 
 
 class Vehicle:
+
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -479,7 +481,7 @@ class Vehicle:
     def _pack(self, lk: _Link, msg) -> bytes:
         if lk.policy.sign_outgoing:
             advance_outgoing_clock(lk.encoder, self.wall_s)
-        return bytes(msg.pack(lk.encoder))
+        return mavlink_codec.encode(msg, lk.encoder)
 
     def _reply(self, lk: _Link, msg, out: list[Outgoing]) -> None:
         if lk.bucket.take(self.wall_s):

@@ -36,6 +36,7 @@ class SitlSession:
     link: LinkSpec
     router: object | None = None  # zenoh.Session in router mode, or None
     router_endpoint: str | None = None
+    wake_latency: object | None = None  # transport.realtime.CpuWakeLatency while a real-time run lasts
 
     def wait(self, timeout_s: float | None = None, units_may_die: bool = False) -> int:
         from sitl.launcher import wait
@@ -52,6 +53,8 @@ class SitlSession:
             self.close()
 
     def close(self) -> None:
+        if self.wake_latency is not None:
+            self.wake_latency.close()
         if self.router is not None:
             self.router.close()
             self.router = None
@@ -96,6 +99,9 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     role_args = {role: [*spec.to_args(), *tap] for role, spec in role_links.items()}
     if realtime:  # the units then measure the command age also on UDP
         role_args["unit"].append("--realtime")
+        from mars_link.transport.realtime import CpuWakeLatency
+
+        session.wake_latency = CpuWakeLatency()
     if vehicle is not None:
         role_args["coordinator"] += vehicle.argv()
         speed = 1.0 if speed is None else speed
@@ -180,7 +186,8 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     if code != 0 or not (out / "world_truth.csv").exists():
         logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
         raise RuntimeError(f"SITL run failed (exit {code}); process logs in {out}: {logs}")
-    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime)
+    held = session.wake_latency.state if session.wake_latency is not None else None
+    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held)
 
 
 def _sets_faults_known(scenario) -> bool:
@@ -235,7 +242,7 @@ class _ProgressWatcher:
 
 
 def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True,
-                       realtime: bool = False) -> dict:
+                       realtime: bool = False, cpu_wake_latency: str | None = None) -> dict:
     """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them."""
     from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
     from mars_link.runner import (DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, ROTOR_LOG_HZ, RunLog, TrialResult,
@@ -299,6 +306,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "faults_known": scenario.faults_known,
         # sim time is wall time only when paced: as fast as possible, an age would mean nothing
         "command_age": command_age_summary(out) if realtime else {"n": 0, "note": "measured with --realtime only"},
+        "cpu_wake_latency": cpu_wake_latency,  # real time: idle CPUs kept awake (transport.realtime.CpuWakeLatency)
     }
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n", encoding="utf-8")
     if plots and log.telemetry_rows:

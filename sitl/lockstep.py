@@ -60,6 +60,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.signing import load_key
+from mars_link import mavlink_codec
 from mars_link.errors import UserInputError
 from mars_link.messages import SensorPacket
 from mars_link.wire import (
@@ -87,6 +88,7 @@ STATUS_PERIOD_S = 0.2  # world status (truth) file
 SOCKET_HOOK = None  # (sock, sysid) -> socket-like; puts another transport behind Link (mars_link.transport.sitl_child)
 UNIT_STATUS_PERIOD_S = 1.0  # unit status files (a file replace costs milliseconds here)
 TICK_PERIOD_S = 0.02  # unit: heartbeats and streams (<= 20 Hz) served on this wall-clock grid
+HOUSEKEEPING_DEFER_S = 0.02  # unit: ticks and status wait this long at most for a pending step's command
 
 
 @dataclass
@@ -222,11 +224,17 @@ class Link:
 
     def send_many(self, msgs: list, addr: tuple[str, int]) -> None:
         """Several frames in one datagram (one syscall; the receiver splits them)."""
+        self.send_bytes(self.pack(msgs), addr)
+
+    def pack(self, msgs: list) -> bytes:
+        """The datagram of `msgs` (signed with a key), to send later with `send_bytes`."""
         if self.verifier is not None:
             from firmware_models.signing import advance_outgoing_clock
 
             advance_outgoing_clock(self.enc, time.time())
-        data = b"".join(m.pack(self.enc) for m in msgs)
+        return b"".join(mavlink_codec.encode(m, self.enc) for m in msgs)
+
+    def send_bytes(self, data: bytes, addr: tuple[str, int]) -> None:
         try:
             self.sock.sendto(data, addr)
         except OSError:  # the peer is gone (ICMP refused): its silence is handled by the timeouts
@@ -250,30 +258,22 @@ class Link:
             self.drop("not_loopback")
             return []
         self._log(data)
+        from firmware_models.vehicle import split_frames
+
+        check = None
         if self.verifier is not None:
             from firmware_models.signing import ACCEPTED
-            from firmware_models.vehicle import split_frames
 
             verifier, now = self.verifier, time.time()
 
-            def genuine(raw) -> bool:
+            def check(raw) -> bool:
                 result = verifier.verify(raw, now)
                 if result != ACCEPTED:
                     self.drop(f"signing.{result}")
                 return result == ACCEPTED
 
-            msgs = [m for m, _ in split_frames(data, self.mav, self.drop, genuine)]
-        else:
-            try:
-                msgs = self.mav.parse_buffer(data) or []
-            except Exception:  # malformed bytes: count and go on
-                self.drop("malformed")
-                return []
         out = []
-        for m in msgs:
-            if m.get_type() == "BAD_DATA":
-                self.drop("bad_data")
-                continue
+        for m, _ in split_frames(data, self.mav, self.drop, check):  # junk, bad CRC, forged: counted
             src = m.get_srcSystem()
             known = self.peers.get(src)
             if m.get_type() == "HEARTBEAT" and known is None:
@@ -355,20 +355,23 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         k = 0
         while (setup.steps is None or k < setup.steps) and not stop.requested:
             t = world.t_s
-            if speed > 0:
-                ahead = t / speed - (time.perf_counter() - wall0)
-                if ahead > 0:
-                    time.sleep(ahead)
             truth_log.write("%.6f," % t + ",".join("%.9f" % x for x in world.truth_row()) + "\n")
             if time.monotonic() >= next_status:
                 next_status = time.monotonic() + STATUS_PERIOD_S
                 _write_world_status(status_path, world, setup, live, t, time.perf_counter() - wall0)
                 truth_log.flush()
+            datagrams = []  # sampled and encoded before the pacing wait: at t they only go out
             for p in world.sense():
                 if p.unit_id in live:  # ground truth for the unit's own telemetry at the mocap rate
                     msgs = [] if p.truth is not None or p.position is None else [
                         hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
-                    link.send_many(msgs + sensor_packet_messages(p), link.peers[p.unit_id])
+                    datagrams.append((link.pack(msgs + sensor_packet_messages(p)), link.peers[p.unit_id]))
+            if speed > 0:
+                ahead = t / speed - (time.perf_counter() - wall0)
+                if ahead > 0:
+                    time.sleep(ahead)
+            for data, addr in datagrams:
+                link.send_bytes(data, addr)
             waiting = set(live)
             deadline = time.monotonic() + unit_timeout_s
             t_us = usec(t)
@@ -485,18 +488,23 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
             if setup.steps is not None and steps >= setup.steps:
                 break
             now = time.monotonic()
-            if now >= next_hello:  # hello until the world talks, then the 1 Hz wall-clock heartbeat
-                io.send([vehicle.hello(name) for name in hello_links])
-                next_hello = now + (0.2 if steps == 0 else 1.0)
-            if now >= next_tick:  # heartbeats and streams on wall time, even while the lockstep waits
-                io.send(vehicle.tick(time.time(), vehicle.sim_s))
-                next_tick = now + TICK_PERIOD_S
-            if now >= next_status:
-                next_status = now + UNIT_STATUS_PERIOD_S
-                write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **io.counters()))
-            wake = min(next_hello, next_tick, next_status)
             if vehicle.hil_pending:
                 pending_since = pending_since if pending_since is not None else now
+            # a step in flight (sensors forwarded, the coordinator's command not yet in) goes first:
+            # housekeeping waits for the slack after it, at most HOUSEKEEPING_DEFER_S
+            busy = pending_since is not None and now - pending_since < HOUSEKEEPING_DEFER_S
+            if not busy:
+                if now >= next_hello:  # hello until the world talks, then the 1 Hz wall-clock heartbeat
+                    io.send([vehicle.hello(name) for name in hello_links])
+                    next_hello = now + (0.2 if steps == 0 else 1.0)
+                if now >= next_tick:  # heartbeats and streams on wall time, even while the lockstep waits
+                    io.send(vehicle.tick(time.time(), vehicle.sim_s))
+                    next_tick = now + TICK_PERIOD_S
+                if now >= next_status:
+                    next_status = now + UNIT_STATUS_PERIOD_S
+                    write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **io.counters()))
+            wake = pending_since + HOUSEKEEPING_DEFER_S if busy else min(next_hello, next_tick, next_status)
+            if pending_since is not None:
                 wake = min(wake, pending_since + command_timeout_s)
             io.poll(wake - now)
             if vehicle.hil_pending and pending_since is not None and time.monotonic() - pending_since > command_timeout_s:
@@ -621,12 +629,15 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
             ordered = [packets[u] for u in sorted(packets)]
             commands = coordinator.step(t, ordered) if hosted is None else hosted.step(t, ordered, live)
+            datagrams = []  # all encoded first, then sent back to back (a woken unit may take the CPU)
             for cmd in commands:
                 if cmd.unit_id in live:
                     msgs = _with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale))
                     if hosted is not None:  # e.g. a failure injected on the vehicle, for this unit's motors
                         msgs += hosted.unit_commands(cmd.unit_id)
-                    link.send_many(msgs, link.peers[cmd.unit_id])
+                    datagrams.append((link.pack(msgs), link.peers[cmd.unit_id]))
+            for data, addr in datagrams:
+                link.send_bytes(data, addr)
         (out / "coordinator_summary.json").write_text(json.dumps(
             {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,

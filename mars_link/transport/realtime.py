@@ -12,12 +12,14 @@ computed from) is then its arrival wall time - (epoch + t). Ages beyond one cont
 from __future__ import annotations
 
 import json
+import os
 import struct
 import time
 from pathlib import Path
 
 import numpy as np
 
+CPU_DMA_LATENCY = "/dev/cpu_dma_latency"
 MSG_HIL_SENSOR = 107
 MSG_SET_ACTUATOR_CONTROL_TARGET = 139
 _U64 = struct.Struct("<Q")
@@ -91,3 +93,32 @@ class CommandAgeTap:
         stats = self.summary()
         (out / f"command_age_unit{self.unit_id}.json").write_text(json.dumps(stats, indent=2) + "\n")
         return stats
+
+
+class CpuWakeLatency:
+    """Keep idle CPUs out of their deep idle states while a real-time run lasts (Linux PM QoS: what
+    cyclictest and real-time audio do). A CPU woken from a halt (on a VM: a halted vCPU the host must
+    reschedule) takes up to milliseconds to run the process a datagram was sent to; every hop of the
+    lockstep pays it. Writing 0 to /dev/cpu_dma_latency asks for 0 us of wake-up latency until the
+    file is closed; it needs write access (root, or a udev rule granting it). `state` says what held."""
+
+    def __init__(self, path: str = CPU_DMA_LATENCY) -> None:
+        self._fd: int | None = None
+        try:
+            self._fd = os.open(path, os.O_WRONLY)
+            os.write(self._fd, struct.pack("<i", 0))
+            self.state = "held at 0 us"
+        except OSError as e:
+            if self._fd is not None:
+                os.close(self._fd)
+                self._fd = None
+            self.state = f"not held ({path}: {e.strerror or e})"
+
+    @property
+    def held(self) -> bool:
+        return self._fd is not None
+
+    def close(self) -> None:
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
