@@ -42,6 +42,7 @@ from mars_link.rotations import euler_to_quat, quat_multiply, quat_to_rotmat, ro
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
 
 N_ERR = 15
+_sum = np.add.reduce  # ndarray.sum without its Python wrapper (the same reduction)
 P_, V_, TH_, BG_, BA_ = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12), slice(12, 15)
 
 
@@ -215,7 +216,8 @@ class ImuCombiner:
                     self.relative_gyro_bias[k] = old[old_ids.index(uid)]
         self._index = {uid: k for k, uid in enumerate(self.unit_ids)}
         self._all = tuple(self.unit_ids)
-        self._last: tuple[float, np.ndarray] | None = None
+        self._averagers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._last: tuple[float, tuple[float, float, float]] | None = None
 
     def combine(self, samples: list[ImuSample]) -> CombinedImu | None:
         """Samples of one instant (distinct, known units) -> CoM IMU; updates the relative biases."""
@@ -232,27 +234,41 @@ class ImuCombiner:
         k = len(units)
         if k == 0:
             return None
-        idx = slice(None) if units == self._all else np.array([self._index[u] for u in units])
+        every = units == self._all
+        idx = slice(None) if every else np.array([self._index[u] for u in units])
+        mean_k, centre_k = self._averaging(k)
         d = self.relative_gyro_bias
-        inv_k = 1.0 / k
         if k >= 2:  # rigid body: gyro differences are bias differences plus noise
             dk = d[idx]
-            err = gyros - dk
-            err -= err.sum(axis=0) * inv_k
-            d[idx] = dk + self.gain * err
-            d -= d.sum(axis=0) * (1.0 / len(d))
+            d[idx] = dk + self.gain * (centre_k @ (gyros - dk))
+            d[:] = self._averaging(len(d))[1] @ d  # relative biases average to zero
         corrected = gyros - d[idx]
-        omega = corrected.sum(axis=0) * inv_k
-        sw = skew(omega)
-        lever_map = sw @ sw
+        omega = mean_k @ corrected
+        # rigid body: f_i = f_com + alpha x r_i + omega x (omega x r_i) = f_com + M r_i,
+        # M = [omega]x^2 + [alpha]x (alpha from the previous rate); written here as M^T
+        wx, wy, wz = omega.tolist()
+        xy, xz, yz = wx * wy, wx * wz, wy * wz
+        ax = ay = az = 0.0
         if self._last is not None and t_s > self._last[0]:
-            lever_map += skew((omega - self._last[1]) / (t_s - self._last[0]))  # angular acceleration
-        # rigid body: f_i = f_com + alpha x r_i + omega x (omega x r_i)
-        lever = self.offsets_m[idx] @ lever_map.T
-        accel_com = accels - lever
-        accel = accel_com.sum(axis=0) * inv_k
-        self._last = (t_s, omega)
+            dt_s = t_s - self._last[0]
+            lx, ly, lz = self._last[1]
+            ax, ay, az = (wx - lx) / dt_s, (wy - ly) / dt_s, (wz - lz) / dt_s
+        m_t = np.array((
+            (-(wy * wy + wz * wz), xy + az, xz - ay),
+            (xy - az, -(wx * wx + wz * wz), yz + ax),
+            (xz + ay, yz - ax, -(wx * wx + wy * wy)),
+        ))
+        accel_com = accels - (self.offsets_m if every else self.offsets_m[idx]) @ m_t
+        accel = mean_k @ accel_com
+        self._last = (t_s, (wx, wy, wz))
         return CombinedImu(t_s, omega, accel, units, corrected - omega, accel_com - accel)
+
+    def _averaging(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(1/k row, k x k centring matrix I - 1/k): means and mean removal as one product each."""
+        pair = self._averagers.get(k)
+        if pair is None:
+            pair = self._averagers[k] = (np.full(k, 1.0 / k), np.eye(k) - 1.0 / k)
+        return pair
 
 
 class _ErrorStateEkf(ExtendedKalmanFilter):
@@ -316,8 +332,8 @@ class _UnitRows:
     """
 
     offsets_m: np.ndarray  # (k, 3) unit centres in the body frame, from the CoM
-    skew_offsets: np.ndarray  # (k, 3, 3) [r_i]x
-    template: np.ndarray  # (6k, 15) H with its constant identity blocks, zeros elsewhere
+    neg_skew_offsets: np.ndarray  # (k, 3, 3) -[r_i]x
+    template: np.ndarray  # (2k, 3, 15) H with its constant identity blocks, zeros elsewhere
     block_rows: np.ndarray  # (k, 3, 3) row/column indices of each unit's position block of S
     block_cols: np.ndarray
     pos_rows: np.ndarray  # (k, 3) rows of each unit's position
@@ -357,6 +373,7 @@ class AssemblyEstimator:
         self._F = np.eye(N_ERR)  # identity outside the blocks `_propagate_once` writes
         self._q_cache: dict[tuple[float, int], np.ndarray] = {}
         self._rows: dict[tuple[int, ...], _UnitRows] = {}
+        self._r_cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 
     # ----------------------------------------------------------------- inputs
     def on_imu(self, sample: ImuSample) -> None:
@@ -423,13 +440,11 @@ class AssemblyEstimator:
                 units = tuple([s.unit_id for s in imus])
                 if not self._instant_ok(t_s, tau, imus, units):
                     return None
-                gyros = np.array([s.gyro_frd_radps for s in imus], dtype=float)
-                accels = np.array([s.accel_frd_mps2 for s in imus], dtype=float)
-                if gyros.shape != (len(units), 3) or accels.shape != gyros.shape:
+                k = len(units)
+                both = np.array([s.gyro_frd_radps for s in imus] + [s.accel_frd_mps2 for s in imus], dtype=float)
+                if both.shape != (2 * k, 3) or not math.isfinite(_sum(both, None)):
                     return None
-                if not math.isfinite(float(gyros.sum() + accels.sum())):
-                    return None
-                imu_arrays = (units, gyros, accels)
+                imu_arrays = (units, both[:k], both[k:])
             if poss:
                 tp = poss[0].t_s
                 if tau is not None and tp != tau:
@@ -438,18 +453,18 @@ class AssemblyEstimator:
                 units = tuple([s.unit_id for s in poss])
                 if not self._instant_ok(t_s, tau, poss, units):
                     return None
-                pos = np.array([s.position_ned_m for s in poss], dtype=float)
-                if pos.shape != (len(units), 3) or not math.isfinite(float(pos.sum())):
-                    return None
+                k = len(units)
+                values = [s.position_ned_m for s in poss]
                 vels = [s.velocity_ned_mps for s in poss]
-                vel = None
-                if any(v is not None for v in vels):
+                with_vel = any(v is not None for v in vels)
+                if with_vel:
                     if any(v is None for v in vels):
                         return None
-                    vel = np.array(vels, dtype=float)
-                    if vel.shape != pos.shape or not math.isfinite(float(vel.sum())):
-                        return None
-                pos_group = (units, pos, vel, None)
+                    values += vels
+                both = np.array(values, dtype=float)
+                if both.shape != ((2 if with_vel else 1) * k, 3) or not math.isfinite(_sum(both, None)):
+                    return None
+                pos_group = (units, both[:k], both[k:] if with_vel else None, None)
         except (TypeError, ValueError, AttributeError):
             return None
         return tau, imu_arrays, pos_group
@@ -717,13 +732,13 @@ class AssemblyEstimator:
             index = self.combiner._index
             offsets = self.combiner.offsets_m[[index[u] for u in units]]
             k = len(units)
-            template = np.zeros((6 * k, N_ERR))
-            template[np.arange(3 * k), np.tile(np.arange(3), k)] = 1.0
-            template[np.arange(3 * k, 6 * k), np.tile(np.arange(3, 6), k)] = 1.0
+            template = np.zeros((2 * k, 3, N_ERR))
+            template[:k, :, P_] = np.eye(3)
+            template[k:, :, V_] = np.eye(3)
             pos_rows = np.arange(3 * k).reshape(k, 3)
             rows = self._rows[units] = _UnitRows(
                 offsets_m=offsets,
-                skew_offsets=_skews(offsets),
+                neg_skew_offsets=_skews(-offsets),
                 template=template,
                 block_rows=np.repeat(pos_rows[:, :, None], 3, axis=2),
                 block_cols=np.repeat(pos_rows[:, None, :], 3, axis=1),
@@ -737,17 +752,21 @@ class AssemblyEstimator:
         rows = self._unit_rows(units)
         k = len(units)
         rot = np.array(_rotmat_rows(self.q.tolist())).reshape(3, 3)
-        H = rows.template.copy() if with_velocity else rows.template[: 3 * k].copy()
-        r_skew = np.matmul(rot, rows.skew_offsets).reshape(3 * k, 3)  # R [r]x
-        H[: 3 * k, TH_] = -r_skew  # R exp([dtheta]x) r = R r - R [r]x dtheta
-        pos = self.p + rows.offsets_m @ rot.T
+        H3 = rows.template.copy() if with_velocity else rows.template[:k].copy()  # (units, 3, 15) views
+        np.matmul(rot, rows.neg_skew_offsets, out=H3[:k, :, TH_])  # R exp([dtheta]x) r = R r - R [r]x dtheta
+        rot_r = rows.offsets_m @ rot.T  # R r
+        pos = self.p + rot_r
         if not with_velocity:
-            return rows, pos, H, None
+            return rows, pos, H3.reshape(3 * k, N_ERR), None
         omega = np.zeros(3) if self._imu is None else self._imu.gyro_frd_radps - self.bg
-        wr = rows.offsets_m @ skew(omega).T
-        H[3 * k :, TH_] = -np.matmul(rot, _skews(wr)).reshape(3 * k, 3)
-        H[3 * k :, BG_] = r_skew  # omega x r = -(r x omega)
-        return rows, pos, H, self.v + wr @ rot.T
+        wx, wy, wz = omega.tolist()
+        wr = rows.offsets_m @ np.array(((0.0, wz, -wy), (-wz, 0.0, wx), (wy, -wx, 0.0)))  # omega x r
+        # d(R (omega x r))/dtheta = -R [omega x r]x = R (omega r^T - r omega^T) = (R omega) r^T - (R r) omega^T
+        hv = H3[k:, :, TH_]
+        np.multiply((rot @ omega)[:, None], rows.offsets_m[:, None, :], out=hv)
+        hv -= np.multiply.outer(rot_r, omega)
+        np.negative(H3[:k, :, TH_], out=H3[k:, :, BG_])  # d(omega x r)/dbg = -r x (-dbg) ... = R [r]x
+        return rows, pos, H3.reshape(6 * k, N_ERR), self.v + wr @ rot.T
 
     def measurement_model(
         self, unit_ids: list[int], with_velocity: bool = True
@@ -773,25 +792,21 @@ class AssemblyEstimator:
         k = len(units)
         rows, pos, H, vel = self._predict_units(units, vel_mps is not None)
         y3 = pos_m - pos
-        r_pos = self.params.position_noise_m**2
-        if vel is None:
-            y = y3.reshape(-1)
-            r_diag = np.full(3 * k, r_pos)
-        else:
-            y = np.concatenate([y3.reshape(-1), (vel_mps - vel).reshape(-1)])
-            r_diag = np.repeat((r_pos, self.params.velocity_noise_mps**2), 3 * k)
+        y = y3.reshape(-1) if vel is None else np.concatenate([y3.reshape(-1), (vel_mps - vel).reshape(-1)])
+        r_diag, r_mat = self._measurement_noise(k, vel is not None)
         pht = ekf.P @ H.T
         S = H @ pht
-        S.flat[:: len(S) + 1] += r_diag
+        S += r_mat
         # gate each unit on its own 3x3 innovation block, so one bad receiver cannot pull the body
         s_blocks = S[rows.block_rows, rows.block_cols]
-        nis_units = (y3 * np.linalg.solve(s_blocks, y3[:, :, None])[:, :, 0]).sum(axis=1)
+        nis_units = _sum(y3 * np.linalg.solve(s_blocks, y3[:, :, None])[:, :, 0], 1)
         ok = nis_units <= self.params.position_gate_nis
         self.stats.position_units, self.stats.position_innovations_m = tuple(units), y3
-        all_ok = bool(ok.all())
+        n_ok = int(np.count_nonzero(ok))
+        all_ok = n_ok == k
         if not all_ok:
-            self.stats.rejected["position_gate"] = self.stats.rejected.get("position_gate", 0) + int((~ok).sum())
-            if not ok.any():
+            self.stats.rejected["position_gate"] = self.stats.rejected.get("position_gate", 0) + k - n_ok
+            if n_ok == 0:
                 self.stats.gated_batches += 1
                 if self.stats.gated_batches >= max(1, self.params.position_reset_after_batches):
                     self._reset_to_positions(pos_m, vel_mps, has_vel, offsets_rot=pos - self.p)
@@ -808,6 +823,19 @@ class AssemblyEstimator:
         st.t_s, st.nis, st.dof = self.t_s, nis, len(y)
         st.nis_mean_per_dof += self.params.nis_average_gain * (nis / len(y) - st.nis_mean_per_dof)
         self._inject()
+
+    def _measurement_noise(self, k: int, with_velocity: bool) -> tuple[np.ndarray, np.ndarray]:
+        """R of k stacked unit positions (then velocities) as its diagonal and as a matrix."""
+        pr = self.params
+        key = (k, with_velocity, pr.position_noise_m, pr.velocity_noise_mps)
+        cached = self._r_cache.get(key)
+        if cached is None:
+            if len(self._r_cache) > 64:
+                self._r_cache.clear()
+            r_pos = pr.position_noise_m**2
+            r_diag = np.repeat((r_pos, pr.velocity_noise_mps**2), 3 * k) if with_velocity else np.full(3 * k, r_pos)
+            cached = self._r_cache[key] = (r_diag, np.diag(r_diag))
+        return cached
 
     def _reset_to_positions(
         self, pos_m: np.ndarray, vel_mps: np.ndarray | None, has_vel: np.ndarray | None, offsets_rot: np.ndarray
