@@ -3,12 +3,14 @@
 Synthetic noisy hover at 100 Hz, IMU and position of every unit each tick. The detector is timed
 while watching (every tick) and while isolating (the few ticks after an alarm), the latter by
 replaying one alarm state. The EKF step is split into its parts (IMU combination, propagation with
-filterpy's predict, the stacked position update with filterpy's update). Last, the real loop: the
+filterpy's predict, the stacked position update with the filter's Joseph-form update). Last, the real loop: the
 runner's noisy 3x2 spiral (JSBSim), the estimator's cost per control step there and its accuracy
 against the truth (issue 5: position RMS < 2 cm, attitude RMS < 0.5 deg).
 The step split is the runner's rhythm: IMU every tick, positions with velocities every second tick
 (50 Hz), so a "fusion" step propagates and fuses and a "plain" step only propagates; both are timed
-hot (median of many) on the synthetic hover and on the real spiral.
+hot (median of many; best of 3 runs for the synthetic hover) on the synthetic hover and on the
+real spiral (hover_1x1, spiral_3x2 through the runner: JSBSim and the controller run between steps,
+so caches are colder there).
 Run: python benchmarks/bench_estimation.py [--no-flight] [--split-only]
 """
 
@@ -166,7 +168,7 @@ def bench_parts(model: AssemblyModel, n: int = 2000) -> dict[str, np.ndarray]:
             return out
         return wrapper
 
-    est.combiner.combine = timed("combine", est.combiner.combine)
+    est.combiner.combine_arrays = timed("combine", est.combiner.combine_arrays)  # what step() calls
     est._propagate_once = timed("propagate", est._propagate_once)
     est._fuse_positions = timed("update", est._fuse_positions)
     for t, imus, poss, _ in ticks(model, n):
