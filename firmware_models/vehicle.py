@@ -43,10 +43,9 @@ from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
 from mars_link import mavlink_codec
 from mars_link.assembly import GRAVITY_MPS2, VehicleParams, vehicle_preset
 from mars_link.errors import UserInputError
-from mars_link.messages import SensorPacket
 from mars_link.rotations import quat_to_euler, quat_to_rotmat
 from mars_link.state import ImuSample, RigidBodyState
-from mars_link.wire import SensorPacketAssembler, sensor_packet_messages
+from mars_link.wire import SensorFrameAssembler
 
 LINK_GCS, LINK_API, LINK_COORDINATOR, LINK_HIL = "gcs", "api", "coordinator", "hil"
 EARTH_RADIUS_M = 6371000.0  # the spherical Earth of sitl's JSBSim models: lat = north / R at (0, 0)
@@ -303,7 +302,7 @@ class Vehicle:
         self.intake = RotorIntake(self._intake_params())
         self.autopilot = UnitAutopilot(self.vehicle, c.control_hz) if flight_core is None else flight_core
         self.control_dt_s = 1.0 / c.control_hz
-        self.assembler = SensorPacketAssembler()
+        self.assembler = SensorFrameAssembler()
         # state
         self.armed = False
         self.mode = MODE_HOLD
@@ -963,18 +962,19 @@ class Vehicle:
         if not _finite(*values):
             self._drop("hil_non_finite")
             return
-        packet = self.assembler.feed(msg)
-        if packet is None:
+        frames = self.assembler.feed_frames(msg)
+        if frames is None:
             return
-        packet = SensorPacket(packet.t_s, self.sysid, ImuSample(packet.t_s, self.sysid, packet.imu.gyro_frd_radps,
-                                                                packet.imu.accel_frd_mps2), packet.position, packet.truth)
-        self.imu = packet.imu
+        forward = [name for name, other in self.links.items() if other.policy.forward_sensors]
+        if forward:  # (on the real-time path: straight from the received fields)
+            upstream = frames.upstream_messages()
+            for name in forward:
+                other = self.links[name]
+                out.extend(Outgoing(name, self._pack(other, m)) for m in upstream)
+        packet = frames.packet()
+        self.imu = ImuSample(packet.t_s, self.sysid, packet.imu.gyro_frd_radps, packet.imu.accel_frd_mps2)
         if packet.truth is not None:
             self.set_state(packet.truth)
-        for name, other in self.links.items():
-            if other.policy.forward_sensors:
-                for m in sensor_packet_messages(packet, upstream=True):
-                    out.append(Outgoing(name, self._pack(other, m)))
         # lockstep: the sensor time stamps the step; answer with the motor outputs for it
         self.sim_s = packet.t_s
         self._next_control = packet.t_s + self.control_dt_s

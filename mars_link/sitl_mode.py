@@ -97,8 +97,9 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
             raise UserInputError(f"zenoh topology {topology!r}: expected peer or router")
     tap = ["--control-period-s", repr(1.0 / setup.scenario.sim.control_hz)]
     role_args = {role: [*spec.to_args(), *tap] for role, spec in role_links.items()}
-    if realtime:  # the units then measure the command age also on UDP
+    if realtime:  # the units then measure the command age also on UDP, the coordinator logs its timing
         role_args["unit"].append("--realtime")
+        role_args["coordinator"].append("--timing-log")
         from mars_link.transport.realtime import CpuWakeLatency
 
         session.wake_latency = CpuWakeLatency()
@@ -398,6 +399,36 @@ def command_age_summary(out: Path) -> dict:
     stats = percentiles_ms(ages)
     stats["deadline_misses"] = misses
     return stats
+
+
+def stage_times(out: Path) -> dict:
+    """Medians over steps (ms after the sample time) of a real-time run's stages: the last unit reading
+    its sensors (`sensors_in`), the coordinator holding all telemetry (`telemetry_in`), commands
+    `computed` and `sent`, the last unit reading its command (`commands_in`). Empty if not logged."""
+    epochs = [_read_json(p).get("epoch_s") for p in out.glob("command_age_unit*.json")]
+    epochs = [e for e in epochs if isinstance(e, float) and math.isfinite(e)]
+    coordinator = out / "coordinator_timing.csv"
+    if not epochs or not coordinator.exists():
+        return {}
+    epoch = min(epochs)  # each unit's estimate is the epoch plus its smallest delay: take the smallest
+    per_step: dict[float, dict[str, float]] = {}
+    for path in sorted(out.glob("command_age_unit*.csv")):
+        offset = _read_json(path.with_suffix(".json")).get("epoch_s", epoch) - epoch
+        for row in np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, ndmin=1)):
+            step = per_step.setdefault(round(float(row["t_s"]), 6), {})
+            for stage, column in (("sensors_in", "sensors_in_s"), ("commands_in", "age_s")):
+                value = float(row[column]) + offset
+                if math.isfinite(value):
+                    step[stage] = max(step.get(stage, -math.inf), value)
+    columns = {"telemetry_in": "telemetry_all_wall_s", "computed": "computed_wall_s", "sent": "sent_wall_s"}
+    for row in np.atleast_1d(np.genfromtxt(coordinator, delimiter=",", names=True, ndmin=1)):
+        t = round(float(row["t_s"]), 6)
+        step = per_step.setdefault(t, {})
+        for stage, column in columns.items():
+            step[stage] = float(row[column]) - epoch - t
+    return {stage: float(np.median([s[stage] for s in per_step.values() if stage in s])) * 1e3
+            for stage in ("sensors_in", "telemetry_in", "computed", "sent", "commands_in")
+            if any(stage in s for s in per_step.values())}
 
 
 def _read_json(path: Path) -> dict:

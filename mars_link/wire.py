@@ -16,6 +16,7 @@ frames belong to it, so a receiver knows when a packet is complete.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
@@ -72,50 +73,93 @@ def _odometry(t_usec: int, pos, q, vel, rates, estimator_type: int) -> mavlink.M
     )
 
 
-class SensorPacketAssembler:
-    """Collects ATT_POS_MOCAP / ODOMETRY / HIL_SENSOR (or HIGHRES_IMU) frames into SensorPackets."""
+@dataclass
+class SensorFrames:
+    """One sensor packet as received: its IMU frame (HIL_SENSOR or HIGHRES_IMU) and the optional
+    position (ODOMETRY, MOCAP) and truth (ODOMETRY, NAIVE) frames of the same time and sender."""
+
+    imu: mavlink.MAVLink_message
+    position: mavlink.MAVLink_message | None = None
+    truth: mavlink.MAVLink_message | None = None
+
+    def packet(self) -> SensorPacket:
+        m, unit = self.imu, self.imu.get_srcSystem()
+        t_s = m.time_usec / 1e6
+        pos = None
+        if (p := self.position) is not None:
+            vel = np.array([p.vx, p.vy, p.vz])
+            pos = PositionSample(t_s, unit, np.array([p.x, p.y, p.z]), None if np.isnan(vel).any() else vel)
+        truth = None
+        if (s := self.truth) is not None:
+            truth = RigidBodyState(t_s, np.array([s.x, s.y, s.z]), np.array([s.vx, s.vy, s.vz]),
+                                   np.array(s.q, dtype=float), np.array([s.rollspeed, s.pitchspeed, s.yawspeed]))
+        imu = ImuSample(t_s, unit, np.array([m.xgyro, m.ygyro, m.zgyro]), np.array([m.xacc, m.yacc, m.zacc]))
+        return SensorPacket(t_s, unit, imu, pos, truth)
+
+    def upstream_messages(self) -> list[mavlink.MAVLink_message]:
+        """What `sensor_packet_messages(self.packet(), upstream=True)` gives, built from the received
+        fields directly (a unit forwards every sensor packet to the coordinator on the real-time
+        path; no arrays in between)."""
+        m, t = self.imu, self.imu.time_usec
+        msgs = []
+        flags = IMU_FIELDS
+        if (p := self.position) is not None:
+            vel = (p.vx, p.vy, p.vz)
+            if not all(v == v for v in vel):  # any NaN: no velocity
+                vel = (math.nan,) * 3
+            msgs.append(_odometry(t, (p.x, p.y, p.z), (1.0, 0.0, 0.0, 0.0), vel, (math.nan,) * 3,
+                                  mavlink.MAV_ESTIMATOR_TYPE_MOCAP))
+            flags |= FLAG_HAS_POSITION
+        if (s := self.truth) is not None:
+            msgs.append(_odometry(t, (s.x, s.y, s.z), s.q, (s.vx, s.vy, s.vz), (s.rollspeed, s.pitchspeed, s.yawspeed),
+                                  mavlink.MAV_ESTIMATOR_TYPE_NAIVE))
+            flags |= FLAG_HAS_TRUTH
+        msgs.append(mavlink.MAVLink_highres_imu_message(t, m.xacc, m.yacc, m.zacc, m.xgyro, m.ygyro, m.zgyro,
+                                                        0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, flags, 0))
+        return msgs
+
+
+class SensorFrameAssembler:
+    """Collects ODOMETRY and HIL_SENSOR (or HIGHRES_IMU) frames into SensorFrames: a packet's optional
+    frames come first, its IMU frame last and its `fields_updated` flags say which must be there."""
 
     def __init__(self) -> None:
-        self._position: dict[tuple[int, int], PositionSample] = {}
-        self._truth: dict[tuple[int, int], RigidBodyState] = {}
+        self._position: dict[tuple[int, int], mavlink.MAVLink_message] = {}
+        self._truth: dict[tuple[int, int], mavlink.MAVLink_message] = {}
         self.dropped_incomplete = 0
 
-    def feed(self, msg: mavlink.MAVLink_message) -> SensorPacket | None:
-        unit = msg.get_srcSystem()
+    def feed_frames(self, msg: mavlink.MAVLink_message) -> SensorFrames | None:
         kind = msg.get_type()
-        if kind == "ODOMETRY" and msg.estimator_type == mavlink.MAV_ESTIMATOR_TYPE_MOCAP:
-            t = msg.time_usec
-            vel = np.array([msg.vx, msg.vy, msg.vz])
-            self._position[(unit, t)] = PositionSample(
-                t / 1e6, unit, np.array([msg.x, msg.y, msg.z]), None if np.isnan(vel).any() else vel
-            )
-        elif kind == "ODOMETRY":
-            t = msg.time_usec
-            self._truth[(unit, t)] = RigidBodyState(
-                t / 1e6, np.array([msg.x, msg.y, msg.z]), np.array([msg.vx, msg.vy, msg.vz]),
-                np.array(msg.q, dtype=float), np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed]),
-            )
+        if kind == "ODOMETRY":
+            store = self._position if msg.estimator_type == mavlink.MAV_ESTIMATOR_TYPE_MOCAP else self._truth
+            store[(msg.get_srcSystem(), msg.time_usec)] = msg
         elif kind in ("HIL_SENSOR", "HIGHRES_IMU"):
             t = msg.time_usec
-            key = (unit, t)
-            pos = self._position.pop(key, None)
-            truth = self._truth.pop(key, None)
+            key = (msg.get_srcSystem(), t)
+            pos = self._position.pop(key, None) if self._position else None
+            truth = self._truth.pop(key, None) if self._truth else None
             if (msg.fields_updated & FLAG_HAS_POSITION and pos is None) or (
                 msg.fields_updated & FLAG_HAS_TRUTH and truth is None
             ):
                 self.dropped_incomplete += 1
                 return None
-            imu = ImuSample(
-                t / 1e6, unit, np.array([msg.xgyro, msg.ygyro, msg.zgyro]), np.array([msg.xacc, msg.yacc, msg.zacc])
-            )
             self._prune(t)
-            return SensorPacket(t / 1e6, unit, imu, pos, truth)
+            return SensorFrames(msg, pos, truth)
         return None
 
     def _prune(self, t_usec: int) -> None:
         for store in (self._position, self._truth):
-            for key in [k for k in store if k[1] < t_usec]:
-                del store[key]
+            if store:
+                for key in [k for k in store if k[1] < t_usec]:
+                    del store[key]
+
+
+class SensorPacketAssembler(SensorFrameAssembler):
+    """SensorFrameAssembler that returns SensorPackets."""
+
+    def feed(self, msg: mavlink.MAVLink_message) -> SensorPacket | None:
+        frames = self.feed_frames(msg)
+        return None if frames is None else frames.packet()
 
 
 # ----------------------------------------------------------------------------- rotor commands

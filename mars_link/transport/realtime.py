@@ -56,18 +56,21 @@ def frame_times_usec(data: bytes, msgid: int) -> list[int]:
 
 
 class CommandAgeTap:
-    """Unit side: fed the datagrams of the unit's HIL and coordinator links; logs the command ages."""
+    """Unit side: fed the datagrams of the unit's HIL and coordinator links; logs the command ages and
+    when each step's sensor datagram was read (the first stage of the path)."""
 
     def __init__(self, unit_id: int, control_period_s: float = 0.01) -> None:
         self.unit_id = unit_id
         self.control_period_s = control_period_s
         self.offset_s = float("inf")  # epoch estimate: min(sensor arrival - t)
         self.commands: list[tuple[float, float]] = []  # (t_s, arrival wall time)
+        self.sensors: dict[float, float] = {}  # t_s -> arrival wall time of its sensor datagram
 
     def on_hil(self, data: bytes, now_s: float | None = None) -> None:
         now_s = time.time() if now_s is None else now_s
         for t_us in frame_times_usec(data, MSG_HIL_SENSOR):
             self.offset_s = min(self.offset_s, now_s - t_us / 1e6)
+            self.sensors.setdefault(t_us / 1e6, now_s)
 
     def on_coordinator(self, data: bytes, now_s: float | None = None) -> None:
         now_s = time.time() if now_s is None else now_s
@@ -81,15 +84,19 @@ class CommandAgeTap:
         ages = [a for _, a in self.ages_s()]
         stats = percentiles_ms(ages)
         stats["deadline_misses"] = int(sum(a > self.control_period_s for a in ages))
+        stats["epoch_s"] = self.offset_s  # wall time of sim time 0 (as this unit estimates it)
         return stats
 
     def write(self, out: Path) -> dict:
-        """command_age_unit<i>.csv (t_s, age_s) and command_age_unit<i>.json (percentiles, misses)."""
+        """command_age_unit<i>.csv (t_s, sensors_in_s, age_s: since the sample time, when the unit read
+        the step's sensors and its command) and command_age_unit<i>.json (percentiles, misses, epoch)."""
         out.mkdir(parents=True, exist_ok=True)
         with open(out / f"command_age_unit{self.unit_id}.csv", "w", encoding="utf-8") as f:
-            f.write("t_s,age_s\n")
+            f.write("t_s,sensors_in_s,age_s\n")
             for t, age in self.ages_s():
-                f.write(f"{t:.6f},{age:.6f}\n")
+                sensors = self.sensors.get(t)
+                sensors_in = "" if sensors is None else f"{sensors - (self.offset_s + t):.6f}"
+                f.write(f"{t:.6f},{sensors_in},{age:.6f}\n")
         stats = self.summary()
         (out / f"command_age_unit{self.unit_id}.json").write_text(json.dumps(stats, indent=2) + "\n")
         return stats

@@ -1,0 +1,98 @@
+"""Real-time SITL: command age at the motor for the 6-unit 3x2 hover (world paced to the wall clock,
+6 unit processes with the full firmware, coordinator with EKF and fault detection, MAVLink over
+loopback UDP), run after run, with where the time goes.
+
+    python benchmarks/bench_realtime.py [--runs 3] [--duration 5] [--transport udp|zenoh] [--png PATH]
+
+Command age = command arrival at the unit - sensor sample time (PX4's timestamp_sample sense: sensor
+-> unit -> coordinator -> unit). The stage columns are medians over steps of the time from the sample
+to: the last unit reading its sensor datagram, the coordinator holding every unit's telemetry, its
+rotor commands computed, sent, and the last unit reading its command (`timing.csv` of each run).
+The machine is shared: compare runs of one invocation, not figures across days.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+
+from mars_link.scenario import load_scenario  # noqa: E402
+from mars_link.sitl_mode import run_sitl_scenario, stage_times  # noqa: E402
+from mars_link.transport import LinkSpec  # noqa: E402
+
+STAGES = ("sensors_in", "telemetry_in", "computed", "sent", "commands_in")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--duration", type=float, default=5.0, help="simulated (= wall) seconds per run")
+    ap.add_argument("--transport", choices=("udp", "zenoh"), default="udp")
+    ap.add_argument("--scenario", default="hover_3x2")
+    ap.add_argument("--png", default=None, help="write the command-age distribution of every run here")
+    a = ap.parse_args()
+    sc = load_scenario(a.scenario)
+    sc = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, duration_s=a.duration))
+    rows, ages_by_run = [], []
+    print(f"{a.runs} runs of {a.scenario}, {a.duration:.0f} s each, {a.transport}, real time", flush=True)
+    header = f"{'run':>3} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'misses':>8}   " + " ".join(f"{s:>12}" for s in STAGES)
+    print(header)
+    with tempfile.TemporaryDirectory() as tmp:
+        for i in range(a.runs):
+            out = Path(tmp) / f"run{i}"
+            s = run_sitl_scenario(sc, out, link=LinkSpec(a.transport), realtime=True, plots=False)
+            age = s["sitl"]["command_age"]
+            stages = stage_times(out)
+            rows.append((age, stages))
+            ages_by_run.append(_ages(out))
+            print(f"{i + 1:>3} {age['p50_ms']:>7.2f} {age['p99_ms']:>7.2f} {age['max_ms']:>7.1f} "
+                  f"{age['deadline_misses']:>4}/{age['n']:<5} "
+                  + " ".join(f"{stages.get(k, float('nan')):>12.2f}" for k in STAGES), flush=True)
+        wake = s["sitl"].get("cpu_wake_latency")
+    p50 = statistics.median(r[0]["p50_ms"] for r in rows)
+    p99 = statistics.median(r[0]["p99_ms"] for r in rows)
+    print(f"median of runs: p50 {p50:.2f} ms, p99 {p99:.2f} ms (target p99 < 5 ms); idle CPUs: {wake}")
+    if a.png:
+        _plot(ages_by_run, Path(a.png))
+        print(f"wrote {a.png}")
+    return 0
+
+
+def _ages(out: Path) -> np.ndarray:
+    ages = [np.atleast_1d(np.genfromtxt(p, delimiter=",", names=True, ndmin=1)["age_s"])
+            for p in sorted(out.glob("command_age_unit*.csv"))]
+    return np.concatenate(ages) * 1e3 if ages else np.array([])
+
+
+def _plot(ages_by_run: list[np.ndarray], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for i, ages in enumerate(ages_by_run):
+        x = np.sort(ages)
+        ax.plot(x, 1.0 - np.arange(x.size) / max(x.size, 1), label=f"run {i + 1}")
+    ax.axvline(5.0, color="k", ls="--", lw=1, label="5 ms target (p99)")
+    ax.axhline(0.01, color="grey", ls=":", lw=1)
+    ax.set_yscale("log")
+    ax.set_xlabel("command age at the motor [ms]")
+    ax.set_ylabel("fraction of commands older")
+    ax.set_title("Real-time SITL, 3x2 hover, 6 units, 100 Hz")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
