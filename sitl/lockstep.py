@@ -523,10 +523,12 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
 
 # ----------------------------------------------------------------------------- coordinator
 def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S,
-                    key: bytes | None = None, vehicle=None) -> int:
+                    key: bytes | None = None, vehicle=None, timing_log: bool = False) -> int:
     """Drive the docked assembly; with a signing `key` its link to the units is signed both ways.
     With `vehicle` (sitl.vehicle_host.VehiclePorts) the assembly is one MAVLink vehicle on those ports
-    and its guidance, not the scenario's trajectory, is the coordinator's reference."""
+    and its guidance, not the scenario's trajectory, is the coordinator's reference. `timing_log`:
+    coordinator_timing.csv gets each step's wall-clock times (first and last telemetry in, commands
+    computed, sent): with the units' command_age logs, where a real-time step's time goes."""
     from mars_link.coordinator import Coordinator
     from mars_link.runner import eta_after, make_controller
 
@@ -565,6 +567,9 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     accepted: dict[int, set[int]] = {u: set() for u in model.unit_ids}  # commands each unit acknowledged
     next_fault = 0
     out.mkdir(parents=True, exist_ok=True)
+    timing = open(out / "coordinator_timing.csv", "w", encoding="utf-8") if timing_log else None
+    if timing:
+        timing.write("t_s,telemetry_first_wall_s,telemetry_all_wall_s,computed_wall_s,sent_wall_s\n")
     try:
         _await_peers(link, live, 60.0, stop)
         cpu0 = time.process_time()
@@ -604,6 +609,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     if t_expected is None:
                         t_expected = p.t_s
                         deadline = time.monotonic() + unit_timeout_s
+                        first_wall = time.time()
                     if p.t_s == t_expected and p.unit_id in live:
                         packets[p.unit_id] = p
                     else:
@@ -627,8 +633,10 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                 while next_fault < len(faults) and faults[next_fault].t_s <= t + 1e-9:
                     next_fault += 1
                     coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
+            all_wall = time.time()
             ordered = [packets[u] for u in sorted(packets)]
             commands = coordinator.step(t, ordered) if hosted is None else hosted.step(t, ordered, live)
+            computed_wall = time.time()
             datagrams = []  # all encoded first, then sent back to back (a woken unit may take the CPU)
             for cmd in commands:
                 if cmd.unit_id in live:
@@ -638,6 +646,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     datagrams.append((link.pack(msgs), link.peers[cmd.unit_id]))
             for data, addr in datagrams:
                 link.send_bytes(data, addr)
+            if timing:
+                timing.write(f"{t:.6f},{first_wall:.6f},{all_wall:.6f},{computed_wall:.6f},{time.time():.6f}\n")
         (out / "coordinator_summary.json").write_text(json.dumps(
             {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,
@@ -647,6 +657,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
              "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}}, indent=2, default=float) + "\n")
     finally:
         link.close()
+        if timing:
+            timing.close()
         if hosted is not None:
             hosted.close()
     return 0
@@ -700,6 +712,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--api-bind", type=int, default=None)
     ap.add_argument("--forever", action="store_true", help="docked: run until stopped (ignores --steps)")
     ap.add_argument("--vehicle", action="store_true", help="coordinator: serve the assembly as one MAVLink vehicle")
+    ap.add_argument("--timing-log", action="store_true", help="coordinator: each step's wall-clock times (coordinator_timing.csv)")
     ap.add_argument("--vehicle-sysid", type=int, default=None)
     ap.add_argument("--vehicle-gcs-port", type=int, default=None)
     ap.add_argument("--vehicle-api-port", type=int, default=None)
@@ -747,7 +760,7 @@ def main(argv: list[str] | None = None) -> int:
         except UserInputError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
-    return run_coordinator(setup, ports, out, key=key, vehicle=vehicle)
+    return run_coordinator(setup, ports, out, key=key, vehicle=vehicle, timing_log=args.timing_log)
 
 
 if __name__ == "__main__":
