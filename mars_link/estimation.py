@@ -38,7 +38,7 @@ from scipy.linalg import lapack
 
 from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
 from mars_link.errors import UserInputError
-from mars_link.rotations import euler_to_quat, quat_multiply, quat_to_rotmat, rotmat_to_quat, skew
+from mars_link.rotations import euler_to_quat, quat_to_rotmat, rotmat_to_quat, skew
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
 
 N_ERR = 15
@@ -644,9 +644,8 @@ class AssemblyEstimator:
             self.t_s = max(self.t_s, t_s)
             return
         while t_s - self.t_s > self.params.max_step_s + 1e-12:
-            self._propagate_once(
-                self.t_s + self.params.max_step_s, prev.gyro_frd_radps.tolist(), prev.accel_frd_mps2.tolist(), prev.units
-            )
+            gyro, accel = prev.gyro_frd_radps.tolist(), prev.accel_frd_mps2.tolist()
+            self._propagate_once(self.t_s + self.params.max_step_s, gyro, accel, prev.units)
         cur = prev if imu is None else imu
         dt = t_s - self.t_s
         if dt > 0:
@@ -696,7 +695,9 @@ class AssemblyEstimator:
         az = r[6] * fx + r[7] * fy + r[8] * fz + gz
         px, py, pz = self.p.tolist()
         vx, vy, vz = self.v.tolist()
-        self.p = np.array((px + vx * dt + 0.5 * ax * dt * dt, py + vy * dt + 0.5 * ay * dt * dt, pz + vz * dt + 0.5 * az * dt * dt))
+        self.p = np.array((
+            px + vx * dt + 0.5 * ax * dt * dt, py + vy * dt + 0.5 * ay * dt * dt, pz + vz * dt + 0.5 * az * dt * dt
+        ))
         self.v = np.array((vx + ax * dt, vy + ay * dt, vz + az * dt))
         self.q = _quat_unit(_quat_mul(q, dq))
         self.t_s = t_s
@@ -752,7 +753,8 @@ class AssemblyEstimator:
         rows = self._unit_rows(units)
         k = len(units)
         rot = np.array(_rotmat_rows(self.q.tolist())).reshape(3, 3)
-        H3 = rows.template.copy() if with_velocity else rows.template[:k].copy()  # (units, 3, 15) views
+        # H as (2k or k, 3, 15): [:k] the units' position rows, [k:] their velocity rows
+        H3 = rows.template.copy() if with_velocity else rows.template[:k].copy()
         np.matmul(rot, rows.neg_skew_offsets, out=H3[:k, :, TH_])  # R exp([dtheta]x) r = R r - R [r]x dtheta
         rot_r = rows.offsets_m @ rot.T  # R r
         pos = self.p + rot_r
@@ -765,7 +767,7 @@ class AssemblyEstimator:
         hv = H3[k:, :, TH_]
         np.multiply((rot @ omega)[:, None], rows.offsets_m[:, None, :], out=hv)
         hv -= np.multiply.outer(rot_r, omega)
-        np.negative(H3[:k, :, TH_], out=H3[k:, :, BG_])  # d(omega x r)/dbg = -r x (-dbg) ... = R [r]x
+        np.negative(H3[:k, :, TH_], out=H3[k:, :, BG_])  # omega = gyro - bg: d(R (omega x r))/dbg = R [r]x
         return rows, pos, H3.reshape(6 * k, N_ERR), self.v + wr @ rot.T
 
     def measurement_model(
@@ -845,7 +847,9 @@ class AssemblyEstimator:
         vels = None if vel_mps is None else (vel_mps if has_vel is None else vel_mps[has_vel])
         # without measured velocities the old one is not trusted either: zero, wide, learnt from positions
         self.v = vels.mean(axis=0) if vels is not None else np.zeros(3)
-        v_std = self.params.initial_velocity_std_mps if vels is not None else max(self.params.initial_velocity_std_mps, 2.0)
+        v_std = self.params.initial_velocity_std_mps
+        if vels is None:
+            v_std = max(v_std, 2.0)
         P = self._ekf.P
         blocks = [(P_, self.params.position_noise_m * 3), (V_, v_std)]
         if self.params.estimate_accel_bias:  # a shock may have been learnt as accelerometer bias
