@@ -334,6 +334,7 @@ class _UnitRows:
     offsets_m: np.ndarray  # (k, 3) unit centres in the body frame, from the CoM
     neg_skew_offsets: np.ndarray  # (k, 3, 3) -[r_i]x
     template: np.ndarray  # (2k, 3, 15) H with its constant identity blocks, zeros elsewhere
+    block_mask: np.ndarray  # (3k, 3k) ones on the units' 3x3 position blocks of S, zeros elsewhere
     block_rows: np.ndarray  # (k, 3, 3) row/column indices of each unit's position block of S
     block_cols: np.ndarray
     pos_rows: np.ndarray  # (k, 3) rows of each unit's position
@@ -472,7 +473,7 @@ class AssemblyEstimator:
     def _instant_ok(self, t_s: float, tau: float, samples: list, units: tuple) -> bool:
         if not math.isfinite(tau) or tau > t_s + 1e-9 or (self.initialised and tau < self.t_s - 1e-9):
             return False
-        if any(s.t_s != tau for s in samples):
+        if [s.t_s for s in samples].count(tau) != len(samples):
             return False
         if units == self.combiner._all:
             return True
@@ -741,6 +742,7 @@ class AssemblyEstimator:
                 offsets_m=offsets,
                 neg_skew_offsets=_skews(-offsets),
                 template=template,
+                block_mask=np.kron(np.eye(k), np.ones((3, 3))),
                 block_rows=np.repeat(pos_rows[:, :, None], 3, axis=2),
                 block_cols=np.repeat(pos_rows[:, None, :], 3, axis=1),
                 pos_rows=pos_rows,
@@ -800,8 +802,13 @@ class AssemblyEstimator:
         S = H @ pht
         S += r_mat
         # gate each unit on its own 3x3 innovation block, so one bad receiver cannot pull the body
-        s_blocks = S[rows.block_rows, rows.block_cols]
-        nis_units = _sum(y3 * np.linalg.solve(s_blocks, y3[:, :, None])[:, :, 0], 1)
+        # (one Cholesky solve of the block-diagonal part of S: the blocks stay independent)
+        _, s_inv_y, info = lapack.dposv(S[: 3 * k, : 3 * k] * rows.block_mask, y3.reshape(-1))
+        if info == 0:
+            nis_units = _sum(y3 * s_inv_y.reshape(k, 3), 1)
+        else:  # a block not positive definite to working precision: solve them one by one
+            s_blocks = S[rows.block_rows, rows.block_cols]
+            nis_units = _sum(y3 * np.linalg.solve(s_blocks, y3[:, :, None])[:, :, 0], 1)
         ok = nis_units <= self.params.position_gate_nis
         self.stats.position_units, self.stats.position_innovations_m = tuple(units), y3
         n_ok = int(np.count_nonzero(ok))
