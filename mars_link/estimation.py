@@ -649,7 +649,9 @@ class AssemblyEstimator:
             self._propagate_once(self.t_s + self.params.max_step_s, gyro, accel, prev.units)
         cur = prev if imu is None else imu
         dt = t_s - self.t_s
-        if dt > 0:
+        if 0 < dt < 1e-9:  # clocks that differ by rounding (tick vs sample time): nothing to propagate
+            self.t_s = t_s
+        elif dt > 0:
             g0, g1 = prev.gyro_frd_radps.tolist(), cur.gyro_frd_radps.tolist()
             a0, a1 = prev.accel_frd_mps2.tolist(), cur.accel_frd_mps2.tolist()
             self._propagate_once(
