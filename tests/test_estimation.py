@@ -474,3 +474,27 @@ def test_stacked_tick_path_equals_per_sample_path():
     }
     # both paths were compared: the odd ticks (duplicate, stale, NaN) went sample by sample
     assert sum(x is None for x in stacked) == 3 and len(stacked) == 400
+
+
+def test_tick_a_rounding_error_after_the_samples_is_not_a_propagation_step():
+    """The runner's control tick can exceed the sample time by ~1e-15 s (two clocks, two roundings):
+    that is no second propagation (a full covariance prediction) over 1e-15 s, just the clock."""
+    model = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
+    rng = np.random.default_rng(8)
+    biases = {u: np.zeros(3) for u in model.unit_ids}
+    motion = Motion(rest_s=0.2)
+    a, b = AssemblyEstimator(model), AssemblyEstimator(model)
+    steps = {a: 0, b: 0}
+    for est in (a, b):
+        def counted(*args, _est=est, _fn=est._propagate_once):
+            steps[_est] += 1
+            return _fn(*args)
+        est._propagate_once = counted
+    for k in range(100):
+        t = k / 100.0
+        imus, poss = unit_measurements(model, motion.truth(t), t, rng, biases)
+        sa = a.step(t, imus, poss)
+        sb = b.step(t + 2e-15 if k else t, imus, poss)
+        assert np.abs(sa.position_ned_m - sb.position_ned_m).max() < 1e-12
+    assert steps[a] == steps[b] == 99
+    assert sb.t_s == t + 2e-15
