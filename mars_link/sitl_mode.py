@@ -100,6 +100,8 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     if realtime:  # the units then measure the command age also on UDP, the coordinator logs its timing
         role_args["unit"].append("--realtime")
         role_args["coordinator"].append("--timing-log")
+        role_args["world"].append("--sched-batch")  # (sitl.lockstep.set_batch_scheduling)
+        role_args["unit"].append("--sched-batch")
         from mars_link.transport.realtime import CpuWakeLatency
 
         session.wake_latency = CpuWakeLatency()

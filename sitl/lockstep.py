@@ -48,6 +48,7 @@ import dataclasses
 import itertools
 import json
 import math
+import os
 import signal
 import socket
 import sys
@@ -85,6 +86,7 @@ UNIT_COMMAND_TIMEOUT_S = 2.0
 WORLD_UNIT_TIMEOUT_S = 3.0
 WORLD_IDLE_TIMEOUT_S = 30.0  # coordinator: no telemetry from any unit for this long = the world is gone
 STATUS_PERIOD_S = 0.2  # world status (truth) file
+ANSWER_READ_PHASE = 0.5  # paced world: first read of the units' answers, as a fraction of the period
 SOCKET_HOOK = None  # (sock, sysid) -> socket-like; puts another transport behind Link (mars_link.transport.sitl_child)
 UNIT_STATUS_PERIOD_S = 1.0  # unit status files (a file replace costs milliseconds here)
 TICK_PERIOD_S = 0.02  # unit: heartbeats and streams (<= 20 Hz) served on this wall-clock grid
@@ -266,11 +268,13 @@ class Link:
 
             verifier, now = self.verifier, time.time()
 
-            def check(raw) -> bool:
+            def genuine(raw) -> bool:
                 result = verifier.verify(raw, now)
                 if result != ACCEPTED:
                     self.drop(f"signing.{result}")
                 return result == ACCEPTED
+
+            check = genuine
 
         out = []
         for m, _ in split_frames(data, self.mav, self.drop, check):  # junk, bad CRC, forged: counted
@@ -372,6 +376,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                     time.sleep(ahead)
             for data, addr in datagrams:
                 link.send_bytes(data, addr)
+            if speed > 0:  # paced: the answers are read in one go from mid-period on, so the world is not
+                # woken once per unit while the units and the coordinator work on the step (2-core machines)
+                time.sleep(max(0.0, (t + ANSWER_READ_PHASE / cfg.exchange_hz) / speed - (time.perf_counter() - wall0)))
             waiting = set(live)
             deadline = time.monotonic() + unit_timeout_s
             t_us = usec(t)
@@ -528,7 +535,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     With `vehicle` (sitl.vehicle_host.VehiclePorts) the assembly is one MAVLink vehicle on those ports
     and its guidance, not the scenario's trajectory, is the coordinator's reference. `timing_log`:
     coordinator_timing.csv gets each step's wall-clock times (first and last telemetry in, commands
-    computed, sent): with the units' command_age logs, where a real-time step's time goes."""
+    computed, sent; CPU time of the step and of the sends): with the units' command_age logs, where a
+    real-time step's time goes (wall time above CPU time = the coordinator waited for a CPU)."""
     from mars_link.coordinator import Coordinator
     from mars_link.runner import eta_after, make_controller
 
@@ -569,7 +577,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     out.mkdir(parents=True, exist_ok=True)
     timing = open(out / "coordinator_timing.csv", "w", encoding="utf-8") if timing_log else None
     if timing:
-        timing.write("t_s,telemetry_first_wall_s,telemetry_all_wall_s,computed_wall_s,sent_wall_s\n")
+        timing.write("t_s,telemetry_first_wall_s,telemetry_all_wall_s,computed_wall_s,sent_wall_s,step_cpu_s,send_cpu_s\n")
     try:
         _await_peers(link, live, 60.0, stop)
         cpu0 = time.process_time()
@@ -633,10 +641,11 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                 while next_fault < len(faults) and faults[next_fault].t_s <= t + 1e-9:
                     next_fault += 1
                     coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
-            all_wall = time.time()
+            all_wall, step_cpu = time.time(), time.thread_time()
             ordered = [packets[u] for u in sorted(packets)]
             commands = coordinator.step(t, ordered) if hosted is None else hosted.step(t, ordered, live)
-            computed_wall = time.time()
+            computed_wall, send_cpu = time.time(), time.thread_time()
+            step_cpu = send_cpu - step_cpu
             datagrams = []  # all encoded first, then sent back to back (a woken unit may take the CPU)
             for cmd in commands:
                 if cmd.unit_id in live:
@@ -647,7 +656,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             for data, addr in datagrams:
                 link.send_bytes(data, addr)
             if timing:
-                timing.write(f"{t:.6f},{first_wall:.6f},{all_wall:.6f},{computed_wall:.6f},{time.time():.6f}\n")
+                timing.write(f"{t:.6f},{first_wall:.6f},{all_wall:.6f},{computed_wall:.6f},{time.time():.6f},"
+                             f"{step_cpu:.6f},{time.thread_time() - send_cpu:.6f}\n")
         (out / "coordinator_summary.json").write_text(json.dumps(
             {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,
@@ -687,6 +697,19 @@ def _fault_detector(model, ground_down_m: float):
 
 
 # ----------------------------------------------------------------------------- entry point
+def set_batch_scheduling() -> bool:
+    """SCHED_BATCH for this process (Linux; no privilege needed): a batch task that wakes up never
+    preempts the one running. In real time the world and the units take it, so a unit woken by its
+    sensor datagram or rotor command waits for a free CPU instead of interrupting the coordinator
+    (or the world) halfway through sending the step's datagrams; the coordinator, the only other
+    process on the critical path, keeps the normal class and preempts them."""
+    try:
+        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
+        return True
+    except (AttributeError, OSError):  # not Linux, or refused: the normal class
+        return False
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m sitl.lockstep")
     ap.add_argument("role", choices=("world", "unit", "coordinator"))
@@ -712,6 +735,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--api-bind", type=int, default=None)
     ap.add_argument("--forever", action="store_true", help="docked: run until stopped (ignores --steps)")
     ap.add_argument("--vehicle", action="store_true", help="coordinator: serve the assembly as one MAVLink vehicle")
+    ap.add_argument("--sched-batch", action="store_true",
+                    help="world/unit: run as SCHED_BATCH (its wake-ups never preempt the coordinator; real time)")
     ap.add_argument("--timing-log", action="store_true", help="coordinator: each step's wall-clock times (coordinator_timing.csv)")
     ap.add_argument("--vehicle-sysid", type=int, default=None)
     ap.add_argument("--vehicle-gcs-port", type=int, default=None)
@@ -719,6 +744,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vehicle-gcs-bind", type=int, default=None)
     ap.add_argument("--vehicle-api-bind", type=int, default=None)
     args = ap.parse_args(argv)
+    if args.sched_batch:
+        set_batch_scheduling()
     try:
         setup = load_setup(args.scenario, args.units, args.layout, args.steps)
         key = load_key(args.signing_key_file)
