@@ -330,6 +330,8 @@ class Vehicle:
         self._pending_text: list[tuple[int, str]] = []
         self.battery_used_c = 0.0  # coulombs
         self._hil_pending: tuple[int, str] | None = None  # (time_usec, link) of an unanswered HIL step
+        self.defer_own_state = False  # set by a real-time runner: see run_deferred
+        self._deferred: list = []
         self._last_rotor_usec: int | None = None  # time of the last accepted coordinator command
         self._await_coordinator = c.hil_await_coordinator
         self._scheduled_failures: list[tuple[float, int, float]] = []  # (sim time, rotor, eta), sorted
@@ -410,6 +412,9 @@ class Vehicle:
                 if not raw or lk.verifier.verify(bytearray(raw), wall_time_s) != ACCEPTED:
                     return out
             frames = [msg]
+        if self._deferred and not (link == LINK_COORDINATOR and all(
+                m.get_type() == "SET_ACTUATOR_CONTROL_TARGET" for m in frames)):
+            self.run_deferred()  # (a rotor command alone does not read the unit's own state)
         for msg in frames:
             self._count("rx")
             try:
@@ -423,6 +428,19 @@ class Vehicle:
         return out
 
     @property
+    def has_deferred(self) -> bool:
+        return bool(self._deferred)
+
+    def run_deferred(self) -> None:
+        """Bring the unit's own state (attitude, position, last IMU sample) up to the last sensor
+        packet. With `defer_own_state` a HIL step only forwards the sensors to the coordinator and
+        queues this: the runner calls it in the step's slack, after the coordinator's command is in
+        and answered, so the sensor -> coordinator -> motor path carries no bookkeeping; everything
+        that reads the state (ticks, client commands, the unit's own control) runs it first."""
+        while self._deferred:
+            self._deferred.pop(0)()
+
+    @property
     def hil_pending(self) -> bool:
         """A HIL step waits for the coordinator's command (`hil_await_coordinator`)."""
         return self._hil_pending is not None
@@ -432,6 +450,7 @@ class Vehicle:
         holds (the last command within MARS_CMD_MISS periods, then the fail-safe), and stop waiting
         until the coordinator's commands come back."""
         self.wall_s = max(self.wall_s, wall_time_s)
+        self.run_deferred()
         out: list[Outgoing] = []
         if self._hil_pending is not None:
             self._count("hil_released")
@@ -447,6 +466,7 @@ class Vehicle:
     def tick(self, wall_time_s: float, sim_time_s: float) -> list[Outgoing]:
         """Advance both clocks: heartbeats and streams on wall time, control on sim time."""
         self.wall_s = max(self.wall_s, wall_time_s)
+        self.run_deferred()
         out: list[Outgoing] = []
         if sim_time_s + 1e-9 >= self._next_control:
             self.sim_s = sim_time_s
@@ -945,14 +965,10 @@ class Vehicle:
     # ----------------------------------------------------------------- HIL link (lockstep)
     def _on_hil(self, msg, t: str, lk: _Link, out: list[Outgoing]) -> None:
         if t == "HIL_STATE_QUATERNION":
-            q = np.array(msg.attitude_quaternion, dtype=float)
-            values = [*q, msg.rollspeed, msg.pitchspeed, msg.yawspeed]
-            if not _finite(*values) or not 0.5 < np.linalg.norm(q) < 1.5:
-                self._drop("hil_non_finite")
-                return
-            pos = self._global_to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
-            self.set_state(RigidBodyState(msg.time_usec * 1e-6, pos, np.array([msg.vx, msg.vy, msg.vz]) * 0.01,
-                                          q / np.linalg.norm(q), np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed])))
+            if self.defer_own_state:
+                self._deferred.append(lambda: self._apply_hil_state(msg))
+            else:
+                self._apply_hil_state(msg)
             return
         if t not in ("HIL_SENSOR", "ODOMETRY"):
             self._count(f"ignored.{t}")
@@ -971,17 +987,35 @@ class Vehicle:
             for name in forward:
                 other = self.links[name]
                 out.extend(Outgoing(name, self._pack(other, m)) for m in upstream)
-        packet = frames.packet()
-        self.imu = ImuSample(packet.t_s, self.sysid, packet.imu.gyro_frd_radps, packet.imu.accel_frd_mps2)
-        if packet.truth is not None:
-            self.set_state(packet.truth)
+        if self.defer_own_state:
+            self._deferred.append(lambda: self._apply_sensors(frames))
+        else:
+            self._apply_sensors(frames)
         # lockstep: the sensor time stamps the step; answer with the motor outputs for it
-        self.sim_s = packet.t_s
-        self._next_control = packet.t_s + self.control_dt_s
+        t_s = frames.imu.time_usec / 1e6
+        self.sim_s = t_s
+        self._next_control = t_s + self.control_dt_s
         self._hil_pending = (int(msg.time_usec), lk.name)
         if self._await_coordinator:
             return  # answered when the coordinator's command for this step arrives (or on release)
         self._answer_hil(out)
+
+    def _apply_hil_state(self, msg) -> None:
+        """HIL_STATE_QUATERNION: the unit centre's ground truth, for its own telemetry and checks."""
+        q = np.array(msg.attitude_quaternion, dtype=float)
+        values = [*q, msg.rollspeed, msg.pitchspeed, msg.yawspeed]
+        if not _finite(*values) or not 0.5 < np.linalg.norm(q) < 1.5:
+            self._drop("hil_non_finite")
+            return
+        pos = self._global_to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+        self.set_state(RigidBodyState(msg.time_usec * 1e-6, pos, np.array([msg.vx, msg.vy, msg.vz]) * 0.01,
+                                      q / np.linalg.norm(q), np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed])))
+
+    def _apply_sensors(self, frames) -> None:
+        packet = frames.packet()
+        self.imu = ImuSample(packet.t_s, self.sysid, packet.imu.gyro_frd_radps, packet.imu.accel_frd_mps2)
+        if packet.truth is not None:
+            self.set_state(packet.truth)
 
     def _answer_hil(self, out: list[Outgoing]) -> None:
         time_usec, name = self._hil_pending
@@ -1009,6 +1043,8 @@ class Vehicle:
             self.motor_commands_n = np.zeros(4)
             return
         cmd = self.intake.command_n(t)
+        if not (self.mode == MODE_OFFBOARD and cmd is not None):
+            self.run_deferred()  # the unit's own control and fail-safes read its state
         if self.mode == MODE_OFFBOARD and cmd is not None:
             if self.source != "coordinator":
                 self.source = "coordinator"

@@ -89,6 +89,7 @@ class Coordinator:
         self.lost_units: set[int] = set()
         self.rejected: dict[str, int] = {}  # reason -> packets dropped here
         self._last_seen_s: dict[int, float] = {}
+        self._to_detect: tuple | None = None  # (t, thrusts, estimate, IMU samples) for finish_step
 
     def _event(self, t_s: float, kind: str, text: str, **fields) -> dict:
         event = {"t_s": round(t_s, 6), "type": kind, **fields, "text": short_text(text)}
@@ -143,6 +144,17 @@ class Coordinator:
                 self.unit_lost(uid, t_s, f"no telemetry for {t_s - seen:.2f} s")
 
     def step(self, t_s: float, packets: list[SensorPacket]) -> list[RotorCommand]:
+        """One control period: `commands`, then `finish_step` (what the in-process runners call)."""
+        commands = self.commands(t_s, packets)
+        c = time.perf_counter()
+        self.finish_step()
+        self.last.timings_s["control"] += time.perf_counter() - c
+        return commands
+
+    def commands(self, t_s: float, packets: list[SensorPacket]) -> list[RotorCommand]:
+        """Estimate, control and allocation: this period's rotor commands. Fault detection is left to
+        `finish_step`, which a real-time runner calls once the commands are out: what it finds changes
+        the allocation from the next period on, never this period's commands."""
         c0 = time.perf_counter()
         if self.telemetry_timeout_s is not None:
             self._watch_telemetry(t_s, packets)
@@ -164,7 +176,6 @@ class Coordinator:
         c1 = time.perf_counter()
         reference = self.trajectory.sample(t_s)
         out = self.controller.update(t_s, estimate, reference)
-        c2 = time.perf_counter()
         thrusts = np.asarray(out.rotor_thrusts_n, dtype=float)
         if self.detector is not None:
             # while explanations tie (e.g. units {2,5}, {1,6}, {3,4} of a 3x2: each a pure lift loss),
@@ -175,20 +186,8 @@ class Coordinator:
                 lo = -np.inf if v.rotor_min_thrust_n is None else v.rotor_min_thrust_n
                 hi = np.inf if v.rotor_max_thrust_n is None else v.rotor_max_thrust_n
                 thrusts = np.clip(thrusts + probe, lo, hi)
-            found = self.detector.update(t_s, thrusts, estimate, [p.imu for p in packets if p.imu is not None])
-            if found:
-                self.detections.extend(found)
-                for d in found:
-                    where = f"Unit {d.unit}" + (f" rotor {d.rotor}" if d.rotor else "")
-                    what = f"{where} eta {d.eta_estimated:.2f}" if d.rotor else f"{where} failed"
-                    self._event(t_s, "fault_detected", f"Fault found: {what}", unit=d.unit, rotor=d.rotor,
-                                eta_estimated=round(float(d.eta_estimated), 4), t_onset=round(float(d.t_onset), 6))
-                what = ", ".join(
-                    f"unit {d.unit}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
-                    for d in found
-                )
-                self.set_faults(np.clip(self.detector.eta_estimate, 0.0, 1.0), t_s, f"detected: {what}")
-            c2 = time.perf_counter()
+            self._to_detect = (t_s, thrusts.copy(), estimate, [p.imu for p in packets if p.imu is not None])
+        c2 = time.perf_counter()
         alloc = out.timings_s.get("allocation", 0.0)
         scale = self.model.vehicle.full_scale_thrust_n
         self.last = StepRecord(
@@ -201,3 +200,25 @@ class Coordinator:
             RotorCommand(t_w, uid, wired[(uid - 1) * ROTORS_PER_UNIT : uid * ROTORS_PER_UNIT])
             for uid in self.model.unit_ids
         ]
+
+    def finish_step(self) -> None:
+        """Fault detection on the last period's commanded thrusts and IMU samples; a finding is an
+        event, a detection record and a reallocation (for the periods to come)."""
+        if self._to_detect is None:
+            return
+        t_s, thrusts, estimate, imus = self._to_detect
+        self._to_detect = None
+        found = self.detector.update(t_s, thrusts, estimate, imus)
+        if not found:
+            return
+        self.detections.extend(found)
+        for d in found:
+            where = f"Unit {d.unit}" + (f" rotor {d.rotor}" if d.rotor else "")
+            what = f"{where} eta {d.eta_estimated:.2f}" if d.rotor else f"{where} failed"
+            self._event(t_s, "fault_detected", f"Fault found: {what}", unit=d.unit, rotor=d.rotor,
+                        eta_estimated=round(float(d.eta_estimated), 4), t_onset=round(float(d.t_onset), 6))
+        what = ", ".join(
+            f"unit {d.unit}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
+            for d in found
+        )
+        self.set_faults(np.clip(self.detector.eta_estimate, 0.0, 1.0), t_s, f"detected: {what}")

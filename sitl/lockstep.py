@@ -90,7 +90,9 @@ ANSWER_READ_PHASE = 0.5  # paced world: first read of the units' answers, as a f
 SOCKET_HOOK = None  # (sock, sysid) -> socket-like; puts another transport behind Link (mars_link.transport.sitl_child)
 UNIT_STATUS_PERIOD_S = 1.0  # unit status files (a file replace costs milliseconds here)
 TICK_PERIOD_S = 0.02  # unit: heartbeats and streams (<= 20 Hz) served on this wall-clock grid
-HOUSEKEEPING_DEFER_S = 0.02  # unit: ticks and status wait this long at most for a pending step's command
+HOUSEKEEPING_DEFER_S = 0.02  # unit: housekeeping waits at most this long past its time for a quiet moment
+UNIT_QUIET_S = 0.001  # unit: housekeeping starts this long after the last datagram (no step in flight)
+COORDINATOR_QUIET_S = 0.002  # coordinator: fault detection this long after the commands went out
 
 
 @dataclass
@@ -487,6 +489,8 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
     status_path = out / f"unit{unit_id}_status.json"
     next_hello = next_tick = next_status = 0.0
     pending_since = None
+    last_io = -math.inf
+    vehicle.defer_own_state = setup.docked  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
     print(json.dumps({"ready": True, "unit": unit_id, "ports": io.ports()}), flush=True)
     cpu0 = time.process_time()
     try:
@@ -497,10 +501,14 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
             now = time.monotonic()
             if vehicle.hil_pending:
                 pending_since = pending_since if pending_since is not None else now
-            # a step in flight (sensors forwarded, the coordinator's command not yet in) goes first:
-            # housekeeping waits for the slack after it, at most HOUSEKEEPING_DEFER_S
-            busy = pending_since is not None and now - pending_since < HOUSEKEEPING_DEFER_S
-            if not busy:
+            # housekeeping (the unit's own state, heartbeats, streams, status file) waits while a step is in
+            # flight and for UNIT_QUIET_S after the last datagram (the other units are then reading their
+            # commands on the same CPUs), at most HOUSEKEEPING_DEFER_S past its time
+            due = min(next_hello, next_tick, next_status)
+            quiet_at = math.inf if pending_since is not None else last_io + UNIT_QUIET_S
+            start_at = max(now if vehicle.has_deferred else due, quiet_at)
+            if now >= min(start_at, due + HOUSEKEEPING_DEFER_S):
+                vehicle.run_deferred()
                 if now >= next_hello:  # hello until the world talks, then the 1 Hz wall-clock heartbeat
                     io.send([vehicle.hello(name) for name in hello_links])
                     next_hello = now + (0.2 if steps == 0 else 1.0)
@@ -510,16 +518,20 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
                 if now >= next_status:
                     next_status = now + UNIT_STATUS_PERIOD_S
                     write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **io.counters()))
-            wake = pending_since + HOUSEKEEPING_DEFER_S if busy else min(next_hello, next_tick, next_status)
+                due = min(next_hello, next_tick, next_status)
+                start_at = max(due, quiet_at)
+            wake = min(start_at, due + HOUSEKEEPING_DEFER_S)
             if pending_since is not None:
                 wake = min(wake, pending_since + command_timeout_s)
-            io.poll(wake - now)
+            if io.poll(wake - now):
+                last_io = time.monotonic()
             if vehicle.hil_pending and pending_since is not None and time.monotonic() - pending_since > command_timeout_s:
                 print(f"unit {unit_id}: no coordinator command for {command_timeout_s:.1f} s at "
                       f"t={vehicle.sim_s:.2f}: answering with the held command / fail-safe", file=sys.stderr)
                 io.send(vehicle.release_hil(time.time()))
             if not vehicle.hil_pending:
                 pending_since = None
+        vehicle.run_deferred()
         write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, cpu_s=time.process_time(),
                                                       cpu_loop_s=time.process_time() - cpu0,
                                                       **io.counters()))
@@ -582,6 +594,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         _await_peers(link, live, 60.0, stop)
         cpu0 = time.process_time()
         world = (LOOPBACK, ports.world)
+        finish_at = None  # when the last period's fault detection runs (Coordinator.finish_step)
         link.heartbeat(world)
         next_hello = time.monotonic() + 0.2
         for k in (range(setup.steps) if setup.steps is not None else itertools.count()):
@@ -600,7 +613,10 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                 if k == 0 and not packets and now >= next_hello:  # hello until the world starts
                     link.heartbeat(world)
                     next_hello = now + 0.2
-                wait_s = min(0.2, (deadline or idle_deadline) - now)
+                if finish_at is not None and now >= finish_at:
+                    coordinator.finish_step()
+                    finish_at = None
+                wait_s = min(0.2, (deadline or idle_deadline) - now, math.inf if finish_at is None else finish_at - now)
                 if hosted is not None:  # client links and wall-clock heartbeats while the lockstep waits
                     wait_s = hosted.wait(link.sock, wait_s)
                 for m in link.receive(wait_s):
@@ -643,7 +659,10 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
             all_wall, step_cpu = time.time(), time.thread_time()
             ordered = [packets[u] for u in sorted(packets)]
-            commands = coordinator.step(t, ordered) if hosted is None else hosted.step(t, ordered, live)
+            if finish_at is not None:  # the last period's fault detection, if not done in the slack yet
+                coordinator.finish_step()
+                finish_at = None
+            commands = coordinator.commands(t, ordered) if hosted is None else hosted.step(t, ordered, live)
             computed_wall, send_cpu = time.time(), time.thread_time()
             step_cpu = send_cpu - step_cpu
             datagrams = []  # all encoded first, then sent back to back (a woken unit may take the CPU)
@@ -655,9 +674,15 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     datagrams.append((link.pack(msgs), link.peers[cmd.unit_id]))
             for data, addr in datagrams:
                 link.send_bytes(data, addr)
+            sent_wall, send_cpu = time.time(), time.thread_time() - send_cpu
+            if hosted is None:  # fault detection (Coordinator.finish_step: it changes the allocation from the
+                # next period on) once the units have read their commands: they need the CPUs first
+                finish_at = time.monotonic() + COORDINATOR_QUIET_S
             if timing:
-                timing.write(f"{t:.6f},{first_wall:.6f},{all_wall:.6f},{computed_wall:.6f},{time.time():.6f},"
-                             f"{step_cpu:.6f},{time.thread_time() - send_cpu:.6f}\n")
+                timing.write(f"{t:.6f},{first_wall:.6f},{all_wall:.6f},{computed_wall:.6f},{sent_wall:.6f},"
+                             f"{step_cpu:.6f},{send_cpu:.6f}\n")
+        if finish_at is not None:
+            coordinator.finish_step()
         (out / "coordinator_summary.json").write_text(json.dumps(
             {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,
