@@ -4,10 +4,12 @@ loopback UDP), run after run, with where the time goes.
 
     python benchmarks/bench_realtime.py [--runs 3] [--duration 5] [--transport udp|zenoh] [--png PATH]
 
-Command age = command arrival at the unit - sensor sample time (PX4's timestamp_sample sense: sensor
--> unit -> coordinator -> unit). The stage columns are medians over steps of the time from the sample
-to: the last unit reading its sensor datagram, the coordinator holding every unit's telemetry, its
-rotor commands computed, sent, and the last unit reading its command (`timing.csv` of each run).
+Command age at the motor = when a unit drives its motors with the coordinator's command for a step (its
+HIL_ACTUATOR_CONTROLS leaves for the simulator) - that step's sensor sample time (PX4's timestamp_sample
+sense: sensor -> unit -> coordinator -> unit -> motors). The stage columns are medians over steps of the
+time from the sample to: the last unit reading its sensor datagram, the coordinator holding every unit's
+telemetry, its rotor commands computed, sent, the last unit reading its command and the last unit's
+motors driven (the units' command_age_unit<i>.csv and coordinator_timing.csv of each run).
 The machine is shared: compare runs of one invocation, not figures across days.
 """
 
@@ -29,7 +31,7 @@ from mars_link.scenario import load_scenario  # noqa: E402
 from mars_link.sitl_mode import run_sitl_scenario, stage_times  # noqa: E402
 from mars_link.transport import LinkSpec  # noqa: E402
 
-STAGES = ("sensors_in", "telemetry_in", "computed", "sent", "commands_in")
+STAGES = ("sensors_in", "telemetry_in", "computed", "sent", "commands_in", "at_motors")
 
 
 def main() -> int:

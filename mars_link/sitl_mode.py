@@ -406,7 +406,8 @@ def command_age_summary(out: Path) -> dict:
 def stage_times(out: Path) -> dict:
     """Medians over steps (ms after the sample time) of a real-time run's stages: the last unit reading
     its sensors (`sensors_in`), the coordinator holding all telemetry (`telemetry_in`), commands
-    `computed` and `sent`, the last unit reading its command (`commands_in`). Empty if not logged."""
+    `computed` and `sent`, the last unit reading its command (`commands_in`) and driving its motors with it
+    (`at_motors`: the command age). Empty if not logged."""
     epochs = [_read_json(p).get("epoch_s") for p in out.glob("command_age_unit*.json")]
     epochs = [e for e in epochs if isinstance(e, float) and math.isfinite(e)]
     coordinator = out / "coordinator_timing.csv"
@@ -418,7 +419,7 @@ def stage_times(out: Path) -> dict:
         offset = _read_json(path.with_suffix(".json")).get("epoch_s", epoch) - epoch
         for row in np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, ndmin=1)):
             step = per_step.setdefault(round(float(row["t_s"]), 6), {})
-            for stage, column in (("sensors_in", "sensors_in_s"), ("commands_in", "age_s")):
+            for stage, column in (("sensors_in", "sensors_in_s"), ("commands_in", "command_in_s"), ("at_motors", "age_s")):
                 value = float(row[column]) + offset
                 if math.isfinite(value):
                     step[stage] = max(step.get(stage, -math.inf), value)
@@ -429,7 +430,7 @@ def stage_times(out: Path) -> dict:
         for stage, column in columns.items():
             step[stage] = float(row[column]) - epoch - t
     return {stage: float(np.median([s[stage] for s in per_step.values() if stage in s])) * 1e3
-            for stage in ("sensors_in", "telemetry_in", "computed", "sent", "commands_in")
+            for stage in ("sensors_in", "telemetry_in", "computed", "sent", "commands_in", "at_motors")
             if any(stage in s for s in per_step.values())}
 
 

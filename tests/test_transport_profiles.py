@@ -80,18 +80,24 @@ def test_wrapper_delays_real_udp_datagrams() -> None:
 
 
 def test_command_age_from_raw_frames() -> None:
+    """Age at the motor = the unit's motor output for step t (HIL_ACTUATOR_CONTROLS leaving for the
+    simulator) - (epoch + t); steps driven without a coordinator command (fail-safe) do not count."""
     mav = mavlink.MAVLink(None, 200, 1)
     coord = mavlink.MAVLink(None, 201, 1)
+    unit = mavlink.MAVLink(None, 3, 1)
     tap = CommandAgeTap(3, control_period_s=0.01)
     epoch = 1000.0
-    for k in range(5):
+    for k in range(6):
         t_us = k * 10_000
         sensor = mavlink.MAVLink_hil_sensor_message(t_us, *[0.0] * 12, 0, 0).pack(mav)
         tap.on_hil(sensor, epoch + t_us / 1e6 + 0.0001 * (k + 1))  # first sensor 0.1 ms after its time
         cmd = mavlink.MAVLink_set_actuator_control_target_message(t_us, 0, 3, 1, [0.0] * 8).pack(coord)
         assert frame_times_usec(b"\x00" + sensor + cmd, 139) == [t_us]
-        tap.on_coordinator(cmd, epoch + t_us / 1e6 + (0.002 if k < 4 else 0.015))
+        if k < 5:
+            tap.on_coordinator(cmd, epoch + t_us / 1e6 + (0.002 if k < 4 else 0.015))
+        motors = mavlink.MAVLink_hil_actuator_controls_message(t_us, [0.0] * 16, 0, 1).pack(unit)
+        tap.on_motor_output(motors, epoch + t_us / 1e6 + (0.0025 if k < 4 else 0.0155))
     ages = [a for _, a in tap.ages_s()]
-    assert np.allclose(ages, [0.0019] * 4 + [0.0149])
+    assert np.allclose(ages, [0.0024] * 4 + [0.0154])  # step 5 had no command: not an age
     s = tap.summary()
     assert s["deadline_misses"] == 1 and s["n"] == 5

@@ -3,10 +3,11 @@
 In real-time mode (the world paced to the wall clock, `--speed 1`) sim time t is wall time epoch + t.
 A unit estimates the epoch from its HIL link as min over steps of (sensor arrival wall time - t): the
 world sends step k no earlier than epoch + t_k, so the minimum is the epoch plus the smallest one-way
-delay (tens of microseconds on loopback; it makes the ages slightly optimistic by that much). The age of
-a per-rotor command (SET_ACTUATOR_CONTROL_TARGET, stamped with the sim time of the sensor data it was
-computed from) is then its arrival wall time - (epoch + t). Ages beyond one control period mean the
-100 Hz deadline was missed.
+delay (tens of microseconds on loopback; it makes the ages slightly optimistic by that much). A per-rotor
+command (SET_ACTUATOR_CONTROL_TARGET) is stamped with the sim time t of the sensor data it was computed
+from; its age at the motor is the wall time the unit drives its motors with it (its HIL_ACTUATOR_CONTROLS
+for t leaves for the simulator) - (epoch + t). The logs also keep when the unit read the command. Ages
+beyond one control period mean the 100 Hz deadline was missed.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ import numpy as np
 CPU_DMA_LATENCY = "/dev/cpu_dma_latency"
 MSG_HIL_SENSOR = 107
 MSG_SET_ACTUATOR_CONTROL_TARGET = 139
+MSG_HIL_ACTUATOR_CONTROLS = 93
 _U64 = struct.Struct("<Q")
 
 
@@ -63,7 +65,8 @@ class CommandAgeTap:
         self.unit_id = unit_id
         self.control_period_s = control_period_s
         self.offset_s = float("inf")  # epoch estimate: min(sensor arrival - t)
-        self.commands: list[tuple[float, float]] = []  # (t_s, arrival wall time)
+        self.commands: dict[float, float] = {}  # t_s -> wall time the unit read the command for t
+        self.motor_outputs: list[tuple[float, float]] = []  # (t_s, wall time the motors got it)
         self.sensors: dict[float, float] = {}  # t_s -> arrival wall time of its sensor datagram
 
     def on_hil(self, data: bytes, now_s: float | None = None) -> None:
@@ -75,10 +78,18 @@ class CommandAgeTap:
     def on_coordinator(self, data: bytes, now_s: float | None = None) -> None:
         now_s = time.time() if now_s is None else now_s
         for t_us in frame_times_usec(data, MSG_SET_ACTUATOR_CONTROL_TARGET):
-            self.commands.append((t_us / 1e6, now_s))
+            self.commands.setdefault(t_us / 1e6, now_s)
+
+    def on_motor_output(self, data: bytes, now_s: float | None = None) -> None:
+        """A datagram the unit sent to the simulator: its motor outputs for the steps it names."""
+        now_s = time.time() if now_s is None else now_s
+        for t_us in frame_times_usec(data, MSG_HIL_ACTUATOR_CONTROLS):
+            if t_us / 1e6 in self.commands:  # driven with a coordinator command (not a fail-safe)
+                self.motor_outputs.append((t_us / 1e6, now_s))
 
     def ages_s(self) -> list[tuple[float, float]]:
-        return [(t, arrival - (self.offset_s + t)) for t, arrival in self.commands]
+        """(t, age at the motor) of every step whose motors were driven with a coordinator command."""
+        return [(t, out - (self.offset_s + t)) for t, out in self.motor_outputs]
 
     def summary(self) -> dict:
         ages = [a for _, a in self.ages_s()]
@@ -88,15 +99,18 @@ class CommandAgeTap:
         return stats
 
     def write(self, out: Path) -> dict:
-        """command_age_unit<i>.csv (t_s, sensors_in_s, age_s: since the sample time, when the unit read
-        the step's sensors and its command) and command_age_unit<i>.json (percentiles, misses, epoch)."""
+        """command_age_unit<i>.csv (t_s, then since the sample time: sensors_in_s when the unit read
+        the step's sensors, command_in_s its command, age_s its motors driven with it) and
+        command_age_unit<i>.json (percentiles of age_s, misses, epoch)."""
         out.mkdir(parents=True, exist_ok=True)
+
+        def since(wall: float | None, t: float) -> str:
+            return "" if wall is None else f"{wall - (self.offset_s + t):.6f}"
+
         with open(out / f"command_age_unit{self.unit_id}.csv", "w", encoding="utf-8") as f:
-            f.write("t_s,sensors_in_s,age_s\n")
+            f.write("t_s,sensors_in_s,command_in_s,age_s\n")
             for t, age in self.ages_s():
-                sensors = self.sensors.get(t)
-                sensors_in = "" if sensors is None else f"{sensors - (self.offset_s + t):.6f}"
-                f.write(f"{t:.6f},{sensors_in},{age:.6f}\n")
+                f.write(f"{t:.6f},{since(self.sensors.get(t), t)},{since(self.commands.get(t), t)},{age:.6f}\n")
         stats = self.summary()
         (out / f"command_age_unit{self.unit_id}.json").write_text(json.dumps(stats, indent=2) + "\n")
         return stats

@@ -22,16 +22,23 @@ FIRST_SEND_WAIT_S = 20.0  # the lockstep sends some hellos once: wait for the ot
 
 
 class TappedSocket:
-    """A UDP socket whose received datagrams are also shown to a tap (command age on the UDP path)."""
+    """A UDP socket whose datagrams are also shown to a tap (command age on the UDP path)."""
 
-    def __init__(self, sock, tap) -> None:
+    def __init__(self, sock, on_receive, on_send=None) -> None:
         self._sock = sock
-        self._tap = tap
+        self._on_receive = on_receive
+        self._on_send = on_send
 
     def recvfrom(self, bufsize: int):
         data, addr = self._sock.recvfrom(bufsize)
-        self._tap(data, time.time())
+        self._on_receive(data, time.time())
         return data, addr
+
+    def sendto(self, data, addr):
+        n = self._sock.sendto(data, addr)
+        if self._on_send is not None:
+            self._on_send(data, time.time())
+        return n
 
     def __getattr__(self, name):
         return getattr(self._sock, name)
@@ -84,15 +91,16 @@ def install(spec: LinkSpec, addresses: AddressMap, control_period_s: float = 0.0
         unit = io.vehicle.config.unit_id
         tap = CommandAgeTap(unit, control_period_s)
         _TAPS.append(tap)
-        for name, peer, feed in ((LINK_HIL, "world", tap.on_hil), (LINK_COORDINATOR, "coordinator", tap.on_coordinator)):
+        for name, peer, feed, sent in ((LINK_HIL, "world", tap.on_hil, tap.on_motor_output),
+                                       (LINK_COORDINATOR, "coordinator", tap.on_coordinator, None)):
             if name not in io.socks:
                 continue
             if spec.kind == "zenoh":
                 io.socks[name].close()
-                io.socks[name] = TransportSocket(_zenoh(spec, f"unit/{unit}", only_from=peer), addresses, feed)
+                io.socks[name] = TransportSocket(_zenoh(spec, f"unit/{unit}", only_from=peer), addresses, feed, sent)
                 io.socks[name].setblocking(False)  # VehicleSockets drains until BlockingIOError
             else:
-                io.socks[name] = TappedSocket(io.socks[name], feed)
+                io.socks[name] = TappedSocket(io.socks[name], feed, sent)
 
     vehicle_io.SOCKETS_HOOK = unit_sockets
 

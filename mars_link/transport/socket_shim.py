@@ -43,10 +43,11 @@ class AddressMap:
 
 
 class TransportSocket:
-    def __init__(self, transport: Transport, addresses: AddressMap, on_receive=None) -> None:
+    def __init__(self, transport: Transport, addresses: AddressMap, on_receive=None, on_send=None) -> None:
         self.transport = transport
         self.addresses = addresses
-        self.on_receive = on_receive  # called with every datagram (e.g. a CommandAgeTap)
+        self.on_receive = on_receive  # called with every datagram received (e.g. a CommandAgeTap)
+        self.on_send = on_send  # ... and sent
         self._timeout: float | None = None
 
     # socket API used by sitl.lockstep.Link and firmware_models.vehicle_io.VehicleSockets
@@ -74,6 +75,8 @@ class TransportSocket:
             self.transport.counters.drop("unknown_destination")
             return len(data)
         self.transport.send(data, node)
+        if self.on_send is not None:
+            self.on_send(data, time.time())
         return len(data)
 
     def recvfrom(self, bufsize: int = 65536):
