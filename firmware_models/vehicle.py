@@ -45,7 +45,7 @@ from mars_link.assembly import GRAVITY_MPS2, VehicleParams, vehicle_preset
 from mars_link.errors import UserInputError
 from mars_link.rotations import quat_to_euler, quat_to_rotmat
 from mars_link.state import ImuSample, RigidBodyState
-from mars_link.wire import SensorFrameAssembler
+from mars_link.wire import SensorFrameAssembler, SensorFrames
 
 LINK_GCS, LINK_API, LINK_COORDINATOR, LINK_HIL = "gcs", "api", "coordinator", "hil"
 EARTH_RADIUS_M = 6371000.0  # the spherical Earth of sitl's JSBSim models: lat = north / R at (0, 0)
@@ -274,7 +274,6 @@ def _finite(*values) -> bool:
 
 
 class Vehicle:
-
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -330,7 +329,7 @@ class Vehicle:
         self._pending_text: list[tuple[int, str]] = []
         self.battery_used_c = 0.0  # coulombs
         self._hil_pending: tuple[int, str] | None = None  # (time_usec, link) of an unanswered HIL step
-        self.defer_own_state = False  # set by a real-time runner: see run_deferred
+        self.defer_own_state = False  # set by the lockstep unit runner: see run_deferred
         self._deferred: list = []
         self._last_rotor_usec: int | None = None  # time of the last accepted coordinator command
         self._await_coordinator = c.hil_await_coordinator
@@ -1011,7 +1010,7 @@ class Vehicle:
         self.set_state(RigidBodyState(msg.time_usec * 1e-6, pos, np.array([msg.vx, msg.vy, msg.vz]) * 0.01,
                                       q / np.linalg.norm(q), np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed])))
 
-    def _apply_sensors(self, frames) -> None:
+    def _apply_sensors(self, frames: SensorFrames) -> None:
         packet = frames.packet()
         self.imu = ImuSample(packet.t_s, self.sysid, packet.imu.gyro_frd_radps, packet.imu.accel_frd_mps2)
         if packet.truth is not None:

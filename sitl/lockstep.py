@@ -36,6 +36,14 @@ Timeouts (wall time): coordinator 1 s < unit 2 s < world 3 s, so that when a uni
 coordinator gives up on it first, the other units still get their commands, and only the dead unit is
 declared dead by the world.
 
+Real time (the world paced, `--speed` > 0): the world samples and encodes a step before the pacing
+wait and reads the units' answers from mid-period on; each unit forwards its sensors at once and
+leaves its own bookkeeping (state, heartbeats, streams, status) for the quiet after the step; the
+coordinator sends the commands before it runs fault detection (Coordinator.finish_step, 2 ms later);
+with --sched-batch (what `--realtime` runs pass) the world and units are SCHED_BATCH so that only the
+coordinator's wake-ups preempt. The path sensor -> unit -> coordinator -> unit -> motors is then
+mostly Python work shared by 8 processes; --timing-log and the units' command-age logs show where it goes.
+
 Socket I/O of the world and coordinator is behind `Link` (one UDP socket, MAVLink parser, peer
 table, counters), of a unit behind `firmware_models.vehicle_io.VehicleSockets`: the two places to
 swap for another transport.
