@@ -1,0 +1,77 @@
+"""Real-time SITL: the stage logs of a paced run are complete and in causal order, the command age is
+taken at the motor, and the process tuning reports what it got (`mars_link.transport.realtime`,
+`sitl.lockstep.set_batch_scheduling`). Speed itself is claimed in benchmarks/bench_realtime.py."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mars_link.scenario import load_scenario
+from mars_link.sitl_mode import run_sitl_scenario, stage_times
+from mars_link.transport import LinkSpec
+from mars_link.transport.realtime import CPU_DMA_LATENCY, CpuWakeLatency
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def test_cpu_wake_latency_says_whether_it_held(tmp_path: Path) -> None:
+    missing = CpuWakeLatency(str(tmp_path / "no-such-device"))
+    assert not missing.held and missing.state.startswith("not held") and "no-such-device" in missing.state
+    missing.close()
+    if os.access(CPU_DMA_LATENCY, os.W_OK):
+        hold = CpuWakeLatency()
+        assert hold.held and hold.state == "held at 0 us"
+        hold.close()
+        assert not hold.held
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_BATCH"), reason="SCHED_BATCH is Linux only")
+def test_batch_scheduling_is_taken_without_privilege() -> None:
+    code = ("import os; from sitl.lockstep import set_batch_scheduling; "
+            "print(set_batch_scheduling(), os.sched_getscheduler(0) == os.SCHED_BATCH)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
+    assert out.stdout.split() == ["True", "True"], out.stderr
+
+
+@pytest.mark.sitl
+def test_a_real_time_run_logs_every_stage_in_causal_order(tmp_path: Path) -> None:
+    sc = load_scenario("hover_3x2")
+    sc = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, duration_s=1.5))
+    out = tmp_path / "rt"
+    summary = run_sitl_scenario(sc, out, link=LinkSpec("udp"), realtime=True, plots=False)
+    sitl = summary["sitl"]
+    assert summary["completed"] and sitl["realtime"] and sitl["dead_units"] == []
+    assert 0.95 < sitl["world_real_time_factor"] < 1.05  # paced to the wall clock
+    assert sitl["cpu_wake_latency"].startswith(("held", "not held"))
+    age = sitl["command_age"]
+    assert age["n"] == 6 * 150  # every unit, every step, driven with a coordinator command
+    for path in sorted(out.glob("command_age_unit*.csv")):
+        rows = np.genfromtxt(path, delimiter=",", names=True)
+        assert len(rows) == 150
+        # per step: sensors read, then the command read, then the motors driven with it
+        assert (rows["sensors_in_s"] <= rows["command_in_s"]).all()
+        assert (rows["command_in_s"] <= rows["age_s"]).all()
+        assert (rows["sensors_in_s"] >= -1e-4).all()  # never before its sample time (epoch estimate)
+    timing = np.genfromtxt(out / "coordinator_timing.csv", delimiter=",", names=True)
+    assert len(timing) == 150
+    for a, b in (("telemetry_first_wall_s", "telemetry_all_wall_s"), ("telemetry_all_wall_s", "computed_wall_s"),
+                 ("computed_wall_s", "sent_wall_s")):
+        assert (timing[a] <= timing[b]).all()
+    assert (timing["step_cpu_s"] > 0).all() and (timing["send_cpu_s"] > 0).all()
+    stages = stage_times(out)
+    order = ["sensors_in", "telemetry_in", "computed", "sent", "commands_in", "at_motors"]
+    assert list(stages) == order
+    assert all(stages[x] <= stages[y] for x, y in zip(order, order[1:]))
+    # the command age stage = median over steps of the last unit's motors, on one epoch (the earliest estimate)
+    epochs = {p: json.loads(p.with_suffix(".json").read_text())["epoch_s"] for p in out.glob("command_age_unit*.csv")}
+    first = min(epochs.values())
+    per_unit = [np.genfromtxt(p, delimiter=",", names=True)["age_s"] + (e - first) for p, e in sorted(epochs.items())]
+    assert stages["at_motors"] == pytest.approx(np.median(np.max(per_unit, axis=0)) * 1e3, rel=1e-9)
