@@ -114,7 +114,7 @@ async def _fly(api_port: int, status_path: Path) -> dict:
                 truth = read_status(status_path)["truth_position_ned_m"]
                 errs.append(math.dist((p.north_m, p.east_m, p.down_m), truth))
                 await asyncio.sleep(0.1)
-            return min(errs)
+            return min((e for e in errs if math.isfinite(e)), default=math.nan)  # NaN until the first position
 
         await _until(lambda: telemetry.health_all_ok(), 10.0, "health_all_ok")
         r["ground_error_m"] = await error_to_truth()

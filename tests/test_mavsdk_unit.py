@@ -58,7 +58,12 @@ async def _fly(api_port: int, status_path: Path) -> dict:
 
         # telemetry on the ground: truth vs what MAVSDK shows
         await _until(lambda: telemetry.health_all_ok(), 10.0, "health_all_ok")
-        p = (await pv()).position
+
+        async def ground_position():  # MAVSDK reports NaN until the first LOCAL_POSITION_NED is in
+            q = (await pv()).position
+            return q if math.isfinite(q.north_m + q.east_m + q.down_m) else None
+
+        p = await _until(ground_position, 5.0, "a position from MAVSDK")
         truth = read_status(status_path)["truth_position_ned_m"]
         results["ground_error_m"] = math.dist((p.north_m, p.east_m, p.down_m), truth)
         results["armed_before"] = await telemetry.armed()

@@ -52,7 +52,11 @@ async def _fly(api_port: int, out: Path) -> dict:
             return (await telemetry.position()).relative_altitude_m
 
         async def error_to_truth() -> float:
-            p = (await pv()).position
+            async def position():  # MAVSDK reports NaN until the first LOCAL_POSITION_NED is in
+                q = (await pv()).position
+                return q if math.isfinite(q.north_m + q.east_m + q.down_m) else None
+
+            p = await _until(position, 5.0, "a position from MAVSDK")
             return math.dist((p.north_m, p.east_m, p.down_m), _truth(out)["position_ned_m"])
 
         await _until(lambda: telemetry.health_all_ok(), 15.0, "health_all_ok")

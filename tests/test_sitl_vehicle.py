@@ -67,7 +67,7 @@ async def _fly(api_port: int, out: Path, full: bool = True) -> dict:
                 p = (await pv()).position
                 errs.append(math.dist((p.north_m, p.east_m, p.down_m), truth_com_ned(out)))
                 await asyncio.sleep(0.1)
-            return min(errs)
+            return min((e for e in errs if math.isfinite(e)), default=math.nan)  # NaN until the first position
 
         await _until(lambda: telemetry.health_all_ok(), 15.0, "health_all_ok")
         r["ground_error_m"] = await error_to_truth()
