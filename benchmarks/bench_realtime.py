@@ -27,6 +27,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from mars_link.errors import UserInputError  # noqa: E402
 from mars_link.scenario import load_scenario  # noqa: E402
 from mars_link.sitl_mode import run_sitl_scenario, stage_times  # noqa: E402
 from mars_link.transport import LinkSpec  # noqa: E402
@@ -42,7 +43,12 @@ def main() -> int:
     ap.add_argument("--scenario", default="hover_3x2")
     ap.add_argument("--png", default=None, help="write the command-age distribution of every run here")
     a = ap.parse_args()
-    sc = load_scenario(a.scenario)
+    if a.runs < 1 or not a.duration > 0:
+        ap.error("--runs must be >= 1 and --duration > 0")
+    try:
+        sc = load_scenario(a.scenario)
+    except UserInputError as e:
+        ap.error(str(e))
     sc = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, duration_s=a.duration))
     rows, ages_by_run = [], []
     print(f"{a.runs} runs of {a.scenario}, {a.duration:.0f} s each, {a.transport}, real time", flush=True)
