@@ -69,6 +69,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.signing import load_key
+from firmware_models.vehicle import split_frames
 from mars_link import mavlink_codec
 from mars_link.errors import UserInputError
 from mars_link.messages import SensorPacket
@@ -270,8 +271,6 @@ class Link:
             self.drop("not_loopback")
             return []
         self._log(data)
-        from firmware_models.vehicle import split_frames
-
         check = None
         if self.verifier is not None:
             from firmware_models.signing import ACCEPTED
