@@ -47,6 +47,7 @@ from firmware_models.vehicle_io import (
 )
 from mars_link.assembly import AssemblyModel
 from mars_link.errors import UserInputError
+from mars_link.pacing import Pacer
 
 STATUS_PERIOD_S = 0.2
 
@@ -123,7 +124,7 @@ class UnitRunner:
         self.duration_s = args.duration
         self.running = True
         self.sim_s = 0.0
-        self.overruns = 0
+        self.pacer = Pacer(self.speed)
 
     def ports(self) -> dict[str, int]:
         return self.io.ports()
@@ -132,26 +133,23 @@ class UnitRunner:
         if self.status_path is None:
             return
         write_json_atomic(self.status_path, vehicle_status(
-            self.vehicle, self.body.state(), self.sim_s, overruns=self.overruns, ports=self.ports(),
+            self.vehicle, self.body.state(), self.sim_s, overruns=self.pacer.overruns, ports=self.ports(),
             **self.io.counters()))
 
     def run(self) -> int:
         print(json.dumps({"ready": True, "unit": self.vehicle.sysid, "ports": self.ports()}), flush=True)
         start = time.monotonic()
-        anchor_wall, anchor_sim = start, 0.0
+        pacer = self.pacer
+        pacer.start(self.sim_s)
         next_status = start
         v, body = self.vehicle, self.body
         while self.running:
             now = time.monotonic()
             if self.duration_s is not None and now - start >= self.duration_s:
                 break
-            due = anchor_wall + (self.sim_s - anchor_sim) / self.speed
-            self.io.poll(due - now)
+            self.io.poll(pacer.wait_s(self.sim_s))
             now = time.monotonic()
-            if now >= due:
-                if now - due > 0.25:  # fell behind (a busy machine): re-anchor instead of racing
-                    self.overruns += 1
-                    anchor_wall, anchor_sim = now, self.sim_s
+            if pacer.is_due(self.sim_s):  # (fell behind on a busy machine: re-anchored, an overrun)
                 self.io.send(v.tick(time.time(), self.sim_s))
                 for _ in range(self.substeps):
                     body.set_rotor_thrusts(v.step_motors(self.physics_dt_s))

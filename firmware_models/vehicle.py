@@ -43,6 +43,7 @@ from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
 from mars_link import mavlink_codec
 from mars_link.assembly import GRAVITY_MPS2, VehicleParams, vehicle_preset
 from mars_link.errors import UserInputError
+from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
 from mars_link.rotations import quat_to_euler, quat_to_rotmat
 from mars_link.state import ImuSample, RigidBodyState
 from mars_link.wire import SensorFrameAssembler, SensorFrames
@@ -1020,16 +1021,64 @@ class Vehicle:
         time_usec, name = self._hil_pending
         self._hil_pending = None
         lk = self.links[name]
+        sp = self._motor_setpoint_n() / self.full_scale_n
+        mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+        controls = [float(x) for x in sp] + [0.0] * 12
+        out.append(Outgoing(lk.name, self._pack(lk, mavlink.MAVLink_hil_actuator_controls_message(
+            time_usec, controls, mode, 1))))
+
+    def _motor_setpoint_n(self) -> np.ndarray:
+        """One HIL step's motor outputs (N): due scenario faults enter the motor model, the control step
+        runs, and the motors are driven to the clamped, eta-scaled command."""
         while self._scheduled_failures and self._scheduled_failures[0][0] <= self.sim_s + 1e-9:
             _, rotor, eta = self._scheduled_failures.pop(0)
             self.inject_failure(rotor, eta)
         self._count("hil_steps")
         self._control_step()
-        sp = self.motors.setpoint(self.motor_commands_n if self.armed else np.zeros(4)) / self.full_scale_n
-        mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
-        controls = [float(x) for x in sp] + [0.0] * 12
-        out.append(Outgoing(lk.name, self._pack(lk, mavlink.MAVLink_hil_actuator_controls_message(
-            time_usec, controls, mode, 1))))
+        return self.motors.setpoint(self.motor_commands_n if self.armed else np.zeros(4))
+
+    # ================================================================= in-process messages
+    # The same steps as the HIL and coordinator links, with the messages as objects instead of MAVLink
+    # bytes: what the in-process engine calls. The values are already at wire precision (float32,
+    # microseconds), so a unit driven this way moves its motors exactly as over MAVLink.
+    def take_sensors(self, packet: SensorPacket, unit_truth: RigidBodyState | None = None) -> SensorPacket:
+        """A HIL step: the unit's sensors (HIL_SENSOR/ODOMETRY) and, when given, its centre's truth
+        (HIL_STATE_QUATERNION). Returns the telemetry it forwards to the coordinator (HIGHRES_IMU and
+        ODOMETRY carry exactly these fields)."""
+        if unit_truth is not None:
+            self.set_state(unit_truth)
+        self.imu = packet.imu
+        if packet.truth is not None:
+            self.set_state(packet.truth)
+        self.sim_s = packet.t_s
+        self._next_control = packet.t_s + self.control_dt_s
+        return packet
+
+    def take_rotor_command(self, cmd: RotorCommand) -> bool:
+        """A coordinator command (SET_ACTUATOR_CONTROL_TARGET's values); True if it is now held."""
+        if cmd.unit_id != self.sysid:
+            return self.intake.drop("wrong_target")
+        # cmd.thrusts_n are wire values (float32 controls x full scale): x / full scale is the control back
+        s = self.full_scale_n
+        a, b, c, d = cmd.thrusts_n.tolist()
+        t_usec = round(cmd.t_s * 1e6)
+        if not self.intake.accept(a / s, b / s, c / s, d / s, t_usec, self.sim_s, cmd.thrusts_n):
+            return False
+        self._count("rotor_commands")
+        self._last_rotor_usec = t_usec
+        return True
+
+    def drive_motors(self) -> ActuatorOutput:
+        """The HIL answer (HIL_ACTUATOR_CONTROLS' values): what the motors are driven to for this step."""
+        return ActuatorOutput(self.sim_s, self.sysid, wire_thrust(self._motor_setpoint_n(), self.full_scale_n))
+
+    def arm(self) -> int:
+        """MAV_CMD_COMPONENT_ARM_DISARM (arm) as the coordinator sends it; returns the MAV_RESULT."""
+        return self._arm_disarm(1.0, 0.0)
+
+    def set_mode(self, mode: tuple[int, int]) -> int:
+        """MAV_CMD_DO_SET_MODE to a PX4 (main, sub) mode; returns the MAV_RESULT."""
+        return self._set_mode(mode)
 
     # ================================================================= control
     def _limits(self) -> GuidanceLimits:
@@ -1148,7 +1197,7 @@ class Vehicle:
 
     def _battery(self) -> tuple[int, int, int]:
         """(voltage mV, current cA, remaining %): a 4S 2.2 Ah pack drawn by thrust (~2 A per N)."""
-        current_a = 0.5 + 2.0 * float(np.sum(np.abs(self.motor_commands_n))) if self.armed else 0.3
+        current_a = self._current_a()
         remaining = max(0.0, 1.0 - self.battery_used_c / (2.2 * 3600))
         volts = 4 * (3.6 + 0.6 * remaining) - 0.02 * current_a
         return int(volts * 1000), int(current_a * 100), int(round(remaining * 100))
@@ -1210,9 +1259,14 @@ class Vehicle:
                                                  0.21, 0.0, 0.42, pressure_hpa, 0.0, alt_m, 20.0, 0x1A3F, 0)
         return None
 
+    def _current_a(self) -> float:
+        """The pack's current: ~2 A per newton of rotor thrust (0.5 A armed and idle, 0.3 A disarmed)."""
+        if not self.armed:
+            return 0.3
+        return 0.5 + 2.0 * sum(map(abs, self.motor_commands_n.tolist()))
+
     def _account_battery(self) -> None:
-        _, ca, _ = self._battery()
-        self.battery_used_c += ca * 0.01 * self.control_dt_s
+        self.battery_used_c += int(self._current_a() * 100) * 0.01 * self.control_dt_s
 
 
 def _param_name(raw) -> str:

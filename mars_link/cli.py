@@ -7,14 +7,10 @@ import sys
 import time
 from pathlib import Path
 
+from mars_link.errors import OneLineArgumentParser as _Parser
 from mars_link.errors import UserInputError
 
 EXIT_USAGE = 2
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, no usage dump
-        raise UserInputError(f"{self.prog}: {message}")
 
 
 def _default_out(name: str) -> Path:
@@ -65,7 +61,7 @@ def cmd_run(args) -> int:
 
     model = scenario.model()
     if scenario.faults:
-        from mars_link.runner import eta_after
+        from mars_link.scenario import eta_after
 
         check_controllable(model, eta_after(model, scenario.faults, float("inf")),
                            (model.vehicle.rotor_min_thrust_n, model.vehicle.rotor_max_thrust_n))

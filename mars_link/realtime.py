@@ -34,12 +34,12 @@ from firmware_models.vehicle import LINK_API, LINK_GCS
 from firmware_models.vehicle_io import API_PORT_BASE, GCS_PORT, LOOPBACK, LinkSpec, VehicleSockets, write_json_atomic
 from mars_link.assembly_vehicle import DEFAULT_SYSID, AssemblySim, SimConfig
 from mars_link.errors import UserInputError
+from mars_link.pacing import Pacer
 
 STATUS_PERIOD_S = 0.2
 DEFAULT_SCENARIO = "hover_3x2"
 API_PORT = API_PORT_BASE  # the assembly takes instance 0's ports, like a single PX4 SITL drone
 GCS_BIND, API_BIND = 18560, 14560  # below the units' 18570+i / 14580+i
-REANCHOR_S = 0.25  # this far behind wall time: re-anchor (an overrun) instead of racing
 
 
 class AssemblyRunner:
@@ -58,9 +58,8 @@ class AssemblyRunner:
         self.status_path = Path(status_file) if status_file else None
         self.duration_s = duration_s
         self.running = True
-        self.overruns = 0
+        self.pacer = Pacer(speed)  # overruns (re-anchored) and late steps are counted there
         self.steps = 0
-        self.late_steps = 0  # a step that started more than one control period after it was due
         self._step_s: list[float] = []  # compute time per step (a rolling window)
 
     def endpoints(self) -> dict:
@@ -94,23 +93,17 @@ class AssemblyRunner:
 
     def run(self) -> int:
         start = time.monotonic()
-        anchor_wall, anchor_sim = start, self.sim.t_s
-        period = self.sim.control_dt_s / self.speed
+        pacer = self.pacer
+        pacer.start(self.sim.t_s)
         next_status = start
         self.write_status()
         while self.running:
             now = time.monotonic()
             if self.duration_s is not None and now - start >= self.duration_s:
                 break
-            due = anchor_wall + (self.sim.t_s - anchor_sim) / self.speed
-            self.io.poll(due - now)
+            self.io.poll(pacer.wait_s(self.sim.t_s))
             now = time.monotonic()
-            if now >= due:
-                if now - due > REANCHOR_S:
-                    self.overruns += 1
-                    anchor_wall, anchor_sim = now, self.sim.t_s
-                elif now - due > period:
-                    self.late_steps += 1
+            if pacer.is_due(self.sim.t_s, self.sim.control_dt_s):
                 c0 = time.perf_counter()
                 self.io.send(self.sim.step(time.time()))
                 self._step_s.append(time.perf_counter() - c0)
@@ -122,6 +115,14 @@ class AssemblyRunner:
                 self.write_status()
         self.write_status()
         return 0
+
+    @property
+    def overruns(self) -> int:
+        return self.pacer.overruns
+
+    @property
+    def late_steps(self) -> int:
+        return self.pacer.late_steps
 
     def close(self) -> None:
         self.io.close()

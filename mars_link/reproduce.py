@@ -309,7 +309,7 @@ def ekf_accuracy(scenario_name: str = "spiral_3x2", seed: int = 1, after_s: floa
     Also the estimator's cost per control step (the runner's stage timer).
     """
     from mars_link.rotations import euler_to_quat, quat_to_rotmat
-    from mars_link.runner import RunLog
+    from mars_link.run_log import RunLog
     from mars_link.scenario import load_scenario
 
     scenario = load_scenario(scenario_name)

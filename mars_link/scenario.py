@@ -43,6 +43,16 @@ class FaultSpec:
         return f"unit {self.unit}" + (f" rotor {self.rotor}" if self.rotor else "")
 
 
+def eta_after(model: AssemblyModel, faults: list[FaultSpec], t_s: float):
+    """Per-rotor efficiencies (4N, the model's slot order) once every fault at or before `t_s` acted."""
+    eta = model.nominal_eta()
+    for f in faults:
+        if f.t_s <= t_s:
+            sl = model.unit_slots(f.unit) if f.rotor is None else model.rotor_slot(f.unit, f.rotor)
+            eta[sl] = f.eta
+    return eta
+
+
 @dataclass
 class SimSpec:
     duration_s: float | None = None  # None = the trajectory's duration

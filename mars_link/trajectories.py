@@ -14,6 +14,7 @@ import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -456,11 +457,14 @@ def _is_numbers(value, count: int) -> bool:
     )
 
 
-def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=None) -> Trajectory:
+def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=None,
+                     plan_builder: Callable[[dict, float], Trajectory] | None = None) -> Trajectory:
     """Build a trajectory kind from scenario parameters; every problem is one UserInputError line.
 
     `start_ned_m` ([n, e], a down component is ignored) is the take-off point of the spiral, hover
     and helix (default the origin); waypoints and csv take off under their own first point.
+    `plan_builder(params, rest_height_m)` builds kind "plan" (the planner sits above this module:
+    `mars_link.build.make_trajectory` passes `mars_link.planning.pipeline.build_plan_trajectory`).
     """
     if kind not in _KINDS:
         raise UserInputError(f"[trajectory] unknown kind {kind!r} (known: {', '.join(_KINDS)})")
@@ -514,7 +518,7 @@ def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=
     if kind == "csv":
         return CsvTrajectory(rest_height_m, **clean)
     if kind == "plan":
-        from mars_link.planning.pipeline import build_plan_trajectory
-
-        return build_plan_trajectory(clean, rest_height_m)
+        if plan_builder is None:
+            raise UserInputError("[trajectory] kind 'plan' needs the planner: build it with mars_link.build.make_trajectory")
+        return plan_builder(clean, rest_height_m)
     return cls(rest_height_m, start, **clean)

@@ -41,7 +41,10 @@ sys.path.insert(0, str(ROOT))
 
 from mars_link.reconfig import HelixReference, rotor_from_paper001  # noqa: E402
 from mars_link.reconfig.placement import SnapWeights, health_from_eta, nominal_cells, solve_placement  # noqa: E402
-from mars_link.runner import RunLog, eta_after, make_trajectory, run_trial  # noqa: E402
+from mars_link.build import make_trajectory  # noqa: E402
+from mars_link.scenario import eta_after  # noqa: E402
+from mars_link.run_log import RunLog  # noqa: E402
+from mars_link.runner import run_trial  # noqa: E402
 from mars_link.scenario import FaultSpec, scenario_from_dict  # noqa: E402
 
 CASES = [

@@ -31,9 +31,9 @@ def parse_point(text: str, what: str) -> np.ndarray:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from mars_link.cli import _Parser
+    from mars_link.errors import OneLineArgumentParser
 
-    p = _Parser(prog="mars-link plan", description="collision-free trajectory for an assembly on a map")
+    p = OneLineArgumentParser(prog="mars-link plan", description="collision-free trajectory for an assembly on a map")
     p.add_argument("map", help="boxes .csv (columns of data/mars_ftcc_walls.csv, z-up scene frame) or ASCII .pcd")
     p.add_argument("--layout", required=True, help="layout rows separated by commas, e.g. XXX,XXX")
     p.add_argument("--fault", action="append", default=[], metavar="UNIT[:ROTOR]=ETA[@T]")
@@ -53,7 +53,7 @@ def plan_from_args(args) -> tuple:
     from mars_link.assembly import AssemblyModel, parse_layout, vehicle_preset
     from mars_link.planning.maps import load_map
     from mars_link.planning.pipeline import METHODS, Planner, PlanParams
-    from mars_link.runner import eta_after
+    from mars_link.scenario import eta_after
     from mars_link.scenario import parse_fault_arg, validate_fault
 
     if args.method not in METHODS:

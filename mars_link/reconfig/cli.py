@@ -66,7 +66,8 @@ def _setup(args):
     """Model, faults, health and snap weights from the scenario and the overrides."""
     from mars_link.assembly import AssemblyModel
     from mars_link.reconfig.placement import SnapWeights, health_from_eta
-    from mars_link.runner import eta_after, make_trajectory
+    from mars_link.build import make_trajectory
+    from mars_link.scenario import eta_after
     from mars_link.scenario import load_scenario, parse_fault_arg, validate_fault
 
     if args.scenario is None and args.layout is None:
