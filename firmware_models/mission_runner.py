@@ -124,7 +124,8 @@ class MissionRunner:
         self._out = RunnerOutput([], [])
         if self.items and not self.complete:
             for _ in range(MAX_ITEMS_PER_STEP):
-                if self.complete or not self._advance_item(t_s, state, home_ned, event):
+                home = home_ned if self._out.new_home_ned is None else self._out.new_home_ned  # DO_SET_HOME
+                if self.complete or not self._advance_item(t_s, state, home, event):
                     break
                 event = None  # an event belongs to the item that was current when it happened
         key = (self.current, self.mission_state(in_mission_mode))
