@@ -225,9 +225,7 @@ class MissionRunner:
         elif cmd == R.MAV_CMD_NAV_RETURN_TO_LAUNCH:
             core.rtl(state, home, self.rtl_alt_m)
             self._phase = "rtl"
-        elif cmd == R.MAV_CMD_NAV_DELAY:
-            if not core.landed:
-                core.hold(state)
+        elif cmd == R.MAV_CMD_NAV_DELAY:  # keep the last position setpoint (e.g. the waypoint just reached)
             self._wait_until = t_s + item.param1
             self._phase = "delay"
         else:  # DO_* items: done as soon as entered
