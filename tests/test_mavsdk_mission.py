@@ -159,3 +159,102 @@ def test_mavsdk_mission_flown_against_the_truth(tmp_path: Path) -> None:
     assert math.hypot(*res["landed_at"][:2]) < 0.3 and res["landed_at"][2] > -0.1
     assert res["drops"] == {}
     assert wall_s < 60.0
+
+
+# ----------------------------------------------------------------------------- mission_raw + QGC .plan
+def qgc_plan_json() -> dict:
+    """A QGroundControl .plan as QGC saves it for PX4: takeoff, two waypoints, land; an inclusion
+    polygon and an exclusion circle; two rally points."""
+    def simple(seq: int, cmd: int, frame: int, p: list) -> dict:
+        return {"AMSLAltAboveTerrain": None, "Altitude": p[6], "AltitudeMode": 1, "autoContinue": True,
+                "command": cmd, "doJumpId": seq + 1, "frame": frame, "params": p, "type": "SimpleItem"}
+
+    wp = [_latlon(n, e) for n, e in RAW_WAYPOINTS_NE]
+    land = _latlon(*RAW_LAND_NE)
+    items = [simple(0, 22, 3, [0, 0, 0, None, HOME[0], HOME[1], RAW_ALT_M])]
+    items += [simple(i + 1, 16, 3, [0.5, RADIUS_M, 0, None, lat, lon, RAW_ALT_M]) for i, (lat, lon) in enumerate(wp)]
+    items += [simple(3, 21, 3, [0, 0, 0, None, land[0], land[1], 0])]
+    square = [list(_latlon(n, e)) for n, e in ((-15, -15), (-15, 15), (15, 15), (15, -15))]
+    return {
+        "fileType": "Plan", "groundStation": "QGroundControl", "version": 1,
+        "mission": {"cruiseSpeed": 15, "firmwareType": 12, "hoverSpeed": 2, "items": items,
+                    "plannedHomePosition": [HOME[0], HOME[1], 488], "vehicleType": 2, "version": 2},
+        "geoFence": {"version": 2, "polygons": [{"inclusion": True, "polygon": square, "version": 1}],
+                     "circles": [{"circle": {"center": list(_latlon(-8, -8)), "radius": 2.0}, "inclusion": False,
+                                  "version": 1}]},
+        "rallyPoints": {"version": 2, "points": [[*_latlon(5, -5), 10.0], [*_latlon(-5, 5), 10.0]]},
+    }
+
+
+RAW_WAYPOINTS_NE = [(3.0, 0.0), (3.0, -3.0)]
+RAW_LAND_NE = (0.0, -3.0)
+RAW_ALT_M = 2.5
+
+
+async def _fly_raw(api_port: int, status_path: Path, plan_path: Path) -> dict:
+    from mavsdk.asyncio.plugins.mission_raw import MissionRawAsync
+
+    res: dict = {"truth": []}
+    cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    async with Mavsdk(cfg) as sdk:
+        await sdk.add_any_connection(f"udpin://127.0.0.1:{api_port}")
+        system = await sdk.first_autopilot(timeout_s=15.0)
+        assert system is not None
+        telemetry, action, raw = TelemetryAsync(system), ActionAsync(system), MissionRawAsync(system)
+        await _until(lambda: telemetry.health_all_ok(), 10.0, "health_all_ok")
+        imported = await raw.import_qgroundcontrol_mission(str(plan_path))
+        res["imported"] = [len(imported.mission_items), len(imported.geofence_items), len(imported.rally_items)]
+        await raw.upload_mission(imported.mission_items)
+        await raw.upload_geofence(imported.geofence_items)
+        await raw.upload_rally_points(imported.rally_items)
+        res["down"] = [(await raw.download_mission()), (await raw.download_geofence()),
+                       (await raw.download_rallypoints())]
+        res["sent"] = [imported.mission_items, imported.geofence_items, imported.rally_items]
+        await action.arm()
+        await raw.start_mission()
+
+        async def finished_and_disarmed():
+            res["truth"].append(read_status(status_path)["truth_position_ned_m"])
+            return await raw.is_mission_finished() and not await telemetry.armed()
+
+        await _until(finished_and_disarmed, 40.0, "mission finished and disarmed", 0.1)
+        st = read_status(status_path)
+        res["reached"] = st["mission_reached"]
+        res["landed_at"] = st["truth_position_ned_m"]
+        res["counts"] = st["mission_counts"]
+        res["progress"] = await raw.mission_progress()
+    return res
+
+
+def _raw_fields(item) -> tuple:
+    return (item.seq, item.frame, item.command, item.param1, item.param2, item.x, item.y, item.z, item.mission_type)
+
+
+@pytest.mark.skipif(not hasattr(mavsdk, "asyncio"), reason="needs MAVSDK 4.x")
+def test_mavsdk_mission_raw_imports_a_qgc_plan_with_fence_and_rally(tmp_path: Path) -> None:
+    import json
+
+    plan_path = tmp_path / "mission.plan"
+    plan_path.write_text(json.dumps(qgc_plan_json(), indent=2))
+    api = free_udp_port()
+    status = tmp_path / "status.json"
+    proc, _ = spawn_unit(["--unit", "1", "--gcs-port", str(free_udp_port()), "--gcs-bind", "0",
+                          "--api-port", str(api), "--api-bind", "0", "--coord-bind", "0", "--status-file", str(status)])
+    t0 = time.monotonic()
+    try:
+        res = asyncio.run(_fly_raw(api, status, plan_path))
+    finally:
+        rc = stop_unit(proc)
+    wall_s = time.monotonic() - t0
+    print(res["imported"], res["counts"], res["reached"], res["landed_at"], f"wall {wall_s:.1f} s")
+    assert rc == 0
+    assert res["imported"] == [4, 5, 2]  # 4 mission items; 4 polygon vertices + 1 circle; 2 rally points
+    for sent, down in zip(res["sent"], res["down"]):  # stored as sent, for all three lists
+        assert [_raw_fields(i) for i in down] == [_raw_fields(i) for i in sent]
+    assert (res["counts"]["uploaded.mission"], res["counts"]["uploaded.fence"], res["counts"]["uploaded.rally"]) == (1, 1, 1)
+    assert [r["seq"] for r in res["reached"]] == [0, 1, 2, 3]
+    assert res["progress"].current == res["progress"].total == 4
+    for n, e in RAW_WAYPOINTS_NE:
+        assert min(math.dist(p, (n, e, -RAW_ALT_M)) for p in res["truth"]) <= RADIUS_M
+    assert math.dist(res["landed_at"][:2], RAW_LAND_NE) < 0.3 and res["landed_at"][2] > -0.1
+    assert wall_s < 60.0
