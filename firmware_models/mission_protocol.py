@@ -9,6 +9,8 @@ packs and sends them. Messages are already addressed to this vehicle (the caller
     download   MISSION_REQUEST_LIST -> MISSION_COUNT; MISSION_REQUEST_INT / MISSION_REQUEST(seq) ->
                MISSION_ITEM_INT / MISSION_ITEM; the client's MISSION_ACK ends it
     clear      MISSION_CLEAR_ALL (one type, or MAV_MISSION_TYPE_ALL) -> MISSION_ACK
+    partial    MISSION_WRITE_PARTIAL_LIST(start, end) -> requests for start..end -> MISSION_ACK: those
+               items replaced in the stored list (MAVProxy's `wp update`)
 
 Why staged uploads: items go into a staging list and replace the stored plan only when the last one
 is in and every item passed the checks, so a refused, cancelled or abandoned upload leaves the stored
@@ -214,6 +216,12 @@ class _Upload:
     int_mode: bool = True
     last_s: float = 0.0
     retries: int = 0
+    first_seq: int = 0  # a partial write replaces items first_seq .. first_seq + count - 1
+    partial: bool = False
+
+    @property
+    def next_seq(self) -> int:
+        return self.first_seq + len(self.items)
 
 
 class MissionProtocol:
@@ -228,7 +236,7 @@ class MissionProtocol:
         self.counts: dict[str, int] = {}
         self.texts: list[tuple[int, str]] = []  # (severity, STATUSTEXT) for the vehicle to send
         self.upload: _Upload | None = None
-        self._last_done: tuple | None = None  # (link, sysid, compid, type, count, wall time) of the last upload
+        self._last_done: tuple | None = None  # (link, sysid, compid, type, last seq, wall time) of the last upload
 
     # ----------------------------------------------------------------- helpers
     def _count(self, key: str) -> None:
@@ -275,7 +283,7 @@ class MissionProtocol:
         if t == "MISSION_ACK":
             return self._on_client_ack(msg, link)
         if t == "MISSION_WRITE_PARTIAL_LIST":
-            return self._refuse(link, msg, R.MAV_MISSION_UNSUPPORTED, "partial_write")
+            return self._on_partial(msg, link, now_s)
         return []
 
     def _on_count(self, msg, link: str, now_s: float) -> list:
@@ -300,17 +308,36 @@ class MissionProtocol:
         self.upload = _Upload(link, msg.get_srcSystem(), msg.get_srcComponent(), kind, n, [], last_s=now_s)
         return [self._request(self.upload, 0)]
 
+    def _on_partial(self, msg, link: str, now_s: float) -> list:
+        """MISSION_WRITE_PARTIAL_LIST: replace stored items start..end (MAVProxy's `wp update`)."""
+        kind = msg.mission_type
+        if kind not in self.plans:
+            return self._refuse(link, msg, R.MAV_MISSION_UNSUPPORTED, "unsupported_mission_type")
+        if self.upload is not None and not self._is_partner(msg, link):
+            return self._refuse(link, msg, R.MAV_MISSION_DENIED, "busy")
+        n = len(self.plans[kind])
+        start, end = msg.start_index, msg.end_index
+        if end == -1:
+            end = n - 1
+        if not 0 <= start <= end < n:
+            self.upload = None
+            return self._refuse(link, msg, R.MAV_MISSION_INVALID_SEQUENCE, "partial_out_of_range")
+        self.upload = _Upload(link, msg.get_srcSystem(), msg.get_srcComponent(), kind, end - start + 1, [],
+                              last_s=now_s, first_seq=start, partial=True)
+        self._count("partial_write")
+        return [self._request(self.upload, start)]
+
     def _on_item(self, msg, link: str, now_s: float) -> list:
         up = self.upload
         if up is None or not self._is_partner(msg, link):
             done = self._last_done
             if (done is not None and done[:4] == (link, msg.get_srcSystem(), msg.get_srcComponent(), msg.mission_type)
-                    and msg.seq == done[4] - 1 and now_s - done[5] <= ACK_REPEAT_S):
+                    and msg.seq == done[4] and now_s - done[5] <= ACK_REPEAT_S):
                 self._count("ack_resent")  # our ACK was lost and the client repeats its last item
                 return [self._ack(link, done[1], done[2], R.MAV_MISSION_ACCEPTED, msg.mission_type)]
             reason = "item_without_upload" if up is None else "item_from_other_client"
             return self._refuse(link, msg, R.MAV_MISSION_ERROR if up is None else R.MAV_MISSION_DENIED, reason)
-        expected = len(up.items)
+        expected = up.next_seq
         if msg.mission_type != up.mission_type:
             self.upload = None
             return self._refuse(link, msg, R.MAV_MISSION_ERROR, "item_wrong_mission_type", up.mission_type)
@@ -332,7 +359,8 @@ class MissionProtocol:
         elif item == "y":
             result, reason = R.MAV_MISSION_INVALID_PARAM6_Y, "invalid_y"
         else:
-            result, reason = check_item(item, up.count, self.origin)
+            total = len(self.plans[up.mission_type]) if up.partial else up.count
+            result, reason = check_item(item, total, self.origin)
         if result != R.MAV_MISSION_ACCEPTED:
             self.upload = None
             what = command_name(msg.command)
@@ -342,10 +370,14 @@ class MissionProtocol:
         up.items.append(replace(item, seq=msg.seq))
         up.last_s, up.retries = now_s, 0
         if len(up.items) < up.count:
-            return [self._request(up, len(up.items))]
+            return [self._request(up, up.next_seq)]
         self.upload = None
-        self._store(up.mission_type, tuple(up.items))
-        self._last_done = (link, up.sysid, up.compid, up.mission_type, up.count, now_s)
+        if up.partial:
+            old = self.plans[up.mission_type]
+            self._store(up.mission_type, old[:up.first_seq] + tuple(up.items) + old[up.next_seq:])
+        else:
+            self._store(up.mission_type, tuple(up.items))
+        self._last_done = (link, up.sysid, up.compid, up.mission_type, up.next_seq - 1, now_s)
         self._count(f"uploaded.{TYPE_NAMES[up.mission_type]}")
         return [self._ack(link, up.sysid, up.compid, R.MAV_MISSION_ACCEPTED, up.mission_type)]
 
@@ -401,4 +433,5 @@ class MissionProtocol:
         up.retries += 1
         up.last_s = now_s
         self._count("re_requested")
-        return [self._request(up, len(up.items))]
+        return [self._request(up, up.next_seq)]
+

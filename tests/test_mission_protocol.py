@@ -279,6 +279,29 @@ def test_bad_uploads_refused_with_the_right_ack_plan_intact_and_counted() -> Non
     assert "mission item 0 DO_SET_SERVO: not supported" in texts
 
 
+def test_partial_write_replaces_a_range_and_a_lost_ack_is_sent_again() -> None:
+    v = _vehicle()
+    qgc = Client(v)
+    plan = qgc_plan()
+    assert upload(qgc, plan)[-1].type == R.MAV_MISSION_ACCEPTED
+    # the client missed our ACK and repeats its last item: the ACK again, nothing changes
+    again = qgc.send(plan[-1], T0 + 1)
+    assert [(m.get_type(), m.type) for m in again] == [("MISSION_ACK", R.MAV_MISSION_ACCEPTED)]
+    before = v.mission.plans[0]
+    new = [R.MAVLink_mission_item_int_message(1, 1, seq, R.MAV_FRAME_GLOBAL_RELATIVE_ALT, R.MAV_CMD_NAV_WAYPOINT, 0, 1,
+                                              2.0, 0.4, 0, NAN, *_deg(9.0, seq), 6.0, 0) for seq in (2, 3)]
+    first = qgc.send(R.MAVLink_mission_write_partial_list_message(1, 1, 2, 3, 0), T0 + 10)
+    assert [(m.get_type(), m.seq) for m in first] == [("MISSION_REQUEST_INT", 2)]
+    assert qgc.send(new[0], T0 + 10)[0].seq == 3
+    assert qgc.send(new[1], T0 + 10)[0].type == R.MAV_MISSION_ACCEPTED
+    after = v.mission.plans[0]
+    assert len(after) == len(before) and after[:2] == before[:2] and after[4:] == before[4:]
+    assert [(i.seq, i.param1, i.z) for i in after[2:4]] == [(2, 2.0, 6.0), (3, 2.0, 6.0)]
+    assert [m.seq for m in download(qgc)] == list(range(len(plan)))
+    bad = qgc.send(R.MAVLink_mission_write_partial_list_message(1, 1, 4, 9, 0), T0 + 11)
+    assert bad[0].type == R.MAV_MISSION_INVALID_SEQUENCE and v.mission.plans[0] == after
+
+
 def test_malformed_frames_are_dropped_and_the_vehicle_keeps_answering() -> None:
     v = _vehicle()
     qgc = Client(v)
