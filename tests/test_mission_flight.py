@@ -145,3 +145,71 @@ def test_pause_resume_set_current_and_mode_switch_start() -> None:
     gcs.send(R.MAVLink_mission_clear_all_message(1, 1, 0), f.wall)
     f.run(3.0, watch)
     assert _ack(gcs.command(R.MAV_CMD_MISSION_START, 0, 0, wall=f.wall + 5), R.MAV_CMD_MISSION_START) == R.MAV_RESULT_DENIED
+
+
+def test_the_3x2_assembly_vehicle_flies_a_mission_through_its_own_core() -> None:
+    """`mars-link vehicle`'s sans-IO core (AssemblySim: JSBSim world, unit motor paths, EKF,
+    coordinator): the same mission protocol and runner, the setpoints shaped for the coordinator."""
+    from mars_link.assembly_vehicle import AssemblySim
+    from mars_link.scenario import load_scenario
+
+    sim = AssemblySim(load_scenario("hover_3x2"))
+    gcs = R.MAVLink(None, 245, 190)
+    dec = R.MAVLink(None, 0, 0)
+    got: list = []
+
+    def feed(out) -> None:
+        for o in out:
+            if o.link == "api":
+                got.extend(dec.parse_buffer(o.data) or [])
+
+    def send(msg) -> list:
+        n = len(got)
+        feed(sim.handle(bytes(msg.pack(gcs)), sim.t_s, "api"))
+        return got[n:]
+
+    reached: list = []
+
+    def run(seconds: float) -> None:
+        for _ in range(int(round(seconds / sim.control_dt_s))):
+            n = len(got)
+            feed(sim.step(sim.t_s))
+            reached.extend((m.seq, sim.truth().position_ned_m.copy()) for m in got[n:]
+                           if m.get_type() == "MISSION_ITEM_REACHED")
+
+    try:
+        run(0.3)
+        home = np.array(sim.vehicle.home_ned if sim.vehicle.home_ned is not None else sim.truth().position_ned_m)
+        plan = [_item(0, R.MAV_CMD_NAV_TAKEOFF, ned=(0.0, 0.0, 2.0)),
+                _item(1, R.MAV_CMD_NAV_WAYPOINT, p=(0.5, 0.3, 0, NAN), ned=(2.0, 0.0, 2.0)),
+                _item(2, R.MAV_CMD_NAV_WAYPOINT, p=(0.5, 0.3, 0, NAN), ned=(2.0, 2.0, 2.0)),
+                _item(3, R.MAV_CMD_NAV_LAND, ned=(0.0, 2.0, 0.0))]
+        # home is where the vehicle stands: express the plan around it
+        origin = sim.vehicle.origin
+        plan = [R.MAVLink_mission_item_int_message(
+            1, 1, m.seq, m.frame, m.command, 0, 1, m.param1, m.param2, m.param3, m.param4,
+            *[int(round(c * 1e7)) for c in origin.to_global(home + [dn, de, 0.0])[:2]], m.z, 0)
+            for m, (dn, de) in zip(plan, ((0, 0), (2, 0), (2, 2), (0, 2)))]
+        replies = send(R.MAVLink_mission_count_message(1, 1, len(plan), 0))
+        for _ in range(len(plan)):
+            req = [m for m in replies if m.get_type() == "MISSION_REQUEST_INT"]
+            replies = send(plan[req[-1].seq])
+        assert [m.type for m in replies if m.get_type() == "MISSION_ACK"] == [R.MAV_MISSION_ACCEPTED]
+        acks = [m for m in send(R.MAVLink_command_long_message(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0))
+                if m.get_type() == "COMMAND_ACK"]
+        acks += [m for m in send(R.MAVLink_command_long_message(1, 1, R.MAV_CMD_MISSION_START, 0, 0, 0, 0, 0, 0, 0, 0))
+                 if m.get_type() == "COMMAND_ACK"]
+        assert [a.result for a in acks] == [0, 0]
+        for _ in range(60):
+            run(0.5)
+            if sim.vehicle.runner.complete and not sim.vehicle.armed:
+                break
+        run(0.1)
+        assert [s for s, _ in reached] == [0, 1, 2, 3]
+        for (seq, pos), (dn, de) in zip(reached[1:3], ((2, 0), (2, 2))):
+            goal = home + [dn, de, -2.0]
+            assert np.linalg.norm(pos - goal) <= 0.3 + 0.1, (seq, pos, goal)  # (radius on the EKF's estimate)
+        end = sim.truth().position_ned_m
+        assert np.linalg.norm(end[:2] - (home[:2] + [0, 2])) < 0.3 and not sim.vehicle.armed
+    finally:
+        sim.close()
