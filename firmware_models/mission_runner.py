@@ -146,7 +146,7 @@ class MissionRunner:
             self._phase = None
             return True
         if ph == "done":
-            return self._next(state)
+            return False if self.complete else self._next(state)
         if ph == "climb":  # on the ground at the start: take off first, then the item itself
             if event == "takeoff_done" or (not core.landed and abs(state.position_ned_m[2] - self._climb_z) < 0.3):
                 self._phase = None  # now airborne: enter the item for real next step
@@ -214,11 +214,12 @@ class MissionRunner:
             self._radius = 0.3
             core.goto(state, np.array([state.position_ned_m[0], state.position_ned_m[1], self._target[2]]), yaw)
             self._phase = "takeoff"
+        elif cmd in (R.MAV_CMD_NAV_LAND, R.MAV_CMD_NAV_RETURN_TO_LAUNCH) and core.landed:
+            self._reached(item)  # already down: nothing to fly, the mission ends here
+            self.complete = True
+            self._phase = "done"
+            self._out.texts.append("Mission finished: on the ground")
         elif cmd == R.MAV_CMD_NAV_LAND:
-            if core.landed:
-                self._phase = "landing"
-                self._out.texts.append("Mission: already on the ground")
-                return
             self._target[2] = state.position_ned_m[2]  # go over the spot at the current height, then descend
             core.goto(state, self._target, yaw)
             self._phase = "to_land"

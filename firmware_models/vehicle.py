@@ -116,7 +116,7 @@ SENSORS = (
 ACTION_COMMANDS = {
     mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
     mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_CMD_DO_REPOSITION,
-    mavlink.MAV_CMD_INJECT_FAILURE,
+    mavlink.MAV_CMD_INJECT_FAILURE, mavlink.MAV_CMD_MISSION_START, mavlink.MAV_CMD_DO_SET_MISSION_CURRENT,
 }
 FTP_NAK, FTP_ACK = 129, 128
 FTP_ERR_UNKNOWN_COMMAND, FTP_ERR_FILE_NOT_FOUND, FTP_ERR_INVALID_SESSION = 7, 10, 4
@@ -626,8 +626,8 @@ class Vehicle:
         if cmd == R.MAV_CMD_DO_REPOSITION:
             return self._reposition(p, is_int), []
         if cmd == R.MAV_CMD_MISSION_START:
-            first = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else None
-            if first is not None and first != 0 and not self.runner.set_current(first):
+            first = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else None  # PX4: start at p1 if given
+            if first is not None and not self.runner.set_current(first, reset_jumps=True):
                 return R.MAV_RESULT_DENIED, []
             return self._set_mode(MODE_MISSION), []
         if cmd == R.MAV_CMD_DO_SET_MISSION_CURRENT:
