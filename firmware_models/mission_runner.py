@@ -237,8 +237,7 @@ class MissionRunner:
         cmd = item.command
         if cmd == R.MAV_CMD_DO_CHANGE_SPEED:
             if item.param1 in (0, 1) or math.isnan(item.param1):
-                self.speed_mps = item.param2 if item.param2 > 0 else None
-                self._out.texts.append(f"Mission speed {item.param2:g} m/s" if item.param2 > 0 else "Mission speed default")
+                self.speed_mps = item.param2 if item.param2 > 0 else None  # (MAVSDK sends one per item: no text)
         elif cmd == R.MAV_CMD_DO_SET_HOME:
             if item.param1 == 1:
                 new = np.array(state.position_ned_m, dtype=float)

@@ -11,8 +11,9 @@ what MAVSDK/MAVProxy/QGC use), "coordinator" (per-rotor commands; signed when a 
 to sockets. The surface follows specs/mavlink.md §6: PX4 persona (MAV_AUTOPILOT_PX4, custom_mode =
 main << 16 | sub << 24), heartbeats at 1 Hz of wall time even with the simulation paused, default
 telemetry streams, command protocol with ACKs (idempotent under MAVSDK's identical resends),
-parameters, mission/fence/rally lists (mission_protocol) flown in AUTO.MISSION (mission_runner), offboard setpoints with a watchdog, fault injection
-(MAV_CMD_INJECT_FAILURE into the motor model only), MAVFTP NAK.
+parameters, mission/fence/rally lists (mission_protocol) flown in AUTO.MISSION (mission_runner),
+offboard setpoints with a watchdog, fault injection (MAV_CMD_INJECT_FAILURE into the motor model
+only), MAVFTP NAK. Geographic positions are around PX4 SITL's home (geo.py).
 
 Untrusted input: every datagram is split into frames here (no bytes carried over to the next
 datagram, so a truncated frame cannot swallow the next good one); anything malformed, unsigned where
