@@ -59,6 +59,7 @@ SUPPORTED = {
 MAX_DISTANCE_M = 10_000.0  # from the origin: farther is not a place a unit flies to
 MAX_ALTITUDE_M = 10_000.0
 MAX_SPEED_MPS = 20.0
+STATUSTEXT_CHARS = 50
 ACK_REPEAT_S = 5.0  # the final item repeated this soon after the ACK: the ACK was lost, send it again
 
 
@@ -364,8 +365,11 @@ class MissionProtocol:
         if result != R.MAV_MISSION_ACCEPTED:
             self.upload = None
             what = command_name(msg.command)
-            detail = "not supported" if result == R.MAV_MISSION_UNSUPPORTED else reason.replace("_", " ")
-            self.texts.append((R.MAV_SEVERITY_WARNING, f"{TYPE_NAMES[up.mission_type]} item {msg.seq} {what}: {detail}"))
+            detail = "unsupported" if result == R.MAV_MISSION_UNSUPPORTED else reason.replace("_", " ")
+            head = f"{TYPE_NAMES[up.mission_type]} item {msg.seq} "
+            tail = f": {detail}"
+            what = what[:max(8, STATUSTEXT_CHARS - len(head) - len(tail))]  # one STATUSTEXT: 50 characters
+            self.texts.append((R.MAV_SEVERITY_WARNING, f"{head}{what}{tail}"[:STATUSTEXT_CHARS]))
             return self._refuse(link, msg, result, reason, up.mission_type)
         up.items.append(replace(item, seq=msg.seq))
         up.last_s, up.retries = now_s, 0

@@ -276,7 +276,14 @@ def test_bad_uploads_refused_with_the_right_ack_plan_intact_and_counted() -> Non
     assert drops["mission.duplicate_item"] == 1 and drops["mission.cancelled_by_client"] == 1
     # a named refusal for the item we cannot fly
     texts = [t for _, t in v.events]
-    assert "mission item 0 DO_SET_SERVO: not supported" in texts
+    assert "mission item 0 DO_SET_SERVO: unsupported" in texts
+    # a long command name still fits one STATUSTEXT with the verdict
+    qgc.send(R.MAVLink_mission_count_message(1, 1, 20, 0))
+    for seq in range(12):
+        qgc.send(item(seq))
+    qgc.send(item(12, cmd=R.MAV_CMD_DO_GIMBAL_MANAGER_PITCHYAW, frame=R.MAV_FRAME_MISSION))
+    text = v.events[-1][1]
+    assert text.startswith("mission item 12 DO_GIMBAL_MANAGER") and text.endswith(": unsupported") and len(text) <= 50
 
 
 def test_partial_write_replaces_a_range_and_a_lost_ack_is_sent_again() -> None:
