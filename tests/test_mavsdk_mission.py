@@ -1,4 +1,5 @@
-"""MAVSDK 4.x's mission plugin against one unit process over UDP on loopback: a 3-waypoint mission
+"""MAVSDK 4.x's mission plugin against one unit process, and against `mars-link vehicle` (the 3x2 as
+one vehicle), over UDP on loopback: a 3-waypoint mission
 around PX4 SITL's home with RTL after it (MAVSDK's set_return_to_launch_after_mission), uploaded,
 downloaded back, flown in AUTO.MISSION with a pause to HOLD and a resume; checked against the JSBSim
 truth from the runner's status file: every waypoint passed within its acceptance radius, a
@@ -119,11 +120,20 @@ async def _current_is(mission, index: int, sample) -> bool:
 
 
 @pytest.mark.skipif(not hasattr(mavsdk, "asyncio"), reason="needs MAVSDK 4.x")
-def test_mavsdk_mission_flown_against_the_truth(tmp_path: Path) -> None:
+@pytest.mark.parametrize("vehicle", ["unit", "assembly"])
+def test_mavsdk_mission_flown_against_the_truth(tmp_path: Path, vehicle: str) -> None:
+    """`unit`: a lone unit process; `assembly`: `mars-link vehicle` (the 3x2, qp allocation)."""
     api = free_udp_port()
     status = tmp_path / "status.json"
-    proc, _ = spawn_unit(["--unit", "1", "--gcs-port", str(free_udp_port()), "--gcs-bind", "0",
-                          "--api-port", str(api), "--api-bind", "0", "--coord-bind", "0", "--status-file", str(status)])
+    if vehicle == "unit":
+        proc, _ = spawn_unit(["--unit", "1", "--gcs-port", str(free_udp_port()), "--gcs-bind", "0",
+                              "--api-port", str(api), "--api-bind", "0", "--coord-bind", "0",
+                              "--status-file", str(status)])
+    else:
+        from mars_link.realtime import spawn_vehicle
+
+        proc, _ = spawn_vehicle(["--layout", "XXX,XXX", "--ftc", "qp", "--api-port", str(api), "--api-bind", "0",
+                                 "--gcs-port", str(free_udp_port()), "--gcs-bind", "0"], status)
     t0 = time.monotonic()
     try:
         res = asyncio.run(_fly(api, status))
