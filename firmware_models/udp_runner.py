@@ -16,7 +16,7 @@ A port 0 means "any free port"; the chosen ports are printed as one JSON line on
 Physics: this runner is for a lone unit (MAVSDK/MAVProxy/QGC tests and demos): a 1x1 JsbsimBody
 stepped at --physics-hz in real time (scaled by --speed), the vehicle's control at --control-hz and
 its motor model (limits, injected faults, lag) on every physics step. `--status-file` gets a JSON
-snapshot (truth, mode, counters) a few times per second for tests and operators; it is not a channel
+snapshot (truth, mode, counters, where each MISSION_ITEM_REACHED was sent) a few times per second for tests and operators; it is not a channel
 any coordinator reads.
 """
 
@@ -134,6 +134,7 @@ class UnitRunner:
             return
         write_json_atomic(self.status_path, vehicle_status(
             self.vehicle, self.body.state(), self.sim_s, overruns=self.pacer.overruns, ports=self.ports(),
+            mission_reached=self.vehicle.mission_reached, mission_counts=self.vehicle.mission.counts,
             **self.io.counters()))
 
     def run(self) -> int:
