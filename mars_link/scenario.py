@@ -15,6 +15,7 @@ from typing import Any
 
 from mars_link.assembly import AssemblyModel, PRESETS, parse_layout, vehicle_preset
 from mars_link.errors import UserInputError
+from mars_link.validation import check_id_digits, check_seed
 
 CONTROLLERS = ("cascaded", "mars-ftcc-paper")
 FTC_MODES = ("none", "unit", "partial", "full", "hybrid", "qp")
@@ -143,15 +144,18 @@ def parse_fault_arg(text: str) -> FaultSpec:
     """`UNIT[:ROTOR]=ETA[@T]`, e.g. `2:2=0.5`, `3=0@10`."""
     m = _FAULT_RE.match(text)
     if not m:
+        shown = text if len(text) <= 60 else text[:40] + "..."
         raise UserInputError(
-            f"--fault {text!r}: expected UNIT[:ROTOR]=ETA[@T], e.g. 2:2=0.5 or 3=0@10"
+            f"--fault {shown!r}: expected UNIT[:ROTOR]=ETA[@T], e.g. 2:2=0.5 or 3=0@10"
         )
     try:
         eta = float(m["eta"])
         t = float(m["t"]) if m["t"] else 0.0
     except ValueError:
-        raise UserInputError(f"--fault {text!r}: ETA and T must be numbers") from None
-    return FaultSpec(int(m["unit"]), int(m["rotor"]) if m["rotor"] else None, eta, t)
+        raise UserInputError(f"--fault {text[:60]!r}: ETA and T must be numbers") from None
+    unit = check_id_digits(m["unit"], f"--fault {text[:40]!r} unit")
+    rotor = check_id_digits(m["rotor"], f"--fault {text[:40]!r} rotor") if m["rotor"] else None
+    return FaultSpec(unit, rotor, eta, t)
 
 
 def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
@@ -240,7 +244,7 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
     if "control_hz" in sim:
         sc.sim.control_hz = _number(sim["control_hz"], "[sim] control_hz", src, positive=True)
     if "seed" in sim:
-        sc.sim.seed = _integer(sim["seed"], "[sim] seed", src)
+        sc.sim.seed = check_seed(_integer(sim["seed"], "[sim] seed", src), f"{src}: [sim] seed")
     if "noise" in sim:
         if not isinstance(sim["noise"], bool):
             raise UserInputError(f"{src}: [sim] noise must be true or false")
@@ -298,6 +302,53 @@ def check_rates(sim: SimSpec, src: str) -> None:
             f"{src}: [sim] physics_hz ({sim.physics_hz:g}) must be a whole multiple of control_hz "
             f"({sim.control_hz:g})"
         )
+
+
+def flight_duration_s(scenario: Scenario, model: AssemblyModel | None = None) -> float:
+    """How long the flight lasts: [sim] duration_s, else the trajectory's (built to find out)."""
+    if scenario.sim.duration_s is not None:
+        return scenario.sim.duration_s
+    from mars_link.trajectories import build_trajectory
+
+    model = model or scenario.model()
+    params = {k: v for k, v in scenario.trajectory.items() if k != "kind"}
+    return build_trajectory(scenario.trajectory["kind"], params, rest_height_m=model.vehicle.gear_depth_m).duration_s
+
+
+def check_flight(scenario: Scenario, model: AssemblyModel | None = None) -> int:
+    """Refuse a flight that would report a result it never flew: fewer than one control step
+    (`control_hz = 1e-300`, `--duration 1e-9`), or a fault timed after the last control step (the
+    runner would silently never inject it). Returns the number of control steps."""
+    src = scenario.source
+    duration = flight_duration_s(scenario, model)
+    steps_f = duration * scenario.sim.control_hz
+    if not math.isfinite(steps_f) or steps_f > 1e9:
+        raise UserInputError(f"{src}: {duration:g} s at {scenario.sim.control_hz:g} Hz is not a flight this runner "
+                             "can step (more than 1e9 control steps)")
+    steps = int(round(steps_f))
+    if steps < 1:
+        raise UserInputError(f"{src}: a flight of {duration:g} s at control_hz {scenario.sim.control_hz:g} has no "
+                             "control step (duration x control_hz must be >= 1)")
+    last_t = (steps - 1) / scenario.sim.control_hz
+    for f in scenario.faults:
+        if f.t_s > last_t + 1e-9:
+            raise UserInputError(f"{src}: fault {f.describe()} comes after the flight ends "
+                                 f"(last control step at t={last_t:g}s)")
+    return steps
+
+
+def check_faults_controllable(scenario: Scenario, model: AssemblyModel | None = None) -> None:
+    """The one controllability check of `run`, `vehicle` and `sitl up`: with every fault of the
+    scenario applied, the assembly must still produce the full wrench and hover within its thrust
+    limits (mars_link.allocation.check_controllable). A UserInputError line otherwise."""
+    if not scenario.faults:
+        return
+    from mars_link.allocation import check_controllable
+    from mars_link.runner import eta_after
+
+    model = model or scenario.model()
+    eta = eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s), math.inf)
+    check_controllable(model, eta, (model.vehicle.rotor_min_thrust_n, model.vehicle.rotor_max_thrust_n))
 
 
 def resolve_scenario_path(arg: str | None) -> Path:
