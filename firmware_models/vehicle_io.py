@@ -9,7 +9,6 @@ of the last frame that the vehicle accepted from its configured peer (after sign
 
 from __future__ import annotations
 
-import json
 import os
 import selectors
 import socket
@@ -225,6 +224,9 @@ def vehicle_status(vehicle: Vehicle, truth: RigidBodyState | None, sim_time_s: f
 
 
 def write_json_atomic(path: Path, doc: dict) -> None:
+    """Strict JSON (NaN/inf -> null, mars_link.outputs), replaced atomically."""
+    from mars_link.outputs import dumps
+
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(doc))
+    tmp.write_text(dumps(doc, indent=None))
     os.replace(tmp, path)

@@ -15,6 +15,7 @@ pymavlink unchanged. Errors raise pymavlink's MAVError with pymavlink's reasons.
 
 from __future__ import annotations
 
+import functools
 import math
 import struct
 from dataclasses import dataclass
@@ -249,13 +250,8 @@ def _clamp_one(value, ftype: str, unknown):
 def clamp_fields(msg: mavlink.MAVLink_message) -> int:
     """Clamp every numeric field of `msg`, in place, to its wire type's range (NaN in an integer
     field -> its invalid value); returns how many values changed."""
-    cls = type(msg)
     changed = 0
-    for name, ftype in zip(cls.fieldnames, cls.fieldtypes):
-        if ftype == "char":
-            continue
-        n = cls.array_lengths[cls.ordered_fieldnames.index(name)]
-        unknown = invalid_value(cls.msgname, name, ftype)
+    for name, ftype, n, unknown in _numeric_fields(type(msg)):
         value = getattr(msg, name)
         if n:
             items = list(value) if isinstance(value, (list, tuple)) else [value] * n
@@ -268,6 +264,14 @@ def clamp_fields(msg: mavlink.MAVLink_message) -> int:
             changed += 0 if _same(value, new) else 1
         setattr(msg, name, new)
     return changed
+
+
+@functools.lru_cache(maxsize=None)
+def _numeric_fields(cls: type) -> tuple:
+    """(name, type, array length, invalid value) of each numeric field, once per message type."""
+    return tuple((name, ftype, cls.array_lengths[cls.ordered_fieldnames.index(name)],
+                  invalid_value(cls.msgname, name, ftype))
+                 for name, ftype in zip(cls.fieldnames, cls.fieldtypes) if ftype != "char")
 
 
 def _same(a, b) -> bool:

@@ -36,6 +36,8 @@ def strict(obj: Any) -> Any:
         return strict(obj.item())
     if isinstance(obj, Path):
         return str(obj)
+    if hasattr(obj, "__float__"):  # (what json.dumps(default=float) accepted)
+        return strict(float(obj))
     return obj
 
 

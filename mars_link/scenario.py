@@ -344,10 +344,11 @@ def check_faults_controllable(scenario: Scenario, model: AssemblyModel | None = 
     if not scenario.faults:
         return
     from mars_link.allocation import check_controllable
-    from mars_link.runner import eta_after
 
     model = model or scenario.model()
-    eta = eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s), math.inf)
+    eta = model.nominal_eta()  # every fault applied (the runners' eta_after at t = inf)
+    for f in sorted(scenario.faults, key=lambda f: f.t_s):
+        eta[model.unit_slots(f.unit) if f.rotor is None else model.rotor_slot(f.unit, f.rotor)] = f.eta
     check_controllable(model, eta, (model.vehicle.rotor_min_thrust_n, model.vehicle.rotor_max_thrust_n))
 
 

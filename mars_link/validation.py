@@ -20,7 +20,7 @@ import re
 import shutil
 from pathlib import Path
 
-from mars_link.errors import EnvironmentFailure, UserInputError
+from mars_link.errors import EnvironmentFailure, OneLineArgumentParser, UserInputError
 
 EXIT_USAGE = 2  # wrong input
 EXIT_ENVIRONMENT = 1  # disk, port, permission
@@ -33,11 +33,7 @@ ENV_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT
               errno.EADDRNOTAVAIL, errno.EMFILE, errno.ENFILE}
 
 
-class OneLineParser(argparse.ArgumentParser):
-    """argparse with one-line errors: no usage dump, a UserInputError the CLI prints as one line."""
-
-    def error(self, message: str) -> None:
-        raise UserInputError(f"{self.prog}: {message}")
+OneLineParser = OneLineArgumentParser  # one-line usage errors (UserInputError, exit 2)
 
 
 # ----------------------------------------------------------------------------- numbers

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from mars_link.errors import EnvironmentFailure, UserInputError
-from mars_link.validation import OneLineParser, check_out_dir, prepare_out_dir, report
+from mars_link.validation import check_out_dir, prepare_out_dir, report
 
 
 def parse_point(text: str, what: str) -> np.ndarray:
@@ -31,7 +31,9 @@ def parse_point(text: str, what: str) -> np.ndarray:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = OneLineParser(prog="mars-link plan", description="collision-free trajectory for an assembly on a map")
+    from mars_link.errors import OneLineArgumentParser
+
+    p = OneLineArgumentParser(prog="mars-link plan", description="collision-free trajectory for an assembly on a map")
     p.add_argument("map", help="boxes .csv (columns of data/mars_ftcc_walls.csv, z-up scene frame) or ASCII .pcd")
     p.add_argument("--layout", required=True, help="layout rows separated by commas, e.g. XXX,XXX")
     p.add_argument("--fault", action="append", default=[], metavar="UNIT[:ROTOR]=ETA[@T]")
