@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from firmware_models.vehicle import LINK_COORDINATOR, Outgoing, Vehicle
-from mars_link.errors import UserInputError
+from mars_link.errors import PortUnavailable, UserInputError
 from mars_link.state import RigidBodyState
 
 LOOPBACK = "127.0.0.1"
@@ -73,7 +73,7 @@ def bind_udp(port: int) -> socket.socket:
         s.bind((LOOPBACK, port))
     except OSError as e:
         s.close()
-        raise UserInputError(f"cannot bind UDP port {port} on {LOOPBACK}: {e.strerror}") from None
+        raise PortUnavailable(f"cannot bind UDP port {port} on {LOOPBACK}: {e.strerror}") from None
     s.setblocking(False)
     return s
 

@@ -279,7 +279,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     coord = sub.add_parser("coordinator", help="the coordinator process alone, attaching to running units")
     add_coordinator_arguments(coord)
-    coord.set_defaults(func=cmd_coordinator)
+
+    def checked_coordinator(args) -> int:  # the shared checks first (endpoints, --out)
+        v.check_link_endpoints(args)
+        v.check_out_dir(args.out)
+        return cmd_coordinator(args)
+
+    coord.set_defaults(func=checked_coordinator)
 
     veh = sub.add_parser("vehicle", help="the assembly as one MAVLink vehicle in real time (MAVSDK, MAVProxy, QGC)")
     from mars_link.realtime import add_arguments
@@ -323,6 +329,12 @@ def main(argv: list[str] | None = None) -> int:
         print("mars-link: interrupted", file=sys.stderr)
         return 130
     except (UserInputError, v.EnvironmentFailure, OSError) as exc:  # OSError: an unexpected disk/port refusal
+        line, code = v.report(exc)
+        print(line, file=sys.stderr)
+        return code
+    except Exception as exc:  # a Zenoh session that cannot open (port taken): one line, exit 1
+        if type(exc).__module__.split(".")[0] != "zenoh":
+            raise
         line, code = v.report(exc)
         print(line, file=sys.stderr)
         return code

@@ -295,7 +295,12 @@ def _reconfig_table(table: dict, src: str) -> dict:
     return out
 
 
+MAX_PHYSICS_HZ = 100_000.0  # a sane bound: beyond it a second of flight is minutes of stepping
+
+
 def check_rates(sim: SimSpec, src: str) -> None:
+    if sim.physics_hz > MAX_PHYSICS_HZ:
+        raise UserInputError(f"{src}: [sim] physics_hz must be <= {MAX_PHYSICS_HZ:g}, got {sim.physics_hz:g}")
     ratio = sim.physics_hz / sim.control_hz
     if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
         raise UserInputError(

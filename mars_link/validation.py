@@ -239,10 +239,12 @@ def environment_failure(exc: OSError, where: str = "") -> EnvironmentFailure:
 
 def report(exc: BaseException, prefix: str = "mars-link") -> tuple[str, int]:
     """The one line and exit code for an error that reached a command's top level."""
+    if isinstance(exc, EnvironmentFailure):  # first: PortUnavailable is both
+        return f"{prefix}: error: {exc}", EXIT_ENVIRONMENT
     if isinstance(exc, UserInputError):
         return f"{prefix}: error: {exc}", EXIT_USAGE
-    if isinstance(exc, EnvironmentFailure):
-        return f"{prefix}: error: {exc}", EXIT_ENVIRONMENT
+    if type(exc).__module__.split(".")[0] == "zenoh":  # zenoh.ZError: a listener that cannot bind, ...
+        return f"{prefix}: error: zenoh: {str(exc).split(' at /')[0]}", EXIT_ENVIRONMENT
     if isinstance(exc, OSError):
         code = EXIT_USAGE if exc.errno in (errno.ENAMETOOLONG, errno.ENOTDIR, errno.EISDIR, errno.EEXIST) else EXIT_ENVIRONMENT
         return f"{prefix}: error: {environment_failure(exc)}", code

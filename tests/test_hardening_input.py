@@ -269,3 +269,47 @@ def test_sitl_up_refuses_an_uncontrollable_scenario(tmp_path, capsys) -> None:
     code, err = cli(capsys, "sitl", "up", scenario(tmp_path, text), "--any-bind", "--out", str(tmp_path / "up"))
     assert code == 2 and "uncontrollable" in err
     assert not (tmp_path / "up").exists()
+
+
+# ----------------------------------------------------------------------------- class 1: the machine refuses
+@pytest.fixture
+def busy_ports():
+    """A TCP port with a listener and a bound UDP port, both on loopback (ours, closed after)."""
+    import socket
+
+    tcp = socket.socket()
+    tcp.bind(("127.0.0.1", 0))
+    tcp.listen()
+    udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    udp.bind(("127.0.0.1", 0))
+    yield tcp.getsockname()[1], udp.getsockname()[1]
+    tcp.close()
+    udp.close()
+
+
+def test_zenoh_listen_port_in_use_is_an_environment_failure(tmp_path, capsys, busy_ports) -> None:
+    tcp_port, _ = busy_ports
+    code, err = cli(capsys, "run", "hover_1x1", "--mode", "sitl", "--quiet", "--zenoh-listen",
+                    f"tcp/127.0.0.1:{tcp_port}", "--out", str(tmp_path / "o"))
+    assert code == 1 and "Address already in use" in err
+
+
+def test_udp_bind_port_in_use_is_an_environment_failure(capsys, busy_ports) -> None:
+    _, udp_port = busy_ports
+    code, err = cli(capsys, "vehicle", "--gcs-bind", str(udp_port), "--duration", "1")
+    assert code == 1 and f"cannot bind UDP port {udp_port}" in err
+
+
+def test_coordinator_checks_its_endpoint_and_out(tmp_path, capsys) -> None:
+    code, err = cli(capsys, "coordinator", "--transport", "zenoh", "--zenoh-connect", "tcp/127.0.0.1:99999")
+    assert code == 2 and "port must be 1..65535" in err
+    f = tmp_path / "file"
+    f.write_text("x")
+    code, err = cli(capsys, "coordinator", "--out", str(f), "--transport", "zenoh", "--zenoh-connect", "tcp/127.0.0.1:7447")
+    assert code == 2 and "is a file" in err
+
+
+def test_absurd_physics_rate_is_refused(tmp_path, capsys) -> None:
+    text = HOVER + "physics_hz = 1e300\ncontrol_hz = 1e298\n"
+    code, err = cli(capsys, "run", scenario(tmp_path, text), "--quiet", "--out", str(tmp_path / "o"))
+    assert code == 2 and "physics_hz must be <= 100000" in err
