@@ -168,3 +168,42 @@ def test_safe_writer_on_a_really_full_tmpfs(tiny_tmpfs) -> None:
     w.close()
     assert w.stopped_reason is not None and "No space left on device" in w.stopped_reason
     assert w.dropped_writes > 1000
+
+
+class FillsUp(io.TextIOWrapper):
+    """A real file that reports ENOSPC once `limit` bytes are in it (a disk filling mid-flight)."""
+
+    limit = 20_000
+
+    def write(self, text: str) -> int:
+        if self.tell() + len(text) > self.limit:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return super().write(text)
+
+
+@pytest.mark.xfail(strict=True, reason="the in-process RunLog must write through mars_link.outputs.SafeWriter and put "
+                                       "its status() in summary['logging'] (wired by the lead with the runner refactor)")
+def test_inproc_run_goes_on_when_the_log_disk_fills(tmp_path, monkeypatch, capsys) -> None:
+    import builtins
+    import json as _json
+    import sys
+
+    from mars_link import runner
+    from mars_link.cli import main as cli_main
+
+    log_module = sys.modules[runner.RunLog.__module__]  # where the runner's RunLog lives (it is moving)
+
+    def open_filling(path, mode="r", *args, **kwargs):
+        f = builtins.open(path, mode, *args, **kwargs)
+        if "w" in mode and str(path).endswith(".csv"):
+            f = FillsUp(f.detach(), encoding="utf-8")
+        return f
+
+    monkeypatch.setattr(log_module, "open", open_filling, raising=False)
+    path = tmp_path / "s.toml"
+    path.write_text('name = "t"\n[trajectory]\nkind = "hover"\n[sim]\nduration_s = 2\n')
+    code = cli_main(["run", str(path), "--quiet", "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 0, err  # the flight completed: logging is never flight-critical
+    summary = _json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["completed"] and "No space left on device" in _json.dumps(summary["logging"])
