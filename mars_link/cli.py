@@ -177,6 +177,10 @@ def cmd_sitl(args) -> int:
         from firmware_models.signing import load_key
 
         load_key(args.signing_key_file)  # a bad key file is refused before the run directory exists
+    n = len(setup.unit_ids)  # the client ports of either transport
+    for what, port in (("--gcs-port", args.gcs_port), ("--api-port", args.api_port), ("--api-port + units", args.api_port + n - 1)):
+        if not 1 <= port <= 65535:
+            raise UserInputError(f"{what} must be 1..65535, got {port}")
     if getattr(args, "transport", None) not in (None, "udp") or getattr(args, "external_coordinator", False) \
             or getattr(args, "realtime", False) or getattr(args, "link_profile", None):
         if vehicle is not None and getattr(args, "external_coordinator", False):
@@ -187,10 +191,6 @@ def cmd_sitl(args) -> int:
         return sitl_up_command(args, path, out, vehicle)
     from sitl.launcher import ClientPorts
 
-    n = len(setup.unit_ids)
-    for name, port in (("--gcs-port", args.gcs_port), ("--api-port", args.api_port), ("--api-port + units", args.api_port + n - 1)):
-        if not 1 <= port <= 65535:
-            raise UserInputError(f"{name} must be 1..65535, got {port}")
     clients = ClientPorts(args.gcs_port, [args.api_port + i for i in range(n)], args.any_bind)
     v.prepare_out_dir(out, force=args.force)
     code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,

@@ -239,6 +239,8 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
     _check_keys(sim, _SIM_KEYS, "[sim]", src)
     if "duration_s" in sim:
         sc.sim.duration_s = _number(sim["duration_s"], "[sim] duration_s", src, positive=True)
+        if sc.sim.duration_s > MAX_DURATION_S:
+            raise UserInputError(f"{src}: [sim] duration_s must be <= {MAX_DURATION_S:g}, got {sc.sim.duration_s:g}")
     if "physics_hz" in sim:
         sc.sim.physics_hz = _number(sim["physics_hz"], "[sim] physics_hz", src, positive=True)
     if "control_hz" in sim:
@@ -296,6 +298,7 @@ def _reconfig_table(table: dict, src: str) -> dict:
 
 
 MAX_PHYSICS_HZ = 100_000.0  # a sane bound: beyond it a second of flight is minutes of stepping
+MAX_DURATION_S = 1e6  # 11.6 days of simulated flight
 
 
 def check_rates(sim: SimSpec, src: str) -> None:
@@ -313,18 +316,22 @@ def flight_duration_s(scenario: Scenario, model: AssemblyModel | None = None) ->
     """How long the flight lasts: [sim] duration_s, else the trajectory's (built to find out)."""
     if scenario.sim.duration_s is not None:
         return scenario.sim.duration_s
-    from mars_link.trajectories import build_trajectory
+    try:  # the runners' trajectory builder (it knows the planner for kind "plan")
+        from mars_link.runner import make_trajectory
+    except ImportError:
+        from mars_link.build import make_trajectory
 
-    model = model or scenario.model()
-    params = {k: v for k, v in scenario.trajectory.items() if k != "kind"}
-    return build_trajectory(scenario.trajectory["kind"], params, rest_height_m=model.vehicle.gear_depth_m).duration_s
+    return make_trajectory(scenario, model or scenario.model()).duration_s
 
 
 def check_flight(scenario: Scenario, model: AssemblyModel | None = None) -> int:
     """Refuse a flight that would report a result it never flew: fewer than one control step
     (`control_hz = 1e-300`, `--duration 1e-9`), or a fault timed after the last control step (the
-    runner would silently never inject it). Returns the number of control steps."""
+    runner would silently never inject it). Returns the number of control steps (-1: not checked, a
+    planned trajectory without [sim] duration_s)."""
     src = scenario.source
+    if scenario.sim.duration_s is None and scenario.trajectory.get("kind") == "plan":
+        return -1  # its length is known only after planning (seconds of work): the runner's to check
     duration = flight_duration_s(scenario, model)
     steps_f = duration * scenario.sim.control_hz
     if not math.isfinite(steps_f) or steps_f > 1e9:

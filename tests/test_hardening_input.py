@@ -313,3 +313,12 @@ def test_absurd_physics_rate_is_refused(tmp_path, capsys) -> None:
     text = HOVER + "physics_hz = 1e300\ncontrol_hz = 1e298\n"
     code, err = cli(capsys, "run", scenario(tmp_path, text), "--quiet", "--out", str(tmp_path / "o"))
     assert code == 2 and "physics_hz must be <= 100000" in err
+
+
+def test_absurd_durations_and_trajectory_numbers_are_refused(tmp_path, capsys) -> None:
+    text = HOVER.replace("duration_s = 1", "duration_s = 1e308")
+    code, err = cli(capsys, "sitl", "up", scenario(tmp_path, text), "--any-bind", "--out", str(tmp_path / "up"))
+    assert code == 2 and "duration_s must be <= 1e+06" in err  # was an OverflowError traceback
+    text = HOVER.replace('kind = "hover"', 'kind = "hover"\nheight_m = 1e308')
+    code, err = cli(capsys, "reconfig", "plan", scenario(tmp_path, text, "t.toml"))
+    assert code == 2 and "height_m must be within" in err  # was numpy overflow warnings on stderr
