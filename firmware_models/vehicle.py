@@ -1163,15 +1163,11 @@ class Vehicle:
             return R.MAV_LANDED_STATE_LANDING
         return R.MAV_LANDED_STATE_IN_AIR
 
-    def _battery_current_a(self) -> float:
-        """Modelled draw: ~2 A per newton of rotor thrust (unbounded, may be NaN with a NaN command)."""
-        return 0.5 + 2.0 * float(np.sum(np.abs(self.motor_commands_n))) if self.armed else 0.3
-
     def _battery(self) -> tuple[int, int, int]:
         """(voltage mV, current cA, remaining %): a 4S 2.2 Ah pack drawn by thrust (~2 A per N).
         Clamped to the wire fields (uint16 mV, int16 cA, int8 %); not a number -> MAVLink's "not
         sent" value (UINT16_MAX, -1, -1). Above 327.67 A the current field saturates at 32767."""
-        current_a = self._battery_current_a()
+        current_a = self._current_a()
         remaining = max(0.0, 1.0 - self.battery_used_c / (2.2 * 3600))
         volts = 4 * (3.6 + 0.6 * remaining) - 0.02 * current_a
 
@@ -1238,10 +1234,17 @@ class Vehicle:
                                                  0.21, 0.0, 0.42, pressure_hpa, 0.0, alt_m, 20.0, 0x1A3F, 0)
         return None
 
+    def _current_a(self) -> float:
+        """The pack's current: ~2 A per newton of rotor thrust (0.5 A armed and idle, 0.3 A disarmed);
+        any number of rotors (the assembly vehicle has 4N); unbounded, NaN with a NaN command."""
+        if not self.armed:
+            return 0.3
+        return 0.5 + 2.0 * float(np.sum(np.abs(self.motor_commands_n)))
+
     def _account_battery(self) -> None:
-        current_a = self._battery_current_a()
-        if math.isfinite(current_a):
-            self.battery_used_c += current_a * self.control_dt_s
+        current_a = self._current_a()
+        if math.isfinite(current_a):  # a NaN command must not poison the charge count
+            self.battery_used_c += int(current_a * 100) * 0.01 * self.control_dt_s
 
 
 def _param_name(raw) -> str:

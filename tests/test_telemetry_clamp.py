@@ -51,6 +51,25 @@ def test_battery_current_above_int16_is_clamped_not_raised() -> None:
     assert 0 < sys_status[0].voltage_battery < 65535
 
 
+def test_the_3x2_assembly_vehicle_reports_a_high_draw_instead_of_crashing() -> None:
+    """`mars-link vehicle` / `sitl up --vehicle`: the assembly's 24 rotors between -5.4 and +8.0 N (what
+    a yaw setpoint commands) add up to 176 N, 353 A modelled."""
+    from mars_link.assembly_vehicle import AssemblySim
+    from mars_link.scenario import load_scenario
+
+    sim = AssemblySim(load_scenario("hover_3x2"), wall_time_s=0.0)
+    try:
+        v = sim.vehicle
+        v.tick(0.0, 0.0)
+        v.armed = True
+        v.motor_commands_n = np.where(np.arange(24) % 4, 8.0, -5.4)
+        msgs = decode_all(v.tick(10.0, 0.001))
+    finally:
+        sim.close()
+    s = next(m for m in msgs if m.get_type() == "SYS_STATUS")
+    assert s.current_battery == 32767 and s.battery_remaining in range(0, 101)
+
+
 def test_nan_thrust_reports_not_sent_values() -> None:
     v = armed_vehicle()
     v.motor_commands_n = np.array([np.nan, 1.0, 1.0, 1.0])
