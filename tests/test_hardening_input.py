@@ -322,3 +322,11 @@ def test_absurd_durations_and_trajectory_numbers_are_refused(tmp_path, capsys) -
     text = HOVER.replace('kind = "hover"', 'kind = "hover"\nheight_m = 1e308')
     code, err = cli(capsys, "reconfig", "plan", scenario(tmp_path, text, "t.toml"))
     assert code == 2 and "height_m must be within" in err  # was numpy overflow warnings on stderr
+
+
+def test_force_never_clears_the_working_directory(tmp_path, capsys, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "precious.txt").write_text("keep")
+    code, err = cli(capsys, "run", scenario(tmp_path), "--quiet", "--out", ".", "--force")
+    assert code == 2 and "--force will not clear" in err
+    assert (tmp_path / "precious.txt").read_text() == "keep"
