@@ -12,7 +12,7 @@ from mars_link import validation as v
 from mars_link.errors import UserInputError
 
 EXIT_USAGE = v.EXIT_USAGE
-_Parser = v.OneLineParser  # (kept: sub-CLIs import it from here)
+_Parser = v.OneLineParser  # one-line usage errors (errors.OneLineArgumentParser)
 
 
 def _default_out(name: str) -> Path:
@@ -43,9 +43,7 @@ def cmd_run(args) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from mars_link.scenario import load_scenario
-
-    from mars_link.scenario import check_faults_controllable, check_flight
+    from mars_link.scenario import check_faults_controllable, check_flight, load_scenario
 
     scenario = load_scenario(args.scenario)
     _apply_overrides(scenario, args)

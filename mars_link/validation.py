@@ -173,6 +173,8 @@ def check_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool |
     _check_path_syntax(p, what)
     if p.exists() and not p.is_dir():
         raise UserInputError(f"{what} {str(p)!r}: is a file, not a directory")
+    if p.is_symlink() and not p.exists():
+        raise UserInputError(f"{what} {str(p)!r}: is a symbolic link to nothing")
     base = _nearest_existing(p)
     if not base.is_dir():
         raise UserInputError(f"{what} {str(p)!r}: {str(base)!r} is a file, not a directory")
