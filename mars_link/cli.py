@@ -62,7 +62,8 @@ def cmd_run(args) -> int:
     if not scenario.reconfig.get("enabled"):
         check_flight(scenario, model)
     out = v.check_out_dir(args.out or _default_out(scenario.name), force=args.force)
-    v.prepare_out_dir(out, force=args.force)
+    if args.force:  # else the runner creates it, after its own checks (a refused run leaves no directory)
+        v.prepare_out_dir(out, force=True)
     console = Console(stderr=True)
     with Progress(
         TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
