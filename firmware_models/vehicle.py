@@ -504,7 +504,11 @@ class Vehicle:
             due = self._next_stream.get(mid, wall_time_s)
             if wall_time_s >= due:
                 self._next_stream[mid] = max(due + interval, wall_time_s + 0.5 * interval)
-                msg = self._stream_message(mid)
+                try:
+                    msg = self._stream_message(mid)
+                except (*mavlink_codec.ENCODE_ERRORS, FloatingPointError):  # e.g. int() of a NaN state
+                    self._count("telemetry.encode_error")
+                    msg = None
                 if msg is not None:
                     self._broadcast(msg, out)
         for name, msg in self.mission.tick(self.wall_s):
@@ -525,20 +529,33 @@ class Vehicle:
         self.drops[reason] = self.drops.get(reason, 0) + 1
 
     def _pack(self, lk: _Link, msg) -> bytes:
+        """Encode for this link; a field outside its wire range is clamped and counted
+        (telemetry.clamped), never raised (mars_link.mavlink_codec.encode_clamped)."""
         if lk.policy.sign_outgoing:
             advance_outgoing_clock(lk.encoder, self.wall_s)
-        return mavlink_codec.encode(msg, lk.encoder)
+        frame, clamped = mavlink_codec.encode_clamped(msg, lk.encoder)
+        if clamped:
+            self._count("telemetry.clamped")
+        return frame
+
+    def _send(self, lk: _Link, msg, out: list[Outgoing]) -> None:
+        """Append `msg` for `lk`; a message that cannot be encoded is counted and dropped: telemetry
+        never stops a flight."""
+        try:
+            out.append(Outgoing(lk.name, self._pack(lk, msg)))
+        except (*mavlink_codec.ENCODE_ERRORS, mavlink.MAVError):
+            self._count("telemetry.encode_error")
 
     def _reply(self, lk: _Link, msg, out: list[Outgoing]) -> None:
         if lk.bucket.take(self.wall_s):
-            out.append(Outgoing(lk.name, self._pack(lk, msg)))
+            self._send(lk, msg, out)
         else:
             self._drop("reply_rate_limited")
 
     def _broadcast(self, msg, out: list[Outgoing]) -> None:
         for lk in self.links.values():
             if lk.policy.telemetry:
-                out.append(Outgoing(lk.name, self._pack(lk, msg)))
+                self._send(lk, msg, out)
 
     def _text(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
         self.events.append((self.sim_s, text))
@@ -1277,11 +1294,18 @@ class Vehicle:
         return R.MAV_LANDED_STATE_IN_AIR
 
     def _battery(self) -> tuple[int, int, int]:
-        """(voltage mV, current cA, remaining %): a 4S 2.2 Ah pack drawn by thrust (~2 A per N)."""
+        """(voltage mV, current cA, remaining %): a 4S 2.2 Ah pack drawn by thrust (~2 A per N).
+        Clamped to the wire fields (uint16 mV, int16 cA, int8 %); not a number -> MAVLink's "not
+        sent" value (UINT16_MAX, -1, -1). Above 327.67 A the current field saturates at 32767."""
         current_a = self._current_a()
         remaining = max(0.0, 1.0 - self.battery_used_c / (2.2 * 3600))
         volts = 4 * (3.6 + 0.6 * remaining) - 0.02 * current_a
-        return int(volts * 1000), int(current_a * 100), int(round(remaining * 100))
+
+        def wire(x: float, lo: int, hi: int, unknown: int) -> int:
+            return unknown if math.isnan(x) else int(min(max(x, lo), hi))
+
+        return (wire(volts * 1000, 0, 65534, 65535), wire(current_a * 100, 0, 32767, -1),
+                wire(round(remaining * 100) if math.isfinite(remaining) else remaining, 0, 100, -1))
 
     def _stream_message(self, mid: int):
         R = mavlink
@@ -1294,7 +1318,7 @@ class Vehicle:
             return R.MAVLink_extended_sys_state_message(R.MAV_VTOL_STATE_UNDEFINED, self._landed_state())
         if mid == R.MAVLINK_MSG_ID_BATTERY_STATUS:
             mv, ca, pct = self._battery()
-            cells = [mv // 4] * 4 + [65535] * 6
+            cells = [mv // 4 if mv != 65535 else 65535] * 4 + [65535] * 6
             used_mah = int(self.battery_used_c / 3.6)
             return R.MAVLink_battery_status_message(0, R.MAV_BATTERY_FUNCTION_ALL, R.MAV_BATTERY_TYPE_LIPO, 32767,
                                                     cells, ca, used_mah, -1, pct, 0, R.MAV_BATTERY_CHARGE_STATE_OK,
@@ -1343,13 +1367,16 @@ class Vehicle:
         return None
 
     def _current_a(self) -> float:
-        """The pack's current: ~2 A per newton of rotor thrust (0.5 A armed and idle, 0.3 A disarmed)."""
+        """The pack's current: ~2 A per newton of rotor thrust (0.5 A armed and idle, 0.3 A disarmed);
+        any number of rotors (the assembly vehicle has 4N); unbounded, NaN with a NaN command."""
         if not self.armed:
             return 0.3
         return 0.5 + 2.0 * sum(map(abs, self.motor_commands_n.tolist()))
 
     def _account_battery(self) -> None:
-        self.battery_used_c += int(self._current_a() * 100) * 0.01 * self.control_dt_s
+        current_a = self._current_a()
+        if math.isfinite(current_a):  # a NaN command must not poison the charge count
+            self.battery_used_c += int(current_a * 100) * 0.01 * self.control_dt_s
 
 
 def _param_name(raw) -> str:

@@ -12,3 +12,12 @@ class OneLineArgumentParser(argparse.ArgumentParser):
 
     def error(self, message: str) -> None:
         raise UserInputError(f"{self.prog}: {message}")
+
+
+class EnvironmentFailure(RuntimeError):
+    """The machine refused (read-only or full disk, permission, port in use): one line, exit code 1."""
+
+
+class PortUnavailable(EnvironmentFailure, UserInputError):
+    """A port that cannot be bound (in use, not permitted): the machine's refusal, exit 1; still a
+    UserInputError for the processes that catch only those (one line either way)."""

@@ -33,6 +33,7 @@ import numpy as np
 from firmware_models.vehicle import LINK_API, LINK_GCS
 from firmware_models.vehicle_io import API_PORT_BASE, GCS_PORT, LOOPBACK, LinkSpec, VehicleSockets, write_json_atomic
 from mars_link.assembly_vehicle import DEFAULT_SYSID, AssemblySim, SimConfig
+from mars_link import validation
 from mars_link.errors import UserInputError
 from mars_link.pacing import Pacer
 
@@ -140,7 +141,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--api-port", type=int, default=API_PORT, help=f"MAVSDK listens here (default {API_PORT})")
     p.add_argument("--gcs-bind", type=int, default=GCS_BIND, help=f"local port of the gcs link (default {GCS_BIND}; 0 any)")
     p.add_argument("--api-bind", type=int, default=API_BIND, help=f"local port of the api link (default {API_BIND}; 0 any)")
-    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--seed", type=validation.seed, default=None, help=f"0..{validation.SEED_MAX}")
     p.add_argument("--ftc", help="allocation mode: none, unit, partial, full, hybrid, qp")
     p.add_argument("--fault", action="append", metavar="UNIT[:ROTOR]=ETA[@T]", help="T: seconds after start")
     p.add_argument("--no-noise", action="store_true", help="perfect sensors (truth state)")
@@ -148,7 +149,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed", type=float, default=1.0, help="simulation speed, x real time")
     p.add_argument("--status-file", help="JSON snapshot (truth, mode, counters) a few times a second")
     p.add_argument("--tlog", help="MAVLink log of both links (pymavlink .tlog), appended and flushed as it goes")
-    p.add_argument("--duration", type=float, help="stop after this many wall seconds")
+    p.add_argument("--duration", type=validation.positive_float, help="stop after this many wall seconds")
 
 
 def _check_port(name: str, value: int, allow_zero: bool) -> int:
@@ -175,6 +176,9 @@ def build_sim(args: argparse.Namespace) -> AssemblySim:
     model = scenario.model()
     for f in scenario.faults:
         validate_fault(f, model, f"fault {f.describe()}")
+    from mars_link.scenario import check_faults_controllable
+
+    check_faults_controllable(scenario, model)  # the check `run` and `sitl up` make
     if args.seed is not None:
         scenario.sim.seed = args.seed
     if args.no_noise:
@@ -199,6 +203,8 @@ def vehicle_command(args: argparse.Namespace) -> int:
         "gcs_bind": _check_port("--gcs-bind", args.gcs_bind, True),
         "api_bind": _check_port("--api-bind", args.api_bind, True),
     }
+    validation.check_file_parent(args.status_file, "--status-file")
+    validation.check_file_parent(args.tlog, "--tlog")
     sim = build_sim(args)
     try:
         runner = AssemblyRunner(sim, ports, args.speed, args.status_file, args.duration, args.tlog)

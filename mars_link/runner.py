@@ -7,7 +7,6 @@ Lockstep and deterministic for a seed; as fast as possible unless a real-time ra
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 from typing import Callable
@@ -16,6 +15,7 @@ from typing import Callable
 from mars_link.build import build_flight
 from mars_link.engine import Engine, FlightRecorder
 from mars_link.metrics import TrialResult, detection_rows, summarize
+from mars_link.outputs import write_json
 from mars_link.pacing import Pacer
 from mars_link.run_log import ROTOR_LOG_HZ, RunLog
 from mars_link.scenario import Scenario
@@ -91,8 +91,9 @@ def run_scenario(
     finally:
         log.close()
     summary = summarize(scenario, results, seed)
+    summary["logging"] = log.status()
     if out_dir is not None:
-        (out_dir / "summary.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+        write_json(out_dir / "summary.json", summary)
         if plots:
             from mars_link.plots import write_run_plots
 

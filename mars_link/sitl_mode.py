@@ -250,6 +250,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     from mars_link.build import make_trajectory, tracked_offset
     from mars_link.metrics import TrackingMetrics, TrialResult, summarize
     from mars_link.rotations import quat_to_euler, quat_to_rotmat
+    from mars_link.outputs import write_json
     from mars_link.run_log import ROTOR_LOG_HZ, RunLog
 
     model = scenario.model()
@@ -310,7 +311,8 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "command_age": command_age_summary(out) if realtime else {"n": 0, "note": "measured with --realtime only"},
         "cpu_wake_latency": cpu_wake_latency,  # real time: idle CPUs kept awake (transport.realtime.CpuWakeLatency)
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n", encoding="utf-8")
+    summary["logging"] = log.status()
+    write_json(out / "summary.json", summary)
     if plots and log.telemetry_rows:
         from mars_link.plots import write_run_plots
 

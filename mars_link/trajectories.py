@@ -449,6 +449,7 @@ TRAJECTORY_KINDS = tuple(k for k in _KINDS if k != "plan")
 _POSITIVE = {"k_radps", "T", "revolutions", "height_m", "climb_s", "duration_s", "radius_m", "speed_mps",
              "turns", "ramp_s", "cruise_mps", "min_segment_s", "start_height_m", "period_s"}
 _NON_NEGATIVE = {"climb_mps", "hold_s"}
+MAX_ABS_PARAM = 1e6  # m, s, deg: beyond it a parameter is a typo, and float arithmetic overflows
 
 
 def _is_numbers(value, count: int) -> bool:
@@ -483,6 +484,8 @@ def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=
         if want is float:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise UserInputError(f"[trajectory] {key} must be a number, got {value!r}")
+            if abs(value) > MAX_ABS_PARAM:
+                raise UserInputError(f"[trajectory] {key} must be within +-{MAX_ABS_PARAM:g}, got {value!r}")
             if key in _POSITIVE and value <= 0:
                 raise UserInputError(f"[trajectory] {key} must be > 0, got {value!r}")
             if key in _NON_NEGATIVE and value < 0:

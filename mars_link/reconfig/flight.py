@@ -20,7 +20,6 @@ time the manoeuvre took is `reconfig_time_s`.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -42,6 +41,7 @@ from mars_link.reconfig.sequencing import ReconfigPlan, plan_reconfiguration
 from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
 from mars_link.build import make_trajectory
 from mars_link.scenario import eta_after
+from mars_link.outputs import write_json
 from mars_link.metrics import DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, TrackingMetrics, TrialResult
 from mars_link.scenario import Scenario
 
@@ -381,7 +381,7 @@ def run_reconfig_scenario(
                        "max_error_m": r.max_error_m, "diverged": r.diverged}],
     }
     if out_dir is not None:
-        (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n", encoding="utf-8")
+        write_json(out_dir / "summary.json", summary)
         if plots:
             write_reconfig_plots(out_dir, r)
     return summary

@@ -12,13 +12,14 @@ beyond one control period mean the 100 Hz deadline was missed.
 
 from __future__ import annotations
 
-import json
 import os
 import struct
 import time
 from pathlib import Path
 
 import numpy as np
+
+from mars_link.outputs import write_json
 
 CPU_DMA_LATENCY = "/dev/cpu_dma_latency"
 MSG_HIL_SENSOR = 107
@@ -112,7 +113,7 @@ class CommandAgeTap:
             for t, age in self.ages_s():
                 f.write(f"{t:.6f},{since(self.sensors.get(t), t)},{since(self.commands.get(t), t)},{age:.6f}\n")
         stats = self.summary()
-        (out / f"command_age_unit{self.unit_id}.json").write_text(json.dumps(stats, indent=2) + "\n")
+        write_json(out / f"command_age_unit{self.unit_id}.json", stats)  # strict JSON: NaN -> null
         return stats
 
 
