@@ -38,6 +38,38 @@ def make_trajectory(scenario: Scenario, model: AssemblyModel) -> Trajectory:
                             plan_builder=build_plan_trajectory)
 
 
+def flight_duration_s(scenario: Scenario, model: AssemblyModel | None = None) -> float:
+    """How long the flight lasts: [sim] duration_s, else the trajectory's (built to find out)."""
+    if scenario.sim.duration_s is not None:
+        return scenario.sim.duration_s
+    return make_trajectory(scenario, model or scenario.model()).duration_s
+
+
+def check_flight(scenario: Scenario, model: AssemblyModel | None = None) -> int:
+    """Refuse a flight that would report a result it never flew: fewer than one control step
+    (`control_hz = 1e-300`, `--duration 1e-9`), or a fault timed after the last control step (the
+    runner would silently never inject it). Returns the number of control steps (-1: not checked, a
+    planned trajectory without [sim] duration_s)."""
+    src = scenario.source
+    if scenario.sim.duration_s is None and scenario.trajectory.get("kind") == "plan":
+        return -1  # its length is known only after planning (seconds of work): the runner's to check
+    duration = flight_duration_s(scenario, model)
+    steps_f = duration * scenario.sim.control_hz
+    if not math.isfinite(steps_f) or steps_f > 1e9:
+        raise UserInputError(f"{src}: {duration:g} s at {scenario.sim.control_hz:g} Hz is not a flight this runner "
+                             "can step (more than 1e9 control steps)")
+    steps = int(round(steps_f))
+    if steps < 1:
+        raise UserInputError(f"{src}: a flight of {duration:g} s at control_hz {scenario.sim.control_hz:g} has no "
+                             "control step (duration x control_hz must be >= 1)")
+    last_t = (steps - 1) / scenario.sim.control_hz
+    for f in scenario.faults:
+        if f.t_s > last_t + 1e-9:
+            raise UserInputError(f"{src}: fault {f.describe()} comes after the flight ends "
+                                 f"(last control step at t={last_t:g}s)")
+    return steps
+
+
 def make_controller(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> Controller:
     v = model.vehicle
     if scenario.controller == "cascaded":
@@ -110,6 +142,22 @@ def make_detector(scenario: Scenario, model: AssemblyModel, ground_down_m: float
     from mars_link.fault_detection import FaultDetector
 
     return FaultDetector(model, ground_down_m=ground_down_m)
+
+
+def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: Trajectory, eta: np.ndarray,
+                           t_s: float, estimator=None) -> Coordinator:
+    """The coordinator of one piece of a reconfiguring assembly: the scenario's FTC mode over the piece's
+    own rotors, its CoM on the piece's reference, told the piece's faults."""
+    from mars_link.allocation import make_allocator
+    from mars_link.control.cascaded import CascadedController
+
+    v = piece.vehicle
+    allocator = make_allocator(scenario.ftc, piece, eta=eta, min_thrust_n=v.rotor_min_thrust_n,
+                               max_thrust_n=v.rotor_max_thrust_n)
+    coordinator = Coordinator(piece, reference, CascadedController(piece, allocator, control_hz=scenario.sim.control_hz),
+                              estimator)
+    coordinator.set_faults(eta, t_s, "piece created")
+    return coordinator
 
 
 def initial_eta(scenario: Scenario, model: AssemblyModel) -> np.ndarray:

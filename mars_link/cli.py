@@ -43,7 +43,8 @@ def cmd_run(args) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from mars_link.scenario import check_faults_controllable, check_flight, load_scenario
+    from mars_link.build import check_flight
+    from mars_link.scenario import check_faults_controllable, load_scenario
 
     scenario = load_scenario(args.scenario)
     _apply_overrides(scenario, args)
@@ -163,7 +164,8 @@ def cmd_sitl(args) -> int:
     vehicle = _vehicle_ports(args, setup)
     v.check_link_endpoints(args)
     if setup.docked:  # a docked assembly: the shared checks of `run` and `vehicle`
-        from mars_link.scenario import check_faults_controllable, check_flight
+        from mars_link.build import check_flight
+        from mars_link.scenario import check_faults_controllable
 
         check_faults_controllable(setup.scenario, setup.model)
         if vehicle is None:  # --vehicle flies until Ctrl-C: no flight length to check

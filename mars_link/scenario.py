@@ -322,43 +322,6 @@ def check_rates(sim: SimSpec, src: str) -> None:
         )
 
 
-def flight_duration_s(scenario: Scenario, model: AssemblyModel | None = None) -> float:
-    """How long the flight lasts: [sim] duration_s, else the trajectory's (built to find out)."""
-    if scenario.sim.duration_s is not None:
-        return scenario.sim.duration_s
-    try:  # the runners' trajectory builder (it knows the planner for kind "plan")
-        from mars_link.runner import make_trajectory
-    except ImportError:
-        from mars_link.build import make_trajectory
-
-    return make_trajectory(scenario, model or scenario.model()).duration_s
-
-
-def check_flight(scenario: Scenario, model: AssemblyModel | None = None) -> int:
-    """Refuse a flight that would report a result it never flew: fewer than one control step
-    (`control_hz = 1e-300`, `--duration 1e-9`), or a fault timed after the last control step (the
-    runner would silently never inject it). Returns the number of control steps (-1: not checked, a
-    planned trajectory without [sim] duration_s)."""
-    src = scenario.source
-    if scenario.sim.duration_s is None and scenario.trajectory.get("kind") == "plan":
-        return -1  # its length is known only after planning (seconds of work): the runner's to check
-    duration = flight_duration_s(scenario, model)
-    steps_f = duration * scenario.sim.control_hz
-    if not math.isfinite(steps_f) or steps_f > 1e9:
-        raise UserInputError(f"{src}: {duration:g} s at {scenario.sim.control_hz:g} Hz is not a flight this runner "
-                             "can step (more than 1e9 control steps)")
-    steps = int(round(steps_f))
-    if steps < 1:
-        raise UserInputError(f"{src}: a flight of {duration:g} s at control_hz {scenario.sim.control_hz:g} has no "
-                             "control step (duration x control_hz must be >= 1)")
-    last_t = (steps - 1) / scenario.sim.control_hz
-    for f in scenario.faults:
-        if f.t_s > last_t + 1e-9:
-            raise UserInputError(f"{src}: fault {f.describe()} comes after the flight ends "
-                                 f"(last control step at t={last_t:g}s)")
-    return steps
-
-
 def check_faults_controllable(scenario: Scenario, model: AssemblyModel | None = None) -> None:
     """The one controllability check of `run`, `vehicle` and `sitl up`: with every fault of the
     scenario applied, the assembly must still produce the full wrench and hover within its thrust

@@ -29,16 +29,46 @@ class WorldConfig:
     position_every: int = 1  # position samples every n-th exchange
 
 
+@dataclass
+class Body:
+    """One rigid body of the world: a JSBSim instance and the units it carries, in its model's order."""
+
+    model: AssemblyModel  # the body's own layout (its local unit ids 1..n)
+    units: tuple[int, ...]  # the world's unit id of each local unit
+    jsbsim: JsbsimBody
+    offsets_frd_m: np.ndarray  # (n, 3) unit centres from the body's CoM
+    slots: np.ndarray  # the world's rotor slots of the body's rotors, in its local order
+
+    @classmethod
+    def of(cls, model: AssemblyModel, units, jsbsim: JsbsimBody, world_model: AssemblyModel) -> "Body":
+        units = tuple(int(u) for u in units)
+        if len(units) != model.n_units:
+            raise ValueError(f"a body of {model.n_units} units cannot carry units {units}")
+        offsets = np.array([model.unit_position(k + 1) for k in range(len(units))])
+        slots = np.concatenate([np.arange(world_model.unit_slots(u).start, world_model.unit_slots(u).stop)
+                                for u in units])
+        return cls(model, units, jsbsim, offsets, slots)
+
+
 class World:
-    """One docked assembly (one JSBSim body). Docking/undocking changes come with reconfiguration."""
+    """Rigid bodies on one clock: one docked assembly, free units, or any mix, split and merged in flight.
+
+    The world's `model` names every unit and its rotor slots (unit ids and the slot order of the
+    world-level arrays `rotor_setpoint_n` / `rotor_thrust_n`); each `Body` carries some of the units in
+    its own JSBSim instance. `World(model, config, com, yaw)` is one docked body of `model`;
+    `World.of_bodies` builds any set. `split` and `merge` keep linear and angular momentum
+    (sitl.docking). Sensing goes body by body, units in each body's order: one body senses exactly as
+    the one-body world always did.
+    """
 
     def __init__(
         self,
         model: AssemblyModel,
         config: WorldConfig,
-        start_com_ned_m: np.ndarray,
+        start_com_ned_m: np.ndarray | None = None,
         start_yaw_rad: float = 0.0,
         sensor_params: SensorParams | None = None,
+        bodies: list[tuple[AssemblyModel, tuple[int, ...], JsbsimBody]] | None = None,
     ) -> None:
         self.model = model
         self.config = config
@@ -47,15 +77,19 @@ class World:
             raise ValueError("physics_hz must be a whole multiple of exchange_hz")
         self.substeps = int(round(ratio))
         self.dt_s = 1.0 / config.physics_hz
-        self.body = JsbsimBody(
-            model,
-            physics_hz=config.physics_hz,
-            position_ned_m=(float(start_com_ned_m[0]), float(start_com_ned_m[1]), 0.0),
-            yaw_rad=start_yaw_rad,
-        )
+        if bodies is None:
+            jsb = JsbsimBody(
+                model,
+                physics_hz=config.physics_hz,
+                position_ned_m=(float(start_com_ned_m[0]), float(start_com_ned_m[1]), 0.0),
+                yaw_rad=start_yaw_rad,
+            )
+            bodies = [(model, tuple(model.unit_ids), jsb)]
+        self.bodies: list[Body] = [Body.of(m, units, jsb, model) for m, units, jsb in bodies]
+        carried = sorted(u for b in self.bodies for u in b.units)
+        if carried != sorted(model.unit_ids):
+            raise ValueError(f"the bodies carry units {carried}, the world has {sorted(model.unit_ids)}")
         self.sensors = SensorModel(sensor_params or SensorParams(), seed=config.seed, noise=config.noise)
-        self._unit_ids = list(model.unit_ids)
-        self._offsets = np.array([model.unit_position(u) for u in self._unit_ids])
         tau = model.vehicle.motor_time_constant_s
         self._lag_alpha = 1.0 if tau <= 0 else 1.0 - math.exp(-self.dt_s / tau)
         self.rotor_setpoint_n = np.zeros(model.n_rotors)  # what the units drive their motors to
@@ -63,6 +97,69 @@ class World:
         self.dead_units: set[int] = set()
         self.exchange_index = 0
         self.force_integral_n2s = 0.0
+        self._index_bodies()
+
+    @classmethod
+    def of_bodies(cls, model: AssemblyModel, config: WorldConfig,
+                  bodies: list[tuple[AssemblyModel, tuple[int, ...], RigidBodyState | None, tuple[float, float, float]]],
+                  sensor_params: SensorParams | None = None) -> "World":
+        """A world of several bodies: (body model, world unit ids in its order, airborne state or None,
+        (north, east, yaw) of a landed start)."""
+        made = []
+        for m, units, state, (n, e, yaw) in bodies:
+            jsb = JsbsimBody(m, physics_hz=config.physics_hz, position_ned_m=(n, e, 0.0), yaw_rad=yaw, state=state)
+            made.append((m, tuple(units), jsb))
+        return cls(model, config, sensor_params=sensor_params, bodies=made)
+
+    def _index_bodies(self) -> None:
+        self._body_of = {u: b for b in self.bodies for u in b.units}
+        self._single = len(self.bodies) == 1 and self.bodies[0].units == tuple(self.model.unit_ids)
+
+    # ----------------------------------------------------------------- bodies
+    @property
+    def body(self) -> JsbsimBody:
+        """The JSBSim instance of the first body (the whole assembly in a one-body world)."""
+        return self.bodies[0].jsbsim
+
+    def body_of(self, unit_id: int) -> Body:
+        return self._body_of[unit_id]
+
+    def body_state(self, unit_id: int) -> RigidBodyState:
+        """State of the CoM of the body that carries `unit_id`."""
+        return self._body_of[unit_id].jsbsim.state()
+
+    def split(self, units: tuple[int, ...], parts: list[tuple[AssemblyModel, tuple[int, ...], np.ndarray]]) -> list[Body]:
+        """Undock the body that carries `units` into `parts` (model, world unit ids in its order, CoM
+        offset FRD from the parent CoM); momentum kept, each part keeps its rotors' thrust."""
+        from sitl.docking import split_body
+
+        parent = self._body_of[units[0]]
+        parted = [(m, off, self.rotor_thrust_n[self._slots_of(us)]) for m, us, off in parts]
+        new = [Body.of(m, us, jsb, self.model) for (m, us, _), jsb in zip(parts, split_body(parent.jsbsim, parted))]
+        i = self.bodies.index(parent)
+        self.bodies[i:i + 1] = new
+        self._index_bodies()
+        return new
+
+    def merge(self, stationary_unit: int, mover_unit: int, merged: AssemblyModel, units: tuple[int, ...]) -> Body:
+        """Dock the body of `mover_unit` onto the body of `stationary_unit` (whose attitude it takes):
+        one body of `merged`, carrying `units` (world ids in its order); momentum kept."""
+        from sitl.docking import merge_bodies
+
+        st, mv = self._body_of[stationary_unit], self._body_of[mover_unit]
+        if st is mv:
+            raise ValueError(f"units {stationary_unit} and {mover_unit} are already one body")
+        jsb = merge_bodies([st.jsbsim, mv.jsbsim], merged, self.rotor_thrust_n[self._slots_of(units)])
+        body = Body.of(merged, units, jsb, self.model)
+        i = min(self.bodies.index(st), self.bodies.index(mv))
+        self.bodies = [b for b in self.bodies if b is not st and b is not mv]
+        self.bodies.insert(i, body)
+        self._index_bodies()
+        return body
+
+    def _slots_of(self, units) -> np.ndarray:
+        return np.concatenate([np.arange(self.model.unit_slots(u).start, self.model.unit_slots(u).stop)
+                               for u in units])
 
     # ----------------------------------------------------------------- inputs
     def actuate(self, output: ActuatorOutput) -> None:
@@ -76,18 +173,24 @@ class World:
         self.rotor_setpoint_n[self.model.unit_slots(unit_id)] = 0.0
 
     def advance(self) -> None:
-        """Integrate physics over one exchange period (`substeps` physics steps)."""
+        """Integrate physics over one exchange period (`substeps` physics steps) for every body."""
         a = self._lag_alpha
         if a >= 1.0:  # no motor lag: thrust is constant over the exchange period
             self.rotor_thrust_n = self.rotor_setpoint_n.copy()
-            self.body.set_rotor_thrusts(self.rotor_thrust_n)
-            self.body.step(self.substeps)
+            if self._single:
+                self.body.set_rotor_thrusts(self.rotor_thrust_n)
+                self.body.step(self.substeps)
+            else:
+                for b in self.bodies:
+                    b.jsbsim.set_rotor_thrusts(self.rotor_thrust_n[b.slots])
+                    b.jsbsim.step(self.substeps)
             self.force_integral_n2s += float(self.rotor_thrust_n @ self.rotor_thrust_n) * self.dt_s * self.substeps
         else:
             for _ in range(self.substeps):
                 self.rotor_thrust_n = self.rotor_thrust_n + a * (self.rotor_setpoint_n - self.rotor_thrust_n)
-                self.body.set_rotor_thrusts(self.rotor_thrust_n)
-                self.body.step()
+                for b in self.bodies:
+                    b.jsbsim.set_rotor_thrusts(self.rotor_thrust_n if self._single else self.rotor_thrust_n[b.slots])
+                    b.jsbsim.step()
                 self.force_integral_n2s += float(self.rotor_thrust_n @ self.rotor_thrust_n) * self.dt_s
         self.exchange_index += 1
 
@@ -97,29 +200,33 @@ class World:
         return self.exchange_index * self.substeps * self.dt_s
 
     def truth(self) -> RigidBodyState:
+        """State of the first body (the whole assembly in a one-body world)."""
         return self.body.state()
 
     def sense(self) -> list[SensorPacket]:
         """Sensor packets of every live unit for the current time (already rounded as on the wire)."""
         t = self.t_s
-        truth = self.body.state()
-        sf = self.body.specific_force_frd()
         with_position = self.exchange_index % self.config.position_every == 0
-        gyro, accel, pos, vel = (
-            f32(a)
-            for a in self.sensors.sample_units(
-                t, truth, sf, self._offsets, self._unit_ids, self.body.angular_acceleration_frd()
-            )
-        )
         tw = wire_time(t)
-        state = None if self.config.noise else wire_state(truth)
         packets = []
-        for i, unit_id in enumerate(self._unit_ids):
-            if unit_id in self.dead_units:
-                continue
-            imu = ImuSample(tw, unit_id, gyro[i], accel[i])
-            p = PositionSample(tw, unit_id, pos[i], vel[i]) if with_position else None
-            packets.append(SensorPacket(tw, unit_id, imu, p, state))
+        for b in self.bodies:
+            truth = b.jsbsim.state()
+            gyro, accel, pos, vel = (
+                f32(a)
+                for a in self.sensors.sample_units(
+                    t, truth, b.jsbsim.specific_force_frd(), b.offsets_frd_m, list(b.units),
+                    b.jsbsim.angular_acceleration_frd(),
+                )
+            )
+            state = None if self.config.noise else wire_state(truth)
+            for i, unit_id in enumerate(b.units):
+                if unit_id in self.dead_units:
+                    continue
+                imu = ImuSample(tw, unit_id, gyro[i], accel[i])
+                p = PositionSample(tw, unit_id, pos[i], vel[i]) if with_position else None
+                packets.append(SensorPacket(tw, unit_id, imu, p, state))
+        if not self._single:
+            packets.sort(key=lambda p: p.unit_id)
         return packets
 
     def tracked_point(self, offset_frd_m: np.ndarray, truth: RigidBodyState | None = None) -> np.ndarray:
@@ -127,11 +234,13 @@ class World:
         return truth.position_ned_m + quat_to_rotmat(truth.quaternion_wxyz) @ offset_frd_m
 
     def close(self) -> None:
-        self.body.close()
+        for b in self.bodies:
+            b.jsbsim.close()
 
     def unit_truth(self, unit_id: int, truth: RigidBodyState | None = None) -> RigidBodyState:
-        """Ground truth of one unit's centre (the rigid body's state moved to that point)."""
-        return point_state(truth or self.body.state(), self.model.unit_position(unit_id))
+        """Ground truth of one unit's centre (its rigid body's state moved to that point)."""
+        b = self._body_of[unit_id]
+        return point_state(truth or b.jsbsim.state(), b.offsets_frd_m[b.units.index(unit_id)])
 
     def truth_row(self) -> list[float]:
         s = self.body.state()

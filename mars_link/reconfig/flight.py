@@ -2,13 +2,15 @@
 
 The whole assembly flies its mission with the scenario's controller and FTC mode; once the faults are
 known (and after `[reconfig] trigger_delay_s`, or at `[reconfig] at_s`) the plan of
-`plan_reconfiguration` is executed by `Executor`: every piece is its own JSBSim body
-(sitl/docking.py splits and merges them with momentum kept) flown by its own AssemblyModel,
-cascaded controller, allocator (FTC on the piece's known faults) and Coordinator. Faults act in the
-motor path (command clipped to the rotor limits, times the true eta), as in the single-body runner.
+`plan_reconfiguration` is executed by `Executor`: every piece is its own rigid body of the world
+(`sitl.world.World.split` / `merge`, momentum kept) flown by its own AssemblyModel, cascaded
+controller, allocator (FTC on the piece's known faults) and Coordinator (`build.make_piece_coordinator`).
+Every unit is its firmware (`firmware_models.vehicle.Vehicle`, as in every other mode), so faults act in
+the unit's motor model and the commands go through its rotor intake.
 
-Scope: the controller flies on the true state (`[sim] noise = false` is required: one EKF per piece
-is not wired here) and the faults must be told (`faults_known = true`). Deterministic for a seed.
+Scope: the controller flies on the true state its units report (`[sim] noise = false` is required: one
+EKF per piece is not wired here) and the faults must be told (`faults_known = true`). Deterministic
+for a seed.
 
 Outputs (like `mars_link.runner`): summary.json keys mean_error_m, rmse_m, max_error_m,
 force_integral_n2s (Σ rotors ∫ thrust² dt over every body), diverged, events (faults, each split and
@@ -22,28 +24,26 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from mars_link.allocation import make_allocator
 from mars_link.assembly import AssemblyModel
-from mars_link.control.cascaded import CascadedController
+from mars_link.build import make_piece_coordinator, make_trajectory, make_unit, world_config
 from mars_link.coordinator import Coordinator
+from mars_link.engine import InProcessUnits
 from mars_link.errors import UserInputError
-from mars_link.messages import SensorPacket
+from mars_link.messages import RotorCommand, SensorPacket
 from mars_link.reconfig.flyability import FlyabilityRule
 from mars_link.reconfig.execution import ExecutionParams, Executor, Key, PieceShape, local_eta
 from mars_link.reconfig.placement import SnapWeights, health_from_eta
 from mars_link.reconfig.sequencing import ReconfigPlan, plan_reconfiguration
-from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
-from mars_link.build import make_trajectory
-from mars_link.scenario import eta_after
-from mars_link.outputs import write_json
 from mars_link.metrics import DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, TrackingMetrics, TrialResult
-from mars_link.scenario import Scenario
+from mars_link.outputs import write_json
+from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
+from mars_link.scenario import Scenario, eta_after
 
 UNIT_LOG_HZ = 20.0
 #: cap on the manoeuvre: the flight ends this long after the mission would have
@@ -52,11 +52,13 @@ MAX_RECONFIG_S = 600.0
 
 @dataclass
 class _Piece:
+    """A rigid piece as the coordinator flies it: its shape, model, units (world ids, model order) and
+    its own coordinator (controller and FTC allocation over the piece's rotors)."""
+
     shape: PieceShape
     model: AssemblyModel
-    body: object  # sitl.physics.JsbsimBody
+    units: tuple[int, ...]
     coordinator: Coordinator
-    thrust_n: np.ndarray  # actual rotor thrusts (after limits and faults), local slot order
 
 
 @dataclass
@@ -134,19 +136,13 @@ def unhoverable_pieces(plan: ReconfigPlan, model: AssemblyModel, eta: np.ndarray
     return bad
 
 
-def _controller(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> CascadedController:
-    v = model.vehicle
-    allocator = make_allocator(scenario.ftc, model, eta=eta, min_thrust_n=v.rotor_min_thrust_n,
-                               max_thrust_n=v.rotor_max_thrust_n)
-    return CascadedController(model, allocator, control_hz=scenario.sim.control_hz)
-
-
 def run_reconfig_trial(
     scenario: Scenario, seed: int, out_dir: Path | None = None,
     on_progress: Callable[[float], None] | None = None,
 ) -> ReconfigResult:
-    from sitl.docking import DockTolerance, dock_check, merge_bodies, split_body
+    from sitl.docking import DockTolerance, dock_check
     from sitl.physics import JsbsimBody
+    from sitl.world import World
 
     check_reconfig_scenario(scenario)
     model = scenario.model()
@@ -155,7 +151,6 @@ def run_reconfig_trial(
     duration = scenario.sim.duration_s or mission.duration_s
     control_hz = scenario.sim.control_hz
     dt = 1.0 / control_hz
-    substeps = int(round(scenario.sim.physics_hz / control_hz))
     faults = sorted(scenario.faults, key=lambda f: f.t_s)
     enabled = scenario.reconfig.get("enabled", False)
     plan = make_plan(scenario, model) if enabled else None
@@ -176,19 +171,22 @@ def run_reconfig_trial(
     eta_true = {u: np.ones(4) for u in model.unit_ids}
     pieces: dict[Key, _Piece] = {}
 
-    def new_piece(shape: PieceShape, body) -> _Piece:
-        m = body.model
-        eta = local_eta(shape, eta_true)
-        coord = Coordinator(m, executor.refs[shape.key], _controller(scenario, m, eta))
-        coord.set_faults(eta, body.t_s, "piece created")
-        return _Piece(shape, m, body, coord, np.zeros(m.n_rotors))
+    def new_piece(shape: PieceShape, t_s: float) -> _Piece:
+        m = shape.model(vehicle)
+        coord = make_piece_coordinator(scenario, m, executor.refs[shape.key], local_eta(shape, eta_true), t_s)
+        return _Piece(shape, m, tuple(shape.units_local_order()), coord)
 
     whole = next(iter(executor.shapes.values()))
     start = executor.refs[whole.key].sample(0.0)
-    body0 = JsbsimBody(model, physics_hz=scenario.sim.physics_hz,
+    whole_model = whole.model(vehicle)
+    body0 = JsbsimBody(whole_model, physics_hz=scenario.sim.physics_hz,
                        position_ned_m=(float(start.position_ned_m[0]), float(start.position_ned_m[1]), 0.0),
                        yaw_rad=start.yaw_rad)
-    pieces[whole.key] = new_piece(whole, body0)
+    # the world of bodies (split and merged by it, momentum kept) and every unit's firmware in the motor path
+    world = World(model, world_config(replace(scenario, sim=replace(scenario.sim, noise=False)), seed),
+                  bodies=[(whole_model, tuple(whole.units_local_order()), body0)])
+    units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
+    pieces[whole.key] = new_piece(whole, 0.0)
 
     events: list[dict] = []
     if plan is not None:
@@ -203,7 +201,6 @@ def run_reconfig_trial(
     next_fault = 0
     at_s = scenario.reconfig.get("at_s")
     metrics = TrackingMetrics()  # the mission error (while the mission runs); tilt and divergence of every piece
-    force = 0.0
     failed = False
     unit_rows: list[list[float]] = []
     tel_rows: list[list[float]] = []
@@ -240,61 +237,48 @@ def run_reconfig_trial(
                     executor.trigger(t)
             if can_reconfigure and at_s is not None and t >= at_s:
                 executor.trigger(t - executor.params.trigger_delay_s)
-            states = {key: p.body.state() for key, p in pieces.items()}
+            states = {key: world.body_state(p.units[0]) for key, p in pieces.items()}
             for action in executor.step(t, states):
                 parent = pieces.pop(action.parent)
-                parts = []
-                for shape, offset in zip(action.children, action.offsets_frd_m):
-                    thrusts = np.concatenate([
-                        parent.thrust_n[parent.model.unit_slots(parent.shape.units_local_order().index(u) + 1)]
-                        for u in shape.units_local_order()])
-                    parts.append((shape.model(vehicle), offset, thrusts))
-                for shape, body, part in zip(action.children, split_body(parent.body, parts), parts):
-                    pieces[shape.key] = new_piece(shape, body)
-                    pieces[shape.key].thrust_n = part[2]
-                states = {key: p.body.state() for key, p in pieces.items()}
+                world.split(parent.units, [(shape.model(vehicle), tuple(shape.units_local_order()), offset)
+                                           for shape, offset in zip(action.children, action.offsets_frd_m)])
+                for shape in action.children:
+                    pieces[shape.key] = new_piece(shape, t)
+                states = {key: world.body_state(p.units[0]) for key, p in pieces.items()}
             if executor.failed and not failed:
                 failed = True
                 events.append({"t_s": round(t, 6), "type": "reconfig_failed", "reason": executor.failed,
                                "text": f"Reconfig failed: {executor.failed}"[:50]})
                 break
-            # control every piece
+            # every piece's coordinator on its units' telemetry (its body's truth: noise is off); the units
+            # drive their motors (limits, their own faults) and the world takes the outputs
+            telemetry: dict[int, SensorPacket] = {pk.unit_id: pk for pk in units.take_sensors(world.sense())}
+            commands = []
             for p in pieces.values():
                 state = states[p.shape.key]
-                p.coordinator.step(t, [SensorPacket(t, 1, None, None, state)])  # type: ignore[arg-type]
-                cmd = p.coordinator.last.thrusts_n
-                v = p.model.vehicle
-                if v.rotor_min_thrust_n is not None or v.rotor_max_thrust_n is not None:
-                    cmd = np.clip(cmd, v.rotor_min_thrust_n, v.rotor_max_thrust_n)
-                p.thrust_n = cmd * local_eta(p.shape, eta_true)
-                p.body.set_rotor_thrusts(p.thrust_n)
-                force += float(p.thrust_n @ p.thrust_n) * dt
+                piece_cmds = p.coordinator.step(t, [telemetry[u] for u in p.units if u in telemetry])
+                commands += [RotorCommand(c.t_s, p.units[c.unit_id - 1], c.thrusts_n) for c in piece_cmds]
                 ref = p.coordinator.last.reference.position_ned_m
                 tilt = tilt_deg(state.quaternion_wxyz)
                 metrics.max_tilt_deg = max(metrics.max_tilt_deg, tilt)
                 dev = float(np.linalg.norm(state.position_ned_m - ref))
                 if not (dev < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG):
                     metrics.mark_diverged(t, dev, tilt, phase=executor.phase)
+            units.drive(commands)
             # docks the world latches
             for req in executor.awaiting_docks():
                 chk = dock_check(states[req.stationary], states[req.mover], req.offset_frd_m, tolerance)
                 if chk.ready:
                     st, mv = pieces.pop(req.stationary), pieces.pop(req.mover)
-                    merged_model = req.merged.model(vehicle)
-                    thrust_of = {}
-                    for p in (st, mv):
-                        for i, u in enumerate(p.shape.units_local_order()):
-                            thrust_of[u] = p.thrust_n[4 * i:4 * i + 4]
-                    thrusts = np.concatenate([thrust_of[u] for u in req.merged.units_local_order()])
-                    body = merge_bodies([st.body, mv.body], merged_model, thrusts)
+                    world.merge(st.units[0], mv.units[0], req.merged.model(vehicle),
+                                tuple(req.merged.units_local_order()))
                     executor.on_docked(t, req)
-                    pieces[req.merged.key] = new_piece(req.merged, body)
-                    pieces[req.merged.key].thrust_n = thrusts
+                    pieces[req.merged.key] = new_piece(req.merged, t)
                     events.append({"t_s": round(t, 6), "type": "dock_latched",
                                    "position_error_m": round(chk.position_error_m, 4),
                                    "speed_mps": round(chk.speed_mps, 4), "yaw_deg": round(chk.yaw_deg, 3),
                                    "text": f"Dock latched: {chk.position_error_m * 100:.1f} cm"})
-                    states = {key: p.body.state() for key, p in pieces.items()}
+                    states = {key: world.body_state(p.units[0]) for key, p in pieces.items()}
             # mission metric on the truth
             if executor.mission_active(t):
                 tracked = scenario.tracked_unit()
@@ -329,8 +313,7 @@ def run_reconfig_trial(
             if metrics.diverged:
                 events.append(dict(metrics.divergence, text=f"Diverged ({executor.phase})"[:50]))
                 break
-            for p in pieces.values():
-                p.body.step(substeps)
+            world.advance()
             k += 1
             if on_progress is not None and k % 50 == 0:
                 on_progress(min(1.0, t / max(duration + executor.shift_s, 1e-9)))
@@ -338,8 +321,7 @@ def run_reconfig_trial(
                 tel_f.flush()
                 units_f.flush()
     finally:
-        for p in pieces.values():
-            p.body.close()
+        world.close()
         for f in (tel_f, units_f):
             if f:
                 f.close()
@@ -350,7 +332,7 @@ def run_reconfig_trial(
     return ReconfigResult(
         seed=seed, completed=not (metrics.diverged or failed), diverged=metrics.diverged, reconfigured=reconfigured,
         mean_error_m=metrics.mean_error_m, rmse_m=metrics.rmse_m, max_error_m=metrics.max_error_m,
-        sim_time_s=t, wall_time_s=time.perf_counter() - wall0, force_integral_n2s=force,
+        sim_time_s=t, wall_time_s=time.perf_counter() - wall0, force_integral_n2s=world.force_integral_n2s,
         max_tilt_deg=metrics.max_tilt_deg,
         reconfig_time_s=executor.shift_s if reconfigured else (t - begun[0]["t_s"] if begun else 0.0),
         plan=None if plan is None else plan.to_json(), events=events, unit_rows=unit_rows, telemetry_rows=tel_rows,
