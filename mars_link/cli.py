@@ -72,7 +72,7 @@ def cmd_run(args) -> int:
     ) as progress:
         task = progress.add_task(f"{scenario.name} x{args.trials}", total=args.trials)
         runner = run_scenario
-        if scenario.reconfig.get("enabled"):  # several bodies: split, move, dock (mars_link.reconfig.flight)
+        if scenario.reconfig.get("enabled") or scenario.starts_free:  # several bodies (mars_link.reconfig.flight)
             from mars_link.reconfig.flight import run_reconfig_scenario as runner
 
             if args.trials != 1:

@@ -78,6 +78,12 @@ class Scenario:
     sim: SimSpec = field(default_factory=SimSpec)
     source: str = "<built-in>"
     reconfig: dict[str, Any] = field(default_factory=dict)  # validated [reconfig] table (enabled, ...)
+    start: str = "docked"  # "docked": one assembled body; "free": the units apart on the ground, assembled in the air
+    free_spacing_m: float = 2.0  # start = "free": distance between neighbouring units' centres on the ground
+
+    @property
+    def starts_free(self) -> bool:
+        return self.start == "free"
 
     def model(self) -> AssemblyModel:
         params = vehicle_preset(self.preset)
@@ -90,6 +96,8 @@ class Scenario:
 
 
 # ----------------------------------------------------------------------------- parsing helpers
+#: free units on the ground stand at least this far apart, edge to edge
+FREE_CLEARANCE_M = 0.3
 _TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig"}
 _VEHICLE_KEYS = {
     "preset",
@@ -97,7 +105,7 @@ _VEHICLE_KEYS = {
     "rotor_max_thrust_n",
     "rotor_min_thrust_n",
 }
-_ASSEMBLY_KEYS = {"layout", "tracked"}
+_ASSEMBLY_KEYS = {"layout", "tracked", "start", "free_spacing_m"}
 _CONTROL_KEYS = {"controller", "ftc", "faults_known"}
 _FAULT_KEYS = {"t", "unit", "rotor", "eta"}
 _SIM_KEYS = {"duration_s", "physics_hz", "control_hz", "seed", "noise"}
@@ -200,6 +208,15 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
     except UserInputError as exc:
         raise UserInputError(f"{src}: [assembly] {exc}") from None
     sc.tracked = assembly.get("tracked", sc.tracked)
+    sc.start = assembly.get("start", sc.start)
+    if sc.start not in ("docked", "free"):
+        raise UserInputError(f"{src}: [assembly] start must be \"docked\" or \"free\", got {sc.start!r}")
+    if "free_spacing_m" in assembly:
+        sc.free_spacing_m = _number(assembly["free_spacing_m"], "[assembly] free_spacing_m", src, positive=True)
+    pitch = vehicle_preset(sc.preset).pitch_m
+    if sc.starts_free and sc.free_spacing_m < pitch + FREE_CLEARANCE_M:
+        raise UserInputError(f"{src}: [assembly] free_spacing_m {sc.free_spacing_m:g} m puts free units overlapping "
+                             f"on the ground (need >= unit pitch {pitch:g} m + {FREE_CLEARANCE_M:g} m)")
     if not isinstance(sc.tracked, str) or not re.fullmatch(r"com|unit:\d+", sc.tracked):
         raise UserInputError(f"{src}: [assembly] tracked must be \"com\" or \"unit:N\", got {sc.tracked!r}")
 

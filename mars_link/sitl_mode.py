@@ -171,8 +171,9 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
                       realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
                       on_progress=None) -> dict:
     """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary."""
-    if scenario.reconfig.get("enabled"):
-        raise UserInputError("--mode sitl: a [reconfig] flight (several bodies) runs in-process only")
+    if scenario.reconfig.get("enabled") or scenario.starts_free:
+        raise UserInputError("--mode sitl: a flight of several bodies ([reconfig], [assembly] start = \"free\") "
+                             "runs in-process only for now")
     seed = scenario.sim.seed if seed is None else seed
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
         scenario = replace(scenario, faults_known=False)

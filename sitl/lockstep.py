@@ -141,6 +141,9 @@ def load_setup(scenario: str | None, units: int | None = None, layout: str | Non
     if units is not None and layout is not None:
         raise UserInputError("--units and --layout exclude each other")
     sc = Scenario(name="free-units") if scenario in (None, "-") else load_scenario(scenario)
+    if sc.starts_free or sc.reconfig.get("enabled"):
+        raise UserInputError(f"{sc.source}: a flight of several bodies ([reconfig], [assembly] start = \"free\") "
+                             "runs in-process only for now (mars-link run)")
     if units is not None:
         if not 1 <= units <= MAX_FREE_UNITS:
             raise UserInputError(f"--units must be 1..{MAX_FREE_UNITS}, got {units}")

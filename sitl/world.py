@@ -29,7 +29,7 @@ class WorldConfig:
     position_every: int = 1  # position samples every n-th exchange
 
 
-@dataclass
+@dataclass(eq=False)  # (identity: two bodies are never "equal")
 class Body:
     """One rigid body of the world: a JSBSim instance and the units it carries, in its model's order."""
 
@@ -241,6 +241,22 @@ class World:
         """Ground truth of one unit's centre (its rigid body's state moved to that point)."""
         b = self._body_of[unit_id]
         return point_state(truth or b.jsbsim.state(), b.offsets_frd_m[b.units.index(unit_id)])
+
+    def min_clearance_m(self) -> float:
+        """Smallest gap between units of different bodies (centre distance less one unit pitch: each
+        unit counted as a disc of its pitch); inf with one body. Negative means two bodies overlap."""
+        if len(self.bodies) < 2:
+            return math.inf
+        centres, owner = [], []
+        for i, b in enumerate(self.bodies):
+            s = b.jsbsim.state()
+            centres.append(s.position_ned_m + (quat_to_rotmat(s.quaternion_wxyz) @ b.offsets_frd_m.T).T)
+            owner += [i] * len(b.units)
+        p = np.concatenate(centres)
+        owner = np.array(owner)
+        d = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
+        d[owner[:, None] == owner[None, :]] = np.inf
+        return float(d.min()) - self.model.vehicle.pitch_m
 
     def truth_row(self) -> list[float]:
         s = self.body.state()

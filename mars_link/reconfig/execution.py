@@ -214,6 +214,15 @@ class ExecutionParams:
         )
 
 
+@dataclass(frozen=True)
+class FreeStart:
+    """Units apart on the ground, assembled in the air before the mission: where each unit's CoM rests
+    (NED m) and how far above the ground the structure is built."""
+
+    ground_ned_m: dict[int, np.ndarray]
+    height_m: float = 1.5
+
+
 @dataclass
 class SplitAction:
     parent: Key
@@ -252,7 +261,11 @@ class Executor:
     """State machine over phases mission -> stop -> disassembly layers -> assembly layers -> return -> mission."""
 
     def __init__(self, plan: ReconfigPlan, vehicle: VehicleParams, mission: Trajectory,
-                 tracked_unit: int | None, params: ExecutionParams = ExecutionParams()) -> None:
+                 tracked_unit: int | None, params: ExecutionParams = ExecutionParams(),
+                 free_start: FreeStart | None = None) -> None:
+        """`free_start`: the plan's pieces start as separate bodies on the ground (`plan_assembly`); they take
+        off, dock layer by layer into the plan's target, and the mission's clock starts once the
+        structure is complete (`shift_s`)."""
         if not plan.feasible:
             raise UserInputError(f"reconfiguration plan is not feasible: {plan.reason}")
         self.plan = plan
@@ -277,6 +290,9 @@ class Executor:
         self.events: list[dict] = []
         self.failed: str | None = None
         self.refs[whole.key] = self._mission_reference(whole, 0.0)
+        self.free_start = free_start
+        if free_start is not None:
+            self._take_off(free_start)
 
     # ----------------------------------------------------------------- helpers
     def tracked_offset(self, shape: PieceShape) -> np.ndarray:
@@ -305,6 +321,24 @@ class Executor:
         """A fault became known: start the manoeuvre after the trigger delay (once)."""
         if self.phase == "mission" and self.trigger_t == math.inf and self.pause_t is None:
             self.trigger_t = t_s + self.params.trigger_delay_s
+
+    def _take_off(self, free: FreeStart) -> None:
+        """Every piece of the plan climbs from where it rests to the assembly height; docking starts once
+        all of them hover there."""
+        p = self.params
+        self.shapes, self.refs, self.levels = {}, {}, {}
+        self.hold_down_m = max(float(g[2]) for g in free.ground_ned_m.values()) - free.height_m
+        end = 0.0
+        for units in self.plan.pieces:
+            shape = PieceShape({u: self.plan.initial[u] for u in units})
+            ground = np.mean([free.ground_ned_m[u] for u in units], axis=0)
+            ref = PieceReference(TrajectoryPoint(ground, yaw_rad=self.yaw))
+            end = max(end, ref.move(0.0, [ground[0], ground[1], self._altitude(0)], p.speed_mps, min_s=3.0))
+            self.shapes[shape.key], self.refs[shape.key], self.levels[shape.key] = shape, ref, 0
+        self.pause_t = 0.0  # the mission has not begun: it starts at its own t = 0
+        self.phase, self.layer, self.phase_end_t = "assembly", 0, end + p.settle_s
+        self.events.append({"t_s": 0.0, "type": "assembly_start", "assembly_layers": self.plan.assembly_layers,
+                            "text": f"Assembly: {len(self.plan.pieces)} pieces, {self.plan.assembly_layers} dock layers"})
 
     # ----------------------------------------------------------------- main step
     def step(self, t_s: float, states: dict[Key, object]) -> list[SplitAction]:
@@ -481,6 +515,7 @@ class Executor:
         end = ref.move(t_s, None, self.params.speed_mps, min_s=2.0, end=resume)
         self.shift_s = end - self.pause_t
         self.phase, self.phase_end_t = "return", end
-        self.events.append({"t_s": round(t_s, 6), "type": "reconfig_done",
-                            "cells": {str(u): list(c) for u, c in sorted(shape.cells.items())},
-                            "text": "Reconfig done: returning to the mission"})
+        kind, text = (("assembly_done", "Assembled: flying to the mission start") if self.free_start is not None
+                      else ("reconfig_done", "Reconfig done: returning to the mission"))
+        self.events.append({"t_s": round(t_s, 6), "type": kind,
+                            "cells": {str(u): list(c) for u, c in sorted(shape.cells.items())}, "text": text})

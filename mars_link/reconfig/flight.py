@@ -31,15 +31,15 @@ from typing import Callable
 import numpy as np
 
 from mars_link.assembly import AssemblyModel
-from mars_link.build import make_piece_coordinator, make_trajectory, make_unit, world_config
+from mars_link.build import make_piece_coordinator, make_trajectory, make_unit, start_pose, world_config
 from mars_link.coordinator import Coordinator
 from mars_link.engine import InProcessUnits
 from mars_link.errors import UserInputError
 from mars_link.messages import RotorCommand, SensorPacket
 from mars_link.reconfig.flyability import FlyabilityRule
-from mars_link.reconfig.execution import ExecutionParams, Executor, Key, PieceShape, local_eta
+from mars_link.reconfig.execution import ExecutionParams, Executor, FreeStart, Key, PieceShape, local_eta
 from mars_link.reconfig.placement import SnapWeights, health_from_eta
-from mars_link.reconfig.sequencing import ReconfigPlan, plan_reconfiguration
+from mars_link.reconfig.sequencing import ReconfigPlan, plan_assembly, plan_reconfiguration
 from mars_link.metrics import DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, TrackingMetrics, TrialResult
 from mars_link.outputs import write_json
 from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
@@ -70,6 +70,9 @@ class ReconfigResult(TrialResult):
     plan: dict | None = None
     unit_rows: list[list[float]] = field(default_factory=list)
     telemetry_rows: list[list[float]] = field(default_factory=list)
+    assembled: bool = False  # a free start became the whole structure
+    min_clearance_m: float = math.inf  # smallest gap between units of different bodies over the flight
+    pieces_final: list[dict] = field(default_factory=list)  # each piece at the end: layout rows, unit ids
 
 
 def execution_params(scenario: Scenario) -> ExecutionParams:
@@ -86,8 +89,28 @@ def check_reconfig_scenario(scenario: Scenario) -> None:
         raise UserInputError(f"{src}: [reconfig] flights need [control] faults_known = true")
     if scenario.controller != "cascaded":
         raise UserInputError(f"{src}: [reconfig] flights need [control] controller = \"cascaded\"")
+    if scenario.starts_free:
+        if scenario.faults:
+            raise UserInputError(f"{src}: [assembly] start = \"free\" with [[faults]] is not supported yet "
+                                 "(assemble first, then reconfigure: not wired)")
+        if scenario.reconfig.get("enabled"):
+            raise UserInputError(f"{src}: [assembly] start = \"free\" and [reconfig] enabled cannot be combined yet")
+        return
     if not scenario.faults:
         raise UserInputError(f"{src}: [reconfig] enabled but the scenario has no [[faults]] to react to")
+
+
+def free_ground_positions(scenario: Scenario, model: AssemblyModel, mission) -> dict[int, np.ndarray]:
+    """Where each unit of a free start rests: the assembled layout around the docked start's CoM,
+    stretched from the unit pitch to `free_spacing_m` between neighbours (NED, CoM at rest height)."""
+    com, yaw = start_pose(scenario, model, mission)
+    stretch = scenario.free_spacing_m / model.vehicle.pitch_m
+    c, s_ = math.cos(yaw), math.sin(yaw)
+    out = {}
+    for u in model.unit_ids:
+        x, y = model.unit_position(u)[:2] * stretch
+        out[u] = np.array([com[0] + c * x - s_ * y, com[1] + s_ * x + c * y, -model.vehicle.gear_depth_m])
+    return out
 
 
 def make_plan(scenario: Scenario, model: AssemblyModel) -> ReconfigPlan:
@@ -159,7 +182,11 @@ def run_reconfig_trial(
     if can_reconfigure:
         refused = unhoverable_pieces(plan, model, eta_after(model, faults, math.inf))
         can_reconfigure = not refused
-    if can_reconfigure:
+    if scenario.starts_free:  # free units on the ground: assemble in the air (Algorithm 3), then the mission
+        plan = plan_assembly(model)
+        free = FreeStart(free_ground_positions(scenario, model, mission))
+        executor = Executor(plan, vehicle, mission, scenario.tracked_unit(), execution_params(scenario), free)
+    elif can_reconfigure:
         executor = Executor(plan, vehicle, mission, scenario.tracked_unit(), execution_params(scenario))
     else:  # nothing to execute: fly the mission as one body (still through the executor's references)
         from mars_link.reconfig.placement import nominal_cells
@@ -176,17 +203,19 @@ def run_reconfig_trial(
         coord = make_piece_coordinator(scenario, m, executor.refs[shape.key], local_eta(shape, eta_true), t_s)
         return _Piece(shape, m, tuple(shape.units_local_order()), coord)
 
-    whole = next(iter(executor.shapes.values()))
-    start = executor.refs[whole.key].sample(0.0)
-    whole_model = whole.model(vehicle)
-    body0 = JsbsimBody(whole_model, physics_hz=scenario.sim.physics_hz,
-                       position_ned_m=(float(start.position_ned_m[0]), float(start.position_ned_m[1]), 0.0),
-                       yaw_rad=start.yaw_rad)
-    # the world of bodies (split and merged by it, momentum kept) and every unit's firmware in the motor path
-    world = World(model, world_config(replace(scenario, sim=replace(scenario.sim, noise=False)), seed),
-                  bodies=[(whole_model, tuple(whole.units_local_order()), body0)])
+    # the world of bodies (split and merged by it, momentum kept): one per piece the executor starts with
+    bodies = []
+    for shape in executor.shapes.values():
+        start = executor.refs[shape.key].sample(0.0)
+        body_model = shape.model(vehicle)
+        bodies.append((body_model, tuple(shape.units_local_order()), JsbsimBody(
+            body_model, physics_hz=scenario.sim.physics_hz,
+            position_ned_m=(float(start.position_ned_m[0]), float(start.position_ned_m[1]), 0.0), yaw_rad=start.yaw_rad)))
+    world = World(model, world_config(replace(scenario, sim=replace(scenario.sim, noise=False)), seed), bodies=bodies)
+    # every unit's firmware in the motor path
     units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
-    pieces[whole.key] = new_piece(whole, 0.0)
+    for shape in executor.shapes.values():
+        pieces[shape.key] = new_piece(shape, 0.0)
 
     events: list[dict] = []
     if plan is not None:
@@ -202,6 +231,7 @@ def run_reconfig_trial(
     at_s = scenario.reconfig.get("at_s")
     metrics = TrackingMetrics()  # the mission error (while the mission runs); tilt and divergence of every piece
     failed = False
+    min_clearance = math.inf
     unit_rows: list[list[float]] = []
     tel_rows: list[list[float]] = []
     next_unit_log = 0.0
@@ -265,6 +295,7 @@ def run_reconfig_trial(
                 if not (dev < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG):
                     metrics.mark_diverged(t, dev, tilt, phase=executor.phase)
             units.drive(commands)
+            min_clearance = min(min_clearance, world.min_clearance_m())
             # docks the world latches
             for req in executor.awaiting_docks():
                 chk = dock_check(states[req.stationary], states[req.mover], req.offset_frd_m, tolerance)
@@ -336,6 +367,8 @@ def run_reconfig_trial(
         max_tilt_deg=metrics.max_tilt_deg,
         reconfig_time_s=executor.shift_s if reconfigured else (t - begun[0]["t_s"] if begun else 0.0),
         plan=None if plan is None else plan.to_json(), events=events, unit_rows=unit_rows, telemetry_rows=tel_rows,
+        assembled=any(e["type"] == "assembly_done" for e in events), min_clearance_m=min_clearance,
+        pieces_final=[{"layout": list(p.shape.layout()), "units": list(p.units)} for p in pieces.values()],
     )
 
 
@@ -357,7 +390,8 @@ def run_reconfig_scenario(
         "sim_time_s": r.sim_time_s, "wall_time_s": r.wall_time_s,
         "real_time_factor": r.sim_time_s / r.wall_time_s if r.wall_time_s > 0 else float("inf"),
         "force_integral_n2s": r.force_integral_n2s, "max_tilt_deg": r.max_tilt_deg,
-        "reconfig_time_s": r.reconfig_time_s, "plan": r.plan,
+        "reconfig_time_s": r.reconfig_time_s, "plan": r.plan, "start": scenario.start, "assembled": r.assembled,
+        "min_clearance_m": r.min_clearance_m, "pieces_final": r.pieces_final,
         "events": [dict(e, trial=0) for e in r.events],
         "per_trial": [{"seed": seed, "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m,
                        "max_error_m": r.max_error_m, "diverged": r.diverged}],

@@ -681,7 +681,23 @@ def plan_reconfiguration(
     )
 
 
+def plan_assembly(model: AssemblyModel, rule: FlyabilityRule = FlyabilityRule()) -> ReconfigPlan:
+    """Free units into `model`'s layout, every unit in its own cell: Algorithm 3's docking layers alone
+    (fewest layers; ceil(log2 N) for a rectangle), no split. The plan's `pieces` are the single units."""
+    t0 = time.perf_counter()
+    cells = nominal_cells(model)
+    seq = Sequencer(model, health_from_eta(model, model.nominal_eta()), cells, rule)
+    asm = _PartialSearch(seq, cells).assemble([seq.mask_of_units([u]) for u in model.unit_ids])
+    timings = {"assembly": time.perf_counter() - t0, "total": time.perf_counter() - t0}
+    placement = Placement(cells, 0.0, "given", 0.0)
+    if asm.layers == INF:
+        return ReconfigPlan(model.layout, cells, placement, False, None, None, reason="no docking sequence builds "
+                            "the layout from single units", states=asm.states, timings_s=timings)
+    return ReconfigPlan(model.layout, cells, placement, True, 0, int(asm.layers), [], asm.merges,
+                        [[u] for u in model.unit_ids], states=asm.states, timings_s=timings)
+
+
 __all__ = [
     "AssemblyPlan", "BreakLine", "Disassembly", "MergeStep", "ReconfigPlan", "Sequencer", "SplitStep",
-    "health_from_eta", "plan_reconfiguration",
+    "health_from_eta", "plan_assembly", "plan_reconfiguration",
 ]

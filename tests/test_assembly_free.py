@@ -1,0 +1,119 @@
+"""The modular life cycle, first part: a world of several rigid bodies, and free units that take off and
+assemble in the air (paper 001's Algorithm 3 order) before they fly the mission as one body."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from mars_link.assembly import AssemblyModel
+from mars_link.reconfig.flight import run_reconfig_trial
+from mars_link.reconfig.sequencing import plan_assembly
+from mars_link.rotations import euler_to_quat
+from mars_link.runner import run_trial
+from mars_link.scenario import load_scenario
+from mars_link.state import RigidBodyState
+from sitl.docking import momentum
+from sitl.world import World, WorldConfig
+
+
+def _world_momentum(world: World, about: np.ndarray):
+    return momentum([b.jsbsim.state() for b in world.bodies], [b.model for b in world.bodies], about_ned_m=about)
+
+
+def test_world_splits_and_merges_its_bodies_keeping_momentum() -> None:
+    model = AssemblyModel.from_layout("XXX", "mars-ftcc")
+    state = RigidBodyState(0.0, np.array([1.0, 2.0, -5.0]), np.array([0.4, -0.3, 0.1]),
+                           euler_to_quat(0.05, -0.03, 0.7), np.array([0.2, -0.1, 0.3]))
+    world = World.of_bodies(model, WorldConfig(physics_hz=500, exchange_hz=100, noise=False),
+                            [(model, (1, 2, 3), state, (0.0, 0.0, 0.0))])
+    try:
+        about = state.position_ned_m
+        p0, l0 = _world_momentum(world, about)
+        one = AssemblyModel.from_layout("X", model.vehicle)
+        two = AssemblyModel.from_layout("XX", model.vehicle)
+        off23 = (model.unit_position(2) + model.unit_position(3)) / 2
+        world.split((1, 2, 3), [(one, (1,), model.unit_position(1)), (two, (2, 3), off23)])
+        assert [b.units for b in world.bodies] == [(1,), (2, 3)]
+        assert world.body_of(1) is not world.body_of(2) and world.body_of(2) is world.body_of(3)
+        p1, l1 = _world_momentum(world, about)
+        assert np.allclose(p1, p0, atol=1e-9) and np.allclose(l1, l0, atol=1e-9)
+        # the world senses every unit of every body, in unit order, each from its own body
+        packets = world.sense()
+        assert [p.unit_id for p in packets] == [1, 2, 3]
+        assert np.allclose(world.unit_truth(1).position_ned_m, packets[0].truth.position_ned_m, atol=1e-5)
+        world.merge(2, 1, model, (1, 2, 3))
+        assert len(world.bodies) == 1 and world.bodies[0].units == (1, 2, 3)
+        p2, l2 = _world_momentum(world, world.bodies[0].jsbsim.state().position_ned_m)
+        assert np.allclose(p2, p0, atol=1e-9)
+        assert world.min_clearance_m() == np.inf  # one body: nothing to collide with
+    finally:
+        world.close()
+
+
+def test_assembly_plan_takes_the_fewest_docking_layers() -> None:
+    # ceil(log2 N) for rectangles; the plus needs 4: every straight cut of it peels off one arm
+    for rows, layers in ((["XXX", "XXX"], 3), (["XXXX"] * 4, 4), ([".X.", "XXX", ".X."], 4), (["XX"], 1)):
+        model = AssemblyModel.from_layout(rows, "mars-ftcc")
+        plan = plan_assembly(model)
+        assert plan.feasible and plan.assembly_layers == layers, (rows, plan.assembly_layers)
+        assert plan.disassembly_layers == 0 and sorted(map(tuple, plan.pieces)) == [(u,) for u in model.unit_ids]
+        # every merge joins two pieces that exist at that layer; the last one leaves the whole structure
+        pieces = {frozenset([u]) for u in model.unit_ids}
+        for layer in range(1, layers + 1):
+            for m in (m for m in plan.merges if m.layer == layer):
+                a, b = frozenset(m.stationary), frozenset(m.mover)
+                assert a in pieces and b in pieces
+                pieces -= {a, b}
+                pieces.add(a | b)
+        assert pieces == {frozenset(model.unit_ids)}
+
+
+def test_six_free_units_assemble_into_the_3x2_and_fly_the_spiral() -> None:
+    """Six units 2 m apart on the ground take off, dock in three layers into the 3x2 (each latch within
+    the 2 cm / 5 cm/s tolerance, no two bodies overlapping beyond it), and the spiral then starts: its
+    error is no worse than the docked 3x2's on the same spiral (noise off: pieces fly on the truth)."""
+    scenario = load_scenario("assemble_3x2")
+    r = run_reconfig_trial(scenario, 1)
+    assert r.completed and not r.diverged and r.assembled
+    assert r.pieces_final == [{"layout": ["XXX", "XXX"], "units": [1, 2, 3, 4, 5, 6]}]
+    docks = [e for e in r.events if e["type"] == "dock"]
+    assert [(e["layer"], e["result"]) for e in docks] == [
+        (1, [2, 3]), (1, [5, 6]), (2, [1, 2, 3]), (2, [4, 5, 6]), (3, [1, 2, 3, 4, 5, 6])]
+    latches = [e for e in r.events if e["type"] == "dock_latched"]
+    assert len(latches) == 5 and all(e["position_error_m"] < 0.02 and e["speed_mps"] < 0.05 for e in latches)
+    assert r.min_clearance_m > -0.02, r.min_clearance_m  # touching only at the latch, within its tolerance
+    start = next(e["t_s"] for e in r.events if e["type"] == "mission_resumed")
+    assert start > next(e["t_s"] for e in r.events if e["type"] == "assembly_done")  # the clock starts after
+    # the mission flown after the structure was complete, against the docked 3x2 on the same spiral
+    docked = load_scenario("spiral_3x2")
+    docked.sim.noise, docked.ftc = False, "qp"
+    baseline = run_trial(docked, 1)
+    assert r.mean_error_m <= 1.2 * baseline.mean_error_m, (r.mean_error_m, baseline.mean_error_m)
+    assert r.sim_time_s == pytest.approx(start + baseline.sim_time_s, abs=0.02)
+
+
+@pytest.mark.parametrize("extra, message", [
+    ('free_spacing_m = 0.2', "overlapping"),
+    ('start = "parked"', "start must be"),
+])
+def test_bad_free_start_is_one_line_exit_2(tmp_path, extra, message) -> None:
+    path = tmp_path / "s.toml"
+    path.write_text(f'name = "t"\n[assembly]\nlayout = ["XX"]\nstart = "free"\n{extra}\n[sim]\nnoise = false\n'
+                    .replace('start = "free"\nstart', 'start'))
+    p = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", str(path), "--quiet", "--out",
+                        str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 2 and message in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
+
+
+def test_free_start_is_refused_where_it_is_not_wired_yet(tmp_path) -> None:
+    path = tmp_path / "s.toml"
+    path.write_text('name = "t"\n[assembly]\nlayout = ["XX"]\nstart = "free"\n[sim]\nnoise = false\n'
+                    '[[faults]]\nt = 5.0\nunit = 1\nrotor = 1\neta = 0.5\n')
+    for argv in (["run", str(path)], ["run", str(path), "--mode", "sitl"]):
+        p = subprocess.run([sys.executable, "-m", "mars_link.cli", *argv, "--quiet", "--out", str(tmp_path / "o")],
+                           capture_output=True, text=True, timeout=120)
+        assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
