@@ -71,17 +71,21 @@ def cmd_run(args) -> int:
         TimeElapsedColumn(), console=console, transient=False, disable=args.quiet,
     ) as progress:
         task = progress.add_task(f"{scenario.name} x{args.trials}", total=args.trials)
-        runner = run_scenario
+        runner, pacing = run_scenario, {}
+        if args.realtime and sitl_run is None:  # in-process: the engine paced to the wall clock
+            pacing = {"realtime_rate": 1.0}
         if scenario.reconfig.get("enabled") or scenario.starts_free:  # several bodies (mars_link.reconfig.flight)
             from mars_link.reconfig.flight import run_reconfig_scenario as runner
 
             if args.trials != 1:
                 raise UserInputError("--trials: a [reconfig] flight runs one trial (vary --seed instead)")
+            if args.realtime:
+                raise UserInputError("--realtime: a flight of several bodies runs as fast as possible for now")
         if sitl_run is not None:
             runner = sitl_run
         summary = runner(
             scenario, out, trials=args.trials, seed=args.seed,
-            on_progress=lambda i, frac: progress.update(task, completed=i + frac),
+            on_progress=lambda i, frac: progress.update(task, completed=i + frac), **pacing,
         )
     print_summary(summary, out)
     return 0 if summary["completed"] else 1

@@ -76,8 +76,10 @@ def run_scenario(
     seed: int | None = None,
     on_progress: Callable[[int, float], None] | None = None,
     plots: bool = True,
+    realtime_rate: float = 0.0,
 ) -> dict:
-    """Fly `trials` trials (seeds seed, seed+1, ...); write the run directory if `out_dir` is given."""
+    """Fly `trials` trials (seeds seed, seed+1, ...); write the run directory if `out_dir` is given.
+    `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time."""
     seed = scenario.sim.seed if seed is None else seed
     log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ))
     results = []
@@ -85,7 +87,7 @@ def run_scenario(
         for i in range(trials):
             log.new_trial()
             cb = None if on_progress is None else (lambda frac, i=i: on_progress(i, frac))
-            results.append(run_trial(scenario, seed + i, i, log, cb))
+            results.append(run_trial(scenario, seed + i, i, log, cb, realtime_rate=realtime_rate))
             if on_progress is not None:
                 on_progress(i, 1.0)
     finally:

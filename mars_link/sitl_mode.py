@@ -486,7 +486,8 @@ def _add_link_options(p, default_kind: str) -> None:
 
 def add_sitl_run_arguments(p) -> None:
     _add_link_options(p, "zenoh")
-    p.add_argument("--realtime", action="store_true", help="with --mode sitl: pace the world to the wall clock")
+    p.add_argument("--realtime", action="store_true",
+                   help="pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
 
 
 def sitl_runner(args):
