@@ -55,20 +55,27 @@ class Transport:
         return True
 
     def recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
-        """The next datagram and its sender, or None when nothing arrives within `timeout_s`."""
-        deadline = time.monotonic() + max(timeout_s, 0.0)
+        """The next datagram and its sender, or None when nothing arrives within `timeout_s`
+        (<= 0: only what is already waiting)."""
+        if timeout_s <= 0:  # a poll (draining after a select): one try, no clock
+            got = None if self.closed else self._recv(0.0)
+            return None if got is None else self._received(got)
+        deadline = time.monotonic() + timeout_s
         while not self.closed:
             got = self._recv(max(deadline - time.monotonic(), 0.0))
             if got is not None:
-                self.counters.received += 1
-                self.counters.bytes_received += len(got[0])
-                if self.validate_frames:
-                    got = self._validated(*got)
+                got = self._received(got)
                 if got is not None:
                     return got
             if time.monotonic() >= deadline:
                 return None
         return None
+
+    def _received(self, got: tuple[bytes, Address]) -> tuple[bytes, Address] | None:
+        c = self.counters
+        c.received += 1
+        c.bytes_received += len(got[0])
+        return self._validated(*got) if self.validate_frames else got
 
     def _validated(self, data: bytes, peer: Address) -> tuple[bytes, Address] | None:
         from mars_link.transport.framing import check_datagram

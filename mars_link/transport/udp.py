@@ -43,6 +43,7 @@ class UdpTransport(Transport):
             except OSError:
                 pass
         self._timeout: float | None = None  # the socket's, set only when it changes (a syscall each time)
+        self._allowed = p.allowed_hosts
 
     @property
     def local_address(self) -> tuple[str, int]:
@@ -74,7 +75,7 @@ class UdpTransport(Transport):
             return None
         except OSError:  # e.g. ICMP port unreachable reported on a later call
             return None
-        allowed = self.params.allowed_hosts
+        allowed = self._allowed
         if allowed is not None and addr[0] not in allowed:
             self.counters.drop("not_loopback" if allowed == (LOOPBACK,) else "host_not_allowed")
             return None
