@@ -99,3 +99,16 @@ def test_a_unit_coordinator_link_over_a_serial_line() -> None:
     finally:
         io.close()
         coordinator.close()
+
+
+@pytest.mark.parametrize("args,text", [
+    (["--transport", "udp"], "--transport udp needs --world-port"),
+    (["--transport", "zenoh", "--link-profile", "radio9"], "link profile 'radio9': unknown"),
+    (["--world-port", "9", "--link-profile", "wifi"], "--link-profile applies to the zenoh transport"),
+])
+def test_a_lockstep_process_refuses_bad_link_options_with_one_line(args, text, capsys, tmp_path) -> None:
+    from sitl.lockstep import main
+
+    code = main(["unit", "-", "--units", "1", "--out", str(tmp_path / "run"), *args])
+    err = capsys.readouterr().err
+    assert code == 2 and text in err and len(err.strip().splitlines()) == 1, err
