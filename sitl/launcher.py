@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from firmware_models.signing import load_key
-from sitl.lockstep import LOOPBACK, SitlSetup, _start_pose, load_setup, position_every
+from sitl.links import LOOPBACK
+from sitl.lockstep import SitlSetup, _start_pose, load_setup, position_every
 
 
 def bound_udp_socket() -> socket.socket:

@@ -55,6 +55,8 @@ class Ports:
         talks to that node only (its HIL link: "world", its coordinator link: "coordinator")."""
         fd, port = {"world": (self.world_fd, self.world),
                     "coordinator": (self.coordinator_fd, self.coordinator)}.get(node, (None, 0))
+        if fd is not None:  # adopted (or closed) once
+            setattr(self, f"{node}_fd", None)
         if self.link.kind == "udp":
             from mars_link.transport.udp import UdpParams, UdpTransport
 
