@@ -89,13 +89,19 @@ class RotorIntake:
         if msg.group_mlx != 0:
             return self.drop("wrong_group")
         c = msg.controls
-        c0, c1, c2, c3 = float(c[0]), float(c[1]), float(c[2]), float(c[3])
+        return self.accept(float(c[0]), float(c[1]), float(c[2]), float(c[3]), int(msg.time_usec), sim_time_s)
+
+    def accept(self, c0: float, c1: float, c2: float, c3: float, t_usec: int, sim_time_s: float,
+               thrusts_n: np.ndarray | None = None) -> bool:
+        """The value checks of `offer` on a command already addressed to this unit (the in-process
+        path hands the four wire controls and the wire time directly, and `thrusts_n`, the controls
+        times full scale as the sender computed them); True if it is now held."""
+        p = self.params
         if not (math.isfinite(c0) and math.isfinite(c1) and math.isfinite(c2) and math.isfinite(c3)):
             return self.drop("non_finite")
         lo, hi = p.control_min, p.control_max
         if not (lo <= c0 <= hi and lo <= c1 <= hi and lo <= c2 <= hi and lo <= c3 <= hi):
             return self.drop("out_of_range")
-        t_usec = int(msg.time_usec)
         if self._last_usec is not None and t_usec <= self._last_usec:
             return self.drop("out_of_order")
         live = self.is_live(sim_time_s)
@@ -111,7 +117,7 @@ class RotorIntake:
         self._last_usec = t_usec
         self._accepted_at_s = sim_time_s
         self.normalised[:] = (c0, c1, c2, c3)
-        self.thrusts_n = self.normalised * p.full_scale_thrust_n
+        self.thrusts_n = self.normalised * p.full_scale_thrust_n if thrusts_n is None else thrusts_n
         self.accepted += 1
         self._was_live = True
         return True

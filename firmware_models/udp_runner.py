@@ -16,7 +16,7 @@ A port 0 means "any free port"; the chosen ports are printed as one JSON line on
 Physics: this runner is for a lone unit (MAVSDK/MAVProxy/QGC tests and demos): a 1x1 JsbsimBody
 stepped at --physics-hz in real time (scaled by --speed), the vehicle's control at --control-hz and
 its motor model (limits, injected faults, lag) on every physics step. `--status-file` gets a JSON
-snapshot (truth, mode, counters) a few times per second for tests and operators; it is not a channel
+snapshot (truth, mode, counters, where each MISSION_ITEM_REACHED was sent) a few times per second for tests and operators; it is not a channel
 any coordinator reads.
 """
 
@@ -47,33 +47,36 @@ from firmware_models.vehicle_io import (
 )
 from mars_link.assembly import AssemblyModel
 from mars_link.errors import UserInputError
+from mars_link.pacing import Pacer
 
 STATUS_PERIOD_S = 0.2
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m firmware_models.udp_runner", description=__doc__.split("\n")[0])
-    p.add_argument("--unit", type=int, default=1, help="unit id = MAVLink system id (1..250)")
+    from mars_link import validation as v  # the verbs' one validation layer (one-line errors, exit 2)
+
+    p = v.OneLineParser(prog="python -m firmware_models.udp_runner", description=__doc__.split("\n")[0])
+    p.add_argument("--unit", type=v.bounded_int(1, 250), default=1, help="unit id = MAVLink system id (1..250)")
     p.add_argument("--preset", default="mars-ftcc", help="vehicle preset (mars-ftcc, modquad-cf2)")
-    p.add_argument("--gcs-port", type=int, default=14550)
-    p.add_argument("--gcs-bind", type=int, default=None, help="default 18570 + unit - 1")
-    p.add_argument("--api-port", type=int, default=None, help="default 14540 + unit - 1")
-    p.add_argument("--api-bind", type=int, default=None, help="default 14580 + unit - 1")
-    p.add_argument("--coord-bind", type=int, default=None, help="default 14600 + unit - 1")
-    p.add_argument("--coordinator-sysid", type=int, default=201)
-    p.add_argument("--coordinator-compid", type=int, default=1)
+    p.add_argument("--gcs-port", type=v.port, default=14550)
+    p.add_argument("--gcs-bind", type=v.port_or_zero, default=None, help="default 18570 + unit - 1")
+    p.add_argument("--api-port", type=v.port, default=None, help="default 14540 + unit - 1")
+    p.add_argument("--api-bind", type=v.port_or_zero, default=None, help="default 14580 + unit - 1")
+    p.add_argument("--coord-bind", type=v.port_or_zero, default=None, help="default 14600 + unit - 1")
+    p.add_argument("--coordinator-sysid", type=v.bounded_int(1, 255), default=201)
+    p.add_argument("--coordinator-compid", type=v.bounded_int(0, 255), default=1)
     p.add_argument("--signing-key-file", default=None,
                    help=f"coordinator link signing key (else ${DEFAULT_KEY_ENV}); with a key, that link requires signing")
     p.add_argument("--sign-client-links", action="store_true", help="require signing on gcs/api too")
-    p.add_argument("--physics-hz", type=float, default=500.0)
-    p.add_argument("--control-hz", type=float, default=100.0)
-    p.add_argument("--speed", type=float, default=1.0, help="simulation speed, x real time")
-    p.add_argument("--north", type=float, default=0.0, help="start position, m north of the origin")
-    p.add_argument("--east", type=float, default=0.0)
-    p.add_argument("--yaw-deg", type=float, default=0.0)
+    p.add_argument("--physics-hz", type=v.positive_float, default=500.0)
+    p.add_argument("--control-hz", type=v.positive_float, default=100.0)
+    p.add_argument("--speed", type=v.positive_float, default=1.0, help="simulation speed, x real time")
+    p.add_argument("--north", type=v.finite_float, default=0.0, help="start position, m north of the origin")
+    p.add_argument("--east", type=v.finite_float, default=0.0)
+    p.add_argument("--yaw-deg", type=v.finite_float, default=0.0)
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
     p.add_argument("--status-file", default=None)
-    p.add_argument("--duration", type=float, default=None, help="stop after this many wall seconds")
+    p.add_argument("--duration", type=v.positive_float, default=None, help="stop after this many wall seconds")
     return p
 
 
@@ -84,9 +87,9 @@ def _params(items: list[str]) -> dict[str, float]:
         try:
             out[name.strip()] = float(value)
         except ValueError:
-            raise UserInputError(f"--param {item!r} is not NAME=NUMBER") from None
-        if not sep:
-            raise UserInputError(f"--param {item!r} is not NAME=NUMBER")
+            raise UserInputError(f"--param {item[:60]!r} is not NAME=NUMBER (a finite number)") from None
+        if not sep or not math.isfinite(out[name.strip()]):
+            raise UserInputError(f"--param {item[:60]!r} is not NAME=NUMBER (a finite number)")
     return out
 
 
@@ -123,7 +126,7 @@ class UnitRunner:
         self.duration_s = args.duration
         self.running = True
         self.sim_s = 0.0
-        self.overruns = 0
+        self.pacer = Pacer(self.speed)
 
     def ports(self) -> dict[str, int]:
         return self.io.ports()
@@ -132,26 +135,24 @@ class UnitRunner:
         if self.status_path is None:
             return
         write_json_atomic(self.status_path, vehicle_status(
-            self.vehicle, self.body.state(), self.sim_s, overruns=self.overruns, ports=self.ports(),
+            self.vehicle, self.body.state(), self.sim_s, overruns=self.pacer.overruns, ports=self.ports(),
+            mission_reached=self.vehicle.mission_reached, mission_counts=self.vehicle.mission.counts,
             **self.io.counters()))
 
     def run(self) -> int:
         print(json.dumps({"ready": True, "unit": self.vehicle.sysid, "ports": self.ports()}), flush=True)
         start = time.monotonic()
-        anchor_wall, anchor_sim = start, 0.0
+        pacer = self.pacer
+        pacer.start(self.sim_s)
         next_status = start
         v, body = self.vehicle, self.body
         while self.running:
             now = time.monotonic()
             if self.duration_s is not None and now - start >= self.duration_s:
                 break
-            due = anchor_wall + (self.sim_s - anchor_sim) / self.speed
-            self.io.poll(due - now)
+            self.io.poll(pacer.wait_s(self.sim_s))
             now = time.monotonic()
-            if now >= due:
-                if now - due > 0.25:  # fell behind (a busy machine): re-anchor instead of racing
-                    self.overruns += 1
-                    anchor_wall, anchor_sim = now, self.sim_s
+            if pacer.is_due(self.sim_s):  # (fell behind on a busy machine: re-anchored, an overrun)
                 self.io.send(v.tick(time.time(), self.sim_s))
                 for _ in range(self.substeps):
                     body.set_rotor_thrusts(v.step_motors(self.physics_dt_s))
@@ -226,12 +227,16 @@ def stop_unit(proc: subprocess.Popen, timeout_s: float = 10.0) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    from mars_link.validation import check_file_parent, report
+
     try:
+        args = _parser().parse_args(argv)
+        check_file_parent(args.status_file, "--status-file")
         runner = UnitRunner(args)
-    except UserInputError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
+    except (UserInputError, OSError, RuntimeError) as e:  # bad input: 2; port taken, disk: 1 (one line)
+        line, code = report(e, "udp_runner")
+        print(line, file=sys.stderr)
+        return code
 
     def stop(*_):
         runner.running = False

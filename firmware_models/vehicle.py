@@ -11,8 +11,9 @@ what MAVSDK/MAVProxy/QGC use), "coordinator" (per-rotor commands; signed when a 
 to sockets. The surface follows specs/mavlink.md §6: PX4 persona (MAV_AUTOPILOT_PX4, custom_mode =
 main << 16 | sub << 24), heartbeats at 1 Hz of wall time even with the simulation paused, default
 telemetry streams, command protocol with ACKs (idempotent under MAVSDK's identical resends),
-parameters, empty mission/fence/rally lists, offboard setpoints with a watchdog, fault injection
-(MAV_CMD_INJECT_FAILURE into the motor model only), MAVFTP NAK.
+parameters, mission/fence/rally lists (mission_protocol) flown in AUTO.MISSION (mission_runner),
+offboard setpoints with a watchdog, fault injection (MAV_CMD_INJECT_FAILURE into the motor model
+only), MAVFTP NAK. Geographic positions are around PX4 SITL's home (geo.py).
 
 Untrusted input: every datagram is split into frames here (no bytes carried over to the next
 datagram, so a truncated frame cannot swallow the next good one); anything malformed, unsigned where
@@ -30,6 +31,10 @@ from typing import NamedTuple
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from firmware_models.geo import EARTH_RADIUS_M  # noqa: F401 (re-exported)
+from firmware_models.geo import WIRE_ORIGIN, GeoOrigin, origin_from_env
+from firmware_models.mission_protocol import MissionProtocol
+from firmware_models.mission_runner import MissionRunner
 from firmware_models.motor import MotorModel, MotorParams
 from firmware_models.params import ParamStore, unit_param_specs
 from firmware_models.rotor_intake import IntakeParams, RotorIntake
@@ -43,12 +48,12 @@ from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
 from mars_link import mavlink_codec
 from mars_link.assembly import GRAVITY_MPS2, VehicleParams, vehicle_preset
 from mars_link.errors import UserInputError
+from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
 from mars_link.rotations import quat_to_euler, quat_to_rotmat
 from mars_link.state import ImuSample, RigidBodyState
 from mars_link.wire import SensorFrameAssembler, SensorFrames
 
 LINK_GCS, LINK_API, LINK_COORDINATOR, LINK_HIL = "gcs", "api", "coordinator", "hil"
-EARTH_RADIUS_M = 6371000.0  # the spherical Earth of sitl's JSBSim models: lat = north / R at (0, 0)
 WORLD_SYSID = 200  # the SITL world process (sitl/lockstep.py)
 
 # PX4 custom modes (main, sub): specs/mavlink.md §2.1
@@ -58,6 +63,7 @@ MODE_HOLD = (MAIN_AUTO, SUB_LOITER)
 MODE_TAKEOFF = (MAIN_AUTO, SUB_TAKEOFF)
 MODE_LAND = (MAIN_AUTO, SUB_LAND)
 MODE_RTL = (MAIN_AUTO, SUB_RTL)
+MODE_MISSION = (MAIN_AUTO, SUB_MISSION)
 MODE_OFFBOARD = (MAIN_OFFBOARD, 0)
 MODE_POSCTL = (MAIN_POSCTL, 0)
 
@@ -83,6 +89,7 @@ DEFAULT_STREAM_HZ: dict[int, float] = {
     mavlink.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
     mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: 10.0,
     mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS: 10.0,
+    mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
 }
 #: REQUEST_MESSAGE ids answered with a refusal: PROTOCOL_VERSION, COMPONENT_INFORMATION,
 #: COMPONENT_METADATA, AVAILABLE_MODES, CURRENT_MODE (not in pymavlink 2.4.50's common dialect)
@@ -111,7 +118,7 @@ SENSORS = (
 ACTION_COMMANDS = {
     mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
     mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_CMD_DO_REPOSITION,
-    mavlink.MAV_CMD_INJECT_FAILURE,
+    mavlink.MAV_CMD_INJECT_FAILURE, mavlink.MAV_CMD_MISSION_START, mavlink.MAV_CMD_DO_SET_MISSION_CURRENT,
 }
 FTP_NAK, FTP_ACK = 129, 128
 FTP_ERR_UNKNOWN_COMMAND, FTP_ERR_FILE_NOT_FOUND, FTP_ERR_INVALID_SESSION = 7, 10, 4
@@ -164,9 +171,10 @@ class VehicleConfig:
     links: dict[str, LinkPolicy] | None = None  # None: default_links(...)
     params: dict[str, float] = field(default_factory=dict)  # start-up parameter values
     stream_hz: dict[int, float] | None = None  # None: DEFAULT_STREAM_HZ
-    origin_lat_deg: float = 0.0  # local NED origin (on the ground)
-    origin_lon_deg: float = 0.0
-    origin_amsl_m: float = 0.0
+    # the ground point under local NED (0, 0, 0); None: PX4 SITL's home or PX4_HOME_LAT/LON/ALT (geo)
+    origin_lat_deg: float | None = None
+    origin_lon_deg: float | None = None
+    origin_amsl_m: float | None = None
     # lockstep with a coordinator: answer each HIL step only once the coordinator's rotor command for
     # that step has arrived (the runner calls `release_hil` when it gives up waiting)
     hil_await_coordinator: bool = False
@@ -181,6 +189,12 @@ class VehicleConfig:
         if self.signing_key is not None and len(self.signing_key) != 32:
             raise UserInputError("the signing key must be 32 bytes")
         return self
+
+    def origin(self) -> GeoOrigin:
+        env = origin_from_env()
+        pick = lambda v, d: d if v is None else v  # noqa: E731
+        return GeoOrigin(pick(self.origin_lat_deg, env.lat_deg), pick(self.origin_lon_deg, env.lon_deg),
+                         pick(self.origin_amsl_m, env.amsl_m)).checked()
 
 
 class _Bucket:
@@ -285,6 +299,7 @@ class Vehicle:
     def __init__(self, config: VehicleConfig | None = None, wall_time_s: float = 0.0, flight_core=None) -> None:
         c = (config or VehicleConfig()).checked()
         self.config = c
+        self.origin = c.origin()
         self.vehicle = vehicle_preset(c.vehicle) if isinstance(c.vehicle, str) else c.vehicle
         self.sysid, self.compid = c.unit_id, c.component_id
         signed = c.signing_key is not None
@@ -334,6 +349,11 @@ class Vehicle:
         self._last_rotor_usec: int | None = None  # time of the last accepted coordinator command
         self._await_coordinator = c.hil_await_coordinator
         self._scheduled_failures: list[tuple[float, int, float]] = []  # (sim time, rotor, eta), sorted
+        self.mission = MissionProtocol(self.origin)
+        self.runner = MissionRunner(self.autopilot, self.origin)
+        self._mission_version = 0
+        self._mission_msgs: list = []  # MISSION_CURRENT / MISSION_ITEM_REACHED to broadcast
+        self.mission_reached: list[dict] = []  # (seq, sim time, position) of every MISSION_ITEM_REACHED
 
     def _intake_params(self) -> IntakeParams:
         p = self.params
@@ -360,6 +380,9 @@ class Vehicle:
         out = dict(self.drops)
         for k, v in self.intake.counters.items():
             out[f"intake.{k}"] = v
+        for k, v in self.mission.counts.items():
+            if k.startswith(("refused.", "cancelled", "duplicate_item", "client_ack_error")):
+                out[f"mission.{k}"] = v
         for name, link in self.links.items():
             if link.verifier is not None:
                 for k, v in link.verifier.counters.items():
@@ -481,9 +504,18 @@ class Vehicle:
             due = self._next_stream.get(mid, wall_time_s)
             if wall_time_s >= due:
                 self._next_stream[mid] = max(due + interval, wall_time_s + 0.5 * interval)
-                msg = self._stream_message(mid)
+                try:
+                    msg = self._stream_message(mid)
+                except (*mavlink_codec.ENCODE_ERRORS, FloatingPointError):  # e.g. int() of a NaN state
+                    self._count("telemetry.encode_error")
+                    msg = None
                 if msg is not None:
                     self._broadcast(msg, out)
+        for name, msg in self.mission.tick(self.wall_s):
+            self._reply(self.links[name], msg, out)
+        self._flush_mission_texts()
+        while self._mission_msgs:
+            self._broadcast(self._mission_msgs.pop(0), out)
         while self._pending_text:
             severity, text = self._pending_text.pop(0)
             self._broadcast(mavlink.MAVLink_statustext_message(severity, text.encode()[:50], 0, 0), out)
@@ -497,20 +529,33 @@ class Vehicle:
         self.drops[reason] = self.drops.get(reason, 0) + 1
 
     def _pack(self, lk: _Link, msg) -> bytes:
+        """Encode for this link; a field outside its wire range is clamped and counted
+        (telemetry.clamped), never raised (mars_link.mavlink_codec.encode_clamped)."""
         if lk.policy.sign_outgoing:
             advance_outgoing_clock(lk.encoder, self.wall_s)
-        return mavlink_codec.encode(msg, lk.encoder)
+        frame, clamped = mavlink_codec.encode_clamped(msg, lk.encoder)
+        if clamped:
+            self._count("telemetry.clamped")
+        return frame
+
+    def _send(self, lk: _Link, msg, out: list[Outgoing]) -> None:
+        """Append `msg` for `lk`; a message that cannot be encoded is counted and dropped: telemetry
+        never stops a flight."""
+        try:
+            out.append(Outgoing(lk.name, self._pack(lk, msg)))
+        except (*mavlink_codec.ENCODE_ERRORS, mavlink.MAVError):
+            self._count("telemetry.encode_error")
 
     def _reply(self, lk: _Link, msg, out: list[Outgoing]) -> None:
         if lk.bucket.take(self.wall_s):
-            out.append(Outgoing(lk.name, self._pack(lk, msg)))
+            self._send(lk, msg, out)
         else:
             self._drop("reply_rate_limited")
 
     def _broadcast(self, msg, out: list[Outgoing]) -> None:
         for lk in self.links.values():
             if lk.policy.telemetry:
-                out.append(Outgoing(lk.name, self._pack(lk, msg)))
+                self._send(lk, msg, out)
 
     def _text(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
         self.events.append((self.sim_s, text))
@@ -599,6 +644,13 @@ class Vehicle:
             return self._set_mode((int(p[1]), sub)), []
         if cmd == R.MAV_CMD_DO_REPOSITION:
             return self._reposition(p, is_int), []
+        if cmd == R.MAV_CMD_MISSION_START:
+            first = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else None  # PX4: start at p1 if given
+            if first is not None and not self.runner.set_current(first, reset_jumps=True):
+                return R.MAV_RESULT_DENIED, []
+            return self._set_mode(MODE_MISSION), []
+        if cmd == R.MAV_CMD_DO_SET_MISSION_CURRENT:
+            return self._set_mission_current(p[0], p[1] == 1), []
         if cmd == R.MAV_CMD_INJECT_FAILURE:
             return self._inject(p), []
         if cmd == R.MAV_CMD_REQUEST_MESSAGE:
@@ -660,7 +712,7 @@ class Vehicle:
             return R.MAV_RESULT_ACCEPTED  # already on its way / flying: nothing to restart
         ground = float(self.home_ned[2])
         if math.isfinite(altitude_amsl_m):
-            target = -(altitude_amsl_m - self.config.origin_amsl_m)
+            target = -(altitude_amsl_m - self.origin.amsl_m)
             if not (ground - 100.0 <= target <= ground - 0.3):
                 return R.MAV_RESULT_DENIED
         else:
@@ -676,7 +728,10 @@ class Vehicle:
         R = mavlink
         if mode == self.mode:
             return R.MAV_RESULT_ACCEPTED
+        if mode == MODE_MISSION:
+            return self._enter_mission()
         s = self.state
+        self.runner.pause()  # (a no-op unless leaving AUTO.MISSION: it resumes at its current item)
         if mode in (MODE_HOLD, MODE_POSCTL):
             if s is not None and self.source == "own":
                 self.autopilot.hold(s)
@@ -707,10 +762,56 @@ class Vehicle:
             self._text("Offboard")
             return R.MAV_RESULT_ACCEPTED
         else:
-            return R.MAV_RESULT_UNSUPPORTED  # manual/stabilised/acro modes need RC; no missions
+            return R.MAV_RESULT_UNSUPPORTED  # manual/stabilised/acro modes need RC
         self.mode = mode
         self._text({MODE_HOLD: "Hold", MODE_POSCTL: "Position", MODE_LAND: "Land", MODE_RTL: "Return"}[mode])
         return R.MAV_RESULT_ACCEPTED
+
+    def _enter_mission(self) -> int:
+        R = mavlink
+        if not self.runner.items:
+            self._text("Mission: no mission stored", mavlink.MAV_SEVERITY_WARNING)
+            return R.MAV_RESULT_DENIED
+        if self.state is None or self.home_ned is None:
+            return R.MAV_RESULT_TEMPORARILY_REJECTED
+        if self.source != "own":
+            self._hand_back(self.state)
+        if self.runner.complete:
+            self.runner.set_current(0, reset_jumps=True)  # PX4 restarts a finished mission
+        self.runner.pause()
+        self.mode = MODE_MISSION
+        self._took_off = True
+        self._text("Mission")
+        return R.MAV_RESULT_ACCEPTED
+
+    def _set_mission_current(self, seq: float, reset_jumps: bool) -> int:
+        if not math.isfinite(seq) or seq != int(seq) or not self.runner.set_current(int(seq), reset_jumps):
+            return mavlink.MAV_RESULT_DENIED
+        self.mission.current_seq = self.runner.current
+        self._mission_msgs.append(self.runner.current_message(self.mode == MODE_MISSION))
+        return mavlink.MAV_RESULT_ACCEPTED
+
+    def _mission_step(self, t: float, event: str | None) -> None:
+        """AUTO.MISSION: the runner drives the flight core (after its update for this step)."""
+        r = self.runner
+        r.takeoff_alt_m, r.rtl_alt_m = self.params["MIS_TAKEOFF_ALT"], self.params["RTL_RETURN_ALT"]
+        res = r.step(t, self.state, self.home_ned, event)
+        for m in res.messages:
+            if m.get_type() == "MISSION_ITEM_REACHED":
+                self.mission_reached.append({"seq": m.seq, "sim_time_s": t,
+                                             "position_ned_m": [float(x) for x in self.state.position_ned_m]})
+                del self.mission_reached[:-2000]
+            self._mission_msgs.append(m)
+        for text in res.texts:
+            self._text(text)
+        if res.new_home_ned is not None:
+            self.home_ned = res.new_home_ned
+        self.mission.current_seq = r.current
+
+    def _flush_mission_texts(self) -> None:
+        while self.mission.texts:
+            severity, text = self.mission.texts.pop(0)
+            self._text(text, severity)
 
     def _hand_back(self, s: RigidBodyState) -> None:
         """The coordinator drove the motors; the own controller takes over from the current state."""
@@ -827,7 +928,7 @@ class Vehicle:
                 return
             alt = msg.alt
             if frame == mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT and self.home_ned is not None:
-                alt = alt + self.config.origin_amsl_m - float(self.home_ned[2])
+                alt = alt + self.origin.amsl_m - float(self.home_ned[2])
             pos = self._global_to_ned(msg.lat_int * 1e-7, msg.lon_int * 1e-7, alt) if use_pos else np.zeros(3)
             body = False
         values = [*(pos if use_pos else ()), *(vel if use_vel else ()), *(() if yaw is None else (yaw,)), yaw_rate]
@@ -903,31 +1004,30 @@ class Vehicle:
             self.intake.params = self._intake_params()
         self._reply(lk, self.params.value_message(i), out)  # the value in force, changed or not
 
-    # ----------------------------------------------------------------- missions (none stored)
-    def _on_mission_request_list(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
+    # ----------------------------------------------------------------- missions (mission_protocol)
+    def _on_mission(self, msg, lk: _Link, out: list[Outgoing]) -> None:
+        broadcast_ok = msg.get_type() == "MISSION_REQUEST_LIST"
+        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=broadcast_ok):
             self._drop("wrong_target")
             return
-        self._reply(lk, mavlink.MAVLink_mission_count_message(
-            msg.get_srcSystem(), msg.get_srcComponent(), 0, msg.mission_type), out)
+        for name, reply in self.mission.handle(msg, lk.name, self.wall_s):
+            self._reply(self.links[name], reply, out)
+        self._flush_mission_texts()
+        version = self.mission.versions[0]
+        if version != self._mission_version:  # a new mission (or none): fly it from its start
+            self._mission_version = version
+            self.runner.load(self.mission.plans[0])
+            self.mission.current_seq = self.runner.current
+            if self.mode == MODE_MISSION and not self.runner.items and self.state is not None:
+                self._set_mode(MODE_HOLD)
+            self._mission_msgs.append(self.runner.current_message(self.mode == MODE_MISSION))
 
-    def _mission_ack(self, msg, lk: _Link, result: int, out: list[Outgoing]) -> None:
+    def _on_mission_set_current(self, msg, lk: _Link, out: list[Outgoing]) -> None:
         if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
             self._drop("wrong_target")
             return
-        self._reply(lk, mavlink.MAVLink_mission_ack_message(
-            msg.get_srcSystem(), msg.get_srcComponent(), result, msg.mission_type), out)
-
-    def _on_mission_count(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        # an empty upload is accepted; items cannot be stored (no mission support)
-        result = mavlink.MAV_MISSION_ACCEPTED if msg.count == 0 else mavlink.MAV_MISSION_NO_SPACE
-        self._mission_ack(msg, lk, result, out)
-
-    def _on_mission_clear(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        self._mission_ack(msg, lk, mavlink.MAV_MISSION_ACCEPTED, out)
-
-    def _on_mission_item_request(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        self._mission_ack(msg, lk, mavlink.MAV_MISSION_INVALID_SEQUENCE, out)
+        if self._set_mission_current(msg.seq, False) != mavlink.MAV_RESULT_ACCEPTED:
+            self._drop("mission_set_current_invalid")
 
     # ----------------------------------------------------------------- small services
     def _on_ping(self, msg, lk: _Link, out: list[Outgoing]) -> None:
@@ -1006,7 +1106,7 @@ class Vehicle:
         if not _finite(*values) or not 0.5 < np.linalg.norm(q) < 1.5:
             self._drop("hil_non_finite")
             return
-        pos = self._global_to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)
+        pos = WIRE_ORIGIN.to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)  # sitl.hil's encoding
         self.set_state(RigidBodyState(msg.time_usec * 1e-6, pos, np.array([msg.vx, msg.vy, msg.vz]) * 0.01,
                                       q / np.linalg.norm(q), np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed])))
 
@@ -1020,21 +1120,72 @@ class Vehicle:
         time_usec, name = self._hil_pending
         self._hil_pending = None
         lk = self.links[name]
-        while self._scheduled_failures and self._scheduled_failures[0][0] <= self.sim_s + 1e-9:
-            _, rotor, eta = self._scheduled_failures.pop(0)
-            self.inject_failure(rotor, eta)
-        self._count("hil_steps")
-        self._control_step()
-        sp = self.motors.setpoint(self.motor_commands_n if self.armed else np.zeros(4)) / self.full_scale_n
+        sp = self._motor_setpoint_n() / self.full_scale_n
         mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
         controls = [float(x) for x in sp] + [0.0] * 12
         out.append(Outgoing(lk.name, self._pack(lk, mavlink.MAVLink_hil_actuator_controls_message(
             time_usec, controls, mode, 1))))
 
+    def _motor_setpoint_n(self) -> np.ndarray:
+        """One HIL step's motor outputs (N): due scenario faults enter the motor model, the control step
+        runs, and the motors are driven to the clamped, eta-scaled command."""
+        while self._scheduled_failures and self._scheduled_failures[0][0] <= self.sim_s + 1e-9:
+            _, rotor, eta = self._scheduled_failures.pop(0)
+            self.inject_failure(rotor, eta)
+        self._count("hil_steps")
+        self._control_step()
+        return self.motors.setpoint(self.motor_commands_n if self.armed else np.zeros(4))
+
+    # ================================================================= in-process messages
+    # The same steps as the HIL and coordinator links, with the messages as objects instead of MAVLink
+    # bytes: what the in-process engine calls. The values are already at wire precision (float32,
+    # microseconds), so a unit driven this way moves its motors exactly as over MAVLink.
+    def take_sensors(self, packet: SensorPacket, unit_truth: RigidBodyState | None = None) -> SensorPacket:
+        """A HIL step: the unit's sensors (HIL_SENSOR/ODOMETRY) and, when given, its centre's truth
+        (HIL_STATE_QUATERNION). Returns the telemetry it forwards to the coordinator (HIGHRES_IMU and
+        ODOMETRY carry exactly these fields)."""
+        if unit_truth is not None:
+            self.set_state(unit_truth)
+        self.imu = packet.imu
+        if packet.truth is not None:
+            self.set_state(packet.truth)
+        self.sim_s = packet.t_s
+        self._next_control = packet.t_s + self.control_dt_s
+        return packet
+
+    def take_rotor_command(self, cmd: RotorCommand) -> bool:
+        """A coordinator command (SET_ACTUATOR_CONTROL_TARGET's values); True if it is now held."""
+        if cmd.unit_id != self.sysid:
+            return self.intake.drop("wrong_target")
+        # cmd.thrusts_n are wire values (float32 controls x full scale): x / full scale is the control back
+        s = self.full_scale_n
+        a, b, c, d = cmd.thrusts_n.tolist()
+        t_usec = round(cmd.t_s * 1e6)
+        if not self.intake.accept(a / s, b / s, c / s, d / s, t_usec, self.sim_s, cmd.thrusts_n):
+            return False
+        self._count("rotor_commands")
+        self._last_rotor_usec = t_usec
+        return True
+
+    def drive_motors(self) -> ActuatorOutput:
+        """The HIL answer (HIL_ACTUATOR_CONTROLS' values): what the motors are driven to for this step."""
+        return ActuatorOutput(self.sim_s, self.sysid, wire_thrust(self._motor_setpoint_n(), self.full_scale_n))
+
+    def arm(self) -> int:
+        """MAV_CMD_COMPONENT_ARM_DISARM (arm) as the coordinator sends it; returns the MAV_RESULT."""
+        return self._arm_disarm(1.0, 0.0)
+
+    def set_mode(self, mode: tuple[int, int]) -> int:
+        """MAV_CMD_DO_SET_MODE to a PX4 (main, sub) mode; returns the MAV_RESULT."""
+        return self._set_mode(mode)
+
     # ================================================================= control
     def _limits(self) -> GuidanceLimits:
         p = self.params
-        return GuidanceLimits(p["MPC_XY_VEL_MAX"], p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"], p["MPC_TKO_SPEED"])
+        xy = p["MPC_XY_VEL_MAX"]
+        if self.mode == MODE_MISSION and self.runner.speed_mps is not None:
+            xy = min(xy, self.runner.speed_mps)  # DO_CHANGE_SPEED, within PX4's limit
+        return GuidanceLimits(xy, p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"], p["MPC_TKO_SPEED"])
 
     def _control_step(self) -> None:
         t = self.sim_s
@@ -1067,7 +1218,9 @@ class Vehicle:
         self._account_battery()
         thrusts, event = self.autopilot.update(t, self.state, self._limits(), self.params["MPC_LAND_SPEED"])
         self.motor_commands_n = np.array(thrusts, dtype=float)
-        if event == "takeoff_done":
+        if self.mode == MODE_MISSION:
+            self._mission_step(t, event)
+        if event == "takeoff_done" and self.mode == MODE_TAKEOFF:
             self.mode = MODE_HOLD
             self._text("Takeoff complete: holding")
         elif event == "landed":
@@ -1095,17 +1248,11 @@ class Vehicle:
 
     # ================================================================= telemetry
     def _global_to_ned(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> np.ndarray:
-        c = self.config
-        north = math.radians(lat_deg - c.origin_lat_deg) * EARTH_RADIUS_M
-        east = math.radians(lon_deg - c.origin_lon_deg) * EARTH_RADIUS_M * math.cos(math.radians(c.origin_lat_deg))
-        return np.array([north, east, -(alt_amsl_m - c.origin_amsl_m)])
+        return self.origin.to_ned(lat_deg, lon_deg, alt_amsl_m)
 
     def _ned_to_global(self, p: np.ndarray) -> tuple[int, int, int]:
         """(lat degE7, lon degE7, alt AMSL mm)."""
-        c = self.config
-        lat = c.origin_lat_deg + math.degrees(p[0] / EARTH_RADIUS_M)
-        lon = c.origin_lon_deg + math.degrees(p[1] / (EARTH_RADIUS_M * math.cos(math.radians(c.origin_lat_deg))))
-        return int(round(lat * 1e7)), int(round(lon * 1e7)), int(round((c.origin_amsl_m - p[2]) * 1000))
+        return self.origin.to_global_int(p)
 
     def _time_boot_ms(self) -> int:
         return int(self.sim_s * 1000) & 0xFFFFFFFF
@@ -1147,11 +1294,18 @@ class Vehicle:
         return R.MAV_LANDED_STATE_IN_AIR
 
     def _battery(self) -> tuple[int, int, int]:
-        """(voltage mV, current cA, remaining %): a 4S 2.2 Ah pack drawn by thrust (~2 A per N)."""
-        current_a = 0.5 + 2.0 * float(np.sum(np.abs(self.motor_commands_n))) if self.armed else 0.3
+        """(voltage mV, current cA, remaining %): a 4S 2.2 Ah pack drawn by thrust (~2 A per N).
+        Clamped to the wire fields (uint16 mV, int16 cA, int8 %); not a number -> MAVLink's "not
+        sent" value (UINT16_MAX, -1, -1). Above 327.67 A the current field saturates at 32767."""
+        current_a = self._current_a()
         remaining = max(0.0, 1.0 - self.battery_used_c / (2.2 * 3600))
         volts = 4 * (3.6 + 0.6 * remaining) - 0.02 * current_a
-        return int(volts * 1000), int(current_a * 100), int(round(remaining * 100))
+
+        def wire(x: float, lo: int, hi: int, unknown: int) -> int:
+            return unknown if math.isnan(x) else int(min(max(x, lo), hi))
+
+        return (wire(volts * 1000, 0, 65534, 65535), wire(current_a * 100, 0, 32767, -1),
+                wire(round(remaining * 100) if math.isfinite(remaining) else remaining, 0, 100, -1))
 
     def _stream_message(self, mid: int):
         R = mavlink
@@ -1164,13 +1318,15 @@ class Vehicle:
             return R.MAVLink_extended_sys_state_message(R.MAV_VTOL_STATE_UNDEFINED, self._landed_state())
         if mid == R.MAVLINK_MSG_ID_BATTERY_STATUS:
             mv, ca, pct = self._battery()
-            cells = [mv // 4] * 4 + [65535] * 6
+            cells = [mv // 4 if mv != 65535 else 65535] * 4 + [65535] * 6
             used_mah = int(self.battery_used_c / 3.6)
             return R.MAVLink_battery_status_message(0, R.MAV_BATTERY_FUNCTION_ALL, R.MAV_BATTERY_TYPE_LIPO, 32767,
                                                     cells, ca, used_mah, -1, pct, 0, R.MAV_BATTERY_CHARGE_STATE_OK,
                                                     [0] * 4, 0, 0)
         if mid == R.MAVLINK_MSG_ID_HOME_POSITION:
             return self._home_position()
+        if mid == R.MAVLINK_MSG_ID_MISSION_CURRENT:
+            return self.runner.current_message(self.mode == MODE_MISSION)
         if mid == R.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS:
             # what the ESCs are told (normalised, limits applied); injected faults are not visible here
             cmd = np.clip(self.motor_commands_n / self.full_scale_n, 0.0, 1.0) if self.armed else np.zeros(4)
@@ -1204,15 +1360,23 @@ class Vehicle:
             else:  # specific force from the state: R^T (a - g)
                 acc = quat_to_rotmat(q).T @ (s.acceleration_ned_mps2 - np.array([0.0, 0.0, GRAVITY_MPS2]))
                 gyro = w
-            alt_m = self.config.origin_amsl_m - p[2]
+            alt_m = self.origin.amsl_m - p[2]
             pressure_hpa = 1013.25 * (1 - 2.25577e-5 * alt_m) ** 5.25588
             return R.MAVLink_highres_imu_message(int(self.sim_s * 1e6), *map(float, acc), *map(float, gyro),
                                                  0.21, 0.0, 0.42, pressure_hpa, 0.0, alt_m, 20.0, 0x1A3F, 0)
         return None
 
+    def _current_a(self) -> float:
+        """The pack's current: ~2 A per newton of rotor thrust (0.5 A armed and idle, 0.3 A disarmed);
+        any number of rotors (the assembly vehicle has 4N); unbounded, NaN with a NaN command."""
+        if not self.armed:
+            return 0.3
+        return 0.5 + 2.0 * sum(map(abs, self.motor_commands_n.tolist()))
+
     def _account_battery(self) -> None:
-        _, ca, _ = self._battery()
-        self.battery_used_c += ca * 0.01 * self.control_dt_s
+        current_a = self._current_a()
+        if math.isfinite(current_a):  # a NaN command must not poison the charge count
+            self.battery_used_c += int(current_a * 100) * 0.01 * self.control_dt_s
 
 
 def _param_name(raw) -> str:
@@ -1231,11 +1395,16 @@ _HANDLERS = {
     "PARAM_REQUEST_LIST": Vehicle._on_param_list,
     "PARAM_REQUEST_READ": Vehicle._on_param_read,
     "PARAM_SET": Vehicle._on_param_set,
-    "MISSION_REQUEST_LIST": Vehicle._on_mission_request_list,
-    "MISSION_COUNT": Vehicle._on_mission_count,
-    "MISSION_CLEAR_ALL": Vehicle._on_mission_clear,
-    "MISSION_REQUEST_INT": Vehicle._on_mission_item_request,
-    "MISSION_REQUEST": Vehicle._on_mission_item_request,
+    "MISSION_REQUEST_LIST": Vehicle._on_mission,
+    "MISSION_COUNT": Vehicle._on_mission,
+    "MISSION_CLEAR_ALL": Vehicle._on_mission,
+    "MISSION_REQUEST_INT": Vehicle._on_mission,
+    "MISSION_REQUEST": Vehicle._on_mission,
+    "MISSION_ITEM_INT": Vehicle._on_mission,
+    "MISSION_ITEM": Vehicle._on_mission,
+    "MISSION_ACK": Vehicle._on_mission,
+    "MISSION_WRITE_PARTIAL_LIST": Vehicle._on_mission,
+    "MISSION_SET_CURRENT": Vehicle._on_mission_set_current,
     "PING": Vehicle._on_ping,
     "TIMESYNC": Vehicle._on_timesync,
     "FILE_TRANSFER_PROTOCOL": Vehicle._on_ftp,

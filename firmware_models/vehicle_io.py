@@ -11,7 +11,6 @@ of the last frame that the vehicle accepted from its configured peer (after sign
 
 from __future__ import annotations
 
-import json
 import os
 import selectors
 import time
@@ -19,7 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from firmware_models.vehicle import LINK_COORDINATOR, Outgoing, Vehicle
-from mars_link.errors import UserInputError
+from mars_link.errors import PortUnavailable, UserInputError
 from mars_link.state import RigidBodyState
 from mars_link.transport.base import Address, Transport
 from mars_link.transport.udp import UdpParams, UdpTransport
@@ -72,7 +71,7 @@ def bind_udp(port: int) -> UdpTransport:
     try:
         return UdpTransport(UdpParams(port=port, validate_frames=False, recv_buffer_bytes=RECV_BUFFER_BYTES))
     except OSError as e:
-        raise UserInputError(f"cannot bind UDP port {port} on {LOOPBACK}: {e.strerror}") from None
+        raise PortUnavailable(f"cannot bind UDP port {port} on {LOOPBACK}: {e.strerror}") from None
 
 
 class VehicleSockets:
@@ -220,6 +219,9 @@ def vehicle_status(vehicle: Vehicle, truth: RigidBodyState | None, sim_time_s: f
 
 
 def write_json_atomic(path: Path, doc: dict) -> None:
+    """Strict JSON (NaN/inf -> null, mars_link.outputs), replaced atomically."""
+    from mars_link.outputs import dumps
+
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(doc))
+    tmp.write_text(dumps(doc, indent=None))
     os.replace(tmp, path)

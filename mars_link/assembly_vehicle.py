@@ -236,47 +236,36 @@ class AssemblySim:
     the frames to send; `t_s` is simulation time (scenario faults fire at their `t` from the start)."""
 
     def __init__(self, scenario: Scenario, config: SimConfig | None = None, wall_time_s: float = 0.0) -> None:
-        from firmware_models.unit import UnitCore, UnitCoreParams
-        from mars_link.runner import POSITION_RATE_HZ, make_controller
-        from sitl.world import World, WorldConfig
+        from mars_link.build import make_coordinator, make_detector, make_estimator, make_unit, make_world
+        from mars_link.engine import Engine, Flight, InProcessUnits
 
         cfg = config or SimConfig()
         self.scenario = s = vehicle_scenario(scenario)
         self.model = model = s.model()
         hz = s.sim.control_hz
         self.control_dt_s = 1.0 / hz
-        self.faults = sorted(s.faults, key=lambda f: f.t_s)
-        self._next_fault = 0
         self.eta_told = model.nominal_eta()
-        controller = make_controller(s, model, self.eta_told)
-        self.estimator = None
-        if s.sim.noise:
-            from mars_link.estimation import AssemblyEstimator
-
-            self.estimator = AssemblyEstimator(model)
+        self.estimator = make_estimator(s, model)
         yaw = math.radians(cfg.start_yaw_deg)
-        self.world = World(
-            model,
-            WorldConfig(physics_hz=s.sim.physics_hz, exchange_hz=hz, seed=s.sim.seed, noise=s.sim.noise,
-                        position_every=max(1, round(hz / POSITION_RATE_HZ))),
-            np.array([cfg.start_north_m, cfg.start_east_m, 0.0]), yaw,
-        )
-        detector = None
-        if not s.faults_known:
-            from mars_link.fault_detection import FaultDetector
-
-            # the vehicle starts landed: ground contact at take-off is not a rotor fault
-            detector = FaultDetector(model, ground_down_m=float(self.world.truth().position_ned_m[2]))
+        self.world = make_world(s, model, s.sim.seed, np.array([cfg.start_north_m, cfg.start_east_m, 0.0]), yaw)
+        # the vehicle starts landed: ground contact at take-off is not a rotor fault
+        detector = make_detector(s, model, float(self.world.truth().position_ned_m[2]))
         self._known = _KnownEstimate()
         start = TrajectoryPoint(np.zeros(3))
-        self.coordinator = Coordinator(model, SetpointSource(start), controller, self._known, detector)
-        self.units = {u: UnitCore(u, model.vehicle, UnitCoreParams(control_period_s=self.control_dt_s))
-                      for u in model.unit_ids}
+        self.coordinator = make_coordinator(s, model, SetpointSource(start), self._known, detector, eta=self.eta_told)
+        self.units = InProcessUnits({u: make_unit(s, model, u) for u in model.unit_ids}, self.world)
         self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, cfg.params, wall_time_s)
         self.vehicle.on_failure = self.inject
         self.estimate: RigidBodyState | None = None
         self.estimator_resets = 0  # the EKF's own restarts on the measured positions (after gated batches)
         self.events: list[dict] = []  # faults (scenario and MAVLink), with coordinator.events = the record
+        # the engine's loop; the vehicle's flight modes stand in front of the coordinator, and it flies until stopped
+        flight = Flight(s, model, s.sim.seed, self.coordinator.trajectory, self.world, self.units, self.coordinator,
+                        sorted(s.faults, key=lambda f: f.t_s), duration_s=math.inf)
+        self.engine = Engine(flight, command_source=self._commands,
+                             on_fault=lambda f, t: self.inject(f.unit, f.rotor, f.eta))
+        self._wall_s = wall_time_s
+        self._out: list[Outgoing] = []
 
     @property
     def t_s(self) -> float:
@@ -288,7 +277,7 @@ class AssemblySim:
     def inject(self, unit: int, rotor: int | None, eta: float) -> None:
         """A fault in a unit's motor path; told to the coordinator only with `faults_known`."""
         t = self.t_s
-        self.units[unit].inject_fault(rotor, eta)
+        self.units.inject_failure(unit, rotor, eta)
         event = {"t_s": round(t, 6), "type": "fault", "unit": unit, "rotor": rotor, "eta": eta}
         self.events.append(event)
         self.vehicle.report_event(event)
@@ -298,30 +287,26 @@ class AssemblySim:
             self.coordinator.set_faults(self.eta_told, t, "fault told to the coordinator")
 
     def step(self, wall_time_s: float) -> list[Outgoing]:
-        """One control period: faults due, sensing, estimate, vehicle (control when flying), motors,
-        physics."""
-        t = self.t_s
-        while self._next_fault < len(self.faults) and self.faults[self._next_fault].t_s <= t + 1e-9:
-            f: FaultSpec = self.faults[self._next_fault]
-            self._next_fault += 1
-            self.inject(f.unit, f.rotor, f.eta)
-        packets = self.world.sense()
+        """One control period through the engine (faults due, sensing, units, vehicle and coordinator,
+        motors, physics); returns the vehicle's frames to send."""
+        self._wall_s = wall_time_s
+        self._out = []
+        self.engine.step()
+        return self._out
+
+    def _commands(self, t: float, packets) -> list[RotorCommand]:
+        """The engine's command source: estimate, the vehicle's tick (its coordinator runs when it flies),
+        and the rotor thrusts it decided, one RotorCommand per unit."""
         self.vehicle.core.drive.packets = packets
         est = self._estimate(t, packets)
         self._known.estimate = est
         if est is not None:
             self.estimate = est
             self.vehicle.set_state(est)
-        out = self.vehicle.tick(wall_time_s, t)
-        thrusts = self.vehicle.rotor_thrusts_n()
-        wired = wire_thrust(thrusts, self.model.vehicle.full_scale_thrust_n)
+        self._out = self.vehicle.tick(self._wall_s, t)
+        wired = wire_thrust(self.vehicle.rotor_thrusts_n(), self.model.vehicle.full_scale_thrust_n)
         tw = wire_time(t)
-        for u in self.model.unit_ids:
-            unit = self.units[u]
-            unit.on_rotor_command(RotorCommand(tw, u, wired[self.model.unit_slots(u)]))
-            self.world.actuate(unit.motor_output(t))
-        self.world.advance()
-        return out
+        return [RotorCommand(tw, u, wired[self.model.unit_slots(u)]) for u in self.model.unit_ids]
 
     def _estimate(self, t: float, packets) -> RigidBodyState | None:
         if self.estimator is None:
@@ -343,7 +328,7 @@ class AssemblySim:
         return self.world.truth()
 
     def unit_eta(self) -> list[float]:
-        return [float(x) for u in self.model.unit_ids for x in self.units[u].eta]
+        return [float(x) for x in self.units.eta(self.model.unit_ids)]
 
     def close(self) -> None:
         self.world.close()

@@ -1,4 +1,5 @@
-"""`mars-link` command line. Every user error is one line on stderr and exit code 2."""
+"""`mars-link` command line. Every user error is one line on stderr and exit code 2; a refusal from
+the machine (disk, port, permission) one line and exit code 1 (mars_link.validation)."""
 
 from __future__ import annotations
 
@@ -7,18 +8,16 @@ import sys
 import time
 from pathlib import Path
 
+from mars_link import validation as v
 from mars_link.errors import UserInputError
 
-EXIT_USAGE = 2
-
-
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, no usage dump
-        raise UserInputError(f"{self.prog}: {message}")
+EXIT_USAGE = v.EXIT_USAGE
+_Parser = v.OneLineParser  # one-line usage errors (errors.OneLineArgumentParser)
 
 
 def _default_out(name: str) -> Path:
-    return Path("runs") / f"{name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    """runs/<name>-<time>, the name sanitised to one path component (a scenario name may hold `/` or `..`)."""
+    return Path("runs") / f"{v.safe_run_name(name)}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
 def _apply_overrides(scenario, args) -> None:
@@ -34,9 +33,7 @@ def _apply_overrides(scenario, args) -> None:
         fault = parse_fault_arg(text)
         validate_fault(fault, scenario.model(), f"--fault {text}")
         scenario.faults.append(fault)
-    if getattr(args, "duration", None) is not None:
-        if args.duration <= 0:
-            raise UserInputError(f"--duration must be > 0, got {args.duration}")
+    if getattr(args, "duration", None) is not None:  # finite and > 0 (validation.positive_float)
         scenario.sim.duration_s = args.duration
     if getattr(args, "no_noise", False):
         scenario.sim.noise = False
@@ -46,30 +43,27 @@ def cmd_run(args) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from mars_link.scenario import load_scenario
+    from mars_link.scenario import check_faults_controllable, check_flight, load_scenario
 
     scenario = load_scenario(args.scenario)
     _apply_overrides(scenario, args)
     from mars_link.runner import run_scenario
 
-    if args.trials < 1:
-        raise UserInputError(f"--trials must be >= 1, got {args.trials}")
     if args.mode not in ("inproc", "sitl"):
         raise UserInputError(f"--mode {args.mode!r}: expected inproc or sitl")
+    v.check_link_endpoints(args)
     sitl_run = None
     if args.mode == "sitl":  # the multi-process SITL (mars_link.sitl_mode); options checked before any output
         from mars_link.sitl_mode import sitl_runner
 
         sitl_run = sitl_runner(args)
-    from mars_link.allocation import check_controllable
-
     model = scenario.model()
-    if scenario.faults:
-        from mars_link.runner import eta_after
-
-        check_controllable(model, eta_after(model, scenario.faults, float("inf")),
-                           (model.vehicle.rotor_min_thrust_n, model.vehicle.rotor_max_thrust_n))
-    out = Path(args.out) if args.out else _default_out(scenario.name)
+    check_faults_controllable(scenario, model)
+    if not scenario.reconfig.get("enabled"):
+        check_flight(scenario, model)
+    out = v.check_out_dir(args.out or _default_out(scenario.name), force=args.force)
+    if args.force:  # else the runner creates it, after its own checks (a refused run leaves no directory)
+        v.prepare_out_dir(out, force=True)
     console = Console(stderr=True)
     with Progress(
         TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
@@ -112,8 +106,8 @@ def print_summary(summary: dict, out: Path) -> None:
         ("events", str(len(summary["events"]))),
         ("run directory", str(out)),
     ]
-    for k, v in rows:
-        table.add_row(k, v)
+    for key, value in rows:
+        table.add_row(key, value)
     Console().print(table)
 
 
@@ -130,6 +124,7 @@ def cmd_reproduce(args) -> int:
     for m in modes:
         if m not in CASCADED_MODES:
             raise UserInputError(f"--modes: unknown mode {m!r} (known: {', '.join(CASCADED_MODES)})")
+    v.check_out_dir(args.out)  # its files are replaced on a re-run: a non-empty directory is fine here
     controllers = tuple(args.controllers.split(","))
     for c in controllers:
         if c not in ("mars-ftcc-paper", "cascaded"):
@@ -166,21 +161,34 @@ def cmd_sitl(args) -> int:
         name = Path(path).stem
     setup = load_setup(path, args.units, args.layout)  # refuse bad input before starting any process
     vehicle = _vehicle_ports(args, setup)
-    out = Path(args.out) if args.out else _default_out(name + "-sitl")
+    v.check_link_endpoints(args)
+    if setup.docked:  # a docked assembly: the shared checks of `run` and `vehicle`
+        from mars_link.scenario import check_faults_controllable, check_flight
+
+        check_faults_controllable(setup.scenario, setup.model)
+        if vehicle is None:  # --vehicle flies until Ctrl-C: no flight length to check
+            check_flight(setup.scenario, setup.model)
+    out = v.check_out_dir(args.out or _default_out(name + "-sitl"), force=args.force)
+    if args.signing_key_file:
+        from firmware_models.signing import load_key
+
+        load_key(args.signing_key_file)  # a bad key file is refused before the run directory exists
+    n = len(setup.unit_ids)  # the client ports of either transport
+    for what, port in (("--gcs-port", args.gcs_port), ("--api-port", args.api_port), ("--api-port + units", args.api_port + n - 1)):
+        if not 1 <= port <= 65535:
+            raise UserInputError(f"{what} must be 1..65535, got {port}")
     if getattr(args, "transport", None) not in (None, "udp") or getattr(args, "external_coordinator", False) \
             or getattr(args, "realtime", False) or getattr(args, "link_profile", None):
         if vehicle is not None and getattr(args, "external_coordinator", False):
             raise UserInputError("--vehicle is served by the coordinator sitl up starts: not with --external-coordinator")
         from mars_link.sitl_mode import sitl_up_command
 
+        v.prepare_out_dir(out, force=args.force)
         return sitl_up_command(args, path, out, vehicle)
     from sitl.launcher import ClientPorts
 
-    n = len(setup.unit_ids)
-    for name, port in (("--gcs-port", args.gcs_port), ("--api-port", args.api_port), ("--api-port + units", args.api_port + n - 1)):
-        if not 1 <= port <= 65535:
-            raise UserInputError(f"{name} must be 1..65535, got {port}")
     clients = ClientPorts(args.gcs_port, [args.api_port + i for i in range(n)], args.any_bind)
+    v.prepare_out_dir(out, force=args.force)
     code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,
                    signing_key_file=args.signing_key_file, vehicle=vehicle)
     print(f"run directory: {out}")
@@ -215,13 +223,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="fly a scenario (default: the bundled 3x2 spiral)")
     run.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name")
-    run.add_argument("--out", help="run directory (default runs/<name>-<time>)")
-    run.add_argument("--seed", type=int, default=None)
-    run.add_argument("--trials", type=int, default=1)
+    run.add_argument("--out", help="run directory (default runs/<name>-<time>); must be empty unless --force")
+    run.add_argument("--force", action="store_true", help="clear a non-empty --out first")
+    run.add_argument("--seed", type=v.seed, default=None, help=f"0..{v.SEED_MAX}")
+    run.add_argument("--trials", type=v.bounded_int(1, 100_000), default=1)
     run.add_argument("--ftc", help="allocation mode: none, unit, partial, full, hybrid, qp")
     run.add_argument("--controller", choices=("cascaded", "mars-ftcc-paper"))
     run.add_argument("--fault", action="append", metavar="UNIT[:ROTOR]=ETA[@T]")
-    run.add_argument("--duration", type=float, help="override the simulated duration [s]")
+    run.add_argument("--duration", type=v.positive_float, help="override the simulated duration [s]")
     run.add_argument("--no-noise", action="store_true", help="perfect sensors (truth state)")
     run.add_argument("--mode", default="inproc", help="inproc (default) or sitl")
     from mars_link.sitl_mode import add_sitl_run_arguments, add_coordinator_arguments, cmd_coordinator
@@ -233,8 +242,9 @@ def build_parser() -> argparse.ArgumentParser:
     sitl = sub.add_parser("sitl", help="up [SCENARIO] [--units N | --layout ROWS]: world, one process per unit (MAVLink), coordinator; lockstep")
     sitl.add_argument("action", help="up")
     sitl.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default: spiral_3x2)")
-    sitl.add_argument("--out", help="run directory (default runs/<name>-sitl-<time>)")
-    sitl.add_argument("--seed", type=int, default=None)
+    sitl.add_argument("--out", help="run directory (default runs/<name>-sitl-<time>); must be empty unless --force")
+    sitl.add_argument("--force", action="store_true", help="clear a non-empty --out first")
+    sitl.add_argument("--seed", type=v.seed, default=None, help=f"0..{v.SEED_MAX}")
     sitl.add_argument("--units", type=int, default=None,
                       help="N free units side by side on the ground, each flying itself (no coordinator)")
     sitl.add_argument("--layout", default=None, help="docked assembly of these rows, e.g. XXX,XXX (with coordinator)")
@@ -265,7 +275,13 @@ def build_parser() -> argparse.ArgumentParser:
 
     coord = sub.add_parser("coordinator", help="the coordinator process alone, attaching to running units")
     add_coordinator_arguments(coord)
-    coord.set_defaults(func=cmd_coordinator)
+
+    def checked_coordinator(args) -> int:  # the shared checks first (endpoints, --out)
+        v.check_link_endpoints(args)
+        v.check_out_dir(args.out)
+        return cmd_coordinator(args)
+
+    coord.set_defaults(func=checked_coordinator)
 
     veh = sub.add_parser("vehicle", help="the assembly as one MAVLink vehicle in real time (MAVSDK, MAVProxy, QGC)")
     from mars_link.realtime import add_arguments
@@ -278,10 +294,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     rep = sub.add_parser("reproduce", help="reproduce a paper table (table1: paper 000 Table I + Fig. 3)")
     rep.add_argument("what", help="table1")
-    rep.add_argument("--seeds", type=int, default=10)
+    rep.add_argument("--seeds", type=v.bounded_int(1, 10_000), default=10)
     rep.add_argument("--controllers", default="mars-ftcc-paper,cascaded")
     rep.add_argument("--modes", help="cascaded FTC modes, comma-separated (default: all)")
-    rep.add_argument("--duration", type=float, help="shorten every flight [s] (quick look)")
+    rep.add_argument("--duration", type=v.positive_float, help="shorten every flight [s] (quick look)")
     rep.add_argument("--out", default="runs/table1")
     rep.add_argument("--quiet", action="store_true")
     rep.set_defaults(func=cmd_reproduce)
@@ -305,12 +321,19 @@ def main(argv: list[str] | None = None) -> int:
             parser.print_help()
             return EXIT_USAGE
         return args.func(args)
-    except UserInputError as exc:
-        print(f"mars-link: error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
     except KeyboardInterrupt:
         print("mars-link: interrupted", file=sys.stderr)
         return 130
+    except (UserInputError, v.EnvironmentFailure, OSError) as exc:  # OSError: an unexpected disk/port refusal
+        line, code = v.report(exc)
+        print(line, file=sys.stderr)
+        return code
+    except Exception as exc:  # a Zenoh session that cannot open (port taken): one line, exit 1
+        if type(exc).__module__.split(".")[0] != "zenoh":
+            raise
+        line, code = v.report(exc)
+        print(line, file=sys.stderr)
+        return code
 
 
 if __name__ == "__main__":

@@ -86,6 +86,11 @@ class Coordinator:
         if telemetry_timeout_s is not None and not (math.isfinite(telemetry_timeout_s) and telemetry_timeout_s > 0):
             raise UserInputError(f"telemetry_timeout_s must be a number > 0, got {telemetry_timeout_s!r}")
         self.telemetry_timeout_s = telemetry_timeout_s
+        v = model.vehicle
+        # per-rotor thrust a unit accepts on the wire (controls in [min, 1] x full scale; a plant without a
+        # rotor minimum takes reversed thrust down to -full scale): commands are saturated to it
+        self.command_range_n = (
+            -v.full_scale_thrust_n if v.rotor_min_thrust_n is None else v.rotor_min_thrust_n, v.full_scale_thrust_n)
         self.lost_units: set[int] = set()
         self.rejected: dict[str, int] = {}  # reason -> packets dropped here
         self._last_seen_s: dict[int, float] = {}
@@ -181,11 +186,12 @@ class Coordinator:
             # while explanations tie (e.g. units {2,5}, {1,6}, {3,4} of a 3x2: each a pure lift loss),
             # the detector asks for a probe with zero net wrench on the believed assembly
             probe = self.detector.excitation_n(t_s)
-            if probe.any():  # within the rotors' own limits (none configured: unbounded, as the allocator)
-                v = self.model.vehicle
-                lo = -np.inf if v.rotor_min_thrust_n is None else v.rotor_min_thrust_n
-                hi = np.inf if v.rotor_max_thrust_n is None else v.rotor_max_thrust_n
-                thrusts = np.clip(thrusts + probe, lo, hi)
+            if probe.any():
+                thrusts = thrusts + probe
+        lo, hi = self.command_range_n
+        if thrusts.max() > hi or thrusts.min() < lo:  # what a unit accepts (rotor_intake), not more
+            thrusts = np.clip(thrusts, lo, hi)
+        if self.detector is not None:
             self._to_detect = (t_s, thrusts.copy(), estimate, [p.imu for p in packets if p.imu is not None])
         c2 = time.perf_counter()
         alloc = out.timings_s.get("allocation", 0.0)

@@ -15,6 +15,8 @@ pymavlink unchanged. Errors raise pymavlink's MAVError with pymavlink's reasons.
 
 from __future__ import annotations
 
+import functools
+import math
 import struct
 from dataclasses import dataclass
 from operator import itemgetter
@@ -172,3 +174,116 @@ def encode(msg: mavlink.MAVLink_message, mav: mavlink.MAVLink) -> bytes:
     msg._msgbuf = bytearray(frame)
     msg._crc = crc
     return frame
+
+
+# ----------------------------------------------------------------------------- wire ranges
+# Why: a field value outside its wire type (a modelled current of 400 A in an int16 centiamp field, a
+# NaN in an integer field) makes struct raise inside a telemetry send, which used to end the flight.
+# Telemetry must never stop a flight: such a message is clamped to the wire range instead, and a NaN
+# integer becomes the field's "invalid" value from the MAVLink definition (common.xml `invalid=`).
+ENCODE_ERRORS = (struct.error, OverflowError, ValueError, TypeError)
+FLT_MAX = 3.4028234663852886e38
+_INT_RANGES = {"int8_t": (-2**7, 2**7 - 1), "uint8_t": (0, 2**8 - 1), "int16_t": (-2**15, 2**15 - 1),
+               "uint16_t": (0, 2**16 - 1), "int32_t": (-2**31, 2**31 - 1), "uint32_t": (0, 2**32 - 1),
+               "int64_t": (-2**63, 2**63 - 1), "uint64_t": (0, 2**64 - 1), "uint8_t_mavlink_version": (0, 255)}
+_INVALID: dict[str, dict[str, str]] | None = None
+
+
+def _invalid_table() -> dict[str, dict[str, str]]:
+    """message name -> field name -> `invalid` attribute, read once from the dialect's own XML (shipped
+    beside pymavlink's generated module)."""
+    global _INVALID
+    if _INVALID is None:
+        import xml.etree.ElementTree as ET
+        from pathlib import Path
+
+        table: dict[str, dict[str, str]] = {}
+        xml = Path(mavlink.__file__).with_suffix(".xml")
+        try:
+            for m in ET.parse(xml).getroot().iter("message"):
+                fields = {f.get("name"): f.get("invalid") for f in m.iter("field") if f.get("invalid") is not None}
+                if fields:
+                    table[m.get("name")] = fields
+        except (OSError, ET.ParseError):
+            pass
+        _INVALID = table
+    return _INVALID
+
+
+def invalid_value(msg_name: str, field: str, ftype: str):
+    """The value MAVLink defines as "unknown / not sent" for this field (0 if it defines none; NaN
+    for float fields)."""
+    if ftype in ("float", "double"):
+        return float("nan")
+    text = _invalid_table().get(msg_name, {}).get(field, "0").strip("[]")
+    lo, hi = _INT_RANGES.get(ftype, (0, 0))
+    named = {"INT8_MAX": 2**7 - 1, "UINT8_MAX": 2**8 - 1, "INT16_MAX": 2**15 - 1, "UINT16_MAX": 2**16 - 1,
+             "INT32_MAX": 2**31 - 1, "UINT32_MAX": 2**32 - 1, "INT64_MAX": 2**63 - 1, "UINT64_MAX": 2**64 - 1}
+    try:
+        value = named[text] if text in named else int(text, 0)
+    except ValueError:
+        return 0
+    return min(max(value, lo), hi)
+
+
+def _clamp_one(value, ftype: str, unknown):
+    if ftype in ("float", "double"):
+        try:
+            x = float(value)
+        except (TypeError, ValueError):
+            return float("nan")
+        return max(-FLT_MAX, min(FLT_MAX, x)) if ftype == "float" and math.isfinite(x) else x
+    lo, hi = _INT_RANGES[ftype]
+    try:
+        x = float(value) if not isinstance(value, int) else value
+    except (TypeError, ValueError):
+        return unknown
+    if isinstance(x, float):
+        if math.isnan(x):
+            return unknown
+        if math.isinf(x):
+            return hi if x > 0 else lo
+        x = int(round(x))
+    return min(max(int(x), lo), hi)
+
+
+def clamp_fields(msg: mavlink.MAVLink_message) -> int:
+    """Clamp every numeric field of `msg`, in place, to its wire type's range (NaN in an integer
+    field -> its invalid value); returns how many values changed."""
+    changed = 0
+    for name, ftype, n, unknown in _numeric_fields(type(msg)):
+        value = getattr(msg, name)
+        if n:
+            items = list(value) if isinstance(value, (list, tuple)) else [value] * n
+            items = (items + [unknown] * n)[:n]
+            new = [_clamp_one(x, ftype, unknown) for x in items]
+            same = len(items) == len(value) if isinstance(value, (list, tuple)) else False
+            changed += sum(1 for a, b in zip(items, new) if not _same(a, b)) + (0 if same else 1)
+        else:
+            new = _clamp_one(value, ftype, unknown)
+            changed += 0 if _same(value, new) else 1
+        setattr(msg, name, new)
+    return changed
+
+
+@functools.lru_cache(maxsize=None)
+def _numeric_fields(cls: type) -> tuple:
+    """(name, type, array length, invalid value) of each numeric field, once per message type."""
+    return tuple((name, ftype, cls.array_lengths[cls.ordered_fieldnames.index(name)],
+                  invalid_value(cls.msgname, name, ftype))
+                 for name, ftype in zip(cls.fieldnames, cls.fieldtypes) if ftype != "char")
+
+
+def _same(a, b) -> bool:
+    return type(a) is type(b) and (a == b or (isinstance(a, float) and math.isnan(a) and math.isnan(b)))
+
+
+def encode_clamped(msg: mavlink.MAVLink_message, mav: mavlink.MAVLink) -> tuple[bytes, int]:
+    """`encode`, and when a field does not fit its wire type, `clamp_fields` then encode: (frame,
+    number of values clamped). The fast path costs nothing extra; a message that still cannot be
+    encoded raises one of ENCODE_ERRORS (or MAVError) for the caller to count and drop."""
+    try:
+        return encode(msg, mav), 0
+    except ENCODE_ERRORS:
+        n = clamp_fields(msg)
+        return encode(msg, mav), max(n, 1)

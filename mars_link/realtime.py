@@ -33,13 +33,14 @@ import numpy as np
 from firmware_models.vehicle import LINK_API, LINK_GCS
 from firmware_models.vehicle_io import API_PORT_BASE, GCS_PORT, LOOPBACK, LinkSpec, VehicleSockets, write_json_atomic
 from mars_link.assembly_vehicle import DEFAULT_SYSID, AssemblySim, SimConfig
+from mars_link import validation
 from mars_link.errors import UserInputError
+from mars_link.pacing import Pacer
 
 STATUS_PERIOD_S = 0.2
 DEFAULT_SCENARIO = "hover_3x2"
 API_PORT = API_PORT_BASE  # the assembly takes instance 0's ports, like a single PX4 SITL drone
 GCS_BIND, API_BIND = 18560, 14560  # below the units' 18570+i / 14580+i
-REANCHOR_S = 0.25  # this far behind wall time: re-anchor (an overrun) instead of racing
 
 
 class AssemblyRunner:
@@ -58,9 +59,8 @@ class AssemblyRunner:
         self.status_path = Path(status_file) if status_file else None
         self.duration_s = duration_s
         self.running = True
-        self.overruns = 0
+        self.pacer = Pacer(speed)  # overruns (re-anchored) and late steps are counted there
         self.steps = 0
-        self.late_steps = 0  # a step that started more than one control period after it was due
         self._step_s: list[float] = []  # compute time per step (a rolling window)
 
     def endpoints(self) -> dict:
@@ -89,28 +89,23 @@ class AssemblyRunner:
             **self.io.counters(), "overruns": self.overruns, "steps": self.steps, "late_steps": self.late_steps,
             "step_p50_ms": float(np.percentile(steps, 50) * 1e3), "step_p99_ms": float(np.percentile(steps, 99) * 1e3),
             "endpoints": self.endpoints(),
+            "mission_reached": v.mission_reached, "mission_counts": v.mission.counts,
         }
         write_json_atomic(self.status_path, status)
 
     def run(self) -> int:
         start = time.monotonic()
-        anchor_wall, anchor_sim = start, self.sim.t_s
-        period = self.sim.control_dt_s / self.speed
+        pacer = self.pacer
+        pacer.start(self.sim.t_s)
         next_status = start
         self.write_status()
         while self.running:
             now = time.monotonic()
             if self.duration_s is not None and now - start >= self.duration_s:
                 break
-            due = anchor_wall + (self.sim.t_s - anchor_sim) / self.speed
-            self.io.poll(due - now)
+            self.io.poll(pacer.wait_s(self.sim.t_s))
             now = time.monotonic()
-            if now >= due:
-                if now - due > REANCHOR_S:
-                    self.overruns += 1
-                    anchor_wall, anchor_sim = now, self.sim.t_s
-                elif now - due > period:
-                    self.late_steps += 1
+            if pacer.is_due(self.sim.t_s, self.sim.control_dt_s):
                 c0 = time.perf_counter()
                 self.io.send(self.sim.step(time.time()))
                 self._step_s.append(time.perf_counter() - c0)
@@ -122,6 +117,14 @@ class AssemblyRunner:
                 self.write_status()
         self.write_status()
         return 0
+
+    @property
+    def overruns(self) -> int:
+        return self.pacer.overruns
+
+    @property
+    def late_steps(self) -> int:
+        return self.pacer.late_steps
 
     def close(self) -> None:
         self.io.close()
@@ -138,7 +141,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--api-port", type=int, default=API_PORT, help=f"MAVSDK listens here (default {API_PORT})")
     p.add_argument("--gcs-bind", type=int, default=GCS_BIND, help=f"local port of the gcs link (default {GCS_BIND}; 0 any)")
     p.add_argument("--api-bind", type=int, default=API_BIND, help=f"local port of the api link (default {API_BIND}; 0 any)")
-    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--seed", type=validation.seed, default=None, help=f"0..{validation.SEED_MAX}")
     p.add_argument("--ftc", help="allocation mode: none, unit, partial, full, hybrid, qp")
     p.add_argument("--fault", action="append", metavar="UNIT[:ROTOR]=ETA[@T]", help="T: seconds after start")
     p.add_argument("--no-noise", action="store_true", help="perfect sensors (truth state)")
@@ -146,7 +149,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--speed", type=float, default=1.0, help="simulation speed, x real time")
     p.add_argument("--status-file", help="JSON snapshot (truth, mode, counters) a few times a second")
     p.add_argument("--tlog", help="MAVLink log of both links (pymavlink .tlog), appended and flushed as it goes")
-    p.add_argument("--duration", type=float, help="stop after this many wall seconds")
+    p.add_argument("--duration", type=validation.positive_float, help="stop after this many wall seconds")
 
 
 def _check_port(name: str, value: int, allow_zero: bool) -> int:
@@ -173,6 +176,9 @@ def build_sim(args: argparse.Namespace) -> AssemblySim:
     model = scenario.model()
     for f in scenario.faults:
         validate_fault(f, model, f"fault {f.describe()}")
+    from mars_link.scenario import check_faults_controllable
+
+    check_faults_controllable(scenario, model)  # the check `run` and `sitl up` make
     if args.seed is not None:
         scenario.sim.seed = args.seed
     if args.no_noise:
@@ -197,6 +203,8 @@ def vehicle_command(args: argparse.Namespace) -> int:
         "gcs_bind": _check_port("--gcs-bind", args.gcs_bind, True),
         "api_bind": _check_port("--api-bind", args.api_bind, True),
     }
+    validation.check_file_parent(args.status_file, "--status-file")
+    validation.check_file_parent(args.tlog, "--tlog")
     sim = build_sim(args)
     try:
         runner = AssemblyRunner(sim, ports, args.speed, args.status_file, args.duration, args.tlog)

@@ -9,7 +9,6 @@ re-simulation of specs/ftc.md §9 (marked "resim").
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from mars_link.outputs import write_json
 from mars_link.runner import run_trial
 from mars_link.scenario import scenario_from_dict
 
@@ -165,7 +165,7 @@ def write_results(rows: list[Row], seeds: int, out_dir: Path) -> Path:
          "diverged": r.diverged}
         for r in rows
     ]
-    (out_dir / "table1.json").write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+    write_json(out_dir / "table1.json", data)  # strict JSON: NaN/inf -> null
     return out_dir / "table1.md"
 
 
@@ -309,7 +309,7 @@ def ekf_accuracy(scenario_name: str = "spiral_3x2", seed: int = 1, after_s: floa
     Also the estimator's cost per control step (the runner's stage timer).
     """
     from mars_link.rotations import euler_to_quat, quat_to_rotmat
-    from mars_link.runner import RunLog
+    from mars_link.run_log import RunLog
     from mars_link.scenario import load_scenario
 
     scenario = load_scenario(scenario_name)

@@ -15,6 +15,7 @@ from typing import Any
 
 from mars_link.assembly import AssemblyModel, PRESETS, parse_layout, vehicle_preset
 from mars_link.errors import UserInputError
+from mars_link.validation import check_id_digits, check_seed
 
 CONTROLLERS = ("cascaded", "mars-ftcc-paper")
 FTC_MODES = ("none", "unit", "partial", "full", "hybrid", "qp")
@@ -41,6 +42,16 @@ class FaultSpec:
 
     def _where(self) -> str:
         return f"unit {self.unit}" + (f" rotor {self.rotor}" if self.rotor else "")
+
+
+def eta_after(model: AssemblyModel, faults: list[FaultSpec], t_s: float):
+    """Per-rotor efficiencies (4N, the model's slot order) once every fault at or before `t_s` acted."""
+    eta = model.nominal_eta()
+    for f in faults:
+        if f.t_s <= t_s:
+            sl = model.unit_slots(f.unit) if f.rotor is None else model.rotor_slot(f.unit, f.rotor)
+            eta[sl] = f.eta
+    return eta
 
 
 @dataclass
@@ -143,15 +154,18 @@ def parse_fault_arg(text: str) -> FaultSpec:
     """`UNIT[:ROTOR]=ETA[@T]`, e.g. `2:2=0.5`, `3=0@10`."""
     m = _FAULT_RE.match(text)
     if not m:
+        shown = text if len(text) <= 60 else text[:40] + "..."
         raise UserInputError(
-            f"--fault {text!r}: expected UNIT[:ROTOR]=ETA[@T], e.g. 2:2=0.5 or 3=0@10"
+            f"--fault {shown!r}: expected UNIT[:ROTOR]=ETA[@T], e.g. 2:2=0.5 or 3=0@10"
         )
     try:
         eta = float(m["eta"])
         t = float(m["t"]) if m["t"] else 0.0
     except ValueError:
-        raise UserInputError(f"--fault {text!r}: ETA and T must be numbers") from None
-    return FaultSpec(int(m["unit"]), int(m["rotor"]) if m["rotor"] else None, eta, t)
+        raise UserInputError(f"--fault {text[:60]!r}: ETA and T must be numbers") from None
+    unit = check_id_digits(m["unit"], f"--fault {text[:40]!r} unit")
+    rotor = check_id_digits(m["rotor"], f"--fault {text[:40]!r} rotor") if m["rotor"] else None
+    return FaultSpec(unit, rotor, eta, t)
 
 
 def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
@@ -235,12 +249,14 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
     _check_keys(sim, _SIM_KEYS, "[sim]", src)
     if "duration_s" in sim:
         sc.sim.duration_s = _number(sim["duration_s"], "[sim] duration_s", src, positive=True)
+        if sc.sim.duration_s > MAX_DURATION_S:
+            raise UserInputError(f"{src}: [sim] duration_s must be <= {MAX_DURATION_S:g}, got {sc.sim.duration_s:g}")
     if "physics_hz" in sim:
         sc.sim.physics_hz = _number(sim["physics_hz"], "[sim] physics_hz", src, positive=True)
     if "control_hz" in sim:
         sc.sim.control_hz = _number(sim["control_hz"], "[sim] control_hz", src, positive=True)
     if "seed" in sim:
-        sc.sim.seed = _integer(sim["seed"], "[sim] seed", src)
+        sc.sim.seed = check_seed(_integer(sim["seed"], "[sim] seed", src), f"{src}: [sim] seed")
     if "noise" in sim:
         if not isinstance(sim["noise"], bool):
             raise UserInputError(f"{src}: [sim] noise must be true or false")
@@ -291,13 +307,71 @@ def _reconfig_table(table: dict, src: str) -> dict:
     return out
 
 
+MAX_PHYSICS_HZ = 100_000.0  # a sane bound: beyond it a second of flight is minutes of stepping
+MAX_DURATION_S = 1e6  # 11.6 days of simulated flight
+
+
 def check_rates(sim: SimSpec, src: str) -> None:
+    if sim.physics_hz > MAX_PHYSICS_HZ:
+        raise UserInputError(f"{src}: [sim] physics_hz must be <= {MAX_PHYSICS_HZ:g}, got {sim.physics_hz:g}")
     ratio = sim.physics_hz / sim.control_hz
     if ratio < 1 or abs(ratio - round(ratio)) > 1e-9:
         raise UserInputError(
             f"{src}: [sim] physics_hz ({sim.physics_hz:g}) must be a whole multiple of control_hz "
             f"({sim.control_hz:g})"
         )
+
+
+def flight_duration_s(scenario: Scenario, model: AssemblyModel | None = None) -> float:
+    """How long the flight lasts: [sim] duration_s, else the trajectory's (built to find out)."""
+    if scenario.sim.duration_s is not None:
+        return scenario.sim.duration_s
+    try:  # the runners' trajectory builder (it knows the planner for kind "plan")
+        from mars_link.runner import make_trajectory
+    except ImportError:
+        from mars_link.build import make_trajectory
+
+    return make_trajectory(scenario, model or scenario.model()).duration_s
+
+
+def check_flight(scenario: Scenario, model: AssemblyModel | None = None) -> int:
+    """Refuse a flight that would report a result it never flew: fewer than one control step
+    (`control_hz = 1e-300`, `--duration 1e-9`), or a fault timed after the last control step (the
+    runner would silently never inject it). Returns the number of control steps (-1: not checked, a
+    planned trajectory without [sim] duration_s)."""
+    src = scenario.source
+    if scenario.sim.duration_s is None and scenario.trajectory.get("kind") == "plan":
+        return -1  # its length is known only after planning (seconds of work): the runner's to check
+    duration = flight_duration_s(scenario, model)
+    steps_f = duration * scenario.sim.control_hz
+    if not math.isfinite(steps_f) or steps_f > 1e9:
+        raise UserInputError(f"{src}: {duration:g} s at {scenario.sim.control_hz:g} Hz is not a flight this runner "
+                             "can step (more than 1e9 control steps)")
+    steps = int(round(steps_f))
+    if steps < 1:
+        raise UserInputError(f"{src}: a flight of {duration:g} s at control_hz {scenario.sim.control_hz:g} has no "
+                             "control step (duration x control_hz must be >= 1)")
+    last_t = (steps - 1) / scenario.sim.control_hz
+    for f in scenario.faults:
+        if f.t_s > last_t + 1e-9:
+            raise UserInputError(f"{src}: fault {f.describe()} comes after the flight ends "
+                                 f"(last control step at t={last_t:g}s)")
+    return steps
+
+
+def check_faults_controllable(scenario: Scenario, model: AssemblyModel | None = None) -> None:
+    """The one controllability check of `run`, `vehicle` and `sitl up`: with every fault of the
+    scenario applied, the assembly must still produce the full wrench and hover within its thrust
+    limits (mars_link.allocation.check_controllable). A UserInputError line otherwise."""
+    if not scenario.faults:
+        return
+    from mars_link.allocation import check_controllable
+
+    model = model or scenario.model()
+    eta = model.nominal_eta()  # every fault applied (the runners' eta_after at t = inf)
+    for f in sorted(scenario.faults, key=lambda f: f.t_s):
+        eta[model.unit_slots(f.unit) if f.rotor is None else model.rotor_slot(f.unit, f.rotor)] = f.eta
+    check_controllable(model, eta, (model.vehicle.rotor_min_thrust_n, model.vehicle.rotor_max_thrust_n))
 
 
 def resolve_scenario_path(arg: str | None) -> Path:

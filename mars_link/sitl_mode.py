@@ -221,7 +221,7 @@ class _ProgressWatcher:
         self._thread = None
         if on_progress is None:
             return
-        from mars_link.runner import make_trajectory
+        from mars_link.build import make_trajectory
 
         duration = scenario.sim.duration_s or make_trajectory(scenario, scenario.model()).duration_s
 
@@ -245,9 +245,11 @@ class _ProgressWatcher:
 def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True,
                        realtime: bool = False, cpu_wake_latency: str | None = None) -> dict:
     """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them."""
-    from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
-    from mars_link.runner import (DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, ROTOR_LOG_HZ, RunLog, TrialResult,
-                                  make_trajectory, summarize, tracked_offset)
+    from mars_link.build import make_trajectory, tracked_offset
+    from mars_link.metrics import TrackingMetrics, TrialResult, summarize
+    from mars_link.rotations import quat_to_euler, quat_to_rotmat
+    from mars_link.outputs import write_json
+    from mars_link.run_log import ROTOR_LOG_HZ, RunLog
 
     model = scenario.model()
     trajectory = make_trajectory(scenario, model)
@@ -256,7 +258,8 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     world = _read_json(out / "world_summary.json")
     coordinator = _read_json(out / "coordinator_summary.json")
     log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ))
-    errs, tilts, diverged, events = [], [], False, []
+    metrics = TrackingMetrics()
+    events = []
     nan3 = [math.nan] * 3
     try:
         for row in truth:
@@ -265,36 +268,33 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
             q = np.array([row["qw"], row["qx"], row["qy"], row["qz"]])
             tracked = pos + quat_to_rotmat(q) @ offset
             ref = trajectory.sample(t).position_ned_m
-            err = float(np.linalg.norm(tracked - ref))
-            tilt = tilt_deg(q)
-            errs.append(err)
-            tilts.append(tilt)
+            err, _ = metrics.add(t, tracked, ref, q)
             roll, pitch, yaw = quat_to_euler(q)
             log.telemetry([0, t, *ref, *tracked, math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
                            *nan3, *nan3, *pos])
-            if not (err < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG and math.isfinite(err)):
-                diverged = True
-                events.append({"t_s": round(t, 6), "type": "diverged", "error_m": err, "tilt_deg": tilt})
+            if metrics.diverged:
+                events.append(metrics.divergence)
                 break
         force_integral = _write_rotor_log(log, scenario, model, out)
     finally:
         log.close()
-    errors = np.asarray(errs) if errs else np.array([math.nan])
+    no_rows = metrics.n == 0  # (the world logged nothing: NaN figures, never a clean 0 m)
     coord_events = coordinator.get("events", [])
     for death in world.get("deaths", []):
         events.append({"t_s": death["t_s"], "type": "unit_died", "unit": death["unit"],
                        "text": f"Unit {death['unit']} silent: motors off"})
     result = TrialResult(
-        seed=seed, completed=not diverged and not world.get("stopped", False), diverged=diverged,
-        mean_error_m=float(errors.mean()), rmse_m=float(np.sqrt((errors ** 2).mean())), max_error_m=float(errors.max()),
+        seed=seed, completed=not metrics.diverged and not world.get("stopped", False), diverged=metrics.diverged,
+        mean_error_m=math.nan if no_rows else metrics.mean_error_m, rmse_m=math.nan if no_rows else metrics.rmse_m,
+        max_error_m=math.nan if no_rows else metrics.max_error_m,
         sim_time_s=float(world.get("sim_time_s", 0.0)), wall_time_s=wall_s,
-        force_integral_n2s=float(world.get("force_integral_n2s", force_integral)), max_tilt_deg=float(max(tilts, default=math.nan)),
+        force_integral_n2s=float(world.get("force_integral_n2s", force_integral)),
+        max_tilt_deg=math.nan if no_rows else metrics.max_tilt_deg,
         events=sorted(events + list(coord_events), key=lambda e: e.get("t_s", 0.0)),
-        control_steps=len(errs),
+        control_steps=metrics.n,
         detections=_detections(scenario, coordinator, world),
     )
-    summary = summarize(scenario, [result], seed)
-    summary["mode"] = "sitl"
+    summary = summarize(scenario, [result], seed, mode="sitl")
     summary["sitl"] = {
         "transport": link.kind,
         "link_profile": link.profile,
@@ -309,7 +309,8 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "command_age": command_age_summary(out) if realtime else {"n": 0, "note": "measured with --realtime only"},
         "cpu_wake_latency": cpu_wake_latency,  # real time: idle CPUs kept awake (transport.realtime.CpuWakeLatency)
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n", encoding="utf-8")
+    summary["logging"] = log.status()
+    write_json(out / "summary.json", summary)
     if plots and log.telemetry_rows:
         from mars_link.plots import write_run_plots
 
@@ -341,7 +342,7 @@ def _write_rotor_log(log, scenario, model, out: Path) -> float:
     integral Σ rotors ∫ thrust² dt over the control steps."""
     from pymavlink.dialects.v20 import common as mavlink
 
-    from mars_link.runner import eta_after
+    from mars_link.scenario import eta_after
 
     scale = model.vehicle.full_scale_thrust_n
     cmd: dict[int, dict[int, np.ndarray]] = {}
@@ -379,10 +380,10 @@ def _write_rotor_log(log, scenario, model, out: Path) -> float:
 def _detections(scenario, coordinator: dict, world: dict) -> list[dict]:
     """summary.json `detections` as in-process: t_fault from the scenario's faults or the world's
     declared deaths (a killed unit process), None for a false alarm."""
-    from mars_link.runner import _fault_time
+    from mars_link.metrics import fault_time
 
     deaths = {d["unit"]: d["t_s"] for d in world.get("deaths", [])}
-    return [{"t_fault": _fault_time(scenario.faults, d["unit"], d["rotor"], deaths), **d}
+    return [{"t_fault": fault_time(scenario.faults, d["unit"], d["rotor"], deaths), **d}
             for d in coordinator.get("detections", [])]
 
 

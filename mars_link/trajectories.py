@@ -14,6 +14,7 @@ import csv
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -448,6 +449,7 @@ TRAJECTORY_KINDS = tuple(k for k in _KINDS if k != "plan")
 _POSITIVE = {"k_radps", "T", "revolutions", "height_m", "climb_s", "duration_s", "radius_m", "speed_mps",
              "turns", "ramp_s", "cruise_mps", "min_segment_s", "start_height_m", "period_s"}
 _NON_NEGATIVE = {"climb_mps", "hold_s"}
+MAX_ABS_PARAM = 1e6  # m, s, deg: beyond it a parameter is a typo, and float arithmetic overflows
 
 
 def _is_numbers(value, count: int) -> bool:
@@ -456,11 +458,14 @@ def _is_numbers(value, count: int) -> bool:
     )
 
 
-def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=None) -> Trajectory:
+def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=None,
+                     plan_builder: Callable[[dict, float], Trajectory] | None = None) -> Trajectory:
     """Build a trajectory kind from scenario parameters; every problem is one UserInputError line.
 
     `start_ned_m` ([n, e], a down component is ignored) is the take-off point of the spiral, hover
     and helix (default the origin); waypoints and csv take off under their own first point.
+    `plan_builder(params, rest_height_m)` builds kind "plan" (the planner sits above this module:
+    `mars_link.build.make_trajectory` passes `mars_link.planning.pipeline.build_plan_trajectory`).
     """
     if kind not in _KINDS:
         raise UserInputError(f"[trajectory] unknown kind {kind!r} (known: {', '.join(_KINDS)})")
@@ -479,6 +484,8 @@ def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=
         if want is float:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise UserInputError(f"[trajectory] {key} must be a number, got {value!r}")
+            if abs(value) > MAX_ABS_PARAM:
+                raise UserInputError(f"[trajectory] {key} must be within +-{MAX_ABS_PARAM:g}, got {value!r}")
             if key in _POSITIVE and value <= 0:
                 raise UserInputError(f"[trajectory] {key} must be > 0, got {value!r}")
             if key in _NON_NEGATIVE and value < 0:
@@ -514,7 +521,7 @@ def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=
     if kind == "csv":
         return CsvTrajectory(rest_height_m, **clean)
     if kind == "plan":
-        from mars_link.planning.pipeline import build_plan_trajectory
-
-        return build_plan_trajectory(clean, rest_height_m)
+        if plan_builder is None:
+            raise UserInputError("[trajectory] kind 'plan' needs the planner: build it with mars_link.build.make_trajectory")
+        return plan_builder(clean, rest_height_m)
     return cls(rest_height_m, start, **clean)

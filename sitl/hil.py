@@ -1,19 +1,17 @@
 """World -> unit ground truth as PX4's simulators send it: HIL_STATE_QUATERNION.
 
 Position goes as latitude/longitude on the spherical Earth the unit firmware assumes (origin 0, 0,
-local NED north = R * lat, `firmware_models.vehicle.EARTH_RADIUS_M`): 1e-7 deg is about 1.1 cm;
+local NED north = R * lat, `firmware_models.geo.WIRE_ORIGIN`): 1e-7 deg is about 1.1 cm;
 altitude in mm, velocity in cm/s, as the message defines them. The firmware uses it for its own
 telemetry and arming checks; a coordinator never receives it.
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.vehicle import EARTH_RADIUS_M
+from firmware_models.geo import WIRE_ORIGIN
 from mars_link.state import RigidBodyState
 
 
@@ -23,9 +21,7 @@ def _int16(x: float) -> int:
 
 def hil_state_message(s: RigidBodyState, time_usec: int) -> mavlink.MAVLink_hil_state_quaternion_message:
     p = s.position_ned_m
-    lat = int(round(math.degrees(p[0] / EARTH_RADIUS_M) * 1e7))
-    lon = int(round(math.degrees(p[1] / EARTH_RADIUS_M) * 1e7))
-    alt_mm = int(round(-p[2] * 1000))
+    lat, lon, alt_mm = WIRE_ORIGIN.to_global_int(p)
     v = s.velocity_ned_mps
     w = s.angular_velocity_frd_radps
     speed_cms = min(65535, int(round(float(np.linalg.norm(v)) * 100)))

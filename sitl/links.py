@@ -19,7 +19,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle import split_frames
 from mars_link import mavlink_codec
-from mars_link.errors import UserInputError
+from mars_link.errors import PortUnavailable, UserInputError
 from mars_link.transport import LinkSpec
 from mars_link.transport.base import Address, Transport
 from mars_link.wire import new_mav
@@ -64,7 +64,7 @@ class Ports:
                 t = UdpTransport(UdpParams(port=port, fd=fd, validate_frames=False,  # Link/Vehicle parse and count
                                            recv_buffer_bytes=RECV_BUFFER_BYTES))
             except OSError as e:
-                raise UserInputError(f"cannot bind UDP port {port} on {LOOPBACK}: {e.strerror}") from None
+                raise PortUnavailable(f"cannot bind UDP port {port} on {LOOPBACK}: {e.strerror}") from None
         else:
             if fd is not None:  # the launcher's port reservation: unused on Zenoh
                 os.close(fd)

@@ -69,7 +69,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.signing import load_key
-from mars_link.errors import UserInputError
+from mars_link.errors import EnvironmentFailure, UserInputError
 from mars_link.messages import SensorPacket
 from mars_link.transport import LinkSpec, add_link_args, spec_from_args
 from mars_link.wire import (
@@ -155,24 +155,21 @@ def load_setup(scenario: str | None, units: int | None = None, layout: str | Non
 def position_every(setup: SitlSetup) -> int:
     """Mocap position samples every n-th exchange (the in-process runner's rate)."""
     if setup.position_every is None:
-        from mars_link.runner import POSITION_RATE_HZ
+        from mars_link.build import position_every as scenario_position_every
 
-        setup.position_every = max(1, round(setup.scenario.sim.control_hz / POSITION_RATE_HZ))
+        setup.position_every = scenario_position_every(setup.scenario)
     return setup.position_every
 
 
 def _start_pose(setup: SitlSetup):
     """Where the assembly's CoM starts (as the in-process runner puts it) and its yaw."""
-    from mars_link.rotations import quat_to_rotmat
-    from mars_link.runner import _yaw_quat, tracked_offset
+    from mars_link.build import start_pose
 
-    start = _trajectory(setup.scenario, setup.model).sample(0.0)
-    com = start.position_ned_m - quat_to_rotmat(_yaw_quat(start.yaw_rad)) @ tracked_offset(setup.model, setup.scenario)
-    return com, start.yaw_rad
+    return start_pose(setup.scenario, setup.model)
 
 
 def _trajectory(sc, model):
-    from mars_link.runner import make_trajectory
+    from mars_link.build import make_trajectory
 
     return make_trajectory(sc, model)
 
@@ -340,18 +337,15 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
              command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None) -> int:
     """The unit's full firmware on its HIL, coordinator and client links; with a signing `key` the
     coordinator link accepts only genuinely signed frames (and signs what it sends)."""
-    from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL, Vehicle, VehicleConfig
+    from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL
+    from mars_link.build import make_unit
     from firmware_models.vehicle_io import LinkSpec, VehicleSockets, client_links, vehicle_status, write_json_atomic
 
     sc = setup.scenario
     client = client or UnitPorts()
     index = setup.unit_ids.index(unit_id)
-    vehicle = Vehicle(VehicleConfig(unit_id=unit_id, vehicle=setup.model.vehicle, control_hz=sc.sim.control_hz,
-                                    coordinator_sysid=COORDINATOR_SYSID, world_sysid=WORLD_SYSID,
-                                    hil_await_coordinator=setup.docked, signing_key=key), time.time())
-    for f in sc.faults:
-        if f.unit == unit_id:
-            vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta)
+    vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
+                        wall_time_s=time.time())
     links = client_links(index, client.gcs_port, client.api_port, client.gcs_bind, client.api_bind)
     links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
     if setup.docked:
@@ -424,35 +418,28 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     coordinator_timing.csv gets each step's wall-clock times (first and last telemetry in, commands
     computed, sent; CPU time of the step and of the sends): with the units' command_age logs, where a
     real-time step's time goes (wall time above CPU time = the coordinator waited for a CPU)."""
-    from mars_link.coordinator import Coordinator
-    from mars_link.runner import eta_after, make_controller
+    from mars_link.build import make_coordinator, make_detector, make_estimator
+    from mars_link.scenario import eta_after
 
     sc = setup.scenario
     model = setup.model
     trajectory = _trajectory(sc, model)
     faults = sorted(sc.faults, key=lambda f: f.t_s)
-    eta0 = eta_after(model, faults, 0.0) if sc.faults_known else model.nominal_eta()
-    estimator = detector = None
-    if sc.sim.noise and vehicle is None:  # (the hosted vehicle runs its own, also while disarmed)
-        from mars_link.estimation import AssemblyEstimator
-
-        estimator = AssemblyEstimator(model)
-    if not sc.faults_known:
-        detector = _fault_detector(model, float(_start_pose(setup)[0][2]))
+    detector = make_detector(sc, model, float(_start_pose(setup)[0][2]))
     hosted = None
     if vehicle is not None:
         from sitl.vehicle_host import HostedVehicle
 
         out.mkdir(parents=True, exist_ok=True)
         try:
-            hosted = HostedVehicle(sc, model, make_controller(sc, model, eta0), detector, vehicle, out)
+            hosted = HostedVehicle(sc, model, detector, vehicle, out)
         except UserInputError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
         coordinator = hosted.coordinator
         print(json.dumps({"vehicle": hosted.endpoints()}), flush=True)
     else:
-        coordinator = Coordinator(model, trajectory, make_controller(sc, model, eta0), estimator, detector)
+        coordinator = make_coordinator(sc, model, trajectory, make_estimator(sc, model), detector)
     stop = _Stop()
     link = Link(ports.open("coordinator"), COORDINATOR_SYSID, key=key)
     scale = model.vehicle.full_scale_thrust_n
@@ -587,15 +574,6 @@ def _with_takeover(unit: int, accepted: set[int], rotor_cmd) -> list:
     return before + [rotor_cmd] + after
 
 
-def _fault_detector(model, ground_down_m: float):
-    from mars_link.fault_detection import FaultDetector
-
-    try:  # every flight starts landed (the in-process runner tells the detector the ground height)
-        return FaultDetector(model, ground_down_m=ground_down_m)
-    except TypeError:
-        return FaultDetector(model)
-
-
 # ----------------------------------------------------------------------------- entry point
 def set_batch_scheduling() -> bool:
     """SCHED_BATCH for this process (Linux; no privilege needed): a batch task that wakes up never
@@ -663,7 +641,10 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     try:
         return _run_role(args, setup, ports, out, key)
-    except UserInputError as e:  # e.g. a port that cannot be bound
+    except EnvironmentFailure as e:  # e.g. a port that cannot be bound
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    except UserInputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     finally:  # the links' logs written, the Zenoh session closed (an open one hangs the exit)

@@ -71,26 +71,22 @@ class VehiclePorts:
 class HostedVehicle:
     """AssemblyVehicle + its client sockets, stepped by the lockstep coordinator."""
 
-    def __init__(self, scenario, model, controller, detector, ports: VehiclePorts, out: Path) -> None:
+    def __init__(self, scenario, model, detector, ports: VehiclePorts, out: Path) -> None:
         from firmware_models.vehicle import LINK_API, LINK_GCS
         from firmware_models.vehicle_io import LOOPBACK, LinkSpec, VehicleSockets
         from mars_link.assembly_vehicle import AssemblyVehicle, SetpointSource, _KnownEstimate, vehicle_scenario
-        from mars_link.coordinator import Coordinator
+        from mars_link.build import make_coordinator, make_estimator
         from mars_link.trajectories import TrajectoryPoint
 
         self.scenario = sc = vehicle_scenario(scenario)  # refuses [reconfig]; setpoints are for the CoM
         if sc.controller != "cascaded":
             raise UserInputError(f"controller {sc.controller!r}: the vehicle flies setpoints with 'cascaded' only")
         self.model = model
-        self.estimator = None
-        if sc.sim.noise:
-            from mars_link.estimation import AssemblyEstimator
-
-            self.estimator = AssemblyEstimator(model)
+        self.estimator = make_estimator(sc, model)
         self.estimator_resets = 0
         self._known = _KnownEstimate()
-        self.coordinator = Coordinator(model, SetpointSource(TrajectoryPoint(np.zeros(3))), controller, self._known,
-                                       detector)
+        self.coordinator = make_coordinator(sc, model, SetpointSource(TrajectoryPoint(np.zeros(3))), self._known,
+                                            detector)
         self.vehicle = AssemblyVehicle(self.coordinator, ports.sysid, sc.sim.control_hz, sc.ftc, None, time.time())
         self.vehicle.on_failure = self._inject
         self._unit_commands: dict[int, list] = {}

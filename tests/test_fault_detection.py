@@ -343,7 +343,7 @@ def test_fdi_scoring_counts_false_alarms_delay_and_eta_error():
 
 def _coordinator(detector: bool = True, **kwargs):
     from mars_link.coordinator import Coordinator
-    from mars_link.runner import make_controller, make_trajectory
+    from mars_link.build import make_controller, make_trajectory
     from mars_link.scenario import load_scenario
 
     scenario = load_scenario("spiral_3x2")
@@ -442,7 +442,8 @@ def test_runner_unit_process_death_mid_spiral_is_survived():
     motors stop (sitl World.declare_dead). The coordinator, not told, declares it lost within the
     timeout, reallocates and the assembly finishes the spiral."""
     reproduce = _runner()
-    from mars_link.runner import UNIT_TIMEOUT_PERIODS, run_trial
+    from mars_link.build import UNIT_TIMEOUT_PERIODS
+    from mars_link.runner import run_trial
 
     sc = reproduce.scenario_for(reproduce.CASES[0], "cascaded", "qp", None, faults_known=False)
     r = run_trial(sc, 1, unit_deaths={3: 10.0})

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from mars_link.reconfig.flight import make_plan, run_reconfig_trial, unhoverable_pieces
-from mars_link.runner import eta_after
+from mars_link.scenario import eta_after
 from mars_link.scenario import load_scenario, scenario_from_dict
 
 FAST = {"at_s": 5.0, "speed_mps": 0.6, "approach_speed_mps": 0.3, "settle_s": 0.5, "stop_s": 1.0}

@@ -310,7 +310,9 @@ def test_empty_mission_fence_and_rally_lists() -> None:
         assert (ack[0].type, ack[0].mission_type) == (mavlink.MAV_MISSION_ACCEPTED, kind)
         ack = gcs.send(mavlink.MAVLink_mission_clear_all_message(1, 1, kind))
         assert ack[0].type == mavlink.MAV_MISSION_ACCEPTED
-    assert gcs.send(mavlink.MAVLink_mission_count_message(1, 1, 3, 0))[0].type == mavlink.MAV_MISSION_NO_SPACE
+    # a non-empty upload is asked for item by item (tests/test_mission_protocol.py); an oversized one is refused
+    assert gcs.send(mavlink.MAVLink_mission_count_message(1, 1, 3, 0))[0].get_type() == "MISSION_REQUEST_INT"
+    assert gcs.send(mavlink.MAVLink_mission_count_message(1, 1, 5000, 0))[0].type == mavlink.MAV_MISSION_NO_SPACE
     assert gcs.send(mavlink.MAVLink_mission_request_int_message(1, 1, 0, 0))[0].type == mavlink.MAV_MISSION_INVALID_SEQUENCE
 
 
@@ -440,11 +442,11 @@ def test_velocity_setpoints_reposition_by_command_int_and_return_to_launch() -> 
     x0 = f.pos[0]
     f.run(3.0, stream)
     assert abs(f.body.state().velocity_ned_mps[0] - 0.5) < 0.05 and f.pos[0] - x0 > 1.0
-    # DO_REPOSITION as COMMAND_INT: lat/lon in degE7, altitude AMSL (origin at 0 m)
-    lat = int(round(math.degrees(-3.0 / 6371000.0) * 1e7))
-    lon = int(round(math.degrees(2.0 / 6371000.0) * 1e7))
+    # DO_REPOSITION as COMMAND_INT: lat/lon in degE7, altitude AMSL (origin at PX4 SITL's home, 488 m)
+    lat = int(round((47.397742 + math.degrees(-3.0 / 6371000.0)) * 1e7))
+    lon = int(round((8.545594 + math.degrees(2.0 / (6371000.0 * math.cos(math.radians(47.397742))))) * 1e7))
     reposition = mavlink.MAVLink_command_int_message(1, 1, mavlink.MAV_FRAME_GLOBAL, 192, 0, 0, -1, 0, 0, NAN,
-                                                     lat, lon, 3.0)
+                                                     lat, lon, 491.0)
     assert _ack(api.send(reposition, f.wall + 1), 192) == 0
     assert v.mode == (4, 3)
     f.run(8.0)

@@ -14,7 +14,6 @@ paper 000 claims <= 1 deg with its FTC.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -23,6 +22,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from mars_link.outputs import write_json  # noqa: E402
 from mars_link.reconfig.flight import run_reconfig_trial  # noqa: E402
 from mars_link.scenario import load_scenario  # noqa: E402
 
@@ -114,9 +114,7 @@ def main(argv=None) -> int:
     ours = figs["ours (qp)"]["max_yaw_deviation_deg"]
     print(f"paper 000 claim (<= 1 deg with FTC): {'met' if ours <= 1.0 else 'NOT met'} ({ours:.3f} deg); "
           f"baseline {figs['baseline (none)']['max_yaw_deviation_deg']:.3f} deg")
-    (out / "docking_eval.json").write_text(json.dumps(
-        {k: {kk: vv for kk, vv in v.items() if kk != "series"} for k, v in figs.items()}, indent=2) + "\n",
-        encoding="utf-8")
+    write_json(out / "docking_eval.json", {k: {kk: vv for kk, vv in v.items() if kk != "series"} for k, v in figs.items()})
     print(f"plot: {plot(figs, out)}")
     return 0
 

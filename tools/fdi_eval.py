@@ -24,7 +24,6 @@ to --out. Exit 0 when every case passed, 1 otherwise, 2 for bad arguments.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -34,6 +33,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from mars_link.errors import UserInputError  # noqa: E402
+from mars_link.outputs import write_json  # noqa: E402
 from mars_link.reproduce import (  # noqa: E402
     CASES, FDI_MAX_DELAY_S, FDI_MAX_ETA_ERROR, FDI_MAX_ERROR_RATIO, FdiTrial, fdi_false_alarm_flight, fdi_lost_trial,
     fdi_trial,
@@ -192,9 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"wall time {time.perf_counter() - t0:.0f} s")
     out.mkdir(parents=True, exist_ok=True)
     (out / "fdi.md").write_text(table, encoding="utf-8")
-    (out / "fdi.json").write_text(json.dumps({"cases": rows, "fault_free": fa, "ftc": args.ftc,
-                                              "controller": args.controller,
-                                              "t_fault_s": args.t_fault}, indent=2) + "\n", encoding="utf-8")
+    write_json(out / "fdi.json", {"cases": rows, "fault_free": fa, "ftc": args.ftc, "controller": args.controller,
+                                  "t_fault_s": args.t_fault})
     if not args.no_plot:
         plot(rows, out / "fdi.png")
         print(f"wrote {out / 'fdi.md'}, {out / 'fdi.json'}, {out / 'fdi.png'}")

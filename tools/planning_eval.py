@@ -27,6 +27,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from mars_link.assembly import AssemblyModel  # noqa: E402
+from mars_link.outputs import write_json  # noqa: E402
 from mars_link.planning.evaluate import (  # noqa: E402
     PAPER_CASES, WALLS_CSV, WALLS_GOAL, WALLS_START, fly, forest_sweep, replay_published, walls_map,
 )
@@ -197,7 +198,7 @@ def main() -> int:
         results["forest"] = forest(out, args.seeds, args.density, 0.1)
         forest_plot(results["forest"], out / "forest.png")
         print("\n### Random forests\n\n" + forest_table(results["forest"], args.density))
-    (out / "results.json").write_text(json.dumps(results, indent=1, default=float) + "\n")
+    write_json(out / "results.json", results, indent=1)
     log(f"done in {time.perf_counter() - t0:.0f} s; results and PNGs in {out}")
     return 0
 

@@ -28,7 +28,6 @@ requires an exact hover of every piece, finds no reachable allocation better tha
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -39,9 +38,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from mars_link.outputs import write_json  # noqa: E402
 from mars_link.reconfig import HelixReference, rotor_from_paper001  # noqa: E402
 from mars_link.reconfig.placement import SnapWeights, health_from_eta, nominal_cells, solve_placement  # noqa: E402
-from mars_link.runner import RunLog, eta_after, make_trajectory, run_trial  # noqa: E402
+from mars_link.build import make_trajectory  # noqa: E402
+from mars_link.scenario import eta_after  # noqa: E402
+from mars_link.run_log import RunLog  # noqa: E402
+from mars_link.runner import run_trial  # noqa: E402
 from mars_link.scenario import FaultSpec, scenario_from_dict  # noqa: E402
 
 CASES = [
@@ -215,8 +218,7 @@ def main(argv=None) -> int:
     table = "\n".join(lines)
     print(table)
     (out / "reconfig_eval.md").write_text(table + "\n", encoding="utf-8")
-    (out / "reconfig_eval.json").write_text(json.dumps({"rows": rows, "inflight": inflight}, indent=2) + "\n",
-                                            encoding="utf-8")
+    write_json(out / "reconfig_eval.json", {"rows": rows, "inflight": inflight})
     print(f"plot: {plot(rows, modes, out)}")
     return 0
 

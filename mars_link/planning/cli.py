@@ -8,7 +8,6 @@ and plan.png. Exit 0 = collision-free plan, 1 = no plan (reason on stderr and in
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -16,7 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mars_link.errors import UserInputError
+from mars_link.errors import EnvironmentFailure, UserInputError
+from mars_link.validation import check_out_dir, prepare_out_dir, report
 
 
 def parse_point(text: str, what: str) -> np.ndarray:
@@ -31,9 +31,9 @@ def parse_point(text: str, what: str) -> np.ndarray:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from mars_link.cli import _Parser
+    from mars_link.errors import OneLineArgumentParser
 
-    p = _Parser(prog="mars-link plan", description="collision-free trajectory for an assembly on a map")
+    p = OneLineArgumentParser(prog="mars-link plan", description="collision-free trajectory for an assembly on a map")
     p.add_argument("map", help="boxes .csv (columns of data/mars_ftcc_walls.csv, z-up scene frame) or ASCII .pcd")
     p.add_argument("--layout", required=True, help="layout rows separated by commas, e.g. XXX,XXX")
     p.add_argument("--fault", action="append", default=[], metavar="UNIT[:ROTOR]=ETA[@T]")
@@ -43,7 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", default="ours", help="ours (dynamics-aware) or svsdf (baseline)")
     p.add_argument("--preset", default="mars-ftcc")
     p.add_argument("--margin", type=float, default=None, help="footprint inflation [m] (default 0.1)")
-    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--out", required=True, help="output directory (must be empty unless --force)")
+    p.add_argument("--force", action="store_true", help="clear a non-empty --out first")
     p.add_argument("--quiet", action="store_true")
     return p
 
@@ -53,7 +54,7 @@ def plan_from_args(args) -> tuple:
     from mars_link.assembly import AssemblyModel, parse_layout, vehicle_preset
     from mars_link.planning.maps import load_map
     from mars_link.planning.pipeline import METHODS, Planner, PlanParams
-    from mars_link.runner import eta_after
+    from mars_link.scenario import eta_after
     from mars_link.scenario import parse_fault_arg, validate_fault
 
     if args.method not in METHODS:
@@ -82,10 +83,11 @@ def plan_from_args(args) -> tuple:
     return planner, planner.plan(s, goal[:2], args.method, start[2]), obstacles
 
 
-def write_outputs(out: Path, planner, result, obstacles, title: str) -> None:
+def write_outputs(out: Path, planner, result, obstacles, title: str, force: bool = False) -> None:
+    from mars_link.outputs import write_json
     from mars_link.planning.plots import plot_plan
 
-    out.mkdir(parents=True, exist_ok=True)
+    prepare_out_dir(out, force=force)
     if len(result.samples):
         s = result.samples
         rows = np.column_stack([s[:, 0], s[:, 1], s[:, 2], np.full(len(s), result.down_m), s[:, 3]])
@@ -95,7 +97,7 @@ def write_outputs(out: Path, planner, result, obstacles, title: str) -> None:
                     "eta": [round(float(e), 4) for e in planner.eta], "map": obstacles.name,
                     "obstacles": obstacles.n_obstacles, "margin_m": planner.p.margin_m,
                     "optimal_yaw": planner.yaw_star.describe()})
-    (out / "plan.json").write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    write_json(out / "plan.json", summary)  # strict JSON: a NaN/inf figure is null
     plot_plan(out / "plan.png", obstacles, planner.footprint, [result], title)
 
 
@@ -103,15 +105,16 @@ def plan_command(argv: list[str]) -> int:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # spec §6.1: threaded BLAS is 10x slower here
     try:
         args = build_parser().parse_args(argv)
-        out = Path(args.out)
+        out = check_out_dir(args.out, force=args.force)  # before planning: a bad --out costs nothing
         if not args.quiet:
             print(f"planning {args.method} for {args.layout} on {args.map} ...", file=sys.stderr)
         planner, result, obstacles = plan_from_args(args)
         write_outputs(out, planner, result, obstacles,
-                      f"{args.layout} {' '.join(args.fault)} {args.method}: {result.message}")
-    except UserInputError as exc:
-        print(f"mars-link: error: {exc}", file=sys.stderr)
-        return 2
+                      f"{args.layout} {' '.join(args.fault)} {args.method}: {result.message}", args.force)
+    except (UserInputError, EnvironmentFailure, OSError) as exc:
+        line, code = report(exc)
+        print(line, file=sys.stderr)
+        return code
     if not args.quiet:
         st = result.stage_time_s
         print("  " + ", ".join(f"{k} {v:.3f} s" for k, v in st.items()), file=sys.stderr)

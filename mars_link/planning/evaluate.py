@@ -52,7 +52,8 @@ def fly(trajectory: dict, layout: str, failed_unit: int | None, obstacles: Obsta
         controller: str = "cascaded") -> FlightResult:
     """Fly `trajectory` (a scenario [trajectory] table) with the unit failed from t = 0, told to the
     coordinator, and count contacts of the true footprint (`margin_m` = 0: the bare footprint)."""
-    from mars_link.runner import RunLog, run_trial
+    from mars_link.run_log import RunLog
+    from mars_link.runner import run_trial
     from mars_link.scenario import scenario_from_dict
 
     doc = {

@@ -319,8 +319,7 @@ def build_plan_trajectory(params: dict, rest_height_m: float):
     """`[trajectory] kind = "plan"`: plan now (map, start, goal, method, ...) and fly the result."""
     from mars_link.assembly import AssemblyModel, parse_layout, vehicle_preset
     from mars_link.planning.maps import load_map
-    from mars_link.runner import eta_after
-    from mars_link.scenario import parse_fault_arg
+    from mars_link.scenario import eta_after, parse_fault_arg
 
     def point(key):
         v = params[key]

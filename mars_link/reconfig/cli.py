@@ -6,23 +6,18 @@ line on stderr).
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import sys
 
 from mars_link.errors import UserInputError
+from mars_link.outputs import dumps
+from mars_link.validation import OneLineParser
 
 EXIT_OK, EXIT_INFEASIBLE, EXIT_USAGE = 0, 1, 2
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> None:  # one line, no usage dump
-        raise UserInputError(f"{self.prog}: {message}")
-
-
-def _parser() -> _Parser:
-    p = _Parser(prog="mars-link reconfig plan",
+def _parser() -> OneLineParser:
+    p = OneLineParser(prog="mars-link reconfig plan",
                 description="Plan the self-reconfiguration (paper 001) for the scenario's faults.")
     p.add_argument("scenario", nargs="?", help="scenario TOML (or a bundled scenario name)")
     p.add_argument("--fault", action="append", default=[], metavar="UNIT[:ROTOR]=ETA[@T]",
@@ -66,7 +61,8 @@ def _setup(args):
     """Model, faults, health and snap weights from the scenario and the overrides."""
     from mars_link.assembly import AssemblyModel
     from mars_link.reconfig.placement import SnapWeights, health_from_eta
-    from mars_link.runner import eta_after, make_trajectory
+    from mars_link.build import make_trajectory
+    from mars_link.scenario import eta_after
     from mars_link.scenario import load_scenario, parse_fault_arg, validate_fault
 
     if args.scenario is None and args.layout is None:
@@ -145,7 +141,7 @@ def reconfig_plan_command(argv: list[str]) -> int:
             "faults": [{"unit": f.unit, "rotor": f.rotor, "eta": f.eta, "t": f.t_s} for f in faults],
             "snap_weights": {"w_x": weights.w_x, "w_y": weights.w_y},
         })
-        print(json.dumps(out))
+        print(dumps(out, indent=None))  # strict JSON (NaN/inf -> null)
     else:
         _print_text(model, faults, weights, plan)
     return EXIT_OK if plan.feasible else EXIT_INFEASIBLE

@@ -20,7 +20,6 @@ time the manoeuvre took is `reconfig_time_s`.
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from dataclasses import dataclass, field
@@ -40,7 +39,10 @@ from mars_link.reconfig.execution import ExecutionParams, Executor, Key, PieceSh
 from mars_link.reconfig.placement import SnapWeights, health_from_eta
 from mars_link.reconfig.sequencing import ReconfigPlan, plan_reconfiguration
 from mars_link.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
-from mars_link.runner import DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, TrialResult, eta_after, make_trajectory
+from mars_link.build import make_trajectory
+from mars_link.scenario import eta_after
+from mars_link.outputs import write_json
+from mars_link.metrics import DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, TrackingMetrics, TrialResult
 from mars_link.scenario import Scenario
 
 UNIT_LOG_HZ = 20.0
@@ -200,9 +202,9 @@ def run_reconfig_trial(
                            "text": "Reconfig refused: a piece cannot hover"})
     next_fault = 0
     at_s = scenario.reconfig.get("at_s")
-    err_sum = err_sq = max_err = max_tilt = force = 0.0
-    n_err = 0
-    diverged = failed = False
+    metrics = TrackingMetrics()  # the mission error (while the mission runs); tilt and divergence of every piece
+    force = 0.0
+    failed = False
     unit_rows: list[list[float]] = []
     tel_rows: list[list[float]] = []
     next_unit_log = 0.0
@@ -269,10 +271,10 @@ def run_reconfig_trial(
                 force += float(p.thrust_n @ p.thrust_n) * dt
                 ref = p.coordinator.last.reference.position_ned_m
                 tilt = tilt_deg(state.quaternion_wxyz)
-                max_tilt = max(max_tilt, tilt)
+                metrics.max_tilt_deg = max(metrics.max_tilt_deg, tilt)
                 dev = float(np.linalg.norm(state.position_ned_m - ref))
                 if not (dev < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG):
-                    diverged = True
+                    metrics.mark_diverged(t, dev, tilt, phase=executor.phase)
             # docks the world latches
             for req in executor.awaiting_docks():
                 chk = dock_check(states[req.stationary], states[req.mover], req.offset_frd_m, tolerance)
@@ -303,12 +305,9 @@ def run_reconfig_trial(
                 pos = s.position_ned_m + quat_to_rotmat(s.quaternion_wxyz) @ off
                 ref = mission.sample(executor.mission_time(t)).position_ned_m
                 err = float(np.linalg.norm(pos - ref))
-                err_sum += err
-                err_sq += err * err
-                n_err += 1
-                max_err = max(max_err, err)
+                metrics.add_error(err)
                 if err >= DIVERGENCE_ERROR_M or not math.isfinite(err):
-                    diverged = True
+                    metrics.mark_diverged(t, err, tilt_deg(s.quaternion_wxyz), phase=executor.phase)
                 row = [t, executor.mission_time(t), *ref, *pos, err, len(pieces)]
                 tel_rows.append(row)
                 if tel_f:
@@ -327,8 +326,8 @@ def run_reconfig_trial(
                         unit_rows.append(row)
                         if units_f:
                             units_f.write(",".join(f"{x:.6g}" for x in row) + "\n")
-            if diverged:
-                events.append({"t_s": round(t, 6), "type": "diverged", "phase": executor.phase, "text": f"Diverged ({executor.phase})"[:50]})
+            if metrics.diverged:
+                events.append(dict(metrics.divergence, text=f"Diverged ({executor.phase})"[:50]))
                 break
             for p in pieces.values():
                 p.body.step(substeps)
@@ -349,9 +348,10 @@ def run_reconfig_trial(
     begun = [e for e in events if e["type"] == "reconfig_start"]
     reconfigured = bool(done)
     return ReconfigResult(
-        seed=seed, completed=not (diverged or failed), diverged=diverged, reconfigured=reconfigured,
-        mean_error_m=err_sum / max(n_err, 1), rmse_m=math.sqrt(err_sq / max(n_err, 1)), max_error_m=max_err,
-        sim_time_s=t, wall_time_s=time.perf_counter() - wall0, force_integral_n2s=force, max_tilt_deg=max_tilt,
+        seed=seed, completed=not (metrics.diverged or failed), diverged=metrics.diverged, reconfigured=reconfigured,
+        mean_error_m=metrics.mean_error_m, rmse_m=metrics.rmse_m, max_error_m=metrics.max_error_m,
+        sim_time_s=t, wall_time_s=time.perf_counter() - wall0, force_integral_n2s=force,
+        max_tilt_deg=metrics.max_tilt_deg,
         reconfig_time_s=executor.shift_s if reconfigured else (t - begun[0]["t_s"] if begun else 0.0),
         plan=None if plan is None else plan.to_json(), events=events, unit_rows=unit_rows, telemetry_rows=tel_rows,
     )
@@ -381,7 +381,7 @@ def run_reconfig_scenario(
                        "max_error_m": r.max_error_m, "diverged": r.diverged}],
     }
     if out_dir is not None:
-        (out_dir / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n", encoding="utf-8")
+        write_json(out_dir / "summary.json", summary)
         if plots:
             write_reconfig_plots(out_dir, r)
     return summary

@@ -12,7 +12,6 @@ beyond one control period mean the 100 Hz deadline was missed.
 
 from __future__ import annotations
 
-import json
 import os
 import struct
 import time
@@ -20,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mars_link.outputs import write_json
 from mars_link.transport.base import TappedTransport, Transport
 
 CPU_DMA_LATENCY = "/dev/cpu_dma_latency"
@@ -123,7 +123,7 @@ class CommandAgeTap:
             for t, age in self.ages_s():
                 f.write(f"{t:.6f},{since(self.sensors.get(t), t)},{since(self.commands.get(t), t)},{age:.6f}\n")
         stats = self.summary()
-        (out / f"command_age_unit{self.unit_id}.json").write_text(json.dumps(stats, indent=2) + "\n")
+        write_json(out / f"command_age_unit{self.unit_id}.json", stats)  # strict JSON: NaN -> null
         return stats
 
 

@@ -1,0 +1,170 @@
+"""The composition root: a flight's parts are built here, from a scenario and a seed, and nowhere else.
+
+Every runner (in-process, the SITL world and coordinator processes, the assembly vehicle) asks this
+module for its world, trajectory, controller, estimator, fault detector and coordinator, so that the
+same scenario gives the same objects in every mode. Lower layers (control, planning, sitl,
+firmware_models) never import it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mars_link.assembly import AssemblyModel
+from mars_link.control.base import Controller
+from mars_link.coordinator import Coordinator
+from mars_link.errors import UserInputError
+from mars_link.rotations import quat_to_rotmat
+from mars_link.scenario import Scenario, eta_after
+from mars_link.trajectories import Trajectory, build_trajectory
+
+#: position (mocap) samples per second; the IMU comes at every control step
+POSITION_RATE_HZ = 50.0
+
+
+def tracked_offset(model: AssemblyModel, scenario: Scenario) -> np.ndarray:
+    """The tracked point (a unit's centre, or the CoM) from the assembly's CoM, body frame (m)."""
+    unit = scenario.tracked_unit()
+    return np.zeros(3) if unit is None else model.unit_position(unit).copy()
+
+
+def make_trajectory(scenario: Scenario, model: AssemblyModel) -> Trajectory:
+    from mars_link.planning.pipeline import build_plan_trajectory
+
+    params = {k: v for k, v in scenario.trajectory.items() if k != "kind"}
+    return build_trajectory(scenario.trajectory["kind"], params, rest_height_m=model.vehicle.gear_depth_m,
+                            plan_builder=build_plan_trajectory)
+
+
+def make_controller(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> Controller:
+    v = model.vehicle
+    if scenario.controller == "cascaded":
+        from mars_link.allocation import make_allocator
+        from mars_link.control.cascaded import CascadedController
+
+        allocator = make_allocator(
+            scenario.ftc, model, eta=eta, min_thrust_n=v.rotor_min_thrust_n, max_thrust_n=v.rotor_max_thrust_n,
+        )
+        return CascadedController(
+            model, allocator, tracked_offset_frd_m=tracked_offset(model, scenario),
+            control_hz=scenario.sim.control_hz,
+        )
+    if scenario.controller == "mars-ftcc-paper":
+        from mars_link.control.paper import PaperController
+
+        return PaperController(
+            model, tracked_unit_id=scenario.tracked_unit(), control_hz=scenario.sim.control_hz,
+            ftc=scenario.ftc, eta=eta,
+        )
+    raise UserInputError(f"unknown controller {scenario.controller!r}")
+
+
+def yaw_quat(yaw_rad: float) -> np.ndarray:
+    return np.array([math.cos(yaw_rad / 2), 0.0, 0.0, math.sin(yaw_rad / 2)])
+
+
+def start_pose(scenario: Scenario, model: AssemblyModel,
+               trajectory: Trajectory | None = None) -> tuple[np.ndarray, float]:
+    """Where the assembly's CoM starts (under the trajectory's first point, tracked point on it) and its yaw."""
+    start = (trajectory or make_trajectory(scenario, model)).sample(0.0)
+    com = start.position_ned_m - quat_to_rotmat(yaw_quat(start.yaw_rad)) @ tracked_offset(model, scenario)
+    return com, start.yaw_rad
+
+
+def position_every(scenario: Scenario) -> int:
+    """Mocap position samples every n-th exchange."""
+    return max(1, round(scenario.sim.control_hz / POSITION_RATE_HZ))
+
+
+def world_config(scenario: Scenario, seed: int):
+    from sitl.world import WorldConfig
+
+    return WorldConfig(physics_hz=scenario.sim.physics_hz, exchange_hz=scenario.sim.control_hz, seed=seed,
+                       noise=scenario.sim.noise, position_every=position_every(scenario))
+
+
+def make_world(scenario: Scenario, model: AssemblyModel, seed: int, com_start_ned_m: np.ndarray,
+               yaw_rad: float):
+    """The world of one docked assembly (one JSBSim body) at its start pose."""
+    from sitl.world import World
+
+    return World(model, world_config(scenario, seed), com_start_ned_m, yaw_rad)
+
+
+def make_estimator(scenario: Scenario, model: AssemblyModel):
+    """The rigid body's EKF when sensor noise is on; None: the coordinator flies on the world's truth."""
+    if not scenario.sim.noise:
+        return None
+    from mars_link.estimation import AssemblyEstimator
+
+    return AssemblyEstimator(model)
+
+
+def make_detector(scenario: Scenario, model: AssemblyModel, ground_down_m: float):
+    """The fault detector when faults are not told; `ground_down_m`: the landed CoM height (every flight
+    starts landed, and ground contact at take-off is not a rotor fault)."""
+    if scenario.faults_known:
+        return None
+    from mars_link.fault_detection import FaultDetector
+
+    return FaultDetector(model, ground_down_m=ground_down_m)
+
+
+def initial_eta(scenario: Scenario, model: AssemblyModel) -> np.ndarray:
+    """What the coordinator believes at t = 0: the scenario's faults due then if they are told."""
+    faults = sorted(scenario.faults, key=lambda f: f.t_s)
+    return eta_after(model, faults, 0.0) if scenario.faults_known else model.nominal_eta()
+
+
+def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajectory, estimator, detector,
+                     eta: np.ndarray | None = None, telemetry_timeout_s: float | None = None) -> Coordinator:
+    """The coordinator: `reference` is the scenario's trajectory or a vehicle's setpoint source; `estimator`
+    and `detector` come from `make_estimator` / `make_detector` (or a vehicle's own estimate holder)."""
+    eta = initial_eta(scenario, model) if eta is None else eta
+    return Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
+                       telemetry_timeout_s=telemetry_timeout_s)
+
+
+def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordinator_driven: bool = True,
+              signing_key: bytes | None = None, wall_time_s: float = 0.0):
+    """One unit's firmware (`firmware_models.vehicle.Vehicle`: rotor intake, motor model, fail-safes), the
+    same object in-process and in a unit process. The scenario's faults for this unit are scheduled in
+    its motor model: the unit, not the coordinator, knows them."""
+    from firmware_models.vehicle import Vehicle, VehicleConfig
+
+    vehicle = Vehicle(VehicleConfig(unit_id=unit_id, vehicle=model.vehicle, control_hz=scenario.sim.control_hz,
+                                    hil_await_coordinator=coordinator_driven, signing_key=signing_key), wall_time_s)
+    for f in scenario.faults:
+        if f.unit == unit_id:
+            vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta)
+    return vehicle
+
+
+
+#: a unit silent for this many control periods is declared lost (in-process flights with unit deaths)
+UNIT_TIMEOUT_PERIODS = 5
+
+
+def build_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, float] | None = None):
+    """Every part of one in-process flight, wired for `mars_link.engine.Engine`.
+
+    `unit_deaths` (unit -> time): that unit's process dies then; the coordinator, not told, declares it
+    lost after `UNIT_TIMEOUT_PERIODS` silent control periods."""
+    from mars_link.engine import Flight, InProcessUnits
+
+    model = scenario.model()
+    trajectory = make_trajectory(scenario, model)
+    com_start, yaw_start = start_pose(scenario, model, trajectory)
+    deaths = sorted((t_d, u) for u, t_d in (unit_deaths or {}).items())
+    for _, u in deaths:
+        model.check_rotor(u, None)
+    timeout = UNIT_TIMEOUT_PERIODS / scenario.sim.control_hz if deaths else None
+    coordinator = make_coordinator(scenario, model, trajectory, make_estimator(scenario, model),
+                                   make_detector(scenario, model, float(com_start[2])), telemetry_timeout_s=timeout)
+    world = make_world(scenario, model, seed, com_start, yaw_start)
+    units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
+    return Flight(scenario, model, seed, trajectory, world, units, coordinator,
+                  sorted(scenario.faults, key=lambda f: f.t_s), deaths, tracked_offset(model, scenario),
+                  scenario.sim.duration_s or trajectory.duration_s)

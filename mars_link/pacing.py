@@ -1,0 +1,71 @@
+"""Simulation time against wall time, as one parameter: the target real-time rate (Drake's
+`Simulator.set_target_realtime_rate`). 0 = as fast as possible, 1 = real time, x = x times real time.
+
+Every runner that paces (the in-process engine, the assembly vehicle, the lone unit, the SITL world) asks
+a `Pacer` when the next step is due instead of keeping its own clock arithmetic.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from typing import Callable
+
+#: this far behind the wall clock, a paced loop re-anchors (counted as an overrun) instead of racing
+REANCHOR_S = 0.25
+
+
+class Pacer:
+    """When simulation time `t_s` is due on the wall clock, for a target real-time rate."""
+
+    def __init__(self, rate: float = 0.0, reanchor_s: float = REANCHOR_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if not (math.isfinite(rate) and rate >= 0):
+            raise ValueError(f"real-time rate must be a finite number >= 0, got {rate!r}")
+        self.rate = rate
+        self.reanchor_s = reanchor_s
+        self.clock = clock
+        self.overruns = 0  # fell more than reanchor_s behind: re-anchored
+        self.late_steps = 0  # a step that started more than one period after it was due
+        self._anchor: tuple[float, float] | None = None  # (wall, sim)
+
+    @property
+    def paced(self) -> bool:
+        return self.rate > 0
+
+    def start(self, t_s: float) -> None:
+        """Sim time `t_s` is now."""
+        self._anchor = (self.clock(), t_s)
+
+    def due_wall_s(self, t_s: float) -> float:
+        """Wall-clock time (this pacer's clock) at which sim time `t_s` is due (now when not paced)."""
+        if not self.paced:
+            return -math.inf
+        if self._anchor is None:
+            self.start(t_s)
+        wall0, sim0 = self._anchor
+        return wall0 + (t_s - sim0) / self.rate
+
+    def wait_s(self, t_s: float) -> float:
+        """Seconds until `t_s` is due (<= 0: due now)."""
+        return self.due_wall_s(t_s) - self.clock() if self.paced else 0.0
+
+    def is_due(self, t_s: float, period_s: float = 0.0) -> bool:
+        """True when `t_s` is due; re-anchors after an overrun and counts late steps (one period late)."""
+        if not self.paced:
+            return True
+        now = self.clock()
+        late = now - self.due_wall_s(t_s)
+        if late < 0:
+            return False
+        if late > self.reanchor_s:
+            self.overruns += 1
+            self._anchor = (now, t_s)
+        elif period_s > 0 and late > period_s / self.rate:
+            self.late_steps += 1
+        return True
+
+    def wait(self, t_s: float, period_s: float = 0.0, idle: Callable[[float], None] = time.sleep) -> None:
+        """Block until `t_s` is due; `idle(timeout_s)` is what waiting does (sleep, or poll sockets)."""
+        while not self.is_due(t_s, period_s):
+            idle(max(0.0, self.wait_s(t_s)))

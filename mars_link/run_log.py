@@ -1,0 +1,85 @@
+"""The run's time series, written as the flight goes (flushed), so a crash loses nothing flown:
+telemetry.csv (every control step: reference, tracked point, attitude, error, estimate, CoM) and
+rotors.csv (per rotor: command, thrust, eta). Every mode writes these two files through this class.
+Logging is never flight-critical: a write error (a full disk) stops that file, and `status()` says so.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from mars_link.assembly import AssemblyModel
+from mars_link.outputs import SafeWriter
+
+#: rotors.csv rows per second (telemetry.csv has every control step)
+ROTOR_LOG_HZ = 20.0
+
+
+class RunLog:
+    """CSV time series written as the flight goes (flushed), so a crash loses nothing flown."""
+
+    def __init__(self, out_dir: Path | None, model: AssemblyModel, rotor_log_hz: float) -> None:
+        self.out_dir = out_dir
+        self.model = model
+        self.rotor_log_period_s = 1.0 / rotor_log_hz
+        self._next_rotor_t = 0.0
+        self._tel = self._rot = None
+        self._closed: list[dict] = []  # status of the files already closed
+        self.telemetry_rows: list[list[float]] = []
+        self.rotor_rows: list[np.ndarray] = []
+        if out_dir is None:
+            return
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self._tel = _safe_open(out_dir / "telemetry.csv")
+        self._tel.write(
+            "trial,t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,roll_deg,pitch_deg,yaw_deg,"
+            "error_m,est_n_m,est_e_m,est_d_m,est_roll_deg,est_pitch_deg,est_yaw_deg,com_n_m,com_e_m,com_d_m\n"
+        )
+        self._tel_format = ",".join(["%.6g"] * 18 + ["%.9f"] * 3) + "\n"
+        self._rot = _safe_open(out_dir / "rotors.csv")
+        cols = []
+        for kind in ("cmd", "thrust", "eta"):
+            cols += [f"{kind}_u{r.unit_id}r{r.index}" for r in model.rotors]
+        self._rot.write("trial,t_s," + ",".join(cols) + "\n")
+
+    def telemetry(self, row: list[float]) -> None:
+        self.telemetry_rows.append(row)
+        if self._tel:
+            self._tel.write(self._tel_format % tuple(row))
+
+    def rotors(self, trial: int, t_s: float, cmd, thrust, eta) -> None:
+        if t_s + 1e-9 < self._next_rotor_t:
+            return
+        self._next_rotor_t = t_s + self.rotor_log_period_s
+        row = np.concatenate(([trial, t_s], cmd, thrust, eta))
+        self.rotor_rows.append(row)
+        if self._rot:
+            self._rot.write(",".join(f"{x:.5g}" for x in row) + "\n")
+
+    def new_trial(self) -> None:
+        self._next_rotor_t = 0.0
+
+    def flush(self) -> None:
+        for f in (self._tel, self._rot):
+            if f:
+                f.flush()
+
+    def close(self) -> None:
+        for f in (self._tel, self._rot):
+            if f:
+                f.close()
+                self._closed.append(f.status())
+        self._tel = self._rot = None
+
+    def status(self) -> dict:
+        """summary.json "logging": whether the time series were written whole, and why not."""
+        files = [f.status() for f in (self._tel, self._rot) if f is not None] + list(self._closed)
+        reason = next((f["stopped_reason"] for f in files if f["stopped_reason"]), None)
+        return {"complete": reason is None, "stopped_reason": reason, "files": files}
+
+
+def _safe_open(path: Path) -> SafeWriter:
+    return SafeWriter(open(path, "w", encoding="utf-8"), str(path))
+
