@@ -1,5 +1,7 @@
-"""Socket plumbing shared by every runner of a `Vehicle` (the lone-unit UDP runner and the lockstep
-SITL unit process): named UDP links on loopback, PX4's client-port conventions, peer learning, status.
+"""Link plumbing shared by every runner of a `Vehicle` (the lone-unit UDP runner and the lockstep
+SITL unit process): named links on loopback (UDP, or any `mars_link.transport.Transport` the runner
+hands in, e.g. a lockstep unit's HIL and coordinator links on Zenoh), PX4's client-port conventions,
+peer learning, status.
 
 Client links ("gcs", "api") send to a fixed destination (QGC on 14550, MAVSDK on 14540+i) and also to
 whoever last sent a valid frame to the bound port within `PEER_TIMEOUT_S` (MAVProxy `udpout`), as PX4
@@ -11,7 +13,6 @@ from __future__ import annotations
 
 import os
 import selectors
-import socket
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,8 @@ from pathlib import Path
 from firmware_models.vehicle import LINK_COORDINATOR, Outgoing, Vehicle
 from mars_link.errors import PortUnavailable, UserInputError
 from mars_link.state import RigidBodyState
+from mars_link.transport.base import Address, Transport
+from mars_link.transport.udp import UdpParams, UdpTransport
 
 LOOPBACK = "127.0.0.1"
 RECV_BUFFER_BYTES = 4 * 1024 * 1024
@@ -29,14 +32,14 @@ API_PORT_BASE = 14540  # + unit index (0-based)
 GCS_BIND_BASE = 18570
 API_BIND_BASE = 14580
 COORD_BIND_BASE = 14600
-SOCKETS_HOOK = None  # (VehicleSockets) -> None; may swap or tap entries of .socks (mars_link.transport.sitl_child)
 
 
 @dataclass
 class LinkSpec:
-    bind_port: int  # 0 = any free port
-    dest: tuple[str, int] | None = None  # fixed destination; None = learnt from the peer
+    bind_port: int  # UDP on loopback, 0 = any free port (when no transport is given)
+    dest: Address | None = None  # fixed destination; None = learnt from the peer
     learn_clients: bool = True  # also answer the last sender of valid frames (client links)
+    transport: Transport | None = None  # this link's I/O (e.g. Zenoh); None: a UDP socket bound to bind_port
 
 
 def client_links(index: int, gcs_port: int = GCS_PORT, api_port: int | None = None,
@@ -63,55 +66,51 @@ def _coalesce(out: list[Outgoing]) -> list[Outgoing]:
     return [Outgoing(link, bytes(b)) for link, parts in chunks.items() for b in parts]
 
 
-def bind_udp(port: int) -> socket.socket:
-    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+def bind_udp(port: int) -> UdpTransport:
+    """A UDP link on loopback (frames are checked by the Vehicle, not here)."""
     try:
-        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECV_BUFFER_BYTES)
-    except OSError:
-        pass
-    try:
-        s.bind((LOOPBACK, port))
+        return UdpTransport(UdpParams(port=port, validate_frames=False, recv_buffer_bytes=RECV_BUFFER_BYTES))
     except OSError as e:
-        s.close()
         raise PortUnavailable(f"cannot bind UDP port {port} on {LOOPBACK}: {e.strerror}") from None
-    s.setblocking(False)
-    return s
 
 
 class VehicleSockets:
-    """One non-blocking UDP socket per vehicle link, fed into `Vehicle.handle`, answering `Outgoing`."""
+    """One transport per vehicle link (a UDP socket unless the spec brings one), fed into `Vehicle.handle`,
+    answering `Outgoing`."""
 
     def __init__(self, vehicle: Vehicle, links: dict[str, LinkSpec], tlog: Path | None = None,
                  batch: bool = False) -> None:
         """`batch`: frames for the same link from one `send` call share datagrams (up to
         `BATCH_BYTES`), as PX4 fills its UDP buffer: one syscall (and one wake-up of the receiver)
-        instead of one per frame."""
+        instead of one per frame. The given transports are closed with this object."""
         self.vehicle = vehicle
         self.batch = batch
         self.specs = links
-        self.socks: dict[str, socket.socket] = {}
+        self.links: dict[str, Transport] = {}
         self.sel: selectors.BaseSelector | None = None
         self._tlog = None
         try:
             for name, spec in links.items():
-                self.socks[name] = bind_udp(spec.bind_port)
+                self.links[name] = spec.transport if spec.transport is not None else bind_udp(spec.bind_port)
         except UserInputError:
+            for spec in links.values():
+                if spec.transport is not None:
+                    spec.transport.close()
             self.close()
             raise
         self.dest = {name: spec.dest for name, spec in links.items()}
-        self.peers: dict[str, tuple[tuple[str, int], float] | None] = {}
-        if SOCKETS_HOOK is not None:
-            SOCKETS_HOOK(self)
+        self.peers: dict[str, tuple[Address, float] | None] = {}
         self.sel = selectors.DefaultSelector()
-        for name, s in self.socks.items():
-            self.sel.register(s, selectors.EVENT_READ, name)
+        for name, t in self.links.items():
+            self.sel.register(t, selectors.EVENT_READ, name)
         self.datagrams = 0
         self.send_errors = 0
-        self.not_loopback = 0
         self._tlog = open(tlog, "ab", buffering=0) if tlog else None  # unbuffered: flushed as it goes
 
-    def ports(self) -> dict[str, int]:
-        return {name: s.getsockname()[1] for name, s in self.socks.items()}
+    def ports(self) -> dict[str, int | str]:
+        """Each link's UDP port (or, on another transport, its local address: e.g. a Zenoh node)."""
+        addrs = {name: t.local_address for name, t in self.links.items()}
+        return {name: a[1] if isinstance(a, tuple) else a for name, a in addrs.items()}
 
     def send(self, out: list[Outgoing]) -> None:
         if self.batch and len(out) > 1:
@@ -126,10 +125,9 @@ class VehicleSockets:
             for addr in (dest, peer[0] if peer is not None and peer[0] != dest else None):
                 if addr is None:
                     continue
-                try:
-                    self.socks[link].sendto(data, addr)
+                if self.links[link].send(data, addr):
                     sent = True
-                except OSError:  # nobody listening (ICMP refused) or buffer full: best effort
+                else:  # nobody listening (ICMP refused) or buffer full: best effort
                     self.send_errors += 1
             if sent:
                 self._log(data)
@@ -142,21 +140,17 @@ class VehicleSockets:
             n += self.drain(key.data, key.fileobj)
         return n
 
-    def drain(self, link: str, sock: socket.socket) -> int:
+    def drain(self, link: str, transport: Transport) -> int:
+        """Every datagram waiting on `link` (senders off loopback: dropped and counted by the transport)."""
         v = self.vehicle
         n = 0
         for _ in range(MAX_DATAGRAMS_PER_WAKE):
-            try:
-                data, addr = sock.recvfrom(65536)
-            except (BlockingIOError, InterruptedError):
+            got = transport.recv(0.0)
+            if got is None:
                 break
-            except OSError:  # e.g. ICMP port unreachable reported on a later recv
-                continue
+            data, addr = got
             n += 1
             self.datagrams += 1
-            if addr[0] != LOOPBACK:
-                self.not_loopback += 1
-                continue
             self._log(data)
             before = v.stats.get("from_coordinator", 0)
             rx = v.stats.get("rx", 0)
@@ -174,13 +168,14 @@ class VehicleSockets:
             self._tlog.write(tlog_records(data))
 
     def counters(self) -> dict[str, int]:
-        return {"datagrams": self.datagrams, "not_loopback": self.not_loopback, "send_errors": self.send_errors}
+        not_loopback = sum(t.counters.dropped.get("not_loopback", 0) for t in self.links.values())
+        return {"datagrams": self.datagrams, "not_loopback": not_loopback, "send_errors": self.send_errors}
 
     def close(self) -> None:
         if self.sel is not None:
             self.sel.close()
-        for s in self.socks.values():
-            s.close()
+        for t in self.links.values():
+            t.close()
         if self._tlog:
             self._tlog.close()
 

@@ -1,7 +1,7 @@
 """The multi-process SITL on a chosen transport, `mars-link run --mode sitl`, and `mars-link coordinator`.
 
-`start_sitl` starts the same processes as sitl.launcher (world, one per unit, coordinator), each through
-mars_link.transport.sitl_child so their MAVLink links run on Zenoh (default) or UDP. Zenoh with no
+`start_sitl` starts the same processes as sitl.launcher (world, one per unit, coordinator), each given
+`--transport zenoh|udp ...` (sitl.lockstep builds its links on that transport). Zenoh with no
 endpoints given: peers on 127.0.0.1 (world and coordinator listen, units connect to both), or a router
 session hosted by this process (closed when the run ends, also on Ctrl-C) that the children join.
 
@@ -26,8 +26,6 @@ import numpy as np
 
 from mars_link.errors import UserInputError
 from mars_link.transport import LinkSpec
-
-CHILD = [sys.executable, "-m", "mars_link.transport.sitl_child"]
 
 
 @dataclass
@@ -78,7 +76,7 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     from sitl.lockstep import load_setup
 
     link = link or LinkSpec("zenoh")
-    setup = load_setup(scenario, units, layout)
+    load_setup(scenario, units, layout)  # bad input: refused before any session opens
     session = SitlSession(None, link)
     role_links = {role: link for role in ("world", "coordinator", "unit")}
     if link.kind == "zenoh" and not link.connect:
@@ -95,10 +93,10 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
                           "unit": replace(link, zenoh_mode="peer", connect=(w, c))}
         else:
             raise UserInputError(f"zenoh topology {topology!r}: expected peer or router")
-    tap = ["--control-period-s", repr(1.0 / setup.scenario.sim.control_hz)]
-    role_args = {role: [*spec.to_args(), *tap] for role, spec in role_links.items()}
-    if realtime:  # the units then measure the command age also on UDP, the coordinator logs its timing
-        role_args["unit"].append("--realtime")
+    role_args = {role: spec.to_args() for role, spec in role_links.items()}
+    if realtime or link.kind != "udp":  # the units log the command age at the motor
+        role_args["unit"].append("--command-age")
+    if realtime:  # the coordinator logs its timing
         role_args["coordinator"].append("--timing-log")
         role_args["world"].append("--sched-batch")  # (sitl.lockstep.set_batch_scheduling)
         role_args["unit"].append("--sched-batch")
@@ -110,7 +108,7 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
         speed = 1.0 if speed is None else speed
     try:
         session.run = start(scenario, out, units, layout, seed, 1.0 if realtime else speed,
-                            clients or ClientPorts(bind_any=True), signing_key_file, child=CHILD, role_args=role_args,
+                            clients or ClientPorts(bind_any=True), signing_key_file, role_args=role_args,
                             unit_prefix=unit_prefix, skip=() if "coordinator" in roles else ("coordinator",),
                             forever=vehicle is not None)
     except BaseException:
@@ -601,14 +599,14 @@ def cmd_coordinator(args) -> int:
         raise UserInputError("coordinator --transport zenoh needs --zenoh-connect ENDPOINT (the router `sitl up` prints)")
     if link.kind == "udp" and not (0 < args.world_port < 65536 and 0 < args.coordinator_port < 65536):
         raise UserInputError("coordinator --transport udp needs --world-port and --coordinator-port (printed by sitl up)")
-    from mars_link.transport.sitl_child import main as child_main
+    from sitl.lockstep import main as lockstep_main
 
-    # on Zenoh the ports only name the nodes (world: an id above the unit range; own socket: any free port)
-    argv = ["coordinator", str(path), "--world-port", str(args.world_port or 1000),
-            "--coordinator-port", str(args.coordinator_port), "--out", args.out, *link.to_args()]
+    argv = ["coordinator", str(path), "--out", args.out, *link.to_args()]
+    if link.kind == "udp":
+        argv += ["--world-port", str(args.world_port), "--coordinator-port", str(args.coordinator_port)]
     if args.signing_key_file:
         from firmware_models.signing import load_key
 
         load_key(args.signing_key_file)  # a bad key file: one line, exit 2
         argv += ["--signing-key-file", str(Path(args.signing_key_file).resolve())]
-    return child_main(argv)
+    return lockstep_main(argv)

@@ -17,7 +17,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from firmware_models.signing import load_key
-from sitl.lockstep import LOOPBACK, SitlSetup, _start_pose, load_setup, position_every
+from sitl.links import LOOPBACK
+from sitl.lockstep import SitlSetup, _start_pose, load_setup, position_every
 
 
 def bound_udp_socket() -> socket.socket:
@@ -83,15 +84,14 @@ class SitlRun:
 
 def start(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
           seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
-          signing_key_file: str | None = None, child: list[str] | None = None,
-          role_args: dict[str, list[str]] | None = None, unit_prefix=None, skip: tuple[str, ...] = (),
-          forever: bool = False) -> SitlRun:
-    """Start every process of one run (returns at once; `wait` follows it). The coordinator <-> unit
-    links are signed with the key of `signing_key_file`, else of $MARS_LINK_SIGNING_KEY (inherited).
-    Hooks for other wirings (mars_link.sitl_mode): `child` replaces `python -m sitl.lockstep`,
-    `role_args` adds arguments per role ("world", "coordinator", "unit"), `unit_prefix(u)` is an argv
-    to run unit u under (e.g. `ip netns exec NS`), `skip` leaves roles out (a coordinator run elsewhere);
-    `forever`: a docked run goes on until stopped (a flight flown from a ground station)."""
+          signing_key_file: str | None = None, role_args: dict[str, list[str]] | None = None,
+          unit_prefix=None, skip: tuple[str, ...] = (), forever: bool = False) -> SitlRun:
+    """Start every process of one run, `python -m sitl.lockstep ROLE ...` each (returns at once; `wait`
+    follows it). The coordinator <-> unit links are signed with the key of `signing_key_file`, else of
+    $MARS_LINK_SIGNING_KEY (inherited). For other wirings (mars_link.sitl_mode): `role_args` adds
+    arguments per role ("world", "coordinator", "unit"; e.g. `--transport zenoh ...`), `unit_prefix(u)` is
+    an argv to run unit u under (e.g. `ip netns exec NS`), `skip` leaves roles out (a coordinator run
+    elsewhere); `forever`: a docked run goes on until stopped (a flight flown from a ground station)."""
     setup = load_setup(scenario, units, layout)  # refuses bad input before any process starts
     load_key(signing_key_file)  # a bad key file too
     out.mkdir(parents=True, exist_ok=True)
@@ -111,7 +111,7 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
         setup.steps = None
     if signing_key_file is not None:
         common += ["--signing-key-file", str(Path(signing_key_file).resolve())]
-    py = list(child) if child else [sys.executable, "-m", "sitl.lockstep"]
+    py = [sys.executable, "-m", "sitl.lockstep"]
     extra = role_args or {}
 
     def spawn(name: str, argv: list[str], sock: socket.socket | None = None, prefix: list[str] = ()) -> None:

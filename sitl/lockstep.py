@@ -1,6 +1,6 @@
 """Multi-process lockstep SITL: the same World and Coordinator as `inproc`, and each unit's full
 firmware (`firmware_models.vehicle.Vehicle`), one process each, exchanging real MAVLink frames over
-loopback UDP.
+loopback UDP (default) or Zenoh (`--transport zenoh`).
 
 Contract per exchange k (PX4's simulator lockstep, specs/mavlink.md §1.1):
   world --[HIL_STATE_QUATERNION] ODOMETRY.. HIL_SENSOR--> unit i   (one datagram; sensor time stamps the step)
@@ -44,9 +44,10 @@ with --sched-batch (what `--realtime` runs pass) the world and units are SCHED_B
 coordinator's wake-ups preempt. The path sensor -> unit -> coordinator -> unit -> motors is then
 mostly Python work shared by 8 processes; --timing-log and the units' command-age logs show where it goes.
 
-Socket I/O of the world and coordinator is behind `Link` (one UDP socket, MAVLink parser, peer
-table, counters), of a unit behind `firmware_models.vehicle_io.VehicleSockets`: the two places to
-swap for another transport.
+Links: every process builds its links once at start from `--transport udp|zenoh` (`sitl.links.Ports`)
+and hands each to its I/O as a `mars_link.transport.Transport`: the world's and the coordinator's `Link`
+(MAVLink parser, peer table, counters), a unit's HIL and coordinator links in
+`firmware_models.vehicle_io.VehicleSockets` (its GCS/API client links stay UDP, as ground stations expect).
 """
 
 from __future__ import annotations
@@ -58,7 +59,6 @@ import json
 import math
 import os
 import signal
-import socket
 import sys
 import time
 from dataclasses import dataclass
@@ -69,18 +69,17 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.signing import load_key
-from firmware_models.vehicle import split_frames
-from mars_link import mavlink_codec
-from mars_link.errors import UserInputError
+from mars_link.errors import EnvironmentFailure, UserInputError
 from mars_link.messages import SensorPacket
+from mars_link.transport import LinkSpec, add_link_args, spec_from_args
 from mars_link.wire import (
     SensorPacketAssembler,
     actuator_output_from_message,
-    new_mav,
     rotor_command_message,
     sensor_packet_messages,
     usec,
 )
+from sitl.links import Link, Ports
 
 if TYPE_CHECKING:
     from mars_link.assembly import AssemblyModel
@@ -88,7 +87,6 @@ if TYPE_CHECKING:
 
 WORLD_SYSID = 200
 COORDINATOR_SYSID = 201
-LOOPBACK = "127.0.0.1"
 MAX_FREE_UNITS = 10  # API ports 14540..14549 (14550 is the GCS port)
 COORDINATOR_TIMEOUT_S = 1.0
 UNIT_COMMAND_TIMEOUT_S = 2.0
@@ -96,20 +94,11 @@ WORLD_UNIT_TIMEOUT_S = 3.0
 WORLD_IDLE_TIMEOUT_S = 30.0  # coordinator: no telemetry from any unit for this long = the world is gone
 STATUS_PERIOD_S = 0.2  # world status (truth) file
 ANSWER_READ_PHASE = 0.5  # paced world: first read of the units' answers, as a fraction of the period
-SOCKET_HOOK = None  # (sock, sysid) -> socket-like; puts another transport behind Link (mars_link.transport.sitl_child)
 UNIT_STATUS_PERIOD_S = 1.0  # unit status files (a file replace costs milliseconds here)
 TICK_PERIOD_S = 0.02  # unit: heartbeats and streams (<= 20 Hz) served on this wall-clock grid
 HOUSEKEEPING_DEFER_S = 0.02  # unit: housekeeping waits at most this long past its time for a quiet moment
 UNIT_QUIET_S = 0.001  # unit: housekeeping starts this long after the last datagram (no step in flight)
 COORDINATOR_QUIET_S = 0.002  # coordinator: fault detection this long after the commands went out
-
-
-@dataclass
-class Ports:
-    world: int
-    coordinator: int
-    world_fd: int | None = None  # sockets already bound by the launcher (inherited descriptors)
-    coordinator_fd: int | None = None
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -188,127 +177,6 @@ def _trajectory(sc, model):
     return make_trajectory(sc, model)
 
 
-# ----------------------------------------------------------------------------- link
-class Link:
-    """A UDP socket on loopback with a MAVLink parser, a peer table keyed by system id, and counters.
-
-    With a signing `key`, every frame sent is signed and every frame received must carry a genuine
-    signature (checked HMAC-first, before decoding: firmware_models.signing); the rest is dropped and
-    counted as signing.<reason>.
-    """
-
-    def __init__(self, port: int, sysid: int, tlog: Path | None = None, fd: int | None = None,
-                 key: bytes | None = None) -> None:
-        """Bind `port` on loopback, or adopt the already bound socket `fd` (handed down by the launcher,
-        so no other process can take the port in between)."""
-        if fd is not None:
-            self.sock = socket.socket(fileno=fd)
-        else:
-            self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            self.sock.bind((LOOPBACK, port))
-        try:
-            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 * 1024 * 1024)
-        except OSError:
-            pass
-        if SOCKET_HOOK is not None:
-            self.sock = SOCKET_HOOK(self.sock, sysid)
-        self.mav = new_mav(sysid)  # decoder, never given a key (pymavlink's own check can be poisoned)
-        self.enc = self.mav
-        self.verifier = None
-        if key is not None:
-            from firmware_models.signing import SignatureVerifier, enable_outgoing_signing
-
-            self.enc = new_mav(sysid)
-            enable_outgoing_signing(self.enc, key, 1, time.time())
-            self.verifier = SignatureVerifier(key)
-        self.peers: dict[int, tuple[str, int]] = {}
-        self.dropped: dict[str, int] = {}
-        self._tlog = open(tlog, "ab", buffering=0) if tlog else None
-
-    @property
-    def port(self) -> int:
-        return self.sock.getsockname()[1]
-
-    def drop(self, reason: str) -> None:
-        self.dropped[reason] = self.dropped.get(reason, 0) + 1
-
-    def send(self, msg, addr: tuple[str, int]) -> None:
-        self.send_many([msg], addr)
-
-    def send_many(self, msgs: list, addr: tuple[str, int]) -> None:
-        """Several frames in one datagram (one syscall; the receiver splits them)."""
-        self.send_bytes(self.pack(msgs), addr)
-
-    def pack(self, msgs: list) -> bytes:
-        """The datagram of `msgs` (signed with a key), to send later with `send_bytes`."""
-        if self.verifier is not None:
-            from firmware_models.signing import advance_outgoing_clock
-
-            advance_outgoing_clock(self.enc, time.time())
-        return b"".join(mavlink_codec.encode(m, self.enc) for m in msgs)
-
-    def send_bytes(self, data: bytes, addr: tuple[str, int]) -> None:
-        try:
-            self.sock.sendto(data, addr)
-        except OSError:  # the peer is gone (ICMP refused): its silence is handled by the timeouts
-            self.drop("send_failed")
-        self._log(data)
-
-    def heartbeat(self, addr: tuple[str, int]) -> None:
-        self.send(mavlink.MAVLink_heartbeat_message(
-            mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3), addr)
-
-    def receive(self, timeout_s: float) -> list:
-        """Frames that arrive within `timeout_s` (at least one datagram, or none on timeout)."""
-        self.sock.settimeout(max(timeout_s, 1e-4))
-        try:
-            data, addr = self.sock.recvfrom(65536)
-        except (TimeoutError, socket.timeout):
-            return []
-        except OSError:  # ICMP port unreachable from an earlier send to a dead peer
-            return []
-        if addr[0] != LOOPBACK:
-            self.drop("not_loopback")
-            return []
-        self._log(data)
-        check = None
-        if self.verifier is not None:
-            from firmware_models.signing import ACCEPTED
-
-            verifier, now = self.verifier, time.time()
-
-            def genuine(raw) -> bool:
-                result = verifier.verify(raw, now)
-                if result != ACCEPTED:
-                    self.drop(f"signing.{result}")
-                return result == ACCEPTED
-
-            check = genuine
-
-        out = []
-        for m, _ in split_frames(data, self.mav, self.drop, check):  # junk, bad CRC, forged: counted
-            src = m.get_srcSystem()
-            known = self.peers.get(src)
-            if m.get_type() == "HEARTBEAT" and known is None:
-                self.peers[src] = addr  # first come: a later claim from elsewhere is a spoof
-            elif known != addr:
-                self.drop("unknown_sender")
-                continue
-            out.append(m)
-        return out
-
-    def _log(self, data: bytes) -> None:
-        if self._tlog:
-            from firmware_models.vehicle_io import tlog_records
-
-            self._tlog.write(tlog_records(data))
-
-    def close(self) -> None:
-        if self._tlog:
-            self._tlog.close()
-        self.sock.close()
-
-
 class _Stop:
     """SIGTERM/SIGINT -> a flag the loops poll (the process ends cleanly, summaries written)."""
 
@@ -350,7 +218,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         world = FreeUnitsWorld(setup.free_units, setup.model.vehicle, cfg)
         columns = ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("pos_n_m", "pos_e_m", "pos_d_m", "qw", "qx", "qy", "qz"))
     stop = _Stop()
-    link = Link(ports.world, WORLD_SYSID, fd=ports.world_fd)
+    link = Link(ports.open("world"), WORLD_SYSID)
     scale = setup.model.vehicle.full_scale_thrust_n
     control_min = 0.0 if setup.model.vehicle.rotor_min_thrust_n is not None else -1.0  # as the units' intake
     live = set(setup.unit_ids)
@@ -482,13 +350,13 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
     vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
                         wall_time_s=time.time())
     links = client_links(index, client.gcs_port, client.api_port, client.gcs_bind, client.api_bind)
-    links[LINK_HIL] = LinkSpec(0, (LOOPBACK, ports.world), learn_clients=False)
+    links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
     if setup.docked:
-        links[LINK_COORDINATOR] = LinkSpec(0, (LOOPBACK, ports.coordinator), learn_clients=False)
+        links[LINK_COORDINATOR] = LinkSpec(0, ports.address("coordinator"), False, ports.open(f"unit/{unit_id}", "coordinator"))
     out.mkdir(parents=True, exist_ok=True)
     stop = _Stop()
     io = VehicleSockets(vehicle, links, tlog=out / f"unit{unit_id}.tlog")
-    io.batch = True  # (an attribute, not an argument: transports wrap VehicleSockets' constructor)
+    io.batch = True
     hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.docked else [])
     status_path = out / f"unit{unit_id}_status.json"
     next_hello = next_tick = next_status = 0.0
@@ -576,7 +444,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     else:
         coordinator = make_coordinator(sc, model, trajectory, make_estimator(sc, model), detector)
     stop = _Stop()
-    link = Link(ports.coordinator, COORDINATOR_SYSID, fd=ports.coordinator_fd, key=key)
+    link = Link(ports.open("coordinator"), COORDINATOR_SYSID, key=key)
     scale = model.vehicle.full_scale_thrust_n
     assembler = SensorPacketAssembler()
     live = set(model.unit_ids)
@@ -590,7 +458,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     try:
         _await_peers(link, live, 60.0, stop)
         cpu0 = time.process_time()
-        world = (LOOPBACK, ports.world)
+        world = ports.address("world")
         finish_at = None  # when the last period's fault detection runs (Coordinator.finish_step)
         link.heartbeat(world)
         next_hello = time.monotonic() + 0.2
@@ -615,7 +483,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     finish_at = None
                 wait_s = min(0.2, (deadline or idle_deadline) - now, math.inf if finish_at is None else finish_at - now)
                 if hosted is not None:  # client links and wall-clock heartbeats while the lockstep waits
-                    wait_s = hosted.wait(link.sock, wait_s)
+                    wait_s = hosted.wait(link, wait_s)
                 for m in link.receive(wait_s):
                     if m.get_type() == "COMMAND_ACK":
                         if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in accepted:
@@ -733,8 +601,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--steps", type=int, default=None, help="exchanges of a docked run (else from the scenario)")
     ap.add_argument("--start-pose", default=None, help="world: N,E,D,YAW of the assembly's CoM (else from the scenario)")
     ap.add_argument("--position-every", type=int, default=None, help="world: mocap samples every n-th exchange")
-    ap.add_argument("--world-port", type=int, required=True)
-    ap.add_argument("--coordinator-port", type=int, default=0)
+    ap.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port")
+    ap.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to")
     ap.add_argument("--world-fd", type=int, default=None, help="inherited bound socket of the world")
     ap.add_argument("--coordinator-fd", type=int, default=None, help="inherited bound socket of the coordinator")
     ap.add_argument("--out", required=True)
@@ -756,19 +624,55 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--vehicle-api-port", type=int, default=None)
     ap.add_argument("--vehicle-gcs-bind", type=int, default=None)
     ap.add_argument("--vehicle-api-bind", type=int, default=None)
+    add_link_args(ap)
+    ap.add_argument("--command-age", action="store_true",
+                    help="unit: log the command age at the motor (command_age_unit<id>.csv/.json; real-time runs)")
     args = ap.parse_args(argv)
     if args.sched_batch:
         set_batch_scheduling()
     try:
         setup = load_setup(args.scenario, args.units, args.layout, args.steps)
         key = load_key(args.signing_key_file)
+        link = _link_spec(args)
     except UserInputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
     if args.forever:
         setup.steps = None
-    ports = Ports(args.world_port, args.coordinator_port, args.world_fd, args.coordinator_fd)
+    ports = Ports(args.world_port, args.coordinator_port, args.world_fd, args.coordinator_fd, link,
+                  1.0 / setup.scenario.sim.control_hz if args.command_age else None)
     out = Path(args.out)
+    try:
+        return _run_role(args, setup, ports, out, key)
+    except EnvironmentFailure as e:  # e.g. a port that cannot be bound
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    except UserInputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    finally:  # the links' logs written, the Zenoh session closed (an open one hangs the exit)
+        ports.close(out)
+
+
+def _link_spec(args) -> LinkSpec:
+    """The transport every link of this process uses (`--transport` ...); bad options: UserInputError."""
+    link = spec_from_args(args)
+    if link.kind == "udp":
+        if link.profile:
+            raise UserInputError("--link-profile applies to the zenoh transport")
+        if not 0 < args.world_port < 65536:
+            raise UserInputError(f"--transport udp needs --world-port 1..65535, got {args.world_port}")
+    if link.profile:
+        from mars_link.transport.profiles import profile_from_name
+
+        try:
+            profile_from_name(link.profile)
+        except ValueError as e:
+            raise UserInputError(f"--link-profile: {e}") from None
+    return link
+
+
+def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None) -> int:
     if args.role == "world":
         seed = args.seed if args.seed is not None else setup.scenario.sim.seed
         speed = args.speed if args.speed is not None else (0.0 if setup.docked else 1.0)
@@ -782,12 +686,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.unit not in setup.unit_ids:
             print(f"error: unit {args.unit} is not in this run (units {setup.unit_ids})", file=sys.stderr)
             return 2
-        try:
-            return run_unit(setup, args.unit, ports, out, UnitPorts(args.gcs_port, args.api_port, args.gcs_bind, args.api_bind),
-                            key=key)
-        except UserInputError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
+        return run_unit(setup, args.unit, ports, out, UnitPorts(args.gcs_port, args.api_port, args.gcs_bind, args.api_bind),
+                        key=key)
     vehicle = None
     if args.vehicle:
         from sitl.vehicle_host import VehiclePorts
@@ -795,11 +695,7 @@ def main(argv: list[str] | None = None) -> int:
         given = {"sysid": args.vehicle_sysid, "gcs_port": args.vehicle_gcs_port, "api_port": args.vehicle_api_port,
                  "gcs_bind": args.vehicle_gcs_bind, "api_bind": args.vehicle_api_bind}
         vehicle = VehiclePorts(**{k: v for k, v in given.items() if v is not None})
-        try:
-            vehicle.check(setup.unit_ids)
-        except UserInputError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 2
+        vehicle.check(setup.unit_ids)
     return run_coordinator(setup, ports, out, key=key, vehicle=vehicle, timing_log=args.timing_log)
 
 

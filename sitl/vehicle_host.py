@@ -32,7 +32,6 @@ from mars_link.state import RigidBodyState
 DEFAULT_VEHICLE_SYSID = 202
 DEFAULT_VEHICLE_API_PORT = 14539
 VEHICLE_GCS_BIND, VEHICLE_API_BIND = 18560, 14560  # below the units' 18570+i / 14580+i
-POLL_SLICE_S = 0.005  # lockstep link without a descriptor (Zenoh): client links served this often
 TICK_PERIOD_S = 0.02  # heartbeats and streams (<= 20 Hz) on this wall-clock grid
 STATUS_PERIOD_S = 0.2
 RESERVED_SYSIDS = (200, 201)  # world, coordinator
@@ -119,25 +118,19 @@ class HostedVehicle:
             self._next_status = now + STATUS_PERIOD_S
             self.write_status()
 
-    def wait(self, link_sock, timeout_s: float) -> float:
-        """Until the lockstep's socket `link_sock` is readable or `timeout_s` passed, serving the client
-        links meanwhile (a client command is answered at once, not after the lockstep's wait); returns
-        how long the caller may still block on `link_sock`: 0, or, for a socket-like without a file
-        descriptor (another transport), a short slice after which it must call again."""
-        try:
-            link_sock.fileno()
-        except (AttributeError, OSError):
-            self.serve()
-            return min(POLL_SLICE_S, timeout_s)
+    def wait(self, link, timeout_s: float) -> float:
+        """Until the lockstep's link (anything with a `fileno`: sitl.links.Link) is readable or `timeout_s`
+        passed, serving the client links meanwhile (a client command is answered at once, not after the
+        lockstep's wait); returns how long the caller may still block on the link: 0."""
         end = time.monotonic() + timeout_s
         while True:
             self.serve()
             now = time.monotonic()
             if now >= end:
                 return 0.0
-            ready, _, _ = select.select([link_sock, *self.io.socks.values()], [], [],
+            ready, _, _ = select.select([link, *self.io.links.values()], [], [],
                                         max(0.0, min(end, self._next_tick) - now))
-            if link_sock in ready:
+            if link in ready:
                 return 0.0
 
     def step(self, t_s: float, packets: list[SensorPacket], live: set[int]) -> list[RotorCommand]:

@@ -43,14 +43,14 @@ class LinkSpec:
 
 
 def add_link_args(ap) -> None:
-    """The command-line options every SITL process takes to build its links (see LinkSpec.to_args)."""
+    """The command-line options every SITL process (`python -m sitl.lockstep`) takes to build its links
+    (see LinkSpec.to_args)."""
     ap.add_argument("--transport", choices=TRANSPORTS, default="udp")
     ap.add_argument("--fleet", default="default")
     ap.add_argument("--zenoh-mode", choices=("peer", "client", "router"), default="client")
     ap.add_argument("--zenoh-connect", action="append", default=[])
     ap.add_argument("--zenoh-listen", action="append", default=[])
-    ap.add_argument("--link-profile", default=None)
-    ap.add_argument("--realtime", action="store_true", help="pace the world to the wall clock")
+    ap.add_argument("--link-profile", default=None, help="a profiles.PRESETS name (+ overrides), zenoh only")
 
 
 def spec_from_args(args) -> LinkSpec:

@@ -43,29 +43,39 @@ class Transport:
         self.validate_frames = validate_frames  # drop datagrams' bad frames here (framing.check_datagram)
 
     # -- interface ---------------------------------------------------------------------------
-    def send(self, data: bytes, peer: Address) -> None:
-        """Send one datagram to `peer`. Never blocks for long; a full link drops (counted)."""
+    def send(self, data: bytes, peer: Address) -> bool:
+        """Send one datagram to `peer`; False if it could not be handed to the link (counted: e.g. an
+        unreachable peer). Never blocks for long; a full link drops (counted)."""
         if self.closed:
             raise ValueError(f"{self.kind} transport is closed")
-        self._send(bytes(data), peer)
+        if self._send(bytes(data), peer) is False:
+            return False
         self.counters.sent += 1
         self.counters.bytes_sent += len(data)
+        return True
 
     def recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
-        """The next datagram and its sender, or None when nothing arrives within `timeout_s`."""
-        deadline = time.monotonic() + max(timeout_s, 0.0)
+        """The next datagram and its sender, or None when nothing arrives within `timeout_s`
+        (<= 0: only what is already waiting)."""
+        if timeout_s <= 0:  # a poll (draining after a select): one try, no clock
+            got = None if self.closed else self._recv(0.0)
+            return None if got is None else self._received(got)
+        deadline = time.monotonic() + timeout_s
         while not self.closed:
             got = self._recv(max(deadline - time.monotonic(), 0.0))
             if got is not None:
-                self.counters.received += 1
-                self.counters.bytes_received += len(got[0])
-                if self.validate_frames:
-                    got = self._validated(*got)
+                got = self._received(got)
                 if got is not None:
                     return got
             if time.monotonic() >= deadline:
                 return None
         return None
+
+    def _received(self, got: tuple[bytes, Address]) -> tuple[bytes, Address] | None:
+        c = self.counters
+        c.received += 1
+        c.bytes_received += len(got[0])
+        return self._validated(*got) if self.validate_frames else got
 
     def _validated(self, data: bytes, peer: Address) -> tuple[bytes, Address] | None:
         from mars_link.transport.framing import check_datagram
@@ -75,9 +85,12 @@ class Transport:
             self.counters.drop(reason, n)
         return (good, peer) if good else None
 
-
     @property
     def local_address(self) -> Address:
+        raise NotImplementedError
+
+    def fileno(self) -> int:
+        """A descriptor that is readable while input waits (select/selectors), level-triggered."""
         raise NotImplementedError
 
     def close(self) -> None:
@@ -92,7 +105,8 @@ class Transport:
         self.close()
 
     # -- to implement --------------------------------------------------------------------------
-    def _send(self, data: bytes, peer: Address) -> None:
+    def _send(self, data: bytes, peer: Address) -> bool | None:
+        """False: not handed to the link (count why); None or True: handed to it."""
         raise NotImplementedError
 
     def _recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
@@ -101,3 +115,38 @@ class Transport:
 
     def _close(self) -> None:
         pass
+
+
+class TappedTransport(Transport):
+    """Any transport whose datagrams are also shown to callbacks `(data, wall time s)`: every one received
+    and every one sent (e.g. transport.realtime.CommandAgeTap at a unit's links). Counters are the inner's."""
+
+    def __init__(self, inner: Transport, on_receive=None, on_send=None) -> None:
+        super().__init__()
+        self.inner = inner
+        self.kind = inner.kind
+        self.counters = inner.counters
+        self.on_receive = on_receive
+        self.on_send = on_send
+
+    @property
+    def local_address(self) -> Address:
+        return self.inner.local_address
+
+    def fileno(self) -> int:
+        return self.inner.fileno()
+
+    def send(self, data: bytes, peer: Address) -> bool:
+        ok = self.inner.send(data, peer)
+        if ok and self.on_send is not None:
+            self.on_send(data, time.time())
+        return ok
+
+    def recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
+        got = self.inner.recv(timeout_s)
+        if got is not None and self.on_receive is not None:
+            self.on_receive(got[0], time.time())
+        return got
+
+    def _close(self) -> None:
+        self.inner.close()

@@ -128,21 +128,21 @@ class ProfiledTransport(Transport):
             m = self._models[peer] = LinkModel(self.profile, self._seed + len(self._models))
         return m
 
-    def send(self, data: bytes, peer: Address) -> None:  # counted by the inner transport when it goes out
+    def send(self, data: bytes, peer: Address) -> bool:  # counted by the inner transport when it goes out
         if self.closed:
             raise ValueError(f"{self.kind} transport is closed")
         now = time.monotonic()
         with self._cv:
             due = self.model(peer).schedule(now, len(data))
-            if due is None:
+            if due is None:  # lost on the way: the sender cannot know (as with a radio)
                 self.counters.drop("link_lost")
-                return
+                return True
             if due <= now and not self._heap:
-                self.inner.send(data, peer)
-                return
+                return self.inner.send(data, peer)
             heapq.heappush(self._heap, (due, self._seq, bytes(data), peer))
             self._seq += 1
             self._cv.notify()
+        return True
 
     def recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
         return self.inner.recv(timeout_s)

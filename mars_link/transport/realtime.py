@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from mars_link.outputs import write_json
+from mars_link.transport.base import TappedTransport, Transport
 
 CPU_DMA_LATENCY = "/dev/cpu_dma_latency"
 MSG_HIL_SENSOR = 107
@@ -59,8 +60,9 @@ def frame_times_usec(data: bytes, msgid: int) -> list[int]:
 
 
 class CommandAgeTap:
-    """Unit side: fed the datagrams of the unit's HIL and coordinator links; logs the command ages and
-    when each step's sensor datagram was read (the first stage of the path)."""
+    """Unit side: shown the datagrams of the unit's HIL and coordinator links (`hil_link`,
+    `coordinator_link` wrap them); logs the command ages and when each step's sensor datagram was read
+    (the first stage of the path)."""
 
     def __init__(self, unit_id: int, control_period_s: float = 0.01) -> None:
         self.unit_id = unit_id
@@ -69,6 +71,14 @@ class CommandAgeTap:
         self.commands: dict[float, float] = {}  # t_s -> wall time the unit read the command for t
         self.motor_outputs: list[tuple[float, float]] = []  # (t_s, wall time the motors got it)
         self.sensors: dict[float, float] = {}  # t_s -> arrival wall time of its sensor datagram
+
+    def hil_link(self, link: Transport) -> Transport:
+        """The unit's HIL link, tapped: sensor datagrams in (the epoch), motor outputs out."""
+        return TappedTransport(link, self.on_hil, self.on_motor_output)
+
+    def coordinator_link(self, link: Transport) -> Transport:
+        """The unit's coordinator link, tapped: rotor commands in."""
+        return TappedTransport(link, self.on_coordinator)
 
     def on_hil(self, data: bytes, now_s: float | None = None) -> None:
         now_s = time.time() if now_s is None else now_s

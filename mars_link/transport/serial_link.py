@@ -26,6 +26,9 @@ class FdStream:
         self.fd = fd
         self.name = name
 
+    def fileno(self) -> int:
+        return self.fd
+
     def read_available(self, timeout_s: float) -> bytes:
         r, _, _ = select.select([self.fd], [], [], max(timeout_s, 0.0))
         if not r:
@@ -55,6 +58,9 @@ class PySerialStream:
             raise ValueError(f"serial {params.device}: {exc}") from None
         self.name = params.device
 
+    def fileno(self) -> int:
+        return self.port.fileno()
+
     def read_available(self, timeout_s: float) -> bytes:
         r, _, _ = select.select([self.port.fileno()], [], [], max(timeout_s, 0.0))
         if not r:
@@ -83,6 +89,9 @@ class SerialTransport(Transport):
     def local_address(self) -> str:
         return self.stream.name
 
+    def fileno(self) -> int:
+        """Readable while bytes wait; frames already read come first from `recv` (drain it until None)."""
+        return self.stream.fileno()
 
     def _send(self, data: bytes, peer: Address) -> None:
         self.stream.write(data)
