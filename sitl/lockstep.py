@@ -71,6 +71,8 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.signing import load_key
 from mars_link.errors import EnvironmentFailure, UserInputError
 from mars_link.messages import SensorPacket
+from mars_link.outputs import write_json
+from mars_link.pacing import Pacer
 from mars_link.transport import LinkSpec, add_link_args, spec_from_args
 from mars_link.wire import (
     SensorPacketAssembler,
@@ -232,6 +234,10 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     try:
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
         wall0 = time.perf_counter()
+        # sim time on the wall clock at `speed`; behind it, the world catches up (no re-anchoring): the
+        # lockstep's real-time factor stays the one asked for
+        pacer = Pacer(speed, reanchor_s=math.inf, clock=time.perf_counter)
+        pacer.start(world.t_s)
         cpu0 = time.process_time()  # CPU of the stepping loop alone (start-up excluded)
         k = 0
         while (setup.steps is None or k < setup.steps) and not stop.requested:
@@ -247,15 +253,12 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                     msgs = [] if p.truth is not None or p.position is None else [
                         hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
                     datagrams.append((link.pack(msgs + sensor_packet_messages(p)), link.peers[p.unit_id]))
-            if speed > 0:
-                ahead = t / speed - (time.perf_counter() - wall0)
-                if ahead > 0:
-                    time.sleep(ahead)
+            pacer.wait(t)
             for data, addr in datagrams:
                 link.send_bytes(data, addr)
-            if speed > 0:  # paced: the answers are read in one go from mid-period on, so the world is not
+            if pacer.paced:  # the answers are read in one go from mid-period on, so the world is not
                 # woken once per unit while the units and the coordinator work on the step (2-core machines)
-                time.sleep(max(0.0, (t + ANSWER_READ_PHASE / cfg.exchange_hz) / speed - (time.perf_counter() - wall0)))
+                time.sleep(max(0.0, pacer.wait_s(t + ANSWER_READ_PHASE / cfg.exchange_hz)))
             waiting = set(live)
             deadline = time.monotonic() + unit_timeout_s
             t_us = usec(t)
@@ -286,7 +289,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                    "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
                    "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time(),
                    "cpu_loop_s": time.process_time() - cpu0}
-        (out / "world_summary.json").write_text(json.dumps(summary, indent=2) + "\n")
+        write_json(out / "world_summary.json", summary)
     finally:
         truth_log.close()
         world.close()
@@ -548,13 +551,13 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                              f"{step_cpu:.6f},{send_cpu:.6f}\n")
         if finish_at is not None:
             coordinator.finish_step()
-        (out / "coordinator_summary.json").write_text(json.dumps(
+        write_json(out / "coordinator_summary.json",
             {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,
                              "eta_estimated": round(float(d.eta_estimated), 4), "reason": d.reason}
                             for d in coordinator.detections],
              "cpu_loop_s": time.process_time() - cpu0,
-             "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}}, indent=2, default=float) + "\n")
+             "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}})
     finally:
         link.close()
         if timing:
