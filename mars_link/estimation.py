@@ -576,16 +576,17 @@ class AssemblyEstimator:
         self._pending_pos = [s for s in self._pending_pos if s.t_s > self.t_s]
         self.initialised = True
 
-    def set_model(self, model: AssemblyModel) -> None:
+    def set_model(self, model: AssemblyModel, shift_frd_m: np.ndarray | None = None) -> None:
         """Switch to a new assembly (docking/undocking). The estimate moves to the new CoM.
 
-        The CoM shift is taken from the units common to both models (same id, same body axes):
-        r_old - r_new is the new CoM in the old body frame. Without common units the reference
-        point is kept.
+        `shift_frd_m`: the new CoM in the old body frame, from the old CoM (a split or a merge knows
+        it). Without it, the shift is taken from the units common to both models (same id, same body
+        axes): r_old - r_new. Without either, the reference point is kept.
         """
         common = [u for u in model.unit_ids if u in self.model.unit_cells]
-        if common and self.initialised:
-            shift = np.mean([self.model.unit_position(u) - model.unit_position(u) for u in common], axis=0)
+        if self.initialised and (shift_frd_m is not None or common):
+            shift = (np.asarray(shift_frd_m, dtype=float) if shift_frd_m is not None else
+                     np.mean([self.model.unit_position(u) - model.unit_position(u) for u in common], axis=0))
             rot = quat_to_rotmat(self.q)
             omega = np.zeros(3) if self._imu is None else self._imu.gyro_frd_radps - self.bg
             self.p = self.p + rot @ shift

@@ -136,7 +136,7 @@ def test_mars_link_run_dispatches_reconfig_scenarios(tmp_path):
     (lambda t: t.replace('layout = ["XXX"]', 'layout = ["X.XX"]'), "not connected"),
     (lambda t: t.replace("unit = 3", "unit = 5"), "unit 5 does not exist"),
     (lambda t: t.replace("target = [2, 3, 1]", "target = [2, 2, 1]"), "exactly once"),
-    (lambda t: t.replace("noise = false", "noise = true"), "noise = false"),
+    (lambda t: t.replace('ftc = "qp"', 'ftc = "qp"\nfaults_known = false'), "faults_known = true"),
     (lambda t: t.replace("enabled = true", "enabled = true\nspeed = 2"), "unknown key 'speed'"),
     (lambda t: t.replace("speed_mps = 0.3", "speed_mps = -1"), "speed_mps must be > 0"),
 ])

@@ -8,9 +8,11 @@ controller, allocator (FTC on the piece's known faults) and Coordinator (`build.
 Every unit is its firmware (`firmware_models.vehicle.Vehicle`, as in every other mode), so faults act in
 the unit's motor model and the commands go through its rotor intake.
 
-Scope: the controller flies on the true state its units report (`[sim] noise = false` is required: one
-EKF per piece is not wired here) and the faults must be told (`faults_known = true`). Deterministic
-for a seed.
+Each piece's coordinator flies on its own EKF when sensor noise is on (on the truth its units report
+when off): a split hands each child the parent's estimate moved to the child's CoM, a dock hands the
+new piece the stationary piece's estimate moved to the new CoM (`AssemblyEstimator.set_model`), so the
+coordinator side never reads the truth; the world latches on the truth. Faults must be told
+(`faults_known = true`) for now. Deterministic for a seed.
 
 Outputs (like `mars_link.runner`): summary.json keys mean_error_m, rmse_m, max_error_m,
 force_integral_n2s (Σ rotors ∫ thrust² dt over every body), diverged, events (faults, each split and
@@ -22,20 +24,22 @@ time the manoeuvre took is `reconfig_time_s`.
 
 from __future__ import annotations
 
+import copy
 import math
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
 from mars_link.assembly import AssemblyModel
-from mars_link.build import make_piece_coordinator, make_trajectory, make_unit, start_pose, world_config
+from mars_link.build import make_estimator, make_piece_coordinator, make_trajectory, make_unit, start_pose, world_config
 from mars_link.coordinator import Coordinator
 from mars_link.engine import InProcessUnits
 from mars_link.errors import UserInputError
 from mars_link.messages import RotorCommand, SensorPacket
+from mars_link.state import ImuSample, PositionSample
 from mars_link.reconfig.flyability import FlyabilityRule
 from mars_link.reconfig.execution import ExecutionParams, Executor, FreeStart, Key, PieceShape, local_eta
 from mars_link.reconfig.placement import SnapWeights, health_from_eta
@@ -83,8 +87,6 @@ def execution_params(scenario: Scenario) -> ExecutionParams:
 def check_reconfig_scenario(scenario: Scenario) -> None:
     """What this runner cannot fly, refused before flight (one line each)."""
     src = scenario.source
-    if scenario.sim.noise:
-        raise UserInputError(f"{src}: [reconfig] flights need [sim] noise = false (pieces fly on the true state)")
     if not scenario.faults_known:
         raise UserInputError(f"{src}: [reconfig] flights need [control] faults_known = true")
     if scenario.controller != "cascaded":
@@ -98,6 +100,22 @@ def check_reconfig_scenario(scenario: Scenario) -> None:
         return
     if not scenario.faults:
         raise UserInputError(f"{src}: [reconfig] enabled but the scenario has no [[faults]] to react to")
+
+
+def estimate_of(piece: "_Piece"):
+    """What the piece's coordinator believes of its body (None before its first step)."""
+    last = piece.coordinator.last
+    return None if last is None else last.estimate
+
+
+def local_packet(packet: SensorPacket, local_id: int) -> SensorPacket:
+    """A unit's telemetry as its piece's coordinator numbers the units (the piece model's ids)."""
+    imu, pos = packet.imu, packet.position
+    return SensorPacket(
+        packet.t_s, local_id,
+        None if imu is None else ImuSample(imu.t_s, local_id, imu.gyro_frd_radps, imu.accel_frd_mps2),
+        None if pos is None else PositionSample(pos.t_s, local_id, pos.position_ned_m, pos.velocity_ned_mps),
+        packet.truth)
 
 
 def free_ground_positions(scenario: Scenario, model: AssemblyModel, mission) -> dict[int, np.ndarray]:
@@ -198,10 +216,24 @@ def run_reconfig_trial(
     eta_true = {u: np.ones(4) for u in model.unit_ids}
     pieces: dict[Key, _Piece] = {}
 
-    def new_piece(shape: PieceShape, t_s: float) -> _Piece:
+    def new_piece(shape: PieceShape, t_s: float, estimator=None) -> _Piece:
+        """A piece and its coordinator; with sensor noise its EKF is `estimator` (a parent's or a docked
+        piece's estimate moved to the new CoM), else a new one that initialises on the piece's sensors."""
         m = shape.model(vehicle)
-        coord = make_piece_coordinator(scenario, m, executor.refs[shape.key], local_eta(shape, eta_true), t_s)
+        if estimator is None:
+            estimator = make_estimator(scenario, m)
+        coord = make_piece_coordinator(scenario, m, executor.refs[shape.key], local_eta(shape, eta_true), t_s,
+                                       estimator)
         return _Piece(shape, m, tuple(shape.units_local_order()), coord)
+
+    def moved_estimate(piece: _Piece, model: AssemblyModel, shift_frd_m: np.ndarray):
+        """The piece's EKF, moved to a new body (`shift_frd_m`: its CoM in the piece's body frame)."""
+        est = piece.coordinator.estimator
+        if est is None:
+            return None
+        est = copy.deepcopy(est)
+        est.set_model(model, shift_frd_m)
+        return est
 
     # the world of bodies (split and merged by it, momentum kept): one per piece the executor starts with
     bodies = []
@@ -211,7 +243,7 @@ def run_reconfig_trial(
         bodies.append((body_model, tuple(shape.units_local_order()), JsbsimBody(
             body_model, physics_hz=scenario.sim.physics_hz,
             position_ned_m=(float(start.position_ned_m[0]), float(start.position_ned_m[1]), 0.0), yaw_rad=start.yaw_rad)))
-    world = World(model, world_config(replace(scenario, sim=replace(scenario.sim, noise=False)), seed), bodies=bodies)
+    world = World(model, world_config(scenario, seed), bodies=bodies)
     # every unit's firmware in the motor path
     units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
     for shape in executor.shapes.values():
@@ -267,26 +299,27 @@ def run_reconfig_trial(
                     executor.trigger(t)
             if can_reconfigure and at_s is not None and t >= at_s:
                 executor.trigger(t - executor.params.trigger_delay_s)
-            states = {key: world.body_state(p.units[0]) for key, p in pieces.items()}
-            for action in executor.step(t, states):
+            # the executor (coordinator side) sees the pieces' estimates, the world latches on the truth
+            for action in executor.step(t, {key: estimate_of(p) for key, p in pieces.items()}):
                 parent = pieces.pop(action.parent)
                 world.split(parent.units, [(shape.model(vehicle), tuple(shape.units_local_order()), offset)
                                            for shape, offset in zip(action.children, action.offsets_frd_m)])
-                for shape in action.children:
-                    pieces[shape.key] = new_piece(shape, t)
-                states = {key: world.body_state(p.units[0]) for key, p in pieces.items()}
+                for shape, offset in zip(action.children, action.offsets_frd_m):
+                    pieces[shape.key] = new_piece(shape, t, moved_estimate(parent, shape.model(vehicle), offset))
+            states = {key: world.body_state(p.units[0]) for key, p in pieces.items()}
             if executor.failed and not failed:
                 failed = True
                 events.append({"t_s": round(t, 6), "type": "reconfig_failed", "reason": executor.failed,
                                "text": f"Reconfig failed: {executor.failed}"[:50]})
                 break
-            # every piece's coordinator on its units' telemetry (its body's truth: noise is off); the units
-            # drive their motors (limits, their own faults) and the world takes the outputs
+            # every piece's coordinator on its units' telemetry (EKF with sensor noise, else the truth they
+            # report); the units drive their motors (limits, their own faults) and the world takes the outputs
             telemetry: dict[int, SensorPacket] = {pk.unit_id: pk for pk in units.take_sensors(world.sense())}
             commands = []
             for p in pieces.values():
                 state = states[p.shape.key]
-                piece_cmds = p.coordinator.step(t, [telemetry[u] for u in p.units if u in telemetry])
+                piece_cmds = p.coordinator.step(t, [local_packet(telemetry[u], k + 1)
+                                                    for k, u in enumerate(p.units) if u in telemetry])
                 commands += [RotorCommand(c.t_s, p.units[c.unit_id - 1], c.thrusts_n) for c in piece_cmds]
                 ref = p.coordinator.last.reference.position_ned_m
                 tilt = tilt_deg(state.quaternion_wxyz)
@@ -304,7 +337,8 @@ def run_reconfig_trial(
                     world.merge(st.units[0], mv.units[0], req.merged.model(vehicle),
                                 tuple(req.merged.units_local_order()))
                     executor.on_docked(t, req)
-                    pieces[req.merged.key] = new_piece(req.merged, t)
+                    shift = req.merged.com_frd(vehicle.pitch_m) - st.shape.com_frd(vehicle.pitch_m)
+                    pieces[req.merged.key] = new_piece(req.merged, t, moved_estimate(st, req.merged.model(vehicle), shift))
                     events.append({"t_s": round(t, 6), "type": "dock_latched",
                                    "position_error_m": round(chk.position_error_m, 4),
                                    "speed_mps": round(chk.speed_mps, 4), "yaw_deg": round(chk.yaw_deg, 3),
