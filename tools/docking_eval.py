@@ -1,6 +1,6 @@
 """Paper 000's docking scenario (specs/ftc.md §5, §7.3, Fig. 4): the faulty unit's yaw and acceleration.
 
-    python tools/docking_eval.py [--out runs/docking_eval] [--scenario docking_3x1]
+    python tools/docking_eval.py [--out runs/docking_eval] [--scenario docking_3x1] [--noise]
 
 3x1 with unit 3's rear-right rotor dead from the start; unit 1 separates, flies round (at its own
 altitude) and docks on the far side of unit 3 (order 2-3-1). Flown twice with the same plant and
@@ -52,9 +52,11 @@ def faulty_unit_figures(result, unit: int = FAULTY_UNIT) -> dict:
     }
 
 
-def fly(scenario_name: str, ftc: str, out: Path):
+def fly(scenario_name: str, ftc: str, out: Path, noise: bool | None = None):
     sc = load_scenario(scenario_name)
     sc.ftc = ftc
+    if noise is not None:  # sensor noise on: every piece flies on its own EKF
+        sc.sim.noise = noise
     return run_reconfig_trial(sc, sc.sim.seed, out)
 
 
@@ -94,13 +96,14 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="runs/docking_eval")
     ap.add_argument("--scenario", default="docking_3x1")
+    ap.add_argument("--noise", action="store_true", help="sensor noise on (each piece on its EKF)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     figs = {}
     for label, ftc in (("ours (qp)", "qp"), ("baseline (none)", "none")):
         print(f"flying {args.scenario} with ftc={ftc} ...", flush=True)
-        r = fly(args.scenario, ftc, out / ftc)
+        r = fly(args.scenario, ftc, out / ftc, True if args.noise else None)
         if not r.reconfigured:
             print(f"  {label}: the manoeuvre did not complete ({[e for e in r.events if 'reconfig' in e['type']]})")
             return 1
