@@ -50,8 +50,9 @@ class Transport:
             raise ValueError(f"{self.kind} transport is closed")
         if self._send(bytes(data), peer) is False:
             return False
-        self.counters.sent += 1
-        self.counters.bytes_sent += len(data)
+        c = self.counters
+        c.sent += 1
+        c.bytes_sent += len(data)
         return True
 
     def recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
@@ -61,13 +62,15 @@ class Transport:
             got = None if self.closed else self._recv(0.0)
             return None if got is None else self._received(got)
         deadline = time.monotonic() + timeout_s
+        wait = timeout_s
         while not self.closed:
-            got = self._recv(max(deadline - time.monotonic(), 0.0))
+            got = self._recv(wait)
             if got is not None:
                 got = self._received(got)
                 if got is not None:
                     return got
-            if time.monotonic() >= deadline:
+            wait = deadline - time.monotonic()
+            if wait <= 0:
                 return None
         return None
 
