@@ -8,6 +8,8 @@ down). MAVLink carries float32, so every message is rounded to float32 at its bo
 
 from __future__ import annotations
 
+import struct
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,9 +27,20 @@ def wire_time(t_s: float) -> float:
     return round(t_s * 1e6) / 1e6
 
 
+#: float32 packers for one unit's few rotors (struct rounds double -> float32 as numpy does)
+_F32_PACKERS = {n: struct.Struct(f"<{n}f") for n in range(1, 9)}
+
+
 def wire_thrust(thrusts_n, full_scale_n: float) -> np.ndarray:
     """Thrust as carried in MAVLink actuator controls: float32 fraction of the unit's full scale."""
-    return f32(np.asarray(thrusts_n, dtype=float) / full_scale_n) * full_scale_n
+    t = np.asarray(thrusts_n, dtype=float)
+    packer = _F32_PACKERS.get(t.size) if t.ndim == 1 else None
+    if packer is not None:  # one unit's rotors, every control step: 4x cheaper than numpy's casts
+        try:
+            return np.array(packer.unpack(packer.pack(*[x / full_scale_n for x in t.tolist()]))) * full_scale_n
+        except OverflowError:  # beyond float32's range: numpy's cast gives inf
+            pass
+    return f32(t / full_scale_n) * full_scale_n
 
 
 def wire_state(s: RigidBodyState) -> RigidBodyState:

@@ -89,3 +89,17 @@ def test_inprocess_real_time_run_is_paced_to_the_wall_clock() -> None:
     assert r.wall_time_s >= 0.98 * r.sim_time_s
     fast = run_trial(scenario, 1)
     assert fast.mean_error_m == r.mean_error_m  # pacing changes when, never what
+
+
+def test_wire_thrust_fast_path_rounds_exactly_as_numpy_float32() -> None:
+    """One unit's rotors go through struct's float32 packing (cheaper): the same bits as numpy's cast."""
+    from mars_link.messages import f32, wire_thrust
+
+    rng = np.random.default_rng(7)
+    for n in (1, 4, 8, 24):
+        for _ in range(2000):
+            x = rng.normal(0.0, 3.0, n) * 10 ** rng.uniform(-8, 3)
+            assert np.array_equal(wire_thrust(x, 5.099458), f32(x / 5.099458) * 5.099458)
+    special = np.array([np.nan, np.inf, -np.inf, 1e300])
+    with np.errstate(over="ignore"):
+        assert np.array_equal(wire_thrust(special, 5.0), f32(special / 5.0) * 5.0, equal_nan=True)
