@@ -117,12 +117,13 @@ def world_config(scenario: Scenario, seed: int):
                        noise=scenario.sim.noise, position_every=position_every(scenario))
 
 
-def make_world(scenario: Scenario, model: AssemblyModel, seed: int, com_start_ned_m: np.ndarray,
-               yaw_rad: float):
-    """The world of one docked assembly (one JSBSim body) at its start pose."""
+def make_world(scenario: Scenario, model: AssemblyModel, seed: int, com_start_ned_m: np.ndarray | None = None,
+               yaw_rad: float = 0.0, bodies: list | None = None, config=None):
+    """The world: one docked body of `model` at its start pose, or the given `bodies` (body model, the
+    world's unit ids it carries, JsbsimBody); `config` overrides the scenario's world config."""
     from sitl.world import World
 
-    return World(model, world_config(scenario, seed), com_start_ned_m, yaw_rad)
+    return World(model, config or world_config(scenario, seed), com_start_ned_m, yaw_rad, bodies=bodies)
 
 
 def make_estimator(scenario: Scenario, model: AssemblyModel):

@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from firmware_models.vehicle import MODE_OFFBOARD
 from mars_link.assembly import AssemblyModel
 from mars_link.coordinator import Coordinator
 from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket
@@ -67,8 +68,6 @@ class InProcessUnits:
     def command(self, cmd: RotorCommand) -> ActuatorOutput:
         v = self.vehicles[cmd.unit_id]
         if cmd.unit_id not in self._taken_over:  # ARM before the first command, OFFBOARD after it
-            from firmware_models.vehicle import MODE_OFFBOARD
-
             v.arm()
             v.take_rotor_command(cmd)
             v.set_mode(MODE_OFFBOARD)

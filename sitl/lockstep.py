@@ -207,14 +207,15 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory."""
     world_start = start
     from sitl.hil import hil_state_message
-    from sitl.world import FreeUnitsWorld, World, WorldConfig
+    from mars_link.build import make_world
+    from sitl.world import FreeUnitsWorld, WorldConfig
 
     sc = setup.scenario
     cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise,
                       position_every(setup))
     if setup.docked:
         com, yaw = world_start or _start_pose(setup)
-        world = World(setup.model, cfg, com, yaw)
+        world = make_world(sc, setup.model, seed, com, yaw, config=cfg)
         columns = "pos_n_m,pos_e_m,pos_d_m,qw,qx,qy,qz"
     else:
         world = FreeUnitsWorld(setup.free_units, setup.model.vehicle, cfg)

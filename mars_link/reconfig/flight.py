@@ -34,7 +34,8 @@ from typing import Callable
 import numpy as np
 
 from mars_link.assembly import AssemblyModel
-from mars_link.build import make_estimator, make_piece_coordinator, make_trajectory, make_unit, start_pose, world_config
+from mars_link.build import (make_estimator, make_piece_coordinator, make_trajectory, make_unit, make_world,
+                             start_pose)
 from mars_link.coordinator import Coordinator
 from mars_link.engine import InProcessUnits
 from mars_link.errors import UserInputError
@@ -183,7 +184,6 @@ def run_reconfig_trial(
 ) -> ReconfigResult:
     from sitl.docking import DockTolerance, dock_check
     from sitl.physics import JsbsimBody
-    from sitl.world import World
 
     check_reconfig_scenario(scenario)
     model = scenario.model()
@@ -243,7 +243,7 @@ def run_reconfig_trial(
         bodies.append((body_model, tuple(shape.units_local_order()), JsbsimBody(
             body_model, physics_hz=scenario.sim.physics_hz,
             position_ned_m=(float(start.position_ned_m[0]), float(start.position_ned_m[1]), 0.0), yaw_rad=start.yaw_rad)))
-    world = World(model, world_config(scenario, seed), bodies=bodies)
+    world = make_world(scenario, model, seed, bodies=bodies)
     # every unit's firmware in the motor path
     units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
     for shape in executor.shapes.values():
