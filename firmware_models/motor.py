@@ -124,6 +124,11 @@ class MotorModel:
 
     def setpoint(self, commands_n) -> np.ndarray:
         """What the motors are driven towards: cleaned, clamped, eta-scaled command (a new array)."""
+        if self._hi == math.inf and self._lo == -math.inf and isinstance(commands_n, np.ndarray) \
+                and commands_n.shape == self.thrust_n.shape:
+            c = commands_n * self.eta  # no limits: the eta-scaled command in one new array
+            if math.isfinite(c.sum()):
+                return c
         c = np.array(commands_n, dtype=float)
         if c.shape != self.thrust_n.shape:
             raise ValueError(f"expected {self.params.n_rotors} rotor commands, got shape {c.shape}")

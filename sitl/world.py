@@ -97,6 +97,7 @@ class World:
         self.dead_units: set[int] = set()
         self.exchange_index = 0
         self.force_integral_n2s = 0.0
+        self._unit_slots = {u: model.unit_slots(u) for u in model.unit_ids}  # (the hot path's lookup)
         self._index_bodies()
 
     @classmethod
@@ -165,7 +166,10 @@ class World:
     def actuate(self, output: ActuatorOutput) -> None:
         if output.unit_id in self.dead_units:
             return
-        self.rotor_setpoint_n[self.model.unit_slots(output.unit_id)] = output.thrusts_n
+        sl = self._unit_slots.get(output.unit_id)
+        if sl is None:  # not a unit of this world: the model names it in one line
+            sl = self.model.unit_slots(output.unit_id)
+        self.rotor_setpoint_n[sl] = output.thrusts_n
 
     def declare_dead(self, unit_id: int) -> None:
         """A unit that stopped answering: its motors stop, it stays attached as dead weight."""
