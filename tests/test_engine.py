@@ -23,6 +23,17 @@ class _Clock:
         return self.now
 
 
+def _fly(scenario) -> tuple:
+    """One in-process flight through the engine (build_flight + Engine + FlightRecorder)."""
+    flight = build_flight(scenario, 1)
+    engine = Engine(flight, [FlightRecorder(flight)])
+    try:
+        engine.run()
+    finally:
+        flight.world.close()
+    return flight, engine
+
+
 def test_pacer_keeps_sim_time_on_the_wall_clock_at_its_rate() -> None:
     clock = _Clock()
     pacer = Pacer(2.0, clock=clock)  # twice real time
@@ -42,12 +53,7 @@ def test_pacer_keeps_sim_time_on_the_wall_clock_at_its_rate() -> None:
 def test_inprocess_units_are_their_firmware_and_take_every_command() -> None:
     scenario = load_scenario("hover_3x2")
     scenario.sim.duration_s = 2.0
-    flight = build_flight(scenario, 1)
-    engine = Engine(flight, [FlightRecorder(flight)])
-    try:
-        engine.run()
-    finally:
-        flight.world.close()
+    flight, engine = _fly(scenario)
     assert engine.steps == 200
     for u, v in flight.units.vehicles.items():
         assert v.armed and v.mode == MODE_OFFBOARD and v.source == "coordinator"
@@ -66,12 +72,7 @@ def test_faults_act_in_the_unit_motor_model_not_in_the_coordinator() -> None:
     scenario.sim.duration_s = 3.0
     scenario.faults = [FaultSpec(unit=2, rotor=3, eta=0.5, t_s=1.0)]
     scenario.faults_known = False
-    flight = build_flight(scenario, 1)
-    engine = Engine(flight, [FlightRecorder(flight)])
-    try:
-        engine.run()
-    finally:
-        flight.world.close()
+    flight, engine = _fly(scenario)
     assert flight.units.vehicles[2].motors.eta.tolist() == [1.0, 1.0, 0.5, 1.0]
     assert all(v.motors.eta.tolist() == [1.0] * 4 for u, v in flight.units.vehicles.items() if u != 2)
     fault = next(e for e in engine.events if e["type"] == "fault")

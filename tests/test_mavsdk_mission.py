@@ -23,6 +23,7 @@ from mavsdk.asyncio.plugins.action import ActionAsync  # noqa: E402
 from mavsdk.asyncio.plugins.mission import MissionAsync  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync  # noqa: E402
 from mavsdk.plugins.mission import MissionItem, MissionPlan  # noqa: E402
+from test_mavsdk_unit import _until  # noqa: E402  (the unit MAVSDK test's helper)
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(180)]
 
@@ -35,16 +36,6 @@ ALT_M, RADIUS_M, SPEED_MPS, LOITER_S = 3.0, 0.3, 2.0, 0.5
 def _latlon(north_m: float, east_m: float) -> tuple[float, float]:
     return (HOME[0] + math.degrees(north_m / EARTH_R_M),
             HOME[1] + math.degrees(east_m / (EARTH_R_M * math.cos(math.radians(HOME[0])))))
-
-
-async def _until(predicate, timeout_s: float, what: str, period_s: float = 0.1):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = await predicate()
-        if value:
-            return value
-        await asyncio.sleep(period_s)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 async def _fly(api_port: int, status_path: Path) -> dict:
