@@ -48,7 +48,7 @@ from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
 from mars_link import mavlink_codec
 from mars_link.assembly import GRAVITY_MPS2, VehicleParams, vehicle_preset
 from mars_link.errors import UserInputError
-from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
+from mars_link.messages import LATCH_ALL, ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
 from mars_link.rotations import quat_to_euler, quat_to_rotmat
 from mars_link.state import ImuSample, RigidBodyState
 from mars_link.wire import SensorFrameAssembler, SensorFrames
@@ -347,6 +347,7 @@ class Vehicle:
         self.defer_own_state = False  # set by the lockstep unit runner: see run_deferred
         self._deferred: list = []
         self._last_rotor_usec: int | None = None  # time of the last accepted coordinator command
+        self.latch_setpoint = LATCH_ALL  # the docking latches: engaged until the coordinator opens some
         self._await_coordinator = c.hil_await_coordinator
         self._scheduled_failures: list[tuple[float, int, float]] = []  # (sim time, rotor, eta), sorted
         self.mission = MissionProtocol(self.origin)
@@ -1165,11 +1166,13 @@ class Vehicle:
             return False
         self._count("rotor_commands")
         self._last_rotor_usec = t_usec
+        self.latch_setpoint = cmd.latch_setpoint
         return True
 
     def drive_motors(self) -> ActuatorOutput:
         """The HIL answer (HIL_ACTUATOR_CONTROLS' values): what the motors are driven to for this step."""
-        return ActuatorOutput(self.sim_s, self.sysid, wire_thrust(self._motor_setpoint_n(), self.full_scale_n))
+        return ActuatorOutput(self.sim_s, self.sysid, wire_thrust(self._motor_setpoint_n(), self.full_scale_n),
+                              self.latch_setpoint)
 
     def arm(self) -> int:
         """MAV_CMD_COMPONENT_ARM_DISARM (arm) as the coordinator sends it; returns the MAV_RESULT."""

@@ -146,17 +146,20 @@ def make_detector(scenario: Scenario, model: AssemblyModel, ground_down_m: float
 
 
 def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: Trajectory, eta: np.ndarray,
-                           t_s: float, estimator=None) -> Coordinator:
+                           t_s: float, estimator=None, detector=None) -> Coordinator:
     """The coordinator of one piece of a reconfiguring assembly: the scenario's FTC mode over the piece's
-    own rotors, its CoM on the piece's reference, told the piece's faults."""
+    own rotors, its CoM on the piece's reference, told the piece's believed faults (`eta`); its detector,
+    if any, starts from them."""
     from mars_link.allocation import make_allocator
     from mars_link.control.cascaded import CascadedController
 
     v = piece.vehicle
     allocator = make_allocator(scenario.ftc, piece, eta=eta, min_thrust_n=v.rotor_min_thrust_n,
                                max_thrust_n=v.rotor_max_thrust_n)
+    if detector is not None:
+        detector.set_model(piece, eta)
     coordinator = Coordinator(piece, reference, CascadedController(piece, allocator, control_hz=scenario.sim.control_hz),
-                              estimator)
+                              estimator, detector)
     coordinator.set_faults(eta, t_s, "piece created")
     return coordinator
 
@@ -217,3 +220,59 @@ def build_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, float] | 
     return Flight(scenario, model, seed, trajectory, world, units, coordinator,
                   sorted(scenario.faults, key=lambda f: f.t_s), deaths, tracked_offset(model, scenario),
                   scenario.sim.duration_s or trajectory.duration_s)
+
+
+#: cap on a reconfiguration manoeuvre: a flight of pieces ends this long after its mission would have
+MAX_RECONFIG_S = 600.0
+
+
+def build_pieces_flight(scenario: Scenario, seed: int):
+    """Every part of a flight of pieces (free units assembling, a reconfiguration), wired for the engine:
+    the world starts with one body per piece of the executor's start, every unit is its firmware, and
+    the coordinator is a `PiecesCoordinator` (one EKF, detector, controller and allocator per piece)."""
+    from mars_link.engine import Flight, InProcessUnits
+    from mars_link.pieces import PiecesCoordinator
+    from mars_link.reconfig.plans import check_reconfig_scenario, make_executor, plan_or_reason
+    from sitl.physics import JsbsimBody
+
+    check_reconfig_scenario(scenario)
+    model = scenario.model()
+    vehicle = model.vehicle
+    mission = make_trajectory(scenario, model)
+    duration = scenario.sim.duration_s or mission.duration_s
+    executor, plan_events, told = make_executor(scenario, model, mission)
+    bodies = []
+    for shape in executor.shapes.values():
+        start = executor.refs[shape.key].sample(0.0)
+        body_model = shape.model(vehicle)
+        bodies.append((body_model, tuple(shape.units_local_order()), JsbsimBody(
+            body_model, physics_hz=scenario.sim.physics_hz,
+            position_ned_m=(float(start.position_ned_m[0]), float(start.position_ned_m[1]), 0.0),
+            yaw_rad=start.yaw_rad)))
+    world = make_world(scenario, model, seed, bodies=bodies)
+    units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
+    ground_down_m = 0.0  # every piece starts landed: its CoM near the ground plane
+
+    def new_coordinator(piece: AssemblyModel, reference, eta, t_s, estimator):
+        if estimator is None:
+            estimator = make_estimator(scenario, piece)
+        return make_piece_coordinator(scenario, piece, reference, eta, t_s, estimator,
+                                      make_detector(scenario, piece, ground_down_m))
+
+    enabled = bool(scenario.reconfig.get("enabled", False))
+    at_s = scenario.reconfig.get("at_s")
+    planner = None
+    if enabled and not scenario.faults_known and at_s is None:
+        def planner(eta_by_unit):
+            eta = np.concatenate([eta_by_unit[u] for u in model.unit_ids])
+            return plan_or_reason(scenario, model, eta)
+    coordinator = PiecesCoordinator(
+        executor, vehicle, model.unit_ids, new_coordinator, tracked_unit=scenario.tracked_unit(), planner=planner,
+        told_faults=len(scenario.faults) if told and at_s is None else 0, at_s=at_s if told else None)
+    coordinator.events += plan_events
+    faults = sorted(scenario.faults, key=lambda f: f.t_s)
+
+    def end_s() -> float:
+        return duration + (executor.shift_s if executor.phase == "mission" else MAX_RECONFIG_S)
+
+    return Flight(scenario, model, seed, mission, world, units, coordinator, faults, duration_s=duration, end_s=end_s)

@@ -97,6 +97,7 @@ class Flight:
     deaths: list[tuple[float, int]] = field(default_factory=list)  # (time, unit): the unit's process dies
     tracked_offset_frd_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     duration_s: float = 0.0
+    end_s: Callable[[], float] | None = None  # a flight whose end moves (a reconfiguration): its end sim time
 
     @property
     def n_steps(self) -> float:
@@ -164,7 +165,7 @@ class Engine:
     def step(self) -> bool:
         """One control period; False once the flight is over (its duration flown, or an observer stopped it)."""
         f = self.flight
-        if self.stopped or self.steps >= f.n_steps:
+        if self.stopped or (self.steps >= f.n_steps if f.end_s is None else f.world.t_s >= f.end_s() - 1e-9):
             return False
         world, stage, clock = f.world, self.stage_time_s, time.perf_counter
         t = world.t_s

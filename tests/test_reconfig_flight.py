@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.reconfig.flight import make_plan, run_reconfig_trial, unhoverable_pieces
+from mars_link.reconfig.flight import run_reconfig_trial
+from mars_link.reconfig.plans import make_plan, unhoverable_pieces
 from mars_link.scenario import eta_after
 from mars_link.scenario import load_scenario, scenario_from_dict
 
@@ -136,7 +137,6 @@ def test_mars_link_run_dispatches_reconfig_scenarios(tmp_path):
     (lambda t: t.replace('layout = ["XXX"]', 'layout = ["X.XX"]'), "not connected"),
     (lambda t: t.replace("unit = 3", "unit = 5"), "unit 5 does not exist"),
     (lambda t: t.replace("target = [2, 3, 1]", "target = [2, 2, 1]"), "exactly once"),
-    (lambda t: t.replace('ftc = "qp"', 'ftc = "qp"\nfaults_known = false'), "faults_known = true"),
     (lambda t: t.replace("enabled = true", "enabled = true\nspeed = 2"), "unknown key 'speed'"),
     (lambda t: t.replace("speed_mps = 0.3", "speed_mps = -1"), "speed_mps must be > 0"),
 ])

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel, VehicleParams
+from mars_link.assembly import AssemblyModel, VehicleParams, layout_of_cells
 from mars_link.errors import UserInputError
 from mars_link.reconfig.flyability import Cell
 from mars_link.reconfig.sequencing import ReconfigPlan
@@ -54,12 +54,7 @@ class PieceShape:
         return sorted(self.cells, key=lambda u: self.cells[u])
 
     def layout(self) -> tuple[str, ...]:
-        r0 = min(r for r, _ in self.cells.values())
-        c0 = min(c for _, c in self.cells.values())
-        occupied = {(r - r0, c - c0) for r, c in self.cells.values()}
-        rows = max(r for r, _ in occupied) + 1
-        cols = max(c for _, c in occupied) + 1
-        return tuple("".join("X" if (r, c) in occupied else "." for c in range(cols)) for r in range(rows))
+        return layout_of_cells(self.cells.values())
 
     def model(self, vehicle: VehicleParams) -> AssemblyModel:
         return AssemblyModel.from_layout(self.layout(), vehicle)
@@ -322,6 +317,20 @@ class Executor:
         if self.phase == "mission" and self.trigger_t == math.inf and self.pause_t is None:
             self.trigger_t = t_s + self.params.trigger_delay_s
 
+    def replan(self, plan: ReconfigPlan) -> bool:
+        """A plan made in flight (from the faults found) replaces the one given, while the mission flies
+        as one body whose cells are the plan's start (up to a shift); False (kept) otherwise."""
+        if not plan.feasible or self.phase != "mission" or self.pause_t is not None or len(self.shapes) != 1:
+            return False
+        (shape,) = self.shapes.values()
+        start = PieceShape(dict(plan.initial))
+        if shape.key != start.key or shape.layout() != start.layout() or (
+                shape.units_local_order() != start.units_local_order()):
+            return False
+        self.plan = plan
+        self.shapes = {start.key: start}
+        return True
+
     def _take_off(self, free: FreeStart) -> None:
         """Every piece of the plan climbs from where it rests to the assembly height; docking starts once
         all of them hover there."""
@@ -363,6 +372,7 @@ class Executor:
             com = ComMission(self.mission, self.tracked_offset(shape))
             ref.tail = (com, t_s, self.shift_s)
             self.phase = "mission"
+            self.pause_t = None  # (a later fault may start another manoeuvre)
             self.events.append({"t_s": round(t_s, 6), "type": "mission_resumed", "shift_s": round(self.shift_s, 4),
                                 "text": "Reconfig: mission resumed"})
         return []
