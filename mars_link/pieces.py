@@ -154,7 +154,7 @@ class PiecesCoordinator:
                                 "eta_estimated": round(float(d.eta_estimated), 4),
                                 "t_onset": round(float(d.t_onset), 6),
                                 "text": f"Fault found: {where}"[:50]})
-        if self.planner is not None and self.executor.phase == "mission" and self.executor.pause_t is None:
+        if self.planner is not None:  # (planned once the mission flies as one body: after an assembly, say)
             self._plan_at_s = min(self._plan_at_s, t_s + self.executor.params.trigger_delay_s)
 
     def _plan_from_belief(self, t_s: float) -> None:
@@ -169,7 +169,11 @@ class PiecesCoordinator:
                             "disassembly_layers": plan.disassembly_layers, "assembly_layers": plan.assembly_layers,
                             "fallback_used": plan.fallback_used, "reason": plan.reason,
                             "text": f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers"})
-        self.executor.replan(plan)
+        if not self.executor.replan(plan):
+            self.events.append({"t_s": round(t_s, 6), "type": "reconfig_refused",
+                                "reason": "the structure is no longer the layout the plan starts from",
+                                "text": "Reconfig refused: structure changed"})
+            return
         self.executor.trigger(t_s - self.executor.params.trigger_delay_s)
 
     # ----------------------------------------------------------------- topology
@@ -224,7 +228,7 @@ class PiecesCoordinator:
         if self.at_s is not None and t_s >= self.at_s:  # (once)
             self.at_s = None
             self.executor.trigger(t_s - self.executor.params.trigger_delay_s)
-        if t_s >= self._plan_at_s:
+        if t_s >= self._plan_at_s and self.executor.phase == "mission" and self.executor.pause_t is None:
             self._plan_from_belief(t_s)
         for action in self.executor.step(t_s, self.estimates()):
             self._begin_split(t_s, action)

@@ -52,6 +52,7 @@ class ReconfigResult(TrialResult):
     min_clearance_m: float = math.inf  # smallest gap between units of different bodies over the flight
     pieces_final: list[dict] = field(default_factory=list)  # each piece at the end: layout rows, unit ids
     detections: list[dict] = field(default_factory=list)  # the faults the pieces' detectors found (events)
+    mission_force_integral_n2s: float = 0.0  # the force integral while the mission flies (manoeuvre excluded)
 
 
 class ReconfigRecorder:
@@ -67,6 +68,8 @@ class ReconfigRecorder:
         self.unit_rows: list[list[float]] = []
         self.telemetry_rows: list[list[float]] = []
         self.failed = False
+        self.mission_force_integral_n2s = 0.0  # Σ rotors ∫ thrust² dt while the mission flies (not the manoeuvre)
+        self._force_seen = 0.0
         self._next_unit_log = 0.0
         self._flush_every = max(1, int(flight.scenario.sim.control_hz))
         self.tel_f = self.units_f = None
@@ -100,6 +103,9 @@ class ReconfigRecorder:
             if not (dev < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG):
                 metrics.mark_diverged(t, dev, tilt, phase=executor.phase)
         self.min_clearance_m = min(self.min_clearance_m, world.min_clearance_m())
+        if executor.mission_active(t):
+            self.mission_force_integral_n2s += world.force_integral_n2s - self._force_seen
+        self._force_seen = world.force_integral_n2s
         if executor.mission_active(t):  # the mission metric, on the truth
             p = coord.tracked_piece()
             s = states[p.shape.key]
@@ -176,6 +182,7 @@ def run_reconfig_trial(
         assembled=any(e["type"] == "assembly_done" for e in events), min_clearance_m=recorder.min_clearance_m,
         pieces_final=[{"layout": list(p.shape.layout()), "units": list(p.units)} for p in coord.pieces.values()],
         detections=[e for e in events if e["type"] == "fault_detected"],
+        mission_force_integral_n2s=recorder.mission_force_integral_n2s,
     )
 
 
@@ -190,14 +197,15 @@ def run_reconfig_scenario(
     summary = {
         "scenario": scenario.name, "source": scenario.source, "mode": "inproc-reconfig",
         "layout": list(scenario.layout), "preset": scenario.preset, "controller": scenario.controller,
-        "ftc": scenario.ftc, "seed": seed, "trials": 1, "noise": False,
+        "ftc": scenario.ftc, "seed": seed, "trials": 1, "noise": scenario.sim.noise,
+        "faults_known": scenario.faults_known,
         "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
         "completed": r.completed, "diverged": r.diverged, "reconfigured": r.reconfigured,
         "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m, "max_error_m": r.max_error_m,
         "sim_time_s": r.sim_time_s, "wall_time_s": r.wall_time_s,
         "real_time_factor": r.sim_time_s / r.wall_time_s if r.wall_time_s > 0 else float("inf"),
-        "force_integral_n2s": r.force_integral_n2s, "max_tilt_deg": r.max_tilt_deg,
-        "reconfig_time_s": r.reconfig_time_s, "plan": r.plan, "start": scenario.start, "assembled": r.assembled,
+        "force_integral_n2s": r.force_integral_n2s, "mission_force_integral_n2s": r.mission_force_integral_n2s,
+        "max_tilt_deg": r.max_tilt_deg, "reconfig_time_s": r.reconfig_time_s, "plan": r.plan, "start": scenario.start, "assembled": r.assembled,
         "min_clearance_m": r.min_clearance_m, "pieces_final": r.pieces_final,
         "events": [dict(e, trial=0) for e in r.events],
         "per_trial": [{"seed": seed, "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m,
