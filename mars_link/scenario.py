@@ -80,6 +80,7 @@ class Scenario:
     reconfig: dict[str, Any] = field(default_factory=dict)  # validated [reconfig] table (enabled, ...)
     start: str = "docked"  # "docked": one assembled body; "free": the units apart on the ground, assembled in the air
     free_spacing_m: float = 2.0  # start = "free": distance between neighbouring units' centres on the ground
+    docking: dict[str, float] = field(default_factory=dict)  # [docking]: when facing latches close (sitl.docking)
 
     @property
     def starts_free(self) -> bool:
@@ -98,7 +99,7 @@ class Scenario:
 # ----------------------------------------------------------------------------- parsing helpers
 #: free units on the ground stand at least this far apart, edge to edge
 FREE_CLEARANCE_M = 0.3
-_TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig"}
+_TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig", "docking"}
 _VEHICLE_KEYS = {
     "preset",
     "motor_time_constant_s",
@@ -280,6 +281,7 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
         sc.sim.noise = sim["noise"]
     check_rates(sc.sim, src)
     sc.reconfig = _reconfig_table(_table(doc, "reconfig", src), src)
+    sc.docking = _docking_table(_table(doc, "docking", src), src)
 
     if sc.trajectory.get("kind") == "plan":  # the planner needs the assembly and its faults
         sc.trajectory.setdefault("layout", list(sc.layout))
@@ -321,6 +323,25 @@ def _reconfig_table(table: dict, src: str) -> dict:
     for key in _RECONFIG_NUMBERS & set(table):
         out[key] = _number(table[key], f"[reconfig] {key}", src, nonneg=key in ("at_s", "trigger_delay_s", "altitude_step_m"),
                            positive=key not in ("at_s", "trigger_delay_s", "altitude_step_m"))
+    return out
+
+
+#: [docking] keys and their allowed range (sitl.docking.DockTolerance): a latch must not close farther than a
+#: few centimetres off its pose, faster than a gentle approach, or across a visible misalignment
+DOCKING_RANGES = {"position_m": (0.0, 0.1), "speed_mps": (0.0, 0.5), "yaw_deg": (0.0, 15.0), "tilt_deg": (0.0, 15.0)}
+
+
+def _docking_table(table: dict, src: str) -> dict[str, float]:
+    """[docking] position_m, speed_mps, yaw_deg, tilt_deg: the docking tolerance (defaults 2 cm, 5 cm/s,
+    2 deg, 3 deg), each > 0 and at most its DOCKING_RANGES bound."""
+    _check_keys(table, set(DOCKING_RANGES), "[docking]", src)
+    out = {}
+    for key, (lo, hi) in DOCKING_RANGES.items():
+        if key in table:
+            value = _number(table[key], f"[docking] {key}", src, positive=True)
+            if not lo < value <= hi:
+                raise UserInputError(f"{src}: [docking] {key} must be in ({lo:g}, {hi:g}], got {value:g}")
+            out[key] = value
     return out
 
 

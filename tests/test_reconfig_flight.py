@@ -139,6 +139,8 @@ def test_mars_link_run_dispatches_reconfig_scenarios(tmp_path):
     (lambda t: t.replace("target = [2, 3, 1]", "target = [2, 2, 1]"), "exactly once"),
     (lambda t: t.replace("enabled = true", "enabled = true\nspeed = 2"), "unknown key 'speed'"),
     (lambda t: t.replace("speed_mps = 0.3", "speed_mps = -1"), "speed_mps must be > 0"),
+    (lambda t: t + "\n[docking]\nposition_m = 0.5\n", "[docking] position_m must be in (0, 0.1]"),
+    (lambda t: t + "\n[docking]\nyaw_deg = 0\n", "[docking] yaw_deg must be > 0"),
 ])
 def test_bad_reconfig_input_is_one_line_exit_2(tmp_path, edit, needle):
     proc = _cli(tmp_path, edit(DOCK))

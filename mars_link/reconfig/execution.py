@@ -286,6 +286,7 @@ class Executor:
         self.failed: str | None = None
         self.refs[whole.key] = self._mission_reference(whole, 0.0)
         self.free_start = free_start
+        self.assembling = free_start is not None  # the first manoeuvre builds the structure from free units
         if free_start is not None:
             self._take_off(free_start)
 
@@ -525,7 +526,8 @@ class Executor:
         end = ref.move(t_s, None, self.params.speed_mps, min_s=2.0, end=resume)
         self.shift_s = end - self.pause_t
         self.phase, self.phase_end_t = "return", end
-        kind, text = (("assembly_done", "Assembled: flying to the mission start") if self.free_start is not None
+        kind, text = (("assembly_done", "Assembled: flying to the mission start") if self.assembling
                       else ("reconfig_done", "Reconfig done: returning to the mission"))
+        self.assembling = False
         self.events.append({"t_s": round(t_s, 6), "type": kind,
                             "cells": {str(u): list(c) for u, c in sorted(shape.cells.items())}, "text": text})

@@ -30,11 +30,11 @@ def check_reconfig_scenario(scenario: Scenario) -> None:
     if scenario.controller != "cascaded":
         raise UserInputError(f"{src}: [reconfig] flights need [control] controller = \"cascaded\"")
     if scenario.starts_free:
-        if scenario.faults:
-            raise UserInputError(f"{src}: [assembly] start = \"free\" with [[faults]] is not supported yet "
-                                 "(assemble first, then reconfigure: not wired)")
-        if scenario.reconfig.get("enabled"):
-            raise UserInputError(f"{src}: [assembly] start = \"free\" and [reconfig] enabled cannot be combined yet")
+        if scenario.faults and scenario.faults_known:
+            raise UserInputError(f"{src}: [assembly] start = \"free\" with [[faults]] needs [control] faults_known = "
+                                 "false (the pieces' detectors find them; told faults are planned before flight)")
+        if scenario.reconfig.get("at_s") is not None:
+            raise UserInputError(f"{src}: [reconfig] at_s cannot be combined with [assembly] start = \"free\"")
         return
     if not scenario.faults:
         raise UserInputError(f"{src}: [reconfig] enabled but the scenario has no [[faults]] to react to")
