@@ -264,13 +264,14 @@ def build_pieces_flight(scenario: Scenario, seed: int):
     enabled = bool(scenario.reconfig.get("enabled", False))
     at_s = scenario.reconfig.get("at_s")
     planner = None
-    if enabled and not scenario.faults_known and at_s is None:
+    if enabled and not scenario.faults_known:
         def planner(eta_by_unit):
             eta = np.concatenate([eta_by_unit[u] for u in model.unit_ids])
             return plan_or_reason(scenario, model, eta)
     coordinator = PiecesCoordinator(
         executor, vehicle, model.unit_ids, new_coordinator, tracked_unit=scenario.tracked_unit(), planner=planner,
-        told_faults=len(scenario.faults) if told and at_s is None else 0, at_s=at_s if told else None)
+        told_faults=len(scenario.faults) if told and at_s is None else 0,
+        at_s=at_s if told or planner is not None else None)
     coordinator.events += plan_events
     faults = sorted(scenario.faults, key=lambda f: f.t_s)
 

@@ -75,8 +75,9 @@ class PiecesCoordinator:
                  *, tracked_unit: int | None = None, planner: Planner | None = None, told_faults: int = 0,
                  at_s: float | None = None) -> None:
         """`planner`: when set, a fault the detectors find starts a reconfiguration planned from the
-        believed faults; `told_faults`: the reconfiguration starts once this many faults were told
-        (executor's own plan); `at_s`: it starts at that time (executor's own plan)."""
+        believed faults (at `at_s` instead, when given); `told_faults`: the reconfiguration starts once this
+        many faults were told (executor's own plan); `at_s` without a planner: it starts at that time
+        (executor's own plan)."""
         self.executor = executor
         self.vehicle = vehicle
         self.new_coordinator = new_coordinator
@@ -93,6 +94,7 @@ class PiecesCoordinator:
         self.failed: str | None = None
         self.last: StepRecord | None = None
         self._plan_at_s = math.inf
+        self._at_done = False
         for shape in executor.shapes.values():
             self.pieces[shape.key] = self._new_piece(shape, 0.0, None)
 
@@ -154,7 +156,7 @@ class PiecesCoordinator:
                                 "eta_estimated": round(float(d.eta_estimated), 4),
                                 "t_onset": round(float(d.t_onset), 6),
                                 "text": f"Fault found: {where}"[:50]})
-        if self.planner is not None:  # (planned once the mission flies as one body: after an assembly, say)
+        if self.planner is not None and self.at_s is None:  # (planned once the mission flies as one body)
             self._plan_at_s = min(self._plan_at_s, t_s + self.executor.params.trigger_delay_s)
 
     def _plan_from_belief(self, t_s: float) -> None:
@@ -225,9 +227,12 @@ class PiecesCoordinator:
         """One control period over every piece; commands carry each unit's latch setpoint."""
         by_unit = {p.unit_id: p for p in packets}
         self._learn_topology(t_s, {u: p.latches for u, p in by_unit.items()})
-        if self.at_s is not None and t_s >= self.at_s:  # (once)
-            self.at_s = None
-            self.executor.trigger(t_s - self.executor.params.trigger_delay_s)
+        if self.at_s is not None and t_s >= self.at_s and not self._at_done:  # (once)
+            self._at_done = True
+            if self.planner is not None:  # planned now, from the faults found so far
+                self._plan_at_s = t_s
+            else:
+                self.executor.trigger(t_s - self.executor.params.trigger_delay_s)
         if t_s >= self._plan_at_s and self.executor.phase == "mission" and self.executor.pause_t is None:
             self._plan_from_belief(t_s)
         for action in self.executor.step(t_s, self.estimates()):

@@ -32,3 +32,18 @@ def test_plus5_plan_from_found_faults_is_refused_when_a_piece_cannot_hover():
     r = fly(0, "R")
     assert r["completed"] and not r["reconfigured"] and r["detection_s"] < 0.5
     assert r["refused"] and "best" in r["refused"]
+
+
+def test_paper000_docking_with_noise_and_the_fault_found_keeps_the_faulty_unit_within_1_deg(tmp_path):
+    """docking_3x1 through the engine, sensor noise on (each piece on its EKF), the dead rotor not told: the
+    detector finds it once airborne, the manoeuvre is planned from that, and unit 3's yaw stays within
+    paper 000's 1 deg over separation and docking."""
+    from docking_eval import faulty_unit_figures
+    from docking_eval import fly as fly_docking
+
+    r = fly_docking("docking_3x1", "qp", tmp_path, noise=True, detected=True)
+    assert r.completed and r.reconfigured
+    (found,) = r.detections
+    assert (found["unit"], found["rotor"]) == (3, 4) and found["eta_estimated"] < 0.15
+    assert faulty_unit_figures(r)["max_yaw_deviation_deg"] <= 1.0
+    assert r.pieces_final == [{"layout": ["XXX"], "units": [2, 3, 1]}]
