@@ -6,7 +6,14 @@
 | SensorPacket.position | ODOMETRY, estimator_type MOCAP, frames LOCAL_NED (q unused) | mocap-grade position and velocity of the unit centre, NED |
 | SensorPacket.truth | ODOMETRY, estimator_type NAIVE, frames LOCAL_NED (velocity in NED) | ground truth, only with sensor noise off |
 | RotorCommand | SET_ACTUATOR_CONTROL_TARGET, group 0, controls[0..3] | thrust as a fraction of `full_scale_thrust_n` |
-| ActuatorOutput | HIL_ACTUATOR_CONTROLS, controls[0..3], flags = LOCKSTEP | same scale |
+| RotorCommand.latch_setpoint | same message, controls[4] | the latches to OPEN, as a bit mask 0..15 (0: all engaged) |
+| ActuatorOutput | HIL_ACTUATOR_CONTROLS, controls[0..3], flags = LOCKSTEP | same scale; controls[4]: latches open, as above |
+| SensorPacket.latches | NAMED_VALUE_INT "LATCH" (world -> unit -> coordinator) | the latched sides, bit mask 0..15 |
+
+The latch sensor is sent when it changes (and with a unit's first packet), in the same datagram and
+before the packet's IMU frame; receivers hold the last value (`LatchSensor`). The latch setpoint rides
+every rotor command as the mask of latches to open, so an all-zero control (any stock sender) keeps
+them engaged.
 
 A sensor packet travels as its optional position and truth frames first and the IMU frame last; the
 IMU frame's `fields_updated` carries two mars-link flags (bits 14, 15; unused by both messages) saying which of the optional
@@ -21,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket
+from mars_link.messages import LATCH_ALL, ActuatorOutput, RotorCommand, SensorPacket
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
 
 FLAG_HAS_POSITION = 1 << 14
@@ -162,19 +169,64 @@ class SensorPacketAssembler(SensorFrameAssembler):
         return None if frames is None else frames.packet()
 
 
+# ----------------------------------------------------------------------------- latches
+LATCH_NAME = b"LATCH"
+
+
+def latch_message(t_s: float, mask: int) -> mavlink.MAVLink_message:
+    """A unit's latch sensor (NAMED_VALUE_INT "LATCH"): bit k set when side k holds a docked neighbour."""
+    return mavlink.MAVLink_named_value_int_message(int(usec(t_s) // 1000) & 0xFFFFFFFF, LATCH_NAME, int(mask))
+
+
+def latch_from_message(msg) -> int | None:
+    """The latch mask of a NAMED_VALUE_INT "LATCH" (None: another name, or a value out of 0..15)."""
+    name = msg.name.rstrip("\x00") if isinstance(msg.name, str) else msg.name.rstrip(b"\x00").decode("ascii", "replace")
+    if name != "LATCH" or not 0 <= msg.value <= LATCH_ALL:
+        return None
+    return int(msg.value)
+
+
+def latches_open(setpoint: int) -> float:
+    """controls[4] of a rotor command or actuator output: the latches to open (0: all engaged)."""
+    return float(LATCH_ALL & ~setpoint)
+
+
+def latch_setpoint_of(control: float) -> int | None:
+    """The latch setpoint carried by controls[4] (None: not a whole mask 0..15)."""
+    if not (math.isfinite(control) and 0.0 <= control <= LATCH_ALL and control == int(control)):
+        return None
+    return LATCH_ALL & ~int(control)
+
+
+class LatchSensor:
+    """The last latch mask heard from each sender (the sensor is sent when it changes)."""
+
+    def __init__(self) -> None:
+        self.mask: dict[int, int] = {}
+
+    def feed(self, msg) -> bool:
+        """True if `msg` was a valid latch report (now held for its sender)."""
+        value = latch_from_message(msg)
+        if value is None:
+            return False
+        self.mask[msg.get_srcSystem()] = value
+        return True
+
+
 # ----------------------------------------------------------------------------- rotor commands
 def rotor_command_message(cmd: RotorCommand, full_scale_n: float) -> mavlink.MAVLink_message:
-    controls = [float(x) / full_scale_n for x in cmd.thrusts_n] + [0.0] * 4
+    controls = [float(x) / full_scale_n for x in cmd.thrusts_n] + [latches_open(cmd.latch_setpoint)] + [0.0] * 3
     return mavlink.MAVLink_set_actuator_control_target_message(usec(cmd.t_s), 0, cmd.unit_id, 1, controls)
 
 
 def rotor_command_from_message(msg, full_scale_n: float) -> RotorCommand:
     thrusts = np.array(msg.controls[:4], dtype=np.float32).astype(np.float64) * full_scale_n
-    return RotorCommand(msg.time_usec / 1e6, msg.target_system, thrusts)
+    latch = latch_setpoint_of(msg.controls[4])
+    return RotorCommand(msg.time_usec / 1e6, msg.target_system, thrusts, LATCH_ALL if latch is None else latch)
 
 
 def actuator_output_message(out: ActuatorOutput, full_scale_n: float) -> mavlink.MAVLink_message:
-    controls = [float(x) / full_scale_n for x in out.thrusts_n] + [0.0] * 12
+    controls = [float(x) / full_scale_n for x in out.thrusts_n] + [latches_open(out.latch_setpoint)] + [0.0] * 11
     return mavlink.MAVLink_hil_actuator_controls_message(
         usec(out.t_s), controls, ARMED_CUSTOM_MODE, HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP
     )
@@ -182,4 +234,5 @@ def actuator_output_message(out: ActuatorOutput, full_scale_n: float) -> mavlink
 
 def actuator_output_from_message(msg, full_scale_n: float) -> ActuatorOutput:
     thrusts = np.array(msg.controls[:4], dtype=np.float32).astype(np.float64) * full_scale_n
-    return ActuatorOutput(msg.time_usec / 1e6, msg.get_srcSystem(), thrusts)
+    latch = latch_setpoint_of(msg.controls[4])
+    return ActuatorOutput(msg.time_usec / 1e6, msg.get_srcSystem(), thrusts, LATCH_ALL if latch is None else latch)
