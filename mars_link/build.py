@@ -228,31 +228,31 @@ def build_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, float] | 
 MAX_RECONFIG_S = 600.0
 
 
-def build_pieces_flight(scenario: Scenario, seed: int):
-    """Every part of a flight of pieces (free units assembling, a reconfiguration), wired for the engine:
-    the world starts with one body per piece of the executor's start, every unit is its firmware, and
-    the coordinator is a `PiecesCoordinator` (one EKF, detector, controller and allocator per piece)."""
-    from mars_link.engine import Flight, InProcessUnits
-    from mars_link.pieces import PiecesCoordinator
-    from mars_link.reconfig.plans import check_reconfig_scenario, make_executor, plan_or_reason
+def make_pieces_world(scenario: Scenario, model: AssemblyModel, seed: int, executor, config=None):
+    """The world of a flight of pieces: one body per piece of the executor's start, landed under its
+    reference's first point."""
     from sitl.physics import JsbsimBody
 
-    check_reconfig_scenario(scenario)
-    model = scenario.model()
-    vehicle = model.vehicle
-    mission = make_trajectory(scenario, model)
-    duration = scenario.sim.duration_s or mission.duration_s
-    executor, plan_events, told = make_executor(scenario, model, mission)
     bodies = []
     for shape in executor.shapes.values():
         start = executor.refs[shape.key].sample(0.0)
-        body_model = shape.model(vehicle)
+        body_model = shape.model(model.vehicle)
         bodies.append((body_model, tuple(shape.units_local_order()), JsbsimBody(
             body_model, physics_hz=scenario.sim.physics_hz,
             position_ned_m=(float(start.position_ned_m[0]), float(start.position_ned_m[1]), 0.0),
             yaw_rad=start.yaw_rad)))
-    world = make_world(scenario, model, seed, bodies=bodies)
-    units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
+    return make_world(scenario, model, seed, bodies=bodies, config=config)
+
+
+def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: Trajectory):
+    """The coordinator of a flight of pieces (`PiecesCoordinator`: one EKF, detector, controller and
+    allocator per piece, the executor inside) and when its flight ends (a function of no argument
+    giving the end's sim time: a manoeuvre moves it)."""
+    from mars_link.pieces import PiecesCoordinator
+    from mars_link.reconfig.plans import check_reconfig_scenario, make_executor, plan_or_reason
+
+    check_reconfig_scenario(scenario)
+    executor, plan_events, told = make_executor(scenario, model, mission)
     ground_down_m = 0.0  # every piece starts landed: its CoM near the ground plane
 
     def new_coordinator(piece: AssemblyModel, reference, eta, t_s, estimator):
@@ -269,13 +269,29 @@ def build_pieces_flight(scenario: Scenario, seed: int):
             eta = np.concatenate([eta_by_unit[u] for u in model.unit_ids])
             return plan_or_reason(scenario, model, eta)
     coordinator = PiecesCoordinator(
-        executor, vehicle, model.unit_ids, new_coordinator, tracked_unit=scenario.tracked_unit(), planner=planner,
-        told_faults=len(scenario.faults) if told and at_s is None else 0,
+        executor, model.vehicle, model.unit_ids, new_coordinator, tracked_unit=scenario.tracked_unit(),
+        planner=planner, told_faults=len(scenario.faults) if told and at_s is None else 0,
         at_s=at_s if told or planner is not None else None)
     coordinator.events += plan_events
-    faults = sorted(scenario.faults, key=lambda f: f.t_s)
+    duration = scenario.sim.duration_s or mission.duration_s
 
     def end_s() -> float:
         return duration + (executor.shift_s if executor.phase == "mission" else MAX_RECONFIG_S)
 
-    return Flight(scenario, model, seed, mission, world, units, coordinator, faults, duration_s=duration, end_s=end_s)
+    return coordinator, end_s
+
+
+def build_pieces_flight(scenario: Scenario, seed: int):
+    """Every part of a flight of pieces (free units assembling, a reconfiguration), wired for the engine:
+    the world starts with one body per piece of the executor's start, every unit is its firmware, and
+    the coordinator is a `PiecesCoordinator`."""
+    from mars_link.engine import Flight, InProcessUnits
+
+    model = scenario.model()
+    mission = make_trajectory(scenario, model)
+    coordinator, end_s = make_pieces_coordinator(scenario, model, mission)
+    world = make_pieces_world(scenario, model, seed, coordinator.executor)
+    units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
+    faults = sorted(scenario.faults, key=lambda f: f.t_s)
+    return Flight(scenario, model, seed, mission, world, units, coordinator, faults,
+                  duration_s=scenario.sim.duration_s or mission.duration_s, end_s=end_s)

@@ -19,7 +19,7 @@ import numpy as np
 from firmware_models.vehicle import MODE_OFFBOARD
 from mars_link.assembly import AssemblyModel
 from mars_link.coordinator import Coordinator
-from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket
+from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
 from mars_link.metrics import STAGES, TrackingMetrics
 from mars_link.pacing import Pacer
 from mars_link.rotations import quat_to_euler
@@ -168,7 +168,7 @@ class Engine:
         if self.stopped or (self.steps >= f.n_steps if f.end_s is None else f.world.t_s >= f.end_s() - 1e-9):
             return False
         world, stage, clock = f.world, self.stage_time_s, time.perf_counter
-        t = world.t_s
+        t = wire_time(world.t_s)  # the step's time as its sensor packets carry it (as a SITL coordinator reads it)
         if self.pacer.paced:
             self.pacer.wait(t, 1.0 / f.scenario.sim.control_hz)
         self._faults_due(t)

@@ -17,6 +17,7 @@ detectors find (`faults_known = false`: the plan is made from the believed fault
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Callable
@@ -91,6 +92,7 @@ class PiecesCoordinator:
         self.pieces: dict[Key, Piece] = {}
         self.pending_splits: list[_PendingSplit] = []
         self.events: list[dict] = []
+        self.detections: list = []  # fault_detection.Detection of every piece, in the structure's unit ids
         self.failed: str | None = None
         self.last: StepRecord | None = None
         self._plan_at_s = math.inf
@@ -151,6 +153,7 @@ class PiecesCoordinator:
             self.eta_believed[u] = c.eta_believed[k * ROTORS_PER_UNIT:(k + 1) * ROTORS_PER_UNIT].copy()
         for d in new:
             u = piece.units[d.unit - 1]
+            self.detections.append(dataclasses.replace(d, unit=u))
             where = f"Unit {u}" + (f" rotor {d.rotor}" if d.rotor else "")
             self.events.append({"t_s": round(t_s, 6), "type": "fault_detected", "unit": u, "rotor": d.rotor,
                                 "eta_estimated": round(float(d.eta_estimated), 4),
@@ -222,7 +225,29 @@ class PiecesCoordinator:
             m = req.merged.model(self.vehicle)
             self.pieces[req.merged.key] = self._new_piece(req.merged, t_s, self._moved_estimate(st, m, shift))
 
+    def unit_lost(self, unit_id: int, t_s: float, reason: str = "telemetry lost"):
+        """A unit stopped reporting: its piece's coordinator believes it failed (and its detections say so)."""
+        piece = self.piece_of(unit_id)
+        det = piece.coordinator.unit_lost(piece.units.index(unit_id) + 1, t_s, reason)
+        self.events.append({"t_s": round(t_s, 6), "type": "unit_lost", "unit": unit_id, "reason": reason,
+                            "text": f"Unit {unit_id} lost: {reason}"[:50]})
+        return det
+
+    def all_events(self) -> list[dict]:
+        """The coordinator's and the executor's events, in time order."""
+        return sorted(self.events + self.executor.events, key=lambda e: e["t_s"])
+
+    def pieces_final(self) -> list[dict]:
+        return [{"layout": list(p.shape.layout()), "units": list(p.units)} for p in self.pieces.values()]
+
     # ----------------------------------------------------------------- the step
+    def commands(self, t_s: float, packets: list[SensorPacket]) -> list[RotorCommand]:
+        """The SITL coordinator's call (`step`: each piece's detection runs inside it)."""
+        return self.step(t_s, packets)
+
+    def finish_step(self) -> None:
+        """(Nothing left: every piece's fault detection ran in `step`.)"""
+
     def step(self, t_s: float, packets: list[SensorPacket]) -> list[RotorCommand]:
         """One control period over every piece; commands carry each unit's latch setpoint."""
         by_unit = {p.unit_id: p for p in packets}

@@ -17,7 +17,8 @@ them engaged.
 
 A sensor packet travels as its optional position and truth frames first and the IMU frame last; the
 IMU frame's `fields_updated` carries two mars-link flags (bits 14, 15; unused by both messages) saying which of the optional
-frames belong to it, so a receiver knows when a packet is complete.
+frames belong to it, so a receiver knows when a packet is complete, and a third (bit 13, also unused) saying
+that the truth's body touches the ground (`RigidBodyState.on_ground`, which ODOMETRY has no field for).
 """
 
 from __future__ import annotations
@@ -33,6 +34,7 @@ from mars_link.state import ImuSample, PositionSample, RigidBodyState
 
 FLAG_HAS_POSITION = 1 << 14
 FLAG_HAS_TRUTH = 1 << 15
+FLAG_ON_GROUND = 1 << 13
 IMU_FIELDS = 0x3F  # xacc..zgyro updated
 HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP = 1
 ARMED_CUSTOM_MODE = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
@@ -65,7 +67,7 @@ def sensor_packet_messages(packet: SensorPacket, upstream: bool = False) -> list
         s = packet.truth
         msgs.append(_odometry(t, s.position_ned_m, s.quaternion_wxyz, s.velocity_ned_mps,
                               s.angular_velocity_frd_radps, mavlink.MAV_ESTIMATOR_TYPE_NAIVE))
-        flags |= FLAG_HAS_TRUTH
+        flags |= FLAG_HAS_TRUTH | (FLAG_ON_GROUND if s.on_ground else 0)
     a, g = packet.imu.accel_frd_mps2, packet.imu.gyro_frd_radps
     cls = mavlink.MAVLink_highres_imu_message if upstream else mavlink.MAVLink_hil_sensor_message
     msgs.append(cls(t, *map(float, a), *map(float, g), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, flags, 0))
@@ -99,7 +101,8 @@ class SensorFrames:
         truth = None
         if (s := self.truth) is not None:
             truth = RigidBodyState(t_s, np.array([s.x, s.y, s.z]), np.array([s.vx, s.vy, s.vz]),
-                                   np.array(s.q, dtype=float), np.array([s.rollspeed, s.pitchspeed, s.yawspeed]))
+                                   np.array(s.q, dtype=float), np.array([s.rollspeed, s.pitchspeed, s.yawspeed]),
+                                   on_ground=bool(m.fields_updated & FLAG_ON_GROUND))
         imu = ImuSample(t_s, unit, np.array([m.xgyro, m.ygyro, m.zgyro]), np.array([m.xacc, m.yacc, m.zacc]))
         return SensorPacket(t_s, unit, imu, pos, truth)
 
@@ -120,7 +123,7 @@ class SensorFrames:
         if (s := self.truth) is not None:
             msgs.append(_odometry(t, (s.x, s.y, s.z), s.q, (s.vx, s.vy, s.vz), (s.rollspeed, s.pitchspeed, s.yawspeed),
                                   mavlink.MAV_ESTIMATOR_TYPE_NAIVE))
-            flags |= FLAG_HAS_TRUTH
+            flags |= FLAG_HAS_TRUTH | (m.fields_updated & FLAG_ON_GROUND)
         msgs.append(mavlink.MAVLink_highres_imu_message(t, m.xacc, m.yacc, m.zacc, m.xgyro, m.ygyro, m.zgyro,
                                                         0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, flags, 0))
         return msgs

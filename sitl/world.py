@@ -368,6 +368,15 @@ class World:
         s = self.body.state()
         return [*s.position_ned_m, *s.quaternion_wxyz]
 
+    def units_row(self) -> list[float]:
+        """Every unit's centre (NED), in unit id order: the truth log of a world of several bodies."""
+        row: list[float] = []
+        for u in self.model.unit_ids:
+            b = self._body_of[u]
+            s = b.jsbsim.state()
+            row += [*(s.position_ned_m + quat_to_rotmat(s.quaternion_wxyz) @ b.offsets_frd_m[b.units.index(u)])]
+        return row
+
     def unit_rotor_thrust_n(self, unit_id: int) -> np.ndarray:
         """What the unit's four rotors produce now (N)."""
         return self.rotor_thrust_n[self.model.unit_slots(unit_id)]

@@ -115,14 +115,17 @@ def test_bad_free_start_is_one_line_exit_2(tmp_path, extra, message) -> None:
     assert p.returncode == 2 and message in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
 
 
-def test_free_start_is_refused_where_it_is_not_wired_yet(tmp_path) -> None:
+def test_free_start_with_told_faults_is_refused_in_both_modes(tmp_path) -> None:
+    """Told faults are planned for before flight, which a free start (assembled first) cannot use: one line,
+    exit 2 (faults found in flight are what a free start takes)."""
     path = tmp_path / "s.toml"
-    path.write_text('name = "t"\n[assembly]\nlayout = ["XX"]\nstart = "free"\n[sim]\nnoise = false\n'
-                    '[[faults]]\nt = 5.0\nunit = 1\nrotor = 1\neta = 0.5\n')
+    path.write_text('name = "t"\n[assembly]\nlayout = ["XX"]\nstart = "free"\n[control]\nfaults_known = true\n'
+                    '[sim]\nnoise = false\n[[faults]]\nt = 5.0\nunit = 1\nrotor = 1\neta = 0.5\n')
     for argv in (["run", str(path)], ["run", str(path), "--mode", "sitl"]):
         p = subprocess.run([sys.executable, "-m", "mars_link.cli", *argv, "--quiet", "--out", str(tmp_path / "o")],
                            capture_output=True, text=True, timeout=120)
         assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
+        assert "faults_known = false" in p.stderr
 
 
 def test_assemble_then_a_fault_found_in_flight_reconfigures_and_the_spiral_resumes_where_it_paused() -> None:
