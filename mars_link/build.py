@@ -249,7 +249,7 @@ def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: T
     allocator per piece, the executor inside) and when its flight ends (a function of no argument
     giving the end's sim time: a manoeuvre moves it)."""
     from mars_link.pieces import PiecesCoordinator
-    from mars_link.reconfig.plans import check_reconfig_scenario, make_executor, plan_or_reason
+    from mars_link.reconfig.plans import check_reconfig_scenario, make_executor, plan_or_reason, plan_separation
 
     check_reconfig_scenario(scenario)
     executor, plan_events, told = make_executor(scenario, model, mission)
@@ -271,12 +271,16 @@ def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: T
     coordinator = PiecesCoordinator(
         executor, model.vehicle, model.unit_ids, new_coordinator, tracked_unit=scenario.tracked_unit(),
         planner=planner, told_faults=len(scenario.faults) if told and at_s is None else 0,
-        at_s=at_s if told or planner is not None else None)
+        at_s=at_s if told or planner is not None else None,
+        separations=[(s.t_s, plan_separation(model, s.units, s.redock_t_s is not None), s.redock_t_s)
+                     for s in scenario.separations])
     coordinator.events += plan_events
     duration = scenario.sim.duration_s or mission.duration_s
 
     def end_s() -> float:
-        return duration + (executor.shift_s if executor.phase == "mission" else MAX_RECONFIG_S)
+        if executor.phase == "mission" or executor.hold_until_s == math.inf:  # (apart for good: the mission's end)
+            return duration + executor.shift_s
+        return duration + MAX_RECONFIG_S
 
     return coordinator, end_s
 

@@ -74,11 +74,12 @@ def local_packet(packet: SensorPacket, local_id: int) -> SensorPacket:
 class PiecesCoordinator:
     def __init__(self, executor: Executor, vehicle: VehicleParams, unit_ids, new_coordinator: PieceCoordinatorFactory,
                  *, tracked_unit: int | None = None, planner: Planner | None = None, told_faults: int = 0,
-                 at_s: float | None = None) -> None:
+                 at_s: float | None = None, separations: list[tuple[float, ReconfigPlan, float | None]] = ()) -> None:
         """`planner`: when set, a fault the detectors find starts a reconfiguration planned from the
         believed faults (at `at_s` instead, when given); `told_faults`: the reconfiguration starts once this
         many faults were told (executor's own plan); `at_s` without a planner: it starts at that time
-        (executor's own plan)."""
+        (executor's own plan). `separations`: (time, plan, re-dock time or None) of each commanded
+        separation, started once the mission flies as one body."""
         self.executor = executor
         self.vehicle = vehicle
         self.new_coordinator = new_coordinator
@@ -97,6 +98,7 @@ class PiecesCoordinator:
         self.last: StepRecord | None = None
         self._plan_at_s = math.inf
         self._at_done = False
+        self.separations = list(separations)
         for shape in executor.shapes.values():
             self.pieces[shape.key] = self._new_piece(shape, 0.0, None)
 
@@ -181,6 +183,21 @@ class PiecesCoordinator:
             return
         self.executor.trigger(t_s - self.executor.params.trigger_delay_s)
 
+    def _separate(self, t_s: float) -> None:
+        """A commanded separation comes due: the mission pauses and the units undock (once the structure
+        flies the mission as one body; until then it waits)."""
+        ex = self.executor
+        t_sep, plan, redock_s = self.separations[0]
+        if ex.phase != "mission" or ex.pause_t is not None or not ex.replan(plan):
+            return
+        self.separations.pop(0)
+        ex.hold_until_s = math.inf if redock_s is None else redock_s
+        ex.trigger(t_s - ex.params.trigger_delay_s)
+        units = plan.splits[0].detached
+        self.events.append({"t_s": round(t_s, 6), "type": "separation", "units": units, "redock_t_s": redock_s,
+                            "text": f"Separation: u{units_text(units)}" + ("" if redock_s is None
+                                                                             else f" until {redock_s:g} s")})
+
     # ----------------------------------------------------------------- topology
     def _begin_split(self, t_s: float, action: SplitAction) -> None:
         """Open the latches along the cut between the children of `action`."""
@@ -260,6 +277,8 @@ class PiecesCoordinator:
                 self.executor.trigger(t_s - self.executor.params.trigger_delay_s)
         if t_s >= self._plan_at_s and self.executor.phase == "mission" and self.executor.pause_t is None:
             self._plan_from_belief(t_s)
+        if self.separations and t_s >= self.separations[0][0] - 1e-9:
+            self._separate(t_s)
         for action in self.executor.step(t_s, self.estimates()):
             self._begin_split(t_s, action)
         commands = []

@@ -137,6 +137,10 @@ def write_scenario_copy(scenario, path: Path) -> Path:
         doc["reconfig"] = dict(scenario.reconfig)
     if scenario.docking:
         doc["docking"] = dict(scenario.docking)
+    if scenario.separations:
+        doc["separations"] = [{"t": s.t_s, "units": list(s.units), **({} if s.redock_t_s is None else
+                                                                        {"redock_t": s.redock_t_s})}
+                              for s in scenario.separations]
     path.write_text(_toml(doc), encoding="utf-8")
     return path
 
@@ -174,7 +178,7 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
                       realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
                       on_progress=None) -> dict:
     """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary."""
-    pieces = bool(scenario.reconfig.get("enabled") or scenario.starts_free)
+    pieces = scenario.has_pieces
     seed = scenario.sim.seed if seed is None else seed
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
         scenario = replace(scenario, faults_known=False)

@@ -22,6 +22,15 @@ Two set-ups (`SitlSetup`):
            With --vehicle (sitl.vehicle_host) the coordinator also serves the assembly as ONE MAVLink
            vehicle (system 202, API 14539, GCS 14550): its guidance is the coordinator's reference,
            the run goes on until stopped (--forever) and the world is paced to real time.
+  pieces   a flight of several bodies (`[assembly] start = "free"`, `[reconfig]`): the world starts with
+           one body per piece of the executor's start (`build.make_pieces_world`), splits a body when a
+           latch opens and merges two when facing latches close, and sends each unit its latch sensor
+           (NAMED_VALUE_INT "LATCH", on change), which the unit forwards to the coordinator; the
+           coordinator runs the `PiecesCoordinator` (latch setpoints in its rotor commands, controls[4])
+           and ends the flight: instead of the first step not to be flown it sends the world
+           MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, and the world, still waiting for that step's answers, ends
+           without stepping. Each step it logs the mission's clock, reference and tracked units
+           (pieces_steps.csv); the world logs every unit's centre (world_truth.csv).
   free     --units N: N separate 1x1 bodies side by side on the ground, no coordinator; each unit
            flies itself (takeoff, offboard, land from MAVSDK/QGC/MAVProxy), the world paced to
            real time (--speed).
@@ -135,7 +144,7 @@ def load_setup(scenario: str | None, units: int | None = None, layout: str | Non
     if units is not None and layout is not None:
         raise UserInputError("--units and --layout exclude each other")
     sc = Scenario(name="free-units") if scenario in (None, "-") else load_scenario(scenario)
-    if sc.starts_free or sc.reconfig.get("enabled"):
+    if sc.has_pieces:
         if units is not None or layout is not None:
             raise UserInputError(f"{sc.source}: --units and --layout do not apply to a flight of several bodies")
         from mars_link.reconfig.plans import check_reconfig_scenario
@@ -194,7 +203,7 @@ class _Stop:
 
     def __init__(self) -> None:
         self.requested = False
-        self.end_after_step = False  # (the world: the coordinator ended the flight of pieces)
+        self.ended = False  # (the world: the coordinator ended the flight of pieces)
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self._set)
 
@@ -213,7 +222,9 @@ def _await_peers(link: Link, wanted: set[int], timeout_s: float, stop: _Stop | N
 
 def shutdown_message() -> mavlink.MAVLink_message:
     """The coordinator ends a flight of pieces: MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN (param1 2 = shut down, as
-    PX4's SITL ends) to the world, sent before the last step's commands: the world ends after that step."""
+    PX4's SITL ends) to the world, sent instead of the first step not to be flown: the world, waiting for
+    that step's answers (which the units give only once the coordinator's commands are in), ends without
+    stepping, whatever the transport's ordering."""
     return mavlink.MAVLink_command_long_message(WORLD_SYSID, 1, mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 0,
                                                 2, 0, 0, 0, 0, 0, 0)
 
@@ -300,11 +311,11 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             waiting = set(live)
             deadline = time.monotonic() + unit_timeout_s
             t_us = usec(t)
-            while waiting and time.monotonic() < deadline and not stop.requested:
+            while waiting and time.monotonic() < deadline and not (stop.requested or stop.ended):
                 for m in link.receive(deadline - time.monotonic()):
                     if _is_shutdown(m):
-                        stop.end_after_step = True
-                        continue
+                        stop.ended = True
+                        break
                     if m.get_type() != "HIL_ACTUATOR_CONTROLS":
                         continue
                     if m.time_usec != t_us or m.get_srcSystem() not in waiting:
@@ -315,7 +326,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                         continue
                     world.actuate(actuator_output_from_message(m, scale))
                     waiting.discard(m.get_srcSystem())
-            if stop.requested:
+            if stop.requested or stop.ended:
                 break
             for unit in sorted(waiting):  # silent units are dead: motors off, the flight goes on
                 world.declare_dead(unit)
@@ -324,12 +335,6 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                 print(f"world: unit {unit} silent for {unit_timeout_s:.1f} s at t={t:.2f}: declared dead", file=sys.stderr)
             world.advance()
             k += 1
-            if setup.pieces and not stop.end_after_step:  # the coordinator's end, sent before this step's commands
-                for m in link.receive(0.0):
-                    if _is_shutdown(m):
-                        stop.end_after_step = True
-            if stop.end_after_step:
-                break
         wall = time.perf_counter() - wall0
         _write_world_status(status_path, world, setup, live, world.t_s, wall)
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
@@ -509,7 +514,6 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     scale = model.vehicle.full_scale_thrust_n
     assembler = SensorPacketAssembler()
     latches = LatchSensor()
-    dt_s = 1.0 / sc.sim.control_hz
     out.mkdir(parents=True, exist_ok=True)
     pieces_log = open(out / "pieces_steps.csv", "w", encoding="utf-8") if setup.pieces else None
     if pieces_log:
@@ -580,6 +584,9 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     print(f"coordinator: no telemetry for {WORLD_IDLE_TIMEOUT_S:.0f} s: ending", file=sys.stderr)
                 break
             t = t_expected
+            if end_s is not None and (t >= end_s() - 1e-9 or coordinator.failed is not None):
+                link.send_bytes(link.pack([shutdown_message()]), world)  # the flight of pieces is over
+                break
             for unit in sorted(live - set(packets)):  # telemetry stopped: the unit is lost
                 live.discard(unit)
                 lost.append({"t_s": round(t, 6), "unit": unit})
@@ -603,12 +610,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             computed_wall, send_cpu = time.time(), time.thread_time()
             step_cpu = send_cpu - step_cpu
             datagrams = []  # all encoded first, then sent back to back (a woken unit may take the CPU)
-            ending = False
             if end_s is not None:
                 _log_pieces_step(pieces_log, coordinator, t)
-                ending = t + dt_s >= end_s() - 1e-9 or coordinator.failed is not None
-                if ending:  # the world learns it before any unit answers this step
-                    datagrams.append((link.pack([shutdown_message()]), world))
             for cmd in commands:
                 if cmd.unit_id in live:
                     msgs = _with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale))
@@ -624,8 +627,6 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             if timing:
                 timing.write(f"{t:.6f},{first_wall:.6f},{all_wall:.6f},{computed_wall:.6f},{sent_wall:.6f},"
                              f"{step_cpu:.6f},{send_cpu:.6f}\n")
-            if ending:
-                break
         if finish_at is not None:
             coordinator.finish_step()
         pieces = {} if end_s is None else {"pieces_final": coordinator.pieces_final(), "failed": coordinator.failed,

@@ -285,6 +285,7 @@ class Executor:
         self.events: list[dict] = []
         self.failed: str | None = None
         self.refs[whole.key] = self._mission_reference(whole, 0.0)
+        self.hold_until_s = -math.inf  # a commanded separation: the pieces fly apart until then (inf: for good)
         self.free_start = free_start
         self.assembling = free_start is not None  # the first manoeuvre builds the structure from free units
         if free_start is not None:
@@ -364,7 +365,7 @@ class Executor:
             return self._next_split_layer(t_s)
         if self.phase == "assembly":
             self._advance_docks(t_s, states)
-            if not self.docks and t_s >= self.phase_end_t:
+            if not self.docks and t_s >= max(self.phase_end_t, self.hold_until_s):
                 self._next_dock_layer(t_s)
         if self.phase == "return" and t_s >= self.phase_end_t:
             (key,) = self.shapes
@@ -374,6 +375,7 @@ class Executor:
             ref.tail = (com, t_s, self.shift_s)
             self.phase = "mission"
             self.pause_t = None  # (a later fault may start another manoeuvre)
+            self.hold_until_s = -math.inf
             self.events.append({"t_s": round(t_s, 6), "type": "mission_resumed", "shift_s": round(self.shift_s, 4),
                                 "text": "Reconfig: mission resumed"})
         return []
@@ -401,7 +403,8 @@ class Executor:
         if not splits:
             self.phase, self.layer = "assembly", 0
             self.phase_end_t = t_s
-            self._next_dock_layer(t_s)
+            if t_s >= self.hold_until_s:
+                self._next_dock_layer(t_s)
             return []
         p = self.params
         actions = []

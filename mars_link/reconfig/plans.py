@@ -29,6 +29,20 @@ def check_reconfig_scenario(scenario: Scenario) -> None:
     src = scenario.source
     if scenario.controller != "cascaded":
         raise UserInputError(f"{src}: [reconfig] flights need [control] controller = \"cascaded\"")
+    if scenario.separations and (scenario.starts_free or scenario.reconfig.get("enabled")):
+        raise UserInputError(f"{src}: [[separations]] cannot be combined with [reconfig] or a free start yet")
+    model = scenario.model()
+    for i, sep in enumerate(scenario.separations, 1):
+        try:
+            plan = plan_separation(model, sep.units, sep.redock_t_s is not None)
+        except UserInputError as exc:
+            raise UserInputError(f"{src}: [[separations]] #{i}: {exc}") from None
+        bad = unhoverable_pieces(plan, model, eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s),
+                                                            math.inf))
+        if bad:
+            raise UserInputError(f"{src}: [[separations]] #{i}: {bad[0]}")
+    if scenario.separations:
+        return
     if scenario.starts_free:
         if scenario.faults and scenario.faults_known:
             raise UserInputError(f"{src}: [assembly] start = \"free\" with [[faults]] needs [control] faults_known = "
@@ -99,6 +113,36 @@ def unhoverable_pieces(plan: ReconfigPlan, model: AssemblyModel, eta: np.ndarray
         except UserInputError as exc:
             bad.append(f"piece {sorted(units)}: {exc}")
     return bad
+
+
+def plan_separation(model: AssemblyModel, units, redock: bool) -> ReconfigPlan:
+    """A commanded separation: `units` undock along one straight cut and, with `redock`, dock back into
+    their cells (one split layer, one dock layer). A set of units that no straight cut separates, or that
+    leaves either side in several parts, is a UserInputError."""
+    from mars_link.latches import components, neighbour_links
+    from mars_link.reconfig.placement import Placement
+    from mars_link.reconfig.sequencing import BreakLine, MergeStep, SplitStep
+
+    cells = nominal_cells(model)
+    detached = sorted(units)
+    rest = sorted(set(model.unit_ids) - set(detached))
+    for axis, k in (("row", 0), ("col", 1)):
+        for index in range(1, 1 + max(c[k] for c in cells.values())):
+            low = sorted(u for u, c in cells.items() if c[k] < index)
+            if detached not in (low, sorted(set(cells) - set(low))):
+                continue
+            for part in (detached, rest):
+                links = neighbour_links({u: cells[u] for u in part})
+                if len(components(part, links)) != 1:
+                    raise UserInputError(f"separation of units {detached}: the cut leaves units {part} in pieces")
+            line = BreakLine(axis, index)
+            approach = ("+" if detached == low else "-") + axis
+            split = SplitStep(1, sorted(model.unit_ids), line, detached, rest)
+            merges = [MergeStep(1, 0, rest, detached, line, approach)] if redock else []
+            return ReconfigPlan(model.layout, cells, Placement(cells, 0.0, "given", 0.0), True, 1,
+                                1 if redock else 0, [split], merges, [detached, rest])
+    raise UserInputError(f"separation of units {detached}: no straight cut of layout {','.join(model.layout)} "
+                         "separates exactly these units")
 
 
 def plan_or_reason(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> tuple[ReconfigPlan | None, str]:

@@ -1,0 +1,78 @@
+"""The modular life cycle on the real path: flights of several bodies in the multi-process SITL (a world
+process carrying the bodies, one process per unit firmware, a coordinator process running the
+PiecesCoordinator, MAVLink over Zenoh in lockstep) equal the same flights in-process, with every split
+and dock at the same step; the coordinator learns them from the units' latch reports (NAMED_VALUE_INT
+LATCH) and commands the latches in its rotor commands."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mars_link.reconfig.flight import run_reconfig_trial
+from mars_link.scenario import load_scenario
+from mars_link.sitl_mode import run_sitl_scenario
+from mars_link.transport import LinkSpec
+from pymavlink import mavutil
+
+LIFE_CYCLE = ("split", "dock_start", "dock", "dock_latched", "fault_detected", "plan", "reconfig_start",
+              "reconfig_done", "assembly_done", "mission_resumed")
+
+
+def _fly_both(name: str, out: Path) -> tuple[dict, object]:
+    sc = load_scenario(name)
+    if sc.faults:  # --mode sitl finds faults unless the file says they are told: the same in-process
+        sc = dataclasses.replace(sc, faults_known=False)
+    sitl = run_sitl_scenario(sc, out, link=LinkSpec("zenoh"), timeout_s=900)
+    return sitl, run_reconfig_trial(sc, sc.sim.seed)
+
+
+def _assert_same_flight(sitl: dict, inproc, out: Path) -> None:
+    assert sitl["completed"] and inproc.completed
+    assert sitl["pieces_final"] == inproc.pieces_final and sitl["bodies_final"] == [p["units"] for p in inproc.pieces_final]
+    ev_sitl = [(e["t_s"], e["type"]) for e in sitl["events"] if e["type"] in LIFE_CYCLE]
+    ev_inproc = [(e["t_s"], e["type"]) for e in inproc.events if e["type"] in LIFE_CYCLE]
+    assert ev_sitl == ev_inproc and any(k == "dock_latched" for _, k in ev_sitl)
+    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True)
+    row_of = {round(float(t), 6): i for i, t in enumerate(truth["t_s"])}
+    diffs = []
+    for t, unit, n, e, d, *_ in inproc.unit_rows:  # every unit at 20 Hz over the whole flight
+        i = row_of[round(t, 6)]
+        u = int(unit)
+        diffs.append(np.linalg.norm([truth[f"u{u}_n_m"][i] - n, truth[f"u{u}_e_m"][i] - e, truth[f"u{u}_d_m"][i] - d]))
+    assert len(diffs) > 1000 and max(diffs) < 1e-3, max(diffs)
+    assert sitl["sim_time_s"] == pytest.approx(inproc.sim_time_s, abs=1e-6)
+    assert sitl["mean_error_m"] == pytest.approx(inproc.mean_error_m, abs=1e-6)
+
+
+@pytest.mark.sitl
+def test_docking_3x1_in_sitl_equals_inproc_and_the_latches_travel_as_mavlink(tmp_path: Path) -> None:
+    sitl, inproc = _fly_both("docking_3x1", tmp_path)
+    _assert_same_flight(sitl, inproc, tmp_path)
+    assert sitl["reconfigured"] and inproc.reconfigured
+    # the latch sensor and setpoint on the wire: unit 1 reported its latches open after the split and
+    # latched again after the dock; its commands opened its right latch (controls[4] = the latches to open)
+    log = mavutil.mavlink_connection(str(tmp_path / "unit1.tlog"))
+    reports, opened = [], set()
+    while (m := log.recv_match(type=["NAMED_VALUE_INT", "SET_ACTUATOR_CONTROL_TARGET"])) is not None:
+        if m.get_type() == "NAMED_VALUE_INT":
+            reports.append(m.value)
+        else:
+            opened.add(int(m.controls[4]))
+    assert reports[0] == 0b0010 and 0 in reports and reports[-1] != 0  # right side latched, open, latched (left)
+    assert opened >= {0, 0b0010}
+
+
+@pytest.mark.slow
+@pytest.mark.sitl
+@pytest.mark.parametrize("name", ["assemble_3x2", "assemble_fault_reconfig"])
+def test_life_cycle_in_sitl_over_zenoh_equals_inproc(tmp_path: Path, name: str) -> None:
+    sitl, inproc = _fly_both(name, tmp_path)
+    _assert_same_flight(sitl, inproc, tmp_path)
+    assert sitl["assembled"] and inproc.assembled
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["mode"] == "sitl-pieces" and summary["sitl"]["transport"] == "zenoh"
