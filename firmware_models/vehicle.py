@@ -1188,8 +1188,10 @@ class Vehicle:
 
     def drive_motors(self) -> ActuatorOutput:
         """The HIL answer (HIL_ACTUATOR_CONTROLS' values): what the motors are driven to for this step."""
-        return ActuatorOutput(self.sim_s, self.sysid, wire_thrust(self._motor_setpoint_n(), self.full_scale_n),
-                              self.latch_setpoint)
+        sp = self._motor_setpoint_n()
+        if sp is not self.intake.thrusts_n:  # (the held command itself is at wire precision already)
+            sp = wire_thrust(sp, self.full_scale_n)
+        return ActuatorOutput(self.sim_s, self.sysid, sp, self.latch_setpoint)
 
     def arm(self) -> int:
         """MAV_CMD_COMPONENT_ARM_DISARM (arm) as the coordinator sends it; returns the MAV_RESULT."""
@@ -1219,7 +1221,7 @@ class Vehicle:
             if self.source != "coordinator":
                 self.source = "coordinator"
                 self._text("Coordinator drives the rotors")
-            self.motor_commands_n = cmd.copy()
+            self.motor_commands_n = cmd  # (the intake's own array: a new one per accepted command)
             self.autopilot.landed = False
             self._account_battery()
             return

@@ -235,7 +235,8 @@ class FlightRecorder:
                  *rec.estimate.position_ned_m, math.degrees(er), math.degrees(ep), math.degrees(ey),
                  *truth.position_ned_m]
             )
-            log.rotors(self.trial_index, v.t_s, rec.thrusts_n, f.world.rotor_thrust_n, f.units.eta(f.model.unit_ids))
+            if log.rotor_due(v.t_s):
+                log.rotors(self.trial_index, v.t_s, rec.thrusts_n, f.world.rotor_thrust_n, f.units.eta(f.model.unit_ids))
             if v.index % self._flush_every == 0:
                 log.flush()
         if self.metrics.diverged:
