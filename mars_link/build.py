@@ -244,7 +244,8 @@ def make_pieces_world(scenario: Scenario, model: AssemblyModel, seed: int, execu
     return make_world(scenario, model, seed, bodies=bodies, config=config)
 
 
-def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: Trajectory):
+def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: Trajectory,
+                            telemetry_timeout_s: float | None = None):
     """The coordinator of a flight of pieces (`PiecesCoordinator`: one EKF, detector, controller and
     allocator per piece, the executor inside) and when its flight ends (a function of no argument
     giving the end's sim time: a manoeuvre moves it)."""
@@ -273,7 +274,7 @@ def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: T
         planner=planner, told_faults=len(scenario.faults) if told and at_s is None else 0,
         at_s=at_s if told or planner is not None else None,
         separations=[(s.t_s, plan_separation(model, s.units, s.redock_t_s is not None), s.redock_t_s)
-                     for s in scenario.separations])
+                     for s in scenario.separations], telemetry_timeout_s=telemetry_timeout_s)
     coordinator.events += plan_events
     duration = scenario.sim.duration_s or mission.duration_s
 
@@ -285,17 +286,22 @@ def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: T
     return coordinator, end_s
 
 
-def build_pieces_flight(scenario: Scenario, seed: int):
+def build_pieces_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, float] | None = None):
     """Every part of a flight of pieces (free units assembling, a reconfiguration), wired for the engine:
     the world starts with one body per piece of the executor's start, every unit is its firmware, and
-    the coordinator is a `PiecesCoordinator`."""
+    the coordinator is a `PiecesCoordinator`. `unit_deaths` (unit -> time): that unit's process dies then
+    and the coordinator, not told, loses it after `UNIT_TIMEOUT_PERIODS` silent control periods."""
     from mars_link.engine import Flight, InProcessUnits
 
     model = scenario.model()
     mission = make_trajectory(scenario, model)
-    coordinator, end_s = make_pieces_coordinator(scenario, model, mission)
+    deaths = sorted((t_d, u) for u, t_d in (unit_deaths or {}).items())
+    for _, u in deaths:
+        model.check_rotor(u, None)
+    timeout = UNIT_TIMEOUT_PERIODS / scenario.sim.control_hz if deaths else None
+    coordinator, end_s = make_pieces_coordinator(scenario, model, mission, timeout)
     world = make_pieces_world(scenario, model, seed, coordinator.executor)
     units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
     faults = sorted(scenario.faults, key=lambda f: f.t_s)
-    return Flight(scenario, model, seed, mission, world, units, coordinator, faults,
+    return Flight(scenario, model, seed, mission, world, units, coordinator, faults, deaths,
                   duration_s=scenario.sim.duration_s or mission.duration_s, end_s=end_s)

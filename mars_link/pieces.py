@@ -74,12 +74,14 @@ def local_packet(packet: SensorPacket, local_id: int) -> SensorPacket:
 class PiecesCoordinator:
     def __init__(self, executor: Executor, vehicle: VehicleParams, unit_ids, new_coordinator: PieceCoordinatorFactory,
                  *, tracked_unit: int | None = None, planner: Planner | None = None, told_faults: int = 0,
-                 at_s: float | None = None, separations: list[tuple[float, ReconfigPlan, float | None]] = ()) -> None:
+                 at_s: float | None = None, separations: list[tuple[float, ReconfigPlan, float | None]] = (),
+                 telemetry_timeout_s: float | None = None) -> None:
         """`planner`: when set, a fault the detectors find starts a reconfiguration planned from the
         believed faults (at `at_s` instead, when given); `told_faults`: the reconfiguration starts once this
         many faults were told (executor's own plan); `at_s` without a planner: it starts at that time
         (executor's own plan). `separations`: (time, plan, re-dock time or None) of each commanded
-        separation, started once the mission flies as one body."""
+        separation, started once the mission flies as one body. `telemetry_timeout_s`: a unit silent this
+        long is lost (in-process flights; the SITL coordinator process watches its links itself)."""
         self.executor = executor
         self.vehicle = vehicle
         self.new_coordinator = new_coordinator
@@ -99,6 +101,9 @@ class PiecesCoordinator:
         self._plan_at_s = math.inf
         self._at_done = False
         self.separations = list(separations)
+        self.lost: set[int] = set()
+        self.telemetry_timeout_s = telemetry_timeout_s
+        self._last_seen: dict[int, float] = {}
         for shape in executor.shapes.values():
             self.pieces[shape.key] = self._new_piece(shape, 0.0, None)
 
@@ -124,8 +129,8 @@ class PiecesCoordinator:
         return next(p for p in self.pieces.values() if unit_id in p.units)
 
     def tracked_piece(self) -> Piece:
-        """The piece carrying the tracked unit (else the one with the most units)."""
-        if self.tracked_unit is not None:
+        """The piece carrying the tracked unit (else, or once that unit is lost, the one with the most units)."""
+        if self.tracked_unit is not None and self.tracked_unit not in self.lost:
             return self.piece_of(self.tracked_unit)
         return max(self.pieces.values(), key=lambda p: (len(p.units), -min(p.units)))
 
@@ -243,12 +248,32 @@ class PiecesCoordinator:
             self.pieces[req.merged.key] = self._new_piece(req.merged, t_s, self._moved_estimate(st, m, shift))
 
     def unit_lost(self, unit_id: int, t_s: float, reason: str = "telemetry lost"):
-        """A unit stopped reporting: its piece's coordinator believes it failed (and its detections say so)."""
+        """A unit stopped reporting (its process died): its piece's coordinator believes it failed, and a
+        manoeuvre under way is abandoned with the pieces there are (`Executor.abandon`): a piece of lost
+        units alone is dropped, the mission resumes on the main piece, the others hold."""
+        if unit_id in self.lost:
+            return None
+        self.lost.add(unit_id)
         piece = self.piece_of(unit_id)
         det = piece.coordinator.unit_lost(piece.units.index(unit_id) + 1, t_s, reason)
         self.events.append({"t_s": round(t_s, 6), "type": "unit_lost", "unit": unit_id, "reason": reason,
                             "text": f"Unit {unit_id} lost: {reason}"[:50]})
+        for key in self.executor.abandon(t_s, self.lost):
+            self.pieces.pop(key, None)
+        self.pending_splits = [p for p in self.pending_splits if p.action.parent in self.pieces]
+        if self.executor.failed and self.failed is None:
+            self.failed = self.executor.failed
         return det
+
+    def _watch_telemetry(self, t_s: float, seen) -> None:
+        for u in seen:
+            self._last_seen[u] = t_s
+        if not seen:
+            return
+        for u in self.eta_believed:
+            last = self._last_seen.setdefault(u, t_s)
+            if u not in self.lost and t_s - last > self.telemetry_timeout_s + 1e-9:
+                self.unit_lost(u, t_s, f"no telemetry for {t_s - last:.2f} s")
 
     def all_events(self) -> list[dict]:
         """The coordinator's and the executor's events, in time order."""
@@ -268,6 +293,8 @@ class PiecesCoordinator:
     def step(self, t_s: float, packets: list[SensorPacket]) -> list[RotorCommand]:
         """One control period over every piece; commands carry each unit's latch setpoint."""
         by_unit = {p.unit_id: p for p in packets}
+        if self.telemetry_timeout_s is not None:
+            self._watch_telemetry(t_s, by_unit)
         self._learn_topology(t_s, {u: p.latches for u, p in by_unit.items()})
         if self.at_s is not None and t_s >= self.at_s and not self._at_done:  # (once)
             self._at_done = True

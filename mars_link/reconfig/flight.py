@@ -148,9 +148,11 @@ class ReconfigRecorder:
 def run_reconfig_trial(
     scenario: Scenario, seed: int, out_dir: Path | None = None,
     on_progress: Callable[[float], None] | None = None, realtime_rate: float = 0.0,
+    unit_deaths: dict[int, float] | None = None,
 ) -> ReconfigResult:
-    """One flight of pieces on the engine (`build.build_pieces_flight`)."""
-    flight = build_pieces_flight(scenario, seed)
+    """One flight of pieces on the engine (`build.build_pieces_flight`); `unit_deaths` (unit -> time): that
+    unit's process dies then."""
+    flight = build_pieces_flight(scenario, seed, unit_deaths)
     coord: PiecesCoordinator = flight.coordinator
     executor = coord.executor
     recorder = ReconfigRecorder(flight, out_dir)
