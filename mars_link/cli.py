@@ -79,8 +79,6 @@ def cmd_run(args) -> int:
 
             if args.trials != 1:
                 raise UserInputError("--trials: a [reconfig] flight runs one trial (vary --seed instead)")
-            if args.realtime:
-                raise UserInputError("--realtime: a flight of several bodies runs as fast as possible for now")
         if sitl_run is not None:
             runner = sitl_run
         summary = runner(

@@ -155,3 +155,13 @@ def test_unit_sets_are_written_as_ranges():
 
     assert units_text([3, 1, 2, 4, 9, 11, 12]) == "1-4,9,11-12"
     assert units_text({5}) == "5"
+
+
+def test_a_flight_of_pieces_paced_by_the_engine_flies_the_same_in_the_wall_clock_it_asks_for():
+    """Pacing is a parameter of the one engine: docking_3x1 at 5x real time takes sim time / 5 of wall time
+    and gives the flight it gives unpaced (same events, same error)."""
+    fast = run_reconfig_trial(docking("qp"), 1)
+    paced = run_reconfig_trial(docking("qp"), 1, realtime_rate=5.0)
+    assert [(e["t_s"], e["type"]) for e in paced.events] == [(e["t_s"], e["type"]) for e in fast.events]
+    assert paced.mean_error_m == fast.mean_error_m
+    assert paced.wall_time_s >= 0.97 * paced.sim_time_s / 5.0

@@ -190,12 +190,13 @@ def run_reconfig_trial(
 
 def run_reconfig_scenario(
     scenario: Scenario, out_dir: Path | None = None, trials: int = 1, seed: int | None = None,
-    on_progress: Callable[[int, float], None] | None = None, plots: bool = True,
+    on_progress: Callable[[int, float], None] | None = None, plots: bool = True, realtime_rate: float = 0.0,
 ) -> dict:
-    """One reconfiguration flight; the run directory gets summary.json, CSVs and plots/."""
+    """One flight of pieces; the run directory gets summary.json, CSVs and plots/. `realtime_rate`: the
+    engine's pacing (0 as fast as possible, 1 real time)."""
     seed = scenario.sim.seed if seed is None else seed
     cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
-    r = run_reconfig_trial(scenario, seed, out_dir, cb)
+    r = run_reconfig_trial(scenario, seed, out_dir, cb, realtime_rate=realtime_rate)
     summary = {
         "scenario": scenario.name, "source": scenario.source, "mode": "inproc-reconfig",
         "layout": list(scenario.layout), "preset": scenario.preset, "controller": scenario.controller,
