@@ -266,9 +266,9 @@ def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: T
     at_s = scenario.reconfig.get("at_s")
     planner = None
     if enabled and not scenario.faults_known:
-        def planner(eta_by_unit):
+        def planner(eta_by_unit, current_cells):
             eta = np.concatenate([eta_by_unit[u] for u in model.unit_ids])
-            return plan_or_reason(scenario, model, eta)
+            return plan_or_reason(scenario, model, eta, current_cells)
     coordinator = PiecesCoordinator(
         executor, model.vehicle, model.unit_ids, new_coordinator, tracked_unit=scenario.tracked_unit(),
         planner=planner, told_faults=len(scenario.faults) if told and at_s is None else 0,

@@ -57,8 +57,9 @@ class _PendingSplit:
 
 #: (piece model, reference, believed eta of its rotors, time, estimator or None) -> the piece's coordinator
 PieceCoordinatorFactory = Callable[[AssemblyModel, object, np.ndarray, float, object], Coordinator]
-#: believed eta per unit -> (a plan to execute, or None and the reason there is none)
-Planner = Callable[[dict[int, np.ndarray]], tuple[ReconfigPlan | None, str]]
+#: (believed eta per unit, the structure's cells: unit -> cell of the layout) -> (a plan to execute, or None
+#: and the reason there is none)
+Planner = Callable[[dict[int, np.ndarray], dict], tuple[ReconfigPlan | None, str]]
 
 
 def local_packet(packet: SensorPacket, local_id: int) -> SensorPacket:
@@ -172,7 +173,11 @@ class PiecesCoordinator:
     def _plan_from_belief(self, t_s: float) -> None:
         """The believed faults settled (the trigger delay after a detection): plan and start, or say why not."""
         self._plan_at_s = math.inf
-        plan, reason = self.planner({u: e.copy() for u, e in self.eta_believed.items()})
+        (shape,) = self.executor.shapes.values()  # the structure it has (after a manoeuvre: not the layout's order)
+        r0 = min(r for r, _ in shape.cells.values())
+        c0 = min(c for _, c in shape.cells.values())
+        current = {u: (r - r0, c - c0) for u, (r, c) in shape.cells.items()}
+        plan, reason = self.planner({u: e.copy() for u, e in self.eta_believed.items()}, current)
         if plan is None:
             self.events.append({"t_s": round(t_s, 6), "type": "reconfig_refused", "reason": reason,
                                 "text": "Reconfig refused"})

@@ -47,3 +47,30 @@ def test_paper000_docking_with_noise_and_the_fault_found_keeps_the_faulty_unit_w
     assert (found["unit"], found["rotor"]) == (3, 4) and found["eta_estimated"] < 0.15
     assert faulty_unit_figures(r)["max_yaw_deviation_deg"] <= 1.0
     assert r.pieces_final == [{"layout": ["XXX"], "units": [2, 3, 1]}]
+
+
+@pytest.mark.slow
+def test_a_second_fault_set_is_planned_from_the_structure_the_first_manoeuvre_left():
+    """The donut: unit 1 loses 3 rotors at 5 s (found, reconfigured: unit 1 moves), then unit 12 loses 3 at
+    45 s. The second plan starts from the structure the first one left (not the layout's numbering), and
+    both manoeuvres complete."""
+    import dataclasses
+
+    from reconfig_eval import CASES, paper_faults, scenario
+
+    from mars_link.reconfig.flight import run_reconfig_trial
+    from mars_link.scenario import FaultSpec
+
+    _, layout, _ = CASES[3]
+    faults = [FaultSpec(f.unit, f.rotor, f.eta, 5.0) for f in paper_faults(3)]
+    faults += [FaultSpec(12, r, 0.0, 45.0) for r in (1, 3, 4)]
+    sc = scenario(layout, faults, "qp", {"enabled": True})
+    sc = dataclasses.replace(sc, faults_known=False, sim=dataclasses.replace(sc.sim, noise=True))
+    r = run_reconfig_trial(sc, 1)
+    assert r.completed and not r.diverged
+    kinds = [e["type"] for e in r.events]
+    assert kinds.count("reconfig_done") == 2 and kinds.count("plan") == 2
+    second = [e for e in r.events if e["type"] == "plan"][1]
+    assert second["t_s"] > 45.0 and second["disassembly_layers"] >= 1
+    (final,) = r.pieces_final
+    assert final["layout"] == list(layout) and final["units"] != list(range(1, 13))

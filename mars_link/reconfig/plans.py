@@ -67,14 +67,19 @@ def free_ground_positions(scenario: Scenario, model: AssemblyModel, mission) -> 
     return out
 
 
-def make_plan(scenario: Scenario, model: AssemblyModel, eta: np.ndarray | None = None) -> ReconfigPlan:
+def make_plan(scenario: Scenario, model: AssemblyModel, eta: np.ndarray | None = None,
+              current: dict | None = None) -> ReconfigPlan:
     """The plan for the faults `eta` (default: all the scenario's faults, precomputed like paper 001's
-    configuration tree; in flight: the faults the detectors found).
+    configuration tree; in flight: the faults the detectors found), from the structure `current` (unit ->
+    cell of the layout; default: the layout's own numbering). `[reconfig] target` applies to a structure
+    in the layout's own numbering (the first manoeuvre).
 
     A given `[reconfig] target` that cannot be reached is a UserInputError (exit 2)."""
     if eta is None:
         eta = eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s), math.inf)
-    target = scenario.reconfig.get("target")
+    if current is not None and current == nominal_cells(model):
+        current = None
+    target = scenario.reconfig.get("target") if current is None else None
     cells = None
     if target is not None:
         order = [model.unit_cells[u] for u in model.unit_ids]
@@ -83,7 +88,8 @@ def make_plan(scenario: Scenario, model: AssemblyModel, eta: np.ndarray | None =
     v = model.vehicle  # pieces must hover within the real thrust limits, not only pass the quadrant rule
     rule = FlyabilityRule(hover_thrust_limits_n=(v.rotor_min_thrust_n, v.rotor_max_thrust_n))
     try:
-        return plan_reconfiguration(model, health_from_eta(model, eta), weights, target=cells, rule=rule)
+        return plan_reconfiguration(model, health_from_eta(model, eta), weights, current=current, target=cells,
+                                    rule=rule)
     except UserInputError as exc:
         raise UserInputError(f"{scenario.source}: [reconfig] {exc}") from None
 
@@ -145,11 +151,12 @@ def plan_separation(model: AssemblyModel, units, redock: bool) -> ReconfigPlan:
                          "separates exactly these units")
 
 
-def plan_or_reason(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> tuple[ReconfigPlan | None, str]:
-    """A plan worth executing for the faults `eta` (feasible, with something to split, every piece able to
-    hover), else None and why not."""
+def plan_or_reason(scenario: Scenario, model: AssemblyModel, eta: np.ndarray,
+                   current: dict | None = None) -> tuple[ReconfigPlan | None, str]:
+    """A plan worth executing for the faults `eta` from the structure `current` (feasible, with something
+    to split, every piece able to hover), else None and why not."""
     try:
-        plan = make_plan(scenario, model, eta)
+        plan = make_plan(scenario, model, eta, current)
     except UserInputError as exc:
         return None, str(exc)
     if not plan.feasible:
