@@ -114,7 +114,8 @@ def world_config(scenario: Scenario, seed: int):
     from sitl.world import WorldConfig
 
     return WorldConfig(physics_hz=scenario.sim.physics_hz, exchange_hz=scenario.sim.control_hz, seed=seed,
-                       noise=scenario.sim.noise, position_every=position_every(scenario))
+                       noise=scenario.sim.noise, position_every=position_every(scenario),
+                       environment=scenario.environment if scenario.environment.moves_air else None)
 
 
 def make_world(scenario: Scenario, model: AssemblyModel, seed: int, com_start_ned_m: np.ndarray | None = None,

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from mars_link.assembly import AssemblyModel, PRESETS, parse_layout, vehicle_preset
+from mars_link.environment import EnvironmentParams
 from mars_link.errors import UserInputError
 from mars_link.validation import check_id_digits, check_seed
 
@@ -80,6 +81,7 @@ class Scenario:
     reconfig: dict[str, Any] = field(default_factory=dict)  # validated [reconfig] table (enabled, ...)
     start: str = "docked"  # "docked": one assembled body; "free": the units apart on the ground, assembled in the air
     free_spacing_m: float = 2.0  # start = "free": distance between neighbouring units' centres on the ground
+    environment: EnvironmentParams = field(default_factory=EnvironmentParams)  # [environment]: wind, gusts, turbulence
 
     @property
     def starts_free(self) -> bool:
@@ -98,13 +100,15 @@ class Scenario:
 # ----------------------------------------------------------------------------- parsing helpers
 #: free units on the ground stand at least this far apart, edge to edge
 FREE_CLEARANCE_M = 0.3
-_TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig"}
+_TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig", "environment"}
 _VEHICLE_KEYS = {
     "preset",
     "motor_time_constant_s",
     "rotor_max_thrust_n",
     "rotor_min_thrust_n",
+    "rotor_drag_coeff",
 }
+_AERO_KEYS = {"drag", "drag_area_frd_m2"}  # + rotor_drag_coeff (a number, above)
 _ASSEMBLY_KEYS = {"layout", "tracked", "start", "free_spacing_m"}
 _CONTROL_KEYS = {"controller", "ftc", "faults_known"}
 _FAULT_KEYS = {"t", "unit", "rotor", "eta"}
@@ -184,12 +188,16 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
     sc = Scenario(name=name, source=src)
 
     vehicle = _table(doc, "vehicle", src)
-    _check_keys(vehicle, _VEHICLE_KEYS, "[vehicle]", src)
+    _check_keys(vehicle, _VEHICLE_KEYS | _AERO_KEYS, "[vehicle]", src)
     sc.preset = vehicle.get("preset", sc.preset)
     if sc.preset not in PRESETS:
         raise UserInputError(
             f"{src}: unknown vehicle preset {sc.preset!r} (known: {', '.join(sorted(PRESETS))})"
         )
+    from mars_link.scenario_environment import aero_options, environment_table
+
+    sc.environment = environment_table(_table(doc, "environment", src), src)
+    sc.vehicle_options.update(aero_options(vehicle, sc.preset, sc.environment, src))
     for key in _VEHICLE_KEYS - {"preset"}:
         if key in vehicle:
             sc.vehicle_options[key] = _number(

@@ -132,6 +132,10 @@ def write_scenario_copy(scenario, path: Path) -> Path:
     }
     if not doc["faults"]:
         del doc["faults"]
+    if scenario.environment.moves_air:
+        from mars_link.environment import environment_doc
+
+        doc["environment"] = environment_doc(scenario.environment)
     path.write_text(_toml(doc), encoding="utf-8")
     return path
 
@@ -148,6 +152,8 @@ def _toml(doc: dict) -> str:
             return json.dumps(v)
         if isinstance(v, (list, tuple)):
             return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, dict):  # inline table (e.g. [environment] gusts)
+            return "{" + ", ".join(f"{kk} = {value(vv)}" for kk, vv in v.items()) + "}"
         raise TypeError(f"cannot write {v!r} to TOML")
 
     lines = []

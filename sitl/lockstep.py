@@ -212,7 +212,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
 
     sc = setup.scenario
     cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise,
-                      position_every(setup))
+                      position_every(setup), sc.environment if sc.environment.moves_air else None)
     if setup.docked:
         com, yaw = world_start or _start_pose(setup)
         world = make_world(sc, setup.model, seed, com, yaw, config=cfg)

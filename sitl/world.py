@@ -16,6 +16,8 @@ from mars_link.assembly import AssemblyModel
 from mars_link.messages import ActuatorOutput, SensorPacket, f32, wire_state, wire_time
 from mars_link.rotations import quat_to_rotmat
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
+from mars_link.environment import EnvironmentParams
+from sitl.environment import Air
 from sitl.physics import JsbsimBody
 from sitl.sensors import SensorModel, SensorParams
 
@@ -27,6 +29,7 @@ class WorldConfig:
     seed: int = 1
     noise: bool = True
     position_every: int = 1  # position samples every n-th exchange
+    environment: EnvironmentParams | None = None  # wind, gusts, turbulence (sitl.environment); None = still air
 
 
 @dataclass(eq=False)  # (identity: two bodies are never "equal")
@@ -98,6 +101,7 @@ class World:
         self.exchange_index = 0
         self.force_integral_n2s = 0.0
         self._unit_slots = {u: model.unit_slots(u) for u in model.unit_ids}  # (the hot path's lookup)
+        self.air = Air(config.environment, config.seed)
         self._index_bodies()
 
     @classmethod
@@ -115,6 +119,7 @@ class World:
     def _index_bodies(self) -> None:
         self._body_of = {u: b for b in self.bodies for u in b.units}
         self._single = len(self.bodies) == 1 and self.bodies[0].units == tuple(self.model.unit_ids)
+        self.air.attach(b.jsbsim for b in self.bodies)
 
     # ----------------------------------------------------------------- bodies
     @property
@@ -178,6 +183,8 @@ class World:
 
     def advance(self) -> None:
         """Integrate physics over one exchange period (`substeps` physics steps) for every body."""
+        if self.air.active:
+            self.air.before_exchange(self.t_s, [b.jsbsim for b in self.bodies])
         a = self._lag_alpha
         if a >= 1.0:  # no motor lag: thrust is constant over the exchange period
             self.rotor_thrust_n = self.rotor_setpoint_n.copy()
@@ -295,7 +302,7 @@ class FreeUnitsWorld:
         self.unit_ids = list(range(1, n_units + 1))
         self.worlds = {
             u: World(self.model, WorldConfig(config.physics_hz, config.exchange_hz, config.seed + u - 1, False,
-                                             config.position_every),
+                                             config.position_every, config.environment),
                      np.array([0.0, (u - 1) * spacing_m, 0.0]))
             for u in self.unit_ids
         }

@@ -37,7 +37,7 @@ class CascadedGains:
     position_wn_radps: float = 2.0
     position_damping: float = 0.9
     position_ki_per_s3: float = 0.8  # integral gain, m/s² per (m·s)
-    integral_limit_ms: float = 0.5  # |∫e dt| bound per axis, m·s
+    integral_limit_ms: float = 4.0  # |∫e dt| bound per axis, m·s
     attitude_wn_radps: float = 12.0
     attitude_damping: float = 0.85
     yaw_wn_radps: float = 4.0
