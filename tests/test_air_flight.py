@@ -40,3 +40,15 @@ def test_gust_response_figures() -> None:
     r = gust_response(t, e, onset_s=3.0, tolerance_m=0.05)
     assert r["peak_deviation_m"] == 0.4 and r["peak_after_s"] == 2.0 and r["recovery_s"] == 3.0
     assert gust_response(t, np.where(t >= 4, 0.3, 0.0), 3.0)["recovery_s"] == math.inf
+
+
+def test_fdi_eval_refuses_bad_air_in_one_line() -> None:
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parent.parent
+    for args, needle in ((["--turbulence", "stormy"], "unknown [environment] turbulence 'stormy'"),
+                         (["--wind", "5,0"], "got 2 values")):
+        p = subprocess.run([sys.executable, str(root / "tools" / "fdi_eval.py"), *args], capture_output=True,
+                           text=True, timeout=60)
+        assert p.returncode == 2 and needle in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
