@@ -15,6 +15,7 @@ from typing import Any
 
 from mars_link.assembly import AssemblyModel, PRESETS, parse_layout, vehicle_preset
 from mars_link.environment import EnvironmentParams
+from mars_link.sensor_profiles import SensorProfile
 from mars_link.errors import UserInputError
 from mars_link.validation import check_id_digits, check_seed
 
@@ -82,6 +83,7 @@ class Scenario:
     start: str = "docked"  # "docked": one assembled body; "free": the units apart on the ground, assembled in the air
     free_spacing_m: float = 2.0  # start = "free": distance between neighbouring units' centres on the ground
     environment: EnvironmentParams = field(default_factory=EnvironmentParams)  # [environment]: wind, gusts, turbulence
+    sensors: SensorProfile = field(default_factory=SensorProfile)  # [sensors]: the position sensor (mocap, rtk)
 
     @property
     def starts_free(self) -> bool:
@@ -100,7 +102,7 @@ class Scenario:
 # ----------------------------------------------------------------------------- parsing helpers
 #: free units on the ground stand at least this far apart, edge to edge
 FREE_CLEARANCE_M = 0.3
-_TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig", "environment"}
+_TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig", "environment", "sensors"}
 _VEHICLE_KEYS = {
     "preset",
     "motor_time_constant_s",
@@ -194,9 +196,10 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
         raise UserInputError(
             f"{src}: unknown vehicle preset {sc.preset!r} (known: {', '.join(sorted(PRESETS))})"
         )
-    from mars_link.scenario_environment import aero_options, environment_table
+    from mars_link.scenario_environment import aero_options, environment_table, sensors_table
 
     sc.environment = environment_table(_table(doc, "environment", src), src)
+    sc.sensors = sensors_table(_table(doc, "sensors", src), src)
     sc.vehicle_options.update(aero_options(vehicle, sc.preset, sc.environment, src))
     for key in _VEHICLE_KEYS - {"preset"}:
         if key in vehicle:

@@ -1,4 +1,5 @@
-"""Scenario tables for the air: `[environment]` (wind, turbulence, gusts) and `[vehicle]`'s drag keys.
+"""Scenario tables for the air and the sensors: `[environment]` (wind, turbulence, gusts), `[vehicle]`'s
+drag keys and `[sensors]` (the position sensor profile).
 
 Each problem is one `UserInputError` line naming the file and the key (exit 2 at the CLI).
 """
@@ -10,6 +11,7 @@ from typing import Any
 from mars_link.aerodynamics import AERO_PRESETS
 from mars_link.environment import SEVERITIES, TURBULENCE_MODELS, EnvironmentParams, Gust, check_vector, severity_of
 from mars_link.errors import UserInputError
+from mars_link.sensor_profiles import NOT_MODELLED, PROFILES, SensorProfile
 from mars_link.scenario import _number as _num
 
 _ENV_KEYS = {"wind_ned_mps", "turbulence", "turbulence_model", "gusts"}
@@ -92,3 +94,21 @@ def aero_options(vehicle: dict, preset: str, environment: EnvironmentParams, src
             raise UserInputError(f"{src}: [vehicle] drag_area_frd_m2 must be [x, y, z] in m² (3 numbers)")
         out["drag_area_frd_m2"] = tuple(_num(a, "[vehicle] drag_area_frd_m2", src, nonneg=True) for a in area)
     return out
+
+
+def sensors_table(table: dict, src: str) -> SensorProfile:
+    """[sensors]: profile = "mocap" | "rtk", and any of its figures (position_rate_hz > 0,
+    position_noise_m >= 0, velocity_noise_mps >= 0) overridden."""
+    profile = PROFILES["mocap"]
+    allowed = {"profile", *profile.figures}
+    for key in table:
+        if key not in allowed:
+            raise UserInputError(f"{src}: unknown key {key!r} in [sensors] (allowed: {', '.join(sorted(allowed))})")
+    name = table.get("profile", "mocap")
+    if name in NOT_MODELLED:
+        raise UserInputError(f"{src}: [sensors] profile {name!r} is not available: it {NOT_MODELLED[name]}")
+    if name not in PROFILES:
+        raise UserInputError(f"{src}: unknown [sensors] profile {name!r} (known: {', '.join(PROFILES)})")
+    figures = {key: _num(table[key], f"[sensors] {key}", src, positive=key == "position_rate_hz", nonneg=True)
+               for key in profile.figures if key in table}
+    return PROFILES[name].with_overrides(**figures)

@@ -132,6 +132,8 @@ def write_scenario_copy(scenario, path: Path) -> Path:
     }
     if not doc["faults"]:
         del doc["faults"]
+    if scenario.sensors != type(scenario.sensors)():
+        doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.figures}
     if scenario.environment.moves_air:
         from mars_link.environment import environment_doc
 

@@ -30,6 +30,7 @@ class WorldConfig:
     noise: bool = True
     position_every: int = 1  # position samples every n-th exchange
     environment: EnvironmentParams | None = None  # wind, gusts, turbulence (sitl.environment); None = still air
+    sensors: SensorParams | None = None  # the sensor figures ([sensors] profile); None = SensorParams()
 
 
 @dataclass(eq=False)  # (identity: two bodies are never "equal")
@@ -92,7 +93,7 @@ class World:
         carried = sorted(u for b in self.bodies for u in b.units)
         if carried != sorted(model.unit_ids):
             raise ValueError(f"the bodies carry units {carried}, the world has {sorted(model.unit_ids)}")
-        self.sensors = SensorModel(sensor_params or SensorParams(), seed=config.seed, noise=config.noise)
+        self.sensors = SensorModel(sensor_params or config.sensors or SensorParams(), seed=config.seed, noise=config.noise)
         tau = model.vehicle.motor_time_constant_s
         self._lag_alpha = 1.0 if tau <= 0 else 1.0 - math.exp(-self.dt_s / tau)
         self.rotor_setpoint_n = np.zeros(model.n_rotors)  # what the units drive their motors to

@@ -55,6 +55,9 @@ CASES = {
                                     "unknown [environment] turbulence 'stormy'"),
     "gust with negative duration": (GOOD + "\n[[environment.gusts]]\nt = 1\nduration_s = -2\nned_mps = [5, 0, 0]\n",
                                     (), "[[environment.gusts]] #1 duration_s must be > 0"),
+    "negative noise figure": (GOOD + "\n[sensors]\nprofile = \"rtk\"\nposition_noise_m = -0.02\n", (),
+                              "[sensors] position_noise_m must be >= 0"),
+    "unknown sensor profile": (GOOD + "\n[sensors]\nprofile = \"sonar\"\n", (), "unknown [sensors] profile 'sonar'"),
     "wind with drag off": (GOOD.replace('preset = "mars-ftcc"', 'preset = "mars-ftcc"\ndrag = false')
                            + "\n[environment]\nwind_ned_mps = [5, 0, 0]\n", (), "drag = false"),
 }
