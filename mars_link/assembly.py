@@ -45,6 +45,13 @@ class VehicleParams:
     thrust_per_command_n: float = 1.0  # thrust = k * command (paper 000: 0.23366 N per "m/s")
     gear_depth_m: float = 0.05  # how far the landing feet sit below the unit centre
     description: str = ""
+    # Air (mars_link.aerodynamics): 0 = the unit does not feel the air (the papers' plants)
+    drag_area_frd_m2: tuple[float, float, float] = (0.0, 0.0, 0.0)  # body Cd*A per unit along body x, y, z
+    rotor_drag_coeff: float = 0.0  # RotorPy k_d/sqrt(k_eta): in-plane H-force = -c*sqrt(T)*v_inplane, N/(m/s)/sqrt(N)
+
+    @property
+    def has_drag(self) -> bool:
+        return any(self.drag_area_frd_m2) or self.rotor_drag_coeff > 0
 
     def with_options(self, **changes) -> "VehicleParams":
         return replace(self, **changes)

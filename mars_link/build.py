@@ -20,7 +20,7 @@ from mars_link.rotations import quat_to_rotmat
 from mars_link.scenario import Scenario, eta_after
 from mars_link.trajectories import Trajectory, build_trajectory
 
-#: position (mocap) samples per second; the IMU comes at every control step
+#: position (mocap) samples per second by default ([sensors] position_rate_hz); the IMU comes at every control step
 POSITION_RATE_HZ = 50.0
 
 
@@ -107,7 +107,15 @@ def start_pose(scenario: Scenario, model: AssemblyModel,
 
 def position_every(scenario: Scenario) -> int:
     """Mocap position samples every n-th exchange."""
-    return max(1, round(scenario.sim.control_hz / POSITION_RATE_HZ))
+    return max(1, round(scenario.sim.control_hz / scenario.sensors.position_rate_hz))
+
+
+def sensor_params(scenario: Scenario):
+    """The world's sensor model figures for the scenario's [sensors] profile."""
+    from sitl.sensors import SensorParams
+
+    p = scenario.sensors
+    return SensorParams(position_noise_m=p.position_noise_m, velocity_noise_mps=p.velocity_noise_mps)
 
 
 def world_config(scenario: Scenario, seed: int):
@@ -116,7 +124,9 @@ def world_config(scenario: Scenario, seed: int):
 
     return WorldConfig(physics_hz=scenario.sim.physics_hz, exchange_hz=scenario.sim.control_hz, seed=seed,
                        noise=scenario.sim.noise, position_every=position_every(scenario),
-                       dock_tolerance=DockTolerance(**scenario.docking))
+                       dock_tolerance=DockTolerance(**scenario.docking),
+                       environment=scenario.environment if scenario.environment.moves_air else None,
+                       sensors=sensor_params(scenario))
 
 
 def make_world(scenario: Scenario, model: AssemblyModel, seed: int, com_start_ned_m: np.ndarray | None = None,
@@ -132,9 +142,13 @@ def make_estimator(scenario: Scenario, model: AssemblyModel):
     """The rigid body's EKF when sensor noise is on; None: the coordinator flies on the world's truth."""
     if not scenario.sim.noise:
         return None
-    from mars_link.estimation import AssemblyEstimator
+    from mars_link.estimation import AssemblyEstimator, EstimatorParams
+    from mars_link.sensor_profiles import MIN_EKF_VELOCITY_NOISE_MPS
 
-    return AssemblyEstimator(model)
+    p = scenario.sensors  # the EKF is told the profile's figures
+    return AssemblyEstimator(model, EstimatorParams(
+        position_noise_m=max(p.position_noise_m, 1e-4),
+        velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS)))
 
 
 def make_detector(scenario: Scenario, model: AssemblyModel, ground_down_m: float):

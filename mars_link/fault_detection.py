@@ -15,7 +15,9 @@ Why this design (details in the class docstrings):
   one unit with free losses, one whole unit dead, two whole units dead. Nuisance intercepts absorb
   constant model errors (mass, CoM offset, gyro bias). The best penalised fit wins when it beats
   every *different* explanation by a margin; otherwise, after `max_isolation_s`, the best is
-  reported with its look-alikes in `Detection.ambiguous_with`.
+  reported with its look-alikes in `Detection.ambiguous_with`. A partial loss must also explain the
+  momentum residual on its own (`moment_confirm_score`): in wind, vertical gusts on the body change
+  the lift with no moment, and that is the air, not a rotor.
 * **Identifiability.** Rotor j enters through the column ``u_j (1, -y_j, x_j, k_q s_j)``. Different
   rotor sets with the same summed column are indistinguishable from wrench residuals alone while
   the thrusts are symmetric: in a 3x2, units {2,5}, {1,6} and {3,4} (pairs mirrored through the
@@ -59,6 +61,9 @@ class FaultDetectorParams:
     detect_score: float = 30.0  # chi-square improvement over "no change" needed to report
     decide_margin: float = 20.0  # lead over any different explanation needed to decide early
     param_penalty: float = 8.0  # score cost of each free loss parameter
+    # a partial rotor loss changes the moments: its fit must improve the momentum rows by this much on
+    # their own. A change of lift without a moment is the air (vertical gusts on the body), not a rotor
+    moment_confirm_score: float = 15.0
     min_change: float = 0.1  # eta changes smaller than this are not reported
     dead_eta: float = 0.1  # a unit whose four rotors are all below this is reported as failed
     max_failed_units: int = 2  # unit-failure hypotheses: up to this many whole units at once
@@ -400,8 +405,10 @@ class FaultDetector:
         white = np.linalg.cholesky(np.linalg.inv(cov)).T  # white.T @ white = cov^-1
         m_res_w = m_res @ white.T
         m_phi_w = np.einsum("ij,kjn->kin", white, m_phi).reshape(-1, self.n)
-        A = w_f * (f_phi.T @ f_phi) + m_phi_w.T @ m_phi_w
-        g = w_f * (f_phi.T @ f_res) + m_phi_w.T @ m_res_w.reshape(-1)
+        a_mom, g_mom = m_phi_w.T @ m_phi_w, m_phi_w.T @ m_res_w.reshape(-1)
+        self._momentum_normal = (a_mom, g_mom)  # (for the moment confirmation in _isolate)
+        A = w_f * (f_phi.T @ f_phi) + a_mom
+        g = w_f * (f_phi.T @ f_res) + g_mom
         c = w_f * float(f_res @ f_res) + float(np.sum(m_res_w**2))
         dof = len(ticks) - 1 + 3 * (len(ticks) - 1 - int((~post).any()))
         return A, g, c, dof
@@ -462,7 +469,7 @@ class FaultDetector:
         p = self.params
         onset = self._onset = self._refine_onset(self._cusum_start_s - 3 * self._dt_s, self._alarm_s)
         A, g, c, dof = self._regression(onset)
-        fits = self._fits(A, g, c, dof)
+        fits = [f for f in self._fits(A, g, c, dof) if self._moment_confirmed(f)]
         self.last_fits = fits[:10]
         elapsed = t_s - onset
         if not fits or fits[0].score < p.detect_score:
@@ -479,6 +486,16 @@ class FaultDetector:
             return []
         close = tuple(dict.fromkeys(f.label(self.eta) for f in rivals if best.score - f.score < p.decide_margin))
         return self._declare(t_s, onset, best, close)
+
+    def _moment_confirmed(self, fit: _Fit) -> bool:
+        """Whole-unit hypotheses stand as they are (mirrored pairs are pure lift); a partial loss must
+        also explain the momentum residual on its own."""
+        if fit.units is not None:
+            return True
+        a_mom, g_mom = self._momentum_normal
+        d = fit.delta
+        improvement = (2.0 * float(d @ g_mom) - float(d @ a_mom @ d)) / max(self.last_misfit, 1.0)
+        return improvement >= self.params.moment_confirm_score
 
     def _probe_direction(self, best: _Fit, rivals: list[_Fit]) -> np.ndarray:
         """Thrust offsets in the null space of B diag(eta_est) that best separate best from rivals."""

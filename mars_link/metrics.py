@@ -148,3 +148,21 @@ def summarize(scenario, results: list[TrialResult], seed: int, mode: str = "inpr
             for r in results
         ],
     }
+
+
+def gust_response(t_s, error_m, onset_s: float, tolerance_m: float = 0.05) -> dict:
+    """How a hold rides out a disturbance that starts at `onset_s`: the peak deviation after it, when,
+    and the recovery time (from the onset until the error stays within `tolerance_m` for good; inf if
+    it never does before the end)."""
+    t, e = np.asarray(t_s, dtype=float), np.asarray(error_m, dtype=float)
+    after = t >= onset_s
+    if not after.any():
+        raise ValueError(f"no sample after the onset at {onset_s:g} s")
+    k = int(np.argmax(np.where(after, e, -np.inf)))
+    outside = np.flatnonzero(after & (e > tolerance_m))
+    recovered = len(outside) == 0 or outside[-1] + 1 < len(t)
+    return {
+        "peak_deviation_m": float(e[k]), "peak_after_s": float(t[k] - onset_s),
+        "recovery_s": (0.0 if len(outside) == 0 else float(t[outside[-1] + 1] - onset_s)) if recovered else math.inf,
+        "tolerance_m": tolerance_m, "before_onset_max_m": float(e[~after].max()) if (~after).any() else 0.0,
+    }

@@ -14,6 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from mars_link.assembly import AssemblyModel, PRESETS, parse_layout, vehicle_preset
+from mars_link.environment import EnvironmentParams
+from mars_link.sensor_profiles import SensorProfile
 from mars_link.errors import UserInputError
 from mars_link.validation import check_id_digits, check_seed
 
@@ -92,6 +94,8 @@ class Scenario:
     free_spacing_m: float = 2.0  # start = "free": distance between neighbouring units' centres on the ground
     docking: dict[str, float] = field(default_factory=dict)  # [docking]: when facing latches close (sitl.docking)
     separations: list["SeparationSpec"] = field(default_factory=list)  # [[separations]], in time order
+    environment: EnvironmentParams = field(default_factory=EnvironmentParams)  # [environment]: wind, gusts, turbulence
+    sensors: SensorProfile = field(default_factory=SensorProfile)  # [sensors]: the position sensor (mocap, rtk)
 
     @property
     def starts_free(self) -> bool:
@@ -116,13 +120,15 @@ class Scenario:
 #: free units on the ground stand at least this far apart, edge to edge
 FREE_CLEARANCE_M = 0.3
 _TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig", "docking",
-             "separations"}
+             "separations", "environment", "sensors"}
 _VEHICLE_KEYS = {
     "preset",
     "motor_time_constant_s",
     "rotor_max_thrust_n",
     "rotor_min_thrust_n",
+    "rotor_drag_coeff",
 }
+_AERO_KEYS = {"drag", "drag_area_frd_m2"}  # + rotor_drag_coeff (a number, above)
 _ASSEMBLY_KEYS = {"layout", "tracked", "start", "free_spacing_m"}
 _CONTROL_KEYS = {"controller", "ftc", "faults_known"}
 _FAULT_KEYS = {"t", "unit", "rotor", "eta"}
@@ -202,12 +208,17 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
     sc = Scenario(name=name, source=src)
 
     vehicle = _table(doc, "vehicle", src)
-    _check_keys(vehicle, _VEHICLE_KEYS, "[vehicle]", src)
+    _check_keys(vehicle, _VEHICLE_KEYS | _AERO_KEYS, "[vehicle]", src)
     sc.preset = vehicle.get("preset", sc.preset)
     if sc.preset not in PRESETS:
         raise UserInputError(
             f"{src}: unknown vehicle preset {sc.preset!r} (known: {', '.join(sorted(PRESETS))})"
         )
+    from mars_link.scenario_environment import aero_options, environment_table, sensors_table
+
+    sc.environment = environment_table(_table(doc, "environment", src), src)
+    sc.sensors = sensors_table(_table(doc, "sensors", src), src)
+    sc.vehicle_options.update(aero_options(vehicle, sc.preset, sc.environment, src))
     for key in _VEHICLE_KEYS - {"preset"}:
         if key in vehicle:
             sc.vehicle_options[key] = _number(

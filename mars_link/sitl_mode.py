@@ -141,6 +141,12 @@ def write_scenario_copy(scenario, path: Path) -> Path:
         doc["separations"] = [{"t": s.t_s, "units": list(s.units), **({} if s.redock_t_s is None else
                                                                         {"redock_t": s.redock_t_s})}
                               for s in scenario.separations]
+    if scenario.sensors != type(scenario.sensors)():
+        doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.figures}
+    if scenario.environment.moves_air:
+        from mars_link.environment import environment_doc
+
+        doc["environment"] = environment_doc(scenario.environment)
     path.write_text(_toml(doc), encoding="utf-8")
     return path
 
@@ -157,6 +163,8 @@ def _toml(doc: dict) -> str:
             return json.dumps(v)
         if isinstance(v, (list, tuple)):
             return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, dict):  # inline table (e.g. [environment] gusts)
+            return "{" + ", ".join(f"{kk} = {value(vv)}" for kk, vv in v.items()) + "}"
         raise TypeError(f"cannot write {v!r} to TOML")
 
     lines = []

@@ -2,7 +2,9 @@
 
 One pointmass per unit (JSBSim sums the parallel-axis terms itself), a non-rotating spherical planet
 with g = 9.80665 m/s² at the surface, ground contacts on the hull of the units' feet, and per rotor one BODY
-force (thrust) and one BODY moment (reaction torque) in `external_reactions`.
+force (thrust) and one BODY moment (reaction torque) in `external_reactions`. When the vehicle feels the
+air (mars_link.aerodynamics), the `aerodynamics` section holds body drag and rotor H-force drag as
+body-axis functions of JSBSim's own airspeed (wind, gusts and turbulence included).
 
 JSBSim's structural frame is x aft, y right, z up; body FRD positions convert as x_s = -x, y_s = y,
 z_s = -z. That conversion happens here and nowhere else.
@@ -16,6 +18,9 @@ import numpy as np
 from scipy.spatial import ConvexHull
 
 from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
+
+FT_M = 0.3048
+LBF_N = 4.4482216152605
 
 EARTH_RADIUS_M = 6371000.0
 SLUGFT2_PER_KGM2 = 14.593902937206364 * 0.3048**2  # kg·m² in one slug·ft²
@@ -146,8 +151,58 @@ def aircraft_xml(model: AssemblyModel, name: str) -> str:
             "      <direction><x>0</x><y>0</y><z>1</z></direction>",
             "    </moment>",
         ]
-    lines += ["  </external_reactions>", "  <aerodynamics/>", "</fdm_config>", ""]
+    lines += ["  </external_reactions>", *aerodynamics_xml(model), "</fdm_config>", ""]
     return "\n".join(lines)
+
+
+#: rotor sums the physics writes with the thrusts: sum sqrt(T) (sqrt N), its first moments about the
+#: CoM along body x and y (sqrt N·m) and its second moment x² + y² (sqrt N·m²)
+ROTOR_SUM_PROPERTIES = ("aero/mars/rotor-sqrt-thrust", "aero/mars/rotor-sqrt-thrust-x", "aero/mars/rotor-sqrt-thrust-y",
+                        "aero/mars/rotor-sqrt-thrust-r2")
+
+
+def _product(*terms: str) -> str:
+    parts = "".join(f"<value>{t!r}</value>" if isinstance(t, float) else f"<property>{t}</property>" for t in terms)
+    return f"<product>{parts}</product>"
+
+
+def aerodynamics_xml(model: AssemblyModel) -> list[str]:
+    """Body drag at the CoM and rotor H-force drag, in JSBSim's body axes (lbf, lbf·ft).
+
+    Body drag per axis i: -½·ρ·(Cd·A)_i·|v_a|·v_a,i, Cd·A summed over the units. Rotor drag (the rotor
+    plane is the body x-y plane, every rotor at z = 0): each rotor's in-plane airspeed is the CoM
+    airspeed plus r × (its position), so with S = Σ sqrt(T_i), Sx = Σ sqrt(T_i)·x_i, Sy, Sr2 the forces
+    are X = -c(S·u - r·Sy), Y = -c(S·v + r·Sx) and the yaw moment N = -c(Sx·v - Sy·u + r·Sr2). Empty
+    when the vehicle has no drag (still-air plants stay exactly as before).
+    """
+    v = model.vehicle
+    if not v.has_drag:
+        return ["  <aerodynamics/>"]
+    n = model.n_units
+    rho, vt = "atmosphere/rho-slugs_ft3", "velocities/vt-fps"
+    air = {"X": "velocities/u-aero-fps", "Y": "velocities/v-aero-fps", "Z": "velocities/w-aero-fps"}
+    c = v.rotor_drag_coeff
+    s, sx, sy, sr2 = ROTOR_SUM_PROPERTIES
+    lines = ["  <aerodynamics>"]
+    lines += [f'    <property value="0">{p}</property>' for p in ROTOR_SUM_PROPERTIES]
+    for k, axis in enumerate(("X", "Y", "Z")):
+        cda_ft2 = n * v.drag_area_frd_m2[k] / FT_M**2
+        terms = [_product(-0.5 * cda_ft2, rho, vt, air[axis])]
+        if c > 0 and axis == "X":
+            terms += [_product(-c * FT_M / LBF_N, s, air["X"]), _product(c / LBF_N, "velocities/r-rad_sec", sy)]
+        if c > 0 and axis == "Y":
+            terms += [_product(-c * FT_M / LBF_N, s, air["Y"]), _product(-c / LBF_N, "velocities/r-rad_sec", sx)]
+        lines += [f'    <axis name="{axis}" frame="BODY">',
+                  f'      <function name="aero/mars/force-{axis.lower()}-lbs"><sum>{"".join(terms)}<value>0</value></sum></function>',
+                  "    </axis>"]
+    if c > 0:
+        terms = [_product(-c / LBF_N, sx, air["Y"]), _product(c / LBF_N, sy, air["X"]),
+                 _product(-c / (LBF_N * FT_M), "velocities/r-rad_sec", sr2)]
+        lines += ['    <axis name="YAW" frame="BODY">',
+                  f'      <function name="aero/mars/moment-yaw-lbsft"><sum>{"".join(terms)}</sum></function>',
+                  "    </axis>"]
+    lines.append("  </aerodynamics>")
+    return lines
 
 
 def write_aircraft(model: AssemblyModel, root_dir: Path, name: str) -> Path:

@@ -242,12 +242,13 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory."""
     world_start = start
     from sitl.hil import hil_state_message
-    from mars_link.build import make_world
+    from mars_link.build import make_world, sensor_params
     from sitl.world import FreeUnitsWorld, WorldConfig
 
     sc = setup.scenario
     cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise,
-                      position_every(setup))
+                      position_every(setup), sc.environment if sc.environment.moves_air else None,
+                      sensor_params(sc))
     if setup.pieces:  # one body per piece of the executor's start (the coordinator builds the same executor)
         from mars_link.build import make_pieces_world, make_trajectory, world_config
         from mars_link.reconfig.plans import make_executor

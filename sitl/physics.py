@@ -26,7 +26,7 @@ from mars_link.assembly import AssemblyModel
 from mars_link.errors import UserInputError
 from mars_link.rotations import euler_to_quat, quat_to_euler
 from mars_link.state import RigidBodyState
-from sitl.jsbsim_model import EARTH_RADIUS_M, EMPTY_MASS_KG, SLUGFT2_PER_KGM2, write_aircraft
+from sitl.jsbsim_model import EARTH_RADIUS_M, EMPTY_MASS_KG, ROTOR_SUM_PROPERTIES, SLUGFT2_PER_KGM2, write_aircraft
 
 FT = 0.3048
 LBF = 4.4482216152605
@@ -152,6 +152,10 @@ class JsbsimBody:
             r.yaw_sign * model.vehicle.yaw_moment_per_thrust_m / (LBF * FT) for r in model.rotors
         ]
         self._last = [math.nan] * model.n_rotors
+        # rotor H-force drag (sitl.jsbsim_model.aerodynamics_xml): sqrt-thrust sums over the rotors
+        self._rotor_sum_nodes = [node(p) for p in ROTOR_SUM_PROPERTIES] if model.vehicle.rotor_drag_coeff > 0 else []
+        xy = np.array([r.position_m[:2] for r in model.rotors], dtype=float).reshape(-1, 2)
+        self._rotor_moments = np.stack([np.ones(len(xy)), xy[:, 0], xy[:, 1], (xy**2).sum(axis=1)])
         self._n = {k: node(p) for k, p in _STATE_PROPERTIES.items()}
         self._state_nodes = [self._n[k] for k in _STATE_ORDER]
         self._cached_state: RigidBodyState | None = None
@@ -228,11 +232,17 @@ class JsbsimBody:
         if len(values) != len(last):
             raise ValueError(f"expected {len(last)} rotor thrusts, got {len(values)}")
         fs = self._force_scale
+        changed = False
         for i, f in enumerate(values):
             if f != last[i]:
                 last[i] = f
+                changed = True
                 self._force_nodes[i].set_double_value(f * fs)
                 self._moment_nodes[i].set_double_value(f * self._moment_scales[i])
+        if changed and self._rotor_sum_nodes:
+            # a rotor's speed follows sqrt(|T|) (a reversed rotor drags too)
+            for node, total in zip(self._rotor_sum_nodes, (self._rotor_moments @ np.sqrt(np.abs(values))).tolist()):
+                node.set_double_value(total)
 
     def step(self, n_steps: int = 1) -> None:
         """Advance n_steps physics steps with the thrusts held constant."""

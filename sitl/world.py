@@ -18,6 +18,8 @@ from mars_link.rotations import quat_to_rotmat
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
 from sitl.docking import DockTolerance, dock_check
 from mars_link.latches import SIDE_STEPS, LatchBoard, components, neighbour_links, opposite
+from mars_link.environment import EnvironmentParams
+from sitl.environment import Air
 from sitl.physics import JsbsimBody
 from sitl.sensors import SensorModel, SensorParams
 
@@ -33,6 +35,8 @@ class WorldConfig:
     noise: bool = True
     position_every: int = 1  # position samples every n-th exchange
     dock_tolerance: DockTolerance = field(default_factory=DockTolerance)  # when facing latches close
+    environment: EnvironmentParams | None = None  # wind, gusts, turbulence (sitl.environment); None = still air
+    sensors: SensorParams | None = None  # the sensor figures ([sensors] profile); None = SensorParams()
 
 
 @dataclass(eq=False)  # (identity: two bodies are never "equal")
@@ -104,7 +108,7 @@ class World:
         carried = sorted(u for b in self.bodies for u in b.units)
         if carried != sorted(model.unit_ids):
             raise ValueError(f"the bodies carry units {carried}, the world has {sorted(model.unit_ids)}")
-        self.sensors = SensorModel(sensor_params or SensorParams(), seed=config.seed, noise=config.noise)
+        self.sensors = SensorModel(sensor_params or config.sensors or SensorParams(), seed=config.seed, noise=config.noise)
         tau = model.vehicle.motor_time_constant_s
         self._lag_alpha = 1.0 if tau <= 0 else 1.0 - math.exp(-self.dt_s / tau)
         self.rotor_setpoint_n = np.zeros(model.n_rotors)  # what the units drive their motors to
@@ -118,6 +122,7 @@ class World:
             self.latches.add(neighbour_links(b.cells))
         self._released = False  # a latch opened since the last advance: the world splits that body
         self.latch_events: list[dict] = []  # the world's record of every split and dock (truth, for logs)
+        self.air = Air(config.environment, config.seed)
         self._index_bodies()
 
     @classmethod
@@ -135,6 +140,7 @@ class World:
     def _index_bodies(self) -> None:
         self._body_of = {u: b for b in self.bodies for u in b.units}
         self._single = len(self.bodies) == 1 and self.bodies[0].units == tuple(self.model.unit_ids)
+        self.air.attach(b.jsbsim for b in self.bodies)
 
     # ----------------------------------------------------------------- bodies
     @property
@@ -203,6 +209,8 @@ class World:
         """Integrate physics over one exchange period (`substeps` physics steps) for every body."""
         if self._released:
             self._split_released()
+        if self.air.active:
+            self.air.before_exchange(self.t_s, [b.jsbsim for b in self.bodies])
         a = self._lag_alpha
         if a >= 1.0:  # no motor lag: thrust is constant over the exchange period
             self.rotor_thrust_n = self.rotor_setpoint_n.copy()
@@ -406,7 +414,7 @@ class FreeUnitsWorld:
         self.unit_ids = list(range(1, n_units + 1))
         self.worlds = {
             u: World(self.model, WorldConfig(config.physics_hz, config.exchange_hz, config.seed + u - 1, False,
-                                             config.position_every),
+                                             config.position_every, config.environment),
                      np.array([0.0, (u - 1) * spacing_m, 0.0]))
             for u in self.unit_ids
         }

@@ -49,6 +49,17 @@ CASES = {
     "uncontrollable fault set": (GOOD.replace('["XXX", "XXX"]', '["X"]'), ("--fault", "1:1=0", "--fault", "1:2=0"),
                                  "uncontrollable"),
     "unknown ftc mode": (GOOD, ("--ftc", "magic"), "--ftc 'magic': unknown mode"),
+    "wind of the wrong length": (GOOD + "\n[environment]\nwind_ned_mps = [5, 0]\n", (),
+                                 "wind_ned_mps must be [north, east, down] in m/s (3 numbers), got 2 values"),
+    "unknown turbulence severity": (GOOD + "\n[environment]\nturbulence = \"stormy\"\n", (),
+                                    "unknown [environment] turbulence 'stormy'"),
+    "gust with negative duration": (GOOD + "\n[[environment.gusts]]\nt = 1\nduration_s = -2\nned_mps = [5, 0, 0]\n",
+                                    (), "[[environment.gusts]] #1 duration_s must be > 0"),
+    "negative noise figure": (GOOD + "\n[sensors]\nprofile = \"rtk\"\nposition_noise_m = -0.02\n", (),
+                              "[sensors] position_noise_m must be >= 0"),
+    "unknown sensor profile": (GOOD + "\n[sensors]\nprofile = \"sonar\"\n", (), "unknown [sensors] profile 'sonar'"),
+    "wind with drag off": (GOOD.replace('preset = "mars-ftcc"', 'preset = "mars-ftcc"\ndrag = false')
+                           + "\n[environment]\nwind_ned_mps = [5, 0, 0]\n", (), "drag = false"),
 }
 
 

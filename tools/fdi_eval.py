@@ -2,6 +2,7 @@
 
     python tools/fdi_eval.py [--out runs/fdi_eval] [--seeds 3] [--ftc qp] [--t-fault 10] [--false-alarm-seeds 5]
                              [--controller cascaded | mars-ftcc-paper] [--cases "{2,5};r2=0.5"] [--lost]
+                             [--turbulence none|light|moderate|severe|W20] [--wind N,E,D]
 
 Every case is flown twice per seed with the in-process runner (JSBSim, sensor noise, EKF, cascaded
 controller): the faults act in the units' motor paths at `--t-fault` and are told to the coordinator
@@ -16,6 +17,9 @@ deaths ("lost units {2}" ...): the units stop reporting and their motors stop at
 the coordinator must notice the silence (5 control periods) instead of the residuals. `--controller mars-ftcc-paper` flies paper 000's
 own controller instead, as `mars-link reproduce table1` does (20 Hz, physics 1 kHz, sensor noise off:
 the controller flies on the true state, the detector reads the noise-free unit IMUs at 20 Hz).
+`--turbulence` and `--wind` fly every flight in that air (scenario [environment]: Dryden turbulence of
+that severity, steady wind in m/s NED; the units' drag on): does the detector mistake the air for a
+rotor fault, and does it still find the real ones?
 
 Writes fdi.md, fdi.json and fdi.png (detection delay and eta error per case; told vs detected error)
 to --out. Exit 0 when every case passed, 1 otherwise, 2 for bad arguments.
@@ -54,7 +58,10 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--controller", default="cascaded")
     ap.add_argument("--lost", action="store_true", help="also fly the unit failures as process deaths")
     ap.add_argument("--no-plot", action="store_true")
+    ap.add_argument("--turbulence", default="none", help="none | light | moderate | severe, or W20 in m/s")
+    ap.add_argument("--wind", default="0,0,0", help="steady wind N,E,D in m/s (the air's velocity)")
     args = ap.parse_args(argv)
+    args.environment = air_table(args.turbulence, args.wind)
     if not 1 <= args.seeds <= 100 or not 0 <= args.false_alarm_seeds <= 100:
         raise UserInputError("--seeds must be in 1..100 and --false-alarm-seeds in 0..100")
     if args.ftc not in FTC_CHOICES:
@@ -66,6 +73,22 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     if not (math.isfinite(args.t_fault) and 1.0 <= args.t_fault <= 45.0):
         raise UserInputError(f"--t-fault must be between 1 and 45 s (the spiral lasts 50.27 s), got {args.t_fault}")
     return args
+
+
+def air_table(turbulence: str, wind: str) -> dict | None:
+    """The [environment] table of --turbulence / --wind (None: still air), checked as a scenario's."""
+    from mars_link.scenario_environment import environment_table
+
+    try:
+        turb: str | float = float(turbulence)
+    except ValueError:
+        turb = turbulence
+    try:
+        vector = [float(x) for x in wind.split(",")]
+    except ValueError:
+        raise UserInputError(f"--wind must be N,E,D in m/s, got {wind!r}") from None
+    table = {"wind_ned_mps": vector, "turbulence": turb}
+    return table if environment_table(table, "--turbulence/--wind").moves_air else None
 
 
 def select_cases(spec: str):
@@ -102,8 +125,10 @@ def summarize(trials: list[FdiTrial]) -> dict:
 
 
 def markdown(rows: list[dict], fa: dict, args: argparse.Namespace) -> str:
+    air = "still air" if args.environment is None else (
+        f"wind {args.wind} m/s NED, turbulence {args.turbulence}")
     lines = [
-        f"Faults at t = {args.t_fault:g} s, {args.seeds} seed(s), {args.controller}, ftc {args.ftc}; acceptance: delay < "
+        f"Faults at t = {args.t_fault:g} s, {args.seeds} seed(s), {args.controller}, ftc {args.ftc}, {air}; acceptance: delay < "
         f"{FDI_MAX_DELAY_S} s, eta error <= {FDI_MAX_ETA_ERROR}, detected/told error <= {FDI_MAX_ERROR_RATIO}.",
         "",
         "| case | ftc | delay mean / max [s] | eta error max | false alarms | told error [m] | detected error [m] "
@@ -172,7 +197,7 @@ def main(argv: list[str] | None = None) -> int:
     for case, fly in plan:
         trials = []
         for seed in range(1, args.seeds + 1):
-            t = fly(case, args.ftc, seed, args.t_fault, controller=args.controller)
+            t = fly(case, args.ftc, seed, args.t_fault, controller=args.controller, environment=args.environment)
             trials.append(t)
             found = ", ".join(f"u{d['unit']}" + (f"r{d['rotor']}" if d["rotor"] else "") + f"={d['eta_estimated']:.2f}"
                               f"@{d['t_detected']:.2f}" for d in t.detections)
@@ -183,7 +208,10 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
     fa_seeds = list(range(1, args.false_alarm_seeds + 1))
     fa_ftc = ("hybrid" if args.controller == "mars-ftcc-paper" else "qp") if args.ftc == "paper" else args.ftc
-    fa_found = [fdi_false_alarm_flight(s, fa_ftc, controller=args.controller) for s in fa_seeds]
+    fa_found = []
+    for s in fa_seeds:
+        fa_found.append(fdi_false_alarm_flight(s, fa_ftc, controller=args.controller, environment=args.environment))
+        print(f"fault-free seed {s}: {len(fa_found[-1])} false alarm(s)", flush=True)
     fa = {"flights": len(fa_seeds), "seeds": fa_seeds, "false_alarms": sum(len(f) for f in fa_found),
           "detections": fa_found}
     table = markdown(rows, fa, args)
@@ -193,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "fdi.md").write_text(table, encoding="utf-8")
     write_json(out / "fdi.json", {"cases": rows, "fault_free": fa, "ftc": args.ftc, "controller": args.controller,
-                                  "t_fault_s": args.t_fault})
+                                  "t_fault_s": args.t_fault, "environment": args.environment})
     if not args.no_plot:
         plot(rows, out / "fdi.png")
         print(f"wrote {out / 'fdi.md'}, {out / 'fdi.json'}, {out / 'fdi.png'}")

@@ -37,7 +37,9 @@ class CascadedGains:
     position_wn_radps: float = 2.0
     position_damping: float = 0.9
     position_ki_per_s3: float = 0.8  # integral gain, m/s² per (m·s)
-    integral_limit_ms: float = 0.5  # |∫e dt| bound per axis, m·s
+    # |∫e dt| bound per axis, m·s: ki·limit = 3.2 m/s² trims a steady wind's drag (a 5 m/s wind needs
+    # 2.4 m/s² with the RotorPy drag, mars_link.aerodynamics); still-air flights never reach 0.5
+    integral_limit_ms: float = 4.0
     attitude_wn_radps: float = 12.0
     attitude_damping: float = 0.85
     yaw_wn_radps: float = 4.0
