@@ -175,10 +175,9 @@ def cmd_sitl(args) -> int:
         if vehicle is None:  # --vehicle flies until Ctrl-C: no flight length to check
             check_flight(setup.scenario, setup.model)
     out = v.check_out_dir(args.out or _default_out(name + "-sitl"), force=args.force)
-    if args.signing_key_file:
-        from firmware_models.signing import load_key
+    from firmware_models.signing import signing_from_args
 
-        load_key(args.signing_key_file)  # a bad key file is refused before the run directory exists
+    _, require_signing = signing_from_args(args)  # a bad key file is refused before the run directory exists
     n = len(setup.unit_ids)  # the client ports of either transport
     for what, port in (("--gcs-port", args.gcs_port), ("--api-port", args.api_port), ("--api-port + units", args.api_port + n - 1)):
         if not 1 <= port <= 65535:
@@ -196,7 +195,7 @@ def cmd_sitl(args) -> int:
     clients = ClientPorts(args.gcs_port, [args.api_port + i for i in range(n)], args.any_bind)
     v.prepare_out_dir(out, force=args.force)
     code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,
-                   signing_key_file=args.signing_key_file, vehicle=vehicle)
+                   signing_key_file=args.signing_key_file, vehicle=vehicle, require_signing=require_signing)
     print(f"run directory: {out}")
     return code
 
@@ -258,8 +257,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="world pacing, x real time (default 1 for --units, 0 = as fast as possible otherwise)")
     sitl.add_argument("--gcs-port", type=int, default=14550, help="UDP port the units send GCS traffic to (QGC, MAVProxy)")
     sitl.add_argument("--api-port", type=int, default=14540, help="API port of unit index 0 (MAVSDK); unit i uses this + i")
-    sitl.add_argument("--signing-key-file", default=None,
-                      help="sign the coordinator <-> unit links with this key (else $MARS_LINK_SIGNING_KEY)")
+    from firmware_models.signing import add_signing_args
+
+    add_signing_args(sitl, "the coordinator <-> unit links, signed both ways, and the client links")
     sitl.add_argument("--any-bind", action="store_true",
                       help="bind the units' client sockets to free ports instead of PX4's 18570+i / 14580+i")
     from sitl.vehicle_host import DEFAULT_VEHICLE_API_PORT, DEFAULT_VEHICLE_SYSID

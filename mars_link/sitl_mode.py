@@ -61,7 +61,8 @@ class SitlSession:
 def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, seed: int | None = None,
                units: int | None = None, layout: str | None = None, realtime: bool = False,
                clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units"),
-               topology: str = "peer", signing_key_file: str | None = None, vehicle=None) -> SitlSession:
+               topology: str = "peer", signing_key_file: str | None = None, vehicle=None,
+               require_signing: bool = False) -> SitlSession:
     """Start the SITL processes (sitl.launcher.start) with their links on `link` (default Zenoh).
     `unit_prefix(u)` -> argv to run unit u under (e.g. `ip netns exec NS`); `roles` may leave out the
     coordinator (one started elsewhere attaches).
@@ -106,6 +107,9 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     if vehicle is not None:
         role_args["coordinator"] += vehicle.argv()
         speed = 1.0 if speed is None else speed
+    if require_signing:  # the client links of the units and of the vehicle (firmware_models.control_policy)
+        role_args["unit"].append("--require-signing")
+        role_args["coordinator"].append("--require-signing")
     try:
         session.run = start(scenario, out, units, layout, seed, 1.0 if realtime else speed,
                             clients or ClientPorts(bind_any=True), signing_key_file, role_args=role_args,
@@ -538,7 +542,8 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None) ->
         session = start_sitl(scenario_path, out, link, args.seed, units=units, layout=layout, realtime=args.realtime,
                              clients=clients, speed=getattr(args, "speed", None), roles=roles,
                              topology="router" if args.external_coordinator else "peer",
-                             signing_key_file=getattr(args, "signing_key_file", None), vehicle=vehicle)
+                             signing_key_file=getattr(args, "signing_key_file", None), vehicle=vehicle,
+                             require_signing=getattr(args, "require_signing", False))
         for line in _endpoints(session, link):
             print(line, flush=True)
         if vehicle is not None:

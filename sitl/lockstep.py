@@ -30,7 +30,8 @@ Every unit also serves PX4's client links: GCS to UDP 14550 (bound 18570+i), API
 
 Signing: with a key (--signing-key-file, else $MARS_LINK_SIGNING_KEY) the coordinator <-> unit links
 are MAVLink-2 signed both ways and verified HMAC-first (firmware_models.signing); the HIL link to the
-world and the client links stay unsigned (stock MAVSDK cannot sign).
+world stays unsigned; client links check signed frames (a signed client has full control) and, with
+--require-signing, let unsigned clients only read (firmware_models.control_policy).
 
 Timeouts (wall time): coordinator 1 s < unit 2 s < world 3 s, so that when a unit process dies the
 coordinator gives up on it first, the other units still get their commands, and only the dead unit is
@@ -68,7 +69,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.signing import load_key
+from firmware_models.signing import add_signing_args, signing_from_args
 from mars_link.errors import EnvironmentFailure, UserInputError
 from mars_link.messages import SensorPacket
 from mars_link.outputs import write_json
@@ -341,9 +342,11 @@ class UnitPorts:
 
 
 def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: UnitPorts | None = None,
-             command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None) -> int:
+             command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None,
+             require_signing: bool = False) -> int:
     """The unit's full firmware on its HIL, coordinator and client links; with a signing `key` the
-    coordinator link accepts only genuinely signed frames (and signs what it sends)."""
+    coordinator link accepts only genuinely signed frames (and signs what it sends); `require_signing`:
+    the client links too, where unsigned clients may only read (firmware_models.control_policy)."""
     from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL
     from mars_link.build import make_unit
     from firmware_models.vehicle_io import LinkSpec, VehicleSockets, client_links, vehicle_status, write_json_atomic
@@ -352,7 +355,7 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
     client = client or UnitPorts()
     index = setup.unit_ids.index(unit_id)
     vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
-                        wall_time_s=time.time())
+                        wall_time_s=time.time(), require_signing=require_signing)
     links = client_links(index, client.gcs_port, client.api_port, client.gcs_bind, client.api_bind)
     links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
     if setup.docked:
@@ -418,7 +421,8 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
 
 # ----------------------------------------------------------------------------- coordinator
 def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S,
-                    key: bytes | None = None, vehicle=None, timing_log: bool = False) -> int:
+                    key: bytes | None = None, vehicle=None, timing_log: bool = False,
+                    require_signing: bool = False) -> int:
     """Drive the docked assembly; with a signing `key` its link to the units is signed both ways.
     With `vehicle` (sitl.vehicle_host.VehiclePorts) the assembly is one MAVLink vehicle on those ports
     and its guidance, not the scenario's trajectory, is the coordinator's reference. `timing_log`:
@@ -439,7 +443,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
 
         out.mkdir(parents=True, exist_ok=True)
         try:
-            hosted = HostedVehicle(sc, model, detector, vehicle, out)
+            hosted = HostedVehicle(sc, model, detector, vehicle, out, key, require_signing)
         except UserInputError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
@@ -612,8 +616,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--speed", type=float, default=None, help="world pacing, x real time (0: as fast as possible)")
-    ap.add_argument("--signing-key-file", default=None,
-                    help="sign the coordinator <-> unit links (else $MARS_LINK_SIGNING_KEY; neither: unsigned)")
+    add_signing_args(ap, "the coordinator <-> unit links (neither: unsigned)")
     ap.add_argument("--gcs-port", type=int, default=14550)
     ap.add_argument("--api-port", type=int, default=None)
     ap.add_argument("--gcs-bind", type=int, default=None)
@@ -636,7 +639,7 @@ def main(argv: list[str] | None = None) -> int:
         set_batch_scheduling()
     try:
         setup = load_setup(args.scenario, args.units, args.layout, args.steps)
-        key = load_key(args.signing_key_file)
+        key, args.require_signing = signing_from_args(args)
         link = _link_spec(args)
     except UserInputError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -691,7 +694,7 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
             print(f"error: unit {args.unit} is not in this run (units {setup.unit_ids})", file=sys.stderr)
             return 2
         return run_unit(setup, args.unit, ports, out, UnitPorts(args.gcs_port, args.api_port, args.gcs_bind, args.api_bind),
-                        key=key)
+                        key=key, require_signing=args.require_signing)
     vehicle = None
     if args.vehicle:
         from sitl.vehicle_host import VehiclePorts
@@ -700,7 +703,8 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
                  "gcs_bind": args.vehicle_gcs_bind, "api_bind": args.vehicle_api_bind}
         vehicle = VehiclePorts(**{k: v for k, v in given.items() if v is not None})
         vehicle.check(setup.unit_ids)
-    return run_coordinator(setup, ports, out, key=key, vehicle=vehicle, timing_log=args.timing_log)
+    return run_coordinator(setup, ports, out, key=key, vehicle=vehicle, timing_log=args.timing_log,
+                           require_signing=args.require_signing)
 
 
 if __name__ == "__main__":
