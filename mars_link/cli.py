@@ -62,9 +62,7 @@ def cmd_run(args) -> int:
     check_faults_controllable(scenario, model)
     if not scenario.reconfig.get("enabled"):
         check_flight(scenario, model)
-    out = v.check_out_dir(args.out or _default_out(scenario.name), force=args.force)
-    if args.force:  # else the runner creates it, after its own checks (a refused run leaves no directory)
-        v.prepare_out_dir(out, force=True)
+    out = v.claim_out_dir(args.out or _default_out(scenario.name), force=args.force)  # locked while we run
     console = Console(stderr=True)
     with Progress(
         TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
@@ -188,12 +186,12 @@ def cmd_sitl(args) -> int:
             raise UserInputError("--vehicle is served by the coordinator sitl up starts: not with --external-coordinator")
         from mars_link.sitl_mode import sitl_up_command
 
-        v.prepare_out_dir(out, force=args.force)
+        v.claim_out_dir(out, force=args.force)
         return sitl_up_command(args, path, out, vehicle)
     from sitl.launcher import ClientPorts
 
     clients = ClientPorts(args.gcs_port, [args.api_port + i for i in range(n)], args.any_bind)
-    v.prepare_out_dir(out, force=args.force)
+    v.claim_out_dir(out, force=args.force)
     code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,
                    signing_key_file=args.signing_key_file, vehicle=vehicle, require_signing=require_signing)
     print(f"run directory: {out}")
@@ -340,6 +338,8 @@ def main(argv: list[str] | None = None) -> int:
         line, code = v.report(exc)
         print(line, file=sys.stderr)
         return code
+    finally:
+        v.release_out_dirs()
 
 
 if __name__ == "__main__":

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from firmware_models.signing import load_key
+from sitl.parent_watch import child_env
 from sitl.links import LOOPBACK
 from sitl.lockstep import SitlSetup, _start_pose, load_setup, position_every
 
@@ -118,7 +119,7 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
         fds = () if sock is None else (sock.fileno(),)
         with open(out / f"{name}.log", "w") as log:
             run.processes[name] = subprocess.Popen([*prefix, *py, *argv], stdout=log, stderr=subprocess.STDOUT,
-                                                   stdin=subprocess.DEVNULL, pass_fds=fds)
+                                                   stdin=subprocess.DEVNULL, pass_fds=fds, env=child_env())
 
     try:
         if coord_sock is not None and "coordinator" not in skip:

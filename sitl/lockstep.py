@@ -70,6 +70,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.signing import add_signing_args, signing_from_args
+from sitl.parent_watch import die_with_parent
 from mars_link.errors import EnvironmentFailure, UserInputError
 from mars_link.messages import SensorPacket
 from mars_link.outputs import write_json
@@ -600,6 +601,7 @@ def set_batch_scheduling() -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
+    die_with_parent()  # started by the launcher: never outlive it (sitl.parent_watch)
     ap = argparse.ArgumentParser(prog="python -m sitl.lockstep")
     ap.add_argument("role", choices=("world", "unit", "coordinator"))
     ap.add_argument("scenario", help="scenario file or bundled name; - for built-in defaults")
