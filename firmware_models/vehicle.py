@@ -302,6 +302,7 @@ class Vehicle:
                 raise UserInputError(f"link {name!r} requires signing but no signing key is configured")
         self.links = {n: _Link(n, p, self.sysid, self.compid, c.signing_key, wall_time_s) for n, p in policies.items()}
         self._authority = policy.SAFETY  # of the frame being dispatched (control_policy.frame_authority)
+        self.on_frame_in = None  # callable(link, frame bytes) for every frame that passed parsing and signing
         self._sender: tuple = ()  # (link, sysid, compid) of that frame: whose reply budget answers pay from
         self.full_scale_n = self.vehicle.full_scale_thrust_n
         self.motors = MotorModel(MotorParams.for_vehicle(self.vehicle))
@@ -434,6 +435,8 @@ class Vehicle:
         has_key = self.config.signing_key is not None
         for msg, frame in frames:
             self._count("rx")
+            if self.on_frame_in is not None:
+                self.on_frame_in(link, frame)
             self._authority = policy.frame_authority(
                 lk.verifier is not None and is_signed(frame), lk.policy.require_signing, has_key)
             self._sender = (link, msg.get_srcSystem(), msg.get_srcComponent())
@@ -477,6 +480,10 @@ class Vehicle:
             self._await_coordinator = False
             self._answer_hil(out)
         return out
+
+    def notify(self, text: str, severity: int = mavlink.MAV_SEVERITY_WARNING) -> None:
+        """A STATUSTEXT from the runner (e.g. "logging stopped"), sent with the next tick."""
+        self._text(text, severity)
 
     def hello(self, link: str) -> Outgoing:
         """A HEARTBEAT on a non-telemetry link (HIL, coordinator): peers learn the unit's address."""

@@ -109,6 +109,10 @@ def print_summary(summary: dict, out: Path) -> None:
         ("events", str(len(summary["events"]))),
         ("run directory", str(out)),
     ]
+    logging = summary.get("logging") or {}
+    if logging.get("stopped_reason"):  # a write error stopped a log; the flight went on
+        more = len(logging.get("stopped", [])) - 1
+        rows.append(("logging stopped", logging["stopped_reason"] + (f" (+{more} more logs)" if more > 0 else "")))
     for key, value in rows:
         table.add_row(key, value)
     Console().print(table)

@@ -241,6 +241,8 @@ def vehicle_command(args: argparse.Namespace) -> int:
         runner.close()
     print(f"stopped after {sim.t_s:.1f} s simulated; overruns {runner.overruns}, late steps {runner.late_steps}",
           flush=True)
+    if runner.io.logging_stopped:  # a write error (or the size cap) stopped the .tlog; the flight went on
+        print(f"logging stopped: {runner.io.logging_stopped}", flush=True)
     return code
 
 

@@ -314,13 +314,28 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "command_age": command_age_summary(out) if realtime else {"n": 0, "note": "measured with --realtime only"},
         "cpu_wake_latency": cpu_wake_latency,  # real time: idle CPUs kept awake (transport.realtime.CpuWakeLatency)
     }
-    summary["logging"] = log.status()
+    summary["logging"] = _logging_status(log.status(), world, out, scenario)
     write_json(out / "summary.json", summary)
     if plots and log.telemetry_rows:
         from mars_link.plots import write_run_plots
 
         write_run_plots(out, log.telemetry_rows, log.rotor_rows, model)
     return summary
+
+
+def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
+    """summary.json "logging" for a SITL run: this process's logs and every child's (the world's truth
+    log, each unit's .tlog). A log stopped by a write error (or its size cap) is listed with its reason;
+    the flight went on, but figures computed from the truth log cover only what it holds."""
+    stopped = [own["stopped_reason"]] if own.get("stopped_reason") else []
+    truth = world.get("logging") or {}
+    if truth.get("stopped_reason"):
+        stopped.append(truth["stopped_reason"] + " (errors and tilt cover the flight up to there)")
+    for unit in scenario.model().unit_ids:
+        reason = _read_json(out / f"unit{unit}_status.json").get("logging_stopped")
+        if reason:
+            stopped.append(reason)
+    return {**own, "complete": not stopped, "stopped_reason": stopped[0] if stopped else None, "stopped": stopped}
 
 
 def tlog_frames(path: Path):

@@ -229,7 +229,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     live = set(setup.unit_ids)
     out.mkdir(parents=True, exist_ok=True)
     status_path = out / "world_status.json"
-    truth_log = open(out / "world_truth.csv", "w", encoding="utf-8")
+    from mars_link.outputs import SafeWriter
+
+    truth_log = SafeWriter.open(out / "world_truth.csv")  # a write error stops the log, never the world
     truth_log.write("t_s," + columns + "\n")
     wall0 = time.perf_counter()
     next_status = 0.0
@@ -291,7 +293,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
                    "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
                    "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time(),
-                   "cpu_loop_s": time.process_time() - cpu0}
+                   "cpu_loop_s": time.process_time() - cpu0, "logging": truth_log.status()}
         write_json(out / "world_summary.json", summary)
     finally:
         truth_log.close()
