@@ -254,7 +254,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     from mars_link.metrics import TrackingMetrics, TrialResult, summarize
     from mars_link.rotations import quat_to_euler, quat_to_rotmat
     from mars_link.outputs import write_json
-    from mars_link.run_log import ROTOR_LOG_HZ, RunLog
+    from mars_link.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
 
     model = scenario.model()
     trajectory = make_trajectory(scenario, model)
@@ -262,7 +262,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, ndmin=1)
     world = _read_json(out / "world_summary.json")
     coordinator = _read_json(out / "coordinator_summary.json")
-    log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ))
+    log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX)
     metrics = TrackingMetrics()
     events = []
     nan3 = [math.nan] * 3

@@ -152,6 +152,9 @@ def load_setup(scenario: str | None, units: int | None = None, layout: str | Non
             tracked = "com"
         sc = dataclasses.replace(sc, layout=rows, tracked=tracked)
     model = sc.model()
+    from mars_link.limits import check_sitl_processes
+
+    check_sitl_processes(model.n_units)
     for f in sc.faults:
         validate_fault(f, model, sc.source)
     if steps is None:
