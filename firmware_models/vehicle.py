@@ -439,7 +439,10 @@ class Vehicle:
                 self.on_frame_in(link, frame)
             self._authority = policy.frame_authority(
                 lk.verifier is not None and is_signed(frame), lk.policy.require_signing, has_key)
-            self._sender = (link, msg.get_srcSystem(), msg.get_srcComponent())
+            # whose reply budget pays: each signed (or, without a key, each) sender its own; unsigned
+            # senders next to a key share one, so spoofed system ids cannot mint fresh budgets
+            self._sender = ((link, msg.get_srcSystem(), msg.get_srcComponent()) if self._authority == policy.SAFETY
+                            else (link, "unsigned"))
             try:
                 self._dispatch(msg, lk, out)
             except (ValueError, TypeError, OverflowError, struct.error):
