@@ -476,6 +476,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         finish_at = None  # when the last period's fault detection runs (Coordinator.finish_step)
         link.heartbeat(world)
         next_hello = time.monotonic() + 0.2
+        t_last = -math.inf  # the last step's time: a packet not newer is a backlog (a paused unit resumed)
         for k in (range(setup.steps) if setup.steps is not None else itertools.count()):
             if stop.requested:
                 break
@@ -509,6 +510,9 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     if not telemetry_ok(p):
                         link.drop("bad_telemetry")  # non-finite: never into the estimator
                         continue
+                    if p.unit_id not in live or p.t_s <= t_last:  # a lost unit stays lost; a stale packet
+                        link.drop("stale_telemetry")  # never sets the step's time (it would make every
+                        continue  # live unit's packet look stale and lose them all)
                     if t_expected is None:
                         t_expected = p.t_s
                         deadline = time.monotonic() + unit_timeout_s
@@ -521,7 +525,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                 if not stop.requested:
                     print(f"coordinator: no telemetry for {WORLD_IDLE_TIMEOUT_S:.0f} s: ending", file=sys.stderr)
                 break
-            t = t_expected
+            t = t_last = t_expected
             for unit in sorted(live - set(packets)):  # telemetry stopped: the unit is lost
                 live.discard(unit)
                 lost.append({"t_s": round(t, 6), "unit": unit})

@@ -7,7 +7,6 @@ from __future__ import annotations
 import hashlib
 import math
 import socket
-import struct
 import subprocess
 import sys
 import threading
