@@ -5,6 +5,7 @@ judged by the vehicle's own state and its JSBSim truth, not only by the ACKs."""
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import socket
 import subprocess
@@ -278,3 +279,91 @@ def test_a_flood_from_a_second_sender_leaves_the_signed_client_its_acks(unit) ->
             flood.kill()
             flood.wait()
         signed.close()
+
+
+def _ready_ports(log, timeout_s: float = 60.0) -> dict:
+    """A lockstep unit's ports from the ready line it prints first (its .log)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            for line in log.read_text().splitlines():
+                if line.startswith("{") and '"ready"' in line:
+                    return json.loads(line)["ports"]
+        except OSError:
+            pass
+        time.sleep(0.1)
+    raise AssertionError(f"no ready line in {log}")
+
+
+def test_sitl_up_require_signing_reaches_the_unit_processes(tmp_path) -> None:
+    """`sitl up --require-signing`: the coordinator (signed) arms and flies the 3x2; on unit 1's API
+    link an unsigned client cannot change MARS_FS_ACT or force-disarm it, the key holder can reach it."""
+    key_file = tmp_path / "key"
+    key_file.write_bytes(KEY)
+    out = tmp_path / "up"
+    api = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    api.bind((LOOP, 0))
+    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gcs.bind((LOOP, 0))
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sitl", "up", "hover_3x2", "--any-bind", "--speed", "1",
+                             "--require-signing", "--signing-key-file", str(key_file), "--gcs-port",
+                             str(gcs.getsockname()[1]), "--api-port", str(api.getsockname()[1]), "--out", str(out)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    signed = unsigned = None
+    try:
+        port = _ready_ports(out / "unit1.log")["api"]
+        signed, unsigned = Client(port, 245, KEY, api), Client(port, 246, None)
+        deadline = time.monotonic() + 30
+        while not (out / "unit1_status.json").exists() or not read_status(out / "unit1_status.json")["armed"]:
+            assert time.monotonic() < deadline, "the coordinator did not arm unit 1"
+            time.sleep(0.1)
+        answers = unsigned.param_set("MARS_FS_ACT", 1, R.MAV_PARAM_TYPE_INT32)
+        assert [a.error for a in answers if a.get_type() == "PARAM_ERROR"] == [R.MAV_PARAM_ERROR_PERMISSION_DENIED]
+        assert unsigned.command(R.MAV_CMD_COMPONENT_ARM_DISARM, 0, 21196) == R.MAV_RESULT_DENIED
+        answers = signed.param_set("MARS_FS_ACT", 1, R.MAV_PARAM_TYPE_INT32)  # signed, but the unit is armed
+        assert [a.error for a in answers if a.get_type() == "PARAM_ERROR"] == [R.MAV_PARAM_ERROR_PERMISSION_DENIED]
+        assert decode_value(signed.param("MARS_FS_ACT").param_value, R.MAV_PARAM_TYPE_INT32) == 0
+        s = _status(out / "unit1_status.json")
+        assert s["armed"] and s["drops"]["policy.denied_read"] >= 1
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err[-2000:]
+        assert json.loads((out / "world_summary.json").read_text())["dead_units"] == []  # the flight went on
+    finally:
+        for c in (signed, unsigned):
+            if c is not None:
+                c.close()
+        gcs.close()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_vehicle_require_signing(tmp_path) -> None:
+    """`mars-link vehicle --require-signing`: an unsigned client cannot arm the assembly or inject a
+    failure into it; the key holder arms it."""
+    from mars_link.realtime import spawn_vehicle
+
+    key_file = tmp_path / "key"
+    key_file.write_bytes(KEY)
+    api = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    api.bind((LOOP, 0))
+    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gcs.bind((LOOP, 0))
+    status = tmp_path / "vehicle.json"
+    proc, first = spawn_vehicle(["--require-signing", "--signing-key-file", str(key_file), "--sysid", str(UNIT),
+                                 "--api-port", str(api.getsockname()[1]), "--api-bind", "0",
+                                 "--gcs-port", str(gcs.getsockname()[1]), "--gcs-bind", "0", "--duration", "30"], status)
+    port = first["endpoints"]["api"]["from"]
+    signed, unsigned = Client(port, 245, KEY, api), Client(port, 246, None)
+    try:
+        assert unsigned.command(R.MAV_CMD_COMPONENT_ARM_DISARM, 1) == R.MAV_RESULT_DENIED
+        assert unsigned.command(R.MAV_CMD_INJECT_FAILURE, 101, 1, 1) == R.MAV_RESULT_DENIED
+        s = _status(status)
+        assert not s["armed"] and min(s["unit_eta"]) == 1.0
+        assert signed.command(R.MAV_CMD_COMPONENT_ARM_DISARM, 1) == 0
+        assert _status(status)["armed"]
+    finally:
+        signed.close()
+        unsigned.close()
+        gcs.close()
+        stop_unit(proc)
