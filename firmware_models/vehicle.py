@@ -5,8 +5,9 @@
     out += vehicle.tick(wall_time_s, sim_time_s)                 # heartbeats, streams, control step
     thrusts_n = vehicle.step_motors(physics_dt_s)                # motor model: limits, eta, lag
 
-Links are named; each has a policy (`LinkPolicy`): client links "gcs" and "api" (telemetry, unsigned,
-what MAVSDK/MAVProxy/QGC use), "coordinator" (per-rotor commands; signed when a key is configured) and
+Links are named; each has a policy (`LinkPolicy`): client links "gcs" and "api" (telemetry, what
+MAVSDK/MAVProxy/QGC use; who may do what over them: control_policy), "coordinator" (per-rotor
+commands; signed when a key is configured) and
 "hil" (sensor/state in, HIL_ACTUATOR_CONTROLS out, PX4's lockstep contract). A runner maps link names
 to sockets. The surface follows specs/mavlink.md §6: PX4 persona (MAV_AUTOPILOT_PX4, custom_mode =
 main << 16 | sub << 24), heartbeats at 1 Hz of wall time even with the simulation paused, default
