@@ -215,7 +215,7 @@ def prepare_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool
     return p
 
 
-_HELD_DIRS: dict[Path, int] = {}  # run directory -> fd holding its lock (until release_out_dirs or exit)
+_HELD_DIRS: dict[Path, tuple[int, bool]] = {}  # run directory -> (fd holding its lock, created by us)
 
 
 def claim_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool = False) -> Path:
@@ -223,6 +223,7 @@ def claim_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool =
     until `release_out_dirs`): a second run into a directory that a live run owns is refused with one
     line (exit 1) before anything in it is touched, --force included."""
     p = check_out_dir(path, what, force=force)
+    created = not p.exists()
     try:
         p.mkdir(parents=True, exist_ok=True)
         fd = os.open(p, os.O_RDONLY | os.O_DIRECTORY)  # (not inherited by children: O_CLOEXEC)
@@ -234,14 +235,21 @@ def claim_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool =
         os.close(fd)
         raise EnvironmentFailure(f"{what} {str(p)!r}: another run is using this directory "
                                  "(wait for it to end, or choose another)") from None
-    _HELD_DIRS[p.resolve()] = fd
+    _HELD_DIRS[p.resolve()] = (fd, created)
     return prepare_out_dir(p, what, force=force)
 
 
 def release_out_dirs() -> None:
-    """Give up every run-directory lock this process holds (the end of a command)."""
+    """Give up every run-directory lock this process holds (the end of a command); a directory it
+    created and nothing was written to (a run refused by a later check) is removed again."""
     while _HELD_DIRS:
-        os.close(_HELD_DIRS.popitem()[1])
+        path, (fd, created) = _HELD_DIRS.popitem()
+        os.close(fd)
+        if created:
+            try:
+                path.rmdir()  # only if empty
+            except OSError:
+                pass
 
 
 def check_file_parent(path: str | os.PathLike | None, what: str) -> Path | None:
