@@ -4,8 +4,8 @@
 where the machine allows none): the log fills, the vehicle says so once (STATUSTEXT), keeps flying
 (takeoff measured in its JSBSim truth) and ends with one "logging stopped" line, exit 0.
 `run --mode sitl` gets an injected ENOSPC (outputs.INJECT_ENOSPC_ENV, the same code path) on the
-world's truth log and a unit's .tlog: the flight runs its full length, exit 0, and summary.json and
-the printed summary say which logs stopped and why."""
+world's truth log and a unit's .tlog, the in-process `run` on its telemetry.csv: the flight runs its
+full length, exit 0, and summary.json and the printed summary say which logs stopped and why."""
 
 from __future__ import annotations
 
@@ -119,3 +119,16 @@ def test_run_mode_sitl_with_failing_logs_flies_to_the_end(tmp_path) -> None:
     unit3 = json.loads((out / "unit3_status.json").read_text())
     assert unit3["stats"]["hil_steps"] >= 590  # the unit flew every step after its log stopped
     assert "logging stopped" in done.stdout
+
+
+def test_inprocess_run_with_a_failing_log_flies_to_the_end(tmp_path) -> None:
+    out = tmp_path / "run"
+    env = {**__import__("os").environ, INJECT_ENOSPC_ENV: "20000:telemetry.csv"}
+    done = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_1x1", "--duration", "3", "--quiet",
+                           "--out", str(out)], capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] and summary["sim_time_s"] == pytest.approx(3.0, abs=0.02)
+    assert summary["logging"]["stopped_reason"] == "telemetry.csv: No space left on device (logging stopped)"
+    assert (out / "telemetry.csv").stat().st_size <= 20000
+    assert "logging stopped" in done.stdout and "Traceback" not in done.stderr
