@@ -32,6 +32,7 @@ class ParamSpec:
     max_value: float
     read_only: bool = False  # fixed at start-up; a PARAM_SET is refused
     doc: str = ""
+    safety: bool = False  # fail-safe action/timing: never changed while armed, signed only (control_policy)
 
 
 def unit_param_specs(unit_id: int, vehicle: VehicleParams) -> list[ParamSpec]:
@@ -46,11 +47,13 @@ def unit_param_specs(unit_id: int, vehicle: VehicleParams) -> list[ParamSpec]:
         ParamSpec("MPC_Z_VEL_MAX_DN", 1.0, REAL32, 0.1, 5.0, doc="descent reference speed limit, m/s"),
         ParamSpec("RTL_RETURN_ALT", 5.0, REAL32, 0.5, 100.0, doc="return altitude above home, m"),
         ParamSpec("COM_OF_LOSS_T", 1.0, REAL32, 0.1, 60.0,
-                  doc="offboard setpoint loss timeout (wall clock), s; then hold (land on ground)"),
-        ParamSpec("COM_DISARM_LAND", 2.0, REAL32, -1.0, 20.0, doc="auto-disarm after landing, s (-1 off)"),
+                  doc="offboard setpoint loss timeout (wall clock), s; then hold (land on ground)", safety=True),
+        ParamSpec("COM_DISARM_LAND", 2.0, REAL32, -1.0, 20.0, doc="auto-disarm after landing, s (-1 off)",
+                  safety=True),
         ParamSpec("COM_DISARM_PRFLT", 10.0, REAL32, -1.0, 60.0,
-                  doc="auto-disarm when armed on the ground without takeoff, s (-1 off)"),
-        ParamSpec("SYS_FAILURE_EN", 1, INT32, 0, 1, doc="1: MAV_CMD_INJECT_FAILURE accepted (SITL)"),
+                  doc="auto-disarm when armed on the ground without takeoff, s (-1 off)", safety=True),
+        ParamSpec("SYS_FAILURE_EN", 1, INT32, 0, 1, doc="1: MAV_CMD_INJECT_FAILURE accepted (SITL)",
+                  safety=True),
         ParamSpec("MARS_ROT_TMAX", vehicle.full_scale_thrust_n, REAL32, 1e-6, 1e6, True,
                   "thrust (N) that a normalised rotor command of 1.0 means"),
         ParamSpec("MARS_CMD_HZ", 100.0, REAL32, 1.0, 2000.0, doc="expected coordinator command rate, Hz"),
@@ -132,8 +135,10 @@ class ParamStore:
             self.rejected_sets += 1
             return False
         spec = self.specs[i]
-        kind = wire_kind if wire_kind in (INT32, REAL32) else spec.kind
-        value = decode_value(wire_value, kind)
+        if wire_kind != spec.kind:  # never reinterpret a value sent as another type (PARAM_ERROR upstream)
+            self.rejected_sets += 1
+            return False
+        value = decode_value(wire_value, spec.kind)
         if spec.read_only or self._checked(spec, value):
             self.rejected_sets += 1
             return False

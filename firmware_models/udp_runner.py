@@ -34,7 +34,7 @@ import sys
 import time
 from pathlib import Path
 
-from firmware_models.signing import DEFAULT_KEY_ENV, load_key
+from firmware_models.signing import add_signing_args, signing_from_args
 from firmware_models.vehicle import LINK_COORDINATOR, Vehicle, VehicleConfig
 from firmware_models.vehicle_io import (
     COORD_BIND_BASE,
@@ -65,9 +65,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--coord-bind", type=v.port_or_zero, default=None, help="default 14600 + unit - 1")
     p.add_argument("--coordinator-sysid", type=v.bounded_int(1, 255), default=201)
     p.add_argument("--coordinator-compid", type=v.bounded_int(0, 255), default=1)
-    p.add_argument("--signing-key-file", default=None,
-                   help=f"coordinator link signing key (else ${DEFAULT_KEY_ENV}); with a key, that link requires signing")
-    p.add_argument("--sign-client-links", action="store_true", help="require signing on gcs/api too")
+    add_signing_args(p, "the coordinator link (with a key it requires signing) and gcs/api")
     p.add_argument("--physics-hz", type=v.positive_float, default=500.0)
     p.add_argument("--control-hz", type=v.positive_float, default=100.0)
     p.add_argument("--speed", type=v.positive_float, default=1.0, help="simulation speed, x real time")
@@ -103,10 +101,10 @@ class UnitRunner:
         ratio = args.physics_hz / args.control_hz
         if abs(ratio - round(ratio)) > 1e-9 or ratio < 1:
             raise UserInputError("--physics-hz must be a whole multiple of --control-hz")
-        key = load_key(args.signing_key_file)
+        key, require_signing = signing_from_args(args)
         self.vehicle = Vehicle(VehicleConfig(
             unit_id=args.unit, vehicle=args.preset, coordinator_sysid=args.coordinator_sysid,
-            coordinator_compid=args.coordinator_compid, signing_key=key, sign_client_links=args.sign_client_links,
+            coordinator_compid=args.coordinator_compid, signing_key=key, sign_client_links=require_signing,
             control_hz=args.control_hz, params=_params(args.param)), time.time())
         self.substeps = int(round(ratio))
         self.physics_dt_s = 1.0 / args.physics_hz

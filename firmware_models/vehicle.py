@@ -5,8 +5,9 @@
     out += vehicle.tick(wall_time_s, sim_time_s)                 # heartbeats, streams, control step
     thrusts_n = vehicle.step_motors(physics_dt_s)                # motor model: limits, eta, lag
 
-Links are named; each has a policy (`LinkPolicy`): client links "gcs" and "api" (telemetry, unsigned,
-what MAVSDK/MAVProxy/QGC use), "coordinator" (per-rotor commands; signed when a key is configured) and
+Links are named; each has a policy (`LinkPolicy`): client links "gcs" and "api" (telemetry, what
+MAVSDK/MAVProxy/QGC use; who may do what over them: control_policy), "coordinator" (per-rotor
+commands; signed when a key is configured) and
 "hil" (sensor/state in, HIL_ACTUATOR_CONTROLS out, PX4's lockstep contract). A runner maps link names
 to sockets. The surface follows specs/mavlink.md §6: PX4 persona (MAV_AUTOPILOT_PX4, custom_mode =
 main << 16 | sub << 24), heartbeats at 1 Hz of wall time even with the simulation paused, default
@@ -31,6 +32,8 @@ from typing import NamedTuple
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from firmware_models import control_policy as policy
+from firmware_models.control_policy import FORCE_DISARM_MAGIC
 from firmware_models.geo import EARTH_RADIUS_M  # noqa: F401 (re-exported)
 from firmware_models.geo import WIRE_ORIGIN, GeoOrigin, origin_from_env
 from firmware_models.mission_protocol import MissionProtocol
@@ -38,8 +41,11 @@ from firmware_models.mission_runner import MissionRunner
 from firmware_models.motor import MotorModel, MotorParams
 from firmware_models.params import ParamStore, unit_param_specs
 from firmware_models.rotor_intake import IntakeParams, RotorIntake
+from firmware_models.control_policy import SenderBudgets
 from firmware_models.signing import (
     ACCEPTED,
+    UNSIGNED,
+    is_signed,
     SignatureVerifier,
     advance_outgoing_clock,
     enable_outgoing_signing,
@@ -69,7 +75,6 @@ MODE_POSCTL = (MAIN_POSCTL, 0)
 
 FAILURE_TYPE_ETA = {0: 1.0, 1: 0.0, 5: 0.5}  # FAILURE_TYPE OK / OFF / SLOW (degraded) -> rotor efficiency
 FAILURE_UNIT_SYSTEM_MOTOR = 101
-FORCE_DISARM_MAGIC = 21196
 SETPOINT_PROOF_OF_LIFE_S = 0.5  # OFFBOARD needs a setpoint stream faster than 2 Hz
 COMMAND_DEDUP_S = 1.5  # MAVSDK resends an unacknowledged command 3 times, 0.5 s apart
 MAX_POSITION_M = 10_000.0
@@ -134,18 +139,19 @@ class Outgoing(NamedTuple):
 @dataclass(frozen=True)
 class LinkPolicy:
     telemetry: bool = True  # heartbeats, default streams, STATUSTEXT
-    require_signing: bool = False  # drop every frame that is not genuinely signed
+    require_signing: bool = False  # an unsigned frame is dropped (or, with unsigned_reads, may only read)
+    unsigned_reads: bool = False  # with require_signing: unsigned clients read (control_policy.READ)
     sign_outgoing: bool = False
     signing_link_id: int = 0
     rotor_commands: bool = False  # SET_ACTUATOR_CONTROL_TARGET is accepted only on such links
     hil: bool = False  # HIL sensor/state input and HIL_ACTUATOR_CONTROLS output
     forward_sensors: bool = False  # sensor packets from the HIL link are forwarded here
-    reply_rate_hz: float = 300.0  # token bucket for replies (ACKs, params, ...)
+    reply_rate_hz: float = 300.0  # token bucket for replies (ACKs, params, ...), per sender on the link
     reply_burst: int = 600
 
 
 def default_links(signed_coordinator: bool, sign_clients: bool = False) -> dict[str, LinkPolicy]:
-    client = LinkPolicy(require_signing=sign_clients, sign_outgoing=sign_clients)
+    client = LinkPolicy(require_signing=sign_clients, sign_outgoing=sign_clients, unsigned_reads=True)
     return {
         LINK_GCS: client,
         LINK_API: client,
@@ -166,7 +172,7 @@ class VehicleConfig:
     coordinator_compid: int = 1
     world_sysid: int = WORLD_SYSID
     signing_key: bytes | None = None  # set: the coordinator link requires signed frames
-    sign_client_links: bool = False  # also require signing on gcs/api (stock MAVSDK cannot sign)
+    sign_client_links: bool = False  # --require-signing: gcs/api unsigned clients may only read
     control_hz: float = 100.0
     links: dict[str, LinkPolicy] | None = None  # None: default_links(...)
     params: dict[str, float] = field(default_factory=dict)  # start-up parameter values
@@ -197,22 +203,6 @@ class VehicleConfig:
                          pick(self.origin_amsl_m, env.amsl_m)).checked()
 
 
-class _Bucket:
-    """Token bucket in wall time."""
-
-    def __init__(self, rate_hz: float, burst: int) -> None:
-        self.rate, self.burst, self.tokens, self.t = rate_hz, float(burst), float(burst), None
-
-    def take(self, now: float) -> bool:
-        if self.t is not None:
-            self.tokens = min(self.burst, self.tokens + (now - self.t) * self.rate)
-        self.t = now
-        if self.tokens >= 1.0:
-            self.tokens -= 1.0
-            return True
-        return False
-
-
 class _Link:
     def __init__(self, name: str, policy: LinkPolicy, sysid: int, compid: int, key: bytes | None, now: float) -> None:
         self.name = name
@@ -222,8 +212,9 @@ class _Link:
         self.encoder = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
         if policy.sign_outgoing:
             enable_outgoing_signing(self.encoder, key, policy.signing_link_id, now)
-        self.verifier = SignatureVerifier(key) if policy.require_signing else None
-        self.bucket = _Bucket(policy.reply_rate_hz, policy.reply_burst)
+        # with a key every non-HIL link checks signatures: a signed frame earns SAFETY authority
+        self.verifier = SignatureVerifier(key) if policy.require_signing or (key and not policy.hil) else None
+        self.budgets = SenderBudgets(policy.reply_rate_hz, policy.reply_burst)
 
 
 def split_frames(data: bytes | bytearray, decoder: mavlink.MAVLink, drop, pre_check=None) -> list[tuple[mavlink.MAVLink_message, bytearray]]:
@@ -311,6 +302,9 @@ class Vehicle:
             if (p.require_signing or p.sign_outgoing) and not signed:
                 raise UserInputError(f"link {name!r} requires signing but no signing key is configured")
         self.links = {n: _Link(n, p, self.sysid, self.compid, c.signing_key, wall_time_s) for n, p in policies.items()}
+        self._authority = policy.SAFETY  # of the frame being dispatched (control_policy.frame_authority)
+        self.on_frame_in = None  # callable(link, frame bytes) for every frame that passed parsing and signing
+        self._sender: tuple = ()  # (link, sysid, compid) of that frame: whose reply budget answers pay from
         self.full_scale_n = self.vehicle.full_scale_thrust_n
         self.motors = MotorModel(MotorParams.for_vehicle(self.vehicle))
         self.intake = RotorIntake(self._intake_params())
@@ -427,20 +421,31 @@ class Vehicle:
             check = None
             if lk.verifier is not None:  # HMAC-first verification before any decoding
                 verifier = lk.verifier
-                check = lambda raw: verifier.verify(raw, wall_time_s) == ACCEPTED  # noqa: E731
-            frames = [m for m, _ in split_frames(data, lk.decoder, self._drop, check)]
+                unsigned_ok = not lk.policy.require_signing or lk.policy.unsigned_reads
+                check = lambda raw: verifier.verify(raw, wall_time_s) in (  # noqa: E731
+                    (ACCEPTED, UNSIGNED) if unsigned_ok else (ACCEPTED,))
+            frames = split_frames(data, lk.decoder, self._drop, check)
         else:
             msg = data
+            raw = msg.get_msgbuf() if hasattr(msg, "get_msgbuf") else b""
             if lk.verifier is not None:
-                raw = msg.get_msgbuf() if hasattr(msg, "get_msgbuf") else b""
                 if not raw or lk.verifier.verify(bytearray(raw), wall_time_s) != ACCEPTED:
                     return out
-            frames = [msg]
+            frames = [(msg, raw)]
         if self._deferred and not (link == LINK_COORDINATOR and all(
-                m.get_type() == "SET_ACTUATOR_CONTROL_TARGET" for m in frames)):
+                m.get_type() == "SET_ACTUATOR_CONTROL_TARGET" for m, _ in frames)):
             self.run_deferred()  # (a rotor command alone does not read the unit's own state)
-        for msg in frames:
+        has_key = self.config.signing_key is not None
+        for msg, frame in frames:
             self._count("rx")
+            if self.on_frame_in is not None:
+                self.on_frame_in(link, frame)
+            self._authority = policy.frame_authority(
+                lk.verifier is not None and is_signed(frame), lk.policy.require_signing, has_key)
+            # whose reply budget pays: each signed (or, without a key, each) sender its own; unsigned
+            # senders next to a key share one, so spoofed system ids cannot mint fresh budgets
+            self._sender = ((link, msg.get_srcSystem(), msg.get_srcComponent()) if self._authority == policy.SAFETY
+                            else (link, "unsigned"))
             try:
                 self._dispatch(msg, lk, out)
             except (ValueError, TypeError, OverflowError, struct.error):
@@ -481,6 +486,10 @@ class Vehicle:
             self._await_coordinator = False
             self._answer_hil(out)
         return out
+
+    def notify(self, text: str, severity: int = mavlink.MAV_SEVERITY_WARNING) -> None:
+        """A STATUSTEXT from the runner (e.g. "logging stopped"), sent with the next tick."""
+        self._text(text, severity)
 
     def hello(self, link: str) -> Outgoing:
         """A HEARTBEAT on a non-telemetry link (HIL, coordinator): peers learn the unit's address."""
@@ -548,11 +557,13 @@ class Vehicle:
         except (*mavlink_codec.ENCODE_ERRORS, mavlink.MAVError):
             self._count("telemetry.encode_error")
 
-    def _reply(self, lk: _Link, msg, out: list[Outgoing]) -> None:
-        if lk.bucket.take(self.wall_s):
+    def _reply(self, lk: _Link, msg, out: list[Outgoing]) -> bool:
+        """An answer to the current sender, paid from its own reply budget (control_policy.SenderBudgets)."""
+        if lk.budgets.take(self._sender, self.wall_s):
             self._send(lk, msg, out)
-        else:
-            self._drop("reply_rate_limited")
+            return True
+        self._drop("reply_rate_limited")
+        return False
 
     def _broadcast(self, msg, out: list[Outgoing]) -> None:
         for lk in self.links.values():
@@ -591,6 +602,11 @@ class Vehicle:
         handler = _HANDLERS.get(t)
         if handler is None:
             self._drop("unhandled_message")
+            return
+        if self._authority < policy.required_authority(msg):  # e.g. unsigned control under --require-signing
+            self._drop(f"policy.denied_{policy.AUTHORITY_NAMES[self._authority]}")
+            for m in policy.refusal(msg):
+                self._reply(lk, m, out)
             return
         handler(self, msg, lk, out)
 
@@ -984,7 +1000,8 @@ class Vehicle:
             self._drop("wrong_target")
             return
         for i in range(self.params.count):
-            self._reply(lk, self.params.value_message(i), out)
+            if not self._reply(lk, self.params.value_message(i), out):
+                break  # this sender's budget is spent: the client re-requests what it misses
 
     def _on_param_read(self, msg, lk: _Link, out: list[Outgoing]) -> None:
         if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
@@ -1005,7 +1022,11 @@ class Vehicle:
         if i is None:
             self._drop("param_unknown")
             return
-        if not self.params.set_from_wire(name, msg.param_value, msg.param_type):
+        error = policy.param_set_error(self.params.specs[i], msg.param_type, self.armed, self._authority)
+        if error is not None:  # PARAM_ERROR, then (for clients that do not know it) the value in force
+            self._drop("param_rejected")
+            self._reply(lk, policy.param_error(msg, i, error), out)
+        elif not self.params.set_from_wire(name, msg.param_value, msg.param_type):
             self._drop("param_rejected")
         elif name in ("MARS_CMD_HZ", "MARS_CMD_MISS"):
             self.intake.params = self._intake_params()

@@ -26,6 +26,7 @@ from mars_link.transport.udp import UdpParams, UdpTransport
 LOOPBACK = "127.0.0.1"
 RECV_BUFFER_BYTES = 4 * 1024 * 1024
 MAX_DATAGRAMS_PER_WAKE = 4000  # per socket: keep the control loop on time during a flood
+TLOG_MAX_BYTES = 100 * 2**20  # per .tlog file; then that log stops (one STATUSTEXT), the flight goes on
 PEER_TIMEOUT_S = 10.0  # a client link also serves the last sender of valid frames (MAVProxy udpout)
 GCS_PORT = 14550
 API_PORT_BASE = 14540  # + unit index (0-based)
@@ -79,10 +80,13 @@ class VehicleSockets:
     answering `Outgoing`."""
 
     def __init__(self, vehicle: Vehicle, links: dict[str, LinkSpec], tlog: Path | None = None,
-                 batch: bool = False) -> None:
+                 batch: bool = False, tlog_max_bytes: int = TLOG_MAX_BYTES) -> None:
         """`batch`: frames for the same link from one `send` call share datagrams (up to
         `BATCH_BYTES`), as PX4 fills its UDP buffer: one syscall (and one wake-up of the receiver)
-        instead of one per frame. The given transports are closed with this object."""
+        instead of one per frame. The given transports are closed with this object.
+        `tlog`: what was sent, and every received frame that passed the vehicle's parser and signature
+        check (junk is never logged), up to `tlog_max_bytes`; a write error or the cap stops the log with
+        one STATUSTEXT and `counters()["logging_stopped"]`, never the flight."""
         self.vehicle = vehicle
         self.batch = batch
         self.specs = links
@@ -105,7 +109,13 @@ class VehicleSockets:
             self.sel.register(t, selectors.EVENT_READ, name)
         self.datagrams = 0
         self.send_errors = 0
-        self._tlog = open(tlog, "ab", buffering=0) if tlog else None  # unbuffered: flushed as it goes
+        self._tlog = None
+        if tlog:
+            from mars_link.outputs import SafeWriter
+
+            self._tlog = SafeWriter.open(tlog, "ab", max_bytes=tlog_max_bytes,  # unbuffered: flushed as it goes
+                                         on_stop=lambda reason: vehicle.notify(f"Log off: {reason.split(' (logging')[0]}"[:50]))
+            vehicle.on_frame_in = lambda link, frame: self._log(bytes(frame))
 
     def ports(self) -> dict[str, int | str]:
         """Each link's UDP port (or, on another transport, its local address: e.g. a Zenoh node)."""
@@ -151,7 +161,6 @@ class VehicleSockets:
             data, addr = got
             n += 1
             self.datagrams += 1
-            self._log(data)
             before = v.stats.get("from_coordinator", 0)
             rx = v.stats.get("rx", 0)
             out = v.handle(data, time.time(), link)
@@ -167,9 +176,16 @@ class VehicleSockets:
         if self._tlog:
             self._tlog.write(tlog_records(data))
 
-    def counters(self) -> dict[str, int]:
+    def counters(self) -> dict:
         not_loopback = sum(t.counters.dropped.get("not_loopback", 0) for t in self.links.values())
-        return {"datagrams": self.datagrams, "not_loopback": not_loopback, "send_errors": self.send_errors}
+        out = {"datagrams": self.datagrams, "not_loopback": not_loopback, "send_errors": self.send_errors}
+        if self._tlog is not None and self._tlog.stopped_reason:
+            out["logging_stopped"] = self._tlog.stopped_reason
+        return out
+
+    @property
+    def logging_stopped(self) -> str | None:
+        return self._tlog.stopped_reason if self._tlog is not None else None
 
     def close(self) -> None:
         if self.sel is not None:
@@ -218,10 +234,19 @@ def vehicle_status(vehicle: Vehicle, truth: RigidBodyState | None, sim_time_s: f
     return status
 
 
-def write_json_atomic(path: Path, doc: dict) -> None:
-    """Strict JSON (NaN/inf -> null, mars_link.outputs), replaced atomically."""
+def write_json_atomic(path: Path, doc: dict) -> bool:
+    """Strict JSON (NaN/inf -> null, mars_link.outputs), replaced atomically; False (and the old file
+    left as it was) if the disk refuses: a status snapshot is never flight-critical."""
     from mars_link.outputs import dumps
 
     tmp = path.with_suffix(".tmp")
-    tmp.write_text(dumps(doc, indent=None))
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(dumps(doc, indent=None))
+        os.replace(tmp, path)
+    except OSError:
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        return False
+    return True

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from mars_link.errors import UserInputError
+from mars_link.limits import check_unit_count
 
 GRAVITY_MPS2 = 9.80665
 ROTORS_PER_UNIT = 4
@@ -132,6 +133,7 @@ def parse_layout(rows: list[str] | tuple[str, ...] | str) -> tuple[str, ...]:
                 f"layout row {r!r} has characters other than 'X' and '.': {''.join(sorted(bad))}"
             )
     cells = [(i, j) for i, r in enumerate(rows) for j, ch in enumerate(r) if ch == "X"]
+    check_unit_count(len(cells))  # before anything grows with it (mars_link.limits)
     seen = {cells[0]}
     stack = [cells[0]]
     cellset = set(cells)

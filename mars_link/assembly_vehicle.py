@@ -146,10 +146,13 @@ class AssemblyVehicle(Vehicle):
     """The PX4-persona Vehicle flying an assembly: client links only (gcs, api), no rotor intake."""
 
     def __init__(self, coordinator: Coordinator, sysid: int = DEFAULT_SYSID, control_hz: float = 100.0,
-                 ftc: str = "none", params: dict[str, float] | None = None, wall_time_s: float = 0.0) -> None:
+                 ftc: str = "none", params: dict[str, float] | None = None, wall_time_s: float = 0.0,
+                 signing_key: bytes | None = None, require_signing: bool = False) -> None:
+        """`signing_key`: signed clients get full control (control_policy); `require_signing`: unsigned
+        clients may only read."""
         model = coordinator.model
-        client = LinkPolicy()
-        config = VehicleConfig(unit_id=sysid, vehicle=model.vehicle, control_hz=control_hz,
+        client = LinkPolicy(require_signing=require_signing, sign_outgoing=require_signing, unsigned_reads=True)
+        config = VehicleConfig(unit_id=sysid, vehicle=model.vehicle, control_hz=control_hz, signing_key=signing_key,
                                links={LINK_GCS: client, LINK_API: client})
         self.coordinator = coordinator
         super().__init__(config, wall_time_s, flight_core=AssemblyFlightCore(coordinator, control_hz))
@@ -219,6 +222,8 @@ class SimConfig:
     start_east_m: float = 0.0
     start_yaw_deg: float = 0.0
     params: dict | None = None  # start-up parameter values (MIS_TAKEOFF_ALT, ...)
+    signing_key: bytes | None = None  # MAVLink signing on the client links (control_policy)
+    require_signing: bool = False  # unsigned clients may only read
 
 
 def vehicle_scenario(scenario: Scenario) -> Scenario:
@@ -255,7 +260,8 @@ class AssemblySim:
         start = TrajectoryPoint(np.zeros(3))
         self.coordinator = make_coordinator(s, model, SetpointSource(start), self._known, detector, eta=self.eta_told)
         self.units = InProcessUnits({u: make_unit(s, model, u) for u in model.unit_ids}, self.world)
-        self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, cfg.params, wall_time_s)
+        self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, cfg.params, wall_time_s,
+                                       cfg.signing_key, cfg.require_signing)
         self.vehicle.on_failure = self.inject
         self.estimate: RigidBodyState | None = None
         self.estimator_resets = 0  # the EKF's own restarts on the measured positions (after gated batches)

@@ -62,9 +62,7 @@ def cmd_run(args) -> int:
     check_faults_controllable(scenario, model)
     if not scenario.reconfig.get("enabled"):
         check_flight(scenario, model)
-    out = v.check_out_dir(args.out or _default_out(scenario.name), force=args.force)
-    if args.force:  # else the runner creates it, after its own checks (a refused run leaves no directory)
-        v.prepare_out_dir(out, force=True)
+    out = v.claim_out_dir(args.out or _default_out(scenario.name), force=args.force)  # locked while we run
     console = Console(stderr=True)
     with Progress(
         TextColumn("[bold]{task.description}"), BarColumn(), TextColumn("{task.percentage:>5.1f}%"),
@@ -109,6 +107,10 @@ def print_summary(summary: dict, out: Path) -> None:
         ("events", str(len(summary["events"]))),
         ("run directory", str(out)),
     ]
+    logging = summary.get("logging") or {}
+    if logging.get("stopped_reason"):  # a write error stopped a log; the flight went on
+        more = len(logging.get("stopped", [])) - 1
+        rows.append(("logging stopped", logging["stopped_reason"] + (f" (+{more} more logs)" if more > 0 else "")))
     for key, value in rows:
         table.add_row(key, value)
     Console().print(table)
@@ -173,10 +175,9 @@ def cmd_sitl(args) -> int:
         if vehicle is None:  # --vehicle flies until Ctrl-C: no flight length to check
             check_flight(setup.scenario, setup.model)
     out = v.check_out_dir(args.out or _default_out(name + "-sitl"), force=args.force)
-    if args.signing_key_file:
-        from firmware_models.signing import load_key
+    from firmware_models.signing import signing_from_args
 
-        load_key(args.signing_key_file)  # a bad key file is refused before the run directory exists
+    _, require_signing = signing_from_args(args)  # a bad key file is refused before the run directory exists
     n = len(setup.unit_ids)  # the client ports of either transport
     for what, port in (("--gcs-port", args.gcs_port), ("--api-port", args.api_port), ("--api-port + units", args.api_port + n - 1)):
         if not 1 <= port <= 65535:
@@ -187,14 +188,14 @@ def cmd_sitl(args) -> int:
             raise UserInputError("--vehicle is served by the coordinator sitl up starts: not with --external-coordinator")
         from mars_link.sitl_mode import sitl_up_command
 
-        v.prepare_out_dir(out, force=args.force)
+        v.claim_out_dir(out, force=args.force)
         return sitl_up_command(args, path, out, vehicle)
     from sitl.launcher import ClientPorts
 
     clients = ClientPorts(args.gcs_port, [args.api_port + i for i in range(n)], args.any_bind)
-    v.prepare_out_dir(out, force=args.force)
+    v.claim_out_dir(out, force=args.force)
     code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,
-                   signing_key_file=args.signing_key_file, vehicle=vehicle)
+                   signing_key_file=args.signing_key_file, vehicle=vehicle, require_signing=require_signing)
     print(f"run directory: {out}")
     return code
 
@@ -256,8 +257,9 @@ def build_parser() -> argparse.ArgumentParser:
                       help="world pacing, x real time (default 1 for --units, 0 = as fast as possible otherwise)")
     sitl.add_argument("--gcs-port", type=int, default=14550, help="UDP port the units send GCS traffic to (QGC, MAVProxy)")
     sitl.add_argument("--api-port", type=int, default=14540, help="API port of unit index 0 (MAVSDK); unit i uses this + i")
-    sitl.add_argument("--signing-key-file", default=None,
-                      help="sign the coordinator <-> unit links with this key (else $MARS_LINK_SIGNING_KEY)")
+    from firmware_models.signing import add_signing_args
+
+    add_signing_args(sitl, "the coordinator <-> unit links, signed both ways, and the client links")
     sitl.add_argument("--any-bind", action="store_true",
                       help="bind the units' client sockets to free ports instead of PX4's 18570+i / 14580+i")
     from sitl.vehicle_host import DEFAULT_VEHICLE_API_PORT, DEFAULT_VEHICLE_SYSID
@@ -338,6 +340,8 @@ def main(argv: list[str] | None = None) -> int:
         line, code = v.report(exc)
         print(line, file=sys.stderr)
         return code
+    finally:
+        v.release_out_dirs()
 
 
 if __name__ == "__main__":

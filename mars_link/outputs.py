@@ -10,11 +10,13 @@ log file switches that log off with a reason, counted, and the flight goes on; t
 
 from __future__ import annotations
 
+import errno
+import fnmatch
 import json
 import math
 import os
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, Callable
 
 import numpy as np
 
@@ -68,46 +70,81 @@ def rewrite_strict(path: str | os.PathLike) -> bool:
     return True
 
 
+#: test hook "BYTES:NAME,NAME...": a SafeWriter whose file name matches one of the (fnmatch) patterns
+#: fails with ENOSPC the write that would take it past BYTES (the code path of a full disk; children
+#: inherit it; tests/test_log_failure.py)
+INJECT_ENOSPC_ENV = "MARS_LINK_INJECT_ENOSPC"
+
+
+def _injected_failure_after(name: str) -> int | None:
+    size, _, patterns = os.environ.get(INJECT_ENOSPC_ENV, "").partition(":")
+    if not size.isdigit():
+        return None
+    base = Path(name).name
+    return int(size) if any(fnmatch.fnmatch(base, p) for p in patterns.split(",")) else None
+
+
 class SafeWriter:
-    """A text file whose write errors are counted and switch it off instead of raising.
+    """A log file (text, or bytes in a "b" mode) whose write errors are counted and switch it off
+    instead of raising.
 
     `write`/`flush`/`close` never raise OSError: the first failure (ENOSPC, EIO, a lost mount...)
-    records `stopped_reason`, closes the file and drops every later write (`dropped_writes`).
+    records `stopped_reason`, closes the file, calls `on_stop(reason)` once (e.g. a STATUSTEXT) and
+    drops every later write (`dropped_writes`). `max_bytes`: a size cap; reaching it stops the log the
+    same way (reason "size cap ... reached"), so a log can never fill the disk by itself.
     """
 
-    def __init__(self, file: IO[str], name: str | None = None) -> None:
-        self._file: IO[str] | None = file
+    def __init__(self, file: IO, name: str | None = None, max_bytes: int | None = None,
+                 on_stop: Callable[[str], None] | None = None) -> None:
+        self._file: IO | None = file
         self.name = name or getattr(file, "name", "log")
         self.errors = 0
         self.dropped_writes = 0
         self.stopped_reason: str | None = None
+        self.bytes_written = 0
+        self.max_bytes = max_bytes
+        self.on_stop = on_stop
+        self._fail_after = _injected_failure_after(self.name)
 
     @classmethod
-    def open(cls, path: str | os.PathLike, mode: str = "w") -> "SafeWriter":
-        return cls(open(path, mode, encoding="utf-8"), str(path))
+    def open(cls, path: str | os.PathLike, mode: str = "w", **kw) -> "SafeWriter":
+        """Open `path` (text as UTF-8; "b" modes unbuffered: each record reaches the file as it goes)."""
+        f = open(path, mode, buffering=0) if "b" in mode else open(path, mode, encoding="utf-8")
+        return cls(f, str(path), **kw)
 
     @property
     def active(self) -> bool:
         return self._file is not None
 
-    def _stop(self, exc: OSError) -> None:
-        self.errors += 1
-        self.stopped_reason = f"{Path(self.name).name}: {exc.strerror or exc} (logging stopped)"
+    def _stop(self, exc: OSError | None, why: str | None = None) -> None:
+        if exc is not None:
+            self.errors += 1
+        self.stopped_reason = f"{Path(self.name).name}: {why or exc.strerror or exc} (logging stopped)"
         f, self._file = self._file, None
         try:
             f.close()
         except OSError:
             pass
+        if self.on_stop is not None:
+            self.on_stop(self.stopped_reason)
 
-    def write(self, text: str) -> int:
+    def write(self, data) -> int:
         if self._file is None:
             self.dropped_writes += 1
             return 0
+        if self.max_bytes is not None and self.bytes_written + len(data) > self.max_bytes:
+            self.dropped_writes += 1
+            self._stop(None, f"size cap of {self.max_bytes} bytes reached")
+            return 0
         try:
-            return self._file.write(text)
+            if self._fail_after is not None and self.bytes_written + len(data) > self._fail_after:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            n = self._file.write(data)
         except OSError as exc:
             self._stop(exc)
             return 0
+        self.bytes_written += len(data)
+        return n
 
     def flush(self) -> None:
         if self._file is not None:

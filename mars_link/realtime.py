@@ -150,6 +150,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--status-file", help="JSON snapshot (truth, mode, counters) a few times a second")
     p.add_argument("--tlog", help="MAVLink log of both links (pymavlink .tlog), appended and flushed as it goes")
     p.add_argument("--duration", type=validation.positive_float, help="stop after this many wall seconds")
+    from firmware_models.signing import add_signing_args
+
+    add_signing_args(p, "the gcs and api links")
 
 
 def _check_port(name: str, value: int, allow_zero: bool) -> int:
@@ -191,9 +194,12 @@ def build_sim(args: argparse.Namespace) -> AssemblySim:
         raise UserInputError(f"controller {scenario.controller!r}: the vehicle flies setpoints with 'cascaded' only")
     if not 1 <= args.sysid <= 250 or args.sysid in (200, 201):
         raise UserInputError(f"--sysid must be 1..250 and not 200/201 (world, coordinator), got {args.sysid}")
+    from firmware_models.signing import signing_from_args
     from firmware_models.udp_runner import _params  # NAME=VALUE parsing, as the unit runner's --param
 
-    return AssemblySim(scenario, SimConfig(sysid=args.sysid, params=_params(args.param)), time.time())
+    key, require = signing_from_args(args)
+    return AssemblySim(scenario, SimConfig(sysid=args.sysid, params=_params(args.param), signing_key=key,
+                                           require_signing=require), time.time())
 
 
 def vehicle_command(args: argparse.Namespace) -> int:
@@ -235,6 +241,8 @@ def vehicle_command(args: argparse.Namespace) -> int:
         runner.close()
     print(f"stopped after {sim.t_s:.1f} s simulated; overruns {runner.overruns}, late steps {runner.late_steps}",
           flush=True)
+    if runner.io.logging_stopped:  # a write error (or the size cap) stopped the .tlog; the flight went on
+        print(f"logging stopped: {runner.io.logging_stopped}", flush=True)
     return code
 
 

@@ -15,12 +15,38 @@ from mars_link.outputs import SafeWriter
 
 #: rotors.csv rows per second (telemetry.csv has every control step)
 ROTOR_LOG_HZ = 20.0
+#: rows kept in memory for the plots (first trial only) when bounded: beyond, every other row is dropped
+#: and the keeping stride doubles, so memory stays flat however many trials or seconds are flown
+PLOT_ROWS_MAX = 4_000  # (a plot 880 px wide needs no more)
+PLOT_BYTES_MAX = 8 * 2**20  # per series: fewer rows for a large assembly's wide rotor rows
+
+
+class _PlotRows:
+    """The first trial's rows for the plots, at most `cap` (decimated by 2 each time it fills)."""
+
+    def __init__(self, rows: list, cap: int) -> None:
+        self.rows, self.cap, self.stride, self.seen = rows, cap, 1, 0
+
+    def add(self, row) -> None:
+        if row[0] != 0:  # (plots.write_run_plots draws the first trial; the CSVs hold every trial)
+            return
+        if self.seen == 0:
+            self.cap = max(100, min(self.cap, PLOT_BYTES_MAX // (8 * len(row) + 100)))
+        if self.seen % self.stride == 0:
+            self.rows.append(row)
+            if len(self.rows) >= self.cap:
+                del self.rows[1::2]
+                self.stride *= 2
+        self.seen += 1
 
 
 class RunLog:
     """CSV time series written as the flight goes (flushed), so a crash loses nothing flown."""
 
-    def __init__(self, out_dir: Path | None, model: AssemblyModel, rotor_log_hz: float) -> None:
+    def __init__(self, out_dir: Path | None, model: AssemblyModel, rotor_log_hz: float,
+                 plot_rows_max: int | None = None) -> None:
+        """`plot_rows_max`: keep in memory only the first trial's rows, at most that many (decimated);
+        None keeps every row (evaluations that read `telemetry_rows` whole)."""
         self.out_dir = out_dir
         self.model = model
         self.rotor_log_period_s = 1.0 / rotor_log_hz
@@ -29,6 +55,8 @@ class RunLog:
         self._closed: list[dict] = []  # status of the files already closed
         self.telemetry_rows: list[list[float]] = []
         self.rotor_rows: list[np.ndarray] = []
+        self._bounded = None if plot_rows_max is None else (
+            _PlotRows(self.telemetry_rows, plot_rows_max), _PlotRows(self.rotor_rows, plot_rows_max))
         if out_dir is None:
             return
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -45,7 +73,10 @@ class RunLog:
         self._rot.write("trial,t_s," + ",".join(cols) + "\n")
 
     def telemetry(self, row: list[float]) -> None:
-        self.telemetry_rows.append(row)
+        if self._bounded is None:
+            self.telemetry_rows.append(row)
+        else:
+            self._bounded[0].add(row)
         if self._tel:
             self._tel.write(self._tel_format % tuple(row))
 
@@ -58,7 +89,10 @@ class RunLog:
             return
         self._next_rotor_t = t_s + self.rotor_log_period_s
         row = np.concatenate(([trial, t_s], cmd, thrust, eta))
-        self.rotor_rows.append(row)
+        if self._bounded is None:
+            self.rotor_rows.append(row)
+        else:
+            self._bounded[1].add(row)
         if self._rot:
             self._rot.write(",".join(f"{x:.5g}" for x in row) + "\n")
 

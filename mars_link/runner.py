@@ -17,7 +17,7 @@ from mars_link.engine import Engine, FlightRecorder
 from mars_link.metrics import TrialResult, detection_rows, summarize
 from mars_link.outputs import write_json
 from mars_link.pacing import Pacer
-from mars_link.run_log import ROTOR_LOG_HZ, RunLog
+from mars_link.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
 from mars_link.scenario import Scenario
 
 
@@ -81,7 +81,8 @@ def run_scenario(
     """Fly `trials` trials (seeds seed, seed+1, ...); write the run directory if `out_dir` is given.
     `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time."""
     seed = scenario.sim.seed if seed is None else seed
-    log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ))
+    log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ),
+                 plot_rows_max=PLOT_ROWS_MAX)  # streamed to the CSVs; memory flat in trials and duration
     results = []
     try:
         for i in range(trials):

@@ -61,7 +61,8 @@ class SitlSession:
 def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, seed: int | None = None,
                units: int | None = None, layout: str | None = None, realtime: bool = False,
                clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units"),
-               topology: str = "peer", signing_key_file: str | None = None, vehicle=None) -> SitlSession:
+               topology: str = "peer", signing_key_file: str | None = None, vehicle=None,
+               require_signing: bool = False) -> SitlSession:
     """Start the SITL processes (sitl.launcher.start) with their links on `link` (default Zenoh).
     `unit_prefix(u)` -> argv to run unit u under (e.g. `ip netns exec NS`); `roles` may leave out the
     coordinator (one started elsewhere attaches).
@@ -106,6 +107,9 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     if vehicle is not None:
         role_args["coordinator"] += vehicle.argv()
         speed = 1.0 if speed is None else speed
+    if require_signing:  # the client links of the units and of the vehicle (firmware_models.control_policy)
+        role_args["unit"].append("--require-signing")
+        role_args["coordinator"].append("--require-signing")
     try:
         session.run = start(scenario, out, units, layout, seed, 1.0 if realtime else speed,
                             clients or ClientPorts(bind_any=True), signing_key_file, role_args=role_args,
@@ -267,7 +271,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     from mars_link.metrics import TrackingMetrics, TrialResult, summarize
     from mars_link.rotations import quat_to_euler, quat_to_rotmat
     from mars_link.outputs import write_json
-    from mars_link.run_log import ROTOR_LOG_HZ, RunLog
+    from mars_link.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
 
     model = scenario.model()
     trajectory = make_trajectory(scenario, model)
@@ -275,7 +279,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, ndmin=1)
     world = _read_json(out / "world_summary.json")
     coordinator = _read_json(out / "coordinator_summary.json")
-    log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ))
+    log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX)
     metrics = TrackingMetrics()
     events = []
     nan3 = [math.nan] * 3
@@ -327,13 +331,28 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "command_age": command_age_summary(out) if realtime else {"n": 0, "note": "measured with --realtime only"},
         "cpu_wake_latency": cpu_wake_latency,  # real time: idle CPUs kept awake (transport.realtime.CpuWakeLatency)
     }
-    summary["logging"] = log.status()
+    summary["logging"] = _logging_status(log.status(), world, out, scenario)
     write_json(out / "summary.json", summary)
     if plots and log.telemetry_rows:
         from mars_link.plots import write_run_plots
 
         write_run_plots(out, log.telemetry_rows, log.rotor_rows, model)
     return summary
+
+
+def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
+    """summary.json "logging" for a SITL run: this process's logs and every child's (the world's truth
+    log, each unit's .tlog). A log stopped by a write error (or its size cap) is listed with its reason;
+    the flight went on, but figures computed from the truth log cover only what it holds."""
+    stopped = [own["stopped_reason"]] if own.get("stopped_reason") else []
+    truth = world.get("logging") or {}
+    if truth.get("stopped_reason"):
+        stopped.append(truth["stopped_reason"] + " (errors and tilt cover the flight up to there)")
+    for unit in scenario.model().unit_ids:
+        reason = _read_json(out / f"unit{unit}_status.json").get("logging_stopped")
+        if reason:
+            stopped.append(reason)
+    return {**own, "complete": not stopped, "stopped_reason": stopped[0] if stopped else None, "stopped": stopped}
 
 
 def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec,
@@ -620,7 +639,8 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None) ->
         session = start_sitl(scenario_path, out, link, args.seed, units=units, layout=layout, realtime=args.realtime,
                              clients=clients, speed=getattr(args, "speed", None), roles=roles,
                              topology="router" if args.external_coordinator else "peer",
-                             signing_key_file=getattr(args, "signing_key_file", None), vehicle=vehicle)
+                             signing_key_file=getattr(args, "signing_key_file", None), vehicle=vehicle,
+                             require_signing=getattr(args, "require_signing", False))
         for line in _endpoints(session, link):
             print(line, flush=True)
         if vehicle is not None:

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import fcntl
 import ipaddress
 import math
 import os
@@ -212,6 +213,43 @@ def prepare_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool
     except OSError as exc:
         raise environment_failure(exc, f"{what} {str(p)!r}") from None
     return p
+
+
+_HELD_DIRS: dict[Path, tuple[int, bool]] = {}  # run directory -> (fd holding its lock, created by us)
+
+
+def claim_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool = False) -> Path:
+    """`prepare_out_dir` under an exclusive lock on the directory, held while this process lives (or
+    until `release_out_dirs`): a second run into a directory that a live run owns is refused with one
+    line (exit 1) before anything in it is touched, --force included."""
+    p = check_out_dir(path, what, force=force)
+    created = not p.exists()
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        fd = os.open(p, os.O_RDONLY | os.O_DIRECTORY)  # (not inherited by children: O_CLOEXEC)
+    except OSError as exc:
+        raise environment_failure(exc, f"{what} {str(p)!r}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise EnvironmentFailure(f"{what} {str(p)!r}: another run is using this directory "
+                                 "(wait for it to end, or choose another)") from None
+    _HELD_DIRS[p.resolve()] = (fd, created)
+    return prepare_out_dir(p, what, force=force)
+
+
+def release_out_dirs() -> None:
+    """Give up every run-directory lock this process holds (the end of a command); a directory it
+    created and nothing was written to (a run refused by a later check) is removed again."""
+    while _HELD_DIRS:
+        path, (fd, created) = _HELD_DIRS.popitem()
+        os.close(fd)
+        if created:
+            try:
+                path.rmdir()  # only if empty
+            except OSError:
+                pass
 
 
 def check_file_parent(path: str | os.PathLike | None, what: str) -> Path | None:

@@ -18,6 +18,7 @@ from pathlib import Path
 
 from mars_link.errors import UserInputError
 from firmware_models.signing import load_key
+from sitl.parent_watch import child_env
 from sitl.links import LOOPBACK
 from sitl.lockstep import SitlSetup, _start_pose, load_setup, position_every
 
@@ -121,7 +122,7 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
         fds = () if sock is None else (sock.fileno(),)
         with open(out / f"{name}.log", "w") as log:
             run.processes[name] = subprocess.Popen([*prefix, *py, *argv], stdout=log, stderr=subprocess.STDOUT,
-                                                   stdin=subprocess.DEVNULL, pass_fds=fds)
+                                                   stdin=subprocess.DEVNULL, pass_fds=fds, env=child_env())
 
     try:
         if coord_sock is not None and "coordinator" not in skip:
@@ -199,19 +200,22 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
 
 def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
             seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
-            signing_key_file: str | None = None, vehicle=None) -> int:
+            signing_key_file: str | None = None, vehicle=None, require_signing: bool = False) -> int:
     """`mars-link sitl up`: start, print the endpoints, run until the end, Ctrl-C or a child's death.
     With `vehicle` (sitl.vehicle_host.VehiclePorts) the coordinator serves the docked assembly as one
-    MAVLink vehicle and the run goes on, paced to real time (unless `speed`), until stopped."""
+    MAVLink vehicle and the run goes on, paced to real time (unless `speed`), until stopped.
+    `require_signing`: every unit's and the vehicle's client links too (unsigned clients only read)."""
     previous = signal.getsignal(signal.SIGTERM)
     signal.signal(signal.SIGTERM, _raise_interrupt)
     run = None
     try:
+        extra = ["--require-signing"] if require_signing else []
+        role_args = {"unit": extra, "coordinator": (vehicle.argv() if vehicle is not None else []) + extra}
         if vehicle is None:
-            run = start(scenario, out, units, layout, seed, speed, clients, signing_key_file)
+            run = start(scenario, out, units, layout, seed, speed, clients, signing_key_file, role_args=role_args)
         else:
             run = start(scenario, out, units, layout, seed, 1.0 if speed is None else speed, clients, signing_key_file,
-                        role_args={"coordinator": vehicle.argv()}, forever=True)
+                        role_args=role_args, forever=True)
         for line in run.endpoints():
             print(line, flush=True)
         if vehicle is not None:

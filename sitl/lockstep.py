@@ -39,7 +39,8 @@ Every unit also serves PX4's client links: GCS to UDP 14550 (bound 18570+i), API
 
 Signing: with a key (--signing-key-file, else $MARS_LINK_SIGNING_KEY) the coordinator <-> unit links
 are MAVLink-2 signed both ways and verified HMAC-first (firmware_models.signing); the HIL link to the
-world and the client links stay unsigned (stock MAVSDK cannot sign).
+world stays unsigned; client links check signed frames (a signed client has full control) and, with
+--require-signing, let unsigned clients only read (firmware_models.control_policy).
 
 Timeouts (wall time): coordinator 1 s < unit 2 s < world 3 s, so that when a unit process dies the
 coordinator gives up on it first, the other units still get their commands, and only the dead unit is
@@ -77,7 +78,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.signing import load_key
+from firmware_models.signing import add_signing_args, signing_from_args
+from sitl.parent_watch import die_with_parent
 from mars_link.errors import EnvironmentFailure, UserInputError
 from mars_link.messages import SensorPacket
 from mars_link.outputs import write_json
@@ -169,6 +171,9 @@ def load_setup(scenario: str | None, units: int | None = None, layout: str | Non
             tracked = "com"
         sc = dataclasses.replace(sc, layout=rows, tracked=tracked)
     model = sc.model()
+    from mars_link.limits import check_sitl_processes
+
+    check_sitl_processes(model.n_units)
     for f in sc.faults:
         validate_fault(f, model, sc.source)
     if steps is None:
@@ -271,7 +276,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     live = set(setup.unit_ids)
     out.mkdir(parents=True, exist_ok=True)
     status_path = out / "world_status.json"
-    truth_log = open(out / "world_truth.csv", "w", encoding="utf-8")
+    from mars_link.outputs import SafeWriter
+
+    truth_log = SafeWriter.open(out / "world_truth.csv")  # a write error stops the log, never the world
     truth_log.write("t_s," + columns + "\n")
     wall0 = time.perf_counter()
     next_status = 0.0
@@ -343,7 +350,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                    "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time(),
                    "cpu_loop_s": time.process_time() - cpu0, "force_integral_n2s": getattr(world, "force_integral_n2s", None),
                    "latch_events": getattr(world, "latch_events", []),
-                   "bodies": [list(b.units) for b in getattr(world, "bodies", [])]}
+                   "bodies": [list(b.units) for b in getattr(world, "bodies", [])], "logging": truth_log.status()}
         write_json(out / "world_summary.json", summary)
     finally:
         truth_log.close()
@@ -395,9 +402,11 @@ class UnitPorts:
 
 
 def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: UnitPorts | None = None,
-             command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None) -> int:
+             command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None,
+             require_signing: bool = False) -> int:
     """The unit's full firmware on its HIL, coordinator and client links; with a signing `key` the
-    coordinator link accepts only genuinely signed frames (and signs what it sends)."""
+    coordinator link accepts only genuinely signed frames (and signs what it sends); `require_signing`:
+    the client links too, where unsigned clients may only read (firmware_models.control_policy)."""
     from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL
     from mars_link.build import make_unit
     from firmware_models.vehicle_io import LinkSpec, VehicleSockets, client_links, vehicle_status, write_json_atomic
@@ -406,7 +415,7 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
     client = client or UnitPorts()
     index = setup.unit_ids.index(unit_id)
     vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
-                        wall_time_s=time.time())
+                        wall_time_s=time.time(), require_signing=require_signing)
     links = client_links(index, client.gcs_port, client.api_port, client.gcs_bind, client.api_bind)
     links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
     if setup.docked:
@@ -472,7 +481,8 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
 
 # ----------------------------------------------------------------------------- coordinator
 def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S,
-                    key: bytes | None = None, vehicle=None, timing_log: bool = False) -> int:
+                    key: bytes | None = None, vehicle=None, timing_log: bool = False,
+                    require_signing: bool = False) -> int:
     """Drive the docked assembly; with a signing `key` its link to the units is signed both ways.
     With `vehicle` (sitl.vehicle_host.VehiclePorts) the assembly is one MAVLink vehicle on those ports
     and its guidance, not the scenario's trajectory, is the coordinator's reference. `timing_log`:
@@ -501,7 +511,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         detector = make_detector(sc, model, float(_start_pose(setup)[0][2]))
         out.mkdir(parents=True, exist_ok=True)
         try:
-            hosted = HostedVehicle(sc, model, detector, vehicle, out)
+            hosted = HostedVehicle(sc, model, detector, vehicle, out, key, require_signing)
         except UserInputError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
@@ -534,6 +544,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         finish_at = None  # when the last period's fault detection runs (Coordinator.finish_step)
         link.heartbeat(world)
         next_hello = time.monotonic() + 0.2
+        t_last = -math.inf  # the last step's time: a packet not newer is a backlog (a paused unit resumed)
         for k in (range(setup.steps) if setup.steps is not None else itertools.count()):
             if stop.requested:
                 break
@@ -572,6 +583,9 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     if not telemetry_ok(p):
                         link.drop("bad_telemetry")  # non-finite: never into the estimator
                         continue
+                    if p.unit_id not in live or p.t_s <= t_last:  # a lost unit stays lost; a stale packet
+                        link.drop("stale_telemetry")  # never sets the step's time (it would make every
+                        continue  # live unit's packet look stale and lose them all)
                     if t_expected is None:
                         t_expected = p.t_s
                         deadline = time.monotonic() + unit_timeout_s
@@ -584,7 +598,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                 if not stop.requested:
                     print(f"coordinator: no telemetry for {WORLD_IDLE_TIMEOUT_S:.0f} s: ending", file=sys.stderr)
                 break
-            t = t_expected
+            t = t_last = t_expected
             if end_s is not None and (t >= end_s() - 1e-9 or coordinator.failed is not None):
                 link.send_bytes(link.pack([shutdown_message()]), world)  # the flight of pieces is over
                 break
@@ -691,6 +705,7 @@ def set_batch_scheduling() -> bool:
 
 
 def main(argv: list[str] | None = None) -> int:
+    die_with_parent()  # started by the launcher: never outlive it (sitl.parent_watch)
     ap = argparse.ArgumentParser(prog="python -m sitl.lockstep")
     ap.add_argument("role", choices=("world", "unit", "coordinator"))
     ap.add_argument("scenario", help="scenario file or bundled name; - for built-in defaults")
@@ -707,8 +722,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True)
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--speed", type=float, default=None, help="world pacing, x real time (0: as fast as possible)")
-    ap.add_argument("--signing-key-file", default=None,
-                    help="sign the coordinator <-> unit links (else $MARS_LINK_SIGNING_KEY; neither: unsigned)")
+    add_signing_args(ap, "the coordinator <-> unit links (neither: unsigned)")
     ap.add_argument("--gcs-port", type=int, default=14550)
     ap.add_argument("--api-port", type=int, default=None)
     ap.add_argument("--gcs-bind", type=int, default=None)
@@ -731,7 +745,7 @@ def main(argv: list[str] | None = None) -> int:
         set_batch_scheduling()
     try:
         setup = load_setup(args.scenario, args.units, args.layout, args.steps)
-        key = load_key(args.signing_key_file)
+        key, args.require_signing = signing_from_args(args)
         link = _link_spec(args)
     except UserInputError as e:
         print(f"error: {e}", file=sys.stderr)
@@ -786,7 +800,7 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
             print(f"error: unit {args.unit} is not in this run (units {setup.unit_ids})", file=sys.stderr)
             return 2
         return run_unit(setup, args.unit, ports, out, UnitPorts(args.gcs_port, args.api_port, args.gcs_bind, args.api_bind),
-                        key=key)
+                        key=key, require_signing=args.require_signing)
     vehicle = None
     if args.vehicle:
         from sitl.vehicle_host import VehiclePorts
@@ -795,7 +809,8 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
                  "gcs_bind": args.vehicle_gcs_bind, "api_bind": args.vehicle_api_bind}
         vehicle = VehiclePorts(**{k: v for k, v in given.items() if v is not None})
         vehicle.check(setup.unit_ids)
-    return run_coordinator(setup, ports, out, key=key, vehicle=vehicle, timing_log=args.timing_log)
+    return run_coordinator(setup, ports, out, key=key, vehicle=vehicle, timing_log=args.timing_log,
+                           require_signing=args.require_signing)
 
 
 if __name__ == "__main__":

@@ -71,7 +71,8 @@ class VehiclePorts:
 class HostedVehicle:
     """AssemblyVehicle + its client sockets, stepped by the lockstep coordinator."""
 
-    def __init__(self, scenario, model, detector, ports: VehiclePorts, out: Path) -> None:
+    def __init__(self, scenario, model, detector, ports: VehiclePorts, out: Path, signing_key: bytes | None = None,
+                 require_signing: bool = False) -> None:
         from firmware_models.vehicle import LINK_API, LINK_GCS
         from firmware_models.vehicle_io import LOOPBACK, LinkSpec, VehicleSockets
         from mars_link.assembly_vehicle import AssemblyVehicle, SetpointSource, _KnownEstimate, vehicle_scenario
@@ -87,7 +88,8 @@ class HostedVehicle:
         self._known = _KnownEstimate()
         self.coordinator = make_coordinator(sc, model, SetpointSource(TrajectoryPoint(np.zeros(3))), self._known,
                                             detector)
-        self.vehicle = AssemblyVehicle(self.coordinator, ports.sysid, sc.sim.control_hz, sc.ftc, None, time.time())
+        self.vehicle = AssemblyVehicle(self.coordinator, ports.sysid, sc.sim.control_hz, sc.ftc, None, time.time(),
+                                       signing_key, require_signing)
         self.vehicle.on_failure = self._inject
         self._unit_commands: dict[int, list] = {}
         self.io = VehicleSockets(self.vehicle, {

@@ -295,7 +295,8 @@ def test_parameter_protocol() -> None:
     assert refused[0].param_value == pytest.approx(3.5)
     ro = gcs.send(mavlink.MAVLink_param_set_message(1, 1, b"MAV_SYS_ID", struct.unpack("<f", struct.pack("<i", 9))[0],
                                                     mavlink.MAV_PARAM_TYPE_INT32))
-    assert decode_value(ro[0].param_value, ro[0].param_type) == 1 and v.params["MAV_SYS_ID"] == 1
+    assert ro[0].get_type() == "PARAM_ERROR" and ro[0].error == mavlink.MAV_PARAM_ERROR_READ_ONLY
+    assert decode_value(ro[1].param_value, ro[1].param_type) == 1 and v.params["MAV_SYS_ID"] == 1
     assert gcs.send(mavlink.MAVLink_param_set_message(1, 1, b"MIS_TAKEOFF_ALT", NAN, 9))[0].param_value == 3.5
     assert v.drop_counts()["param_rejected"] == 3
 

@@ -1,0 +1,71 @@
+"""What a run allocates, against the caps of mars_link/limits.py and run_log.PLOT_ROWS_MAX.
+
+    python benchmarks/bench_limits.py [--quick]
+
+Each case runs in a fresh interpreter (so one case's memory does not hide in another's) and reports
+the peak of Python allocations (tracemalloc) and the peak resident size:
+  * memory per trial: `run_scenario` on hover_1x1 with 2 and 12 trials of 2 s; the difference / 10;
+  * memory per simulated second: hover_3x2 (perfect sensors) for 20, 80 and 320 s (flat once the
+    plot rows reach PLOT_ROWS_MAX, 40 s at 100 Hz);
+  * memory in the unit count: an in-process flight of 0.05 s on square layouts up to 14x14 (196
+    units; the cap is 199).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+
+CASE = r"""
+import json, resource, sys, time, tracemalloc
+from mars_link.assembly import parse_layout
+from mars_link.runner import run_scenario
+from mars_link.scenario import load_scenario
+kind, arg = sys.argv[1], float(sys.argv[2])
+tracemalloc.start()
+t0 = time.perf_counter()
+if kind == "trials":
+    sc = load_scenario("hover_1x1"); sc.sim.duration_s = 2.0
+    run_scenario(sc, None, trials=int(arg), plots=False)
+elif kind == "duration":
+    sc = load_scenario("hover_3x2"); sc.sim.duration_s = arg; sc.sim.noise = False
+    run_scenario(sc, None, plots=False)
+else:
+    n = int(arg)
+    sc = load_scenario("hover_3x2"); sc.layout = parse_layout(",".join(["X" * n] * n)); sc.sim.duration_s = 0.05
+    run_scenario(sc, None, plots=False)
+print(json.dumps({"peak_mb": tracemalloc.get_traced_memory()[1] / 1e6,
+                  "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
+                  "wall_s": time.perf_counter() - t0}))
+"""
+
+
+def case(kind: str, arg: float) -> dict:
+    out = subprocess.run([sys.executable, "-c", CASE, kind, str(arg)], capture_output=True, text=True, check=True)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="smaller cases (a look, not the documented numbers)")
+    args = ap.parse_args()
+    lo_t, hi_t = (2, 6) if args.quick else (2, 12)
+    a, b = case("trials", lo_t), case("trials", hi_t)
+    print(f"trials {lo_t}: peak {a['peak_mb']:.2f} MB; {hi_t}: {b['peak_mb']:.2f} MB -> "
+          f"{(b['peak_mb'] - a['peak_mb']) / (hi_t - lo_t) * 1e3:.1f} KB per trial")
+    durations = (10.0, 40.0, 80.0) if args.quick else (20.0, 80.0, 320.0)
+    runs = [case("duration", d) for d in durations]
+    for (d0, r0), (d1, r1) in zip(zip(durations, runs), zip(durations[1:], runs[1:])):
+        print(f"duration {d0:.0f} -> {d1:.0f} s: peak {r0['peak_mb']:.2f} -> {r1['peak_mb']:.2f} MB, "
+              f"{(r1['peak_mb'] - r0['peak_mb']) / (d1 - d0) * 1e3:.1f} KB per simulated second "
+              f"({d1 / r1['wall_s']:.1f}x real time)")
+    for n in ((2, 4, 8) if args.quick else (2, 4, 8, 12, 14)):
+        r = case("units", n)
+        print(f"{n}x{n} = {n * n:3d} units: peak {r['peak_mb']:7.2f} MB of Python allocations, "
+              f"resident {r['rss_mb']:6.1f} MB, {r['wall_s']:.1f} s")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,134 @@
+"""A full disk or a write error stops logging, never the flight (issue 18, class 6).
+
+`vehicle --tlog` writes into a real 16 KB tmpfs (a private mount namespace: `unshare -rm`; skipped
+where the machine allows none): the log fills, the vehicle says so once (STATUSTEXT), keeps flying
+(takeoff measured in its JSBSim truth) and ends with one "logging stopped" line, exit 0.
+`run --mode sitl` gets an injected ENOSPC (outputs.INJECT_ENOSPC_ENV, the same code path) on the
+world's truth log and a unit's .tlog, the in-process `run` on its telemetry.csv: the flight runs its
+full length, exit 0, and summary.json and the printed summary say which logs stopped and why."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import socket
+import subprocess
+import sys
+import time
+
+import pytest
+from pymavlink.dialects.v20 import common as mavlink
+
+from firmware_models.udp_runner import read_status, stop_unit
+from mars_link.outputs import INJECT_ENOSPC_ENV
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
+LOOP = "127.0.0.1"
+
+
+def _can_mount_tmpfs(where) -> bool:
+    if shutil.which("unshare") is None:
+        return False
+    probe = subprocess.run(["unshare", "-rm", "sh", "-c", 'mount -t tmpfs -o size=16k tmpfs "$0"', str(where)],
+                           capture_output=True, timeout=10)
+    return probe.returncode == 0
+
+
+def test_vehicle_tlog_on_a_full_tmpfs_keeps_flying(tmp_path) -> None:
+    small = tmp_path / "small"
+    small.mkdir()
+    if not _can_mount_tmpfs(small):
+        pytest.skip("no private tmpfs mount here (unshare -rm)")
+    api = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    api.bind((LOOP, 0))
+    api.settimeout(0.2)
+    gcs_sink = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # (the GCS link's copies go elsewhere)
+    gcs_sink.bind((LOOP, 0))
+    status = tmp_path / "status.json"
+    cmd = ["unshare", "-rm", "sh", "-c", 'mount -t tmpfs -o size=16k tmpfs "$0" && exec "$@"', str(small),
+           sys.executable, "-m", "mars_link.cli", "vehicle", "--tlog", str(small / "vehicle.tlog"),
+           "--status-file", str(status), "--api-port", str(api.getsockname()[1]), "--api-bind", "0",
+           "--gcs-port", str(gcs_sink.getsockname()[1]), "--gcs-bind", "0", "--duration", "25"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    mav, dec = mavlink.MAVLink(None, 245, 190), mavlink.MAVLink(None, 245, 190)
+    texts: list[str] = []
+    try:
+        deadline = time.monotonic() + 60
+        while not status.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        st = read_status(status)
+        unit = ("127.0.0.1", st["endpoints"]["api"]["from"])
+        sysid = st["sysid"]
+
+        def pump(seconds: float) -> None:
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                try:
+                    data, _ = api.recvfrom(65536)
+                except OSError:
+                    continue
+                texts.extend(m.text for m in dec.parse_buffer(data) or [] if m.get_type() == "STATUSTEXT")
+
+        def command(cmd: int, *p: float) -> None:
+            p = list(p) + [math.nan] * (7 - len(p))
+            api.sendto(bytes(mavlink.MAVLink_command_long_message(sysid, 1, cmd, 0, *p).pack(mav)), unit)
+
+        while "logging_stopped" not in read_status(status) and time.monotonic() < deadline:
+            pump(0.5)
+        st = read_status(status)
+        assert "No space left on device" in st["logging_stopped"], st.get("logging_stopped")
+        z0 = st["truth_position_ned_m"][2]
+        command(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+        pump(0.5)
+        command(mavlink.MAV_CMD_NAV_TAKEOFF)
+        pump(8.0)
+        st = read_status(status)
+        assert st["truth_position_ned_m"][2] < z0 - 1.5, "the assembly did not climb after its log stopped"
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            stop_unit(proc)
+        api.close()
+        gcs_sink.close()
+    off = [t for t in texts if t.startswith("Log off")]
+    assert off == ["Log off: vehicle.tlog: No space left on device"], texts
+    assert proc.returncode == 0, err
+    assert [ln for ln in out.splitlines() if ln.startswith("logging stopped:")] == [
+        "logging stopped: vehicle.tlog: No space left on device (logging stopped)"]
+    assert "Traceback" not in err
+
+
+def test_run_mode_sitl_with_failing_logs_flies_to_the_end(tmp_path) -> None:
+    out = tmp_path / "run"
+    env = {**__import__("os").environ, INJECT_ENOSPC_ENV: "50000:world_truth.csv,unit3.tlog"}
+    done = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_3x2", "--mode", "sitl", "--transport",
+                           "udp", "--duration", "6", "--quiet", "--out", str(out)],
+                          capture_output=True, text=True, timeout=200, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]  # the flight completed: exit 0 as without the failure
+    assert "Traceback" not in done.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] and summary["sim_time_s"] == pytest.approx(6.0, abs=0.02)
+    assert summary["sitl"]["dead_units"] == []  # no unit died of its log
+    log = summary["logging"]
+    assert not log["complete"] and len(log["stopped"]) == 2
+    assert any(s.startswith("world_truth.csv: No space left on device") for s in log["stopped"])
+    assert any(s.startswith("unit3.tlog: No space left on device") for s in log["stopped"])
+    world = json.loads((out / "world_summary.json").read_text())
+    assert world["sim_time_s"] == pytest.approx(6.0, abs=0.02) and world["logging"]["dropped_writes"] > 0
+    unit3 = json.loads((out / "unit3_status.json").read_text())
+    assert unit3["stats"]["hil_steps"] >= 590  # the unit flew every step after its log stopped
+    assert "logging stopped" in done.stdout
+
+
+def test_inprocess_run_with_a_failing_log_flies_to_the_end(tmp_path) -> None:
+    out = tmp_path / "run"
+    env = {**__import__("os").environ, INJECT_ENOSPC_ENV: "20000:telemetry.csv"}
+    done = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_1x1", "--duration", "3", "--quiet",
+                           "--out", str(out)], capture_output=True, text=True, timeout=120, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] and summary["sim_time_s"] == pytest.approx(3.0, abs=0.02)
+    assert summary["logging"]["stopped_reason"] == "telemetry.csv: No space left on device (logging stopped)"
+    assert (out / "telemetry.csv").stat().st_size <= 20000
+    assert "logging stopped" in done.stdout and "Traceback" not in done.stderr

@@ -1,0 +1,85 @@
+"""Process hygiene (issue 18, class 3): SIGKILL of `run --mode sitl` or `sitl up` leaves no child alive
+2 s later (checked by PID), and a run directory that a live run owns is refused to a second run."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+pytestmark = [pytest.mark.sitl, pytest.mark.timeout(180)]
+CHILDREN = 8  # world, coordinator, 6 units of the 3x2
+
+
+def _ppid_and_state(pid: int) -> tuple[int, str] | None:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return None
+    fields = stat.rsplit(")", 1)[1].split()
+    return int(fields[1]), fields[0]
+
+
+def _children(parent: int) -> list[int]:
+    out = []
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            got = _ppid_and_state(int(entry))
+            if got is not None and got[0] == parent:
+                out.append(int(entry))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    got = _ppid_and_state(pid)
+    return got is not None and got[1] != "Z"  # a zombie has ended (it only waits to be reaped)
+
+
+def _start(argv: list[str]) -> tuple[subprocess.Popen, list[int]]:
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", *argv], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 60
+    kids: list[int] = []
+    while time.monotonic() < deadline and proc.poll() is None:
+        kids = [k for k in _children(proc.pid) if _alive(k)]
+        if len(kids) >= CHILDREN:
+            break
+        time.sleep(0.2)
+    assert len(kids) == CHILDREN, (kids, proc.poll())
+    time.sleep(2.0)  # the children are past their start-up: flying
+    return proc, kids
+
+
+@pytest.mark.parametrize("verb", [["sitl", "up", "hover_3x2", "--any-bind", "--speed", "1"],
+                                  ["run", "hover_3x2", "--mode", "sitl", "--quiet"]])
+def test_sigkill_of_the_parent_leaves_no_child(tmp_path, verb) -> None:
+    out = tmp_path / "run"
+    proc, kids = _start([*verb, "--out", str(out)])
+    try:
+        # while it lives, the run directory is its own: a second run, even with --force, is refused (exit 1)
+        second = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_3x2", "--duration", "0.5",
+                                 "--quiet", "--out", str(out), "--force"], capture_output=True, text=True, timeout=120)
+        assert second.returncode == 1 and "another run is using this directory" in second.stderr, second.stderr
+        assert len(second.stderr.strip().splitlines()) == 1
+        assert (out / "world_truth.csv").exists()  # nothing of the live run was cleared
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(10)
+        time.sleep(2.0)
+        alive = [k for k in kids if _alive(k)]
+        assert alive == [], f"children still alive 2 s after SIGKILL of the parent: {alive}"
+        # the directory is free again (its owner died): the same second run now goes through
+        again = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_3x2", "--duration", "0.5",
+                                "--quiet", "--out", str(out), "--force"], capture_output=True, text=True, timeout=120)
+        assert again.returncode == 0, again.stderr
+    finally:
+        for k in kids:  # only if the test failed: end what we started, by PID
+            if _alive(k):
+                os.kill(k, signal.SIGKILL)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -1,0 +1,110 @@
+"""The lockstep survives a paused unit (issue 18, class 4): SIGSTOP of one unit process for 5 s
+mid-flight, then SIGCONT, under `sitl up` and under `run --mode sitl`. The unit is lost (and stays
+lost when it comes back), the coordinator stays up and the 3x2 finishes its hover on FTC (qp) in the
+world's truth. Before, the resumed unit's backlog packet set the step's time, every live unit's packet
+looked stale, all were lost and the coordinator ended ("no telemetry") about 1 s after the resume."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from firmware_models.udp_runner import read_status
+
+pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(300)]
+ROOT = Path(__file__).resolve().parent.parent
+DURATION_S = 14.0
+PAUSED_UNIT = 3
+
+
+def _scenario(tmp_path: Path) -> str:
+    text = (ROOT / "scenarios" / "hover_3x2.toml").read_text().replace('ftc = "none"', 'ftc = "qp"')
+    text = text.replace("duration_s = 8.0", f"duration_s = {DURATION_S}")
+    path = tmp_path / "hover_qp.toml"
+    path.write_text(text)
+    return str(path)
+
+
+def _sim_time(out: Path) -> float:
+    try:
+        return read_status(out / "world_status.json", 0.5)["sim_time_s"]
+    except (FileNotFoundError, json.JSONDecodeError):
+        return 0.0
+
+
+def _unit_pid(parent: int, unit: int, timeout_s: float = 60.0) -> int:
+    """The PID of `python -m sitl.lockstep unit ... --unit N`, a child of `parent` (found in /proc)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        for entry in os.listdir("/proc"):
+            if not entry.isdigit():
+                continue
+            try:
+                stat = Path(f"/proc/{entry}/stat").read_text()
+                argv = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) != parent or b"--unit" not in argv:
+                continue
+            if argv[argv.index(b"--unit") + 1] == str(unit).encode():
+                return int(entry)
+        time.sleep(0.1)
+    raise AssertionError(f"unit {unit} process not found")
+
+
+def _pause_mid_flight(proc: subprocess.Popen, out: Path) -> None:
+    pid = _unit_pid(proc.pid, PAUSED_UNIT)
+    deadline = time.monotonic() + 90
+    while _sim_time(out) < 4.0 and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    os.kill(pid, signal.SIGSTOP)
+    try:
+        time.sleep(5.0)
+    finally:
+        os.kill(pid, signal.SIGCONT)
+
+
+def _check_the_flight(out: Path) -> None:
+    coordinator = json.loads((out / "coordinator_summary.json").read_text())
+    assert [x["unit"] for x in coordinator["lost_units"]] == [PAUSED_UNIT], coordinator["lost_units"]
+    world = json.loads((out / "world_summary.json").read_text())
+    assert world["sim_time_s"] == pytest.approx(DURATION_S, abs=0.02)
+    assert world["dead_units"] == [PAUSED_UNIT]
+    assert "no telemetry" not in (out / "coordinator.log").read_text()
+    # the world's truth: every other unit still at hover height at the end (no fail-safe landing)
+    status = read_status(out / "world_status.json")
+    heights = {int(u): -s["position_ned_m"][2] for u, s in status["units"].items()}
+    others = [h for u, h in heights.items() if u != PAUSED_UNIT]
+    assert min(others) > 0.6, heights
+
+
+def _fly_with_a_pause(argv: list[str], out: Path) -> None:
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", *argv, "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        _pause_mid_flight(proc, out)
+        _, stderr = proc.communicate(timeout=150)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, stderr[-2000:]
+    _check_the_flight(out)
+
+
+def test_sitl_up_survives_a_paused_unit(tmp_path: Path) -> None:
+    _fly_with_a_pause(["sitl", "up", _scenario(tmp_path), "--any-bind", "--speed", "1"], tmp_path / "up")
+
+
+def test_run_mode_sitl_survives_a_paused_unit(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    _fly_with_a_pause(["run", _scenario(tmp_path), "--mode", "sitl", "--quiet"], out)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] and summary["max_error_m"] < 1.0, (summary["completed"], summary["max_error_m"])
