@@ -8,7 +8,7 @@ link in lockstep (a step happens only when every live unit has answered for the 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import KW_ONLY, dataclass, field
 
 import numpy as np
 
@@ -34,6 +34,7 @@ class WorldConfig:
     seed: int = 1
     noise: bool = True
     position_every: int = 1  # position samples every n-th exchange
+    _: KW_ONLY  # (keyword-only from here: a positional config cannot slide into the wrong field)
     dock_tolerance: DockTolerance = field(default_factory=DockTolerance)  # when facing latches close
     environment: EnvironmentParams | None = None  # wind, gusts, turbulence (sitl.environment); None = still air
     sensors: SensorParams | None = None  # the sensor figures ([sensors] profile); None = SensorParams()
@@ -414,7 +415,7 @@ class FreeUnitsWorld:
         self.unit_ids = list(range(1, n_units + 1))
         self.worlds = {
             u: World(self.model, WorldConfig(config.physics_hz, config.exchange_hz, config.seed + u - 1, False,
-                                             config.position_every, config.environment),
+                                             config.position_every, environment=config.environment),
                      np.array([0.0, (u - 1) * spacing_m, 0.0]))
             for u in self.unit_ids
         }
