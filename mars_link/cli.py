@@ -62,6 +62,9 @@ def cmd_run(args) -> int:
     check_faults_controllable(scenario, model)
     if not scenario.reconfig.get("enabled"):
         check_flight(scenario, model)
+    from mars_link.flight_view import live_address
+
+    live = live_address(args)  # a busy --foxglove port: one line, exit 2, before the flight
     out = v.check_out_dir(args.out or _default_out(scenario.name), force=args.force)
     if args.force:  # else the runner creates it, after its own checks (a refused run leaves no directory)
         v.prepare_out_dir(out, force=True)
@@ -86,6 +89,7 @@ def cmd_run(args) -> int:
         summary = runner(
             scenario, out, trials=args.trials, seed=args.seed,
             on_progress=lambda i, frac: progress.update(task, completed=i + frac), **pacing,
+            mcap=not args.no_mcap, live=live,
         )
     print_summary(summary, out)
     return 0 if summary["completed"] else 1
@@ -242,6 +246,9 @@ def build_parser() -> argparse.ArgumentParser:
     from mars_link.sitl_mode import add_sitl_run_arguments, add_coordinator_arguments, cmd_coordinator
 
     add_sitl_run_arguments(run)  # --transport, --realtime, --link-profile (with --mode sitl)
+    from mars_link.flight_view import add_view_arguments
+
+    add_view_arguments(run)  # --no-mcap, --foxglove [HOST:PORT]
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
 

@@ -39,6 +39,7 @@ from mars_link.build import (make_estimator, make_piece_coordinator, make_trajec
 from mars_link.coordinator import Coordinator
 from mars_link.engine import InProcessUnits
 from mars_link.errors import UserInputError
+from mars_link.flight_view import mission_point, open_view
 from mars_link.messages import RotorCommand, SensorPacket
 from mars_link.state import ImuSample, PositionSample
 from mars_link.reconfig.flyability import FlyabilityRule
@@ -180,7 +181,7 @@ def unhoverable_pieces(plan: ReconfigPlan, model: AssemblyModel, eta: np.ndarray
 
 def run_reconfig_trial(
     scenario: Scenario, seed: int, out_dir: Path | None = None,
-    on_progress: Callable[[float], None] | None = None,
+    on_progress: Callable[[float], None] | None = None, view=None,
 ) -> ReconfigResult:
     from sitl.docking import DockTolerance, dock_check
     from sitl.physics import JsbsimBody
@@ -345,6 +346,7 @@ def run_reconfig_trial(
                                    "text": f"Dock latched: {chk.position_error_m * 100:.1f} cm"})
                     states = {key: world.body_state(p.units[0]) for key, p in pieces.items()}
             # mission metric on the truth
+            view_point = None
             if executor.mission_active(t):
                 tracked = scenario.tracked_unit()
                 key = next(kk for kk in pieces if tracked is None or tracked in kk)
@@ -357,6 +359,9 @@ def run_reconfig_trial(
                 metrics.add_error(err)
                 if err >= DIVERGENCE_ERROR_M or not math.isfinite(err):
                     metrics.mark_diverged(t, err, tilt_deg(s.quaternion_wxyz), phase=executor.phase)
+                if view is not None:
+                    view_point = mission_point(mission.sample(executor.mission_time(t)), p.coordinator.last, off,
+                                               commands, model)
                 row = [t, executor.mission_time(t), *ref, *pos, err, len(pieces)]
                 tel_rows.append(row)
                 if tel_f:
@@ -375,6 +380,8 @@ def run_reconfig_trial(
                         unit_rows.append(row)
                         if units_f:
                             units_f.write(",".join(f"{x:.6g}" for x in row) + "\n")
+            if view is not None:  # run.mcap / the live view (mars_link.flight_view)
+                view.write_step(t, world, view_point, units.eta(model.unit_ids), [events, executor.events], units.dead)
             if metrics.diverged:
                 events.append(dict(metrics.divergence, text=f"Diverged ({executor.phase})"[:50]))
                 break
@@ -387,6 +394,8 @@ def run_reconfig_trial(
                 units_f.flush()
     finally:
         world.close()
+        if view is not None:
+            view.finish(event_lists=[events, executor.events])
         for f in (tel_f, units_f):
             if f:
                 f.close()
@@ -408,12 +417,20 @@ def run_reconfig_trial(
 
 def run_reconfig_scenario(
     scenario: Scenario, out_dir: Path | None = None, trials: int = 1, seed: int | None = None,
-    on_progress: Callable[[int, float], None] | None = None, plots: bool = True,
+    on_progress: Callable[[int, float], None] | None = None, plots: bool = True, mcap: bool = True, live=None,
 ) -> dict:
-    """One reconfiguration flight; the run directory gets summary.json, CSVs and plots/."""
+    """One reconfiguration flight; the run directory gets summary.json, CSVs, plots/ and run.mcap (unless not
+    `mcap`; `live`: HOST:PORT of a live Foxglove view)."""
     seed = scenario.sim.seed if seed is None else seed
     cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
-    r = run_reconfig_trial(scenario, seed, out_dir, cb)
+    view = None
+    if (mcap and out_dir is not None) or live is not None:
+        model = scenario.model()
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+        view = open_view(out_dir, model, scenario, scenario.sim.control_hz, make_trajectory(scenario, model),
+                         scenario.sim.duration_s or math.inf, live, scenario.tracked_unit(), mcap)
+    r = run_reconfig_trial(scenario, seed, out_dir, cb, view)
     summary = {
         "scenario": scenario.name, "source": scenario.source, "mode": "inproc-reconfig",
         "layout": list(scenario.layout), "preset": scenario.preset, "controller": scenario.controller,
