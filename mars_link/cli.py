@@ -178,6 +178,9 @@ def cmd_sitl(args) -> int:
         check_faults_controllable(setup.scenario, setup.model)
         if vehicle is None:  # --vehicle flies until Ctrl-C: no flight length to check
             check_flight(setup.scenario, setup.model)
+    from mars_link.flight_view import world_view_args
+
+    view = world_view_args(args, docked=setup.docked)  # a busy --foxglove port: one line, exit 2, before any process
     out = v.check_out_dir(args.out or _default_out(name + "-sitl"), force=args.force)
     if args.signing_key_file:
         from firmware_models.signing import load_key
@@ -194,13 +197,13 @@ def cmd_sitl(args) -> int:
         from mars_link.sitl_mode import sitl_up_command
 
         v.prepare_out_dir(out, force=args.force)
-        return sitl_up_command(args, path, out, vehicle)
+        return sitl_up_command(args, path, out, vehicle, view)
     from sitl.launcher import ClientPorts
 
     clients = ClientPorts(args.gcs_port, [args.api_port + i for i in range(n)], args.any_bind)
     v.prepare_out_dir(out, force=args.force)
     code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,
-                   signing_key_file=args.signing_key_file, vehicle=vehicle)
+                   signing_key_file=args.signing_key_file, vehicle=vehicle, view=view)
     print(f"run directory: {out}")
     return code
 
@@ -282,6 +285,7 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--vehicle-gcs-port", type=int, default=None,
                       help="with --vehicle: its ground-station port (default: --gcs-port, 14550)")
     sitl.set_defaults(func=cmd_sitl)
+    add_view_arguments(sitl)  # --no-mcap, --foxglove [HOST:PORT] (served by the world process)
     from mars_link.sitl_mode import add_sitl_up_arguments
 
     add_sitl_up_arguments(sitl)  # --transport zenoh|udp and its options (mars_link.sitl_mode)

@@ -41,6 +41,7 @@ NED_IN_ENU_WXYZ = (0.0, _S, _S, 0.0)
 ARROW_UP_WXYZ = (_S, 0.0, _S, 0.0)
 FLUSH_EVERY_S = 1.0  # simulated seconds between forced chunk ends (a crash loses at most this much)
 DEFAULT_LIVE = "127.0.0.1:8765"
+LIVE_SEND_S = 0.02  # with a live view, rows reach the writer at least this often (wall time)
 TOPICS = ("/tf", "/scene", "/reference", "/truth", "/estimate", "/rotors", "/error", "/events")
 
 ROTORS_SCHEMA = {"type": "object", "properties": {
@@ -60,7 +61,7 @@ class ViewRates:
     scene_hz: float = 10.0
     rotors_hz: float = 20.0  # as rotors.csv
     live_pose_hz: float = 30.0
-    live_scene_hz: float = 10.0
+    live_scene_hz: float = 15.0
 
 
 def every_n_steps(control_hz: float, rate_hz: float) -> int:
@@ -179,6 +180,8 @@ class FlightView:
         self._last_ns = 0
         self.index = 0
         self._unit_index = {u: i for i, u in enumerate(model.unit_ids)}
+        self._live = live is not None  # rows then also go out every LIVE_SEND_S of wall time
+        self._next_send = 0.0
         config = {"model": model, "control_hz": control_hz, "mcap_path": None if mcap_path is None else str(mcap_path),
                   "live": live, "tracked_unit": tracked_unit, "extras": extras or SceneExtras(),
                   "rates": rates or ViewRates(), "metadata": metadata or {}}
@@ -273,7 +276,7 @@ class FlightView:
             at += 7
         self._n += 1
         self.index += 1
-        if self._n == self.BATCH:
+        if self._n == self.BATCH or (self._live and time.monotonic() >= self._next_send):
             self._flush_rows()
         self._events(event_lists, ns)
 
@@ -286,6 +289,8 @@ class FlightView:
                 self._events_seen[i] = len(events)
 
     def _flush_rows(self) -> None:
+        if self._live:
+            self._next_send = time.monotonic() + LIVE_SEND_S
         if self._n:
             self._queue.put(("rows", self._buf[:self._n].copy()))
             self._n = 0
@@ -424,7 +429,7 @@ class _ViewWriter:
                 _log_all(file, msgs, ns)
             if live_pose:
                 _log_all(live, msgs, ns)
-                self.live_next["pose"] = now + 1.0 / self.rates.live_pose_hz
+                self.live_next["pose"] = _next_time(self.live_next["pose"], now, self.rates.live_pose_hz)
         c = self.cols
         rotors_due = file is not None and k % self.every_rotors == 0
         live_rotors = live is not None and now >= self.live_next["rotors"] and live.rotors.has_sinks()
@@ -434,7 +439,7 @@ class _ViewWriter:
                 file.rotors.log(msg, log_time=ns)
             if live_rotors:
                 live.rotors.log(msg, log_time=ns)
-                self.live_next["rotors"] = now + 1.0 / self.rates.live_pose_hz
+                self.live_next["rotors"] = _next_time(self.live_next["rotors"], now, self.rates.live_pose_hz)
         if row[1] and k % self.every_scene == 0:
             self.trail.append((float(row[2]), float(row[3]), float(row[4])))
         scene_due = file is not None and k % self.every_scene == 0
@@ -445,7 +450,7 @@ class _ViewWriter:
                 file.scene.log(scene, log_time=ns)
             if live_scene:
                 live.scene.log(scene, log_time=ns)
-                self.live_next["scene"] = now + 1.0 / self.rates.live_scene_hz
+                self.live_next["scene"] = _next_time(self.live_next["scene"], now, self.rates.live_scene_hz)
         if self.writer is not None and (ns >= self.next_flush_ns or now >= self.next_flush_wall):
             self.writer.flush()  # ends the chunk: a crash keeps everything up to here
             self.next_flush_ns = ns + int(FLUSH_EVERY_S * 1e9)
@@ -579,6 +584,12 @@ class _ViewWriter:
                 ch.events.log(msg, log_time=ns)
 
 
+def _next_time(due: float, now: float, hz: float) -> float:
+    """The next live send: on a fixed grid (the average rate is `hz`), re-anchored after a stall."""
+    period = 1.0 / hz
+    return due + period if now - due < period else now + period
+
+
 def _log_all(ch: _Channels, msgs: dict, ns: int) -> None:
     for name, m in msgs.items():
         getattr(ch, name).log(m, log_time=ns)
@@ -707,3 +718,13 @@ def mission_point(reference, record, offset_frd_m: np.ndarray, commands, model) 
     for c in commands:
         cmd[model.unit_slots(c.unit_id)] = c.thrusts_n
     return ViewPoint(reference.position_ned_m, reference.yaw_rad, est_p, est_q, cmd)
+
+
+def world_view_args(args, docked: bool = True) -> tuple[str, ...]:
+    """The SITL world process's view options from --no-mcap / --foxglove (checked now: one line, exit 2)."""
+    live = live_address(args)
+    if not docked:
+        if live is not None:
+            raise UserInputError("--foxglove shows a docked assembly (a scenario or --layout), not --units")
+        return ()
+    return (() if getattr(args, "no_mcap", False) else ("--mcap",)) + (() if live is None else ("--foxglove", live))

@@ -216,3 +216,81 @@ def test_busy_foxglove_port_one_line_exit_2_before_flight(tmp_path, command):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "--foxglove" in lines[0] and str(port) in lines[0], proc.stderr
     assert not (out / "summary.json").exists() and not (out / "run.mcap").exists()
+
+
+# ----------------------------------------------------------------------------- live view (Foxglove WebSocket)
+def free_tcp_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+async def subscribe_and_listen(url: str, topics: tuple[str, ...], seconds: float) -> dict[str, list[tuple[float, int]]]:
+    """A Foxglove WebSocket client (websockets package; subprotocol foxglove.sdk.v1, the name foxglove-sdk's
+    server gives Foxglove's WebSocket protocol, the same messages as foxglove.websocket.v1): subscribe to
+    `topics` once advertised, then (arrival wall time, message log time ns) per topic for `seconds`."""
+    import asyncio
+    import struct
+
+    import websockets
+
+    got: dict[str, list[tuple[float, int]]] = {t: [] for t in topics}
+    async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"], max_size=None) as ws:
+        assert ws.subprotocol == "foxglove.sdk.v1"
+        subs: dict[int, str] = {}
+        loop = asyncio.get_running_loop()
+        end = None
+        while end is None or loop.time() < end:
+            try:
+                frame = await asyncio.wait_for(ws.recv(), timeout=1.0)
+            except asyncio.TimeoutError:
+                continue
+            if isinstance(frame, str):
+                msg = json.loads(frame)
+                if msg.get("op") == "advertise":
+                    new = [{"id": len(subs) + i + 1, "channelId": ch["id"]}
+                           for i, ch in enumerate(c for c in msg["channels"] if c["topic"] in topics)]
+                    for sub, ch in zip(new, [c for c in msg["channels"] if c["topic"] in topics]):
+                        subs[sub["id"]] = ch["topic"]
+                    if new:
+                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                        end = end or loop.time() + seconds
+                continue
+            if frame[0] == 0x01:  # message data: opcode, subscription id (u32), log time (u64 ns), payload
+                sub_id, log_time = struct.unpack_from("<IQ", frame, 1)
+                if sub_id in subs:
+                    got[subs[sub_id]].append((loop.time(), log_time))
+    return got
+
+
+@pytest.mark.sitl
+def test_live_foxglove_view_of_sitl_up(tmp_path):
+    """`mars-link sitl up --foxglove` (world process hosts the server, real time): a Foxglove WebSocket client
+    subscribed to /scene and /tf receives both at >= 10 Hz with advancing times."""
+    import asyncio
+
+    port = free_tcp_port()
+    out = tmp_path / "sitl"
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sitl", "up", "--layout", "XXX,XXX", "--speed", "1",
+                             "--any-bind", "--foxglove", f"127.0.0.1:{port}", "--out", str(out), "--force"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:  # the world's server is up once the port takes connections
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+                break
+            except OSError:
+                assert proc.poll() is None, proc.stdout.read()[-2000:]
+                time.sleep(0.2)
+        got = asyncio.run(subscribe_and_listen(f"ws://127.0.0.1:{port}", ("/scene", "/tf"), 4.0))
+    finally:
+        proc.terminate()  # sitl up stops every child it started
+        proc.wait(30)
+    for topic, msgs in got.items():
+        arrivals = [a for a, _ in msgs]
+        times = [t for _, t in msgs]
+        span = arrivals[-1] - arrivals[0]
+        assert len(msgs) >= 20 and (len(msgs) - 1) / span >= 10.0, (topic, len(msgs), span)
+        assert all(b > a for a, b in zip(times, times[1:])), topic  # simulation time advances
+        assert (times[-1] - times[0]) / 1e9 > 0.5 * span  # ~real time (the world is paced at 1x)
