@@ -195,6 +195,7 @@ class FlightView:
         self._sender = threading.Thread(target=self._send_loop, name="mars-link-view-sender", daemon=True)
         self._sender.start()
         self.closed = False
+        self.event_lists: list[list[dict]] | None = None  # the run's event lists, when not the engine's own
 
     # ----------------------------------------------------------------- Engine observer
     def on_step(self, engine, view) -> bool:
@@ -210,7 +211,7 @@ class FlightView:
                 est_p = rec.estimate.position_ned_m + quat_to_rotmat(est_q) @ f.tracked_offset_frd_m
             point = ViewPoint(rec.reference.position_ned_m, rec.reference.yaw_rad, est_p, est_q, rec.thrusts_n)
         self.write_step(view.t_s, f.world, point, f.units.eta(f.model.unit_ids),
-                        [engine.events, f.coordinator.events], dead=f.units.dead)
+                        self.event_lists or [engine.events, f.coordinator.events], dead=f.units.dead)
         return False
 
     def finish(self, engine=None, event_lists: list[list[dict]] | None = None, timeout_s: float = 60.0) -> None:
@@ -218,7 +219,7 @@ class FlightView:
         if self.closed:
             return
         if engine is not None:
-            event_lists = [engine.events, engine.flight.coordinator.events]
+            event_lists = self.event_lists or [engine.events, engine.flight.coordinator.events]
         if event_lists:
             self._events(event_lists, self._last_ns)
         self.close(timeout_s)

@@ -451,6 +451,9 @@ def run_reconfig_scenario(
         write_json(out_dir / "summary.json", summary)
         if plots:
             write_reconfig_plots(out_dir, r)
+            from mars_link.replay_gif import write_flight_gif
+
+            write_flight_gif(out_dir / "plots" / "flight.gif", r.unit_rows, r.events)  # the animated replay
     return summary
 
 
