@@ -41,6 +41,9 @@ NED_IN_ENU_WXYZ = (0.0, _S, _S, 0.0)
 ARROW_UP_WXYZ = (_S, 0.0, _S, 0.0)
 FLUSH_EVERY_S = 1.0  # simulated seconds between forced chunk ends (a crash loses at most this much)
 DEFAULT_LIVE = "127.0.0.1:8765"
+WRITER_NICE = 5
+TRAIL_POINTS = 600  # the reference flown so far, as drawn (the last 2 min at the scene rate)
+PLAN_POINTS = 150  # the planned path, as drawn
 LIVE_SEND_S = 0.02  # with a live view, rows reach the writer at least this often (wall time)
 TOPICS = ("/tf", "/scene", "/reference", "/truth", "/estimate", "/rotors", "/error", "/events")
 
@@ -57,9 +60,9 @@ ERROR_SCHEMA = {"type": "object", "properties": {
 class ViewRates:
     """Message rates (Hz of simulated time; capped by the control rate) and the live throttle (Hz of wall time)."""
 
-    pose_hz: float = 50.0  # /tf, /reference, /truth, /estimate, /error
-    scene_hz: float = 10.0
-    rotors_hz: float = 20.0  # as rotors.csv
+    pose_hz: float = 25.0  # /tf, /reference, /truth, /estimate, /error
+    scene_hz: float = 5.0
+    rotors_hz: float = 25.0  # (on the pose steps: only those steps' rows leave the control loop)
     live_pose_hz: float = 30.0
     live_scene_hz: float = 15.0
 
@@ -180,7 +183,9 @@ class FlightView:
         self._last_ns = 0
         self.index = 0
         self._unit_index = {u: i for i, u in enumerate(model.unit_ids)}
-        self._live = live is not None  # rows then also go out every LIVE_SEND_S of wall time
+        self._live = live is not None  # every row then (throttled in the writer), out every LIVE_SEND_S of wall time
+        r = rates or ViewRates()
+        self._every = tuple(every_n_steps(control_hz, min(hz, control_hz)) for hz in (r.pose_hz, r.scene_hz, r.rotors_hz))
         self._next_send = 0.0
         config = {"model": model, "control_hz": control_hz, "mcap_path": None if mcap_path is None else str(mcap_path),
                   "live": live, "tracked_unit": tracked_unit, "extras": extras or SceneExtras(),
@@ -188,7 +193,7 @@ class FlightView:
         ctx = multiprocessing.get_context("fork")
         child, self._conn = ctx.Pipe(duplex=False)  # (receive end, send end)
         self.process = ctx.Process(target=_writer_main, args=(self._conn, child, config), name="mars-link-view",
-                                   daemon=False)
+                                   daemon=True)  # (a view never finished cannot hang the exit)
         self.process.start()
         child.close()
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
@@ -200,6 +205,10 @@ class FlightView:
     # ----------------------------------------------------------------- Engine observer
     def on_step(self, engine, view) -> bool:
         f = engine.flight
+        if not self._due(self.index):  # (most steps: no channel of the file due, no live view)
+            self.index += 1
+            self._events(self.event_lists or [engine.events, f.coordinator.events], self._last_ns)
+            return False
         rec = view.record
         point = None
         if rec is not None:
@@ -241,6 +250,11 @@ class FlightView:
         """This control step for the view (call once per step, in order)."""
         ns = max(int(round(t_s * 1e9)), self._last_ns)
         self._last_ns = ns
+        k = self.index
+        self.index += 1
+        if not self._due(k):
+            self._events(event_lists, ns)  # no channel of the file is due at this step
+            return
         bodies = world.bodies
         topology = tuple(map(id, bodies))
         if topology != self._topology:  # a split or a dock: the writer learns the new bodies first
@@ -250,6 +264,7 @@ class FlightView:
         c = self._cols
         row = self._buf[self._n]
         row[0] = t_s
+        row[c.step] = k
         if point is None:
             row[1] = 0.0
         else:
@@ -265,10 +280,10 @@ class FlightView:
             row[c.cmd] = np.nan if point.command_n is None else point.command_n
         row[c.thrust] = world.rotor_thrust_n
         row[c.eta] = eta
-        dead_units = set(dead) | set(getattr(world, "dead_units", ()))
         row[c.dead] = 0.0
-        for u in dead_units:
-            row[c.dead.start + self._unit_index[u]] = 1.0
+        for group in (dead, getattr(world, "dead_units", ())):
+            for u in group:
+                row[c.dead.start + self._unit_index[u]] = 1.0
         at = c.bodies.start
         for b in bodies:
             st = b.jsbsim.state()
@@ -276,10 +291,14 @@ class FlightView:
             row[at + 3:at + 7] = st.quaternion_wxyz
             at += 7
         self._n += 1
-        self.index += 1
         if self._n == self.BATCH or (self._live and time.monotonic() >= self._next_send):
             self._flush_rows()
         self._events(event_lists, ns)
+
+    def _due(self, k: int) -> bool:
+        """Whether step k is written: a channel of the file is due, or a live view takes every step."""
+        e = self._every
+        return self._live or not (k % e[0] and k % e[1] and k % e[2])
 
     def _events(self, event_lists: list[list[dict]], ns: int) -> None:
         for i, events in enumerate(event_lists):
@@ -325,14 +344,20 @@ class _Columns:
         self.eta = slice(14 + 2 * r, 14 + 3 * r)
         self.dead = slice(14 + 3 * r, 14 + 3 * r + u)
         self.bodies = slice(14 + 3 * r + u, 14 + 3 * r + u + 7 * u)
-        self.width = self.bodies.stop
+        self.step = self.bodies.stop  # the control step's index (which channels are due)
+        self.width = self.step + 1
 
 
 def _writer_main(parent_end, conn, config: dict) -> None:
     """The writer process: messages from the rows, to run.mcap and the live server, until the pipe closes."""
+    import os
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the flight's: this process ends at the pipe's end
+    try:
+        os.nice(WRITER_NICE)  # the control loop first when the CPUs are busy; the file catches up after
+    except OSError:
+        pass
     parent_end.close()
     writer = _ViewWriter(**config)
     try:
@@ -354,7 +379,7 @@ class _ViewWriter:
         import sys
 
         import foxglove
-        from foxglove.mcap import MCAPWriteOptions
+        from foxglove.mcap import MCAPCompression, MCAPWriteOptions
 
         _fm()
         self.model = model
@@ -368,8 +393,10 @@ class _ViewWriter:
         self.writer = self.file = self.server = self.live = None
         if mcap_path is not None:
             self.file_context = foxglove.Context()  # (kept: a collected context closes its channels)
+            # LZ4 chunks: several times cheaper to write than zstd (measured: benchmarks/bench_mcap.py), on one thread
             self.writer = foxglove.open_mcap(mcap_path, allow_overwrite=True, context=self.file_context,
-                                             writer_options=MCAPWriteOptions(compression_threads=0))
+                                             writer_options=MCAPWriteOptions(compression=MCAPCompression.Lz4,
+                                                                             compression_threads=0))
             self.file = _Channels(self.file_context)
             self.writer.write_metadata("mars-link", metadata)
         if live is not None:
@@ -380,7 +407,8 @@ class _ViewWriter:
                 self.live = _Channels(self.live_context)
             except RuntimeError as exc:
                 print(f"foxglove: live view off ({exc})", file=sys.stderr, flush=True)
-        self.bodies: list[tuple[tuple[int, ...], np.ndarray]] = []
+        self.bodies: list[tuple[tuple[int, ...], list]] = []
+        self.offsets: dict[int, np.ndarray] = {}
         self.index = 0
         self.last_ns = 0
         self.trail: list[tuple[float, float, float]] = []
@@ -393,14 +421,17 @@ class _ViewWriter:
         self.rotor_xy = [(sx * a, sy * a) for sx, sy in ROTOR_QUADRANT_SIGNS]
         self.hover_n = max(model.vehicle.unit_mass_kg * 9.80665 / 4.0, 1e-6)
         self.static_entities = self._static_entities()
+        self._cubes: dict = {}
+        self._rotors: dict = {}
 
     def take(self, item) -> None:
         kind = item[0]
         if kind == "rows":
             for row in item[1]:
                 self.row(row)
-        elif kind == "bodies":
-            self.bodies = item[1]
+        elif kind == "bodies":  # (unit offsets as SDK vectors once per topology: they stay while the body lasts)
+            self.bodies = [(units, [_vec(*o) for o in offsets]) for units, offsets in item[1]]
+            self.offsets = {u: o for units, offsets in item[1] for u, o in zip(units, offsets)}
         elif kind == "events":
             for ev in item[2]:
                 self.event(ev, max(item[1], self.last_ns))
@@ -415,8 +446,7 @@ class _ViewWriter:
 
     # ----------------------------------------------------------------- one row
     def row(self, row: np.ndarray) -> None:
-        k = self.index
-        self.index += 1
+        k = int(row[self.cols.step])
         t = float(row[0])
         ns = max(int(round(t * 1e9)), self.last_ns)
         self.last_ns = ns
@@ -435,14 +465,17 @@ class _ViewWriter:
         rotors_due = file is not None and k % self.every_rotors == 0
         live_rotors = live is not None and now >= self.live_next["rotors"] and live.rotors.has_sinks()
         if rotors_due or live_rotors:
-            msg = {"command_n": _finite(row[c.cmd]), "thrust_n": _finite(row[c.thrust]), "eta": _finite(row[c.eta])}
+            msg = _json({"command_n": _finite(row[c.cmd], 5), "thrust_n": _finite(row[c.thrust], 5),
+                         "eta": _finite(row[c.eta], 4)})
             if rotors_due:
                 file.rotors.log(msg, log_time=ns)
             if live_rotors:
                 live.rotors.log(msg, log_time=ns)
                 self.live_next["rotors"] = _next_time(self.live_next["rotors"], now, self.rates.live_pose_hz)
         if row[1] and k % self.every_scene == 0:
-            self.trail.append((float(row[2]), float(row[3]), float(row[4])))
+            self.trail.append(_FM.Point3(x=float(row[2]), y=float(row[3]), z=float(row[4])))
+            if len(self.trail) > 2 * TRAIL_POINTS:
+                del self.trail[:-TRAIL_POINTS]
         scene_due = file is not None and k % self.every_scene == 0
         live_scene = live is not None and now >= self.live_next["scene"] and live.scene.has_sinks()
         if scene_due or live_scene:
@@ -479,9 +512,9 @@ class _ViewWriter:
                                       translation=_vec(*p), rotation=_quat(q)))
             for u, off in zip(units, offsets):
                 tfs.append(FrameTransform(timestamp=stamp, parent_frame_id=name, child_frame_id=f"unit_{u}",
-                                          translation=_vec(*off), rotation=ident))
+                                          translation=off, rotation=ident))
                 if u == self.tracked_unit:
-                    truth = (p + quat_to_rotmat(q) @ off, q)
+                    truth = (p + quat_to_rotmat(q) @ self.offsets[u], q)
             if truth is None and self.tracked_unit is None:
                 truth = (p.copy(), q.copy())  # the first body's CoM
         out = {"tf": FrameTransforms(transforms=tfs)}
@@ -496,48 +529,65 @@ class _ViewWriter:
                 out["estimate"] = PoseInFrame(timestamp=stamp, frame_id="world", pose=_pose(row[7:10], row[10:14]))
             if truth is not None:
                 e = truth[0] - ref
-                out["error"] = {"error_m": float(np.linalg.norm(e)), "north_m": float(e[0]), "east_m": float(e[1]),
-                                "down_m": float(e[2])}
+                out["error"] = _json({"error_m": float(np.linalg.norm(e)), "north_m": float(e[0]), "east_m": float(e[1]),
+                                      "down_m": float(e[2])})
         return out
 
     def scene(self, ns: int, row: np.ndarray):
-        from foxglove.messages import (ArrowPrimitive, CubePrimitive, CylinderPrimitive, LinePrimitive, Point3,
-                                       SceneEntity, SceneUpdate)
+        from foxglove.messages import LinePrimitive, SceneEntity, SceneUpdate
 
         stamp = _stamp(ns)
-        v = self.model.vehicle
         c = self.cols
-        box = 0.8 * v.pitch_m
-        disc_d = 2.0 * max(v.rotor_offset_m * 0.9, 0.02)
         thrust, eta, dead = row[c.thrust], row[c.eta], row[c.dead]
-        ident = (1.0, 0.0, 0.0, 0.0)
-        blue = _rgba(0.2, 0.4, 1.0, 0.9)
         entities = []
         for i, u in enumerate(self.model.unit_ids):
             sl = self.model.unit_slots(u)
             e_u, f_u = eta[sl], thrust[sl]
             health = 0.0 if dead[i] else float(np.min(e_u))
-            cubes = [CubePrimitive(pose=_pose((0.0, 0.0, 0.0), ident), size=_vec(box, box, 0.04),
-                                   color=_health_colour(health))]
             cyls, arrows = [], []
-            for r, (x, y) in enumerate(self.rotor_xy):
+            for r in range(4):
                 share = max(0.0, float(f_u[r])) / self.hover_n  # 1 = this rotor's hover share
-                d = disc_d * min(1.5, 0.3 + 0.7 * share)
-                cyls.append(CylinderPrimitive(pose=_pose((x, y, -0.03), ident), size=_vec(d, d, 0.01),
-                                              bottom_scale=1.0, top_scale=1.0, color=_eta_colour(float(e_u[r]))))
-                length = 0.25 * v.pitch_m * min(3.0, share)
-                if length > 1e-4:
-                    arrows.append(ArrowPrimitive(pose=_pose((x, y, -0.04), ARROW_UP_WXYZ), shaft_length=length,
-                                                 shaft_diameter=0.01, head_length=0.03, head_diameter=0.025,
-                                                 color=blue))
-            entities.append(SceneEntity(timestamp=stamp, frame_id=f"unit_{u}", id=f"unit_{u}", cubes=cubes,
-                                        cylinders=cyls, arrows=arrows))
+                disc, arrow = self._rotor(r, min(150, int(round(share * 50))), int(round(min(1.0, max(0.0, e_u[r])) * 20)))
+                cyls.append(disc)
+                if arrow is not None:
+                    arrows.append(arrow)
+            entities.append(SceneEntity(timestamp=stamp, frame_id=f"unit_{u}", id=f"unit_{u}",
+                                        cubes=[self._cube(health)], cylinders=cyls, arrows=arrows))
         if len(self.trail) > 1:
             line = LinePrimitive(thickness=2.0, scale_invariant=True, color=_rgba(1.0, 0.6, 0.0, 1.0),
-                                 points=[Point3(x=a, y=b, z=z) for a, b, z in self.trail[-2000:]])
+                                 points=self.trail[-TRAIL_POINTS:])
             entities.append(SceneEntity(timestamp=stamp, frame_id="world", id="reference", lines=[line]))
         entities += [self._stamped(e, stamp) for e in self.static_entities]
         return SceneUpdate(entities=entities)
+
+    def _cube(self, health: float):
+        """The unit's box, coloured by health (three states: built once each)."""
+        key = 2 if health >= 0.999 else (1 if health > 0.0 else 0)
+        cube = self._cubes.get(key)
+        if cube is None:
+            box = 0.8 * self.model.vehicle.pitch_m
+            cube = self._cubes[key] = _FM.CubePrimitive(pose=_pose((0.0, 0.0, 0.0), (1.0, 0.0, 0.0, 0.0)),
+                                                         size=_vec(box, box, 0.04), color=_health_colour(health))
+        return cube
+
+    def _rotor(self, r: int, share_50: int, eta_20: int):
+        """Rotor r's disc (diameter by thrust, colour by eta) and thrust arrow, on a 2 % x 5 % grid (built once
+        per cell: a scene of a hovering 10x10 costs no new primitive)."""
+        key = (r, share_50, eta_20)
+        got = self._rotors.get(key)
+        if got is None:
+            v = self.model.vehicle
+            x, y = self.rotor_xy[r]
+            share = share_50 / 50.0
+            d = 2.0 * max(v.rotor_offset_m * 0.9, 0.02) * min(1.5, 0.3 + 0.7 * share)
+            disc = _FM.CylinderPrimitive(pose=_pose((x, y, -0.03), (1.0, 0.0, 0.0, 0.0)), size=_vec(d, d, 0.01),
+                                         bottom_scale=1.0, top_scale=1.0, color=_eta_colour(eta_20 / 20.0))
+            length = 0.25 * v.pitch_m * min(3.0, share)
+            arrow = None if length <= 1e-4 else _FM.ArrowPrimitive(
+                pose=_pose((x, y, -0.04), ARROW_UP_WXYZ), shaft_length=length, shaft_diameter=0.01, head_length=0.03,
+                head_diameter=0.025, color=_rgba(0.2, 0.4, 1.0, 0.9))
+            got = self._rotors[key] = (disc, arrow)
+        return got
 
     def _stamped(self, kw: dict, stamp):
         from foxglove.messages import SceneEntity
@@ -601,8 +651,22 @@ def body_frame(units) -> str:
     return f"body_u{min(units)}"
 
 
-def _finite(a) -> list:
-    return [float(x) if math.isfinite(x) else None for x in np.asarray(a, dtype=float)]
+def _finite(a, decimals: int | None = None) -> list:
+    """Numbers for JSON (rounded to `decimals`: short text, quick to write); NaN (no command known) and inf as null."""
+    a = np.asarray(a, dtype=float)
+    if decimals is not None:
+        a = np.round(a, decimals)
+    if np.isfinite(a).all():
+        return a.tolist()
+    return [float(x) if math.isfinite(x) else None for x in a]
+
+
+def _json(obj) -> bytes:
+    """JSON text for a json channel, serialised here (the C encoder: several times faster than the SDK's
+    own encoding of a dict)."""
+    import json
+
+    return json.dumps(obj, allow_nan=False, separators=(",", ":")).encode()
 
 
 def _stamp(ns: int):
@@ -653,7 +717,7 @@ def _eta_colour(eta: float):
 
 
 # ----------------------------------------------------------------------------- what a scenario brings
-def scene_extras(scenario, trajectory, duration_s: float, points: int = 300) -> SceneExtras:
+def scene_extras(scenario, trajectory, duration_s: float, points: int = PLAN_POINTS) -> SceneExtras:
     """The planned path (the trajectory sampled over the flight) and, for planned flights, the map."""
     extras = SceneExtras()
     if trajectory is not None and math.isfinite(duration_s) and duration_s > 0:

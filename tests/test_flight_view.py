@@ -101,11 +101,11 @@ def test_default_scenario_run_mcap(tmp_path):
     assert steps == 1200
     hz = 100.0
     for topic in POSE_TOPICS:
-        assert len(topics[topic]) == expected_count(steps, hz, RATES.pose_hz) == 600, topic
-    assert len(topics["/scene"]) == expected_count(steps, hz, RATES.scene_hz) == 120
-    assert len(topics["/rotors"]) == expected_count(steps, hz, RATES.rotors_hz) == 240
+        assert len(topics[topic]) == expected_count(steps, hz, RATES.pose_hz) == 1200 // round(hz / RATES.pose_hz), topic
+    assert len(topics["/scene"]) == expected_count(steps, hz, RATES.scene_hz) == 1200 // round(hz / RATES.scene_hz)
+    assert len(topics["/rotors"]) == expected_count(steps, hz, RATES.rotors_hz) == 1200 // round(hz / RATES.rotors_hz)
     check_log_times(topics)
-    assert topics["/tf"][-1][0] == int(round(11.98 * 1e9))
+    assert topics["/tf"][-1][0] == int(round((steps - round(hz / RATES.pose_hz)) / hz * 1e9))
     check_events(topics, summary)
     # /tf: unit 3 at t = 10 s where telemetry.csv puts it (the CoM and attitude of that row, unit 3's offset)
     tel = np.genfromtxt(out / "telemetry.csv", delimiter=",", names=True)
@@ -126,7 +126,7 @@ def test_default_scenario_run_mcap(tmp_path):
     assert np.linalg.norm([est.x - truth.x, est.y - truth.y, est.z - truth.z]) < 0.05
     # /rotors: the fault is in unit 3 rotor 1's eta from 5 s on; /scene draws six units' boxes and rotors
     rot = dict(topics["/rotors"])
-    assert rot[int(4.95e9)]["eta"][8] == 1.0 and rot[int(5.0e9)]["eta"][8] == 0.5
+    assert rot[int(4.96e9)]["eta"][8] == 1.0 and rot[int(5.0e9)]["eta"][8] == 0.5
     scene = topics["/scene"][-1][1]
     units = [e for e in scene.entities if e.id.startswith("unit_")]
     assert len(units) == 6 and all(len(e.cylinders) == 4 and len(e.cubes) == 1 for e in units)
@@ -225,49 +225,14 @@ def free_tcp_port() -> int:
         return s.getsockname()[1]
 
 
-async def subscribe_and_listen(url: str, topics: tuple[str, ...], seconds: float) -> dict[str, list[tuple[float, int]]]:
-    """A Foxglove WebSocket client (websockets package; subprotocol foxglove.sdk.v1, the name foxglove-sdk's
-    server gives Foxglove's WebSocket protocol, the same messages as foxglove.websocket.v1): subscribe to
-    `topics` once advertised, then (arrival wall time, message log time ns) per topic for `seconds`."""
-    import asyncio
-    import struct
-
-    import websockets
-
-    got: dict[str, list[tuple[float, int]]] = {t: [] for t in topics}
-    async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"], max_size=None) as ws:
-        assert ws.subprotocol == "foxglove.sdk.v1"
-        subs: dict[int, str] = {}
-        loop = asyncio.get_running_loop()
-        end = None
-        while end is None or loop.time() < end:
-            try:
-                frame = await asyncio.wait_for(ws.recv(), timeout=1.0)
-            except asyncio.TimeoutError:
-                continue
-            if isinstance(frame, str):
-                msg = json.loads(frame)
-                if msg.get("op") == "advertise":
-                    new = [{"id": len(subs) + i + 1, "channelId": ch["id"]}
-                           for i, ch in enumerate(c for c in msg["channels"] if c["topic"] in topics)]
-                    for sub, ch in zip(new, [c for c in msg["channels"] if c["topic"] in topics]):
-                        subs[sub["id"]] = ch["topic"]
-                    if new:
-                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
-                        end = end or loop.time() + seconds
-                continue
-            if frame[0] == 0x01:  # message data: opcode, subscription id (u32), log time (u64 ns), payload
-                sub_id, log_time = struct.unpack_from("<IQ", frame, 1)
-                if sub_id in subs:
-                    got[subs[sub_id]].append((loop.time(), log_time))
-    return got
-
-
 @pytest.mark.sitl
 def test_live_foxglove_view_of_sitl_up(tmp_path):
     """`mars-link sitl up --foxglove` (world process hosts the server, real time): a Foxglove WebSocket client
-    subscribed to /scene and /tf receives both at >= 10 Hz with advancing times."""
+    (mars_link.foxglove_probe: the websockets package) subscribed to /scene and /tf receives both at >= 10 Hz
+    with advancing times."""
     import asyncio
+
+    from mars_link.foxglove_probe import listen
 
     port = free_tcp_port()
     out = tmp_path / "sitl"
@@ -283,7 +248,7 @@ def test_live_foxglove_view_of_sitl_up(tmp_path):
             except OSError:
                 assert proc.poll() is None, proc.stdout.read()[-2000:]
                 time.sleep(0.2)
-        got = asyncio.run(subscribe_and_listen(f"ws://127.0.0.1:{port}", ("/scene", "/tf"), 4.0))
+        got = asyncio.run(listen(f"ws://127.0.0.1:{port}", ("/scene", "/tf"), 4.0))
     finally:
         proc.terminate()  # sitl up stops every child it started
         proc.wait(30)
