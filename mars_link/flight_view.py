@@ -45,6 +45,7 @@ WRITER_NICE = 5
 TRAIL_POINTS = 600  # the reference flown so far, as drawn (the last 2 min at the scene rate)
 PLAN_POINTS = 150  # the planned path, as drawn
 LIVE_SEND_S = 0.02  # with a live view, rows reach the writer at least this often (wall time)
+SEND_S = 0.1  # else this often (a paced flight's file stays within ~0.1 s + one chunk of the flight)
 TOPICS = ("/tf", "/scene", "/reference", "/truth", "/estimate", "/rotors", "/error", "/events")
 
 ROTORS_SCHEMA = {"type": "object", "properties": {
@@ -291,7 +292,7 @@ class FlightView:
             row[at + 3:at + 7] = st.quaternion_wxyz
             at += 7
         self._n += 1
-        if self._n == self.BATCH or (self._live and time.monotonic() >= self._next_send):
+        if self._n == self.BATCH or time.monotonic() >= self._next_send:
             self._flush_rows()
         self._events(event_lists, ns)
 
@@ -309,8 +310,7 @@ class FlightView:
                 self._events_seen[i] = len(events)
 
     def _flush_rows(self) -> None:
-        if self._live:
-            self._next_send = time.monotonic() + LIVE_SEND_S
+        self._next_send = time.monotonic() + (LIVE_SEND_S if self._live else SEND_S)
         if self._n:
             self._queue.put(("rows", self._buf[:self._n].copy()))
             self._n = 0
