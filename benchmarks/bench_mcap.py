@@ -34,20 +34,32 @@ from mars_link.scenario import load_scenario  # noqa: E402
 def inproc_rtf(duration_s: float, runs: int, tmp: Path) -> None:
     sc = load_scenario("spiral_3x2")
     sc.sim.duration_s = duration_s
+    import resource
+
     rtf = {True: [], False: []}
-    print(f"1. in-process RTF, spiral_3x2, {duration_s:.0f} s simulated, {runs} runs each (alternated)")
+    cpu = {True: [], False: []}
+    print(f"1. in-process RTF, spiral_3x2, {duration_s:.0f} s simulated, {runs} runs each (alternated); CPU: the run's "
+          "process + its writer process")
     for i in range(runs):
         for on in (False, True):
             out = tmp / f"rtf{i}{'on' if on else 'off'}"
+            s0, c0 = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
             t0 = time.perf_counter()
             run_scenario(copy.deepcopy(sc), out, plots=False, mcap=on)
             wall = time.perf_counter() - t0
+            s1, c1 = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+            own = s1.ru_utime + s1.ru_stime - s0.ru_utime - s0.ru_stime
+            child = c1.ru_utime + c1.ru_stime - c0.ru_utime - c0.ru_stime
             rtf[on].append(duration_s / wall)
+            cpu[on].append(own + child)
             size = (out / "run.mcap").stat().st_size if on else 0
-            print(f"   run {i + 1} mcap {'on ' if on else 'off'}: RTF {rtf[on][-1]:6.1f}x"
-                  + (f"  ({size / 1e6:.2f} MB)" if on else ""), flush=True)
+            print(f"   run {i + 1} mcap {'on ' if on else 'off'}: RTF {rtf[on][-1]:6.1f}x  CPU {own:5.2f} s"
+                  + (f" + writer {child:4.2f} s  ({size / 1e6:.2f} MB)" if on else ""), flush=True)
     on, off = statistics.median(rtf[True]), statistics.median(rtf[False])
     print(f"   median RTF: off {off:.1f}x, on {on:.1f}x -> on/off = {on / off:.3f} (target >= 0.90)")
+    c_on, c_off = statistics.median(cpu[True]), statistics.median(cpu[False])
+    print(f"   median CPU per run: off {c_off:.2f} s, on {c_on:.2f} s -> CPU-bound RTF on/off = {c_off / c_on:.3f} "
+          "(what a fully loaded machine would see)")
 
 
 def mcap_size(duration_s: float, tmp: Path) -> None:
@@ -138,13 +150,16 @@ def main() -> int:
     ap.add_argument("--rt-runs", type=int, default=2)
     ap.add_argument("--rt-duration", type=float, default=8.0)
     ap.add_argument("--skip-realtime", action="store_true")
+    ap.add_argument("--only", choices=("rtf", "size", "realtime"), default=None, help="one part only")
     a = ap.parse_args()
     if a.runs < 1 or a.rt_runs < 1 or not (a.duration > 0 and a.size_duration > 0 and a.rt_duration > 0):
         ap.error("--runs/--rt-runs must be >= 1 and durations > 0")
     with tempfile.TemporaryDirectory() as tmp:
-        inproc_rtf(a.duration, a.runs, Path(tmp))
-        mcap_size(a.size_duration, Path(tmp))
-        if not a.skip_realtime:
+        if a.only in (None, "rtf"):
+            inproc_rtf(a.duration, a.runs, Path(tmp))
+        if a.only in (None, "size"):
+            mcap_size(a.size_duration, Path(tmp))
+        if a.only in (None, "realtime") and not a.skip_realtime:
             realtime_deadlines(a.rt_runs, a.rt_duration, Path(tmp))
     return 0
 

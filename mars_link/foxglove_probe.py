@@ -35,6 +35,8 @@ async def listen(url: str, topics: tuple[str, ...] | None, seconds: float) -> di
                 frame = await asyncio.wait_for(ws.recv(), timeout=0.5)
             except asyncio.TimeoutError:
                 continue
+            except websockets.ConnectionClosed:  # the run ended: what came until then
+                break
             if isinstance(frame, str):
                 msg = json.loads(frame)
                 if msg.get("op") != "advertise":

@@ -126,7 +126,7 @@ def test_default_scenario_run_mcap(tmp_path):
     assert np.linalg.norm([est.x - truth.x, est.y - truth.y, est.z - truth.z]) < 0.05
     # /rotors: the fault is in unit 3 rotor 1's eta from 5 s on; /scene draws six units' boxes and rotors
     rot = dict(topics["/rotors"])
-    assert rot[int(4.96e9)]["eta"][8] == 1.0 and rot[int(5.0e9)]["eta"][8] == 0.5
+    assert rot[int(4.96e9)]["eta"][8] == 1.0 and rot[int(5.04e9)]["eta"][8] == 0.5
     scene = topics["/scene"][-1][1]
     units = [e for e in scene.entities if e.id.startswith("unit_")]
     assert len(units) == 6 and all(len(e.cylinders) == 4 and len(e.cubes) == 1 for e in units)
@@ -158,6 +158,11 @@ def test_reconfiguration_flight_mcap(tmp_path):
         return sum(1 for name in transforms_at(topics, t_s) if name.startswith("body_"))
 
     assert bodies_at(split - 0.5) == 1 and bodies_at(split + 1.0) == 2 and bodies_at(dock + 0.5) == 1
+    # the animated replay for people without a viewer: every unit in every frame, the flight's length
+    from PIL import Image
+
+    gif = Image.open(out / "plots" / "flight.gif")
+    assert gif.n_frames >= summary["sim_time_s"] / 0.5 - 1
     # /tf unit 3 at t = 10 s: units.csv's row
     units = np.genfromtxt(out / "units.csv", delimiter=",", names=True)
     row = units[(np.abs(units["t_s"] - 10.0) < 1e-9) & (units["unit"] == 3)][0]
@@ -259,3 +264,17 @@ def test_live_foxglove_view_of_sitl_up(tmp_path):
         assert len(msgs) >= 20 and (len(msgs) - 1) / span >= 10.0, (topic, len(msgs), span)
         assert all(b > a for a, b in zip(times, times[1:])), topic  # simulation time advances
         assert (times[-1] - times[0]) / 1e9 > 0.5 * span  # ~real time (the world is paced at 1x)
+
+
+def test_layout_file_is_the_generated_one_and_names_our_topics():
+    """tools/mars_link_foxglove_layout.json = what tools/foxglove_layout.py builds (foxglove.layouts), on our topics."""
+    import importlib.util
+
+    root = Path(__file__).resolve().parent.parent
+    spec = importlib.util.spec_from_file_location("foxglove_layout", root / "tools" / "foxglove_layout.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    text = (root / "tools" / "mars_link_foxglove_layout.json").read_text()
+    assert json.loads(text) == json.loads(mod.layout(6).to_json())
+    for topic in ("/scene", "/error.error_m", "/rotors.thrust_n[23]", "/events"):
+        assert f'"{topic}"' in text
