@@ -54,7 +54,9 @@ def main() -> None:
         run_scenario(warm, Path(tmp) / "warm", plots=False)
     with tempfile.TemporaryDirectory() as tmp:
         out = None if args.no_log else Path(tmp) / "run"
+        cpu0 = time.process_time()
         summary = run_scenario(sc, out, trials=1, plots=False)
+        cpu_s = time.process_time() - cpu0
     phys_rate = bare_physics_steps_per_s(sc)
     sim_t, wall = summary["sim_time_s"], summary["wall_time_s"]
     steps = sim_t * sc.sim.physics_hz
@@ -62,6 +64,8 @@ def main() -> None:
           f"control {sc.sim.control_hz:g} Hz, noise {sc.sim.noise}")
     print(f"sim time {sim_t:.2f} s, wall {wall:.2f} s, real-time factor {summary['real_time_factor']:.1f}x "
           f"(mean error {summary['mean_error_m']:.4f} m)")
+    print(f"CPU time {cpu_s:.2f} s: {sim_t / cpu_s:.1f}x real time per CPU second (steadier than wall time on a "
+          "shared machine)")
     bound = phys_rate / sc.sim.physics_hz
     print(f"bare JSBSim stepping with per-step rotor writes: {phys_rate:,.0f} steps/s "
           f"= {bound:.1f}x real time; full loop is {bound / summary['real_time_factor']:.2f}x slower")

@@ -78,6 +78,7 @@ class MotorModel:
         self._lo = -math.inf if params.min_thrust_n is None else params.min_thrust_n
         self._hi = math.inf if params.max_thrust_n is None else params.max_thrust_n
         self._clamp = params.min_thrust_n is not None or params.max_thrust_n is not None
+        self._plain = not self._clamp  # no limits and every eta 1: a finite command drives the motors as it is
         self._alpha_dt = math.nan
         self._alpha = 1.0
         self.nonfinite_commands = 0  # commands replaced by 0 (counted per rotor value)
@@ -96,6 +97,7 @@ class MotorModel:
             raise UserInputError(
                 f"eta {eta!r} does not fit rotor slots {slots!r} of {self.params.n_rotors}"
             ) from None
+        self._plain = not self._clamp and bool(np.all(self.eta == 1.0))
 
     def set_rotor_eta(self, unit_index: int, rotor: int, eta: float) -> None:
         """Fault on rotor 1..4 of the unit at 0-based position `unit_index` in this vector; rotor 0 =
@@ -123,7 +125,11 @@ class MotorModel:
         self.thrust_n[:] = values
 
     def setpoint(self, commands_n) -> np.ndarray:
-        """What the motors are driven towards: cleaned, clamped, eta-scaled command (a new array)."""
+        """What the motors are driven towards: cleaned, clamped, eta-scaled command (a new array, or the
+        command itself when nothing changes it: no limits, every eta 1, every value finite)."""
+        if self._plain and isinstance(commands_n, np.ndarray) and commands_n.shape == self.thrust_n.shape \
+                and math.isfinite(commands_n.sum()):
+            return commands_n
         if self._hi == math.inf and self._lo == -math.inf and isinstance(commands_n, np.ndarray) \
                 and commands_n.shape == self.thrust_n.shape:
             c = commands_n * self.eta  # no limits: the eta-scaled command in one new array

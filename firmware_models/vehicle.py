@@ -48,10 +48,10 @@ from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
 from mars_link import mavlink_codec
 from mars_link.assembly import GRAVITY_MPS2, VehicleParams, vehicle_preset
 from mars_link.errors import UserInputError
-from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
+from mars_link.messages import LATCH_ALL, ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
 from mars_link.rotations import quat_to_euler, quat_to_rotmat
 from mars_link.state import ImuSample, RigidBodyState
-from mars_link.wire import SensorFrameAssembler, SensorFrames
+from mars_link.wire import SensorFrameAssembler, SensorFrames, latch_from_message, latch_message, latch_setpoint_of, latches_open
 
 LINK_GCS, LINK_API, LINK_COORDINATOR, LINK_HIL = "gcs", "api", "coordinator", "hil"
 WORLD_SYSID = 200  # the SITL world process (sitl/lockstep.py)
@@ -347,6 +347,8 @@ class Vehicle:
         self.defer_own_state = False  # set by the lockstep unit runner: see run_deferred
         self._deferred: list = []
         self._last_rotor_usec: int | None = None  # time of the last accepted coordinator command
+        self.latch_setpoint = LATCH_ALL  # the docking latches: engaged until the coordinator opens some
+        self.latches = 0  # the latch sensor: the sides that hold a docked neighbour (from the world)
         self._await_coordinator = c.hil_await_coordinator
         self._scheduled_failures: list[tuple[float, int, float]] = []  # (sim time, rotor, eta), sorted
         self.mission = MissionProtocol(self.origin)
@@ -968,6 +970,11 @@ class Vehicle:
         if self.intake.offer(msg, self.sim_s):
             self._count("rotor_commands")
             self._last_rotor_usec = int(msg.time_usec)
+            latch = latch_setpoint_of(msg.controls[4])
+            if latch is None:
+                self._drop("latch_setpoint_invalid")  # (the rotors are taken; the latches keep their setpoint)
+            else:
+                self.latch_setpoint = latch
             if self.config.hil_await_coordinator:
                 self._await_coordinator = True  # the coordinator is back: lockstep with it again
 
@@ -1069,6 +1076,16 @@ class Vehicle:
             else:
                 self._apply_hil_state(msg)
             return
+        if t == "NAMED_VALUE_INT":
+            mask = latch_from_message(msg)
+            if mask is None:
+                self._count(f"ignored.{t}")
+                return
+            self.latches = mask  # the latch sensor, forwarded to the coordinator before this step's IMU frame
+            for name, other in self.links.items():
+                if other.policy.forward_sensors:
+                    out.append(Outgoing(name, self._pack(other, latch_message(msg.time_boot_ms / 1000.0, mask))))
+            return
         if t not in ("HIL_SENSOR", "ODOMETRY"):
             self._count(f"ignored.{t}")
             return
@@ -1122,7 +1139,7 @@ class Vehicle:
         lk = self.links[name]
         sp = self._motor_setpoint_n() / self.full_scale_n
         mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
-        controls = [float(x) for x in sp] + [0.0] * 12
+        controls = [float(x) for x in sp] + [latches_open(self.latch_setpoint)] + [0.0] * 11
         out.append(Outgoing(lk.name, self._pack(lk, mavlink.MAVLink_hil_actuator_controls_message(
             time_usec, controls, mode, 1))))
 
@@ -1146,6 +1163,7 @@ class Vehicle:
         ODOMETRY carry exactly these fields)."""
         if unit_truth is not None:
             self.set_state(unit_truth)
+        self.latches = packet.latches
         self.imu = packet.imu
         if packet.truth is not None:
             self.set_state(packet.truth)
@@ -1165,11 +1183,15 @@ class Vehicle:
             return False
         self._count("rotor_commands")
         self._last_rotor_usec = t_usec
+        self.latch_setpoint = cmd.latch_setpoint
         return True
 
     def drive_motors(self) -> ActuatorOutput:
         """The HIL answer (HIL_ACTUATOR_CONTROLS' values): what the motors are driven to for this step."""
-        return ActuatorOutput(self.sim_s, self.sysid, wire_thrust(self._motor_setpoint_n(), self.full_scale_n))
+        sp = self._motor_setpoint_n()
+        if sp is not self.intake.thrusts_n:  # (the held command itself is at wire precision already)
+            sp = wire_thrust(sp, self.full_scale_n)
+        return ActuatorOutput(self.sim_s, self.sysid, sp, self.latch_setpoint)
 
     def arm(self) -> int:
         """MAV_CMD_COMPONENT_ARM_DISARM (arm) as the coordinator sends it; returns the MAV_RESULT."""
@@ -1199,7 +1221,7 @@ class Vehicle:
             if self.source != "coordinator":
                 self.source = "coordinator"
                 self._text("Coordinator drives the rotors")
-            self.motor_commands_n = cmd.copy()
+            self.motor_commands_n = cmd  # (the intake's own array: a new one per accepted command)
             self.autopilot.landed = False
             self._account_battery()
             return

@@ -100,6 +100,17 @@ def vehicle_preset(name: str) -> VehicleParams:
         ) from None
 
 
+def layout_of_cells(cells) -> tuple[str, ...]:
+    """Layout rows ('X' = unit) of a set of (row, col) cells in any frame: only differences matter."""
+    cells = list(cells)
+    r0 = min(r for r, _ in cells)
+    c0 = min(c for _, c in cells)
+    occupied = {(r - r0, c - c0) for r, c in cells}
+    rows = max(r for r, _ in occupied) + 1
+    cols = max(c for _, c in occupied) + 1
+    return tuple("".join("X" if (r, c) in occupied else "." for c in range(cols)) for r in range(rows))
+
+
 def parse_layout(rows: list[str] | tuple[str, ...] | str) -> tuple[str, ...]:
     """Validate layout rows (a list, or one string with rows separated by commas)."""
     if isinstance(rows, str):

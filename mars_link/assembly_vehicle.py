@@ -223,7 +223,7 @@ class SimConfig:
 
 def vehicle_scenario(scenario: Scenario) -> Scenario:
     """The scenario as the vehicle flies it: setpoints are for the CoM; the trajectory is unused."""
-    if scenario.reconfig.get("enabled") or scenario.starts_free:
+    if scenario.has_pieces:
         raise UserInputError(f"{scenario.source}: [reconfig] and [assembly] start = \"free\" scenarios cannot be "
                              "flown as one vehicle yet")
     s = copy.deepcopy(scenario)

@@ -111,10 +111,12 @@ def position_every(scenario: Scenario) -> int:
 
 
 def world_config(scenario: Scenario, seed: int):
+    from sitl.docking import DockTolerance
     from sitl.world import WorldConfig
 
     return WorldConfig(physics_hz=scenario.sim.physics_hz, exchange_hz=scenario.sim.control_hz, seed=seed,
-                       noise=scenario.sim.noise, position_every=position_every(scenario))
+                       noise=scenario.sim.noise, position_every=position_every(scenario),
+                       dock_tolerance=DockTolerance(**scenario.docking))
 
 
 def make_world(scenario: Scenario, model: AssemblyModel, seed: int, com_start_ned_m: np.ndarray | None = None,
@@ -146,17 +148,20 @@ def make_detector(scenario: Scenario, model: AssemblyModel, ground_down_m: float
 
 
 def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: Trajectory, eta: np.ndarray,
-                           t_s: float, estimator=None) -> Coordinator:
+                           t_s: float, estimator=None, detector=None) -> Coordinator:
     """The coordinator of one piece of a reconfiguring assembly: the scenario's FTC mode over the piece's
-    own rotors, its CoM on the piece's reference, told the piece's faults."""
+    own rotors, its CoM on the piece's reference, told the piece's believed faults (`eta`); its detector,
+    if any, starts from them."""
     from mars_link.allocation import make_allocator
     from mars_link.control.cascaded import CascadedController
 
     v = piece.vehicle
     allocator = make_allocator(scenario.ftc, piece, eta=eta, min_thrust_n=v.rotor_min_thrust_n,
                                max_thrust_n=v.rotor_max_thrust_n)
+    if detector is not None:
+        detector.set_model(piece, eta)
     coordinator = Coordinator(piece, reference, CascadedController(piece, allocator, control_hz=scenario.sim.control_hz),
-                              estimator)
+                              estimator, detector)
     coordinator.set_faults(eta, t_s, "piece created")
     return coordinator
 
@@ -217,3 +222,86 @@ def build_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, float] | 
     return Flight(scenario, model, seed, trajectory, world, units, coordinator,
                   sorted(scenario.faults, key=lambda f: f.t_s), deaths, tracked_offset(model, scenario),
                   scenario.sim.duration_s or trajectory.duration_s)
+
+
+#: cap on a reconfiguration manoeuvre: a flight of pieces ends this long after its mission would have
+MAX_RECONFIG_S = 600.0
+
+
+def make_pieces_world(scenario: Scenario, model: AssemblyModel, seed: int, executor, config=None):
+    """The world of a flight of pieces: one body per piece of the executor's start, landed under its
+    reference's first point."""
+    from sitl.physics import JsbsimBody
+
+    bodies = []
+    for shape in executor.shapes.values():
+        start = executor.refs[shape.key].sample(0.0)
+        body_model = shape.model(model.vehicle)
+        bodies.append((body_model, tuple(shape.units_local_order()), JsbsimBody(
+            body_model, physics_hz=scenario.sim.physics_hz,
+            position_ned_m=(float(start.position_ned_m[0]), float(start.position_ned_m[1]), 0.0),
+            yaw_rad=start.yaw_rad)))
+    return make_world(scenario, model, seed, bodies=bodies, config=config)
+
+
+def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: Trajectory,
+                            telemetry_timeout_s: float | None = None):
+    """The coordinator of a flight of pieces (`PiecesCoordinator`: one EKF, detector, controller and
+    allocator per piece, the executor inside) and when its flight ends (a function of no argument
+    giving the end's sim time: a manoeuvre moves it)."""
+    from mars_link.pieces import PiecesCoordinator
+    from mars_link.reconfig.plans import check_reconfig_scenario, make_executor, plan_or_reason, plan_separation
+
+    check_reconfig_scenario(scenario)
+    executor, plan_events, told = make_executor(scenario, model, mission)
+    ground_down_m = 0.0  # every piece starts landed: its CoM near the ground plane
+
+    def new_coordinator(piece: AssemblyModel, reference, eta, t_s, estimator):
+        if estimator is None:
+            estimator = make_estimator(scenario, piece)
+        return make_piece_coordinator(scenario, piece, reference, eta, t_s, estimator,
+                                      make_detector(scenario, piece, ground_down_m))
+
+    enabled = bool(scenario.reconfig.get("enabled", False))
+    at_s = scenario.reconfig.get("at_s")
+    planner = None
+    if enabled and not scenario.faults_known:
+        def planner(eta_by_unit):
+            eta = np.concatenate([eta_by_unit[u] for u in model.unit_ids])
+            return plan_or_reason(scenario, model, eta)
+    coordinator = PiecesCoordinator(
+        executor, model.vehicle, model.unit_ids, new_coordinator, tracked_unit=scenario.tracked_unit(),
+        planner=planner, told_faults=len(scenario.faults) if told and at_s is None else 0,
+        at_s=at_s if told or planner is not None else None,
+        separations=[(s.t_s, plan_separation(model, s.units, s.redock_t_s is not None), s.redock_t_s)
+                     for s in scenario.separations], telemetry_timeout_s=telemetry_timeout_s)
+    coordinator.events += plan_events
+    duration = scenario.sim.duration_s or mission.duration_s
+
+    def end_s() -> float:
+        if executor.phase == "mission" or executor.hold_until_s == math.inf:  # (apart for good: the mission's end)
+            return duration + executor.shift_s
+        return duration + MAX_RECONFIG_S
+
+    return coordinator, end_s
+
+
+def build_pieces_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, float] | None = None):
+    """Every part of a flight of pieces (free units assembling, a reconfiguration), wired for the engine:
+    the world starts with one body per piece of the executor's start, every unit is its firmware, and
+    the coordinator is a `PiecesCoordinator`. `unit_deaths` (unit -> time): that unit's process dies then
+    and the coordinator, not told, loses it after `UNIT_TIMEOUT_PERIODS` silent control periods."""
+    from mars_link.engine import Flight, InProcessUnits
+
+    model = scenario.model()
+    mission = make_trajectory(scenario, model)
+    deaths = sorted((t_d, u) for u, t_d in (unit_deaths or {}).items())
+    for _, u in deaths:
+        model.check_rotor(u, None)
+    timeout = UNIT_TIMEOUT_PERIODS / scenario.sim.control_hz if deaths else None
+    coordinator, end_s = make_pieces_coordinator(scenario, model, mission, timeout)
+    world = make_pieces_world(scenario, model, seed, coordinator.executor)
+    units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
+    faults = sorted(scenario.faults, key=lambda f: f.t_s)
+    return Flight(scenario, model, seed, mission, world, units, coordinator, faults, deaths,
+                  duration_s=scenario.sim.duration_s or mission.duration_s, end_s=end_s)

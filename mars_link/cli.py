@@ -77,13 +77,11 @@ def cmd_run(args) -> int:
         runner, pacing = run_scenario, {}
         if args.realtime and sitl_run is None:  # in-process: the engine paced to the wall clock
             pacing = {"realtime_rate": 1.0}
-        if scenario.reconfig.get("enabled") or scenario.starts_free:  # several bodies (mars_link.reconfig.flight)
+        if scenario.has_pieces:  # several bodies (mars_link.reconfig.flight)
             from mars_link.reconfig.flight import run_reconfig_scenario as runner
 
             if args.trials != 1:
                 raise UserInputError("--trials: a [reconfig] flight runs one trial (vary --seed instead)")
-            if args.realtime:
-                raise UserInputError("--realtime: a flight of several bodies runs as fast as possible for now")
         if sitl_run is not None:
             runner = sitl_run
         summary = runner(

@@ -19,7 +19,7 @@ import numpy as np
 from firmware_models.vehicle import MODE_OFFBOARD
 from mars_link.assembly import AssemblyModel
 from mars_link.coordinator import Coordinator
-from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket
+from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
 from mars_link.metrics import STAGES, TrackingMetrics
 from mars_link.pacing import Pacer
 from mars_link.rotations import quat_to_euler
@@ -97,6 +97,7 @@ class Flight:
     deaths: list[tuple[float, int]] = field(default_factory=list)  # (time, unit): the unit's process dies
     tracked_offset_frd_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
     duration_s: float = 0.0
+    end_s: Callable[[], float] | None = None  # a flight whose end moves (a reconfiguration): its end sim time
 
     @property
     def n_steps(self) -> float:
@@ -164,10 +165,10 @@ class Engine:
     def step(self) -> bool:
         """One control period; False once the flight is over (its duration flown, or an observer stopped it)."""
         f = self.flight
-        if self.stopped or self.steps >= f.n_steps:
+        if self.stopped or (self.steps >= f.n_steps if f.end_s is None else f.world.t_s >= f.end_s() - 1e-9):
             return False
         world, stage, clock = f.world, self.stage_time_s, time.perf_counter
-        t = world.t_s
+        t = wire_time(world.t_s)  # the step's time as its sensor packets carry it (as a SITL coordinator reads it)
         if self.pacer.paced:
             self.pacer.wait(t, 1.0 / f.scenario.sim.control_hz)
         self._faults_due(t)
@@ -234,7 +235,8 @@ class FlightRecorder:
                  *rec.estimate.position_ned_m, math.degrees(er), math.degrees(ep), math.degrees(ey),
                  *truth.position_ned_m]
             )
-            log.rotors(self.trial_index, v.t_s, rec.thrusts_n, f.world.rotor_thrust_n, f.units.eta(f.model.unit_ids))
+            if log.rotor_due(v.t_s):
+                log.rotors(self.trial_index, v.t_s, rec.thrusts_n, f.world.rotor_thrust_n, f.units.eta(f.model.unit_ids))
             if v.index % self._flush_every == 0:
                 log.flush()
         if self.metrics.diverged:

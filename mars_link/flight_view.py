@@ -204,18 +204,21 @@ class FlightView:
         self._sender = threading.Thread(target=self._send_loop, name="mars-link-view-sender", daemon=True)
         self._sender.start()
         self.closed = False
-        self.event_lists: list[list[dict]] | None = None  # the run's event lists, when not the engine's own
+        self.event_lists: list | None = None  # the run's event lists besides the engine's (or callables giving one)
+        self.point_of = None  # (engine, StepView) -> ViewPoint, when the coordinator's record is not the tracked point's
 
     # ----------------------------------------------------------------- Engine observer
     def on_step(self, engine, view) -> bool:
         f = engine.flight
         if not self._due(self.index):  # (most steps: no channel of the file due, no live view)
             self.index += 1
-            self._events(self.event_lists or [engine.events, f.coordinator.events], self._last_ns)
+            self._events(self._engine_events(engine), self._last_ns)
             return False
         rec = view.record
         point = None
-        if rec is not None:
+        if self.point_of is not None:
+            point = self.point_of(engine, view)
+        elif rec is not None:
             est_p = est_q = None
             if rec.estimate is not None:
                 from mars_link.rotations import quat_to_rotmat
@@ -224,7 +227,7 @@ class FlightView:
                 est_p = rec.estimate.position_ned_m + quat_to_rotmat(est_q) @ f.tracked_offset_frd_m
             point = ViewPoint(rec.reference.position_ned_m, rec.reference.yaw_rad, est_p, est_q, rec.thrusts_n)
         self.write_step(view.t_s, f.world, point, f.units.eta(f.model.unit_ids),
-                        self.event_lists or [engine.events, f.coordinator.events], dead=f.units.dead)
+                        self._engine_events(engine), dead=f.units.dead)
         return False
 
     def finish(self, engine=None, event_lists: list[list[dict]] | None = None, timeout_s: float = 60.0) -> None:
@@ -232,7 +235,7 @@ class FlightView:
         if self.closed:
             return
         if engine is not None:
-            event_lists = self.event_lists or [engine.events, engine.flight.coordinator.events]
+            event_lists = self._engine_events(engine)
         if event_lists:
             self._events(event_lists, self._last_ns)
         self.close(timeout_s)
@@ -299,6 +302,10 @@ class FlightView:
             self._flush_rows()
         self._events(event_lists, ns)
 
+    def _engine_events(self, engine) -> list:
+        """The engine's events, then the run's own lists (default: the coordinator's)."""
+        return [engine.events] + (self.event_lists or [engine.flight.coordinator.events])
+
     def _due(self, k: int) -> bool:
         """Whether step k leaves the loop: a channel of the file is due, or the live view's next frame is
         (at the live pose rate of wall time: a real-time flight packs a third of its steps, not all)."""
@@ -314,6 +321,8 @@ class FlightView:
 
     def _events(self, event_lists: list[list[dict]], ns: int) -> None:
         for i, events in enumerate(event_lists):
+            if callable(events):
+                events = events()
             seen = self._events_seen.get(i, 0)
             if seen < len(events):
                 self._flush_rows()
@@ -786,21 +795,45 @@ def live_address(args) -> str | None:
     return f"{host}:{port}"
 
 
-# ----------------------------------------------------------------------------- runners without an Engine yet
-def mission_point(reference, record, offset_frd_m: np.ndarray, commands, model) -> ViewPoint:
-    """A ViewPoint from a mission reference (TrajectoryPoint of the tracked point), the tracked piece's
-    coordinator record (its estimate moved to the tracked point by `offset_frd_m`) and the step's
-    RotorCommands (world unit ids)."""
+# ----------------------------------------------------------------------------- flights of pieces
+def pieces_point(engine, view) -> ViewPoint | None:
+    """A flight of pieces (mars_link.pieces.PiecesCoordinator): while the mission flies, the mission reference
+    of the tracked point, the tracked piece's estimate moved to that point, and every piece's commanded
+    thrusts in world rotor order (the pieces' coordinators command their own rotors)."""
     from mars_link.rotations import quat_to_rotmat
 
+    coord, t = engine.flight.coordinator, view.t_s
+    ex, model = coord.executor, engine.flight.model
+    if not ex.mission_active(t):
+        return None
+    p = coord.tracked_piece()
+    ref = ex.mission.sample(ex.mission_time(t))
+    rec = p.coordinator.last
     est_p = est_q = None
-    if record is not None and record.estimate is not None:
-        est_q = record.estimate.quaternion_wxyz
-        est_p = record.estimate.position_ned_m + quat_to_rotmat(est_q) @ offset_frd_m
+    if rec is not None and rec.estimate is not None:
+        est_q = rec.estimate.quaternion_wxyz
+        est_p = rec.estimate.position_ned_m + quat_to_rotmat(est_q) @ ex.tracked_offset(p.shape)
     cmd = np.full(model.n_rotors, math.nan)
-    for c in commands:
-        cmd[model.unit_slots(c.unit_id)] = c.thrusts_n
-    return ViewPoint(reference.position_ned_m, reference.yaw_rad, est_p, est_q, cmd)
+    for q in coord.pieces.values():
+        last = q.coordinator.last
+        if last is not None:
+            for k, u in enumerate(q.units):
+                cmd[model.unit_slots(u)] = last.thrusts_n[4 * k:4 * k + 4]
+    return ViewPoint(ref.position_ned_m, ref.yaw_rad, est_p, est_q, cmd)
+
+
+def pieces_view(flight, out_dir: Path | None, live: str | None = None) -> FlightView | None:
+    """The view of a flight of pieces (build.build_pieces_flight): its points (`pieces_point`) and the events
+    of its summary (engine, coordinator, executor, the world's latched docks)."""
+    sc = flight.scenario
+    view = open_view(out_dir, flight.model, sc, sc.sim.control_hz, flight.coordinator.executor.mission,
+                     sc.sim.duration_s or flight.duration_s, live, sc.tracked_unit())
+    if view is not None:
+        coord, world = flight.coordinator, flight.world
+        view.point_of = pieces_point
+        view.event_lists = [coord.events, coord.executor.events,
+                            lambda: [e for e in world.latch_events if e["type"] == "dock_latched"]]
+    return view
 
 
 def world_view_args(args, docked: bool = True) -> tuple[str, ...]:

@@ -27,6 +27,9 @@ def wire_time(t_s: float) -> float:
     return round(t_s * 1e6) / 1e6
 
 
+#: a unit's four docking latches all engaged (bit k = side k: front, right, back, left; sitl.latches)
+LATCH_ALL = 0b1111
+
 #: float32 packers for one unit's few rotors (struct rounds double -> float32 as numpy does)
 _F32_PACKERS = {n: struct.Struct(f"<{n}f") for n in range(1, 9)}
 
@@ -60,6 +63,7 @@ class SensorPacket:
     imu: ImuSample
     position: PositionSample | None
     truth: RigidBodyState | None = None  # ground truth (HIL_STATE_QUATERNION), only with noise off
+    latches: int = 0  # the unit's latch sensor: bit k set when side k holds a docked neighbour
 
     def as_wire(self) -> "SensorPacket":
         t = wire_time(self.t_s)
@@ -71,7 +75,7 @@ class SensorPacket:
                 t, self.unit_id, f32(self.position.position_ned_m), None if vel is None else f32(vel)
             )
         truth = None if self.truth is None else wire_state(self.truth)
-        return SensorPacket(t, self.unit_id, imu, pos, truth)
+        return SensorPacket(t, self.unit_id, imu, pos, truth, self.latches)
 
 
 @dataclass
@@ -81,9 +85,11 @@ class RotorCommand:
     t_s: float
     unit_id: int
     thrusts_n: np.ndarray  # (4,)
+    latch_setpoint: int = LATCH_ALL  # the unit's latches: bit k set = side k engaged, clear = open
 
     def as_wire(self, full_scale_n: float) -> "RotorCommand":
-        return RotorCommand(wire_time(self.t_s), self.unit_id, wire_thrust(self.thrusts_n, full_scale_n))
+        return RotorCommand(wire_time(self.t_s), self.unit_id, wire_thrust(self.thrusts_n, full_scale_n),
+                            self.latch_setpoint)
 
 
 @dataclass
@@ -94,6 +100,8 @@ class ActuatorOutput:
     t_s: float
     unit_id: int
     thrusts_n: np.ndarray  # (4,)
+    latch_setpoint: int = LATCH_ALL  # what the unit drives its latches to (from the coordinator's command)
 
     def as_wire(self, full_scale_n: float) -> "ActuatorOutput":
-        return ActuatorOutput(wire_time(self.t_s), self.unit_id, wire_thrust(self.thrusts_n, full_scale_n))
+        return ActuatorOutput(wire_time(self.t_s), self.unit_id, wire_thrust(self.thrusts_n, full_scale_n),
+                              self.latch_setpoint)

@@ -49,6 +49,10 @@ class RunLog:
         if self._tel:
             self._tel.write(self._tel_format % tuple(row))
 
+    def rotor_due(self, t_s: float) -> bool:
+        """Whether a rotors row is due at `t_s` (rows go at the rotor log rate)."""
+        return t_s + 1e-9 >= self._next_rotor_t
+
     def rotors(self, trial: int, t_s: float, cmd, thrust, eta) -> None:
         if t_s + 1e-9 < self._next_rotor_t:
             return

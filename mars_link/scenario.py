@@ -63,6 +63,16 @@ class SimSpec:
     noise: bool = True
 
 
+@dataclass(frozen=True)
+class SeparationSpec:
+    """[[separations]]: at `t_s` (sim time) the units `units` undock and fly as a piece of their own under
+    the coordinator (the mission pauses); at `redock_t_s` they dock back where they were (None: never)."""
+
+    t_s: float
+    units: tuple[int, ...]
+    redock_t_s: float | None = None
+
+
 @dataclass
 class Scenario:
     name: str
@@ -80,10 +90,17 @@ class Scenario:
     reconfig: dict[str, Any] = field(default_factory=dict)  # validated [reconfig] table (enabled, ...)
     start: str = "docked"  # "docked": one assembled body; "free": the units apart on the ground, assembled in the air
     free_spacing_m: float = 2.0  # start = "free": distance between neighbouring units' centres on the ground
+    docking: dict[str, float] = field(default_factory=dict)  # [docking]: when facing latches close (sitl.docking)
+    separations: list["SeparationSpec"] = field(default_factory=list)  # [[separations]], in time order
 
     @property
     def starts_free(self) -> bool:
         return self.start == "free"
+
+    @property
+    def has_pieces(self) -> bool:
+        """Whether the flight may be several bodies (a free start, a reconfiguration, a separation)."""
+        return self.starts_free or bool(self.reconfig.get("enabled")) or bool(self.separations)
 
     def model(self) -> AssemblyModel:
         params = vehicle_preset(self.preset)
@@ -98,7 +115,8 @@ class Scenario:
 # ----------------------------------------------------------------------------- parsing helpers
 #: free units on the ground stand at least this far apart, edge to edge
 FREE_CLEARANCE_M = 0.3
-_TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig"}
+_TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig", "docking",
+             "separations"}
 _VEHICLE_KEYS = {
     "preset",
     "motor_time_constant_s",
@@ -280,6 +298,8 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
         sc.sim.noise = sim["noise"]
     check_rates(sc.sim, src)
     sc.reconfig = _reconfig_table(_table(doc, "reconfig", src), src)
+    sc.docking = _docking_table(_table(doc, "docking", src), src)
+    sc.separations = _separations(doc.get("separations", []), src)
 
     if sc.trajectory.get("kind") == "plan":  # the planner needs the assembly and its faults
         sc.trajectory.setdefault("layout", list(sc.layout))
@@ -295,6 +315,14 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
             raise UserInputError(f"{src}: [assembly] tracked: {exc}") from None
     for i, fault in enumerate(sc.faults, 1):
         validate_fault(fault, model, f"{src}: [[faults]] #{i}")
+    for i, sep in enumerate(sc.separations, 1):
+        for u in sep.units:
+            try:
+                model.check_rotor(u, None)
+            except UserInputError as exc:
+                raise UserInputError(f"{src}: [[separations]] #{i}: {exc}") from None
+        if len(sep.units) >= model.n_units:
+            raise UserInputError(f"{src}: [[separations]] #{i}: units must leave at least one unit behind")
     target = sc.reconfig.get("target")
     if target is not None and sorted(target) != model.unit_ids:
         raise UserInputError(
@@ -321,6 +349,57 @@ def _reconfig_table(table: dict, src: str) -> dict:
     for key in _RECONFIG_NUMBERS & set(table):
         out[key] = _number(table[key], f"[reconfig] {key}", src, nonneg=key in ("at_s", "trigger_delay_s", "altitude_step_m"),
                            positive=key not in ("at_s", "trigger_delay_s", "altitude_step_m"))
+    return out
+
+
+_SEPARATION_KEYS = {"t", "units", "redock_t"}
+
+
+def _separations(items: Any, src: str) -> list[SeparationSpec]:
+    """[[separations]] t, units (a list of unit ids), redock_t (optional, after t); in time order, apart."""
+    if not isinstance(items, list) or not all(isinstance(x, dict) for x in items):
+        raise UserInputError(f"{src}: separations must be an array of tables ([[separations]])")
+    out = []
+    for i, item in enumerate(items, 1):
+        where = f"[[separations]] #{i}"
+        _check_keys(item, _SEPARATION_KEYS, where, src)
+        for key in ("t", "units"):
+            if key not in item:
+                raise UserInputError(f"{src}: {where} needs {key!r}")
+        units = item["units"]
+        if not isinstance(units, list) or not units:
+            raise UserInputError(f"{src}: {where} units must be a non-empty list of unit ids, e.g. [1]")
+        ids = tuple(_integer(u, f"{where} units", src) for u in units)
+        if len(set(ids)) != len(ids):
+            raise UserInputError(f"{src}: {where} units lists a unit twice")
+        t = _number(item["t"], f"{where} t", src, nonneg=True)
+        redock = None
+        if "redock_t" in item:
+            redock = _number(item["redock_t"], f"{where} redock_t", src, positive=True)
+            if redock <= t:
+                raise UserInputError(f"{src}: {where} redock_t must be after t ({redock:g} <= {t:g})")
+        if out and (out[-1].redock_t_s is None or t <= out[-1].redock_t_s):
+            raise UserInputError(f"{src}: {where} must start after the previous separation re-docked")
+        out.append(SeparationSpec(t, ids, redock))
+    return out
+
+
+#: [docking] keys and their allowed range (sitl.docking.DockTolerance): a latch must not close farther than a
+#: few centimetres off its pose, faster than a gentle approach, or across a visible misalignment
+DOCKING_RANGES = {"position_m": (0.0, 0.1), "speed_mps": (0.0, 0.5), "yaw_deg": (0.0, 15.0), "tilt_deg": (0.0, 15.0)}
+
+
+def _docking_table(table: dict, src: str) -> dict[str, float]:
+    """[docking] position_m, speed_mps, yaw_deg, tilt_deg: the docking tolerance (defaults 2 cm, 5 cm/s,
+    2 deg, 3 deg), each > 0 and at most its DOCKING_RANGES bound."""
+    _check_keys(table, set(DOCKING_RANGES), "[docking]", src)
+    out = {}
+    for key, (lo, hi) in DOCKING_RANGES.items():
+        if key in table:
+            value = _number(table[key], f"[docking] {key}", src, positive=True)
+            if not lo < value <= hi:
+                raise UserInputError(f"{src}: [docking] {key} must be in ({lo:g}, {hi:g}], got {value:g}")
+            out[key] = value
     return out
 
 

@@ -124,7 +124,8 @@ def write_scenario_copy(scenario, path: Path) -> Path:
     doc = {
         "name": scenario.name,
         "vehicle": {"preset": scenario.preset, **scenario.vehicle_options},
-        "assembly": {"layout": list(scenario.layout), "tracked": scenario.tracked},
+        "assembly": {"layout": list(scenario.layout), "tracked": scenario.tracked, "start": scenario.start,
+                     "free_spacing_m": scenario.free_spacing_m},
         "trajectory": dict(scenario.trajectory),
         "control": {"controller": scenario.controller, "ftc": scenario.ftc, "faults_known": scenario.faults_known},
         "sim": {k: v for k, v in vars(scenario.sim).items() if v is not None},
@@ -133,6 +134,14 @@ def write_scenario_copy(scenario, path: Path) -> Path:
     }
     if not doc["faults"]:
         del doc["faults"]
+    if scenario.reconfig:
+        doc["reconfig"] = dict(scenario.reconfig)
+    if scenario.docking:
+        doc["docking"] = dict(scenario.docking)
+    if scenario.separations:
+        doc["separations"] = [{"t": s.t_s, "units": list(s.units), **({} if s.redock_t_s is None else
+                                                                        {"redock_t": s.redock_t_s})}
+                              for s in scenario.separations]
     path.write_text(_toml(doc), encoding="utf-8")
     return path
 
@@ -170,9 +179,7 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
                       realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
                       on_progress=None, view: tuple[str, ...] = ("--mcap",)) -> dict:
     """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary."""
-    if scenario.reconfig.get("enabled") or scenario.starts_free:
-        raise UserInputError("--mode sitl: a flight of several bodies ([reconfig], [assembly] start = \"free\") "
-                             "runs in-process only for now")
+    pieces = scenario.has_pieces
     seed = scenario.sim.seed if seed is None else seed
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
         scenario = replace(scenario, faults_known=False)
@@ -190,6 +197,8 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
         logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
         raise RuntimeError(f"SITL run failed (exit {code}); process logs in {out}: {logs}")
     held = session.wake_latency.state if session.wake_latency is not None else None
+    if pieces:
+        return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime)
     return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held)
 
 
@@ -317,6 +326,71 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         from mars_link.plots import write_run_plots
 
         write_run_plots(out, log.telemetry_rows, log.rotor_rows, model)
+    return summary
+
+
+def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec,
+                              realtime: bool = False) -> dict:
+    """The summary of a flight of pieces in SITL, with the in-process keys (mars_link.reconfig.flight): the
+    tracked point's error while the mission flies, from the world's per-unit truth and the coordinator's
+    per-step record of the mission (its clock, reference and the units carrying the tracked point)."""
+    from mars_link.metrics import DIVERGENCE_ERROR_M, TrackingMetrics
+    from mars_link.outputs import write_json
+
+    world = _read_json(out / "world_summary.json")
+    coordinator = _read_json(out / "coordinator_summary.json")
+    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, ndmin=1)
+    steps = {}
+    with open(out / "pieces_steps.csv", encoding="utf-8") as f:
+        next(f)
+        for line in f:
+            t, mission, mission_t, rn, re, rd, tracked_units, n_pieces = line.rstrip("\n").split(",")
+            steps[round(float(t), 6)] = (mission == "1", float(mission_t), np.array([float(rn), float(re), float(rd)]),
+                                         [int(u) for u in tracked_units.split()], int(n_pieces))
+    tracked_unit = scenario.tracked_unit()
+    metrics = TrackingMetrics()
+    with open(out / "telemetry.csv", "w", encoding="utf-8") as tel:
+        tel.write("t_s,mission_t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,error_m,pieces\n")
+        for row in truth:
+            step = steps.get(round(float(row["t_s"]), 6))
+            if step is None or not step[0]:
+                continue
+            _, mission_t, ref, units, n_pieces = step
+            centres = [np.array([row[f"u{u}_n_m"], row[f"u{u}_e_m"], row[f"u{u}_d_m"]])
+                       for u in ([tracked_unit] if tracked_unit is not None else units)]
+            pos = np.mean(centres, axis=0)
+            err = float(np.linalg.norm(pos - ref))
+            metrics.add_error(err)
+            if not err < DIVERGENCE_ERROR_M:
+                metrics.mark_diverged(float(row["t_s"]), err, math.nan, phase="mission")
+            tel.write(",".join(f"{x:.6g}" for x in (float(row["t_s"]), mission_t, *ref, *pos, err, n_pieces)) + "\n")
+    faults = [{"t_s": round(f.t_s, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta,
+               "text": f.event_text()} for f in scenario.faults]
+    deaths = [{"t_s": d["t_s"], "type": "unit_died", "unit": d["unit"], "text": f"Unit {d['unit']} silent: motors off"}
+              for d in world.get("deaths", [])]
+    latched = [e for e in world.get("latch_events", []) if e["type"] == "dock_latched"]
+    events = sorted(coordinator.get("events", []) + latched + faults + deaths, key=lambda e: e["t_s"])
+    kinds = [e["type"] for e in events]
+    sim_t, wall = float(world.get("sim_time_s", 0.0)), wall_s
+    summary = {
+        "scenario": scenario.name, "source": scenario.source, "mode": "sitl-pieces", "layout": list(scenario.layout),
+        "preset": scenario.preset, "controller": scenario.controller, "ftc": scenario.ftc, "seed": seed, "trials": 1,
+        "noise": scenario.sim.noise, "faults_known": scenario.faults_known,
+        "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
+        "completed": not metrics.diverged and not coordinator.get("failed") and not world.get("stopped", False),
+        "diverged": metrics.diverged, "reconfigured": "reconfig_done" in kinds,
+        "mean_error_m": metrics.mean_error_m if metrics.n else math.nan,
+        "rmse_m": metrics.rmse_m if metrics.n else math.nan, "max_error_m": metrics.max_error_m if metrics.n else math.nan,
+        "sim_time_s": sim_t, "wall_time_s": wall, "real_time_factor": sim_t / wall if wall > 0 else math.inf,
+        "force_integral_n2s": float(world.get("force_integral_n2s", math.nan)),
+        "start": scenario.start, "assembled": "assembly_done" in kinds,
+        "pieces_final": coordinator.get("pieces_final", []), "bodies_final": world.get("bodies", []),
+        "plan": coordinator.get("plan"), "events": [dict(e, trial=0) for e in events],
+        "sitl": {"transport": link.kind, "realtime": realtime, "world_real_time_factor": world.get("real_time_factor"),
+                 "dead_units": world.get("dead_units", []), "world_dropped": world.get("dropped", {}),
+                 "coordinator_dropped": coordinator.get("dropped", {}), "lost_units": coordinator.get("lost_units", [])},
+    }
+    write_json(out / "summary.json", summary)
     return summary
 
 

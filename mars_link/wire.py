@@ -6,11 +6,19 @@
 | SensorPacket.position | ODOMETRY, estimator_type MOCAP, frames LOCAL_NED (q unused) | mocap-grade position and velocity of the unit centre, NED |
 | SensorPacket.truth | ODOMETRY, estimator_type NAIVE, frames LOCAL_NED (velocity in NED) | ground truth, only with sensor noise off |
 | RotorCommand | SET_ACTUATOR_CONTROL_TARGET, group 0, controls[0..3] | thrust as a fraction of `full_scale_thrust_n` |
-| ActuatorOutput | HIL_ACTUATOR_CONTROLS, controls[0..3], flags = LOCKSTEP | same scale |
+| RotorCommand.latch_setpoint | same message, controls[4] | the latches to OPEN, as a bit mask 0..15 (0: all engaged) |
+| ActuatorOutput | HIL_ACTUATOR_CONTROLS, controls[0..3], flags = LOCKSTEP | same scale; controls[4]: latches open, as above |
+| SensorPacket.latches | NAMED_VALUE_INT "LATCH" (world -> unit -> coordinator) | the latched sides, bit mask 0..15 |
+
+The latch sensor is sent when it changes (and with a unit's first packet), in the same datagram and
+before the packet's IMU frame; receivers hold the last value (`LatchSensor`). The latch setpoint rides
+every rotor command as the mask of latches to open, so an all-zero control (any stock sender) keeps
+them engaged.
 
 A sensor packet travels as its optional position and truth frames first and the IMU frame last; the
 IMU frame's `fields_updated` carries two mars-link flags (bits 14, 15; unused by both messages) saying which of the optional
-frames belong to it, so a receiver knows when a packet is complete.
+frames belong to it, so a receiver knows when a packet is complete, and a third (bit 13, also unused) saying
+that the truth's body touches the ground (`RigidBodyState.on_ground`, which ODOMETRY has no field for).
 """
 
 from __future__ import annotations
@@ -21,11 +29,12 @@ from dataclasses import dataclass
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket
+from mars_link.messages import LATCH_ALL, ActuatorOutput, RotorCommand, SensorPacket
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
 
 FLAG_HAS_POSITION = 1 << 14
 FLAG_HAS_TRUTH = 1 << 15
+FLAG_ON_GROUND = 1 << 13
 IMU_FIELDS = 0x3F  # xacc..zgyro updated
 HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP = 1
 ARMED_CUSTOM_MODE = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
@@ -58,7 +67,7 @@ def sensor_packet_messages(packet: SensorPacket, upstream: bool = False) -> list
         s = packet.truth
         msgs.append(_odometry(t, s.position_ned_m, s.quaternion_wxyz, s.velocity_ned_mps,
                               s.angular_velocity_frd_radps, mavlink.MAV_ESTIMATOR_TYPE_NAIVE))
-        flags |= FLAG_HAS_TRUTH
+        flags |= FLAG_HAS_TRUTH | (FLAG_ON_GROUND if s.on_ground else 0)
     a, g = packet.imu.accel_frd_mps2, packet.imu.gyro_frd_radps
     cls = mavlink.MAVLink_highres_imu_message if upstream else mavlink.MAVLink_hil_sensor_message
     msgs.append(cls(t, *map(float, a), *map(float, g), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, flags, 0))
@@ -92,7 +101,8 @@ class SensorFrames:
         truth = None
         if (s := self.truth) is not None:
             truth = RigidBodyState(t_s, np.array([s.x, s.y, s.z]), np.array([s.vx, s.vy, s.vz]),
-                                   np.array(s.q, dtype=float), np.array([s.rollspeed, s.pitchspeed, s.yawspeed]))
+                                   np.array(s.q, dtype=float), np.array([s.rollspeed, s.pitchspeed, s.yawspeed]),
+                                   on_ground=bool(m.fields_updated & FLAG_ON_GROUND))
         imu = ImuSample(t_s, unit, np.array([m.xgyro, m.ygyro, m.zgyro]), np.array([m.xacc, m.yacc, m.zacc]))
         return SensorPacket(t_s, unit, imu, pos, truth)
 
@@ -113,7 +123,7 @@ class SensorFrames:
         if (s := self.truth) is not None:
             msgs.append(_odometry(t, (s.x, s.y, s.z), s.q, (s.vx, s.vy, s.vz), (s.rollspeed, s.pitchspeed, s.yawspeed),
                                   mavlink.MAV_ESTIMATOR_TYPE_NAIVE))
-            flags |= FLAG_HAS_TRUTH
+            flags |= FLAG_HAS_TRUTH | (m.fields_updated & FLAG_ON_GROUND)
         msgs.append(mavlink.MAVLink_highres_imu_message(t, m.xacc, m.yacc, m.zacc, m.xgyro, m.ygyro, m.zgyro,
                                                         0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, flags, 0))
         return msgs
@@ -162,19 +172,64 @@ class SensorPacketAssembler(SensorFrameAssembler):
         return None if frames is None else frames.packet()
 
 
+# ----------------------------------------------------------------------------- latches
+LATCH_NAME = b"LATCH"
+
+
+def latch_message(t_s: float, mask: int) -> mavlink.MAVLink_message:
+    """A unit's latch sensor (NAMED_VALUE_INT "LATCH"): bit k set when side k holds a docked neighbour."""
+    return mavlink.MAVLink_named_value_int_message(int(usec(t_s) // 1000) & 0xFFFFFFFF, LATCH_NAME, int(mask))
+
+
+def latch_from_message(msg) -> int | None:
+    """The latch mask of a NAMED_VALUE_INT "LATCH" (None: another name, or a value out of 0..15)."""
+    name = msg.name.rstrip("\x00") if isinstance(msg.name, str) else msg.name.rstrip(b"\x00").decode("ascii", "replace")
+    if name != "LATCH" or not 0 <= msg.value <= LATCH_ALL:
+        return None
+    return int(msg.value)
+
+
+def latches_open(setpoint: int) -> float:
+    """controls[4] of a rotor command or actuator output: the latches to open (0: all engaged)."""
+    return float(LATCH_ALL & ~setpoint)
+
+
+def latch_setpoint_of(control: float) -> int | None:
+    """The latch setpoint carried by controls[4] (None: not a whole mask 0..15)."""
+    if not (math.isfinite(control) and 0.0 <= control <= LATCH_ALL and control == int(control)):
+        return None
+    return LATCH_ALL & ~int(control)
+
+
+class LatchSensor:
+    """The last latch mask heard from each sender (the sensor is sent when it changes)."""
+
+    def __init__(self) -> None:
+        self.mask: dict[int, int] = {}
+
+    def feed(self, msg) -> bool:
+        """True if `msg` was a valid latch report (now held for its sender)."""
+        value = latch_from_message(msg)
+        if value is None:
+            return False
+        self.mask[msg.get_srcSystem()] = value
+        return True
+
+
 # ----------------------------------------------------------------------------- rotor commands
 def rotor_command_message(cmd: RotorCommand, full_scale_n: float) -> mavlink.MAVLink_message:
-    controls = [float(x) / full_scale_n for x in cmd.thrusts_n] + [0.0] * 4
+    controls = [float(x) / full_scale_n for x in cmd.thrusts_n] + [latches_open(cmd.latch_setpoint)] + [0.0] * 3
     return mavlink.MAVLink_set_actuator_control_target_message(usec(cmd.t_s), 0, cmd.unit_id, 1, controls)
 
 
 def rotor_command_from_message(msg, full_scale_n: float) -> RotorCommand:
     thrusts = np.array(msg.controls[:4], dtype=np.float32).astype(np.float64) * full_scale_n
-    return RotorCommand(msg.time_usec / 1e6, msg.target_system, thrusts)
+    latch = latch_setpoint_of(msg.controls[4])
+    return RotorCommand(msg.time_usec / 1e6, msg.target_system, thrusts, LATCH_ALL if latch is None else latch)
 
 
 def actuator_output_message(out: ActuatorOutput, full_scale_n: float) -> mavlink.MAVLink_message:
-    controls = [float(x) / full_scale_n for x in out.thrusts_n] + [0.0] * 12
+    controls = [float(x) / full_scale_n for x in out.thrusts_n] + [latches_open(out.latch_setpoint)] + [0.0] * 11
     return mavlink.MAVLink_hil_actuator_controls_message(
         usec(out.t_s), controls, ARMED_CUSTOM_MODE, HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP
     )
@@ -182,4 +237,5 @@ def actuator_output_message(out: ActuatorOutput, full_scale_n: float) -> mavlink
 
 def actuator_output_from_message(msg, full_scale_n: float) -> ActuatorOutput:
     thrusts = np.array(msg.controls[:4], dtype=np.float32).astype(np.float64) * full_scale_n
-    return ActuatorOutput(msg.time_usec / 1e6, msg.get_srcSystem(), thrusts)
+    latch = latch_setpoint_of(msg.controls[4])
+    return ActuatorOutput(msg.time_usec / 1e6, msg.get_srcSystem(), thrusts, LATCH_ALL if latch is None else latch)

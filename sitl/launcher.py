@@ -16,6 +16,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from mars_link.errors import UserInputError
 from firmware_models.signing import load_key
 from sitl.links import LOOPBACK
 from sitl.lockstep import SitlSetup, _start_pose, load_setup, position_every
@@ -106,7 +107,9 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
         common += ["--units", str(units)]
     if layout is not None:
         common += ["--layout", layout]
-    if setup.docked:
+    if setup.pieces and forever:
+        raise UserInputError("a flight of several bodies ends when its coordinator says so: it cannot run forever")
+    if setup.docked and not setup.pieces:
         common += ["--steps", str(setup.steps)] + (["--forever"] if forever else [])
     if forever:
         setup.steps = None
@@ -127,7 +130,7 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
                                   *extra.get("coordinator", []), *(["--view-feed"] if view else [])], coord_sock)
         world = ["world", *common, "--world-fd", str(world_sock.fileno()), "--position-every", str(position_every(setup))]
         world += [] if seed is None else ["--seed", str(seed)]
-        if setup.docked:
+        if setup.docked and not setup.pieces:
             com, yaw = _start_pose(setup)
             world.append("--start-pose=" + ",".join(repr(float(x)) for x in (*com, yaw)))  # "=": may start with "-"
         spawn("world", world + ([] if speed is None else ["--speed", str(speed)]) + extra.get("world", []) + list(view), world_sock)
@@ -182,8 +185,10 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
                 code = 124
                 break
             time.sleep(0.05)
-        if code == 0:  # let the others finish their last step
-            for p in run.processes.values():
+        if code == 0:  # let the others finish their last step (units of a flight of pieces run until stopped)
+            for name, p in run.processes.items():
+                if run.setup.pieces and name.startswith("unit"):
+                    continue
                 try:
                     p.wait(5.0)
                 except subprocess.TimeoutExpired:

@@ -22,6 +22,15 @@ Two set-ups (`SitlSetup`):
            With --vehicle (sitl.vehicle_host) the coordinator also serves the assembly as ONE MAVLink
            vehicle (system 202, API 14539, GCS 14550): its guidance is the coordinator's reference,
            the run goes on until stopped (--forever) and the world is paced to real time.
+  pieces   a flight of several bodies (`[assembly] start = "free"`, `[reconfig]`): the world starts with
+           one body per piece of the executor's start (`build.make_pieces_world`), splits a body when a
+           latch opens and merges two when facing latches close, and sends each unit its latch sensor
+           (NAMED_VALUE_INT "LATCH", on change), which the unit forwards to the coordinator; the
+           coordinator runs the `PiecesCoordinator` (latch setpoints in its rotor commands, controls[4])
+           and ends the flight: instead of the first step not to be flown it sends the world
+           MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, and the world, still waiting for that step's answers, ends
+           without stepping. Each step it logs the mission's clock, reference and tracked units
+           (pieces_steps.csv); the world logs every unit's centre (world_truth.csv).
   free     --units N: N separate 1x1 bodies side by side on the ground, no coordinator; each unit
            flies itself (takeoff, offboard, land from MAVSDK/QGC/MAVProxy), the world paced to
            real time (--speed).
@@ -75,7 +84,9 @@ from mars_link.outputs import write_json
 from mars_link.pacing import Pacer
 from mars_link.transport import LinkSpec, add_link_args, spec_from_args
 from mars_link.wire import (
+    LatchSensor,
     SensorPacketAssembler,
+    latch_message,
     actuator_output_from_message,
     rotor_command_message,
     sensor_packet_messages,
@@ -109,8 +120,9 @@ class SitlSetup:
     scenario: Scenario
     model: AssemblyModel  # of the docked assembly, or of one free unit
     free_units: int | None  # N free units (no coordinator), or None for a docked assembly
-    steps: int | None  # exchanges to run; None = until stopped
+    steps: int | None  # exchanges to run; None = until stopped (or, with pieces, until the coordinator ends it)
     position_every: int | None = None  # filled in by `position_every()`
+    pieces: bool = False  # a flight of several bodies (free start, reconfiguration): its coordinator ends it
 
     @property
     def docked(self) -> bool:
@@ -132,9 +144,16 @@ def load_setup(scenario: str | None, units: int | None = None, layout: str | Non
     if units is not None and layout is not None:
         raise UserInputError("--units and --layout exclude each other")
     sc = Scenario(name="free-units") if scenario in (None, "-") else load_scenario(scenario)
-    if sc.starts_free or sc.reconfig.get("enabled"):
-        raise UserInputError(f"{sc.source}: a flight of several bodies ([reconfig], [assembly] start = \"free\") "
-                             "runs in-process only for now (mars-link run)")
+    if sc.has_pieces:
+        if units is not None or layout is not None:
+            raise UserInputError(f"{sc.source}: --units and --layout do not apply to a flight of several bodies")
+        from mars_link.reconfig.plans import check_reconfig_scenario
+
+        check_reconfig_scenario(sc)
+        model = sc.model()
+        for f in sc.faults:
+            validate_fault(f, model, sc.source)
+        return SitlSetup(sc, model, None, None, pieces=True)
     if units is not None:
         if not 1 <= units <= MAX_FREE_UNITS:
             raise UserInputError(f"--units must be 1..{MAX_FREE_UNITS}, got {units}")
@@ -184,6 +203,7 @@ class _Stop:
 
     def __init__(self) -> None:
         self.requested = False
+        self.ended = False  # (the world: the coordinator ended the flight of pieces)
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self._set)
 
@@ -198,6 +218,21 @@ def _await_peers(link: Link, wanted: set[int], timeout_s: float, stop: _Stop | N
     missing = wanted - set(link.peers)
     if missing and not (stop and stop.requested):
         raise SystemExit(f"timed out waiting for {sorted(missing)} to say hello")
+
+
+def shutdown_message() -> mavlink.MAVLink_message:
+    """The coordinator ends a flight of pieces: MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN (param1 2 = shut down, as
+    PX4's SITL ends) to the world, sent instead of the first step not to be flown: the world, waiting for
+    that step's answers (which the units give only once the coordinator's commands are in), ends without
+    stepping, whatever the transport's ordering."""
+    return mavlink.MAVLink_command_long_message(WORLD_SYSID, 1, mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 0,
+                                                2, 0, 0, 0, 0, 0, 0)
+
+
+def _is_shutdown(m) -> bool:
+    return (m.get_type() == "COMMAND_LONG" and m.get_srcSystem() == COORDINATOR_SYSID
+            and m.target_system == WORLD_SYSID and m.command == mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN
+            and m.param1 == 2)
 
 
 # ----------------------------------------------------------------------------- world
@@ -215,7 +250,15 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     sc = setup.scenario
     cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise,
                       position_every(setup))
-    if setup.docked:
+    if setup.pieces:  # one body per piece of the executor's start (the coordinator builds the same executor)
+        from mars_link.build import make_pieces_world, make_trajectory, world_config
+        from mars_link.reconfig.plans import make_executor
+
+        executor = make_executor(sc, setup.model, make_trajectory(sc, setup.model))[0]
+        cfg = dataclasses.replace(world_config(sc, seed), position_every=position_every(setup))
+        world = make_pieces_world(sc, setup.model, seed, executor, config=cfg)
+        columns = ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("n_m", "e_m", "d_m"))
+    elif setup.docked:
         com, yaw = world_start or _start_pose(setup)
         world = make_world(sc, setup.model, seed, com, yaw, config=cfg)
         columns = "pos_n_m,pos_e_m,pos_d_m,qw,qx,qy,qz"
@@ -234,6 +277,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     wall0 = time.perf_counter()
     next_status = 0.0
     deaths: list[dict] = []
+    latch_sent: dict[int, int] = {}  # the latch mask each unit last heard
+    truth_row = world.units_row if setup.pieces else world.truth_row
     view, feed, reference, eta_at = _world_view(setup, world, out, mcap, foxglove)
     try:
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
@@ -246,7 +291,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         k = 0
         while (setup.steps is None or k < setup.steps) and not stop.requested:
             t = world.t_s
-            truth_log.write("%.6f," % t + ",".join("%.9f" % x for x in world.truth_row()) + "\n")
+            truth_log.write("%.6f," % t + ",".join("%.9f" % x for x in truth_row()) + "\n")
             if view is not None:
                 view.write_step(t, world, feed.point(None if reference is None else reference.sample(t)),
                                 eta_at(t), [deaths, feed.events])
@@ -259,6 +304,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                 if p.unit_id in live:  # ground truth for the unit's own telemetry at the mocap rate
                     msgs = [] if p.truth is not None or p.position is None else [
                         hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
+                    if setup.pieces and latch_sent.get(p.unit_id) != p.latches:  # the latch sensor, on change
+                        latch_sent[p.unit_id] = p.latches
+                        msgs.append(latch_message(p.t_s, p.latches))
                     datagrams.append((link.pack(msgs + sensor_packet_messages(p)), link.peers[p.unit_id]))
             pacer.wait(t)
             for data, addr in datagrams:
@@ -269,8 +317,11 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             waiting = set(live)
             deadline = time.monotonic() + unit_timeout_s
             t_us = usec(t)
-            while waiting and time.monotonic() < deadline and not stop.requested:
+            while waiting and time.monotonic() < deadline and not (stop.requested or stop.ended):
                 for m in link.receive(deadline - time.monotonic()):
+                    if _is_shutdown(m):
+                        stop.ended = True
+                        break
                     if m.get_type() != "HIL_ACTUATOR_CONTROLS":
                         if feed is not None and m.get_srcSystem() == COORDINATOR_SYSID:
                             feed.take(m)
@@ -283,7 +334,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                         continue
                     world.actuate(actuator_output_from_message(m, scale))
                     waiting.discard(m.get_srcSystem())
-            if stop.requested:
+            if stop.requested or stop.ended:
                 break
             for unit in sorted(waiting):  # silent units are dead: motors off, the flight goes on
                 world.declare_dead(unit)
@@ -298,7 +349,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
                    "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
                    "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time(),
-                   "cpu_loop_s": time.process_time() - cpu0}
+                   "cpu_loop_s": time.process_time() - cpu0, "force_integral_n2s": world.force_integral_n2s,
+                   "latch_events": getattr(world, "latch_events", []),
+                   "bodies": [list(b.units) for b in getattr(world, "bodies", [])]}
         write_json(out / "world_summary.json", summary)
     finally:
         truth_log.close()
@@ -461,11 +514,19 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     model = setup.model
     trajectory = _trajectory(sc, model)
     faults = sorted(sc.faults, key=lambda f: f.t_s)
-    detector = make_detector(sc, model, float(_start_pose(setup)[0][2]))
     hosted = None
-    if vehicle is not None:
+    end_s = None  # a flight of pieces: when it ends (the coordinator says so to the world)
+    if setup.pieces:
+        from mars_link.build import make_pieces_coordinator
+
+        if vehicle is not None:
+            print("error: --vehicle serves one docked assembly, not a flight of several bodies", file=sys.stderr)
+            return 2
+        coordinator, end_s = make_pieces_coordinator(sc, model, trajectory)
+    elif vehicle is not None:
         from sitl.vehicle_host import HostedVehicle
 
+        detector = make_detector(sc, model, float(_start_pose(setup)[0][2]))
         out.mkdir(parents=True, exist_ok=True)
         try:
             hosted = HostedVehicle(sc, model, detector, vehicle, out)
@@ -475,11 +536,17 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         coordinator = hosted.coordinator
         print(json.dumps({"vehicle": hosted.endpoints()}), flush=True)
     else:
-        coordinator = make_coordinator(sc, model, trajectory, make_estimator(sc, model), detector)
+        coordinator = make_coordinator(sc, model, trajectory, make_estimator(sc, model),
+                                       make_detector(sc, model, float(_start_pose(setup)[0][2])))
     stop = _Stop()
     link = Link(ports.open("coordinator"), COORDINATOR_SYSID, key=key)
     scale = model.vehicle.full_scale_thrust_n
     assembler = SensorPacketAssembler()
+    latches = LatchSensor()
+    out.mkdir(parents=True, exist_ok=True)
+    pieces_log = open(out / "pieces_steps.csv", "w", encoding="utf-8") if setup.pieces else None
+    if pieces_log:
+        pieces_log.write("t_s,mission,mission_t_s,ref_n_m,ref_e_m,ref_d_m,tracked_units,pieces\n")
     live = set(model.unit_ids)
     lost: list[dict] = []
     accepted: dict[int, set[int]] = {u: set() for u in model.unit_ids}  # commands each unit acknowledged
@@ -523,9 +590,14 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                         if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in accepted:
                             accepted[m.get_srcSystem()].add(m.command)
                         continue
+                    if m.get_type() == "NAMED_VALUE_INT":
+                        if not latches.feed(m):
+                            link.drop("bad_named_value")
+                        continue
                     p = assembler.feed(m)
                     if p is None:
                         continue
+                    p.latches = latches.mask.get(p.unit_id, 0)
                     if not telemetry_ok(p):
                         link.drop("bad_telemetry")  # non-finite: never into the estimator
                         continue
@@ -542,6 +614,9 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     print(f"coordinator: no telemetry for {WORLD_IDLE_TIMEOUT_S:.0f} s: ending", file=sys.stderr)
                 break
             t = t_expected
+            if end_s is not None and (t >= end_s() - 1e-9 or coordinator.failed is not None):
+                link.send_bytes(link.pack([shutdown_message()]), world)  # the flight of pieces is over
+                break
             for unit in sorted(live - set(packets)):  # telemetry stopped: the unit is lost
                 live.discard(unit)
                 lost.append({"t_s": round(t, 6), "unit": unit})
@@ -565,6 +640,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             computed_wall, send_cpu = time.time(), time.thread_time()
             step_cpu = send_cpu - step_cpu
             datagrams = []  # all encoded first, then sent back to back (a woken unit may take the CPU)
+            if end_s is not None:
+                _log_pieces_step(pieces_log, coordinator, t)
             for cmd in commands:
                 if cmd.unit_id in live:
                     msgs = _with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale))
@@ -587,8 +664,11 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                              f"{step_cpu:.6f},{send_cpu:.6f}\n")
         if finish_at is not None:
             coordinator.finish_step()
+        pieces = {} if end_s is None else {"pieces_final": coordinator.pieces_final(), "failed": coordinator.failed,
+                                           "plan": coordinator.executor.plan.to_json()}
         write_json(out / "coordinator_summary.json",
-            {"events": coordinator.events, "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
+            {"events": coordinator.all_events() if end_s is not None else coordinator.events, **pieces,
+             "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,
                              "eta_estimated": round(float(d.eta_estimated), 4), "reason": d.reason}
                             for d in coordinator.detections],
@@ -598,9 +678,23 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         link.close()
         if timing:
             timing.close()
+        if pieces_log:
+            pieces_log.close()
         if hosted is not None:
             hosted.close()
     return 0
+
+
+def _log_pieces_step(log, coordinator, t: float) -> None:
+    """What the summary needs of a flight of pieces each step: whether the mission flies, its clock and
+    reference, and which units carry the tracked point (the truth comes from the world's log)."""
+    executor = coordinator.executor
+    active = executor.mission_active(t)
+    mt = executor.mission_time(t)
+    ref = executor.mission.sample(mt).position_ned_m if active else (math.nan,) * 3
+    piece = coordinator.tracked_piece()
+    log.write(f"{t:.6f},{int(active)},{mt:.6f},{ref[0]:.9f},{ref[1]:.9f},{ref[2]:.9f},"
+              f"{' '.join(str(u) for u in piece.units)},{len(coordinator.pieces)}\n")
 
 
 def _with_takeover(unit: int, accepted: set[int], rotor_cmd) -> list:

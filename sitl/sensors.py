@@ -49,6 +49,7 @@ class SensorModel:
         self.noise = noise
         self.rng = np.random.default_rng(self.seed)
         self._bias: dict[int, np.ndarray] = {}
+        self._bias_rows: dict[tuple[int, ...], np.ndarray] = {}  # (the hot path: one body's units' biases)
         self._rates: dict[object, tuple[float, np.ndarray, np.ndarray]] = {}  # key -> (t, omega, alpha)
 
     def gyro_bias(self, unit_id: int) -> np.ndarray:
@@ -113,18 +114,23 @@ class SensorModel:
         ax = np.array([[0.0, -alpha[2], alpha[1]], [alpha[2], 0.0, -alpha[0]], [-alpha[1], alpha[0], 0.0]])
         lever = (ax + wx @ wx) @ r.T  # (3, N)
         accel = specific_force_frd[None, :] + lever.T
-        gyro = np.broadcast_to(w, (n, 3))
+        gyro = w  # (3,): broadcast over the units below (np.broadcast_to costs more than the sum)
         rot = quat_to_rotmat(body.quaternion_wxyz)
         pos = body.position_ned_m[None, :] + (rot @ r.T).T
         vel = body.velocity_ned_mps[None, :] + (rot @ (wx @ r.T)).T
         if self.noise:
             p = self.params
-            bias = np.array([self.gyro_bias(u) for u in unit_ids])
+            key = tuple(unit_ids)
+            bias = self._bias_rows.get(key)
+            if bias is None:
+                bias = self._bias_rows[key] = np.array([self.gyro_bias(u) for u in unit_ids])
             noise = self.rng.normal(0.0, 1.0, (n, 12))
             gyro = gyro + bias + p.gyro_noise_radps * noise[:, 0:3]
             accel = accel + p.accel_noise_mps2 * noise[:, 3:6]
             pos = pos + p.position_noise_m * noise[:, 6:9]
             vel = vel + p.velocity_noise_mps * noise[:, 9:12]
+        else:
+            gyro = np.tile(w, (n, 1))
         return gyro, accel, pos, vel
 
     def position(

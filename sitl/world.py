@@ -8,16 +8,21 @@ link in lockstep (a step happens only when every live unit has answered for the 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
+from mars_link.assembly import AssemblyModel, layout_of_cells
 from mars_link.messages import ActuatorOutput, SensorPacket, f32, wire_state, wire_time
 from mars_link.rotations import quat_to_rotmat
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
+from sitl.docking import DockTolerance, dock_check
+from mars_link.latches import SIDE_STEPS, LatchBoard, components, neighbour_links, opposite
 from sitl.physics import JsbsimBody
 from sitl.sensors import SensorModel, SensorParams
+
+#: each latch side's direction in a unit's body frame (FRD): front, right, back, left
+SIDE_FRD = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 
 
 @dataclass
@@ -27,6 +32,7 @@ class WorldConfig:
     seed: int = 1
     noise: bool = True
     position_every: int = 1  # position samples every n-th exchange
+    dock_tolerance: DockTolerance = field(default_factory=DockTolerance)  # when facing latches close
 
 
 @dataclass(eq=False)  # (identity: two bodies are never "equal")
@@ -38,6 +44,15 @@ class Body:
     jsbsim: JsbsimBody
     offsets_frd_m: np.ndarray  # (n, 3) unit centres from the body's CoM
     slots: np.ndarray  # the world's rotor slots of the body's rotors, in its local order
+
+    @property
+    def cells(self) -> dict[int, tuple[int, int]]:
+        """World unit id -> its (row, col) cell in the body's layout."""
+        return {u: self.model.unit_cells[k + 1] for k, u in enumerate(self.units)}
+
+    @property
+    def radius_m(self) -> float:
+        return float(np.max(np.linalg.norm(self.offsets_frd_m, axis=1)))
 
     @classmethod
     def of(cls, model: AssemblyModel, units, jsbsim: JsbsimBody, world_model: AssemblyModel) -> "Body":
@@ -98,6 +113,11 @@ class World:
         self.exchange_index = 0
         self.force_integral_n2s = 0.0
         self._unit_slots = {u: model.unit_slots(u) for u in model.unit_ids}  # (the hot path's lookup)
+        self.latches = LatchBoard(model.unit_ids)
+        for b in self.bodies:
+            self.latches.add(neighbour_links(b.cells))
+        self._released = False  # a latch opened since the last advance: the world splits that body
+        self.latch_events: list[dict] = []  # the world's record of every split and dock (truth, for logs)
         self._index_bodies()
 
     @classmethod
@@ -170,6 +190,9 @@ class World:
         if sl is None:  # not a unit of this world: the model names it in one line
             sl = self.model.unit_slots(output.unit_id)
         self.rotor_setpoint_n[sl] = output.thrusts_n
+        if output.latch_setpoint != self.latches.setpoint[output.unit_id] and self.latches.command(
+                output.unit_id, output.latch_setpoint):
+            self._released = True
 
     def declare_dead(self, unit_id: int) -> None:
         """A unit that stopped answering: its motors stop, it stays attached as dead weight."""
@@ -178,6 +201,8 @@ class World:
 
     def advance(self) -> None:
         """Integrate physics over one exchange period (`substeps` physics steps) for every body."""
+        if self._released:
+            self._split_released()
         a = self._lag_alpha
         if a >= 1.0:  # no motor lag: thrust is constant over the exchange period
             self.rotor_thrust_n = self.rotor_setpoint_n.copy()
@@ -197,6 +222,82 @@ class World:
                     b.jsbsim.step()
                 self.force_integral_n2s += float(self.rotor_thrust_n @ self.rotor_thrust_n) * self.dt_s
         self.exchange_index += 1
+        if not self._single and len(self.bodies) > 1:
+            self._latch_docks()
+
+    # ----------------------------------------------------------------- latches
+    def _split_released(self) -> None:
+        """Every body whose opened latches leave it in several linked groups becomes one body per group."""
+        self._released = False
+        links = self.latches.links
+        for body in list(self.bodies):
+            groups = components(body.units, links)
+            if len(groups) < 2:
+                continue
+            cells = body.cells
+            parts = []
+            for g in groups:
+                order = tuple(sorted(g, key=cells.get))
+                model = AssemblyModel.from_layout(layout_of_cells(cells[u] for u in order), self.model.vehicle)
+                offset = np.mean([body.offsets_frd_m[body.units.index(u)] for u in order], axis=0)
+                parts.append((model, order, offset))
+            self.split(body.units, parts)
+            self.latch_events.append({"t_s": round(self.t_s, 6), "type": "released",
+                                      "parts": [sorted(g) for g in groups]})
+
+    def _latch_docks(self) -> None:
+        """Two bodies dock when a pair of facing units, both latches engaged, sit at their dock pose within
+        the docking tolerance (sitl.docking.dock_check on the truth): the latches close and the bodies merge."""
+        tol = self.config.dock_tolerance
+        pitch = self.model.vehicle.pitch_m
+        bodies = self.bodies
+        states = [b.jsbsim.state() for b in bodies]
+        centres = [s.position_ned_m + (quat_to_rotmat(s.quaternion_wxyz) @ b.offsets_frd_m.T).T
+                   for s, b in zip(states, bodies)]
+        for i in range(len(bodies)):
+            for j in range(i + 1, len(bodies)):
+                gap = np.linalg.norm(states[i].position_ned_m - states[j].position_ned_m)
+                if gap > bodies[i].radius_m + bodies[j].radius_m + pitch + 0.1:
+                    continue
+                d = np.linalg.norm(centres[i][:, None, :] - centres[j][None, :, :], axis=2)
+                for a_k, b_k in zip(*np.nonzero(np.abs(d - pitch) < 2 * tol.position_m + 0.05)):
+                    if self._try_dock(bodies[i], bodies[j], states[i], states[j], int(a_k), int(b_k), tol):
+                        return  # (the body list changed: the next pair waits for the next step)
+
+    def _try_dock(self, bi: "Body", bj: "Body", si: RigidBodyState, sj: RigidBodyState, a_k: int, b_k: int,
+                  tol: DockTolerance) -> bool:
+        # the heavier body (else the slower one) is the stationary one: the merged body keeps its attitude
+        if (len(bj.units), -np.linalg.norm(sj.velocity_ned_mps)) > (len(bi.units), -np.linalg.norm(si.velocity_ned_mps)):
+            bi, bj, si, sj, a_k, b_k = bj, bi, sj, si, b_k, a_k
+        a, b = bi.units[a_k], bj.units[b_k]
+        rel = quat_to_rotmat(si.quaternion_wxyz).T @ (
+            (sj.position_ned_m + quat_to_rotmat(sj.quaternion_wxyz) @ bj.offsets_frd_m[b_k])
+            - (si.position_ned_m + quat_to_rotmat(si.quaternion_wxyz) @ bi.offsets_frd_m[a_k]))
+        side = int(np.argmax(SIDE_FRD @ rel))
+        if not (self.latches.engaged(a, side) and self.latches.engaged(b, opposite(side))):
+            return False
+        offset = bi.offsets_frd_m[a_k] + SIDE_FRD[side] * self.model.vehicle.pitch_m - bj.offsets_frd_m[b_k]
+        chk = dock_check(si, sj, offset, tol)
+        if not chk.ready:
+            return False
+        st_cells, mv_cells = bi.cells, bj.cells
+        target = (st_cells[a][0] + SIDE_STEPS[side][0], st_cells[a][1] + SIDE_STEPS[side][1])
+        dr, dc = target[0] - mv_cells[b][0], target[1] - mv_cells[b][1]
+        cells = {**st_cells, **{u: (c[0] + dr, c[1] + dc) for u, c in mv_cells.items()}}
+        if len(set(cells.values())) != len(cells):
+            return False  # (cells would overlap: not a dock pose)
+        order = tuple(sorted(cells, key=cells.get))
+        merged = AssemblyModel.from_layout(layout_of_cells(cells[u] for u in order), self.model.vehicle)
+        self.merge(a, b, merged, order)
+        engaged = self.latches.engaged
+        self.latches.add({link: sides for link, sides in neighbour_links(cells).items()
+                          if len(link & set(st_cells)) == 1 and engaged(min(link), sides[0])
+                          and engaged(max(link), sides[1])})
+        self.latch_events.append({
+            "t_s": round(self.t_s, 6), "type": "dock_latched", "stationary": sorted(st_cells), "mover": sorted(mv_cells),
+            "position_error_m": round(chk.position_error_m, 4), "speed_mps": round(chk.speed_mps, 4),
+            "yaw_deg": round(chk.yaw_deg, 3), "text": f"Dock latched: {chk.position_error_m * 100:.1f} cm"})
+        return True
 
     # ----------------------------------------------------------------- outputs
     @property
@@ -223,12 +324,13 @@ class World:
                 )
             )
             state = None if self.config.noise else wire_state(truth)
+            latch = self.latches.mask
             for i, unit_id in enumerate(b.units):
                 if unit_id in self.dead_units:
                     continue
                 imu = ImuSample(tw, unit_id, gyro[i], accel[i])
                 p = PositionSample(tw, unit_id, pos[i], vel[i]) if with_position else None
-                packets.append(SensorPacket(tw, unit_id, imu, p, state))
+                packets.append(SensorPacket(tw, unit_id, imu, p, state, latch(unit_id)))
         if not self._single:
             packets.sort(key=lambda p: p.unit_id)
         return packets
@@ -265,6 +367,15 @@ class World:
     def truth_row(self) -> list[float]:
         s = self.body.state()
         return [*s.position_ned_m, *s.quaternion_wxyz]
+
+    def units_row(self) -> list[float]:
+        """Every unit's centre (NED), in unit id order: the truth log of a world of several bodies."""
+        row: list[float] = []
+        for u in self.model.unit_ids:
+            b = self._body_of[u]
+            s = b.jsbsim.state()
+            row += [*(s.position_ned_m + quat_to_rotmat(s.quaternion_wxyz) @ b.offsets_frd_m[b.units.index(u)])]
+        return row
 
     def unit_rotor_thrust_n(self, unit_id: int) -> np.ndarray:
         """What the unit's four rotors produce now (N)."""

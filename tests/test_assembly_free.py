@@ -3,6 +3,7 @@ assemble in the air (paper 001's Algorithm 3 order) before they fly the mission 
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 
@@ -114,11 +115,38 @@ def test_bad_free_start_is_one_line_exit_2(tmp_path, extra, message) -> None:
     assert p.returncode == 2 and message in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
 
 
-def test_free_start_is_refused_where_it_is_not_wired_yet(tmp_path) -> None:
+def test_free_start_with_told_faults_is_refused_in_both_modes(tmp_path) -> None:
+    """Told faults are planned for before flight, which a free start (assembled first) cannot use: one line,
+    exit 2 (faults found in flight are what a free start takes)."""
     path = tmp_path / "s.toml"
-    path.write_text('name = "t"\n[assembly]\nlayout = ["XX"]\nstart = "free"\n[sim]\nnoise = false\n'
-                    '[[faults]]\nt = 5.0\nunit = 1\nrotor = 1\neta = 0.5\n')
+    path.write_text('name = "t"\n[assembly]\nlayout = ["XX"]\nstart = "free"\n[control]\nfaults_known = true\n'
+                    '[sim]\nnoise = false\n[[faults]]\nt = 5.0\nunit = 1\nrotor = 1\neta = 0.5\n')
     for argv in (["run", str(path)], ["run", str(path), "--mode", "sitl"]):
         p = subprocess.run([sys.executable, "-m", "mars_link.cli", *argv, "--quiet", "--out", str(tmp_path / "o")],
                            capture_output=True, text=True, timeout=120)
         assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
+        assert "faults_known = false" in p.stderr
+
+
+def test_assemble_then_a_fault_found_in_flight_reconfigures_and_the_spiral_resumes_where_it_paused() -> None:
+    """assemble_fault_reconfig: six free units assemble into the 3x2 and fly the spiral; unit 1 loses three
+    rotors at t = 70 s and nobody tells the coordinator. Its detector finds them, it plans from what it
+    found, splits, moves the pieces, docks, and the spiral resumes at the mission time where it paused."""
+    r = run_reconfig_trial(load_scenario("assemble_fault_reconfig"), 1)
+    assert r.completed and not r.diverged and r.assembled and r.reconfigured
+    found = [e for e in r.events if e["type"] == "fault_detected"]
+    assert sorted((e["unit"], e["rotor"]) for e in found) == [(1, 1), (1, 3), (1, 4)]
+    assert all(70.0 <= e["t_s"] < 70.5 for e in found)
+    kinds = [e["type"] for e in r.events]
+    assert kinds.count("assembly_done") == 1 and kinds.count("reconfig_done") == 1
+    assert kinds.index("assembly_done") < kinds.index("fault_detected") < kinds.index("reconfig_start")
+    assert all(e["position_error_m"] <= 0.02 for e in r.events if e["type"] == "dock_latched")
+    (final,) = r.pieces_final
+    assert final["layout"] == ["XXX", "XXX"] and sorted(final["units"]) == [1, 2, 3, 4, 5, 6]
+    assert final["units"] != [1, 2, 3, 4, 5, 6]  # the faulty unit moved
+    tel = np.array(r.telemetry_rows)  # t, mission t, ...: the mission clock stands still over the manoeuvre
+    start = next(e["t_s"] for e in r.events if e["type"] == "reconfig_start")
+    before = tel[tel[:, 0] <= start + 1e-9][-1]
+    after = tel[tel[:, 0] > start][0]
+    assert after[1] - before[1] < 0.05 and after[0] - before[0] > 10.0
+    assert r.mean_error_m < 0.02 and math.isfinite(r.min_clearance_m)

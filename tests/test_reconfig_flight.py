@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.reconfig.flight import make_plan, run_reconfig_trial, unhoverable_pieces
+from mars_link.reconfig.flight import run_reconfig_trial
+from mars_link.reconfig.plans import make_plan, unhoverable_pieces
 from mars_link.scenario import eta_after
 from mars_link.scenario import load_scenario, scenario_from_dict
 
@@ -136,9 +137,10 @@ def test_mars_link_run_dispatches_reconfig_scenarios(tmp_path):
     (lambda t: t.replace('layout = ["XXX"]', 'layout = ["X.XX"]'), "not connected"),
     (lambda t: t.replace("unit = 3", "unit = 5"), "unit 5 does not exist"),
     (lambda t: t.replace("target = [2, 3, 1]", "target = [2, 2, 1]"), "exactly once"),
-    (lambda t: t.replace('ftc = "qp"', 'ftc = "qp"\nfaults_known = false'), "faults_known = true"),
     (lambda t: t.replace("enabled = true", "enabled = true\nspeed = 2"), "unknown key 'speed'"),
     (lambda t: t.replace("speed_mps = 0.3", "speed_mps = -1"), "speed_mps must be > 0"),
+    (lambda t: t + "\n[docking]\nposition_m = 0.5\n", "[docking] position_m must be in (0, 0.1]"),
+    (lambda t: t + "\n[docking]\nyaw_deg = 0\n", "[docking] yaw_deg must be > 0"),
 ])
 def test_bad_reconfig_input_is_one_line_exit_2(tmp_path, edit, needle):
     proc = _cli(tmp_path, edit(DOCK))
@@ -153,3 +155,13 @@ def test_unit_sets_are_written_as_ranges():
 
     assert units_text([3, 1, 2, 4, 9, 11, 12]) == "1-4,9,11-12"
     assert units_text({5}) == "5"
+
+
+def test_a_flight_of_pieces_paced_by_the_engine_flies_the_same_in_the_wall_clock_it_asks_for():
+    """Pacing is a parameter of the one engine: docking_3x1 at 5x real time takes sim time / 5 of wall time
+    and gives the flight it gives unpaced (same events, same error)."""
+    fast = run_reconfig_trial(docking("qp"), 1)
+    paced = run_reconfig_trial(docking("qp"), 1, realtime_rate=5.0)
+    assert [(e["t_s"], e["type"]) for e in paced.events] == [(e["t_s"], e["type"]) for e in fast.events]
+    assert paced.mean_error_m == fast.mean_error_m
+    assert paced.wall_time_s >= 0.97 * paced.sim_time_s / 5.0

@@ -23,12 +23,13 @@ AssemblyModel/Coordinator (built by the runner); references here are for the pie
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel, VehicleParams
+from mars_link.assembly import AssemblyModel, VehicleParams, layout_of_cells
 from mars_link.errors import UserInputError
 from mars_link.reconfig.flyability import Cell
 from mars_link.reconfig.sequencing import ReconfigPlan
@@ -54,12 +55,7 @@ class PieceShape:
         return sorted(self.cells, key=lambda u: self.cells[u])
 
     def layout(self) -> tuple[str, ...]:
-        r0 = min(r for r, _ in self.cells.values())
-        c0 = min(c for _, c in self.cells.values())
-        occupied = {(r - r0, c - c0) for r, c in self.cells.values()}
-        rows = max(r for r, _ in occupied) + 1
-        cols = max(c for _, c in occupied) + 1
-        return tuple("".join("X" if (r, c) in occupied else "." for c in range(cols)) for r in range(rows))
+        return layout_of_cells(self.cells.values())
 
     def model(self, vehicle: VehicleParams) -> AssemblyModel:
         return AssemblyModel.from_layout(self.layout(), vehicle)
@@ -290,7 +286,10 @@ class Executor:
         self.events: list[dict] = []
         self.failed: str | None = None
         self.refs[whole.key] = self._mission_reference(whole, 0.0)
+        self._replan_lost: set[int] = set()  # units lost during the docking layers: re-plan before the next one
+        self.hold_until_s = -math.inf  # a commanded separation: the pieces fly apart until then (inf: for good)
         self.free_start = free_start
+        self.assembling = free_start is not None  # the first manoeuvre builds the structure from free units
         if free_start is not None:
             self._take_off(free_start)
 
@@ -317,10 +316,98 @@ class Executor:
     def _altitude(self, level: int) -> float:
         return self.hold_down_m - level * self.params.altitude_step_m
 
+    def main_key(self) -> Key:
+        """The piece that flies the mission: the tracked unit's, else the one with the most units."""
+        for key in self.shapes:
+            if self.tracked_unit is not None and self.tracked_unit in key:
+                return key
+        return max(self.shapes, key=lambda k: (len(k), -min(k)))
+
+    def abandon(self, t_s: float, lost: set[int]) -> list[Key]:
+        """Units lost (their processes died) during a manoeuvre: the pieces made only of lost units are
+        dropped (they fall). In the docking layers, the docks of whole pieces go on and the layers after
+        them are re-planned from the pieces there are (`_replan_docks`); otherwise, or if no docking
+        sequence builds the rest, the manoeuvre ends with the pieces there are: the mission resumes on the
+        main piece while the others hold where they are (`_give_up`). Returns the dropped pieces. During
+        the mission nothing changes here (FTC flies on with the unit lost)."""
+        if self.phase == "mission" and self.trigger_t == math.inf:
+            return []
+        dropped = [k for k in self.shapes if k <= lost]
+        for k in dropped:
+            self.shapes.pop(k)
+            self.refs.pop(k)
+            self.levels.pop(k)
+        self.trigger_t = math.inf
+        if not self.shapes:
+            self.failed = "every unit of the structure was lost"
+            return dropped
+        if self.phase == "assembly":  # the docks of pieces that are whole go on; the next layers are re-planned
+            self.docks = [d for d in self.docks if d.request.stationary in self.shapes and d.request.mover in self.shapes]
+            self._replan_lost = set(lost)
+            return dropped
+        self.docks = []
+        if self.phase == "mission":  # (a trigger pending, nothing moved yet)
+            self.events.append({"t_s": round(t_s, 6), "type": "reconfig_abandoned", "lost": sorted(lost),
+                                "pieces": [sorted(k) for k in self.shapes], "text": "Reconfig off: unit lost"})
+            return dropped
+        self._replan_lost = set(lost)
+        self._give_up(t_s)
+        return dropped
+
+    def _give_up(self, t_s: float) -> None:
+        """The manoeuvre ends with the pieces there are: the mission resumes on the main piece, the others
+        hold where they are."""
+        lost = sorted(self._replan_lost or ())
+        self._replan_lost = set()
+        what = "assembly" if self.assembling else "reconfig"
+        self.events.append({"t_s": round(t_s, 6), "type": f"{what}_abandoned", "lost": lost,
+                            "pieces": [sorted(k) for k in self.shapes],
+                            "text": f"{what.capitalize()} off: u{units_text(lost)} lost"[:50]})
+        self.assembling = False
+        if self.pause_t is None:
+            self.pause_t = t_s - self.shift_s
+        self._return(t_s, abandoned=True)
+
+    def _replan_docks(self, t_s: float) -> bool:
+        """Between docking layers, after units were lost: dock the pieces there are into the target without
+        the dropped ones (Algorithm 3 again, `plan_assembly_of_pieces`); False if no docking sequence builds it."""
+        from mars_link.reconfig.sequencing import plan_assembly_of_pieces
+
+        lost, what = self._replan_lost, ("assembly" if self.assembling else "reconfig")
+        self._replan_lost = set()
+        keep = {u for key in self.shapes for u in key}
+        target = {u: c for u, c in self.plan.target.items() if u in keep}
+        plan = plan_assembly_of_pieces(self.vehicle, target, [sorted(k) for k in self.shapes])
+        if not plan.feasible:
+            return False
+        self.plan = dataclasses.replace(self.plan, merges=plan.merges, assembly_layers=plan.assembly_layers,
+                                        placement=dataclasses.replace(self.plan.placement, unit_cells=plan.target))
+        self.layer = 0
+        self.phase_end_t = t_s + self.params.settle_s
+        self.events.append({"t_s": round(t_s, 6), "type": f"{what}_replanned", "lost": sorted(lost),
+                            "assembly_layers": plan.assembly_layers, "pieces": [sorted(k) for k in self.shapes],
+                            "text": f"Re-planned without u{units_text(sorted(lost))}: "
+                                    f"{plan.assembly_layers} layers"[:50]})
+        return True
+
     def trigger(self, t_s: float) -> None:
         """A fault became known: start the manoeuvre after the trigger delay (once)."""
-        if self.phase == "mission" and self.trigger_t == math.inf and self.pause_t is None:
+        if self.phase == "mission" and self.trigger_t == math.inf and self.pause_t is None and len(self.shapes) == 1:
             self.trigger_t = t_s + self.params.trigger_delay_s
+
+    def replan(self, plan: ReconfigPlan) -> bool:
+        """A plan made in flight (from the faults found) replaces the one given, while the mission flies
+        as one body whose cells are the plan's start (up to a shift); False (kept) otherwise."""
+        if not plan.feasible or self.phase != "mission" or self.pause_t is not None or len(self.shapes) != 1:
+            return False
+        (shape,) = self.shapes.values()
+        start = PieceShape(dict(plan.initial))
+        if shape.key != start.key or shape.layout() != start.layout() or (
+                shape.units_local_order() != start.units_local_order()):
+            return False
+        self.plan = plan
+        self.shapes = {start.key: start}
+        return True
 
     def _take_off(self, free: FreeStart) -> None:
         """Every piece of the plan climbs from where it rests to the assembly height; docking starts once
@@ -354,15 +441,20 @@ class Executor:
             return self._next_split_layer(t_s)
         if self.phase == "assembly":
             self._advance_docks(t_s, states)
-            if not self.docks and t_s >= self.phase_end_t:
-                self._next_dock_layer(t_s)
+            if not self.docks and t_s >= max(self.phase_end_t, self.hold_until_s):
+                if self._replan_lost and not self._replan_docks(t_s):
+                    self._give_up(t_s)
+                else:
+                    self._next_dock_layer(t_s)
         if self.phase == "return" and t_s >= self.phase_end_t:
-            (key,) = self.shapes
+            key = self.main_key()
             shape = self.shapes[key]
             ref = self.refs[key]
             com = ComMission(self.mission, self.tracked_offset(shape))
             ref.tail = (com, t_s, self.shift_s)
             self.phase = "mission"
+            self.pause_t = None  # (a later fault may start another manoeuvre)
+            self.hold_until_s = -math.inf
             self.events.append({"t_s": round(t_s, 6), "type": "mission_resumed", "shift_s": round(self.shift_s, 4),
                                 "text": "Reconfig: mission resumed"})
         return []
@@ -390,7 +482,8 @@ class Executor:
         if not splits:
             self.phase, self.layer = "assembly", 0
             self.phase_end_t = t_s
-            self._next_dock_layer(t_s)
+            if t_s >= self.hold_until_s:
+                self._next_dock_layer(t_s)
             return []
         p = self.params
         actions = []
@@ -506,8 +599,8 @@ class Executor:
                             "stationary": sorted(req.stationary), "mover": sorted(req.mover),
                             "result": sorted(merged.key), "text": f"Docked L{self.layer}: u{units_text(merged.key)}"[:50]})
 
-    def _return(self, t_s: float) -> None:
-        (key,) = self.shapes
+    def _return(self, t_s: float, abandoned: bool = False) -> None:
+        key = self.main_key()  # (several pieces only when a manoeuvre was abandoned: the others hold)
         shape = self.shapes[key]
         com = ComMission(self.mission, self.tracked_offset(shape))
         resume = com.sample(self.pause_t)
@@ -515,7 +608,10 @@ class Executor:
         end = ref.move(t_s, None, self.params.speed_mps, min_s=2.0, end=resume)
         self.shift_s = end - self.pause_t
         self.phase, self.phase_end_t = "return", end
-        kind, text = (("assembly_done", "Assembled: flying to the mission start") if self.free_start is not None
+        if abandoned:
+            return
+        kind, text = (("assembly_done", "Assembled: flying to the mission start") if self.assembling
                       else ("reconfig_done", "Reconfig done: returning to the mission"))
+        self.assembling = False
         self.events.append({"t_s": round(t_s, 6), "type": kind,
                             "cells": {str(u): list(c) for u, c in sorted(shape.cells.items())}, "text": text})

@@ -30,12 +30,12 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Iterator
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
+from mars_link.assembly import AssemblyModel, VehicleParams, layout_of_cells
 from mars_link.errors import UserInputError
 from mars_link.reconfig.flyability import Cell, CellMasks, FlyabilityChecker, FlyabilityRule
 from mars_link.reconfig.placement import (
@@ -697,7 +697,37 @@ def plan_assembly(model: AssemblyModel, rule: FlyabilityRule = FlyabilityRule())
                         [[u] for u in model.unit_ids], states=asm.states, timings_s=timings)
 
 
+def plan_assembly_of_pieces(vehicle: VehicleParams, cells: dict[int, Cell], pieces: list[list[int]],
+                            rule: FlyabilityRule = FlyabilityRule()) -> ReconfigPlan:
+    """The pieces there are (each a list of unit ids) docked into the structure `cells` (unit id -> cell)
+    describes: Algorithm 3 from those pieces, in the unit ids given (e.g. an assembly re-planned without
+    a unit that was lost). Not feasible when no docking sequence builds it (e.g. `cells` not connected)."""
+    t0 = time.perf_counter()
+    order = sorted(cells, key=cells.get)  # (the layout's row-major order: its model's unit ids 1..n)
+    layout = layout_of_cells(cells.values())
+    try:
+        model = AssemblyModel.from_layout(layout, vehicle)
+    except UserInputError as exc:
+        return ReconfigPlan(layout, dict(cells), Placement(dict(cells), 0.0, "given", 0.0), False, None, None,
+                            reason=str(exc))
+    local = {u: k + 1 for k, u in enumerate(order)}
+    local_cells = nominal_cells(model)
+    seq = Sequencer(model, health_from_eta(model, model.nominal_eta()), local_cells, rule)
+    asm = _PartialSearch(seq, local_cells).assemble([seq.mask_of_units([local[u] for u in p]) for p in pieces])
+    target = {order[k - 1]: c for k, c in local_cells.items()}
+    placement = Placement(target, 0.0, "given", 0.0)
+    timings = {"assembly": time.perf_counter() - t0, "total": time.perf_counter() - t0}
+    if asm.layers == INF:
+        return ReconfigPlan(layout, target, placement, False, None, None, reason="no docking sequence builds the "
+                            "structure from these pieces", states=asm.states, timings_s=timings)
+    glob = [None] + order
+    merges = [replace(m, stationary=[glob[u] for u in m.stationary], mover=[glob[u] for u in m.mover])
+              for m in asm.merges]
+    return ReconfigPlan(layout, target, placement, True, 0, int(asm.layers), [], merges,
+                        [sorted(p) for p in pieces], states=asm.states, timings_s=timings)
+
+
 __all__ = [
     "AssemblyPlan", "BreakLine", "Disassembly", "MergeStep", "ReconfigPlan", "Sequencer", "SplitStep",
-    "health_from_eta", "plan_assembly", "plan_reconfiguration",
+    "health_from_eta", "plan_assembly", "plan_assembly_of_pieces", "plan_reconfiguration",
 ]

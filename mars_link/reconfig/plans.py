@@ -1,0 +1,194 @@
+"""What a reconfiguration flight executes: the plan for its faults, the executor over it, and the checks
+made before flight. The flight itself runs on the one engine (`mars_link.build.build_pieces_flight`,
+`mars_link.pieces.PiecesCoordinator`); its outputs are written by `mars_link.reconfig.flight`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from mars_link.assembly import AssemblyModel
+from mars_link.build import make_trajectory, start_pose
+from mars_link.errors import UserInputError
+from mars_link.reconfig.execution import ExecutionParams, Executor, FreeStart, PieceShape, local_eta
+from mars_link.reconfig.flyability import FlyabilityRule
+from mars_link.reconfig.placement import SnapWeights, health_from_eta, nominal_cells
+from mars_link.reconfig.sequencing import ReconfigPlan, plan_assembly, plan_reconfiguration
+from mars_link.scenario import Scenario, eta_after
+
+
+def execution_params(scenario: Scenario) -> ExecutionParams:
+    keys = ExecutionParams.__dataclass_fields__
+    return ExecutionParams(**{k: v for k, v in scenario.reconfig.items() if k in keys})
+
+
+def check_reconfig_scenario(scenario: Scenario) -> None:
+    """What this runner cannot fly, refused before flight (one line each)."""
+    src = scenario.source
+    if scenario.controller != "cascaded":
+        raise UserInputError(f"{src}: [reconfig] flights need [control] controller = \"cascaded\"")
+    if scenario.separations and (scenario.starts_free or scenario.reconfig.get("enabled")):
+        raise UserInputError(f"{src}: [[separations]] cannot be combined with [reconfig] or a free start yet")
+    model = scenario.model()
+    for i, sep in enumerate(scenario.separations, 1):
+        try:
+            plan = plan_separation(model, sep.units, sep.redock_t_s is not None)
+        except UserInputError as exc:
+            raise UserInputError(f"{src}: [[separations]] #{i}: {exc}") from None
+        bad = unhoverable_pieces(plan, model, eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s),
+                                                            math.inf))
+        if bad:
+            raise UserInputError(f"{src}: [[separations]] #{i}: {bad[0]}")
+    if scenario.separations:
+        return
+    if scenario.starts_free:
+        if scenario.faults and scenario.faults_known:
+            raise UserInputError(f"{src}: [assembly] start = \"free\" with [[faults]] needs [control] faults_known = "
+                                 "false (the pieces' detectors find them; told faults are planned before flight)")
+        if scenario.reconfig.get("at_s") is not None:
+            raise UserInputError(f"{src}: [reconfig] at_s cannot be combined with [assembly] start = \"free\"")
+        return
+    if not scenario.faults:
+        raise UserInputError(f"{src}: [reconfig] enabled but the scenario has no [[faults]] to react to")
+
+
+def free_ground_positions(scenario: Scenario, model: AssemblyModel, mission) -> dict[int, np.ndarray]:
+    """Where each unit of a free start rests: the assembled layout around the docked start's CoM,
+    stretched from the unit pitch to `free_spacing_m` between neighbours (NED, CoM at rest height)."""
+    com, yaw = start_pose(scenario, model, mission)
+    stretch = scenario.free_spacing_m / model.vehicle.pitch_m
+    c, s_ = math.cos(yaw), math.sin(yaw)
+    out = {}
+    for u in model.unit_ids:
+        x, y = model.unit_position(u)[:2] * stretch
+        out[u] = np.array([com[0] + c * x - s_ * y, com[1] + s_ * x + c * y, -model.vehicle.gear_depth_m])
+    return out
+
+
+def make_plan(scenario: Scenario, model: AssemblyModel, eta: np.ndarray | None = None) -> ReconfigPlan:
+    """The plan for the faults `eta` (default: all the scenario's faults, precomputed like paper 001's
+    configuration tree; in flight: the faults the detectors found).
+
+    A given `[reconfig] target` that cannot be reached is a UserInputError (exit 2)."""
+    if eta is None:
+        eta = eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s), math.inf)
+    target = scenario.reconfig.get("target")
+    cells = None
+    if target is not None:
+        order = [model.unit_cells[u] for u in model.unit_ids]
+        cells = {u: c for u, c in zip(target, order)}
+    weights = SnapWeights.from_trajectory(make_trajectory(scenario, model))
+    v = model.vehicle  # pieces must hover within the real thrust limits, not only pass the quadrant rule
+    rule = FlyabilityRule(hover_thrust_limits_n=(v.rotor_min_thrust_n, v.rotor_max_thrust_n))
+    try:
+        return plan_reconfiguration(model, health_from_eta(model, eta), weights, target=cells, rule=rule)
+    except UserInputError as exc:
+        raise UserInputError(f"{scenario.source}: [reconfig] {exc}") from None
+
+
+def unhoverable_pieces(plan: ReconfigPlan, model: AssemblyModel, eta: np.ndarray) -> list[str]:
+    """Pieces of the plan that cannot hover within the rotor limits with their faults.
+
+    The planner's four-quadrant rule (paper 001) is necessary, not sufficient (spec §5): e.g. a
+    1x3 piece with a dead end module passes it but, with thrust limits, cannot balance its roll.
+    Each piece the plan creates (both sides of every split, every docked result) gets the exact LP
+    hover test of `check_controllable`; the manoeuvre is refused if one fails.
+    """
+    from mars_link.allocation import check_controllable
+
+    eta_of = {u: eta[model.unit_slots(u)] for u in model.unit_ids}
+    pieces = [s.detached for s in plan.splits] + [s.rest for s in plan.splits]
+    pieces += [m.stationary + m.mover for m in plan.merges]
+    bad = []
+    for units in pieces:
+        cells = plan.initial if any(set(units) == set(s.detached) or set(units) == set(s.rest)
+                                    for s in plan.splits) else plan.target
+        shape = PieceShape({u: cells[u] for u in units})
+        piece = shape.model(model.vehicle)
+        try:
+            check_controllable(piece, local_eta(shape, eta_of),
+                               (piece.vehicle.rotor_min_thrust_n, piece.vehicle.rotor_max_thrust_n))
+        except UserInputError as exc:
+            bad.append(f"piece {sorted(units)}: {exc}")
+    return bad
+
+
+def plan_separation(model: AssemblyModel, units, redock: bool) -> ReconfigPlan:
+    """A commanded separation: `units` undock along one straight cut and, with `redock`, dock back into
+    their cells (one split layer, one dock layer). A set of units that no straight cut separates, or that
+    leaves either side in several parts, is a UserInputError."""
+    from mars_link.latches import components, neighbour_links
+    from mars_link.reconfig.placement import Placement
+    from mars_link.reconfig.sequencing import BreakLine, MergeStep, SplitStep
+
+    cells = nominal_cells(model)
+    detached = sorted(units)
+    rest = sorted(set(model.unit_ids) - set(detached))
+    for axis, k in (("row", 0), ("col", 1)):
+        for index in range(1, 1 + max(c[k] for c in cells.values())):
+            low = sorted(u for u, c in cells.items() if c[k] < index)
+            if detached not in (low, sorted(set(cells) - set(low))):
+                continue
+            for part in (detached, rest):
+                links = neighbour_links({u: cells[u] for u in part})
+                if len(components(part, links)) != 1:
+                    raise UserInputError(f"separation of units {detached}: the cut leaves units {part} in pieces")
+            line = BreakLine(axis, index)
+            approach = ("+" if detached == low else "-") + axis
+            split = SplitStep(1, sorted(model.unit_ids), line, detached, rest)
+            merges = [MergeStep(1, 0, rest, detached, line, approach)] if redock else []
+            return ReconfigPlan(model.layout, cells, Placement(cells, 0.0, "given", 0.0), True, 1,
+                                1 if redock else 0, [split], merges, [detached, rest])
+    raise UserInputError(f"separation of units {detached}: no straight cut of layout {','.join(model.layout)} "
+                         "separates exactly these units")
+
+
+def plan_or_reason(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> tuple[ReconfigPlan | None, str]:
+    """A plan worth executing for the faults `eta` (feasible, with something to split, every piece able to
+    hover), else None and why not."""
+    try:
+        plan = make_plan(scenario, model, eta)
+    except UserInputError as exc:
+        return None, str(exc)
+    if not plan.feasible:
+        return None, f"no feasible plan: {plan.reason}"
+    if not plan.disassembly_layers:
+        return None, "the structure is already the best one for these faults"
+    bad = unhoverable_pieces(plan, model, eta)
+    if bad:
+        return None, "; ".join(bad)
+    return plan, ""
+
+
+def make_executor(scenario: Scenario, model: AssemblyModel, mission) -> tuple[Executor, list[dict], bool]:
+    """The executor a flight starts with, the events of its planning, and whether it will reconfigure on
+    the scenario's own (told) faults.
+
+    A free start assembles first (Algorithm 3). A flight with told faults executes the plan for all of
+    them. Otherwise the structure flies its mission as one body through the executor's references, and
+    a plan is made in flight from the faults the detectors find."""
+    vehicle = model.vehicle
+    params = execution_params(scenario)
+    tracked = scenario.tracked_unit()
+    events: list[dict] = []
+    if scenario.starts_free:  # free units on the ground: assemble in the air (Algorithm 3), then the mission
+        free = FreeStart(free_ground_positions(scenario, model, mission))
+        return Executor(plan_assembly(model), vehicle, mission, tracked, params, free), events, False
+    if scenario.reconfig.get("enabled", False) and scenario.faults_known:
+        plan = make_plan(scenario, model)
+        events.append({"t_s": 0.0, "type": "plan", "feasible": plan.feasible,
+                       "disassembly_layers": plan.disassembly_layers, "assembly_layers": plan.assembly_layers,
+                       "fallback_used": plan.fallback_used, "reason": plan.reason,
+                       "text": (f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers"
+                                if plan.feasible else "Reconfig: no feasible plan")})
+        if plan.feasible and plan.disassembly_layers:
+            refused = unhoverable_pieces(plan, model, eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s),
+                                                                math.inf))
+            if not refused:
+                return Executor(plan, vehicle, mission, tracked, params), events, True
+            events.append({"t_s": 0.0, "type": "reconfig_refused", "reason": "; ".join(refused),
+                           "text": "Reconfig refused: a piece cannot hover"})
+    stub = ReconfigPlan(model.layout, nominal_cells(model), None, True, 0, 0)  # type: ignore[arg-type]
+    return Executor(stub, vehicle, mission, tracked, params), events, False

@@ -1,0 +1,49 @@
+"""Reconfiguration on faults the coordinator finds (not told), every piece on its own EKF: paper 001's
+donut with 3 dead rotors at t = 5 s (tools/reconfig_detect_eval.py flies the whole table)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tools"))
+
+from reconfig_detect_eval import fly  # noqa: E402
+
+
+@pytest.mark.slow
+def test_donut_reconfigures_on_detected_faults_and_beats_flying_on():
+    nr, r = fly(3, "NR"), fly(3, "R")  # donut 4x4, unit 1 rotors 1, 3, 4 dead at 5 s
+    for res in (nr, r):
+        assert res["completed"] and not res["diverged"] and res["false_alarms"] == 0
+        assert res["detection_s"] is not None and res["detection_s"] < 0.5
+        assert sorted((u, rot) for u, rot, _ in res["detected"]) == [(1, 1), (1, 3), (1, 4)]
+    assert r["reconfigured"] and not nr["reconfigured"]
+    assert r["rmse_m"] <= nr["rmse_m"]
+    assert r["mission_force_integral_n2s"] < nr["mission_force_integral_n2s"]
+
+
+def test_plus5_plan_from_found_faults_is_refused_when_a_piece_cannot_hover():
+    """plus-5, unit 1 (an arm's tip) with 3 dead rotors: found in < 0.5 s; every straight cut that would move it
+    leaves it alone on one rotor, so the planner finds no reachable arrangement better than the current one;
+    the coordinator says so (an event) and flies on with FTC."""
+    r = fly(0, "R")
+    assert r["completed"] and not r["reconfigured"] and r["detection_s"] < 0.5
+    assert r["refused"] and "best" in r["refused"]
+
+
+def test_paper000_docking_with_noise_and_the_fault_found_keeps_the_faulty_unit_within_1_deg(tmp_path):
+    """docking_3x1 through the engine, sensor noise on (each piece on its EKF), the dead rotor not told: the
+    detector finds it once airborne, the manoeuvre is planned from that, and unit 3's yaw stays within
+    paper 000's 1 deg over separation and docking."""
+    from docking_eval import faulty_unit_figures
+    from docking_eval import fly as fly_docking
+
+    r = fly_docking("docking_3x1", "qp", tmp_path, noise=True, detected=True)
+    assert r.completed and r.reconfigured
+    (found,) = r.detections
+    assert (found["unit"], found["rotor"]) == (3, 4) and found["eta_estimated"] < 0.15
+    assert faulty_unit_figures(r)["max_yaw_deviation_deg"] <= 1.0
+    assert r.pieces_final == [{"layout": ["XXX"], "units": [2, 3, 1]}]
