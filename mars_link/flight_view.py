@@ -14,7 +14,7 @@ Channels (log time = simulation time, ns from the flight's t = 0):
   /events     Log: one per run event (faults, detections, reallocations, splits, docks, lost units), its
               STATUSTEXT text
 
-Where the work happens: the control loop only packs each step into a row of numbers; a writer process
+Where the work happens: the control loop only packs the steps a channel needs into rows of numbers; a writer process
 builds the messages and owns the SDK's MCAP writer and WebSocket server (`FlightView`). Two SDK contexts
 there: the file gets every message at its rate; the live server gets the same channels throttled on the
 wall clock (what a viewer keeps up with) and only while a client subscribes. The SDK's server queues per
@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -194,6 +194,8 @@ class FlightView:
         config = {"model": model, "control_hz": control_hz, "mcap_path": None if mcap_path is None else str(mcap_path),
                   "live": live, "tracked_unit": tracked_unit, "extras": extras or SceneExtras(),
                   "rates": rates or ViewRates(), "metadata": metadata or {}}
+        # fork: the writer starts at once with the modules already loaded (spawned, it would start a second late and
+        # the file would lag behind a paced flight by that much)
         ctx = multiprocessing.get_context("fork")
         child, self._conn = ctx.Pipe(duplex=False)  # (receive end, send end)
         self.process = ctx.Process(target=_writer_main, args=(self._conn, child, config), name="mars-link-view",
