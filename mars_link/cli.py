@@ -62,6 +62,9 @@ def cmd_run(args) -> int:
     check_faults_controllable(scenario, model)
     if not scenario.reconfig.get("enabled"):
         check_flight(scenario, model)
+    from mars_link.flight_view import live_address
+
+    live = live_address(args)  # a busy --foxglove port: one line, exit 2, before the flight
     out = v.claim_out_dir(args.out or _default_out(scenario.name), force=args.force)  # locked while we run
     console = Console(stderr=True)
     with Progress(
@@ -82,6 +85,7 @@ def cmd_run(args) -> int:
         summary = runner(
             scenario, out, trials=args.trials, seed=args.seed,
             on_progress=lambda i, frac: progress.update(task, completed=i + frac), **pacing,
+            mcap=not args.no_mcap, live=live,
         )
     print_summary(summary, out)
     return 0 if summary["completed"] else 1
@@ -174,6 +178,9 @@ def cmd_sitl(args) -> int:
         check_faults_controllable(setup.scenario, setup.model)
         if vehicle is None:  # --vehicle flies until Ctrl-C: no flight length to check
             check_flight(setup.scenario, setup.model)
+    from mars_link.flight_view import world_view_args
+
+    view = world_view_args(args, docked=setup.docked)  # a busy --foxglove port: one line, exit 2, before any process
     out = v.check_out_dir(args.out or _default_out(name + "-sitl"), force=args.force)
     from firmware_models.signing import signing_from_args
 
@@ -189,13 +196,14 @@ def cmd_sitl(args) -> int:
         from mars_link.sitl_mode import sitl_up_command
 
         v.claim_out_dir(out, force=args.force)
-        return sitl_up_command(args, path, out, vehicle)
+        return sitl_up_command(args, path, out, vehicle, view)
     from sitl.launcher import ClientPorts
 
     clients = ClientPorts(args.gcs_port, [args.api_port + i for i in range(n)], args.any_bind)
     v.claim_out_dir(out, force=args.force)
     code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,
-                   signing_key_file=args.signing_key_file, vehicle=vehicle, require_signing=require_signing)
+                   signing_key_file=args.signing_key_file, vehicle=vehicle, require_signing=require_signing,
+                   view=view)
     print(f"run directory: {out}")
     return code
 
@@ -241,6 +249,9 @@ def build_parser() -> argparse.ArgumentParser:
     from mars_link.sitl_mode import add_sitl_run_arguments, add_coordinator_arguments, cmd_coordinator
 
     add_sitl_run_arguments(run)  # --transport, --realtime, --link-profile (with --mode sitl)
+    from mars_link.flight_view import add_view_arguments
+
+    add_view_arguments(run)  # --no-mcap, --foxglove [HOST:PORT]
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
 
@@ -275,6 +286,7 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--vehicle-gcs-port", type=int, default=None,
                       help="with --vehicle: its ground-station port (default: --gcs-port, 14550)")
     sitl.set_defaults(func=cmd_sitl)
+    add_view_arguments(sitl)  # --no-mcap, --foxglove [HOST:PORT] (served by the world process)
     from mars_link.sitl_mode import add_sitl_up_arguments
 
     add_sitl_up_arguments(sitl)  # --transport zenoh|udp and its options (mars_link.sitl_mode)

@@ -153,6 +153,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     from firmware_models.signing import add_signing_args
 
     add_signing_args(p, "the gcs and api links")
+    p.add_argument("--out", default=None, help="run directory for run.mcap (Foxglove; none without --out)")
+    from mars_link.flight_view import add_view_arguments
+
+    add_view_arguments(p)  # --no-mcap, --foxglove [HOST:PORT]
 
 
 def _check_port(name: str, value: int, allow_zero: bool) -> int:
@@ -211,6 +215,13 @@ def vehicle_command(args: argparse.Namespace) -> int:
     }
     validation.check_file_parent(args.status_file, "--status-file")
     validation.check_file_parent(args.tlog, "--tlog")
+    from mars_link.flight_view import live_address
+
+    live = live_address(args)  # a busy --foxglove port: one line, exit 2, before the vehicle starts
+    out = None
+    if args.out is not None and not args.no_mcap:
+        out = validation.check_out_dir(args.out)
+        validation.prepare_out_dir(out)
     sim = build_sim(args)
     try:
         runner = AssemblyRunner(sim, ports, args.speed, args.status_file, args.duration, args.tlog)
@@ -219,6 +230,7 @@ def vehicle_command(args: argparse.Namespace) -> int:
         if isinstance(exc, OSError):
             raise UserInputError(f"cannot open {exc.filename}: {exc.strerror}") from None
         raise
+    view = _attach_view(sim, out, live)
     ep = runner.endpoints()
     s = sim.scenario
     print(f"mars-link vehicle: {s.name}, layout {','.join(s.layout)} ({sim.model.n_units} units, "
@@ -239,11 +251,25 @@ def vehicle_command(args: argparse.Namespace) -> int:
         for sig, h in old.items():
             signal.signal(sig, h)
         runner.close()
+        if view is not None:
+            view.finish(sim.engine)
     print(f"stopped after {sim.t_s:.1f} s simulated; overruns {runner.overruns}, late steps {runner.late_steps}",
           flush=True)
     if runner.io.logging_stopped:  # a write error (or the size cap) stopped the .tlog; the flight went on
         print(f"logging stopped: {runner.io.logging_stopped}", flush=True)
     return code
+
+
+def _attach_view(sim: AssemblySim, out: Path | None, live: str | None):
+    """run.mcap in `out` and/or the live Foxglove view, as an observer of the vehicle's engine (or None)."""
+    from mars_link.flight_view import open_view
+
+    view = open_view(out, sim.model, sim.scenario, sim.scenario.sim.control_hz, None, math.inf, live,
+                     sim.scenario.tracked_unit())
+    if view is not None:
+        view.event_lists = [sim.events, sim.coordinator.events]  # faults (scenario and MAVLink), coordinator's
+        sim.engine.observers.append(view)
+    return view
 
 
 def spawn_vehicle(args: list[str], status_file: str | os.PathLike, timeout_s: float = 60.0) -> tuple[subprocess.Popen, dict]:

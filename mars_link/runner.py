@@ -30,21 +30,26 @@ def run_trial(
     on_progress: Callable[[float], None] | None = None,
     unit_deaths: dict[int, float] | None = None,
     realtime_rate: float = 0.0,
+    view=None,
 ) -> TrialResult:
     """One flight through the engine (mars_link.engine): world, units and coordinator by direct calls.
 
     `unit_deaths` (unit -> time): that unit's process dies then (no more telemetry, motors stop); the
     coordinator, not told, declares it lost after `UNIT_TIMEOUT_PERIODS` silent control periods.
     `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time.
+    `view` (flight_view.FlightView, or a callable flight -> one): run.mcap and/or the live Foxglove view.
     """
     flight = build_flight(scenario, seed, unit_deaths)
     recorder = FlightRecorder(flight, log, trial_index)
-    engine = Engine(flight, [recorder], Pacer(realtime_rate))
+    view = view(flight) if callable(view) else view
+    engine = Engine(flight, [recorder] + ([view] if view is not None else []), Pacer(realtime_rate))
     wall0 = time.perf_counter()
     try:
         engine.run(on_progress)
     finally:
         flight.world.close()
+        if view is not None:
+            view.finish(engine)
         if log is not None:
             log.flush()
     wall = time.perf_counter() - wall0
@@ -77,9 +82,12 @@ def run_scenario(
     on_progress: Callable[[int, float], None] | None = None,
     plots: bool = True,
     realtime_rate: float = 0.0,
+    mcap: bool = True,
+    live=None,
 ) -> dict:
     """Fly `trials` trials (seeds seed, seed+1, ...); write the run directory if `out_dir` is given.
-    `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time."""
+    `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time.
+    `mcap`: run.mcap in `out_dir` (trial i > 0: run_trial<i>.mcap); `live`: HOST:PORT of a live Foxglove view (flight_view)."""
     seed = scenario.sim.seed if seed is None else seed
     log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ),
                  plot_rows_max=PLOT_ROWS_MAX)  # streamed to the CSVs; memory flat in trials and duration
@@ -88,7 +96,8 @@ def run_scenario(
         for i in range(trials):
             log.new_trial()
             cb = None if on_progress is None else (lambda frac, i=i: on_progress(i, frac))
-            results.append(run_trial(scenario, seed + i, i, log, cb, realtime_rate=realtime_rate))
+            view = _view_maker(scenario, out_dir if mcap else None, live, "run.mcap" if i == 0 else f"run_trial{i}.mcap")
+            results.append(run_trial(scenario, seed + i, i, log, cb, realtime_rate=realtime_rate, view=view))
             if on_progress is not None:
                 on_progress(i, 1.0)
     finally:
@@ -102,3 +111,17 @@ def run_scenario(
 
             write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model())
     return summary
+
+
+def _view_maker(scenario: Scenario, out_dir: Path | None, live, name: str):
+    """flight -> its FlightView (run.mcap in `out_dir` and/or `live`), or None when neither is asked for."""
+    if out_dir is None and live is None:
+        return None
+
+    def make(flight):
+        from mars_link.flight_view import open_view
+
+        return open_view(out_dir, flight.model, scenario, scenario.sim.control_hz, flight.trajectory,
+                         flight.duration_s, live, scenario.tracked_unit(), name=name)
+
+    return make

@@ -62,7 +62,7 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
                units: int | None = None, layout: str | None = None, realtime: bool = False,
                clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units"),
                topology: str = "peer", signing_key_file: str | None = None, vehicle=None,
-               require_signing: bool = False) -> SitlSession:
+               require_signing: bool = False, view: tuple[str, ...] = ()) -> SitlSession:
     """Start the SITL processes (sitl.launcher.start) with their links on `link` (default Zenoh).
     `unit_prefix(u)` -> argv to run unit u under (e.g. `ip netns exec NS`); `roles` may leave out the
     coordinator (one started elsewhere attaches).
@@ -114,7 +114,7 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
         session.run = start(scenario, out, units, layout, seed, 1.0 if realtime else speed,
                             clients or ClientPorts(bind_any=True), signing_key_file, role_args=role_args,
                             unit_prefix=unit_prefix, skip=() if "coordinator" in roles else ("coordinator",),
-                            forever=vehicle is not None)
+                            forever=vehicle is not None, view=view)
     except BaseException:
         session.close()
         raise
@@ -188,7 +188,7 @@ def _toml(doc: dict) -> str:
 
 def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSpec | None = None,
                       realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
-                      on_progress=None) -> dict:
+                      on_progress=None, view: tuple[str, ...] = ("--mcap",)) -> dict:
     """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary."""
     pieces = scenario.has_pieces
     seed = scenario.sim.seed if seed is None else seed
@@ -197,7 +197,7 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     out.mkdir(parents=True, exist_ok=True)
     copy = write_scenario_copy(_absolute_paths(scenario), out / "scenario.toml")
     wall0 = time.perf_counter()
-    session = start_sitl(str(copy), out, link, seed, realtime=realtime)
+    session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view)
     watcher = _ProgressWatcher(out / "world_status.json", scenario, on_progress)
     try:
         code = session.wait(timeout_s, units_may_die=True)  # a dead unit process is a failed unit
@@ -595,12 +595,16 @@ def sitl_runner(args):
     if getattr(args, "trials", 1) != 1:
         raise UserInputError("--mode sitl runs one trial (vary --seed instead)")
 
-    def runner(scenario, out, trials=1, seed=None, on_progress=None):
+    from mars_link.flight_view import world_view_args
+
+    view = world_view_args(args)  # (a busy --foxglove port: refused now, before any process)
+
+    def runner(scenario, out, trials=1, seed=None, on_progress=None, mcap=True, live=None):
         if trials != 1:
             raise UserInputError("--mode sitl runs one trial (vary --seed instead)")
         cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
         try:
-            return run_sitl_scenario(scenario, out, seed, link, realtime=args.realtime, on_progress=cb)
+            return run_sitl_scenario(scenario, out, seed, link, realtime=args.realtime, on_progress=cb, view=view)
         except RuntimeError as e:
             raise UserInputError(str(e)) from None
 
@@ -614,7 +618,7 @@ def add_sitl_up_arguments(p) -> None:
                    help="start no coordinator: attach one with `mars-link coordinator`")
 
 
-def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None) -> int:
+def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None, view: tuple[str, ...] = ()) -> int:
     """`mars-link sitl up --transport zenoh ...`: start, print the endpoints, run to the end or Ctrl-C."""
     import signal
 
@@ -640,7 +644,7 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None) ->
                              clients=clients, speed=getattr(args, "speed", None), roles=roles,
                              topology="router" if args.external_coordinator else "peer",
                              signing_key_file=getattr(args, "signing_key_file", None), vehicle=vehicle,
-                             require_signing=getattr(args, "require_signing", False))
+                             require_signing=getattr(args, "require_signing", False), view=view)
         for line in _endpoints(session, link):
             print(line, flush=True)
         if vehicle is not None:

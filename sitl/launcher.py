@@ -87,13 +87,14 @@ class SitlRun:
 def start(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
           seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
           signing_key_file: str | None = None, role_args: dict[str, list[str]] | None = None,
-          unit_prefix=None, skip: tuple[str, ...] = (), forever: bool = False) -> SitlRun:
+          unit_prefix=None, skip: tuple[str, ...] = (), forever: bool = False, view: tuple[str, ...] = ()) -> SitlRun:
     """Start every process of one run, `python -m sitl.lockstep ROLE ...` each (returns at once; `wait`
     follows it). The coordinator <-> unit links are signed with the key of `signing_key_file`, else of
     $MARS_LINK_SIGNING_KEY (inherited). For other wirings (mars_link.sitl_mode): `role_args` adds
     arguments per role ("world", "coordinator", "unit"; e.g. `--transport zenoh ...`), `unit_prefix(u)` is
     an argv to run unit u under (e.g. `ip netns exec NS`), `skip` leaves roles out (a coordinator run
-    elsewhere); `forever`: a docked run goes on until stopped (a flight flown from a ground station)."""
+    elsewhere); `forever`: a docked run goes on until stopped (a flight flown from a ground station).
+    `view`: the world's flight-view options (`--mcap`, `--foxglove HOST:PORT`; the coordinator then feeds it)."""
     setup = load_setup(scenario, units, layout)  # refuses bad input before any process starts
     load_key(signing_key_file)  # a bad key file too
     out.mkdir(parents=True, exist_ok=True)
@@ -127,13 +128,13 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
     try:
         if coord_sock is not None and "coordinator" not in skip:
             spawn("coordinator", ["coordinator", *common, "--coordinator-fd", str(coord_sock.fileno()),
-                                  *extra.get("coordinator", [])], coord_sock)
+                                  *extra.get("coordinator", []), *(["--view-feed"] if view else [])], coord_sock)
         world = ["world", *common, "--world-fd", str(world_sock.fileno()), "--position-every", str(position_every(setup))]
         world += [] if seed is None else ["--seed", str(seed)]
         if setup.docked and not setup.pieces:
             com, yaw = _start_pose(setup)
             world.append("--start-pose=" + ",".join(repr(float(x)) for x in (*com, yaw)))  # "=": may start with "-"
-        spawn("world", world + ([] if speed is None else ["--speed", str(speed)]) + extra.get("world", []), world_sock)
+        spawn("world", world + ([] if speed is None else ["--speed", str(speed)]) + extra.get("world", []) + list(view), world_sock)
         for i, u in enumerate(setup.unit_ids):
             argv = ["unit", *common, "--unit", str(u), "--gcs-port", str(clients.gcs_port),
                     "--api-port", str(clients.api_port(i))]
@@ -200,7 +201,8 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
 
 def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
             seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
-            signing_key_file: str | None = None, vehicle=None, require_signing: bool = False) -> int:
+            signing_key_file: str | None = None, vehicle=None, require_signing: bool = False,
+            view: tuple[str, ...] = ()) -> int:
     """`mars-link sitl up`: start, print the endpoints, run until the end, Ctrl-C or a child's death.
     With `vehicle` (sitl.vehicle_host.VehiclePorts) the coordinator serves the docked assembly as one
     MAVLink vehicle and the run goes on, paced to real time (unless `speed`), until stopped.
@@ -212,10 +214,11 @@ def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: s
         extra = ["--require-signing"] if require_signing else []
         role_args = {"unit": extra, "coordinator": (vehicle.argv() if vehicle is not None else []) + extra}
         if vehicle is None:
-            run = start(scenario, out, units, layout, seed, speed, clients, signing_key_file, role_args=role_args)
+            run = start(scenario, out, units, layout, seed, speed, clients, signing_key_file, role_args=role_args,
+                        view=view)
         else:
             run = start(scenario, out, units, layout, seed, 1.0 if speed is None else speed, clients, signing_key_file,
-                        role_args=role_args, forever=True)
+                        role_args=role_args, forever=True, view=view)
         for line in run.endpoints():
             print(line, flush=True)
         if vehicle is not None:

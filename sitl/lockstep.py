@@ -242,9 +242,11 @@ def _is_shutdown(m) -> bool:
 
 # ----------------------------------------------------------------------------- world
 def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout_s: float = WORLD_UNIT_TIMEOUT_S,
-              speed: float = 0.0, start: tuple[np.ndarray, float] | None = None) -> int:
+              speed: float = 0.0, start: tuple[np.ndarray, float] | None = None, mcap: bool = False,
+              foxglove: str | None = None) -> int:
     """Own the bodies, run the lockstep; `speed` > 0 paces sim time to that many x wall time. `start`
-    (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory."""
+    (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory. `mcap`: run.mcap in
+    `out`; `foxglove`: HOST:PORT of the live Foxglove view (sitl.view_feed says why the world hosts them)."""
     world_start = start
     from sitl.hil import hil_state_message
     from mars_link.build import make_world, sensor_params
@@ -284,6 +286,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     deaths: list[dict] = []
     latch_sent: dict[int, int] = {}  # the latch mask each unit last heard
     truth_row = world.units_row if setup.pieces else world.truth_row
+    view, feed, reference, eta_at = _world_view(setup, world, out, mcap, foxglove)
     try:
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
         wall0 = time.perf_counter()
@@ -296,6 +299,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         while (setup.steps is None or k < setup.steps) and not stop.requested:
             t = world.t_s
             truth_log.write("%.6f," % t + ",".join("%.9f" % x for x in truth_row()) + "\n")
+            if view is not None:
+                view.write_step(t, world, feed.point(None if reference is None else reference.sample(t)),
+                                eta_at(t), [deaths, feed.events])
             if time.monotonic() >= next_status:
                 next_status = time.monotonic() + STATUS_PERIOD_S
                 _write_world_status(status_path, world, setup, live, t, time.perf_counter() - wall0)
@@ -324,6 +330,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                         stop.ended = True
                         break
                     if m.get_type() != "HIL_ACTUATOR_CONTROLS":
+                        if feed is not None and m.get_srcSystem() == COORDINATOR_SYSID:
+                            feed.take(m)
                         continue
                     if m.time_usec != t_us or m.get_srcSystem() not in waiting:
                         link.drop("stale_actuator")
@@ -338,7 +346,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             for unit in sorted(waiting):  # silent units are dead: motors off, the flight goes on
                 world.declare_dead(unit)
                 live.discard(unit)
-                deaths.append({"unit": unit, "t_s": round(t, 6)})
+                deaths.append({"unit": unit, "t_s": round(t, 6), "type": "unit_died",
+                               "text": f"Unit {unit} silent: motors off"})
                 print(f"world: unit {unit} silent for {unit_timeout_s:.1f} s at t={t:.2f}: declared dead", file=sys.stderr)
             world.advance()
             k += 1
@@ -347,7 +356,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
                    "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
                    "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time(),
-                   "cpu_loop_s": time.process_time() - cpu0, "force_integral_n2s": getattr(world, "force_integral_n2s", None),
+                   "cpu_loop_s": time.process_time() - cpu0, "force_integral_n2s": getattr(world, "force_integral_n2s", None),  # (free units: none)
                    "latch_events": getattr(world, "latch_events", []),
                    "bodies": [list(b.units) for b in getattr(world, "bodies", [])], "logging": truth_log.status()}
         write_json(out / "world_summary.json", summary)
@@ -355,7 +364,27 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         truth_log.close()
         world.close()
         link.close()
+        if view is not None:
+            view.finish(event_lists=[deaths, feed.events])
     return 0
+
+
+def _world_view(setup: SitlSetup, world, out: Path, mcap: bool, live: str | None):
+    """(FlightView, ViewFeed, the scenario's trajectory or None, t -> rotor eta) of a docked world; Nones if
+    neither run.mcap nor a live view is asked for (or the units fly free: no bodies to show as one)."""
+    if not (mcap or live) or not setup.docked:
+        return None, None, None, None
+    from mars_link.build import tracked_offset
+    from mars_link.flight_view import open_view
+    from mars_link.scenario import eta_after
+    from sitl.view_feed import ViewFeed
+
+    sc, model = setup.scenario, setup.model
+    reference = _trajectory(sc, model) if setup.steps is not None else None  # --vehicle: the coordinator's only
+    duration = setup.steps / sc.sim.control_hz if setup.steps is not None else math.inf
+    view = open_view(out, model, sc, sc.sim.control_hz, reference, duration, live, sc.tracked_unit(), mcap)
+    faults = sorted(sc.faults, key=lambda f: f.t_s)
+    return view, ViewFeed(tracked_offset(model, sc)), reference, lambda t: eta_after(model, faults, t)  # (as rotors.csv)
 
 
 def telemetry_ok(p: SensorPacket) -> bool:
@@ -481,7 +510,7 @@ def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: Un
 # ----------------------------------------------------------------------------- coordinator
 def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S,
                     key: bytes | None = None, vehicle=None, timing_log: bool = False,
-                    require_signing: bool = False) -> int:
+                    require_signing: bool = False, view_feed: bool = False) -> int:
     """Drive the docked assembly; with a signing `key` its link to the units is signed both ways.
     With `vehicle` (sitl.vehicle_host.VehiclePorts) the assembly is one MAVLink vehicle on those ports
     and its guidance, not the scenario's trajectory, is the coordinator's reference. `timing_log`:
@@ -540,6 +569,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         _await_peers(link, live, 60.0, stop)
         cpu0 = time.process_time()
         world = ports.address("world")
+        events_fed = 0
         finish_at = None  # when the last period's fault detection runs (Coordinator.finish_step)
         link.heartbeat(world)
         next_hello = time.monotonic() + 0.2
@@ -635,6 +665,11 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             for data, addr in datagrams:
                 link.send_bytes(data, addr)
             sent_wall, send_cpu = time.time(), time.thread_time() - send_cpu
+            if view_feed and coordinator.last is not None:  # after the commands: the world's view (sitl.view_feed)
+                from sitl.view_feed import feed_messages
+
+                link.send_bytes(link.pack(feed_messages(coordinator.last, coordinator.events[events_fed:])), world)
+                events_fed = len(coordinator.events)
             if hosted is None:  # fault detection (Coordinator.finish_step: it changes the allocation from the
                 # next period on) once the units have read their commands: they need the CPUs first
                 finish_at = time.monotonic() + COORDINATOR_QUIET_S
@@ -731,6 +766,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sched-batch", action="store_true",
                     help="world/unit: run as SCHED_BATCH (its wake-ups never preempt the coordinator; real time)")
     ap.add_argument("--timing-log", action="store_true", help="coordinator: each step's wall-clock times (coordinator_timing.csv)")
+    ap.add_argument("--mcap", action="store_true", help="world: run.mcap in --out (mars_link.flight_view)")
+    ap.add_argument("--foxglove", default=None, metavar="HOST:PORT", help="world: the live Foxglove view there")
+    ap.add_argument("--view-feed", action="store_true",
+                    help="coordinator: send the world its estimate, reference and events for the view (sitl.view_feed)")
     ap.add_argument("--vehicle-sysid", type=int, default=None)
     ap.add_argument("--vehicle-gcs-port", type=int, default=None)
     ap.add_argument("--vehicle-api-port", type=int, default=None)
@@ -793,7 +832,7 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
         if args.start_pose:  # the launcher computed them: spares the world importing the coordinator stack
             n, e, d, yaw = (float(x) for x in args.start_pose.split(","))
             start = (np.array([n, e, d]), yaw)
-        return run_world(setup, ports, out, seed, speed=speed, start=start)
+        return run_world(setup, ports, out, seed, speed=speed, start=start, mcap=args.mcap, foxglove=args.foxglove)
     if args.role == "unit":
         if args.unit not in setup.unit_ids:
             print(f"error: unit {args.unit} is not in this run (units {setup.unit_ids})", file=sys.stderr)
@@ -809,7 +848,7 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
         vehicle = VehiclePorts(**{k: v for k, v in given.items() if v is not None})
         vehicle.check(setup.unit_ids)
     return run_coordinator(setup, ports, out, key=key, vehicle=vehicle, timing_log=args.timing_log,
-                           require_signing=args.require_signing)
+                           require_signing=args.require_signing, view_feed=args.view_feed)
 
 
 if __name__ == "__main__":

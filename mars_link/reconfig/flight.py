@@ -148,15 +148,16 @@ class ReconfigRecorder:
 def run_reconfig_trial(
     scenario: Scenario, seed: int, out_dir: Path | None = None,
     on_progress: Callable[[float], None] | None = None, realtime_rate: float = 0.0,
-    unit_deaths: dict[int, float] | None = None,
+    unit_deaths: dict[int, float] | None = None, view: Callable | None = None,
 ) -> ReconfigResult:
     """One flight of pieces on the engine (`build.build_pieces_flight`); `unit_deaths` (unit -> time): that
-    unit's process dies then."""
+    unit's process dies then. `view(flight)`: its run.mcap / live Foxglove view (flight_view.pieces_view)."""
     flight = build_pieces_flight(scenario, seed, unit_deaths)
     coord: PiecesCoordinator = flight.coordinator
     executor = coord.executor
     recorder = ReconfigRecorder(flight, out_dir)
-    engine = Engine(flight, [recorder], Pacer(realtime_rate))
+    view = view(flight) if view is not None else None
+    engine = Engine(flight, [recorder] + ([view] if view is not None else []), Pacer(realtime_rate))
     wall0 = time.perf_counter()
     try:
         step_every = 50
@@ -166,6 +167,8 @@ def run_reconfig_trial(
     finally:
         flight.world.close()
         recorder.close()
+        if view is not None:
+            view.finish(engine)
     t = flight.world.t_s
     latched = [e for e in flight.world.latch_events if e["type"] == "dock_latched"]
     events = sorted(engine.events + coord.events + executor.events + latched, key=lambda e: e["t_s"])
@@ -191,12 +194,17 @@ def run_reconfig_trial(
 def run_reconfig_scenario(
     scenario: Scenario, out_dir: Path | None = None, trials: int = 1, seed: int | None = None,
     on_progress: Callable[[int, float], None] | None = None, plots: bool = True, realtime_rate: float = 0.0,
+    mcap: bool = True, live: str | None = None,
 ) -> dict:
-    """One flight of pieces; the run directory gets summary.json, CSVs and plots/. `realtime_rate`: the
-    engine's pacing (0 as fast as possible, 1 real time)."""
+    """One flight of pieces; the run directory gets summary.json, CSVs, plots/ and run.mcap (unless not `mcap`;
+    `live`: HOST:PORT of a live Foxglove view). `realtime_rate`: the engine's pacing (0 as fast as possible,
+    1 real time)."""
+    from mars_link.flight_view import pieces_view
+
     seed = scenario.sim.seed if seed is None else seed
     cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
-    r = run_reconfig_trial(scenario, seed, out_dir, cb, realtime_rate=realtime_rate)
+    r = run_reconfig_trial(scenario, seed, out_dir, cb, realtime_rate=realtime_rate,
+                           view=lambda flight: pieces_view(flight, out_dir if mcap else None, live))
     summary = {
         "scenario": scenario.name, "source": scenario.source, "mode": "inproc-reconfig",
         "layout": list(scenario.layout), "preset": scenario.preset, "controller": scenario.controller,
@@ -218,6 +226,9 @@ def run_reconfig_scenario(
         write_json(out_dir / "summary.json", summary)
         if plots:
             write_reconfig_plots(out_dir, r)
+            from mars_link.replay_gif import write_flight_gif
+
+            write_flight_gif(out_dir / "plots" / "flight.gif", r.unit_rows, r.events)  # the animated replay
     return summary
 
 
