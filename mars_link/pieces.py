@@ -11,7 +11,10 @@ The topology is learnt from the units' latch sensors (`SensorPacket.latches`, se
 a split is commanded by opening the latches along the cut and is believed once both sides of every cut
 link report open; a dock is believed once a facing pair of the requested dock reports latched. The
 reconfiguration starts on faults told to it (`set_faults`, every scenario fault told), on faults its
-detectors find (`faults_known = false`: the plan is made from the believed faults), or at a given time.
+detectors find (`faults_known = false`: the plan is made from the believed faults and the structure it
+has), or at a given time; a commanded separation (`[[separations]]`) is a plan of one split and,
+optionally, the dock back. A unit that stops reporting is lost: its piece reallocates and the executor
+re-plans the docks left (`Executor.abandon`).
 """
 
 from __future__ import annotations
