@@ -259,13 +259,50 @@ def make_pieces_world(scenario: Scenario, model: AssemblyModel, seed: int, execu
     return make_world(scenario, model, seed, bodies=bodies, config=config)
 
 
+def make_executor(scenario: Scenario, model: AssemblyModel, mission) -> tuple[object, list[dict], bool]:
+    """The executor a flight starts with, the events of its planning, and whether it will reconfigure on
+    the scenario's own (told) faults.
+
+    A free start assembles first (Algorithm 3). A flight with told faults executes the plan for all of
+    them. Otherwise the structure flies its mission as one body through the executor's references, and
+    a plan is made in flight from the faults the detectors find."""
+    from mars_link.reconfig.execution import Executor, FreeStart
+    from mars_link.reconfig.placement import nominal_cells
+    from mars_link.reconfig.plans import execution_params, free_ground_positions, make_plan, unhoverable_pieces
+    from mars_link.reconfig.sequencing import ReconfigPlan, plan_assembly
+
+    vehicle = model.vehicle
+    params = execution_params(scenario)
+    tracked = scenario.tracked_unit()
+    events: list[dict] = []
+    if scenario.starts_free:  # free units on the ground: assemble in the air (Algorithm 3), then the mission
+        free = FreeStart(free_ground_positions(scenario, model, *start_pose(scenario, model, mission)))
+        return Executor(plan_assembly(model), vehicle, mission, tracked, params, free), events, False
+    if scenario.reconfig.get("enabled", False) and scenario.faults_known:
+        plan = make_plan(scenario, model, mission)
+        events.append({"t_s": 0.0, "type": "plan", "feasible": plan.feasible,
+                       "disassembly_layers": plan.disassembly_layers, "assembly_layers": plan.assembly_layers,
+                       "fallback_used": plan.fallback_used, "reason": plan.reason,
+                       "text": (f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers"
+                                if plan.feasible else "Reconfig: no feasible plan")})
+        if plan.feasible and plan.disassembly_layers:
+            refused = unhoverable_pieces(plan, model, eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s),
+                                                                math.inf))
+            if not refused:
+                return Executor(plan, vehicle, mission, tracked, params), events, True
+            events.append({"t_s": 0.0, "type": "reconfig_refused", "reason": "; ".join(refused),
+                           "text": "Reconfig refused: a piece cannot hover"})
+    stub = ReconfigPlan(model.layout, nominal_cells(model), None, True, 0, 0)  # type: ignore[arg-type]
+    return Executor(stub, vehicle, mission, tracked, params), events, False
+
+
 def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: Trajectory,
                             telemetry_timeout_s: float | None = None):
     """The coordinator of a flight of pieces (`PiecesCoordinator`: one EKF, detector, controller and
     allocator per piece, the executor inside) and when its flight ends (a function of no argument
     giving the end's sim time: a manoeuvre moves it)."""
     from mars_link.pieces import PiecesCoordinator
-    from mars_link.reconfig.plans import check_reconfig_scenario, make_executor, plan_or_reason, plan_separation
+    from mars_link.reconfig.plans import check_reconfig_scenario, plan_or_reason, plan_separation
 
     check_reconfig_scenario(scenario)
     executor, plan_events, told = make_executor(scenario, model, mission)
@@ -283,7 +320,7 @@ def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: T
     if enabled and not scenario.faults_known:
         def planner(eta_by_unit, current_cells):
             eta = np.concatenate([eta_by_unit[u] for u in model.unit_ids])
-            return plan_or_reason(scenario, model, eta, current_cells)
+            return plan_or_reason(scenario, model, mission, eta, current_cells)
     coordinator = PiecesCoordinator(
         executor, model.vehicle, model.unit_ids, new_coordinator, tracked_unit=scenario.tracked_unit(),
         planner=planner, told_faults=len(scenario.faults) if told and at_s is None else 0,

@@ -18,6 +18,7 @@ from mars_link.environment import EnvironmentParams
 from mars_link.sensor_profiles import SensorProfile
 from mars_link.errors import UserInputError
 from mars_link.validation import check_id_digits, check_seed
+from mars_link.table_checks import check_keys as _check_keys, integer as _integer, number as _number, table as _table
 
 CONTROLLERS = ("cascaded", "mars-ftcc-paper")
 FTC_MODES = ("none", "unit", "partial", "full", "hybrid", "qp")
@@ -133,37 +134,6 @@ _ASSEMBLY_KEYS = {"layout", "tracked", "start", "free_spacing_m"}
 _CONTROL_KEYS = {"controller", "ftc", "faults_known"}
 _FAULT_KEYS = {"t", "unit", "rotor", "eta"}
 _SIM_KEYS = {"duration_s", "physics_hz", "control_hz", "seed", "noise"}
-
-
-def _check_keys(table: dict, allowed: set[str], where: str, src: str) -> None:
-    for key in table:
-        if key not in allowed:
-            raise UserInputError(
-                f"{src}: unknown key {key!r} in {where} (allowed: {', '.join(sorted(allowed))})"
-            )
-
-
-def _number(value: Any, key: str, src: str, *, positive: bool = False, nonneg: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise UserInputError(f"{src}: {key} must be a finite number, got {value!r}")
-    if positive and value <= 0:
-        raise UserInputError(f"{src}: {key} must be > 0, got {value!r}")
-    if nonneg and value < 0:
-        raise UserInputError(f"{src}: {key} must be >= 0, got {value!r}")
-    return float(value)
-
-
-def _integer(value: Any, key: str, src: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, int):
-        raise UserInputError(f"{src}: {key} must be an integer, got {value!r}")
-    return value
-
-
-def _table(doc: dict, key: str, src: str) -> dict:
-    value = doc.get(key, {})
-    if not isinstance(value, dict):
-        raise UserInputError(f"{src}: [{key}] must be a table")
-    return value
 
 
 def validate_fault(fault: FaultSpec, model: AssemblyModel, src: str = "fault") -> None:

@@ -12,7 +12,7 @@ from mars_link.aerodynamics import AERO_PRESETS
 from mars_link.environment import SEVERITIES, TURBULENCE_MODELS, EnvironmentParams, Gust, check_vector, severity_of
 from mars_link.errors import UserInputError
 from mars_link.sensor_profiles import NOT_MODELLED, PROFILES, SensorProfile
-from mars_link.scenario import _number as _num
+from mars_link.table_checks import number as _num
 
 _ENV_KEYS = {"wind_ned_mps", "turbulence", "turbulence_model", "gusts"}
 _GUST_KEYS = {"t", "duration_s", "ned_mps", "hold_s"}

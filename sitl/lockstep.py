@@ -256,8 +256,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise, position_every(setup),
                       environment=sc.environment if sc.environment.moves_air else None, sensors=sensor_params(sc))
     if setup.pieces:  # one body per piece of the executor's start (the coordinator builds the same executor)
-        from mars_link.build import make_pieces_world, make_trajectory, world_config
-        from mars_link.reconfig.plans import make_executor
+        from mars_link.build import make_executor, make_pieces_world, make_trajectory, world_config
 
         executor = make_executor(sc, setup.model, make_trajectory(sc, setup.model))[0]
         cfg = dataclasses.replace(world_config(sc, seed), position_every=position_every(setup))

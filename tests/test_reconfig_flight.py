@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mars_link.build import make_trajectory
 from mars_link.reconfig.flight import run_reconfig_trial
 from mars_link.reconfig.plans import make_plan, unhoverable_pieces
 from mars_link.scenario import eta_after
@@ -96,7 +97,7 @@ def test_flight_plans_only_use_pieces_that_can_hover():
         assert bool(bad) is quadrant_rule_bad, bad
         if quadrant_rule_bad:
             assert "piece [1, 2, 3]" in bad[0] and "cannot hover" in bad[0]
-        flight = make_plan(sc, model)
+        flight = make_plan(sc, model, make_trajectory(sc, model))
         assert flight.feasible and unhoverable_pieces(flight, model, eta) == []
         assert (flight.disassembly_layers == 0) is quadrant_rule_bad
 

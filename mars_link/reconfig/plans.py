@@ -1,6 +1,6 @@
-"""What a reconfiguration flight executes: the plan for its faults, the executor over it, and the checks
-made before flight. The flight itself runs on the one engine (`mars_link.build.build_pieces_flight`,
-`mars_link.pieces.PiecesCoordinator`); its outputs are written by `mars_link.reconfig.flight`.
+"""What a flight of pieces plans: the reconfiguration for its faults, a commanded separation, where free
+units rest, and the checks made before flight. `mars_link.build` puts the executor and the flight
+together (`make_executor`, `build_pieces_flight`); `mars_link.reconfig.flight` writes its outputs.
 """
 
 from __future__ import annotations
@@ -10,12 +10,11 @@ import math
 import numpy as np
 
 from mars_link.assembly import AssemblyModel
-from mars_link.build import make_trajectory, start_pose
 from mars_link.errors import UserInputError
-from mars_link.reconfig.execution import ExecutionParams, Executor, FreeStart, PieceShape, local_eta
+from mars_link.reconfig.execution import ExecutionParams, PieceShape, local_eta
 from mars_link.reconfig.flyability import FlyabilityRule
 from mars_link.reconfig.placement import SnapWeights, health_from_eta, nominal_cells
-from mars_link.reconfig.sequencing import ReconfigPlan, plan_assembly, plan_reconfiguration
+from mars_link.reconfig.sequencing import ReconfigPlan, plan_reconfiguration
 from mars_link.scenario import Scenario, eta_after
 
 
@@ -54,10 +53,12 @@ def check_reconfig_scenario(scenario: Scenario) -> None:
         raise UserInputError(f"{src}: [reconfig] enabled but the scenario has no [[faults]] to react to")
 
 
-def free_ground_positions(scenario: Scenario, model: AssemblyModel, mission) -> dict[int, np.ndarray]:
-    """Where each unit of a free start rests: the assembled layout around the docked start's CoM,
-    stretched from the unit pitch to `free_spacing_m` between neighbours (NED, CoM at rest height)."""
-    com, yaw = start_pose(scenario, model, mission)
+def free_ground_positions(scenario: Scenario, model: AssemblyModel, com_ned_m: np.ndarray,
+                          yaw_rad: float) -> dict[int, np.ndarray]:
+    """Where each unit of a free start rests: the assembled layout around the docked start's CoM
+    (`com_ned_m`, `yaw_rad`), stretched from the unit pitch to `free_spacing_m` between neighbours (NED,
+    CoM at rest height)."""
+    com, yaw = com_ned_m, yaw_rad
     stretch = scenario.free_spacing_m / model.vehicle.pitch_m
     c, s_ = math.cos(yaw), math.sin(yaw)
     out = {}
@@ -67,7 +68,7 @@ def free_ground_positions(scenario: Scenario, model: AssemblyModel, mission) -> 
     return out
 
 
-def make_plan(scenario: Scenario, model: AssemblyModel, eta: np.ndarray | None = None,
+def make_plan(scenario: Scenario, model: AssemblyModel, mission, eta: np.ndarray | None = None,
               current: dict | None = None) -> ReconfigPlan:
     """The plan for the faults `eta` (default: all the scenario's faults, precomputed like paper 001's
     configuration tree; in flight: the faults the detectors found), from the structure `current` (unit ->
@@ -84,7 +85,7 @@ def make_plan(scenario: Scenario, model: AssemblyModel, eta: np.ndarray | None =
     if target is not None:
         order = [model.unit_cells[u] for u in model.unit_ids]
         cells = {u: c for u, c in zip(target, order)}
-    weights = SnapWeights.from_trajectory(make_trajectory(scenario, model))
+    weights = SnapWeights.from_trajectory(mission)  # (the mission weighs where units go, paper 001)
     v = model.vehicle  # pieces must hover within the real thrust limits, not only pass the quadrant rule
     rule = FlyabilityRule(hover_thrust_limits_n=(v.rotor_min_thrust_n, v.rotor_max_thrust_n))
     try:
@@ -151,12 +152,12 @@ def plan_separation(model: AssemblyModel, units, redock: bool) -> ReconfigPlan:
                          "separates exactly these units")
 
 
-def plan_or_reason(scenario: Scenario, model: AssemblyModel, eta: np.ndarray,
+def plan_or_reason(scenario: Scenario, model: AssemblyModel, mission, eta: np.ndarray,
                    current: dict | None = None) -> tuple[ReconfigPlan | None, str]:
     """A plan worth executing for the faults `eta` from the structure `current` (feasible, with something
     to split, every piece able to hover), else None and why not."""
     try:
-        plan = make_plan(scenario, model, eta, current)
+        plan = make_plan(scenario, model, mission, eta, current)
     except UserInputError as exc:
         return None, str(exc)
     if not plan.feasible:
@@ -167,35 +168,3 @@ def plan_or_reason(scenario: Scenario, model: AssemblyModel, eta: np.ndarray,
     if bad:
         return None, "; ".join(bad)
     return plan, ""
-
-
-def make_executor(scenario: Scenario, model: AssemblyModel, mission) -> tuple[Executor, list[dict], bool]:
-    """The executor a flight starts with, the events of its planning, and whether it will reconfigure on
-    the scenario's own (told) faults.
-
-    A free start assembles first (Algorithm 3). A flight with told faults executes the plan for all of
-    them. Otherwise the structure flies its mission as one body through the executor's references, and
-    a plan is made in flight from the faults the detectors find."""
-    vehicle = model.vehicle
-    params = execution_params(scenario)
-    tracked = scenario.tracked_unit()
-    events: list[dict] = []
-    if scenario.starts_free:  # free units on the ground: assemble in the air (Algorithm 3), then the mission
-        free = FreeStart(free_ground_positions(scenario, model, mission))
-        return Executor(plan_assembly(model), vehicle, mission, tracked, params, free), events, False
-    if scenario.reconfig.get("enabled", False) and scenario.faults_known:
-        plan = make_plan(scenario, model)
-        events.append({"t_s": 0.0, "type": "plan", "feasible": plan.feasible,
-                       "disassembly_layers": plan.disassembly_layers, "assembly_layers": plan.assembly_layers,
-                       "fallback_used": plan.fallback_used, "reason": plan.reason,
-                       "text": (f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers"
-                                if plan.feasible else "Reconfig: no feasible plan")})
-        if plan.feasible and plan.disassembly_layers:
-            refused = unhoverable_pieces(plan, model, eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s),
-                                                                math.inf))
-            if not refused:
-                return Executor(plan, vehicle, mission, tracked, params), events, True
-            events.append({"t_s": 0.0, "type": "reconfig_refused", "reason": "; ".join(refused),
-                           "text": "Reconfig refused: a piece cannot hover"})
-    stub = ReconfigPlan(model.layout, nominal_cells(model), None, True, 0, 0)  # type: ignore[arg-type]
-    return Executor(stub, vehicle, mission, tracked, params), events, False
