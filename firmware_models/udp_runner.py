@@ -13,9 +13,11 @@ Links (PX4's SITL conventions, specs/mavlink.md §1.1; all on 127.0.0.1 and conf
                last frame that came from the configured coordinator and passed signing (if required)
 A port 0 means "any free port"; the chosen ports are printed as one JSON line on stdout once ready.
 
-Physics: this runner is for a lone unit (MAVSDK/MAVProxy/QGC tests and demos): a 1x1 JsbsimBody
-stepped at --physics-hz in real time (scaled by --speed), the vehicle's control at --control-hz and
-its motor model (limits, injected faults, lag) on every physics step. `--status-file` gets a JSON
+Physics: this runner is for a lone unit (MAVSDK/MAVProxy/QGC tests and demos), flown by the one engine
+(`mars_link.engine.Engine`) on the world every mode uses (`build.make_world`: a 1x1 body, JSBSim at
+--physics-hz, motor lag, perfect sensors): each control period the unit takes its sensors, flies itself
+(its motor model applies limits and injected faults) and the world advances; the runner only moves the
+MAVLink bytes and paces the steps to real time (scaled by --speed). `--status-file` gets a JSON
 snapshot (truth, mode, counters, where each MISSION_ITEM_REACHED was sent) a few times per second for tests and operators; it is not a channel
 any coordinator reads.
 """
@@ -34,6 +36,8 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from firmware_models.signing import add_signing_args, signing_from_args
 from firmware_models.vehicle import LINK_COORDINATOR, Vehicle, VehicleConfig
 from firmware_models.vehicle_io import (
@@ -50,6 +54,7 @@ from mars_link.errors import UserInputError
 from mars_link.pacing import Pacer
 
 STATUS_PERIOD_S = 0.2
+WORLD_UNIT = 1  # the world's name for its one unit (the vehicle keeps its own system id on the wire)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -92,7 +97,8 @@ def _params(items: list[str]) -> dict[str, float]:
 
 
 class UnitRunner:
-    """Owns the sockets, the body and the clocks; the vehicle decides everything else."""
+    """Owns the sockets and the pacing; the engine steps the world and the unit, the vehicle decides
+    everything else."""
 
     def __init__(self, args: argparse.Namespace) -> None:
         i = args.unit - 1
@@ -106,16 +112,11 @@ class UnitRunner:
             unit_id=args.unit, vehicle=args.preset, coordinator_sysid=args.coordinator_sysid,
             coordinator_compid=args.coordinator_compid, signing_key=key, sign_client_links=require_signing,
             control_hz=args.control_hz, params=_params(args.param)), time.time())
-        self.substeps = int(round(ratio))
-        self.physics_dt_s = 1.0 / args.physics_hz
         self.control_dt_s = 1.0 / args.control_hz
         self.speed = args.speed
-        from sitl.physics import JsbsimBody  # the world's body model (no physics written here)
-
-        model = AssemblyModel.from_layout(["X"], self.vehicle.vehicle)
-        self.body = JsbsimBody(model, args.physics_hz, position_ned_m=(args.north, args.east, 0.0),
-                               yaw_rad=math.radians(args.yaw_deg))
-        self.vehicle.set_state(self.body.state())
+        self.engine = _lone_unit_engine(self.vehicle, args, self._tick)
+        self.world = self.engine.flight.world
+        self.vehicle.set_state(self.world.unit_truth(WORLD_UNIT))
         pick = lambda v, d: d if v is None else v  # noqa: E731
         links = client_links(i, args.gcs_port, args.api_port, args.gcs_bind, args.api_bind)
         links[LINK_COORDINATOR] = LinkSpec(pick(args.coord_bind, COORD_BIND_BASE + i), None, learn_clients=False)
@@ -133,7 +134,8 @@ class UnitRunner:
         if self.status_path is None:
             return
         write_json_atomic(self.status_path, vehicle_status(
-            self.vehicle, self.body.state(), self.sim_s, overruns=self.pacer.overruns, ports=self.ports(),
+            self.vehicle, self.world.unit_truth(WORLD_UNIT), self.sim_s, overruns=self.pacer.overruns, ports=self.ports(),
+            motor_thrust_n=[float(x) for x in self.world.unit_rotor_thrust_n(WORLD_UNIT)],  # (what the rotors make)
             mission_reached=self.vehicle.mission_reached, mission_counts=self.vehicle.mission.counts,
             **self.io.counters()))
 
@@ -143,7 +145,6 @@ class UnitRunner:
         pacer = self.pacer
         pacer.start(self.sim_s)
         next_status = start
-        v, body = self.vehicle, self.body
         while self.running:
             now = time.monotonic()
             if self.duration_s is not None and now - start >= self.duration_s:
@@ -151,21 +152,39 @@ class UnitRunner:
             self.io.poll(pacer.wait_s(self.sim_s))
             now = time.monotonic()
             if pacer.is_due(self.sim_s):  # (fell behind on a busy machine: re-anchored, an overrun)
-                self.io.send(v.tick(time.time(), self.sim_s))
-                for _ in range(self.substeps):
-                    body.set_rotor_thrusts(v.step_motors(self.physics_dt_s))
-                    body.step(1)
-                self.sim_s = body.t_s
-                v.set_state(body.state())
+                self.engine.step()  # sensors -> the unit flies itself (its _tick below) -> motors -> physics
+                self.sim_s = self.world.t_s
             if now >= next_status:
                 next_status = now + STATUS_PERIOD_S
                 self.write_status()
         self.write_status()
         return 0
 
+    def _tick(self, t_s: float, telemetry) -> list:
+        """The engine's command source for a lone unit: no coordinator; the unit's heartbeats, streams and
+        replies go out (its control step runs when it drives its motors, right after)."""
+        self.io.send(self.vehicle.tick(time.time(), t_s))
+        return []
+
     def close(self) -> None:
         self.io.close()
-        self.body.close()
+        self.world.close()
+
+
+def _lone_unit_engine(vehicle: Vehicle, args: argparse.Namespace, tick):
+    """The engine over a world of one 1x1 body (perfect sensors: the unit flies on its own state) and this
+    unit's firmware, with no coordinator."""
+    from mars_link.build import make_world
+    from mars_link.engine import Engine, Flight, InProcessUnits
+    from mars_link.scenario import Scenario, SimSpec
+
+    model = AssemblyModel.from_layout(["X"], vehicle.vehicle)
+    sc = Scenario(name=f"unit{vehicle.sysid}", preset=vehicle.vehicle.name, layout=("X",),
+                  sim=SimSpec(physics_hz=args.physics_hz, control_hz=args.control_hz, noise=False))
+    world = make_world(sc, model, 1, np.array([args.north, args.east, 0.0]), math.radians(args.yaw_deg))
+    units = InProcessUnits({WORLD_UNIT: vehicle}, world)  # (the vehicle keeps its own system id)
+    flight = Flight(sc, model, 1, None, world, units, None, [], duration_s=math.inf)
+    return Engine(flight, command_source=tick)
 
 
 def free_udp_port() -> int:

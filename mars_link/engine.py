@@ -9,6 +9,7 @@ command to a unit it arms it and switches it to OFFBOARD around that command.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -59,11 +60,22 @@ class InProcessUnits:
         return out
 
     def drive(self, commands: list[RotorCommand]) -> None:
-        """The coordinator's commands into the units; their motor outputs into the world."""
+        """The coordinator's commands into the units; their motor outputs into the world. A live unit
+        without a command this step still answers (it flies itself, or its fail-safe does), as every unit
+        answers every HIL step in SITL."""
+        done = self.dead
         for cmd in commands:
-            if cmd.unit_id in self.dead:
+            if cmd.unit_id in done:
                 continue
             self.world.actuate(self.command(cmd))
+        if len(commands) < len(self.vehicles):
+            commanded = {c.unit_id for c in commands}
+            for u, v in self.vehicles.items():
+                if u not in commanded and u not in done:
+                    out = v.drive_motors()
+                    if out.unit_id != u:  # (a lone unit keeps its own system id; the world calls it u)
+                        out = dataclasses.replace(out, unit_id=u)
+                    self.world.actuate(out)
 
     def command(self, cmd: RotorCommand) -> ActuatorOutput:
         v = self.vehicles[cmd.unit_id]
@@ -92,7 +104,7 @@ class Flight:
     trajectory: Trajectory
     world: object  # sitl.world.World
     units: InProcessUnits
-    coordinator: Coordinator
+    coordinator: Coordinator | None  # None: the units fly themselves (a lone unit under a ground station)
     faults: list[FaultSpec]  # sorted by time: they act in the units' motor models (scheduled there)
     deaths: list[tuple[float, int]] = field(default_factory=list)  # (time, unit): the unit's process dies
     tracked_offset_frd_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -132,7 +144,7 @@ class Engine:
         self.flight = flight
         self.observers = list(observers or [])
         self.pacer = pacer or Pacer(0.0)
-        self.command_source = command_source or flight.coordinator.step
+        self.command_source = command_source or flight.coordinator.step  # (a flight without one names its own)
         self.on_fault = on_fault or self._record_fault
         self.events: list[dict] = []
         self.stage_time_s = dict.fromkeys(STAGES, 0.0)
@@ -175,12 +187,13 @@ class Engine:
         c0 = clock()
         packets = world.sense()
         c1 = clock()
-        before = f.coordinator.last
+        coordinator = f.coordinator
+        before = None if coordinator is None else coordinator.last
         commands = self.command_source(t, f.units.take_sensors(packets))
         c2 = clock()
         f.units.drive(commands)
         c3 = clock()
-        rec = f.coordinator.last
+        rec = None if coordinator is None else coordinator.last
         if rec is before:  # (the assembly vehicle on the ground: its coordinator did not run)
             rec = None
         stage["sensors"] += c1 - c0
