@@ -68,6 +68,7 @@ def test_docking_3x1_in_sitl_equals_inproc_and_the_latches_travel_as_mavlink(tmp
 
 
 @pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.sitl
 @pytest.mark.parametrize("name", ["assemble_3x2", "assemble_fault_reconfig"])
 def test_life_cycle_in_sitl_over_zenoh_equals_inproc(tmp_path: Path, name: str) -> None:
@@ -91,6 +92,7 @@ def test_a_unit_lost_during_a_dock_approach_inproc_the_structure_replans_without
 
 
 @pytest.mark.slow
+@pytest.mark.long
 @pytest.mark.sitl
 def test_a_unit_process_sigkilled_during_a_dock_approach_is_lost_and_the_run_finishes(tmp_path: Path) -> None:
     """The same in the multi-process SITL: unit 3's process is SIGKILLed (by its PID) during its approach;
