@@ -147,15 +147,17 @@ class AssemblyVehicle(Vehicle):
 
     def __init__(self, coordinator: Coordinator, sysid: int = DEFAULT_SYSID, control_hz: float = 100.0,
                  ftc: str = "none", params: dict[str, float] | None = None, wall_time_s: float = 0.0,
-                 signing_key: bytes | None = None, require_signing: bool = False) -> None:
+                 signing_key: bytes | None = None, require_signing: bool = False, *,
+                 model: AssemblyModel | None = None, flight_core: UnitAutopilot | None = None) -> None:
         """`signing_key`: signed clients get full control (control_policy); `require_signing`: unsigned
-        clients may only read."""
-        model = coordinator.model
+        clients may only read. `model` and `flight_core` default to the coordinator's (one rigid body);
+        a flight of pieces gives the whole layout's and its own (mars_link.pieces_vehicle)."""
+        model = model or coordinator.model
         client = LinkPolicy(require_signing=require_signing, sign_outgoing=require_signing, unsigned_reads=True)
         config = VehicleConfig(unit_id=sysid, vehicle=model.vehicle, control_hz=control_hz, signing_key=signing_key,
                                links={LINK_GCS: client, LINK_API: client})
         self.coordinator = coordinator
-        super().__init__(config, wall_time_s, flight_core=AssemblyFlightCore(coordinator, control_hz))
+        super().__init__(config, wall_time_s, flight_core=flight_core or AssemblyFlightCore(coordinator, control_hz))
         specs = assembly_param_specs(sysid, model, ftc)
         fixed = {sp.name for sp in specs if sp.read_only}
         for name in params or {}:
@@ -199,11 +201,16 @@ class AssemblyVehicle(Vehicle):
     def tick(self, wall_time_s: float, sim_time_s: float) -> list[Outgoing]:
         """Vehicle.tick, after queueing a STATUSTEXT for each event the coordinator recorded since
         the last tick (reported one control period after the step that recorded it)."""
-        events = self.coordinator.events
-        for ev in events[self._events_seen:]:
+        for ev in self.new_events():
             self.report_event(ev)
-        self._events_seen = len(events)
         return super().tick(wall_time_s, sim_time_s)
+
+    def new_events(self) -> list[dict]:
+        """The coordinator's events since the last call."""
+        events = self.coordinator.events
+        new = events[self._events_seen:]
+        self._events_seen = len(events)
+        return new
 
     def _stream_message(self, mid: int):
         if mid == mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS:
@@ -228,15 +235,53 @@ class SimConfig:
 
 def vehicle_scenario(scenario: Scenario) -> Scenario:
     """The scenario as the vehicle flies it: setpoints are for the CoM; the trajectory is unused."""
-    if scenario.has_pieces:
-        raise UserInputError(f"{scenario.source}: [reconfig] and [assembly] start = \"free\" scenarios cannot be "
-                             "flown as one vehicle yet")
     s = copy.deepcopy(scenario)
     s.tracked = "com"
     return s
 
 
-class AssemblySim:
+class EngineSim:
+    """What the in-process vehicles share (`AssemblySim`, mars_link.pieces_vehicle.PiecesSim): the engine
+    steps the world, the units and the vehicle's command source; a fault goes into a unit's motor path and
+    is told to the coordinator (`_tell`) only with `faults_known`. Subclasses set scenario, world, units,
+    vehicle, engine, model and events."""
+
+    @property
+    def t_s(self) -> float:
+        return self.world.t_s
+
+    def handle(self, data: bytes, wall_time_s: float, link: str) -> list[Outgoing]:
+        return self.vehicle.handle(data, wall_time_s, link)
+
+    def inject(self, unit: int, rotor: int | None, eta: float) -> None:
+        """A fault in a unit's motor path; told to the coordinator only with `faults_known`."""
+        t = self.t_s
+        self.units.inject_failure(unit, rotor, eta)
+        event = {"t_s": round(t, 6), "type": "fault", "unit": unit, "rotor": rotor, "eta": eta}
+        self.events.append(event)
+        self.vehicle.report_event(event)
+        if self.scenario.faults_known:
+            self._tell(unit, rotor, eta, t)
+
+    def _tell(self, unit: int, rotor: int | None, eta: float, t_s: float) -> None:
+        raise NotImplementedError
+
+    def step(self, wall_time_s: float) -> list[Outgoing]:
+        """One control period through the engine (faults due, sensing, units, vehicle and coordinator,
+        motors, physics); returns the vehicle's frames to send."""
+        self._wall_s = wall_time_s
+        self._out = []
+        self.engine.step()
+        return self._out
+
+    def unit_eta(self) -> list[float]:
+        return [float(x) for x in self.units.eta(self.model.unit_ids)]
+
+    def close(self) -> None:
+        self.world.close()
+
+
+class AssemblySim(EngineSim):
     """World (one JSBSim body), unit motor paths, estimator, coordinator and the assembly vehicle,
     wired by direct calls in lockstep. Sans-IO: `handle(bytes, wall, link)` and `step(wall)` return
     the frames to send; `t_s` is simulation time (scenario faults fire at their `t` from the start)."""
@@ -274,32 +319,10 @@ class AssemblySim:
         self._wall_s = wall_time_s
         self._out: list[Outgoing] = []
 
-    @property
-    def t_s(self) -> float:
-        return self.world.t_s
-
-    def handle(self, data: bytes, wall_time_s: float, link: str) -> list[Outgoing]:
-        return self.vehicle.handle(data, wall_time_s, link)
-
-    def inject(self, unit: int, rotor: int | None, eta: float) -> None:
-        """A fault in a unit's motor path; told to the coordinator only with `faults_known`."""
-        t = self.t_s
-        self.units.inject_failure(unit, rotor, eta)
-        event = {"t_s": round(t, 6), "type": "fault", "unit": unit, "rotor": rotor, "eta": eta}
-        self.events.append(event)
-        self.vehicle.report_event(event)
-        if self.scenario.faults_known:
-            sl = self.model.unit_slots(unit) if rotor is None else self.model.rotor_slot(unit, rotor)
-            self.eta_told[sl] = eta
-            self.coordinator.set_faults(self.eta_told, t, "fault told to the coordinator")
-
-    def step(self, wall_time_s: float) -> list[Outgoing]:
-        """One control period through the engine (faults due, sensing, units, vehicle and coordinator,
-        motors, physics); returns the vehicle's frames to send."""
-        self._wall_s = wall_time_s
-        self._out = []
-        self.engine.step()
-        return self._out
+    def _tell(self, unit: int, rotor: int | None, eta: float, t_s: float) -> None:
+        sl = self.model.unit_slots(unit) if rotor is None else self.model.rotor_slot(unit, rotor)
+        self.eta_told[sl] = eta
+        self.coordinator.set_faults(self.eta_told, t_s, "fault told to the coordinator")
 
     def _commands(self, t: float, packets) -> list[RotorCommand]:
         """The engine's command source: estimate, the vehicle's tick (its coordinator runs when it flies),
@@ -331,11 +354,12 @@ class AssemblySim:
             self.vehicle.report_event(event)
         return est
 
+    def eta_believed(self) -> np.ndarray:
+        return self.coordinator.eta_believed
+
+    def event_lists(self) -> list[list[dict]]:
+        """The run's event records: faults (scenario and MAVLink), the coordinator's."""
+        return [self.events, self.coordinator.events]
+
     def truth(self) -> RigidBodyState:
         return self.world.truth()
-
-    def unit_eta(self) -> list[float]:
-        return [float(x) for x in self.units.eta(self.model.unit_ids)]
-
-    def close(self) -> None:
-        self.world.close()

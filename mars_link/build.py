@@ -259,13 +259,16 @@ def make_pieces_world(scenario: Scenario, model: AssemblyModel, seed: int, execu
     return make_world(scenario, model, seed, bodies=bodies, config=config)
 
 
-def make_executor(scenario: Scenario, model: AssemblyModel, mission) -> tuple[object, list[dict], bool]:
+def make_executor(scenario: Scenario, model: AssemblyModel, mission, plan_for: Trajectory | None = None,
+                  defer_take_off: bool = False) -> tuple[object, list[dict], bool]:
     """The executor a flight starts with, the events of its planning, and whether it will reconfigure on
     the scenario's own (told) faults.
 
-    A free start assembles first (Algorithm 3). A flight with told faults executes the plan for all of
-    them. Otherwise the structure flies its mission as one body through the executor's references, and
-    a plan is made in flight from the faults the detectors find."""
+    A free start assembles first (Algorithm 3; `defer_take_off`: once told to take off). A flight with
+    told faults executes the plan for all of them. Otherwise the structure flies its mission as one body
+    through the executor's references, and a plan is made in flight from the faults the detectors find.
+    `plan_for`: the trajectory whose snap weighs where the units go (default: the mission; the assembly
+    vehicle's mission is its setpoints, which have no duration)."""
     from mars_link.reconfig.execution import Executor, FreeStart
     from mars_link.reconfig.placement import nominal_cells
     from mars_link.reconfig.plans import execution_params, free_ground_positions, make_plan, unhoverable_pieces
@@ -277,9 +280,9 @@ def make_executor(scenario: Scenario, model: AssemblyModel, mission) -> tuple[ob
     events: list[dict] = []
     if scenario.starts_free:  # free units on the ground: assemble in the air (Algorithm 3), then the mission
         free = FreeStart(free_ground_positions(scenario, model, *start_pose(scenario, model, mission)))
-        return Executor(plan_assembly(model), vehicle, mission, tracked, params, free), events, False
+        return Executor(plan_assembly(model), vehicle, mission, tracked, params, free, defer_take_off), events, False
     if scenario.reconfig.get("enabled", False) and scenario.faults_known:
-        plan = make_plan(scenario, model, mission)
+        plan = make_plan(scenario, model, plan_for or mission)
         events.append({"t_s": 0.0, "type": "plan", "feasible": plan.feasible,
                        "disassembly_layers": plan.disassembly_layers, "assembly_layers": plan.assembly_layers,
                        "fallback_used": plan.fallback_used, "reason": plan.reason,
@@ -297,15 +300,17 @@ def make_executor(scenario: Scenario, model: AssemblyModel, mission) -> tuple[ob
 
 
 def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: Trajectory,
-                            telemetry_timeout_s: float | None = None):
+                            telemetry_timeout_s: float | None = None, plan_for: Trajectory | None = None,
+                            vehicle: bool = False):
     """The coordinator of a flight of pieces (`PiecesCoordinator`: one EKF, detector, controller and
     allocator per piece, the executor inside) and when its flight ends (a function of no argument
-    giving the end's sim time: a manoeuvre moves it)."""
+    giving the end's sim time: a manoeuvre moves it). `plan_for`: see `make_executor`. `vehicle`: flown by a
+    ground station (mars_link.pieces_vehicle): free units wait for its take-off, and faults may come from it."""
     from mars_link.pieces import PiecesCoordinator
     from mars_link.reconfig.plans import check_reconfig_scenario, plan_or_reason, plan_separation
 
-    check_reconfig_scenario(scenario)
-    executor, plan_events, told = make_executor(scenario, model, mission)
+    check_reconfig_scenario(scenario, faults_may_come=vehicle)
+    executor, plan_events, told = make_executor(scenario, model, mission, plan_for, defer_take_off=vehicle)
     ground_down_m = 0.0  # every piece starts landed: its CoM near the ground plane
 
     def new_coordinator(piece: AssemblyModel, reference, eta, t_s, estimator):
@@ -320,7 +325,7 @@ def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: T
     if enabled and not scenario.faults_known:
         def planner(eta_by_unit, current_cells):
             eta = np.concatenate([eta_by_unit[u] for u in model.unit_ids])
-            return plan_or_reason(scenario, model, mission, eta, current_cells)
+            return plan_or_reason(scenario, model, plan_for or mission, eta, current_cells)
     coordinator = PiecesCoordinator(
         executor, model.vehicle, model.unit_ids, new_coordinator, tracked_unit=scenario.tracked_unit(),
         planner=planner, told_faults=len(scenario.faults) if told and at_s is None else 0,

@@ -108,6 +108,10 @@ class PiecesCoordinator:
         self.lost: set[int] = set()
         self.telemetry_timeout_s = telemetry_timeout_s
         self._last_seen: dict[int, float] = {}
+        #: False holds back what would start a manoeuvre (a separation, a plan from found faults, `at_s`)
+        #: until it is True again: the assembly vehicle sets it while it is not flying
+        self.manoeuvres_allowed = True
+        self._told_trigger_s: float | None = None
         for shape in executor.shapes.values():
             self.pieces[shape.key] = self._new_piece(shape, 0.0, None)
 
@@ -152,7 +156,7 @@ class PiecesCoordinator:
             p.coordinator.set_faults(local_eta(p.shape, self.eta_believed), t_s, reason)
         self.told += 1
         if self.told_faults_expected and self.told == self.told_faults_expected:
-            self.executor.trigger(t_s)
+            self._told_trigger_s = t_s  # (started in `_start_manoeuvres`: at once, or once flying)
 
     def _collect_detections(self, piece: Piece, t_s: float) -> None:
         c = piece.coordinator
@@ -298,12 +302,11 @@ class PiecesCoordinator:
     def finish_step(self) -> None:
         """(Nothing left: every piece's fault detection ran in `step`.)"""
 
-    def step(self, t_s: float, packets: list[SensorPacket]) -> list[RotorCommand]:
-        """One control period over every piece; commands carry each unit's latch setpoint."""
-        by_unit = {p.unit_id: p for p in packets}
-        if self.telemetry_timeout_s is not None:
-            self._watch_telemetry(t_s, by_unit)
-        self._learn_topology(t_s, {u: p.latches for u, p in by_unit.items()})
+    def _start_manoeuvres(self, t_s: float) -> None:
+        """What comes due now: the given reconfiguration time, a plan from the faults found, a separation."""
+        if self._told_trigger_s is not None:
+            self.executor.trigger(max(self._told_trigger_s, t_s - self.executor.params.trigger_delay_s))
+            self._told_trigger_s = None
         if self.at_s is not None and t_s >= self.at_s and not self._at_done:  # (once)
             self._at_done = True
             if self.planner is not None:  # planned now, from the faults found so far
@@ -314,6 +317,15 @@ class PiecesCoordinator:
             self._plan_from_belief(t_s)
         if self.separations and t_s >= self.separations[0][0] - 1e-9:
             self._separate(t_s)
+
+    def step(self, t_s: float, packets: list[SensorPacket]) -> list[RotorCommand]:
+        """One control period over every piece; commands carry each unit's latch setpoint."""
+        by_unit = {p.unit_id: p for p in packets}
+        if self.telemetry_timeout_s is not None:
+            self._watch_telemetry(t_s, by_unit)
+        self._learn_topology(t_s, {u: p.latches for u, p in by_unit.items()})
+        if self.manoeuvres_allowed:
+            self._start_manoeuvres(t_s)
         for action in self.executor.step(t_s, self.estimates()):
             self._begin_split(t_s, action)
         commands = []

@@ -82,9 +82,9 @@ class AssemblyRunner:
             "truth_velocity_ned_mps": [float(x) for x in s.velocity_ned_mps],
             "truth_quaternion_wxyz": [float(x) for x in s.quaternion_wxyz],
             "estimate_position_ned_m": None if est is None else [float(x) for x in est.position_ned_m],
-            "unit_eta": sim.unit_eta(), "eta_believed": [float(x) for x in sim.coordinator.eta_believed],
+            "unit_eta": sim.unit_eta(), "eta_believed": [float(x) for x in sim.eta_believed()],
             "rotor_thrust_n": [float(x) for x in sim.world.rotor_thrust_n],
-            "events": (sim.events + sim.coordinator.events)[-50:], "statustext": [t for _, t in v.events[-50:]],
+            "events": sorted(sum(sim.event_lists(), []), key=lambda e: e["t_s"])[-50:], "statustext": [t for _, t in v.events[-50:]],
             "drops": v.drop_counts(), "stats": v.stats, "estimator_resets": sim.estimator_resets,
             **self.io.counters(), "overruns": self.overruns, "steps": self.steps, "late_steps": self.late_steps,
             "step_p50_ms": float(np.percentile(steps, 50) * 1e3), "step_p99_ms": float(np.percentile(steps, 99) * 1e3),
@@ -202,8 +202,10 @@ def build_sim(args: argparse.Namespace) -> AssemblySim:
     from firmware_models.udp_runner import _params  # NAME=VALUE parsing, as the unit runner's --param
 
     key, require = signing_from_args(args)
-    return AssemblySim(scenario, SimConfig(sysid=args.sysid, params=_params(args.param), signing_key=key,
-                                           require_signing=require), time.time())
+    from mars_link.pieces_vehicle import make_sim
+
+    return make_sim(scenario, SimConfig(sysid=args.sysid, params=_params(args.param), signing_key=key,
+                                        require_signing=require), time.time())
 
 
 def vehicle_command(args: argparse.Namespace) -> int:
@@ -267,7 +269,7 @@ def _attach_view(sim: AssemblySim, out: Path | None, live: str | None):
     view = open_view(out, sim.model, sim.scenario, sim.scenario.sim.control_hz, None, math.inf, live,
                      sim.scenario.tracked_unit())
     if view is not None:
-        view.event_lists = [sim.events, sim.coordinator.events]  # faults (scenario and MAVLink), coordinator's
+        view.event_lists = sim.event_lists()  # faults (scenario and MAVLink), the coordinator's
         sim.engine.observers.append(view)
     return view
 

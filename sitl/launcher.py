@@ -108,7 +108,7 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
         common += ["--units", str(units)]
     if layout is not None:
         common += ["--layout", layout]
-    if setup.pieces and forever:
+    if setup.pieces and forever and "--vehicle" not in (role_args or {}).get("coordinator", ()):
         raise UserInputError("a flight of several bodies ends when its coordinator says so: it cannot run forever")
     if setup.docked and not setup.pieces:
         common += ["--steps", str(setup.steps)] + (["--forever"] if forever else [])

@@ -525,17 +525,14 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     faults = sorted(sc.faults, key=lambda f: f.t_s)
     hosted = None
     end_s = None  # a flight of pieces: when it ends (the coordinator says so to the world)
-    if setup.pieces:
+    if setup.pieces and vehicle is None:
         from mars_link.build import make_pieces_coordinator
 
-        if vehicle is not None:
-            print("error: --vehicle serves one docked assembly, not a flight of several bodies", file=sys.stderr)
-            return 2
         coordinator, end_s = make_pieces_coordinator(sc, model, trajectory)
-    elif vehicle is not None:
+    elif vehicle is not None:  # (one body or pieces: the vehicle flies until stopped)
         from sitl.vehicle_host import HostedVehicle
 
-        detector = make_detector(sc, model, float(_start_pose(setup)[0][2]))
+        detector = None if setup.pieces else make_detector(sc, model, float(_start_pose(setup)[0][2]))
         out.mkdir(parents=True, exist_ok=True)
         try:
             hosted = HostedVehicle(sc, model, detector, vehicle, out, key, require_signing)
@@ -653,7 +650,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             computed_wall, send_cpu = time.time(), time.thread_time()
             step_cpu = send_cpu - step_cpu
             datagrams = []  # all encoded first, then sent back to back (a woken unit may take the CPU)
-            if end_s is not None:
+            if pieces_log is not None:
                 _log_pieces_step(pieces_log, coordinator, t)
             for cmd in commands:
                 if cmd.unit_id in live:
@@ -677,10 +674,10 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                              f"{step_cpu:.6f},{send_cpu:.6f}\n")
         if finish_at is not None:
             coordinator.finish_step()
-        pieces = {} if end_s is None else {"pieces_final": coordinator.pieces_final(), "failed": coordinator.failed,
-                                           "plan": coordinator.executor.plan.to_json()}
+        pieces = {} if not setup.pieces else {"pieces_final": coordinator.pieces_final(), "failed": coordinator.failed,
+                                              "plan": coordinator.executor.plan.to_json()}
         write_json(out / "coordinator_summary.json",
-            {"events": coordinator.all_events() if end_s is not None else coordinator.events, **pieces,
+            {"events": coordinator.all_events() if setup.pieces else coordinator.events, **pieces,
              "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,
                              "eta_estimated": round(float(d.eta_estimated), 4), "reason": d.reason}

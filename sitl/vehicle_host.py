@@ -1,7 +1,8 @@
 """The docked assembly as ONE MAVLink vehicle inside the lockstep coordinator process (`sitl up --vehicle`).
 
 The coordinator keeps its lockstep job (unit telemetry in, per-rotor commands out); what changes is
-where its trajectory comes from: an `AssemblyVehicle` (mars_link.assembly_vehicle) whose guidance
+where its trajectory comes from (for a flight of pieces, the mission of its coordinator of pieces:
+mars_link.pieces_vehicle): an `AssemblyVehicle` (mars_link.assembly_vehicle) whose guidance
 (takeoff, hold, offboard, land) sets the coordinator's `SetpointSource`. Ground stations see the
 assembly on its own system id (default 202, above the units' range, ARCHITECTURE.md) and ports:
 
@@ -79,17 +80,27 @@ class HostedVehicle:
         from mars_link.build import make_coordinator, make_estimator
         from mars_link.trajectories import TrajectoryPoint
 
-        self.scenario = sc = vehicle_scenario(scenario)  # refuses [reconfig]; setpoints are for the CoM
+        self.scenario = sc = vehicle_scenario(scenario)  # setpoints are for the CoM
         if sc.controller != "cascaded":
             raise UserInputError(f"controller {sc.controller!r}: the vehicle flies setpoints with 'cascaded' only")
         self.model = model
-        self.estimator = make_estimator(sc, model)
         self.estimator_resets = 0
-        self._known = _KnownEstimate()
-        self.coordinator = make_coordinator(sc, model, SetpointSource(TrajectoryPoint(np.zeros(3))), self._known,
-                                            detector)
-        self.vehicle = AssemblyVehicle(self.coordinator, ports.sysid, sc.sim.control_hz, sc.ftc, None, time.time(),
-                                       signing_key, require_signing)
+        self.flight = None  # a flight of pieces (mars_link.pieces_vehicle): its coordinator runs the EKFs
+        if sc.has_pieces:
+            from mars_link.assembly_vehicle import SimConfig
+            from mars_link.pieces_vehicle import PiecesFlight
+
+            self.estimator = None
+            self.flight = PiecesFlight(sc, model, SimConfig(sysid=ports.sysid, signing_key=signing_key,
+                                                            require_signing=require_signing), time.time())
+            self.coordinator, self.vehicle = self.flight.pieces, self.flight.vehicle
+        else:
+            self.estimator = make_estimator(sc, model)
+            self._known = _KnownEstimate()
+            self.coordinator = make_coordinator(sc, model, SetpointSource(TrajectoryPoint(np.zeros(3))), self._known,
+                                                detector)
+            self.vehicle = AssemblyVehicle(self.coordinator, ports.sysid, sc.sim.control_hz, sc.ftc, None, time.time(),
+                                           signing_key, require_signing)
         self.vehicle.on_failure = self._inject
         self._unit_commands: dict[int, list] = {}
         self.io = VehicleSockets(self.vehicle, {
@@ -138,6 +149,12 @@ class HostedVehicle:
     def step(self, t_s: float, packets: list[SensorPacket], live: set[int]) -> list[RotorCommand]:
         """One control period (as AssemblySim.step): estimate, vehicle (control when flying), the
         commands for the live units (zero thrust when disarmed)."""
+        if self.flight is not None:
+            commands, out = self.flight.step(t_s, packets, time.time(), live)
+            self.estimate = self.flight.estimate
+            self.io.send(out)
+            self.steps += 1
+            return commands
         self.vehicle.core.drive.packets = packets
         est = self._estimate(t_s, packets)
         self._known.estimate = est
@@ -162,7 +179,9 @@ class HostedVehicle:
             unit, 1, mavlink.MAV_CMD_INJECT_FAILURE, 0, FAILURE_UNIT_SYSTEM_MOTOR, kind, rotor or 0, 0, 0, 0, 0))
         t = self.vehicle.sim_s
         self.vehicle.report_event({"t_s": round(t, 6), "type": "fault", "unit": unit, "rotor": rotor, "eta": eta})
-        if self.scenario.faults_known:
+        if self.scenario.faults_known and self.flight is not None:
+            self.flight.tell_fault(unit, rotor, eta, t)
+        elif self.scenario.faults_known:
             told = self.coordinator.eta_believed.copy()
             told[self.model.unit_slots(unit) if rotor is None else self.model.rotor_slot(unit, rotor)] = eta
             self.coordinator.set_faults(told, t, "fault told to the coordinator")
@@ -191,7 +210,9 @@ class HostedVehicle:
             "sysid": v.sysid, "sim_time_s": v.sim_s, "wall_time_s": time.time(), "armed": v.armed,
             "mode": list(v.mode), "phase": v.autopilot.phase.value, "landed": bool(v.landed),
             "estimate_position_ned_m": None if est is None else [float(x) for x in est.position_ned_m],
-            "eta_believed": [float(x) for x in self.coordinator.eta_believed],
+            "eta_believed": [float(x) for x in (self.coordinator.eta_believed if self.flight is None
+                                                else self.flight.eta_believed())],
+            "pieces": None if self.flight is None else self.coordinator.pieces_final(),
             "statustext": [t for _, t in v.events[-50:]], "drops": v.drop_counts(), "stats": v.stats,
             "estimator_resets": self.estimator_resets, "steps": self.steps, **self.io.counters(),
             "endpoints": self.endpoints(),

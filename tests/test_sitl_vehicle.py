@@ -195,6 +195,17 @@ def _alive(pid: int) -> bool:
         return False
 
 
+def vehicle_endpoint_lines(proc: subprocess.Popen) -> list[str]:
+    """What `sitl up --vehicle` prints, up to the vehicle's endpoint line."""
+    lines: list[str] = []
+    while True:
+        line = proc.stdout.readline()
+        assert line, f"sitl up ended early: {lines}"
+        lines.append(line.strip())
+        if line.startswith("assembly vehicle"):
+            return lines
+
+
 @pytest.mark.parametrize("transport,full", [("udp", True), ("zenoh", False)])
 def test_mavsdk_flies_the_multiprocess_3x2_as_one_vehicle(transport: str, full: bool, tmp_path: Path) -> None:
     """UDP: the whole flight; Zenoh (units <-> coordinator/world on Zenoh, the vehicle's client links
@@ -207,14 +218,8 @@ def test_mavsdk_flies_the_multiprocess_3x2_as_one_vehicle(transport: str, full: 
            "--vehicle-api-port", str(api), "--gcs-port", str(base + 1), "--api-port", str(base + 2),
            "--out", str(out)]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    lines: list[str] = []
     try:
-        while True:  # the endpoint lines, up to the vehicle's
-            line = proc.stdout.readline()
-            assert line, f"sitl up ended early: {lines}"
-            lines.append(line.strip())
-            if line.startswith("assembly vehicle"):
-                break
+        lines = vehicle_endpoint_lines(proc)
         children = [int(p) for p in re.findall(r"pid (\d+)", "\n".join(lines))]
         assert len(children) == 8  # world, coordinator, six units
         assert any(f"MAVLink system {SYSID}" in ln and f"udpin://{LOOP}:{api}" in ln for ln in lines), lines

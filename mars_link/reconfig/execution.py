@@ -258,10 +258,11 @@ class Executor:
 
     def __init__(self, plan: ReconfigPlan, vehicle: VehicleParams, mission: Trajectory,
                  tracked_unit: int | None, params: ExecutionParams = ExecutionParams(),
-                 free_start: FreeStart | None = None) -> None:
+                 free_start: FreeStart | None = None, defer_take_off: bool = False) -> None:
         """`free_start`: the plan's pieces start as separate bodies on the ground (`plan_assembly`); they take
         off, dock layer by layer into the plan's target, and the mission's clock starts once the
-        structure is complete (`shift_s`)."""
+        structure is complete (`shift_s`). `defer_take_off`: they wait on the ground (phase "grounded")
+        until `begin_take_off` (the assembly vehicle: when a ground station takes it off)."""
         if not plan.feasible:
             raise UserInputError(f"reconfiguration plan is not feasible: {plan.reason}")
         self.plan = plan
@@ -291,7 +292,7 @@ class Executor:
         self.free_start = free_start
         self.assembling = free_start is not None  # the first manoeuvre builds the structure from free units
         if free_start is not None:
-            self._take_off(free_start)
+            self._take_off(free_start, None if defer_take_off else 0.0)
 
     # ----------------------------------------------------------------- helpers
     def tracked_offset(self, shape: PieceShape) -> np.ndarray:
@@ -341,7 +342,7 @@ class Executor:
         if not self.shapes:
             self.failed = "every unit of the structure was lost"
             return dropped
-        if self.phase == "assembly":  # the docks of pieces that are whole go on; the next layers are re-planned
+        if self.phase in ("assembly", "grounded"):  # the docks of whole pieces go on; the next layers are re-planned
             self.docks = [d for d in self.docks if d.request.stationary in self.shapes and d.request.mover in self.shapes]
             self._replan_lost = set(lost)
             return dropped
@@ -409,22 +410,32 @@ class Executor:
         self.shapes = {start.key: start}
         return True
 
-    def _take_off(self, free: FreeStart) -> None:
-        """Every piece of the plan climbs from where it rests to the assembly height; docking starts once
-        all of them hover there."""
-        p = self.params
+    def _take_off(self, free: FreeStart, t0_s: float | None) -> None:
+        """Every piece of the plan climbs from where it rests to the assembly height, from `t0_s` on (None:
+        they rest until `begin_take_off`); docking starts once all of them hover there."""
         self.shapes, self.refs, self.levels = {}, {}, {}
         self.hold_down_m = max(float(g[2]) for g in free.ground_ned_m.values()) - free.height_m
-        end = 0.0
         for units in self.plan.pieces:
             shape = PieceShape({u: self.plan.initial[u] for u in units})
             ground = np.mean([free.ground_ned_m[u] for u in units], axis=0)
-            ref = PieceReference(TrajectoryPoint(ground, yaw_rad=self.yaw))
-            end = max(end, ref.move(0.0, [ground[0], ground[1], self._altitude(0)], p.speed_mps, min_s=3.0))
-            self.shapes[shape.key], self.refs[shape.key], self.levels[shape.key] = shape, ref, 0
+            self.shapes[shape.key], self.levels[shape.key] = shape, 0
+            self.refs[shape.key] = PieceReference(TrajectoryPoint(ground, yaw_rad=self.yaw))
         self.pause_t = 0.0  # the mission has not begun: it starts at its own t = 0
+        self.phase = "grounded"
+        if t0_s is not None:
+            self.begin_take_off(t0_s)
+
+    def begin_take_off(self, t_s: float) -> None:
+        """The resting pieces of a free start take off now (once)."""
+        if self.phase != "grounded":
+            return
+        p = self.params
+        end = t_s
+        for key, ref in self.refs.items():
+            ground = ref.sample(t_s).position_ned_m
+            end = max(end, ref.move(t_s, [ground[0], ground[1], self._altitude(0)], p.speed_mps, min_s=3.0))
         self.phase, self.layer, self.phase_end_t = "assembly", 0, end + p.settle_s
-        self.events.append({"t_s": 0.0, "type": "assembly_start", "assembly_layers": self.plan.assembly_layers,
+        self.events.append({"t_s": round(t_s, 6), "type": "assembly_start", "assembly_layers": self.plan.assembly_layers,
                             "text": f"Assembly: {len(self.plan.pieces)} pieces, {self.plan.assembly_layers} dock layers"})
 
     # ----------------------------------------------------------------- main step
@@ -456,7 +467,7 @@ class Executor:
             self.pause_t = None  # (a later fault may start another manoeuvre)
             self.hold_until_s = -math.inf
             self.events.append({"t_s": round(t_s, 6), "type": "mission_resumed", "shift_s": round(self.shift_s, 4),
-                                "text": "Reconfig: mission resumed"})
+                                "text": self._resume_text})
         return []
 
     def _stop(self, t_s: float) -> None:
@@ -608,6 +619,7 @@ class Executor:
         end = ref.move(t_s, None, self.params.speed_mps, min_s=2.0, end=resume)
         self.shift_s = end - self.pause_t
         self.phase, self.phase_end_t = "return", end
+        self._resume_text = "Assembled: mission starts" if self.assembling else "Reconfig: mission resumed"
         if abandoned:
             return
         kind, text = (("assembly_done", "Assembled: flying to the mission start") if self.assembling

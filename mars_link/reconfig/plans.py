@@ -23,8 +23,9 @@ def execution_params(scenario: Scenario) -> ExecutionParams:
     return ExecutionParams(**{k: v for k, v in scenario.reconfig.items() if k in keys})
 
 
-def check_reconfig_scenario(scenario: Scenario) -> None:
-    """What this runner cannot fly, refused before flight (one line each)."""
+def check_reconfig_scenario(scenario: Scenario, faults_may_come: bool = False) -> None:
+    """What this runner cannot fly, refused before flight (one line each). `faults_may_come`: a ground
+    station may inject faults (the assembly vehicle), so [reconfig] without [[faults]] is meaningful."""
     src = scenario.source
     if scenario.controller != "cascaded":
         raise UserInputError(f"{src}: [reconfig] flights need [control] controller = \"cascaded\"")
@@ -49,7 +50,7 @@ def check_reconfig_scenario(scenario: Scenario) -> None:
         if scenario.reconfig.get("at_s") is not None:
             raise UserInputError(f"{src}: [reconfig] at_s cannot be combined with [assembly] start = \"free\"")
         return
-    if not scenario.faults:
+    if not scenario.faults and not faults_may_come:
         raise UserInputError(f"{src}: [reconfig] enabled but the scenario has no [[faults]] to react to")
 
 
