@@ -67,6 +67,10 @@ class FaultDetectorParams:
     min_change: float = 0.1  # eta changes smaller than this are not reported
     dead_eta: float = 0.1  # a unit whose four rotors are all below this is reported as failed
     max_failed_units: int = 2  # unit-failure hypotheses: up to this many whole units at once
+    combined_candidates: int = 3  # the best one-unit failures also tried with part of another unit
+    # ... where that part explains at least this share of what the unit's loss explains (a dead unit's
+    # large residual leaves model error that a small extra loss would otherwise fit)
+    combined_min_share: float = 0.02
     min_airborne_thrust_fraction: float = 0.6  # below this share of the weight: ground, no FDI
     min_height_m: float = 0.15  # FDI starts this far above the ground level seen at low thrust
     probe_thrust_fraction: float = 0.1  # null-space probe amplitude per rotor, share of hover thrust
@@ -424,22 +428,24 @@ class FaultDetector:
         p = self.params
         lo_all, hi_all = self.eta - 1.0, self.eta.copy()  # 0 <= eta_new <= 1
         ridge = 1e-9 * (np.trace(A) / self.n + 1e-12)
-        groups: list[tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray | None]] = []
+        groups: list[tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray | None, bool]] = []  # (.., combined)
         for size, idx in self.library.free.items():
             a_sub = A[idx[:, :, None], idx[:, None, :]] + ridge * np.eye(size)
             g_sub = g[idx]
             d = _box_qp(a_sub, g_sub, lo_all[idx], hi_all[idx])
             imp = 2 * np.einsum("hi,hi->h", d, g_sub) - np.einsum("hi,hij,hj->h", d, a_sub, d)
-            groups.append((idx, d, imp, size, None))
+            groups.append((idx, d, imp, size, None, False))
         for units, idx in self.library.fixed.values():
             d = self.eta[idx]  # the whole units drop to eta 0
             imp = 2 * np.einsum("hi,hi->h", d, g[idx]) - np.einsum("hi,hij,hj->h", d, A[idx[:, :, None], idx[:, None, :]], d)
             imp[~d.any(axis=1)] = -np.inf  # already dead: nothing to explain
-            groups.append((idx, d, imp, 0, units))
+            groups.append((idx, d, imp, 0, units, False))
+        groups += self._unit_and_rotor_fits(A, g, groups, lo_all, hi_all, ridge)
         imps = np.concatenate([grp[2] for grp in groups])
         scale = max(1.0, (c - float(imps.max())) / max(dof - ROTORS_PER_UNIT, 1))
         self.last_misfit = scale
-        penalties = np.concatenate([np.full(len(grp[2]), p.param_penalty * grp[3]) for grp in groups])
+        penalties = np.concatenate([np.full(len(grp[2]), p.param_penalty * grp[3] + (p.detect_score if grp[5] else 0.0))
+                                    for grp in groups])
         scores = imps / scale - penalties
         where = [(k, h) for k, grp in enumerate(groups) for h in range(len(grp[2]))]
         fits: list[_Fit] = []
@@ -447,7 +453,7 @@ class FaultDetector:
             if not math.isfinite(scores[i]):
                 break
             k, h = where[i]
-            idx, d, imp, n_free, units = groups[k]
+            idx, d, imp, n_free, units, _ = groups[k]
             fit = self._fit(idx[h], d[h], float(imp[h]), float(scores[i]), n_free, None if units is None else units[h])
             if not fit.key:
                 continue
@@ -456,6 +462,34 @@ class FaultDetector:
             if differs and fits[0].score - fit.score >= p.decide_margin:
                 break
         return fits
+
+    def _unit_and_rotor_fits(self, A: np.ndarray, g: np.ndarray, groups: list, lo_all: np.ndarray,
+                             hi_all: np.ndarray, ridge: float) -> list:
+        """A whole unit lost and part of another unit at once (e.g. paper 001's six faults: a dead unit and
+        two rotors of its neighbour). The one-unit hypotheses that explain most are each refined by a free
+        subset of one other unit's rotors fitted to what they leave unexplained (the improvements add:
+        imp(d1 + d2) = imp(d1) + 2 d2'(g - A d1) - d2' A d2). The partial loss must be detectable on its
+        own in what the unit leaves (these hypotheses pay `detect_score` on top of their parameters) and
+        explain `combined_min_share` of what the unit's loss explains."""
+        fixed = [(idx[h], d[h], float(imp[h])) for idx, d, imp, _, units, _ in groups
+                 if units is not None and units.shape[1] == 1
+                 for h in np.argsort(-imp)[:self.params.combined_candidates] if math.isfinite(imp[h])]
+        fixed = sorted(fixed, key=lambda f: -f[2])[:self.params.combined_candidates]
+        out = []
+        for idx_u, d_u, imp_u in fixed:
+            rest = g - A[:, idx_u] @ d_u
+            dead_units = set((idx_u // ROTORS_PER_UNIT).tolist())
+            for size, idx in self.library.free.items():
+                keep = ~np.isin(idx[:, 0] // ROTORS_PER_UNIT, list(dead_units))
+                idx_f = idx[keep]
+                a_sub = A[idx_f[:, :, None], idx_f[:, None, :]] + ridge * np.eye(size)
+                d_f = _box_qp(a_sub, rest[idx_f], lo_all[idx_f], hi_all[idx_f])
+                imp_f = 2 * np.einsum("hi,hi->h", d_f, rest[idx_f]) - np.einsum("hi,hij,hj->h", d_f, a_sub, d_f)
+                imp_f[imp_f < self.params.combined_min_share * imp_u] = -np.inf  # the unit's own misfit
+                h = len(idx_f)
+                out.append((np.hstack([np.broadcast_to(idx_u, (h, len(idx_u))), idx_f]),
+                            np.hstack([np.broadcast_to(d_u, (h, len(d_u))), d_f]), imp_u + imp_f, size, None, True))
+        return out
 
     def _fit(
         self, slots: np.ndarray, dh: np.ndarray, imp: float, score: float, n_free: int, units: np.ndarray | None

@@ -34,6 +34,16 @@ def test_plus5_plan_from_found_faults_is_refused_when_a_piece_cannot_hover():
     assert r["refused"] and "best" in r["refused"]
 
 
+def test_plus5_six_faults_found_as_a_dead_unit_and_two_rotors_of_its_neighbour():
+    """plus-5, paper 001's six faults (unit 1 dead, unit 2 rotors 1 and 4) at once: the detector's
+    combined hypothesis (a unit and part of another) names them exactly; before it, "units 1+5 failed"
+    (pure lift, no moment) won and the helix diverged."""
+    r = fly(2, "NR")
+    assert r["detection_s"] is not None and r["detection_s"] < 0.5 and r["false_alarms"] == 0
+    assert sorted((u, rot or 0) for u, rot, _ in r["detected"]) == [(1, 0), (2, 1), (2, 4)]
+    assert r["completed"] and not r["diverged"]
+
+
 def test_paper000_docking_with_noise_and_the_fault_found_keeps_the_faulty_unit_within_1_deg(tmp_path):
     """docking_3x1 through the engine, sensor noise on (each piece on its EKF), the dead rotor not told: the
     detector finds it once airborne, the manoeuvre is planned from that, and unit 3's yaw stays within
