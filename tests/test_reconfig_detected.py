@@ -34,6 +34,27 @@ def test_plus5_plan_from_found_faults_is_refused_when_a_piece_cannot_hover():
     assert r["refused"] and "best" in r["refused"]
 
 
+def test_plus5_faulty_tip_cannot_be_carried_to_the_centre():
+    """Why R = NR for the plus-5 in flight: the faulty tip (unit 1) reaches the centre only as the pair
+    {1, 3} (the tips touch the centre only), and that pair cannot hover with ModQuad's thrust limits: 116 %
+    of a rotor's maximum with unit 1's rotor 2 left (3 faults), and at no thrust with unit 1 dead."""
+    import math
+
+    import numpy as np
+    from reconfig_eval import scenario
+
+    from mars_link.allocation import hover_thrust_share
+    from mars_link.assembly import AssemblyModel
+
+    vehicle = scenario([".X.", "XXX", ".X."], [], "qp", {"enabled": False}).model().vehicle
+    pair = AssemblyModel.from_layout(["X", "X"], vehicle)
+    three = np.array([0.0, 1.0, 0.0, 0.0, 1, 1, 1, 1])
+    share = hover_thrust_share(pair, three, vehicle.rotor_max_thrust_n)
+    assert 1.1 < share < 1.25, share
+    assert hover_thrust_share(pair, np.array([0.0] * 4 + [1.0] * 4), vehicle.rotor_max_thrust_n) == math.inf
+    assert hover_thrust_share(pair, np.ones(8), vehicle.rotor_max_thrust_n) < 0.6  # healthy: it hovers easily
+
+
 def test_plus5_six_faults_found_as_a_dead_unit_and_two_rotors_of_its_neighbour():
     """plus-5, paper 001's six faults (unit 1 dead, unit 2 rotors 1 and 4) at once: the detector's
     combined hypothesis (a unit and part of another) names them exactly; before it, "units 1+5 failed"

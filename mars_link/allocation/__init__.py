@@ -6,6 +6,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from mars_link.allocation.base import Allocator
@@ -82,4 +84,24 @@ def check_controllable(
         )
 
 
-__all__ = ["ALLOCATION_MODES", "Allocator", "check_controllable", "make_allocator"]
+def hover_thrust_share(model: AssemblyModel, eta: np.ndarray, max_thrust_n: float) -> float:
+    """The least largest rotor command, as a share of `max_thrust_n`, with which the assembly hovers
+    (exact LP; rotors push, never pull): above 1 it cannot hover within its limits; math.inf: at no
+    thrust (e.g. every live rotor on one side of the CoM). Tells how far from hovering a piece is."""
+    from scipy.optimize import linprog
+
+    eta = _checked_eta(model, eta)
+    alive = eta > 0.0
+    b = model.effectiveness(eta)[:, alive]
+    n = int(alive.sum())
+    if n == 0:
+        return math.inf
+    hover = np.array([model.mass_kg * GRAVITY_MPS2, 0.0, 0.0, 0.0])
+    cost = np.zeros(n + 1)
+    cost[-1] = 1.0  # minimise s subject to B f = hover, 0 <= f <= s * max_thrust_n
+    res = linprog(cost, A_ub=np.hstack([np.eye(n), -np.full((n, 1), max_thrust_n)]), b_ub=np.zeros(n),
+                  A_eq=np.hstack([b, np.zeros((4, 1))]), b_eq=hover, bounds=(0, None), method="highs")
+    return float(res.x[-1]) if res.status == 0 else math.inf
+
+
+__all__ = ["ALLOCATION_MODES", "Allocator", "check_controllable", "hover_thrust_share", "make_allocator"]
