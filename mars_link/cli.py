@@ -152,6 +152,12 @@ def cmd_reproduce(args) -> int:
     return 0
 
 
+def cmd_sweep(args) -> int:
+    from mars_link.sweep_cli import sweep_command
+
+    return sweep_command(args, _default_out)
+
+
 def cmd_sitl(args) -> int:
     from mars_link.scenario import resolve_scenario_path
     from sitl.launcher import sitl_up
@@ -319,6 +325,13 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--out", default="runs/table1")
     rep.add_argument("--quiet", action="store_true")
     rep.set_defaults(func=cmd_reproduce)
+
+    from mars_link.sweep_cli import add_arguments as add_sweep_arguments
+
+    swp = sub.add_parser("sweep", help="many flights of a scenario over seeds, random faults and parameters, "
+                                       "on local cores or a Dask cluster (mars_link.sweep)")
+    add_sweep_arguments(swp)
+    swp.set_defaults(func=cmd_sweep)
     return parser
 
 
