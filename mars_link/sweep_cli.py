@@ -61,10 +61,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="K random rotor (or unit) failures per flight, eta 0, drawn from the sweep seed and the slot")
     p.add_argument("--param", action="append", default=[], metavar="KEY=V1,V2,...",
                    help="scenario TABLE.KEY (or ftc, controller, noise, ...) values to sweep; repeat for a grid")
-    p.add_argument("--workers", type=v.bounded_int(1, 4096), default=None,
-                   help="local worker processes (default: every core)")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="fly on the Dask cluster of this scheduler (tcp://HOST:PORT) instead of local processes")
+    from mars_link.sweep_pool import add_pool_arguments
+
+    add_pool_arguments(p)  # --workers W (default: every core), --scheduler ADDRESS (a Dask cluster)
     p.add_argument("--out", help="sweep directory (default runs/<name>-sweep-<time>); must be empty unless --force")
     p.add_argument("--force", action="store_true", help="clear a non-empty --out first")
     p.add_argument("--mcap", action="store_true", help="each flight writes flights/<i>/run.mcap")

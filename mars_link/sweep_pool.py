@@ -92,7 +92,12 @@ def run_task(fn: Callable[..., Any], args: tuple) -> Outcome:
     return Outcome(value, None, time.perf_counter() - t0)
 
 
-def _init_local_worker() -> None:
+def _init_local_worker(parent_pid: int) -> None:
+    """A local worker: one BLAS thread, and it dies with the sweep (a SIGKILLed sweep leaves no orphans)."""
+    from sitl.parent_watch import PARENT_ENV, die_with_parent
+
+    os.environ[PARENT_ENV] = str(parent_pid)
+    die_with_parent()
     one_blas_thread()
 
 
@@ -111,7 +116,7 @@ def open_pool(spec: PoolSpec) -> Iterator[Executor]:
 
     check_workers(spec.workers)
     with ProcessPoolExecutor(max_workers=spec.local_workers(), mp_context=multiprocessing.get_context("spawn"),
-                             initializer=_init_local_worker) as pool:
+                             initializer=_init_local_worker, initargs=(os.getpid(),)) as pool:
         yield pool
 
 
@@ -156,6 +161,11 @@ def map_flights(fn: Callable[..., Any], arg_list: Sequence[tuple], spec: PoolSpe
         return run_all(pool, fn, arg_list, on_done)
 
 
+def call(fn: Callable[..., Any], args: tuple) -> Any:
+    """`fn(*args)`: the task of `map_flights(call, [(fn, args), ...])` when a script's flights are of several kinds."""
+    return fn(*args)
+
+
 def values_or_raise(outcomes: Sequence[Outcome], what: str = "flight") -> list[Any]:
     """The values of `outcomes`; a RuntimeError naming the first task that raised (for tools whose tables
     need every flight)."""
@@ -163,3 +173,34 @@ def values_or_raise(outcomes: Sequence[Outcome], what: str = "flight") -> list[A
         if o.error is not None:
             raise RuntimeError(f"{what} {i} failed: {o.error}")
     return [o.value for o in outcomes]
+
+
+# ----------------------------------------------------------------------------- scripts' options
+def add_pool_arguments(ap) -> None:
+    """--workers W / --scheduler ADDRESS for a script whose flights go through `map_flights`."""
+    from mars_link.validation import bounded_int
+
+    ap.add_argument("--workers", "--jobs", type=bounded_int(1, 4096), default=None,
+                    help="local worker processes flying at once (default: every core)")
+    ap.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                    help="fly on the Dask cluster of this scheduler (tcp://HOST:PORT) instead")
+
+
+def pool_from_args(args) -> PoolSpec:
+    return PoolSpec(getattr(args, "workers", None), getattr(args, "scheduler", None))
+
+
+def print_progress(total: int, what: str = "flights", every: int = 1):
+    """An `on_done` that prints `what: k/total` to stderr as tasks finish (scripts without a progress bar)."""
+    import sys
+
+    done = [0]
+    t0 = time.perf_counter()
+
+    def on_done(i: int, outcome: Outcome) -> None:
+        done[0] += 1
+        if done[0] % every == 0 or done[0] == total:
+            err = "" if outcome.error is None else f" (task {i} raised: {outcome.error})"
+            print(f"{what}: {done[0]}/{total} ({time.perf_counter() - t0:.0f} s){err}", file=sys.stderr, flush=True)
+
+    return on_done
