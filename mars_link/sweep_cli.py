@@ -119,6 +119,7 @@ def sweep_command(args: argparse.Namespace, default_out: Callable[[str], Path]) 
     if not args.no_plots:
         plot_distributions(rows, out / "plots", title)
     print(f"{summary['flights']} flights in {wall:.1f} s: {summary['completed']} completed, {summary['diverged']} "
-          f"diverged, {summary['raised']} raised; median mean error {cell(summary['median_mean_error_m'])} m")
+          f"diverged, {summary['raised']} raised" + ("" if summary["median_mean_error_m"] is None else
+                                                       f"; median mean error {summary['median_mean_error_m']:.4f} m"))
     print(f"results: {out / 'sweep.csv'}, {out / 'sweep.md'}")
     return 0 if summary["raised"] == 0 else 1

@@ -41,7 +41,7 @@ def test_rows_do_not_depend_on_the_workers_or_the_cluster(tmp_path):
     from distributed import LocalCluster
 
     with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None) as cluster:
+                      dashboard_address=":0") as cluster:
         code3, dask = sweep(tmp_path, "dask", "--scheduler", cluster.scheduler_address)
     assert code3 == 0
     assert result_columns(dask) == result_columns(one)
