@@ -1,6 +1,6 @@
 """What local parallel workers buy a sweep (mars-link sweep), measured in one invocation.
 
-    python benchmarks/bench_sweep.py [--flights 200] [--workers 1,2] [--scenario spiral_3x2] [--faults random:1]
+    python benchmarks/bench_sweep.py [--flights 200] [--workers 1,2] [--dask 2] [--scenario spiral_3x2] [--faults random:1]
 
 The same sweep (default: 200 flights of the bundled 3x2 spiral, full length, each with one random
 rotor failure, eta 0, drawn from the sweep seed and the flight's slot) flown once per worker count on
@@ -8,7 +8,8 @@ local processes (mars_link.sweep_pool), one after the other. Printed per worker 
 flights per second, the workers' CPU seconds (the same work whatever the count), the load average
 before and after; then wall time of W workers / wall time of the first count, and whether every
 flight's result columns (all but wall time) are identical across the counts. The machine is shared:
-compare the figures of one invocation, and read the load averages beside them.
+compare the figures of one invocation, and read the load averages beside them. `--dask N` also flies the
+sweep on a Dask LocalCluster of N worker processes started here (loopback), after the local counts.
 """
 
 from __future__ import annotations
@@ -34,20 +35,21 @@ def children_cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def fly(plan, workers: int) -> dict:
+def fly(plan, workers: int, scheduler: str | None = None) -> dict:
     n = len(plan.flights)
+    label = f"dask {workers}" if scheduler else str(workers)
     t0, cpu0, load0 = time.perf_counter(), children_cpu_s(), os.getloadavg()[0]
     done = [0]
 
     def on_done(i: int, row: dict) -> None:
         done[0] += 1
         if done[0] % 20 == 0 or done[0] == n:
-            print(f"  {workers} worker(s): {done[0]}/{n} flights, {time.perf_counter() - t0:.0f} s", file=sys.stderr,
+            print(f"  {label} worker(s): {done[0]}/{n} flights, {time.perf_counter() - t0:.0f} s", file=sys.stderr,
                   flush=True)
 
-    rows = run_sweep(plan, PoolSpec(workers), on_done=on_done)
+    rows = run_sweep(plan, PoolSpec(workers, scheduler), on_done=on_done)
     wall = time.perf_counter() - t0
-    return {"workers": workers, "wall_s": wall, "cpu_s": children_cpu_s() - cpu0, "load": (load0, os.getloadavg()[0]),
+    return {"workers": label, "wall_s": wall, "cpu_s": children_cpu_s() - cpu0, "load": (load0, os.getloadavg()[0]),
             "rows": rows, "results": [tuple(cell(r[k]) for k in RESULT_FIELDS) for r in rows]}
 
 
@@ -57,12 +59,19 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--workers", default="1,2", help="worker counts, flown in this order")
     ap.add_argument("--scenario", default="spiral_3x2")
     ap.add_argument("--faults", default="random:1")
+    ap.add_argument("--dask", type=int, default=0, help="also on a Dask LocalCluster of this many worker processes")
     args = ap.parse_args(argv)
     counts = [int(w) for w in args.workers.split(",")]
     doc, src = read_scenario_doc(args.scenario)
     plan = plan_sweep(doc, src, args.flights, None, parse_faults(args.faults))
     print(f"{args.scenario}: {len(plan.flights)} flights, faults {args.faults}, {os.cpu_count()} cores", flush=True)
     runs = [fly(plan, w) for w in counts]
+    if args.dask:
+        from distributed import LocalCluster
+
+        with LocalCluster(n_workers=args.dask, threads_per_worker=1, processes=True, host="127.0.0.1",
+                          dashboard_address=":0") as cluster:
+            runs.append(fly(plan, args.dask, cluster.scheduler_address))
     base = runs[0]
     print()
     print("| workers | wall [s] | flights/s | workers' CPU [s] | load avg before / after | wall / "
@@ -74,7 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     same = all(r["results"] == base["results"] for r in runs)
     raised = sum(row["error"] is not None for row in base["rows"])
     completed = sum(bool(row["completed"]) for row in base["rows"])
-    print(f"\nidentical results per flight across worker counts: {same} ({len(base['rows'])} flights; "
+    print(f"\nidentical results per flight across {', '.join(str(r['workers']) for r in runs)} worker(s): {same} ({len(base['rows'])} flights; "
           f"{completed} completed, {raised} raised)")
     if not same:
         for i, rows in enumerate(zip(*(r["results"] for r in runs))):

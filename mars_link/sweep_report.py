@@ -64,8 +64,31 @@ def _fmt(value: Any, digits: int) -> str:
     return str(value)
 
 
+def group_table(rows: Sequence[dict]) -> list[str]:
+    """Per parameter combination: flights, completed, diverged, raised, medians over the completed flights."""
+    import numpy as np
+
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(r["params"] or "all flights", []).append(r)
+    lines = ["| params | flights | completed | diverged | raised | median mean / max error [m] (completed) | "
+             "median force integral [N²s] | median detection [s] |", "|---|---|---|---|---|---|---|---|"]
+
+    def med(rs: list[dict], key: str, digits: int) -> str:
+        vals = [r[key] for r in rs if r.get(key) is not None and math.isfinite(r[key])]
+        return f"{np.median(vals):.{digits}f}" if vals else "—"
+
+    for name, rs in groups.items():
+        ok = [r for r in rs if r.get("error") is None and r["completed"]]
+        lines.append(f"| {name} | {len(rs)} | {len(ok)} | {sum(bool(r['diverged']) for r in rs)} | "
+                     f"{sum(r.get('error') is not None for r in rs)} | {med(ok, 'mean_error_m', 4)} / "
+                     f"{med(ok, 'max_error_m', 4)} | {med(ok, 'force_integral_n2s', 2)} | "
+                     f"{med(rs, 'detection_time_s', 3)} |")
+    return lines
+
+
 def markdown(rows: Sequence[dict], title: str) -> str:
-    lines = [f"### {title}", "",
+    lines = [f"### {title}", "", *group_table(rows), "",
              "| flight | seed | faults | params | completed | diverged | mean / rms / max error [m] | "
              "force integral [N²s] | detection [s] | wall [s] | error |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
@@ -92,29 +115,38 @@ def totals(rows: Sequence[dict]) -> dict:
 
 
 def plot_distributions(rows: Sequence[dict], plots_dir: Path, title: str) -> list[Path]:
-    """One histogram per figure of PLOTTED, a colour per parameter combination; returns the files."""
+    """One histogram per figure of PLOTTED over the flights that completed (a diverged flight stops early: its
+    figures cover less time), a colour per parameter combination on shared bins; returns the files."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import numpy as np
 
     plots_dir.mkdir(parents=True, exist_ok=True)
     groups: dict[str, list[dict]] = {}
     for r in rows:
-        if r.get("error") is None:
-            groups.setdefault(r["params"] or "all flights", []).append(r)
+        groups.setdefault(r["params"] or "all flights", []).append(r)
     paths = []
     for key, label in PLOTTED:
         fig, ax = plt.subplots(figsize=(6.4, 3.8))
-        for name, rs in groups.items():
-            vals = [r[key] for r in rs if r.get(key) is not None and math.isfinite(r[key])]
-            if vals:
-                ax.hist(vals, bins=min(30, max(5, len(vals) // 4)), alpha=0.6, label=f"{name} ({len(vals)})")
+        series = {name: [r[key] for r in rs if r.get("error") is None and r["completed"] and r.get(key) is not None
+                         and math.isfinite(r[key])] for name, rs in groups.items()}
+        every = [v for vals in series.values() for v in vals]
+        if every:
+            n_bins = min(30, max(5, len(every) // (4 * len(series))))
+            lo, hi = min(every), max(every)
+            bins = np.linspace(lo, hi if hi > lo else lo + 1e-9, n_bins + 1)
+            for name, vals in series.items():
+                rs = groups[name]
+                diverged = sum(bool(r["diverged"]) for r in rs)
+                raised = sum(r.get("error") is not None for r in rs)
+                ax.hist(vals, bins=bins, alpha=0.55, label=f"{name}: {len(vals)} completed, {diverged} diverged"
+                        + (f", {raised} raised" if raised else ""))
+            ax.legend(fontsize=7)
         ax.set_xlabel(label)
         ax.set_ylabel("flights")
         ax.set_title(title, fontsize=9)
-        if groups:
-            ax.legend(fontsize=7)
         fig.tight_layout()
         path = plots_dir / f"{key}.png"
         fig.savefig(path, dpi=100)

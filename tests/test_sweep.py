@@ -45,7 +45,9 @@ def test_rows_do_not_depend_on_the_workers_or_the_cluster(tmp_path):
         code3, dask = sweep(tmp_path, "dask", "--scheduler", cluster.scheduler_address)
     assert code3 == 0
     assert result_columns(dask) == result_columns(one)
-    assert (tmp_path / "dask" / "sweep.md").read_text().count("\n| ") == 6 + 1  # header + one line per flight
+    md = (tmp_path / "dask" / "sweep.md").read_text()
+    assert md.count("| control.ftc=none |") == 1 + 3 and md.count("| control.ftc=qp |") == 1 + 3  # group + flights
+    assert "| control.ftc=none | 3 | 0 | 3 | 0 |" in md  # 3 flights, none completed, 3 diverged, none raised
 
 
 BAD_CSV = "t,n,e,d\n0,0,0,-1\n1,zero,0,-1\n"
