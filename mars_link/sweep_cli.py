@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from concurrent.futures import Executor
 from pathlib import Path
 from typing import Callable
 
@@ -18,10 +19,10 @@ from mars_link.sweep_report import ROW_FIELDS, cell, csv_header
 
 
 def run_sweep(plan: SweepPlan, pool: PoolSpec, out_dir: Path | None = None, mcap: bool = False,
-              on_done: Callable[[int, dict], None] | None = None) -> list[dict]:
+              on_done: Callable[[int, dict], None] | None = None, executor: Executor | None = None) -> list[dict]:
     """Fly every flight of `plan` on `pool`; the rows in flight order. A flight that raises is a row with its
     error. `out_dir`: rows appended to sweep.partial.csv as they come; with `mcap`, flight i writes
-    flights/<i>/run.mcap there."""
+    flights/<i>/run.mcap there. `executor`: an open one to use instead of opening `pool` (benchmarks)."""
     if mcap and out_dir is None:
         raise ValueError("mcap needs an out_dir")
     flights_dir = None if out_dir is None else out_dir / "flights"
@@ -42,8 +43,11 @@ def run_sweep(plan: SweepPlan, pool: PoolSpec, out_dir: Path | None = None, mcap
             on_done(i, row)
 
     try:
-        with open_pool(pool) as executor:
+        if executor is not None:
             run_all(executor, fly_flight, args, done)
+        else:
+            with open_pool(pool) as opened:
+                run_all(opened, fly_flight, args, done)
     finally:
         if partial is not None:
             partial.close()
