@@ -54,6 +54,14 @@ def proc_cpu_s(pids: list[int]) -> float:
     return total
 
 
+def autogroup_on() -> bool:
+    """Linux's autogroup: CPU shared per session first, then per process inside it."""
+    try:
+        return Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() == "1"
+    except OSError:
+        return False
+
+
 def results(rows: list[dict]) -> list[tuple[str, ...]]:
     return [tuple(cell(r[k]) for k in RESULT_FIELDS) for r in rows]
 
@@ -109,12 +117,16 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  dask LocalCluster of {args.dask}: {n} flights in {runs[-1][1]['wall_s']:.1f} s", file=sys.stderr,
               flush=True)
     print()
-    print(f"| workers | wall [s] | flights/s | workers' CPU [s] | load avg over its rounds (min-max) | wall / "
-          f"{counts[0]} worker(s) |")
-    print("|---|---|---|---|---|---|")
+    print(f"| workers | wall [s] | flights/s | workers' CPU [s] | cores used (CPU / wall) | load avg over its rounds "
+          f"(min-max) | wall / {counts[0]} worker(s) |")
+    print("|---|---|---|---|---|---|---|")
     for label, s in runs:
         print(f"| {label} | {s['wall_s']:.1f} | {len(s['rows']) / s['wall_s']:.2f} | {s['cpu_s']:.0f} | "
-              f"{min(s['loads']):.1f}-{max(s['loads']):.1f} | {s['wall_s'] / base['wall_s']:.3f} |")
+              f"{s['cpu_s'] / s['wall_s']:.2f} | {min(s['loads']):.1f}-{max(s['loads']):.1f} | "
+              f"{s['wall_s'] / base['wall_s']:.3f} |")
+    if autogroup_on():
+        print("(Linux autogroup is on: this session's processes share one CPU share against other sessions, so on a "
+              "machine other sessions keep busy, more workers get little more CPU: read 'cores used')")
     ref = results(base["rows"])
     same = all(results(s["rows"]) == ref for _, s in runs)
     raised = sum(row["error"] is not None for row in base["rows"])
