@@ -145,11 +145,19 @@ def cmd_reproduce(args) -> int:
         def on_progress(done: int, total: int, name: str) -> None:
             progress.update(task, completed=done, total=total, description=name[:48])
 
-        rows = reproduce_table1(args.seeds, controllers, modes, args.duration, on_progress)
+        from mars_link.sweep_pool import pool_from_args
+
+        rows = reproduce_table1(args.seeds, controllers, modes, args.duration, on_progress, pool_from_args(args))
     path = write_results(rows, args.seeds, Path(args.out))
     print(markdown_table(rows, args.seeds))
     print(f"saved {path}")
     return 0
+
+
+def cmd_sweep(args) -> int:
+    from mars_link.sweep_cli import sweep_command
+
+    return sweep_command(args, _default_out)
 
 
 def cmd_sitl(args) -> int:
@@ -318,7 +326,17 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--duration", type=v.positive_float, help="shorten every flight [s] (quick look)")
     rep.add_argument("--out", default="runs/table1")
     rep.add_argument("--quiet", action="store_true")
+    from mars_link.sweep_pool import add_pool_arguments
+
+    add_pool_arguments(rep)  # --workers / --scheduler: the flights go through the sweep's executor
     rep.set_defaults(func=cmd_reproduce)
+
+    from mars_link.sweep_cli import add_arguments as add_sweep_arguments
+
+    swp = sub.add_parser("sweep", help="many flights of a scenario over seeds, random faults and parameters, "
+                                       "on local cores or a Dask cluster (mars_link.sweep)")
+    add_sweep_arguments(swp)
+    swp.set_defaults(func=cmd_sweep)
     return parser
 
 

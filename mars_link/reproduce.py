@@ -19,6 +19,7 @@ import numpy as np
 from mars_link.outputs import write_json
 from mars_link.runner import run_trial
 from mars_link.scenario import scenario_from_dict
+from mars_link.sweep_pool import PoolSpec, map_flights, values_or_raise
 
 PAPER_NOMINAL_M = 0.2230
 
@@ -117,28 +118,38 @@ def plan_runs(controllers: tuple[str, ...], modes: tuple[str, ...]) -> list[tupl
     return runs
 
 
+def table1_flight(case: Case, controller: str, ftc: str, duration_s: float | None, seed: int) -> tuple[float, bool]:
+    """One flight of Table I / Fig. 3 (in a sweep worker): (mean error m, diverged)."""
+    result = run_trial(scenario_for(case, controller, ftc, duration_s), seed)
+    return result.mean_error_m, bool(result.diverged)
+
+
 def reproduce_table1(
     seeds: int = 10,
     controllers: tuple[str, ...] = ("mars-ftcc-paper", "cascaded"),
     modes: tuple[str, ...] = CASCADED_MODES,
     duration_s: float | None = None,
     on_progress: Callable[[int, int, str], None] | None = None,
+    pool: PoolSpec | None = None,
 ) -> list[Row]:
+    """Every case x controller x mode x seed, flown on the sweep's executor (`pool`: local cores by default, or
+    a Dask cluster); a flight that raises stops the table with its error (every cell needs its flights)."""
     runs = plan_runs(controllers, modes)
+    flights = [(case, controller, ftc, duration_s, seed) for case, controller, ftc in runs
+               for seed in range(1, seeds + 1)]
+    done = [0]
+
+    def on_done(i: int, outcome) -> None:
+        done[0] += 1
+        if on_progress:
+            case, controller, ftc = flights[i][:3]
+            on_progress(done[0], len(flights), f"{case.name} / {controller} / {ftc}")
+
+    results = values_or_raise(map_flights(table1_flight, flights, pool, on_done), "reproduce table1 flight")
     rows = []
-    total = len(runs) * seeds
-    done = 0
-    for case, controller, ftc in runs:
-        sc = scenario_for(case, controller, ftc, duration_s)
-        errors, diverged = [], 0
-        for seed in range(1, seeds + 1):
-            result = run_trial(sc, seed)
-            errors.append(result.mean_error_m)
-            diverged += result.diverged
-            done += 1
-            if on_progress:
-                on_progress(done, total, sc.name)
-        rows.append(Row(case, controller, ftc, errors, diverged))
+    for k, (case, controller, ftc) in enumerate(runs):
+        mine = results[k * seeds:(k + 1) * seeds]
+        rows.append(Row(case, controller, ftc, [e for e, _ in mine], sum(d for _, d in mine)))
     return rows
 
 

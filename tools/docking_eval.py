@@ -26,6 +26,7 @@ sys.path.insert(0, str(ROOT))
 from mars_link.outputs import write_json  # noqa: E402
 from mars_link.reconfig.flight import run_reconfig_trial  # noqa: E402
 from mars_link.scenario import load_scenario  # noqa: E402
+from mars_link.sweep_pool import add_pool_arguments, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
 
 FAULTY_UNIT = 3
 AFTER_DOCK_S = 3.0
@@ -101,13 +102,17 @@ def main(argv=None) -> int:
     ap.add_argument("--scenario", default="docking_3x1")
     ap.add_argument("--noise", action="store_true", help="sensor noise on (each piece on its EKF)")
     ap.add_argument("--detected", action="store_true", help="faults found by the detector, not told")
+    add_pool_arguments(ap)  # --workers / --scheduler: the two flights go through the sweep's executor
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     figs = {}
-    for label, ftc in (("ours (qp)", "qp"), ("baseline (none)", "none")):
-        print(f"flying {args.scenario} with ftc={ftc} ...", flush=True)
-        r = fly(args.scenario, ftc, out / ftc, True if args.noise else None, args.detected)
+    labels = (("ours (qp)", "qp"), ("baseline (none)", "none"))
+    print(f"flying {args.scenario} with ftc={', '.join(ftc for _, ftc in labels)} ...", flush=True)
+    flights = [(args.scenario, ftc, out / ftc, True if args.noise else None, args.detected) for _, ftc in labels]
+    results = values_or_raise(map_flights(fly, flights, pool_from_args(args), print_progress(len(flights))),
+                              "docking_eval flight")
+    for (label, ftc), r in zip(labels, results):
         if not r.reconfigured:
             print(f"  {label}: the manoeuvre did not complete ({[e for e in r.events if 'reconfig' in e['type']]})")
             return 1

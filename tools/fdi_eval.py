@@ -42,6 +42,7 @@ from mars_link.reproduce import (  # noqa: E402
     CASES, FDI_MAX_DELAY_S, FDI_MAX_ETA_ERROR, FDI_MAX_ERROR_RATIO, FdiTrial, fdi_false_alarm_flight, fdi_lost_trial,
     fdi_trial,
 )
+from mars_link.sweep_pool import add_pool_arguments, call, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
 
 FTC_CHOICES = ("qp", "paper", "unit", "partial", "full", "hybrid")
 CONTROLLERS = ("cascaded", "mars-ftcc-paper")
@@ -60,6 +61,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--no-plot", action="store_true")
     ap.add_argument("--turbulence", default="none", help="none | light | moderate | severe, or W20 in m/s")
     ap.add_argument("--wind", default="0,0,0", help="steady wind N,E,D in m/s (the air's velocity)")
+    add_pool_arguments(ap)  # --workers / --scheduler: the flights go through the sweep's executor
     args = ap.parse_args(argv)
     args.environment = air_table(args.turbulence, args.wind)
     if not 1 <= args.seeds <= 100 or not 0 <= args.false_alarm_seeds <= 100:
@@ -194,24 +196,26 @@ def main(argv: list[str] | None = None) -> int:
     plan = [(case, fdi_trial) for case in cases]
     if args.lost:
         plan += [(case, fdi_lost_trial) for case in cases if case.unit_failure]
-    for case, fly in plan:
-        trials = []
-        for seed in range(1, args.seeds + 1):
-            t = fly(case, args.ftc, seed, args.t_fault, controller=args.controller, environment=args.environment)
-            trials.append(t)
+    fa_seeds = list(range(1, args.false_alarm_seeds + 1))
+    fa_ftc = ("hybrid" if args.controller == "mars-ftcc-paper" else "qp") if args.ftc == "paper" else args.ftc
+    # every flight on the sweep's executor: (fn, args) per case and seed, then the fault-free spirals
+    tasks = [(fly, (case, args.ftc, seed, args.t_fault, None, args.controller, args.environment))
+             for case, fly in plan for seed in range(1, args.seeds + 1)]
+    tasks += [(fdi_false_alarm_flight, (s, fa_ftc, None, args.controller, args.environment)) for s in fa_seeds]
+    results = values_or_raise(map_flights(call, tasks, pool_from_args(args), print_progress(len(tasks))), "fdi flight")
+    trials_all, fa_found = results[:len(results) - len(fa_seeds)], results[len(results) - len(fa_seeds):]
+    for k, (case, fly) in enumerate(plan):
+        trials = trials_all[k * args.seeds:(k + 1) * args.seeds]
+        for t in trials:
             found = ", ".join(f"u{d['unit']}" + (f"r{d['rotor']}" if d["rotor"] else "") + f"={d['eta_estimated']:.2f}"
                               f"@{d['t_detected']:.2f}" for d in t.detections)
-            print(f"{t.case.name:<18} {seed:>4} {t.delay_s:>7.2f} {t.eta_error:>7.3f} {t.false_alarms:>5} "
+            print(f"{t.case.name:<18} {t.seed:>4} {t.delay_s:>7.2f} {t.eta_error:>7.3f} {t.false_alarms:>5} "
                   f"{t.error_told_m:>8.4f} {t.error_detected_m:>8.4f} {t.error_ratio:>5.2f}  {found}", flush=True)
         row = summarize(trials)
         row["t_fault_s"] = args.t_fault
         rows.append(row)
-    fa_seeds = list(range(1, args.false_alarm_seeds + 1))
-    fa_ftc = ("hybrid" if args.controller == "mars-ftcc-paper" else "qp") if args.ftc == "paper" else args.ftc
-    fa_found = []
-    for s in fa_seeds:
-        fa_found.append(fdi_false_alarm_flight(s, fa_ftc, controller=args.controller, environment=args.environment))
-        print(f"fault-free seed {s}: {len(fa_found[-1])} false alarm(s)", flush=True)
+    for s, found in zip(fa_seeds, fa_found):
+        print(f"fault-free seed {s}: {len(found)} false alarm(s)", flush=True)
     fa = {"flights": len(fa_seeds), "seeds": fa_seeds, "false_alarms": sum(len(f) for f in fa_found),
           "detections": fa_found}
     table = markdown(rows, fa, args)

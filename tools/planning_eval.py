@@ -34,6 +34,9 @@ from mars_link.planning.evaluate import (  # noqa: E402
 from mars_link.planning.maps import ForestParams  # noqa: E402
 from mars_link.planning.pipeline import Planner, PlanParams  # noqa: E402
 from mars_link.planning.plots import plot_plan  # noqa: E402
+from mars_link.sweep_pool import (  # noqa: E402
+    PoolSpec, add_pool_arguments, map_flights, pool_from_args, print_progress, values_or_raise,
+)
 
 CONTROLLERS = (("cascaded", True), ("mars-ftcc-paper", False))  # (controller, sensor noise)
 #: walls plans are also flown noise-free with cascaded: with sensor noise its error is the estimator's
@@ -46,9 +49,15 @@ def log(msg: str) -> None:
     print(msg, file=sys.stderr, flush=True)
 
 
-def walls(out: Path, margin: float, seeds: int) -> list[dict]:
+def fly_plan(traj: dict, layout: str, unit: int, obstacles, controller: str, noise: bool, seed: int):
+    """One walls flight in a sweep worker (mars_link.planning.evaluate.fly)."""
+    return fly(traj, layout, unit, obstacles, controller=controller, noise=noise, seed=seed)
+
+
+def walls(out: Path, margin: float, seeds: int, pool: PoolSpec) -> list[dict]:
+    """Plan every case here, then fly every plan's flights on the sweep's executor."""
     obstacles = walls_map()
-    rows = []
+    rows, tasks, slots = [], [], []
     for layout, unit in PAPER_CASES:
         model = AssemblyModel.from_layout(layout)
         eta = model.nominal_eta()
@@ -60,23 +69,27 @@ def walls(out: Path, margin: float, seeds: int) -> list[dict]:
         for method in ("ours", "svsdf"):
             res = planner.plan(start, np.array(WALLS_GOAL[:2]), method, WALLS_START[2])
             results.append(res)
-            row = {"layout": layout, "failed_unit": unit, "method": method, **res.summary()}
+            rows.append({"layout": layout, "failed_unit": unit, "method": method, **res.summary()})
             traj = {"kind": "plan", "map": WALLS_CSV, "start": list(WALLS_START), "goal": list(WALLS_GOAL),
                     "method": method, "margin_m": margin}
-            for controller, noise in WALLS_CONTROLLERS:
-                flights = [fly(traj, layout, unit, obstacles, controller=controller, noise=noise, seed=s)
-                           for s in range(1, (seeds if noise else 1) + 1)] if res.success else []
-                key = KEYS[controller, noise]
-                if flights:
-                    row[f"{key}_mean_error_m"] = float(np.mean([f.mean_error_m for f in flights]))
-                    row[f"{key}_max_error_m"] = float(max(f.max_error_m for f in flights))
-                    row[f"{key}_collisions"] = int(sum(f.collisions for f in flights))
-                    row[f"{key}_min_clearance_m"] = float(min(f.min_clearance_m for f in flights))
-                    row[f"{key}_diverged"] = any(f.diverged for f in flights)
-            rows.append(row)
-            log(f"walls {layout} u{unit} {method}: {json.dumps({k: v for k, v in row.items() if k != 'stage_time_s'})}")
+            for controller, noise in WALLS_CONTROLLERS if res.success else ():
+                for s in range(1, (seeds if noise else 1) + 1):
+                    tasks.append((traj, layout, unit, obstacles, controller, noise, s))
+                    slots.append((len(rows) - 1, KEYS[controller, noise]))
         plot_plan(out / f"walls_{layout.replace(',', '_')}_u{unit}.png", obstacles, planner.footprint, results,
                   f"{layout} unit {unit} failed: ours (blue) vs svsdf (orange), margin {margin} m")
+    flights = values_or_raise(map_flights(fly_plan, tasks, pool, print_progress(len(tasks), "walls flights")),
+                              "walls flight")
+    for k, row in enumerate(rows):
+        for key in dict.fromkeys(key for i, key in slots if i == k):
+            fs = [f for (i, kk), f in zip(slots, flights) if i == k and kk == key]
+            row[f"{key}_mean_error_m"] = float(np.mean([f.mean_error_m for f in fs]))
+            row[f"{key}_max_error_m"] = float(max(f.max_error_m for f in fs))
+            row[f"{key}_collisions"] = int(sum(f.collisions for f in fs))
+            row[f"{key}_min_clearance_m"] = float(min(f.min_clearance_m for f in fs))
+            row[f"{key}_diverged"] = any(f.diverged for f in fs)
+        log(f"walls {row['layout']} u{row['failed_unit']} {row['method']}: "
+            f"{json.dumps({k: v for k, v in row.items() if k != 'stage_time_s'})}")
     return rows
 
 
@@ -97,13 +110,24 @@ def walls_table(rows: list[dict]) -> str:
     return head + "\n".join(lines)
 
 
-def replay(out: Path) -> list[dict]:
+def replay_flight(layout: str, unit: int, method: str, work_dir: Path, controller: str, noise: bool):
+    """One published CSV flown in a sweep worker (mars_link.planning.evaluate.replay_published); each controller
+    converts into its own directory (two flights of one CSV may run at once)."""
+    return replay_published(layout, unit, method, work_dir / KEYS[controller, noise], controller=controller,
+                            noise=noise)
+
+
+def replay(out: Path, pool: PoolSpec) -> list[dict]:
+    tasks = [(layout, unit, method, out / "paper_csv", controller, noise)
+             for layout, unit in PAPER_CASES for method in ("ours", "svsdf") for controller, noise in CONTROLLERS]
+    flights = iter(values_or_raise(map_flights(replay_flight, tasks, pool, print_progress(len(tasks), "replay flights")),
+                                   "replay flight"))
     rows = []
     for layout, unit in PAPER_CASES:
         for method in ("ours", "svsdf"):
             row = {"layout": layout, "failed_unit": unit, "method": method}
             for controller, noise in CONTROLLERS:
-                metrics, f = replay_published(layout, unit, method, out / "paper_csv", controller=controller, noise=noise)
+                metrics, f = next(flights)
                 key = "casc" if controller == "cascaded" else "paper"
                 row.update(metrics)
                 row.update({f"{key}_mean_error_m": f.mean_error_m, f"{key}_max_error_m": f.max_error_m,
@@ -182,6 +206,7 @@ def main() -> int:
     ap.add_argument("--density", type=float, default=10.0, help="forest trunks per 100 m²")
     ap.add_argument("--margin", type=float, default=0.3, help="planning margin on the walls [m]")
     ap.add_argument("--out", default="runs/planning_eval")
+    add_pool_arguments(ap)  # --workers / --scheduler: the walls and replay flights go through the sweep's executor
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -189,10 +214,10 @@ def main() -> int:
     results = {}
     t0 = time.perf_counter()
     if "walls" in what:
-        results["walls"] = walls(out, args.margin, args.flight_seeds)
+        results["walls"] = walls(out, args.margin, args.flight_seeds, pool_from_args(args))
         print(f"\n### Walls map (margin {args.margin} m)\n\n" + walls_table(results["walls"]))
     if "replay" in what:
-        results["replay"] = replay(out)
+        results["replay"] = replay(out, pool_from_args(args))
         print("\n### Published planner CSVs replayed\n\n" + replay_table(results["replay"]))
     if "forest" in what:
         results["forest"] = forest(out, args.seeds, args.density, 0.1)

@@ -1,6 +1,6 @@
 """Paper 001's reconfiguration cases with the faults found in flight, not told: R vs NR on one engine.
 
-    python tools/reconfig_detect_eval.py [--out runs/reconfig_detect_eval] [--jobs 2] [--cases 0,1,2,3,4]
+    python tools/reconfig_detect_eval.py [--out runs/reconfig_detect_eval] [--workers 2 | --scheduler ADDRESS] [--cases 0,1,2,3,4]
 
 Each case of `reconfig_eval.CASES` (plus-5 with 3, 4, 6 faults; 4x4 donut with 3, 4) is flown twice on
 paper 001's helix with ModQuad modules, sensor noise on (every piece on its own EKF) and
@@ -19,7 +19,6 @@ import argparse
 import dataclasses
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -28,6 +27,7 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 from mars_link.outputs import write_json  # noqa: E402
 from mars_link.scenario import FaultSpec  # noqa: E402
+from mars_link.sweep_pool import add_pool_arguments, map_flights, pool_from_args, values_or_raise  # noqa: E402
 from reconfig_eval import CASES, DIVERGED_MAX_ERROR_M, paper_faults, scenario  # noqa: E402
 
 FAULT_T_S = 5.0
@@ -69,31 +69,36 @@ def cell(res: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="runs/reconfig_detect_eval")
-    ap.add_argument("--jobs", type=int, default=2, help="flights flown at once (processes)")
+    add_pool_arguments(ap)  # --workers (--jobs) / --scheduler: the flights go through the sweep's executor
     ap.add_argument("--cases", default=",".join(str(i) for i in range(len(CASES))),
                     help="indices into the case list (0..4)")
     args = ap.parse_args(argv)
     try:
         cases = [int(x) for x in args.cases.split(",")]
-        if not cases or any(not 0 <= c < len(CASES) for c in cases) or not 1 <= args.jobs <= 64:
+        if not cases or any(not 0 <= c < len(CASES) for c in cases):
             raise ValueError
     except ValueError:
-        print(f"error: --cases takes indices 0..{len(CASES) - 1} and --jobs 1..64", file=sys.stderr)
+        print(f"error: --cases takes indices 0..{len(CASES) - 1}", file=sys.stderr)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     jobs = [(c, w) for c in cases for w in ("NR", "R")]
-    results: dict[tuple[int, str], dict] = {}
     t0 = time.perf_counter()
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        futures = {pool.submit(fly, c, w): (c, w) for c, w in jobs}
-        for k, fut in enumerate(as_completed(futures), 1):
-            res = fut.result()
-            results[futures[fut]] = res
-            print(f"[{k}/{len(jobs)}] {res['shape']} {res['faults']} faults {res['which']}: "
-                  f"detected in {res['detection_s']} s, RMSE/max {cell(res)} mm, "
-                  f"force {res['force_integral_n2s']:.1f} (mission {res['mission_force_integral_n2s']:.1f}) N²s, "
-                  f"reconfigured={res['reconfigured']} ({time.perf_counter() - t0:.0f} s)", flush=True)
+    done = [0]
+
+    def on_done(i: int, outcome) -> None:
+        done[0] += 1
+        res = outcome.value
+        if res is None:
+            print(f"[{done[0]}/{len(jobs)}] flight {jobs[i]} raised: {outcome.error}", flush=True)
+            return
+        print(f"[{done[0]}/{len(jobs)}] {res['shape']} {res['faults']} faults {res['which']}: "
+              f"detected in {res['detection_s']} s, RMSE/max {cell(res)} mm, "
+              f"force {res['force_integral_n2s']:.1f} (mission {res['mission_force_integral_n2s']:.1f}) N²s, "
+              f"reconfigured={res['reconfigured']} ({time.perf_counter() - t0:.0f} s)", flush=True)
+
+    outcomes = map_flights(fly, jobs, pool_from_args(args), on_done)
+    results = dict(zip(jobs, values_or_raise(outcomes, "reconfig_detect_eval flight")))
     lines = ["| shape | faults | detection [s] | NR RMSE / max [mm] | R RMSE / max [mm] | NR force, mission [N²s] "
              "| R force, mission [N²s] | R executed | R RMSE <= NR | R mission force < NR |",
              "|---|---|---|---|---|---|---|---|---|---|"]

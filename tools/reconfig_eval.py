@@ -46,6 +46,7 @@ from mars_link.scenario import eta_after  # noqa: E402
 from mars_link.run_log import RunLog  # noqa: E402
 from mars_link.runner import run_trial  # noqa: E402
 from mars_link.scenario import FaultSpec, scenario_from_dict  # noqa: E402
+from mars_link.sweep_pool import add_pool_arguments, call, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
 
 CASES = [
     ("plus-5", [".X.", "XXX", ".X."], 3),
@@ -104,6 +105,13 @@ def fly(sc) -> dict:
     return {"rmse_axes_m": axis_rmse, "rmse_3d_m": r.rmse_m, "max_error_m": r.max_error_m,
             "force_integral_n2s": r.force_integral_n2s, "diverged": bool(diverged), "sim_time_s": r.sim_time_s,
             "telemetry": tel}
+
+
+def fly_row(layout, faults: list[FaultSpec], mode: str) -> dict:
+    """One NR/R flight in a sweep worker: its figures without the telemetry."""
+    res = fly(scenario(layout, faults, mode))
+    res.pop("telemetry")
+    return res
 
 
 def fly_inflight(layout, faults: list[FaultSpec], out: Path) -> dict:
@@ -169,41 +177,47 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="runs/reconfig_eval")
     ap.add_argument("--ftc", default="none,qp", help="allocation modes to compare (comma separated)")
     ap.add_argument("--no-inflight", action="store_true", help="skip the donut flight with the manoeuvre executed")
+    add_pool_arguments(ap)  # --workers / --scheduler: the flights go through the sweep's executor
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     modes = args.ftc.split(",")
     rows = []
-    total = len(CASES) * len(modes) * 2
-    done = 0
     t0 = time.perf_counter()
+    tasks, slots = [], []  # every flight on the sweep's executor; slots: where each result goes
     for shape, layout, n in CASES:
         faults = paper_faults(n)
         moved, cells = relabel(layout, faults)
-        row = {"shape": shape, "layout": layout, "faults": n,
-               "fault_list": [f.describe() for f in faults],
-               "target": {str(u): list(c) for u, c in sorted(cells.items())}}
+        rows.append({"shape": shape, "layout": layout, "faults": n,
+                     "fault_list": [f.describe() for f in faults],
+                     "target": {str(u): list(c) for u, c in sorted(cells.items())}})
         for mode in modes:
-            row[mode] = {}
+            rows[-1][mode] = {}
             for which, fs in (("NR", faults), ("R", moved)):
-                res = fly(scenario(layout, fs, mode))
-                res.pop("telemetry")
-                row[mode][which] = res
-                done += 1
-                print(f"[{done}/{total}] {shape} {n} faults {mode} {which}: {fmt(res)}  "
-                      f"force {res['force_integral_n2s']:.2f} N²s  ({time.perf_counter() - t0:.0f} s)", flush=True)
-        rows.append(row)
+                tasks.append((fly_row, (layout, fs, mode)))
+                slots.append((len(rows) - 1, mode, which))
+    inflight_cases = [] if args.no_inflight else list(INFLIGHT)
+    for idx in inflight_cases:
+        shape, layout, n = CASES[idx]
+        tasks.append((fly_inflight, (layout, paper_faults(n), out / f"{shape}_{n}_inflight")))
+    print(f"{len(tasks)} flights ({len(inflight_cases)} with the manoeuvre executed in flight, faults at t = 5 s)",
+          flush=True)
+    results = values_or_raise(map_flights(call, tasks, pool_from_args(args), print_progress(len(tasks))),
+                              "reconfig_eval flight")
+    for (k, mode, which), res in zip(slots, results):
+        rows[k][mode][which] = res
+        r = rows[k]
+        print(f"{r['shape']} {r['faults']} faults {mode} {which}: {fmt(res)}  "
+              f"force {res['force_integral_n2s']:.2f} N²s", flush=True)
     inflight = []
-    if not args.no_inflight:
-        for idx in INFLIGHT:
-            shape, layout, n = CASES[idx]
-            print(f"in flight: {shape} {n} faults at t = 5 s, manoeuvre executed with qp ...", flush=True)
-            res = fly_inflight(layout, paper_faults(n), out / f"{shape}_{n}_inflight")
-            res.update(shape=shape, faults=n)
-            inflight.append(res)
-            print(f"  reconfigured={res['reconfigured']} refused={res['refused']} splits={res['splits']} "
-                  f"docks={res['docks']} manoeuvre {res['reconfig_time_s']:.1f} s, RMSE {fmt(res)}, "
-                  f"force {res['force_integral_n2s']:.2f} N²s", flush=True)
+    for idx, res in zip(inflight_cases, results[len(slots):]):
+        shape, layout, n = CASES[idx]
+        res.update(shape=shape, faults=n)
+        inflight.append(res)
+        print(f"in flight: {shape} {n} faults: reconfigured={res['reconfigured']} refused={res['refused']} "
+              f"splits={res['splits']} docks={res['docks']} manoeuvre {res['reconfig_time_s']:.1f} s, RMSE {fmt(res)}, "
+              f"force {res['force_integral_n2s']:.2f} N²s", flush=True)
+    print(f"wall time {time.perf_counter() - t0:.0f} s", flush=True)
 
     lines = ["| shape | faults | ftc | NR RMSE axes / 3-D [m] | R RMSE axes / 3-D [m] | NR force [N²s] | R force [N²s] "
              "| R <= NR | R force < NR |", "|---|---|---|---|---|---|---|---|---|"]
