@@ -53,9 +53,10 @@ def test_a_20x20_in_process_flight_fits_the_byte_budget(tmp_path) -> None:
     """400 units (beyond MAVLink's system ids: in-process units carry none on a wire) fly in one process:
     the cap is a byte budget over the measured per-unit cost, now that the estimator is linear in memory."""
     assert MAX_UNITS_PER_RUN >= 400 and run_bytes(400) < RUN_BUDGET_BYTES
-    path = Path(_square(tmp_path, 20))
-    path.write_text(path.read_text().replace("duration_s = 1", "duration_s = 0.1\nnoise = true"))
-    assert cli_main(["run", str(path), "--out", str(tmp_path / "r"), "--quiet", "--no-mcap"]) == 0
+    sc = load_scenario(_square(tmp_path, 20))
+    sc.sim.duration_s, sc.sim.noise = 0.1, True
+    summary = run_scenario(sc, tmp_path / "r", plots=False, mcap=False)
+    assert summary["completed"] and summary["mean_error_m"] < 0.01
     rows = (tmp_path / "r" / "telemetry.csv").read_text().splitlines()
     assert len(rows) == 1 + 10  # 0.1 s at 100 Hz
 
