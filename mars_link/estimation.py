@@ -366,19 +366,16 @@ class _ErrorStateEkf(ExtendedKalmanFilter):
         a = hw @ H
         b = hw @ y
         prior = self.P
-        n = self.dim_x
-        chol, info = lapack.dpotrf(prior, lower=1)
+        low, info = lapack.dpotrf(prior, lower=1)  # P = L L^T (the other triangle zeroed)
         if info == 0:
-            low = np.tril(chol)
             m = low.T @ a @ low
-            m.flat[:: n + 1] += 1.0
+            m += self._I
             _, sol, info = lapack.dposv(m, low.T)  # (I + L^T A L)^-1 L^T
             post = low @ sol
         if info != 0:  # P or I + L^T A L not positive definite to working precision: the general solve
-            ipa = prior @ a
-            ipa.flat[:: n + 1] += 1.0
-            post = np.linalg.solve(ipa, prior)  # (I + P A)^-1 P = (P^-1 + A)^-1
-        post = 0.5 * (post + post.T)
+            post = np.linalg.solve(self._I + prior @ a, prior)  # (I + P A)^-1 P = (P^-1 + A)^-1
+        post += post.T
+        post *= 0.5
         dx = post @ b
         self.x = self.x + dx
         self.P = post
@@ -437,7 +434,7 @@ class AssemblyEstimator:
         self._F = np.eye(N_ERR)  # identity outside the blocks `_propagate_once` writes
         self._q_cache: dict[tuple[float, int], np.ndarray] = {}
         self._rows: dict[tuple[int, ...], _UnitRows] = {}
-        self._r_cache: dict[tuple, np.ndarray] = {}
+        self._r_cache: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
 
     # ----------------------------------------------------------------- inputs
     def on_imu(self, sample: ImuSample) -> None:
@@ -860,12 +857,12 @@ class AssemblyEstimator:
         rows, pos, H, vel = self._predict_units(units, vel_mps is not None)
         y3 = pos_m - pos
         y = y3.reshape(-1) if vel is None else np.concatenate([y3.reshape(-1), (vel_mps - vel).reshape(-1)])
-        r_diag = self._measurement_noise(k, vel is not None)
+        r_diag, r_block = self._measurement_noise(k, vel is not None)
         # gate each unit on its own 3x3 innovation covariance H_i P H_i^T + R_i, so one bad receiver cannot
         # pull the body (the units' position rows of H, (k, 3, 15); batched 3x3 solves: O(k))
         hp = H[: 3 * k].reshape(k, 3, N_ERR)
         s_blocks = np.matmul(np.matmul(hp, ekf.P), hp.transpose(0, 2, 1))
-        s_blocks += self._r_pos_block
+        s_blocks += r_block
         nis_units = _sum(y3 * np.linalg.solve(s_blocks, y3[:, :, None])[:, :, 0], 1)
         ok = nis_units <= self.params.position_gate_nis
         self.stats.position_units, self.stats.position_innovations_m = tuple(units), y3
@@ -891,8 +888,8 @@ class AssemblyEstimator:
         st.nis_mean_per_dof += self.params.nis_average_gain * (nis / len(y) - st.nis_mean_per_dof)
         self._inject()
 
-    def _measurement_noise(self, k: int, with_velocity: bool) -> np.ndarray:
-        """The diagonal of R of k stacked unit positions (then velocities)."""
+    def _measurement_noise(self, k: int, with_velocity: bool) -> tuple[np.ndarray, np.ndarray]:
+        """R of k stacked unit positions (then velocities) as its diagonal, and R of one unit's position."""
         pr = self.params
         key = (k, with_velocity, pr.position_noise_m, pr.velocity_noise_mps)
         cached = self._r_cache.get(key)
@@ -901,13 +898,8 @@ class AssemblyEstimator:
                 self._r_cache.clear()
             r_pos = pr.position_noise_m**2
             r_diag = np.repeat((r_pos, pr.velocity_noise_mps**2), 3 * k) if with_velocity else np.full(3 * k, r_pos)
-            cached = self._r_cache[key] = r_diag
+            cached = self._r_cache[key] = (r_diag, np.eye(3) * r_pos)
         return cached
-
-    @property
-    def _r_pos_block(self) -> np.ndarray:
-        """R of one unit's position (3 x 3)."""
-        return np.eye(3) * self.params.position_noise_m**2
 
     def _reset_to_positions(
         self, pos_m: np.ndarray, vel_mps: np.ndarray | None, has_vel: np.ndarray | None, offsets_rot: np.ndarray
