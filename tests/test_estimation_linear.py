@@ -89,3 +89,23 @@ def test_estimator_memory_is_linear_in_the_units():
     assert est.stats.dof == 6 * 400
     assert peaks[20] < 6 * peaks[10], peaks
     assert peaks[20] < 8e6, peaks
+
+
+def test_a_flight_runs_its_blas_libraries_on_one_thread():
+    """A fresh interpreter with no thread variables in its environment (a default install): once a flight
+    is built, every BLAS library loaded (numpy's and scipy's OpenBLAS) has one thread, set by the project."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
+    code = ("import json; from threadpoolctl import threadpool_info; from mars_link.build import build_flight; "
+            "from mars_link.scenario import load_scenario; import numpy, scipy.linalg; "
+            "before = [l['num_threads'] for l in threadpool_info() if l['user_api'] == 'blas']; "
+            "build_flight(load_scenario('spiral_3x2'), 1); "
+            "print(json.dumps([before, [l['num_threads'] for l in threadpool_info() if l['user_api'] == 'blas']]))")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    before, after = json.loads(out.stdout.strip().splitlines()[-1])
+    assert after and all(n == 1 for n in after), (before, after)
+    assert len(after) == len(before)
