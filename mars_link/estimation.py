@@ -14,10 +14,13 @@ Why this shape:
   the state of record) and does the prediction; the nominal state (p, v, q, gyro bias, accel bias)
   is propagated here and the error is injected into it and reset to zero after every update
   (specs/dependencies.md §3: filterpy's `predict()` is linear, so `predict_x` is overridden).
-* The update is filterpy's Joseph form with the generic parts it cannot know about left out
-  (`_ErrorStateEkf.update_innovation`): one Cholesky solve of S instead of inverting it, S and
-  P H^T shared with the per-unit gate, no deep copy of z; tests hold it equal to filterpy's own
-  `update` to 1e-10.
+* The update costs time and memory linear in the units fused (`_ErrorStateEkf.update_independent`):
+  given the body's state the units' measurements are independent (R is diagonal), so the exact
+  posterior needs only the 15 x 15 information H^T R^-1 H and the 15-vector H^T R^-1 y, sums over the
+  units' rows; no 3N x 3N S is formed (the joint update did: N^2 memory, N^3 solve). Each unit is gated
+  on its own 3 x 3 innovation covariance. Tests hold it equal to filterpy's own `update` on the stacked
+  measurement to 1e-9, and the estimate of the whole 3x2 spiral to 1e-9. The Joseph form
+  (`update_innovation`, one Cholesky solve of S) is kept, tested, as the joint update of a stacked S.
 * The step is on the coordinator's critical path (issue 5: sensor sample -> rotor command), so the
   per-tick work avoids Python loops over units and numpy calls on 3-vectors: a tick's samples are
   checked and stacked in one go (`step`'s batch path; anything unusual takes the per-sample path),
