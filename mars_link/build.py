@@ -16,7 +16,7 @@ from mars_link.assembly import AssemblyModel
 from mars_link.control.base import Controller
 from mars_link.coordinator import Coordinator
 from mars_link.errors import UserInputError
-from mars_link.limits import check_planned_unit_count
+from mars_link.limits import check_planned_unit_count, check_wire_unit_count
 from mars_link.rotations import quat_to_rotmat
 from mars_link.scenario import Scenario, eta_after
 from mars_link.trajectories import Trajectory, build_trajectory
@@ -208,6 +208,8 @@ def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordin
     id no MAVLink frame carries (it may exceed the system ids 1..250)."""
     from firmware_models.vehicle import Vehicle, VehicleConfig
 
+    if on_wire:
+        check_wire_unit_count(model.n_units)
     vehicle = Vehicle(VehicleConfig(unit_id=unit_id, vehicle=model.vehicle, control_hz=scenario.sim.control_hz,
                                     hil_await_coordinator=coordinator_driven, signing_key=signing_key,
                                     sign_client_links=require_signing, on_wire=on_wire), wall_time_s)

@@ -38,6 +38,9 @@ def _units_within(budget: float) -> int:
 
 #: units in one run: the largest count whose `run_bytes` fits the budget (1,544 units)
 MAX_UNITS_PER_RUN = _units_within(RUN_BUDGET_BYTES)
+#: units whose firmware speaks MAVLink (`vehicle`, SITL unit processes): system ids 1..199 (200 is the
+#: world's, 201 the coordinator's); in-process `run` units carry no id on a wire
+MAX_UNITS_ON_WIRE = 199
 #: units of a run that plans reconfigurations (`reconfig plan`, flights of pieces): the planner's own cap
 MAX_UNITS_PLANNED = 199
 #: `sitl up`: unit processes (each a Python interpreter of ~60 MB) next to the world and coordinator
@@ -50,6 +53,12 @@ def check_unit_count(n_units: int, what: str = "layout") -> None:
         raise UserInputError(f"{what} has {n_units} units; a run holds at most {MAX_UNITS_PER_RUN} "
                              f"(its memory budget is {RUN_BUDGET_BYTES / 2**20:.0f} MiB, "
                              f"{run_bytes(n_units) / 2**20:.0f} MiB needed)")
+
+
+def check_wire_unit_count(n_units: int, what: str = "layout") -> None:
+    if n_units > MAX_UNITS_ON_WIRE:
+        raise UserInputError(f"{what} has {n_units} units; units on MAVLink links take system ids 1..{MAX_UNITS_ON_WIRE} "
+                             f"(in-process `run` holds up to {MAX_UNITS_PER_RUN})")
 
 
 def check_planned_unit_count(n_units: int, what: str = "layout") -> None:

@@ -43,6 +43,8 @@ def test_unit_and_process_caps_refuse_before_anything_starts(tmp_path, capsys) -
     assert f"has 3600 units; a run holds at most {MAX_UNITS_PER_RUN}" in _one_line(capsys)
     assert cli_main(["reconfig", "plan", _square(tmp_path, 30)]) == 2  # was killed by the OOM killer at 24 GB
     assert "has 900 units" in _one_line(capsys)
+    assert cli_main(["vehicle", "--layout", ",".join(["X" * 15] * 15)]) == 2  # its units speak MAVLink
+    assert "has 225 units; units on MAVLink links take system ids 1..199" in _one_line(capsys)
     assert cli_main(["sitl", "up", "--layout", ",".join(["X" * 7] * 7), "--out", str(tmp_path / "s")]) == 2
     line = _one_line(capsys)
     assert f"49 units would start 51 processes; at most {MAX_SITL_UNIT_PROCESSES} units" in line
