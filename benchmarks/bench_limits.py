@@ -7,8 +7,8 @@ the peak of Python allocations (tracemalloc) and the peak resident size:
   * memory per trial: `run_scenario` on hover_1x1 with 2 and 12 trials of 2 s; the difference / 10;
   * memory per simulated second: hover_3x2 (perfect sensors) for 20, 80 and 320 s (flat once the
     plot rows reach PLOT_ROWS_MAX, 40 s at 100 Hz);
-  * memory in the unit count: an in-process flight of 0.05 s on square layouts up to 14x14 (196
-    units; the cap is 199).
+  * memory in the unit count: an in-process flight of 0.05 s on square layouts up to 20x20 (400
+    units), against the byte budget's model of mars_link/limits.py (its linear cost per unit).
 """
 
 from __future__ import annotations
@@ -35,6 +35,7 @@ elif kind == "duration":
 else:
     n = int(arg)
     sc = load_scenario("hover_3x2"); sc.layout = parse_layout(",".join(["X" * n] * n)); sc.sim.duration_s = 0.05
+    sc.ftc = "qp"; sc.sim.noise = True  # (the largest: the QP's dense Hessian, the estimator's rows)
     run_scenario(sc, None, plots=False)
 print(json.dumps({"peak_mb": tracemalloc.get_traced_memory()[1] / 1e6,
                   "rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e3,
@@ -61,10 +62,20 @@ def main() -> None:
         print(f"duration {d0:.0f} -> {d1:.0f} s: peak {r0['peak_mb']:.2f} -> {r1['peak_mb']:.2f} MB, "
               f"{(r1['peak_mb'] - r0['peak_mb']) / (d1 - d0) * 1e3:.1f} KB per simulated second "
               f"({d1 / r1['wall_s']:.1f}x real time)")
-    for n in ((2, 4, 8) if args.quick else (2, 4, 8, 12, 14)):
+    from mars_link.limits import BYTES_PER_UNIT_SQUARED, MAX_UNITS_PER_RUN, RUN_BUDGET_BYTES, run_bytes
+
+    sides = (2, 4, 8) if args.quick else (2, 4, 8, 12, 14, 20)
+    peaks = {}
+    for n in sides:
         r = case("units", n)
+        peaks[n * n] = r["peak_mb"] * 1e6
         print(f"{n}x{n} = {n * n:3d} units: peak {r['peak_mb']:7.2f} MB of Python allocations, "
-              f"resident {r['rss_mb']:6.1f} MB, {r['wall_s']:.1f} s")
+              f"resident {r['rss_mb']:6.1f} MB, {r['wall_s']:.1f} s; the cap's model says "
+              f"{run_bytes(n * n) / 1e6:7.2f} MB")
+    lo, hi = min(peaks), max(peaks)  # the linear part per unit, the QP's dense Hessian taken out
+    linear = [(peaks[n] - BYTES_PER_UNIT_SQUARED * n * n) for n in (lo, hi)]
+    print(f"linear part: {(linear[1] - linear[0]) / (hi - lo) / 1e3:.0f} KB per unit ({lo} -> {hi} units); "
+          f"the cap: {MAX_UNITS_PER_RUN} units within {RUN_BUDGET_BYTES / 2**20:.0f} MiB (mars_link/limits.py)")
 
 
 if __name__ == "__main__":

@@ -184,11 +184,16 @@ class VehicleConfig:
     # lockstep with a coordinator: answer each HIL step only once the coordinator's rotor command for
     # that step has arrived (the runner calls `release_hil` when it gives up waiting)
     hil_await_coordinator: bool = False
+    # False: an in-process unit (direct calls; no MAVLink frame carries its id), so its id may go beyond
+    # MAVLink's system ids 1..250 (an in-process flight of 20x20 units)
+    on_wire: bool = True
 
     def checked(self) -> "VehicleConfig":
-        if not (isinstance(self.unit_id, int) and 1 <= self.unit_id <= 250):
+        if not self.on_wire and isinstance(self.unit_id, int) and self.unit_id >= 1:
+            pass
+        elif not (isinstance(self.unit_id, int) and 1 <= self.unit_id <= 250):
             raise UserInputError(f"unit id must be 1..250, got {self.unit_id!r}")
-        if self.unit_id in (self.coordinator_sysid, self.world_sysid):
+        elif self.unit_id in (self.coordinator_sysid, self.world_sysid):
             raise UserInputError(f"unit id {self.unit_id} collides with the coordinator or world system id")
         if not (math.isfinite(self.control_hz) and 1.0 <= self.control_hz <= 2000.0):
             raise UserInputError(f"control rate must be 1..2000 Hz, got {self.control_hz!r}")

@@ -16,6 +16,7 @@ from mars_link.assembly import AssemblyModel
 from mars_link.control.base import Controller
 from mars_link.coordinator import Coordinator
 from mars_link.errors import UserInputError
+from mars_link.limits import check_planned_unit_count, check_wire_unit_count
 from mars_link.rotations import quat_to_rotmat
 from mars_link.scenario import Scenario, eta_after
 from mars_link.trajectories import Trajectory, build_trajectory
@@ -140,6 +141,9 @@ def make_world(scenario: Scenario, model: AssemblyModel, seed: int, com_start_ne
 
 def make_estimator(scenario: Scenario, model: AssemblyModel):
     """The rigid body's EKF when sensor noise is on; None: the coordinator flies on the world's truth."""
+    from mars_link.blas_threads import single_blas_thread
+
+    single_blas_thread()  # small dense algebra at every step: threads only oversubscribe the cores
     if not scenario.sim.noise:
         return None
     from mars_link.estimation import AssemblyEstimator, EstimatorParams
@@ -196,15 +200,19 @@ def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajec
 
 
 def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordinator_driven: bool = True,
-              signing_key: bytes | None = None, wall_time_s: float = 0.0, require_signing: bool = False):
+              signing_key: bytes | None = None, wall_time_s: float = 0.0, require_signing: bool = False,
+              on_wire: bool = True):
     """One unit's firmware (`firmware_models.vehicle.Vehicle`: rotor intake, motor model, fail-safes), the
     same object in-process and in a unit process. The scenario's faults for this unit are scheduled in
-    its motor model: the unit, not the coordinator, knows them."""
+    its motor model: the unit, not the coordinator, knows them. `on_wire=False`: an in-process unit, whose
+    id no MAVLink frame carries (it may exceed the system ids 1..250)."""
     from firmware_models.vehicle import Vehicle, VehicleConfig
 
+    if on_wire:
+        check_wire_unit_count(model.n_units)
     vehicle = Vehicle(VehicleConfig(unit_id=unit_id, vehicle=model.vehicle, control_hz=scenario.sim.control_hz,
                                     hil_await_coordinator=coordinator_driven, signing_key=signing_key,
-                                    sign_client_links=require_signing), wall_time_s)
+                                    sign_client_links=require_signing, on_wire=on_wire), wall_time_s)
     for f in scenario.faults:
         if f.unit == unit_id:
             vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta)
@@ -233,7 +241,7 @@ def build_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, float] | 
     coordinator = make_coordinator(scenario, model, trajectory, make_estimator(scenario, model),
                                    make_detector(scenario, model, float(com_start[2])), telemetry_timeout_s=timeout)
     world = make_world(scenario, model, seed, com_start, yaw_start)
-    units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
+    units = InProcessUnits({u: make_unit(scenario, model, u, on_wire=False) for u in model.unit_ids}, world)
     return Flight(scenario, model, seed, trajectory, world, units, coordinator,
                   sorted(scenario.faults, key=lambda f: f.t_s), deaths, tracked_offset(model, scenario),
                   scenario.sim.duration_s or trajectory.duration_s)
@@ -351,6 +359,7 @@ def build_pieces_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, fl
     from mars_link.engine import Flight, InProcessUnits
 
     model = scenario.model()
+    check_planned_unit_count(model.n_units, "a flight of pieces' layout")
     mission = make_trajectory(scenario, model)
     deaths = sorted((t_d, u) for u, t_d in (unit_deaths or {}).items())
     for _, u in deaths:
@@ -358,7 +367,7 @@ def build_pieces_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, fl
     timeout = UNIT_TIMEOUT_PERIODS / scenario.sim.control_hz if deaths else None
     coordinator, end_s = make_pieces_coordinator(scenario, model, mission, timeout)
     world = make_pieces_world(scenario, model, seed, coordinator.executor)
-    units = InProcessUnits({u: make_unit(scenario, model, u) for u in model.unit_ids}, world)
+    units = InProcessUnits({u: make_unit(scenario, model, u, on_wire=False) for u in model.unit_ids}, world)
     faults = sorted(scenario.faults, key=lambda f: f.t_s)
     return Flight(scenario, model, seed, mission, world, units, coordinator, faults, deaths,
                   duration_s=scenario.sim.duration_s or mission.duration_s, end_s=end_s)

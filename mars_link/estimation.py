@@ -14,10 +14,13 @@ Why this shape:
   the state of record) and does the prediction; the nominal state (p, v, q, gyro bias, accel bias)
   is propagated here and the error is injected into it and reset to zero after every update
   (specs/dependencies.md §3: filterpy's `predict()` is linear, so `predict_x` is overridden).
-* The update is filterpy's Joseph form with the generic parts it cannot know about left out
-  (`_ErrorStateEkf.update_innovation`): one Cholesky solve of S instead of inverting it, S and
-  P H^T shared with the per-unit gate, no deep copy of z; tests hold it equal to filterpy's own
-  `update` to 1e-10.
+* The update costs time and memory linear in the units fused (`_ErrorStateEkf.update_independent`):
+  given the body's state the units' measurements are independent (R is diagonal), so the exact
+  posterior needs only the 15 x 15 information H^T R^-1 H and the 15-vector H^T R^-1 y, sums over the
+  units' rows; no 3N x 3N S is formed (the joint update did: N^2 memory, N^3 solve). Each unit is gated
+  on its own 3 x 3 innovation covariance. Tests hold it equal to filterpy's own `update` on the stacked
+  measurement to 1e-9, and the estimate of the whole 3x2 spiral to 1e-9. The Joseph form
+  (`update_innovation`, one Cholesky solve of S) is kept, tested, as the joint update of a stacked S.
 * The step is on the coordinator's critical path (issue 5: sensor sample -> rotor command), so the
   per-tick work avoids Python loops over units and numpy calls on 3-vectors: a tick's samples are
   checked and stacked in one go (`step`'s batch path; anything unusual takes the per-sample path),
@@ -216,7 +219,7 @@ class ImuCombiner:
                     self.relative_gyro_bias[k] = old[old_ids.index(uid)]
         self._index = {uid: k for k, uid in enumerate(self.unit_ids)}
         self._all = tuple(self.unit_ids)
-        self._averagers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self._averagers: dict[int, np.ndarray] = {}
         self._last: tuple[float, tuple[float, float, float]] | None = None
 
     def combine(self, samples: list[ImuSample]) -> CombinedImu | None:
@@ -236,12 +239,13 @@ class ImuCombiner:
             return None
         every = units == self._all
         idx = slice(None) if every else np.array([self._index[u] for u in units])
-        mean_k, centre_k = self._averaging(k)
+        mean_k = self._mean_row(k)
         d = self.relative_gyro_bias
         if k >= 2:  # rigid body: gyro differences are bias differences plus noise
             dk = d[idx]
-            d[idx] = dk + self.gain * (centre_k @ (gyros - dk))
-            d[:] = self._averaging(len(d))[1] @ d  # relative biases average to zero
+            x = gyros - dk
+            d[idx] = dk + self.gain * (x - mean_k @ x)
+            d -= self._mean_row(len(d)) @ d  # relative biases average to zero
         corrected = gyros - d[idx]
         omega = mean_k @ corrected
         # rigid body: f_i = f_com + alpha x r_i + omega x (omega x r_i) = f_com + M r_i,
@@ -263,29 +267,55 @@ class ImuCombiner:
         self._last = (t_s, (wx, wy, wz))
         return CombinedImu(t_s, omega, accel, units, corrected - omega, accel_com - accel)
 
-    def _averaging(self, k: int) -> tuple[np.ndarray, np.ndarray]:
-        """(1/k row, k x k centring matrix I - 1/k): means and mean removal as one product each."""
-        pair = self._averagers.get(k)
-        if pair is None:
-            pair = self._averagers[k] = (np.full(k, 1.0 / k), np.eye(k) - 1.0 / k)
-        return pair
+    def _mean_row(self, k: int) -> np.ndarray:
+        """The row 1/k: a mean over units as one product (mean removal is x - row @ x: O(k), no k x k)."""
+        row = self._averagers.get(k)
+        if row is None:
+            row = self._averagers[k] = np.full(k, 1.0 / k)
+        return row
 
 
 class _ErrorStateEkf(ExtendedKalmanFilter):
     """filterpy EKF holding the error state; the nominal-state propagation lives in the estimator.
 
-    `SI` (S^-1) is computed when read: the update solves with S instead of inverting it.
+    `S`, `SI` (S^-1) and `K` are filterpy's attributes, computed when read: `update_independent` never
+    forms the m x m S (its cost and memory are linear in the measurements), and `update_innovation`
+    solves with S instead of inverting it.
     """
+
+    _last_update: tuple | None = None  # (H, r_diag, prior P) of the last update_independent
+
+    @property
+    def S(self) -> np.ndarray:
+        if self._s is None and self._last_update is not None:
+            H, r_diag, prior = self._last_update
+            self._s = H @ prior @ H.T + np.diag(r_diag)
+        return self._s
+
+    @S.setter
+    def S(self, value: np.ndarray | None) -> None:
+        self._s = value
 
     @property
     def SI(self) -> np.ndarray:
-        if self._si is None:
+        if self._si is None and self.S is not None:
             self._si = np.linalg.inv(self.S)
         return self._si
 
     @SI.setter
     def SI(self, value: np.ndarray | None) -> None:
         self._si = value
+
+    @property
+    def K(self) -> np.ndarray:
+        if self._k is None and self._last_update is not None:
+            H, r_diag, _ = self._last_update
+            self._k = self.P_post @ (H.T / r_diag)  # K = P+ H^T R^-1
+        return self._k
+
+    @K.setter
+    def K(self, value: np.ndarray | None) -> None:
+        self._k = value
 
     def predict_x(self, u=0) -> None:  # the error state is zero after every reset: it stays zero
         self.x = np.zeros(self.dim_x)
@@ -317,11 +347,47 @@ class _ErrorStateEkf(ExtendedKalmanFilter):
         self.x = self.x + K @ y
         i_kh = self._I - K @ H
         self.P = i_kh @ self.P @ i_kh.T + (K * r_diag) @ K.T
+        self._last_update = None
         self.S, self.SI, self.K, self.y, self.z = s, None, K, y, y
         self._log_likelihood = self._likelihood = self._mahalanobis = None
         self.x_post = self.x.copy()
         self.P_post = self.P.copy()
         return float(y @ sol[:, n])
+
+    def update_independent(self, y: np.ndarray, H: np.ndarray, r_diag: np.ndarray) -> float:
+        """The same posterior as `update_innovation` (filterpy's update with R = diag(r_diag)) in
+        information form, at a cost and memory linear in the m measurements; returns the NIS.
+
+        With R diagonal the measurements are independent given the state, so the gain needs only
+        A = H^T R^-1 H and b = H^T R^-1 y (15 x 15 and 15: sums over the rows):
+        P+ = (P^-1 + A)^-1 = L (I + L^T A L)^-1 L^T with P = L L^T (no inverse of P, and I + L^T A L has
+        every eigenvalue >= 1), x+ = x + P+ b (= x + K y, K = P+ H^T R^-1), and the NIS
+        y^T S^-1 y = y^T R^-1 y - b^T P+ b (Woodbury). S, SI and K are formed only when read.
+        """
+        w = 1.0 / r_diag
+        hw = H.T * w  # H^T R^-1, (15, m)
+        a = hw @ H
+        b = hw @ y
+        prior = self.P
+        low, info = lapack.dpotrf(prior, lower=1)  # P = L L^T (the other triangle zeroed)
+        if info == 0:
+            m = low.T @ a @ low
+            m += self._I
+            _, sol, info = lapack.dposv(m, low.T)  # (I + L^T A L)^-1 L^T
+            post = low @ sol
+        if info != 0:  # P or I + L^T A L not positive definite to working precision: the general solve
+            post = np.linalg.solve(self._I + prior @ a, prior)  # (I + P A)^-1 P = (P^-1 + A)^-1
+        post += post.T
+        post *= 0.5
+        dx = post @ b
+        self.x = self.x + dx
+        self.P = post
+        self._last_update = (H, r_diag, prior)
+        self.S, self.SI, self.K, self.y, self.z = None, None, None, y, y
+        self._log_likelihood = self._likelihood = self._mahalanobis = None
+        self.x_post = self.x.copy()
+        self.P_post = post.copy()
+        return float(y @ (w * y) - b @ dx)
 
 
 @dataclass
@@ -334,9 +400,6 @@ class _UnitRows:
     offsets_m: np.ndarray  # (k, 3) unit centres in the body frame, from the CoM
     neg_skew_offsets: np.ndarray  # (k, 3, 3) -[r_i]x
     template: np.ndarray  # (2k, 3, 15) H with its constant identity blocks, zeros elsewhere
-    block_mask: np.ndarray  # (3k, 3k) ones on the units' 3x3 position blocks of S, zeros elsewhere
-    block_rows: np.ndarray  # (k, 3, 3) row/column indices of each unit's position block of S
-    block_cols: np.ndarray
     pos_rows: np.ndarray  # (k, 3) rows of each unit's position
     vel_rows: np.ndarray  # (k, 3) rows of each unit's velocity
 
@@ -745,9 +808,6 @@ class AssemblyEstimator:
                 offsets_m=offsets,
                 neg_skew_offsets=_skews(-offsets),
                 template=template,
-                block_mask=np.kron(np.eye(k), np.ones((3, 3))),
-                block_rows=np.repeat(pos_rows[:, :, None], 3, axis=2),
-                block_cols=np.repeat(pos_rows[:, None, :], 3, axis=1),
                 pos_rows=pos_rows,
                 vel_rows=pos_rows + 3 * k,
             )
@@ -800,18 +860,13 @@ class AssemblyEstimator:
         rows, pos, H, vel = self._predict_units(units, vel_mps is not None)
         y3 = pos_m - pos
         y = y3.reshape(-1) if vel is None else np.concatenate([y3.reshape(-1), (vel_mps - vel).reshape(-1)])
-        r_diag, r_mat = self._measurement_noise(k, vel is not None)
-        pht = ekf.P @ H.T
-        S = H @ pht
-        S += r_mat
-        # gate each unit on its own 3x3 innovation block, so one bad receiver cannot pull the body
-        # (one Cholesky solve of the block-diagonal part of S: the blocks stay independent)
-        _, s_inv_y, info = lapack.dposv(S[: 3 * k, : 3 * k] * rows.block_mask, y3.reshape(-1))
-        if info == 0:
-            nis_units = _sum(y3 * s_inv_y.reshape(k, 3), 1)
-        else:  # a block not positive definite to working precision: solve them one by one
-            s_blocks = S[rows.block_rows, rows.block_cols]
-            nis_units = _sum(y3 * np.linalg.solve(s_blocks, y3[:, :, None])[:, :, 0], 1)
+        r_diag, r_block = self._measurement_noise(k, vel is not None)
+        # gate each unit on its own 3x3 innovation covariance H_i P H_i^T + R_i, so one bad receiver cannot
+        # pull the body (the units' position rows of H, (k, 3, 15); batched 3x3 solves: O(k))
+        hp = H[: 3 * k].reshape(k, 3, N_ERR)
+        s_blocks = np.matmul(np.matmul(hp, ekf.P), hp.transpose(0, 2, 1))
+        s_blocks += r_block
+        nis_units = _sum(y3 * np.linalg.solve(s_blocks, y3[:, :, None])[:, :, 0], 1)
         ok = nis_units <= self.params.position_gate_nis
         self.stats.position_units, self.stats.position_innovations_m = tuple(units), y3
         n_ok = int(np.count_nonzero(ok))
@@ -829,15 +884,15 @@ class AssemblyEstimator:
             if vel is not None:
                 with_vel = ok if has_vel is None else ok & has_vel
                 take = np.concatenate([take, rows.vel_rows[with_vel].reshape(-1)])
-            H, y, r_diag, pht, S = H[take], y[take], r_diag[take], pht[:, take], S[np.ix_(take, take)]
-        nis = ekf.update_innovation(y, H, r_diag, pht, S)
+            H, y, r_diag = H[take], y[take], r_diag[take]
+        nis = ekf.update_independent(y, H, r_diag)
         st = self.stats
         st.t_s, st.nis, st.dof = self.t_s, nis, len(y)
         st.nis_mean_per_dof += self.params.nis_average_gain * (nis / len(y) - st.nis_mean_per_dof)
         self._inject()
 
     def _measurement_noise(self, k: int, with_velocity: bool) -> tuple[np.ndarray, np.ndarray]:
-        """R of k stacked unit positions (then velocities) as its diagonal and as a matrix."""
+        """R of k stacked unit positions (then velocities) as its diagonal, and R of one unit's position."""
         pr = self.params
         key = (k, with_velocity, pr.position_noise_m, pr.velocity_noise_mps)
         cached = self._r_cache.get(key)
@@ -846,7 +901,7 @@ class AssemblyEstimator:
                 self._r_cache.clear()
             r_pos = pr.position_noise_m**2
             r_diag = np.repeat((r_pos, pr.velocity_noise_mps**2), 3 * k) if with_velocity else np.full(3 * k, r_pos)
-            cached = self._r_cache[key] = (r_diag, np.diag(r_diag))
+            cached = self._r_cache[key] = (r_diag, np.eye(3) * r_pos)
         return cached
 
     def _reset_to_positions(

@@ -1,19 +1,48 @@
 """What one run may allocate: documented caps, checked before anything starts (one line, exit 2).
 
-Measured on this 2-core VM (benchmarks/bench_limits.py prints them again):
-  * an in-process flight of 196 units (14x14): 62 MB of Python allocations at peak (tracemalloc),
-    200 MB resident; 144 units 36 MB, 64 units 10 MB: the estimator's stacked 6k x 6k measurement
-    matrices make it about quadratic in the unit count;
-  * `reconfig plan` on 196 units: 650 MB resident, 7 s (100 units: 200 MB, 2.4 s); about N^2.8.
-The unit cap below bounds both (a 60x60 layout reached 16.9 GB, `reconfig plan` on 30x30 24 GB).
+The unit cap of a run is a byte budget over the measured cost of a unit (benchmarks/bench_limits.py
+prints the figures again). Peak Python allocations (tracemalloc) of an in-process flight, helix, noise
+on, qp: 8.7 MB at 10x10, 65 MB at 20x20 (400 units; 205 MB resident). Of that, the QP allocator's
+dense Hessian over every rotor is 8 (4N)^2 bytes (20.5 MB at 400 units); the rest is linear in the units,
+about 124 KB a unit (each unit's firmware with its MAVLink codecs, its JSBSim rotors, the estimator's
+rows: the estimator's memory is linear since its information-form update, issue 16; the joint 6N x 6N
+update of before made it quadratic and the cap was 199 units).
+
+`reconfig plan` and flights that plan reconfigurations keep a unit cap of their own: the planner's
+memory grows about as N^2.8 (196 units: 650 MB resident, 7 s; 30x30 reached 24 GB).
 """
 
 from __future__ import annotations
 
+import math
+
 from mars_link.errors import UserInputError
 
-#: units in one run: MAVLink system ids 1..199 (200 is the world's, 201 the coordinator's)
-MAX_UNITS_PER_RUN = 199
+#: what one in-process run may allocate (Python allocations at peak)
+RUN_BUDGET_BYTES = 512 * 2**20
+#: measured cost of a unit in a run, linear part (124 KB measured at 20x20, rounded up)
+BYTES_PER_UNIT = 150_000
+#: the QP allocator's dense Hessian: 8 bytes x (4 rotors x N)^2
+BYTES_PER_UNIT_SQUARED = 8 * 4 * 4
+
+
+def run_bytes(n_units: int) -> float:
+    """Bytes an in-process run of `n_units` allocates at peak (the model behind the cap)."""
+    return BYTES_PER_UNIT * n_units + BYTES_PER_UNIT_SQUARED * n_units**2
+
+
+def _units_within(budget: float) -> int:
+    a, b = BYTES_PER_UNIT_SQUARED, BYTES_PER_UNIT
+    return int((-b + math.sqrt(b * b + 4 * a * budget)) / (2 * a))
+
+
+#: units in one run: the largest count whose `run_bytes` fits the budget (1,544 units)
+MAX_UNITS_PER_RUN = _units_within(RUN_BUDGET_BYTES)
+#: units whose firmware speaks MAVLink (`vehicle`, SITL unit processes): system ids 1..199 (200 is the
+#: world's, 201 the coordinator's); in-process `run` units carry no id on a wire
+MAX_UNITS_ON_WIRE = 199
+#: units of a run that plans reconfigurations (`reconfig plan`, flights of pieces): the planner's own cap
+MAX_UNITS_PLANNED = 199
 #: `sitl up`: unit processes (each a Python interpreter of ~60 MB) next to the world and coordinator
 MAX_SITL_UNIT_PROCESSES = 36
 MAX_SITL_PROCESSES = MAX_SITL_UNIT_PROCESSES + 2
@@ -22,7 +51,21 @@ MAX_SITL_PROCESSES = MAX_SITL_UNIT_PROCESSES + 2
 def check_unit_count(n_units: int, what: str = "layout") -> None:
     if n_units > MAX_UNITS_PER_RUN:
         raise UserInputError(f"{what} has {n_units} units; a run holds at most {MAX_UNITS_PER_RUN} "
-                             f"(MAVLink system ids 1..{MAX_UNITS_PER_RUN}; memory grows with the square of it)")
+                             f"(its memory budget is {RUN_BUDGET_BYTES / 2**20:.0f} MiB, "
+                             f"{run_bytes(n_units) / 2**20:.0f} MiB needed)")
+
+
+def check_wire_unit_count(n_units: int, what: str = "layout") -> None:
+    if n_units > MAX_UNITS_ON_WIRE:
+        raise UserInputError(f"{what} has {n_units} units; units on MAVLink links take system ids 1..{MAX_UNITS_ON_WIRE} "
+                             f"(in-process `run` holds up to {MAX_UNITS_PER_RUN})")
+
+
+def check_planned_unit_count(n_units: int, what: str = "layout") -> None:
+    """The reconfiguration planner's cap (its memory grows about as N^2.8)."""
+    if n_units > MAX_UNITS_PLANNED:
+        raise UserInputError(f"{what} has {n_units} units; planning a reconfiguration takes at most "
+                             f"{MAX_UNITS_PLANNED} (the planner's memory grows about as N^2.8)")
 
 
 def check_sitl_processes(n_units: int) -> None:

@@ -7,8 +7,14 @@ import math
 import numpy as np
 
 
+def _floats(v) -> list | tuple:
+    """A float64 array's components as Python floats: arithmetic on numpy scalars costs several times more
+    (the same IEEE doubles, the same result); other inputs (float32 wire values) as they are."""
+    return v.tolist() if isinstance(v, np.ndarray) and v.dtype == np.float64 else v
+
+
 def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = q
+    w, x, y, z = _floats(q)
     return np.array(
         [
             [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
@@ -53,7 +59,7 @@ def euler_to_quat(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) in rad, ZYX convention; yaw in (-pi, pi]."""
-    w, x, y, z = q
+    w, x, y, z = _floats(q)
     roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
     pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
     yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
@@ -61,8 +67,8 @@ def quat_to_euler(q: np.ndarray) -> tuple[float, float, float]:
 
 
 def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
+    w1, x1, y1, z1 = _floats(a)
+    w2, x2, y2, z2 = _floats(b)
     return np.array(
         [
             w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
@@ -75,7 +81,7 @@ def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def tilt_deg(q: np.ndarray) -> float:
     """Angle between body z and world z (down), degrees."""
-    w, x, y, z = q
+    w, x, y, z = _floats(q)
     r22 = 1 - 2 * (x * x + y * y)
     return math.degrees(math.acos(max(-1.0, min(1.0, r22))))
 

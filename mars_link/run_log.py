@@ -71,6 +71,7 @@ class RunLog:
         for kind in ("cmd", "thrust", "eta"):
             cols += [f"{kind}_u{r.unit_id}r{r.index}" for r in model.rotors]
         self._rot.write("trial,t_s," + ",".join(cols) + "\n")
+        self._rot_format = ",".join(["%.5g"] * (2 + len(cols))) + "\n"  # (one % pass: no per-value call)
 
     def telemetry(self, row: list[float]) -> None:
         if self._bounded is None:
@@ -94,7 +95,7 @@ class RunLog:
         else:
             self._bounded[1].add(row)
         if self._rot:
-            self._rot.write(",".join(f"{x:.5g}" for x in row) + "\n")
+            self._rot.write(self._rot_format % tuple(row.tolist()))
 
     def new_trial(self) -> None:
         self._next_rotor_t = 0.0

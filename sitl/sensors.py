@@ -110,28 +110,37 @@ class SensorModel:
         )
         r = offsets_frd_m
         n = len(unit_ids)
-        wx = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-        ax = np.array([[0.0, -alpha[2], alpha[1]], [alpha[2], 0.0, -alpha[0]], [-alpha[1], alpha[0], 0.0]])
-        lever = (ax + wx @ wx) @ r.T  # (3, N)
-        accel = specific_force_frd[None, :] + lever.T
-        gyro = w  # (3,): broadcast over the units below (np.broadcast_to costs more than the sum)
+        w0, w1, w2 = w.tolist()  # (floats: building from numpy scalars costs more, same values)
+        a0, a1, a2 = alpha.tolist()
+        wx = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
+        ax = np.array([[0.0, -a2, a1], [a2, 0.0, -a0], [-a1, a0, 0.0]])
         rot = quat_to_rotmat(body.quaternion_wxyz)
-        pos = body.position_ned_m[None, :] + (rot @ r.T).T
-        vel = body.velocity_ned_mps[None, :] + (rot @ (wx @ r.T)).T
+        # one product for the three per-unit terms (few numpy calls: this runs every step for every body):
+        # lever arm (alpha x r + omega x (omega x r)), R r, R (omega x r); then the body's own terms
+        m9 = np.concatenate((ax + wx @ wx, rot, rot @ wx))
+        out = r @ m9.T  # (N, 9): accel, pos, vel columns
+        out += np.concatenate((specific_force_frd, body.position_ned_m, body.velocity_ned_mps))
         if self.noise:
-            p = self.params
             key = tuple(unit_ids)
             bias = self._bias_rows.get(key)
             if bias is None:
                 bias = self._bias_rows[key] = np.array([self.gyro_bias(u) for u in unit_ids])
             noise = self.rng.normal(0.0, 1.0, (n, 12))
-            gyro = gyro + bias + p.gyro_noise_radps * noise[:, 0:3]
-            accel = accel + p.accel_noise_mps2 * noise[:, 3:6]
-            pos = pos + p.position_noise_m * noise[:, 6:9]
-            vel = vel + p.velocity_noise_mps * noise[:, 9:12]
+            noise *= self._noise_scale()
+            gyro = w + bias + noise[:, 0:3]
+            out += noise[:, 3:12]
         else:
             gyro = np.tile(w, (n, 1))
+        accel, pos, vel = out[:, 0:3], out[:, 3:6], out[:, 6:9]
         return gyro, accel, pos, vel
+
+    def _noise_scale(self) -> np.ndarray:
+        """1-sigma of the 12 columns of one unit's sample: gyro, accel, position, velocity (3 each)."""
+        p = self.params
+        key = (p.gyro_noise_radps, p.accel_noise_mps2, p.position_noise_m, p.velocity_noise_mps)
+        if getattr(self, "_scale_key", None) != key:
+            self._scale_key, self._scale = key, np.repeat(key, 3)
+        return self._scale
 
     def position(
         self, t_s: float, body: RigidBodyState, unit_offset_frd_m: np.ndarray, unit_id: int

@@ -14,7 +14,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.vehicle import LINK_API, LINK_GCS, Vehicle, VehicleConfig
 from firmware_models.vehicle_io import LinkSpec, VehicleSockets
 from mars_link.cli import main as cli_main
-from mars_link.limits import MAX_SITL_UNIT_PROCESSES, MAX_UNITS_PER_RUN
+from mars_link.limits import MAX_SITL_UNIT_PROCESSES, MAX_UNITS_PER_RUN, RUN_BUDGET_BYTES, run_bytes
 from mars_link.run_log import RunLog
 from mars_link.runner import run_scenario
 from mars_link.scenario import load_scenario
@@ -43,10 +43,24 @@ def test_unit_and_process_caps_refuse_before_anything_starts(tmp_path, capsys) -
     assert f"has 3600 units; a run holds at most {MAX_UNITS_PER_RUN}" in _one_line(capsys)
     assert cli_main(["reconfig", "plan", _square(tmp_path, 30)]) == 2  # was killed by the OOM killer at 24 GB
     assert "has 900 units" in _one_line(capsys)
+    assert cli_main(["vehicle", "--layout", ",".join(["X" * 15] * 15)]) == 2  # its units speak MAVLink
+    assert "has 225 units; units on MAVLink links take system ids 1..199" in _one_line(capsys)
     assert cli_main(["sitl", "up", "--layout", ",".join(["X" * 7] * 7), "--out", str(tmp_path / "s")]) == 2
     line = _one_line(capsys)
     assert f"49 units would start 51 processes; at most {MAX_SITL_UNIT_PROCESSES} units" in line
     assert not (tmp_path / "r").exists() and not (tmp_path / "s").exists()  # nothing started, nothing written
+
+
+def test_a_20x20_in_process_flight_fits_the_byte_budget(tmp_path) -> None:
+    """400 units (beyond MAVLink's system ids: in-process units carry none on a wire) fly in one process:
+    the cap is a byte budget over the measured per-unit cost, now that the estimator is linear in memory."""
+    assert MAX_UNITS_PER_RUN >= 400 and run_bytes(400) < RUN_BUDGET_BYTES
+    sc = load_scenario(_square(tmp_path, 20))
+    sc.sim.duration_s, sc.sim.noise = 0.1, True
+    summary = run_scenario(sc, tmp_path / "r", plots=False, mcap=False)
+    assert summary["completed"] and summary["mean_error_m"] < 0.01
+    rows = (tmp_path / "r" / "telemetry.csv").read_text().splitlines()
+    assert len(rows) == 1 + 10  # 0.1 s at 100 Hz
 
 
 def test_trials_keep_one_bounded_copy_for_the_plots(tmp_path) -> None:

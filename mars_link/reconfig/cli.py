@@ -62,6 +62,7 @@ def _setup(args):
     from mars_link.assembly import AssemblyModel
     from mars_link.reconfig.placement import SnapWeights, health_from_eta
     from mars_link.build import make_trajectory
+    from mars_link.limits import check_planned_unit_count
     from mars_link.scenario import eta_after
     from mars_link.scenario import load_scenario, parse_fault_arg, validate_fault
 
@@ -71,6 +72,7 @@ def _setup(args):
     preset = args.preset or (scenario.preset if scenario else "modquad-cf2")
     layout = args.layout if args.layout is not None else list(scenario.layout)
     model = AssemblyModel.from_layout(layout, preset)
+    check_planned_unit_count(model.n_units)
     faults = []
     if scenario is not None:
         for i, f in enumerate(scenario.faults, 1):
