@@ -18,7 +18,7 @@ only), MAVFTP NAK. Geographic positions are around PX4 SITL's home (geo.py).
 
 The microservices live in their own modules, mixed into `Vehicle` (as PX4's mavlink module splits
 them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard,
-vehicle_params, vehicle_missions, vehicle_services, vehicle_streams (telemetry), vehicle_hil. This
+vehicle_params, vehicle_missions, vehicle_geofence (fence and rally), vehicle_services, vehicle_streams (telemetry), vehicle_hil. This
 module keeps the state, the dispatch, the control step and the watchdogs.
 
 Untrusted input: every datagram is split into frames here (no bytes carried over to the next
@@ -50,6 +50,7 @@ from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
     ACTION_COMMANDS, COMMAND_DEDUP_S, FAILURE_TYPE_ETA, FAILURE_UNIT_SYSTEM_MOTOR, SETPOINT_PROOF_OF_LIFE_S,
     CommandsMixin,
 )
+from firmware_models.vehicle_geofence import GeofenceMixin
 from firmware_models.vehicle_hil import HilMixin
 from firmware_models.vehicle_links import (  # noqa: F401 (re-exported)
     LINK_API, LINK_COORDINATOR, LINK_GCS, LINK_HIL, Link, LinkPolicy, Outgoing, default_links, split_frames,
@@ -118,7 +119,7 @@ class VehicleConfig:
 
 
 
-class Vehicle(CommandsMixin, OffboardMixin, ParamsMixin, MissionsMixin, ServicesMixin, HilMixin,
+class Vehicle(CommandsMixin, OffboardMixin, ParamsMixin, MissionsMixin, GeofenceMixin, ServicesMixin, HilMixin,
               StreamsMixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
@@ -191,6 +192,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ParamsMixin, MissionsMixin, Services
         self._mission_version = 0
         self._mission_msgs: list = []  # MISSION_CURRENT / MISSION_ITEM_REACHED to broadcast
         self.mission_reached: list[dict] = []  # (seq, sim time, position) of every MISSION_ITEM_REACHED
+        self._init_geofence()
 
     def _intake_params(self) -> IntakeParams:
         p = self.params
@@ -517,6 +519,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ParamsMixin, MissionsMixin, Services
             elif not self._took_off and self._armed_at is not None and p["COM_DISARM_PRFLT"] >= 0:
                 if self.sim_s - self._armed_at >= p["COM_DISARM_PRFLT"]:
                     self._disarm("Disarmed: no takeoff")
+        self._geofence_step()
 
 
 

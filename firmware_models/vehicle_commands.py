@@ -164,6 +164,10 @@ class CommandsMixin:
                 return R.MAV_RESULT_DENIED
         else:
             target = ground - self.params["MIS_TAKEOFF_ALT"]
+        why = self.fence_violation(np.array([self.state.position_ned_m[0], self.state.position_ned_m[1], target]))
+        if why is not None:
+            self._text(f"Takeoff refused: {why}", R.MAV_SEVERITY_WARNING)
+            return R.MAV_RESULT_DENIED
         self.source = "own"
         self.autopilot.takeoff(self.state, target)
         self.mode = MODE_TAKEOFF
@@ -196,7 +200,7 @@ class CommandsMixin:
                 return R.MAV_RESULT_TEMPORARILY_REJECTED
             if self.source != "own":
                 self._hand_back(s)
-            self.autopilot.rtl(s, self.home_ned, self.params["RTL_RETURN_ALT"])
+            self.autopilot.rtl(s, self.return_point_ned(), self.params["RTL_RETURN_ALT"])
         elif mode == MODE_TAKEOFF:
             return self._takeoff(math.nan)
         elif mode == MODE_OFFBOARD:
@@ -231,6 +235,10 @@ class CommandsMixin:
             return R.MAV_RESULT_DENIED
         target = self._global_to_ned(lat, lon, p[6])
         if np.linalg.norm(target[:2] - self.state.position_ned_m[:2]) > MAX_POSITION_M:
+            return R.MAV_RESULT_DENIED
+        why = self.fence_violation(target)
+        if why is not None:
+            self._text(f"Goto refused: {why}", R.MAV_SEVERITY_WARNING)
             return R.MAV_RESULT_DENIED
         yaw = math.radians(p[3]) if math.isfinite(p[3]) else None
         if self.source != "own":

@@ -21,6 +21,10 @@ class MissionsMixin:
             return R.MAV_RESULT_DENIED
         if self.state is None or self.home_ned is None:
             return R.MAV_RESULT_TEMPORARILY_REJECTED
+        refusal = self._mission_fence_refusal()
+        if refusal is not None:
+            self._text(refusal[:50], mavlink.MAV_SEVERITY_WARNING)
+            return R.MAV_RESULT_DENIED
         if self.source != "own":
             self._hand_back(self.state)
         if self.runner.complete:

@@ -71,6 +71,8 @@ class OffboardMixin:
         ) > 10.0 or (yaw is not None and abs(yaw) > 10.0):
             self._drop("setpoint_out_of_range")
             return
+        if use_pos and self._setpoint_outside_fence(pos):
+            return
         if use_pos:
             self._setpoint = ("position", pos, yaw, 0.0)
         else:
