@@ -17,7 +17,7 @@ offboard setpoints with a watchdog, fault injection (MAV_CMD_INJECT_FAILURE into
 only), MAVFTP NAK. Geographic positions are around PX4 SITL's home (geo.py).
 
 The microservices live in their own modules, mixed into `Vehicle` (as PX4's mavlink module splits
-them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard,
+them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard, vehicle_manual (orbit, sticks, attitude, land detector),
 vehicle_params, vehicle_missions, vehicle_geofence (fence and rally), vehicle_services, vehicle_streams (telemetry), vehicle_hil. This
 module keeps the state, the dispatch, the control step and the watchdogs.
 
@@ -52,12 +52,14 @@ from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
 )
 from firmware_models.vehicle_geofence import GeofenceMixin
 from firmware_models.vehicle_hil import HilMixin
+from firmware_models.vehicle_manual import ManualMixin
 from firmware_models.vehicle_links import (  # noqa: F401 (re-exported)
     LINK_API, LINK_COORDINATOR, LINK_GCS, LINK_HIL, Link, LinkPolicy, Outgoing, default_links, split_frames,
 )
 from firmware_models.vehicle_links import finite as _finite  # noqa: F401 (re-exported)
 from firmware_models.vehicle_missions import MissionsMixin
 from firmware_models.vehicle_modes import (  # noqa: F401 (re-exported)
+    MODE_ORBIT, SUB_POSCTL_ORBIT,
     MAIN_ACRO, MAIN_ALTCTL, MAIN_AUTO, MAIN_MANUAL, MAIN_OFFBOARD, MAIN_POSCTL, MAIN_STABILIZED, MODE_HOLD, MODE_LAND,
     MODE_MISSION, MODE_OFFBOARD, MODE_POSCTL, MODE_RTL, MODE_TAKEOFF, SUB_LAND, SUB_LOITER, SUB_MISSION, SUB_READY,
     SUB_RTL, SUB_TAKEOFF,
@@ -119,8 +121,8 @@ class VehicleConfig:
 
 
 
-class Vehicle(CommandsMixin, OffboardMixin, ParamsMixin, MissionsMixin, GeofenceMixin, ServicesMixin, HilMixin,
-              StreamsMixin):
+class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMixin, GeofenceMixin, ServicesMixin,
+              HilMixin, StreamsMixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -193,6 +195,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ParamsMixin, MissionsMixin, Geofence
         self._mission_msgs: list = []  # MISSION_CURRENT / MISSION_ITEM_REACHED to broadcast
         self.mission_reached: list[dict] = []  # (seq, sim time, position) of every MISSION_ITEM_REACHED
         self._init_geofence()
+        self._init_manual()
 
     def _intake_params(self) -> IntakeParams:
         p = self.params
@@ -490,7 +493,13 @@ class Vehicle(CommandsMixin, OffboardMixin, ParamsMixin, MissionsMixin, Geofence
             self.motor_commands_n = np.zeros(4)
             return
         self._account_battery()
-        thrusts, event = self.autopilot.update(t, self.state, self._limits(), self.params["MPC_LAND_SPEED"])
+        override = self._guidance_step(t)  # orbit, sticks, attitude target (vehicle_manual)
+        if override is not None:
+            thrusts, event = override, None
+        else:
+            thrusts, event = self.autopilot.update(t, self.state, self._limits(), self.params["MPC_LAND_SPEED"])
+        if event is None:
+            event = self._land_detect(t)
         self.motor_commands_n = np.array(thrusts, dtype=float)
         if self.mode == MODE_MISSION:
             self._mission_step(t, event)
@@ -530,6 +539,8 @@ _HANDLERS: dict[str, str] = {
     "SET_MODE": "_on_set_mode",
     "SET_POSITION_TARGET_LOCAL_NED": "_on_position_target",
     "SET_POSITION_TARGET_GLOBAL_INT": "_on_position_target",
+    "SET_ATTITUDE_TARGET": "_on_attitude_target",
+    "MANUAL_CONTROL": "_on_manual_control",
     "SET_ACTUATOR_CONTROL_TARGET": "_on_rotor_command",
     "PARAM_REQUEST_LIST": "_on_param_list",
     "PARAM_REQUEST_READ": "_on_param_read",

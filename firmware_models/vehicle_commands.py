@@ -35,6 +35,7 @@ ACTION_COMMANDS = {
     mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
     mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_CMD_DO_REPOSITION,
     mavlink.MAV_CMD_INJECT_FAILURE, mavlink.MAV_CMD_MISSION_START, mavlink.MAV_CMD_DO_SET_MISSION_CURRENT,
+    mavlink.MAV_CMD_DO_ORBIT,
 }
 
 
@@ -91,6 +92,8 @@ class CommandsMixin:
             return self._set_mode((int(p[1]), sub)), []
         if cmd == R.MAV_CMD_DO_REPOSITION:
             return self._reposition(p, is_int), []
+        if cmd == R.MAV_CMD_DO_ORBIT:
+            return self._do_orbit(p, is_int), []
         if cmd == R.MAV_CMD_MISSION_START:
             first = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else None  # PX4: start at p1 if given
             if first is not None and not self.runner.set_current(first, reset_jumps=True):
@@ -183,6 +186,7 @@ class CommandsMixin:
             return self._enter_mission()
         s = self.state
         self.runner.pause()  # (a no-op unless leaving AUTO.MISSION: it resumes at its current item)
+        self._orbit = None
         if mode in (MODE_HOLD, MODE_POSCTL):
             if s is not None and self.source == "own":
                 self.autopilot.hold(s)

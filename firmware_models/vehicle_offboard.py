@@ -13,6 +13,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from mars_link.rotations import quat_to_euler
 from mars_link.wire import latch_setpoint_of
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
+from firmware_models.unit_controller import Phase
 from firmware_models.vehicle_modes import MODE_OFFBOARD
 
 MAX_POSITION_M = 10_000.0
@@ -86,6 +87,8 @@ class OffboardMixin:
         if self._setpoint is None or self.state is None or not self.armed:
             return
         kind, vec, yaw, yaw_rate = self._setpoint
+        if kind == "attitude" or (self.autopilot.phase == Phase.IDLE and not self._setpoint_lifts(kind, vec)):
+            return  # (the control step flies an attitude target; a landed vehicle stays down)
         if kind == "position":
             self.autopilot.goto(self.state, vec, yaw)
         else:
