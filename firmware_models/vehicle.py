@@ -18,7 +18,7 @@ only), MAVFTP NAK. Geographic positions are around PX4 SITL's home (geo.py).
 
 The microservices live in their own modules, mixed into `Vehicle` (as PX4's mavlink module splits
 them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard, vehicle_manual (orbit, sticks, attitude, land detector),
-vehicle_params, vehicle_missions, vehicle_geofence (fence and rally), vehicle_services, vehicle_streams (telemetry), vehicle_hil. This
+vehicle_params, vehicle_missions, vehicle_geofence (fence and rally), vehicle_logs (log download), vehicle_services, vehicle_streams (telemetry), vehicle_hil. This
 module keeps the state, the dispatch, the control step and the watchdogs.
 
 Untrusted input: every datagram is split into frames here (no bytes carried over to the next
@@ -52,6 +52,7 @@ from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
 )
 from firmware_models.vehicle_geofence import GeofenceMixin
 from firmware_models.vehicle_hil import HilMixin
+from firmware_models.vehicle_logs import LogsMixin
 from firmware_models.vehicle_manual import ManualMixin
 from firmware_models.vehicle_links import (  # noqa: F401 (re-exported)
     LINK_API, LINK_COORDINATOR, LINK_GCS, LINK_HIL, Link, LinkPolicy, Outgoing, default_links, split_frames,
@@ -121,8 +122,8 @@ class VehicleConfig:
 
 
 
-class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMixin, GeofenceMixin, ServicesMixin,
-              HilMixin, StreamsMixin):
+class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMixin, GeofenceMixin, LogsMixin,
+              ServicesMixin, HilMixin, StreamsMixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -196,6 +197,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
         self.mission_reached: list[dict] = []  # (seq, sim time, position) of every MISSION_ITEM_REACHED
         self._init_geofence()
         self._init_manual()
+        self._init_logs()
 
     def _intake_params(self) -> IntakeParams:
         p = self.params
@@ -371,6 +373,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
         for name, msg in self.mission.tick(self.wall_s):
             self._reply(self.links[name], msg, out)
         self._flush_mission_texts()
+        self._log_tick(out)
         while self._mission_msgs:
             self._broadcast(self._mission_msgs.pop(0), out)
         while self._pending_text:
@@ -541,6 +544,10 @@ _HANDLERS: dict[str, str] = {
     "SET_POSITION_TARGET_GLOBAL_INT": "_on_position_target",
     "SET_ATTITUDE_TARGET": "_on_attitude_target",
     "MANUAL_CONTROL": "_on_manual_control",
+    "LOG_REQUEST_LIST": "_on_log_request_list",
+    "LOG_REQUEST_DATA": "_on_log_request_data",
+    "LOG_REQUEST_END": "_on_log_request_end",
+    "LOG_ERASE": "_on_log_erase",
     "SET_ACTUATOR_CONTROL_TARGET": "_on_rotor_command",
     "PARAM_REQUEST_LIST": "_on_param_list",
     "PARAM_REQUEST_READ": "_on_param_read",

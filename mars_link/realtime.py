@@ -231,6 +231,9 @@ def vehicle_command(args: argparse.Namespace) -> int:
             raise UserInputError(f"cannot open {exc.filename}: {exc.strerror}") from None
         raise
     view = _attach_view(sim, out, live)
+    from firmware_models.vehicle_logs import LogStore
+
+    sim.vehicle.logs = LogStore([args.tlog, out / "run.mcap" if out is not None else None])  # LOG_* download
     ep = runner.endpoints()
     s = sim.scenario
     print(f"mars-link vehicle: {s.name}, layout {','.join(s.layout)} ({sim.model.n_units} units, "
