@@ -206,7 +206,11 @@ class ManualMixin:
         max_total_n = model.n_rotors * self.full_scale_n
         specific = -quat_to_rotmat(q)[:, 2] * thrust * max_total_n / model.mass_kg
         acc = specific + np.array([0.0, 0.0, GRAVITY_MPS2])
-        yaw = quat_to_euler(q)[2]
+        # the heading turns at most MANUAL_YAW_RATE_RADPS (a 180 deg step is no attitude error for the
+        # geometric controller); the tilt comes from the acceleration, whatever the heading
+        step = (quat_to_euler(q)[2] - ap.shaper.yaw + math.pi) % (2 * math.pi) - math.pi
+        limit = MANUAL_YAW_RATE_RADPS * self.control_dt_s
+        yaw = ap.shaper.yaw + max(-limit, min(limit, step))
         ap.shaper.reset(s.position_ned_m, yaw, s.velocity_ned_mps)  # leaving: continue from here
         ap.phase, ap.landed = Phase.VELOCITY, False
         ap.target_v, ap.target_yaw, ap.yaw_rate = np.array(s.velocity_ned_mps, dtype=float), None, 0.0

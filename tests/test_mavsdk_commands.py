@@ -130,19 +130,28 @@ async def _flights(api_port: int, status: Path, tlog: Path) -> dict:
         # offboard: attitude target, then a velocity descent to the ground (land detector)
         await action.arm()
         await action.takeoff()
-        await _until(lambda: _flying_mode(telemetry, FlightMode.HOLD), 30.0, "HOLD after takeoff")
+
+        async def up():
+            return truth()[2] < ground_z - 1.9 and await _flying_mode(telemetry, FlightMode.HOLD)
+
+        await _until(up, 30.0, "2 m up, in HOLD, after the second takeoff")
         unit = vehicle_preset("mars-ftcc")  # (a 3x2 of them hovers at the same share of its thrust)
         hover = unit.unit_mass_kg * 9.80665 / (4 * unit.full_scale_thrust_n)
-        await offboard.set_attitude(Attitude(0.0, 0.0, 0.0, hover))
+        # turn to face south (back into the fence: it took off at the rally point 6 m north), then nose down 6 deg
+        await offboard.set_attitude(Attitude(0.0, 0.0, 180.0, hover))
         await offboard.start()
-        await asyncio.sleep(0.5)
-        await offboard.set_attitude(Attitude(0.0, -6.0, 0.0, hover / math.cos(math.radians(6.0))))
+        await asyncio.sleep(4.5)
+        await offboard.set_attitude(Attitude(0.0, -6.0, 180.0, hover / math.cos(math.radians(6.0))))
         await asyncio.sleep(1.5)
         res["attitude_pitch_deg"] = (await telemetry.attitude_euler()).pitch_deg
         res["attitude_truth_pitch_deg"] = math.degrees(quat_to_euler(
             np.array(read_status(status)["truth_quaternion_wxyz"]))[1])
         await offboard.set_velocity_ned(VelocityNedYaw(0.0, 0.0, 0.6, 0.0))
-        await _until(lambda: _disarmed(telemetry), 30.0, "disarmed after the offboard descent")
+        try:
+            await _until(lambda: _disarmed(telemetry), 30.0, "disarmed after the offboard descent")
+        except AssertionError:
+            st = read_status(status)
+            raise AssertionError({k: st.get(k) for k in ("mode", "phase", "armed", "truth_position_ned_m", "stats")})
         res["descent_landed_at"] = truth()
         res["ground_z"] = ground_z
 
