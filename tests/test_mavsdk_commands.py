@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_models.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
+from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
 from mars_link.assembly import vehicle_preset
 from mars_link.rotations import quat_to_euler
 
@@ -31,7 +31,7 @@ from mavsdk.plugins.action import OrbitYawBehavior  # noqa: E402
 from mavsdk.plugins.geofence import FenceType, GeofenceData, Point, Polygon  # noqa: E402
 from mavsdk.plugins.mission_raw import MissionItem as RawItem  # noqa: E402
 from mavsdk.plugins.offboard import Attitude, VelocityNedYaw  # noqa: E402
-from test_mavsdk_mission import _latlon  # noqa: E402
+from test_mavsdk_mission import _latlon, spawn_api_unit  # noqa: E402
 from test_mavsdk_unit import _until  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(300)]
@@ -184,9 +184,7 @@ def test_mavsdk_goto_orbit_fence_manual_rally_attitude_land_and_logs(tmp_path: P
     api = free_udp_port()
     status, tlog = tmp_path / "status.json", tmp_path / "run.tlog"
     if vehicle == "unit":
-        proc, _ = spawn_unit(["--unit", "1", "--gcs-port", str(free_udp_port()), "--gcs-bind", "0",
-                              "--api-port", str(api), "--api-bind", "0", "--coord-bind", "0",
-                              "--status-file", str(status), "--tlog", str(tlog)])
+        proc, _ = spawn_api_unit(api, status, "--tlog", str(tlog))
     else:
         from mars_link.realtime import spawn_vehicle
 
