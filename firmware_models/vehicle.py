@@ -198,6 +198,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
         self._init_geofence()
         self._init_manual()
         self._init_logs()
+        self.legs = None  # mission legs between the runner and the core (mars_link.mission_legs)
 
     def _intake_params(self) -> IntakeParams:
         p = self.params

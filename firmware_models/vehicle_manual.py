@@ -30,7 +30,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.unit_controller import Phase
 from firmware_models.vehicle_links import Link, Outgoing, finite
-from firmware_models.vehicle_modes import MODE_HOLD, MODE_OFFBOARD, MODE_ORBIT, MODE_POSCTL
+from firmware_models.vehicle_modes import MODE_HOLD, MODE_MISSION, MODE_OFFBOARD, MODE_ORBIT, MODE_POSCTL
 from mars_link.assembly import GRAVITY_MPS2
 from mars_link.rotations import quat_multiply, quat_to_euler, quat_to_rotmat
 from mars_link.trajectories import TrajectoryPoint
@@ -224,6 +224,8 @@ class ManualMixin:
     def _guidance_step(self, t: float) -> np.ndarray | None:
         """Before the flight core's update: steer it (orbit, sticks), or fly the attitude target
         (returns the rotor thrusts then)."""
+        if self.mode == MODE_MISSION and self.legs is not None:
+            return self.legs.step(t, self.state)
         if self.mode == MODE_ORBIT and self._orbit is not None:
             self._orbit_step()
         elif self.mode == MODE_POSCTL:

@@ -224,6 +224,7 @@ class SimConfig:
     params: dict | None = None  # start-up parameter values (MIS_TAKEOFF_ALT, ...)
     signing_key: bytes | None = None  # MAVLink signing on the client links (control_policy)
     require_signing: bool = False  # unsigned clients may only read
+    map_path: str | None = None  # obstacle map: mission legs planned around it (mars_link.mission_legs)
 
 
 def vehicle_scenario(scenario: Scenario) -> Scenario:
@@ -263,6 +264,10 @@ class AssemblySim:
         self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, cfg.params, wall_time_s,
                                        cfg.signing_key, cfg.require_signing)
         self.vehicle.on_failure = self.inject
+        from mars_link.mission_legs import LegConfig, attach_mission_legs
+
+        self.legs = attach_mission_legs(self.vehicle, LegConfig(cfg.map_path or s.mission.get("map"), tuple(s.layout),
+                                                               s.preset), lambda: self.coordinator.eta_believed)
         self.estimate: RigidBodyState | None = None
         self.estimator_resets = 0  # the EKF's own restarts on the measured positions (after gated batches)
         self.events: list[dict] = []  # faults (scenario and MAVLink), with coordinator.events = the record
@@ -338,4 +343,5 @@ class AssemblySim:
         return [float(x) for x in self.units.eta(self.model.unit_ids)]
 
     def close(self) -> None:
+        self.legs.close()
         self.world.close()
