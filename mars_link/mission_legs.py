@@ -4,9 +4,9 @@ for the assembly's layout and its currently believed faults (a map given), else 
 Why a stand-in for the flight core: the mission runner (firmware_models.mission_runner) flies every
 positional item with `core.goto(state, target, yaw)`. `MissionLegs` takes the runner's core's place,
 passes every other call through, and turns each goto into a leg:
-  map       the leg is planned in a worker *process* (spawned once, planners cached there per
-            altitude and believed faults) so the 100 Hz control loop never waits for it or shares a
-            GIL with it; meanwhile the vehicle holds. The planned trajectory (position, velocity,
+  map       the leg is planned in a worker *process* (spawned once, at a lower CPU priority, planners
+            cached there per altitude and believed faults) so the 100 Hz control loop never waits for
+            it or shares a GIL with it; meanwhile the vehicle holds. The planned trajectory (position, velocity,
             acceleration, jerk, yaw) is flown by the flight core's controller, height blended on a
             minimum-snap time law. When the coordinator's believed faults change mid-leg the vehicle
             brakes to a hold and the rest of the leg is planned again for the new faults.
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import multiprocessing
+import os
 import time
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -93,6 +94,14 @@ def min_snap_leg(start_ne: np.ndarray, goal_ne: np.ndarray, yaw: float, v_max: f
 
 # ----------------------------------------------------------------------------- the worker process
 _PLANNERS: dict = {}
+WORKER_NICE = 10  # the worker yields the CPU to the control loop on a busy machine
+
+
+def _yield_cpu() -> None:
+    try:
+        os.nice(WORKER_NICE)
+    except OSError:  # (not permitted: planning still runs, at the same priority)
+        pass
 
 
 def plan_leg(cfg: LegConfig, eta: tuple[float, ...], start_pose: tuple[float, float, float],
@@ -156,7 +165,7 @@ class MissionLegs:
         self.leg: _Leg | None = None
         self.pool: ProcessPoolExecutor | None = None
         if cfg.map_path is not None:
-            self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"))
+            self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_yield_cpu)
         self.log: list[dict] = []  # per leg: target, kind, plan time, duration, replans
 
     def __getattr__(self, name: str):  # everything the runner reads or calls that is not a leg
