@@ -19,7 +19,6 @@ from mars_link.assembly import vehicle_preset
 from mars_link.rotations import quat_to_euler
 
 mavsdk = pytest.importorskip("mavsdk")
-from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
 from mavsdk.asyncio.plugins.action import ActionAsync, ActionError  # noqa: E402
 from mavsdk.asyncio.plugins.geofence import GeofenceAsync  # noqa: E402
 from mavsdk.asyncio.plugins.log_files import LogFilesAsync  # noqa: E402
@@ -32,7 +31,7 @@ from mavsdk.plugins.geofence import FenceType, GeofenceData, Point, Polygon  # n
 from mavsdk.plugins.mission_raw import MissionItem as RawItem  # noqa: E402
 from mavsdk.plugins.offboard import Attitude, VelocityNedYaw  # noqa: E402
 from test_mavsdk_mission import _latlon, spawn_api_unit  # noqa: E402
-from test_mavsdk_unit import _until  # noqa: E402
+from test_mavsdk_unit import _until, autopilot  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(300)]
 
@@ -53,11 +52,7 @@ def _rally_items() -> list:
 
 async def _flights(api_port: int, status: Path, tlog: Path) -> dict:
     res: dict = {}
-    cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
-    async with Mavsdk(cfg) as sdk:
-        await sdk.add_any_connection(f"udpin://127.0.0.1:{api_port}")
-        system = await sdk.first_autopilot(timeout_s=15.0)
-        assert system is not None
+    async with autopilot(api_port) as system:
         telemetry, action, fence = TelemetryAsync(system), ActionAsync(system), GeofenceAsync(system)
         raw, manual, offboard = MissionRawAsync(system), ManualControlAsync(system), OffboardAsync(system)
         logs = LogFilesAsync(system)

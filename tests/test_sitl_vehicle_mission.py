@@ -20,14 +20,13 @@ import pytest
 from firmware_models.udp_runner import read_status
 
 mavsdk = pytest.importorskip("mavsdk")
-from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
 from mavsdk.asyncio.plugins.action import ActionAsync  # noqa: E402
 from mavsdk.asyncio.plugins.mission import MissionAsync  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync  # noqa: E402
 from mavsdk.plugins.mission import MissionItem, MissionPlan  # noqa: E402
 from test_mavsdk_mission import _latlon  # noqa: E402
-from test_mavsdk_unit import _until  # noqa: E402
-from test_sitl_vehicle import LOOP, REPO, _alive, _port_block, truth_com_ned  # noqa: E402
+from test_mavsdk_unit import _until, autopilot  # noqa: E402
+from test_sitl_vehicle import REPO, _alive, _port_block, truth_com_ned  # noqa: E402
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(180)]
 WAYPOINTS_NE = [(3.0, 0.0), (3.0, 3.0), (0.0, 3.0)]
@@ -36,11 +35,7 @@ ALT_M, RADIUS_M = 2.5, 0.3
 
 async def _mission(api_port: int, out: Path) -> dict:
     r: dict = {"truth": [], "progress": []}
-    cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
-    async with Mavsdk(cfg) as sdk:
-        await sdk.add_any_connection(f"udpin://{LOOP}:{api_port}")
-        system = await sdk.first_autopilot(timeout_s=20.0)
-        assert system is not None, "MAVSDK did not find the assembly"
+    async with autopilot(api_port, 20.0) as system:
         telemetry, action, mission = TelemetryAsync(system), ActionAsync(system), MissionAsync(system)
         await _until(lambda: telemetry.health_all_ok(), 15.0, "health_all_ok")
         r["ground"] = truth_com_ned(out)
