@@ -146,6 +146,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fault", action="append", metavar="UNIT[:ROTOR]=ETA[@T]", help="T: seconds after start")
     p.add_argument("--no-noise", action="store_true", help="perfect sensors (truth state)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
+    p.add_argument("--mission", default=None, metavar="FILE.plan",
+                   help="QGroundControl .plan preloaded (mission, geofence, rally), as if a client had uploaded it")
     p.add_argument("--map", default=None, metavar="FILE",
                    help="obstacle map (boxes .csv or .pcd): mission legs planned around it (default: [mission] map)")
     p.add_argument("--speed", type=float, default=1.0, help="simulation speed, x real time")
@@ -243,6 +245,10 @@ def vehicle_command(args: argparse.Namespace) -> int:
         validation.prepare_out_dir(out)
     sim = build_sim(args)
     try:
+        if args.mission is not None:
+            from firmware_models.qgc_plan import load_plan, preload
+
+            preload(sim.vehicle, load_plan(args.mission), args.mission)
         runner = AssemblyRunner(sim, ports, args.speed, args.status_file, args.duration, args.tlog)
     except (UserInputError, OSError) as exc:
         sim.close()
