@@ -1,5 +1,5 @@
 """Leg planning against the control deadline: the damaged 3x2 (unit 2 failed, found by the detector) flies
-the five-waypoint walls mission as `mars-link vehicle` does (AssemblySim in process, unpaced), its legs
+the five-waypoint walls mission as `mars-link vehicle` does (AssemblySim in process, paced to real time), its legs
 planned around ../shared/data/mars_ftcc_walls.csv in the worker process (mars_link.mission_legs). Every
 control period's compute time (sensing, EKF, vehicle tick, coordinator, motors, physics) is split by
 whether a leg was being planned meanwhile, against the 10 ms deadline of 100 Hz; the planning times
@@ -28,7 +28,7 @@ def main() -> None:
         if len(planning_ms) + len(other_ms) in (1, 1000, 5000) or (len(planning_ms) + len(other_ms)) % 2000 == 0:
             print(f"  ... {sim.t_s:.0f} s simulated", flush=True)
 
-    res = walls_mission_flight(True, 0.0, on_step)
+    res = walls_mission_flight(True, 0.0, on_step, paced=True)
     legs = [leg for leg in res["legs"] if "kind" in leg]
     print(f"mission: {len([s for s, _ in res['reached']])} of 5 waypoints, {res['contacts']} wall contacts, "
           f"{res['sim_s']:.1f} s simulated")

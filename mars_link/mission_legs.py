@@ -167,6 +167,9 @@ class MissionLegs:
         if cfg.map_path is not None:
             self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_yield_cpu)
         self.log: list[dict] = []  # per leg: target, kind, plan time, duration, replans
+        # unpaced simulation (tests, batch): the simulation waits for a plan instead of running ahead of
+        # it, so sim time does not depend on how fast this machine plans; real-time runners hold instead
+        self.wait_for_plans = False
 
     def __getattr__(self, name: str):  # everything the runner reads or calls that is not a leg
         return getattr(self.core, name)
@@ -245,7 +248,9 @@ class MissionLegs:
             self.log.append({"replan_at_s": t})
             return None
         if leg.plan is None:
-            if leg.future is None or not leg.future.done():
+            if np.linalg.norm(self.core.shaper.v) > 0.02:
+                return None  # still braking to the point the plan starts from
+            if leg.future is None or not (leg.future.done() or self.wait_for_plans):
                 return None
             try:
                 leg.plan = leg.future.result()

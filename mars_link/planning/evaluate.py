@@ -149,12 +149,14 @@ def forest_sweep(seeds, layout: str = "XXX,XXX", failed_unit: int | None = 2, pa
 
 
 # ----------------------------------------------------------------------------- missions on planned legs
-def walls_mission_flight(use_map: bool, fault_t_s: float, on_step=None) -> dict:
+def walls_mission_flight(use_map: bool, fault_t_s: float, on_step=None, paced: bool = False) -> dict:
     """The 3x2 as `mars-link vehicle` flies it (AssemblySim, in process, unpaced), unit 2 failing at
     fault_t_s and found by the detector (not told), flying a five-waypoint mission at 2.3 m through the
     walls (MISSION_ITEM_INT bytes): legs planned around the walls map (`use_map`) or minimum-snap. The
     true footprint's wall contacts, the MISSION_ITEM_REACHED positions, STATUSTEXTs and the leg log;
-    `on_step(sim, seconds)` gets each control period's compute time."""
+    `on_step(sim, seconds)` gets each control period's compute time. Unpaced, the simulation waits for
+    each leg's plan (sim time independent of this machine's speed); `paced`: real time, as `mars-link
+    vehicle` runs, the vehicle holding while a leg is planned."""
     from mars_link.assembly_vehicle import AssemblySim, SimConfig
     from pymavlink.dialects.v20 import common as R
 
@@ -166,6 +168,8 @@ def walls_mission_flight(use_map: bool, fault_t_s: float, on_step=None) -> dict:
     sc.faults.append(FaultSpec(unit=2, rotor=None, eta=0.0, t_s=fault_t_s))
     sim = AssemblySim(sc, SimConfig(start_north_m=0.175, start_east_m=0.35, params={"MPC_XY_VEL_MAX": 0.8},
                                     map_path=WALLS_CSV if use_map else None))
+    sim.legs.wait_for_plans = not paced
+    wall0 = time.monotonic()
     rows = convert_published(published_csv("XXX,XXX", "ours"))
     wps = [rows[int(round(f * (len(rows) - 1)))][1:3] for f in MISSION_FRACTIONS]
     gcs, dec = R.MAVLink(None, 245, 190), R.MAVLink(None, 0, 0)
@@ -185,6 +189,8 @@ def walls_mission_flight(use_map: bool, fault_t_s: float, on_step=None) -> dict:
     def run(seconds: float) -> None:
         for _ in range(int(round(seconds / sim.control_dt_s))):
             k = len(got)
+            if paced:
+                time.sleep(max(0.0, wall0 + sim.t_s - time.monotonic()))
             c0 = time.perf_counter()
             feed(sim.step(sim.t_s))
             if on_step is not None:
