@@ -564,6 +564,7 @@ _HANDLERS: dict[str, str] = {
     "MISSION_WRITE_PARTIAL_LIST": "_on_mission",
     "MISSION_SET_CURRENT": "_on_mission_set_current",
     "PING": "_on_ping",
+    "STATUSTEXT": "_on_statustext",
     "TIMESYNC": "_on_timesync",
     "FILE_TRANSFER_PROTOCOL": "_on_ftp",
     "HEARTBEAT": "_on_ignored",

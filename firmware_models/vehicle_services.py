@@ -1,4 +1,4 @@
-"""Small services: PING, TIMESYNC, MAVFTP (NAK only), ignored messages.
+"""Small services: PING, TIMESYNC, MAVFTP (NAK only), STATUSTEXT relay, ignored messages.
 
 A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing (_reply, _text, ...).
 """
@@ -23,6 +23,17 @@ class ServicesMixin:
         if msg.target_system == 0 and msg.target_component == 0:  # a request: answer to the sender
             self._reply(lk, mavlink.MAVLink_ping_message(
                 msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent()), out)
+
+    def _on_statustext(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        """A client's STATUSTEXT goes on to the other ground-station links (as PX4's mavlink forwarding
+        does), from the sender's reply budget, so one client cannot flood the others through us."""
+        relay = mavlink.MAVLink_statustext_message(msg.severity, msg.text.encode()[:50] if isinstance(msg.text, str)
+                                                   else bytes(msg.text)[:50], msg.id, msg.chunk_seq)
+        for other in self.links.values():
+            if other is not lk and other.policy.telemetry:
+                if not self._reply(other, relay, out):
+                    return
+                self._count("statustext_relayed")
 
     def _on_timesync(self, msg, lk: Link, out: list[Outgoing]) -> None:
         if msg.tc1 == 0:
