@@ -53,7 +53,7 @@ def test_damaged_3x2_flies_five_waypoints_through_the_walls_on_planned_legs() ->
     assert all(leg["min_clearance_m"] > 0.2 for leg in legs)  # the planner's own check, with its margin
 
 
-@pytest.mark.slow
+@pytest.mark.long  # (a second walls flight, for CI's time: run with -m long)
 @pytest.mark.skipif(not HAVE_WALLS, reason="shared data not beside the repository")
 def test_a_fault_found_mid_leg_brakes_and_plans_the_rest_again() -> None:
     res = walls_mission_flight(True, 33.0)  # unit 2 fails while the first leg is flown
