@@ -25,6 +25,7 @@ local frames, plain integers otherwise.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -238,6 +239,9 @@ class MissionProtocol:
         self.texts: list[tuple[int, str]] = []  # (severity, STATUSTEXT) for the vehicle to send
         self.upload: _Upload | None = None
         self._last_done: tuple | None = None  # (link, sysid, compid, type, last seq, wall time) of the last upload
+        # plan_check(mission_type, items) -> None or (MAV_MISSION result, seq, reason, text): a complete
+        # upload that passed the item checks is checked whole before it replaces the stored plan
+        self.plan_check: Callable[[int, tuple[MissionItem, ...]], tuple[int, int, str, str] | None] | None = None
 
     # ----------------------------------------------------------------- helpers
     def _count(self, key: str) -> None:
@@ -378,9 +382,16 @@ class MissionProtocol:
         self.upload = None
         if up.partial:
             old = self.plans[up.mission_type]
-            self._store(up.mission_type, old[:up.first_seq] + tuple(up.items) + old[up.next_seq:])
+            plan = old[:up.first_seq] + tuple(up.items) + old[up.next_seq:]
         else:
-            self._store(up.mission_type, tuple(up.items))
+            plan = tuple(up.items)
+        refusal = self.plan_check(up.mission_type, plan) if self.plan_check is not None else None
+        if refusal is not None:  # the whole plan against the vehicle's rules (geofence): stored plan kept
+            result, seq, reason, text = refusal
+            self.texts.append((R.MAV_SEVERITY_WARNING, f"{TYPE_NAMES[up.mission_type]} item {seq}: {text}"[
+                :STATUSTEXT_CHARS]))
+            return self._refuse(link, msg, result, reason, up.mission_type)
+        self._store(up.mission_type, plan)
         self._last_done = (link, up.sysid, up.compid, up.mission_type, up.next_seq - 1, now_s)
         self._count(f"uploaded.{TYPE_NAMES[up.mission_type]}")
         return [self._ack(link, up.sysid, up.compid, R.MAV_MISSION_ACCEPTED, up.mission_type)]

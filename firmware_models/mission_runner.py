@@ -89,6 +89,9 @@ class MissionRunner:
     def pause(self) -> None:
         """Leaving AUTO.MISSION: the current item is entered again on resume."""
         self._phase = None
+        cancel = getattr(self.core, "cancel", None)  # (mission legs in front of the core: none flown now)
+        if cancel is not None:
+            cancel()
 
     def mission_state(self, in_mission_mode: bool) -> int:
         if not self.items:

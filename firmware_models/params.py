@@ -64,6 +64,12 @@ def unit_param_specs(unit_id: int, vehicle: VehicleParams) -> list[ParamSpec]:
         ParamSpec("MARS_COORD_SYS", 201, INT32, 1, 255, True, "coordinator system id"),
         ParamSpec("MARS_COORD_COMP", 1, INT32, 0, 255, True, "coordinator component id"),
         ParamSpec("MARS_SIGN_REQ", 0, INT32, 0, 1, True, "1: coordinator link requires signing"),
+        ParamSpec("GF_ACTION", 2, INT32, 0, 5,
+                  doc="geofence breach action: 0 none, 1 warn, 2 hold, 3 return, 4 terminate, 5 land", safety=True),
+        ParamSpec("GF_MAX_HOR_DIST", 0.0, REAL32, 0.0, 10_000.0,
+                  doc="maximum horizontal distance from home, m (0 off)", safety=True),
+        ParamSpec("GF_MAX_VER_DIST", 0.0, REAL32, 0.0, 10_000.0, doc="maximum height above home, m (0 off)",
+                  safety=True),
     ]
 
 

@@ -40,6 +40,7 @@ import numpy as np
 
 from firmware_models.signing import add_signing_args, signing_from_args
 from firmware_models.vehicle import LINK_COORDINATOR, Vehicle, VehicleConfig
+from firmware_models.vehicle_logs import LogStore
 from firmware_models.vehicle_io import (
     COORD_BIND_BASE,
     LOOPBACK,
@@ -80,6 +81,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
     p.add_argument("--status-file", default=None)
     p.add_argument("--duration", type=v.positive_float, default=None, help="stop after this many wall seconds")
+    p.add_argument("--tlog", default=None, help="MAVLink log of the client links (.tlog), served by LOG_* download")
     return p
 
 
@@ -120,7 +122,8 @@ class UnitRunner:
         pick = lambda v, d: d if v is None else v  # noqa: E731
         links = client_links(i, args.gcs_port, args.api_port, args.gcs_bind, args.api_bind)
         links[LINK_COORDINATOR] = LinkSpec(pick(args.coord_bind, COORD_BIND_BASE + i), None, learn_clients=False)
-        self.io = VehicleSockets(self.vehicle, links)
+        self.io = VehicleSockets(self.vehicle, links, Path(args.tlog) if args.tlog else None)
+        self.vehicle.logs = LogStore([args.tlog])  # (LOG_* download of the run's own .tlog)
         self.status_path = Path(args.status_file) if args.status_file else None
         self.duration_s = args.duration
         self.running = True
@@ -249,6 +252,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         args = _parser().parse_args(argv)
         check_file_parent(args.status_file, "--status-file")
+        check_file_parent(args.tlog, "--tlog")
         runner = UnitRunner(args)
     except (UserInputError, OSError, RuntimeError) as e:  # bad input: 2; port taken, disk: 1 (one line)
         line, code = report(e, "udp_runner")

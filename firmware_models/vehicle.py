@@ -16,6 +16,11 @@ parameters, mission/fence/rally lists (mission_protocol) flown in AUTO.MISSION (
 offboard setpoints with a watchdog, fault injection (MAV_CMD_INJECT_FAILURE into the motor model
 only), MAVFTP NAK. Geographic positions are around PX4 SITL's home (geo.py).
 
+The microservices live in their own modules, mixed into `Vehicle` (as PX4's mavlink module splits
+them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard, vehicle_manual (orbit, sticks, attitude, land detector),
+vehicle_params, vehicle_missions, vehicle_geofence (fence and rally), vehicle_logs (log download), vehicle_services, vehicle_streams (telemetry), vehicle_hil. This
+module keeps the state, the dispatch, the control step and the watchdogs.
+
 Untrusted input: every datagram is split into frames here (no bytes carried over to the next
 datagram, so a truncated frame cannot swallow the next good one); anything malformed, unsigned where
 signing is required, mis-addressed, non-finite or out of range is dropped and counted by reason in
@@ -27,140 +32,53 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass, field
-from typing import NamedTuple
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models import control_policy as policy
-from firmware_models.control_policy import FORCE_DISARM_MAGIC
 from firmware_models.geo import EARTH_RADIUS_M  # noqa: F401 (re-exported)
-from firmware_models.geo import WIRE_ORIGIN, GeoOrigin, origin_from_env
+from firmware_models.geo import GeoOrigin, origin_from_env
 from firmware_models.mission_protocol import MissionProtocol
 from firmware_models.mission_runner import MissionRunner
 from firmware_models.motor import MotorModel, MotorParams
 from firmware_models.params import ParamStore, unit_param_specs
 from firmware_models.rotor_intake import IntakeParams, RotorIntake
-from firmware_models.control_policy import SenderBudgets
-from firmware_models.signing import (
-    ACCEPTED,
-    UNSIGNED,
-    is_signed,
-    SignatureVerifier,
-    advance_outgoing_clock,
-    enable_outgoing_signing,
-)
+from firmware_models.signing import ACCEPTED, UNSIGNED, advance_outgoing_clock, is_signed
 from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
+from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
+    ACTION_COMMANDS, COMMAND_DEDUP_S, FAILURE_TYPE_ETA, FAILURE_UNIT_SYSTEM_MOTOR, SETPOINT_PROOF_OF_LIFE_S,
+    CommandsMixin,
+)
+from firmware_models.vehicle_geofence import GeofenceMixin
+from firmware_models.vehicle_hil import HilMixin
+from firmware_models.vehicle_logs import LogsMixin
+from firmware_models.vehicle_manual import ManualMixin
+from firmware_models.vehicle_links import (  # noqa: F401 (re-exported)
+    LINK_API, LINK_COORDINATOR, LINK_GCS, LINK_HIL, Link, LinkPolicy, Outgoing, default_links, split_frames,
+)
+from firmware_models.vehicle_links import finite as _finite  # noqa: F401 (re-exported)
+from firmware_models.vehicle_missions import MissionsMixin
+from firmware_models.vehicle_modes import (  # noqa: F401 (re-exported)
+    MODE_ORBIT, SUB_POSCTL_ORBIT,
+    MAIN_ACRO, MAIN_ALTCTL, MAIN_AUTO, MAIN_MANUAL, MAIN_OFFBOARD, MAIN_POSCTL, MAIN_STABILIZED, MODE_HOLD, MODE_LAND,
+    MODE_MISSION, MODE_OFFBOARD, MODE_POSCTL, MODE_RTL, MODE_TAKEOFF, SUB_LAND, SUB_LOITER, SUB_MISSION, SUB_READY,
+    SUB_RTL, SUB_TAKEOFF,
+)
+from firmware_models.vehicle_offboard import MAX_POSITION_M, MAX_SPEED_MPS, OffboardMixin  # noqa: F401
+from firmware_models.vehicle_params import ParamsMixin
+from firmware_models.vehicle_services import ServicesMixin
+from firmware_models.vehicle_streams import (  # noqa: F401 (re-exported)
+    CAPABILITIES, DEFAULT_STREAM_HZ, MIN_STREAM_INTERVAL_S, REFUSED_MESSAGES, SENSORS, StreamsMixin,
+)
 from mars_link import mavlink_codec
-from mars_link.assembly import GRAVITY_MPS2, VehicleParams, vehicle_preset
+from mars_link.assembly import VehicleParams, vehicle_preset
 from mars_link.errors import UserInputError
-from mars_link.messages import LATCH_ALL, ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
-from mars_link.rotations import quat_to_euler, quat_to_rotmat
+from mars_link.messages import LATCH_ALL
 from mars_link.state import ImuSample, RigidBodyState
-from mars_link.wire import SensorFrameAssembler, SensorFrames, latch_from_message, latch_message, latch_setpoint_of, latches_open
+from mars_link.wire import SensorFrameAssembler
 
-LINK_GCS, LINK_API, LINK_COORDINATOR, LINK_HIL = "gcs", "api", "coordinator", "hil"
 WORLD_SYSID = 200  # the SITL world process (sitl/lockstep.py)
-
-# PX4 custom modes (main, sub): specs/mavlink.md §2.1
-MAIN_MANUAL, MAIN_ALTCTL, MAIN_POSCTL, MAIN_AUTO, MAIN_ACRO, MAIN_OFFBOARD, MAIN_STABILIZED = 1, 2, 3, 4, 5, 6, 7
-SUB_READY, SUB_TAKEOFF, SUB_LOITER, SUB_MISSION, SUB_RTL, SUB_LAND = 1, 2, 3, 4, 5, 6
-MODE_HOLD = (MAIN_AUTO, SUB_LOITER)
-MODE_TAKEOFF = (MAIN_AUTO, SUB_TAKEOFF)
-MODE_LAND = (MAIN_AUTO, SUB_LAND)
-MODE_RTL = (MAIN_AUTO, SUB_RTL)
-MODE_MISSION = (MAIN_AUTO, SUB_MISSION)
-MODE_OFFBOARD = (MAIN_OFFBOARD, 0)
-MODE_POSCTL = (MAIN_POSCTL, 0)
-
-FAILURE_TYPE_ETA = {0: 1.0, 1: 0.0, 5: 0.5}  # FAILURE_TYPE OK / OFF / SLOW (degraded) -> rotor efficiency
-FAILURE_UNIT_SYSTEM_MOTOR = 101
-SETPOINT_PROOF_OF_LIFE_S = 0.5  # OFFBOARD needs a setpoint stream faster than 2 Hz
-COMMAND_DEDUP_S = 1.5  # MAVSDK resends an unacknowledged command 3 times, 0.5 s apart
-MAX_POSITION_M = 10_000.0
-MAX_SPEED_MPS = 20.0
-MIN_STREAM_INTERVAL_S = 0.01
-
-#: msg id -> default rate (Hz, wall clock), specs/mavlink.md §6
-DEFAULT_STREAM_HZ: dict[int, float] = {
-    mavlink.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
-    mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 2.0,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE: 20.0,
-    mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 20.0,
-    mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 20.0,
-    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 20.0,
-    mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: 5.0,
-    mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
-    mavlink.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
-    mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: 10.0,
-    mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS: 10.0,
-    mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
-}
-#: REQUEST_MESSAGE ids answered with a refusal: PROTOCOL_VERSION, COMPONENT_INFORMATION,
-#: COMPONENT_METADATA, AVAILABLE_MODES, CURRENT_MODE (not in pymavlink 2.4.50's common dialect)
-REFUSED_MESSAGES = {300, 395, 397, 435, 436}
-CAPABILITIES = (
-    mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
-    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
-    | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
-    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
-    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
-    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
-    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
-)
-SENSORS = (
-    mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-    | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG | mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
-    | mavlink.MAV_SYS_STATUS_SENSOR_GPS | mavlink.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL
-    | mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION | mavlink.MAV_SYS_STATUS_SENSOR_YAW_POSITION
-    | mavlink.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL | mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
-    | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS | mavlink.MAV_SYS_STATUS_GEOFENCE | mavlink.MAV_SYS_STATUS_AHRS
-    | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY | mavlink.MAV_SYS_STATUS_PREARM_CHECK
-    | mavlink.MAV_SYS_STATUS_SENSOR_PROPULSION
-)
-#: commands whose identical resend within COMMAND_DEDUP_S is answered from the cache, not re-run
-ACTION_COMMANDS = {
-    mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
-    mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_CMD_DO_REPOSITION,
-    mavlink.MAV_CMD_INJECT_FAILURE, mavlink.MAV_CMD_MISSION_START, mavlink.MAV_CMD_DO_SET_MISSION_CURRENT,
-}
-FTP_NAK, FTP_ACK = 129, 128
-FTP_ERR_UNKNOWN_COMMAND, FTP_ERR_FILE_NOT_FOUND, FTP_ERR_INVALID_SESSION = 7, 10, 4
-FTP_PATH_OPCODES = {3, 4, 6, 8, 9, 10, 11, 12, 13, 14}  # list, open, create, remove, ..., crc32
-FTP_SESSION_OPCODES = {5, 7, 15}  # read, write, burst read
-
-
-class Outgoing(NamedTuple):
-    link: str
-    data: bytes
-
-
-@dataclass(frozen=True)
-class LinkPolicy:
-    telemetry: bool = True  # heartbeats, default streams, STATUSTEXT
-    require_signing: bool = False  # an unsigned frame is dropped (or, with unsigned_reads, may only read)
-    unsigned_reads: bool = False  # with require_signing: unsigned clients read (control_policy.READ)
-    sign_outgoing: bool = False
-    signing_link_id: int = 0
-    rotor_commands: bool = False  # SET_ACTUATOR_CONTROL_TARGET is accepted only on such links
-    hil: bool = False  # HIL sensor/state input and HIL_ACTUATOR_CONTROLS output
-    forward_sensors: bool = False  # sensor packets from the HIL link are forwarded here
-    reply_rate_hz: float = 300.0  # token bucket for replies (ACKs, params, ...), per sender on the link
-    reply_burst: int = 600
-
-
-def default_links(signed_coordinator: bool, sign_clients: bool = False) -> dict[str, LinkPolicy]:
-    client = LinkPolicy(require_signing=sign_clients, sign_outgoing=sign_clients, unsigned_reads=True)
-    return {
-        LINK_GCS: client,
-        LINK_API: client,
-        LINK_COORDINATOR: LinkPolicy(
-            telemetry=False, require_signing=signed_coordinator, sign_outgoing=signed_coordinator,
-            signing_link_id=1, rotor_commands=True, forward_sensors=True,
-        ),
-        LINK_HIL: LinkPolicy(telemetry=False, hil=True),
-    }
 
 
 @dataclass
@@ -208,82 +126,9 @@ class VehicleConfig:
                          pick(self.origin_amsl_m, env.amsl_m)).checked()
 
 
-class _Link:
-    def __init__(self, name: str, policy: LinkPolicy, sysid: int, compid: int, key: bytes | None, now: float) -> None:
-        self.name = name
-        self.policy = policy
-        self.decoder = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)  # never given a key
-        self.decoder.robust_parsing = True
-        self.encoder = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
-        if policy.sign_outgoing:
-            enable_outgoing_signing(self.encoder, key, policy.signing_link_id, now)
-        # with a key every non-HIL link checks signatures: a signed frame earns SAFETY authority
-        self.verifier = SignatureVerifier(key) if policy.require_signing or (key and not policy.hil) else None
-        self.budgets = SenderBudgets(policy.reply_rate_hz, policy.reply_burst)
 
-
-def split_frames(data: bytes | bytearray, decoder: mavlink.MAVLink, drop, pre_check=None) -> list[tuple[mavlink.MAVLink_message, bytearray]]:
-    """Decode every complete, CRC-valid frame of one datagram; count the rest via `drop(reason)`.
-
-    Resynchronises one byte after a bad frame (a random 0xFD in junk must not hide a good frame).
-    `pre_check(frame) -> bool` runs on the raw bytes before decoding (signature verification: an
-    unsigned or forged frame costs a flag test or one SHA-256, never a decode).
-    """
-    out = []
-    n = len(data)
-    i = 0
-    junk = False
-    while i < n:
-        b = data[i]
-        if b == 0xFD:
-            if n - i < 12:
-                drop("parse.truncated")
-                break
-            flags = data[i + 2]
-            if flags & ~0x01:
-                drop("parse.unknown_flags")
-                i += 1
-                continue
-            flen = 12 + data[i + 1] + (13 if flags & 0x01 else 0)
-        elif b == 0xFE:
-            if n - i < 8:
-                drop("parse.truncated")
-                break
-            flen = 8 + data[i + 1]
-        else:
-            nxt = min((j for j in (data.find(b"\xfd", i), data.find(b"\xfe", i)) if j >= 0), default=n)
-            junk = True
-            i = nxt
-            continue
-        if i + flen > n:
-            drop("parse.truncated")
-            i += 1
-            continue
-        frame = bytearray(data[i:i + flen])
-        if pre_check is not None and not pre_check(frame):
-            i += flen
-            continue
-        try:
-            msg = mavlink_codec.decode(frame, decoder)
-        except Exception as e:  # pymavlink raises MAVError and, on odd payloads, others
-            drop("parse.bad_crc" if "CRC" in str(e) else "parse.malformed")
-            i += 1
-            continue
-        if isinstance(msg, mavlink.MAVLink_unknown) or msg.get_type() == "BAD_DATA":
-            drop("parse.unknown_message")
-        else:
-            out.append((msg, frame))
-        i += flen
-    if junk:
-        drop("parse.junk")
-    return out
-
-
-def _finite(*values) -> bool:
-    return all(math.isfinite(v) for v in values)
-
-
-class Vehicle:
+class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMixin, GeofenceMixin, LogsMixin,
+              ServicesMixin, HilMixin, StreamsMixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -306,7 +151,7 @@ class Vehicle:
         for name, p in policies.items():
             if (p.require_signing or p.sign_outgoing) and not signed:
                 raise UserInputError(f"link {name!r} requires signing but no signing key is configured")
-        self.links = {n: _Link(n, p, self.sysid, self.compid, c.signing_key, wall_time_s) for n, p in policies.items()}
+        self.links = {n: Link(n, p, self.sysid, self.compid, c.signing_key, wall_time_s) for n, p in policies.items()}
         self._authority = policy.SAFETY  # of the frame being dispatched (control_policy.frame_authority)
         self.on_frame_in = None  # callable(link, frame bytes) for every frame that passed parsing and signing
         self._sender: tuple = ()  # (link, sysid, compid) of that frame: whose reply budget answers pay from
@@ -355,6 +200,10 @@ class Vehicle:
         self._mission_version = 0
         self._mission_msgs: list = []  # MISSION_CURRENT / MISSION_ITEM_REACHED to broadcast
         self.mission_reached: list[dict] = []  # (seq, sim time, position) of every MISSION_ITEM_REACHED
+        self._init_geofence()
+        self._init_manual()
+        self._init_logs()
+        self.legs = None  # mission legs between the runner and the core (mars_link.mission_legs)
 
     def _intake_params(self) -> IntakeParams:
         p = self.params
@@ -530,6 +379,7 @@ class Vehicle:
         for name, msg in self.mission.tick(self.wall_s):
             self._reply(self.links[name], msg, out)
         self._flush_mission_texts()
+        self._log_tick(out)
         while self._mission_msgs:
             self._broadcast(self._mission_msgs.pop(0), out)
         while self._pending_text:
@@ -544,7 +394,7 @@ class Vehicle:
     def _drop(self, reason: str) -> None:
         self.drops[reason] = self.drops.get(reason, 0) + 1
 
-    def _pack(self, lk: _Link, msg) -> bytes:
+    def _pack(self, lk: Link, msg) -> bytes:
         """Encode for this link; a field outside its wire range is clamped and counted
         (telemetry.clamped), never raised (mars_link.mavlink_codec.encode_clamped)."""
         if lk.policy.sign_outgoing:
@@ -554,7 +404,7 @@ class Vehicle:
             self._count("telemetry.clamped")
         return frame
 
-    def _send(self, lk: _Link, msg, out: list[Outgoing]) -> None:
+    def _send(self, lk: Link, msg, out: list[Outgoing]) -> None:
         """Append `msg` for `lk`; a message that cannot be encoded is counted and dropped: telemetry
         never stops a flight."""
         try:
@@ -562,7 +412,7 @@ class Vehicle:
         except (*mavlink_codec.ENCODE_ERRORS, mavlink.MAVError):
             self._count("telemetry.encode_error")
 
-    def _reply(self, lk: _Link, msg, out: list[Outgoing]) -> bool:
+    def _reply(self, lk: Link, msg, out: list[Outgoing]) -> bool:
         """An answer to the current sender, paid from its own reply budget (control_policy.SenderBudgets)."""
         if lk.budgets.take(self._sender, self.wall_s):
             self._send(lk, msg, out)
@@ -586,7 +436,7 @@ class Vehicle:
         return ok_sys and target_component in (0, self.compid)
 
     # ================================================================= dispatch
-    def _dispatch(self, msg, lk: _Link, out: list[Outgoing]) -> None:
+    def _dispatch(self, msg, lk: Link, out: list[Outgoing]) -> None:
         src = msg.get_srcSystem()
         if src == self.sysid:
             self._drop("own_sysid")  # an echo or a spoof of ourselves
@@ -613,619 +463,7 @@ class Vehicle:
             for m in policy.refusal(msg):
                 self._reply(lk, m, out)
             return
-        handler(self, msg, lk, out)
-
-    # ----------------------------------------------------------------- commands
-    def _on_command(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self._drop("wrong_target")
-            return
-        cmd = msg.command
-        is_int = msg.get_type() == "COMMAND_INT"
-        if is_int:
-            p = [msg.param1, msg.param2, msg.param3, msg.param4, msg.x, msg.y, msg.z]
-        else:
-            p = [msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7]
-        src = (lk.name, msg.get_srcSystem(), msg.get_srcComponent())
-        key = (cmd, is_int, tuple("nan" if isinstance(v, float) and v != v else v for v in p))
-        if cmd in ACTION_COMMANDS:
-            last = self._last_cmd.get(src)
-            if last is not None and last[0] == key and self.wall_s - last[1] <= COMMAND_DEDUP_S:
-                self._count("command_duplicate")
-                self._ack(lk, msg, cmd, last[2], out)
-                return
-        result, followups = self._execute(cmd, p, is_int, msg)
-        if cmd in ACTION_COMMANDS:  # only a success is replayed: a refused command may succeed now
-            self._last_cmd[src] = (key, self.wall_s, result) if result == mavlink.MAV_RESULT_ACCEPTED else (None, 0.0, 0)
-            if len(self._last_cmd) > 64:
-                self._last_cmd.pop(next(iter(self._last_cmd)))
-        self._ack(lk, msg, cmd, result, out)
-        for m in followups:
-            self._reply(lk, m, out)
-
-    def _ack(self, lk: _Link, msg, cmd: int, result: int, out: list[Outgoing]) -> None:
-        self._count(f"ack.{result}")
-        self._reply(lk, mavlink.MAVLink_command_ack_message(
-            cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), out)
-
-    def _execute(self, cmd: int, p: list, is_int: bool, msg) -> tuple[int, list]:
-        R = mavlink
-        if cmd == R.MAV_CMD_COMPONENT_ARM_DISARM:
-            return self._arm_disarm(p[0], p[1]), []
-        if cmd == R.MAV_CMD_NAV_TAKEOFF:
-            return self._takeoff(p[6]), []
-        if cmd == R.MAV_CMD_NAV_LAND:
-            return self._set_mode(MODE_LAND), []
-        if cmd == R.MAV_CMD_NAV_RETURN_TO_LAUNCH:
-            return self._set_mode(MODE_RTL), []
-        if cmd == R.MAV_CMD_DO_SET_MODE:
-            if not _finite(p[0], p[1]) or not (int(p[0]) & R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED):
-                return R.MAV_RESULT_DENIED, []
-            sub = int(p[2]) if math.isfinite(p[2]) else 0
-            if not (0 <= p[1] <= 255 and 0 <= sub <= 255):
-                return R.MAV_RESULT_DENIED, []
-            return self._set_mode((int(p[1]), sub)), []
-        if cmd == R.MAV_CMD_DO_REPOSITION:
-            return self._reposition(p, is_int), []
-        if cmd == R.MAV_CMD_MISSION_START:
-            first = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else None  # PX4: start at p1 if given
-            if first is not None and not self.runner.set_current(first, reset_jumps=True):
-                return R.MAV_RESULT_DENIED, []
-            return self._set_mode(MODE_MISSION), []
-        if cmd == R.MAV_CMD_DO_SET_MISSION_CURRENT:
-            return self._set_mission_current(p[0], p[1] == 1), []
-        if cmd == R.MAV_CMD_INJECT_FAILURE:
-            return self._inject(p), []
-        if cmd == R.MAV_CMD_REQUEST_MESSAGE:
-            return self._request_message(p[0], p[1])
-        if cmd == R.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
-            return (R.MAV_RESULT_ACCEPTED, [self._autopilot_version()]) if p[0] == 1 else (R.MAV_RESULT_DENIED, [])
-        if cmd == R.MAV_CMD_GET_HOME_POSITION:
-            home = self._home_position()
-            return (R.MAV_RESULT_ACCEPTED, [home]) if home else (R.MAV_RESULT_TEMPORARILY_REJECTED, [])
-        if cmd == R.MAV_CMD_SET_MESSAGE_INTERVAL:
-            return self._set_interval(p[0], p[1]), []
-        if cmd == R.MAV_CMD_GET_MESSAGE_INTERVAL:
-            if not math.isfinite(p[0]) or int(p[0]) not in DEFAULT_STREAM_HZ:
-                return R.MAV_RESULT_DENIED, []
-            iv = self.stream_interval_s.get(int(p[0]))
-            return R.MAV_RESULT_ACCEPTED, [R.MAVLink_message_interval_message(
-                int(p[0]), -1 if iv is None else int(round(iv * 1e6)))]
-        return R.MAV_RESULT_UNSUPPORTED, []  # includes REQUEST_PROTOCOL_VERSION (519): MAVLink 2 only
-
-    def _arm_disarm(self, arm: float, force: float) -> int:
-        R = mavlink
-        if arm == 1.0:
-            if self.armed:
-                return R.MAV_RESULT_ACCEPTED
-            if self.state is None:
-                return R.MAV_RESULT_TEMPORARILY_REJECTED  # no position yet
-            if not self.autopilot.touching(self.state):
-                return R.MAV_RESULT_DENIED  # never arm in the air
-            self.armed = True
-            self.home_ned = np.array(self.state.position_ned_m, dtype=float)
-            self.autopilot.idle(float(self.state.position_ned_m[2]))
-            self._armed_at = self.sim_s
-            self._took_off = False
-            self._text("Armed")
-            return R.MAV_RESULT_ACCEPTED
-        if arm == 0.0:
-            if not self.armed:
-                return R.MAV_RESULT_ACCEPTED
-            if not self.landed and force != FORCE_DISARM_MAGIC:
-                return R.MAV_RESULT_DENIED
-            self._disarm("Disarmed" if force != FORCE_DISARM_MAGIC else "Killed: motors off")
-            return R.MAV_RESULT_ACCEPTED
-        return R.MAV_RESULT_DENIED
-
-    def _disarm(self, why: str) -> None:
-        self.armed = False
-        self.source = "own"
-        self.autopilot.idle()
-        self.motor_commands_n = np.zeros(4)
-        if self.mode not in (MODE_HOLD, MODE_POSCTL):
-            self.mode = MODE_HOLD
-        self._text(why)
-
-    def _takeoff(self, altitude_amsl_m: float) -> int:
-        R = mavlink
-        if not self.armed or self.state is None:
-            return R.MAV_RESULT_TEMPORARILY_REJECTED
-        if self.mode == MODE_TAKEOFF or not self.landed:
-            return R.MAV_RESULT_ACCEPTED  # already on its way / flying: nothing to restart
-        ground = float(self.home_ned[2])
-        if math.isfinite(altitude_amsl_m):
-            target = -(altitude_amsl_m - self.origin.amsl_m)
-            if not (ground - 100.0 <= target <= ground - 0.3):
-                return R.MAV_RESULT_DENIED
-        else:
-            target = ground - self.params["MIS_TAKEOFF_ALT"]
-        self.source = "own"
-        self.autopilot.takeoff(self.state, target)
-        self.mode = MODE_TAKEOFF
-        self._took_off = True
-        self._text(f"Takeoff to {ground - target:.1f} m")
-        return R.MAV_RESULT_ACCEPTED
-
-    def _set_mode(self, mode: tuple[int, int]) -> int:
-        R = mavlink
-        if mode == self.mode:
-            return R.MAV_RESULT_ACCEPTED
-        if mode == MODE_MISSION:
-            return self._enter_mission()
-        s = self.state
-        self.runner.pause()  # (a no-op unless leaving AUTO.MISSION: it resumes at its current item)
-        if mode in (MODE_HOLD, MODE_POSCTL):
-            if s is not None and self.source == "own":
-                self.autopilot.hold(s)
-            elif s is not None:
-                self._hand_back(s)
-                self.autopilot.hold(s)
-        elif mode == MODE_LAND:
-            if s is None:
-                return R.MAV_RESULT_TEMPORARILY_REJECTED
-            if self.source != "own":
-                self._hand_back(s)
-            self.autopilot.land(s)
-        elif mode == MODE_RTL:
-            if s is None or self.home_ned is None:
-                return R.MAV_RESULT_TEMPORARILY_REJECTED
-            if self.source != "own":
-                self._hand_back(s)
-            self.autopilot.rtl(s, self.home_ned, self.params["RTL_RETURN_ALT"])
-        elif mode == MODE_TAKEOFF:
-            return self._takeoff(math.nan)
-        elif mode == MODE_OFFBOARD:
-            live_sp = self._setpoint_wall is not None and self.wall_s - self._setpoint_wall <= SETPOINT_PROOF_OF_LIFE_S
-            if not (live_sp or self.intake.is_live(self.sim_s)):
-                return R.MAV_RESULT_DENIED  # PX4: no OFFBOARD without a live setpoint stream
-            self.mode = mode
-            if live_sp:
-                self._apply_setpoint()
-            self._text("Offboard")
-            return R.MAV_RESULT_ACCEPTED
-        else:
-            return R.MAV_RESULT_UNSUPPORTED  # manual/stabilised/acro modes need RC
-        self.mode = mode
-        self._text({MODE_HOLD: "Hold", MODE_POSCTL: "Position", MODE_LAND: "Land", MODE_RTL: "Return"}[mode])
-        return R.MAV_RESULT_ACCEPTED
-
-    def _enter_mission(self) -> int:
-        R = mavlink
-        if not self.runner.items:
-            self._text("Mission: no mission stored", mavlink.MAV_SEVERITY_WARNING)
-            return R.MAV_RESULT_DENIED
-        if self.state is None or self.home_ned is None:
-            return R.MAV_RESULT_TEMPORARILY_REJECTED
-        if self.source != "own":
-            self._hand_back(self.state)
-        if self.runner.complete:
-            self.runner.set_current(0, reset_jumps=True)  # PX4 restarts a finished mission
-        self.runner.pause()
-        self.mode = MODE_MISSION
-        self._took_off = True
-        self._text("Mission")
-        return R.MAV_RESULT_ACCEPTED
-
-    def _set_mission_current(self, seq: float, reset_jumps: bool) -> int:
-        if not math.isfinite(seq) or seq != int(seq) or not self.runner.set_current(int(seq), reset_jumps):
-            return mavlink.MAV_RESULT_DENIED
-        self.mission.current_seq = self.runner.current
-        self._mission_msgs.append(self.runner.current_message(self.mode == MODE_MISSION))
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _mission_step(self, t: float, event: str | None) -> None:
-        """AUTO.MISSION: the runner drives the flight core (after its update for this step)."""
-        r = self.runner
-        r.takeoff_alt_m, r.rtl_alt_m = self.params["MIS_TAKEOFF_ALT"], self.params["RTL_RETURN_ALT"]
-        res = r.step(t, self.state, self.home_ned, event)
-        for m in res.messages:
-            if m.get_type() == "MISSION_ITEM_REACHED":
-                self.mission_reached.append({"seq": m.seq, "sim_time_s": t,
-                                             "position_ned_m": [float(x) for x in self.state.position_ned_m]})
-                del self.mission_reached[:-2000]
-            self._mission_msgs.append(m)
-        for text in res.texts:
-            self._text(text)
-        if res.new_home_ned is not None:
-            self.home_ned = res.new_home_ned
-        self.mission.current_seq = r.current
-
-    def _flush_mission_texts(self) -> None:
-        while self.mission.texts:
-            severity, text = self.mission.texts.pop(0)
-            self._text(text, severity)
-
-    def _hand_back(self, s: RigidBodyState) -> None:
-        """The coordinator drove the motors; the own controller takes over from the current state."""
-        self.source = "own"
-        self.autopilot.handover(s)
-        self.autopilot.landed = self.autopilot.touching(s)
-        self.autopilot.phase = Phase.HOLD if not self.autopilot.landed else Phase.IDLE
-
-    def _reposition(self, p: list, is_int: bool) -> int:
-        R = mavlink
-        if self.state is None or not self.armed or self.landed:
-            return R.MAV_RESULT_TEMPORARILY_REJECTED
-        lat = p[4] * 1e-7 if is_int else p[4]
-        lon = p[5] * 1e-7 if is_int else p[5]
-        if not _finite(lat, lon, p[6]) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
-            return R.MAV_RESULT_DENIED
-        target = self._global_to_ned(lat, lon, p[6])
-        if np.linalg.norm(target[:2] - self.state.position_ned_m[:2]) > MAX_POSITION_M:
-            return R.MAV_RESULT_DENIED
-        yaw = math.radians(p[3]) if math.isfinite(p[3]) else None
-        if self.source != "own":
-            self._hand_back(self.state)
-        self.autopilot.goto(self.state, target, yaw)
-        self.mode = MODE_HOLD
-        return R.MAV_RESULT_ACCEPTED
-
-    def _inject(self, p: list) -> int:
-        R = mavlink
-        if int(self.params["SYS_FAILURE_EN"]) != 1:
-            return R.MAV_RESULT_DENIED
-        if not _finite(p[0], p[1], p[2]) or int(p[0]) != FAILURE_UNIT_SYSTEM_MOTOR:
-            return R.MAV_RESULT_UNSUPPORTED
-        eta = FAILURE_TYPE_ETA.get(int(p[1]))
-        if eta is None:
-            return R.MAV_RESULT_UNSUPPORTED
-        instance = int(p[2])
-        if instance != p[2] or not 0 <= instance <= self.motor_count:
-            return R.MAV_RESULT_DENIED
-        self.inject_failure(instance, eta)
-        self._count("failures_injected")
-        self._text(f"Failure injected: motor {instance or 'all'} eta {eta:g}", mavlink.MAV_SEVERITY_WARNING)
-        return R.MAV_RESULT_ACCEPTED
-
-    def _request_message(self, msgid: float, p2: float) -> tuple[int, list]:
-        R = mavlink
-        if not math.isfinite(msgid) or msgid != int(msgid):
-            return R.MAV_RESULT_DENIED, []
-        mid = int(msgid)
-        if mid == R.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
-            return R.MAV_RESULT_ACCEPTED, [self._autopilot_version()]
-        if mid == R.MAVLINK_MSG_ID_HEARTBEAT:
-            return R.MAV_RESULT_ACCEPTED, [self._heartbeat()]
-        if mid in DEFAULT_STREAM_HZ:
-            msg = self._stream_message(mid)
-            return (R.MAV_RESULT_ACCEPTED, [msg]) if msg is not None else (R.MAV_RESULT_TEMPORARILY_REJECTED, [])
-        return R.MAV_RESULT_UNSUPPORTED, []  # incl. REFUSED_MESSAGES (PROTOCOL_VERSION, AVAILABLE_MODES, ...)
-
-    def _set_interval(self, msgid: float, interval_us: float) -> int:
-        R = mavlink
-        if not _finite(msgid, interval_us) or int(msgid) not in DEFAULT_STREAM_HZ:
-            return R.MAV_RESULT_DENIED
-        mid = int(msgid)
-        if interval_us < 0:
-            self.stream_interval_s.pop(mid, None)
-        else:
-            iv = 1.0 / DEFAULT_STREAM_HZ[mid] if interval_us == 0 else max(MIN_STREAM_INTERVAL_S, interval_us * 1e-6)
-            self.stream_interval_s[mid] = iv
-            self._next_stream[mid] = self.wall_s
-        return R.MAV_RESULT_ACCEPTED
-
-    def _on_set_mode(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, 0, allow_broadcast=False):
-            self._drop("wrong_target")
-            return
-        if not msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            self._drop("set_mode_not_custom")
-            return
-        self._set_mode(((msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF))
-
-    # ----------------------------------------------------------------- offboard setpoints
-    def _on_position_target(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self._drop("wrong_target")
-            return
-        if self.state is None:
-            self._drop("setpoint_no_state")
-            return
-        mask = msg.type_mask
-        use_pos = not mask & 0x7
-        use_vel = not mask & 0x38
-        if (mask & 0x7 not in (0, 0x7)) or (mask & 0x38 not in (0, 0x38)) or not (use_pos or use_vel):
-            self._drop("setpoint_unsupported")
-            return
-        yaw = None if mask & 0x400 else msg.yaw
-        yaw_rate = 0.0 if mask & 0x800 else msg.yaw_rate
-        vel = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
-        cur_yaw = quat_to_euler(self.state.quaternion_wxyz)[2]
-        if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
-            frame = msg.coordinate_frame
-            pos = np.array([msg.x, msg.y, msg.z], dtype=float)
-            if frame not in (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED,
-                             mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED):
-                self._drop("setpoint_unsupported")
-                return
-            body = frame in (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED)
-            if body:  # body-frame vectors turn with the heading (PX4 semantics)
-                cy, sy = math.cos(cur_yaw), math.sin(cur_yaw)
-                vel = np.array([cy * vel[0] - sy * vel[1], sy * vel[0] + cy * vel[1], vel[2]])
-                pos = np.array([cy * pos[0] - sy * pos[1], sy * pos[0] + cy * pos[1], pos[2]])
-        else:  # SET_POSITION_TARGET_GLOBAL_INT
-            frame = msg.coordinate_frame
-            if frame not in (mavlink.MAV_FRAME_GLOBAL_INT, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT):
-                self._drop("setpoint_unsupported")
-                return
-            alt = msg.alt
-            if frame == mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT and self.home_ned is not None:
-                alt = alt + self.origin.amsl_m - float(self.home_ned[2])
-            pos = self._global_to_ned(msg.lat_int * 1e-7, msg.lon_int * 1e-7, alt) if use_pos else np.zeros(3)
-            body = False
-        values = [*(pos if use_pos else ()), *(vel if use_vel else ()), *(() if yaw is None else (yaw,)), yaw_rate]
-        if not _finite(*values):
-            self._drop("setpoint_non_finite")
-            return
-        if frame in (mavlink.MAV_FRAME_LOCAL_OFFSET_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED):
-            pos = pos + self.state.position_ned_m
-        if (use_pos and np.abs(pos).max() > MAX_POSITION_M) or (use_vel and np.abs(vel).max() > MAX_SPEED_MPS) or abs(
-            yaw_rate
-        ) > 10.0 or (yaw is not None and abs(yaw) > 10.0):
-            self._drop("setpoint_out_of_range")
-            return
-        if use_pos:
-            self._setpoint = ("position", pos, yaw, 0.0)
-        else:
-            self._setpoint = ("velocity", vel, yaw, yaw_rate)
-        self._setpoint_wall = self.wall_s
-        self._count("setpoints")
-        if self.mode == MODE_OFFBOARD and self.source == "own":
-            self._apply_setpoint()
-
-    def _apply_setpoint(self) -> None:
-        if self._setpoint is None or self.state is None or not self.armed:
-            return
-        kind, vec, yaw, yaw_rate = self._setpoint
-        if kind == "position":
-            self.autopilot.goto(self.state, vec, yaw)
-        else:
-            self.autopilot.velocity(self.state, vec, yaw, yaw_rate)
-
-    # ----------------------------------------------------------------- rotor commands
-    def _on_rotor_command(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        if not lk.policy.rotor_commands:
-            self._drop("rotor_command_wrong_link")
-            return
-        if self.intake.offer(msg, self.sim_s):
-            self._count("rotor_commands")
-            self._last_rotor_usec = int(msg.time_usec)
-            latch = latch_setpoint_of(msg.controls[4])
-            if latch is None:
-                self._drop("latch_setpoint_invalid")  # (the rotors are taken; the latches keep their setpoint)
-            else:
-                self.latch_setpoint = latch
-            if self.config.hil_await_coordinator:
-                self._await_coordinator = True  # the coordinator is back: lockstep with it again
-
-    # ----------------------------------------------------------------- parameters
-    def _on_param_list(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
-            self._drop("wrong_target")
-            return
-        for i in range(self.params.count):
-            if not self._reply(lk, self.params.value_message(i), out):
-                break  # this sender's budget is spent: the client re-requests what it misses
-
-    def _on_param_read(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
-            self._drop("wrong_target")
-            return
-        i = msg.param_index if msg.param_index >= 0 else self.params.index(_param_name(msg.param_id))
-        if i is None or not 0 <= i < self.params.count:
-            self._drop("param_unknown")  # PX4 stays silent; clients time out (e.g. QGC's _HASH_CHECK)
-            return
-        self._reply(lk, self.params.value_message(i), out)
-
-    def _on_param_set(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self._drop("wrong_target")
-            return
-        name = _param_name(msg.param_id)
-        i = self.params.index(name)
-        if i is None:
-            self._drop("param_unknown")
-            return
-        error = policy.param_set_error(self.params.specs[i], msg.param_type, self.armed, self._authority)
-        if error is not None:  # PARAM_ERROR, then (for clients that do not know it) the value in force
-            self._drop("param_rejected")
-            self._reply(lk, policy.param_error(msg, i, error), out)
-        elif not self.params.set_from_wire(name, msg.param_value, msg.param_type):
-            self._drop("param_rejected")
-        elif name in ("MARS_CMD_HZ", "MARS_CMD_MISS"):
-            self.intake.params = self._intake_params()
-        self._reply(lk, self.params.value_message(i), out)  # the value in force, changed or not
-
-    # ----------------------------------------------------------------- missions (mission_protocol)
-    def _on_mission(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        broadcast_ok = msg.get_type() == "MISSION_REQUEST_LIST"
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=broadcast_ok):
-            self._drop("wrong_target")
-            return
-        for name, reply in self.mission.handle(msg, lk.name, self.wall_s):
-            self._reply(self.links[name], reply, out)
-        self._flush_mission_texts()
-        version = self.mission.versions[0]
-        if version != self._mission_version:  # a new mission (or none): fly it from its start
-            self._mission_version = version
-            self.runner.load(self.mission.plans[0])
-            self.mission.current_seq = self.runner.current
-            if self.mode == MODE_MISSION and not self.runner.items and self.state is not None:
-                self._set_mode(MODE_HOLD)
-            self._mission_msgs.append(self.runner.current_message(self.mode == MODE_MISSION))
-
-    def _on_mission_set_current(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self._drop("wrong_target")
-            return
-        if self._set_mission_current(msg.seq, False) != mavlink.MAV_RESULT_ACCEPTED:
-            self._drop("mission_set_current_invalid")
-
-    # ----------------------------------------------------------------- small services
-    def _on_ping(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        if msg.target_system == 0 and msg.target_component == 0:  # a request: answer to the sender
-            self._reply(lk, mavlink.MAVLink_ping_message(
-                msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent()), out)
-
-    def _on_timesync(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        if msg.tc1 == 0:
-            self._reply(lk, mavlink.MAVLink_timesync_message(int(self.wall_s * 1e9), msg.ts1), out)
-
-    def _on_ftp(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        """MAVFTP: no file system. A quick NAK saves MAVProxy a 10 s timeout before the param list."""
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self._drop("wrong_target")
-            return
-        payload = bytes(msg.payload)
-        seq = payload[0] | payload[1] << 8
-        session, opcode = payload[2], payload[3]
-        if opcode in (1, 2):  # TerminateSession, ResetSessions: nothing open, trivially done
-            reply_op, size, err = FTP_ACK, 0, 0
-        else:
-            reply_op, size = FTP_NAK, 1
-            err = (FTP_ERR_FILE_NOT_FOUND if opcode in FTP_PATH_OPCODES
-                   else FTP_ERR_INVALID_SESSION if opcode in FTP_SESSION_OPCODES else FTP_ERR_UNKNOWN_COMMAND)
-        body = struct.pack("<HBBBBBBI", (seq + 1) & 0xFFFF, session, reply_op, size, opcode, 0, 0, 0)
-        data = body + bytes([err]) + bytes(251 - len(body) - 1)
-        self._reply(lk, mavlink.MAVLink_file_transfer_protocol_message(
-            0, msg.get_srcSystem(), msg.get_srcComponent(), list(data)), out)
-
-    def _on_ignored(self, msg, lk: _Link, out: list[Outgoing]) -> None:
-        self._count(f"ignored.{msg.get_type()}")  # GCS heartbeats, legacy stream requests...
-
-    # ----------------------------------------------------------------- HIL link (lockstep)
-    def _on_hil(self, msg, t: str, lk: _Link, out: list[Outgoing]) -> None:
-        if t == "HIL_STATE_QUATERNION":
-            if self.defer_own_state:
-                self._deferred.append(lambda: self._apply_hil_state(msg))
-            else:
-                self._apply_hil_state(msg)
-            return
-        if t == "NAMED_VALUE_INT":
-            mask = latch_from_message(msg)
-            if mask is None:
-                self._count(f"ignored.{t}")
-                return
-            self.latches = mask  # the latch sensor, forwarded to the coordinator before this step's IMU frame
-            for name, other in self.links.items():
-                if other.policy.forward_sensors:
-                    out.append(Outgoing(name, self._pack(other, latch_message(msg.time_boot_ms / 1000.0, mask))))
-            return
-        if t not in ("HIL_SENSOR", "ODOMETRY"):
-            self._count(f"ignored.{t}")
-            return
-        values = ([msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro] if t == "HIL_SENSOR"
-                  else [msg.x, msg.y, msg.z, *msg.q, msg.vx, msg.vy, msg.vz])
-        if not _finite(*values):
-            self._drop("hil_non_finite")
-            return
-        frames = self.assembler.feed_frames(msg)
-        if frames is None:
-            return
-        forward = [name for name, other in self.links.items() if other.policy.forward_sensors]
-        if forward:  # (on the real-time path: straight from the received fields)
-            upstream = frames.upstream_messages()
-            for name in forward:
-                other = self.links[name]
-                out.extend(Outgoing(name, self._pack(other, m)) for m in upstream)
-        if self.defer_own_state:
-            self._deferred.append(lambda: self._apply_sensors(frames))
-        else:
-            self._apply_sensors(frames)
-        # lockstep: the sensor time stamps the step; answer with the motor outputs for it
-        t_s = frames.imu.time_usec / 1e6
-        self.sim_s = t_s
-        self._next_control = t_s + self.control_dt_s
-        self._hil_pending = (int(msg.time_usec), lk.name)
-        if self._await_coordinator:
-            return  # answered when the coordinator's command for this step arrives (or on release)
-        self._answer_hil(out)
-
-    def _apply_hil_state(self, msg) -> None:
-        """HIL_STATE_QUATERNION: the unit centre's ground truth, for its own telemetry and checks."""
-        q = np.array(msg.attitude_quaternion, dtype=float)
-        values = [*q, msg.rollspeed, msg.pitchspeed, msg.yawspeed]
-        if not _finite(*values) or not 0.5 < np.linalg.norm(q) < 1.5:
-            self._drop("hil_non_finite")
-            return
-        pos = WIRE_ORIGIN.to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)  # sitl.hil's encoding
-        self.set_state(RigidBodyState(msg.time_usec * 1e-6, pos, np.array([msg.vx, msg.vy, msg.vz]) * 0.01,
-                                      q / np.linalg.norm(q), np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed])))
-
-    def _apply_sensors(self, frames: SensorFrames) -> None:
-        packet = frames.packet()
-        self.imu = ImuSample(packet.t_s, self.sysid, packet.imu.gyro_frd_radps, packet.imu.accel_frd_mps2)
-        if packet.truth is not None:
-            self.set_state(packet.truth)
-
-    def _answer_hil(self, out: list[Outgoing]) -> None:
-        time_usec, name = self._hil_pending
-        self._hil_pending = None
-        lk = self.links[name]
-        sp = self._motor_setpoint_n() / self.full_scale_n
-        mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
-        controls = [float(x) for x in sp] + [latches_open(self.latch_setpoint)] + [0.0] * 11
-        out.append(Outgoing(lk.name, self._pack(lk, mavlink.MAVLink_hil_actuator_controls_message(
-            time_usec, controls, mode, 1))))
-
-    def _motor_setpoint_n(self) -> np.ndarray:
-        """One HIL step's motor outputs (N): due scenario faults enter the motor model, the control step
-        runs, and the motors are driven to the clamped, eta-scaled command."""
-        while self._scheduled_failures and self._scheduled_failures[0][0] <= self.sim_s + 1e-9:
-            _, rotor, eta = self._scheduled_failures.pop(0)
-            self.inject_failure(rotor, eta)
-        self._count("hil_steps")
-        self._control_step()
-        return self.motors.setpoint(self.motor_commands_n if self.armed else np.zeros(4))
-
-    # ================================================================= in-process messages
-    # The same steps as the HIL and coordinator links, with the messages as objects instead of MAVLink
-    # bytes: what the in-process engine calls. The values are already at wire precision (float32,
-    # microseconds), so a unit driven this way moves its motors exactly as over MAVLink.
-    def take_sensors(self, packet: SensorPacket, unit_truth: RigidBodyState | None = None) -> SensorPacket:
-        """A HIL step: the unit's sensors (HIL_SENSOR/ODOMETRY) and, when given, its centre's truth
-        (HIL_STATE_QUATERNION). Returns the telemetry it forwards to the coordinator (HIGHRES_IMU and
-        ODOMETRY carry exactly these fields)."""
-        if unit_truth is not None:
-            self.set_state(unit_truth)
-        self.latches = packet.latches
-        self.imu = packet.imu
-        if packet.truth is not None:
-            self.set_state(packet.truth)
-        self.sim_s = packet.t_s
-        self._next_control = packet.t_s + self.control_dt_s
-        return packet
-
-    def take_rotor_command(self, cmd: RotorCommand) -> bool:
-        """A coordinator command (SET_ACTUATOR_CONTROL_TARGET's values); True if it is now held."""
-        if cmd.unit_id != self.sysid:
-            return self.intake.drop("wrong_target")
-        # cmd.thrusts_n are wire values (float32 controls x full scale): x / full scale is the control back
-        s = self.full_scale_n
-        a, b, c, d = cmd.thrusts_n.tolist()
-        t_usec = round(cmd.t_s * 1e6)
-        if not self.intake.accept(a / s, b / s, c / s, d / s, t_usec, self.sim_s, cmd.thrusts_n):
-            return False
-        self._count("rotor_commands")
-        self._last_rotor_usec = t_usec
-        self.latch_setpoint = cmd.latch_setpoint
-        return True
-
-    def drive_motors(self) -> ActuatorOutput:
-        """The HIL answer (HIL_ACTUATOR_CONTROLS' values): what the motors are driven to for this step."""
-        sp = self._motor_setpoint_n()
-        if sp is not self.intake.thrusts_n:  # (the held command itself is at wire precision already)
-            sp = wire_thrust(sp, self.full_scale_n)
-        return ActuatorOutput(self.sim_s, self.sysid, sp, self.latch_setpoint)
-
-    def arm(self) -> int:
-        """MAV_CMD_COMPONENT_ARM_DISARM (arm) as the coordinator sends it; returns the MAV_RESULT."""
-        return self._arm_disarm(1.0, 0.0)
-
-    def set_mode(self, mode: tuple[int, int]) -> int:
-        """MAV_CMD_DO_SET_MODE to a PX4 (main, sub) mode; returns the MAV_RESULT."""
-        return self._set_mode(mode)
+        getattr(self, handler)(msg, lk, out)
 
     # ================================================================= control
     def _limits(self) -> GuidanceLimits:
@@ -1264,7 +502,13 @@ class Vehicle:
             self.motor_commands_n = np.zeros(4)
             return
         self._account_battery()
-        thrusts, event = self.autopilot.update(t, self.state, self._limits(), self.params["MPC_LAND_SPEED"])
+        override = self._guidance_step(t)  # orbit, sticks, attitude target (vehicle_manual)
+        if override is not None:
+            thrusts, event = override, None
+        else:
+            thrusts, event = self.autopilot.update(t, self.state, self._limits(), self.params["MPC_LAND_SPEED"])
+        if event is None:
+            event = self._land_detect(t)
         self.motor_commands_n = np.array(thrusts, dtype=float)
         if self.mode == MODE_MISSION:
             self._mission_step(t, event)
@@ -1293,171 +537,43 @@ class Vehicle:
             elif not self._took_off and self._armed_at is not None and p["COM_DISARM_PRFLT"] >= 0:
                 if self.sim_s - self._armed_at >= p["COM_DISARM_PRFLT"]:
                     self._disarm("Disarmed: no takeoff")
-
-    # ================================================================= telemetry
-    def _global_to_ned(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> np.ndarray:
-        return self.origin.to_ned(lat_deg, lon_deg, alt_amsl_m)
-
-    def _ned_to_global(self, p: np.ndarray) -> tuple[int, int, int]:
-        """(lat degE7, lon degE7, alt AMSL mm)."""
-        return self.origin.to_global_int(p)
-
-    def _time_boot_ms(self) -> int:
-        return int(self.sim_s * 1000) & 0xFFFFFFFF
-
-    def _heartbeat(self):
-        R = mavlink
-        base = R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | R.MAV_MODE_FLAG_STABILIZE_ENABLED
-        if self.mode[0] in (MAIN_AUTO, MAIN_OFFBOARD):
-            base |= R.MAV_MODE_FLAG_GUIDED_ENABLED | (R.MAV_MODE_FLAG_AUTO_ENABLED if self.mode[0] == MAIN_AUTO else 0)
-        if self.armed:
-            base |= R.MAV_MODE_FLAG_SAFETY_ARMED
-        status = R.MAV_STATE_ACTIVE if self.armed else R.MAV_STATE_STANDBY
-        return R.MAVLink_heartbeat_message(R.MAV_TYPE_QUADROTOR, R.MAV_AUTOPILOT_PX4, base, self.custom_mode, status, 3)
-
-    def _autopilot_version(self):
-        uid = (0x4D415253 << 32) | self.sysid  # "MARS" + unit id
-        sw = (0 << 24) | (1 << 16) | (0 << 8) | 255  # mars-link 0.1.0, release
-        return mavlink.MAVLink_autopilot_version_message(
-            CAPABILITIES, sw, sw, 0, 0, list(b"marslink"), [0] * 8, [0] * 8, 0, 0, uid, [0] * 18)
-
-    def _home_position(self):
-        if self.home_ned is None:
-            return None
-        lat, lon, alt = self._ned_to_global(self.home_ned)
-        h = self.home_ned
-        return mavlink.MAVLink_home_position_message(
-            lat, lon, alt, float(h[0]), float(h[1]), float(h[2]), [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
-            int(self.sim_s * 1e6))
-
-    def _landed_state(self) -> int:
-        R = mavlink
-        ph = self.autopilot.phase
-        if self.landed:
-            return R.MAV_LANDED_STATE_ON_GROUND
-        if self.source == "own" and ph == Phase.TAKEOFF:
-            return R.MAV_LANDED_STATE_TAKEOFF
-        if self.source == "own" and ph == Phase.LAND:
-            return R.MAV_LANDED_STATE_LANDING
-        return R.MAV_LANDED_STATE_IN_AIR
-
-    def _battery(self) -> tuple[int, int, int]:
-        """(voltage mV, current cA, remaining %): a 4S 2.2 Ah pack drawn by thrust (~2 A per N).
-        Clamped to the wire fields (uint16 mV, int16 cA, int8 %); not a number -> MAVLink's "not
-        sent" value (UINT16_MAX, -1, -1). Above 327.67 A the current field saturates at 32767."""
-        current_a = self._current_a()
-        remaining = max(0.0, 1.0 - self.battery_used_c / (2.2 * 3600))
-        volts = 4 * (3.6 + 0.6 * remaining) - 0.02 * current_a
-
-        def wire(x: float, lo: int, hi: int, unknown: int) -> int:
-            return unknown if math.isnan(x) else int(min(max(x, lo), hi))
-
-        return (wire(volts * 1000, 0, 65534, 65535), wire(current_a * 100, 0, 32767, -1),
-                wire(round(remaining * 100) if math.isfinite(remaining) else remaining, 0, 100, -1))
-
-    def _stream_message(self, mid: int):
-        R = mavlink
-        s = self.state
-        tb = self._time_boot_ms()
-        if mid == R.MAVLINK_MSG_ID_SYS_STATUS:
-            mv, ca, pct = self._battery()
-            return R.MAVLink_sys_status_message(SENSORS, SENSORS, SENSORS, 200, mv, ca, pct, 0, 0, 0, 0, 0, 0)
-        if mid == R.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
-            return R.MAVLink_extended_sys_state_message(R.MAV_VTOL_STATE_UNDEFINED, self._landed_state())
-        if mid == R.MAVLINK_MSG_ID_BATTERY_STATUS:
-            mv, ca, pct = self._battery()
-            cells = [mv // 4 if mv != 65535 else 65535] * 4 + [65535] * 6
-            used_mah = int(self.battery_used_c / 3.6)
-            return R.MAVLink_battery_status_message(0, R.MAV_BATTERY_FUNCTION_ALL, R.MAV_BATTERY_TYPE_LIPO, 32767,
-                                                    cells, ca, used_mah, -1, pct, 0, R.MAV_BATTERY_CHARGE_STATE_OK,
-                                                    [0] * 4, 0, 0)
-        if mid == R.MAVLINK_MSG_ID_HOME_POSITION:
-            return self._home_position()
-        if mid == R.MAVLINK_MSG_ID_MISSION_CURRENT:
-            return self.runner.current_message(self.mode == MODE_MISSION)
-        if mid == R.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS:
-            # what the ESCs are told (normalised, limits applied); injected faults are not visible here
-            cmd = np.clip(self.motor_commands_n / self.full_scale_n, 0.0, 1.0) if self.armed else np.zeros(4)
-            return R.MAVLink_actuator_output_status_message(int(self.sim_s * 1e6), 0xF, [float(x) for x in cmd] + [0.0] * 28)
-        if s is None:
-            return None
-        q = s.quaternion_wxyz
-        w = s.angular_velocity_frd_radps
-        if mid == R.MAVLINK_MSG_ID_ATTITUDE:
-            roll, pitch, yaw = quat_to_euler(q)
-            return R.MAVLink_attitude_message(tb, roll, pitch, yaw, *map(float, w))
-        if mid == R.MAVLINK_MSG_ID_ATTITUDE_QUATERNION:
-            return R.MAVLink_attitude_quaternion_message(tb, *map(float, q), *map(float, w), [0.0] * 4)
-        p, v = s.position_ned_m, s.velocity_ned_mps
-        if mid == R.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
-            return R.MAVLink_local_position_ned_message(tb, *map(float, p), *map(float, v))
-        lat, lon, alt = self._ned_to_global(p)
-        if mid == R.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
-            rel = int(round((float(self.home_ned[2]) - p[2]) * 1000)) if self.home_ned is not None else 0
-            hdg = int(round(math.degrees(quat_to_euler(q)[2]) * 100)) % 36000
-            vel = [int(max(-32767, min(32767, round(x * 100)))) for x in v]
-            return R.MAVLink_global_position_int_message(tb, lat, lon, alt, rel, *vel, hdg)
-        if mid == R.MAVLINK_MSG_ID_GPS_RAW_INT:
-            speed = math.hypot(v[0], v[1])
-            cog = int(round(math.degrees(math.atan2(v[1], v[0])) * 100)) % 36000 if speed > 0.2 else 65535
-            return R.MAVLink_gps_raw_int_message(int(self.sim_s * 1e6), R.GPS_FIX_TYPE_3D_FIX, lat, lon, alt, 80, 120,
-                                                 int(min(speed * 100, 65534)), cog, 12, alt, 300, 500, 200, 0, 0)
-        if mid == R.MAVLINK_MSG_ID_HIGHRES_IMU:
-            if self.imu is not None:
-                acc, gyro = self.imu.accel_frd_mps2, self.imu.gyro_frd_radps
-            else:  # specific force from the state: R^T (a - g)
-                acc = quat_to_rotmat(q).T @ (s.acceleration_ned_mps2 - np.array([0.0, 0.0, GRAVITY_MPS2]))
-                gyro = w
-            alt_m = self.origin.amsl_m - p[2]
-            pressure_hpa = 1013.25 * (1 - 2.25577e-5 * alt_m) ** 5.25588
-            return R.MAVLink_highres_imu_message(int(self.sim_s * 1e6), *map(float, acc), *map(float, gyro),
-                                                 0.21, 0.0, 0.42, pressure_hpa, 0.0, alt_m, 20.0, 0x1A3F, 0)
-        return None
-
-    def _current_a(self) -> float:
-        """The pack's current: ~2 A per newton of rotor thrust (0.5 A armed and idle, 0.3 A disarmed);
-        any number of rotors (the assembly vehicle has 4N); unbounded, NaN with a NaN command."""
-        if not self.armed:
-            return 0.3
-        return 0.5 + 2.0 * sum(map(abs, self.motor_commands_n.tolist()))
-
-    def _account_battery(self) -> None:
-        current_a = self._current_a()
-        if math.isfinite(current_a):  # a NaN command must not poison the charge count
-            self.battery_used_c += int(current_a * 100) * 0.01 * self.control_dt_s
+        self._geofence_step()
 
 
-def _param_name(raw) -> str:
-    if isinstance(raw, bytes):
-        raw = raw.decode("ascii", "replace")
-    return str(raw).split("\x00", 1)[0]
 
-
-_HANDLERS = {
-    "COMMAND_LONG": Vehicle._on_command,
-    "COMMAND_INT": Vehicle._on_command,
-    "SET_MODE": Vehicle._on_set_mode,
-    "SET_POSITION_TARGET_LOCAL_NED": Vehicle._on_position_target,
-    "SET_POSITION_TARGET_GLOBAL_INT": Vehicle._on_position_target,
-    "SET_ACTUATOR_CONTROL_TARGET": Vehicle._on_rotor_command,
-    "PARAM_REQUEST_LIST": Vehicle._on_param_list,
-    "PARAM_REQUEST_READ": Vehicle._on_param_read,
-    "PARAM_SET": Vehicle._on_param_set,
-    "MISSION_REQUEST_LIST": Vehicle._on_mission,
-    "MISSION_COUNT": Vehicle._on_mission,
-    "MISSION_CLEAR_ALL": Vehicle._on_mission,
-    "MISSION_REQUEST_INT": Vehicle._on_mission,
-    "MISSION_REQUEST": Vehicle._on_mission,
-    "MISSION_ITEM_INT": Vehicle._on_mission,
-    "MISSION_ITEM": Vehicle._on_mission,
-    "MISSION_ACK": Vehicle._on_mission,
-    "MISSION_WRITE_PARTIAL_LIST": Vehicle._on_mission,
-    "MISSION_SET_CURRENT": Vehicle._on_mission_set_current,
-    "PING": Vehicle._on_ping,
-    "TIMESYNC": Vehicle._on_timesync,
-    "FILE_TRANSFER_PROTOCOL": Vehicle._on_ftp,
-    "HEARTBEAT": Vehicle._on_ignored,
-    "REQUEST_DATA_STREAM": Vehicle._on_ignored,
-    "SYSTEM_TIME": Vehicle._on_ignored,
-    "RADIO_STATUS": Vehicle._on_ignored,
+#: message type -> handler method name (a subclass may override the method)
+_HANDLERS: dict[str, str] = {
+    "COMMAND_LONG": "_on_command",
+    "COMMAND_INT": "_on_command",
+    "SET_MODE": "_on_set_mode",
+    "SET_POSITION_TARGET_LOCAL_NED": "_on_position_target",
+    "SET_POSITION_TARGET_GLOBAL_INT": "_on_position_target",
+    "SET_ATTITUDE_TARGET": "_on_attitude_target",
+    "MANUAL_CONTROL": "_on_manual_control",
+    "LOG_REQUEST_LIST": "_on_log_request_list",
+    "LOG_REQUEST_DATA": "_on_log_request_data",
+    "LOG_REQUEST_END": "_on_log_request_end",
+    "LOG_ERASE": "_on_log_erase",
+    "SET_ACTUATOR_CONTROL_TARGET": "_on_rotor_command",
+    "PARAM_REQUEST_LIST": "_on_param_list",
+    "PARAM_REQUEST_READ": "_on_param_read",
+    "PARAM_SET": "_on_param_set",
+    "MISSION_REQUEST_LIST": "_on_mission",
+    "MISSION_COUNT": "_on_mission",
+    "MISSION_CLEAR_ALL": "_on_mission",
+    "MISSION_REQUEST_INT": "_on_mission",
+    "MISSION_REQUEST": "_on_mission",
+    "MISSION_ITEM_INT": "_on_mission",
+    "MISSION_ITEM": "_on_mission",
+    "MISSION_ACK": "_on_mission",
+    "MISSION_WRITE_PARTIAL_LIST": "_on_mission",
+    "MISSION_SET_CURRENT": "_on_mission_set_current",
+    "PING": "_on_ping",
+    "STATUSTEXT": "_on_statustext",
+    "TIMESYNC": "_on_timesync",
+    "FILE_TRANSFER_PROTOCOL": "_on_ftp",
+    "HEARTBEAT": "_on_ignored",
+    "REQUEST_DATA_STREAM": "_on_ignored",
+    "SYSTEM_TIME": "_on_ignored",
+    "RADIO_STATUS": "_on_ignored",
 }

@@ -231,6 +231,7 @@ class SimConfig:
     params: dict | None = None  # start-up parameter values (MIS_TAKEOFF_ALT, ...)
     signing_key: bytes | None = None  # MAVLink signing on the client links (control_policy)
     require_signing: bool = False  # unsigned clients may only read
+    map_path: str | None = None  # obstacle map: mission legs planned around it (mars_link.mission_legs)
 
 
 def vehicle_scenario(scenario: Scenario) -> Scenario:
@@ -238,6 +239,15 @@ def vehicle_scenario(scenario: Scenario) -> Scenario:
     s = copy.deepcopy(scenario)
     s.tracked = "com"
     return s
+
+
+def attach_legs(vehicle: Vehicle, scenario: Scenario, map_path: str | None, believed_eta):
+    """Mission legs between the vehicle's mission runner and its flight core (mars_link.mission_legs):
+    planned around the map (`map_path`, else the scenario's [mission] map) for the believed faults."""
+    from mars_link.mission_legs import LegConfig, attach_mission_legs
+
+    return attach_mission_legs(vehicle, LegConfig(map_path or scenario.mission.get("map"), tuple(scenario.layout),
+                                                  scenario.preset), believed_eta)
 
 
 class EngineSim:
@@ -278,6 +288,7 @@ class EngineSim:
         return [float(x) for x in self.units.eta(self.model.unit_ids)]
 
     def close(self) -> None:
+        self.legs.close()
         self.world.close()
 
 
@@ -308,6 +319,7 @@ class AssemblySim(EngineSim):
         self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, cfg.params, wall_time_s,
                                        cfg.signing_key, cfg.require_signing)
         self.vehicle.on_failure = self.inject
+        self.legs = attach_legs(self.vehicle, s, cfg.map_path, self.eta_believed)
         self.estimate: RigidBodyState | None = None
         self.estimator_resets = 0  # the EKF's own restarts on the measured positions (after gated batches)
         self.events: list[dict] = []  # faults (scenario and MAVLink), with coordinator.events = the record

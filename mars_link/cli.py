@@ -229,6 +229,12 @@ def _vehicle_ports(args, setup):
     ports = VehiclePorts(args.vehicle_sysid, args.gcs_port if args.vehicle_gcs_port is None else args.vehicle_gcs_port,
                          args.vehicle_api_port, 0 if args.any_bind else VEHICLE_GCS_BIND, 0 if args.any_bind else VEHICLE_API_BIND)
     ports.check(setup.unit_ids)
+    if args.map is not None:
+        from mars_link.planning.pipeline import resolve_data_path
+        from mars_link.realtime import check_map
+
+        check_map(args.map, "--map")
+        ports.map_path = str(resolve_data_path(args.map).resolve())  # (the coordinator process may run elsewhere)
     return ports
 
 
@@ -293,6 +299,8 @@ def build_parser() -> argparse.ArgumentParser:
                            f"{DEFAULT_VEHICLE_API_PORT})")
     sitl.add_argument("--vehicle-gcs-port", type=int, default=None,
                       help="with --vehicle: its ground-station port (default: --gcs-port, 14550)")
+    sitl.add_argument("--map", default=None, metavar="FILE",
+                      help="with --vehicle: obstacle map (boxes .csv or .pcd); mission legs planned around it")
     sitl.set_defaults(func=cmd_sitl)
     add_view_arguments(sitl)  # --no-mcap, --foxglove [HOST:PORT] (served by the world process)
     from mars_link.sitl_mode import add_sitl_up_arguments

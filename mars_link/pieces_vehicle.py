@@ -27,7 +27,7 @@ import numpy as np
 from firmware_models.unit_controller import Phase, UnitAutopilot
 from firmware_models.vehicle import Outgoing
 from mars_link.assembly import AssemblyModel
-from mars_link.assembly_vehicle import AssemblySim, AssemblyVehicle, EngineSim, SetpointSource, SimConfig, vehicle_scenario
+from mars_link.assembly_vehicle import AssemblySim, AssemblyVehicle, EngineSim, SetpointSource, attach_legs, SimConfig, vehicle_scenario
 from mars_link.control.base import ControlOutput
 from mars_link.errors import UserInputError
 from mars_link.messages import RotorCommand, SensorPacket, wire_thrust, wire_time
@@ -187,6 +187,7 @@ class PiecesSim(EngineSim):
         cfg = config or SimConfig()
         if (cfg.start_north_m, cfg.start_east_m, cfg.start_yaw_deg) != (0.0, 0.0, 0.0):
             raise UserInputError("a flight of pieces starts where its scenario puts it (no start offset)")
+
         self.scenario = s = vehicle_scenario(scenario)
         self.model = model = s.model()
         self.control_dt_s = 1.0 / s.sim.control_hz
@@ -194,6 +195,7 @@ class PiecesSim(EngineSim):
         self.vehicle = self.flight.vehicle
         self.coordinator = self.flight.pieces
         self.vehicle.on_failure = self.inject
+        self.legs = attach_legs(self.vehicle, s, cfg.map_path, self.flight.eta_believed)
         self.world = make_pieces_world(s, model, s.sim.seed, self.coordinator.executor)
         self.units = InProcessUnits({u: make_unit(s, model, u) for u in model.unit_ids}, self.world)
         self.estimator_resets = 0

@@ -146,6 +146,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fault", action="append", metavar="UNIT[:ROTOR]=ETA[@T]", help="T: seconds after start")
     p.add_argument("--no-noise", action="store_true", help="perfect sensors (truth state)")
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
+    p.add_argument("--mission", default=None, metavar="FILE.plan",
+                   help="QGroundControl .plan preloaded (mission, geofence, rally), as if a client had uploaded it")
+    p.add_argument("--map", default=None, metavar="FILE",
+                   help="obstacle map (boxes .csv or .pcd): mission legs planned around it (default: [mission] map)")
     p.add_argument("--speed", type=float, default=1.0, help="simulation speed, x real time")
     p.add_argument("--status-file", help="JSON snapshot (truth, mode, counters) a few times a second")
     p.add_argument("--tlog", help="MAVLink log of both links (pymavlink .tlog), appended and flushed as it goes")
@@ -202,10 +206,27 @@ def build_sim(args: argparse.Namespace) -> AssemblySim:
     from firmware_models.udp_runner import _params  # NAME=VALUE parsing, as the unit runner's --param
 
     key, require = signing_from_args(args)
+    map_path = args.map or scenario.mission.get("map")
+    if map_path is not None:
+        check_map(map_path, "--map" if args.map else f"{scenario.source}: [mission] map")
     from mars_link.pieces_vehicle import make_sim
 
     return make_sim(scenario, SimConfig(sysid=args.sysid, params=_params(args.param), signing_key=key,
-                                        require_signing=require), time.time())
+                                        require_signing=require, map_path=map_path), time.time())
+
+
+def check_map(path: str, what: str) -> None:
+    """The map loads (before any socket opens): else one UserInputError line."""
+    from mars_link.planning.maps import load_map
+    from mars_link.planning.pipeline import resolve_data_path
+
+    resolved = resolve_data_path(path)
+    if not resolved.is_file():
+        raise UserInputError(f"{what} {path!r}: no such file")
+    try:
+        load_map(resolved)
+    except (OSError, ValueError) as exc:
+        raise UserInputError(f"{what} {path!r}: {exc}") from None
 
 
 def vehicle_command(args: argparse.Namespace) -> int:
@@ -226,6 +247,10 @@ def vehicle_command(args: argparse.Namespace) -> int:
         validation.prepare_out_dir(out)
     sim = build_sim(args)
     try:
+        if args.mission is not None:
+            from firmware_models.qgc_plan import load_plan, preload
+
+            preload(sim.vehicle, load_plan(args.mission), args.mission)
         runner = AssemblyRunner(sim, ports, args.speed, args.status_file, args.duration, args.tlog)
     except (UserInputError, OSError) as exc:
         sim.close()
@@ -233,6 +258,9 @@ def vehicle_command(args: argparse.Namespace) -> int:
             raise UserInputError(f"cannot open {exc.filename}: {exc.strerror}") from None
         raise
     view = _attach_view(sim, out, live)
+    from firmware_models.vehicle_logs import LogStore
+
+    sim.vehicle.logs = LogStore([args.tlog, out / "run.mcap" if out is not None else None])  # LOG_* download
     ep = runner.endpoints()
     s = sim.scenario
     print(f"mars-link vehicle: {s.name}, layout {','.join(s.layout)} ({sim.model.n_units} units, "

@@ -97,6 +97,7 @@ class Scenario:
     separations: list["SeparationSpec"] = field(default_factory=list)  # [[separations]], in time order
     environment: EnvironmentParams = field(default_factory=EnvironmentParams)  # [environment]: wind, gusts, turbulence
     sensors: SensorProfile = field(default_factory=SensorProfile)  # [sensors]: the position sensor (mocap, rtk)
+    mission: dict[str, Any] = field(default_factory=dict)  # [mission]: map = obstacle map for the vehicle's legs
 
     @property
     def starts_free(self) -> bool:
@@ -121,7 +122,7 @@ class Scenario:
 #: free units on the ground stand at least this far apart, edge to edge
 FREE_CLEARANCE_M = 0.3
 _TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig", "docking",
-             "separations", "environment", "sensors"}
+             "separations", "environment", "sensors", "mission"}
 _VEHICLE_KEYS = {
     "preset",
     "motor_time_constant_s",
@@ -281,6 +282,9 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
     sc.reconfig = _reconfig_table(_table(doc, "reconfig", src), src)
     sc.docking = _docking_table(_table(doc, "docking", src), src)
     sc.separations = _separations(doc.get("separations", []), src)
+    sc.mission = _table(doc, "mission", src)
+    if set(sc.mission) - {"map"} or not isinstance(sc.mission.get("map", ""), str):
+        raise UserInputError(f"{src}: [mission] takes one key, map = \"FILE\" (a boxes .csv or .pcd obstacle map)")
 
     if sc.trajectory.get("kind") == "plan":  # the planner needs the assembly and its faults
         sc.trajectory.setdefault("layout", list(sc.layout))

@@ -768,6 +768,7 @@ def main(argv: list[str] | None = None) -> int:
                     help="coordinator: send the world its estimate, reference and events for the view (sitl.view_feed)")
     ap.add_argument("--vehicle-sysid", type=int, default=None)
     ap.add_argument("--vehicle-gcs-port", type=int, default=None)
+    ap.add_argument("--vehicle-map", default=None, help="coordinator --vehicle: obstacle map for the mission legs")
     ap.add_argument("--vehicle-api-port", type=int, default=None)
     ap.add_argument("--vehicle-gcs-bind", type=int, default=None)
     ap.add_argument("--vehicle-api-bind", type=int, default=None)
@@ -840,7 +841,7 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
         from sitl.vehicle_host import VehiclePorts
 
         given = {"sysid": args.vehicle_sysid, "gcs_port": args.vehicle_gcs_port, "api_port": args.vehicle_api_port,
-                 "gcs_bind": args.vehicle_gcs_bind, "api_bind": args.vehicle_api_bind}
+                 "gcs_bind": args.vehicle_gcs_bind, "api_bind": args.vehicle_api_bind, "map_path": args.vehicle_map}
         vehicle = VehiclePorts(**{k: v for k, v in given.items() if v is not None})
         vehicle.check(setup.unit_ids)
     return run_coordinator(setup, ports, out, key=key, vehicle=vehicle, timing_log=args.timing_log,

@@ -45,12 +45,13 @@ class VehiclePorts:
     api_port: int = DEFAULT_VEHICLE_API_PORT
     gcs_bind: int = VEHICLE_GCS_BIND  # 0: any free port
     api_bind: int = VEHICLE_API_BIND
+    map_path: str | None = None  # obstacle map for the mission legs (mars_link.mission_legs); else [mission] map
 
     def argv(self) -> list[str]:
         """The coordinator's command-line arguments for these ports."""
         return ["--vehicle", "--vehicle-sysid", str(self.sysid), "--vehicle-gcs-port", str(self.gcs_port),
                 "--vehicle-api-port", str(self.api_port), "--vehicle-gcs-bind", str(self.gcs_bind),
-                "--vehicle-api-bind", str(self.api_bind)]
+                "--vehicle-api-bind", str(self.api_bind)] + (["--vehicle-map", self.map_path] if self.map_path else [])
 
     def describe(self, out: Path) -> str:
         """The endpoint line `sitl up` prints."""
@@ -102,6 +103,10 @@ class HostedVehicle:
             self.vehicle = AssemblyVehicle(self.coordinator, ports.sysid, sc.sim.control_hz, sc.ftc, None, time.time(),
                                            signing_key, require_signing)
         self.vehicle.on_failure = self._inject
+        from mars_link.assembly_vehicle import attach_legs
+
+        self.legs = attach_legs(self.vehicle, sc, ports.map_path, lambda: (
+            self.coordinator.eta_believed if self.flight is None else self.flight.eta_believed()))
         self._unit_commands: dict[int, list] = {}
         self.io = VehicleSockets(self.vehicle, {
             LINK_GCS: LinkSpec(ports.gcs_bind, (LOOPBACK, ports.gcs_port)),
@@ -220,4 +225,5 @@ class HostedVehicle:
 
     def close(self) -> None:
         self.write_status()
+        self.legs.close()
         self.io.close()

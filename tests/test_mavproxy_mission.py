@@ -15,7 +15,9 @@ from pathlib import Path
 
 import pytest
 
+from firmware_models.params import unit_param_specs
 from firmware_models.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
+from mars_link.assembly import vehicle_preset
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(150)]
 
@@ -108,7 +110,7 @@ def test_mavproxy_wp_fence_rally_load_and_fly(tmp_path: Path) -> None:
     mp = Console(bind, tmp_path)
     truth: list[list[float]] = []
     try:
-        mp.wait_for("Received 19 parameters", 20.0)
+        mp.wait_for(f"Received {len(unit_param_specs(6, vehicle_preset('mars-ftcc')))} parameters", 20.0)
         mp.send("set wp_use_mission_int 0")  # MAVProxy's float MISSION_ITEMs: the legacy path
         mp.send("wp load mission.txt")
         mp.wait_for("TYPE_MISSION: ACCEPTED")

@@ -13,14 +13,16 @@ from pathlib import Path
 
 import pytest
 
+from firmware_models.params import unit_param_specs
 from firmware_models.udp_runner import free_udp_port, spawn_unit, stop_unit
+from mars_link.assembly import vehicle_preset
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(120)]
 
 EXPECTED = {
     "detected": "Detected vehicle 6:1",
     "mode": "Mode LOITER",
-    "params": "Received 19 parameters",
+    "params": f"Received {len(unit_param_specs(6, vehicle_preset('mars-ftcc')))} parameters",
     "alt_default": "MIS_TAKEOFF_ALT  2.0",
     "alt_written": "MIS_TAKEOFF_ALT  3.5",
     "status": "SYS_STATUS {onboard_control_sensors_present",

@@ -33,6 +33,13 @@ WAYPOINTS_NE = [(4.0, 0.0), (4.0, 4.0), (0.0, 4.0)]
 ALT_M, RADIUS_M, SPEED_MPS, LOITER_S = 3.0, 0.3, 2.0, 0.5
 
 
+def spawn_api_unit(api_port: int, status: Path, *extra: str):
+    """A unit process (system 1) whose API link sends to `api_port`, writing its status to `status`."""
+    return spawn_unit(["--unit", "1", "--gcs-port", str(free_udp_port()), "--gcs-bind", "0",
+                       "--api-port", str(api_port), "--api-bind", "0", "--coord-bind", "0",
+                       "--status-file", str(status), *extra])
+
+
 def _latlon(north_m: float, east_m: float) -> tuple[float, float]:
     return (HOME[0] + math.degrees(north_m / EARTH_R_M),
             HOME[1] + math.degrees(east_m / (EARTH_R_M * math.cos(math.radians(HOME[0])))))
@@ -117,9 +124,7 @@ def test_mavsdk_mission_flown_against_the_truth(tmp_path: Path, vehicle: str) ->
     api = free_udp_port()
     status = tmp_path / "status.json"
     if vehicle == "unit":
-        proc, _ = spawn_unit(["--unit", "1", "--gcs-port", str(free_udp_port()), "--gcs-bind", "0",
-                              "--api-port", str(api), "--api-bind", "0", "--coord-bind", "0",
-                              "--status-file", str(status)])
+        proc, _ = spawn_api_unit(api, status)
     else:
         from mars_link.realtime import spawn_vehicle
 

@@ -5,6 +5,7 @@ motor failure injected through MAVSDK's failure plugin changes how the unit flie
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import math
 import time
@@ -23,6 +24,17 @@ from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync  # noqa:
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(240)]
 
+
+
+@contextlib.asynccontextmanager
+async def autopilot(port: int, timeout_s: float = 15.0):
+    """MAVSDK as a ground station listening on 127.0.0.1:port, and the first autopilot it finds."""
+    cfg = Configuration.create_with_component_type(ComponentType.GROUND_STATION)
+    async with Mavsdk(cfg) as sdk:
+        await sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+        system = await sdk.first_autopilot(timeout_s=timeout_s)
+        assert system is not None, "MAVSDK did not find the autopilot"
+        yield system
 
 
 async def _until(predicate, timeout_s: float, what: str, period_s: float = 0.1):

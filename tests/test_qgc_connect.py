@@ -9,7 +9,11 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
+from firmware_models.params import unit_param_specs
 from firmware_models.udp_runner import free_udp_port, spawn_unit, stop_unit
+from mars_link.assembly import vehicle_preset
+
+N_PARAMS = len(unit_param_specs(5, vehicle_preset("mars-ftcc")))  # the unit's table
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(90)]
 TIMELY_S = 0.5  # QGC retries after about a second; answers must come well before
@@ -94,8 +98,8 @@ def test_qgc_initial_connect_sequence_gets_timely_answers() -> None:
                              lambda m: m.get_type() == "PARAM_VALUE", timeout_s=0.3)
         assert got == []
         got, lat = qgc.request(mavlink.MAVLink_param_request_list_message(5, 1),
-                               lambda m: m.get_type() == "PARAM_VALUE", 19, timeout_s=1.0)
-        assert sorted(m.param_index for m in got) == list(range(19)) and {m.param_count for m in got} == {19}
+                               lambda m: m.get_type() == "PARAM_VALUE", N_PARAMS, timeout_s=1.0)
+        assert sorted(m.param_index for m in got) == list(range(N_PARAMS)) and {m.param_count for m in got} == {N_PARAMS}
         latencies["param_list"] = lat
         got, lat = qgc.request(mavlink.MAVLink_param_request_read_message(5, 1, b"", 7),
                                lambda m: m.get_type() == "PARAM_VALUE")

@@ -8,6 +8,7 @@ the truth pose in the telemetry (CoM, yaw) is checked against the exact obstacle
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,6 +28,9 @@ PAPER_CASES = (("XXXX", 3), ("XXXX", 4), ("XXX,XXX", 2))
 #: start and goal of the published paths in sim metres, as NED (north = y_sim, east = x_sim)
 WALLS_START = (0.175, 0.35, -PAPER_HEIGHT_M)
 WALLS_GOAL = (27.175, 11.35, -PAPER_HEIGHT_M)
+#: a five-waypoint mission along the published 3x2 path (these fractions of it): straight lines between
+#: them cross walls
+MISSION_FRACTIONS = (0.3, 0.45, 0.7, 0.9, 1.0)
 
 
 @dataclass
@@ -142,3 +146,87 @@ def forest_sweep(seeds, layout: str = "XXX,XXX", failed_unit: int | None = 2, pa
             if on_result is not None:
                 on_result(row)
     return rows
+
+
+# ----------------------------------------------------------------------------- missions on planned legs
+def walls_mission_flight(use_map: bool, fault_t_s: float, on_step=None, paced: bool = False) -> dict:
+    """The 3x2 as `mars-link vehicle` flies it (AssemblySim, in process, unpaced), unit 2 failing at
+    fault_t_s and found by the detector (not told), flying a five-waypoint mission at 2.3 m through the
+    walls (MISSION_ITEM_INT bytes): legs planned around the walls map (`use_map`) or minimum-snap. The
+    true footprint's wall contacts, the MISSION_ITEM_REACHED positions, STATUSTEXTs and the leg log;
+    `on_step(sim, seconds)` gets each control period's compute time. Unpaced, the simulation waits for
+    each leg's plan (sim time independent of this machine's speed); `paced`: real time, as `mars-link
+    vehicle` runs, the vehicle holding while a leg is planned."""
+    from mars_link.assembly_vehicle import AssemblySim, SimConfig
+    from pymavlink.dialects.v20 import common as R
+
+    from mars_link.rotations import quat_to_euler
+    from mars_link.scenario import FaultSpec, load_scenario
+
+    sc = load_scenario("hover_3x2")
+    sc.ftc, sc.faults_known = "hybrid", False
+    sc.faults.append(FaultSpec(unit=2, rotor=None, eta=0.0, t_s=fault_t_s))
+    sim = AssemblySim(sc, SimConfig(start_north_m=0.175, start_east_m=0.35, params={"MPC_XY_VEL_MAX": 0.8},
+                                    map_path=WALLS_CSV if use_map else None))
+    sim.legs.wait_for_plans = not paced
+    wall0 = time.monotonic()
+    rows = convert_published(published_csv("XXX,XXX", "ours"))
+    wps = [rows[int(round(f * (len(rows) - 1)))][1:3] for f in MISSION_FRACTIONS]
+    gcs, dec = R.MAVLink(None, 245, 190), R.MAVLink(None, 0, 0)
+    got: list = []
+    res: dict = {"poses": [], "reached": [], "texts": []}
+
+    def feed(out) -> None:
+        for o in out:
+            if o.link == "api":
+                got.extend(dec.parse_buffer(o.data) or [])
+
+    def send(msg) -> list:
+        k = len(got)
+        feed(sim.handle(bytes(msg.pack(gcs)), sim.t_s, "api"))
+        return got[k:]
+
+    def run(seconds: float) -> None:
+        for _ in range(int(round(seconds / sim.control_dt_s))):
+            k = len(got)
+            if paced:
+                time.sleep(max(0.0, wall0 + sim.t_s - time.monotonic()))
+            c0 = time.perf_counter()
+            feed(sim.step(sim.t_s))
+            if on_step is not None:
+                on_step(sim, time.perf_counter() - c0)
+            s = sim.truth()
+            res["poses"].append((*s.position_ned_m[:2], quat_to_euler(s.quaternion_wxyz)[2]))
+            for m in got[k:]:
+                if m.get_type() == "MISSION_ITEM_REACHED":
+                    res["reached"].append((m.seq, s.position_ned_m.copy()))
+                elif m.get_type() == "STATUSTEXT":
+                    res["texts"].append((sim.t_s, m.text))
+
+    try:
+        run(0.3)
+        items = []
+        for seq, (n, e) in enumerate(wps):
+            lat, lon = sim.vehicle.origin.to_global(np.array([n, e, 0.0]))[:2]
+            items.append(R.MAVLink_mission_item_int_message(
+                1, 1, seq, R.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, R.MAV_CMD_NAV_WAYPOINT, 0, 1, 0.5, 0.3, 0, math.nan,
+                int(round(lat * 1e7)), int(round(lon * 1e7)), PAPER_HEIGHT_M, 0))
+        replies = send(R.MAVLink_mission_count_message(1, 1, len(items), 0))
+        for _ in items:
+            replies = send(items[[m for m in replies if m.get_type() == "MISSION_REQUEST_INT"][-1].seq])
+        if [m.type for m in replies if m.get_type() == "MISSION_ACK"] != [R.MAV_MISSION_ACCEPTED]:
+            raise RuntimeError("the vehicle refused the walls mission")
+        send(R.MAVLink_command_long_message(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0))
+        send(R.MAVLink_command_long_message(1, 1, R.MAV_CMD_MISSION_START, 0, 0, 0, 0, 0, 0, 0, 0))
+        while sim.t_s < 220.0 and len(res["reached"]) < len(items):
+            run(1.0)
+        run(1.0)
+        clearance = footprint_clearance(Footprint.from_model(sim.model, 0.0), walls_map(), np.array(res["poses"]))
+        hit = (clearance < 0).astype(int)
+        res.update(contacts=int(np.count_nonzero(np.diff(np.concatenate([[0], hit])) == 1)),
+                   contact_steps=int(hit.sum()), min_clearance_m=float(clearance.min()), sim_s=sim.t_s,
+                   detections=[(d.unit, d.rotor, d.t_detected) for d in sim.coordinator.detections],
+                   legs=sim.legs.log, waypoints=wps)
+    finally:
+        sim.close()
+    return res

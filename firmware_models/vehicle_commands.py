@@ -1,0 +1,279 @@
+"""COMMAND_LONG / COMMAND_INT of the unit firmware: arming, modes, takeoff, land, RTL, goto, failure injection.
+
+A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing (_reply, _text, ...).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
+
+from firmware_models.control_policy import FORCE_DISARM_MAGIC
+from firmware_models.unit_controller import Phase
+from mars_link.state import RigidBodyState
+from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
+from firmware_models.vehicle_modes import (
+    MODE_HOLD,
+    MODE_LAND,
+    MODE_MISSION,
+    MODE_OFFBOARD,
+    MODE_POSCTL,
+    MODE_RTL,
+    MODE_TAKEOFF,
+)
+from firmware_models.vehicle_streams import DEFAULT_STREAM_HZ
+from firmware_models.vehicle_offboard import MAX_POSITION_M
+
+FAILURE_TYPE_ETA = {0: 1.0, 1: 0.0, 5: 0.5}  # FAILURE_TYPE OK / OFF / SLOW (degraded) -> rotor efficiency
+FAILURE_UNIT_SYSTEM_MOTOR = 101
+SETPOINT_PROOF_OF_LIFE_S = 0.5  # OFFBOARD needs a setpoint stream faster than 2 Hz
+COMMAND_DEDUP_S = 1.5  # MAVSDK resends an unacknowledged command 3 times, 0.5 s apart
+#: commands whose identical resend within COMMAND_DEDUP_S is answered from the cache, not re-run
+ACTION_COMMANDS = {
+    mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_CMD_NAV_TAKEOFF, mavlink.MAV_CMD_NAV_LAND,
+    mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, mavlink.MAV_CMD_DO_SET_MODE, mavlink.MAV_CMD_DO_REPOSITION,
+    mavlink.MAV_CMD_INJECT_FAILURE, mavlink.MAV_CMD_MISSION_START, mavlink.MAV_CMD_DO_SET_MISSION_CURRENT,
+    mavlink.MAV_CMD_DO_ORBIT,
+}
+
+
+class CommandsMixin:
+    # ----------------------------------------------------------------- commands
+    def _on_command(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            self._drop("wrong_target")
+            return
+        cmd = msg.command
+        is_int = msg.get_type() == "COMMAND_INT"
+        if is_int:
+            p = [msg.param1, msg.param2, msg.param3, msg.param4, msg.x, msg.y, msg.z]
+        else:
+            p = [msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7]
+        src = (lk.name, msg.get_srcSystem(), msg.get_srcComponent())
+        key = (cmd, is_int, tuple("nan" if isinstance(v, float) and v != v else v for v in p))
+        if cmd in ACTION_COMMANDS:
+            last = self._last_cmd.get(src)
+            if last is not None and last[0] == key and self.wall_s - last[1] <= COMMAND_DEDUP_S:
+                self._count("command_duplicate")
+                self._ack(lk, msg, cmd, last[2], out)
+                return
+        result, followups = self._execute(cmd, p, is_int, msg)
+        if cmd in ACTION_COMMANDS:  # only a success is replayed: a refused command may succeed now
+            self._last_cmd[src] = (key, self.wall_s, result) if result == mavlink.MAV_RESULT_ACCEPTED else (None, 0.0, 0)
+            if len(self._last_cmd) > 64:
+                self._last_cmd.pop(next(iter(self._last_cmd)))
+        self._ack(lk, msg, cmd, result, out)
+        for m in followups:
+            self._reply(lk, m, out)
+
+    def _ack(self, lk: Link, msg, cmd: int, result: int, out: list[Outgoing]) -> None:
+        self._count(f"ack.{result}")
+        self._reply(lk, mavlink.MAVLink_command_ack_message(
+            cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), out)
+
+    def _execute(self, cmd: int, p: list, is_int: bool, msg) -> tuple[int, list]:
+        R = mavlink
+        if cmd == R.MAV_CMD_COMPONENT_ARM_DISARM:
+            return self._arm_disarm(p[0], p[1]), []
+        if cmd == R.MAV_CMD_NAV_TAKEOFF:
+            return self._takeoff(p[6]), []
+        if cmd == R.MAV_CMD_NAV_LAND:
+            return self._set_mode(MODE_LAND), []
+        if cmd == R.MAV_CMD_NAV_RETURN_TO_LAUNCH:
+            return self._set_mode(MODE_RTL), []
+        if cmd == R.MAV_CMD_DO_SET_MODE:
+            if not _finite(p[0], p[1]) or not (int(p[0]) & R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED):
+                return R.MAV_RESULT_DENIED, []
+            sub = int(p[2]) if math.isfinite(p[2]) else 0
+            if not (0 <= p[1] <= 255 and 0 <= sub <= 255):
+                return R.MAV_RESULT_DENIED, []
+            return self._set_mode((int(p[1]), sub)), []
+        if cmd == R.MAV_CMD_DO_REPOSITION:
+            return self._reposition(p, is_int), []
+        if cmd == R.MAV_CMD_DO_ORBIT:
+            return self._do_orbit(p, is_int), []
+        if cmd == R.MAV_CMD_MISSION_START:
+            first = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else None  # PX4: start at p1 if given
+            if first is not None and not self.runner.set_current(first, reset_jumps=True):
+                return R.MAV_RESULT_DENIED, []
+            return self._set_mode(MODE_MISSION), []
+        if cmd == R.MAV_CMD_DO_SET_MISSION_CURRENT:
+            return self._set_mission_current(p[0], p[1] == 1), []
+        if cmd == R.MAV_CMD_INJECT_FAILURE:
+            return self._inject(p), []
+        if cmd == R.MAV_CMD_REQUEST_MESSAGE:
+            return self._request_message(p[0], p[1])
+        if cmd == R.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            return (R.MAV_RESULT_ACCEPTED, [self._autopilot_version()]) if p[0] == 1 else (R.MAV_RESULT_DENIED, [])
+        if cmd == R.MAV_CMD_GET_HOME_POSITION:
+            home = self._home_position()
+            return (R.MAV_RESULT_ACCEPTED, [home]) if home else (R.MAV_RESULT_TEMPORARILY_REJECTED, [])
+        if cmd == R.MAV_CMD_SET_MESSAGE_INTERVAL:
+            return self._set_interval(p[0], p[1]), []
+        if cmd == R.MAV_CMD_GET_MESSAGE_INTERVAL:
+            if not math.isfinite(p[0]) or int(p[0]) not in DEFAULT_STREAM_HZ:
+                return R.MAV_RESULT_DENIED, []
+            iv = self.stream_interval_s.get(int(p[0]))
+            return R.MAV_RESULT_ACCEPTED, [R.MAVLink_message_interval_message(
+                int(p[0]), -1 if iv is None else int(round(iv * 1e6)))]
+        return R.MAV_RESULT_UNSUPPORTED, []  # includes REQUEST_PROTOCOL_VERSION (519): MAVLink 2 only
+
+    def _arm_disarm(self, arm: float, force: float) -> int:
+        R = mavlink
+        if arm == 1.0:
+            if self.armed:
+                return R.MAV_RESULT_ACCEPTED
+            if self.state is None:
+                return R.MAV_RESULT_TEMPORARILY_REJECTED  # no position yet
+            if not self.autopilot.touching(self.state):
+                return R.MAV_RESULT_DENIED  # never arm in the air
+            self.armed = True
+            self.home_ned = np.array(self.state.position_ned_m, dtype=float)
+            self.autopilot.idle(float(self.state.position_ned_m[2]))
+            self._armed_at = self.sim_s
+            self._took_off = False
+            self._text("Armed")
+            return R.MAV_RESULT_ACCEPTED
+        if arm == 0.0:
+            if not self.armed:
+                return R.MAV_RESULT_ACCEPTED
+            if not self.landed and force != FORCE_DISARM_MAGIC:
+                return R.MAV_RESULT_DENIED
+            self._disarm("Disarmed" if force != FORCE_DISARM_MAGIC else "Killed: motors off")
+            return R.MAV_RESULT_ACCEPTED
+        return R.MAV_RESULT_DENIED
+
+    def _disarm(self, why: str) -> None:
+        self.armed = False
+        self.source = "own"
+        self.autopilot.idle()
+        self.motor_commands_n = np.zeros(4)
+        if self.mode not in (MODE_HOLD, MODE_POSCTL):
+            self.mode = MODE_HOLD
+        self._text(why)
+
+    def _takeoff(self, altitude_amsl_m: float) -> int:
+        R = mavlink
+        if not self.armed or self.state is None:
+            return R.MAV_RESULT_TEMPORARILY_REJECTED
+        if self.mode == MODE_TAKEOFF or not self.landed:
+            return R.MAV_RESULT_ACCEPTED  # already on its way / flying: nothing to restart
+        ground = float(self.home_ned[2])
+        if math.isfinite(altitude_amsl_m):
+            target = -(altitude_amsl_m - self.origin.amsl_m)
+            if not (ground - 100.0 <= target <= ground - 0.3):
+                return R.MAV_RESULT_DENIED
+        else:
+            target = ground - self.params["MIS_TAKEOFF_ALT"]
+        why = self.fence_violation(np.array([self.state.position_ned_m[0], self.state.position_ned_m[1], target]))
+        if why is not None:
+            self._text(f"Takeoff refused: {why}", R.MAV_SEVERITY_WARNING)
+            return R.MAV_RESULT_DENIED
+        self.source = "own"
+        self.autopilot.takeoff(self.state, target)
+        self.mode = MODE_TAKEOFF
+        self._took_off = True
+        self._text(f"Takeoff to {ground - target:.1f} m")
+        return R.MAV_RESULT_ACCEPTED
+
+    def _set_mode(self, mode: tuple[int, int]) -> int:
+        R = mavlink
+        if mode == self.mode:
+            return R.MAV_RESULT_ACCEPTED
+        if mode == MODE_MISSION:
+            return self._enter_mission()
+        s = self.state
+        self.runner.pause()  # (a no-op unless leaving AUTO.MISSION: it resumes at its current item)
+        self._orbit = None
+        if mode in (MODE_HOLD, MODE_POSCTL):
+            if s is not None and self.source == "own":
+                self.autopilot.hold(s)
+            elif s is not None:
+                self._hand_back(s)
+                self.autopilot.hold(s)
+        elif mode == MODE_LAND:
+            if s is None:
+                return R.MAV_RESULT_TEMPORARILY_REJECTED
+            if self.source != "own":
+                self._hand_back(s)
+            self.autopilot.land(s)
+        elif mode == MODE_RTL:
+            if s is None or self.home_ned is None:
+                return R.MAV_RESULT_TEMPORARILY_REJECTED
+            if self.source != "own":
+                self._hand_back(s)
+            self.autopilot.rtl(s, self.return_point_ned(), self.params["RTL_RETURN_ALT"])
+        elif mode == MODE_TAKEOFF:
+            return self._takeoff(math.nan)
+        elif mode == MODE_OFFBOARD:
+            live_sp = self._setpoint_wall is not None and self.wall_s - self._setpoint_wall <= SETPOINT_PROOF_OF_LIFE_S
+            if not (live_sp or self.intake.is_live(self.sim_s)):
+                return R.MAV_RESULT_DENIED  # PX4: no OFFBOARD without a live setpoint stream
+            self.mode = mode
+            if live_sp:
+                self._apply_setpoint()
+            self._text("Offboard")
+            return R.MAV_RESULT_ACCEPTED
+        else:
+            return R.MAV_RESULT_UNSUPPORTED  # manual/stabilised/acro modes need RC
+        self.mode = mode
+        self._text({MODE_HOLD: "Hold", MODE_POSCTL: "Position", MODE_LAND: "Land", MODE_RTL: "Return"}[mode])
+        return R.MAV_RESULT_ACCEPTED
+
+    def _hand_back(self, s: RigidBodyState) -> None:
+        """The coordinator drove the motors; the own controller takes over from the current state."""
+        self.source = "own"
+        self.autopilot.handover(s)
+        self.autopilot.landed = self.autopilot.touching(s)
+        self.autopilot.phase = Phase.HOLD if not self.autopilot.landed else Phase.IDLE
+
+    def _reposition(self, p: list, is_int: bool) -> int:
+        R = mavlink
+        if self.state is None or not self.armed or self.landed:
+            return R.MAV_RESULT_TEMPORARILY_REJECTED
+        lat = p[4] * 1e-7 if is_int else p[4]
+        lon = p[5] * 1e-7 if is_int else p[5]
+        if not _finite(lat, lon, p[6]) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
+            return R.MAV_RESULT_DENIED
+        target = self._global_to_ned(lat, lon, p[6])
+        if np.linalg.norm(target[:2] - self.state.position_ned_m[:2]) > MAX_POSITION_M:
+            return R.MAV_RESULT_DENIED
+        why = self.fence_violation(target)
+        if why is not None:
+            self._text(f"Goto refused: {why}", R.MAV_SEVERITY_WARNING)
+            return R.MAV_RESULT_DENIED
+        yaw = math.radians(p[3]) if math.isfinite(p[3]) else None
+        if self.source != "own":
+            self._hand_back(self.state)
+        self.autopilot.goto(self.state, target, yaw)
+        self.mode = MODE_HOLD
+        return R.MAV_RESULT_ACCEPTED
+
+    def _inject(self, p: list) -> int:
+        R = mavlink
+        if int(self.params["SYS_FAILURE_EN"]) != 1:
+            return R.MAV_RESULT_DENIED
+        if not _finite(p[0], p[1], p[2]) or int(p[0]) != FAILURE_UNIT_SYSTEM_MOTOR:
+            return R.MAV_RESULT_UNSUPPORTED
+        eta = FAILURE_TYPE_ETA.get(int(p[1]))
+        if eta is None:
+            return R.MAV_RESULT_UNSUPPORTED
+        instance = int(p[2])
+        if instance != p[2] or not 0 <= instance <= self.motor_count:
+            return R.MAV_RESULT_DENIED
+        self.inject_failure(instance, eta)
+        self._count("failures_injected")
+        self._text(f"Failure injected: motor {instance or 'all'} eta {eta:g}", mavlink.MAV_SEVERITY_WARNING)
+        return R.MAV_RESULT_ACCEPTED
+
+    def _on_set_mode(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        if not self._for_me(msg.target_system, 0, allow_broadcast=False):
+            self._drop("wrong_target")
+            return
+        if not msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
+            self._drop("set_mode_not_custom")
+            return
+        self._set_mode(((msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF))
+

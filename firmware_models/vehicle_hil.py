@@ -1,0 +1,151 @@
+"""The HIL link (lockstep sensors in, actuator controls out) and its in-process twin (message objects).
+
+A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing (_reply, _text, ...).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
+
+from firmware_models.geo import WIRE_ORIGIN
+from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
+from mars_link.state import ImuSample, RigidBodyState
+from mars_link.wire import SensorFrames, latch_from_message, latch_message, latches_open
+from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
+
+
+class HilMixin:
+    # ----------------------------------------------------------------- HIL link (lockstep)
+    def _on_hil(self, msg, t: str, lk: Link, out: list[Outgoing]) -> None:
+        if t == "HIL_STATE_QUATERNION":
+            if self.defer_own_state:
+                self._deferred.append(lambda: self._apply_hil_state(msg))
+            else:
+                self._apply_hil_state(msg)
+            return
+        if t == "NAMED_VALUE_INT":
+            mask = latch_from_message(msg)
+            if mask is None:
+                self._count(f"ignored.{t}")
+                return
+            self.latches = mask  # the latch sensor, forwarded to the coordinator before this step's IMU frame
+            for name, other in self.links.items():
+                if other.policy.forward_sensors:
+                    out.append(Outgoing(name, self._pack(other, latch_message(msg.time_boot_ms / 1000.0, mask))))
+            return
+        if t not in ("HIL_SENSOR", "ODOMETRY"):
+            self._count(f"ignored.{t}")
+            return
+        values = ([msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro] if t == "HIL_SENSOR"
+                  else [msg.x, msg.y, msg.z, *msg.q, msg.vx, msg.vy, msg.vz])
+        if not _finite(*values):
+            self._drop("hil_non_finite")
+            return
+        frames = self.assembler.feed_frames(msg)
+        if frames is None:
+            return
+        forward = [name for name, other in self.links.items() if other.policy.forward_sensors]
+        if forward:  # (on the real-time path: straight from the received fields)
+            upstream = frames.upstream_messages()
+            for name in forward:
+                other = self.links[name]
+                out.extend(Outgoing(name, self._pack(other, m)) for m in upstream)
+        if self.defer_own_state:
+            self._deferred.append(lambda: self._apply_sensors(frames))
+        else:
+            self._apply_sensors(frames)
+        # lockstep: the sensor time stamps the step; answer with the motor outputs for it
+        t_s = frames.imu.time_usec / 1e6
+        self.sim_s = t_s
+        self._next_control = t_s + self.control_dt_s
+        self._hil_pending = (int(msg.time_usec), lk.name)
+        if self._await_coordinator:
+            return  # answered when the coordinator's command for this step arrives (or on release)
+        self._answer_hil(out)
+
+    def _apply_hil_state(self, msg) -> None:
+        """HIL_STATE_QUATERNION: the unit centre's ground truth, for its own telemetry and checks."""
+        q = np.array(msg.attitude_quaternion, dtype=float)
+        values = [*q, msg.rollspeed, msg.pitchspeed, msg.yawspeed]
+        if not _finite(*values) or not 0.5 < np.linalg.norm(q) < 1.5:
+            self._drop("hil_non_finite")
+            return
+        pos = WIRE_ORIGIN.to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)  # sitl.hil's encoding
+        self.set_state(RigidBodyState(msg.time_usec * 1e-6, pos, np.array([msg.vx, msg.vy, msg.vz]) * 0.01,
+                                      q / np.linalg.norm(q), np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed])))
+
+    def _apply_sensors(self, frames: SensorFrames) -> None:
+        packet = frames.packet()
+        self.imu = ImuSample(packet.t_s, self.sysid, packet.imu.gyro_frd_radps, packet.imu.accel_frd_mps2)
+        if packet.truth is not None:
+            self.set_state(packet.truth)
+
+    def _answer_hil(self, out: list[Outgoing]) -> None:
+        time_usec, name = self._hil_pending
+        self._hil_pending = None
+        lk = self.links[name]
+        sp = self._motor_setpoint_n() / self.full_scale_n
+        mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)
+        controls = [float(x) for x in sp] + [latches_open(self.latch_setpoint)] + [0.0] * 11
+        out.append(Outgoing(lk.name, self._pack(lk, mavlink.MAVLink_hil_actuator_controls_message(
+            time_usec, controls, mode, 1))))
+
+    def _motor_setpoint_n(self) -> np.ndarray:
+        """One HIL step's motor outputs (N): due scenario faults enter the motor model, the control step
+        runs, and the motors are driven to the clamped, eta-scaled command."""
+        while self._scheduled_failures and self._scheduled_failures[0][0] <= self.sim_s + 1e-9:
+            _, rotor, eta = self._scheduled_failures.pop(0)
+            self.inject_failure(rotor, eta)
+        self._count("hil_steps")
+        self._control_step()
+        return self.motors.setpoint(self.motor_commands_n if self.armed else np.zeros(4))
+
+    # ================================================================= in-process messages
+    # The same steps as the HIL and coordinator links, with the messages as objects instead of MAVLink
+    # bytes: what the in-process engine calls. The values are already at wire precision (float32,
+    # microseconds), so a unit driven this way moves its motors exactly as over MAVLink.
+    def take_sensors(self, packet: SensorPacket, unit_truth: RigidBodyState | None = None) -> SensorPacket:
+        """A HIL step: the unit's sensors (HIL_SENSOR/ODOMETRY) and, when given, its centre's truth
+        (HIL_STATE_QUATERNION). Returns the telemetry it forwards to the coordinator (HIGHRES_IMU and
+        ODOMETRY carry exactly these fields)."""
+        if unit_truth is not None:
+            self.set_state(unit_truth)
+        self.latches = packet.latches
+        self.imu = packet.imu
+        if packet.truth is not None:
+            self.set_state(packet.truth)
+        self.sim_s = packet.t_s
+        self._next_control = packet.t_s + self.control_dt_s
+        return packet
+
+    def take_rotor_command(self, cmd: RotorCommand) -> bool:
+        """A coordinator command (SET_ACTUATOR_CONTROL_TARGET's values); True if it is now held."""
+        if cmd.unit_id != self.sysid:
+            return self.intake.drop("wrong_target")
+        # cmd.thrusts_n are wire values (float32 controls x full scale): x / full scale is the control back
+        s = self.full_scale_n
+        a, b, c, d = cmd.thrusts_n.tolist()
+        t_usec = round(cmd.t_s * 1e6)
+        if not self.intake.accept(a / s, b / s, c / s, d / s, t_usec, self.sim_s, cmd.thrusts_n):
+            return False
+        self._count("rotor_commands")
+        self._last_rotor_usec = t_usec
+        self.latch_setpoint = cmd.latch_setpoint
+        return True
+
+    def drive_motors(self) -> ActuatorOutput:
+        """The HIL answer (HIL_ACTUATOR_CONTROLS' values): what the motors are driven to for this step."""
+        sp = self._motor_setpoint_n()
+        if sp is not self.intake.thrusts_n:  # (the held command itself is at wire precision already)
+            sp = wire_thrust(sp, self.full_scale_n)
+        return ActuatorOutput(self.sim_s, self.sysid, sp, self.latch_setpoint)
+
+    def arm(self) -> int:
+        """MAV_CMD_COMPONENT_ARM_DISARM (arm) as the coordinator sends it; returns the MAV_RESULT."""
+        return self._arm_disarm(1.0, 0.0)
+
+    def set_mode(self, mode: tuple[int, int]) -> int:
+        """MAV_CMD_DO_SET_MODE to a PX4 (main, sub) mode; returns the MAV_RESULT."""
+        return self._set_mode(mode)
+

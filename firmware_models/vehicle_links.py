@@ -1,0 +1,125 @@
+"""Named MAVLink links of a unit (policy, codec, signing, reply budgets) and the datagram splitter."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import NamedTuple
+
+from pymavlink.dialects.v20 import common as mavlink
+
+from firmware_models.control_policy import SenderBudgets
+from firmware_models.signing import SignatureVerifier, enable_outgoing_signing
+from mars_link import mavlink_codec
+
+LINK_GCS, LINK_API, LINK_COORDINATOR, LINK_HIL = "gcs", "api", "coordinator", "hil"
+
+
+class Outgoing(NamedTuple):
+    link: str
+    data: bytes
+
+
+@dataclass(frozen=True)
+class LinkPolicy:
+    telemetry: bool = True  # heartbeats, default streams, STATUSTEXT
+    require_signing: bool = False  # an unsigned frame is dropped (or, with unsigned_reads, may only read)
+    unsigned_reads: bool = False  # with require_signing: unsigned clients read (control_policy.READ)
+    sign_outgoing: bool = False
+    signing_link_id: int = 0
+    rotor_commands: bool = False  # SET_ACTUATOR_CONTROL_TARGET is accepted only on such links
+    hil: bool = False  # HIL sensor/state input and HIL_ACTUATOR_CONTROLS output
+    forward_sensors: bool = False  # sensor packets from the HIL link are forwarded here
+    reply_rate_hz: float = 300.0  # token bucket for replies (ACKs, params, ...), per sender on the link
+    reply_burst: int = 600
+
+
+def default_links(signed_coordinator: bool, sign_clients: bool = False) -> dict[str, LinkPolicy]:
+    client = LinkPolicy(require_signing=sign_clients, sign_outgoing=sign_clients, unsigned_reads=True)
+    return {
+        LINK_GCS: client,
+        LINK_API: client,
+        LINK_COORDINATOR: LinkPolicy(
+            telemetry=False, require_signing=signed_coordinator, sign_outgoing=signed_coordinator,
+            signing_link_id=1, rotor_commands=True, forward_sensors=True,
+        ),
+        LINK_HIL: LinkPolicy(telemetry=False, hil=True),
+    }
+
+
+
+
+class Link:
+    def __init__(self, name: str, policy: LinkPolicy, sysid: int, compid: int, key: bytes | None, now: float) -> None:
+        self.name = name
+        self.policy = policy
+        self.decoder = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)  # never given a key
+        self.decoder.robust_parsing = True
+        self.encoder = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+        if policy.sign_outgoing:
+            enable_outgoing_signing(self.encoder, key, policy.signing_link_id, now)
+        # with a key every non-HIL link checks signatures: a signed frame earns SAFETY authority
+        self.verifier = SignatureVerifier(key) if policy.require_signing or (key and not policy.hil) else None
+        self.budgets = SenderBudgets(policy.reply_rate_hz, policy.reply_burst)
+
+
+def split_frames(data: bytes | bytearray, decoder: mavlink.MAVLink, drop, pre_check=None) -> list[tuple[mavlink.MAVLink_message, bytearray]]:
+    """Decode every complete, CRC-valid frame of one datagram; count the rest via `drop(reason)`.
+
+    Resynchronises one byte after a bad frame (a random 0xFD in junk must not hide a good frame).
+    `pre_check(frame) -> bool` runs on the raw bytes before decoding (signature verification: an
+    unsigned or forged frame costs a flag test or one SHA-256, never a decode).
+    """
+    out = []
+    n = len(data)
+    i = 0
+    junk = False
+    while i < n:
+        b = data[i]
+        if b == 0xFD:
+            if n - i < 12:
+                drop("parse.truncated")
+                break
+            flags = data[i + 2]
+            if flags & ~0x01:
+                drop("parse.unknown_flags")
+                i += 1
+                continue
+            flen = 12 + data[i + 1] + (13 if flags & 0x01 else 0)
+        elif b == 0xFE:
+            if n - i < 8:
+                drop("parse.truncated")
+                break
+            flen = 8 + data[i + 1]
+        else:
+            nxt = min((j for j in (data.find(b"\xfd", i), data.find(b"\xfe", i)) if j >= 0), default=n)
+            junk = True
+            i = nxt
+            continue
+        if i + flen > n:
+            drop("parse.truncated")
+            i += 1
+            continue
+        frame = bytearray(data[i:i + flen])
+        if pre_check is not None and not pre_check(frame):
+            i += flen
+            continue
+        try:
+            msg = mavlink_codec.decode(frame, decoder)
+        except Exception as e:  # pymavlink raises MAVError and, on odd payloads, others
+            drop("parse.bad_crc" if "CRC" in str(e) else "parse.malformed")
+            i += 1
+            continue
+        if isinstance(msg, mavlink.MAVLink_unknown) or msg.get_type() == "BAD_DATA":
+            drop("parse.unknown_message")
+        else:
+            out.append((msg, frame))
+        i += flen
+    if junk:
+        drop("parse.junk")
+    return out
+
+
+def finite(*values) -> bool:
+    return all(math.isfinite(v) for v in values)
+

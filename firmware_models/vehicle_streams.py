@@ -1,0 +1,220 @@
+"""Telemetry of the unit firmware: heartbeat, default streams, message requests and intervals.
+
+A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing (_reply, _text, ...).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink
+
+from firmware_models.unit_controller import Phase
+from mars_link.assembly import GRAVITY_MPS2
+from mars_link.rotations import quat_to_euler, quat_to_rotmat
+from firmware_models.vehicle_links import finite as _finite
+from firmware_models.vehicle_modes import MAIN_AUTO, MAIN_OFFBOARD, MODE_MISSION
+
+MIN_STREAM_INTERVAL_S = 0.01
+#: msg id -> default rate (Hz, wall clock), specs/mavlink.md §6
+DEFAULT_STREAM_HZ: dict[int, float] = {
+    mavlink.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
+    mavlink.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 2.0,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE: 20.0,
+    mavlink.MAVLINK_MSG_ID_ATTITUDE_QUATERNION: 20.0,
+    mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: 20.0,
+    mavlink.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 20.0,
+    mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: 5.0,
+    mavlink.MAVLINK_MSG_ID_BATTERY_STATUS: 1.0,
+    mavlink.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
+    mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: 10.0,
+    mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS: 10.0,
+    mavlink.MAVLINK_MSG_ID_MISSION_CURRENT: 1.0,
+}
+#: REQUEST_MESSAGE ids answered with a refusal: PROTOCOL_VERSION, COMPONENT_INFORMATION,
+#: COMPONENT_METADATA, AVAILABLE_MODES, CURRENT_MODE (not in pymavlink 2.4.50's common dialect)
+REFUSED_MESSAGES = {300, 395, 397, 435, 436}
+CAPABILITIES = (
+    mavlink.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
+    | mavlink.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
+    | mavlink.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
+)
+SENSORS = (
+    mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG | mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+    | mavlink.MAV_SYS_STATUS_SENSOR_GPS | mavlink.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL
+    | mavlink.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION | mavlink.MAV_SYS_STATUS_SENSOR_YAW_POSITION
+    | mavlink.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL | mavlink.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL
+    | mavlink.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS | mavlink.MAV_SYS_STATUS_GEOFENCE | mavlink.MAV_SYS_STATUS_AHRS
+    | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY | mavlink.MAV_SYS_STATUS_PREARM_CHECK
+    | mavlink.MAV_SYS_STATUS_SENSOR_PROPULSION
+)
+#: commands whose identical resend within COMMAND_DEDUP_S is answered from the cache, not re-run
+
+
+class StreamsMixin:
+    def _request_message(self, msgid: float, p2: float) -> tuple[int, list]:
+        R = mavlink
+        if not math.isfinite(msgid) or msgid != int(msgid):
+            return R.MAV_RESULT_DENIED, []
+        mid = int(msgid)
+        if mid == R.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
+            return R.MAV_RESULT_ACCEPTED, [self._autopilot_version()]
+        if mid == R.MAVLINK_MSG_ID_HEARTBEAT:
+            return R.MAV_RESULT_ACCEPTED, [self._heartbeat()]
+        if mid in DEFAULT_STREAM_HZ:
+            msg = self._stream_message(mid)
+            return (R.MAV_RESULT_ACCEPTED, [msg]) if msg is not None else (R.MAV_RESULT_TEMPORARILY_REJECTED, [])
+        return R.MAV_RESULT_UNSUPPORTED, []  # incl. REFUSED_MESSAGES (PROTOCOL_VERSION, AVAILABLE_MODES, ...)
+
+    def _set_interval(self, msgid: float, interval_us: float) -> int:
+        R = mavlink
+        if not _finite(msgid, interval_us) or int(msgid) not in DEFAULT_STREAM_HZ:
+            return R.MAV_RESULT_DENIED
+        mid = int(msgid)
+        if interval_us < 0:
+            self.stream_interval_s.pop(mid, None)
+        else:
+            iv = 1.0 / DEFAULT_STREAM_HZ[mid] if interval_us == 0 else max(MIN_STREAM_INTERVAL_S, interval_us * 1e-6)
+            self.stream_interval_s[mid] = iv
+            self._next_stream[mid] = self.wall_s
+        return R.MAV_RESULT_ACCEPTED
+
+
+    def _global_to_ned(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> np.ndarray:
+        return self.origin.to_ned(lat_deg, lon_deg, alt_amsl_m)
+
+    def _ned_to_global(self, p: np.ndarray) -> tuple[int, int, int]:
+        """(lat degE7, lon degE7, alt AMSL mm)."""
+        return self.origin.to_global_int(p)
+
+    def _time_boot_ms(self) -> int:
+        return int(self.sim_s * 1000) & 0xFFFFFFFF
+
+    def _heartbeat(self):
+        R = mavlink
+        base = R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | R.MAV_MODE_FLAG_STABILIZE_ENABLED
+        if self.mode[0] in (MAIN_AUTO, MAIN_OFFBOARD):
+            base |= R.MAV_MODE_FLAG_GUIDED_ENABLED | (R.MAV_MODE_FLAG_AUTO_ENABLED if self.mode[0] == MAIN_AUTO else 0)
+        if self.armed:
+            base |= R.MAV_MODE_FLAG_SAFETY_ARMED
+        status = R.MAV_STATE_ACTIVE if self.armed else R.MAV_STATE_STANDBY
+        return R.MAVLink_heartbeat_message(R.MAV_TYPE_QUADROTOR, R.MAV_AUTOPILOT_PX4, base, self.custom_mode, status, 3)
+
+    def _autopilot_version(self):
+        uid = (0x4D415253 << 32) | self.sysid  # "MARS" + unit id
+        sw = (0 << 24) | (1 << 16) | (0 << 8) | 255  # mars-link 0.1.0, release
+        return mavlink.MAVLink_autopilot_version_message(
+            CAPABILITIES, sw, sw, 0, 0, list(b"marslink"), [0] * 8, [0] * 8, 0, 0, uid, [0] * 18)
+
+    def _home_position(self):
+        if self.home_ned is None:
+            return None
+        lat, lon, alt = self._ned_to_global(self.home_ned)
+        h = self.home_ned
+        return mavlink.MAVLink_home_position_message(
+            lat, lon, alt, float(h[0]), float(h[1]), float(h[2]), [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
+            int(self.sim_s * 1e6))
+
+    def _landed_state(self) -> int:
+        R = mavlink
+        ph = self.autopilot.phase
+        if self.landed:
+            return R.MAV_LANDED_STATE_ON_GROUND
+        if self.source == "own" and ph == Phase.TAKEOFF:
+            return R.MAV_LANDED_STATE_TAKEOFF
+        if self.source == "own" and ph == Phase.LAND:
+            return R.MAV_LANDED_STATE_LANDING
+        return R.MAV_LANDED_STATE_IN_AIR
+
+    def _battery(self) -> tuple[int, int, int]:
+        """(voltage mV, current cA, remaining %): a 4S 2.2 Ah pack drawn by thrust (~2 A per N).
+        Clamped to the wire fields (uint16 mV, int16 cA, int8 %); not a number -> MAVLink's "not
+        sent" value (UINT16_MAX, -1, -1). Above 327.67 A the current field saturates at 32767."""
+        current_a = self._current_a()
+        remaining = max(0.0, 1.0 - self.battery_used_c / (2.2 * 3600))
+        volts = 4 * (3.6 + 0.6 * remaining) - 0.02 * current_a
+
+        def wire(x: float, lo: int, hi: int, unknown: int) -> int:
+            return unknown if math.isnan(x) else int(min(max(x, lo), hi))
+
+        return (wire(volts * 1000, 0, 65534, 65535), wire(current_a * 100, 0, 32767, -1),
+                wire(round(remaining * 100) if math.isfinite(remaining) else remaining, 0, 100, -1))
+
+    def _stream_message(self, mid: int):
+        R = mavlink
+        s = self.state
+        tb = self._time_boot_ms()
+        if mid == R.MAVLINK_MSG_ID_SYS_STATUS:
+            mv, ca, pct = self._battery()
+            return R.MAVLink_sys_status_message(SENSORS, SENSORS, SENSORS, 200, mv, ca, pct, 0, 0, 0, 0, 0, 0)
+        if mid == R.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
+            return R.MAVLink_extended_sys_state_message(R.MAV_VTOL_STATE_UNDEFINED, self._landed_state())
+        if mid == R.MAVLINK_MSG_ID_BATTERY_STATUS:
+            mv, ca, pct = self._battery()
+            cells = [mv // 4 if mv != 65535 else 65535] * 4 + [65535] * 6
+            used_mah = int(self.battery_used_c / 3.6)
+            return R.MAVLink_battery_status_message(0, R.MAV_BATTERY_FUNCTION_ALL, R.MAV_BATTERY_TYPE_LIPO, 32767,
+                                                    cells, ca, used_mah, -1, pct, 0, R.MAV_BATTERY_CHARGE_STATE_OK,
+                                                    [0] * 4, 0, 0)
+        if mid == R.MAVLINK_MSG_ID_HOME_POSITION:
+            return self._home_position()
+        if mid == R.MAVLINK_MSG_ID_MISSION_CURRENT:
+            return self.runner.current_message(self.mode == MODE_MISSION)
+        if mid == R.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS:
+            # what the ESCs are told (normalised, limits applied); injected faults are not visible here
+            cmd = np.clip(self.motor_commands_n / self.full_scale_n, 0.0, 1.0) if self.armed else np.zeros(4)
+            return R.MAVLink_actuator_output_status_message(int(self.sim_s * 1e6), 0xF, [float(x) for x in cmd] + [0.0] * 28)
+        if s is None:
+            return None
+        q = s.quaternion_wxyz
+        w = s.angular_velocity_frd_radps
+        if mid == R.MAVLINK_MSG_ID_ATTITUDE:
+            roll, pitch, yaw = quat_to_euler(q)
+            return R.MAVLink_attitude_message(tb, roll, pitch, yaw, *map(float, w))
+        if mid == R.MAVLINK_MSG_ID_ATTITUDE_QUATERNION:
+            return R.MAVLink_attitude_quaternion_message(tb, *map(float, q), *map(float, w), [0.0] * 4)
+        p, v = s.position_ned_m, s.velocity_ned_mps
+        if mid == R.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+            return R.MAVLink_local_position_ned_message(tb, *map(float, p), *map(float, v))
+        lat, lon, alt = self._ned_to_global(p)
+        if mid == R.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
+            rel = int(round((float(self.home_ned[2]) - p[2]) * 1000)) if self.home_ned is not None else 0
+            hdg = int(round(math.degrees(quat_to_euler(q)[2]) * 100)) % 36000
+            vel = [int(max(-32767, min(32767, round(x * 100)))) for x in v]
+            return R.MAVLink_global_position_int_message(tb, lat, lon, alt, rel, *vel, hdg)
+        if mid == R.MAVLINK_MSG_ID_GPS_RAW_INT:
+            speed = math.hypot(v[0], v[1])
+            cog = int(round(math.degrees(math.atan2(v[1], v[0])) * 100)) % 36000 if speed > 0.2 else 65535
+            return R.MAVLink_gps_raw_int_message(int(self.sim_s * 1e6), R.GPS_FIX_TYPE_3D_FIX, lat, lon, alt, 80, 120,
+                                                 int(min(speed * 100, 65534)), cog, 12, alt, 300, 500, 200, 0, 0)
+        if mid == R.MAVLINK_MSG_ID_HIGHRES_IMU:
+            if self.imu is not None:
+                acc, gyro = self.imu.accel_frd_mps2, self.imu.gyro_frd_radps
+            else:  # specific force from the state: R^T (a - g)
+                acc = quat_to_rotmat(q).T @ (s.acceleration_ned_mps2 - np.array([0.0, 0.0, GRAVITY_MPS2]))
+                gyro = w
+            alt_m = self.origin.amsl_m - p[2]
+            pressure_hpa = 1013.25 * (1 - 2.25577e-5 * alt_m) ** 5.25588
+            return R.MAVLink_highres_imu_message(int(self.sim_s * 1e6), *map(float, acc), *map(float, gyro),
+                                                 0.21, 0.0, 0.42, pressure_hpa, 0.0, alt_m, 20.0, 0x1A3F, 0)
+        return None
+
+    def _current_a(self) -> float:
+        """The pack's current: ~2 A per newton of rotor thrust (0.5 A armed and idle, 0.3 A disarmed);
+        any number of rotors (the assembly vehicle has 4N); unbounded, NaN with a NaN command."""
+        if not self.armed:
+            return 0.3
+        return 0.5 + 2.0 * sum(map(abs, self.motor_commands_n.tolist()))
+
+    def _account_battery(self) -> None:
+        current_a = self._current_a()
+        if math.isfinite(current_a):  # a NaN command must not poison the charge count
+            self.battery_used_c += int(current_a * 100) * 0.01 * self.control_dt_s
+
