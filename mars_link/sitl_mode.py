@@ -660,7 +660,7 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None, vi
             attach += (f" --transport zenoh --zenoh-connect {(link.listen or (session.router_endpoint,))[0]}" if link.kind == "zenoh"
                        else f" --transport udp --world-port {session.run.world_port} --coordinator-port {session.run.coordinator_port}")
             print(f"waiting for a coordinator: {attach}", flush=True)
-        code = session.wait()
+        code = session.wait(units_may_die=True)  # a dead unit is a failed unit (FTC flies on)
         print(f"run directory: {out}")
         return code
     except KeyboardInterrupt:

@@ -2,8 +2,9 @@
 cleanly.
 
 Children are ended by PID (SIGTERM, then SIGKILL after a grace period) on normal exit, on Ctrl-C /
-SIGTERM and, with `stop_on_child_death` (what `mars-link sitl up` does), as soon as any one of them
-dies before the world finished.
+SIGTERM and, with `stop_on_child_death`, as soon as the world or the coordinator dies before the world
+finished (`mars-link sitl up`: one line names it, exit 1); a unit process that dies is a failed unit
+(`units_may_die`: the world declares it dead, the coordinator's FTC flies on without it).
 """
 
 from __future__ import annotations
@@ -154,32 +155,27 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
 def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool = True,
          units_may_die: bool = False) -> int:
     """Until the world ends (the scenario's end), a child dies (with `stop_on_child_death`) or the
-    timeout; then stop all. 0 = the world finished, 1 = a child died first, 124 = timeout.
-    `units_may_die`: a unit process that dies is a failed unit, not a failed run (the world declares
-    it dead, the coordinator reallocates, the flight goes on); only the world or coordinator stop it."""
+    timeout; then stop all. 0 = the world finished, 1 = a child died first (one line on stderr names
+    it), 124 = timeout. `units_may_die`: a unit process that dies is a failed unit, not a failed run
+    (the world declares it dead, the coordinator reallocates, the flight goes on); only the world or
+    coordinator stop it."""
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
     code = 0
     reported: set[str] = set()
     try:
         while True:
             world = run.processes["world"].poll()
-            if world is not None:
-                code = world
+            if world == 0:
                 break
             dead = [n for n, p in run.processes.items() if p.poll() not in (None, 0)]  # killed or failed
             if units_may_die:
                 for name in sorted(n for n in dead if n.startswith("unit") and n not in reported):
                     reported.add(name)
-                    print(f"sitl: {name} died (exit {run.processes[name].returncode}): a failed unit, "
+                    print(f"sitl: {name} died ({exit_text(run.processes[name].returncode)}): a failed unit, "
                           "the flight goes on", file=sys.stderr)
                 dead = [n for n in dead if not n.startswith("unit")]
-            if dead and stop_on_child_death:
-                print(f"sitl: {', '.join(dead)} died (exit {[run.processes[n].returncode for n in dead]}); "
-                      f"stopping the rest (logs in {run.out})", file=sys.stderr)
-                for name in dead:
-                    last = _last_line(run.out / f"{name}.log")
-                    if last:
-                        print(f"sitl: {name}: {last}", file=sys.stderr)
+            if world is not None or (dead and stop_on_child_death):
+                print(death_line(run, dead or ["world"]), file=sys.stderr)
                 code = 1
                 break
             if deadline is not None and time.monotonic() > deadline:
@@ -197,6 +193,27 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
     finally:
         run.stop()
     return code
+
+
+def exit_text(returncode: int) -> str:
+    """A child's end as people read it: "killed by SIGKILL" or "exit 3"."""
+    if returncode < 0:
+        try:
+            return f"killed by {signal.Signals(-returncode).name}"
+        except ValueError:
+            return f"killed by signal {-returncode}"
+    return f"exit {returncode}"
+
+
+def death_line(run: SitlRun, dead: list[str]) -> str:
+    """The one line `sitl up` prints when the world or the coordinator dies before the flight ends:
+    who, how, the last line of its log if it failed on its own (a crash), and that the rest stop."""
+    parts = []
+    for name in dead:
+        p = run.processes[name]
+        last = _last_line(run.out / f"{name}.log") if p.returncode > 0 else ""
+        parts.append(f"{name} (pid {p.pid}) died ({exit_text(p.returncode)})" + (f": {last}" if last else ""))
+    return f"sitl: {'; '.join(parts)} before the flight ended: stopping every child (logs in {run.out})"
 
 
 def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
@@ -227,7 +244,7 @@ def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: s
         sc = run.setup.scenario
         print(f"running {'until Ctrl-C' if steps is None else f'{steps / sc.sim.control_hz:.1f} s of sim time'}; "
               f"run directory {out}", flush=True)
-        return wait(run)
+        return wait(run, units_may_die=True)  # a dead unit is a failed unit (FTC flies on)
     except KeyboardInterrupt:
         print("sitl: interrupted, stopping every child", file=sys.stderr)
         if run is not None:
