@@ -15,9 +15,12 @@ estimate lives in the coordinator process), rotors.csv and the force integral fr
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -200,7 +203,11 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view)
     watcher = _ProgressWatcher(out / "world_status.json", scenario, on_progress)
     try:
-        code = session.wait(timeout_s, units_may_die=True)  # a dead unit process is a failed unit
+        with _sigterm_as_interrupt():
+            code = session.wait(timeout_s, units_may_die=True)  # a dead unit process is a failed unit
+    except KeyboardInterrupt:  # SIGTERM or Ctrl-C: every child was stopped by SIGTERM and wrote its summary;
+        _summarize_interrupted(scenario, out, seed, time.perf_counter() - wall0, session)  # the part flown
+        raise
     finally:
         watcher.stop()
     wall = time.perf_counter() - wall0
@@ -211,6 +218,35 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     if pieces:
         return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime)
     return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held)
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM raises KeyboardInterrupt while the flight runs (main thread only), so the children are
+    stopped by PID and the part flown is summarised, as on Ctrl-C."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(*_):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _summarize_interrupted(scenario, out: Path, seed: int, wall_s: float, session: SitlSession) -> None:
+    """summary.json of an interrupted flight (completed: false; the world says it was stopped) from the
+    logs the children closed; nothing if the world logged nothing yet."""
+    if not (out / "world_summary.json").exists():
+        return
+    if scenario.has_pieces:
+        summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link)
+    else:
+        summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False)
 
 
 def _sets_faults_known(scenario) -> bool:

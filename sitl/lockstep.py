@@ -622,6 +622,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                         packets[p.unit_id] = p
                     else:
                         link.drop("stale_telemetry")
+            if stop.requested:  # stopped mid-step: the units stop too; none of them is lost
+                break
             if not packets:  # no telemetry at all for WORLD_IDLE_TIMEOUT_S: the world is gone
                 if not stop.requested:
                     print(f"coordinator: no telemetry for {WORLD_IDLE_TIMEOUT_S:.0f} s: ending", file=sys.stderr)
