@@ -87,17 +87,22 @@ def _check_the_flight(out: Path) -> None:
     assert min(others) > 0.6, heights
 
 
-def _fly_with_a_pause(argv: list[str], out: Path) -> None:
+def _fly(argv: list[str], out: Path, during) -> None:
+    """Run the CLI to its end with `during(proc)` done mid-flight; it must exit 0."""
     proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", *argv, "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        _pause_mid_flight(proc, out)
+        during(proc)
         _, stderr = proc.communicate(timeout=150)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
     assert proc.returncode == 0, stderr[-2000:]
+
+
+def _fly_with_a_pause(argv: list[str], out: Path) -> None:
+    _fly(argv, out, lambda proc: _pause_mid_flight(proc, out))
     _check_the_flight(out)
 
 
@@ -119,26 +124,20 @@ def test_a_paused_world_resumes_and_a_paused_coordinator_lands_the_units(tmp_pat
     and, as PX4 after a fail-safe, stays in it when the coordinator's commands come back (a coordinator
     that stalled for seconds steered on a stale estimate); the world flies to the scenario's end."""
     out = tmp_path / "up"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sitl", "up", _scenario(tmp_path), "--any-bind",
-                             "--speed", "1", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
+
+    def pauses(proc: subprocess.Popen) -> None:
         world, coordinator = (_unit_pid(proc.pid, None, role=r) for r in ("world", "coordinator"))
         _pause_mid_flight(proc, out, world, at_s=3.0)
-        paused_at = _sim_time(out)
-        assert 3.0 <= paused_at < 3.5  # (the 5 s pause did not move sim time: checked by its end)
+        assert 3.0 <= _sim_time(out) < 3.5  # the 5 s pause did not move sim time
         deadline = time.monotonic() + 30
         while _sim_time(out) < 6.0 and time.monotonic() < deadline:
             time.sleep(0.05)
-        status = read_status(out / "world_status.json")
+        status = read_status(out / "world_status.json")  # resumed: nobody lost, hovering at 2 m
         assert status["dead_units"] == []
         assert all(abs(-s["position_ned_m"][2] - 2.0) < 0.15 for s in status["units"].values()), status["units"]
         _pause_mid_flight(proc, out, coordinator, at_s=7.0)
-        _, stderr = proc.communicate(timeout=150)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
-    assert proc.returncode == 0, stderr[-2000:]
+
+    _fly(["sitl", "up", _scenario(tmp_path), "--any-bind", "--speed", "1"], out, pauses)
     world_summary = json.loads((out / "world_summary.json").read_text())
     assert world_summary["sim_time_s"] == pytest.approx(DURATION_S, abs=0.02) and world_summary["dead_units"] == []
     assert json.loads((out / "coordinator_summary.json").read_text())["lost_units"] == []  # (it ran to the end)
