@@ -50,6 +50,24 @@ class ZenohParams:
     only_from: str | None = None         # a unit link that talks to one node only (e.g. its HIL link: "world")
     validate_frames: bool = True         # drop bad MAVLink frames here (counted), pass whole valid ones
     first_send_wait_s: float = 0.0       # first frame to a node: wait up to this long for it to subscribe
+    limits: SessionLimits | None = None  # None: SessionLimits() (see there)
+
+
+@dataclass(frozen=True)
+class SessionLimits:
+    """What a listening session grants connections that have not finished Zenoh's handshake, and how
+    many sessions it keeps. Zenoh's defaults (10 s to finish a handshake, 100 at once) let 100 idle TCP
+    connections to the listen port refuse every new session for 10 s (issue 18: 200 idle connections
+    blocked the next unit 9.8-10.1 s). On loopback a handshake takes milliseconds: 2 s and 512 pending
+    let the issue's 200 through at once; N idle connections delay a new session by about
+    ceil(N / 512) x 2 s (the rest wait in the kernel's accept queue for their turn). Lease: Zenoh's 10 s,
+    so a process paused for a few seconds (SIGSTOP, a slow machine) keeps its session; the lockstep's
+    own timeouts (1-3 s) declare a silent unit lost long before."""
+
+    accept_timeout_ms: int = 2000     # a connection that has not finished the handshake by then is closed
+    accept_pending: int = 512         # handshakes in progress at once; beyond, new connections are refused
+    max_sessions: int = 256           # sessions at once (a SITL run: <= 36 units + world + coordinator)
+    lease_ms: int = 10000             # a silent peer's session is closed after this long
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:
@@ -71,6 +89,11 @@ def make_config(p: ZenohParams) -> zenoh.Config:
     put("connect/endpoints", list(p.connect))
     put("scouting/multicast/enabled", bool(p.multicast_scouting))
     put("scouting/gossip/enabled", bool(p.gossip))
+    limits = p.limits or SessionLimits()
+    put("transport/unicast/accept_timeout", limits.accept_timeout_ms)
+    put("transport/unicast/accept_pending", limits.accept_pending)
+    put("transport/unicast/max_sessions", limits.max_sessions)
+    put("transport/link/tx/lease", limits.lease_ms)
     return cfg
 
 
