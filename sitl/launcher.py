@@ -59,6 +59,7 @@ class SitlRun:
     coordinator_port: int
     clients: ClientPorts
     processes: dict[str, subprocess.Popen] = field(default_factory=dict)
+    unit_process: dict[int, str] = field(default_factory=dict)  # unit id -> the name of the process hosting it
 
     def stop(self, grace_s: float = 3.0) -> None:
         """SIGTERM every child still running, wait, SIGKILL the ones that did not end (by PID)."""
@@ -79,7 +80,7 @@ class SitlRun:
             lines.append(f"coordinator: pid {self.processes['coordinator'].pid}, udp {LOOPBACK}:{self.coordinator_port} "
                          "(unit telemetry in, per-rotor commands out)")
         for i, u in enumerate(self.setup.unit_ids):
-            lines.append(f"unit {u}: pid {self.processes[f'unit{u}'].pid}, system id {u}, "
+            lines.append(f"unit {u}: pid {self.processes[self.unit_process[u]].pid}, system id {u}, "
                          f"GCS udp {LOOPBACK}:{self.clients.gcs_port}, API udp {LOOPBACK}:{self.clients.api_port(i)} "
                          f"(MAVSDK udpin://{LOOPBACK}:{self.clients.api_port(i)}), log {self.out / f'unit{u}.tlog'}")
         return lines
@@ -88,15 +89,20 @@ class SitlRun:
 def start(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
           seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
           signing_key_file: str | None = None, role_args: dict[str, list[str]] | None = None,
-          unit_prefix=None, skip: tuple[str, ...] = (), forever: bool = False, view: tuple[str, ...] = ()) -> SitlRun:
+          unit_prefix=None, skip: tuple[str, ...] = (), forever: bool = False, view: tuple[str, ...] = (),
+          units_per_process: int = 1) -> SitlRun:
     """Start every process of one run, `python -m sitl.lockstep ROLE ...` each (returns at once; `wait`
     follows it). The coordinator <-> unit links are signed with the key of `signing_key_file`, else of
     $MARS_LINK_SIGNING_KEY (inherited). For other wirings (mars_link.sitl_mode): `role_args` adds
     arguments per role ("world", "coordinator", "unit"; e.g. `--transport zenoh ...`), `unit_prefix(u)` is
     an argv to run unit u under (e.g. `ip netns exec NS`), `skip` leaves roles out (a coordinator run
     elsewhere); `forever`: a docked run goes on until stopped (a flight flown from a ground station).
-    `view`: the world's flight-view options (`--mcap`, `--foxglove HOST:PORT`; the coordinator then feeds it)."""
+    `view`: the world's flight-view options (`--mcap`, `--foxglove HOST:PORT`; the coordinator then feeds it).
+    `units_per_process` K: each process hosts K units (in order; the last one may have fewer), each its own
+    MAVLink system with its own links; process "unit<u>" (K = 1) or "units<first>-<last>"."""
     setup = load_setup(scenario, units, layout)  # refuses bad input before any process starts
+    if units_per_process < 1:
+        raise UserInputError(f"--units-per-process must be >= 1, got {units_per_process}")
     load_key(signing_key_file)  # a bad key file too
     out.mkdir(parents=True, exist_ok=True)
     clients = clients or ClientPorts()
@@ -136,12 +142,17 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
             com, yaw = _start_pose(setup)
             world.append("--start-pose=" + ",".join(repr(float(x)) for x in (*com, yaw)))  # "=": may start with "-"
         spawn("world", world + ([] if speed is None else ["--speed", str(speed)]) + extra.get("world", []) + list(view), world_sock)
-        for i, u in enumerate(setup.unit_ids):
-            argv = ["unit", *common, "--unit", str(u), "--gcs-port", str(clients.gcs_port),
-                    "--api-port", str(clients.api_port(i))]
+        ids = setup.unit_ids
+        for first in range(0, len(ids), units_per_process):
+            group = ids[first:first + units_per_process]
+            ports = [str(clients.api_port(i)) for i in range(first, first + len(group))]
+            argv = ["unit", *common, "--unit", ",".join(map(str, group)), "--gcs-port", str(clients.gcs_port),
+                    "--api-port", ",".join(ports)]
             if clients.bind_any:
                 argv += ["--gcs-bind", "0", "--api-bind", "0"]
-            spawn(f"unit{u}", argv + extra.get("unit", []), prefix=list(unit_prefix(u)) if unit_prefix else [])
+            name = f"unit{group[0]}" if len(group) == 1 else f"units{group[0]}-{group[-1]}"
+            run.unit_process.update({u: name for u in group})
+            spawn(name, argv + extra.get("unit", []), prefix=list(unit_prefix(group[0])) if unit_prefix else [])
     except BaseException:
         run.stop()
         raise
@@ -219,7 +230,7 @@ def death_line(run: SitlRun, dead: list[str]) -> str:
 def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
             seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
             signing_key_file: str | None = None, vehicle=None, require_signing: bool = False,
-            view: tuple[str, ...] = ()) -> int:
+            view: tuple[str, ...] = (), units_per_process: int = 1) -> int:
     """`mars-link sitl up`: start, print the endpoints, run until the end, Ctrl-C or a child's death.
     With `vehicle` (sitl.vehicle_host.VehiclePorts) the coordinator serves the docked assembly as one
     MAVLink vehicle and the run goes on, paced to real time (unless `speed`), until stopped.
@@ -232,10 +243,10 @@ def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: s
         role_args = {"unit": extra, "coordinator": (vehicle.argv() if vehicle is not None else []) + extra}
         if vehicle is None:
             run = start(scenario, out, units, layout, seed, speed, clients, signing_key_file, role_args=role_args,
-                        view=view)
+                        view=view, units_per_process=units_per_process)
         else:
             run = start(scenario, out, units, layout, seed, 1.0 if speed is None else speed, clients, signing_key_file,
-                        role_args=role_args, forever=True, view=view)
+                        role_args=role_args, forever=True, view=view, units_per_process=units_per_process)
         for line in run.endpoints():
             print(line, flush=True)
         if vehicle is not None:
