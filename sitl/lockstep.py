@@ -902,8 +902,11 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
         return run_world(setup, ports, out, seed, speed=speed, start=start, mcap=args.mcap, foxglove=args.foxglove)
     if args.role == "unit":
         units, api_ports = _int_list(args.unit, "--unit"), _int_list(args.api_port, "--api-port")
-        if not set(units) <= set(setup.unit_ids) or len(set(units)) != len(units):
-            raise UserInputError(f"--unit {args.unit}: not distinct units of this run (units {setup.unit_ids})")
+        for u in units:
+            if u not in setup.unit_ids:
+                raise UserInputError(f"unit {u} is not in this run (units {setup.unit_ids})")
+        if len(set(units)) != len(units):
+            raise UserInputError(f"--unit {args.unit}: a unit named twice")
         if api_ports and len(api_ports) != len(units):
             raise UserInputError(f"--api-port {args.api_port}: one port per unit of --unit {args.unit}")
         clients = [UnitPorts(args.gcs_port, api_ports[i] if api_ports else None, args.gcs_bind, args.api_bind)
