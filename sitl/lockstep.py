@@ -324,8 +324,12 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             waiting = set(live)
             deadline = time.monotonic() + unit_timeout_s
             t_us = usec(t)
-            while waiting and time.monotonic() < deadline and not (stop.requested or stop.ended):
-                for m in link.receive(deadline - time.monotonic()):
+            while waiting and not (stop.requested or stop.ended):
+                left = max(0.0, deadline - time.monotonic())
+                msgs = link.receive(left)
+                if not msgs and left == 0.0:  # (past the deadline, what was already queued is read first:
+                    break  # after this process itself was stopped, the answers wait in its socket)
+                for m in msgs:
                     if _is_shutdown(m):
                         stop.ended = True
                         break
@@ -638,20 +642,24 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             idle_deadline = time.monotonic() + WORLD_IDLE_TIMEOUT_S
             deadline = None
             t_expected = None
-            while set(packets) < live and not stop.requested:
+            final = False  # past the deadline: read what is already queued, then stop waiting (after this
+            while set(packets) < live and not stop.requested:  # process was stopped, the telemetry waits in its socket)
                 now = time.monotonic()
-                if (deadline is not None and now >= deadline) or now >= idle_deadline:
-                    break
+                final = final or (deadline is not None and now >= deadline) or now >= idle_deadline
                 if k == 0 and not packets and now >= next_hello:  # hello until the world starts
                     link.heartbeat(world)
                     next_hello = now + 0.2
                 if finish_at is not None and now >= finish_at:
                     coordinator.finish_step()
                     finish_at = None
-                wait_s = min(0.2, (deadline or idle_deadline) - now, math.inf if finish_at is None else finish_at - now)
+                wait_s = 0.0 if final else min(0.2, (deadline or idle_deadline) - now,
+                                               math.inf if finish_at is None else finish_at - now)
                 if hosted is not None:  # client links and wall-clock heartbeats while the lockstep waits
                     wait_s = hosted.wait(link, wait_s)
-                for m in link.receive(wait_s):
+                msgs = link.receive(wait_s)
+                if final and not msgs:
+                    break
+                for m in msgs:
                     if m.get_type() == "COMMAND_ACK":
                         if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in accepted:
                             accepted[m.get_srcSystem()].add(m.command)
