@@ -115,6 +115,8 @@ TICK_PERIOD_S = 0.02  # unit: heartbeats and streams (<= 20 Hz) served on this w
 HOUSEKEEPING_DEFER_S = 0.02  # unit: housekeeping waits at most this long past its time for a quiet moment
 UNIT_QUIET_S = 0.001  # unit: housekeeping starts this long after the last datagram (no step in flight)
 COORDINATOR_QUIET_S = 0.002  # coordinator: fault detection this long after the commands went out
+STOP_POLL_S = 0.2  # world: longest wait before it looks at its stop flag again (a SIGTERM ends it in time to
+# write its summary within the launcher's 3 s grace, also while it waits for units that were stopped with it)
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -326,7 +328,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             t_us = usec(t)
             while waiting and not (stop.requested or stop.ended):
                 left = max(0.0, deadline - time.monotonic())
-                msgs = link.receive(left)
+                msgs = link.receive(min(left, STOP_POLL_S))  # (a SIGTERM is seen within STOP_POLL_S)
                 if not msgs and left == 0.0:  # (past the deadline, what was already queued is read first:
                     break  # after this process itself was stopped, the answers wait in its socket)
                 for m in msgs:
