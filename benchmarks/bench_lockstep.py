@@ -1,7 +1,11 @@
-"""Lockstep SITL speed: the real-time factor of the 6-unit 3x2 run (world + 6 unit processes running
-the full firmware + coordinator, MAVLink over loopback UDP) and the per-message costs on its path.
+"""Lockstep SITL speed: the real-time factor of a docked run (world + one process per unit running the
+full firmware, or K units per process, + coordinator; MAVLink over loopback UDP or Zenoh), the CPU each
+process spends per simulated second, and the per-message costs on its path.
 
-    python benchmarks/bench_lockstep.py [--runs R] [--scenario hover_3x2] [--n N] [--repeats R]
+    python benchmarks/bench_lockstep.py [--runs R] [--scenario hover_3x2] [--layout ROWS]
+        [--transport udp,zenoh] [--units-per-process 1,5] [--n N] [--repeats R]
+    python benchmarks/bench_lockstep.py --layout XXXXX,XXXXX,XXXXX,XXXXX,XXXXX --transport udp,zenoh \\
+        --units-per-process 1,5 --n 0     # 5x5: 25 unit processes, then 5 processes of 5
 
 RTF = simulated time / wall time of the world's stepping loop (start-up excluded; printed apart).
 The per-message part reuses bench_mavlink's timing (best of `--repeats` runs of `--n` calls; the
@@ -41,27 +45,35 @@ ROOT = Path(__file__).resolve().parent.parent
 FULL_SCALE_N = 10.0
 
 
-def rtf_runs(scenario: str, runs: int) -> list[dict]:
-    from sitl.launcher import ClientPorts, free_udp_port, start, wait
+def rtf_runs(scenario: str, runs: int, layout: str | None = None, transport: str = "udp",
+             units_per_process: int = 1) -> list[dict]:
+    """Lockstep runs as fast as possible (`run --mode sitl`'s processes on `transport`); per run the RTF of
+    the world's stepping loop and the CPU seconds of every process (stepping loop and whole process)."""
+    from mars_link.sitl_mode import start_sitl
+    from mars_link.transport import LinkSpec
 
     rows = []
     for i in range(runs):
         with tempfile.TemporaryDirectory() as tmp:
             out = Path(tmp) / "run"
             t0 = time.perf_counter()
-            clients = ClientPorts(free_udp_port(), [free_udp_port() for _ in range(6)], bind_any=True)
-            run = start(scenario, out, seed=1 + i, clients=clients)
-            code = wait(run, timeout_s=600)
+            session = start_sitl(scenario, out, LinkSpec(transport), seed=1 + i, layout=layout,
+                                 units_per_process=units_per_process)
+            code = session.wait(timeout_s=900)
             total = time.perf_counter() - t0
             if code != 0:
                 sys.exit(f"run {i}: exit {code}; see the logs of a failed run with `mars-link sitl up`")
             s = json.loads((out / "world_summary.json").read_text())
             c = json.loads((out / "coordinator_summary.json").read_text())
             units = [json.loads((out / f"unit{u}_status.json").read_text()) for u in s["units"]]
+            hosts = [json.loads(p.read_text()) for p in out.glob("unit_host*_status.json")]
             cpu = {"world": s["cpu_loop_s"], "coordinator": c["cpu_loop_s"],
-                   "units": sum(u["cpu_loop_s"] for u in units)}
+                   "units": sum(h["cpu_loop_s"] for h in hosts) if hosts else sum(u["cpu_loop_s"] for u in units)}
+            whole = {"world": s["cpu_s"], "coordinator": c["cpu_s"],
+                     "units": sum(h["cpu_s"] for h in hosts) if hosts else sum(u["cpu_s"] for u in units)}
             rows.append({"rtf": s["real_time_factor"], "sim_s": s["sim_time_s"], "wall_s": s["wall_time_s"],
-                         "startup_s": total - s["wall_time_s"], "units": len(s["units"]), "cpu": cpu})
+                         "startup_s": total - s["wall_time_s"], "units": len(s["units"]), "cpu": cpu,
+                         "cpu_whole": whole, "processes": len(session.run.processes)})
     return rows
 
 
@@ -134,29 +146,55 @@ def _sensor_datagram(mav, state, packet, t_s: float) -> bytes:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--runs", type=int, default=3, help="lockstep runs (RTF: best and median)")
+    ap.add_argument("--runs", type=int, default=3, help="lockstep runs per configuration (RTF: best and median)")
     ap.add_argument("--scenario", default=str(ROOT / "scenarios" / "hover_3x2.toml"))
-    ap.add_argument("--n", type=int, default=2000, help="calls per timing run (message costs)")
+    ap.add_argument("--layout", default=None, help="e.g. XXXXX,XXXXX,XXXXX,XXXXX,XXXXX (5x5, 25 unit processes)")
+    ap.add_argument("--transport", default="udp", help="udp, zenoh, or both: udp,zenoh")
+    ap.add_argument("--units-per-process", default="1", help="K unit firmwares per process; several: 1,5")
+    ap.add_argument("--n", type=int, default=2000, help="calls per timing run (message costs; 0: skip them)")
     ap.add_argument("--repeats", type=int, default=5)
     a = ap.parse_args()
-    rows = message_costs(a.n, a.repeats)
-    width = max(len(k) for k, _ in rows)
-    print(f"{'per exchange, one unit':<{width}}  {'us/call':>9}")
-    for k, us in rows:
-        print(f"{k:<{width}}  {us:>9.1f}")
-    if a.runs > 0:
-        runs = rtf_runs(a.scenario, a.runs)
-        rtf = [r["rtf"] for r in runs]
-        print(f"\nlockstep SITL, {runs[0]['units']} unit processes + world + coordinator, {runs[0]['sim_s']:.1f} s simulated:")
-        for i, r in enumerate(runs):
-            cpu = r["cpu"]
-            per_sim = sum(cpu.values()) / r["sim_s"]
-            print(f"  run {i}: RTF {r['rtf']:.2f}x (stepping {r['wall_s']:.2f} s wall, start-up {r['startup_s']:.1f} s); "
-                  f"CPU per simulated s: world {cpu['world'] / r['sim_s']:.3f}, coordinator {cpu['coordinator'] / r['sim_s']:.3f}, "
-                  f"6 units {cpu['units'] / r['sim_s']:.3f}, total {per_sim:.3f} s "
-                  f"(CPU bound on 2 idle cores: {2 / per_sim:.1f}x)")
-        print(f"  RTF best {max(rtf):.2f}x, median {statistics.median(rtf):.2f}x (target >= 2x); "
-              f"load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (the machine is shared)")
+    try:
+        transports = [t for t in a.transport.split(",")]
+        ks = [int(k) for k in a.units_per_process.split(",")]
+    except ValueError:
+        ap.error(f"--units-per-process {a.units_per_process!r}: expected integers, e.g. 1,5")
+    if any(t not in ("udp", "zenoh") for t in transports) or any(k < 1 for k in ks) or a.runs < 0 or a.n < 0:
+        ap.error("--transport is udp and/or zenoh, --units-per-process >= 1, --runs and --n >= 0")
+    if a.n > 0:
+        rows = message_costs(a.n, a.repeats)
+        width = max(len(k) for k, _ in rows)
+        print(f"{'per exchange, one unit':<{width}}  {'us/call':>9}")
+        for k, us in rows:
+            print(f"{k:<{width}}  {us:>9.1f}")
+    if a.runs == 0:
+        return
+    table = []
+    for transport in transports:
+        for k in ks:
+            runs = rtf_runs(a.scenario, a.runs, a.layout, transport, k)
+            r0 = runs[0]
+            print(f"\nlockstep SITL over {transport}, {r0['units']} units in {r0['processes'] - 2} unit processes "
+                  f"(--units-per-process {k}) + world + coordinator, {r0['sim_s']:.1f} s simulated:", flush=True)
+            for i, r in enumerate(runs):
+                cpu, sim = r["cpu"], r["sim_s"]
+                per_sim = sum(cpu.values()) / sim
+                print(f"  run {i}: RTF {r['rtf']:.2f}x (stepping {r['wall_s']:.2f} s wall, start-up {r['startup_s']:.1f} s); "
+                      f"CPU per simulated s: world {cpu['world'] / sim:.3f}, coordinator {cpu['coordinator'] / sim:.3f}, "
+                      f"units {cpu['units'] / sim:.3f} ({1e3 * cpu['units'] / sim / r['units']:.1f} ms per unit), "
+                      f"total {per_sim:.3f} s (CPU bound on 2 idle cores: {2 / per_sim:.2f}x); "
+                      f"whole unit processes incl. start-up {r['cpu_whole']['units']:.1f} CPU-s", flush=True)
+            rtf = [r["rtf"] for r in runs]
+            unit_ms = statistics.median(1e3 * r["cpu"]["units"] / r["sim_s"] / r["units"] for r in runs)
+            table.append((transport, k, r0["processes"], statistics.median(rtf), max(rtf), unit_ms))
+    print(f"\n{'transport':>9} {'K':>3} {'processes':>9} {'RTF median':>10} {'RTF best':>8} {'unit CPU ms per sim s':>22}")
+    for t, k, procs, med, best, unit_ms in table:
+        print(f"{t:>9} {k:>3} {procs:>9} {med:>9.2f}x {best:>7.2f}x {unit_ms:>22.1f}")
+    base = {t: next((row for row in table if row[0] == t and row[1] == 1), None) for t in transports}
+    for t, k, _, med, _, unit_ms in table:
+        if k != 1 and base[t] is not None:
+            print(f"  {t} K={k} / K=1: RTF {med / base[t][3]:.2f}x, unit CPU {unit_ms / base[t][5]:.2f}x")
+    print(f"load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (the machine is shared; compare rows of one run)")
 
 
 if __name__ == "__main__":

@@ -2,7 +2,7 @@
 6 unit processes with the full firmware, coordinator with EKF and fault detection, MAVLink over
 loopback UDP), run after run, with where the time goes.
 
-    python benchmarks/bench_realtime.py [--runs 3] [--duration 5] [--transport udp|zenoh] [--png PATH]
+    python benchmarks/bench_realtime.py [--runs 3] [--duration 5] [--transport udp|zenoh|zenoh,udp] [--png PATH]
 
 Command age at the motor = when a unit drives its motors with the coordinator's command for a step (its
 HIL_ACTUATOR_CONTROLS leaves for the simulator) - that step's sensor sample time (PX4's timestamp_sample
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import statistics
 import sys
 import tempfile
@@ -39,36 +40,48 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--duration", type=float, default=5.0, help="simulated (= wall) seconds per run")
-    ap.add_argument("--transport", choices=("udp", "zenoh"), default="udp")
+    ap.add_argument("--transport", default="udp",
+                    help="udp, zenoh, or both (zenoh,udp: runs alternate, medians and their ratio printed)")
     ap.add_argument("--scenario", default="hover_3x2")
     ap.add_argument("--png", default=None, help="write the command-age distribution of every run here")
     a = ap.parse_args()
-    if a.runs < 1 or not a.duration > 0:
-        ap.error("--runs must be >= 1 and --duration > 0")
+    transports = a.transport.split(",")
+    if a.runs < 1 or not a.duration > 0 or any(t not in ("udp", "zenoh") for t in transports):
+        ap.error("--runs must be >= 1, --duration > 0, --transport udp and/or zenoh")
     try:
         sc = load_scenario(a.scenario)
     except UserInputError as e:
         ap.error(str(e))
     sc = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, duration_s=a.duration))
-    rows, ages_by_run = [], []
-    print(f"{a.runs} runs of {a.scenario}, {a.duration:.0f} s each, {a.transport}, real time", flush=True)
-    header = f"{'run':>3} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'misses':>8}   " + " ".join(f"{s:>12}" for s in STAGES)
+    rows: dict[str, list] = {t: [] for t in transports}
+    ages_by_run = []
+    print(f"{a.runs} runs of {a.scenario}, {a.duration:.0f} s each, {' and '.join(transports)} (alternating), real time",
+          flush=True)
+    header = f"{'link':>5} {'run':>3} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'misses':>10}   " + " ".join(f"{s:>12}" for s in STAGES)
     print(header)
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(a.runs):
-            out = Path(tmp) / f"run{i}"
-            s = run_sitl_scenario(sc, out, link=LinkSpec(a.transport), realtime=True, plots=False)
-            age = s["sitl"]["command_age"]
-            stages = stage_times(out)
-            rows.append((age, stages))
-            ages_by_run.append(_ages(out))
-            print(f"{i + 1:>3} {age['p50_ms']:>7.2f} {age['p99_ms']:>7.2f} {age['max_ms']:>7.1f} "
-                  f"{age['deadline_misses']:>4}/{age['n']:<5} "
-                  + " ".join(f"{stages.get(k, float('nan')):>12.2f}" for k in STAGES), flush=True)
+            for transport in transports:
+                out = Path(tmp) / f"{transport}{i}"
+                s = run_sitl_scenario(sc, out, link=LinkSpec(transport), realtime=True, plots=False)
+                age = s["sitl"]["command_age"]
+                stages = stage_times(out)
+                rows[transport].append(age)
+                ages_by_run.append(_ages(out))
+                print(f"{transport:>5} {i + 1:>3} {age['p50_ms']:>7.2f} {age['p99_ms']:>7.2f} {age['max_ms']:>7.1f} "
+                      f"{age['deadline_misses']:>4}/{age['n']:<5} "
+                      + " ".join(f"{stages.get(k, float('nan')):>12.2f}" for k in STAGES), flush=True)
         wake = s["sitl"].get("cpu_wake_latency")
-    p50 = statistics.median(r[0]["p50_ms"] for r in rows)
-    p99 = statistics.median(r[0]["p99_ms"] for r in rows)
-    print(f"median of runs: p50 {p50:.2f} ms, p99 {p99:.2f} ms (target p99 < 5 ms); idle CPUs: {wake}")
+    medians = {}
+    for transport, ages in rows.items():
+        p50 = statistics.median(r["p50_ms"] for r in ages)
+        p99 = statistics.median(r["p99_ms"] for r in ages)
+        medians[transport] = (p50, p99)
+        print(f"{transport}: median of runs p50 {p50:.2f} ms, p99 {p99:.2f} ms (target p99 < 5 ms)")
+    if len(medians) == 2:
+        (z50, z99), (u50, u99) = medians["zenoh"], medians["udp"]
+        print(f"zenoh / udp (same minutes): p50 {z50 / u50:.2f}x, p99 {z99 / u99:.2f}x")
+    print(f"idle CPUs: {wake}; load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (the machine is shared)")
     if a.png:
         _plot(ages_by_run, Path(a.png))
         print(f"wrote {a.png}")

@@ -9,17 +9,20 @@ firmware_models) never import it.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from mars_link.assembly import AssemblyModel
 from mars_link.control.base import Controller
-from mars_link.coordinator import Coordinator
 from mars_link.errors import UserInputError
 from mars_link.limits import check_planned_unit_count, check_wire_unit_count
 from mars_link.rotations import quat_to_rotmat
 from mars_link.scenario import Scenario, eta_after
 from mars_link.trajectories import Trajectory, build_trajectory
+
+if TYPE_CHECKING:  # (a unit process builds its firmware here without importing the coordinator's stack)
+    from mars_link.coordinator import Coordinator
 
 #: position (mocap) samples per second by default ([sensors] position_rate_hz); the IMU comes at every control step
 POSITION_RATE_HZ = 50.0
@@ -172,6 +175,7 @@ def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: 
     if any, starts from them."""
     from mars_link.allocation import make_allocator
     from mars_link.control.cascaded import CascadedController
+    from mars_link.coordinator import Coordinator
 
     v = piece.vehicle
     allocator = make_allocator(scenario.ftc, piece, eta=eta, min_thrust_n=v.rotor_min_thrust_n,
@@ -194,6 +198,8 @@ def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajec
                      eta: np.ndarray | None = None, telemetry_timeout_s: float | None = None) -> Coordinator:
     """The coordinator: `reference` is the scenario's trajectory or a vehicle's setpoint source; `estimator`
     and `detector` come from `make_estimator` / `make_detector` (or a vehicle's own estimate holder)."""
+    from mars_link.coordinator import Coordinator
+
     eta = initial_eta(scenario, model) if eta is None else eta
     return Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
                        telemetry_timeout_s=telemetry_timeout_s)

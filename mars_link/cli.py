@@ -211,7 +211,7 @@ def cmd_sitl(args) -> int:
     v.claim_out_dir(out, force=args.force)
     code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,
                    signing_key_file=args.signing_key_file, vehicle=vehicle, require_signing=require_signing,
-                   view=view)
+                   view=view, units_per_process=args.units_per_process)
     print(f"run directory: {out}")
     return code
 

@@ -15,9 +15,12 @@ estimate lives in the coordinator process), rotors.csv and the force integral fr
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -62,7 +65,7 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
                units: int | None = None, layout: str | None = None, realtime: bool = False,
                clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units"),
                topology: str = "peer", signing_key_file: str | None = None, vehicle=None,
-               require_signing: bool = False, view: tuple[str, ...] = ()) -> SitlSession:
+               require_signing: bool = False, view: tuple[str, ...] = (), units_per_process: int = 1) -> SitlSession:
     """Start the SITL processes (sitl.launcher.start) with their links on `link` (default Zenoh).
     `unit_prefix(u)` -> argv to run unit u under (e.g. `ip netns exec NS`); `roles` may leave out the
     coordinator (one started elsewhere attaches).
@@ -114,7 +117,7 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
         session.run = start(scenario, out, units, layout, seed, 1.0 if realtime else speed,
                             clients or ClientPorts(bind_any=True), signing_key_file, role_args=role_args,
                             unit_prefix=unit_prefix, skip=() if "coordinator" in roles else ("coordinator",),
-                            forever=vehicle is not None, view=view)
+                            forever=vehicle is not None, view=view, units_per_process=units_per_process)
     except BaseException:
         session.close()
         raise
@@ -188,7 +191,7 @@ def _toml(doc: dict) -> str:
 
 def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSpec | None = None,
                       realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
-                      on_progress=None, view: tuple[str, ...] = ("--mcap",)) -> dict:
+                      on_progress=None, view: tuple[str, ...] = ("--mcap",), units_per_process: int = 1) -> dict:
     """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary."""
     pieces = scenario.has_pieces
     seed = scenario.sim.seed if seed is None else seed
@@ -197,10 +200,14 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     out.mkdir(parents=True, exist_ok=True)
     copy = write_scenario_copy(_absolute_paths(scenario), out / "scenario.toml")
     wall0 = time.perf_counter()
-    session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view)
+    session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view, units_per_process=units_per_process)
     watcher = _ProgressWatcher(out / "world_status.json", scenario, on_progress)
     try:
-        code = session.wait(timeout_s, units_may_die=True)  # a dead unit process is a failed unit
+        with _sigterm_as_interrupt():
+            code = session.wait(timeout_s, units_may_die=True)  # a dead unit process is a failed unit
+    except KeyboardInterrupt:  # SIGTERM or Ctrl-C: every child was stopped by SIGTERM and wrote its summary;
+        _summarize_interrupted(scenario, out, seed, time.perf_counter() - wall0, session)  # the part flown
+        raise
     finally:
         watcher.stop()
     wall = time.perf_counter() - wall0
@@ -211,6 +218,35 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     if pieces:
         return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime)
     return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held)
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM raises KeyboardInterrupt while the flight runs (main thread only), so the children are
+    stopped by PID and the part flown is summarised, as on Ctrl-C."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(*_):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _summarize_interrupted(scenario, out: Path, seed: int, wall_s: float, session: SitlSession) -> None:
+    """summary.json of an interrupted flight (completed: false; the world says it was stopped) from the
+    logs the children closed; nothing if the world logged nothing yet."""
+    if not (out / "world_summary.json").exists():
+        return
+    if scenario.has_pieces:
+        summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link)
+    else:
+        summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False)
 
 
 def _sets_faults_known(scenario) -> bool:
@@ -575,6 +611,13 @@ def _link_from_args(args, default_kind: str) -> LinkSpec:
     return LinkSpec(kind, fleet, "client", connect, listen, profile)
 
 
+def _add_units_per_process(p) -> None:
+    from mars_link.validation import bounded_int
+
+    p.add_argument("--units-per-process", type=bounded_int(1, 199), default=1, metavar="K",
+                   help="host up to K unit firmwares per process (each its own MAVLink system and links; default 1)")
+
+
 def _add_link_options(p, default_kind: str) -> None:
     p.add_argument("--transport", default=None, help=f"zenoh or udp (default {default_kind})")
     p.add_argument("--fleet", default="default", help="Zenoh key prefix mars/<fleet>/...")
@@ -585,6 +628,7 @@ def _add_link_options(p, default_kind: str) -> None:
 
 def add_sitl_run_arguments(p) -> None:
     _add_link_options(p, "zenoh")
+    _add_units_per_process(p)
     p.add_argument("--realtime", action="store_true",
                    help="pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
 
@@ -604,7 +648,8 @@ def sitl_runner(args):
             raise UserInputError("--mode sitl runs one trial (vary --seed instead)")
         cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
         try:
-            return run_sitl_scenario(scenario, out, seed, link, realtime=args.realtime, on_progress=cb, view=view)
+            return run_sitl_scenario(scenario, out, seed, link, realtime=args.realtime, on_progress=cb, view=view,
+                                     units_per_process=args.units_per_process)
         except RuntimeError as e:
             raise UserInputError(str(e)) from None
 
@@ -613,6 +658,7 @@ def sitl_runner(args):
 
 def add_sitl_up_arguments(p) -> None:
     _add_link_options(p, "udp")
+    _add_units_per_process(p)
     p.add_argument("--realtime", action="store_true", help="pace the world to the wall clock")
     p.add_argument("--external-coordinator", action="store_true",
                    help="start no coordinator: attach one with `mars-link coordinator`")
@@ -644,7 +690,8 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None, vi
                              clients=clients, speed=getattr(args, "speed", None), roles=roles,
                              topology="router" if args.external_coordinator else "peer",
                              signing_key_file=getattr(args, "signing_key_file", None), vehicle=vehicle,
-                             require_signing=getattr(args, "require_signing", False), view=view)
+                             require_signing=getattr(args, "require_signing", False), view=view,
+                             units_per_process=args.units_per_process)
         for line in _endpoints(session, link):
             print(line, flush=True)
         if vehicle is not None:
@@ -660,7 +707,7 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None, vi
             attach += (f" --transport zenoh --zenoh-connect {(link.listen or (session.router_endpoint,))[0]}" if link.kind == "zenoh"
                        else f" --transport udp --world-port {session.run.world_port} --coordinator-port {session.run.coordinator_port}")
             print(f"waiting for a coordinator: {attach}", flush=True)
-        code = session.wait()
+        code = session.wait(units_may_die=True)  # a dead unit is a failed unit (FTC flies on)
         print(f"run directory: {out}")
         return code
     except KeyboardInterrupt:
@@ -679,7 +726,7 @@ def _endpoints(session, link: LinkSpec) -> list[str]:
     lines = [f"{name}: pid {run.processes[name].pid}, zenoh node {name!r}" for name in ("world", "coordinator")
              if name in run.processes]
     for i, u in enumerate(run.setup.unit_ids):
-        lines.append(f"unit {u}: pid {run.processes[f'unit{u}'].pid}, system id {u}, zenoh node 'unit/{u}', "
+        lines.append(f"unit {u}: pid {run.processes[run.unit_process[u]].pid}, system id {u}, zenoh node 'unit/{u}', "
                      f"GCS udp 127.0.0.1:{run.clients.gcs_port}, API udp 127.0.0.1:{run.clients.api_port(i)}, "
                      f"log {run.out / f'unit{u}.tlog'}")
     return lines

@@ -2,8 +2,9 @@
 cleanly.
 
 Children are ended by PID (SIGTERM, then SIGKILL after a grace period) on normal exit, on Ctrl-C /
-SIGTERM and, with `stop_on_child_death` (what `mars-link sitl up` does), as soon as any one of them
-dies before the world finished.
+SIGTERM and, with `stop_on_child_death`, as soon as the world or the coordinator dies before the world
+finished (`mars-link sitl up`: one line names it, exit 1); a unit process that dies is a failed unit
+(`units_may_die`: the world declares it dead, the coordinator's FTC flies on without it).
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ class SitlRun:
     coordinator_port: int
     clients: ClientPorts
     processes: dict[str, subprocess.Popen] = field(default_factory=dict)
+    unit_process: dict[int, str] = field(default_factory=dict)  # unit id -> the name of the process hosting it
 
     def stop(self, grace_s: float = 3.0) -> None:
         """SIGTERM every child still running, wait, SIGKILL the ones that did not end (by PID)."""
@@ -78,7 +80,7 @@ class SitlRun:
             lines.append(f"coordinator: pid {self.processes['coordinator'].pid}, udp {LOOPBACK}:{self.coordinator_port} "
                          "(unit telemetry in, per-rotor commands out)")
         for i, u in enumerate(self.setup.unit_ids):
-            lines.append(f"unit {u}: pid {self.processes[f'unit{u}'].pid}, system id {u}, "
+            lines.append(f"unit {u}: pid {self.processes[self.unit_process[u]].pid}, system id {u}, "
                          f"GCS udp {LOOPBACK}:{self.clients.gcs_port}, API udp {LOOPBACK}:{self.clients.api_port(i)} "
                          f"(MAVSDK udpin://{LOOPBACK}:{self.clients.api_port(i)}), log {self.out / f'unit{u}.tlog'}")
         return lines
@@ -87,15 +89,20 @@ class SitlRun:
 def start(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
           seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
           signing_key_file: str | None = None, role_args: dict[str, list[str]] | None = None,
-          unit_prefix=None, skip: tuple[str, ...] = (), forever: bool = False, view: tuple[str, ...] = ()) -> SitlRun:
+          unit_prefix=None, skip: tuple[str, ...] = (), forever: bool = False, view: tuple[str, ...] = (),
+          units_per_process: int = 1) -> SitlRun:
     """Start every process of one run, `python -m sitl.lockstep ROLE ...` each (returns at once; `wait`
     follows it). The coordinator <-> unit links are signed with the key of `signing_key_file`, else of
     $MARS_LINK_SIGNING_KEY (inherited). For other wirings (mars_link.sitl_mode): `role_args` adds
     arguments per role ("world", "coordinator", "unit"; e.g. `--transport zenoh ...`), `unit_prefix(u)` is
     an argv to run unit u under (e.g. `ip netns exec NS`), `skip` leaves roles out (a coordinator run
     elsewhere); `forever`: a docked run goes on until stopped (a flight flown from a ground station).
-    `view`: the world's flight-view options (`--mcap`, `--foxglove HOST:PORT`; the coordinator then feeds it)."""
+    `view`: the world's flight-view options (`--mcap`, `--foxglove HOST:PORT`; the coordinator then feeds it).
+    `units_per_process` K: each process hosts K units (in order; the last one may have fewer), each its own
+    MAVLink system with its own links; process "unit<u>" (K = 1) or "units<first>-<last>"."""
     setup = load_setup(scenario, units, layout)  # refuses bad input before any process starts
+    if units_per_process < 1:
+        raise UserInputError(f"--units-per-process must be >= 1, got {units_per_process}")
     load_key(signing_key_file)  # a bad key file too
     out.mkdir(parents=True, exist_ok=True)
     clients = clients or ClientPorts()
@@ -135,12 +142,17 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
             com, yaw = _start_pose(setup)
             world.append("--start-pose=" + ",".join(repr(float(x)) for x in (*com, yaw)))  # "=": may start with "-"
         spawn("world", world + ([] if speed is None else ["--speed", str(speed)]) + extra.get("world", []) + list(view), world_sock)
-        for i, u in enumerate(setup.unit_ids):
-            argv = ["unit", *common, "--unit", str(u), "--gcs-port", str(clients.gcs_port),
-                    "--api-port", str(clients.api_port(i))]
+        ids = setup.unit_ids
+        for first in range(0, len(ids), units_per_process):
+            group = ids[first:first + units_per_process]
+            ports = [str(clients.api_port(i)) for i in range(first, first + len(group))]
+            argv = ["unit", *common, "--unit", ",".join(map(str, group)), "--gcs-port", str(clients.gcs_port),
+                    "--api-port", ",".join(ports)]
             if clients.bind_any:
                 argv += ["--gcs-bind", "0", "--api-bind", "0"]
-            spawn(f"unit{u}", argv + extra.get("unit", []), prefix=list(unit_prefix(u)) if unit_prefix else [])
+            name = f"unit{group[0]}" if len(group) == 1 else f"units{group[0]}-{group[-1]}"
+            run.unit_process.update({u: name for u in group})
+            spawn(name, argv + extra.get("unit", []), prefix=list(unit_prefix(group[0])) if unit_prefix else [])
     except BaseException:
         run.stop()
         raise
@@ -154,32 +166,27 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
 def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool = True,
          units_may_die: bool = False) -> int:
     """Until the world ends (the scenario's end), a child dies (with `stop_on_child_death`) or the
-    timeout; then stop all. 0 = the world finished, 1 = a child died first, 124 = timeout.
-    `units_may_die`: a unit process that dies is a failed unit, not a failed run (the world declares
-    it dead, the coordinator reallocates, the flight goes on); only the world or coordinator stop it."""
+    timeout; then stop all. 0 = the world finished, 1 = a child died first (one line on stderr names
+    it), 124 = timeout. `units_may_die`: a unit process that dies is a failed unit, not a failed run
+    (the world declares it dead, the coordinator reallocates, the flight goes on); only the world or
+    coordinator stop it."""
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
     code = 0
     reported: set[str] = set()
     try:
         while True:
             world = run.processes["world"].poll()
-            if world is not None:
-                code = world
+            if world == 0:
                 break
             dead = [n for n, p in run.processes.items() if p.poll() not in (None, 0)]  # killed or failed
             if units_may_die:
                 for name in sorted(n for n in dead if n.startswith("unit") and n not in reported):
                     reported.add(name)
-                    print(f"sitl: {name} died (exit {run.processes[name].returncode}): a failed unit, "
+                    print(f"sitl: {name} died ({exit_text(run.processes[name].returncode)}): a failed unit, "
                           "the flight goes on", file=sys.stderr)
                 dead = [n for n in dead if not n.startswith("unit")]
-            if dead and stop_on_child_death:
-                print(f"sitl: {', '.join(dead)} died (exit {[run.processes[n].returncode for n in dead]}); "
-                      f"stopping the rest (logs in {run.out})", file=sys.stderr)
-                for name in dead:
-                    last = _last_line(run.out / f"{name}.log")
-                    if last:
-                        print(f"sitl: {name}: {last}", file=sys.stderr)
+            if world is not None or (dead and stop_on_child_death):
+                print(death_line(run, dead or ["world"]), file=sys.stderr)
                 code = 1
                 break
             if deadline is not None and time.monotonic() > deadline:
@@ -199,10 +206,31 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
     return code
 
 
+def exit_text(returncode: int) -> str:
+    """A child's end as people read it: "killed by SIGKILL" or "exit 3"."""
+    if returncode < 0:
+        try:
+            return f"killed by {signal.Signals(-returncode).name}"
+        except ValueError:
+            return f"killed by signal {-returncode}"
+    return f"exit {returncode}"
+
+
+def death_line(run: SitlRun, dead: list[str]) -> str:
+    """The one line `sitl up` prints when the world or the coordinator dies before the flight ends:
+    who, how, the last line of its log if it failed on its own (a crash), and that the rest stop."""
+    parts = []
+    for name in dead:
+        p = run.processes[name]
+        last = _last_line(run.out / f"{name}.log") if p.returncode > 0 else ""
+        parts.append(f"{name} (pid {p.pid}) died ({exit_text(p.returncode)})" + (f": {last}" if last else ""))
+    return f"sitl: {'; '.join(parts)} before the flight ended: stopping every child (logs in {run.out})"
+
+
 def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
             seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
             signing_key_file: str | None = None, vehicle=None, require_signing: bool = False,
-            view: tuple[str, ...] = ()) -> int:
+            view: tuple[str, ...] = (), units_per_process: int = 1) -> int:
     """`mars-link sitl up`: start, print the endpoints, run until the end, Ctrl-C or a child's death.
     With `vehicle` (sitl.vehicle_host.VehiclePorts) the coordinator serves the docked assembly as one
     MAVLink vehicle and the run goes on, paced to real time (unless `speed`), until stopped.
@@ -215,10 +243,10 @@ def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: s
         role_args = {"unit": extra, "coordinator": (vehicle.argv() if vehicle is not None else []) + extra}
         if vehicle is None:
             run = start(scenario, out, units, layout, seed, speed, clients, signing_key_file, role_args=role_args,
-                        view=view)
+                        view=view, units_per_process=units_per_process)
         else:
             run = start(scenario, out, units, layout, seed, 1.0 if speed is None else speed, clients, signing_key_file,
-                        role_args=role_args, forever=True, view=view)
+                        role_args=role_args, forever=True, view=view, units_per_process=units_per_process)
         for line in run.endpoints():
             print(line, flush=True)
         if vehicle is not None:
@@ -227,7 +255,7 @@ def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: s
         sc = run.setup.scenario
         print(f"running {'until Ctrl-C' if steps is None else f'{steps / sc.sim.control_hz:.1f} s of sim time'}; "
               f"run directory {out}", flush=True)
-        return wait(run)
+        return wait(run, units_may_die=True)  # a dead unit is a failed unit (FTC flies on)
     except KeyboardInterrupt:
         print("sitl: interrupted, stopping every child", file=sys.stderr)
         if run is not None:

@@ -68,6 +68,7 @@ import itertools
 import json
 import math
 import os
+import selectors
 import signal
 import sys
 import time
@@ -114,6 +115,8 @@ TICK_PERIOD_S = 0.02  # unit: heartbeats and streams (<= 20 Hz) served on this w
 HOUSEKEEPING_DEFER_S = 0.02  # unit: housekeeping waits at most this long past its time for a quiet moment
 UNIT_QUIET_S = 0.001  # unit: housekeeping starts this long after the last datagram (no step in flight)
 COORDINATOR_QUIET_S = 0.002  # coordinator: fault detection this long after the commands went out
+STOP_POLL_S = 0.2  # world: longest wait before it looks at its stop flag again (a SIGTERM ends it in time to
+# write its summary within the launcher's 3 s grace, also while it waits for units that were stopped with it)
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -323,8 +326,12 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             waiting = set(live)
             deadline = time.monotonic() + unit_timeout_s
             t_us = usec(t)
-            while waiting and time.monotonic() < deadline and not (stop.requested or stop.ended):
-                for m in link.receive(deadline - time.monotonic()):
+            while waiting and not (stop.requested or stop.ended):
+                left = max(0.0, deadline - time.monotonic())
+                msgs = link.receive(min(left, STOP_POLL_S))  # (a SIGTERM is seen within STOP_POLL_S)
+                if not msgs and left == 0.0:  # (past the deadline, what was already queued is read first:
+                    break  # after this process itself was stopped, the answers wait in its socket)
+                for m in msgs:
                     if _is_shutdown(m):
                         stop.ended = True
                         break
@@ -428,82 +435,137 @@ class UnitPorts:
     api_bind: int | None = None  # None: 14580 + index
 
 
-def run_unit(setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: UnitPorts | None = None,
-             command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None,
-             require_signing: bool = False) -> int:
-    """The unit's full firmware on its HIL, coordinator and client links; with a signing `key` the
-    coordinator link accepts only genuinely signed frames (and signs what it sends); `require_signing`:
-    the client links too, where unsigned clients may only read (firmware_models.control_policy)."""
-    from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL
-    from mars_link.build import make_unit
-    from firmware_models.vehicle_io import LinkSpec, VehicleSockets, client_links, vehicle_status, write_json_atomic
+def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, clients: list[UnitPorts],
+              command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None,
+              require_signing: bool = False) -> int:
+    """Several units' firmwares in this process (`--units-per-process K`), each its own MAVLink system
+    with its own links, tlog and status file, served by one event loop: one wake-up serves every unit
+    whose datagram came in, and the start-up (imports) is paid once. One unit is the default."""
+    from firmware_models.vehicle_io import write_json_atomic
 
-    sc = setup.scenario
-    client = client or UnitPorts()
-    index = setup.unit_ids.index(unit_id)
-    vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
-                        wall_time_s=time.time(), require_signing=require_signing)
-    links = client_links(index, client.gcs_port, client.api_port, client.gcs_bind, client.api_bind)
-    links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
-    if setup.docked:
-        links[LINK_COORDINATOR] = LinkSpec(0, ports.address("coordinator"), False, ports.open(f"unit/{unit_id}", "coordinator"))
     out.mkdir(parents=True, exist_ok=True)
     stop = _Stop()
-    io = VehicleSockets(vehicle, links, tlog=out / f"unit{unit_id}.tlog")
-    io.batch = True
-    hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.docked else [])
-    status_path = out / f"unit{unit_id}_status.json"
-    next_hello = next_tick = next_status = 0.0
-    pending_since = None
-    last_io = -math.inf
-    vehicle.defer_own_state = setup.docked  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
-    print(json.dumps({"ready": True, "unit": unit_id, "ports": io.ports()}), flush=True)
-    cpu0 = time.process_time()
+    units: list[_UnitLoop] = []
+    sel = selectors.DefaultSelector()
     try:
-        while not stop.requested:
-            steps = vehicle.stats.get("hil_steps", 0)
-            if setup.steps is not None and steps >= setup.steps:
-                break
+        for u, client in zip(unit_ids, clients):
+            unit = _UnitLoop(setup, u, ports, out, client, command_timeout_s, key, require_signing)
+            units.append(unit)
+            for name, t in unit.io.links.items():
+                sel.register(t, selectors.EVENT_READ, (unit, name))
+        for unit in units:
+            print(json.dumps({"ready": True, "unit": unit.unit_id, "ports": unit.io.ports()}), flush=True)
+        cpu0 = time.process_time()
+        active = list(units)
+        while active and not stop.requested:
             now = time.monotonic()
-            if vehicle.hil_pending:
-                pending_since = pending_since if pending_since is not None else now
-            # housekeeping (the unit's own state, heartbeats, streams, status file) waits while a step is in
-            # flight and for UNIT_QUIET_S after the last datagram (the other units are then reading their
-            # commands on the same CPUs), at most HOUSEKEEPING_DEFER_S past its time
-            due = min(next_hello, next_tick, next_status)
-            quiet_at = math.inf if pending_since is not None else last_io + UNIT_QUIET_S
-            start_at = max(now if vehicle.has_deferred else due, quiet_at)
-            if now >= min(start_at, due + HOUSEKEEPING_DEFER_S):
-                vehicle.run_deferred()
-                if now >= next_hello:  # hello until the world talks, then the 1 Hz wall-clock heartbeat
-                    io.send([vehicle.hello(name) for name in hello_links])
-                    next_hello = now + (0.2 if steps == 0 else 1.0)
-                if now >= next_tick:  # heartbeats and streams on wall time, even while the lockstep waits
-                    io.send(vehicle.tick(time.time(), vehicle.sim_s))
-                    next_tick = now + TICK_PERIOD_S
-                if now >= next_status:
-                    next_status = now + UNIT_STATUS_PERIOD_S
-                    write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **io.counters()))
-                due = min(next_hello, next_tick, next_status)
-                start_at = max(due, quiet_at)
-            wake = min(start_at, due + HOUSEKEEPING_DEFER_S)
-            if pending_since is not None:
-                wake = min(wake, pending_since + command_timeout_s)
-            if io.poll(wake - now):
-                last_io = time.monotonic()
-            if vehicle.hil_pending and pending_since is not None and time.monotonic() - pending_since > command_timeout_s:
-                print(f"unit {unit_id}: no coordinator command for {command_timeout_s:.1f} s at "
-                      f"t={vehicle.sim_s:.2f}: answering with the held command / fail-safe", file=sys.stderr)
-                io.send(vehicle.release_hil(time.time()))
-            if not vehicle.hil_pending:
-                pending_since = None
-        vehicle.run_deferred()
-        write_json_atomic(status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, cpu_s=time.process_time(),
-                                                      cpu_loop_s=time.process_time() - cpu0,
-                                                      **io.counters()))
+            wake = min(unit.housekeeping(now) for unit in active)
+            for key_, _ in sel.select(max(0.0, wake - now)):
+                unit, name = key_.data
+                if unit.io.drain(name, key_.fileobj):
+                    unit.last_io = time.monotonic()
+            for unit in active:
+                unit.check_command_timeout()
+            for unit in [u for u in active if u.done]:
+                active.remove(unit)
+                unit.finish(time.process_time() - cpu0 if len(units) == 1 else None)
+        for unit in active:
+            unit.finish(time.process_time() - cpu0 if len(units) == 1 else None)
+        if len(units) > 1:  # the process's CPU, once (each unit's status has its own counters only)
+            write_json_atomic(out / f"unit_host{unit_ids[0]}_status.json",
+                              {"units": unit_ids, "cpu_s": time.process_time(), "cpu_loop_s": time.process_time() - cpu0})
     finally:
-        io.close()
+        sel.close()
+        for unit in units:
+            unit.io.close()
     return 0
+
+
+class _UnitLoop:
+    """One unit's firmware, its links and its wall-clock housekeeping, driven by `run_units`' loop."""
+
+    def __init__(self, setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: UnitPorts,
+                 command_timeout_s: float, key: bytes | None, require_signing: bool) -> None:
+        from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL
+        from mars_link.build import make_unit
+        from firmware_models.vehicle_io import LinkSpec, VehicleSockets, client_links
+
+        sc = setup.scenario
+        self.setup, self.unit_id, self.command_timeout_s = setup, unit_id, command_timeout_s
+        index = setup.unit_ids.index(unit_id)
+        vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
+                            wall_time_s=time.time(), require_signing=require_signing)
+        links = client_links(index, client.gcs_port, client.api_port, client.gcs_bind, client.api_bind)
+        links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
+        if setup.docked:
+            links[LINK_COORDINATOR] = LinkSpec(0, ports.address("coordinator"), False,
+                                               ports.open(f"unit/{unit_id}", "coordinator"))
+        self.vehicle = vehicle
+        self.io = VehicleSockets(vehicle, links, tlog=out / f"unit{unit_id}.tlog")
+        self.io.batch = True
+        self.hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.docked else [])
+        self.status_path = out / f"unit{unit_id}_status.json"
+        self.next_hello = self.next_tick = self.next_status = 0.0
+        self.pending_since: float | None = None
+        self.last_io = -math.inf
+        vehicle.defer_own_state = setup.docked  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
+
+    @property
+    def done(self) -> bool:
+        return self.setup.steps is not None and self.vehicle.stats.get("hil_steps", 0) >= self.setup.steps
+
+    def housekeeping(self, now: float) -> float:
+        """The unit's own state, heartbeats, streams and status file when due; returns when to wake next.
+        Housekeeping waits while a step is in flight and for UNIT_QUIET_S after the last datagram (the
+        other units are then reading their commands on the same CPUs), at most HOUSEKEEPING_DEFER_S
+        past its time."""
+        from firmware_models.vehicle_io import vehicle_status, write_json_atomic
+
+        vehicle, io = self.vehicle, self.io
+        steps = vehicle.stats.get("hil_steps", 0)
+        if vehicle.hil_pending:
+            self.pending_since = self.pending_since if self.pending_since is not None else now
+        due = min(self.next_hello, self.next_tick, self.next_status)
+        quiet_at = math.inf if self.pending_since is not None else self.last_io + UNIT_QUIET_S
+        start_at = max(now if vehicle.has_deferred else due, quiet_at)
+        if now >= min(start_at, due + HOUSEKEEPING_DEFER_S):
+            vehicle.run_deferred()
+            if now >= self.next_hello:  # hello until the world talks, then the 1 Hz wall-clock heartbeat
+                io.send([vehicle.hello(name) for name in self.hello_links])
+                self.next_hello = now + (0.2 if steps == 0 else 1.0)
+            if now >= self.next_tick:  # heartbeats and streams on wall time, even while the lockstep waits
+                io.send(vehicle.tick(time.time(), vehicle.sim_s))
+                self.next_tick = now + TICK_PERIOD_S
+            if now >= self.next_status:
+                self.next_status = now + UNIT_STATUS_PERIOD_S
+                write_json_atomic(self.status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **io.counters()))
+            due = min(self.next_hello, self.next_tick, self.next_status)
+            start_at = max(due, quiet_at)
+        wake = min(start_at, due + HOUSEKEEPING_DEFER_S)
+        if self.pending_since is not None:
+            wake = min(wake, self.pending_since + self.command_timeout_s)
+        return wake
+
+    def check_command_timeout(self) -> None:
+        vehicle = self.vehicle
+        if vehicle.hil_pending and self.pending_since is not None \
+                and time.monotonic() - self.pending_since > self.command_timeout_s:
+            print(f"unit {self.unit_id}: no coordinator command for {self.command_timeout_s:.1f} s at "
+                  f"t={vehicle.sim_s:.2f}: answering with the held command / fail-safe", file=sys.stderr)
+            self.io.send(vehicle.release_hil(time.time()))
+        if not vehicle.hil_pending:
+            self.pending_since = None
+
+    def finish(self, cpu_loop_s: float | None) -> None:
+        """The last deferred work and the final status (`cpu_loop_s`: this process's stepping CPU when it
+        hosts this unit alone; a host of several writes its own status file)."""
+        from firmware_models.vehicle_io import vehicle_status, write_json_atomic
+
+        vehicle = self.vehicle
+        vehicle.run_deferred()
+        cpu = {} if cpu_loop_s is None else {"cpu_s": time.process_time(), "cpu_loop_s": cpu_loop_s}
+        write_json_atomic(self.status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **cpu,
+                                                           **self.io.counters()))
 
 
 # ----------------------------------------------------------------------------- coordinator
@@ -579,20 +641,24 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             idle_deadline = time.monotonic() + WORLD_IDLE_TIMEOUT_S
             deadline = None
             t_expected = None
-            while set(packets) < live and not stop.requested:
+            final = False  # past the deadline: read what is already queued, then stop waiting (after this
+            while set(packets) < live and not stop.requested:  # process was stopped, the telemetry waits in its socket)
                 now = time.monotonic()
-                if (deadline is not None and now >= deadline) or now >= idle_deadline:
-                    break
+                final = final or (deadline is not None and now >= deadline) or now >= idle_deadline
                 if k == 0 and not packets and now >= next_hello:  # hello until the world starts
                     link.heartbeat(world)
                     next_hello = now + 0.2
                 if finish_at is not None and now >= finish_at:
                     coordinator.finish_step()
                     finish_at = None
-                wait_s = min(0.2, (deadline or idle_deadline) - now, math.inf if finish_at is None else finish_at - now)
+                wait_s = 0.0 if final else min(0.2, (deadline or idle_deadline) - now,
+                                               math.inf if finish_at is None else finish_at - now)
                 if hosted is not None:  # client links and wall-clock heartbeats while the lockstep waits
                     wait_s = hosted.wait(link, wait_s)
-                for m in link.receive(wait_s):
+                msgs = link.receive(wait_s)
+                if final and not msgs:
+                    break
+                for m in msgs:
                     if m.get_type() == "COMMAND_ACK":
                         if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in accepted:
                             accepted[m.get_srcSystem()].add(m.command)
@@ -619,6 +685,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                         packets[p.unit_id] = p
                     else:
                         link.drop("stale_telemetry")
+            if stop.requested:  # stopped mid-step: the units stop too; none of them is lost
+                break
             if not packets:  # no telemetry at all for WORLD_IDLE_TIMEOUT_S: the world is gone
                 if not stop.requested:
                     print(f"coordinator: no telemetry for {WORLD_IDLE_TIMEOUT_S:.0f} s: ending", file=sys.stderr)
@@ -741,7 +809,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("scenario", help="scenario file or bundled name; - for built-in defaults")
     ap.add_argument("--units", type=int, default=None)
     ap.add_argument("--layout", default=None)
-    ap.add_argument("--unit", type=int, default=1)
+    ap.add_argument("--unit", default="1", help="unit id, or ids a,b,c: several units in this process")
     ap.add_argument("--steps", type=int, default=None, help="exchanges of a docked run (else from the scenario)")
     ap.add_argument("--start-pose", default=None, help="world: N,E,D,YAW of the assembly's CoM (else from the scenario)")
     ap.add_argument("--position-every", type=int, default=None, help="world: mocap samples every n-th exchange")
@@ -754,7 +822,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--speed", type=float, default=None, help="world pacing, x real time (0: as fast as possible)")
     add_signing_args(ap, "the coordinator <-> unit links (neither: unsigned)")
     ap.add_argument("--gcs-port", type=int, default=14550)
-    ap.add_argument("--api-port", type=int, default=None)
+    ap.add_argument("--api-port", default=None, help="the unit's API port, or one per unit of --unit a,b,c")
     ap.add_argument("--gcs-bind", type=int, default=None)
     ap.add_argument("--api-bind", type=int, default=None)
     ap.add_argument("--forever", action="store_true", help="docked: run until stopped (ignores --steps)")
@@ -820,6 +888,16 @@ def _link_spec(args) -> LinkSpec:
     return link
 
 
+def _int_list(text: str | None, option: str) -> list[int]:
+    """"3" or "1,2,3" -> [3] / [1, 2, 3]; None -> []."""
+    if text is None:
+        return []
+    try:
+        return [int(x) for x in text.split(",")]
+    except ValueError:
+        raise UserInputError(f"{option} {text!r}: expected integers separated by commas") from None
+
+
 def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None) -> int:
     if args.role == "world":
         seed = args.seed if args.seed is not None else setup.scenario.sim.seed
@@ -831,11 +909,17 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
             start = (np.array([n, e, d]), yaw)
         return run_world(setup, ports, out, seed, speed=speed, start=start, mcap=args.mcap, foxglove=args.foxglove)
     if args.role == "unit":
-        if args.unit not in setup.unit_ids:
-            print(f"error: unit {args.unit} is not in this run (units {setup.unit_ids})", file=sys.stderr)
-            return 2
-        return run_unit(setup, args.unit, ports, out, UnitPorts(args.gcs_port, args.api_port, args.gcs_bind, args.api_bind),
-                        key=key, require_signing=args.require_signing)
+        units, api_ports = _int_list(args.unit, "--unit"), _int_list(args.api_port, "--api-port")
+        for u in units:
+            if u not in setup.unit_ids:
+                raise UserInputError(f"unit {u} is not in this run (units {setup.unit_ids})")
+        if len(set(units)) != len(units):
+            raise UserInputError(f"--unit {args.unit}: a unit named twice")
+        if api_ports and len(api_ports) != len(units):
+            raise UserInputError(f"--api-port {args.api_port}: one port per unit of --unit {args.unit}")
+        clients = [UnitPorts(args.gcs_port, api_ports[i] if api_ports else None, args.gcs_bind, args.api_bind)
+                   for i in range(len(units))]
+        return run_units(setup, units, ports, out, clients, key=key, require_signing=args.require_signing)
     vehicle = None
     if args.vehicle:
         from sitl.vehicle_host import VehiclePorts

@@ -1,8 +1,11 @@
 """Process hygiene (issue 18, class 3): SIGKILL of `run --mode sitl` or `sitl up` leaves no child alive
-2 s later (checked by PID), and a run directory that a live run owns is refused to a second run."""
+2 s later (checked by PID), and a run directory that a live run owns is refused to a second run.
+SIGTERM of `run --mode sitl` stops every child by PID and keeps what was flown: the children's
+summaries, whole rows in the truth log, readable .tlogs, and a summary.json of the part flown."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -38,6 +41,13 @@ def _children(parent: int) -> list[int]:
 def _alive(pid: int) -> bool:
     got = _ppid_and_state(pid)
     return got is not None and got[1] != "Z"  # a zombie has ended (it only waits to be reaped)
+
+
+def _sim_time(out: Path) -> float:
+    try:
+        return json.loads((out / "world_status.json").read_text())["sim_time_s"]
+    except (OSError, ValueError, KeyError):
+        return 0.0
 
 
 def _start(argv: list[str]) -> tuple[subprocess.Popen, list[int]]:
@@ -78,6 +88,47 @@ def test_sigkill_of_the_parent_leaves_no_child(tmp_path, verb) -> None:
         assert again.returncode == 0, again.stderr
     finally:
         for k in kids:  # only if the test failed: end what we started, by PID
+            if _alive(k):
+                os.kill(k, signal.SIGKILL)
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+def test_sigterm_of_run_mode_sitl_stops_every_child_and_keeps_the_logs(tmp_path) -> None:
+    from pymavlink import mavutil
+
+    out = tmp_path / "run"
+    proc, kids = _start(["run", "hover_3x2", "--mode", "sitl", "--quiet", "--duration", "60", "--out", str(out)])
+    try:
+        deadline = time.monotonic() + 60
+        while _sim_time(out) < 3.0 and time.monotonic() < deadline:  # past the take-off, flying
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGTERM)
+        t_term = time.monotonic()
+        _, stderr = proc.communicate(timeout=30)
+        assert proc.returncode == 130 and "Traceback" not in stderr, stderr
+        assert len(stderr.strip().splitlines()) == 1, stderr  # "mars-link: interrupted"
+        time.sleep(max(0.0, t_term + 2.0 - time.monotonic()))
+        assert [k for k in kids if _alive(k)] == []
+        world = json.loads((out / "world_summary.json").read_text())
+        assert world["stopped"] is True and 3.0 <= world["sim_time_s"] < 60.0
+        assert json.loads((out / "coordinator_summary.json").read_text())["lost_units"] == []
+        truth = (out / "world_truth.csv").read_bytes()
+        assert b"\0" not in truth and truth.endswith(b"\n")
+        rows = truth.decode().splitlines()
+        assert len(rows) > 50 and {len(r.split(",")) for r in rows} == {8}  # whole rows only
+        summary = json.loads((out / "summary.json").read_text())  # the part flown, marked incomplete
+        assert summary["completed"] is False and summary["sim_time_s"] == pytest.approx(world["sim_time_s"])
+        assert summary["max_error_m"] < 0.5
+        for u in range(1, 7):  # every unit's .tlog reads to its end
+            log = mavutil.mavlink_connection(str(out / f"unit{u}.tlog"))
+            n = 0
+            while log.recv_match() is not None:
+                n += 1
+            assert n > 100
+    finally:
+        for k in kids:
             if _alive(k):
                 os.kill(k, signal.SIGKILL)
         if proc.poll() is None:

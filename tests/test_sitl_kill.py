@@ -1,6 +1,6 @@
 """A unit process dies (SIGKILL) during a lockstep run: the world declares it dead after its timeout,
-its motors give zero thrust, the other units and the run go on; `mars-link sitl up` stops every
-child when one dies, and on Ctrl-C. Only processes this test started are signalled, by PID."""
+its motors give zero thrust, the other units and the run go on; `mars-link sitl up` flies on without
+a dead unit, stops every child when the world dies, and on Ctrl-C. Only processes this test started are signalled, by PID."""
 
 from __future__ import annotations
 
@@ -120,7 +120,7 @@ def _heartbeats(sock: socket.socket, seconds: float) -> dict[int, int]:
     return counts
 
 
-def test_sitl_up_stops_every_child_when_one_dies_and_on_ctrl_c(tmp_path: Path) -> None:
+def test_sitl_up_flies_on_without_a_dead_unit_stops_on_the_worlds_death_and_on_ctrl_c(tmp_path: Path) -> None:
     gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     gcs.bind(("127.0.0.1", 0))
     out = tmp_path / "a" / "up"
@@ -143,9 +143,13 @@ def test_sitl_up_stops_every_child_when_one_dies_and_on_ctrl_c(tmp_path: Path) -
         while (m := log.recv_match()) is not None:
             types.add(m.get_type())
         assert {"HIL_SENSOR", "HIL_ACTUATOR_CONTROLS", "HEARTBEAT", "ATTITUDE"} <= types, types
-        os.kill(pids["unit 2"], signal.SIGKILL)
+        os.kill(pids["unit 2"], signal.SIGKILL)  # a failed unit: the world declares it dead and goes on
+        _until(lambda: read_status(out / "world_status.json", 0.5).get("dead_units") == [2], 30.0, "unit 2 declared dead")
+        assert proc.poll() is None and not _gone(pids["unit 1"])
+        os.kill(pids["world"], signal.SIGKILL)  # the world's death ends the run
         assert proc.wait(20) == 1
-        assert "unit2 died" in proc.stderr.read()
+        err = proc.stderr.read()
+        assert "unit2 died (killed by SIGKILL): a failed unit" in err and "world (pid" in err, err
         assert all(_gone(p) for p in pids.values())
     finally:
         gcs.close()

@@ -1,5 +1,7 @@
 """The lockstep survives a paused unit (issue 18, class 4): SIGSTOP of one unit process for 5 s
-mid-flight, then SIGCONT, under `sitl up` and under `run --mode sitl`. The unit is lost (and stays
+mid-flight, then SIGCONT, under `sitl up` and under `run --mode sitl`. A paused world only pauses the
+flight (it resumes), a paused coordinator sends the units to their fail-safe (they land and stay
+landed; the flight ends cleanly): see the last test. The unit is lost (and stays
 lost when it comes back), the coordinator stays up and the 3x2 finishes its hover on FTC (qp) in the
 world's truth. Before, the resumed unit's backlog packet set the step's time, every live unit's packet
 looked stale, all were lost and the coordinator ended ("no telemetry") about 1 s after the resume."""
@@ -39,8 +41,8 @@ def _sim_time(out: Path) -> float:
         return 0.0
 
 
-def _unit_pid(parent: int, unit: int, timeout_s: float = 60.0) -> int:
-    """The PID of `python -m sitl.lockstep unit ... --unit N`, a child of `parent` (found in /proc)."""
+def _unit_pid(parent: int, unit: int | None, timeout_s: float = 60.0, role: str = "unit") -> int:
+    """The PID of `python -m sitl.lockstep ROLE ... [--unit N]`, a child of `parent` (found in /proc)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         for entry in os.listdir("/proc"):
@@ -51,18 +53,18 @@ def _unit_pid(parent: int, unit: int, timeout_s: float = 60.0) -> int:
                 argv = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
             except OSError:
                 continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) != parent or b"--unit" not in argv:
+            if int(stat.rsplit(")", 1)[1].split()[1]) != parent or argv[3:4] != [role.encode()]:
                 continue
-            if argv[argv.index(b"--unit") + 1] == str(unit).encode():
+            if unit is None or argv[argv.index(b"--unit") + 1] == str(unit).encode():
                 return int(entry)
         time.sleep(0.1)
-    raise AssertionError(f"unit {unit} process not found")
+    raise AssertionError(f"{role} {unit or ''} process not found")
 
 
-def _pause_mid_flight(proc: subprocess.Popen, out: Path) -> None:
-    pid = _unit_pid(proc.pid, PAUSED_UNIT)
+def _pause_mid_flight(proc: subprocess.Popen, out: Path, pid: int | None = None, at_s: float = 4.0) -> None:
+    pid = pid or _unit_pid(proc.pid, PAUSED_UNIT)
     deadline = time.monotonic() + 90
-    while _sim_time(out) < 4.0 and time.monotonic() < deadline and proc.poll() is None:
+    while _sim_time(out) < at_s and time.monotonic() < deadline and proc.poll() is None:
         time.sleep(0.05)
     os.kill(pid, signal.SIGSTOP)
     try:
@@ -85,17 +87,22 @@ def _check_the_flight(out: Path) -> None:
     assert min(others) > 0.6, heights
 
 
-def _fly_with_a_pause(argv: list[str], out: Path) -> None:
+def _fly(argv: list[str], out: Path, during) -> None:
+    """Run the CLI to its end with `during(proc)` done mid-flight; it must exit 0."""
     proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", *argv, "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
-        _pause_mid_flight(proc, out)
+        during(proc)
         _, stderr = proc.communicate(timeout=150)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
     assert proc.returncode == 0, stderr[-2000:]
+
+
+def _fly_with_a_pause(argv: list[str], out: Path) -> None:
+    _fly(argv, out, lambda proc: _pause_mid_flight(proc, out))
     _check_the_flight(out)
 
 
@@ -108,3 +115,36 @@ def test_run_mode_sitl_survives_a_paused_unit(tmp_path: Path) -> None:
     _fly_with_a_pause(["run", _scenario(tmp_path), "--mode", "sitl", "--quiet"], out)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["completed"] and summary["max_error_m"] < 1.0, (summary["completed"], summary["max_error_m"])
+
+
+def test_a_paused_world_resumes_and_a_paused_coordinator_lands_the_units(tmp_path: Path) -> None:
+    """The world drives the clock: while it is stopped nobody waits for a step in flight, so after SIGCONT
+    the flight resumes where it was (no unit lost). The coordinator stopped for 5 s: each unit answers its
+    step with the held command after 2 s, then flies its coordinator-loss fail-safe (MARS_FS_ACT: land)
+    and, as PX4 after a fail-safe, stays in it when the coordinator's commands come back (a coordinator
+    that stalled for seconds steered on a stale estimate); the world flies to the scenario's end."""
+    out = tmp_path / "up"
+
+    def pauses(proc: subprocess.Popen) -> None:
+        world, coordinator = (_unit_pid(proc.pid, None, role=r) for r in ("world", "coordinator"))
+        _pause_mid_flight(proc, out, world, at_s=3.0)
+        assert 3.0 <= _sim_time(out) < 3.5  # the 5 s pause did not move sim time
+        deadline = time.monotonic() + 30
+        while _sim_time(out) < 6.0 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        status = read_status(out / "world_status.json")  # resumed: nobody lost, hovering at 2 m
+        assert status["dead_units"] == []
+        assert all(abs(-s["position_ned_m"][2] - 2.0) < 0.15 for s in status["units"].values()), status["units"]
+        _pause_mid_flight(proc, out, coordinator, at_s=7.0)
+
+    _fly(["sitl", "up", _scenario(tmp_path), "--any-bind", "--speed", "1"], out, pauses)
+    world_summary = json.loads((out / "world_summary.json").read_text())
+    assert world_summary["sim_time_s"] == pytest.approx(DURATION_S, abs=0.02) and world_summary["dead_units"] == []
+    assert json.loads((out / "coordinator_summary.json").read_text())["lost_units"] == []  # (it ran to the end)
+    status = read_status(out / "world_status.json")
+    assert all(-s["position_ned_m"][2] < 0.2 for s in status["units"].values()), status["units"]  # landed
+    for u in range(1, 7):
+        unit = read_status(out / f"unit{u}_status.json")
+        assert unit["armed"] is False and unit["stats"]["coordinator_failsafe"] == 1, unit
+    for log in out.glob("*.log"):
+        assert "Traceback" not in log.read_text(), log.name

@@ -143,7 +143,7 @@ def test_a_flood_is_dropped_at_the_queue_and_the_link_keeps_working() -> None:
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     with ZenohTransport(ZenohParams("world", fleet="t3", listen=(ep,))) as rx, \
             ZenohTransport(ZenohParams("unit/2", fleet="t3", connect=(ep,), first_send_wait_s=5.0)) as tx:
-        rx._queue.maxsize = 500  # small queue: the flood below overflows it while nobody reads
+        rx.params.queue_frames = 500  # small queue: the flood below overflows it while nobody reads
         frame = _frame(2)
         for _ in range(5000):
             tx.send(frame, "world")

@@ -21,9 +21,10 @@ a process that exits with an open session and a callback subscriber hangs (specs
 
 from __future__ import annotations
 
+import collections
 import json
-import queue
 import re
+import select
 import socket
 import time
 from dataclasses import dataclass
@@ -50,6 +51,24 @@ class ZenohParams:
     only_from: str | None = None         # a unit link that talks to one node only (e.g. its HIL link: "world")
     validate_frames: bool = True         # drop bad MAVLink frames here (counted), pass whole valid ones
     first_send_wait_s: float = 0.0       # first frame to a node: wait up to this long for it to subscribe
+    limits: SessionLimits | None = None  # None: SessionLimits() (see there)
+
+
+@dataclass(frozen=True)
+class SessionLimits:
+    """What a listening session grants connections that have not finished Zenoh's handshake, and how
+    many sessions it keeps. Zenoh's defaults (10 s to finish a handshake, 100 at once) let 100 idle TCP
+    connections to the listen port refuse every new session for 10 s (issue 18: 200 idle connections
+    blocked the next unit 9.8-10.1 s). On loopback a handshake takes milliseconds: 2 s and 512 pending
+    let the issue's 200 through at once; N idle connections delay a new session by about
+    ceil(N / 512) x 2 s (the rest wait in the kernel's accept queue for their turn). Lease: Zenoh's 10 s,
+    so a process paused for a few seconds (SIGSTOP, a slow machine) keeps its session; the lockstep's
+    own timeouts (1-3 s) declare a silent unit lost long before."""
+
+    accept_timeout_ms: int = 2000     # a connection that has not finished the handshake by then is closed
+    accept_pending: int = 512         # handshakes in progress at once; beyond, new connections are refused
+    max_sessions: int = 256           # sessions at once (a SITL run: <= 36 units + world + coordinator)
+    lease_ms: int = 10000             # a silent peer's session is closed after this long
 
 
 def free_tcp_port(host: str = "127.0.0.1") -> int:
@@ -71,6 +90,11 @@ def make_config(p: ZenohParams) -> zenoh.Config:
     put("connect/endpoints", list(p.connect))
     put("scouting/multicast/enabled", bool(p.multicast_scouting))
     put("scouting/gossip/enabled", bool(p.gossip))
+    limits = p.limits or SessionLimits()
+    put("transport/unicast/accept_timeout", limits.accept_timeout_ms)
+    put("transport/unicast/accept_pending", limits.accept_pending)
+    put("transport/unicast/max_sessions", limits.max_sessions)
+    put("transport/link/tx/lease", limits.lease_ms)
     return cfg
 
 
@@ -105,7 +129,8 @@ class ZenohTransport(Transport):
         self.node = _check_node(params.node)
         if not _NAME.match(params.fleet):
             raise ValueError(f"zenoh fleet {params.fleet!r}: expected [A-Za-z0-9_-]")
-        self._queue: queue.Queue = queue.Queue(maxsize=params.queue_frames)
+        self._queue: collections.deque = collections.deque()  # (appended by Zenoh's thread, popped by ours)
+        self._armed = False  # the wake socket holds a byte: no further write until we drained it
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._congestion = zenoh.CongestionControl.BLOCK if params.block_when_congested else zenoh.CongestionControl.DROP
         # readable while frames wait, so a selector can wait on this link next to UDP sockets
@@ -138,12 +163,13 @@ class ZenohTransport(Transport):
         self._enqueue(sample, sender)
 
     def _enqueue(self, sample: zenoh.Sample, sender: str) -> None:
-        try:
-            self._queue.put_nowait((sample.payload.to_bytes(), sender))
-        except queue.Full:
+        if len(self._queue) >= self.params.queue_frames:
             self.counters.drop("queue_full")
             return
-        self._wake()
+        self._queue.append((sample.payload.to_bytes(), sender))
+        if not self._armed:  # one wake-up per burst, not one system call per frame
+            self._armed = True
+            self._wake()
 
     def _wake(self) -> None:
         try:
@@ -172,17 +198,21 @@ class ZenohTransport(Transport):
         pub.put(data)
 
     def _recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
+        if not self._queue and timeout_s > 0:
+            select.select([self._wake_r], [], [], timeout_s)
         try:
-            item = self._queue.get(timeout=timeout_s) if timeout_s > 0 else self._queue.get_nowait()
-        except queue.Empty:
+            item = self._queue.popleft()
+        except IndexError:
             return None
-        if self._queue.empty():  # level-triggered readiness: clear, then re-arm if a frame slipped in
+        if not self._queue:  # level-triggered readiness: clear, then re-arm if a frame slipped in meanwhile
+            self._armed = False
             try:
                 while self._wake_r.recv(4096):
                     pass
             except OSError:
                 pass
-            if not self._queue.empty():
+            if self._queue:
+                self._armed = True
                 self._wake()
         return item
 
