@@ -298,6 +298,10 @@ def _attach_view(sim: AssemblySim, out: Path | None, live: str | None):
                      sim.scenario.tracked_unit())
     if view is not None:
         view.event_lists = sim.event_lists()  # faults (scenario and MAVLink), the coordinator's
+        if sim.scenario.has_pieces:  # the tracked point is the followed piece's, not the coordinator's record
+            from mars_link.flight_view import pieces_point
+
+            view.point_of = pieces_point
         sim.engine.observers.append(view)
     return view
 

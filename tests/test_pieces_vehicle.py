@@ -155,6 +155,23 @@ def test_no_manoeuvre_starts_on_the_ground() -> None:
         sim.close()
 
 
+def test_vehicle_of_pieces_writes_its_run_mcap(tmp_path: Path) -> None:
+    """`mars-link vehicle assemble_3x2 --out DIR`: the six resting bodies in run.mcap's /tf and /truth."""
+    from firmware_models.udp_runner import free_udp_port
+    from mcap.reader import make_reader
+
+    out = tmp_path / "run"
+    api, gcs = free_udp_port(), free_udp_port()
+    r = subprocess.run([sys.executable, "-m", "mars_link.cli", "vehicle", "assemble_3x2", "--duration", "3",
+                        "--out", str(out), "--api-port", str(api), "--gcs-port", str(gcs), "--api-bind", "0",
+                        "--gcs-bind", "0"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr[-2000:]
+    with open(out / "run.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    counts = {c.topic: summary.statistics.channel_message_counts.get(cid, 0) for cid, c in summary.channels.items()}
+    assert counts.get("/tf", 0) > 20 and counts.get("/truth", 0) > 20 and counts.get("/scene", 0) > 5, counts
+
+
 # ----------------------------------------------------------------------------- SITL + MAVSDK
 mavsdk = pytest.importorskip("mavsdk")
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
