@@ -123,6 +123,7 @@ async def _first(stream):
         return x
 
 
+@pytest.mark.long  # (CI time: -m long; MAVSDK 4.x flies the same commands in test_mavsdk_commands)
 @pytest.mark.skipif(not hasattr(mavsdk_grpc, "System"), reason="needs mavsdk-grpc")
 def test_mavsdk_grpc_example_flows_geofence_goto_orbit_mission(tmp_path: Path) -> None:
     api = free_udp_port()

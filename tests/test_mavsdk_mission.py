@@ -118,7 +118,7 @@ async def _current_is(mission, index: int, sample) -> bool:
 
 
 @pytest.mark.skipif(not hasattr(mavsdk, "asyncio"), reason="needs MAVSDK 4.x")
-@pytest.mark.parametrize("vehicle", ["unit", "assembly"])
+@pytest.mark.parametrize("vehicle", ["unit", pytest.param("assembly", marks=pytest.mark.long)])  # (CI time: -m long)
 def test_mavsdk_mission_flown_against_the_truth(tmp_path: Path, vehicle: str) -> None:
     """`unit`: a lone unit process; `assembly`: `mars-link vehicle` (the 3x2, qp allocation)."""
     api = free_udp_port()

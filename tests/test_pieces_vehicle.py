@@ -185,7 +185,7 @@ def _body_com(status: dict, units: list[int]) -> np.ndarray:
     return np.mean([status["units"][str(u)]["position_ned_m"] for u in units], axis=0)
 
 
-@pytest.mark.slow
+@pytest.mark.long  # (CI time: -m long; the sans-IO flights above stay in the default run)
 @pytest.mark.sitl
 @pytest.mark.timeout(240)
 def test_mavsdk_takes_off_assembles_and_lands_the_multiprocess_pieces(tmp_path: Path) -> None:

@@ -110,6 +110,7 @@ def test_sitl_up_survives_a_paused_unit(tmp_path: Path) -> None:
     _fly_with_a_pause(["sitl", "up", _scenario(tmp_path), "--any-bind", "--speed", "1"], tmp_path / "up")
 
 
+@pytest.mark.long  # (CI time: -m long; the sitl up case stays in the default run)
 def test_run_mode_sitl_survives_a_paused_unit(tmp_path: Path) -> None:
     out = tmp_path / "run"
     _fly_with_a_pause(["run", _scenario(tmp_path), "--mode", "sitl", "--quiet"], out)

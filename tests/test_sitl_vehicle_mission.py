@@ -62,6 +62,7 @@ async def _mission(api_port: int, out: Path) -> dict:
     return r
 
 
+@pytest.mark.long  # (CI time: -m long)
 @pytest.mark.skipif(not hasattr(mavsdk, "asyncio"), reason="needs MAVSDK 4.x")
 def test_sitl_up_vehicle_flies_a_mavsdk_mission(tmp_path: Path) -> None:
     out = tmp_path / "run"
