@@ -187,7 +187,18 @@ def add_pool_arguments(ap) -> None:
 
 
 def pool_from_args(args) -> PoolSpec:
-    return PoolSpec(getattr(args, "workers", None), getattr(args, "scheduler", None))
+    """The scripts' --workers / --scheduler. A scheduler address that is malformed or does not answer is one
+    line and exit 2 here, before any flight (as the sweep verb), not a traceback from inside the pool."""
+    spec = PoolSpec(getattr(args, "workers", None), getattr(args, "scheduler", None))
+    if spec.scheduler is not None:
+        import sys
+
+        try:
+            connect(spec.scheduler).close()
+        except UserInputError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
+    return spec
 
 
 def print_progress(total: int, what: str = "flights", every: int = 1):

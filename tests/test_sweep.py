@@ -165,3 +165,16 @@ def test_a_killed_sweep_keeps_its_rows_and_leaves_no_workers(tmp_path):
     assert alive == []
     rows = read_csv(partial)
     assert len(rows) >= 2 and all(r["completed"] in ("true", "false") and r["mean_error_m"] for r in rows)
+
+
+def test_an_eval_tool_with_an_unreachable_scheduler_is_one_line_exit_2(tmp_path):
+    """The tools that fly on the sweep's executor refuse a scheduler that does not answer as the verb does."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    r = subprocess.run([sys.executable, str(root / "tools" / "fdi_eval.py"), "--scheduler", "tcp://127.0.0.1:9",
+                        "--seeds", "1", "--out", str(tmp_path / "fdi")], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: --scheduler tcp://127.0.0.1:9: no Dask scheduler"), r.stderr
