@@ -26,6 +26,7 @@ streaming never blocks the control loop. The writer ends a chunk every `FLUSH_EV
 from __future__ import annotations
 
 import math
+import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -171,7 +172,6 @@ class FlightView:
     def __init__(self, model, control_hz: float, mcap_path: Path | None = None, live: str | None = None,
                  tracked_unit: int | None = None, extras: SceneExtras | None = None,
                  rates: ViewRates | None = None, metadata: dict[str, str] | None = None) -> None:
-        import multiprocessing
         import queue
         import threading
 
@@ -194,14 +194,7 @@ class FlightView:
         config = {"model": model, "control_hz": control_hz, "mcap_path": None if mcap_path is None else str(mcap_path),
                   "live": live, "tracked_unit": tracked_unit, "extras": extras or SceneExtras(),
                   "rates": rates or ViewRates(), "metadata": metadata or {}}
-        # fork: the writer starts at once with the modules already loaded (spawned, it would start a second late and
-        # the file would lag behind a paced flight by that much)
-        ctx = multiprocessing.get_context("fork")
-        child, self._conn = ctx.Pipe(duplex=False)  # (receive end, send end)
-        self.process = ctx.Process(target=_writer_main, args=(self._conn, child, config), name="mars-link-view",
-                                   daemon=True)  # (a view never finished cannot hang the exit)
-        self.process.start()
-        child.close()
+        self.process, self._conn = _start_writer(config)
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._sender = threading.Thread(target=self._send_loop, name="mars-link-view-sender", daemon=True)
         self._sender.start()
@@ -249,9 +242,11 @@ class FlightView:
         self._flush_rows()
         self._queue.put(None)
         self._sender.join(timeout_s)
-        self.process.join(timeout_s)
-        if self.process.is_alive():  # (a writer that cannot finish: the file up to its last chunk stays)
+        try:
+            self.process.wait(timeout_s)
+        except subprocess.TimeoutExpired:  # (a writer that cannot finish: the file up to its last chunk stays)
             self.process.terminate()
+            self.process.wait()
 
     # ----------------------------------------------------------------- one step
     def write_step(self, t_s: float, world, point: ViewPoint | None, eta: np.ndarray,
@@ -370,10 +365,39 @@ class _Columns:
         self.width = self.step + 1
 
 
-def _writer_main(parent_end, conn, config: dict) -> None:
+def _start_writer(config: dict):
+    """The writer process and the send end of its pipe (the config goes first).
+
+    A fresh interpreter, not a fork of the flight's process: a forked child shares the flight's memory
+    pages, and every page the flight then writes is copied first (copy-on-write), which cost the in-process
+    flight 8-10 % of its speed (benchmarks/bench_mcap.py). Nor multiprocessing's spawn or fork server,
+    which import the flight's main module again in the writer (a second of CPU for a script that imports the
+    runner). The writer imports numpy, the SDK and this module (about 0.25 s on the other core); rows that
+    come before it is ready wait in the pipe, and nothing is lost."""
+    import os
+    import subprocess
+    import sys
+    from multiprocessing.connection import Connection
+
+    read_fd, write_fd = os.pipe()
+    env = dict(os.environ)  # (this package where the flight found it, installed or not)
+    root = str(Path(__file__).resolve().parent.parent)
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    try:
+        proc = subprocess.Popen([sys.executable, "-c", f"from mars_link.flight_view import _writer_main; "
+                                 f"_writer_main({read_fd})"], pass_fds=(read_fd,), env=env, stdin=subprocess.DEVNULL)
+    finally:
+        os.close(read_fd)
+    conn = Connection(write_fd, readable=False)
+    conn.send(config)
+    return proc, conn
+
+
+def _writer_main(read_fd: int) -> None:
     """The writer process: messages from the rows, to run.mcap and the live server, until the pipe closes."""
     import os
     import signal
+    from multiprocessing.connection import Connection
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the flight's: this process ends at the pipe's end
     try:  # the control loop first: the writer runs on CPU time nobody else wants (SCHED_IDLE), else niced
@@ -383,7 +407,11 @@ def _writer_main(parent_end, conn, config: dict) -> None:
             os.nice(WRITER_NICE)
         except OSError:
             pass
-    parent_end.close()
+    conn = Connection(read_fd, writable=False)
+    try:
+        config = conn.recv()
+    except (EOFError, OSError):
+        return
     writer = _ViewWriter(**config)
     try:
         while True:
@@ -838,11 +866,7 @@ def pieces_view(flight, out_dir: Path | None, live: str | None = None) -> Flight
     return view
 
 
-def world_view_args(args, docked: bool = True) -> tuple[str, ...]:
+def world_view_args(args) -> tuple[str, ...]:
     """The SITL world process's view options from --no-mcap / --foxglove (checked now: one line, exit 2)."""
     live = live_address(args)
-    if not docked:
-        if live is not None:
-            raise UserInputError("--foxglove shows a docked assembly (a scenario or --layout), not --units")
-        return ()
     return (() if getattr(args, "no_mcap", False) else ("--mcap",)) + (() if live is None else ("--foxglove", live))
