@@ -247,12 +247,7 @@ def fly_flight(doc: dict, src: str, spec: FlightSpec, mcap_dir: str | None = Non
     sc = scenario_for(doc, src, spec.params)
     sc.faults.extend(spec.faults)
     out = None if mcap_dir is None else Path(mcap_dir)
-    if out is not None:
-        import multiprocessing
-
-        if multiprocessing.current_process().daemon:  # run.mcap's writer is a process of its own (flight_view)
-            raise RuntimeError("run.mcap needs a worker that may start processes: start the Dask workers with "
-                               "DASK_DISTRIBUTED__WORKER__DAEMON=False (or dask worker --no-nanny)")
+    if out is not None:  # (run.mcap's writer is a subprocess: a daemonic Dask worker may start it)
         out.mkdir(parents=True, exist_ok=True)
     if sc.has_pieces:
         from mars_link.flight_view import pieces_view

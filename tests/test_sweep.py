@@ -78,13 +78,24 @@ def test_a_flight_that_raises_is_recorded_and_the_sweep_goes_on(tmp_path, capsys
     assert not (out / "sweep.partial.csv").exists()
 
 
-def test_mcap_per_flight(tmp_path):
+@pytest.mark.parametrize("pool", ["local", "dask"])
+def test_mcap_per_flight(tmp_path, pool):
+    """Each flight's run.mcap, on local worker processes and on a Dask cluster's (daemonic) workers."""
     from mcap.reader import make_reader
 
     out = tmp_path / "out"
-    code = main(["sweep", "hover_1x1", "--seeds", "2", "--workers", "2", "--quiet", "--no-plots", "--mcap",
-                 "--param", "duration_s=4", "--out", str(out)])
+    argv = ["sweep", "hover_1x1", "--seeds", "2", "--quiet", "--no-plots", "--mcap", "--param", "duration_s=4",
+            "--out", str(out)]
+    if pool == "local":
+        code = main(argv + ["--workers", "2"])
+    else:
+        from distributed import LocalCluster
+
+        with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                          dashboard_address=":0") as cluster:
+            code = main(argv + ["--scheduler", cluster.scheduler_address])
     assert code == 0
+    assert all(r["error"] == "" for r in read_csv(out / "sweep.csv"))
     rows = read_csv(out / "sweep.csv")
     for i in range(2):
         path = out / "flights" / f"{i:04d}" / "run.mcap"
