@@ -193,8 +193,12 @@ def cmd_sitl(args) -> int:
     from firmware_models.signing import signing_from_args
 
     _, require_signing = signing_from_args(args)  # a bad key file is refused before the run directory exists
-    n = len(setup.unit_ids)  # the client ports of either transport
-    for what, port in (("--gcs-port", args.gcs_port), ("--api-port", args.api_port), ("--api-port + units", args.api_port + n - 1)):
+    from sitl.launcher import ClientPorts
+
+    n = len(setup.unit_ids)  # the client ports of either transport (sitl_mode builds the same)
+    clients = ClientPorts.consecutive(args.gcs_port, args.api_port, n, args.any_bind)
+    for what, port in (("--gcs-port", args.gcs_port), ("--api-port", args.api_port),
+                       ("--api-port + units", clients.api_ports[-1])):
         if not 1 <= port <= 65535:
             raise UserInputError(f"{what} must be 1..65535, got {port}")
     if getattr(args, "transport", None) not in (None, "udp") or getattr(args, "external_coordinator", False) \
@@ -205,9 +209,6 @@ def cmd_sitl(args) -> int:
 
         v.claim_out_dir(out, force=args.force)
         return sitl_up_command(args, path, out, vehicle, view)
-    from sitl.launcher import ClientPorts
-
-    clients = ClientPorts(args.gcs_port, [args.api_port + i for i in range(n)], args.any_bind)
     v.claim_out_dir(out, force=args.force)
     code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,
                    signing_key_file=args.signing_key_file, vehicle=vehicle, require_signing=require_signing,

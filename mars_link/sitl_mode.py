@@ -676,8 +676,8 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None, vi
     from sitl.lockstep import load_setup
 
     n = len(load_setup(scenario_path, units, layout).unit_ids)
-    clients = ClientPorts(getattr(args, "gcs_port", 14550), [getattr(args, "api_port", 14540) + i for i in range(n)],
-                          getattr(args, "any_bind", False))
+    clients = ClientPorts.consecutive(getattr(args, "gcs_port", 14550), getattr(args, "api_port", 14540), n,
+                                      getattr(args, "any_bind", False))
     previous = signal.getsignal(signal.SIGTERM)
 
     def interrupt(*_):

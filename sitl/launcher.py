@@ -50,6 +50,23 @@ class ClientPorts:
     def api_port(self, index: int) -> int:
         return self.api_ports[index] if self.api_ports else 14540 + index
 
+    @classmethod
+    def consecutive(cls, gcs_port: int, api_base: int, n_units: int, bind_any: bool = False) -> "ClientPorts":
+        """API ports api_base, api_base + 1, ... for n units, stepping over the ports already taken: the GCS
+        port (PX4's 14540 + i would give the 11th unit QGC's 14550) and, unless `bind_any`, the ports the
+        units and the assembly vehicle bind (18570 + i, 14580 + i, 18560, 14560)."""
+        from sitl.vehicle_host import VEHICLE_API_BIND, VEHICLE_GCS_BIND
+
+        taken = {gcs_port}
+        if not bind_any:
+            taken |= {VEHICLE_GCS_BIND, VEHICLE_API_BIND} | {b + i for b in (18570, 14580) for i in range(n_units)}
+        ports, p = [], api_base
+        while len(ports) < n_units:
+            if p not in taken:
+                ports.append(p)
+            p += 1
+        return cls(gcs_port, ports, bind_any)
+
 
 @dataclass
 class SitlRun:

@@ -40,3 +40,16 @@ def test_lockstep_process_refuses_a_unit_outside_the_run(capsys, tmp_path) -> No
     code = lockstep_main(["unit", "-", "--units", "2", "--unit", "3", "--world-port", "9", "--out", str(tmp_path)])
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1 and "unit 3 is not in this run" in err
+
+
+def test_api_ports_step_over_the_gcs_port_and_the_bound_ones() -> None:
+    """PX4's 14540 + i would send the 11th unit's API traffic to QGC's 14550; a 5x5 gets 25 distinct ports
+    that are neither the GCS port nor a port a unit or the assembly vehicle binds."""
+    from sitl.launcher import ClientPorts
+
+    c = ClientPorts.consecutive(14550, 14540, 25)
+    assert c.api_ports[:10] == list(range(14540, 14550)) and c.api_ports[10] == 14551
+    assert len(set(c.api_ports)) == 25 and 14550 not in c.api_ports and 14560 not in c.api_ports
+    many = ClientPorts.consecutive(14550, 14540, 60)
+    assert not set(many.api_ports) & ({14580 + i for i in range(60)} | {18570 + i for i in range(60)})
+    assert ClientPorts.consecutive(14550, 14540, 12, bind_any=True).api_ports[-1] == 14552
