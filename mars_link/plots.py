@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 
 import numpy as np
@@ -56,12 +58,18 @@ def write_run_plots(
     if len(rot):
         n = model.n_rotors
         thrust = rot[:, 2 + n : 2 + 2 * n]
-        fig, ax = plt.subplots(figsize=(9, 0.25 * n + 1.5))
+        # one row per rotor, the figure at most ~13 in tall: past 96 rotors, a label per unit at most 48 times
+        # (a 20x20's 1,600 labels on a 400 in figure took matplotlib 25 s)
+        fig, ax = plt.subplots(figsize=(9, min(0.25 * n, 12.0) + 1.5))
         im = ax.imshow(
             thrust.T, aspect="auto", origin="lower", cmap="viridis",
             extent=(rot[0, 1], rot[-1, 1], -0.5, n - 0.5),
         )
-        ax.set_yticks(range(n), [f"u{r.unit_id} r{r.index}" for r in model.rotors], fontsize=7)
+        if n <= 96:
+            ax.set_yticks(range(n), [f"u{r.unit_id} r{r.index}" for r in model.rotors], fontsize=7)
+        else:
+            every = 4 * math.ceil(n / 4 / 48)
+            ax.set_yticks(range(0, n, every), [f"u{model.rotors[i].unit_id}" for i in range(0, n, every)], fontsize=7)
         ax.set_xlabel("time [s]")
         ax.set_title("actual rotor thrust [N]")
         fig.colorbar(im, ax=ax)

@@ -121,3 +121,21 @@ def test_tlog_holds_only_parsed_frames_and_stops_at_its_cap(tmp_path) -> None:
         io.close()
         sink.close()
         sender.close()
+
+
+def test_rotor_plot_of_a_20x20_stays_a_readable_size(tmp_path) -> None:
+    """1,600 rotors: one row each, but a label per unit at most 48 times and a figure ~13 in tall (it was
+    401 in tall with 1,600 labels: 44,000 px and 25 s of matplotlib)."""
+    import matplotlib.image as mpimg
+
+    import numpy as np
+
+    from mars_link.assembly import AssemblyModel, vehicle_preset
+    from mars_link.plots import write_run_plots
+
+    model = AssemblyModel.from_layout(["X" * 20] * 20, vehicle_preset("mars-ftcc"))
+    n = model.n_rotors
+    rows = [np.concatenate([[0, k * 0.1], np.zeros(n), np.full(n, 1.0 + k)]) for k in range(5)]
+    written = write_run_plots(tmp_path, [], rows, model)
+    image = mpimg.imread(written[-1])
+    assert written[-1].name == "rotor_thrust.png" and 1000 < image.shape[0] < 1700
