@@ -164,6 +164,7 @@ class FaultDetector:
         self.params = params or FaultDetectorParams()
         self.detections: list[Detection] = []
         self._ground_down_m: float | None = None if ground_down_m is None else float(ground_down_m)
+        self._ground_given = ground_down_m is not None  # (a learnt ground level is only a lower bound)
         self.set_model(model)
 
     # ----------------------------------------------------------------- configuration
@@ -325,6 +326,8 @@ class FaultDetector:
             return enough
         down = float(state.position_ned_m[2])
         if not enough:
+            if self._ground_given and not state.on_ground and self._ground_down_m - down >= p.min_height_m:
+                return True  # aloft on little thrust (a dive; a dead corner unit's collapse): no ground to touch
             self._ground_down_m = down if self._ground_down_m is None else max(self._ground_down_m, down)
             return False
         if state.on_ground:
