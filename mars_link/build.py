@@ -130,7 +130,7 @@ def world_config(scenario: Scenario, seed: int):
                        noise=scenario.sim.noise, position_every=position_every(scenario),
                        dock_tolerance=DockTolerance(**scenario.docking),
                        environment=scenario.environment if scenario.environment.moves_air else None,
-                       sensors=sensor_params(scenario))
+                       sensors=sensor_params(scenario), battery=scenario.battery)
 
 
 def make_world(scenario: Scenario, model: AssemblyModel, seed: int, com_start_ned_m: np.ndarray | None = None,
@@ -201,8 +201,11 @@ def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajec
     from mars_link.coordinator import Coordinator
 
     eta = initial_eta(scenario, model) if eta is None else eta
-    return Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
-                       telemetry_timeout_s=telemetry_timeout_s)
+    coordinator = Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
+                              telemetry_timeout_s=telemetry_timeout_s)
+    if scenario.battery is not None and model.vehicle.rotor_max_thrust_n is not None:  # bounds follow the packs
+        coordinator.battery_cells = {u: scenario.battery.pack_of(u).cells for u in model.unit_ids}
+    return coordinator
 
 
 def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordinator_driven: bool = True,
@@ -216,9 +219,10 @@ def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordin
 
     if on_wire:
         check_wire_unit_count(model.n_units)
+    params = {} if scenario.battery is None else scenario.battery.unit_params(unit_id)  # its pack, its failsafe
     vehicle = Vehicle(VehicleConfig(unit_id=unit_id, vehicle=model.vehicle, control_hz=scenario.sim.control_hz,
                                     hil_await_coordinator=coordinator_driven, signing_key=signing_key,
-                                    sign_client_links=require_signing, on_wire=on_wire), wall_time_s)
+                                    sign_client_links=require_signing, on_wire=on_wire, params=params), wall_time_s)
     for f in scenario.faults:
         if f.unit == unit_id:
             vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta)

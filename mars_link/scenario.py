@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from mars_link.assembly import AssemblyModel, PRESETS, parse_layout, vehicle_preset
+from mars_link.battery import BatterySpec, battery_table
 from mars_link.environment import EnvironmentParams
 from mars_link.sensor_profiles import SensorProfile
 from mars_link.errors import UserInputError
@@ -24,6 +25,8 @@ CONTROLLERS = ("cascaded", "mars-ftcc-paper")
 FTC_MODES = ("none", "unit", "partial", "full", "hybrid", "qp")
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 DEFAULT_SCENARIO = "spiral_3x2"
+#: the plant of a scenario without [vehicle] preset: thrust limits, motor lag, batteries (mars_link.assembly)
+DEFAULT_PRESET = "mars-real"
 
 
 @dataclass
@@ -79,7 +82,7 @@ class SeparationSpec:
 @dataclass
 class Scenario:
     name: str
-    preset: str = "mars-ftcc"
+    preset: str = DEFAULT_PRESET  # a scenario that names no preset flies the realistic plant
     vehicle_options: dict[str, Any] = field(default_factory=dict)
     layout: tuple[str, ...] = ("XXX", "XXX")
     tracked: str = "unit:1"
@@ -98,6 +101,7 @@ class Scenario:
     environment: EnvironmentParams = field(default_factory=EnvironmentParams)  # [environment]: wind, gusts, turbulence
     sensors: SensorProfile = field(default_factory=SensorProfile)  # [sensors]: the position sensor (mocap, rtk)
     mission: dict[str, Any] = field(default_factory=dict)  # [mission]: map = obstacle map for the vehicle's legs
+    battery: BatterySpec | None = None  # [battery]: the units' packs (mars_link.battery); None = an ideal supply
 
     @property
     def starts_free(self) -> bool:
@@ -122,7 +126,7 @@ class Scenario:
 #: free units on the ground stand at least this far apart, edge to edge
 FREE_CLEARANCE_M = 0.3
 _TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig", "docking",
-             "separations", "environment", "sensors", "mission"}
+             "separations", "environment", "sensors", "mission", "battery"}
 _VEHICLE_KEYS = {
     "preset",
     "motor_time_constant_s",
@@ -187,6 +191,7 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
         )
     from mars_link.scenario_environment import aero_options, environment_table, sensors_table
 
+    sc.battery = battery_table(_table(doc, "battery", src), sc.preset, src)
     sc.environment = environment_table(_table(doc, "environment", src), src)
     sc.sensors = sensors_table(_table(doc, "sensors", src), src)
     sc.vehicle_options.update(aero_options(vehicle, sc.preset, sc.environment, src))
@@ -300,6 +305,11 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
             raise UserInputError(f"{src}: [assembly] tracked: {exc}") from None
     for i, fault in enumerate(sc.faults, 1):
         validate_fault(fault, model, f"{src}: [[faults]] #{i}")
+    for unit in (sc.battery.overrides if sc.battery is not None else {}):
+        try:
+            model.check_rotor(unit, None)
+        except UserInputError as exc:
+            raise UserInputError(f"{src}: [[battery.units]]: {exc}") from None
     for i, sep in enumerate(sc.separations, 1):
         for u in sep.units:
             try:

@@ -127,6 +127,8 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
 # ----------------------------------------------------------------------------- run --mode sitl
 def write_scenario_copy(scenario, path: Path) -> Path:
     """The (possibly overridden) scenario as a TOML file the child processes can load."""
+    from mars_link.battery import BATTERY_BY_DEFAULT, battery_doc
+
     doc = {
         "name": scenario.name,
         "vehicle": {"preset": scenario.preset, **scenario.vehicle_options},
@@ -150,6 +152,8 @@ def write_scenario_copy(scenario, path: Path) -> Path:
                               for s in scenario.separations]
     if scenario.sensors != type(scenario.sensors)():
         doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.figures}
+    if scenario.battery is not None or scenario.preset in BATTERY_BY_DEFAULT:
+        doc["battery"] = battery_doc(scenario.battery)
     if scenario.environment.moves_air:
         from mars_link.environment import environment_doc
 

@@ -82,7 +82,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.signing import add_signing_args, signing_from_args
 from sitl.parent_watch import die_with_parent
 from mars_link.errors import EnvironmentFailure, UserInputError
-from mars_link.messages import SensorPacket
+from mars_link.messages import BatterySample, SensorPacket
 from mars_link.outputs import write_json
 from mars_link.pacing import Pacer
 from mars_link.transport import LinkSpec, add_link_args, spec_from_args
@@ -90,6 +90,8 @@ from mars_link.wire import (
     LatchSensor,
     SensorPacketAssembler,
     latch_message,
+    battery_from_message,
+    battery_report_message,
     actuator_output_from_message,
     rotor_command_message,
     sensor_packet_messages,
@@ -316,6 +318,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                     if setup.pieces and latch_sent.get(p.unit_id) != p.latches:  # the latch sensor, on change
                         latch_sent[p.unit_id] = p.latches
                         msgs.append(latch_message(p.t_s, p.latches))
+                    if p.battery is not None:  # the power module's sample, at the battery rate
+                        msgs.append(battery_report_message(p.battery))
                     datagrams.append((link.pack(msgs + sensor_packet_messages(p)), link.peers[p.unit_id]))
             pacer.wait(t)
             for data, addr in datagrams:
@@ -611,6 +615,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     scale = model.vehicle.full_scale_thrust_n
     assembler = SensorPacketAssembler()
     latches = LatchSensor()
+    batteries: dict[int, BatterySample] = {}  # each unit's last BATTERY_STATUS, until its packet comes
     out.mkdir(parents=True, exist_ok=True)
     pieces_log = open(out / "pieces_steps.csv", "w", encoding="utf-8") if setup.pieces else None
     if pieces_log:
@@ -667,10 +672,19 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                         if not latches.feed(m):
                             link.drop("bad_named_value")
                         continue
+                    if m.get_type() == "BATTERY_STATUS":  # the unit's pack, for its next sensor packet
+                        sample = battery_from_message(m)
+                        if sample is None:
+                            link.drop("bad_battery")
+                        else:
+                            batteries[m.get_srcSystem()] = sample
+                        continue
                     p = assembler.feed(m)
                     if p is None:
                         continue
                     p.latches = latches.mask.get(p.unit_id, 0)
+                    if batteries:
+                        p.battery = batteries.pop(p.unit_id, None)
                     if not telemetry_ok(p):
                         link.drop("bad_telemetry")  # non-finite: never into the estimator
                         continue
