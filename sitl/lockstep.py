@@ -259,7 +259,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
 
     sc = setup.scenario
     cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise, position_every(setup),
-                      environment=sc.environment if sc.environment.moves_air else None, sensors=sensor_params(sc))
+                      environment=sc.environment if sc.environment.moves_air else None, sensors=sensor_params(sc),
+                      battery=sc.battery)
     if setup.pieces:  # one body per piece of the executor's start (the coordinator builds the same executor)
         from mars_link.build import make_executor, make_pieces_world, make_trajectory, world_config
 
@@ -369,6 +370,10 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                    "cpu_loop_s": time.process_time() - cpu0, "force_integral_n2s": getattr(world, "force_integral_n2s", None),  # (free units: none)
                    "latch_events": getattr(world, "latch_events", []),
                    "bodies": [list(b.units) for b in getattr(world, "bodies", [])], "logging": truth_log.status()}
+        packs = getattr(world, "packs", None)
+        if packs is not None:  # the packs' truth at the end (unit id order)
+            summary["batteries"] = {"soc": packs.soc.round(6).tolist(), "voltage_v": packs.voltage_v.round(4).tolist(),
+                                    "drawn_c": packs.drawn_c.round(4).tolist()}
         write_json(out / "world_summary.json", summary)
     finally:
         truth_log.close()
