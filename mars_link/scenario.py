@@ -25,6 +25,8 @@ CONTROLLERS = ("cascaded", "mars-ftcc-paper")
 FTC_MODES = ("none", "unit", "partial", "full", "hybrid", "qp")
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 DEFAULT_SCENARIO = "spiral_3x2"
+#: what `mars-link vehicle`, `sitl up` and `mars-link coordinator` fly when no scenario is named: the realistic plant
+INTERACTIVE_SCENARIO = "hover_3x2_real"
 #: the plant of a scenario without [vehicle] preset: thrust limits, motor lag, batteries (mars_link.assembly)
 DEFAULT_PRESET = "mars-real"
 
