@@ -240,7 +240,9 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
         raise UserInputError(
             f"{src}: unknown controller {sc.controller!r} (known: {', '.join(CONTROLLERS)})"
         )
-    sc.ftc = control.get("ftc", sc.ftc)
+    # a scenario on the default (realistic) plant allocates with qp unless it says otherwise: the one mode whose
+    # priorities (roll/pitch > thrust > yaw) keep the attitude when rotors saturate (README, realistic plant)
+    sc.ftc = control.get("ftc", "qp" if "preset" not in vehicle else sc.ftc)
     if sc.ftc not in FTC_MODES:
         raise UserInputError(f"{src}: unknown ftc mode {sc.ftc!r} (known: {', '.join(FTC_MODES)})")
     fk = control.get("faults_known", True)
