@@ -244,8 +244,10 @@ class World:
                     b.jsbsim.step()
                 self.force_integral_n2s += float(self.rotor_thrust_n @ self.rotor_thrust_n) * self.dt_s
         if packs is not None:
-            packs.step(self.rotor_thrust_n, self.dt_s * self.substeps)
+            packs.add_power(self.rotor_thrust_n, self.dt_s * self.substeps)
         self.exchange_index += 1
+        if packs is not None and self.exchange_index % self.battery_every == 0:
+            packs.step()  # the packs at the battery rate, before this exchange's sample
         if not self._single and len(self.bodies) > 1:
             self._latch_docks()
 

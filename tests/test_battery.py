@@ -33,7 +33,8 @@ def test_pack_model_closed_forms() -> None:
     sc = scenario_from_dict({**HOVER_3X2, "assembly": {"layout": ["X"]}})
     packs = Packs(sc.battery, [1], 3.8)
     t = np.full(4, 1.275)  # the unit's hover thrust per rotor
-    packs.step(t, 1.0)
+    packs.add_power(t, 1.0)
+    packs.step()
     p = float(PROPULSION["mars-real"].rotor_power_w(t).sum()) + 3.0
     e, r, i, v = 4 * FULL_CELL_V, 0.05, float(packs.current_a[0]), float(packs.voltage_v[0])
     assert (e - i * r) * i == pytest.approx(p, rel=1e-9) and v == pytest.approx(e - i * r)
