@@ -185,7 +185,20 @@ def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: 
     coordinator = Coordinator(piece, reference, CascadedController(piece, allocator, control_hz=scenario.sim.control_hz),
                               estimator, detector)
     coordinator.set_faults(eta, t_s, "piece created")
+    _follow_packs(scenario, piece, coordinator, local_ids=True)
     return coordinator
+
+
+def _follow_packs(scenario: Scenario, model: AssemblyModel, coordinator: Coordinator, local_ids: bool = False) -> None:
+    """With simulated packs and rotor limits, the coordinator's allocator bounds follow each unit's reported
+    voltage. (A piece numbers its units locally: its packs must then have one cell count.)"""
+    spec = scenario.battery
+    if spec is None or model.vehicle.rotor_max_thrust_n is None:
+        return
+    cells = {p.cells for p in (spec.pack, *spec.overrides.values())}
+    if local_ids and len(cells) > 1:
+        return
+    coordinator.battery_cells = {u: spec.pack_of(u).cells for u in model.unit_ids}
 
 
 def initial_eta(scenario: Scenario, model: AssemblyModel) -> np.ndarray:
@@ -203,8 +216,7 @@ def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajec
     eta = initial_eta(scenario, model) if eta is None else eta
     coordinator = Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
                               telemetry_timeout_s=telemetry_timeout_s)
-    if scenario.battery is not None and model.vehicle.rotor_max_thrust_n is not None:  # bounds follow the packs
-        coordinator.battery_cells = {u: scenario.battery.pack_of(u).cells for u in model.unit_ids}
+    _follow_packs(scenario, model, coordinator)
     return coordinator
 
 
