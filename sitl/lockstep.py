@@ -151,6 +151,10 @@ def load_setup(scenario: str | None, units: int | None = None, layout: str | Non
     if units is not None and layout is not None:
         raise UserInputError("--units and --layout exclude each other")
     sc = Scenario(name="free-units") if scenario in (None, "-") else load_scenario(scenario)
+    if scenario in (None, "-"):  # the built-in free units fly the default plant, packs included
+        from mars_link.battery import battery_table
+
+        sc.battery = battery_table({}, sc.preset, "free-units")
     if sc.has_pieces:
         if units is not None or layout is not None:
             raise UserInputError(f"{sc.source}: --units and --layout do not apply to a flight of several bodies")

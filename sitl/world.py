@@ -7,6 +7,7 @@ link in lockstep (a step happens only when every live unit has answered for the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import KW_ONLY, dataclass, field
 
@@ -434,7 +435,10 @@ class FreeUnitsWorld:
         self.unit_ids = list(range(1, n_units + 1))
         self.worlds = {
             u: World(self.model, WorldConfig(config.physics_hz, config.exchange_hz, config.seed + u - 1, False,
-                                             config.position_every, environment=config.environment),
+                                             config.position_every, environment=config.environment,
+                                             battery=None if config.battery is None else  # (unit u's own pack)
+                                             dataclasses.replace(config.battery, pack=config.battery.pack_of(u),
+                                                                 overrides={})),
                      np.array([0.0, (u - 1) * spacing_m, 0.0]))
             for u in self.unit_ids
         }
@@ -466,7 +470,7 @@ class FreeUnitsWorld:
                 out.append(SensorPacket(p.t_s, u, ImuSample(p.t_s, u, p.imu.gyro_frd_radps, p.imu.accel_frd_mps2),
                                         None if p.position is None else PositionSample(
                                             p.t_s, u, p.position.position_ned_m, p.position.velocity_ned_mps),
-                                        p.truth))
+                                        p.truth, battery=p.battery))
         return out
 
     def unit_truth(self, unit_id: int) -> RigidBodyState:

@@ -166,3 +166,40 @@ def test_zero_capacity_at_the_cli_is_one_line_exit_2(tmp_path) -> None:
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().count("\n") == 0 and "capacity_ah must be > 0" in r.stderr and "Traceback" not in r.stderr
     assert not out.exists() or not any(out.iterdir())
+
+
+def test_a_lone_unit_flying_itself_lands_on_its_own_critical_battery() -> None:
+    """The unit firmware itself (as `sitl up --units N` runs it, here by direct calls): its own pack in the
+    free-units world, COM_LOW_BAT_ACT = 2 among its parameters; after take-off it hovers until the critical
+    level, says so, lands and disarms (on the world's truth)."""
+    import dataclasses
+
+    from mars_link.build import make_unit
+    from sitl.world import FreeUnitsWorld, WorldConfig
+
+    sc = scenario_from_dict({"name": "lone", "assembly": {"layout": ["X"], "tracked": "com"},
+                             "trajectory": {"kind": "hover"}, "sim": {"noise": False},
+                             "battery": {"capacity_ah": 0.1, "initial_soc": 0.12, "com_low_bat_act": 2}})
+    world = FreeUnitsWorld(1, sc.model().vehicle, WorldConfig(500.0, 100.0, 1, False, battery=sc.battery))
+    v = make_unit(sc, sc.model(), 1, coordinator_driven=False)
+    assert v.params["COM_LOW_BAT_ACT"] == 2 and v.params["BAT1_CAPACITY"] == pytest.approx(100.0)
+    try:
+        took_off = False
+        for k in range(2500):
+            for p in world.sense():
+                v.take_sensors(p, world.unit_truth(1))
+            if k == 20:
+                assert v.arm() == mavlink.MAV_RESULT_ACCEPTED and v._takeoff(math.nan) == mavlink.MAV_RESULT_ACCEPTED
+            world.actuate(dataclasses.replace(v.drive_motors(), unit_id=1))
+            v.tick(world.t_s, world.t_s)  # heartbeats, streams and watchdogs (auto-disarm after landing)
+            world.advance()
+            took_off = took_off or -world.unit_truth(1).position_ned_m[2] > 1.5
+            if took_off and not v.armed:
+                break
+        texts = [t for _, t in v.events]
+        assert took_off and any(t.startswith("Low battery") for t in texts)
+        assert any(t.startswith("Critical battery") and t.endswith(": landing") for t in texts)
+        assert not v.armed and -world.unit_truth(1).position_ned_m[2] < 0.15  # landed, disarmed
+        assert world.worlds[1].packs.soc[0] < 0.07
+    finally:
+        world.close()
