@@ -235,6 +235,8 @@ class Coordinator:
         if np.max(np.abs(scale - self.available)) >= AVAILABLE_STEP:
             self.available = scale
             self.controller.set_available(np.repeat(scale, ROTORS_PER_UNIT))
+            if getattr(self.detector, "max_thrust_n", None) is not None:  # its thrust model clips as the packs do
+                self.detector.max_thrust_n = self.controller.allocator.upper_bounds()
 
     def finish_step(self) -> None:
         """Fault detection on the last period's commanded thrusts and IMU samples; a finding is an
