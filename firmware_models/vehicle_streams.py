@@ -16,6 +16,7 @@ from mars_link.rotations import quat_to_euler, quat_to_rotmat
 from firmware_models.vehicle_links import finite as _finite
 from firmware_models.vehicle_modes import MAIN_AUTO, MAIN_OFFBOARD, MODE_MISSION
 from mars_link.messages import BatterySample, wire_battery
+from mars_link.wire import battery_status
 
 MIN_STREAM_INTERVAL_S = 0.01
 #: msg id -> default rate (Hz, wall clock), specs/mavlink.md §6
@@ -230,11 +231,8 @@ class StreamsMixin:
 
 
 def battery_status_message(mv: int, ca: int, used_c: float, pct: int, level: int = 0):
-    """BATTERY_STATUS of one measured pack: the pack voltage in voltages[0] (cells not measured one by
-    one), others UINT16_MAX; charge state from the low-battery level."""
+    """The vehicle's BATTERY_STATUS stream: its measured pack, with the charge state of its low-battery level."""
     R = mavlink
     state = (R.MAV_BATTERY_CHARGE_STATE_OK, R.MAV_BATTERY_CHARGE_STATE_LOW, R.MAV_BATTERY_CHARGE_STATE_CRITICAL,
              R.MAV_BATTERY_CHARGE_STATE_EMERGENCY)[level] if pct >= 0 else R.MAV_BATTERY_CHARGE_STATE_UNDEFINED
-    used_mah = int(used_c / 3.6) if math.isfinite(used_c) else -1
-    return R.MAVLink_battery_status_message(0, R.MAV_BATTERY_FUNCTION_ALL, R.MAV_BATTERY_TYPE_LIPO, 32767,
-                                            [mv] + [65535] * 9, ca, used_mah, -1, pct, 0, state, [0] * 4, 0, 0)
+    return battery_status(mv, ca, pct, int(used_c / 3.6) if math.isfinite(used_c) else -1, state)

@@ -243,16 +243,21 @@ def actuator_output_from_message(msg, full_scale_n: float) -> ActuatorOutput:
 
 
 # ----------------------------------------------------------------------------- battery
-def battery_report_message(b: BatterySample) -> mavlink.MAVLink_message:
-    """A pack's sample as BATTERY_STATUS: world -> unit (what its power module measures; remaining -1) and
-    unit -> coordinator (with the unit's remaining estimate). The pack voltage rides in voltages[0], as
-    MAVLink asks when cells are not measured one by one; it goes in the same datagram as, and before,
-    the sensor packet it belongs to."""
-    pct = -1 if b.remaining < 0 else round(b.remaining * 100)
+def battery_status(mv: int, ca: int, pct: int, used_mah: int = -1,
+                   state: int = mavlink.MAV_BATTERY_CHARGE_STATE_UNDEFINED) -> mavlink.MAVLink_message:
+    """BATTERY_STATUS of one pack measured as a whole: its voltage in voltages[0] (MAVLink's rule when cells
+    are not measured one by one), the other cells UINT16_MAX."""
     return mavlink.MAVLink_battery_status_message(
-        0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO, 32767,
-        [round(b.voltage_v * 1000)] + [65535] * 9, round(b.current_a * 100), -1, -1, pct, 0,
-        mavlink.MAV_BATTERY_CHARGE_STATE_UNDEFINED, [0] * 4, 0, 0)
+        0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO, 32767, [mv] + [65535] * 9, ca,
+        used_mah, -1, pct, 0, state, [0] * 4, 0, 0)
+
+
+def battery_report_message(b: BatterySample) -> mavlink.MAVLink_message:
+    """A pack's sample: world -> unit (what its power module measures; remaining -1) and unit ->
+    coordinator (with the unit's remaining estimate); in the same datagram as, and before, the sensor
+    packet it belongs to."""
+    return battery_status(round(b.voltage_v * 1000), round(b.current_a * 100),
+                          -1 if b.remaining < 0 else round(b.remaining * 100))
 
 
 def battery_from_message(msg) -> BatterySample | None:
