@@ -84,7 +84,7 @@ class SeparationSpec:
 @dataclass
 class Scenario:
     name: str
-    preset: str = DEFAULT_PRESET  # a scenario that names no preset flies the realistic plant
+    preset: str = "mars-ftcc"  # (built in code: the paper's plant; a TOML file naming none gets DEFAULT_PRESET)
     vehicle_options: dict[str, Any] = field(default_factory=dict)
     layout: tuple[str, ...] = ("XXX", "XXX")
     tracked: str = "unit:1"
@@ -186,7 +186,7 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
 
     vehicle = _table(doc, "vehicle", src)
     _check_keys(vehicle, _VEHICLE_KEYS | _AERO_KEYS, "[vehicle]", src)
-    sc.preset = vehicle.get("preset", sc.preset)
+    sc.preset = vehicle.get("preset", DEFAULT_PRESET)  # a scenario that names no preset flies the realistic plant
     if sc.preset not in PRESETS:
         raise UserInputError(
             f"{src}: unknown vehicle preset {sc.preset!r} (known: {', '.join(sorted(PRESETS))})"

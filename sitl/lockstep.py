@@ -146,11 +146,11 @@ def load_setup(scenario: str | None, units: int | None = None, layout: str | Non
     `steps` given (the launcher computed it once) spares a unit process building the trajectory
     (importing the whole coordinator stack costs each process over a second)."""
     from mars_link.assembly import AssemblyModel, parse_layout
-    from mars_link.scenario import Scenario, load_scenario, validate_fault
+    from mars_link.scenario import DEFAULT_PRESET, Scenario, load_scenario, validate_fault
 
     if units is not None and layout is not None:
         raise UserInputError("--units and --layout exclude each other")
-    sc = Scenario(name="free-units") if scenario in (None, "-") else load_scenario(scenario)
+    sc = Scenario(name="free-units", preset=DEFAULT_PRESET) if scenario in (None, "-") else load_scenario(scenario)
     if scenario in (None, "-"):  # the built-in free units fly the default plant, packs included
         from mars_link.battery import battery_table
 
