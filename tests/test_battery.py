@@ -219,3 +219,16 @@ def test_a_sagging_pack_is_not_read_as_a_rotor_fault() -> None:
                                            "faults": [{"t": 6.0, "unit": 2, "rotor": 2, "eta": 0.5}]}), 1)
     d = faulty.detections[0]
     assert (d["unit"], d["rotor"]) == (2, 2) and d["t_detected"] - 6.0 < 0.5 and abs(d["eta_estimated"] - 0.5) < 0.15
+
+
+def test_battery_table_round_trips_to_the_sitl_children(tmp_path) -> None:
+    """`run --mode sitl` hands the child processes a TOML copy of the scenario: the packs go with it."""
+    from mars_link.scenario import load_scenario
+    from mars_link.sitl_mode import write_scenario_copy
+
+    sc = scenario_from_dict({**HOVER_3X2, "battery": {"capacity_ah": 1.5, "com_low_bat_act": 3,
+                                                      "units": [{"unit": 3, "initial_soc": 0.3, "cells": 3}]}})
+    back = load_scenario(str(write_scenario_copy(sc, tmp_path / "copy.toml")))
+    assert back.battery == sc.battery and back.preset == "mars-real"
+    off = scenario_from_dict({**HOVER_3X2, "battery": {"enabled": False}})
+    assert off.battery is None and load_scenario(str(write_scenario_copy(off, tmp_path / "off.toml"))).battery is None
