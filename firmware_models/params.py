@@ -70,6 +70,18 @@ def unit_param_specs(unit_id: int, vehicle: VehicleParams) -> list[ParamSpec]:
                   doc="maximum horizontal distance from home, m (0 off)", safety=True),
         ParamSpec("GF_MAX_VER_DIST", 0.0, REAL32, 0.0, 10_000.0, doc="maximum height above home, m (0 off)",
                   safety=True),
+        # the pack the unit measures (firmware_models.battery_monitor) and the low-battery failsafe (PX4's)
+        ParamSpec("BAT1_CAPACITY", 2200.0, REAL32, 1.0, 1e6, doc="pack capacity, mAh (charge counted from it)"),
+        ParamSpec("BAT1_N_CELLS", 4, INT32, 1, 14, doc="cells in series"),
+        ParamSpec("BAT1_R_INTERNAL", 0.05, REAL32, 0.0, 10.0, doc="pack internal resistance, ohm"),
+        ParamSpec("BAT_LOW_THR", 0.15, REAL32, 0.0, 0.5, doc="low battery: remaining fraction (warning)", safety=True),
+        ParamSpec("BAT_CRIT_THR", 0.07, REAL32, 0.0, 0.5, doc="critical battery: remaining fraction (action)",
+                  safety=True),
+        ParamSpec("BAT_EMERGEN_THR", 0.05, REAL32, 0.0, 0.5, doc="emergency battery: remaining fraction (land)",
+                  safety=True),
+        ParamSpec("COM_LOW_BAT_ACT", 0, INT32, 0, 3,
+                  doc="low-battery action: 0 warning, 2 land at critical, 3 return at critical and land at "
+                      "emergency", safety=True),
     ]
 
 

@@ -38,6 +38,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models import control_policy as policy
 from firmware_models.geo import EARTH_RADIUS_M  # noqa: F401 (re-exported)
+from firmware_models.battery_monitor import BatteryMonitor
 from firmware_models.geo import GeoOrigin, origin_from_env
 from firmware_models.mission_protocol import MissionProtocol
 from firmware_models.mission_runner import MissionRunner
@@ -186,7 +187,8 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
         self._took_off = False
         self._last_cmd: dict[tuple, tuple] = {}
         self._pending_text: list[tuple[int, str]] = []
-        self.battery_used_c = 0.0  # coulombs
+        self._battery_pending = None  # a BATTERY_STATUS from the world, measured with the next IMU frame
+        self.battery = BatteryMonitor()  # the pack as measured (world's samples over HIL); thresholds, action
         self._hil_pending: tuple[int, str] | None = None  # (time_usec, link) of an unanswered HIL step
         self.defer_own_state = False  # set by the lockstep unit runner: see run_deferred
         self._deferred: list = []
@@ -487,7 +489,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
                 self._text("Coordinator drives the rotors")
             self.motor_commands_n = cmd  # (the intake's own array: a new one per accepted command)
             self.autopilot.landed = False
-            self._account_battery()
+            self._battery_step()
             return
         if self.source == "coordinator":  # the stream was lost: fail-safe (MARS_FS_ACT)
             self._count("coordinator_failsafe")
@@ -501,7 +503,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
         if self.state is None:
             self.motor_commands_n = np.zeros(4)
             return
-        self._account_battery()
+        self._battery_step()
         override = self._guidance_step(t)  # orbit, sticks, attitude target (vehicle_manual)
         if override is not None:
             thrusts, event = override, None

@@ -5,13 +5,16 @@ A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and pl
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.geo import WIRE_ORIGIN
 from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
 from mars_link.state import ImuSample, RigidBodyState
-from mars_link.wire import SensorFrames, latch_from_message, latch_message, latches_open
+from mars_link.wire import (SensorFrames, battery_from_message, battery_report_message, latch_from_message, latch_message,
+                            latches_open)
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
 
 
@@ -34,6 +37,12 @@ class HilMixin:
                 if other.policy.forward_sensors:
                     out.append(Outgoing(name, self._pack(other, latch_message(msg.time_boot_ms / 1000.0, mask))))
             return
+        if t == "BATTERY_STATUS":  # the power module's sample, measured with this step's IMU frame (its time)
+            sample = battery_from_message(msg)
+            if sample is None:
+                self._drop("hil_bad_battery")
+            self._battery_pending = sample
+            return
         if t not in ("HIL_SENSOR", "ODOMETRY"):
             self._count(f"ignored.{t}")
             return
@@ -46,8 +55,14 @@ class HilMixin:
         if frames is None:
             return
         forward = [name for name, other in self.links.items() if other.policy.forward_sensors]
+        report = None
+        if self._battery_pending is not None:
+            report = self._measure_battery(self._battery_pending, frames.imu.time_usec / 1e6)
+            self._battery_pending = None
         if forward:  # (on the real-time path: straight from the received fields)
             upstream = frames.upstream_messages()
+            if report is not None:  # before the IMU frame: the coordinator attaches it to this packet
+                upstream.insert(0, battery_report_message(report))
             for name in forward:
                 other = self.links[name]
                 out.extend(Outgoing(name, self._pack(other, m)) for m in upstream)
@@ -117,6 +132,8 @@ class HilMixin:
             self.set_state(packet.truth)
         self.sim_s = packet.t_s
         self._next_control = packet.t_s + self.control_dt_s
+        if packet.battery is not None:  # forwarded with the unit's remaining-charge estimate
+            return dataclasses.replace(packet, battery=self._measure_battery(packet.battery, packet.t_s))
         return packet
 
     def take_rotor_command(self, cmd: RotorCommand) -> bool:

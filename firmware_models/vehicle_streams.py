@@ -15,6 +15,8 @@ from mars_link.assembly import GRAVITY_MPS2
 from mars_link.rotations import quat_to_euler, quat_to_rotmat
 from firmware_models.vehicle_links import finite as _finite
 from firmware_models.vehicle_modes import MAIN_AUTO, MAIN_OFFBOARD, MODE_MISSION
+from mars_link.messages import BatterySample, wire_battery
+from mars_link.wire import battery_status
 
 MIN_STREAM_INTERVAL_S = 0.01
 #: msg id -> default rate (Hz, wall clock), specs/mavlink.md §6
@@ -134,18 +136,16 @@ class StreamsMixin:
         return R.MAV_LANDED_STATE_IN_AIR
 
     def _battery(self) -> tuple[int, int, int]:
-        """(voltage mV, current cA, remaining %): a 4S 2.2 Ah pack drawn by thrust (~2 A per N).
-        Clamped to the wire fields (uint16 mV, int16 cA, int8 %); not a number -> MAVLink's "not
-        sent" value (UINT16_MAX, -1, -1). Above 327.67 A the current field saturates at 32767."""
-        current_a = self._current_a()
-        remaining = max(0.0, 1.0 - self.battery_used_c / (2.2 * 3600))
-        volts = 4 * (3.6 + 0.6 * remaining) - 0.02 * current_a
+        """(voltage mV, current cA, remaining %) as measured (firmware_models.battery_monitor); clamped to
+        the wire fields (uint16 mV, int16 cA, int8 %). Nothing measured (no simulated pack: the papers'
+        plants) or not a number -> MAVLink's "not sent" values (UINT16_MAX, -1, -1)."""
+        b = self.battery
 
         def wire(x: float, lo: int, hi: int, unknown: int) -> int:
-            return unknown if math.isnan(x) else int(min(max(x, lo), hi))
+            return unknown if not math.isfinite(x) else int(min(max(x, lo), hi))
 
-        return (wire(volts * 1000, 0, 65534, 65535), wire(current_a * 100, 0, 32767, -1),
-                wire(round(remaining * 100) if math.isfinite(remaining) else remaining, 0, 100, -1))
+        return (wire(b.voltage_v * 1000, 0, 65534, 65535), wire(b.current_a * 100, 0, 32767, -1),
+                wire(round(b.remaining * 100) if math.isfinite(b.remaining) else b.remaining, 0, 100, -1))
 
     def _stream_message(self, mid: int):
         R = mavlink
@@ -158,11 +158,7 @@ class StreamsMixin:
             return R.MAVLink_extended_sys_state_message(R.MAV_VTOL_STATE_UNDEFINED, self._landed_state())
         if mid == R.MAVLINK_MSG_ID_BATTERY_STATUS:
             mv, ca, pct = self._battery()
-            cells = [mv // 4 if mv != 65535 else 65535] * 4 + [65535] * 6
-            used_mah = int(self.battery_used_c / 3.6)
-            return R.MAVLink_battery_status_message(0, R.MAV_BATTERY_FUNCTION_ALL, R.MAV_BATTERY_TYPE_LIPO, 32767,
-                                                    cells, ca, used_mah, -1, pct, 0, R.MAV_BATTERY_CHARGE_STATE_OK,
-                                                    [0] * 4, 0, 0)
+            return battery_status_message(mv, ca, self.battery.used_c, pct, self.battery.level)
         if mid == R.MAVLINK_MSG_ID_HOME_POSITION:
             return self._home_position()
         if mid == R.MAVLINK_MSG_ID_MISSION_CURRENT:
@@ -206,15 +202,37 @@ class StreamsMixin:
                                                  0.21, 0.0, 0.42, pressure_hpa, 0.0, alt_m, 20.0, 0x1A3F, 0)
         return None
 
-    def _current_a(self) -> float:
-        """The pack's current: ~2 A per newton of rotor thrust (0.5 A armed and idle, 0.3 A disarmed);
-        any number of rotors (the assembly vehicle has 4N); unbounded, NaN with a NaN command."""
-        if not self.armed:
-            return 0.3
-        return 0.5 + 2.0 * sum(map(abs, self.motor_commands_n.tolist()))
+    def _battery_step(self) -> None:
+        """A low-battery level crossed: STATUSTEXT, and the action COM_LOW_BAT_ACT asks for when this
+        vehicle flies itself (a unit under the coordinator only reports: the assembly decides)."""
+        p = self.params
+        change = self.battery.level_change(p["BAT_LOW_THR"], p["BAT_CRIT_THR"], p["BAT_EMERGEN_THR"],
+                                           int(p["COM_LOW_BAT_ACT"]))
+        if change is None:
+            return
+        severity = {"low": mavlink.MAV_SEVERITY_WARNING, "critical": mavlink.MAV_SEVERITY_CRITICAL}.get(
+            change.level, mavlink.MAV_SEVERITY_EMERGENCY)
+        act = change.action is not None and self.source == "own" and self.armed and not self.landed
+        self._text(change.text if act or change.action is None else change.text.split(":")[0], severity)
+        if act:
+            from firmware_models.vehicle_modes import MODE_LAND, MODE_RTL
 
-    def _account_battery(self) -> None:
-        current_a = self._current_a()
-        if math.isfinite(current_a):  # a NaN command must not poison the charge count
-            self.battery_used_c += int(current_a * 100) * 0.01 * self.control_dt_s
+            target = MODE_LAND if change.action == "land" else MODE_RTL
+            if self.mode != target and self._set_mode(target) != mavlink.MAV_RESULT_ACCEPTED and target == MODE_RTL:
+                self._set_mode(MODE_LAND)  # no home to return to: land where it is
 
+    def _measure_battery(self, sample: BatterySample, t_s: float) -> BatterySample:
+        """The power module's sample: counted, and the unit's report for the coordinator (with remaining)."""
+        p = self.params
+        b = self.battery
+        b.measure(t_s, sample.voltage_v, sample.current_a, p["BAT1_CAPACITY"], int(p["BAT1_N_CELLS"]),
+                  p["BAT1_R_INTERNAL"])
+        return wire_battery(b.voltage_v, b.current_a, b.remaining)
+
+
+def battery_status_message(mv: int, ca: int, used_c: float, pct: int, level: int = 0):
+    """The vehicle's BATTERY_STATUS stream: its measured pack, with the charge state of its low-battery level."""
+    R = mavlink
+    state = (R.MAV_BATTERY_CHARGE_STATE_OK, R.MAV_BATTERY_CHARGE_STATE_LOW, R.MAV_BATTERY_CHARGE_STATE_CRITICAL,
+             R.MAV_BATTERY_CHARGE_STATE_EMERGENCY)[level] if pct >= 0 else R.MAV_BATTERY_CHARGE_STATE_UNDEFINED
+    return battery_status(mv, ca, pct, int(used_c / 3.6) if math.isfinite(used_c) else -1, state)

@@ -47,6 +47,10 @@ AERO_PRESETS: dict[str, dict] = {
         "drag_area_frd_m2": tuple(drag_area_from_rotorpy(c) for c in (0.5e-2, 0.5e-2, 1e-2)),
         "rotor_drag_coeff": rotor_drag_from_rotorpy(1.19e-4, 5.57e-6),
     },
+    "mars-real": {  # the same airframe
+        "drag_area_frd_m2": tuple(drag_area_from_rotorpy(c) for c in (0.5e-2, 0.5e-2, 1e-2)),
+        "rotor_drag_coeff": rotor_drag_from_rotorpy(1.19e-4, 5.57e-6),
+    },
     # Crazyflie 2.0: RotorPy's rotorpy/vehicles/crazyflie_params.py (k_d = 10.2506e-7 kg/rad,
     # k_eta = 2.3e-8 N/(rad/s)², from Förster 2015 "System identification of the Crazyflie 2.0");
     # that file sets the body's c_D to 0, and so do we (the cage's drag is not measured there).

@@ -83,6 +83,24 @@ PRESETS: dict[str, VehicleParams] = {
         gear_depth_m=0.05,
         description="paper 000 CoppeliaSim unit: 0.52 kg, 0.35 m pitch, linear thrust, no lag/limits",
     ),
+    # The mars-ftcc airframe as hardware flies it (the default of `mars-link vehicle`, `sitl up` and scenarios
+    # that name no preset): rotor thrust within [0, max] with T/W 3 at a full pack (3 x 0.52 kg x g / 4
+    # rotors), a first-order motor lag of 20 ms (small brushless motors spin up in 15-40 ms), and a 4S
+    # 2.2 Ah pack whose sag lowers that maximum (mars_link.battery). The papers' tables keep "mars-ftcc".
+    "mars-real": VehicleParams(
+        name="mars-real",
+        unit_mass_kg=0.52,
+        unit_inertia_kgm2=(0.00494, 0.00404, 0.00893),
+        pitch_m=0.35,
+        rotor_offset_m=0.0919,
+        yaw_moment_per_thrust_m=0.002 / 0.23366,
+        rotor_max_thrust_n=3.0 * 0.52 * GRAVITY_MPS2 / 4.0,
+        rotor_min_thrust_n=0.0,
+        motor_time_constant_s=0.02,
+        thrust_per_command_n=0.23366,
+        gear_depth_m=0.05,
+        description="mars-ftcc unit with hardware limits: thrust 0..3.83 N (T/W 3), 20 ms motor lag, 4S 2.2 Ah pack",
+    ),
     # Paper 001 (Gandhi et al.) ModQuad module: Crazyflie 2.0 in a cage, specs/reconfig.md §2.
     "modquad-cf2": VehicleParams(
         name="modquad-cf2",

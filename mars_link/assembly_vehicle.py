@@ -169,6 +169,8 @@ class AssemblyVehicle(Vehicle):
         self.motor_commands_n = np.zeros(model.n_rotors)
         self.on_failure = None  # callable(unit, rotor | None, eta): the motor path (set by AssemblySim)
         self._events_seen = 0
+        self._unit_batteries: dict = {}  # unit -> its last BatterySample report
+        self._battery_t: float | None = None
 
     @property
     def core(self) -> AssemblyFlightCore:
@@ -193,6 +195,27 @@ class AssemblyVehicle(Vehicle):
 
     def step_motors(self, dt_s: float) -> np.ndarray:
         raise NotImplementedError("the assembly's rotors are driven by its units (AssemblySim)")
+
+    def take_unit_batteries(self, t_s: float, packets) -> None:
+        """The units' battery reports -> the assembly's pack as BATTERY_STATUS/SYS_STATUS show it and its
+        low-battery failsafe reads it: the currents summed, the lowest voltage, and the lowest remaining
+        charge (the assembly's endurance is its emptiest pack's: that unit's rotors go first)."""
+        fresh = False
+        for p in packets:
+            if p.battery is not None:
+                self._unit_batteries[p.unit_id] = p.battery
+                fresh = True
+        if not fresh:
+            return
+        reports = self._unit_batteries.values()
+        current = sum(b.current_a for b in reports)
+        known = [b.remaining for b in reports if b.remaining >= 0]
+        used = self.battery.used_c
+        if self._battery_t is not None and t_s > self._battery_t:
+            used += self.battery.current_a * (t_s - self._battery_t)
+        self._battery_t = t_s
+        self.battery.report(min(b.voltage_v for b in reports), current, min(known) if known else math.nan,
+                            used if math.isfinite(used) else 0.0)
 
     def report_event(self, event: dict) -> None:
         """STATUSTEXT for an event (severity by its type)."""
@@ -316,7 +339,8 @@ class AssemblySim(EngineSim):
         start = TrajectoryPoint(np.zeros(3))
         self.coordinator = make_coordinator(s, model, SetpointSource(start), self._known, detector, eta=self.eta_told)
         self.units = InProcessUnits({u: make_unit(s, model, u) for u in model.unit_ids}, self.world)
-        self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, cfg.params, wall_time_s,
+        params = {**(s.battery.failsafe if s.battery is not None else {}), **(cfg.params or {})}
+        self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, params, wall_time_s,
                                        cfg.signing_key, cfg.require_signing)
         self.vehicle.on_failure = self.inject
         self.legs = attach_legs(self.vehicle, s, cfg.map_path, self.eta_believed)
@@ -340,6 +364,7 @@ class AssemblySim(EngineSim):
         """The engine's command source: estimate, the vehicle's tick (its coordinator runs when it flies),
         and the rotor thrusts it decided, one RotorCommand per unit."""
         self.vehicle.core.drive.packets = packets
+        self.vehicle.take_unit_batteries(t, packets)
         est = self._estimate(t, packets)
         self._known.estimate = est
         if est is not None:

@@ -130,7 +130,7 @@ def world_config(scenario: Scenario, seed: int):
                        noise=scenario.sim.noise, position_every=position_every(scenario),
                        dock_tolerance=DockTolerance(**scenario.docking),
                        environment=scenario.environment if scenario.environment.moves_air else None,
-                       sensors=sensor_params(scenario))
+                       sensors=sensor_params(scenario), battery=scenario.battery)
 
 
 def make_world(scenario: Scenario, model: AssemblyModel, seed: int, com_start_ned_m: np.ndarray | None = None,
@@ -185,7 +185,20 @@ def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: 
     coordinator = Coordinator(piece, reference, CascadedController(piece, allocator, control_hz=scenario.sim.control_hz),
                               estimator, detector)
     coordinator.set_faults(eta, t_s, "piece created")
+    _follow_packs(scenario, piece, coordinator, local_ids=True)
     return coordinator
+
+
+def _follow_packs(scenario: Scenario, model: AssemblyModel, coordinator: Coordinator, local_ids: bool = False) -> None:
+    """With simulated packs and rotor limits, the coordinator's allocator bounds follow each unit's reported
+    voltage. (A piece numbers its units locally: its packs must then have one cell count.)"""
+    spec = scenario.battery
+    if spec is None or model.vehicle.rotor_max_thrust_n is None:
+        return
+    cells = {p.cells for p in (spec.pack, *spec.overrides.values())}
+    if local_ids and len(cells) > 1:
+        return
+    coordinator.battery_cells = {u: spec.pack_of(u).cells for u in model.unit_ids}
 
 
 def initial_eta(scenario: Scenario, model: AssemblyModel) -> np.ndarray:
@@ -201,8 +214,10 @@ def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajec
     from mars_link.coordinator import Coordinator
 
     eta = initial_eta(scenario, model) if eta is None else eta
-    return Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
-                       telemetry_timeout_s=telemetry_timeout_s)
+    coordinator = Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
+                              telemetry_timeout_s=telemetry_timeout_s)
+    _follow_packs(scenario, model, coordinator)
+    return coordinator
 
 
 def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordinator_driven: bool = True,
@@ -216,9 +231,10 @@ def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordin
 
     if on_wire:
         check_wire_unit_count(model.n_units)
+    params = {} if scenario.battery is None else scenario.battery.unit_params(unit_id)  # its pack, its failsafe
     vehicle = Vehicle(VehicleConfig(unit_id=unit_id, vehicle=model.vehicle, control_hz=scenario.sim.control_hz,
                                     hil_await_coordinator=coordinator_driven, signing_key=signing_key,
-                                    sign_client_links=require_signing, on_wire=on_wire), wall_time_s)
+                                    sign_client_links=require_signing, on_wire=on_wire, params=params), wall_time_s)
     for f in scenario.faults:
         if f.unit == unit_id:
             vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta)

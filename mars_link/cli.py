@@ -161,7 +161,7 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_sitl(args) -> int:
-    from mars_link.scenario import resolve_scenario_path
+    from mars_link.scenario import INTERACTIVE_SCENARIO, resolve_scenario_path
     from sitl.launcher import sitl_up
     from sitl.lockstep import load_setup
 
@@ -174,7 +174,7 @@ def cmd_sitl(args) -> int:
     if args.units is not None and args.scenario is None:
         path, name = None, "units"  # free units: built-in defaults unless a scenario is given
     else:
-        path = str(resolve_scenario_path(args.scenario))
+        path = str(resolve_scenario_path(args.scenario or INTERACTIVE_SCENARIO))
         name = Path(path).stem
     setup = load_setup(path, args.units, args.layout)  # refuse bad input before starting any process
     vehicle = _vehicle_ports(args, setup)
@@ -272,7 +272,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     sitl = sub.add_parser("sitl", help="up [SCENARIO] [--units N | --layout ROWS]: world, one process per unit (MAVLink), coordinator; lockstep")
     sitl.add_argument("action", help="up")
-    sitl.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default: spiral_3x2)")
+    sitl.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default: hover_3x2_real, the "
+                      "realistic plant)")
     sitl.add_argument("--out", help="run directory (default runs/<name>-sitl-<time>); must be empty unless --force")
     sitl.add_argument("--force", action="store_true", help="clear a non-empty --out first")
     sitl.add_argument("--seed", type=v.seed, default=None, help=f"0..{v.SEED_MAX}")

@@ -23,13 +23,16 @@ from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import Controller
 from mars_link.errors import UserInputError
 from mars_link.fault_detection import Detection
-from mars_link.messages import RotorCommand, SensorPacket, wire_thrust, wire_time
+from mars_link.battery import thrust_scale
+from mars_link.messages import BatterySample, RotorCommand, SensorPacket, wire_thrust, wire_time
 from mars_link.state import RigidBodyState
 from mars_link.trajectories import Trajectory, TrajectoryPoint
 
 
 #: MAVLink STATUSTEXT carries 50 characters
 TEXT_MAX = 50
+#: a unit's available-thrust share must move this much before the allocator is set up again
+AVAILABLE_STEP = 0.01
 
 
 def short_text(text: str, limit: int = TEXT_MAX) -> str:
@@ -92,6 +95,11 @@ class Coordinator:
         self.command_range_n = (
             -v.full_scale_thrust_n if v.rotor_min_thrust_n is None else v.rotor_min_thrust_n, v.full_scale_thrust_n)
         self.lost_units: set[int] = set()
+        # each unit's pack as its telemetry reports it (BATTERY_STATUS); with `battery_cells` set (unit ->
+        # cells in series), the allocator's bounds follow the thrust each pack still gives
+        self.battery_cells: dict[int, int] | None = None
+        self.unit_battery: dict[int, BatterySample] = {}
+        self.available = np.ones(model.n_units)  # per unit: the share of the rotors' maximum the allocator uses
         self.rejected: dict[str, int] = {}  # reason -> packets dropped here
         self._last_seen_s: dict[int, float] = {}
         self._to_detect: tuple | None = None  # (t, thrusts, estimate, IMU samples) for finish_step
@@ -178,6 +186,8 @@ class Coordinator:
                 t_s, [p.imu for p in packets if p.imu is not None],
                 [p.position for p in packets if p.position is not None],
             )
+        if self.battery_cells is not None:
+            self._watch_batteries(packets)
         c1 = time.perf_counter()
         reference = self.trajectory.sample(t_s)
         out = self.controller.update(t_s, estimate, reference)
@@ -206,6 +216,27 @@ class Coordinator:
             RotorCommand(t_w, uid, wired[(uid - 1) * ROTORS_PER_UNIT : uid * ROTORS_PER_UNIT])
             for uid in self.model.unit_ids
         ]
+
+    def _watch_batteries(self, packets: list[SensorPacket]) -> None:
+        """The units' reported pack voltages -> the thrust each can still give (mars_link.battery.thrust_scale);
+        the allocator's bounds move when a unit's share changed by AVAILABLE_STEP (a re-setup costs ~1 ms)."""
+        fresh = False
+        for p in packets:
+            if p.battery is not None and p.unit_id in self.battery_cells:
+                self.unit_battery[p.unit_id] = p.battery
+                fresh = True
+        if not fresh or not hasattr(self.controller, "set_available"):
+            return
+        scale = self.available.copy()
+        for k, uid in enumerate(self.model.unit_ids):
+            b = self.unit_battery.get(uid)
+            if b is not None:
+                scale[k] = float(thrust_scale(b.voltage_v, self.battery_cells[uid]))
+        if np.max(np.abs(scale - self.available)) >= AVAILABLE_STEP:
+            self.available = scale
+            self.controller.set_available(np.repeat(scale, ROTORS_PER_UNIT))
+            if getattr(self.detector, "max_thrust_n", None) is not None:  # its thrust model clips as the packs do
+                self.detector.max_thrust_n = self.controller.allocator.upper_bounds()
 
     def finish_step(self) -> None:
         """Fault detection on the last period's commanded thrusts and IMU samples; a finding is an

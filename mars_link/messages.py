@@ -54,6 +54,24 @@ def wire_state(s: RigidBodyState) -> RigidBodyState:
     )
 
 
+@dataclass(frozen=True)
+class BatterySample:
+    """A pack's voltage and current as a power module measures them (world -> unit), and with the unit's
+    remaining-charge estimate (unit -> coordinator); at BATTERY_STATUS precision (mV, cA, whole %)."""
+
+    voltage_v: float
+    current_a: float
+    remaining: float = -1.0  # fraction 0..1 at 1 % steps; -1 = not estimated (the world's sample)
+
+
+def wire_battery(voltage_v: float, current_a: float, remaining: float = -1.0) -> BatterySample:
+    """A BatterySample at the precision of BATTERY_STATUS (voltages[0] in mV, current in cA, remaining in %)."""
+    mv = min(max(round(voltage_v * 1000.0), 0), 65534)
+    ca = min(max(round(current_a * 100.0), 0), 32767)
+    pct = -1 if remaining < 0 else min(max(round(remaining * 100.0), 0), 100)
+    return BatterySample(mv / 1000.0, ca / 100.0, -1.0 if pct < 0 else pct / 100.0)
+
+
 @dataclass
 class SensorPacket:
     """World -> unit (HIL link) and, forwarded, unit -> coordinator (telemetry)."""
@@ -64,6 +82,7 @@ class SensorPacket:
     position: PositionSample | None
     truth: RigidBodyState | None = None  # ground truth (HIL_STATE_QUATERNION), only with noise off
     latches: int = 0  # the unit's latch sensor: bit k set when side k holds a docked neighbour
+    battery: BatterySample | None = None  # the pack's measurement, at the battery rate (None between)
 
     def as_wire(self) -> "SensorPacket":
         t = wire_time(self.t_s)
@@ -75,7 +94,7 @@ class SensorPacket:
                 t, self.unit_id, f32(self.position.position_ned_m), None if vel is None else f32(vel)
             )
         truth = None if self.truth is None else wire_state(self.truth)
-        return SensorPacket(t, self.unit_id, imu, pos, truth, self.latches)
+        return SensorPacket(t, self.unit_id, imu, pos, truth, self.latches, self.battery)
 
 
 @dataclass

@@ -36,9 +36,9 @@ from mars_link.assembly_vehicle import DEFAULT_SYSID, AssemblySim, SimConfig
 from mars_link import validation
 from mars_link.errors import UserInputError
 from mars_link.pacing import Pacer
+from mars_link.scenario import INTERACTIVE_SCENARIO as DEFAULT_SCENARIO  # (the realistic plant)
 
 STATUS_PERIOD_S = 0.2
-DEFAULT_SCENARIO = "hover_3x2"
 API_PORT = API_PORT_BASE  # the assembly takes instance 0's ports, like a single PX4 SITL drone
 GCS_BIND, API_BIND = 18560, 14560  # below the units' 18570+i / 14580+i
 

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Any
 
 from mars_link.assembly import AssemblyModel, PRESETS, parse_layout, vehicle_preset
+from mars_link.battery import BatterySpec, battery_table
 from mars_link.environment import EnvironmentParams
 from mars_link.sensor_profiles import SensorProfile
 from mars_link.errors import UserInputError
@@ -24,6 +25,10 @@ CONTROLLERS = ("cascaded", "mars-ftcc-paper")
 FTC_MODES = ("none", "unit", "partial", "full", "hybrid", "qp")
 SCENARIO_DIR = Path(__file__).resolve().parent.parent / "scenarios"
 DEFAULT_SCENARIO = "spiral_3x2"
+#: what `mars-link vehicle`, `sitl up` and `mars-link coordinator` fly when no scenario is named: the realistic plant
+INTERACTIVE_SCENARIO = "hover_3x2_real"
+#: the plant of a scenario without [vehicle] preset: thrust limits, motor lag, batteries (mars_link.assembly)
+DEFAULT_PRESET = "mars-real"
 
 
 @dataclass
@@ -79,7 +84,7 @@ class SeparationSpec:
 @dataclass
 class Scenario:
     name: str
-    preset: str = "mars-ftcc"
+    preset: str = "mars-ftcc"  # (built in code: the paper's plant; a TOML file naming none gets DEFAULT_PRESET)
     vehicle_options: dict[str, Any] = field(default_factory=dict)
     layout: tuple[str, ...] = ("XXX", "XXX")
     tracked: str = "unit:1"
@@ -98,6 +103,7 @@ class Scenario:
     environment: EnvironmentParams = field(default_factory=EnvironmentParams)  # [environment]: wind, gusts, turbulence
     sensors: SensorProfile = field(default_factory=SensorProfile)  # [sensors]: the position sensor (mocap, rtk)
     mission: dict[str, Any] = field(default_factory=dict)  # [mission]: map = obstacle map for the vehicle's legs
+    battery: BatterySpec | None = None  # [battery]: the units' packs (mars_link.battery); None = an ideal supply
 
     @property
     def starts_free(self) -> bool:
@@ -122,7 +128,7 @@ class Scenario:
 #: free units on the ground stand at least this far apart, edge to edge
 FREE_CLEARANCE_M = 0.3
 _TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig", "docking",
-             "separations", "environment", "sensors", "mission"}
+             "separations", "environment", "sensors", "mission", "battery"}
 _VEHICLE_KEYS = {
     "preset",
     "motor_time_constant_s",
@@ -180,13 +186,14 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
 
     vehicle = _table(doc, "vehicle", src)
     _check_keys(vehicle, _VEHICLE_KEYS | _AERO_KEYS, "[vehicle]", src)
-    sc.preset = vehicle.get("preset", sc.preset)
+    sc.preset = vehicle.get("preset", DEFAULT_PRESET)  # a scenario that names no preset flies the realistic plant
     if sc.preset not in PRESETS:
         raise UserInputError(
             f"{src}: unknown vehicle preset {sc.preset!r} (known: {', '.join(sorted(PRESETS))})"
         )
     from mars_link.scenario_environment import aero_options, environment_table, sensors_table
 
+    sc.battery = battery_table(_table(doc, "battery", src), sc.preset, src)
     sc.environment = environment_table(_table(doc, "environment", src), src)
     sc.sensors = sensors_table(_table(doc, "sensors", src), src)
     sc.vehicle_options.update(aero_options(vehicle, sc.preset, sc.environment, src))
@@ -233,7 +240,9 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
         raise UserInputError(
             f"{src}: unknown controller {sc.controller!r} (known: {', '.join(CONTROLLERS)})"
         )
-    sc.ftc = control.get("ftc", sc.ftc)
+    # a scenario on the default (realistic) plant allocates with qp unless it says otherwise: the one mode whose
+    # priorities (roll/pitch > thrust > yaw) keep the attitude when rotors saturate (README, realistic plant)
+    sc.ftc = control.get("ftc", "qp" if "preset" not in vehicle else sc.ftc)
     if sc.ftc not in FTC_MODES:
         raise UserInputError(f"{src}: unknown ftc mode {sc.ftc!r} (known: {', '.join(FTC_MODES)})")
     fk = control.get("faults_known", True)
@@ -300,6 +309,11 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
             raise UserInputError(f"{src}: [assembly] tracked: {exc}") from None
     for i, fault in enumerate(sc.faults, 1):
         validate_fault(fault, model, f"{src}: [[faults]] #{i}")
+    for unit in (sc.battery.overrides if sc.battery is not None else {}):
+        try:
+            model.check_rotor(unit, None)
+        except UserInputError as exc:
+            raise UserInputError(f"{src}: [[battery.units]]: {exc}") from None
     for i, sep in enumerate(sc.separations, 1):
         for u in sep.units:
             try:

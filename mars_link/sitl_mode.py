@@ -127,6 +127,8 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
 # ----------------------------------------------------------------------------- run --mode sitl
 def write_scenario_copy(scenario, path: Path) -> Path:
     """The (possibly overridden) scenario as a TOML file the child processes can load."""
+    from mars_link.battery import BATTERY_BY_DEFAULT, battery_doc
+
     doc = {
         "name": scenario.name,
         "vehicle": {"preset": scenario.preset, **scenario.vehicle_options},
@@ -150,6 +152,8 @@ def write_scenario_copy(scenario, path: Path) -> Path:
                               for s in scenario.separations]
     if scenario.sensors != type(scenario.sensors)():
         doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.figures}
+    if scenario.battery is not None or scenario.preset in BATTERY_BY_DEFAULT:
+        doc["battery"] = battery_doc(scenario.battery)
     if scenario.environment.moves_air:
         from mars_link.environment import environment_doc
 
@@ -733,7 +737,7 @@ def _endpoints(session, link: LinkSpec) -> list[str]:
 
 
 def add_coordinator_arguments(p) -> None:
-    p.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default: spiral_3x2)")
+    p.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default: hover_3x2_real, as sitl up)")
     p.add_argument("--out", default=".", help="where coordinator_summary.json goes")
     p.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port (printed by sitl up)")
     p.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to")
@@ -745,7 +749,9 @@ def cmd_coordinator(args) -> int:
     """`mars-link coordinator ...`: the coordinator process alone, in this process (Ctrl-C ends it)."""
     from mars_link.scenario import load_scenario, resolve_scenario_path
 
-    path = resolve_scenario_path(args.scenario)
+    from mars_link.scenario import INTERACTIVE_SCENARIO
+
+    path = resolve_scenario_path(args.scenario or INTERACTIVE_SCENARIO)
     load_scenario(str(path))
     link = _link_from_args(args, "zenoh")
     if link.kind == "zenoh" and not link.connect:

@@ -9,6 +9,7 @@
 | RotorCommand.latch_setpoint | same message, controls[4] | the latches to OPEN, as a bit mask 0..15 (0: all engaged) |
 | ActuatorOutput | HIL_ACTUATOR_CONTROLS, controls[0..3], flags = LOCKSTEP | same scale; controls[4]: latches open, as above |
 | SensorPacket.latches | NAMED_VALUE_INT "LATCH" (world -> unit -> coordinator) | the latched sides, bit mask 0..15 |
+| SensorPacket.battery | BATTERY_STATUS (world -> unit -> coordinator), before the packet's frames | pack mV in voltages[0], cA, remaining % (the unit's) |
 
 The latch sensor is sent when it changes (and with a unit's first packet), in the same datagram and
 before the packet's IMU frame; receivers hold the last value (`LatchSensor`). The latch setpoint rides
@@ -29,7 +30,7 @@ from dataclasses import dataclass
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.messages import LATCH_ALL, ActuatorOutput, RotorCommand, SensorPacket
+from mars_link.messages import LATCH_ALL, ActuatorOutput, BatterySample, RotorCommand, SensorPacket
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
 
 FLAG_HAS_POSITION = 1 << 14
@@ -239,3 +240,29 @@ def actuator_output_from_message(msg, full_scale_n: float) -> ActuatorOutput:
     thrusts = np.array(msg.controls[:4], dtype=np.float32).astype(np.float64) * full_scale_n
     latch = latch_setpoint_of(msg.controls[4])
     return ActuatorOutput(msg.time_usec / 1e6, msg.get_srcSystem(), thrusts, LATCH_ALL if latch is None else latch)
+
+
+# ----------------------------------------------------------------------------- battery
+def battery_status(mv: int, ca: int, pct: int, used_mah: int = -1,
+                   state: int = mavlink.MAV_BATTERY_CHARGE_STATE_UNDEFINED) -> mavlink.MAVLink_message:
+    """BATTERY_STATUS of one pack measured as a whole: its voltage in voltages[0] (MAVLink's rule when cells
+    are not measured one by one), the other cells UINT16_MAX."""
+    return mavlink.MAVLink_battery_status_message(
+        0, mavlink.MAV_BATTERY_FUNCTION_ALL, mavlink.MAV_BATTERY_TYPE_LIPO, 32767, [mv] + [65535] * 9, ca,
+        used_mah, -1, pct, 0, state, [0] * 4, 0, 0)
+
+
+def battery_report_message(b: BatterySample) -> mavlink.MAVLink_message:
+    """A pack's sample: world -> unit (what its power module measures; remaining -1) and unit ->
+    coordinator (with the unit's remaining estimate); in the same datagram as, and before, the sensor
+    packet it belongs to."""
+    return battery_status(round(b.voltage_v * 1000), round(b.current_a * 100),
+                          -1 if b.remaining < 0 else round(b.remaining * 100))
+
+
+def battery_from_message(msg) -> BatterySample | None:
+    """The sample of a BATTERY_STATUS (None: no voltage or no current in it)."""
+    v, i = msg.voltages[0], msg.current_battery
+    if v == 65535 or i < 0:
+        return None
+    return BatterySample(v / 1000.0, i / 100.0, -1.0 if msg.battery_remaining < 0 else msg.battery_remaining / 100.0)

@@ -82,7 +82,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.signing import add_signing_args, signing_from_args
 from sitl.parent_watch import die_with_parent
 from mars_link.errors import EnvironmentFailure, UserInputError
-from mars_link.messages import SensorPacket
+from mars_link.messages import BatterySample, SensorPacket
 from mars_link.outputs import write_json
 from mars_link.pacing import Pacer
 from mars_link.transport import LinkSpec, add_link_args, spec_from_args
@@ -90,6 +90,8 @@ from mars_link.wire import (
     LatchSensor,
     SensorPacketAssembler,
     latch_message,
+    battery_from_message,
+    battery_report_message,
     actuator_output_from_message,
     rotor_command_message,
     sensor_packet_messages,
@@ -144,11 +146,15 @@ def load_setup(scenario: str | None, units: int | None = None, layout: str | Non
     `steps` given (the launcher computed it once) spares a unit process building the trajectory
     (importing the whole coordinator stack costs each process over a second)."""
     from mars_link.assembly import AssemblyModel, parse_layout
-    from mars_link.scenario import Scenario, load_scenario, validate_fault
+    from mars_link.scenario import DEFAULT_PRESET, Scenario, load_scenario, validate_fault
 
     if units is not None and layout is not None:
         raise UserInputError("--units and --layout exclude each other")
-    sc = Scenario(name="free-units") if scenario in (None, "-") else load_scenario(scenario)
+    sc = Scenario(name="free-units", preset=DEFAULT_PRESET) if scenario in (None, "-") else load_scenario(scenario)
+    if scenario in (None, "-"):  # the built-in free units fly the default plant, packs included
+        from mars_link.battery import battery_table
+
+        sc.battery = battery_table({}, sc.preset, "free-units")
     if sc.has_pieces:
         if units is not None or layout is not None:
             raise UserInputError(f"{sc.source}: --units and --layout do not apply to a flight of several bodies")
@@ -257,7 +263,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
 
     sc = setup.scenario
     cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise, position_every(setup),
-                      environment=sc.environment if sc.environment.moves_air else None, sensors=sensor_params(sc))
+                      environment=sc.environment if sc.environment.moves_air else None, sensors=sensor_params(sc),
+                      battery=sc.battery)
     if setup.pieces:  # one body per piece of the executor's start (the coordinator builds the same executor)
         from mars_link.build import make_executor, make_pieces_world, make_trajectory, world_config
 
@@ -316,6 +323,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                     if setup.pieces and latch_sent.get(p.unit_id) != p.latches:  # the latch sensor, on change
                         latch_sent[p.unit_id] = p.latches
                         msgs.append(latch_message(p.t_s, p.latches))
+                    if p.battery is not None:  # the power module's sample, at the battery rate
+                        msgs.append(battery_report_message(p.battery))
                     datagrams.append((link.pack(msgs + sensor_packet_messages(p)), link.peers[p.unit_id]))
             pacer.wait(t)
             for data, addr in datagrams:
@@ -365,6 +374,10 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                    "cpu_loop_s": time.process_time() - cpu0, "force_integral_n2s": getattr(world, "force_integral_n2s", None),  # (free units: none)
                    "latch_events": getattr(world, "latch_events", []),
                    "bodies": [list(b.units) for b in getattr(world, "bodies", [])], "logging": truth_log.status()}
+        packs = getattr(world, "packs", None)
+        if packs is not None:  # the packs' truth at the end (unit id order)
+            summary["batteries"] = {"soc": packs.soc.round(6).tolist(), "voltage_v": packs.voltage_v.round(4).tolist(),
+                                    "drawn_c": packs.drawn_c.round(4).tolist()}
         write_json(out / "world_summary.json", summary)
     finally:
         truth_log.close()
@@ -618,6 +631,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     scale = model.vehicle.full_scale_thrust_n
     assembler = SensorPacketAssembler()
     latches = LatchSensor()
+    batteries: dict[int, BatterySample] = {}  # each unit's last BATTERY_STATUS, until its packet comes
     out.mkdir(parents=True, exist_ok=True)
     pieces_log = open(out / "pieces_steps.csv", "w", encoding="utf-8") if setup.pieces else None
     if pieces_log:
@@ -674,10 +688,19 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                         if not latches.feed(m):
                             link.drop("bad_named_value")
                         continue
+                    if m.get_type() == "BATTERY_STATUS":  # the unit's pack, for its next sensor packet
+                        sample = battery_from_message(m)
+                        if sample is None:
+                            link.drop("bad_battery")
+                        else:
+                            batteries[m.get_srcSystem()] = sample
+                        continue
                     p = assembler.feed(m)
                     if p is None:
                         continue
                     p.latches = latches.mask.get(p.unit_id, 0)
+                    if batteries:
+                        p.battery = batteries.pop(p.unit_id, None)
                     if not telemetry_ok(p):
                         link.drop("bad_telemetry")  # non-finite: never into the estimator
                         continue

@@ -161,6 +161,7 @@ class HostedVehicle:
             self.steps += 1
             return commands
         self.vehicle.core.drive.packets = packets
+        self.vehicle.take_unit_batteries(t_s, packets)
         est = self._estimate(t_s, packets)
         self._known.estimate = est
         if est is not None:

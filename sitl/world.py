@@ -7,6 +7,7 @@ link in lockstep (a step happens only when every live unit has answered for the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import KW_ONLY, dataclass, field
 
@@ -20,11 +21,15 @@ from sitl.docking import DockTolerance, dock_check
 from mars_link.latches import SIDE_STEPS, LatchBoard, components, neighbour_links, opposite
 from mars_link.environment import EnvironmentParams
 from sitl.environment import Air
+from mars_link.battery import BatterySpec
+from sitl.battery import Packs
 from sitl.physics import JsbsimBody
 from sitl.sensors import SensorModel, SensorParams
 
 #: each latch side's direction in a unit's body frame (FRD): front, right, back, left
 SIDE_FRD = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+#: how often a unit's power module reports its pack's voltage and current
+BATTERY_HZ = 10.0
 
 
 @dataclass
@@ -38,6 +43,7 @@ class WorldConfig:
     dock_tolerance: DockTolerance = field(default_factory=DockTolerance)  # when facing latches close
     environment: EnvironmentParams | None = None  # wind, gusts, turbulence (sitl.environment); None = still air
     sensors: SensorParams | None = None  # the sensor figures ([sensors] profile); None = SensorParams()
+    battery: BatterySpec | None = None  # the units' packs (sitl.battery); None = an ideal supply (the papers')
 
 
 @dataclass(eq=False)  # (identity: two bodies are never "equal")
@@ -124,6 +130,10 @@ class World:
         self._released = False  # a latch opened since the last advance: the world splits that body
         self.latch_events: list[dict] = []  # the world's record of every split and dock (truth, for logs)
         self.air = Air(config.environment, config.seed)
+        # the units' packs: measured at BATTERY_HZ (every `battery_every`-th exchange), as a power module reports
+        self.packs = None if config.battery is None else Packs(config.battery, list(model.unit_ids),
+                                                                model.vehicle.rotor_max_thrust_n)
+        self.battery_every = max(1, round(config.exchange_hz / BATTERY_HZ))
         self._index_bodies()
 
     @classmethod
@@ -212,6 +222,10 @@ class World:
             self._split_released()
         if self.air.active:
             self.air.before_exchange(self.t_s, [b.jsbsim for b in self.bodies])
+        packs = self.packs
+        if packs is not None and packs.thrust_cap_n is not None:  # a sagging pack cannot drive its rotors as hard
+            sp = self.rotor_setpoint_n.reshape(-1, 4)
+            np.minimum(sp, packs.thrust_cap_n[:, None], out=sp)
         a = self._lag_alpha
         if a >= 1.0:  # no motor lag: thrust is constant over the exchange period
             self.rotor_thrust_n = self.rotor_setpoint_n.copy()
@@ -230,7 +244,11 @@ class World:
                     b.jsbsim.set_rotor_thrusts(self.rotor_thrust_n if self._single else self.rotor_thrust_n[b.slots])
                     b.jsbsim.step()
                 self.force_integral_n2s += float(self.rotor_thrust_n @ self.rotor_thrust_n) * self.dt_s
+        if packs is not None:
+            packs.add_power(self.rotor_thrust_n, self.dt_s * self.substeps)
         self.exchange_index += 1
+        if packs is not None and self.exchange_index % self.battery_every == 0:
+            packs.step()  # the packs at the battery rate, before this exchange's sample
         if not self._single and len(self.bodies) > 1:
             self._latch_docks()
 
@@ -321,6 +339,7 @@ class World:
         """Sensor packets of every live unit for the current time (already rounded as on the wire)."""
         t = self.t_s
         with_position = self.exchange_index % self.config.position_every == 0
+        with_battery = self.packs is not None and self.exchange_index % self.battery_every == 0
         tw = wire_time(t)
         packets = []
         for b in self.bodies:
@@ -339,7 +358,8 @@ class World:
                     continue
                 imu = ImuSample(tw, unit_id, gyro[i], accel[i])
                 p = PositionSample(tw, unit_id, pos[i], vel[i]) if with_position else None
-                packets.append(SensorPacket(tw, unit_id, imu, p, state, latch(unit_id)))
+                packets.append(SensorPacket(tw, unit_id, imu, p, state, latch(unit_id),
+                                            self.packs.sample(unit_id - 1) if with_battery else None))
         if not self._single:
             packets.sort(key=lambda p: p.unit_id)
         return packets
@@ -415,7 +435,10 @@ class FreeUnitsWorld:
         self.unit_ids = list(range(1, n_units + 1))
         self.worlds = {
             u: World(self.model, WorldConfig(config.physics_hz, config.exchange_hz, config.seed + u - 1, False,
-                                             config.position_every, environment=config.environment),
+                                             config.position_every, environment=config.environment,
+                                             battery=None if config.battery is None else  # (unit u's own pack)
+                                             dataclasses.replace(config.battery, pack=config.battery.pack_of(u),
+                                                                 overrides={})),
                      np.array([0.0, (u - 1) * spacing_m, 0.0]))
             for u in self.unit_ids
         }
@@ -456,7 +479,7 @@ class FreeUnitsWorld:
                 out.append(SensorPacket(p.t_s, u, ImuSample(p.t_s, u, p.imu.gyro_frd_radps, p.imu.accel_frd_mps2),
                                         None if p.position is None else PositionSample(
                                             p.t_s, u, p.position.position_ned_m, p.position.velocity_ned_mps),
-                                        p.truth))
+                                        p.truth, battery=p.battery))
         return out
 
     def unit_truth(self, unit_id: int) -> RigidBodyState:

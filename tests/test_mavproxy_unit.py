@@ -72,7 +72,7 @@ def test_mavproxy_reads_parameters_and_status(tmp_path: Path) -> None:
     proc, _ = spawn_unit(["--unit", "6", "--gcs-port", str(free_udp_port()), "--gcs-bind", str(bind),
                           "--api-port", str(free_udp_port()), "--api-bind", "0", "--coord-bind", "0"])
     cmds = ["repeat add 2 param show MIS_TAKEOFF_ALT", "repeat add 3 status SYS_STATUS",
-            "repeat add 4 param set MIS_TAKEOFF_ALT 3.5", "repeat add 5 arm throttle"]
+            "repeat add 7 param set MIS_TAKEOFF_ALT 3.5", "repeat add 5 arm throttle"]
     try:
         seen, lines = run_mavproxy(bind, cmds, EXPECTED, tmp_path, timeout_s=40)
     finally:

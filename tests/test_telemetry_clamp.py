@@ -42,7 +42,7 @@ def test_battery_current_above_int16_is_clamped_not_raised() -> None:
     """The probe's case: total |rotor thrust| above ~164 N (a yaw setpoint on the 3x2) overflowed the
     int16 current_battery of SYS_STATUS and BATTERY_STATUS, and struct.error escaped tick()."""
     v = armed_vehicle()
-    v.motor_commands_n = np.array([50.0, 50.0, 50.0, 50.0])  # 200 N: 400 A modelled
+    v.battery.report(15.2, 400.0, 0.5, 0.0)  # 400 A measured (a pack's sample: firmware_models.battery_monitor)
     msgs = decode_all(v.tick(10.0, 0.001))
     sys_status = [m for m in msgs if m.get_type() == "SYS_STATUS"]
     battery = [m for m in msgs if m.get_type() == "BATTERY_STATUS"]
@@ -52,8 +52,8 @@ def test_battery_current_above_int16_is_clamped_not_raised() -> None:
 
 
 def test_the_3x2_assembly_vehicle_reports_a_high_draw_instead_of_crashing() -> None:
-    """`mars-link vehicle` / `sitl up --vehicle`: the assembly's 24 rotors between -5.4 and +8.0 N (what
-    a yaw setpoint commands) add up to 176 N, 353 A modelled."""
+    """`mars-link vehicle` / `sitl up --vehicle`: the assembly's current is its units' sum (six units at 60 A
+    each: 360 A, beyond the int16 centiamperes)."""
     from mars_link.assembly_vehicle import AssemblySim
     from mars_link.scenario import load_scenario
 
@@ -62,17 +62,25 @@ def test_the_3x2_assembly_vehicle_reports_a_high_draw_instead_of_crashing() -> N
         v = sim.vehicle
         v.tick(0.0, 0.0)
         v.armed = True
-        v.motor_commands_n = np.where(np.arange(24) % 4, 8.0, -5.4)
+        from types import SimpleNamespace
+
+        from mars_link.messages import BatterySample
+
+        v.take_unit_batteries(0.0, [SimpleNamespace(unit_id=u, battery=BatterySample(15.0, 60.0, 0.4 + 0.01 * u))
+                                    for u in range(1, 7)])
         msgs = decode_all(v.tick(10.0, 0.001))
     finally:
         sim.close()
     s = next(m for m in msgs if m.get_type() == "SYS_STATUS")
-    assert s.current_battery == 32767 and s.battery_remaining in range(0, 101)
+    assert s.current_battery == 32767 and s.battery_remaining == 41  # the emptiest pack's
 
 
-def test_nan_thrust_reports_not_sent_values() -> None:
+@pytest.mark.parametrize("measured", [False, True])
+def test_no_or_nan_battery_reports_not_sent_values(measured) -> None:
+    """No simulated pack (the papers' plants), or a sample of NaN: MAVLink's "not sent" values."""
     v = armed_vehicle()
-    v.motor_commands_n = np.array([np.nan, 1.0, 1.0, 1.0])
+    if measured:
+        v.battery.report(np.nan, np.nan, np.nan, 0.0)
     msgs = decode_all(v.tick(10.0, 0.001))
     s = next(m for m in msgs if m.get_type() == "SYS_STATUS")
     b = next(m for m in msgs if m.get_type() == "BATTERY_STATUS")
@@ -115,7 +123,8 @@ def test_property_every_outgoing_message_packs_from_extreme_states(signed) -> No
     for i in range(300):
         v.armed = bool(rng.random() < 0.8)
         v.motor_commands_n = _extreme(rng, 4)
-        v.battery_used_c = float(rng.choice([0.0, -1e30, 1e30, np.nan, np.inf, rng.uniform(-1e6, 1e6)]))
+        extreme = lambda: float(rng.choice([0.0, -1e30, 1e30, np.nan, np.inf, rng.uniform(-1e6, 1e6)]))  # noqa: E731
+        v.battery.report(extreme(), extreme(), extreme(), extreme())
         v.home_ned = _extreme(rng, 3) if rng.random() < 0.7 else None
         q = _extreme(rng, 4)
         v.state = RigidBodyState(float(i), _extreme(rng, 3), _extreme(rng, 3), q, _extreme(rng, 3), _extreme(rng, 3))

@@ -106,7 +106,8 @@ class _Staged(Allocator):
         self._alive = self.eta > 0.0
         self._weight_n = m.mass_kg * GRAVITY_MPS2
         lo = -np.inf if self.min_thrust_n is None else self.min_thrust_n
-        hi = np.inf if self.max_thrust_n is None else self.max_thrust_n
+        hi = self.upper_bounds() if self.available is not None else (
+            np.inf if self.max_thrust_n is None else self.max_thrust_n)
         self._lo, self._hi = lo, hi
         self._is_bounded = self.min_thrust_n is not None or self.max_thrust_n is not None
         self._dead_idx = np.flatnonzero(~self._alive)
@@ -161,12 +162,13 @@ class _Staged(Allocator):
         for u in self._intra_units:
             self._intra_rotors[u * ROTORS_PER_UNIT:(u + 1) * ROTORS_PER_UNIT] = True
         self._intra_idx = np.flatnonzero(self._intra_rotors)
+        self._hi_intra = self._hi[self._intra_idx] if np.ndim(self._hi) else self._hi
         self._stage_intra = stage[self._intra_idx]  # hot path: no fancy indexing of the full map
 
     def _apply_intra_unit(self, w: np.ndarray, t: np.ndarray) -> np.ndarray:
         """Full: every faulty unit rebalances, clipped to the bounds (what it cannot make goes on)."""
         own = self._stage_intra @ w
-        t[self._intra_idx] = np.minimum(np.maximum(own, self._lo), self._hi)
+        t[self._intra_idx] = np.minimum(np.maximum(own, self._lo), self._hi_intra)
         return t
 
     def allocate(self, wrench: np.ndarray) -> np.ndarray:
@@ -248,7 +250,7 @@ class Hybrid(_Staged):
 
     def _apply_intra_unit(self, w: np.ndarray, t: np.ndarray) -> np.ndarray:
         own = self._stage_intra @ w
-        fits = ((own >= self._lo) & (own <= self._hi)).reshape(-1, ROTORS_PER_UNIT).all(axis=1)
+        fits = ((own >= self._lo) & (own <= self._hi_intra)).reshape(-1, ROTORS_PER_UNIT).all(axis=1)
         if fits.all():
             t[self._intra_idx] = own
         else:  # a unit whose rebalance would saturate keeps its commands (partial) on this call
@@ -277,14 +279,14 @@ class RedistributedPseudoInverse(Allocator):
         ww = self._sqrt_w * clean_wrench(wrench, self._weight_n)
         t = self._pinv_alive @ ww
         lo = -np.inf if self.min_thrust_n is None else self.min_thrust_n
-        hi = np.inf if self.max_thrust_n is None else self.max_thrust_n
+        hi = self.upper_bounds()
         free = self._alive.copy()
         bw = self._bw
         for _ in range(len(t)):
             low, high = free & (t < lo), free & (t > hi)
             if not (low.any() or high.any()):
                 break
-            t[low], t[high] = lo, hi
+            t[low], t[high] = lo, hi[high]
             free &= ~(low | high)
             if not free.any():
                 break

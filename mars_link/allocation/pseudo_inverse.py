@@ -22,5 +22,6 @@ class NominalPseudoInverse(Allocator):
     def allocate(self, wrench: np.ndarray) -> np.ndarray:
         thrusts = self._pinv @ np.asarray(wrench, dtype=float)
         if self.min_thrust_n is not None or self.max_thrust_n is not None:
-            thrusts = np.clip(thrusts, self.min_thrust_n, self.max_thrust_n)
+            hi = self.max_thrust_n if self.available is None else self.upper_bounds()
+            thrusts = np.clip(thrusts, self.min_thrust_n, hi)
         return thrusts

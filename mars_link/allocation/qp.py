@@ -58,10 +58,13 @@ class QpAllocator(Allocator):
         kq = m.vehicle.yaw_moment_per_thrust_m
         lam = VARIANCE_WEIGHT * w[3] * kq**2 * n
         idx = np.arange(n)
+        # the variance is of each rotor's thrust over what its pack allows (d = 1 / available): equal
+        # packs give today's equal split, a sagging pack's rotors take a smaller share
+        d = np.ones(n) if self.available is None else 1.0 / np.maximum(self.available, 1e-3)
         # upper-triangular P over x = [t (n), mu, e (4)]
         rows = np.concatenate([idx, idx, [n], n + 1 + np.arange(4)])
         cols = np.concatenate([idx, np.full(n, n), [n], n + 1 + np.arange(4)])
-        vals = np.concatenate([np.full(n, 2 * lam), np.full(n, -2 * lam), [2 * lam * n], np.full(4, 2.0)])
+        vals = np.concatenate([2 * lam * d**2, -2 * lam * d, [2 * lam * n], np.full(4, 2.0)])
         p = sp.csc_matrix((vals, (rows, cols)), shape=(n + 5, n + 5))
         a = sp.vstack([
             sp.hstack([sp.identity(n), sp.csc_matrix((n, 5))]),
@@ -69,7 +72,7 @@ class QpAllocator(Allocator):
         ], format="csc")
         alive = self.eta > 0.0
         lo = -np.inf if self.min_thrust_n is None else self.min_thrust_n
-        hi = np.inf if self.max_thrust_n is None else self.max_thrust_n
+        hi = self.upper_bounds()
         self._n = n
         self._b = b
         self._l = np.concatenate([np.where(alive, lo, 0.0), np.zeros(4)])
@@ -78,6 +81,8 @@ class QpAllocator(Allocator):
         self._solver = osqp.OSQP()
         self._solver.setup(p, np.zeros(n + 5), a, self._l, self._u, **SETTINGS)
         self._fallback = RedistributedPseudoInverse(m, self.eta, self.min_thrust_n, self.max_thrust_n)
+        if self.available is not None:
+            self._fallback.set_available(self.available)
         self.fallbacks = 0  # calls where OSQP did not solve since the last set_eta
         self.saturated = 0  # calls with some bound active at the unconstrained optimum
         self.solves = 0  # of those, calls the active-set method left to OSQP
@@ -85,7 +90,8 @@ class QpAllocator(Allocator):
         self._live = alive
         bl = b[:, alive]
         k = bl.shape[1]
-        self._hess = bl.T @ (w[:, None] * bl) + lam * (np.eye(k) - np.ones((k, k)) / n)
+        dl = d[alive]
+        self._hess = bl.T @ (w[:, None] * bl) + lam * (np.diag(dl**2) - np.outer(dl, dl) / n)
         self._bw = bl.T * w
         # resolves 0.1 % of a hover thrust in the variance term's gradient 2 lam (t - mean)
         self._grad_tol = 1e-3 * lam * m.hover_thrust_per_rotor_n()

@@ -106,12 +106,20 @@ class CascadedController(Controller):
         self.allocator.set_eta(eta)
         self._update_thrust_cap()
 
+    def set_available(self, available: np.ndarray | None) -> None:
+        """Each rotor's share of its maximum thrust that its unit's battery still gives (the allocator's bounds)."""
+        self.allocator.set_available(available)
+        self._update_thrust_cap()
+
     def _update_thrust_cap(self) -> None:
         """Total thrust the live rotors can give (inf without rotor limits), derated for attitude."""
-        cap = self.allocator.max_thrust_n
-        self.max_total_thrust_n = (
-            math.inf if cap is None else self.gains.max_thrust_fraction * cap * float(np.sum(self.allocator.eta))
-        )
+        a = self.allocator
+        if a.max_thrust_n is None:
+            self.max_total_thrust_n = math.inf
+        elif a.available is None:
+            self.max_total_thrust_n = self.gains.max_thrust_fraction * a.max_thrust_n * float(np.sum(a.eta))
+        else:
+            self.max_total_thrust_n = self.gains.max_thrust_fraction * float(a.upper_bounds() @ a.eta)
 
     # ----------------------------------------------------------------- control law
     def update(self, t_s: float, state: RigidBodyState, reference: TrajectoryPoint) -> ControlOutput:

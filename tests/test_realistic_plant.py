@@ -1,0 +1,79 @@
+"""Issue 15 item 6: a realistic plant by default where users fly (thrust within [0, max], motor lag, a pack
+per unit), the paper's plant kept for the paper reproductions, and saturation handled by the qp
+allocator's priorities in flight: a 90 degree yaw step on the 3x2 saturates rotors; qp keeps the
+attitude and the height and turns; the paper plant asks for reversed thrust instead."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from mars_link.build import build_flight
+from mars_link.engine import Engine
+from mars_link.realtime import DEFAULT_SCENARIO as VEHICLE_DEFAULT
+from mars_link.reproduce import CASES, scenario_for
+from mars_link.rotations import quat_to_euler
+from mars_link.scenario import INTERACTIVE_SCENARIO, load_scenario, scenario_from_dict
+
+
+def test_defaults_fly_the_realistic_plant_and_the_papers_keep_theirs() -> None:
+    for sc in (load_scenario(VEHICLE_DEFAULT), load_scenario(INTERACTIVE_SCENARIO),
+               scenario_from_dict({"name": "new", "assembly": {"layout": ["XX"]}, "trajectory": {"kind": "hover"}})):
+        v = sc.model().vehicle
+        assert sc.preset == "mars-real" and sc.battery is not None and sc.ftc == "qp"
+        assert v.rotor_min_thrust_n == 0.0 and v.rotor_max_thrust_n == pytest.approx(3.0 * 0.52 * 9.80665 / 4)
+        assert v.motor_time_constant_s == 0.02
+    for sc in (load_scenario("spiral_3x2_paper"), load_scenario("spiral_3x2"),
+               scenario_for(CASES[0], "cascaded", "qp")):
+        v = sc.model().vehicle
+        assert sc.preset == "mars-ftcc" and sc.battery is None
+        assert v.rotor_min_thrust_n is None and v.rotor_max_thrust_n is None and v.motor_time_constant_s == 0.0
+
+
+def _yaw_step(tmp_path: Path, preset: str | None, ftc: str) -> dict:
+    rows = ["t,n,e,d,yaw_rad"] + [f"{t},0,0,-2,{0.0 if t < 6 else math.pi / 2}" for t in (0, 5.99, 6.0, 12.0)]
+    csv = tmp_path / "yaw.csv"
+    csv.write_text("\n".join(rows) + "\n")
+    doc = {"name": "yaw", "assembly": {"layout": ["XXX", "XXX"], "tracked": "com"},
+           "trajectory": {"kind": "csv", "path": str(csv)}, "control": {"ftc": ftc}}
+    if preset:
+        doc["vehicle"] = {"preset": preset}
+    flight = build_flight(scenario_from_dict(doc), 1)
+    seen = {"lo": math.inf, "hi": -math.inf, "cmd_lo": math.inf, "tilt": 0.0, "alt": []}
+
+    class Watch:
+        def on_step(self, engine, view) -> bool:
+            th = flight.world.rotor_thrust_n
+            seen["lo"], seen["hi"] = min(seen["lo"], th.min()), max(seen["hi"], th.max())
+            seen["cmd_lo"] = min(seen["cmd_lo"], float(view.record.thrusts_n.min()))
+            if view.t_s > 6.0:
+                r, p, _ = quat_to_euler(view.truth.quaternion_wxyz)
+                seen["tilt"] = max(seen["tilt"], math.degrees(max(abs(r), abs(p))))
+                seen["alt"].append(-view.truth.position_ned_m[2])
+            return False
+
+    try:
+        Engine(flight, [Watch()]).run()
+        seen["yaw_deg"] = math.degrees(quat_to_euler(flight.world.truth().quaternion_wxyz)[2])
+        seen["saturated"] = getattr(flight.coordinator.controller.allocator, "saturated", 0)
+        seen["max_n"] = flight.model.vehicle.rotor_max_thrust_n
+    finally:
+        flight.world.close()
+    return seen
+
+
+def test_a_saturating_yaw_step_is_flown_by_qp_priorities_within_0_and_max(tmp_path: Path) -> None:
+    real = _yaw_step(tmp_path, None, "qp")
+    paper = _yaw_step(tmp_path, "mars-ftcc", "qp")
+    clipped = _yaw_step(tmp_path, None, "none")
+    print(f"realistic qp: thrust {real['lo']:.2f}..{real['hi']:.2f} N, tilt {real['tilt']:.2f} deg, height "
+          f"{min(real['alt']):.2f}..{max(real['alt']):.2f} m, yaw {real['yaw_deg']:.1f} deg, {real['saturated']} saturated "
+          f"steps; paper plant asks {paper['cmd_lo']:.2f} N; realistic + pinv clipped: tilt {clipped['tilt']:.0f} deg")
+    assert real["lo"] >= 0.0 and real["hi"] <= real["max_n"] + 1e-9  # the plant's range, at the world
+    assert real["saturated"] > 50  # the step did saturate rotors ...
+    assert real["tilt"] < 2.0 and 1.7 < min(real["alt"]) and max(real["alt"]) < 2.5  # ... and roll/pitch held
+    assert abs(real["yaw_deg"] - 90.0) < 3.0  # yaw, last in priority, still got there
+    assert paper["cmd_lo"] < -1.0  # the paper plant takes reversed thrust for it
+    assert clipped["tilt"] > 30.0  # a clipped pseudo-inverse loses the attitude: why qp is the default
