@@ -216,10 +216,19 @@ class UnitAutopilot:
     def update(self, t_s: float, state: RigidBodyState, lim: GuidanceLimits, land_speed_mps: float) -> tuple[np.ndarray, str | None]:
         """Rotor thrusts for this control step, and an event name when a phase finished
         ("takeoff_done", "landed", "rtl_home")."""
+        ref, event = self.guide(t_s, state, lim, land_speed_mps)
+        if ref is None:
+            return self.zero, event
+        return self.controller.update(t_s, state, ref).rotor_thrusts_n, event
+
+    def guide(self, t_s: float, state: RigidBodyState, lim: GuidanceLimits, land_speed_mps: float
+              ) -> tuple[TrajectoryPoint | None, str | None]:
+        """The guidance half of `update`: this step's reference (None: idle on the ground) and event.
+        Apart so a reference can be flown ahead of time (mars_link.mission_trajectory)."""
         event = None
         ph = self.phase
         if ph == Phase.IDLE:
-            return self.zero, None
+            return None, None
         dt = self.dt_s
         s = self.shaper
         if ph in (Phase.TAKEOFF, Phase.HOLD, Phase.GOTO):
@@ -251,8 +260,8 @@ class UnitAutopilot:
                     self._touch_since = t_s
                 elif t_s - self._touch_since >= LANDED_AFTER_S:
                     self.idle()
-                    return self.zero, "landed"
+                    return None, "landed"
             else:
                 self._touch_since = None
         self.reference = ref
-        return self.controller.update(t_s, state, ref).rotor_thrusts_n, event
+        return ref, event
