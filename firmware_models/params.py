@@ -42,7 +42,8 @@ def unit_param_specs(unit_id: int, vehicle: VehicleParams) -> list[ParamSpec]:
         ParamSpec("MIS_TAKEOFF_ALT", 2.0, REAL32, 0.3, 100.0, doc="takeoff altitude above home, m"),
         ParamSpec("MPC_TKO_SPEED", 1.0, REAL32, 0.1, 5.0, doc="takeoff climb speed, m/s"),
         ParamSpec("MPC_LAND_SPEED", 0.7, REAL32, 0.1, 3.0, doc="final landing descent speed, m/s"),
-        ParamSpec("MPC_XY_VEL_MAX", 2.0, REAL32, 0.1, 10.0, doc="horizontal reference speed limit, m/s"),
+        ParamSpec("MPC_XY_VEL_MAX", 12.0, REAL32, 0.1, 20.0,
+                  doc="horizontal speed limit of every mode (offboard velocity, DO_CHANGE_SPEED), m/s"),
         ParamSpec("MPC_Z_VEL_MAX_UP", 1.5, REAL32, 0.1, 5.0, doc="climb reference speed limit, m/s"),
         ParamSpec("MPC_Z_VEL_MAX_DN", 1.0, REAL32, 0.1, 5.0, doc="descent reference speed limit, m/s"),
         ParamSpec("RTL_RETURN_ALT", 5.0, REAL32, 0.5, 100.0, doc="return altitude above home, m"),
@@ -70,6 +71,10 @@ def unit_param_specs(unit_id: int, vehicle: VehicleParams) -> list[ParamSpec]:
                   doc="maximum horizontal distance from home, m (0 off)", safety=True),
         ParamSpec("GF_MAX_VER_DIST", 0.0, REAL32, 0.0, 10_000.0, doc="maximum height above home, m (0 off)",
                   safety=True),
+        # PX4's defaults are 5 and 10 m/s; 2 m/s here keeps a small unit's missions and sticks gentle
+        ParamSpec("MPC_XY_CRUISE", 2.0, REAL32, 0.1, 20.0,
+                  doc="horizontal speed of missions, goto and return (within MPC_XY_VEL_MAX), m/s"),
+        ParamSpec("MPC_VEL_MANUAL", 2.0, REAL32, 0.1, 20.0, doc="position-mode full-stick horizontal speed, m/s"),
     ]
 
 

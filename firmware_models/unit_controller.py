@@ -39,6 +39,7 @@ class GuidanceLimits:
     accel_mps2: float = 2.0
     yaw_rate_radps: float = 1.0
     position_gain_per_s: float = 2.5  # reference speed per metre of remaining distance
+    velocity_max_mps: float | None = None  # velocity targets (offboard, sticks); None: xy_speed_mps
 
 
 class Phase(Enum):
@@ -86,8 +87,9 @@ class ReferenceShaper:
         else:
             want = np.zeros(3) if target_v is None else np.array(target_v, dtype=float)
             sxy = math.hypot(want[0], want[1])
-            if sxy > lim.xy_speed_mps:
-                want[:2] *= lim.xy_speed_mps / sxy
+            vmax = lim.xy_speed_mps if lim.velocity_max_mps is None else lim.velocity_max_mps
+            if sxy > vmax:
+                want[:2] *= vmax / sxy
             want[2] = min(max(want[2], -lim.up_speed_mps), lim.down_speed_mps)
         dv = want - self.v
         n = float(np.linalg.norm(dv))

@@ -204,6 +204,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
         self._init_manual()
         self._init_logs()
         self.legs = None  # mission legs between the runner and the core (mars_link.mission_legs)
+        self.speed_override_mps: float | None = None  # MAV_CMD_DO_CHANGE_SPEED (else MPC_XY_CRUISE)
 
     def _intake_params(self) -> IntakeParams:
         p = self.params
@@ -467,11 +468,15 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
 
     # ================================================================= control
     def _limits(self) -> GuidanceLimits:
+        """PX4's speeds: position targets (missions, goto, return) at MPC_XY_CRUISE (a DO_CHANGE_SPEED
+        command or mission item instead), velocity targets up to MPC_XY_VEL_MAX, which bounds both."""
         p = self.params
-        xy = p["MPC_XY_VEL_MAX"]
+        vmax = p["MPC_XY_VEL_MAX"]
+        xy = p["MPC_XY_CRUISE"] if self.speed_override_mps is None else self.speed_override_mps
         if self.mode == MODE_MISSION and self.runner.speed_mps is not None:
-            xy = min(xy, self.runner.speed_mps)  # DO_CHANGE_SPEED, within PX4's limit
-        return GuidanceLimits(xy, p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"], p["MPC_TKO_SPEED"])
+            xy = self.runner.speed_mps  # DO_CHANGE_SPEED
+        return GuidanceLimits(min(xy, vmax), p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"], p["MPC_TKO_SPEED"],
+                              velocity_max_mps=vmax)
 
     def _control_step(self) -> None:
         t = self.sim_s
