@@ -75,6 +75,14 @@ def unit_param_specs(unit_id: int, vehicle: VehicleParams) -> list[ParamSpec]:
         ParamSpec("MPC_XY_CRUISE", 2.0, REAL32, 0.1, 20.0,
                   doc="horizontal speed of missions, goto and return (within MPC_XY_VEL_MAX), m/s"),
         ParamSpec("MPC_VEL_MANUAL", 2.0, REAL32, 0.1, 20.0, doc="position-mode full-stick horizontal speed, m/s"),
+        # follow-me (AUTO.FOLLOW_TARGET, firmware_models.vehicle_follow): PX4's names and defaults
+        ParamSpec("FLW_TGT_HT", 8.0, REAL32, 1.0, 1000.0, doc="follow height above home (or the target, ALT_M 2), m"),
+        ParamSpec("FLW_TGT_DST", 8.0, REAL32, 1.0, 1000.0, doc="horizontal distance kept from the target, m"),
+        ParamSpec("FLW_TGT_FA", 180.0, REAL32, -180.0, 180.0,
+                  doc="follow angle: 0 in front of the target's course, clockwise, deg (180 behind)"),
+        ParamSpec("FLW_TGT_RS", 0.1, REAL32, 0.0, 1.0, doc="target velocity filter: 0 each fix, 1 never changes"),
+        ParamSpec("FLW_TGT_ALT_M", 0, INT32, 0, 2, doc="altitude: 0 constant above home, 1 terrain (= 0), 2 target's"),
+        ParamSpec("FLW_TGT_MAX_VEL", 5.0, REAL32, 0.0, 20.0, doc="speed cap while following, m/s"),
     ]
 
 

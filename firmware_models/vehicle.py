@@ -17,7 +17,7 @@ offboard setpoints with a watchdog, fault injection (MAV_CMD_INJECT_FAILURE into
 only), MAVFTP NAK. Geographic positions are around PX4 SITL's home (geo.py).
 
 The microservices live in their own modules, mixed into `Vehicle` (as PX4's mavlink module splits
-them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard, vehicle_manual (orbit, sticks, attitude, land detector),
+them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard, vehicle_manual (orbit, sticks, attitude, land detector), vehicle_follow (follow-me),
 vehicle_params, vehicle_missions, vehicle_geofence (fence and rally), vehicle_logs (log download), vehicle_services, vehicle_streams (telemetry), vehicle_hil. This
 module keeps the state, the dispatch, the control step and the watchdogs.
 
@@ -50,6 +50,7 @@ from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
     ACTION_COMMANDS, COMMAND_DEDUP_S, FAILURE_TYPE_ETA, FAILURE_UNIT_SYSTEM_MOTOR, SETPOINT_PROOF_OF_LIFE_S,
     CommandsMixin,
 )
+from firmware_models.vehicle_follow import FollowMixin
 from firmware_models.vehicle_geofence import GeofenceMixin
 from firmware_models.vehicle_hil import HilMixin
 from firmware_models.vehicle_logs import LogsMixin
@@ -127,8 +128,8 @@ class VehicleConfig:
 
 
 
-class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMixin, GeofenceMixin, LogsMixin,
-              ServicesMixin, HilMixin, StreamsMixin):
+class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixin, MissionsMixin, GeofenceMixin,
+              LogsMixin, ServicesMixin, HilMixin, StreamsMixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -202,6 +203,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
         self.mission_reached: list[dict] = []  # (seq, sim time, position) of every MISSION_ITEM_REACHED
         self._init_geofence()
         self._init_manual()
+        self._init_follow()
         self._init_logs()
         self.legs = None  # mission legs between the runner and the core (mars_link.mission_legs)
         self.speed_override_mps: float | None = None  # MAV_CMD_DO_CHANGE_SPEED (else MPC_XY_CRUISE)
@@ -555,6 +557,7 @@ _HANDLERS: dict[str, str] = {
     "SET_POSITION_TARGET_GLOBAL_INT": "_on_position_target",
     "SET_ATTITUDE_TARGET": "_on_attitude_target",
     "MANUAL_CONTROL": "_on_manual_control",
+    "FOLLOW_TARGET": "_on_follow_target",
     "LOG_REQUEST_LIST": "_on_log_request_list",
     "LOG_REQUEST_DATA": "_on_log_request_data",
     "LOG_REQUEST_END": "_on_log_request_end",

@@ -15,6 +15,7 @@ from firmware_models.unit_controller import Phase
 from mars_link.state import RigidBodyState
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
 from firmware_models.vehicle_modes import (
+    MODE_FOLLOW,
     MODE_HOLD,
     MODE_LAND,
     MODE_MISSION,
@@ -200,6 +201,10 @@ class CommandsMixin:
             return R.MAV_RESULT_ACCEPTED
         if mode == MODE_MISSION:
             return self._enter_mission()
+        if mode == MODE_FOLLOW:
+            self.runner.pause()
+            self._orbit = None
+            return self._enter_follow()
         s = self.state
         self.runner.pause()  # (a no-op unless leaving AUTO.MISSION: it resumes at its current item)
         self._orbit = None

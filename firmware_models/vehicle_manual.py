@@ -30,7 +30,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.unit_controller import Phase
 from firmware_models.vehicle_links import Link, Outgoing, finite
-from firmware_models.vehicle_modes import MODE_HOLD, MODE_MISSION, MODE_OFFBOARD, MODE_ORBIT, MODE_POSCTL
+from firmware_models.vehicle_modes import MODE_FOLLOW, MODE_HOLD, MODE_MISSION, MODE_OFFBOARD, MODE_ORBIT, MODE_POSCTL
 from mars_link.assembly import GRAVITY_MPS2
 from mars_link.rotations import quat_multiply, quat_to_euler, quat_to_rotmat
 from mars_link.trajectories import TrajectoryPoint
@@ -231,6 +231,8 @@ class ManualMixin:
             self._orbit_step()
         elif self.mode == MODE_POSCTL:
             self._manual_step()
+        elif self.mode == MODE_FOLLOW:
+            self._follow_step()
         elif self.mode == MODE_OFFBOARD and self._setpoint is not None and self._setpoint[0] == "attitude":
             ap = self.autopilot
             hover = ap.model.mass_kg * GRAVITY_MPS2 / (ap.model.n_rotors * self.full_scale_n)

@@ -48,7 +48,7 @@ MAX_DURATION_S = 3600.0  # a mission longer than an hour of sim time is refused 
 class MissionParams:
     """[trajectory] keys of kind "mission" (the vehicle's parameter names in brackets)."""
 
-    xy_speed_mps: float = 2.0  # MPC_XY_VEL_MAX
+    xy_speed_mps: float = 2.0  # MPC_XY_CRUISE
     up_speed_mps: float = 1.5  # MPC_Z_VEL_MAX_UP
     down_speed_mps: float = 1.0  # MPC_Z_VEL_MAX_DN
     takeoff_speed_mps: float = 1.0  # MPC_TKO_SPEED
