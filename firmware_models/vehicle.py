@@ -17,7 +17,7 @@ offboard setpoints with a watchdog, fault injection (MAV_CMD_INJECT_FAILURE into
 only), MAVFTP NAK. Geographic positions are around PX4 SITL's home (geo.py).
 
 The microservices live in their own modules, mixed into `Vehicle` (as PX4's mavlink module splits
-them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard, vehicle_manual (orbit, sticks, attitude, land detector), vehicle_follow (follow-me),
+them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard, vehicle_manual (orbit, sticks, attitude, land detector), vehicle_follow (follow-me), vehicle_shell (SERIAL_CONTROL shell),
 vehicle_params, vehicle_missions, vehicle_geofence (fence and rally), vehicle_logs (log download), vehicle_services, vehicle_streams (telemetry), vehicle_hil. This
 module keeps the state, the dispatch, the control step and the watchdogs.
 
@@ -69,6 +69,7 @@ from firmware_models.vehicle_modes import (  # noqa: F401 (re-exported)
 from firmware_models.vehicle_offboard import MAX_POSITION_M, MAX_SPEED_MPS, OffboardMixin  # noqa: F401
 from firmware_models.vehicle_params import ParamsMixin
 from firmware_models.vehicle_services import ServicesMixin
+from firmware_models.vehicle_shell import ShellMixin
 from firmware_models.vehicle_streams import (  # noqa: F401 (re-exported)
     CAPABILITIES, DEFAULT_STREAM_HZ, MIN_STREAM_INTERVAL_S, REFUSED_MESSAGES, SENSORS, StreamsMixin,
 )
@@ -129,7 +130,7 @@ class VehicleConfig:
 
 
 class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixin, MissionsMixin, GeofenceMixin,
-              LogsMixin, ServicesMixin, HilMixin, StreamsMixin):
+              LogsMixin, ServicesMixin, ShellMixin, HilMixin, StreamsMixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -204,6 +205,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self._init_geofence()
         self._init_manual()
         self._init_follow()
+        self._init_shell()
         self._init_logs()
         self.legs = None  # mission legs between the runner and the core (mars_link.mission_legs)
         self.speed_override_mps: float | None = None  # MAV_CMD_DO_CHANGE_SPEED (else MPC_XY_CRUISE)
@@ -382,6 +384,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         for name, msg in self.mission.tick(self.wall_s):
             self._reply(self.links[name], msg, out)
         self._flush_mission_texts()
+        self._shell_tick(out)
         self._log_tick(out)
         while self._mission_msgs:
             self._broadcast(self._mission_msgs.pop(0), out)
@@ -558,6 +561,7 @@ _HANDLERS: dict[str, str] = {
     "SET_ATTITUDE_TARGET": "_on_attitude_target",
     "MANUAL_CONTROL": "_on_manual_control",
     "FOLLOW_TARGET": "_on_follow_target",
+    "SERIAL_CONTROL": "_on_serial_control",
     "LOG_REQUEST_LIST": "_on_log_request_list",
     "LOG_REQUEST_DATA": "_on_log_request_data",
     "LOG_REQUEST_END": "_on_log_request_end",
