@@ -74,17 +74,11 @@ def test_mavsdk_shell_runs_commands_that_change_the_unit(tmp_path) -> None:
     from mavsdk.asyncio.plugins.param import ParamAsync
     from mavsdk.asyncio.plugins.shell import ShellAsync
     from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
-    from mavsdk.plugins.shell import Device  # noqa: F811
-    from test_mavsdk_mission import spawn_api_unit
+    from mavsdk.plugins.shell import Device
     from test_mavsdk_unit import _until, autopilot
+    from unit_process import api_unit
 
-    from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
-
-    api_port = free_udp_port()
-    status = tmp_path / "status.json"
-    proc, _ = spawn_api_unit(api_port, status)
-
-    async def run() -> dict:
+    async def run(api_port, truth) -> dict:
         async with autopilot(api_port) as system:
             telemetry, shell, param = TelemetryAsync(system), ShellAsync(system), ParamAsync(system)
             await _until(lambda: telemetry.health_all_ok(), 15.0, "health_all_ok")
@@ -110,21 +104,19 @@ def test_mavsdk_shell_runs_commands_that_change_the_unit(tmp_path) -> None:
             res = {"ver": await command("ver all"), "show": await command("param show MPC_XY_CRUISE"),
                    "set": await command("param set MPC_XY_CRUISE 3.5")}
             res["param"] = await param.get_param_float("MPC_XY_CRUISE")
-            z0 = read_status(status)["truth_position_ned_m"][2]
+            z0 = truth("truth_position_ned_m")[2]
             res["arm"] = await command("commander arm")
             res["takeoff"] = await command("commander takeoff")
             await asyncio.sleep(5.0)
-            res["climbed_m"] = z0 - read_status(status)["truth_position_ned_m"][2]
+            res["climbed_m"] = z0 - truth("truth_position_ned_m")[2]
             res["status"] = await command("listener vehicle_status")
             res["land"] = await command("commander land")
             task.cancel()
             res["devices"] = devices
             return res
 
-    try:
-        res = asyncio.run(run())
-    finally:
-        stop_unit(proc)
+    with api_unit(tmp_path) as (api_port, truth):
+        res = asyncio.run(run(api_port, truth))
     print(res)
     assert res["devices"] == {Device.SHELL}
     assert "HW arch: MARS_LINK_SITL" in res["ver"] and "MAV_SYS_ID: 1" in res["ver"]

@@ -116,25 +116,20 @@ def test_mavsdk_param_and_set_current_speed_set_the_goto_speed(tmp_path) -> None
     from mavsdk.asyncio.plugins.action import ActionAsync
     from mavsdk.asyncio.plugins.param import ParamAsync
     from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
-    from test_mavsdk_mission import _latlon, spawn_api_unit
+    from test_mavsdk_mission import _latlon
     from test_mavsdk_unit import _until, autopilot
+    from unit_process import api_unit
 
-    from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
-
-    api_port = free_udp_port()
-    status = tmp_path / "status.json"
-    proc, _ = spawn_api_unit(api_port, status)
-
-    async def leg(action, north_m: float, seconds: float) -> tuple[list, list]:
+    async def leg(action, truth, north_m: float, seconds: float) -> tuple[list, list]:
         await action.goto_location(*_latlon(north_m, 0.0), 488.0 + 2.0, 0.0)
         speeds = []
         for _ in range(int(seconds * 10)):
-            v = read_status(status)["truth_velocity_ned_mps"]
+            v = truth("truth_velocity_ned_mps")
             speeds.append(math.hypot(v[0], v[1]))
             await asyncio.sleep(0.1)
-        return speeds, read_status(status)["truth_position_ned_m"]
+        return speeds, truth("truth_position_ned_m")
 
-    async def fly() -> dict:
+    async def fly(api_port, truth) -> dict:
         async with autopilot(api_port) as system:
             telemetry, action, param = TelemetryAsync(system), ActionAsync(system), ParamAsync(system)
             await _until(lambda: telemetry.health_all_ok(), 15.0, "health_all_ok")
@@ -143,16 +138,14 @@ def test_mavsdk_param_and_set_current_speed_set_the_goto_speed(tmp_path) -> None
             await action.arm()
             await action.takeoff()
             await asyncio.sleep(6.0)
-            fast, end1 = await leg(action, 30.0, 13.0)
+            fast, end1 = await leg(action, truth, 30.0, 13.0)
             await action.set_current_speed(1.5)
-            slow, end2 = await leg(action, 20.0, 10.0)
+            slow, end2 = await leg(action, truth, 20.0, 10.0)
             await action.land()
             return {"got": got, "fast": fast, "slow": slow, "end1": end1, "end2": end2}
 
-    try:
-        res = asyncio.run(fly())
-    finally:
-        stop_unit(proc)
+    with api_unit(tmp_path) as (api_port, truth):
+        res = asyncio.run(fly(api_port, truth))
     fast, slow = _plateau(np.array(res["fast"]), 4.0, settle=15), _plateau(np.array(res["slow"]), 1.5, settle=15)
     print(f"MAVSDK: MPC_XY_CRUISE 4 -> true speed {fast.min():.3f}..{fast.max():.3f} m/s; set_current_speed(1.5) -> "
           f"{slow.min():.3f}..{slow.max():.3f} m/s")
