@@ -372,7 +372,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             self._broadcast(self._heartbeat(), out)
         for mid, interval in self.stream_interval_s.items():
             due = self._next_stream.get(mid, wall_time_s)
-            if wall_time_s >= due:
+            if wall_time_s + 1e-6 >= due:  # (a tick exactly on the interval counts despite float rounding)
                 self._next_stream[mid] = max(due + interval, wall_time_s + 0.5 * interval)
                 try:
                     msg = self._stream_message(mid)

@@ -12,11 +12,11 @@ from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
 
 
 @contextmanager
-def api_unit(tmp_path: Path):
+def api_unit(tmp_path: Path, *extra: str):
     """(API port, truth reader: key -> value of the runner's latest status) of a unit process."""
     api_port = free_udp_port()
     status = tmp_path / "status.json"
-    proc, _ = spawn_api_unit(api_port, status)
+    proc, _ = spawn_api_unit(api_port, status, *extra)
     try:
         yield api_port, lambda key: read_status(status)[key]
     finally:
