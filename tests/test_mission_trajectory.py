@@ -70,7 +70,6 @@ def test_a_qgc_plan_is_the_reference_of_mars_link_run(tmp_path: Path) -> None:
     assert [seq for seq, _, _ in traj.reached] == [0, 1, 2, 3]  # takeoff, two waypoints, land: all done
 
 
-@pytest.mark.slow
 def test_the_3x2_flies_a_wpl_mission_in_process(tmp_path: Path) -> None:
     rows = [(1, 3, 22, 0, 0, *HOME, RAW_ALT_M)]
     rows += [(0, 3, 16, 0.5, RADIUS_M, *_latlon(n, e), RAW_ALT_M) for n, e in RAW_WAYPOINTS_NE]
