@@ -9,7 +9,7 @@ SERIAL_CONTROL, as the MAVLink spec gives it: only device SERIAL_CONTROL_DEV_SHE
 newline, then the line runs. RESPOND: the sender wants replies (without it the output is not sent); MULTI: send every pending chunk now,
 else one chunk per request, the rest streamed one chunk per tick (PX4's shell pushes its output the
 same way, so MAVSDK, which never sets MULTI, gets all of it). EXCLUSIVE: the sender holds the shell
-until SHELL_LOCK_S passes without its input; others are refused meanwhile. Replies carry REPLY,
+until SHELL_LOCK_S passes without its input, or it sends without the flag; others are refused meanwhile. Replies carry REPLY,
 device SHELL and up to 70 bytes each; output ends with the "nsh> " prompt.
 
 Commands: help, ver [all], param show [PATTERN], param set NAME VALUE, param get NAME, commander
@@ -62,8 +62,10 @@ class ShellMixin:
         if lock is not None and lock[0] != sender and self.wall_s - lock[1] < SHELL_LOCK_S:
             self._drop("serial_control_busy")
             return
-        if msg.flags & R.SERIAL_CONTROL_FLAG_EXCLUSIVE or (lock is not None and lock[0] == sender):
+        if msg.flags & R.SERIAL_CONTROL_FLAG_EXCLUSIVE:
             self._shell_lock = (sender, self.wall_s)
+        elif lock is not None and lock[0] == sender:
+            self._shell_lock = None  # the holder without EXCLUSIVE lets go (MAVProxy's `nsh stop`)
         count = min(int(msg.count), CHUNK)
         data = bytes(msg.data[:count]) if not isinstance(msg.data, str) else msg.data[:count].encode("latin-1")
         buf = (self._shell_in.get(sender, b"") + data).replace(b"\r\n", b"\n").replace(b"\r", b"\n")

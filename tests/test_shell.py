@@ -7,6 +7,7 @@ EXCLUSIVE (another sender refused), other devices dropped."""
 from __future__ import annotations
 
 import asyncio
+import shutil
 import time
 
 import pytest
@@ -126,3 +127,28 @@ def test_mavsdk_shell_runs_commands_that_change_the_unit(tmp_path) -> None:
     assert abs(res["climbed_m"] - 2.0) < 0.15  # MIS_TAKEOFF_ALT, on the truth
     assert "arming_state: ARMED" in res["status"] and "landed: False" in res["status"]
     assert "commander land: ok" in res["land"]
+
+
+@pytest.mark.slow
+@pytest.mark.sitl
+@pytest.mark.skipif(shutil.which("mavproxy.py") is None, reason="MAVProxy not installed")
+def test_mavproxy_nsh_runs_commands_on_the_unit(tmp_path) -> None:
+    """MAVProxy's nsh module (RESPOND | MULTI | EXCLUSIVE, empty polls): typed lines run on the unit; its
+    `commander arm` shows as MAVProxy's own ARMED (from the heartbeat)."""
+    from test_mavproxy_unit import run_mavproxy
+
+    from firmware_models.udp_runner import free_udp_port, spawn_unit, stop_unit
+
+    bind = free_udp_port()
+    proc, _ = spawn_unit(["--unit", "1", "--gcs-port", str(free_udp_port()), "--gcs-bind", str(bind),
+                          "--api-port", str(free_udp_port()), "--api-bind", "0", "--coord-bind", "0"])
+    cmds = ["module load nsh", "repeat add 3 nsh start", "repeat add 4 param set MPC_XY_CRUISE 3.25",
+            "repeat add 5 ver all", "repeat add 6 commander arm"]
+    expected = {"set": "MPC_XY_CRUISE: 3.2500", "ver": "HW arch: MARS_LINK_SITL", "armed_by_shell": "commander arm: ok",
+                "armed": "ARMED"}
+    try:
+        seen, lines = run_mavproxy(bind, cmds, expected, tmp_path, timeout_s=40)
+    finally:
+        stop_unit(proc)
+    print(seen)
+    assert set(seen) == set(expected), "\n".join(lines[-40:])
