@@ -198,7 +198,8 @@ class MissionLegs:
         self.pool: ProcessPoolExecutor | None = None
         if cfg.map_path is not None:
             self._start_pool()
-        self._fence_key: tuple | None = None  # (fence object, walls, footprint radius) of the last leg
+        self._fence_key: tuple | None = None  # (fence object, its walls) of the last leg
+        self._radius_m: float | None = None  # the footprint's, with margin and wall (fence checks)
         self.log: list[dict] = []  # per leg: target, kind, plan time, duration, replans
         # unpaced simulation (tests, batch): the simulation waits for a plan instead of running ahead of
         # it, so sim time does not depend on how fast this machine plans; real-time runners hold instead
@@ -266,7 +267,7 @@ class MissionLegs:
         from mars_link.assembly import AssemblyModel, vehicle_preset
         from mars_link.planning.footprint import Footprint
 
-        if not hasattr(self, "_radius_m"):
+        if self._radius_m is None:
             model = AssemblyModel.from_layout(list(self.cfg.layout), vehicle_preset(self.cfg.preset))
             self._radius_m = Footprint.from_model(model, self.cfg.margin_m).radius_m + WALL_HALF_M
         path = shapely.LineString([tuple(start_ne), tuple(goal_ne)]) if np.linalg.norm(
