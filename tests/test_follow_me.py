@@ -126,7 +126,7 @@ def test_the_3x2_follows_a_walking_target() -> None:
         sim.close()
 
 
-@pytest.mark.slow
+@pytest.mark.long  # (45 s each in real time, for CI's time: the lockstep tests above cover the ground)
 @pytest.mark.sitl
 @pytest.mark.parametrize("vehicle", ["unit", "assembly"])
 def test_mavsdk_follow_me_against_a_unit_and_mars_link_vehicle(vehicle: str, tmp_path) -> None:

@@ -129,7 +129,7 @@ def test_mavsdk_shell_runs_commands_that_change_the_unit(tmp_path) -> None:
     assert "commander land: ok" in res["land"]
 
 
-@pytest.mark.slow
+@pytest.mark.long  # (20 s, for CI's time: MAVSDK's shell test above is in the default run)
 @pytest.mark.sitl
 @pytest.mark.skipif(shutil.which("mavproxy.py") is None, reason="MAVProxy not installed")
 def test_mavproxy_nsh_runs_commands_on_the_unit(tmp_path) -> None:

@@ -108,7 +108,7 @@ def test_offboard_velocity_is_capped_at_mpc_xy_vel_max(vmax: float, asked: float
     assert np.all(np.abs(late / expected - 1.0) < 0.03) and s[:, 0].max() < expected + 0.35
 
 
-@pytest.mark.slow
+@pytest.mark.long  # (35 s in real time, for CI's time: the lockstep tests above cover the ground)
 @pytest.mark.sitl
 def test_mavsdk_param_and_set_current_speed_set_the_goto_speed(tmp_path) -> None:
     """MAVSDK's param plugin writes MPC_XY_CRUISE, its action.set_current_speed sends DO_CHANGE_SPEED."""
