@@ -42,7 +42,8 @@ def unit_param_specs(unit_id: int, vehicle: VehicleParams) -> list[ParamSpec]:
         ParamSpec("MIS_TAKEOFF_ALT", 2.0, REAL32, 0.3, 100.0, doc="takeoff altitude above home, m"),
         ParamSpec("MPC_TKO_SPEED", 1.0, REAL32, 0.1, 5.0, doc="takeoff climb speed, m/s"),
         ParamSpec("MPC_LAND_SPEED", 0.7, REAL32, 0.1, 3.0, doc="final landing descent speed, m/s"),
-        ParamSpec("MPC_XY_VEL_MAX", 2.0, REAL32, 0.1, 10.0, doc="horizontal reference speed limit, m/s"),
+        ParamSpec("MPC_XY_VEL_MAX", 12.0, REAL32, 0.1, 20.0,
+                  doc="horizontal speed limit of every mode (offboard velocity, DO_CHANGE_SPEED), m/s"),
         ParamSpec("MPC_Z_VEL_MAX_UP", 1.5, REAL32, 0.1, 5.0, doc="climb reference speed limit, m/s"),
         ParamSpec("MPC_Z_VEL_MAX_DN", 1.0, REAL32, 0.1, 5.0, doc="descent reference speed limit, m/s"),
         ParamSpec("RTL_RETURN_ALT", 5.0, REAL32, 0.5, 100.0, doc="return altitude above home, m"),
@@ -82,6 +83,18 @@ def unit_param_specs(unit_id: int, vehicle: VehicleParams) -> list[ParamSpec]:
         ParamSpec("COM_LOW_BAT_ACT", 0, INT32, 0, 3,
                   doc="low-battery action: 0 warning, 2 land at critical, 3 return at critical and land at "
                       "emergency", safety=True),
+        # PX4's defaults are 5 and 10 m/s; 2 m/s here keeps a small unit's missions and sticks gentle
+        ParamSpec("MPC_XY_CRUISE", 2.0, REAL32, 0.1, 20.0,
+                  doc="horizontal speed of missions, goto and return (within MPC_XY_VEL_MAX), m/s"),
+        ParamSpec("MPC_VEL_MANUAL", 2.0, REAL32, 0.1, 20.0, doc="position-mode full-stick horizontal speed, m/s"),
+        # follow-me (AUTO.FOLLOW_TARGET, firmware_models.vehicle_follow): PX4's names and defaults
+        ParamSpec("FLW_TGT_HT", 8.0, REAL32, 1.0, 1000.0, doc="follow height above home (or the target, ALT_M 2), m"),
+        ParamSpec("FLW_TGT_DST", 8.0, REAL32, 1.0, 1000.0, doc="horizontal distance kept from the target, m"),
+        ParamSpec("FLW_TGT_FA", 180.0, REAL32, -180.0, 180.0,
+                  doc="follow angle: 0 in front of the target's course, clockwise, deg (180 behind)"),
+        ParamSpec("FLW_TGT_RS", 0.1, REAL32, 0.0, 1.0, doc="target velocity filter: 0 each fix, 1 never changes"),
+        ParamSpec("FLW_TGT_ALT_M", 0, INT32, 0, 2, doc="altitude: 0 constant above home, 1 terrain (= 0), 2 target's"),
+        ParamSpec("FLW_TGT_MAX_VEL", 5.0, REAL32, 0.0, 20.0, doc="speed cap while following, m/s"),
     ]
 
 

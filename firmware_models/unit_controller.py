@@ -39,6 +39,7 @@ class GuidanceLimits:
     accel_mps2: float = 2.0
     yaw_rate_radps: float = 1.0
     position_gain_per_s: float = 2.5  # reference speed per metre of remaining distance
+    velocity_max_mps: float | None = None  # velocity targets (offboard, sticks); None: xy_speed_mps
 
 
 class Phase(Enum):
@@ -86,8 +87,9 @@ class ReferenceShaper:
         else:
             want = np.zeros(3) if target_v is None else np.array(target_v, dtype=float)
             sxy = math.hypot(want[0], want[1])
-            if sxy > lim.xy_speed_mps:
-                want[:2] *= lim.xy_speed_mps / sxy
+            vmax = lim.xy_speed_mps if lim.velocity_max_mps is None else lim.velocity_max_mps
+            if sxy > vmax:
+                want[:2] *= vmax / sxy
             want[2] = min(max(want[2], -lim.up_speed_mps), lim.down_speed_mps)
         dv = want - self.v
         n = float(np.linalg.norm(dv))
@@ -216,10 +218,19 @@ class UnitAutopilot:
     def update(self, t_s: float, state: RigidBodyState, lim: GuidanceLimits, land_speed_mps: float) -> tuple[np.ndarray, str | None]:
         """Rotor thrusts for this control step, and an event name when a phase finished
         ("takeoff_done", "landed", "rtl_home")."""
+        ref, event = self.guide(t_s, state, lim, land_speed_mps)
+        if ref is None:
+            return self.zero, event
+        return self.controller.update(t_s, state, ref).rotor_thrusts_n, event
+
+    def guide(self, t_s: float, state: RigidBodyState, lim: GuidanceLimits, land_speed_mps: float
+              ) -> tuple[TrajectoryPoint | None, str | None]:
+        """The guidance half of `update`: this step's reference (None: idle on the ground) and event.
+        Apart so a reference can be flown ahead of time (mars_link.mission_trajectory)."""
         event = None
         ph = self.phase
         if ph == Phase.IDLE:
-            return self.zero, None
+            return None, None
         dt = self.dt_s
         s = self.shaper
         if ph in (Phase.TAKEOFF, Phase.HOLD, Phase.GOTO):
@@ -251,8 +262,8 @@ class UnitAutopilot:
                     self._touch_since = t_s
                 elif t_s - self._touch_since >= LANDED_AFTER_S:
                     self.idle()
-                    return self.zero, "landed"
+                    return None, "landed"
             else:
                 self._touch_since = None
         self.reference = ref
-        return self.controller.update(t_s, state, ref).rotor_thrusts_n, event
+        return ref, event

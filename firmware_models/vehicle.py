@@ -17,7 +17,7 @@ offboard setpoints with a watchdog, fault injection (MAV_CMD_INJECT_FAILURE into
 only), MAVFTP NAK. Geographic positions are around PX4 SITL's home (geo.py).
 
 The microservices live in their own modules, mixed into `Vehicle` (as PX4's mavlink module splits
-them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard, vehicle_manual (orbit, sticks, attitude, land detector),
+them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard, vehicle_manual (orbit, sticks, attitude, land detector), vehicle_follow (follow-me), vehicle_shell (SERIAL_CONTROL shell),
 vehicle_params, vehicle_missions, vehicle_geofence (fence and rally), vehicle_logs (log download), vehicle_services, vehicle_streams (telemetry), vehicle_hil. This
 module keeps the state, the dispatch, the control step and the watchdogs.
 
@@ -51,6 +51,7 @@ from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
     ACTION_COMMANDS, COMMAND_DEDUP_S, FAILURE_TYPE_ETA, FAILURE_UNIT_SYSTEM_MOTOR, SETPOINT_PROOF_OF_LIFE_S,
     CommandsMixin,
 )
+from firmware_models.vehicle_follow import FollowMixin
 from firmware_models.vehicle_geofence import GeofenceMixin
 from firmware_models.vehicle_hil import HilMixin
 from firmware_models.vehicle_logs import LogsMixin
@@ -69,6 +70,7 @@ from firmware_models.vehicle_modes import (  # noqa: F401 (re-exported)
 from firmware_models.vehicle_offboard import MAX_POSITION_M, MAX_SPEED_MPS, OffboardMixin  # noqa: F401
 from firmware_models.vehicle_params import ParamsMixin
 from firmware_models.vehicle_services import ServicesMixin
+from firmware_models.vehicle_shell import ShellMixin
 from firmware_models.vehicle_streams import (  # noqa: F401 (re-exported)
     CAPABILITIES, DEFAULT_STREAM_HZ, MIN_STREAM_INTERVAL_S, REFUSED_MESSAGES, SENSORS, StreamsMixin,
 )
@@ -128,8 +130,8 @@ class VehicleConfig:
 
 
 
-class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMixin, GeofenceMixin, LogsMixin,
-              ServicesMixin, HilMixin, StreamsMixin):
+class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixin, MissionsMixin, GeofenceMixin,
+              LogsMixin, ServicesMixin, ShellMixin, HilMixin, StreamsMixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -204,8 +206,11 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
         self.mission_reached: list[dict] = []  # (seq, sim time, position) of every MISSION_ITEM_REACHED
         self._init_geofence()
         self._init_manual()
+        self._init_follow()
+        self._init_shell()
         self._init_logs()
         self.legs = None  # mission legs between the runner and the core (mars_link.mission_legs)
+        self.speed_override_mps: float | None = None  # MAV_CMD_DO_CHANGE_SPEED (else MPC_XY_CRUISE)
 
     def _intake_params(self) -> IntakeParams:
         p = self.params
@@ -369,7 +374,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
             self._broadcast(self._heartbeat(), out)
         for mid, interval in self.stream_interval_s.items():
             due = self._next_stream.get(mid, wall_time_s)
-            if wall_time_s >= due:
+            if wall_time_s + 1e-6 >= due:  # (a tick exactly on the interval counts despite float rounding)
                 self._next_stream[mid] = max(due + interval, wall_time_s + 0.5 * interval)
                 try:
                     msg = self._stream_message(mid)
@@ -381,6 +386,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
         for name, msg in self.mission.tick(self.wall_s):
             self._reply(self.links[name], msg, out)
         self._flush_mission_texts()
+        self._shell_tick(out)
         self._log_tick(out)
         while self._mission_msgs:
             self._broadcast(self._mission_msgs.pop(0), out)
@@ -469,11 +475,15 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, ParamsMixin, MissionsMi
 
     # ================================================================= control
     def _limits(self) -> GuidanceLimits:
+        """PX4's speeds: position targets (missions, goto, return) at MPC_XY_CRUISE (a DO_CHANGE_SPEED
+        command or mission item instead), velocity targets up to MPC_XY_VEL_MAX, which bounds both."""
         p = self.params
-        xy = p["MPC_XY_VEL_MAX"]
+        vmax = p["MPC_XY_VEL_MAX"]
+        xy = p["MPC_XY_CRUISE"] if self.speed_override_mps is None else self.speed_override_mps
         if self.mode == MODE_MISSION and self.runner.speed_mps is not None:
-            xy = min(xy, self.runner.speed_mps)  # DO_CHANGE_SPEED, within PX4's limit
-        return GuidanceLimits(xy, p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"], p["MPC_TKO_SPEED"])
+            xy = self.runner.speed_mps  # DO_CHANGE_SPEED
+        return GuidanceLimits(min(xy, vmax), p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"], p["MPC_TKO_SPEED"],
+                              velocity_max_mps=vmax)
 
     def _control_step(self) -> None:
         t = self.sim_s
@@ -552,6 +562,8 @@ _HANDLERS: dict[str, str] = {
     "SET_POSITION_TARGET_GLOBAL_INT": "_on_position_target",
     "SET_ATTITUDE_TARGET": "_on_attitude_target",
     "MANUAL_CONTROL": "_on_manual_control",
+    "FOLLOW_TARGET": "_on_follow_target",
+    "SERIAL_CONTROL": "_on_serial_control",
     "LOG_REQUEST_LIST": "_on_log_request_list",
     "LOG_REQUEST_DATA": "_on_log_request_data",
     "LOG_REQUEST_END": "_on_log_request_end",

@@ -15,6 +15,7 @@ from firmware_models.unit_controller import Phase
 from mars_link.state import RigidBodyState
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
 from firmware_models.vehicle_modes import (
+    MODE_FOLLOW,
     MODE_HOLD,
     MODE_LAND,
     MODE_MISSION,
@@ -24,7 +25,7 @@ from firmware_models.vehicle_modes import (
     MODE_TAKEOFF,
 )
 from firmware_models.vehicle_streams import DEFAULT_STREAM_HZ
-from firmware_models.vehicle_offboard import MAX_POSITION_M
+from firmware_models.vehicle_offboard import MAX_POSITION_M, MAX_SPEED_MPS
 
 FAILURE_TYPE_ETA = {0: 1.0, 1: 0.0, 5: 0.5}  # FAILURE_TYPE OK / OFF / SLOW (degraded) -> rotor efficiency
 FAILURE_UNIT_SYSTEM_MOTOR = 101
@@ -73,6 +74,20 @@ class CommandsMixin:
         self._reply(lk, mavlink.MAVLink_command_ack_message(
             cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), out)
 
+    def _change_speed(self, speed_type: float, speed_mps: float) -> int:
+        """MAV_CMD_DO_CHANGE_SPEED (MAVSDK's action.set_current_speed): the horizontal speed of position
+        targets (goto, return, missions) from now on, within MPC_XY_VEL_MAX; -2 back to MPC_XY_CRUISE,
+        -1 unchanged. Climb/descent speed types (2, 3) are refused: MPC_Z_VEL_MAX_* set those."""
+        if not (math.isnan(speed_type) or speed_type in (0, 1)):
+            return mavlink.MAV_RESULT_DENIED
+        if speed_mps == -2.0:
+            self.speed_override_mps = None
+        elif not (math.isfinite(speed_mps) and (speed_mps == -1.0 or 0.0 < speed_mps <= MAX_SPEED_MPS)):
+            return mavlink.MAV_RESULT_DENIED
+        elif speed_mps > 0:
+            self.speed_override_mps = float(speed_mps)
+        return mavlink.MAV_RESULT_ACCEPTED
+
     def _execute(self, cmd: int, p: list, is_int: bool, msg) -> tuple[int, list]:
         R = mavlink
         if cmd == R.MAV_CMD_COMPONENT_ARM_DISARM:
@@ -94,6 +109,8 @@ class CommandsMixin:
             return self._reposition(p, is_int), []
         if cmd == R.MAV_CMD_DO_ORBIT:
             return self._do_orbit(p, is_int), []
+        if cmd == R.MAV_CMD_DO_CHANGE_SPEED:
+            return self._change_speed(p[0], p[1]), []
         if cmd == R.MAV_CMD_MISSION_START:
             first = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else None  # PX4: start at p1 if given
             if first is not None and not self.runner.set_current(first, reset_jumps=True):
@@ -184,6 +201,10 @@ class CommandsMixin:
             return R.MAV_RESULT_ACCEPTED
         if mode == MODE_MISSION:
             return self._enter_mission()
+        if mode == MODE_FOLLOW:
+            self.runner.pause()
+            self._orbit = None
+            return self._enter_follow()
         s = self.state
         self.runner.pause()  # (a no-op unless leaving AUTO.MISSION: it resumes at its current item)
         self._orbit = None

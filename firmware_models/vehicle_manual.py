@@ -8,7 +8,7 @@ unit and an assembly get them alike:
             (PX4's FlightTaskOrbit idea), yaw to the centre / held / along the tangent; PX4 reports it
             as POSCTL with the ORBIT sub-mode
   manual    sticks (x forward, y right, z throttle 0..1000 with 500 = hold height, r yaw) -> body
-            velocity within MPC_XY_VEL_MAX / MPC_Z_VEL_MAX_*; centred sticks brake and hold; sticks older
+            velocity within MPC_VEL_MANUAL / MPC_Z_VEL_MAX_*; centred sticks brake and hold; sticks older
             than MANUAL_STALE_S count as centred
   attitude  quaternion + normalised thrust -> the acceleration that attitude and thrust would give,
             fed to the controller as a reference at the current state (no position error), so the
@@ -30,7 +30,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.unit_controller import Phase
 from firmware_models.vehicle_links import Link, Outgoing, finite
-from firmware_models.vehicle_modes import MODE_HOLD, MODE_MISSION, MODE_OFFBOARD, MODE_ORBIT, MODE_POSCTL
+from firmware_models.vehicle_modes import MODE_FOLLOW, MODE_HOLD, MODE_MISSION, MODE_OFFBOARD, MODE_ORBIT, MODE_POSCTL
 from mars_link.assembly import GRAVITY_MPS2
 from mars_link.rotations import quat_multiply, quat_to_euler, quat_to_rotmat
 from mars_link.trajectories import TrajectoryPoint
@@ -154,7 +154,8 @@ class ManualMixin:
         if self.autopilot.phase == Phase.IDLE and climb <= 0.0:
             return  # on the ground: only throttle up takes off
         yaw = quat_to_euler(s.quaternion_wxyz)[2]
-        fwd, right = x * p["MPC_XY_VEL_MAX"], y * p["MPC_XY_VEL_MAX"]
+        full = min(p["MPC_VEL_MANUAL"], p["MPC_XY_VEL_MAX"])
+        fwd, right = x * full, y * full
         v = np.array([math.cos(yaw) * fwd - math.sin(yaw) * right, math.sin(yaw) * fwd + math.cos(yaw) * right,
                       -climb * (p["MPC_Z_VEL_MAX_UP"] if climb > 0 else p["MPC_Z_VEL_MAX_DN"])])
         self._sticks_moving = True
@@ -230,6 +231,8 @@ class ManualMixin:
             self._orbit_step()
         elif self.mode == MODE_POSCTL:
             self._manual_step()
+        elif self.mode == MODE_FOLLOW:
+            self._follow_step()
         elif self.mode == MODE_OFFBOARD and self._setpoint is not None and self._setpoint[0] == "attitude":
             ap = self.autopilot
             hover = ap.model.mass_kg * GRAVITY_MPS2 / (ap.model.n_rotors * self.full_scale_n)

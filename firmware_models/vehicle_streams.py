@@ -18,7 +18,8 @@ from firmware_models.vehicle_modes import MAIN_AUTO, MAIN_OFFBOARD, MODE_MISSION
 from mars_link.messages import BatterySample, wire_battery
 from mars_link.wire import battery_status
 
-MIN_STREAM_INTERVAL_S = 0.01
+MIN_STREAM_INTERVAL_S = 0.001  # 1 kHz: the protocol's floor; the vehicle's own is one message per tick
+#: (its control rate: streams go out when the runner ticks it, once per control step; `stream_cap_hz`)
 #: msg id -> default rate (Hz, wall clock), specs/mavlink.md §6
 DEFAULT_STREAM_HZ: dict[int, float] = {
     mavlink.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
@@ -75,7 +76,15 @@ class StreamsMixin:
             return (R.MAV_RESULT_ACCEPTED, [msg]) if msg is not None else (R.MAV_RESULT_TEMPORARILY_REJECTED, [])
         return R.MAV_RESULT_UNSUPPORTED, []  # incl. REFUSED_MESSAGES (PROTOCOL_VERSION, AVAILABLE_MODES, ...)
 
+    @property
+    def stream_cap_hz(self) -> float:
+        """The fastest a stream goes: one message per tick, and the runners tick once per control step
+        (100 Hz by default; a unit at --control-hz 250 streams HIGHRES_IMU at 250 Hz)."""
+        return 1.0 / max(MIN_STREAM_INTERVAL_S, self.control_dt_s)
+
     def _set_interval(self, msgid: float, interval_us: float) -> int:
+        """SET_MESSAGE_INTERVAL: faster than `stream_cap_hz` is accepted and runs at the cap (its
+        MESSAGE_INTERVAL then reports the interval in force)."""
         R = mavlink
         if not _finite(msgid, interval_us) or int(msgid) not in DEFAULT_STREAM_HZ:
             return R.MAV_RESULT_DENIED
@@ -83,7 +92,7 @@ class StreamsMixin:
         if interval_us < 0:
             self.stream_interval_s.pop(mid, None)
         else:
-            iv = 1.0 / DEFAULT_STREAM_HZ[mid] if interval_us == 0 else max(MIN_STREAM_INTERVAL_S, interval_us * 1e-6)
+            iv = 1.0 / DEFAULT_STREAM_HZ[mid] if interval_us == 0 else max(1.0 / self.stream_cap_hz, interval_us * 1e-6)
             self.stream_interval_s[mid] = iv
             self._next_stream[mid] = self.wall_s
         return R.MAV_RESULT_ACCEPTED

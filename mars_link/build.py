@@ -35,11 +35,13 @@ def tracked_offset(model: AssemblyModel, scenario: Scenario) -> np.ndarray:
 
 
 def make_trajectory(scenario: Scenario, model: AssemblyModel) -> Trajectory:
+    from mars_link.mission_trajectory import build_mission_trajectory
     from mars_link.planning.pipeline import build_plan_trajectory
 
     params = {k: v for k, v in scenario.trajectory.items() if k != "kind"}
     return build_trajectory(scenario.trajectory["kind"], params, rest_height_m=model.vehicle.gear_depth_m,
-                            plan_builder=build_plan_trajectory)
+                            plan_builder=build_plan_trajectory,
+                            mission_builder=lambda p, rest: build_mission_trajectory(p, rest, scenario.source))
 
 
 def flight_duration_s(scenario: Scenario, model: AssemblyModel | None = None) -> float:

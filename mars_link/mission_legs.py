@@ -11,6 +11,12 @@ passes every other call through, and turns each goto into a leg:
             minimum-snap time law. When the coordinator's believed faults change mid-leg the vehicle
             brakes to a hold and the rest of the leg is planned again for the new faults.
   no map    a straight rest-to-rest leg on a septic (minimum-snap) time law, computed at once.
+  fence     the stored geofence is a planning constraint: its zones' edges become thin walls of the
+            obstacle map (exclusion polygons and circles, inclusion polygons: a closed boundary the
+            footprint cannot cross, so a leg between two allowed points stays on their side). With a
+            map the walls join it; without one, a leg whose straight path (swept by the footprint)
+            would leave the inclusion fence or touch an exclusion zone is planned, the others stay
+            minimum-snap.
 A leg that cannot be planned is not flown: the vehicle holds and says why (STATUSTEXT).
 At the end of a leg the core's own go-to settles on the item's position (the runner's acceptance
 radius decides when it is reached).
@@ -33,6 +39,7 @@ from mars_link.trajectories import TrajectoryPoint
 
 SAMPLE_DT_S = 0.01
 ETA_CHANGE = 1e-3  # believed rotor efficiency change that counts as new faults
+WALL_HALF_M = 0.1  # half thickness of a fence edge as an obstacle (the fence is kept this much inside)
 
 
 @dataclass(frozen=True)
@@ -104,18 +111,38 @@ def _yield_cpu() -> None:
         pass
 
 
+def fence_walls(fence, half_width_m: float = WALL_HALF_M) -> tuple[tuple[float, ...], ...]:
+    """Every edge of the fence's zones (firmware_models.geofence.Geofence) as an oriented box
+    (north, east, half length, half width, angle) of the planner's obstacle map."""
+    import shapely
+
+    boxes = []
+    for zone in (fence.inclusion, fence.exclusion):
+        if zone is None:
+            continue
+        for ring in shapely.get_rings(shapely.get_parts(zone)):
+            xy = np.asarray(ring.coords)
+            for (n0, e0), (n1, e1) in zip(xy[:-1], xy[1:]):
+                length = math.hypot(n1 - n0, e1 - e0)
+                if length > 1e-9:
+                    boxes.append((0.5 * (n0 + n1), 0.5 * (e0 + e1), 0.5 * length + half_width_m, half_width_m,
+                                  math.atan2(e1 - e0, n1 - n0)))
+    return tuple(boxes)
+
+
 def plan_leg(cfg: LegConfig, eta: tuple[float, ...], start_pose: tuple[float, float, float],
-             goal_ne: tuple[float, float], altitude_m: float) -> LegPlan:
-    """Plan one leg (runs in the worker process): start (n, e, yaw) at rest to goal (n, e) at rest."""
+             goal_ne: tuple[float, float], altitude_m: float, walls: tuple = ()) -> LegPlan:
+    """Plan one leg (runs in the worker process): start (n, e, yaw) at rest to goal (n, e) at rest,
+    around the map (cfg.map_path, if any) and the fence's `walls` (fence_walls)."""
     from mars_link.assembly import AssemblyModel, vehicle_preset
     from mars_link.errors import UserInputError
-    from mars_link.planning.maps import load_map
+    from mars_link.planning.maps import ObstacleMap, load_map
     from mars_link.planning.pipeline import Planner, PlanParams, resolve_data_path
 
     t0 = time.perf_counter()
     start = np.array(start_pose, dtype=float)
     goal = np.array([goal_ne[0], goal_ne[1], 0.0])
-    key = (cfg, round(altitude_m, 2), eta)
+    key = (cfg, round(altitude_m, 2), eta, walls)
     planner = _PLANNERS.get(key)
     if planner is not None:
         n0, n1, e0, e1 = planner.obstacles.bounds
@@ -123,7 +150,11 @@ def plan_leg(cfg: LegConfig, eta: tuple[float, ...], start_pose: tuple[float, fl
             planner = None
     if planner is None:
         model = AssemblyModel.from_layout(list(cfg.layout), vehicle_preset(cfg.preset))
-        obstacles = load_map(resolve_data_path(cfg.map_path), altitude_m=altitude_m).with_bounds_around(start, goal)
+        base = ObstacleMap(name="fence") if cfg.map_path is None else load_map(resolve_data_path(cfg.map_path),
+                                                                                altitude_m=altitude_m)
+        if walls:
+            base = ObstacleMap(np.vstack([base.boxes, np.array(walls, dtype=float)]), base.discs, None, base.name)
+        obstacles = base.with_bounds_around(start, goal)
         planner = Planner(obstacles, model, np.array(eta), PlanParams(margin_m=cfg.margin_m, v_max_mps=cfg.v_max_mps,
                                                                      a_max_mps2=cfg.a_max_mps2))
         _PLANNERS[key] = planner
@@ -152,6 +183,7 @@ class _Leg:
     future: Future | None = None
     t0: float = 0.0
     requested_s: float = 0.0
+    planned: bool = False  # by the planner (map or fence), not minimum-snap
 
 
 class MissionLegs:
@@ -165,7 +197,9 @@ class MissionLegs:
         self.leg: _Leg | None = None
         self.pool: ProcessPoolExecutor | None = None
         if cfg.map_path is not None:
-            self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_yield_cpu)
+            self._start_pool()
+        self._fence_key: tuple | None = None  # (fence object, its walls) of the last leg
+        self._radius_m: float | None = None  # the footprint's, with margin and wall (fence checks)
         self.log: list[dict] = []  # per leg: target, kind, plan time, duration, replans
         # unpaced simulation (tests, batch): the simulation waits for a plan instead of running ahead of
         # it, so sim time does not depend on how fast this machine plans; real-time runners hold instead
@@ -200,6 +234,11 @@ class MissionLegs:
         """Leaving AUTO.MISSION: no leg is flown any more."""
         self.leg = None
 
+    def _start_pool(self) -> ProcessPoolExecutor:
+        if self.pool is None:
+            self.pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_yield_cpu)
+        return self.pool
+
     def close(self) -> None:
         if self.pool is not None:
             self.pool.shutdown(wait=True, cancel_futures=True)
@@ -211,18 +250,48 @@ class MissionLegs:
         stop = self.core.target_p if self.core.target_p is not None else s.p
         return float(stop[0]), float(stop[1]), float(s.yaw)
 
+    def _fence(self) -> tuple:
+        """(the vehicle's geofence, its walls) or (None, ()) without one."""
+        get = getattr(self.vehicle, "geofence", None)
+        fence = get() if get is not None else None
+        if fence is None or fence.empty:
+            return None, ()
+        if self._fence_key is None or self._fence_key[0] is not fence:
+            self._fence_key = (fence, fence_walls(fence))
+        return self._fence_key
+
+    def _straight_leaves_fence(self, fence, start_ne, goal_ne) -> bool:
+        """Whether the footprint swept along the straight leg leaves the inclusion or enters an exclusion zone."""
+        import shapely
+
+        from mars_link.assembly import AssemblyModel, vehicle_preset
+        from mars_link.planning.footprint import Footprint
+
+        if self._radius_m is None:
+            model = AssemblyModel.from_layout(list(self.cfg.layout), vehicle_preset(self.cfg.preset))
+            self._radius_m = Footprint.from_model(model, self.cfg.margin_m).radius_m + WALL_HALF_M
+        path = shapely.LineString([tuple(start_ne), tuple(goal_ne)]) if np.linalg.norm(
+            np.subtract(goal_ne, start_ne)) > 1e-6 else shapely.Point(tuple(start_ne))
+        swept = path.buffer(self._radius_m)
+        return bool((fence.inclusion is not None and not fence.inclusion.contains(swept))
+                    or (fence.exclusion is not None and fence.exclusion.intersects(swept)))
+
     def _request(self, leg: _Leg, state) -> None:
         n, e, yaw = self._start_pose()
         leg.requested_s = time.perf_counter()
-        if self.pool is None:
+        fence, walls = self._fence()
+        leg.planned = self.cfg.map_path is not None or (
+            fence is not None and self._straight_leaves_fence(fence, (n, e), leg.target[:2]))
+        if not leg.planned:
             xy = self.vehicle._limits().xy_speed_mps
             leg.plan = min_snap_leg(np.array([n, e]), leg.target[:2], yaw, xy, self.cfg.snap_a_max_mps2)
             leg.t0 = self.vehicle.sim_s
             self._note(leg, "minimum snap")
             return
         leg.plan = None
-        leg.future = self.pool.submit(plan_leg, self.cfg, tuple(float(x) for x in leg.eta), (n, e, yaw),
-                                      (float(leg.target[0]), float(leg.target[1])), float(-leg.target[2]))
+        leg.future = self._start_pool().submit(plan_leg, self.cfg, tuple(float(x) for x in leg.eta), (n, e, yaw),
+                                               (float(leg.target[0]), float(leg.target[1])), float(-leg.target[2]),
+                                               walls)
 
     def _note(self, leg: _Leg, kind: str) -> None:
         p = leg.plan
@@ -239,7 +308,7 @@ class MissionLegs:
         if leg is None:
             return None
         eta = self.believed_eta()
-        if self.pool is not None and np.max(np.abs(eta - leg.eta)) > ETA_CHANGE:
+        if leg.planned and np.max(np.abs(eta - leg.eta)) > ETA_CHANGE:
             leg.eta = eta.copy()  # new faults believed: brake, plan the rest of the leg again
             if leg.plan is not None:
                 self.core.hold(state)

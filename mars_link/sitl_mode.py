@@ -270,6 +270,10 @@ def _absolute_paths(scenario):
     traj = dict(scenario.trajectory)
     if "path" in traj and not Path(traj["path"]).is_absolute() and scenario.source not in ("", "<built-in>"):
         traj["path"] = str((Path(scenario.source).parent / traj["path"]).resolve())
+    if isinstance(traj.get("plan"), str):  # kind "mission": as make_trajectory finds it
+        from mars_link.mission_trajectory import resolve_plan_path
+
+        traj["plan"] = str(resolve_plan_path(traj["plan"], scenario.source).resolve())
     return replace(scenario, trajectory=traj)
 
 

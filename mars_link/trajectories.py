@@ -443,11 +443,17 @@ _KINDS: dict[str, tuple[type, dict[str, type], set[str]]] = {
     "plan": (Trajectory, {"map": str, "start": list, "goal": list, "method": str, "start_yaw_deg": float,
                           "margin_m": float, "climb_s": float, "hold_s": float, "layout": list, "preset": str,
                           "faults": list}, {"map", "start", "goal"}),
+    # a ground station's mission (.plan / WPL 110) flown ahead of time by the firmware's mission runner
+    "mission": (Trajectory, {"plan": str, "path": str, "xy_speed_mps": float, "up_speed_mps": float,
+                             "down_speed_mps": float, "takeoff_speed_mps": float, "land_speed_mps": float,
+                             "accel_mps2": float, "takeoff_alt_m": float, "rtl_alt_m": float, "hold_s": float}, set()),
 }
-#: kinds that build from parameters alone ("plan" also needs a map file and the assembly)
-TRAJECTORY_KINDS = tuple(k for k in _KINDS if k != "plan")
+#: kinds that build from parameters alone ("plan" and "mission" also need a file, built above this module)
+TRAJECTORY_KINDS = tuple(k for k in _KINDS if k not in ("plan", "mission"))
 _POSITIVE = {"k_radps", "T", "revolutions", "height_m", "climb_s", "duration_s", "radius_m", "speed_mps",
-             "turns", "ramp_s", "cruise_mps", "min_segment_s", "start_height_m", "period_s"}
+             "turns", "ramp_s", "cruise_mps", "min_segment_s", "start_height_m", "period_s", "xy_speed_mps",
+             "up_speed_mps", "down_speed_mps", "takeoff_speed_mps", "land_speed_mps", "accel_mps2", "takeoff_alt_m",
+             "rtl_alt_m"}
 _NON_NEGATIVE = {"climb_mps", "hold_s"}
 MAX_ABS_PARAM = 1e6  # m, s, deg: beyond it a parameter is a typo, and float arithmetic overflows
 
@@ -459,13 +465,15 @@ def _is_numbers(value, count: int) -> bool:
 
 
 def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=None,
-                     plan_builder: Callable[[dict, float], Trajectory] | None = None) -> Trajectory:
+                     plan_builder: Callable[[dict, float], Trajectory] | None = None,
+                     mission_builder: Callable[[dict, float], Trajectory] | None = None) -> Trajectory:
     """Build a trajectory kind from scenario parameters; every problem is one UserInputError line.
 
     `start_ned_m` ([n, e], a down component is ignored) is the take-off point of the spiral, hover
     and helix (default the origin); waypoints and csv take off under their own first point.
     `plan_builder(params, rest_height_m)` builds kind "plan" (the planner sits above this module:
-    `mars_link.build.make_trajectory` passes `mars_link.planning.pipeline.build_plan_trajectory`).
+    `mars_link.build.make_trajectory` passes `mars_link.planning.pipeline.build_plan_trajectory`);
+    `mission_builder` likewise builds kind "mission" (mars_link.mission_trajectory).
     """
     if kind not in _KINDS:
         raise UserInputError(f"[trajectory] unknown kind {kind!r} (known: {', '.join(_KINDS)})")
@@ -524,4 +532,9 @@ def build_trajectory(kind: str, params: dict, rest_height_m: float, start_ned_m=
         if plan_builder is None:
             raise UserInputError("[trajectory] kind 'plan' needs the planner: build it with mars_link.build.make_trajectory")
         return plan_builder(clean, rest_height_m)
+    if kind == "mission":
+        if mission_builder is None:
+            raise UserInputError("[trajectory] kind 'mission' needs the mission runner: build it with "
+                                 "mars_link.build.make_trajectory")
+        return mission_builder(clean, rest_height_m)
     return cls(rest_height_m, start, **clean)

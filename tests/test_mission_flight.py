@@ -96,7 +96,7 @@ def test_mission_items_flown_against_the_truth() -> None:
     t_after_0 = next(t for s, _, t in watch.reached if s == 1)
     assert t_after_0 - t0 >= 0.95
     assert times[6] - times[5] > 0.9 and times[7] - times[6] >= 0.95
-    # DO_CHANGE_SPEED 1 m/s caps the reference on the legs after it (the first one flew at MPC_XY_VEL_MAX
+    # DO_CHANGE_SPEED 1 m/s caps the reference on the legs after it (the first one flew at MPC_XY_CRUISE
     # 2 m/s); the truth overshoots a reference by up to ~0.3 m/s while the position loop catches up
     assert max(s for c, s in watch.speeds if c == 0) > 1.9
     assert max(s for c, s in watch.speeds if c in (2, 3)) < 1.4
