@@ -28,6 +28,10 @@ if TYPE_CHECKING:  # (a unit process builds its firmware here without importing 
 POSITION_RATE_HZ = 50.0
 
 
+#: the baro drift the EKF's barometer noise allows for: what the drift reaches in this long (s)
+BARO_DRIFT_ALLOWANCE_S = 60.0
+
+
 def tracked_offset(model: AssemblyModel, scenario: Scenario) -> np.ndarray:
     """The tracked point (a unit's centre, or the CoM) from the assembly's CoM, body frame (m)."""
     unit = scenario.tracked_unit()
@@ -122,6 +126,11 @@ def sensor_params(scenario: Scenario):
     return SensorParams(position_noise_m=p.position_noise_m, velocity_noise_mps=p.velocity_noise_mps)
 
 
+def outdoor_profile(scenario: Scenario):
+    """The [sensors] profile when it puts GNSS, barometer and magnetometer on the units (gps), else None."""
+    return scenario.sensors if scenario.sensors.outdoor else None
+
+
 def world_config(scenario: Scenario, seed: int):
     from sitl.docking import DockTolerance
     from sitl.world import WorldConfig
@@ -130,7 +139,7 @@ def world_config(scenario: Scenario, seed: int):
                        noise=scenario.sim.noise, position_every=position_every(scenario),
                        dock_tolerance=DockTolerance(**scenario.docking),
                        environment=scenario.environment if scenario.environment.moves_air else None,
-                       sensors=sensor_params(scenario))
+                       sensors=sensor_params(scenario), outdoor=outdoor_profile(scenario))
 
 
 def make_world(scenario: Scenario, model: AssemblyModel, seed: int, com_start_ned_m: np.ndarray | None = None,
@@ -153,6 +162,17 @@ def make_estimator(scenario: Scenario, model: AssemblyModel):
     from mars_link.sensor_profiles import MIN_EKF_VELOCITY_NOISE_MPS
 
     p = scenario.sensors  # the EKF is told the profile's figures
+    if p.outdoor:
+        from mars_link.estimation_outdoor import OutdoorEstimator, OutdoorParams
+
+        return OutdoorEstimator(model, EstimatorParams(
+            position_noise_m=p.position_noise_m, velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS)),
+            OutdoorParams(horizontal_noise_m=max(p.position_noise_m, 1e-3), vertical_noise_m=max(p.vertical_noise_m, 1e-3),
+                          velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS),
+                          delay_s=round(p.gps_latency_s * scenario.sim.control_hz) / scenario.sim.control_hz,
+                          baro_noise_m=math.hypot(p.baro_noise_m, BARO_DRIFT_ALLOWANCE_S ** 0.5 * p.baro_drift_m_per_sqrt_s, 0.01),
+                          heading_noise_rad=math.radians(max(p.mag_heading_noise_deg, 0.1)),
+                          declination_rad=math.radians(p.mag_declination_deg)))
     return AssemblyEstimator(model, EstimatorParams(
         position_noise_m=max(p.position_noise_m, 1e-4),
         velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS)))

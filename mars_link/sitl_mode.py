@@ -149,7 +149,7 @@ def write_scenario_copy(scenario, path: Path) -> Path:
                                                                         {"redock_t": s.redock_t_s})}
                               for s in scenario.separations]
     if scenario.sensors != type(scenario.sensors)():
-        doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.figures}
+        doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.written()}
     if scenario.environment.moves_air:
         from mars_link.environment import environment_doc
 
