@@ -90,6 +90,8 @@ class OutdoorEstimator(AssemblyEstimator):
              outdoor: OutdoorInputs | None = None) -> RigidBodyState:
         state = super().step(t_s, imu_samples, position_samples)
         if outdoor is None:
+            if self.initialised:
+                self._remember(t_s, None)
             return state
         if len(outdoor.mag_units):
             self._last_mag = outdoor.mag_frd_gauss.mean(axis=0)
