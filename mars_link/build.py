@@ -28,6 +28,9 @@ if TYPE_CHECKING:  # (a unit process builds its firmware here without importing 
 POSITION_RATE_HZ = 50.0
 
 
+#: what the EKF's magnetometer heading allows for beyond the sensor's noise: tilt errors leaking through the
+#: field's inclination (mars_link.estimation_outdoor)
+EKF_HEADING_LEAK_RAD = 0.1
 #: the baro drift the EKF's barometer noise allows for: what the drift reaches in this long (s)
 BARO_DRIFT_ALLOWANCE_S = 60.0
 
@@ -171,7 +174,7 @@ def make_estimator(scenario: Scenario, model: AssemblyModel):
                           velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS),
                           delay_s=round(p.gps_latency_s * scenario.sim.control_hz) / scenario.sim.control_hz,
                           baro_noise_m=math.hypot(p.baro_noise_m, BARO_DRIFT_ALLOWANCE_S ** 0.5 * p.baro_drift_m_per_sqrt_s, 0.01),
-                          heading_noise_rad=math.radians(max(p.mag_heading_noise_deg, 0.1)),
+                          heading_noise_rad=math.hypot(math.radians(p.mag_heading_noise_deg), EKF_HEADING_LEAK_RAD),
                           declination_rad=math.radians(p.mag_declination_deg)))
     return AssemblyEstimator(model, EstimatorParams(
         position_noise_m=max(p.position_noise_m, 1e-4),
