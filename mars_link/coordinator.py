@@ -23,7 +23,7 @@ from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import Controller
 from mars_link.errors import UserInputError
 from mars_link.fault_detection import Detection
-from mars_link.gnss import outdoor_inputs
+from mars_link.estimation_outdoor import step_estimator
 from mars_link.messages import RotorCommand, SensorPacket, wire_thrust, wire_time
 from mars_link.state import RigidBodyState
 from mars_link.trajectories import Trajectory, TrajectoryPoint
@@ -175,13 +175,7 @@ class Coordinator:
                 raise ValueError("no estimator and no ground truth in the sensor packets")
             estimate = truth
         else:
-            extra = {}
-            if getattr(self.estimator, "outdoor", None) is not None:  # gps profile: GNSS, baro, magnetometer
-                extra["outdoor"] = outdoor_inputs(packets, self.estimator.home)
-            estimate = self.estimator.step(
-                t_s, [p.imu for p in packets if p.imu is not None],
-                [p.position for p in packets if p.position is not None], **extra,
-            )
+            estimate = step_estimator(self.estimator, t_s, packets)
         c1 = time.perf_counter()
         reference = self.trajectory.sample(t_s)
         out = self.controller.update(t_s, estimate, reference)

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from mars_link.estimation import N_ERR, TH_, AssemblyEstimator, EstimatorParams, _euler_rotmat, _rotmat_rows
-from mars_link.gnss import home
+from mars_link.gnss import GeoOrigin, gps_ned, home
 from mars_link.rotations import rotmat_to_quat
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
 
@@ -270,3 +270,33 @@ class OutdoorEstimator(AssemblyEstimator):
 
 def _wrap(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
+
+
+def outdoor_inputs(packets, origin: GeoOrigin):
+    """A tick's GNSS, barometer and magnetometer samples in the EKF's terms (mars_link.estimation_outdoor),
+    or None when no packet carries any (mocap and rtk flights)."""
+    gps, baro_units, baro, mag_units, mag = [], [], [], [], []
+    for p in packets:
+        if p.gps is not None:
+            pos, vel = gps_ned(p.gps, origin)
+            gps.append(PositionSample(p.gps.t_s, p.unit_id, pos, vel))
+        if p.baro is not None:
+            baro_units.append(p.unit_id)
+            baro.append(origin.amsl_m - p.baro.altitude_amsl_m)
+        if p.mag is not None:
+            mag_units.append(p.unit_id)
+            mag.append(p.mag.field_frd_gauss)
+    if not (gps or baro_units or mag_units):
+        return None
+    return OutdoorInputs(gps, tuple(baro_units), np.array(baro, dtype=float), tuple(mag_units),
+                         np.array(mag, dtype=float).reshape(-1, 3))
+
+
+def step_estimator(estimator, t_s: float, packets) -> RigidBodyState:
+    """One tick of any body's estimator from its units' telemetry (the coordinator's and the assembly
+    vehicle host's one path): IMU and mocap/rtk positions, plus the gps profile's outdoor samples."""
+    imus = [p.imu for p in packets if p.imu is not None]
+    positions = [p.position for p in packets if p.position is not None]
+    if isinstance(estimator, OutdoorEstimator):
+        return estimator.step(t_s, imus, positions, outdoor_inputs(packets, estimator.home))
+    return estimator.step(t_s, imus, positions)

@@ -13,6 +13,8 @@ import math
 import numpy as np
 
 from firmware_models.geo import GeoOrigin, origin_from_env
+
+__all__ = ["GeoOrigin"]  # (re-exported for the estimator)
 from mars_link.state import GpsSample
 
 INT16_MAX = 32767
@@ -69,25 +71,3 @@ def earth_field_ned_gauss(declination_deg: float) -> np.ndarray:
 def horizontal_field_gauss() -> float:
     return FIELD_GAUSS * math.cos(math.radians(INCLINATION_DEG))
 
-
-def outdoor_inputs(packets, origin: GeoOrigin):
-    """A tick's GNSS, barometer and magnetometer samples in the EKF's terms (mars_link.estimation_outdoor),
-    or None when no packet carries any (mocap and rtk flights)."""
-    from mars_link.estimation_outdoor import OutdoorInputs
-    from mars_link.state import PositionSample
-
-    gps, baro_units, baro, mag_units, mag = [], [], [], [], []
-    for p in packets:
-        if p.gps is not None:
-            pos, vel = gps_ned(p.gps, origin)
-            gps.append(PositionSample(p.gps.t_s, p.unit_id, pos, vel))
-        if p.baro is not None:
-            baro_units.append(p.unit_id)
-            baro.append(origin.amsl_m - p.baro.altitude_amsl_m)
-        if p.mag is not None:
-            mag_units.append(p.unit_id)
-            mag.append(p.mag.field_frd_gauss)
-    if not (gps or baro_units or mag_units):
-        return None
-    return OutdoorInputs(gps, tuple(baro_units), np.array(baro, dtype=float), tuple(mag_units),
-                         np.array(mag, dtype=float).reshape(-1, 3))
