@@ -29,9 +29,9 @@ BASE = {"name": "t", "assembly": {"layout": ["XXX", "XXX"]}, "trajectory": {"kin
 GPS = PROFILES["gps"]
 
 
-def _over_the_wire(msgs) -> list:
-    """Pack with one pymavlink instance, parse the bytes with another (the unit's side)."""
-    tx, rx = new_mav(250), new_mav(1)
+def _over_the_wire(msgs, src: int = 250) -> list:
+    """Pack with one pymavlink instance (system `src`), parse the bytes with another (the receiver's)."""
+    tx, rx = new_mav(src), new_mav(1 if src != 1 else 2)
     data = b"".join(m.pack(tx) for m in msgs)
     return rx.parse_buffer(data) or []
 
@@ -248,3 +248,33 @@ def test_bad_gps_figure_at_the_cli_is_one_line_exit_2(tmp_path: Path) -> None:
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "vertical_noise_m must be >= 0" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
+
+
+def test_unit_forwards_hil_gps_and_baro_mag_to_the_coordinator_unchanged() -> None:
+    """World -> unit (HIL_GPS, HIL_SENSOR) -> coordinator (HIL_GPS, HIGHRES_IMU), all as bytes parsed by
+    pymavlink: the coordinator's packet has the world's GNSS, barometer and magnetometer samples exactly."""
+    from mars_link.wire import SensorFrameAssembler, SensorPacketAssembler
+
+    sc = scenario_from_dict({**BASE, "sensors": {"profile": "gps"}})
+    model = sc.model()
+    world = make_world(sc, model, seed=3, com_start_ned_m=np.zeros(3), config=world_config(sc, 3))
+    unit_side, coordinator_side = SensorFrameAssembler(), SensorPacketAssembler()
+    seen = 0
+    for _ in range(25):
+        for p in world.sense():
+            frames = None
+            for m in _over_the_wire(sensor_packet_messages(p)):
+                frames = unit_side.feed_frames(m) or frames
+            got = None
+            for m in _over_the_wire(frames.upstream_messages(), src=p.unit_id):  # the unit's own system id
+                got = coordinator_side.feed(m) or got
+            assert [x.get_type() for x in frames.upstream_messages()][-1] == "HIGHRES_IMU"
+            assert got.unit_id == p.unit_id and got.gps == p.gps
+            if p.baro is not None:
+                assert (got.baro.pressure_hpa, got.baro.altitude_amsl_m) == (p.baro.pressure_hpa, p.baro.altitude_amsl_m)
+                assert np.array_equal(got.mag.field_frd_gauss, p.mag.field_frd_gauss)
+                seen += 1
+            else:
+                assert got.baro is None and got.mag is None
+        world.advance()
+    assert seen == 6 * 13
