@@ -278,3 +278,14 @@ def test_unit_forwards_hil_gps_and_baro_mag_to_the_coordinator_unchanged() -> No
                 assert got.baro is None and got.mag is None
         world.advance()
     assert seen == 6 * 13
+
+
+def test_fault_detector_waits_for_more_height_on_gps_only() -> None:
+    """Ground contact is not a rotor fault: on gps the detector starts 0.5 m above the landed height
+    (the wind slides and tips a landed assembly before its late lift-off); mocap keeps 0.15 m."""
+    from mars_link.build import make_detector
+
+    doc = {**BASE, "control": {"faults_known": False}}
+    mocap, gps = scenario_from_dict(doc), scenario_from_dict({**doc, "sensors": {"profile": "gps"}})
+    assert make_detector(mocap, mocap.model(), 0.0).params.min_height_m == 0.15
+    assert make_detector(gps, gps.model(), 0.0).params.min_height_m == 0.5
