@@ -194,7 +194,7 @@ def make_detector(scenario: Scenario, model: AssemblyModel, ground_down_m: float
     from mars_link.fault_detection import FaultDetector, FaultDetectorParams
 
     params = None
-    if scenario.sensors.outdoor:  # the estimated height is the barometers' (decimetres), not mocap's (mm)
+    if scenario.sensors.outdoor:  # (why: OUTDOOR_FDI_MIN_HEIGHT_M)
         params = FaultDetectorParams(min_height_m=OUTDOOR_FDI_MIN_HEIGHT_M)
     return FaultDetector(model, params, ground_down_m=ground_down_m)
 
