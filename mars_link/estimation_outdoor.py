@@ -21,7 +21,8 @@ are; this one adds what outdoor sensors need on top of the same error-state filt
   through the field's inclination (tan 63.5 deg = 2: 1 deg of tilt error is 2 deg of heading), slowly,
   so it is neither small nor white; fused at 50 Hz with the sensor's figure the filter believed its
   yaw to 0.03 deg, learnt a wrong gyro bias and drifted 10 deg in a windy spiral. The EKF takes
-  `heading_noise_rad` = 0.1 rad (PX4's EKF2_HEAD_NOISE is 0.3 rad for the same reason). It also gives
+  `heading_noise_rad` = 0.1 rad (PX4's EKF2 likewise has its own heading-fusion noise, EKF2_HEAD_NOISE,
+  a tuning figure rather than the sensor's). It also gives
   the initial heading when the units' positions cannot (GNSS noise is larger than the assembly).
 """
 
@@ -234,8 +235,8 @@ class OutdoorEstimator(AssemblyEstimator):
             if self.mag_gated < HEADING_GATED_BEFORE_TRUSTED:
                 self._reject("mag_gate")
                 return
-            # the heading has been off for a while: the estimate, not the field, is wrong (PX4's EKF2
-            # resets its yaw the same way); fused with the variance that makes the innovation 3 sigma
+            # the heading has been off for a while: the estimate, not the field, is taken to be wrong;
+            # fused with the variance that makes the innovation 3 sigma
             var = max(var, y * y / 9.0 - (s - var))
         self.mag_gated = 0
         self._ekf.update_independent(np.array([y]), H, np.array([var]))
