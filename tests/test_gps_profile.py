@@ -289,3 +289,14 @@ def test_fault_detector_waits_for_more_height_on_gps_only() -> None:
     mocap, gps = scenario_from_dict(doc), scenario_from_dict({**doc, "sensors": {"profile": "gps"}})
     assert make_detector(mocap, mocap.model(), 0.0).params.min_height_m == 0.15
     assert make_detector(gps, gps.model(), 0.0).params.min_height_m == 0.5
+
+
+@pytest.mark.parametrize("tool, args, needle", [
+    ("air_eval.py", ["--sensors", "lidar"], "unknown --sensors profile 'lidar'"),
+    ("air_eval.py", ["--flights", "loop"], "--flights must name some of spiral, gust"),
+    ("fdi_eval.py", ["--sensors", "lidar"], "unknown --sensors profile 'lidar'"),
+])
+def test_eval_tools_refuse_an_unknown_profile_in_one_line(tool: str, args: list, needle: str) -> None:
+    root = Path(__file__).resolve().parent.parent
+    r = subprocess.run([sys.executable, str(root / "tools" / tool), *args], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and needle in r.stderr and len(r.stderr.strip().splitlines()) == 1
