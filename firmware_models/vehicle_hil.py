@@ -43,10 +43,14 @@ class HilMixin:
                 self._drop("hil_bad_battery")
             self._battery_pending = sample
             return
-        if t not in ("HIL_SENSOR", "ODOMETRY"):
+        if t not in ("HIL_SENSOR", "ODOMETRY", "HIL_GPS"):
             self._count(f"ignored.{t}")
             return
-        values = ([msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro] if t == "HIL_SENSOR"
+        if t == "HIL_GPS":  # integer fields: always finite; kept with its packet's IMU frame
+            self.assembler.feed_frames(msg)
+            return
+        values = ([msg.xacc, msg.yacc, msg.zacc, msg.xgyro, msg.ygyro, msg.zgyro, msg.xmag, msg.ymag, msg.zmag,
+                   msg.abs_pressure, msg.pressure_alt] if t == "HIL_SENSOR"
                   else [msg.x, msg.y, msg.z, *msg.q, msg.vx, msg.vy, msg.vz])
         if not _finite(*values):
             self._drop("hil_non_finite")

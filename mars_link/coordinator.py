@@ -24,6 +24,7 @@ from mars_link.control.base import Controller
 from mars_link.errors import UserInputError
 from mars_link.fault_detection import Detection
 from mars_link.battery import thrust_scale
+from mars_link.estimation_outdoor import step_estimator
 from mars_link.messages import BatterySample, RotorCommand, SensorPacket, wire_thrust, wire_time
 from mars_link.state import RigidBodyState
 from mars_link.trajectories import Trajectory, TrajectoryPoint
@@ -182,10 +183,7 @@ class Coordinator:
                 raise ValueError("no estimator and no ground truth in the sensor packets")
             estimate = truth
         else:
-            estimate = self.estimator.step(
-                t_s, [p.imu for p in packets if p.imu is not None],
-                [p.position for p in packets if p.position is not None],
-            )
+            estimate = step_estimator(self.estimator, t_s, packets)
         if self.battery_cells is not None:
             self._watch_batteries(packets)
         c1 = time.perf_counter()

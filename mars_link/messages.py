@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.state import ImuSample, PositionSample, RigidBodyState
+from mars_link.state import BaroSample, GpsSample, ImuSample, MagSample, PositionSample, RigidBodyState
 
 
 def f32(v) -> np.ndarray:
@@ -82,6 +82,9 @@ class SensorPacket:
     position: PositionSample | None
     truth: RigidBodyState | None = None  # ground truth (HIL_STATE_QUATERNION), only with noise off
     latches: int = 0  # the unit's latch sensor: bit k set when side k holds a docked neighbour
+    gps: GpsSample | None = None  # [sensors] profile "gps": HIL_GPS (already at wire precision)
+    baro: BaroSample | None = None  # ... HIL_SENSOR's pressure fields
+    mag: MagSample | None = None  # ... HIL_SENSOR's magnetometer fields
     battery: BatterySample | None = None  # the pack's measurement, at the battery rate (None between)
 
     def as_wire(self) -> "SensorPacket":
@@ -94,7 +97,10 @@ class SensorPacket:
                 t, self.unit_id, f32(self.position.position_ned_m), None if vel is None else f32(vel)
             )
         truth = None if self.truth is None else wire_state(self.truth)
-        return SensorPacket(t, self.unit_id, imu, pos, truth, self.latches, self.battery)
+        baro = None if self.baro is None else BaroSample(t, self.unit_id, float(f32(self.baro.pressure_hpa)),
+                                                          float(f32(self.baro.altitude_amsl_m)))
+        mag = None if self.mag is None else MagSample(t, self.unit_id, f32(self.mag.field_frd_gauss))
+        return SensorPacket(t, self.unit_id, imu, pos, truth, self.latches, self.gps, baro, mag, self.battery)
 
 
 @dataclass

@@ -72,7 +72,8 @@ def local_packet(packet: SensorPacket, local_id: int) -> SensorPacket:
         packet.t_s, local_id,
         None if imu is None else ImuSample(imu.t_s, local_id, imu.gyro_frd_radps, imu.accel_frd_mps2),
         None if pos is None else PositionSample(pos.t_s, local_id, pos.position_ned_m, pos.velocity_ned_mps),
-        packet.truth, packet.latches, packet.battery)
+        packet.truth, packet.latches, *(None if s is None else dataclasses.replace(s, unit_id=local_id)
+                                        for s in (packet.gps, packet.baro, packet.mag)), packet.battery)
 
 
 class PiecesCoordinator:

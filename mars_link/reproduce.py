@@ -54,11 +54,12 @@ def paper_ftc(case: Case) -> str:
 
 def scenario_for(
     case: Case, controller: str, ftc: str, duration_s: float | None = None, t_fault_s: float = 0.0,
-    faults_known: bool = True, environment: dict | None = None,
+    faults_known: bool = True, environment: dict | None = None, sensors: dict | None = None,
 ):
     """The case's scenario. Table I / Fig. 3 inject at t = 0 (the paper's scenes start faulty); the
     FDI evaluation injects at `t_fault_s` and, with `faults_known` false, does not tell the coordinator.
-    `environment`: an [environment] table (wind, turbulence) to fly the case in."""
+    `environment`: an [environment] table (wind, turbulence) to fly the case in; `sensors`: a [sensors]
+    table (e.g. {"profile": "gps"})."""
     paper = controller == "mars-ftcc-paper"
     doc = {
         "name": f"{case.name} / {controller} / {ftc}",
@@ -78,6 +79,8 @@ def scenario_for(
         doc["sim"]["duration_s"] = duration_s
     if environment:
         doc["environment"] = environment
+    if sensors:
+        doc["sensors"] = sensors
     return scenario_from_dict(doc, "reproduce")
 
 
@@ -282,26 +285,27 @@ class FdiTrial:
 
 
 def fdi_trial(case: Case, ftc: str = "qp", seed: int = 1, t_fault_s: float = FDI_T_FAULT_S,
-              duration_s: float | None = None, controller: str = "cascaded", environment: dict | None = None) -> FdiTrial:
+              duration_s: float | None = None, controller: str = "cascaded", environment: dict | None = None,
+              sensors: dict | None = None) -> FdiTrial:
     """Fly `case` twice with the same seed: faults told at `t_fault_s`, then detected (not told)."""
     mode = fdi_ftc(case, ftc)
-    told = run_trial(scenario_for(case, controller, mode, duration_s, t_fault_s, True, environment), seed)
-    found = run_trial(scenario_for(case, controller, mode, duration_s, t_fault_s, False, environment), seed)
+    told = run_trial(scenario_for(case, controller, mode, duration_s, t_fault_s, True, environment, sensors), seed)
+    found = run_trial(scenario_for(case, controller, mode, duration_s, t_fault_s, False, environment, sensors), seed)
     return FdiTrial(case, mode, seed, t_fault_s, found.detections, told.mean_error_m, found.mean_error_m,
                     told.completed, found.completed, controller)
 
 
 def fdi_lost_trial(case: Case, ftc: str = "qp", seed: int = 1, t_fault_s: float = FDI_T_FAULT_S,
                    duration_s: float | None = None, controller: str = "cascaded",
-                   environment: dict | None = None) -> FdiTrial:
+                   environment: dict | None = None, sensors: dict | None = None) -> FdiTrial:
     """A Fig. 3 unit-failure case as process deaths: the units stop reporting and their motors stop
     at `t_fault_s` (runner `unit_deaths`), scored against the same failure told to the coordinator."""
     if not case.unit_failure:
         raise ValueError(f"{case.name}: only unit failures can be flown as lost units")
     mode = fdi_ftc(case, ftc)
-    told = run_trial(scenario_for(case, controller, mode, duration_s, t_fault_s, True, environment), seed)
+    told = run_trial(scenario_for(case, controller, mode, duration_s, t_fault_s, True, environment, sensors), seed)
     healthy = Case(case.name, (), None, None, case.source, True)
-    sc = scenario_for(healthy, controller, mode, duration_s, t_fault_s, False, environment)
+    sc = scenario_for(healthy, controller, mode, duration_s, t_fault_s, False, environment, sensors)
     found = run_trial(sc, seed, unit_deaths={u: t_fault_s for u, _, _ in case.faults})
     return FdiTrial(Case("lost " + case.name.replace("F3 ", ""), case.faults, None, None, case.source, True), mode,
                     seed, t_fault_s, found.detections, told.mean_error_m, found.mean_error_m, told.completed,
@@ -309,9 +313,11 @@ def fdi_lost_trial(case: Case, ftc: str = "qp", seed: int = 1, t_fault_s: float 
 
 
 def fdi_false_alarm_flight(seed: int, ftc: str = "qp", duration_s: float | None = None,
-                           controller: str = "cascaded", environment: dict | None = None) -> list[dict]:
+                           controller: str = "cascaded", environment: dict | None = None,
+                           sensors: dict | None = None) -> list[dict]:
     """A fault-free spiral with the detector on: its detections (all false alarms)."""
-    sc = scenario_for(CASES[0], controller, ftc, duration_s, faults_known=False, environment=environment)
+    sc = scenario_for(CASES[0], controller, ftc, duration_s, faults_known=False, environment=environment,
+                      sensors=sensors)
     return run_trial(sc, seed).detections
 
 

@@ -11,7 +11,7 @@ from typing import Any
 from mars_link.aerodynamics import AERO_PRESETS
 from mars_link.environment import SEVERITIES, TURBULENCE_MODELS, EnvironmentParams, Gust, check_vector, severity_of
 from mars_link.errors import UserInputError
-from mars_link.sensor_profiles import NOT_MODELLED, PROFILES, SensorProfile
+from mars_link.sensor_profiles import GPS_FIGURES, PROFILES, SensorProfile
 from mars_link.table_checks import number as _num
 
 _ENV_KEYS = {"wind_ned_mps", "turbulence", "turbulence_model", "gusts"}
@@ -97,18 +97,22 @@ def aero_options(vehicle: dict, preset: str, environment: EnvironmentParams, src
 
 
 def sensors_table(table: dict, src: str) -> SensorProfile:
-    """[sensors]: profile = "mocap" | "rtk", and any of its figures (position_rate_hz > 0,
-    position_noise_m >= 0, velocity_noise_mps >= 0) overridden."""
-    profile = PROFILES["mocap"]
-    allowed = {"profile", *profile.figures}
-    for key in table:
-        if key not in allowed:
-            raise UserInputError(f"{src}: unknown key {key!r} in [sensors] (allowed: {', '.join(sorted(allowed))})")
+    """[sensors]: profile = "mocap" | "rtk" | "gps", and any of its figures overridden (position_rate_hz
+    > 0, every other figure >= 0 but the declination; gps_walk_share <= 1; the gps-only figures only with profile "gps")."""
     name = table.get("profile", "mocap")
-    if name in NOT_MODELLED:
-        raise UserInputError(f"{src}: [sensors] profile {name!r} is not available: it {NOT_MODELLED[name]}")
     if name not in PROFILES:
         raise UserInputError(f"{src}: unknown [sensors] profile {name!r} (known: {', '.join(PROFILES)})")
-    figures = {key: _num(table[key], f"[sensors] {key}", src, positive=key == "position_rate_hz", nonneg=True)
-               for key in profile.figures if key in table}
-    return PROFILES[name].with_overrides(**figures)
+    profile = PROFILES[name]
+    allowed = {"profile", *(k for k in profile.figures if profile.outdoor or k not in GPS_FIGURES)}
+    for key in table:
+        if key not in allowed:
+            raise UserInputError(f"{src}: unknown key {key!r} in [sensors] for profile {name!r} "
+                                 f"(allowed: {', '.join(sorted(allowed))})")
+    figures = {key: _num(table[key], f"[sensors] {key}", src, positive=key == "position_rate_hz",
+                       nonneg=key != "mag_declination_deg") for key in profile.figures if key in table}
+    if figures.get("gps_walk_share", 0.0) > 1.0:
+        raise UserInputError(f"{src}: [sensors] gps_walk_share must be <= 1 (a share of the variance), "
+                             f"got {figures['gps_walk_share']:g}")
+    if abs(figures.get("mag_declination_deg", 0.0)) > 180.0:
+        raise UserInputError(f"{src}: [sensors] mag_declination_deg must be within +-180, got {figures['mag_declination_deg']:g}")
+    return profile.with_overrides(**figures)

@@ -151,7 +151,7 @@ def write_scenario_copy(scenario, path: Path) -> Path:
                                                                         {"redock_t": s.redock_t_s})}
                               for s in scenario.separations]
     if scenario.sensors != type(scenario.sensors)():
-        doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.figures}
+        doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.written()}
     if scenario.battery is not None or scenario.preset in BATTERY_BY_DEFAULT:
         doc["battery"] = battery_doc(scenario.battery)
     if scenario.environment.moves_air:

@@ -38,3 +38,39 @@ class PositionSample:
     unit_id: int
     position_ned_m: np.ndarray
     velocity_ned_mps: np.ndarray | None = None
+
+
+@dataclass
+class GpsSample:
+    """What a unit's GNSS receiver reports (HIL_GPS's fields, at their wire precision): WGS84 position
+    in degE7 and mm AMSL, NED velocity in cm/s, accuracies in cm. `t_s` is when it arrives; it measures
+    the receiver of `gps_latency_s` earlier (the estimator is told the latency, as PX4's EKF2_GPS_DELAY)."""
+
+    t_s: float
+    unit_id: int
+    lat_e7: int
+    lon_e7: int
+    alt_mm: int
+    vel_ned_cmps: tuple[int, int, int]
+    eph_cm: int
+    epv_cm: int
+    satellites: int = 12
+
+
+@dataclass
+class BaroSample:
+    """A unit's barometer (HIL_SENSOR abs_pressure, pressure_alt; float32 on the wire)."""
+
+    t_s: float
+    unit_id: int
+    pressure_hpa: float
+    altitude_amsl_m: float  # the pressure altitude (ISA), m above mean sea level
+
+
+@dataclass
+class MagSample:
+    """A unit's magnetometer (HIL_SENSOR xmag, ymag, zmag): the field in the body frame, gauss."""
+
+    t_s: float
+    unit_id: int
+    field_frd_gauss: np.ndarray

@@ -10,15 +10,18 @@
 | ActuatorOutput | HIL_ACTUATOR_CONTROLS, controls[0..3], flags = LOCKSTEP | same scale; controls[4]: latches open, as above |
 | SensorPacket.latches | NAMED_VALUE_INT "LATCH" (world -> unit -> coordinator) | the latched sides, bit mask 0..15 |
 | SensorPacket.battery | BATTERY_STATUS (world -> unit -> coordinator), before the packet's frames | pack mV in voltages[0], cA, remaining % (the unit's) |
+| SensorPacket.gps | HIL_GPS (world -> unit, forwarded as is to the coordinator) | fix 3D, lat/lon degE7 and alt mm AMSL around the home, vn/ve/vd cm/s, vel, cog, eph/epv (cm, as PX4 reads them), satellites |
+| SensorPacket.baro, .mag | HIL_SENSOR / HIGHRES_IMU abs_pressure (hPa), pressure_alt (m), xmag..zmag (gauss), their fields_updated bits | the gps profile's barometer and magnetometer |
 
 The latch sensor is sent when it changes (and with a unit's first packet), in the same datagram and
 before the packet's IMU frame; receivers hold the last value (`LatchSensor`). The latch setpoint rides
 every rotor command as the mask of latches to open, so an all-zero control (any stock sender) keeps
 them engaged.
 
-A sensor packet travels as its optional position and truth frames first and the IMU frame last; the
+A sensor packet travels as its optional position, truth and GNSS frames first and the IMU frame last; the
 IMU frame's `fields_updated` carries two mars-link flags (bits 14, 15; unused by both messages) saying which of the optional
-frames belong to it, so a receiver knows when a packet is complete, and a third (bit 13, also unused) saying
+frames belong to it, so a receiver knows when a packet is complete (a HIL_GPS frame of the same time and
+sender is attached when there is one: no bit is left in HIGHRES_IMU's 16), and a third (bit 13, also unused) saying
 that the truth's body touches the ground (`RigidBodyState.on_ground`, which ODOMETRY has no field for).
 """
 
@@ -30,13 +33,17 @@ from dataclasses import dataclass
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from mars_link.gnss import course_cdeg, ground_speed_cmps
 from mars_link.messages import LATCH_ALL, ActuatorOutput, BatterySample, RotorCommand, SensorPacket
-from mars_link.state import ImuSample, PositionSample, RigidBodyState
+from mars_link.state import BaroSample, GpsSample, ImuSample, MagSample, PositionSample, RigidBodyState
 
 FLAG_HAS_POSITION = 1 << 14
 FLAG_HAS_TRUTH = 1 << 15
 FLAG_ON_GROUND = 1 << 13
 IMU_FIELDS = 0x3F  # xacc..zgyro updated
+MAG_FIELDS = 0x1C0  # xmag..zmag updated
+BARO_FIELDS = 0x200 | 0x800  # abs_pressure and pressure_alt updated
+GPS_FIX_3D = 3
 HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP = 1
 ARMED_CUSTOM_MODE = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
 
@@ -69,10 +76,31 @@ def sensor_packet_messages(packet: SensorPacket, upstream: bool = False) -> list
         msgs.append(_odometry(t, s.position_ned_m, s.quaternion_wxyz, s.velocity_ned_mps,
                               s.angular_velocity_frd_radps, mavlink.MAV_ESTIMATOR_TYPE_NAIVE))
         flags |= FLAG_HAS_TRUTH | (FLAG_ON_GROUND if s.on_ground else 0)
+    if packet.gps is not None:
+        msgs.append(gps_message(t, packet.gps))
+    mag, pressure, pressure_alt = (0.0, 0.0, 0.0), 0.0, 0.0
+    if packet.mag is not None:
+        mag = tuple(map(float, packet.mag.field_frd_gauss))
+        flags |= MAG_FIELDS
+    if packet.baro is not None:
+        pressure, pressure_alt = packet.baro.pressure_hpa, packet.baro.altitude_amsl_m
+        flags |= BARO_FIELDS
     a, g = packet.imu.accel_frd_mps2, packet.imu.gyro_frd_radps
     cls = mavlink.MAVLink_highres_imu_message if upstream else mavlink.MAVLink_hil_sensor_message
-    msgs.append(cls(t, *map(float, a), *map(float, g), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, flags, 0))
+    msgs.append(cls(t, *map(float, a), *map(float, g), *mag, pressure, 0.0, pressure_alt, 0.0, flags, 0))
     return msgs
+
+
+def gps_message(t_usec: int, g: GpsSample) -> mavlink.MAVLink_message:
+    """HIL_GPS as PX4's simulator sends it (3D fix; yaw 0: no dual-antenna heading)."""
+    return mavlink.MAVLink_hil_gps_message(
+        t_usec, GPS_FIX_3D, g.lat_e7, g.lon_e7, g.alt_mm, g.eph_cm, g.epv_cm, ground_speed_cmps(g.vel_ned_cmps),
+        *g.vel_ned_cmps, course_cdeg(g.vel_ned_cmps), g.satellites, 0, 0)
+
+
+def gps_from_message(m, t_s: float) -> GpsSample:
+    return GpsSample(t_s, m.get_srcSystem(), m.lat, m.lon, m.alt, (m.vn, m.ve, m.vd), m.eph, m.epv,
+                     m.satellites_visible)
 
 
 def _odometry(t_usec: int, pos, q, vel, rates, estimator_type: int) -> mavlink.MAVLink_message:
@@ -91,6 +119,7 @@ class SensorFrames:
     imu: mavlink.MAVLink_message
     position: mavlink.MAVLink_message | None = None
     truth: mavlink.MAVLink_message | None = None
+    gps: mavlink.MAVLink_message | None = None  # HIL_GPS
 
     def packet(self) -> SensorPacket:
         m, unit = self.imu, self.imu.get_srcSystem()
@@ -105,7 +134,11 @@ class SensorFrames:
                                    np.array(s.q, dtype=float), np.array([s.rollspeed, s.pitchspeed, s.yawspeed]),
                                    on_ground=bool(m.fields_updated & FLAG_ON_GROUND))
         imu = ImuSample(t_s, unit, np.array([m.xgyro, m.ygyro, m.zgyro]), np.array([m.xacc, m.yacc, m.zacc]))
-        return SensorPacket(t_s, unit, imu, pos, truth)
+        gps = None if self.gps is None else gps_from_message(self.gps, t_s)
+        flags = m.fields_updated
+        baro = BaroSample(t_s, unit, m.abs_pressure, m.pressure_alt) if flags & BARO_FIELDS == BARO_FIELDS else None
+        mag = MagSample(t_s, unit, np.array([m.xmag, m.ymag, m.zmag])) if flags & MAG_FIELDS == MAG_FIELDS else None
+        return SensorPacket(t_s, unit, imu, pos, truth, 0, gps, baro, mag)
 
     def upstream_messages(self) -> list[mavlink.MAVLink_message]:
         """What `sensor_packet_messages(self.packet(), upstream=True)` gives, built from the received
@@ -125,8 +158,13 @@ class SensorFrames:
             msgs.append(_odometry(t, (s.x, s.y, s.z), s.q, (s.vx, s.vy, s.vz), (s.rollspeed, s.pitchspeed, s.yawspeed),
                                   mavlink.MAV_ESTIMATOR_TYPE_NAIVE))
             flags |= FLAG_HAS_TRUTH | (m.fields_updated & FLAG_ON_GROUND)
+        if (g := self.gps) is not None:
+            msgs.append(mavlink.MAVLink_hil_gps_message(t, g.fix_type, g.lat, g.lon, g.alt, g.eph, g.epv, g.vel, g.vn,
+                                                        g.ve, g.vd, g.cog, g.satellites_visible, g.id, g.yaw))
+        flags |= m.fields_updated & (MAG_FIELDS | BARO_FIELDS)
         msgs.append(mavlink.MAVLink_highres_imu_message(t, m.xacc, m.yacc, m.zacc, m.xgyro, m.ygyro, m.zgyro,
-                                                        0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, flags, 0))
+                                                        m.xmag, m.ymag, m.zmag, m.abs_pressure, m.diff_pressure,
+                                                        m.pressure_alt, m.temperature, flags, 0))
         return msgs
 
 
@@ -137,6 +175,7 @@ class SensorFrameAssembler:
     def __init__(self) -> None:
         self._position: dict[tuple[int, int], mavlink.MAVLink_message] = {}
         self._truth: dict[tuple[int, int], mavlink.MAVLink_message] = {}
+        self._gps: dict[tuple[int, int], mavlink.MAVLink_message] = {}
         self.dropped_incomplete = 0
 
     def feed_frames(self, msg: mavlink.MAVLink_message) -> SensorFrames | None:
@@ -144,6 +183,8 @@ class SensorFrameAssembler:
         if kind == "ODOMETRY":
             store = self._position if msg.estimator_type == mavlink.MAV_ESTIMATOR_TYPE_MOCAP else self._truth
             store[(msg.get_srcSystem(), msg.time_usec)] = msg
+        elif kind == "HIL_GPS":
+            self._gps[(msg.get_srcSystem(), msg.time_usec)] = msg
         elif kind in ("HIL_SENSOR", "HIGHRES_IMU"):
             t = msg.time_usec
             key = (msg.get_srcSystem(), t)
@@ -154,12 +195,13 @@ class SensorFrameAssembler:
             ):
                 self.dropped_incomplete += 1
                 return None
+            gps = self._gps.pop(key, None) if self._gps else None
             self._prune(t)
-            return SensorFrames(msg, pos, truth)
+            return SensorFrames(msg, pos, truth, gps)
         return None
 
     def _prune(self, t_usec: int) -> None:
-        for store in (self._position, self._truth):
+        for store in (self._position, self._truth, self._gps):
             if store:
                 for key in [k for k in store if k[1] < t_usec]:
                     del store[key]

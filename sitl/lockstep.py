@@ -258,13 +258,13 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     `out`; `foxglove`: HOST:PORT of the live Foxglove view (sitl.view_feed says why the world hosts them)."""
     world_start = start
     from sitl.hil import hil_state_message
-    from mars_link.build import make_world, sensor_params
+    from mars_link.build import make_world, outdoor_profile, sensor_params
     from sitl.world import FreeUnitsWorld, WorldConfig
 
     sc = setup.scenario
     cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise, position_every(setup),
                       environment=sc.environment if sc.environment.moves_air else None, sensors=sensor_params(sc),
-                      battery=sc.battery)
+                      battery=sc.battery, outdoor=outdoor_profile(sc))
     if setup.pieces:  # one body per piece of the executor's start (the coordinator builds the same executor)
         from mars_link.build import make_executor, make_pieces_world, make_trajectory, world_config
 
@@ -318,7 +318,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             datagrams = []  # sampled and encoded before the pacing wait: at t they only go out
             for p in world.sense():
                 if p.unit_id in live:  # ground truth for the unit's own telemetry at the mocap rate
-                    msgs = [] if p.truth is not None or p.position is None else [
+                    msgs = [] if p.truth is not None or (p.position is None and p.gps is None) else [
                         hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
                     if setup.pieces and latch_sent.get(p.unit_id) != p.latches:  # the latch sensor, on change
                         latch_sent[p.unit_id] = p.latches

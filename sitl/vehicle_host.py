@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from mars_link.errors import UserInputError
+from mars_link.estimation_outdoor import step_estimator
 from mars_link.messages import RotorCommand, SensorPacket
 from mars_link.state import RigidBodyState
 
@@ -200,7 +201,7 @@ class HostedVehicle:
         if self.estimator is None:
             return next((p.truth for p in packets if p.truth is not None), None)
         ekf = self.estimator
-        est = ekf.step(t_s, [p.imu for p in packets], [p.position for p in packets if p.position is not None])
+        est = step_estimator(ekf, t_s, packets)
         if not ekf.initialised:
             return None
         if ekf.stats.position_resets > self.estimator_resets:

@@ -20,10 +20,12 @@ from mars_link.state import ImuSample, PositionSample, RigidBodyState
 from sitl.docking import DockTolerance, dock_check
 from mars_link.latches import SIDE_STEPS, LatchBoard, components, neighbour_links, opposite
 from mars_link.environment import EnvironmentParams
+from mars_link.sensor_profiles import SensorProfile
 from sitl.environment import Air
 from mars_link.battery import BatterySpec
 from sitl.battery import Packs
 from sitl.physics import JsbsimBody
+from sitl.outdoor_sensors import OutdoorSensors
 from sitl.sensors import SensorModel, SensorParams
 
 #: each latch side's direction in a unit's body frame (FRD): front, right, back, left
@@ -44,6 +46,7 @@ class WorldConfig:
     environment: EnvironmentParams | None = None  # wind, gusts, turbulence (sitl.environment); None = still air
     sensors: SensorParams | None = None  # the sensor figures ([sensors] profile); None = SensorParams()
     battery: BatterySpec | None = None  # the units' packs (sitl.battery); None = an ideal supply (the papers')
+    outdoor: SensorProfile | None = None  # [sensors] profile "gps": GNSS, baro, magnetometer instead of mocap
 
 
 @dataclass(eq=False)  # (identity: two bodies are never "equal")
@@ -116,6 +119,8 @@ class World:
         if carried != sorted(model.unit_ids):
             raise ValueError(f"the bodies carry units {carried}, the world has {sorted(model.unit_ids)}")
         self.sensors = SensorModel(sensor_params or config.sensors or SensorParams(), seed=config.seed, noise=config.noise)
+        self.outdoor = None if config.outdoor is None else OutdoorSensors(
+            config.outdoor, config.seed, config.noise, config.exchange_hz, config.position_every)
         tau = model.vehicle.motor_time_constant_s
         self._lag_alpha = 1.0 if tau <= 0 else 1.0 - math.exp(-self.dt_s / tau)
         self.rotor_setpoint_n = np.zeros(model.n_rotors)  # what the units drive their motors to
@@ -353,16 +358,29 @@ class World:
             )
             state = None if self.config.noise else wire_state(truth)
             latch = self.latches.mask
+            outdoor = self._outdoor_samples(tw, b, truth) if self.outdoor is not None else None
             for i, unit_id in enumerate(b.units):
                 if unit_id in self.dead_units:
                     continue
                 imu = ImuSample(tw, unit_id, gyro[i], accel[i])
-                p = PositionSample(tw, unit_id, pos[i], vel[i]) if with_position else None
-                packets.append(SensorPacket(tw, unit_id, imu, p, state, latch(unit_id),
-                                            self.packs.sample(unit_id - 1) if with_battery else None))
+                battery = self.packs.sample(unit_id - 1) if with_battery else None
+                if outdoor is None:
+                    p = PositionSample(tw, unit_id, pos[i], vel[i]) if with_position else None
+                    packets.append(SensorPacket(tw, unit_id, imu, p, state, latch(unit_id), battery=battery))
+                else:
+                    packets.append(SensorPacket(tw, unit_id, imu, None, state, latch(unit_id), *outdoor[i],
+                                                battery=battery))
         if not self._single:
             packets.sort(key=lambda p: p.unit_id)
         return packets
+
+    def _outdoor_samples(self, t_s: float, b: Body, truth: RigidBodyState) -> list[tuple]:
+        """(gps, baro, mag) of each of the body's units from its centre's truth (gps profile)."""
+        rot = quat_to_rotmat(truth.quaternion_wxyz)
+        w = truth.angular_velocity_frd_radps
+        pos = truth.position_ned_m + b.offsets_frd_m @ rot.T
+        vel = truth.velocity_ned_mps + np.cross(w, b.offsets_frd_m) @ rot.T
+        return [self.outdoor.sample(self.exchange_index, t_s, u, pos[i], vel[i], rot) for i, u in enumerate(b.units)]
 
     def tracked_point(self, offset_frd_m: np.ndarray, truth: RigidBodyState | None = None) -> np.ndarray:
         truth = truth or self.body.state()

@@ -1,4 +1,4 @@
-"""[sensors] profile: mocap (the default, unchanged) and rtk; the world draws the profile's noise at its
+"""[sensors] profile: mocap (the default, unchanged) and rtk (gps: tests/test_gps_profile.py); the world draws the profile's noise at its
 rate and the coordinator's EKF is told the same figures."""
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ def test_spiral_on_rtk_flies_close_to_mocap() -> None:
 
 @pytest.mark.parametrize("table, needle", [
     ({"profile": "lidar"}, "unknown [sensors] profile 'lidar'"),
-    ({"profile": "gps"}, "[sensors] profile 'gps' is not available"),
+    ({"profile": "mocap", "gps_latency_s": 0.1}, "unknown key 'gps_latency_s' in [sensors] for profile 'mocap'"),
     ({"position_noise_m": -0.1}, "[sensors] position_noise_m must be >= 0"),
     ({"velocity_noise_mps": "high"}, "[sensors] velocity_noise_mps must be a finite number"),
     ({"position_rate_hz": 0}, "[sensors] position_rate_hz must be > 0"),

@@ -2,7 +2,7 @@
 
     python tools/fdi_eval.py [--out runs/fdi_eval] [--seeds 3] [--ftc qp] [--t-fault 10] [--false-alarm-seeds 5]
                              [--controller cascaded | mars-ftcc-paper] [--cases "{2,5};r2=0.5"] [--lost]
-                             [--turbulence none|light|moderate|severe|W20] [--wind N,E,D]
+                             [--turbulence none|light|moderate|severe|W20] [--wind N,E,D] [--sensors mocap|rtk|gps]
 
 Every case is flown twice per seed with the in-process runner (JSBSim, sensor noise, EKF, cascaded
 controller): the faults act in the units' motor paths at `--t-fault` and are told to the coordinator
@@ -19,7 +19,8 @@ own controller instead, as `mars-link reproduce table1` does (20 Hz, physics 1 k
 the controller flies on the true state, the detector reads the noise-free unit IMUs at 20 Hz).
 `--turbulence` and `--wind` fly every flight in that air (scenario [environment]: Dryden turbulence of
 that severity, steady wind in m/s NED; the units' drag on): does the detector mistake the air for a
-rotor fault, and does it still find the real ones?
+rotor fault, and does it still find the real ones? `--sensors` flies every flight on that [sensors]
+profile (default mocap; gps: delayed GNSS, barometer and magnetometer in the EKF).
 
 Writes fdi.md, fdi.json and fdi.png (detection delay and eta error per case; told vs detected error)
 to --out. Exit 0 when every case passed, 1 otherwise, 2 for bad arguments.
@@ -61,9 +62,15 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--no-plot", action="store_true")
     ap.add_argument("--turbulence", default="none", help="none | light | moderate | severe, or W20 in m/s")
     ap.add_argument("--wind", default="0,0,0", help="steady wind N,E,D in m/s (the air's velocity)")
+    ap.add_argument("--sensors", default="mocap", help="[sensors] profile: mocap | rtk | gps")
     add_pool_arguments(ap)  # --workers / --scheduler: the flights go through the sweep's executor
     args = ap.parse_args(argv)
     args.environment = air_table(args.turbulence, args.wind)
+    from mars_link.sensor_profiles import PROFILES
+
+    if args.sensors not in PROFILES:
+        raise UserInputError(f"unknown --sensors profile {args.sensors!r} (known: {', '.join(PROFILES)})")
+    args.sensor_table = None if args.sensors == "mocap" else {"profile": args.sensors}
     if not 1 <= args.seeds <= 100 or not 0 <= args.false_alarm_seeds <= 100:
         raise UserInputError("--seeds must be in 1..100 and --false-alarm-seeds in 0..100")
     if args.ftc not in FTC_CHOICES:
@@ -129,6 +136,7 @@ def summarize(trials: list[FdiTrial]) -> dict:
 def markdown(rows: list[dict], fa: dict, args: argparse.Namespace) -> str:
     air = "still air" if args.environment is None else (
         f"wind {args.wind} m/s NED, turbulence {args.turbulence}")
+    air += f", sensors {args.sensors}"
     lines = [
         f"Faults at t = {args.t_fault:g} s, {args.seeds} seed(s), {args.controller}, ftc {args.ftc}, {air}; acceptance: delay < "
         f"{FDI_MAX_DELAY_S} s, eta error <= {FDI_MAX_ETA_ERROR}, detected/told error <= {FDI_MAX_ERROR_RATIO}.",
@@ -199,9 +207,10 @@ def main(argv: list[str] | None = None) -> int:
     fa_seeds = list(range(1, args.false_alarm_seeds + 1))
     fa_ftc = ("hybrid" if args.controller == "mars-ftcc-paper" else "qp") if args.ftc == "paper" else args.ftc
     # every flight on the sweep's executor: (fn, args) per case and seed, then the fault-free spirals
-    tasks = [(fly, (case, args.ftc, seed, args.t_fault, None, args.controller, args.environment))
+    tasks = [(fly, (case, args.ftc, seed, args.t_fault, None, args.controller, args.environment, args.sensor_table))
              for case, fly in plan for seed in range(1, args.seeds + 1)]
-    tasks += [(fdi_false_alarm_flight, (s, fa_ftc, None, args.controller, args.environment)) for s in fa_seeds]
+    tasks += [(fdi_false_alarm_flight, (s, fa_ftc, None, args.controller, args.environment, args.sensor_table))
+              for s in fa_seeds]
     results = values_or_raise(map_flights(call, tasks, pool_from_args(args), print_progress(len(tasks))), "fdi flight")
     trials_all, fa_found = results[:len(results) - len(fa_seeds)], results[len(results) - len(fa_seeds):]
     for k, (case, fly) in enumerate(plan):
@@ -225,7 +234,8 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "fdi.md").write_text(table, encoding="utf-8")
     write_json(out / "fdi.json", {"cases": rows, "fault_free": fa, "ftc": args.ftc, "controller": args.controller,
-                                  "t_fault_s": args.t_fault, "environment": args.environment})
+                                  "t_fault_s": args.t_fault, "environment": args.environment,
+                                  "sensors": args.sensors})
     if not args.no_plot:
         plot(rows, out / "fdi.png")
         print(f"wrote {out / 'fdi.md'}, {out / 'fdi.json'}, {out / 'fdi.png'}")
