@@ -11,7 +11,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.geo import WIRE_ORIGIN
 from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
 from mars_link.state import ImuSample, RigidBodyState
-from mars_link.wire import SensorFrames, latch_from_message, latch_message, latches_open
+from mars_link.wire import SensorFrames, latch_from_message, latch_message, latches_open, sensor_packet_messages
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
 
 
@@ -45,8 +45,15 @@ class HilMixin:
         frames = self.assembler.feed_frames(msg)
         if frames is None:
             return
+        if self._scheduled_sensor_failures:
+            self._sensor_failures_due(frames.imu.time_usec / 1e6)
         forward = [name for name, other in self.links.items() if other.policy.forward_sensors]
-        if forward:  # (on the real-time path: straight from the received fields)
+        if forward and self.sensor_failures.any:  # the failed sensors' packet (sensor_failures)
+            upstream = sensor_packet_messages(self.sensor_failures.apply(frames.packet()), upstream=True)
+            for name in forward:
+                other = self.links[name]
+                out.extend(Outgoing(name, self._pack(other, m)) for m in upstream)
+        elif forward:  # (on the real-time path: straight from the received fields)
             upstream = frames.upstream_messages()
             for name in forward:
                 other = self.links[name]
@@ -111,6 +118,10 @@ class HilMixin:
         ODOMETRY carry exactly these fields)."""
         if unit_truth is not None:
             self.set_state(unit_truth)
+        if self._scheduled_sensor_failures:
+            self._sensor_failures_due(packet.t_s)
+        if self.sensor_failures.any:
+            packet = self.sensor_failures.apply(packet)
         self.latches = packet.latches
         self.imu = packet.imu
         if packet.truth is not None:

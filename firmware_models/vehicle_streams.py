@@ -58,7 +58,20 @@ SENSORS = (
 #: commands whose identical resend within COMMAND_DEDUP_S is answered from the cache, not re-run
 
 
+#: SYS_STATUS sensor bit of each failure-injectable sensor
+SENSOR_BITS = {
+    "gps": mavlink.MAV_SYS_STATUS_SENSOR_GPS, "accel": mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL,
+    "gyro": mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO, "mag": mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG,
+    "baro": mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE,
+}
+
+
 class StreamsMixin:
+    def _unhealthy_sensors(self) -> int:
+        """SYS_STATUS bits to clear from onboard_control_sensors_health: the unit's failed sensors."""
+        failures = self.sensor_failures
+        return sum(bit for name, bit in SENSOR_BITS.items() if not failures.healthy(name))
+
     def _request_message(self, msgid: float, p2: float) -> tuple[int, list]:
         R = mavlink
         if not math.isfinite(msgid) or msgid != int(msgid):
@@ -153,7 +166,8 @@ class StreamsMixin:
         tb = self._time_boot_ms()
         if mid == R.MAVLINK_MSG_ID_SYS_STATUS:
             mv, ca, pct = self._battery()
-            return R.MAVLink_sys_status_message(SENSORS, SENSORS, SENSORS, 200, mv, ca, pct, 0, 0, 0, 0, 0, 0)
+            return R.MAVLink_sys_status_message(SENSORS, SENSORS, SENSORS & ~self._unhealthy_sensors(), 200, mv, ca, pct,
+                                                0, 0, 0, 0, 0, 0)
         if mid == R.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             return R.MAVLink_extended_sys_state_message(R.MAV_VTOL_STATE_UNDEFINED, self._landed_state())
         if mid == R.MAVLINK_MSG_ID_BATTERY_STATUS:

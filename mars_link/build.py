@@ -71,6 +71,10 @@ def check_flight(scenario: Scenario, model: AssemblyModel | None = None) -> int:
         if f.t_s > last_t + 1e-9:
             raise UserInputError(f"{src}: fault {f.describe()} comes after the flight ends "
                                  f"(last control step at t={last_t:g}s)")
+    for f in scenario.sensor_faults:
+        if f.t_s > last_t + 1e-9:
+            raise UserInputError(f"{src}: {f.text()} at t={f.t_s:g}s comes after the flight ends "
+                                 f"(last control step at t={last_t:g}s)")
     return steps
 
 
@@ -222,6 +226,13 @@ def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordin
     for f in scenario.faults:
         if f.unit == unit_id:
             vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta)
+    from firmware_models.sensor_failures import SensorFailures
+
+    vehicle.sensor_failures = SensorFailures(unit_id, scenario.sim.seed)  # (seeded: garbage, intermittent)
+    for sf in scenario.sensor_faults:
+        if sf.applies_to(unit_id):
+            for t_s, sensor, kind in sf.schedule():
+                vehicle.schedule_sensor_failure(t_s, sensor, kind)
     return vehicle
 
 

@@ -36,6 +36,7 @@ FLAG_HAS_POSITION = 1 << 14
 FLAG_HAS_TRUTH = 1 << 15
 FLAG_ON_GROUND = 1 << 13
 IMU_FIELDS = 0x3F  # xacc..zgyro updated
+ACCEL_FIELDS, GYRO_FIELDS = 0x07, 0x38  # a failed accelerometer or gyro leaves its bits clear (sensor_failures)
 HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP = 1
 ARMED_CUSTOM_MODE = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
 
@@ -56,7 +57,7 @@ def sensor_packet_messages(packet: SensorPacket, upstream: bool = False) -> list
     """Messages for one packet; `upstream` = unit -> coordinator (HIGHRES_IMU instead of HIL_SENSOR)."""
     t = usec(packet.t_s)
     msgs: list[mavlink.MAVLink_message] = []
-    flags = IMU_FIELDS
+    flags = (ACCEL_FIELDS if packet.imu.accel_ok else 0) | (GYRO_FIELDS if packet.imu.gyro_ok else 0)
     if packet.position is not None:
         p = packet.position
         vel = [math.nan] * 3 if p.velocity_ned_mps is None else p.velocity_ned_mps
@@ -103,7 +104,9 @@ class SensorFrames:
             truth = RigidBodyState(t_s, np.array([s.x, s.y, s.z]), np.array([s.vx, s.vy, s.vz]),
                                    np.array(s.q, dtype=float), np.array([s.rollspeed, s.pitchspeed, s.yawspeed]),
                                    on_ground=bool(m.fields_updated & FLAG_ON_GROUND))
-        imu = ImuSample(t_s, unit, np.array([m.xgyro, m.ygyro, m.zgyro]), np.array([m.xacc, m.yacc, m.zacc]))
+        f = m.fields_updated
+        imu = ImuSample(t_s, unit, np.array([m.xgyro, m.ygyro, m.zgyro]), np.array([m.xacc, m.yacc, m.zacc]),
+                        f & ACCEL_FIELDS == ACCEL_FIELDS, f & GYRO_FIELDS == GYRO_FIELDS)
         return SensorPacket(t_s, unit, imu, pos, truth)
 
     def upstream_messages(self) -> list[mavlink.MAVLink_message]:
