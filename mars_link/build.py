@@ -156,10 +156,12 @@ def make_estimator(scenario: Scenario, model: AssemblyModel):
     from mars_link.estimation import AssemblyEstimator, EstimatorParams
     from mars_link.sensor_profiles import MIN_EKF_VELOCITY_NOISE_MPS
 
+    from mars_link.sensor_health import SensorGuard
+
     p = scenario.sensors  # the EKF is told the profile's figures
-    return AssemblyEstimator(model, EstimatorParams(
+    return SensorGuard(AssemblyEstimator(model, EstimatorParams(  # failed sensors are rejected or bridged
         position_noise_m=max(p.position_noise_m, 1e-4),
-        velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS)))
+        velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS))))
 
 
 def make_detector(scenario: Scenario, model: AssemblyModel, ground_down_m: float):
@@ -205,8 +207,13 @@ def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajec
     from mars_link.coordinator import Coordinator
 
     eta = initial_eta(scenario, model) if eta is None else eta
-    return Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
-                       telemetry_timeout_s=telemetry_timeout_s)
+    coordinator = Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
+                              telemetry_timeout_s=telemetry_timeout_s)
+    if coordinator.guard is not None:  # a trajectory flight: position lost -> hold, then land
+        from mars_link.position_failsafe import PositionFailsafe
+
+        coordinator.failsafe = PositionFailsafe(tracked_offset_frd_m=tracked_offset(model, scenario))
+    return coordinator
 
 
 def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordinator_driven: bool = True,
