@@ -94,6 +94,7 @@ class Coordinator:
         # a SensorGuard estimator (sensor_health) reports sensor failures; `failsafe` (position_failsafe) flies
         # the position-loss failsafe over the trajectory (set by the composition root for trajectory flights)
         self.guard = estimator if hasattr(estimator, "take_events") else None
+        self.guard_events = True  # False: someone else (the assembly vehicle) reports the guard's findings
         self.failsafe = None
         self.lost_units: set[int] = set()
         self.rejected: dict[str, int] = {}  # reason -> packets dropped here
@@ -184,7 +185,7 @@ class Coordinator:
             )
         c1 = time.perf_counter()
         guard = self.guard
-        if guard is not None and (guard.events or self.failsafe is not None):
+        if guard is not None:
             self._sensor_health(t_s)
         if self.failsafe is None:
             reference = self.trajectory.sample(t_s)
@@ -235,7 +236,8 @@ class Coordinator:
     def _sensor_health(self, t_s: float) -> None:
         """The guard's findings into the record; a sensor part that failed restarts the fault detector's
         history (its residuals held that sensor's bad samples)."""
-        self.events += self.guard.take_events()
+        if self.guard_events:
+            self.events += self.guard.take_events()
         if self.guard.imu_changed and self.detector is not None:
             self.detector.restart()
 
