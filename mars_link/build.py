@@ -212,7 +212,8 @@ def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajec
     if coordinator.guard is not None:  # a trajectory flight: position lost -> hold, then land
         from mars_link.position_failsafe import PositionFailsafe
 
-        coordinator.failsafe = PositionFailsafe(tracked_offset_frd_m=tracked_offset(model, scenario))
+        coordinator.failsafe = PositionFailsafe(tracked_offset_frd_m=tracked_offset(model, scenario),
+                                                ground_down_m=float(reference.sample(0.0).position_ned_m[2]))
     return coordinator
 
 

@@ -229,7 +229,8 @@ class Coordinator:
         """What the failsafe's land detector reads: the thrust asked and the IMUs' mean specific force."""
         imus = self.guard.usable_imus
         f_down = float(np.mean([s.accel_frd_mps2[2] for s in imus])) if imus else None
-        self.failsafe.observe(t_s, float(thrusts.sum()), f_down, self.model.mass_kg * GRAVITY_MPS2)
+        self.failsafe.observe(t_s, float(thrusts.sum()), f_down, self.model.mass_kg * GRAVITY_MPS2,
+                              math.sqrt(max(float(self.guard.covariance[2, 2]), 0.0)))
         self.events += self.failsafe.events
         self.failsafe.events.clear()
 

@@ -12,8 +12,13 @@ or return and it lands. Here (`PositionFailsafeParams`, documented in the README
 * still lost `land_after_s` (15 s) after the last position: **land** straight down from the held
   point at `land_speed_mps` (MPC_LAND_SPEED); a landing is not undone when the position returns
   (a failsafe land is final in PX4 too);
-* landed (the rotors asked for under half the weight for `landed_s` while the IMUs still read a full g:
-  the ground carries it): motors off.
+* landed: motors off. Two detectors, neither needing a position fix: the rotors asked for under half
+  the weight for `landed_s` while the IMUs still read a full g (the ground carries it); or the
+  dead-reckoned estimate is `landed_margin_sigma` vertical sigmas (at least `landed_margin_min_m`)
+  below the take-off ground (the descent went on past where the ground must be). The second exists
+  because the simulated IMU samples the specific force at the control rate: a touchdown's contact
+  impulse (a few physics steps) is mostly missed, the estimate keeps descending, and the controller
+  keeps hover thrust on the ground.
 
 Every change is an event with a STATUSTEXT line.
 """
@@ -36,14 +41,27 @@ class PositionFailsafeParams:
     land_speed_mps: float = 0.7  # MPC_LAND_SPEED
     landed_thrust_fraction: float = 0.5  # landed: thrust asked below this share of the weight ...
     landed_s: float = 1.0  # ... for this long, while the IMUs feel the ground carry the weight
+    landed_margin_sigma: float = 3.0  # or: the estimate this many vertical sigmas below the take-off ground ...
+    landed_margin_min_m: float = 0.5  # ... and at least this far
+
+
+def past_ground(estimate_down_m: float, ground_down_m: float | None, sigma_down_m: float,
+                params: PositionFailsafeParams) -> bool:
+    """The dead-reckoned height says the descent went well past the take-off ground (see the module docstring)."""
+    if ground_down_m is None:
+        return False
+    margin = max(params.landed_margin_min_m, params.landed_margin_sigma * sigma_down_m)
+    return estimate_down_m > ground_down_m + margin
 
 
 class PositionFailsafe:
     """Gives the coordinator its reference: the trajectory's, or the failsafe's hold or landing."""
 
     def __init__(self, params: PositionFailsafeParams | None = None,
-                 tracked_offset_frd_m: np.ndarray | None = None) -> None:
-        """`tracked_offset_frd_m`: the point the reference is for, from the CoM (the controller's tracked point)."""
+                 tracked_offset_frd_m: np.ndarray | None = None, ground_down_m: float | None = None) -> None:
+        """`tracked_offset_frd_m`: the point the reference is for, from the CoM (the controller's tracked point);
+        `ground_down_m`: that point's down coordinate landed (the take-off ground)."""
+        self.ground_down_m = ground_down_m
         self.params = params or PositionFailsafeParams()
         self.offset_frd_m = np.zeros(3) if tracked_offset_frd_m is None else np.asarray(tracked_offset_frd_m, dtype=float)
         self.state = "normal"  # normal | hold | land | landed
@@ -95,19 +113,25 @@ class PositionFailsafe:
             return TrajectoryPoint(point, np.array([0.0, 0.0, p.land_speed_mps]), yaw_rad=hold.yaw_rad)
         return TrajectoryPoint(self._landed_point, yaw_rad=hold.yaw_rad)  # landed: where it came down
 
-    def observe(self, t_s: float, thrust_n: float, specific_force_down_mps2: float | None, weight_n: float) -> None:
-        """The land detector (while landing): the rotors asked for much less than the weight while the
-        IMUs still feel a full g (specific force along body down about -g): the ground carries it. It does
-        not use the position estimate, which has been dead-reckoning for `land_after_s`."""
+    def observe(self, t_s: float, thrust_n: float, specific_force_down_mps2: float | None, weight_n: float,
+                sigma_down_m: float) -> None:
+        """The land detectors (while landing; see the module docstring). They do not trust the position
+        estimate, which has been dead-reckoning for `land_after_s`."""
         if self.state != "land" or specific_force_down_mps2 is None:
             return
         p = self.params
+        if past_ground(float(self._estimate_point[2]), self.ground_down_m, sigma_down_m, p):
+            self._landed(t_s, "Landed (estimate past ground): motors off")
+            return
         supported = thrust_n < p.landed_thrust_fraction * weight_n and -specific_force_down_mps2 > 0.8 * GRAVITY_MPS2
         if not supported:
             self._slow_since = None
             return
         self._slow_since = t_s if self._slow_since is None else self._slow_since
         if t_s - self._slow_since >= p.landed_s:
-            self.state = "landed"
-            self._landed_point = np.array(self._estimate_point, dtype=float)
-            self._event(t_s, "failsafe_landed", "Landed: motors off")
+            self._landed(t_s, "Landed: motors off")
+
+    def _landed(self, t_s: float, text: str) -> None:
+        self.state = "landed"
+        self._landed_point = np.array(self._estimate_point, dtype=float)
+        self._event(t_s, "failsafe_landed", text)

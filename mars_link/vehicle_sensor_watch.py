@@ -12,12 +12,14 @@ client resumes), with "Position regained".
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle import MODE_HOLD, MODE_LAND
 from mars_link.assembly import GRAVITY_MPS2
-from mars_link.position_failsafe import PositionFailsafeParams
+from mars_link.position_failsafe import PositionFailsafeParams, past_ground
 
 #: a guard event type -> STATUSTEXT severity
 SEVERITY = {"position_lost": mavlink.MAV_SEVERITY_CRITICAL, "sensor_failed": mavlink.MAV_SEVERITY_WARNING,
@@ -86,9 +88,13 @@ class VehicleSensorWatch:
             self._land_detect(t_s)
 
     def _land_detect(self, t_s: float) -> None:
-        """position_failsafe's IMU land detector: the estimate has been dead-reckoning for long."""
+        """position_failsafe's land detectors: the estimate has been dead-reckoning for long."""
         v, p = self.vehicle, self.params
         imus = self.guard.usable_imus
+        sigma_down = math.sqrt(max(float(self.guard.covariance[2, 2]), 0.0))
+        if past_ground(float(v.state.position_ned_m[2]), v.autopilot.ground_z_m, sigma_down, p):
+            self._landed(t_s, "Landed (estimate past ground): motors off")
+            return
         if not imus:
             return
         weight = v.model.mass_kg * GRAVITY_MPS2
@@ -99,7 +105,10 @@ class VehicleSensorWatch:
             return
         self._supported_since = t_s if self._supported_since is None else self._supported_since
         if t_s - self._supported_since >= p.landed_s:
-            self.state = "normal"
-            v.autopilot.idle()
-            v._disarm("Landed: motors off")
-            self.record.append({"t_s": round(t_s, 6), "type": "failsafe_landed", "text": "Landed: motors off"})
+            self._landed(t_s, "Landed: motors off")
+
+    def _landed(self, t_s: float, text: str) -> None:
+        self.state = "normal"
+        self.vehicle.autopilot.idle()
+        self.vehicle._disarm(text)
+        self.record.append({"t_s": round(t_s, 6), "type": "failsafe_landed", "text": text})
