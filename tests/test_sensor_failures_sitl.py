@@ -1,0 +1,126 @@
+"""GPS lost for 10 s mid-spiral through MAVSDK's failure plugin (issue 15): `sitl up spiral_3x2` (world,
+coordinator and six unit processes in lockstep, UDP); MAVSDK 4.x connects to every unit's API port, reads
+SYS_FAILURE_EN (1) and sends `failure.inject(SENSOR_GPS, OFF, 0)` to each unit at sim time 15 s, then
+`OK` 10 s later. Checked against the WORLD's truth (its status file) and the coordinator's record: the
+EKF bridged the outage and reported its drift, no rotor fault was declared, the failsafe held and the
+spiral resumed, and the tracked point came back onto the (resumed) spiral."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from firmware_models.udp_runner import read_status
+from mars_link.build import make_trajectory
+from mars_link.scenario import load_scenario
+from sitl.launcher import ClientPorts, free_udp_port, start, wait
+
+mavsdk = pytest.importorskip("mavsdk")
+from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
+from mavsdk.asyncio.plugins.failure import FailureAsync, FailureType, FailureUnit  # noqa: E402
+from mavsdk.asyncio.plugins.param import ParamAsync  # noqa: E402
+
+pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(240)]
+LOSS_AT_S, LOSS_S = 15.0, 10.0
+
+
+def _world(out: Path) -> dict | None:
+    try:
+        return read_status(out / "world_status.json")
+    except (OSError, ValueError):
+        return None
+
+
+async def _sim_time(out: Path) -> float:
+    w = _world(out)
+    return -1.0 if w is None else float(w["sim_time_s"])
+
+
+async def _lose_gps(api_ports: list[int], out: Path, truth: list, world_ended) -> dict:
+    r: dict = {}
+    stop = asyncio.Event()
+
+    async def watch() -> None:  # the world's truth of unit 1 (the tracked point) as the flight goes
+        while not stop.is_set():
+            w = _world(out)
+            if w is not None:
+                truth.append((float(w["sim_time_s"]), w["units"]["1"]["position_ned_m"]))
+            await asyncio.sleep(0.05)
+
+    watcher = asyncio.create_task(watch())
+    try:
+        async with Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION)) as sdk:
+            for port in api_ports:
+                await sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+            for _ in range(300):
+                if await sdk.system_count() >= len(api_ports):
+                    break
+                await asyncio.sleep(0.1)
+            systems = await sdk.get_systems()
+            assert len(systems) == len(api_ports), "MAVSDK did not find every unit"
+            r["sysids"] = sorted([await s.get_system_id() for s in systems])
+            # PX4 needs SYS_FAILURE_EN = 1 (the units default to it in SITL; a docked unit refuses client
+            # parameter changes while the coordinator drives it)
+            r["failure_en"] = [await ParamAsync(s).get_param_int("SYS_FAILURE_EN") for s in systems]
+            failures = [FailureAsync(s) for s in systems]
+            while await _sim_time(out) < LOSS_AT_S:
+                await asyncio.sleep(0.02)
+            r["injected_at_s"] = await _sim_time(out)
+            await asyncio.gather(*[f.inject(FailureUnit.SENSOR_GPS, FailureType.OFF, 0) for f in failures])
+            while await _sim_time(out) < r["injected_at_s"] + LOSS_S:
+                await asyncio.sleep(0.02)
+            r["restored_at_s"] = await _sim_time(out)
+            await asyncio.gather(*[f.inject(FailureUnit.SENSOR_GPS, FailureType.OK, 0) for f in failures])
+            while not world_ended():  # the truth until the spiral's end
+                await asyncio.sleep(0.1)
+    finally:
+        stop.set()
+        await watcher
+    return r
+
+
+def test_gps_lost_10_s_mid_spiral_through_mavsdk_on_sitl_up(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    apis = [free_udp_port() for _ in range(6)]
+    scenario = tmp_path / "spiral_3x2_fdi.toml"  # spiral_3x2 with the fault detector on (faults not told)
+    scenario.write_text((Path(__file__).resolve().parent.parent / "scenarios" / "spiral_3x2.toml").read_text()
+                        .replace('ftc = "none"', 'ftc = "qp"\nfaults_known = false'))
+    run = start(str(scenario), out, speed=2.0, clients=ClientPorts(free_udp_port(), apis, bind_any=True))
+    truth: list = []
+    try:
+        r = asyncio.run(_lose_gps(apis, out, truth, lambda: run.processes["world"].poll() is not None))
+        code = wait(run, timeout_s=120.0)
+    finally:
+        wait(run, timeout_s=0.1)  # (stops any child left, by PID)
+    summary = json.loads((out / "coordinator_summary.json").read_text())
+    events = summary["events"]
+    print(json.dumps(r), json.dumps([e for e in events if e["type"] != "reallocation"], indent=0))
+    assert code == 0 and r["sysids"] == [1, 2, 3, 4, 5, 6] and r["failure_en"] == [1] * 6
+    assert LOSS_AT_S <= r["injected_at_s"] < LOSS_AT_S + 1.0
+    by = {}
+    for e in events:
+        by.setdefault(e["type"], []).append(e)
+    assert summary["detections"] == [] and "fault_detected" not in by  # no rotor fault
+    lost, hold, back = by["position_lost"][0], by["failsafe_hold"][0], by["position_regained"][0]
+    assert r["injected_at_s"] < lost["t_s"] < r["injected_at_s"] + 1.0
+    assert hold["t_s"] == pytest.approx(lost["since_s"] + 1.0, abs=0.05)  # COM_POS_FS_DELAY
+    assert [e["text"].startswith("GPS lost") for e in by["position_drift"]] and back["drift_m"] < 1.0
+    assert back["t_s"] == pytest.approx(r["restored_at_s"], abs=1.0)
+    resume = by["failsafe_resume"][0]
+    shift = resume["t_s"] - hold["t_s"]  # the spiral paused for the hold
+    # the tracked point (unit 1's centre, truth) against the resumed spiral, from 5 s after the return
+    sc = load_scenario("spiral_3x2")
+    spiral = make_trajectory(sc, sc.model())
+    after = [(t, p) for t, p in truth if resume["t_s"] + 5.0 <= t <= 48.0]
+    assert len(after) > 20
+    errors = [float(np.linalg.norm(np.array(p) - spiral.sample(t - shift).position_ned_m)) for t, p in after]
+    before = [float(np.linalg.norm(np.array(p) - spiral.sample(t).position_ned_m)) for t, p in truth if 5.0 <= t < LOSS_AT_S]
+    print(f"tracking error (truth): before {max(before):.3f} m, from 5 s after the return {max(errors):.3f} m; "
+          f"drift reported {back['drift_m']:.3f} m")
+    assert max(errors) < 0.05 and max(before) < 0.05
+    assert math.isfinite(back["drift_m"])
