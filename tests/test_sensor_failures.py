@@ -133,7 +133,7 @@ def test_a_failed_imu_is_not_a_rotor_fault(kind: str, sensor: str, why: str) -> 
     assert 5.0 <= failed["t_s"] <= 5.1
     assert first(events, "sensor_ok")["t_s"] > 9.0
     assert flight.coordinator.detections == []
-    assert track.between(4.0, 12.0)[:, 1].max() < 0.03
+    assert track.between(5.0, 12.0)[:, 1].max() < 0.03
 
 
 def test_without_the_guard_the_detector_reads_garbage_as_rotor_faults() -> None:
