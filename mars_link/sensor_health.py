@@ -56,6 +56,10 @@ class HealthParams:
     drift_report_s: float = 5.0
 
 
+def _mean_rows(x: np.ndarray) -> np.ndarray:
+    return np.add.reduce(x, 0) / len(x)
+
+
 class _PartHealth:
     """One unit's accelerometer, gyro or gps: failed or not, and why."""
 
@@ -97,6 +101,7 @@ class SensorGuard:
         self._pos_last: tuple | None = None
         self._offsets: dict[tuple, np.ndarray] = {}
         self._rate_last: tuple | None = None
+        self._limits: dict[int, tuple] = {}
 
     def __getattr__(self, name: str):  # everything else is the estimator's (initialised, stats, set_model, ...)
         if name == "ekf":
@@ -202,18 +207,27 @@ class SensorGuard:
                               for (_, kind), p in self._parts.items() if kind != "gps")
         return out
 
-    def _rigid_accels(self, units: tuple, g: np.ndarray, a: np.ndarray, t_s: float) -> np.ndarray:
-        """The units' specific forces moved to the CoM (minus alpha x r + omega x (omega x r), from the median
-        rate and its change): on one rigid body they agree up to noise."""
+    def _rigid_accels(self, units: tuple, g: np.ndarray, a: np.ndarray, t_s: float, robust: bool = True) -> np.ndarray:
+        """The units' specific forces moved to the CoM (minus alpha x r + omega x (omega x r), from the
+        units' rate, median or mean, and its change): on one rigid body they agree up to noise."""
         offsets = self._unit_offsets(units)
-        w = np.median(g, axis=0)
+        w = np.median(g, axis=0) if robust else _mean_rows(g)
+        wx, wy, wz = w.tolist()
+        ax = ay = az = 0.0
         last = self._rate_last
-        alpha = np.zeros(3) if last is None or not t_s > last[0] else (w - last[1]) / (t_s - last[0])
-        self._rate_last = (t_s, w)
+        if last is not None and t_s > last[0]:
+            dt = t_s - last[0]
+            ax, ay, az = (wx - last[1][0]) / dt, (wy - last[1][1]) / dt, (wz - last[1][2]) / dt
+        self._rate_last = (t_s, (wx, wy, wz))
         if offsets is None:
             return a
-        lever = np.cross(alpha, offsets) + np.cross(w, np.cross(w, offsets))
-        return a - lever
+        xy, xz, yz = wx * wy, wx * wz, wy * wz
+        m_t = np.array((  # M^T, M = [omega]x^2 + [alpha]x: f_i = f_com + M r_i
+            (-(wy * wy + wz * wz), xy + az, xz - ay),
+            (xy - az, -(wx * wx + wz * wz), yz + ax),
+            (xz + ay, yz - ax, -(wx * wx + wy * wy)),
+        ))
+        return a - offsets @ m_t
 
     def _unit_offsets(self, units: tuple) -> np.ndarray | None:
         offsets = self._offsets.get(units)
@@ -225,26 +239,31 @@ class SensorGuard:
         return offsets
 
     def _imu_fast(self, live: list[ImuSample]) -> bool:
-        """The usual step, checked at once: every part updated, plausible, not repeated, in agreement, and no
-        part failed or recovering. False: the per-sample path decides (and keeps the books)."""
+        """The usual step, checked at once: every part updated, plausible, not repeated, in agreement (with
+        the mean: one unit off fails this and the per-sample path judges against the median), and no part
+        failed or recovering. False: the per-sample path decides (and keeps the books)."""
         hp = self.hp
         units = tuple([s.unit_id for s in live])
-        if not live or self._imu_watch or units != self._imu_units or not all(s.accel_ok and s.gyro_ok for s in live):
+        k = len(units)
+        if not live or self._imu_watch or units != self._imu_units or not all([s.accel_ok and s.gyro_ok for s in live]):
             self._imu_units = units
             self._imu_last = None
             return False
-        g = np.array([s.gyro_frd_radps for s in live], dtype=float)
-        a = np.array([s.accel_frd_mps2 for s in live], dtype=float)
-        last, self._imu_last = self._imu_last, (g, a)
-        if not (np.isfinite(g).all() and np.isfinite(a).all()) or np.abs(g).max() > hp.gyro_plausible_radps \
-                or np.abs(a).max() > hp.accel_plausible_mps2:
+        both = np.array([s.gyro_frd_radps for s in live] + [s.accel_frd_mps2 for s in live], dtype=float)
+        last, self._imu_last = self._imu_last, both
+        limits = self._limits.get(k)
+        if limits is None:
+            limits = self._limits[k] = (
+                np.repeat([hp.gyro_plausible_radps, hp.accel_plausible_mps2], k)[:, None],
+                np.array([hp.gyro_consistency_radps ** 2, hp.accel_consistency_mps2 ** 2]))
+        # (NaN fails every comparison: `not x <= limit` also refuses it)
+        if not (np.abs(both) <= limits[0]).all() or last is None or (both == last).all(axis=1).any():
             return False
-        if last is None or (g == last[0]).all(axis=1).any() or (a == last[1]).all(axis=1).any():
-            return False
-        if len(live) >= 3:
-            a = self._rigid_accels(units, g, a, live[0].t_s)
-            if np.sqrt(((g - np.median(g, axis=0)) ** 2).sum(axis=1)).max() > hp.gyro_consistency_radps or \
-                    np.sqrt(((a - np.median(a, axis=0)) ** 2).sum(axis=1)).max() > hp.accel_consistency_mps2:
+        if k >= 3:
+            stacked = both.reshape(2, k, 3).copy()  # (both stays the raw samples: the next step's stuck check)
+            stacked[1] = self._rigid_accels(units, stacked[0], stacked[1], live[0].t_s, robust=False)
+            d = stacked - (np.add.reduce(stacked, 1) / k)[:, None, :]
+            if not ((d * d).sum(axis=2).max(axis=1) <= limits[1]).all():
                 return False
         return True
 
@@ -265,12 +284,16 @@ class SensorGuard:
                 return samples, None
             miss = pos - (ekf.p + offsets @ quat_to_rotmat(ekf.q).T)
         last, self._pos_last = self._pos_last, (units, pos)
+        if miss is not None and not self._gps_watch and last is not None and last[0] == units:  # the usual batch
+            gate = self._gate_m()
+            if (miss * miss).sum(axis=1).max() <= gate * gate and not (pos == last[1]).all(axis=1).any():
+                return samples, (float(np.linalg.norm(_mean_rows(miss))) if self.position_lost else None)
         finite = np.isfinite(pos).all(axis=1)
         repeated = np.zeros(len(units), dtype=bool) if last is None or last[0] != units else (pos == last[1]).all(axis=1)
         dist = np.full(len(units), 0.0) if miss is None else np.sqrt((np.nan_to_num(miss) ** 2).sum(axis=1))
         gate = self._gate_m() if miss is not None else math.inf
         if not self._gps_watch and finite.all() and not repeated.any() and (dist <= gate).all():
-            drift = float(np.linalg.norm(miss.mean(axis=0))) if miss is not None and self.position_lost else None
+            drift = float(np.linalg.norm(_mean_rows(miss))) if miss is not None and self.position_lost else None
             return samples, drift
         kept, rejected, innovations = [], [], []
         for k, s in enumerate(samples):
@@ -304,10 +327,11 @@ class SensorGuard:
         return kept, drift
 
     def _gate_m(self) -> float:
-        hp = self.hp
-        P = self.ekf.covariance[0:3, 0:3]
-        r = self.ekf.params.position_noise_m
-        return max(hp.position_gate_floor_m, hp.position_gate_sigma * math.sqrt(float(np.trace(P)) + 3 * r * r))
+        hp, ekf = self.hp, self.ekf
+        P = ekf._ekf.P if hasattr(ekf, "_ekf") else ekf.covariance  # (read, not copied, on the hot path)
+        r = ekf.params.position_noise_m
+        var = float(P[0, 0] + P[1, 1] + P[2, 2]) + 3 * r * r
+        return max(hp.position_gate_floor_m, hp.position_gate_sigma * math.sqrt(var))
 
     def _position_status(self, t_s: float, fused: bool, drift: float | None) -> None:
         hp = self.hp
