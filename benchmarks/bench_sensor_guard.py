@@ -30,27 +30,19 @@ def fly(duration_s: float, guarded: bool) -> tuple[float, float, float]:
     guard = flight.coordinator.estimator
     ekf = guard.ekf
     spent = {"guard": 0.0, "ekf": 0.0}
-    ekf_step = ekf.step
 
-    def timed_ekf(*a):
-        t0 = time.process_time()
-        try:
-            return ekf_step(*a)
-        finally:
-            spent["ekf"] += time.process_time() - t0
-
-    ekf.step = timed_ekf
-    if guarded:
-        guard_step = guard.step
-
-        def timed_guard(*a):
+    def timed(fn, key: str):
+        def call(*a):
             t0 = time.process_time()
             try:
-                return guard_step(*a)
+                return fn(*a)
             finally:
-                spent["guard"] += time.process_time() - t0
+                spent[key] += time.process_time() - t0
+        return call
 
-        flight.coordinator.estimator = type("Timed", (), {"step": staticmethod(timed_guard)})()
+    ekf.step = timed(ekf.step, "ekf")
+    if guarded:
+        flight.coordinator.estimator = type("Timed", (), {"step": staticmethod(timed(guard.step, "guard"))})()
     else:
         flight.coordinator.estimator, flight.coordinator.guard, flight.coordinator.failsafe = ekf, None, None
     cpu0 = time.process_time()
