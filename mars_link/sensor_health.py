@@ -108,6 +108,12 @@ class SensorGuard:
             raise AttributeError(name)
         return getattr(self.ekf, name)
 
+    def set_model(self, model, *args, **kwargs) -> None:
+        """The EKF's switch to a new assembly (docking, undocking): the units' lever arms change."""
+        self._offsets.clear()
+        self._imu_units, self._imu_last, self._pos_last, self._rate_last = (), None, None, None
+        self.ekf.set_model(model, *args, **kwargs)
+
     # ----------------------------------------------------------------- health as others read it
     @property
     def position_lost(self) -> bool:
