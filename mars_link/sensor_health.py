@@ -8,7 +8,9 @@ What it checks, per unit and sensor, before the EKF sees a sample:
 
 * IMU (accelerometer, gyro): a part that did not update (HIGHRES_IMU fields_updated; `ImuSample.accel_ok`),
   values repeated bit for bit (`stuck_samples` in a row: with noise on a live sensor never repeats),
-  values no airframe reaches (`accel_plausible_mps2`, `gyro_plausible_radps`), and, with three or
+  values beyond the sensor's full scale or jumps between samples no airframe makes (`accel_plausible_mps2`,
+  `gyro_plausible_radps`, `accel_jump_mps2`, `gyro_jump_radps`: a spinning quadrotor with a dead rotor
+  turns at 20 rad/s, so the range alone is not enough), and, with three or
   more units reporting, disagreement with the others' median (one rigid body: one rate, one specific
   force up to the lever-arm terms). A bad sample is dropped; `imu_bad_in_window` bad samples in the
   last `imu_window` mark the part failed (dropped until `imu_recover_samples` good ones in a row).
@@ -49,8 +51,10 @@ class HealthParams:
     imu_window: int = 10
     imu_bad_in_window: int = 3
     imu_recover_samples: int = 50
-    accel_plausible_mps2: float = 8 * 9.80665
-    gyro_plausible_radps: float = 10.0
+    accel_plausible_mps2: float = 16 * 9.80665  # a MEMS IMU's full scale (16 g, 2000 deg/s)
+    gyro_plausible_radps: float = 35.0
+    accel_jump_mps2: float = 60.0  # nor a change from one sample to the next this large
+    gyro_jump_radps: float = 5.0
     accel_consistency_mps2: float = 3.0
     gyro_consistency_radps: float = 0.05
     drift_report_s: float = 5.0
@@ -185,19 +189,27 @@ class SensorGuard:
                                    both[0].t_s)
             med_gyro, med_accel = np.median(g, axis=0), np.median(a, axis=0)
             rigid = {s.unit_id: a[k] for k, s in enumerate(both)}
+        prev = {}  # unit -> (gyro, accel) of the previous step
+        if self._imu_last is not None:
+            n = len(self._imu_units)
+            prev = {u: (self._imu_last[i], self._imu_last[n + i]) for i, u in enumerate(self._imu_units)}
         out = []
         for s in live:
             ok = True
-            for sensor, value, updated, plausible, consistent, median in (
-                ("accel", s.accel_frd_mps2, s.accel_ok, hp.accel_plausible_mps2, hp.accel_consistency_mps2, med_accel),
-                ("gyro", s.gyro_frd_radps, s.gyro_ok, hp.gyro_plausible_radps, hp.gyro_consistency_radps, med_gyro),
+            before = prev.get(s.unit_id)
+            for sensor, value, updated, plausible, consistent, median, jump, was in (
+                ("accel", s.accel_frd_mps2, s.accel_ok, hp.accel_plausible_mps2, hp.accel_consistency_mps2, med_accel,
+                 hp.accel_jump_mps2, None if before is None else before[1]),
+                ("gyro", s.gyro_frd_radps, s.gyro_ok, hp.gyro_plausible_radps, hp.gyro_consistency_radps, med_gyro,
+                 hp.gyro_jump_radps, None if before is None else before[0]),
             ):
                 part = self._part(s.unit_id, sensor)
                 value = np.asarray(value, dtype=float)
                 why = None
                 if not updated:
                     why = "no data"
-                elif not np.all(np.isfinite(value)) or float(np.abs(value).max()) > plausible:
+                elif not float(np.abs(value).max()) <= plausible or (
+                        was is not None and not float(np.abs(value - was).max()) <= jump):
                     why = "implausible"
                 elif part.repeated(value) and part.repeats >= hp.stuck_samples - 1:
                     why = "stuck"
@@ -211,6 +223,9 @@ class SensorGuard:
                 out.append(s)
         self._imu_watch = any(p.failed is not None or p.good_run < hp.imu_window
                               for (_, kind), p in self._parts.items() if kind != "gps")
+        self._imu_units = tuple([s.unit_id for s in live])
+        self._imu_last = np.array([s.gyro_frd_radps for s in live] + [s.accel_frd_mps2 for s in live], dtype=float) \
+            if live else None
         return out
 
     def _rigid_accels(self, units: tuple, g: np.ndarray, a: np.ndarray, t_s: float, robust: bool = True) -> np.ndarray:
@@ -251,19 +266,21 @@ class SensorGuard:
         hp = self.hp
         units = tuple([s.unit_id for s in live])
         k = len(units)
-        if not live or self._imu_watch or units != self._imu_units or not all([s.accel_ok and s.gyro_ok for s in live]):
-            self._imu_units = units
-            self._imu_last = None
+        prev_units, last = self._imu_units, self._imu_last
+        if not live or self._imu_watch or units != prev_units or not all([s.accel_ok and s.gyro_ok for s in live]):
             return False
         both = np.array([s.gyro_frd_radps for s in live] + [s.accel_frd_mps2 for s in live], dtype=float)
-        last, self._imu_last = self._imu_last, both
+        self._imu_last = both
         limits = self._limits.get(k)
         if limits is None:
             limits = self._limits[k] = (
                 np.repeat([hp.gyro_plausible_radps, hp.accel_plausible_mps2], k)[:, None],
-                np.array([hp.gyro_consistency_radps ** 2, hp.accel_consistency_mps2 ** 2]))
+                np.array([hp.gyro_consistency_radps ** 2, hp.accel_consistency_mps2 ** 2]),
+                np.repeat([hp.gyro_jump_radps, hp.accel_jump_mps2], k)[:, None])
         # (NaN fails every comparison: `not x <= limit` also refuses it)
-        if not (np.abs(both) <= limits[0]).all() or last is None or (both == last).all(axis=1).any():
+        if not (np.abs(both) <= limits[0]).all() or last is None or (both == last).all(axis=1).any() \
+                or not (np.abs(both - last) <= limits[2]).all():
+            self._imu_last = last  # (the per-sample path records this step)
             return False
         if k >= 3:
             stacked = both.reshape(2, k, 3).copy()  # (both stays the raw samples: the next step's stuck check)

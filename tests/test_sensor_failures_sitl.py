@@ -157,3 +157,74 @@ def test_scheduled_sensor_faults_fly_the_same_in_sitl_and_in_process(tmp_path: P
                    if e["type"] in kinds]
     inproc_events = [(e["t_s"], e["text"]) for e in summary["events"] if e["type"] in kinds]
     assert sitl_events == inproc_events and len(sitl_events) >= 5, (sitl_events, inproc_events)
+
+
+async def _vehicle_gps_loss(api_port: int, out: Path) -> dict:
+    from mavsdk.asyncio.plugins.action import ActionAsync
+    from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
+    from test_mavsdk_unit import _at_altitude, _not, _until
+    from test_sitl_vehicle import truth_com_ned
+
+    r: dict = {}
+    async with Mavsdk(Configuration.create_with_component_type(ComponentType.GROUND_STATION)) as sdk:
+        await sdk.add_any_connection(f"udpin://127.0.0.1:{api_port}")
+        system = await sdk.first_autopilot(timeout_s=20.0)
+        assert system is not None, "MAVSDK did not find the assembly"
+        telemetry, action = TelemetryAsync(system), ActionAsync(system)
+        texts: list[str] = []
+
+        async def collect() -> None:
+            async for st in telemetry.subscribe_status_text():
+                texts.append(st.text)
+
+        collector = asyncio.ensure_future(collect())
+        await _until(lambda: telemetry.health_all_ok(), 15.0, "health_all_ok")
+        ground = truth_com_ned(out)[2]
+        await action.arm()
+        await action.takeoff()
+        await _until(lambda: _at_altitude(telemetry, 2.0), 15.0, "2 m altitude")
+        air = truth_com_ned(out)[2]
+        await FailureAsync(system).inject(FailureUnit.SENSOR_GPS, FailureType.OFF, 0)  # every unit's GPS
+
+        async def said(text: str) -> bool:
+            return text in texts
+
+        await _until(lambda: said("Position lost: holding"), 4.0, "the failsafe's hold")
+        r["health_gps_ok"] = (await telemetry.health()).is_global_position_ok
+        await asyncio.sleep(3.0)
+        r["hold_drift_m"] = abs(truth_com_ned(out)[2] - air)
+        await _until(lambda: said("Position lost: landing"), 16.0, "the failsafe's landing")
+        await _until(lambda: _not(telemetry.armed), 15.0, "landed and disarmed")
+        r["landed_above_ground_m"] = ground - truth_com_ned(out)[2]
+        r["texts"] = list(texts)
+        collector.cancel()
+    return r
+
+
+def test_mavsdk_gps_off_on_the_sitl_up_vehicle_holds_then_lands(tmp_path: Path) -> None:
+    """`sitl up hover_3x2 --vehicle` (real time): MAVSDK takes the assembly off, injects GPS OFF with
+    instance 0 on the assembly vehicle (into all six unit processes), sees the hold and the landing by
+    STATUSTEXT and the GPS unhealthy; the world's truth shows the hold and the assembly on the ground."""
+    import signal
+    import subprocess
+    import sys
+
+    from test_sitl_vehicle import REPO, _port_block, vehicle_endpoint_lines
+
+    out = tmp_path / "run"
+    base = _port_block(8)
+    cmd = [sys.executable, "-m", "mars_link.cli", "sitl", "up", "hover_3x2", "--vehicle", "--any-bind",
+           "--vehicle-api-port", str(base), "--gcs-port", str(base + 1), "--api-port", str(base + 2), "--out", str(out)]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        vehicle_endpoint_lines(proc)
+        r = asyncio.run(_vehicle_gps_loss(base, out))
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        proc.wait(15.0)
+    print(json.dumps(r))
+    assert "Failure injected: gps off, all units" in r["texts"] and "GPS lost: dead reckoning on the IMUs" in r["texts"]
+    assert r["health_gps_ok"] is False
+    assert r["hold_drift_m"] < 0.3  # held (truth)
+    assert abs(r["landed_above_ground_m"]) < 0.05  # on the ground (truth)
