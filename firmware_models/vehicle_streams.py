@@ -206,8 +206,10 @@ class StreamsMixin:
         if mid == R.MAVLINK_MSG_ID_GPS_RAW_INT:
             speed = math.hypot(v[0], v[1])
             cog = int(round(math.degrees(math.atan2(v[1], v[0])) * 100)) % 36000 if speed > 0.2 else 65535
-            return R.MAVLink_gps_raw_int_message(int(self.sim_s * 1e6), R.GPS_FIX_TYPE_3D_FIX, lat, lon, alt, 80, 120,
-                                                 int(min(speed * 100, 65534)), cog, 12, alt, 300, 500, 200, 0, 0)
+            fix = R.GPS_FIX_TYPE_NO_FIX if self._unhealthy_sensors() & SENSOR_BITS["gps"] else R.GPS_FIX_TYPE_3D_FIX
+            return R.MAVLink_gps_raw_int_message(int(self.sim_s * 1e6), fix, lat, lon, alt, 80, 120,
+                                                 int(min(speed * 100, 65534)), cog, 12 if fix else 0, alt, 300, 500,
+                                                 200, 0, 0)
         if mid == R.MAVLINK_MSG_ID_HIGHRES_IMU:
             if self.imu is not None:
                 acc, gyro = self.imu.accel_frd_mps2, self.imu.gyro_frd_radps

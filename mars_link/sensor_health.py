@@ -187,8 +187,10 @@ class SensorGuard:
             g = np.array([s.gyro_frd_radps for s in both], dtype=float)
             a = self._rigid_accels(tuple(s.unit_id for s in both), g, np.array([s.accel_frd_mps2 for s in both]),
                                    both[0].t_s)
-            med_gyro, med_accel = np.median(g, axis=0), np.median(a, axis=0)
-            rigid = {s.unit_id: a[k] for k, s in enumerate(both)}
+            med_gyro = np.median(g, axis=0)
+            if a is not None:
+                med_accel = np.median(a, axis=0)
+                rigid = {s.unit_id: a[k] for k, s in enumerate(both)}
         prev = {}  # unit -> (gyro, accel) of the previous step
         if self._imu_last is not None:
             n = len(self._imu_units)
@@ -213,7 +215,7 @@ class SensorGuard:
                     why = "implausible"
                 elif part.repeated(value) and part.repeats >= hp.stuck_samples - 1:
                     why = "stuck"
-                elif median is not None and s.unit_id in rigid and float(np.linalg.norm(
+                elif median is not None and (sensor == "gyro" or s.unit_id in rigid) and float(np.linalg.norm(
                         (rigid[s.unit_id] if sensor == "accel" else value) - median)) > consistent:
                     why = "disagrees"
                 if why in ("no data", "stuck"):  # one such sample is enough to know
@@ -228,9 +230,11 @@ class SensorGuard:
             if live else None
         return out
 
-    def _rigid_accels(self, units: tuple, g: np.ndarray, a: np.ndarray, t_s: float, robust: bool = True) -> np.ndarray:
+    def _rigid_accels(self, units: tuple, g: np.ndarray, a: np.ndarray, t_s: float,
+                      robust: bool = True) -> np.ndarray | None:
         """The units' specific forces moved to the CoM (minus alpha x r + omega x (omega x r), from the
-        units' rate, median or mean, and its change): on one rigid body they agree up to noise."""
+        units' rate, median or mean, and its change): on one rigid body they agree up to noise. None when
+        that correction is itself beyond the agreement threshold: the specific forces cannot be judged."""
         offsets = self._unit_offsets(units)
         w = np.median(g, axis=0) if robust else _mean_rows(g)
         wx, wy, wz = w.tolist()
@@ -248,7 +252,10 @@ class SensorGuard:
             (xy - az, -(wx * wx + wz * wz), yz + ax),
             (xz + ay, yz - ax, -(wx * wx + wy * wy)),
         ))
-        return a - offsets @ m_t
+        lever = offsets @ m_t
+        if not float(np.abs(lever).max()) <= self.hp.accel_consistency_mps2:
+            return None  # a shock (touchdown, motors cut): the rate's change is no rigid-body alpha to correct by
+        return a - lever
 
     def _unit_offsets(self, units: tuple) -> np.ndarray | None:
         offsets = self._offsets.get(units)
@@ -284,7 +291,10 @@ class SensorGuard:
             return False
         if k >= 3:
             stacked = both.reshape(2, k, 3).copy()  # (both stays the raw samples: the next step's stuck check)
-            stacked[1] = self._rigid_accels(units, stacked[0], stacked[1], live[0].t_s, robust=False)
+            rigid = self._rigid_accels(units, stacked[0], stacked[1], live[0].t_s, robust=False)
+            if rigid is None:
+                return False
+            stacked[1] = rigid
             d = stacked - (np.add.reduce(stacked, 1) / k)[:, None, :]
             if not ((d * d).sum(axis=2).max(axis=1) <= limits[1]).all():
                 return False
