@@ -203,6 +203,7 @@ async def _vehicle_gps_loss(api_port: int, out: Path) -> dict:
     return r
 
 
+@pytest.mark.long  # (30 s of real time; CI time: the spiral above covers MAVSDK's failure plugin on sitl up)
 def test_mavsdk_gps_off_on_the_sitl_up_vehicle_holds_then_lands(tmp_path: Path) -> None:
     """`sitl up hover_3x2 --vehicle` (real time): MAVSDK takes the assembly off, injects GPS OFF with
     instance 0 on the assembly vehicle (into all six unit processes), sees the hold and the landing by
