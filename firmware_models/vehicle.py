@@ -45,6 +45,7 @@ from firmware_models.mission_runner import MissionRunner
 from firmware_models.motor import MotorModel, MotorParams
 from firmware_models.params import ParamStore, unit_param_specs
 from firmware_models.rotor_intake import IntakeParams, RotorIntake
+from firmware_models.sensor_failures import SensorFailures
 from firmware_models.signing import ACCEPTED, UNSIGNED, advance_outgoing_clock, is_signed
 from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
 from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
@@ -199,6 +200,8 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self.latches = 0  # the latch sensor: the sides that hold a docked neighbour (from the world)
         self._await_coordinator = c.hil_await_coordinator
         self._scheduled_failures: list[tuple[float, int, float]] = []  # (sim time, rotor, eta), sorted
+        self.sensor_failures = SensorFailures(c.unit_id)  # the sensor path's injected failures
+        self._scheduled_sensor_failures: list[tuple[float, str, str]] = []  # (sim time, sensor, type), sorted
         self.mission = MissionProtocol(self.origin)
         self.runner = MissionRunner(self.autopilot, self.origin)
         self._mission_version = 0
@@ -265,6 +268,17 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         or after sim time t_s, before that step's motor outputs are computed."""
         self._scheduled_failures.append((t_s, rotor, eta))
         self._scheduled_failures.sort()
+
+    def schedule_sensor_failure(self, t_s: float, sensor: str, kind: str) -> None:
+        """A scenario sensor failure ("ok" ends one) that enters the sensor path with the first packet at
+        or after sim time t_s."""
+        self._scheduled_sensor_failures.append((t_s, sensor, kind))
+        self._scheduled_sensor_failures.sort(key=lambda x: x[0])
+
+    def _sensor_failures_due(self, t_s: float) -> None:
+        while self._scheduled_sensor_failures and self._scheduled_sensor_failures[0][0] <= t_s + 1e-9:
+            _, sensor, kind = self._scheduled_sensor_failures.pop(0)
+            self.sensor_failures.inject(sensor, kind)
 
     def step_motors(self, dt_s: float) -> np.ndarray:
         """Produced rotor thrusts (N) after one physics step of dt_s (limits, eta, lag)."""

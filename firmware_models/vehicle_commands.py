@@ -24,6 +24,7 @@ from firmware_models.vehicle_modes import (
     MODE_RTL,
     MODE_TAKEOFF,
 )
+from firmware_models.sensor_failures import TYPE_NAMES, UNIT_SENSORS
 from firmware_models.vehicle_streams import DEFAULT_STREAM_HZ
 from firmware_models.vehicle_offboard import MAX_POSITION_M, MAX_SPEED_MPS
 
@@ -276,6 +277,17 @@ class CommandsMixin:
         R = mavlink
         if int(self.params["SYS_FAILURE_EN"]) != 1:
             return R.MAV_RESULT_DENIED
+        if _finite(p[0], p[1], p[2]) and int(p[0]) in UNIT_SENSORS:  # a sensor: its path (sensor_failures)
+            kind = TYPE_NAMES.get(int(p[1]))
+            instance = int(p[2])
+            if kind is None:
+                return R.MAV_RESULT_UNSUPPORTED
+            if instance != p[2] or instance < 0:
+                return R.MAV_RESULT_DENIED
+            result = self.inject_sensor_failure(UNIT_SENSORS[int(p[0])], kind, instance)
+            if result == R.MAV_RESULT_ACCEPTED:
+                self._count("failures_injected")
+            return result
         if not _finite(p[0], p[1], p[2]) or int(p[0]) != FAILURE_UNIT_SYSTEM_MOTOR:
             return R.MAV_RESULT_UNSUPPORTED
         eta = FAILURE_TYPE_ETA.get(int(p[1]))
@@ -287,6 +299,17 @@ class CommandsMixin:
         self.inject_failure(instance, eta)
         self._count("failures_injected")
         self._text(f"Failure injected: motor {instance or 'all'} eta {eta:g}", mavlink.MAV_SEVERITY_WARNING)
+        return R.MAV_RESULT_ACCEPTED
+
+    def inject_sensor_failure(self, sensor: str, kind: str, instance: int) -> int:
+        """A failure of this unit's own sensor (one of each: instance 0 or 1) in its sensor path."""
+        R = mavlink
+        if instance > 1:
+            return R.MAV_RESULT_DENIED
+        if not self.sensor_failures.supports(sensor, kind):
+            return R.MAV_RESULT_UNSUPPORTED  # e.g. a barometer this flight's sensors do not have
+        self.sensor_failures.inject(sensor, kind)
+        self._text(f"Failure injected: {sensor} {kind}", mavlink.MAV_SEVERITY_WARNING)
         return R.MAV_RESULT_ACCEPTED
 
     def _on_set_mode(self, msg, lk: Link, out: list[Outgoing]) -> None:

@@ -14,7 +14,7 @@ from firmware_models.geo import WIRE_ORIGIN
 from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
 from mars_link.state import ImuSample, RigidBodyState
 from mars_link.wire import (SensorFrames, battery_from_message, battery_report_message, latch_from_message, latch_message,
-                            latches_open)
+                            latches_open, sensor_packet_messages)
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
 
 
@@ -58,13 +58,18 @@ class HilMixin:
         frames = self.assembler.feed_frames(msg)
         if frames is None:
             return
+        if self._scheduled_sensor_failures:
+            self._sensor_failures_due(frames.imu.time_usec / 1e6)
         forward = [name for name, other in self.links.items() if other.policy.forward_sensors]
         report = None
         if self._battery_pending is not None:
             report = self._measure_battery(self._battery_pending, frames.imu.time_usec / 1e6)
             self._battery_pending = None
-        if forward:  # (on the real-time path: straight from the received fields)
-            upstream = frames.upstream_messages()
+        if forward:  # (on the real-time path: straight from the received fields, unless a sensor failed)
+            if self.sensor_failures.any:  # the failed sensors' packet (sensor_failures)
+                upstream = sensor_packet_messages(self.sensor_failures.apply(frames.packet()), upstream=True)
+            else:
+                upstream = frames.upstream_messages()
             if report is not None:  # before the IMU frame: the coordinator attaches it to this packet
                 upstream.insert(0, battery_report_message(report))
             for name in forward:
@@ -130,6 +135,10 @@ class HilMixin:
         ODOMETRY carry exactly these fields)."""
         if unit_truth is not None:
             self.set_state(unit_truth)
+        if self._scheduled_sensor_failures:
+            self._sensor_failures_due(packet.t_s)
+        if self.sensor_failures.any:
+            packet = self.sensor_failures.apply(packet)
         self.latches = packet.latches
         self.imu = packet.imu
         if packet.truth is not None:

@@ -61,7 +61,20 @@ SENSORS = (
 #: commands whose identical resend within COMMAND_DEDUP_S is answered from the cache, not re-run
 
 
+#: SYS_STATUS sensor bit of each failure-injectable sensor
+SENSOR_BITS = {
+    "gps": mavlink.MAV_SYS_STATUS_SENSOR_GPS, "accel": mavlink.MAV_SYS_STATUS_SENSOR_3D_ACCEL,
+    "gyro": mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO, "mag": mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG,
+    "baro": mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE,
+}
+
+
 class StreamsMixin:
+    def _unhealthy_sensors(self) -> int:
+        """SYS_STATUS bits to clear from onboard_control_sensors_health: the unit's failed sensors."""
+        failures = self.sensor_failures
+        return sum(bit for name, bit in SENSOR_BITS.items() if not failures.healthy(name))
+
     def _request_message(self, msgid: float, p2: float) -> tuple[int, list]:
         R = mavlink
         if not math.isfinite(msgid) or msgid != int(msgid):
@@ -162,7 +175,8 @@ class StreamsMixin:
         tb = self._time_boot_ms()
         if mid == R.MAVLINK_MSG_ID_SYS_STATUS:
             mv, ca, pct = self._battery()
-            return R.MAVLink_sys_status_message(SENSORS, SENSORS, SENSORS, 200, mv, ca, pct, 0, 0, 0, 0, 0, 0)
+            return R.MAVLink_sys_status_message(SENSORS, SENSORS, SENSORS & ~self._unhealthy_sensors(), 200, mv, ca, pct,
+                                                0, 0, 0, 0, 0, 0)
         if mid == R.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             return R.MAVLink_extended_sys_state_message(R.MAV_VTOL_STATE_UNDEFINED, self._landed_state())
         if mid == R.MAVLINK_MSG_ID_BATTERY_STATUS:
@@ -197,8 +211,10 @@ class StreamsMixin:
         if mid == R.MAVLINK_MSG_ID_GPS_RAW_INT:
             speed = math.hypot(v[0], v[1])
             cog = int(round(math.degrees(math.atan2(v[1], v[0])) * 100)) % 36000 if speed > 0.2 else 65535
-            return R.MAVLink_gps_raw_int_message(int(self.sim_s * 1e6), R.GPS_FIX_TYPE_3D_FIX, lat, lon, alt, 80, 120,
-                                                 int(min(speed * 100, 65534)), cog, 12, alt, 300, 500, 200, 0, 0)
+            fix = R.GPS_FIX_TYPE_NO_FIX if self._unhealthy_sensors() & SENSOR_BITS["gps"] else R.GPS_FIX_TYPE_3D_FIX
+            return R.MAVLink_gps_raw_int_message(int(self.sim_s * 1e6), fix, lat, lon, alt, 80, 120,
+                                                 int(min(speed * 100, 65534)), cog, 12 if fix else 0, alt, 300, 500,
+                                                 200, 0, 0)
         if mid == R.MAVLINK_MSG_ID_HIGHRES_IMU:
             if self.imu is not None:
                 acc, gyro = self.imu.accel_frd_mps2, self.imu.gyro_frd_radps

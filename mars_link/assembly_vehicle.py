@@ -40,6 +40,7 @@ from mars_link.messages import RotorCommand, wire_thrust, wire_time
 from mars_link.scenario import FaultSpec, Scenario
 from mars_link.state import RigidBodyState
 from mars_link.trajectories import Trajectory, TrajectoryPoint
+from mars_link.vehicle_sensor_watch import VehicleSensorWatch, route_sensor_failure
 
 DEFAULT_SYSID = 1
 #: coordinator event type -> STATUSTEXT severity
@@ -168,6 +169,9 @@ class AssemblyVehicle(Vehicle):
         self.motor_count = model.n_rotors
         self.motor_commands_n = np.zeros(model.n_rotors)
         self.on_failure = None  # callable(unit, rotor | None, eta): the motor path (set by AssemblySim)
+        # callable(sensor, type, instance) -> MAV_RESULT: the units' sensor paths (vehicle_sensor_watch)
+        self.on_sensor_failure = None
+        self.sensor_health = None  # the estimator's SensorGuard: SYS_STATUS health bits (vehicle_sensor_watch)
         self._events_seen = 0
         self._unit_batteries: dict = {}  # unit -> its last BatterySample report
         self._battery_t: float | None = None
@@ -192,6 +196,22 @@ class AssemblyVehicle(Vehicle):
                 self.on_failure(u, None, eta)
         else:
             self.on_failure(self.model.unit_ids[(rotor - 1) // ROTORS_PER_UNIT], (rotor - 1) % ROTORS_PER_UNIT + 1, eta)
+
+    def inject_sensor_failure(self, sensor: str, kind: str, instance: int) -> int:
+        """MAV_CMD_INJECT_FAILURE of a sensor: every unit's (instance 0) or the i-th unit's sensor path."""
+        if self.on_sensor_failure is None:
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        result = self.on_sensor_failure(sensor, kind, instance)
+        if result == mavlink.MAV_RESULT_ACCEPTED:
+            where = "all units" if instance == 0 else f"unit {self.model.unit_ids[instance - 1]}"
+            self._text(f"Failure injected: {sensor} {kind}, {where}", mavlink.MAV_SEVERITY_WARNING)
+        return result
+
+    def _unhealthy_sensors(self) -> int:
+        from firmware_models.vehicle_streams import SENSOR_BITS
+
+        bad = set() if self.sensor_health is None else self.sensor_health.unhealthy_sensors()
+        return sum(SENSOR_BITS[s] for s in bad if s in SENSOR_BITS)
 
     def step_motors(self, dt_s: float) -> np.ndarray:
         raise NotImplementedError("the assembly's rotors are driven by its units (AssemblySim)")
@@ -343,10 +363,15 @@ class AssemblySim(EngineSim):
         self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, params, wall_time_s,
                                        cfg.signing_key, cfg.require_signing)
         self.vehicle.on_failure = self.inject
+        self.vehicle.on_sensor_failure = self.inject_sensor
         self.legs = attach_legs(self.vehicle, s, cfg.map_path, self.eta_believed)
         self.estimate: RigidBodyState | None = None
         self.estimator_resets = 0  # the EKF's own restarts on the measured positions (after gated batches)
         self.events: list[dict] = []  # faults (scenario and MAVLink), with coordinator.events = the record
+        self.sensor_watch = None
+        if self.estimator is not None:  # the coordinator's detector reads the guard's usable IMUs; the vehicle reports
+            self.coordinator.guard, self.coordinator.guard_events = self.estimator, False
+            self.sensor_watch = VehicleSensorWatch(self.vehicle, self.estimator, self.events)
         # the engine's loop; the vehicle's flight modes stand in front of the coordinator, and it flies until stopped
         flight = Flight(s, model, s.sim.seed, self.coordinator.trajectory, self.world, self.units, self.coordinator,
                         sorted(s.faults, key=lambda f: f.t_s), duration_s=math.inf)
@@ -359,6 +384,18 @@ class AssemblySim(EngineSim):
         sl = self.model.unit_slots(unit) if rotor is None else self.model.rotor_slot(unit, rotor)
         self.eta_told[sl] = eta
         self.coordinator.set_faults(self.eta_told, t_s, "fault told to the coordinator")
+
+    def inject_sensor(self, sensor: str, kind: str, instance: int) -> int:
+        """A sensor failure injected on the vehicle: into the named units' sensor paths."""
+        units = route_sensor_failure(self.vehicle, self.units.vehicles, sensor, kind, instance)
+        if isinstance(units, int):
+            return units
+        for u in units:
+            self.units.vehicles[u].sensor_failures.inject(sensor, kind)
+        self.events.append({"t_s": round(self.t_s, 6), "type": "sensor_fault", "sensor": sensor, "failure": kind,
+                            "unit": None if instance == 0 else units[0],
+                            "text": f"Sensor fault: {sensor} {kind}, " + ("all units" if instance == 0 else f"unit {units[0]}")})
+        return mavlink.MAV_RESULT_ACCEPTED
 
     def _commands(self, t: float, packets) -> list[RotorCommand]:
         """The engine's command source: estimate, the vehicle's tick (its coordinator runs when it flies),
@@ -383,6 +420,9 @@ class AssemblySim(EngineSim):
         est = ekf.step(t, [p.imu for p in packets], positions)
         if not ekf.initialised:
             return None
+        if self.sensor_watch is not None:
+            self.vehicle.set_state(est)  # (the failsafe holds where the estimate says the assembly is)
+            self.sensor_watch.update(t)
         if ekf.stats.position_resets > self.estimator_resets:  # e.g. after a touchdown shock
             self.estimator_resets = ekf.stats.position_resets
             event = {"t_s": round(t, 6), "type": "estimator_reset", "text": "EKF reset on positions",

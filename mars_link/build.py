@@ -85,6 +85,10 @@ def check_flight(scenario: Scenario, model: AssemblyModel | None = None) -> int:
         if f.t_s > last_t + 1e-9:
             raise UserInputError(f"{src}: fault {f.describe()} comes after the flight ends "
                                  f"(last control step at t={last_t:g}s)")
+    for f in scenario.sensor_faults:
+        if f.t_s > last_t + 1e-9:
+            raise UserInputError(f"{src}: {f.text()} at t={f.t_s:g}s comes after the flight ends "
+                                 f"(last control step at t={last_t:g}s)")
     return steps
 
 
@@ -171,10 +175,13 @@ def make_estimator(scenario: Scenario, model: AssemblyModel):
     from mars_link.estimation import AssemblyEstimator, EstimatorParams
     from mars_link.sensor_profiles import MIN_EKF_VELOCITY_NOISE_MPS
 
+    from mars_link.sensor_health import SensorGuard
+
     p = scenario.sensors  # the EKF is told the profile's figures
     if p.outdoor:
         from mars_link.estimation_outdoor import OutdoorEstimator, OutdoorParams
 
+        # (the sensor guard wraps the mocap/rtk filter only: not yet the gps profile's outdoor one)
         return OutdoorEstimator(model, EstimatorParams(
             position_noise_m=p.position_noise_m, velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS)),
             OutdoorParams(horizontal_noise_m=max(p.position_noise_m, 1e-3), vertical_noise_m=max(p.vertical_noise_m, 1e-3),
@@ -183,9 +190,9 @@ def make_estimator(scenario: Scenario, model: AssemblyModel):
                           baro_noise_m=math.hypot(p.baro_noise_m, BARO_DRIFT_ALLOWANCE_S ** 0.5 * p.baro_drift_m_per_sqrt_s, 0.01),
                           heading_noise_rad=math.hypot(math.radians(p.mag_heading_noise_deg), EKF_HEADING_LEAK_RAD),
                           declination_rad=math.radians(p.mag_declination_deg)))
-    return AssemblyEstimator(model, EstimatorParams(
+    return SensorGuard(AssemblyEstimator(model, EstimatorParams(  # failed sensors are rejected or bridged
         position_noise_m=max(p.position_noise_m, 1e-4),
-        velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS)))
+        velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS))))
 
 
 def make_detector(scenario: Scenario, model: AssemblyModel, ground_down_m: float):
@@ -250,6 +257,11 @@ def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajec
     coordinator = Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
                               telemetry_timeout_s=telemetry_timeout_s)
     _follow_packs(scenario, model, coordinator)
+    if coordinator.guard is not None:  # a trajectory flight: position lost -> hold, then land
+        from mars_link.position_failsafe import PositionFailsafe
+
+        coordinator.failsafe = PositionFailsafe(tracked_offset_frd_m=tracked_offset(model, scenario),
+                                                ground_down_m=float(reference.sample(0.0).position_ned_m[2]))
     return coordinator
 
 
@@ -271,6 +283,13 @@ def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordin
     for f in scenario.faults:
         if f.unit == unit_id:
             vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta)
+    from firmware_models.sensor_failures import SensorFailures
+
+    vehicle.sensor_failures = SensorFailures(unit_id, scenario.sim.seed)  # (seeded: garbage, intermittent)
+    for sf in scenario.sensor_faults:
+        if sf.applies_to(unit_id):
+            for t_s, sensor, kind in sf.schedule():
+                vehicle.schedule_sensor_failure(t_s, sensor, kind)
     return vehicle
 
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
+from mars_link.assembly import GRAVITY_MPS2, ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import Controller
 from mars_link.errors import UserInputError
 from mars_link.fault_detection import Detection
@@ -95,6 +95,11 @@ class Coordinator:
         # rotor minimum takes reversed thrust down to -full scale): commands are saturated to it
         self.command_range_n = (
             -v.full_scale_thrust_n if v.rotor_min_thrust_n is None else v.rotor_min_thrust_n, v.full_scale_thrust_n)
+        # a SensorGuard estimator (sensor_health) reports sensor failures; `failsafe` (position_failsafe) flies
+        # the position-loss failsafe over the trajectory (set by the composition root for trajectory flights)
+        self.guard = estimator if hasattr(estimator, "take_events") else None
+        self.guard_events = True  # False: someone else (the assembly vehicle) reports the guard's findings
+        self.failsafe = None
         self.lost_units: set[int] = set()
         # each unit's pack as its telemetry reports it (BATTERY_STATUS); with `battery_cells` set (unit ->
         # cells in series), the allocator's bounds follow the thrust each pack still gives
@@ -187,9 +192,21 @@ class Coordinator:
         if self.battery_cells is not None:
             self._watch_batteries(packets)
         c1 = time.perf_counter()
-        reference = self.trajectory.sample(t_s)
+        guard = self.guard
+        if guard is not None:
+            self._sensor_health(t_s)
+        if self.failsafe is None:
+            reference = self.trajectory.sample(t_s)
+        else:
+            reference = self.failsafe.reference(t_s, estimate, self.trajectory, guard.lost_since_s)
+            self.events += self.failsafe.events
+            self.failsafe.events.clear()
         out = self.controller.update(t_s, estimate, reference)
         thrusts = np.asarray(out.rotor_thrusts_n, dtype=float)
+        if self.failsafe is not None and self.failsafe.state != "normal":
+            self._failsafe_motors(t_s, thrusts)
+            if self.failsafe.motors_off:
+                thrusts = np.zeros_like(thrusts)
         if self.detector is not None:
             # while explanations tie (e.g. units {2,5}, {1,6}, {3,4} of a 3x2: each a pure lift loss),
             # the detector asks for a probe with zero net wrench on the believed assembly
@@ -200,7 +217,8 @@ class Coordinator:
         if thrusts.max() > hi or thrusts.min() < lo:  # what a unit accepts (rotor_intake), not more
             thrusts = np.clip(thrusts, lo, hi)
         if self.detector is not None:
-            self._to_detect = (t_s, thrusts.copy(), estimate, [p.imu for p in packets if p.imu is not None])
+            imus = [p.imu for p in packets if p.imu is not None] if guard is None else guard.usable_imus
+            self._to_detect = (t_s, thrusts.copy(), estimate, imus)
         c2 = time.perf_counter()
         alloc = out.timings_s.get("allocation", 0.0)
         scale = self.model.vehicle.full_scale_thrust_n
@@ -235,6 +253,23 @@ class Coordinator:
             self.controller.set_available(np.repeat(scale, ROTORS_PER_UNIT))
             if getattr(self.detector, "max_thrust_n", None) is not None:  # its thrust model clips as the packs do
                 self.detector.max_thrust_n = self.controller.allocator.upper_bounds()
+
+    def _failsafe_motors(self, t_s: float, thrusts: np.ndarray) -> None:
+        """What the failsafe's land detector reads: the thrust asked and the IMUs' mean specific force."""
+        imus = self.guard.usable_imus
+        f_down = float(np.mean([s.accel_frd_mps2[2] for s in imus])) if imus else None
+        self.failsafe.observe(t_s, float(thrusts.sum()), f_down, self.model.mass_kg * GRAVITY_MPS2,
+                              math.sqrt(max(float(self.guard.covariance[2, 2]), 0.0)))
+        self.events += self.failsafe.events
+        self.failsafe.events.clear()
+
+    def _sensor_health(self, t_s: float) -> None:
+        """The guard's findings into the record; a sensor part that failed restarts the fault detector's
+        history (its residuals held that sensor's bad samples)."""
+        if self.guard_events:
+            self.events += self.guard.take_events()
+        if self.guard.imu_changed and self.detector is not None:
+            self.detector.restart()
 
     def finish_step(self) -> None:
         """Fault detection on the last period's commanded thrusts and IMU samples; a finding is an

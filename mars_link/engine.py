@@ -152,6 +152,9 @@ class Engine:
         self.stopped = False
         self._next_fault = 0
         self._deaths = list(flight.deaths)
+        # [[sensor_faults]] act in the units' sensor paths (scheduled there); their start and end are events here
+        self._sensor_events = sorted(
+            [(t, kind, sf) for sf in flight.scenario.sensor_faults for t, _, kind in sf.schedule()], key=lambda e: e[0])
 
     def _faults_due(self, t: float) -> None:
         f = self.flight
@@ -159,6 +162,10 @@ class Engine:
         while self._next_fault < len(faults) and faults[self._next_fault].t_s <= t + 1e-9:
             self._next_fault += 1
             self.on_fault(faults[self._next_fault - 1], t)
+        while self._sensor_events and self._sensor_events[0][0] <= t + 1e-9:
+            _, kind, sf = self._sensor_events.pop(0)
+            self.events.append({"t_s": round(t, 6), "type": "sensor_fault", "sensor": sf.sensor, "unit": sf.unit,
+                                "failure": kind, "text": sf.text(end=kind == "ok" and sf.kind != "ok")})
         while self._deaths and self._deaths[0][0] <= t + 1e-9:
             _, u = self._deaths.pop(0)
             f.units.kill(u)

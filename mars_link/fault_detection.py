@@ -220,6 +220,11 @@ class FaultDetector:
         self.last_fits: list[_Fit] = []
         self.last_misfit = 1.0  # best fit's residual variance / noise model (1 = as expected)
 
+    def restart(self) -> None:
+        """Forget the residual history and any alarm in progress (e.g. a unit's IMU was found failed: the
+        history holds its bad samples)."""
+        self._restart()
+
     @property
     def eta_estimate(self) -> np.ndarray:
         """Current belief of every rotor's efficiency (slot order)."""

@@ -89,7 +89,8 @@ class SensorPacket:
 
     def as_wire(self) -> "SensorPacket":
         t = wire_time(self.t_s)
-        imu = ImuSample(t, self.unit_id, f32(self.imu.gyro_frd_radps), f32(self.imu.accel_frd_mps2))
+        imu = ImuSample(t, self.unit_id, f32(self.imu.gyro_frd_radps), f32(self.imu.accel_frd_mps2),
+                        self.imu.accel_ok, self.imu.gyro_ok)
         pos = None
         if self.position is not None:
             vel = self.position.velocity_ned_mps

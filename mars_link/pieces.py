@@ -70,7 +70,8 @@ def local_packet(packet: SensorPacket, local_id: int) -> SensorPacket:
     imu, pos = packet.imu, packet.position
     return SensorPacket(
         packet.t_s, local_id,
-        None if imu is None else ImuSample(imu.t_s, local_id, imu.gyro_frd_radps, imu.accel_frd_mps2),
+        None if imu is None else ImuSample(imu.t_s, local_id, imu.gyro_frd_radps, imu.accel_frd_mps2,
+                                           imu.accel_ok, imu.gyro_ok),
         None if pos is None else PositionSample(pos.t_s, local_id, pos.position_ned_m, pos.velocity_ned_mps),
         packet.truth, packet.latches, *(None if s is None else dataclasses.replace(s, unit_id=local_id)
                                         for s in (packet.gps, packet.baro, packet.mag)), packet.battery)

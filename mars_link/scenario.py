@@ -104,6 +104,7 @@ class Scenario:
     sensors: SensorProfile = field(default_factory=SensorProfile)  # [sensors]: the position sensor (mocap, rtk)
     mission: dict[str, Any] = field(default_factory=dict)  # [mission]: map = obstacle map for the vehicle's legs
     battery: BatterySpec | None = None  # [battery]: the units' packs (mars_link.battery); None = an ideal supply
+    sensor_faults: list = field(default_factory=list)  # [[sensor_faults]] (scenario_sensor_faults.SensorFaultSpec)
 
     @property
     def starts_free(self) -> bool:
@@ -128,7 +129,7 @@ class Scenario:
 #: free units on the ground stand at least this far apart, edge to edge
 FREE_CLEARANCE_M = 0.3
 _TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig", "docking",
-             "separations", "environment", "sensors", "mission", "battery"}
+             "separations", "environment", "sensors", "mission", "battery", "sensor_faults"}
 _VEHICLE_KEYS = {
     "preset",
     "motor_time_constant_s",
@@ -322,6 +323,9 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
                 raise UserInputError(f"{src}: [[separations]] #{i}: {exc}") from None
         if len(sep.units) >= model.n_units:
             raise UserInputError(f"{src}: [[separations]] #{i}: units must leave at least one unit behind")
+    from mars_link.scenario_sensor_faults import parse_sensor_faults
+
+    sc.sensor_faults = parse_sensor_faults(doc.get("sensor_faults", []), src, model, sc.sensors.name, sc.sim.noise)
     target = sc.reconfig.get("target")
     if target is not None and sorted(target) != model.unit_ids:
         raise UserInputError(

@@ -28,6 +28,9 @@ class ImuSample:
     unit_id: int
     gyro_frd_radps: np.ndarray
     accel_frd_mps2: np.ndarray  # specific force (reads -g on z at rest: (0, 0, -9.81))
+    # False: that part did not update this sample (a failed sensor; HIGHRES_IMU fields_updated bits clear)
+    accel_ok: bool = True
+    gyro_ok: bool = True
 
 
 @dataclass

@@ -44,6 +44,7 @@ IMU_FIELDS = 0x3F  # xacc..zgyro updated
 MAG_FIELDS = 0x1C0  # xmag..zmag updated
 BARO_FIELDS = 0x200 | 0x800  # abs_pressure and pressure_alt updated
 GPS_FIX_3D = 3
+ACCEL_FIELDS, GYRO_FIELDS = 0x07, 0x38  # a failed accelerometer or gyro leaves its bits clear (sensor_failures)
 HIL_ACTUATOR_CONTROLS_FLAGS_LOCKSTEP = 1
 ARMED_CUSTOM_MODE = mavlink.MAV_MODE_FLAG_SAFETY_ARMED | mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
 
@@ -64,7 +65,7 @@ def sensor_packet_messages(packet: SensorPacket, upstream: bool = False) -> list
     """Messages for one packet; `upstream` = unit -> coordinator (HIGHRES_IMU instead of HIL_SENSOR)."""
     t = usec(packet.t_s)
     msgs: list[mavlink.MAVLink_message] = []
-    flags = IMU_FIELDS
+    flags = (ACCEL_FIELDS if packet.imu.accel_ok else 0) | (GYRO_FIELDS if packet.imu.gyro_ok else 0)
     if packet.position is not None:
         p = packet.position
         vel = [math.nan] * 3 if p.velocity_ned_mps is None else p.velocity_ned_mps
@@ -133,9 +134,10 @@ class SensorFrames:
             truth = RigidBodyState(t_s, np.array([s.x, s.y, s.z]), np.array([s.vx, s.vy, s.vz]),
                                    np.array(s.q, dtype=float), np.array([s.rollspeed, s.pitchspeed, s.yawspeed]),
                                    on_ground=bool(m.fields_updated & FLAG_ON_GROUND))
-        imu = ImuSample(t_s, unit, np.array([m.xgyro, m.ygyro, m.zgyro]), np.array([m.xacc, m.yacc, m.zacc]))
-        gps = None if self.gps is None else gps_from_message(self.gps, t_s)
         flags = m.fields_updated
+        imu = ImuSample(t_s, unit, np.array([m.xgyro, m.ygyro, m.zgyro]), np.array([m.xacc, m.yacc, m.zacc]),
+                        flags & ACCEL_FIELDS == ACCEL_FIELDS, flags & GYRO_FIELDS == GYRO_FIELDS)
+        gps = None if self.gps is None else gps_from_message(self.gps, t_s)
         baro = BaroSample(t_s, unit, m.abs_pressure, m.pressure_alt) if flags & BARO_FIELDS == BARO_FIELDS else None
         mag = MagSample(t_s, unit, np.array([m.xmag, m.ymag, m.zmag])) if flags & MAG_FIELDS == MAG_FIELDS else None
         return SensorPacket(t_s, unit, imu, pos, truth, 0, gps, baro, mag)

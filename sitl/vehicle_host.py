@@ -104,6 +104,14 @@ class HostedVehicle:
             self.vehicle = AssemblyVehicle(self.coordinator, ports.sysid, sc.sim.control_hz, sc.ftc, None, time.time(),
                                            signing_key, require_signing)
         self.vehicle.on_failure = self._inject
+        self.sensor_events: list[dict] = []  # the estimator's sensor findings and the failsafe (vehicle_sensor_watch)
+        self.sensor_watch = None
+        if self.estimator is not None:
+            from mars_link.vehicle_sensor_watch import VehicleSensorWatch
+
+            self.vehicle.on_sensor_failure = self._inject_sensor
+            self.coordinator.guard, self.coordinator.guard_events = self.estimator, False
+            self.sensor_watch = VehicleSensorWatch(self.vehicle, self.estimator, self.sensor_events)
         from mars_link.assembly_vehicle import attach_legs
 
         self.legs = attach_legs(self.vehicle, sc, ports.map_path, lambda: (
@@ -193,6 +201,25 @@ class HostedVehicle:
             told[self.model.unit_slots(unit) if rotor is None else self.model.rotor_slot(unit, rotor)] = eta
             self.coordinator.set_faults(told, t, "fault told to the coordinator")
 
+    def _inject_sensor(self, sensor: str, kind: str, instance: int) -> int:
+        """A sensor failure injected on the vehicle: a COMMAND_LONG to each named unit's firmware (its sensor
+        path), with its next rotor command."""
+        from pymavlink.dialects.v20 import common as mavlink
+
+        from firmware_models.sensor_failures import BASE_SENSORS, CARRIED_TYPES, FAILURE_TYPES, SENSOR_UNITS
+        from mars_link.scenario_sensor_faults import flight_sensors
+
+        ids = self.model.unit_ids
+        if instance > len(ids):
+            return mavlink.MAV_RESULT_DENIED
+        if sensor not in flight_sensors(self.scenario.sensors.name) or (
+                sensor not in BASE_SENSORS and kind not in CARRIED_TYPES):
+            return mavlink.MAV_RESULT_UNSUPPORTED
+        for unit in ids if instance == 0 else [ids[instance - 1]]:
+            self._unit_commands.setdefault(unit, []).append(mavlink.MAVLink_command_long_message(
+                unit, 1, mavlink.MAV_CMD_INJECT_FAILURE, 0, SENSOR_UNITS[sensor], FAILURE_TYPES[kind], 0, 0, 0, 0, 0))
+        return mavlink.MAV_RESULT_ACCEPTED
+
     def unit_commands(self, unit: int) -> list:
         """Commands for `unit` to go out with its next rotor command (then forgotten)."""
         return self._unit_commands.pop(unit, [])
@@ -204,6 +231,9 @@ class HostedVehicle:
         est = step_estimator(ekf, t_s, packets)
         if not ekf.initialised:
             return None
+        if self.sensor_watch is not None:
+            self.vehicle.set_state(est)
+            self.sensor_watch.update(t_s)
         if ekf.stats.position_resets > self.estimator_resets:
             self.estimator_resets = ekf.stats.position_resets
             self.vehicle.report_event({"t_s": round(t_s, 6), "type": "estimator_reset", "text": "EKF reset on positions"})

@@ -263,7 +263,7 @@ def test_inject_failure_reaches_the_motor_model_only() -> None:
     assert _ack(api.command(420, 101, 0, 0, wall=T0 + 6), 420) == 0
     np.testing.assert_array_equal(v.motors.eta, [1.0] * 4)
     assert _ack(api.command(420, 101, 2, 1, wall=T0 + 8), 420) == mavlink.MAV_RESULT_UNSUPPORTED  # STUCK
-    assert _ack(api.command(420, 0, 1, 0, wall=T0 + 10), 420) == mavlink.MAV_RESULT_UNSUPPORTED  # gyro
+    assert _ack(api.command(420, 2, 1, 0, wall=T0 + 10), 420) == mavlink.MAV_RESULT_UNSUPPORTED  # no magnetometer
     assert _ack(api.command(420, 101, 1, 7, wall=T0 + 12), 420) == mavlink.MAV_RESULT_DENIED  # motor 7
     # motor outputs as reported are commands, not the injected truth
     api.command(420, 101, 1, 1, wall=T0 + 14)

@@ -1,0 +1,396 @@
+"""Sensor health: a gate around the rigid body's EKF that rejects or bridges failed unit sensors.
+
+Why a layer and not EKF code: the failure checks need only the samples and the estimate, so the EKF
+(and its measurement models, which the sensor profiles extend) stays as it is. `SensorGuard` has
+the estimator's `step(t, imus, positions)` and passes everything else through to it.
+
+What it checks, per unit and sensor, before the EKF sees a sample:
+
+* IMU (accelerometer, gyro): a part that did not update (HIGHRES_IMU fields_updated; `ImuSample.accel_ok`),
+  values repeated bit for bit (`stuck_samples` in a row: with noise on a live sensor never repeats),
+  values beyond the sensor's full scale or jumps between samples no airframe makes (`accel_plausible_mps2`,
+  `gyro_plausible_radps`, `accel_jump_mps2`, `gyro_jump_radps`: a spinning quadrotor with a dead rotor
+  turns at 20 rad/s, so the range alone is not enough), and, with three or
+  more units reporting, disagreement with the others' median (one rigid body: one rate, one specific
+  force up to the lever-arm terms). A bad sample is dropped; `imu_bad_in_window` bad samples in the
+  last `imu_window` mark the part failed (dropped until `imu_recover_samples` good ones in a row).
+  The other units' IMUs carry the body; the fault detector gets only the usable IMUs and restarts its
+  history when a part fails (`imu_changed`), so a sensor failure is not read as a rotor fault.
+* Position (the units' gps): repeated values (stuck), and a gate on the distance to the estimate's
+  prediction of that unit, max(`position_gate_floor_m`, `position_gate_sigma` x its 1-sigma), which
+  widens as the estimate's covariance grows while it dead-reckons. Every unit rejected for
+  `position_reject_reset_s`: the samples go through and the EKF restarts on them (PX4's EKF2 also
+  resets to GNSS after a rejection time-out). No accepted position for `position_timeout_s`: the
+  assembly's position is lost ("GPS lost"); the EKF dead-reckons on the IMUs, its covariance
+  growing, and every `drift_report_s` the drift's 1-sigma is reported. When positions return, the
+  drift (the mean innovation of the first accepted batch) is reported ("GPS regained").
+
+Every finding is an event with "text" (one STATUSTEXT, <= 50 characters), taken by `take_events`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from mars_link.rotations import quat_to_rotmat
+from mars_link.state import ImuSample, PositionSample, RigidBodyState
+
+
+@dataclass(frozen=True)
+class HealthParams:
+    position_timeout_s: float = 0.5
+    position_gate_floor_m: float = 1.0
+    position_gate_sigma: float = 6.0
+    position_reject_reset_s: float = 5.0
+    position_recover_samples: int = 5
+    stuck_samples: int = 3
+    imu_window: int = 10
+    imu_bad_in_window: int = 3
+    imu_recover_samples: int = 50
+    accel_plausible_mps2: float = 16 * 9.80665  # a MEMS IMU's full scale (16 g, 2000 deg/s)
+    gyro_plausible_radps: float = 35.0
+    accel_jump_mps2: float = 60.0  # nor a change from one sample to the next this large
+    gyro_jump_radps: float = 5.0
+    accel_consistency_mps2: float = 3.0
+    gyro_consistency_radps: float = 0.05
+    drift_report_s: float = 5.0
+
+
+def _mean_rows(x: np.ndarray) -> np.ndarray:
+    return np.add.reduce(x, 0) / len(x)
+
+
+class _PartHealth:
+    """One unit's accelerometer, gyro or gps: failed or not, and why."""
+
+    def __init__(self, window: int) -> None:
+        self.failed: str | None = None
+        self.recent: deque[bool] = deque(maxlen=window)  # True = bad sample
+        self.good_run = 0
+        self.last: np.ndarray | None = None
+        self.repeats = 0
+
+    def repeated(self, value: np.ndarray) -> bool:
+        """The same values as last time, bit for bit, for `stuck_samples` - 1 samples now."""
+        same = self.last is not None and np.array_equal(self.last, value)
+        self.repeats = self.repeats + 1 if same else 0
+        self.last = np.array(value, dtype=float)
+        return same
+
+
+class SensorGuard:
+    """The EKF behind a health gate (see the module docstring); `step` as the estimator's."""
+
+    def __init__(self, estimator, params: HealthParams | None = None) -> None:
+        self.ekf = estimator
+        self.hp = params or HealthParams()
+        self._parts: dict[tuple[int, str], _PartHealth] = {}
+        self.events: list[dict] = []
+        self._taken = 0
+        self.usable_imus: list[ImuSample] = []
+        self.imu_changed = False  # a part failed this step (the fault detector restarts)
+        self.last_fused_s: float | None = None  # last step with an accepted position
+        self.lost_since_s: float | None = None  # the assembly's position is lost since (None: not lost)
+        self._rejected_since_s: float | None = None
+        self._next_drift_report = math.inf
+        self.last_drift_m: float | None = None
+        self._imu_units: tuple = ()
+        self._imu_last: tuple | None = None
+        self._imu_watch = True  # the per-sample path runs until every part has a clean history
+        self._gps_watch = True
+        self._pos_last: tuple | None = None
+        self._offsets: dict[tuple, np.ndarray] = {}
+        self._rate_last: tuple | None = None
+        self._limits: dict[int, tuple] = {}
+
+    def __getattr__(self, name: str):  # everything else is the estimator's (initialised, stats, set_model, ...)
+        if name == "ekf":
+            raise AttributeError(name)
+        return getattr(self.ekf, name)
+
+    def set_model(self, model, *args, **kwargs) -> None:
+        """The EKF's switch to a new assembly (docking, undocking): the units' lever arms change."""
+        self._offsets.clear()
+        self._imu_units, self._imu_last, self._pos_last, self._rate_last = (), None, None, None
+        self.ekf.set_model(model, *args, **kwargs)
+
+    # ----------------------------------------------------------------- health as others read it
+    @property
+    def position_lost(self) -> bool:
+        return self.lost_since_s is not None
+
+    def failed_parts(self) -> dict[tuple[int, str], str]:
+        """(unit, sensor) -> why, for every failed sensor."""
+        return {k: p.failed for k, p in self._parts.items() if p.failed is not None}
+
+    def unhealthy_sensors(self) -> set[str]:
+        """Sensor kinds to report unhealthy for the whole body: gps when its position is lost, a kind
+        any unit's part of which has failed."""
+        out = {s for (_, s) in self.failed_parts() if s != "gps"}
+        if self.position_lost:
+            out.add("gps")
+        return out
+
+    def take_events(self) -> list[dict]:
+        new = self.events[self._taken:]
+        self._taken = len(self.events)
+        return new
+
+    def _event(self, t_s: float, kind: str, text: str, **fields) -> None:
+        self.events.append({"t_s": round(t_s, 6), "type": kind, **fields, "text": text[:50]})
+
+    def _part(self, unit: int, sensor: str) -> _PartHealth:
+        part = self._parts.get((unit, sensor))
+        if part is None:
+            part = self._parts[(unit, sensor)] = _PartHealth(self.hp.imu_window)
+        return part
+
+    def _mark(self, t_s: float, unit: int, sensor: str, bad: bool, why: str, recover: int) -> bool:
+        """Record one sample's verdict; returns whether the sample may be used."""
+        part, hp = self._part(unit, sensor), self.hp
+        part.recent.append(bad)
+        part.good_run = 0 if bad else part.good_run + 1
+        if part.failed is None and bad and sum(part.recent) >= (hp.imu_bad_in_window if sensor != "gps" else 1):
+            part.failed = why
+            self._event(t_s, "sensor_failed", f"Unit {unit} {sensor} failed: {why}", unit=unit, sensor=sensor,
+                        reason=why)
+            if sensor != "gps":
+                self.imu_changed = True
+        elif part.failed is not None and part.good_run >= recover:
+            self._event(t_s, "sensor_ok", f"Unit {unit} {sensor} ok again", unit=unit, sensor=sensor)
+            part.failed = None
+        return not bad and part.failed is None
+
+    # ----------------------------------------------------------------- the gate
+    def step(self, t_s: float, imu_samples: list[ImuSample], position_samples: list[PositionSample]) -> RigidBodyState:
+        self.imu_changed = False
+        imus = self._screen_imus(t_s, imu_samples)
+        self.usable_imus = imus
+        positions, drift = self._screen_positions(t_s, position_samples)
+        estimate = self.ekf.step(t_s, imus, positions)
+        self._position_status(t_s, bool(positions), drift)
+        return estimate
+
+    def _screen_imus(self, t_s: float, samples: list[ImuSample]) -> list[ImuSample]:
+        hp = self.hp
+        live = [s for s in samples if s is not None]
+        if self._imu_fast(live):
+            return live
+        both = [s for s in live if s.accel_ok and s.gyro_ok]
+        med_gyro = med_accel = None
+        rigid = {}
+        if len(both) >= 3:
+            g = np.array([s.gyro_frd_radps for s in both], dtype=float)
+            a = self._rigid_accels(tuple(s.unit_id for s in both), g, np.array([s.accel_frd_mps2 for s in both]),
+                                   both[0].t_s)
+            med_gyro = np.median(g, axis=0)
+            if a is not None:
+                med_accel = np.median(a, axis=0)
+                rigid = {s.unit_id: a[k] for k, s in enumerate(both)}
+        prev = {}  # unit -> (gyro, accel) of the previous step
+        if self._imu_last is not None:
+            n = len(self._imu_units)
+            prev = {u: (self._imu_last[i], self._imu_last[n + i]) for i, u in enumerate(self._imu_units)}
+        out = []
+        for s in live:
+            ok = True
+            before = prev.get(s.unit_id)
+            for sensor, value, updated, plausible, consistent, median, jump, was in (
+                ("accel", s.accel_frd_mps2, s.accel_ok, hp.accel_plausible_mps2, hp.accel_consistency_mps2, med_accel,
+                 hp.accel_jump_mps2, None if before is None else before[1]),
+                ("gyro", s.gyro_frd_radps, s.gyro_ok, hp.gyro_plausible_radps, hp.gyro_consistency_radps, med_gyro,
+                 hp.gyro_jump_radps, None if before is None else before[0]),
+            ):
+                part = self._part(s.unit_id, sensor)
+                value = np.asarray(value, dtype=float)
+                why = None
+                if not updated:
+                    why = "no data"
+                elif not float(np.abs(value).max()) <= plausible or (
+                        was is not None and not float(np.abs(value - was).max()) <= jump):
+                    why = "implausible"
+                elif part.repeated(value) and part.repeats >= hp.stuck_samples - 1:
+                    why = "stuck"
+                elif median is not None and (sensor == "gyro" or s.unit_id in rigid) and float(np.linalg.norm(
+                        (rigid[s.unit_id] if sensor == "accel" else value) - median)) > consistent:
+                    why = "disagrees"
+                if why in ("no data", "stuck"):  # one such sample is enough to know
+                    part.recent.extend([True] * hp.imu_bad_in_window)
+                ok = self._mark(t_s, s.unit_id, sensor, why is not None, why or "", hp.imu_recover_samples) and ok
+            if ok:
+                out.append(s)
+        self._imu_watch = any(p.failed is not None or p.good_run < hp.imu_window
+                              for (_, kind), p in self._parts.items() if kind != "gps")
+        self._imu_units = tuple([s.unit_id for s in live])
+        self._imu_last = np.array([s.gyro_frd_radps for s in live] + [s.accel_frd_mps2 for s in live], dtype=float) \
+            if live else None
+        return out
+
+    def _rigid_accels(self, units: tuple, g: np.ndarray, a: np.ndarray, t_s: float,
+                      robust: bool = True) -> np.ndarray | None:
+        """The units' specific forces moved to the CoM (minus alpha x r + omega x (omega x r), from the
+        units' rate, median or mean, and its change): on one rigid body they agree up to noise. None when
+        that correction is itself beyond the agreement threshold: the specific forces cannot be judged."""
+        offsets = self._unit_offsets(units)
+        w = np.median(g, axis=0) if robust else _mean_rows(g)
+        wx, wy, wz = w.tolist()
+        ax = ay = az = 0.0
+        last = self._rate_last
+        if last is not None and t_s > last[0]:
+            dt = t_s - last[0]
+            ax, ay, az = (wx - last[1][0]) / dt, (wy - last[1][1]) / dt, (wz - last[1][2]) / dt
+        self._rate_last = (t_s, (wx, wy, wz))
+        if offsets is None:
+            return a
+        xy, xz, yz = wx * wy, wx * wz, wy * wz
+        m_t = np.array((  # M^T, M = [omega]x^2 + [alpha]x: f_i = f_com + M r_i
+            (-(wy * wy + wz * wz), xy + az, xz - ay),
+            (xy - az, -(wx * wx + wz * wz), yz + ax),
+            (xz + ay, yz - ax, -(wx * wx + wy * wy)),
+        ))
+        lever = offsets @ m_t
+        if not float(np.abs(lever).max()) <= self.hp.accel_consistency_mps2:
+            return None  # a shock (touchdown, motors cut): the rate's change is no rigid-body alpha to correct by
+        return a - lever
+
+    def _unit_offsets(self, units: tuple) -> np.ndarray | None:
+        offsets = self._offsets.get(units)
+        if offsets is None:
+            try:
+                offsets = self._offsets[units] = np.array([self.ekf.model.unit_position(u) for u in units], dtype=float)
+            except Exception:  # (an id the model does not know: the EKF counts and drops it)
+                return None
+        return offsets
+
+    def _imu_fast(self, live: list[ImuSample]) -> bool:
+        """The usual step, checked at once: every part updated, plausible, not repeated, in agreement (with
+        the mean: one unit off fails this and the per-sample path judges against the median), and no part
+        failed or recovering. False: the per-sample path decides (and keeps the books)."""
+        hp = self.hp
+        units = tuple([s.unit_id for s in live])
+        k = len(units)
+        prev_units, last = self._imu_units, self._imu_last
+        if not live or self._imu_watch or units != prev_units or not all([s.accel_ok and s.gyro_ok for s in live]):
+            return False
+        both = np.array([s.gyro_frd_radps for s in live] + [s.accel_frd_mps2 for s in live], dtype=float)
+        self._imu_last = both
+        limits = self._limits.get(k)
+        if limits is None:
+            limits = self._limits[k] = (
+                np.repeat([hp.gyro_plausible_radps, hp.accel_plausible_mps2], k)[:, None],
+                np.array([hp.gyro_consistency_radps ** 2, hp.accel_consistency_mps2 ** 2]),
+                np.repeat([hp.gyro_jump_radps, hp.accel_jump_mps2], k)[:, None])
+        # (NaN fails every comparison: `not x <= limit` also refuses it)
+        if not (np.abs(both) <= limits[0]).all() or last is None or (both == last).all(axis=1).any() \
+                or not (np.abs(both - last) <= limits[2]).all():
+            self._imu_last = last  # (the per-sample path records this step)
+            return False
+        if k >= 3:
+            stacked = both.reshape(2, k, 3).copy()  # (both stays the raw samples: the next step's stuck check)
+            rigid = self._rigid_accels(units, stacked[0], stacked[1], live[0].t_s, robust=False)
+            if rigid is None:
+                return False
+            stacked[1] = rigid
+            d = stacked - (np.add.reduce(stacked, 1) / k)[:, None, :]
+            if not ((d * d).sum(axis=2).max(axis=1) <= limits[1]).all():
+                return False
+        return True
+
+    def _screen_positions(self, t_s: float, samples: list[PositionSample]) -> tuple[list[PositionSample], float | None]:
+        """The usable position samples, and the drift they show (mean innovation, m) when they end a loss."""
+        hp, ekf = self.hp, self.ekf
+        if not samples:
+            return [], None
+        units = tuple([s.unit_id for s in samples])
+        try:
+            pos = np.array([s.position_ned_m for s in samples], dtype=float).reshape(len(samples), 3)
+        except (TypeError, ValueError):
+            return samples, None  # (malformed: the EKF counts and drops it)
+        miss = None
+        if getattr(ekf, "initialised", False):
+            offsets = self._unit_offsets(units)
+            if offsets is None:
+                return samples, None
+            miss = pos - (ekf.p + offsets @ quat_to_rotmat(ekf.q).T)
+        last, self._pos_last = self._pos_last, (units, pos)
+        if miss is not None and not self._gps_watch and last is not None and last[0] == units:  # the usual batch
+            gate = self._gate_m()
+            if (miss * miss).sum(axis=1).max() <= gate * gate and not (pos == last[1]).all(axis=1).any():
+                return samples, (float(np.linalg.norm(_mean_rows(miss))) if self.position_lost else None)
+        finite = np.isfinite(pos).all(axis=1)
+        repeated = np.zeros(len(units), dtype=bool) if last is None or last[0] != units else (pos == last[1]).all(axis=1)
+        dist = np.full(len(units), 0.0) if miss is None else np.sqrt((np.nan_to_num(miss) ** 2).sum(axis=1))
+        gate = self._gate_m() if miss is not None else math.inf
+        if not self._gps_watch and finite.all() and not repeated.any() and (dist <= gate).all():
+            drift = float(np.linalg.norm(_mean_rows(miss))) if miss is not None and self.position_lost else None
+            return samples, drift
+        kept, rejected, innovations = [], [], []
+        for k, s in enumerate(samples):
+            part = self._part(s.unit_id, "gps")
+            part.repeats = part.repeats + 1 if repeated[k] else 0
+            why = None
+            if not finite[k]:
+                why = "implausible"
+            elif repeated[k] and part.repeats >= hp.stuck_samples - 1:
+                why = "stuck"
+            elif dist[k] > gate:
+                why = "rejected"
+            elif miss is not None:
+                innovations.append(miss[k])
+            usable = self._mark(t_s, s.unit_id, "gps", why is not None, why or "", hp.position_recover_samples)
+            if why == "rejected":
+                rejected.append(s)
+            elif usable:
+                kept.append(s)
+        self._gps_watch = any(p.failed is not None or p.good_run < hp.position_recover_samples
+                              for (_, kind), p in self._parts.items() if kind == "gps")
+        if rejected and not kept:
+            self._rejected_since_s = t_s if self._rejected_since_s is None else self._rejected_since_s
+            if t_s - self._rejected_since_s >= hp.position_reject_reset_s:  # the estimate, not the sensors, is off
+                self._event(t_s, "estimator_reset", f"GPS accepted after {t_s - self._rejected_since_s:.0f} s rejected")
+                self._rejected_since_s = None
+                return rejected, None
+        elif kept:
+            self._rejected_since_s = None
+        drift = float(np.linalg.norm(np.mean(innovations, axis=0))) if innovations and self.position_lost else None
+        return kept, drift
+
+    def _gate_m(self) -> float:
+        hp, ekf = self.hp, self.ekf
+        P = ekf._ekf.P if hasattr(ekf, "_ekf") else ekf.covariance  # (read, not copied, on the hot path)
+        r = ekf.params.position_noise_m
+        var = float(P[0, 0] + P[1, 1] + P[2, 2]) + 3 * r * r
+        return max(hp.position_gate_floor_m, hp.position_gate_sigma * math.sqrt(var))
+
+    def _position_status(self, t_s: float, fused: bool, drift: float | None) -> None:
+        hp = self.hp
+        if fused:
+            if self.lost_since_s is not None:
+                lost_s = t_s - self.lost_since_s
+                self.last_drift_m = drift
+                what = f"drift {drift:.2f} m" if drift is not None else "estimator reset"
+                self._event(t_s, "position_regained", f"GPS regained after {lost_s:.1f} s: {what}",
+                            lost_s=round(lost_s, 3), drift_m=None if drift is None else round(drift, 4))
+                self.lost_since_s = None
+            self.last_fused_s = t_s
+            return
+        if self.last_fused_s is None or self.lost_since_s is not None:
+            if self.lost_since_s is not None and t_s >= self._next_drift_report:
+                self._next_drift_report = t_s + hp.drift_report_s
+                sigma = self.drift_sigma_m()
+                self._event(t_s, "position_drift", f"GPS lost {t_s - self.lost_since_s:.0f} s: drift 1-sigma {sigma:.2f} m",
+                            drift_sigma_m=round(sigma, 4))
+            return
+        if t_s - self.last_fused_s > hp.position_timeout_s:
+            self.lost_since_s = self.last_fused_s
+            self._next_drift_report = self.last_fused_s + hp.drift_report_s
+            self._event(t_s, "position_lost", "GPS lost: dead reckoning on the IMUs",
+                        since_s=round(self.last_fused_s, 6))
+
+    def drift_sigma_m(self) -> float:
+        """The estimate's horizontal and vertical position 1-sigma, combined (sqrt of the trace)."""
+        return math.sqrt(float(np.trace(self.ekf.covariance[0:3, 0:3])))
