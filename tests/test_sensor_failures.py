@@ -23,7 +23,7 @@ from mars_link.engine import Engine, FlightRecorder
 from mars_link.messages import SensorPacket
 from mars_link.scenario import load_scenario
 from mars_link.scenario_sensor_faults import SensorFaultSpec
-from mars_link.state import ImuSample, PositionSample, RigidBodyState
+from mars_link.state import ImuSample, PositionSample
 from mars_link.wire import new_mav, sensor_packet_messages
 from test_cli_bad_input import GOOD  # a 1 s 3x2 hover
 
