@@ -421,6 +421,10 @@ def _writer_main(read_fd: int) -> None:
                 break
             writer.take(item)
     finally:
+        try:  # the flight waits for the file now: finish at normal priority (SCHED_IDLE gets no CPU on a busy machine)
+            os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except (AttributeError, OSError):
+            pass
         writer.close()
 
 
