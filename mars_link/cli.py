@@ -351,6 +351,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from sitl.parent_watch import hear_stop_signals
+
+    hear_stop_signals()  # Ctrl-C stops every command, whatever mask the parent left
     argv = sys.argv[1:] if argv is None else argv
     if argv[:2] == ["reconfig", "plan"]:  # its own parser and exit codes (0 plan, 1 none feasible, 2 bad input)
         from mars_link.reconfig.cli import reconfig_plan_command

@@ -72,7 +72,7 @@ class Ports:
         return self._tapped(t, node, peer)
 
     def _zenoh(self, node: str, peer: str | None) -> Transport:
-        from mars_link.transport.zenoh_link import ZenohParams, ZenohTransport, make_config
+        from mars_link.transport.zenoh_link import ZenohParams, ZenohTransport, make_config, open_session
 
         spec = self.link
         params = ZenohParams(node=node, fleet=spec.fleet, mode=spec.zenoh_mode, connect=spec.connect,
@@ -81,7 +81,7 @@ class Ports:
             import zenoh
 
             try:
-                self._session = zenoh.open(make_config(params))
+                self._session = open_session(make_config(params))
             except (ValueError, zenoh.ZError) as e:
                 raise UserInputError(f"zenoh: {e}") from None
         t = ZenohTransport(params, session=self._session)

@@ -48,8 +48,18 @@ def _watch(parent: int) -> None:
     os.kill(os.getpid(), signal.SIGKILL)
 
 
+def hear_stop_signals() -> None:
+    """Unblock Ctrl-C and SIGTERM in this thread. A child inherits its parent's signal mask, and a
+    parent (a library that spawned a helper, a supervisor) can leave them blocked: the process would
+    then never stop on them. Ignored signals (nohup, a background job) stay ignored."""
+    if hasattr(signal, "pthread_sigmask"):
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})
+
+
 def die_with_parent() -> bool:
-    """Arm the death signal if this process was started by `child_env`; True when armed."""
+    """Arm the death signal if this process was started by `child_env`; True when armed (and hear
+    the stop signals, which the launcher sends)."""
+    hear_stop_signals()
     text = os.environ.get(PARENT_ENV)
     if not text or not text.isdigit():
         return False

@@ -84,6 +84,7 @@ def _end(proc: subprocess.Popen, pids: dict[str, int]) -> None:
         proc.wait()
 
 
+@pytest.mark.long  # (CI time: -m long; tests/test_sitl_kill.py kills a unit and the world of sitl up in the default run)
 def test_a_killed_unit_is_a_failed_unit_and_a_killed_world_ends_the_run(tmp_path: Path) -> None:
     out = tmp_path / "up"
     proc, pids = _sitl_up(_scenario(tmp_path, 12.0), out)

@@ -53,6 +53,7 @@ def _listener(limits: SessionLimits | None) -> tuple[ZenohTransport, str, int]:
     return ZenohTransport(params), endpoint, port
 
 
+@pytest.mark.long  # (CI time: -m long; it measures Zenoh's own default, which our configs replace)
 def test_zenohs_defaults_block_new_sessions_for_10_s() -> None:
     defaults = SessionLimits(accept_timeout_ms=10000, accept_pending=100, max_sessions=1000)
     cfg = zenoh.Config()  # Zenoh 1.10's own values

@@ -25,6 +25,7 @@ import collections
 import json
 import re
 import select
+import signal
 import socket
 import time
 from dataclasses import dataclass
@@ -119,6 +120,22 @@ def key_for(fleet: str, src: str, dst: str) -> str:
     return f"mars/{fleet}/{dst}/mavlink/down/{src}"
 
 
+_STOP_SIGNALS = {signal.SIGINT, signal.SIGTERM}
+
+
+def open_session(config: zenoh.Config) -> zenoh.Session:
+    """zenoh.open with Ctrl-C and SIGTERM blocked in the threads it starts (they inherit the opening
+    thread's mask): the kernel then hands those signals to a thread that lets Python see them, not to a
+    Zenoh worker while the main thread sleeps in select() and never wakes up to stop."""
+    if not hasattr(signal, "pthread_sigmask"):  # (not POSIX)
+        return zenoh.open(config)
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, _STOP_SIGNALS)
+    try:
+        return zenoh.open(config)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 class ZenohTransport(Transport):
     kind = "zenoh"
 
@@ -138,7 +155,7 @@ class ZenohTransport(Transport):
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
         self._owns_session = session is None
-        self.session = session if session is not None else zenoh.open(make_config(params))
+        self.session = session if session is not None else open_session(make_config(params))
         try:
             f = params.fleet
             src = _check_node(params.only_from) if params.only_from else "*"
@@ -235,4 +252,4 @@ def open_router(port: int | None = None, listen: tuple[str, ...] = (), fleet: st
     port = port or free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     cfg = make_config(ZenohParams(node="router", fleet=fleet, mode="router", listen=(endpoint, *listen)))
-    return zenoh.open(cfg), endpoint
+    return open_session(cfg), endpoint
