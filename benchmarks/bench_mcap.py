@@ -1,8 +1,8 @@
 """What run.mcap and the live Foxglove view cost (mars_link.flight_view), measured in one invocation.
 
-    python benchmarks/bench_mcap.py [--runs 3] [--duration 20] [--size-duration 10] [--rt-runs 2] [--rt-duration 8]
+    python benchmarks/bench_mcap.py [--runs 3] [--duration S] [--size-duration 10] [--rt-runs 2] [--rt-duration 8]
 
-1. In-process real-time factor of the default scenario (3x2 spiral) with run.mcap on and off, runs alternated
+1. In-process real-time factor of the default scenario (3x2 spiral, its whole flight unless --duration) with run.mcap on and off, runs alternated
    (off, on, off, on, ...); wall time of the whole run (the writer process finishing its file included);
    ratio = median RTF on / median RTF off.
 2. run.mcap size per simulated minute: the 3x2 spiral and a 10x10 hover (default rates).
@@ -33,7 +33,12 @@ from mars_link.scenario import load_scenario  # noqa: E402
 
 def inproc_rtf(duration_s: float, runs: int, tmp: Path) -> None:
     sc = load_scenario("spiral_3x2")
-    sc.sim.duration_s = duration_s
+    if duration_s is not None:
+        sc.sim.duration_s = duration_s
+    else:  # the default scenario as `mars-link run` flies it: the whole spiral
+        from mars_link.build import flight_duration_s
+
+        duration_s = flight_duration_s(sc)
     import resource
 
     rtf = {True: [], False: []}
@@ -145,14 +150,14 @@ def realtime_deadlines(runs: int, duration_s: float, tmp: Path) -> None:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--duration", type=float, default=20.0)
+    ap.add_argument("--duration", type=float, default=None, help="simulated s (default: the scenario's own)")
     ap.add_argument("--size-duration", type=float, default=10.0)
     ap.add_argument("--rt-runs", type=int, default=2)
     ap.add_argument("--rt-duration", type=float, default=8.0)
     ap.add_argument("--skip-realtime", action="store_true")
     ap.add_argument("--only", choices=("rtf", "size", "realtime"), default=None, help="one part only")
     a = ap.parse_args()
-    if a.runs < 1 or a.rt_runs < 1 or not (a.duration > 0 and a.size_duration > 0 and a.rt_duration > 0):
+    if a.runs < 1 or a.rt_runs < 1 or not ((a.duration is None or a.duration > 0) and a.size_duration > 0 and a.rt_duration > 0):
         ap.error("--runs/--rt-runs must be >= 1 and durations > 0")
     with tempfile.TemporaryDirectory() as tmp:
         if a.only in (None, "rtf"):
