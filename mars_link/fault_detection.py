@@ -185,6 +185,7 @@ class FaultDetector:
         self.combiner = ImuCombiner(model, gain=0.01)
         self._noise_var: np.ndarray | None = None  # slow memory of the residuals' spread (`_remember_noise`)
         self._noise_next_s = -math.inf
+        self._clean_from_s = -math.inf  # the last declared change's onset: earlier residuals used the old eta
         self.silent_units: set[int] = set()
         self.library = self._build_library()
         self._restart()
@@ -298,8 +299,7 @@ class FaultDetector:
             self._ticks.popleft()
         if self._onset is None:
             self._remember_noise(t_s)
-            if self._noise_var is not None:  # (watched once the air's level is known: noise_window_s aloft)
-                self._watch(tick)
+            self._watch(tick)  # (from the first tick aloft: a unit dead before take-off is a change then)
         if self._onset is not None and t_s - self._onset >= self.params.min_isolation_s:
             return self._isolate(t_s)
         return []
@@ -470,7 +470,8 @@ class FaultDetector:
         """Every `noise_window_s`, the spread of the last window into a slow average (`noise_memory_s`): the
         air's level, so that a calm moment just before a gust does not make the gust look like a fault."""
         p = self.params
-        if self._ticks[0].t_s > t_s - p.noise_window_s or t_s < self._noise_next_s:
+        start = max(self._ticks[0].t_s, self._clean_from_s)
+        if start > t_s - p.noise_window_s or t_s < self._noise_next_s:
             return
         self._noise_next_s = t_s + p.noise_window_s
         spread = self._spread([k for k in self._ticks if k.t_s >= t_s - p.noise_window_s])
@@ -480,7 +481,7 @@ class FaultDetector:
     def _baseline_spread(self, onset: float) -> np.ndarray | None:
         """Standard deviations (force N, momentum x, y, z N m s) of the residuals before the change, each
         about its mean; None without `min_baseline_s` of data before the isolation window."""
-        ticks = [k for k in self._ticks if k.t_s < onset - self.params.pre_onset_s]
+        ticks = [k for k in self._ticks if self._clean_from_s <= k.t_s < onset - self.params.pre_onset_s]
         if len(ticks) < 2 or ticks[-1].t_s - ticks[0].t_s < self.params.min_baseline_s:
             return None if self._noise_var is None else np.sqrt(self._noise_var)
         spread = self._spread(ticks)
@@ -677,6 +678,7 @@ class FaultDetector:
         self._cusum_loss = self._cusum_gain = 0.0
         self._cusum_start = None
         self._baseline_n, self._baseline_count = 0.0, 0
+        self._clean_from_s = onset  # (the air's level is measured again on residuals of the new belief)
         return out
 
 
