@@ -299,7 +299,8 @@ class FaultDetector:
             self._ticks.popleft()
         if self._onset is None:
             self._remember_noise(t_s)
-            self._watch(tick)  # (from the first tick aloft: a unit dead before take-off is a change then)
+            self._watch(tick)  # (from the first tick aloft: a unit dead before take-off is a change then; partial
+            # losses wait for the air's level, `_isolate`)
         if self._onset is not None and t_s - self._onset >= self.params.min_isolation_s:
             return self._isolate(t_s)
         return []
@@ -586,6 +587,8 @@ class FaultDetector:
         A, g, c, dof = self._regression(onset)
         noisy = self._noise_ratio(onset) ** 2
         fits = [f for f in self._fits(A, g, c, dof) if self._moment_confirmed(f, noisy)]
+        if self._noise_var is None:  # the air's level not yet measured (just aloft): whole units only
+            fits = [f for f in fits if f.units is not None]
         self.last_fits = fits[:10]
         elapsed = t_s - onset
         if not fits or fits[0].score < p.detect_score * noisy:
