@@ -81,6 +81,10 @@ class FaultDetectorParams:
     noisy_isolation_factor: float = 3.0  # in noisy air, wait up to this many min_isolation_s before deciding
     noise_window_s: float = 0.5  # the residuals' spread, measured over windows this long ...
     noise_memory_s: float = 5.0  # ... and remembered over this long (the air's level)
+    # before the air's level is measured (the first noise_window_s aloft), a partial loss needs the report score
+    # times (force spread of the ticks before the onset / its model)², when there are this many of them (gusts
+    # just after take-off: 2-6.5x). Whole units are reported as in still air (a unit dead before take-off)
+    early_min_ticks: int = 5
     min_airborne_thrust_fraction: float = 0.6  # below this share of the weight: ground, no FDI
     min_height_m: float = 0.15  # FDI starts this far above the ground level seen at low thrust
     probe_thrust_fraction: float = 0.1  # null-space probe amplitude per rotor, share of hover thrust
@@ -587,8 +591,9 @@ class FaultDetector:
         A, g, c, dof = self._regression(onset)
         noisy = self._noise_ratio(onset) ** 2
         fits = [f for f in self._fits(A, g, c, dof) if self._moment_confirmed(f, noisy)]
-        if self._noise_var is None:  # the air's level not yet measured (just aloft): whole units only
-            fits = [f for f in fits if f.units is not None]
+        if self._noise_var is None:  # just aloft, the air's level not yet measured: what came before the onset
+            need = p.detect_score * self._early_noise_ratio(onset) ** 2
+            fits = [f for f in fits if f.units is not None or f.score >= need]
         self.last_fits = fits[:10]
         elapsed = t_s - onset
         if not fits or fits[0].score < p.detect_score * noisy:
@@ -625,6 +630,13 @@ class FaultDetector:
         noise over its model, at most `noisy_isolation_factor` times): a few ticks of a gusty residual date and
         size a loss poorly."""
         return self.params.min_isolation_s * min(self._noise_ratio(onset), self.params.noisy_isolation_factor)
+
+    def _early_noise_ratio(self, onset: float) -> float:
+        """The force row's spread over its model on the few ticks aloft before `onset` (>= 1; 1 if too few)."""
+        ticks = [k for k in self._ticks if self._clean_from_s <= k.t_s < onset]
+        if len(ticks) < self.params.early_min_ticks:
+            return 1.0
+        return max(1.0, float(self._spread(ticks)[0]) / self._force_sigma(ticks[-1].n_imus))
 
     def _noise_ratio(self, onset: float) -> float:
         """The force row's measured noise over its model (>= 1; about 1 in still air, 5 in moderate
