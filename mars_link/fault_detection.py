@@ -71,6 +71,20 @@ class FaultDetectorParams:
     # ... where that part explains at least this share of what the unit's loss explains (a dead unit's
     # large residual leaves model error that a small extra loss would otherwise fit)
     combined_min_share: float = 0.02
+    # the residuals' own spread before the change (unmodelled air: gusts, rotor drag's yaw) floors their noise
+    # model, row by row: a row this noisy weighs less in the isolation fit. Floors at these fractions of the
+    # measured spread (in still air the models stay above them: the figures there do not move)
+    measured_force_floor: float = 1.0
+    measured_momentum_floor: float = 1.0
+    min_baseline_s: float = 0.3  # the spread needs this much pre-change data (else the models alone)
+    nested_min_share: float = 0.01  # an extra rotor must add this share of the fit's improvement (_parsimonious)
+    noisy_isolation_factor: float = 3.0  # in noisy air, wait up to this many min_isolation_s before deciding
+    noise_window_s: float = 0.5  # the residuals' spread, measured over windows this long ...
+    noise_memory_s: float = 5.0  # ... and remembered over this long (the air's level)
+    # before the air's level is measured (the first noise_window_s aloft), a partial loss needs the report score
+    # times (force spread of the ticks before the onset / its model)², when there are this many of them (gusts
+    # just after take-off: 2-6.5x). Whole units are reported as in still air (a unit dead before take-off)
+    early_min_ticks: int = 5
     min_airborne_thrust_fraction: float = 0.6  # below this share of the weight: ground, no FDI
     min_height_m: float = 0.15  # FDI starts this far above the ground level seen at low thrust
     probe_thrust_fraction: float = 0.1  # null-space probe amplitude per rotor, share of hover thrust
@@ -154,6 +168,7 @@ class FaultDetector:
         self.params = params or FaultDetectorParams()
         self.detections: list[Detection] = []
         self._ground_down_m: float | None = None if ground_down_m is None else float(ground_down_m)
+        self._ground_given = ground_down_m is not None  # (a learnt ground level is only a lower bound)
         self.set_model(model)
 
     # ----------------------------------------------------------------- configuration
@@ -172,6 +187,9 @@ class FaultDetector:
         if self.eta.shape != (self.n,):
             raise UserInputError(f"eta must have {self.n} entries (one per rotor), got {self.eta.shape}")
         self.combiner = ImuCombiner(model, gain=0.01)
+        self._noise_var: np.ndarray | None = None  # slow memory of the residuals' spread (`_remember_noise`)
+        self._noise_next_s = -math.inf
+        self._clean_from_s = -math.inf  # the last declared change's onset: earlier residuals used the old eta
         self.silent_units: set[int] = set()
         self.library = self._build_library()
         self._restart()
@@ -284,7 +302,9 @@ class FaultDetector:
         while self._ticks[0].t_s < t_s - self.params.buffer_s:
             self._ticks.popleft()
         if self._onset is None:
-            self._watch(tick)
+            self._remember_noise(t_s)
+            self._watch(tick)  # (from the first tick aloft: a unit dead before take-off is a change then; partial
+            # losses wait for the air's level, `_isolate`)
         if self._onset is not None and t_s - self._onset >= self.params.min_isolation_s:
             return self._isolate(t_s)
         return []
@@ -316,6 +336,8 @@ class FaultDetector:
             return enough
         down = float(state.position_ned_m[2])
         if not enough:
+            if self._ground_given and not state.on_ground and self._ground_down_m - down >= p.min_height_m:
+                return True  # aloft on little thrust (a dive; a dead corner unit's collapse): no ground to touch
             self._ground_down_m = down if self._ground_down_m is None else max(self._ground_down_m, down)
             return False
         if state.on_ground:
@@ -367,8 +389,12 @@ class FaultDetector:
         return [k for k in self._ticks if k.t_s >= onset - self.params.pre_onset_s]
 
     def _refine_onset(self, t_from: float, t_to: float) -> float:
-        """Date the change by the best single step in the force residual between t_from and t_to."""
-        ticks = [k for k in self._ticks if k.t_s >= t_from - self.params.pre_onset_s]
+        """Date the change between t_from and t_to: the instant where a step in the force residual and a
+        kink in the momentum residual (a loss adds a torque step: its integral bends) explain most, each
+        row weighted by its noise (models floored by the spread before, as in the fit). In gusty air the
+        force alone dates a gust before the fault; the moments do not move with the lift."""
+        p = self.params
+        ticks = [k for k in self._ticks if k.t_s >= t_from - p.pre_onset_s]
         times = np.array([k.t_s for k in ticks])
         resid = np.array([k.force_n for k in ticks]) - np.array([k.thrust_n for k in ticks]) @ self.eta
         n = len(resid)
@@ -379,7 +405,28 @@ class FaultDetector:
         m_pre = csum[cands - 1] / cands
         m_post = (csum[-1] - csum[cands - 1]) / (n - cands)
         gain = cands * (n - cands) / n * (m_post - m_pre) ** 2  # LS improvement of a step at i
+        f_sigma, m_sigma = self._row_sigmas(t_from, int(np.median([k.n_imus for k in ticks])))
+        gain = gain / f_sigma**2
+        h = np.array([self.J @ k.omega + k.gyroscopic_integral for k in ticks])
+        m_res = h - np.array([k.thrust_integral_ns for k in ticks]) @ (self.B_mom * self.eta).T
+        m_res -= m_res.mean(axis=0)
+        ramps = np.maximum(times[None, :] - times[cands, None], 0.0)  # (cands, n): the bend at each candidate
+        ramps -= ramps.mean(axis=1, keepdims=True)
+        fit = (ramps @ m_res) ** 2 / np.maximum(np.sum(ramps**2, axis=1), 1e-18)[:, None]  # (cands, 3)
+        gain = gain + fit @ (1.0 / m_sigma**2)
         return float(times[cands[int(np.argmax(gain))]])
+
+    def _row_sigmas(self, onset: float, n_imus: int) -> tuple[float, np.ndarray]:
+        """Per-tick noise of the force row and of the three momentum rows: the models, floored by the
+        residuals' spread before `onset` (measured_*_floor)."""
+        p = self.params
+        cov = (p.gyro_noise_radps**2 / n_imus) * (self.J @ self.J.T) + p.momentum_model_error_nms**2 * np.eye(3)
+        f_sigma, m_sigma = self._force_sigma(n_imus), np.sqrt(np.diag(cov))
+        spread = self._baseline_spread(onset)
+        if spread is not None:
+            f_sigma = max(f_sigma, p.measured_force_floor * spread[0])
+            m_sigma = np.maximum(m_sigma, p.measured_momentum_floor * spread[1:])
+        return f_sigma, m_sigma
 
     def _regression(self, onset: float) -> tuple[np.ndarray, np.ndarray, float, int]:
         """Weighted normal equations (A, g, c, dof) of residual ~ Phi delta around a change at `onset`.
@@ -401,7 +448,6 @@ class FaultDetector:
         f_phi = -np.where(post[:, None], thrust, 0.0)
         f_res -= f_res.mean()
         f_phi -= f_phi.mean(axis=0)
-        w_f = 1.0 / self._force_sigma(n_imus) ** 2
         # momentum rows: J w + int w x Jw - B_mom diag(eta) int u = h0 - B_mom diag(int_post u) delta
         h = np.array([self.J @ k.omega + k.gyroscopic_integral for k in ticks])
         m_res = h - integ @ (self.B_mom * self.eta).T
@@ -411,6 +457,9 @@ class FaultDetector:
                 m_res[grp] -= m_res[grp].mean(axis=0)
                 m_phi[grp] -= m_phi[grp].mean(axis=0)
         cov = (p.gyro_noise_radps**2 / n_imus) * (self.J @ self.J.T) + p.momentum_model_error_nms**2 * np.eye(3)
+        f_sigma, m_sigma = self._row_sigmas(onset, n_imus)  # (the air's unmodelled force and moments)
+        cov = cov + np.diag(np.maximum(m_sigma**2 - np.diag(cov), 0.0))
+        w_f = 1.0 / f_sigma**2
         white = np.linalg.cholesky(np.linalg.inv(cov)).T  # white.T @ white = cov^-1
         m_res_w = m_res @ white.T
         m_phi_w = np.einsum("ij,kjn->kin", white, m_phi).reshape(-1, self.n)
@@ -421,6 +470,33 @@ class FaultDetector:
         c = w_f * float(f_res @ f_res) + float(np.sum(m_res_w**2))
         dof = len(ticks) - 1 + 3 * (len(ticks) - 1 - int((~post).any()))
         return A, g, c, dof
+
+    def _remember_noise(self, t_s: float) -> None:
+        """Every `noise_window_s`, the spread of the last window into a slow average (`noise_memory_s`): the
+        air's level, so that a calm moment just before a gust does not make the gust look like a fault."""
+        p = self.params
+        start = max(self._ticks[0].t_s, self._clean_from_s)
+        if start > t_s - p.noise_window_s or t_s < self._noise_next_s:
+            return
+        self._noise_next_s = t_s + p.noise_window_s
+        spread = self._spread([k for k in self._ticks if k.t_s >= t_s - p.noise_window_s])
+        a = min(1.0, p.noise_window_s / p.noise_memory_s)
+        self._noise_var = spread**2 if self._noise_var is None else (1 - a) * self._noise_var + a * spread**2
+
+    def _baseline_spread(self, onset: float) -> np.ndarray | None:
+        """Standard deviations (force N, momentum x, y, z N m s) of the residuals before the change, each
+        about its mean; None without `min_baseline_s` of data before the isolation window."""
+        ticks = [k for k in self._ticks if self._clean_from_s <= k.t_s < onset - self.params.pre_onset_s]
+        if len(ticks) < 2 or ticks[-1].t_s - ticks[0].t_s < self.params.min_baseline_s:
+            return None if self._noise_var is None else np.sqrt(self._noise_var)
+        spread = self._spread(ticks)
+        return spread if self._noise_var is None else np.maximum(spread, np.sqrt(self._noise_var))
+
+    def _spread(self, ticks: list[_Tick]) -> np.ndarray:
+        f_res = np.array([k.force_n for k in ticks]) - np.array([k.thrust_n for k in ticks]) @ self.eta
+        h = np.array([self.J @ k.omega + k.gyroscopic_integral for k in ticks])
+        m_res = h - np.array([k.thrust_integral_ns for k in ticks]) @ (self.B_mom * self.eta).T
+        return np.concatenate([[f_res.std()], m_res.std(axis=0)])
 
     def _fits(self, A: np.ndarray, g: np.ndarray, c: float, dof: int) -> list[_Fit]:
         """Bounded least-squares fit of every hypothesis, scored (improvement - penalty), best first.
@@ -506,18 +582,27 @@ class FaultDetector:
 
     def _isolate(self, t_s: float) -> list[Detection]:
         p = self.params
-        onset = self._onset = self._refine_onset(self._cusum_start_s - 3 * self._dt_s, self._alarm_s)
+        # the change may come after the alarm (a gust raised it, the fault follows): the onset is dated up to
+        # min_isolation_s ago, and the decision waits for that much data after it
+        onset = self._onset = self._refine_onset(self._cusum_start_s - 3 * self._dt_s,
+                                                 max(self._alarm_s, t_s - p.min_isolation_s))
+        if t_s - onset < self._min_isolation_s(onset) - 1e-9:
+            return []
         A, g, c, dof = self._regression(onset)
-        fits = [f for f in self._fits(A, g, c, dof) if self._moment_confirmed(f)]
+        noisy = self._noise_ratio(onset) ** 2
+        fits = [f for f in self._fits(A, g, c, dof) if self._moment_confirmed(f, noisy)]
+        if self._noise_var is None:  # just aloft, the air's level not yet measured: what came before the onset
+            need = p.detect_score * self._early_noise_ratio(onset) ** 2
+            fits = [f for f in fits if f.units is not None or f.score >= need]
         self.last_fits = fits[:10]
         elapsed = t_s - onset
-        if not fits or fits[0].score < p.detect_score:
-            if elapsed >= p.max_isolation_s:  # false alarm: resume watching
-                self._onset = None
+        if not fits or fits[0].score < p.detect_score * noisy:
+            if elapsed >= p.max_isolation_s:  # false alarm: resume watching (a new alarm dates itself anew)
+                self._onset = self._cusum_start = None
                 self._cusum_loss = self._cusum_gain = 0.0
                 self._probe = np.zeros(self.n)
             return []
-        best = fits[0]
+        best, fits = self._parsimonious(fits)
         rivals = [f for f in fits[1:] if f.key != best.key]
         margin = best.score - rivals[0].score if rivals else float("inf")
         if margin < p.decide_margin and elapsed < p.max_isolation_s:
@@ -526,15 +611,49 @@ class FaultDetector:
         close = tuple(dict.fromkeys(f.label(self.eta) for f in rivals if best.score - f.score < p.decide_margin))
         return self._declare(t_s, onset, best, close)
 
-    def _moment_confirmed(self, fit: _Fit) -> bool:
+    def _parsimonious(self, fits: list[_Fit]) -> tuple[_Fit, list[_Fit]]:
+        """The best fit, or a fit of fewer rotors inside it that scores within `nested_min_share` of its
+        improvement: with a strong signal, model errors pay a rotor's `param_penalty` many times over (an
+        extra 0.3 loss fitted to the air's yaw), a share of the evidence they do not reach. The supersets so
+        passed over leave the list (they are the same explanation, not a rival)."""
+        best = fits[0]
+        tol = self.params.nested_min_share * max(best.improvement / max(self.last_misfit, 1.0), 0.0)
+        for f in fits[1:]:  # (fewer free losses inside it: a whole unit's failure has none, it stays)
+            if f.n_free < best.n_free and f.key < best.key and best.score - f.score <= tol:
+                best = f
+        if best is fits[0]:
+            return best, fits
+        return best, [best] + [f for f in fits if f is not best and not (f.key > best.key and best.key)]
+
+    def _min_isolation_s(self, onset: float) -> float:
+        """The data needed after the onset: min_isolation_s, longer in noisy air (by the force row's measured
+        noise over its model, at most `noisy_isolation_factor` times): a few ticks of a gusty residual date and
+        size a loss poorly."""
+        return self.params.min_isolation_s * min(self._noise_ratio(onset), self.params.noisy_isolation_factor)
+
+    def _early_noise_ratio(self, onset: float) -> float:
+        """The force row's spread over its model on the few ticks aloft before `onset` (>= 1; 1 if too few)."""
+        ticks = [k for k in self._ticks if self._clean_from_s <= k.t_s < onset]
+        if len(ticks) < self.params.early_min_ticks:
+            return 1.0
+        return max(1.0, float(self._spread(ticks)[0]) / self._force_sigma(ticks[-1].n_imus))
+
+    def _noise_ratio(self, onset: float) -> float:
+        """The force row's measured noise over its model (>= 1; about 1 in still air, 5 in moderate
+        turbulence). Its square scales the scores a report needs: a gust's best fit scores tens, a half
+        rotor's tens of thousands in the same air, and in still air nothing changes."""
+        n_imus = self._ticks[-1].n_imus if self._ticks else 1
+        return max(1.0, self._row_sigmas(onset, n_imus)[0] / self._force_sigma(n_imus))
+
+    def _moment_confirmed(self, fit: _Fit, noisy: float = 1.0) -> bool:
         """Whole-unit hypotheses stand as they are (mirrored pairs are pure lift); a partial loss must
-        also explain the momentum residual on its own."""
+        also explain the momentum residual on its own (`noisy`: the squared noise ratio, as for reports)."""
         if fit.units is not None:
             return True
         a_mom, g_mom = self._momentum_normal
         d = fit.delta
         improvement = (2.0 * float(d @ g_mom) - float(d @ a_mom @ d)) / max(self.last_misfit, 1.0)
-        return improvement >= self.params.moment_confirm_score
+        return improvement >= self.params.moment_confirm_score * noisy
 
     def _probe_direction(self, best: _Fit, rivals: list[_Fit]) -> np.ndarray:
         """Thrust offsets in the null space of B diag(eta_est) that best separate best from rivals."""
@@ -574,6 +693,7 @@ class FaultDetector:
         self._cusum_loss = self._cusum_gain = 0.0
         self._cusum_start = None
         self._baseline_n, self._baseline_count = 0.0, 0
+        self._clean_from_s = onset  # (the air's level is measured again on residuals of the new belief)
         return out
 
 

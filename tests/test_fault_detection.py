@@ -497,3 +497,19 @@ def test_fdi_eval_report_and_plot_from_trials(tmp_path):
     tool.plot(rows, tmp_path / "fdi.png")
     assert (tmp_path / "fdi.png").stat().st_size > 10_000
 
+
+def test_a_dead_corner_unit_is_found_in_gusty_air_while_the_assembly_drops():
+    """Moderate turbulence and 5 m/s wind: unit 3 (a corner of the 3x2) dies at 10 s and the assembly sinks on
+    little thrust. The detector keeps watching aloft (the ground level is known: no contact to fear) and names
+    unit 3 within 0.5 s (it stopped watching below 60 % of the weight and never found it)."""
+    from mars_link.runner import run_trial
+    from mars_link.scenario import FaultSpec, load_scenario
+
+    sc = load_scenario("spiral_3x2_wind")
+    sc.sim.duration_s = 10.6
+    sc.faults_known = False
+    sc.faults.append(FaultSpec(3, None, 0.0, 10.0))
+    r = run_trial(sc, 1)
+    found = [d for d in r.detections if d["t_detected"] >= 10.0]
+    assert found and found[0]["unit"] == 3 and found[0]["rotor"] is None
+    assert found[0]["t_detected"] - 10.0 < 0.5

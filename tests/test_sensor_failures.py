@@ -136,22 +136,42 @@ def test_a_failed_imu_is_not_a_rotor_fault(kind: str, sensor: str, why: str) -> 
     assert track.between(5.0, 12.0)[:, 1].max() < 0.03
 
 
-def test_without_the_guard_the_detector_reads_garbage_as_rotor_faults() -> None:
-    """The same garbage accelerometer with the fault detector fed every unit's raw IMU (as before the
-    guard): it declares rotor/unit faults that did not happen. This is what the guard prevents."""
+def _force_noise_ratio_max(raw: bool) -> float:
+    """The 3x2 hover with unit 3's accelerometer giving garbage from 5 s: the largest force-noise level the
+    fault detector measured (its memory of the residual's spread over its model), fed the guard's IMUs or,
+    with `raw`, every unit's raw IMU (as before the guard)."""
     flight = build_flight(_hover("garbage", "accel"), 1)
     c = flight.coordinator
     commands = c.commands
 
     def raw_imus(t, packets):
         out = commands(t, packets)
-        if c._to_detect is not None:
+        if raw and c._to_detect is not None:
             c._to_detect = (*c._to_detect[:3], [p.imu for p in packets])
         return out
 
     c.commands = raw_imus
-    Engine(flight, [FlightRecorder(flight)]).run()
-    assert c.detections, "the raw IMUs should have fooled the detector"
+    worst = [0.0]
+
+    class Watch:
+        def on_step(self, engine, view) -> bool:
+            d = c.detector
+            if d._noise_var is not None:
+                worst[0] = max(worst[0], float(np.sqrt(d._noise_var[0])) / d._force_sigma(6))
+            return False
+
+    Engine(flight, [FlightRecorder(flight), Watch()]).run()
+    assert c.detections == []
+    return worst[0]
+
+
+def test_without_the_guard_a_garbage_imu_deafens_the_detector() -> None:
+    """The same garbage accelerometer with the detector fed every unit's raw IMU: its measured force noise
+    jumps tens of times over the model, so it would need that squared more evidence to report a real rotor
+    fault for the next seconds (it learnt the air's level from a broken sensor). With the guard the level
+    stays that of the clean IMUs. This is what the guard prevents."""
+    guarded, raw = _force_noise_ratio_max(False), _force_noise_ratio_max(True)
+    assert guarded < 1.5 and raw > 10.0, (guarded, raw)
 
 
 # ----------------------------------------------------------------------------- MAVLink bytes
