@@ -152,6 +152,13 @@ class OutdoorEstimator(AssemblyEstimator):
             self.replayed_ticks += 1
         self.delayed_batches += 1
 
+    def pose_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """The estimate's (position, attitude) at a remembered tick (a GNSS fix's measurement time), else now:
+        the health gate judges a delayed fix against where the body was when it measured."""
+        at = self._tick_at(t_s)
+        tick = self._ticks[at] if at is not None else None
+        return (self.p, self.q) if tick is None else (tick.p, tick.q)
+
     def _tick_at(self, t_s: float) -> int | None:
         for i in range(len(self._ticks) - 1, -1, -1):
             if abs(self._ticks[i].t_s - t_s) < 1e-6:
@@ -298,6 +305,7 @@ def step_estimator(estimator, t_s: float, packets) -> RigidBodyState:
     vehicle host's one path): IMU and mocap/rtk positions, plus the gps profile's outdoor samples."""
     imus = [p.imu for p in packets if p.imu is not None]
     positions = [p.position for p in packets if p.position is not None]
-    if isinstance(estimator, OutdoorEstimator):
-        return estimator.step(t_s, imus, positions, outdoor_inputs(packets, estimator.home))
+    home = getattr(estimator, "home", None)  # an OutdoorEstimator, or its health gate (sensor_health)
+    if home is not None:
+        return estimator.step(t_s, imus, positions, outdoor_inputs(packets, home))
     return estimator.step(t_s, imus, positions)
