@@ -36,6 +36,7 @@ from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import ControlOutput
 from mars_link.coordinator import Coordinator, short_text
 from mars_link.errors import UserInputError
+from mars_link.estimation_outdoor import estimate_settled, step_estimator
 from mars_link.messages import RotorCommand, wire_thrust, wire_time
 from mars_link.scenario import FaultSpec, Scenario
 from mars_link.state import RigidBodyState
@@ -416,9 +417,8 @@ class AssemblySim(EngineSim):
         if self.estimator is None:
             return next((p.truth for p in packets if p.truth is not None), None)
         ekf = self.estimator
-        positions = [p.position for p in packets if p.position is not None]
-        est = ekf.step(t, [p.imu for p in packets], positions)
-        if not ekf.initialised:
+        est = step_estimator(ekf, t, packets)  # (the gps profile's fixes, barometers and magnetometers too)
+        if not estimate_settled(ekf):
             return None
         if self.sensor_watch is not None:
             self.vehicle.set_state(est)  # (the failsafe holds where the estimate says the assembly is)

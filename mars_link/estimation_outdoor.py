@@ -309,3 +309,14 @@ def step_estimator(estimator, t_s: float, packets) -> RigidBodyState:
     if home is not None:
         return estimator.step(t_s, imus, positions, outdoor_inputs(packets, home))
     return estimator.step(t_s, imus, positions)
+
+
+#: the estimate's vertical 1-sigma below which the vehicle takes it (and its home, the ground it arms on)
+SETTLED_SIGMA_DOWN_M = 0.1
+
+
+def estimate_settled(ekf) -> bool:
+    """Initialised and its height settled: the gps profile's filter starts on one GNSS batch (1 m vertical
+    sigma; the barometers settle it within 0.5 s); a home taken then was 2 m off and arming was refused
+    as "in the air" (PX4 likewise blocks arming until its EKF's height is stable)."""
+    return ekf.initialised and float(ekf.covariance[2, 2]) < SETTLED_SIGMA_DOWN_M ** 2

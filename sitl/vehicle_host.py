@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from mars_link.errors import UserInputError
-from mars_link.estimation_outdoor import step_estimator
+from mars_link.estimation_outdoor import estimate_settled, step_estimator
 from mars_link.messages import RotorCommand, SensorPacket
 from mars_link.state import RigidBodyState
 
@@ -229,7 +229,7 @@ class HostedVehicle:
             return next((p.truth for p in packets if p.truth is not None), None)
         ekf = self.estimator
         est = step_estimator(ekf, t_s, packets)
-        if not ekf.initialised:
+        if not estimate_settled(ekf):
             return None
         if self.sensor_watch is not None:
             self.vehicle.set_state(est)

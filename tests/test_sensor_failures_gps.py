@@ -102,7 +102,10 @@ def test_gps_lost_10_s_mid_spiral_in_wind_on_the_gps_profile() -> None:
           f"from 5 s after the return mean {after[:, 1].mean():.3f} max {after[:, 1].max():.3f} "
           f"(no loss: mean {same[:, 1].mean():.3f} max {same[:, 1].max():.3f}) m")
     assert after[:, 1].mean() < same[:, 1].mean() + 0.3
-    assert np.linalg.norm(after[:, 2:5], axis=1).mean() < np.linalg.norm(same[:, 2:5], axis=1).mean() + 0.3
+    # the estimate's error is mostly the receivers' common walk, which follows the clock, not the spiral
+    est_after, est_clean = (np.linalg.norm(x.between(35.0, 38.0)[:, 2:5], axis=1).mean() for x in (track, clean))
+    print(f"estimate error from 5 s after the return {est_after:.3f} m (no loss, same time: {est_clean:.3f} m)")
+    assert est_after < est_clean + 0.3
 
 
 def test_longer_gps_loss_on_the_gps_profile_holds_then_lands() -> None:
