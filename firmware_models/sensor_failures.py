@@ -75,6 +75,14 @@ class SensorFailures:
         self._block: dict[str, tuple[int, bool]] = {}  # intermittent: (block index, lost)
 
     # ----------------------------------------------------------------- control
+    def note_carried(self, baro: bool, mag: bool) -> None:
+        """The unit's packets carry a barometer / magnetometer (the gps profile): their failures can be
+        injected (noted on every packet, not only while a failure is active as `apply` does)."""
+        if baro:
+            self.carried.add("baro")
+        if mag:
+            self.carried.add("mag")
+
     def supports(self, sensor: str, kind: str) -> bool:
         """Whether `kind` can be injected into `sensor` on this unit (a sensor it has, a type it models)."""
         if sensor not in SENSOR_UNITS or kind not in FAILURE_TYPES:
@@ -118,7 +126,7 @@ class SensorFailures:
             imu = ImuSample(imu.t_s, imu.unit_id, gyro, accel, accel_ok and imu.accel_ok, gyro_ok and imu.gyro_ok)
         out = dataclasses.replace(packet, imu=imu, position=pos)
         if "gps" in self.active and packet.gps is not None:  # the gps profile's HIL_GPS: stuck holds the last
-            # fix, every other failure drops it (the outdoor filter has no health gate yet: a lost fix is bridged)
+            # fix (the health gate finds it stale and repeated), every other failure drops it
             held = self._held.setdefault("gps_fix", self._last.get("gps_fix", packet.gps))
             out = dataclasses.replace(out, gps=held if self.active["gps"] == "stuck" else None)
         for name in ("baro", "mag"):
