@@ -370,6 +370,7 @@ class AssemblySim(EngineSim):
         self.estimator_resets = 0  # the EKF's own restarts on the measured positions (after gated batches)
         self.events: list[dict] = []  # faults (scenario and MAVLink), with coordinator.events = the record
         self.sensor_watch = None
+        self.estimate_ready = False  # the estimate has settled once (estimation_outdoor.estimate_settled)
         if self.estimator is not None:  # the coordinator's detector reads the guard's usable IMUs; the vehicle reports
             self.coordinator.guard, self.coordinator.guard_events = self.estimator, False
             self.sensor_watch = VehicleSensorWatch(self.vehicle, self.estimator, self.events)
@@ -418,8 +419,9 @@ class AssemblySim(EngineSim):
             return next((p.truth for p in packets if p.truth is not None), None)
         ekf = self.estimator
         est = step_estimator(ekf, t, packets)  # (the gps profile's fixes, barometers and magnetometers too)
-        if not estimate_settled(ekf):
+        if not ekf.initialised or not (self.estimate_ready or estimate_settled(ekf)):
             return None
+        self.estimate_ready = True  # (once: a failsafe's dead reckoning later grows the sigma again)
         if self.sensor_watch is not None:
             self.vehicle.set_state(est)  # (the failsafe holds where the estimate says the assembly is)
             self.sensor_watch.update(t)
