@@ -78,6 +78,15 @@ def _mean_rows(x: np.ndarray) -> np.ndarray:
     return np.add.reduce(x, 0) / len(x)
 
 
+def _majority_median(x: np.ndarray, limit: float) -> np.ndarray | None:
+    """The rows' median, to judge each row against; None when most rows are beyond `limit` of it: a vote
+    cannot fail a majority (a take-off's ground contact in turbulence put 5 of 6 accelerometers 3 m/s^2
+    from the median; dropping them left one IMU to level the body and the gps profile's heading drifted 11 deg)."""
+    med = np.median(x, axis=0)
+    off = np.sqrt(((x - med) ** 2).sum(axis=1)) > limit
+    return None if 2 * int(off.sum()) > len(x) else med
+
+
 class _PartHealth:
     """One unit's accelerometer, gyro or gps: failed or not, and why."""
 
@@ -266,18 +275,26 @@ class SensorGuard:
             g = np.array([s.gyro_frd_radps for s in both], dtype=float)
             a = self._rigid_accels(tuple(s.unit_id for s in both), g, np.array([s.accel_frd_mps2 for s in both]),
                                    both[0].t_s)
-            med_gyro = np.median(g, axis=0)
+            med_gyro = _majority_median(g, hp.gyro_consistency_radps)
             if a is not None:
-                med_accel = np.median(a, axis=0)
+                med_accel = _majority_median(a, hp.accel_consistency_mps2)
                 rigid = {s.unit_id: a[k] for k, s in enumerate(both)}
         prev = {}  # unit -> (gyro, accel) of the previous step
         if self._imu_last is not None:
             n = len(self._imu_units)
             prev = {u: (self._imu_last[i], self._imu_last[n + i]) for i, u in enumerate(self._imu_units)}
+        # a jump most units share is the body's (a touchdown, a take-off's ground contact), not a sensor's
+        shared_jump = {}
+        for k, (limit, col) in enumerate(((hp.accel_jump_mps2, "accel_frd_mps2"), (hp.gyro_jump_radps, "gyro_frd_radps"))):
+            jumped = [float(np.abs(np.asarray(getattr(s, col), dtype=float) - prev[s.unit_id][1 - k]).max()) > limit
+                      for s in live if s.unit_id in prev]
+            shared_jump[k] = 2 * sum(jumped) > len(live)
         out = []
         for s in live:
             ok = True
             before = prev.get(s.unit_id)
+            if before is not None and (shared_jump[0] or shared_jump[1]):
+                before = (None if shared_jump[1] else before[0], None if shared_jump[0] else before[1])
             for sensor, value, updated, plausible, consistent, median, jump, was in (
                 ("accel", s.accel_frd_mps2, s.accel_ok, hp.accel_plausible_mps2, hp.accel_consistency_mps2, med_accel,
                  hp.accel_jump_mps2, None if before is None else before[1]),
