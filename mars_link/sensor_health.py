@@ -132,6 +132,8 @@ class SensorGuard:
         outdoor = getattr(estimator, "outdoor", None)  # the gps profile's filter: GNSS noise is not isotropic
         self._axis_w = None if outdoor is None else np.array((1.0, 1.0, outdoor.horizontal_noise_m / outdoor.vertical_noise_m))
         self._aux_seen: dict[tuple[int, str], float] = {}  # (unit, baro|mag) -> last sample's time
+        self._aux_last: dict[str, tuple] = {}  # baro|mag -> (units, values) of the last batch
+        self._aux_watch: dict[str, bool] = {}  # baro|mag -> the per-unit path runs (a part failed or recovering)
 
     def __getattr__(self, name: str):  # everything else is the estimator's (initialised, stats, set_model, ...)
         if name == "ekf":
@@ -231,11 +233,29 @@ class SensorGuard:
         keep = {}
         for name, u_field, v_field in (("baro", "baro_units", "baro_down_m"), ("mag", "mag_units", "mag_frd_gauss")):
             us, values = getattr(inputs, u_field), getattr(inputs, v_field)
+            if self._aux_fast(t_s, name, us, values):
+                continue
             ok = [self._aux_ok(t_s, u, name, values[k]) for k, u in enumerate(us)]
             keep[u_field] = tuple(u for u, good in zip(us, ok) if good)
             keep[v_field] = values[np.array(ok, dtype=bool)] if len(us) else values
         self._aux_missing(t_s, units, inputs.baro_units, inputs.mag_units)
-        return replace(inputs, gps=gps, **keep), drift
+        for name in ("baro", "mag"):
+            self._aux_watch[name] = any(p.failed is not None or p.good_run < self.hp.imu_window
+                                        for (_, kind), p in self._parts.items() if kind == name)
+        return (replace(inputs, gps=gps, **keep) if keep or gps is not inputs.gps else inputs), drift
+
+    def _aux_fast(self, t_s: float, name: str, units: tuple, values: np.ndarray) -> bool:
+        """The usual barometer or magnetometer batch, checked at once: the same units as last time, every
+        part healthy with a clean history, finite, no row repeated. False: the per-unit path decides."""
+        last = self._aux_last.get(name)
+        self._aux_last[name] = (units, values)
+        if not units or last is None or last[0] != units or self._aux_watch.get(name, True):
+            return False
+        if not np.isfinite(values).all() or (values == last[1]).reshape(len(units), -1).all(axis=1).any():
+            return False
+        for u in units:
+            self._aux_seen[(u, name)] = t_s
+        return True
 
     def _aux_ok(self, t_s: float, unit: int, name: str, value) -> bool:
         """One barometer or magnetometer sample: finite and not repeated bit for bit."""
