@@ -115,7 +115,7 @@ class SensorGuard:
         self.events: list[dict] = []
         self._taken = 0
         self.usable_imus: list[ImuSample] = []
-        self.imu_changed = False  # a part failed this step (the fault detector restarts)
+        self.imu_changed = False  # a part failed, or the position returned after a loss, this step (the fault detector restarts)
         self.last_fused_s: float | None = None  # last step with an accepted position
         self.lost_since_s: float | None = None  # the assembly's position is lost since (None: not lost)
         self._rejected_since_s: float | None = None
@@ -500,6 +500,7 @@ class SensorGuard:
                 self._event(t_s, "position_regained", f"GPS regained after {lost_s:.1f} s: {what}",
                             lost_s=round(lost_s, 3), drift_m=None if drift is None else round(drift, 4))
                 self.lost_since_s = None
+                self.imu_changed = True  # the estimate jumps by the drift: the detector's history is not of this body
             self.last_fused_s = t_s
             return
         if self.last_fused_s is None or self.lost_since_s is not None:

