@@ -203,3 +203,21 @@ def test_baro_off_over_mavlink_on_the_assembly_vehicle() -> None:
         assert sim.vehicle.armed
     finally:
         sim.close()
+
+
+def test_a_wrong_fix_is_rejected_not_fused() -> None:
+    """Unit 3's receiver 5 m north of the truth (a multipath jump) for 6 s of a 3x2 hover on the gps
+    profile: its fixes are rejected at the first one (the gate judges them against the estimate of the
+    tick they measure), the position is never lost (five receivers left), the estimate is not pulled
+    (truth), no rotor fault."""
+    sc = _hover("gps", "wrong")
+    sc.sensor_faults = [SensorFaultSpec(5.0, "gps", "wrong", 3, 6.0)]
+    flight, track, events = fly(sc)
+    failed = first(events, "sensor_failed")
+    assert (failed["unit"], failed["sensor"], failed["reason"]) == (3, "gps", "rejected") and 5.0 <= failed["t_s"] <= 5.25
+    assert not any(e["type"] in ("position_lost", "estimator_reset") for e in events)
+    assert first(events, "sensor_ok")["t_s"] > 11.0
+    before, during = (np.linalg.norm(track.between(a, b)[:, 2:5], axis=1).max() for a, b in ((3.0, 5.0), (5.0, 11.0)))
+    print(f"\nwrong fix on unit 3: estimate error max before {before:.3f}, during {during:.3f} m")
+    assert during < before + 0.2
+    assert flight.coordinator.detections == []
