@@ -12,7 +12,8 @@ What it checks, per unit and sensor, before the EKF sees a sample:
   `gyro_plausible_radps`, `accel_jump_mps2`, `gyro_jump_radps`: a spinning quadrotor with a dead rotor
   turns at 20 rad/s, so the range alone is not enough), and, with three or
   more units reporting, disagreement with the others' median (one rigid body: one rate, one specific
-  force up to the lever-arm terms). A bad sample is dropped; `imu_bad_in_window` bad samples in the
+  force up to the lever-arm terms). A bad sample is dropped (one that only disagrees is kept until its part
+  fails; a vote cannot fail a majority); `imu_bad_in_window` bad samples in the
   last `imu_window` mark the part failed (dropped until `imu_recover_samples` good ones in a row).
   The other units' IMUs carry the body; the fault detector gets only the usable IMUs and restarts its
   history when a part fails (`imu_changed`), so a sensor failure is not read as a rotor fault.
@@ -336,7 +337,10 @@ class SensorGuard:
                     why = "disagrees"
                 if why in ("no data", "stuck"):  # one such sample is enough to know
                     part.recent.extend([True] * hp.imu_bad_in_window)
-                ok = self._mark(t_s, s.unit_id, sensor, why is not None, why or "", hp.imu_recover_samples) and ok
+                usable = self._mark(t_s, s.unit_id, sensor, why is not None, why or "", hp.imu_recover_samples)
+                if why == "disagrees":  # a vote's lone outlier (turbulence on a noisy lever-arm term) is kept
+                    usable = part.failed is None  # until the part fails: dropping it skewed the gps heading 3 deg
+                ok = usable and ok
             if ok:
                 out.append(s)
         self._imu_watch = any(p.failed is not None or p.good_run < hp.imu_window
