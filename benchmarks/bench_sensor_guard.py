@@ -1,10 +1,12 @@
 """What the EKF's sensor-health gate (mars_link/sensor_health.py) costs: the in-process 3x2 spiral with
 the gate in front of the EKF (as every flight has it) against the bare EKF, alternated in one run.
 
-    python benchmarks/bench_sensor_guard.py [--duration 20] [--runs 3]
+    python benchmarks/bench_sensor_guard.py [--duration 20] [--runs 3] [--sensors mocap|gps|both]
 
 Prints the CPU time per simulated second of each, their medians and the ratio (guarded / bare), and the
-gate's own share: the time inside SensorGuard.step minus the EKF's step it calls.
+gate's own share: the time inside SensorGuard.step minus the EKF's step it calls. `--sensors gps`: the
+same spiral on the gps profile (the outdoor EKF's gate: GNSS fixes at 5 Hz, barometers and
+magnetometers at 50 Hz screened per unit); `both`: one after the other in the same run.
 """
 
 from __future__ import annotations
@@ -20,12 +22,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from mars_link.build import build_flight  # noqa: E402
 from mars_link.engine import Engine  # noqa: E402
 from mars_link.scenario import load_scenario  # noqa: E402
+from mars_link.sensor_profiles import PROFILES  # noqa: E402
 
 
-def fly(duration_s: float, guarded: bool) -> tuple[float, float, float]:
+def fly(duration_s: float, guarded: bool, sensors: str = "mocap") -> tuple[float, float, float]:
     """(CPU s per simulated s of the whole flight, of the gate's own work, of the EKF's step)."""
     sc = load_scenario("spiral_3x2")
     sc.sim.duration_s = duration_s
+    sc.sensors = PROFILES[sensors]
     flight = build_flight(sc, 1)
     guard = flight.coordinator.estimator
     ekf = guard.ekf
@@ -42,7 +46,8 @@ def fly(duration_s: float, guarded: bool) -> tuple[float, float, float]:
 
     ekf.step = timed(ekf.step, "ekf")
     if guarded:
-        flight.coordinator.estimator = type("Timed", (), {"step": staticmethod(timed(guard.step, "guard"))})()
+        flight.coordinator.estimator = type("Timed", (), {"step": staticmethod(timed(guard.step, "guard")),
+                                                          "home": getattr(ekf, "home", None)})()
     else:
         flight.coordinator.estimator, flight.coordinator.guard, flight.coordinator.failsafe = ekf, None, None
     cpu0 = time.process_time()
@@ -56,23 +61,32 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=20.0)
     ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--sensors", default="mocap", help="mocap | gps | both")
     a = ap.parse_args()
     if a.duration <= 0 or a.runs < 1:
         print("error: --duration must be > 0 and --runs >= 1", file=sys.stderr)
         sys.exit(2)
-    fly(1.0, True)  # warm-up: imports and first-use costs
+    if a.sensors not in ("mocap", "gps", "both"):
+        print(f"error: --sensors must be mocap, gps or both, got {a.sensors!r}", file=sys.stderr)
+        sys.exit(2)
+    for sensors in (("mocap", "gps") if a.sensors == "both" else (a.sensors,)):
+        compare(a.duration, a.runs, sensors)
+
+
+def compare(duration_s: float, runs: int, sensors: str) -> None:
+    fly(1.0, True, sensors)  # warm-up: imports and first-use costs
     rows = {True: [], False: []}
-    for k in range(a.runs):
+    for k in range(runs):
         for guarded in (k % 2 == 0, k % 2 != 0):  # alternated, so a load change hits both
-            rows[guarded].append(fly(a.duration, guarded))
+            rows[guarded].append(fly(duration_s, guarded, sensors))
             cpu, own, ekf = rows[guarded][-1]
-            print(f"run {k + 1} {'guarded' if guarded else 'bare   '}: {cpu * 1e3:7.1f} ms CPU per sim s "
+            print(f"{sensors} run {k + 1} {'guarded' if guarded else 'bare   '}: {cpu * 1e3:7.1f} ms CPU per sim s "
                   f"(EKF step {ekf * 1e3:.1f} ms, gate's own {own * 1e3:.1f} ms)", flush=True)
     g = statistics.median(r[0] for r in rows[True])
     b = statistics.median(r[0] for r in rows[False])
     own = statistics.median(r[1] for r in rows[True])
-    print(f"median CPU per simulated second: guarded {g * 1e3:.1f} ms, bare {b * 1e3:.1f} ms, ratio {g / b:.3f}; "
-          f"the gate's own work {own * 1e3:.1f} ms ({own / g:.1%} of the guarded flight)")
+    print(f"{sensors}: median CPU per simulated second: guarded {g * 1e3:.1f} ms, bare {b * 1e3:.1f} ms, "
+          f"ratio {g / b:.3f}; the gate's own work {own * 1e3:.1f} ms ({own / g:.1%} of the guarded flight)", flush=True)
 
 
 if __name__ == "__main__":

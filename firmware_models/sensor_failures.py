@@ -75,6 +75,14 @@ class SensorFailures:
         self._block: dict[str, tuple[int, bool]] = {}  # intermittent: (block index, lost)
 
     # ----------------------------------------------------------------- control
+    def note_carried(self, baro: bool, mag: bool) -> None:
+        """The unit's packets carry a barometer / magnetometer (the gps profile): their failures can be
+        injected (noted on every packet, not only while a failure is active as `apply` does)."""
+        if baro:
+            self.carried.add("baro")
+        if mag:
+            self.carried.add("mag")
+
     def supports(self, sensor: str, kind: str) -> bool:
         """Whether `kind` can be injected into `sensor` on this unit (a sensor it has, a type it models)."""
         if sensor not in SENSOR_UNITS or kind not in FAILURE_TYPES:
@@ -118,9 +126,13 @@ class SensorFailures:
             imu = ImuSample(imu.t_s, imu.unit_id, gyro, accel, accel_ok and imu.accel_ok, gyro_ok and imu.gyro_ok)
         out = dataclasses.replace(packet, imu=imu, position=pos)
         if "gps" in self.active and packet.gps is not None:  # the gps profile's HIL_GPS: stuck holds the last
-            # fix, every other failure drops it (the outdoor filter has no health gate yet: a lost fix is bridged)
+            # fix (the health gate finds it stale and repeated), wrong moves it by `wrong_position_m`, every
+            # other failure drops it
             held = self._held.setdefault("gps_fix", self._last.get("gps_fix", packet.gps))
-            out = dataclasses.replace(out, gps=held if self.active["gps"] == "stuck" else None)
+            kind = self.active["gps"]
+            fix = held if kind == "stuck" else _moved_fix(packet.gps, self.figures.wrong_position_m) if kind == "wrong" \
+                else None
+            out = dataclasses.replace(out, gps=fix)
         for name in ("baro", "mag"):
             value = getattr(packet, name, None)
             if name in self.active and value is not None:
@@ -206,3 +218,13 @@ class SensorFailures:
             old = self._delayed(part, t, value)
             return (value, False) if old is None else (np.array(old, dtype=float), True)
         return value, self._passes(part, t, kind)  # slow, intermittent: not updated in between
+
+
+def _moved_fix(fix, offset_ned_m) -> object:
+    """A HIL_GPS fix moved by `offset_ned_m` (a multipath jump), at the wire's precision."""
+    from mars_link.gnss import gps_ned, home
+
+    origin = home()
+    pos, _ = gps_ned(fix, origin)
+    lat, lon, alt = origin.to_global_int(pos + np.asarray(offset_ned_m, dtype=float))
+    return dataclasses.replace(fix, lat_e7=lat, lon_e7=lon, alt_mm=alt)

@@ -13,8 +13,8 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.geo import WIRE_ORIGIN
 from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
 from mars_link.state import ImuSample, RigidBodyState
-from mars_link.wire import (SensorFrames, battery_from_message, battery_report_message, latch_from_message, latch_message,
-                            latches_open, sensor_packet_messages)
+from mars_link.wire import (BARO_FIELDS, MAG_FIELDS, SensorFrames, battery_from_message, battery_report_message,
+                            latch_from_message, latch_message, latches_open, sensor_packet_messages)
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
 
 
@@ -65,6 +65,9 @@ class HilMixin:
         if self._battery_pending is not None:
             report = self._measure_battery(self._battery_pending, frames.imu.time_usec / 1e6)
             self._battery_pending = None
+        flags = frames.imu.fields_updated
+        if flags & (BARO_FIELDS | MAG_FIELDS):
+            self.sensor_failures.note_carried(flags & BARO_FIELDS == BARO_FIELDS, flags & MAG_FIELDS == MAG_FIELDS)
         if forward:  # (on the real-time path: straight from the received fields, unless a sensor failed)
             if self.sensor_failures.any:  # the failed sensors' packet (sensor_failures)
                 upstream = sensor_packet_messages(self.sensor_failures.apply(frames.packet()), upstream=True)
@@ -137,6 +140,8 @@ class HilMixin:
             self.set_state(unit_truth)
         if self._scheduled_sensor_failures:
             self._sensor_failures_due(packet.t_s)
+        if packet.baro is not None or packet.mag is not None:
+            self.sensor_failures.note_carried(packet.baro is not None, packet.mag is not None)
         if self.sensor_failures.any:
             packet = self.sensor_failures.apply(packet)
         self.latches = packet.latches

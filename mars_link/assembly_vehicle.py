@@ -36,6 +36,7 @@ from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import ControlOutput
 from mars_link.coordinator import Coordinator, short_text
 from mars_link.errors import UserInputError
+from mars_link.estimation_outdoor import estimate_settled, step_estimator
 from mars_link.messages import RotorCommand, wire_thrust, wire_time
 from mars_link.scenario import FaultSpec, Scenario
 from mars_link.state import RigidBodyState
@@ -369,6 +370,7 @@ class AssemblySim(EngineSim):
         self.estimator_resets = 0  # the EKF's own restarts on the measured positions (after gated batches)
         self.events: list[dict] = []  # faults (scenario and MAVLink), with coordinator.events = the record
         self.sensor_watch = None
+        self.estimate_ready = False  # the estimate has settled once (estimation_outdoor.estimate_settled)
         if self.estimator is not None:  # the coordinator's detector reads the guard's usable IMUs; the vehicle reports
             self.coordinator.guard, self.coordinator.guard_events = self.estimator, False
             self.sensor_watch = VehicleSensorWatch(self.vehicle, self.estimator, self.events)
@@ -416,10 +418,10 @@ class AssemblySim(EngineSim):
         if self.estimator is None:
             return next((p.truth for p in packets if p.truth is not None), None)
         ekf = self.estimator
-        positions = [p.position for p in packets if p.position is not None]
-        est = ekf.step(t, [p.imu for p in packets], positions)
-        if not ekf.initialised:
+        est = step_estimator(ekf, t, packets)  # (the gps profile's fixes, barometers and magnetometers too)
+        if not ekf.initialised or not (self.estimate_ready or estimate_settled(ekf)):
             return None
+        self.estimate_ready = True  # (once: a failsafe's dead reckoning later grows the sigma again)
         if self.sensor_watch is not None:
             self.vehicle.set_state(est)  # (the failsafe holds where the estimate says the assembly is)
             self.sensor_watch.update(t)

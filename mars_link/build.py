@@ -175,21 +175,20 @@ def make_estimator(scenario: Scenario, model: AssemblyModel):
     from mars_link.estimation import AssemblyEstimator, EstimatorParams
     from mars_link.sensor_profiles import MIN_EKF_VELOCITY_NOISE_MPS
 
-    from mars_link.sensor_health import SensorGuard
+    from mars_link.sensor_health import GPS_HEALTH, SensorGuard
 
     p = scenario.sensors  # the EKF is told the profile's figures
     if p.outdoor:
         from mars_link.estimation_outdoor import OutdoorEstimator, OutdoorParams
 
-        # (the sensor guard wraps the mocap/rtk filter only: not yet the gps profile's outdoor one)
-        return OutdoorEstimator(model, EstimatorParams(
+        return SensorGuard(OutdoorEstimator(model, EstimatorParams(  # the same gate as mocap/rtk, GPS_HEALTH's figures
             position_noise_m=p.position_noise_m, velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS)),
             OutdoorParams(horizontal_noise_m=max(p.position_noise_m, 1e-3), vertical_noise_m=max(p.vertical_noise_m, 1e-3),
                           velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS),
                           delay_s=round(p.gps_latency_s * scenario.sim.control_hz) / scenario.sim.control_hz,
                           baro_noise_m=math.hypot(p.baro_noise_m, BARO_DRIFT_ALLOWANCE_S ** 0.5 * p.baro_drift_m_per_sqrt_s, 0.01),
                           heading_noise_rad=math.hypot(math.radians(p.mag_heading_noise_deg), EKF_HEADING_LEAK_RAD),
-                          declination_rad=math.radians(p.mag_declination_deg)))
+                          declination_rad=math.radians(p.mag_declination_deg))), GPS_HEALTH)
     return SensorGuard(AssemblyEstimator(model, EstimatorParams(  # failed sensors are rejected or bridged
         position_noise_m=max(p.position_noise_m, 1e-4),
         velocity_noise_mps=max(p.velocity_noise_mps, MIN_EKF_VELOCITY_NOISE_MPS))))

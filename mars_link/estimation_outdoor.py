@@ -152,6 +152,13 @@ class OutdoorEstimator(AssemblyEstimator):
             self.replayed_ticks += 1
         self.delayed_batches += 1
 
+    def pose_at(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """The estimate's (position, attitude) at a remembered tick (a GNSS fix's measurement time), else now:
+        the health gate judges a delayed fix against where the body was when it measured."""
+        at = self._tick_at(t_s)
+        tick = self._ticks[at] if at is not None else None
+        return (self.p, self.q) if tick is None else (tick.p, tick.q)
+
     def _tick_at(self, t_s: float) -> int | None:
         for i in range(len(self._ticks) - 1, -1, -1):
             if abs(self._ticks[i].t_s - t_s) < 1e-6:
@@ -298,6 +305,18 @@ def step_estimator(estimator, t_s: float, packets) -> RigidBodyState:
     vehicle host's one path): IMU and mocap/rtk positions, plus the gps profile's outdoor samples."""
     imus = [p.imu for p in packets if p.imu is not None]
     positions = [p.position for p in packets if p.position is not None]
-    if isinstance(estimator, OutdoorEstimator):
-        return estimator.step(t_s, imus, positions, outdoor_inputs(packets, estimator.home))
+    home = getattr(estimator, "home", None)  # an OutdoorEstimator, or its health gate (sensor_health)
+    if home is not None:
+        return estimator.step(t_s, imus, positions, outdoor_inputs(packets, home))
     return estimator.step(t_s, imus, positions)
+
+
+#: the estimate's vertical 1-sigma below which the vehicle takes it (and its home, the ground it arms on)
+SETTLED_SIGMA_DOWN_M = 0.1
+
+
+def estimate_settled(ekf) -> bool:
+    """Initialised and its height settled: the gps profile's filter starts on one GNSS batch (1 m vertical
+    sigma; the barometers settle it within 0.5 s); a home taken then was 2 m off and arming was refused
+    as "in the air" (PX4 likewise blocks arming until its EKF's height is stable)."""
+    return ekf.initialised and float(ekf.covariance[2, 2]) < SETTLED_SIGMA_DOWN_M ** 2

@@ -67,6 +67,10 @@ class VehicleSensorWatch:
         if lost is None:
             if self.state == "hold":
                 self.state = "normal"
+                if v.mode == MODE_HOLD and v.armed and not v.autopilot.landed:
+                    # the estimate jumped by the drift: hold where the assembly is, not fly the jump back
+                    # (PX4 likewise moves its setpoint by the EKF's reset delta)
+                    v.autopilot.hold(v.state)
                 self._say(t_s, "failsafe_resume", "Position regained: holding")
             return
         if not v.armed or v.landed or v.state is None:

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from mars_link.errors import UserInputError
-from mars_link.estimation_outdoor import step_estimator
+from mars_link.estimation_outdoor import estimate_settled, step_estimator
 from mars_link.messages import RotorCommand, SensorPacket
 from mars_link.state import RigidBodyState
 
@@ -106,6 +106,7 @@ class HostedVehicle:
         self.vehicle.on_failure = self._inject
         self.sensor_events: list[dict] = []  # the estimator's sensor findings and the failsafe (vehicle_sensor_watch)
         self.sensor_watch = None
+        self.estimate_ready = False  # the estimate has settled once (estimation_outdoor.estimate_settled)
         if self.estimator is not None:
             from mars_link.vehicle_sensor_watch import VehicleSensorWatch
 
@@ -229,8 +230,9 @@ class HostedVehicle:
             return next((p.truth for p in packets if p.truth is not None), None)
         ekf = self.estimator
         est = step_estimator(ekf, t_s, packets)
-        if not ekf.initialised:
+        if not ekf.initialised or not (self.estimate_ready or estimate_settled(ekf)):
             return None
+        self.estimate_ready = True  # (once: a failsafe's dead reckoning later grows the sigma again)
         if self.sensor_watch is not None:
             self.vehicle.set_state(est)
             self.sensor_watch.update(t_s)
