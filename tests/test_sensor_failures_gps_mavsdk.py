@@ -112,6 +112,7 @@ async def _gps_loss(api_port: int, status: Path) -> dict:
     return r
 
 
+@pytest.mark.long  # (CI time: -m long; MAVSDK's GPS loss on sitl up and the gps profile's losses in-process stay in the default run)
 def test_mavsdk_gps_off_on_the_gps_profile_vehicle(tmp_path: Path) -> None:
     scenario = tmp_path / "hover_3x2_gps.toml"
     scenario.write_text(GPS_SCENARIO)
