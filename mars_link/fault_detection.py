@@ -250,8 +250,10 @@ class FaultDetector:
         self.eta[self.model.unit_slots(unit_id)] = 0.0
         det = Detection(t_s, unit_id, None, 0.0, reason="silent")
         self.detections.append(det)
-        self._onset = None
-        self._cusum_loss = self._cusum_gain = 0.0
+        # the history was measured with the unit alive and its IMU in the mix: judged against the new belief
+        # it reads as a change (a 3x2 that lost unit 3 named unit 5 dead 0.1 s later), so start afresh
+        self._restart()
+        self._clean_from_s = t_s
         return det
 
     def update(
