@@ -79,6 +79,10 @@ class FaultDetectorParams:
     min_baseline_s: float = 0.3  # the spread needs this much pre-change data (else the models alone)
     nested_min_share: float = 0.01  # an extra rotor must add this share of the fit's improvement (_parsimonious)
     noisy_isolation_factor: float = 3.0  # in noisy air, wait up to this many min_isolation_s before deciding
+    # ... unless a whole unit's loss is overwhelming: its fit scores this many times what a report needs there and
+    # leads every rival by decide_margin times (noise ratio)². It then decides at min_isolation_s, as in still air
+    # (a dead corner unit flown 0.2 s on the wrong allocation in light air lost the flight that, told, held)
+    overwhelming_factor: float = 10.0
     noise_window_s: float = 0.5  # the residuals' spread, measured over windows this long ...
     noise_memory_s: float = 5.0  # ... and remembered over this long (the air's level)
     # before the air's level is measured (the first noise_window_s aloft), a partial loss needs the report score
@@ -588,8 +592,10 @@ class FaultDetector:
         # min_isolation_s ago, and the decision waits for that much data after it
         onset = self._onset = self._refine_onset(self._cusum_start_s - 3 * self._dt_s,
                                                  max(self._alarm_s, t_s - p.min_isolation_s))
-        if t_s - onset < self._min_isolation_s(onset) - 1e-9:
+        elapsed = t_s - onset
+        if elapsed < p.min_isolation_s - 1e-9:
             return []
+        early = elapsed < self._min_isolation_s(onset) - 1e-9  # noisy air: only an overwhelming unit loss now
         A, g, c, dof = self._regression(onset)
         noisy = self._noise_ratio(onset) ** 2
         fits = [f for f in self._fits(A, g, c, dof) if self._moment_confirmed(f, noisy)]
@@ -597,7 +603,8 @@ class FaultDetector:
             need = p.detect_score * self._early_noise_ratio(onset) ** 2
             fits = [f for f in fits if f.units is not None or f.score >= need]
         self.last_fits = fits[:10]
-        elapsed = t_s - onset
+        if early and not self._overwhelming(fits, noisy):
+            return []
         if not fits or fits[0].score < p.detect_score * noisy:
             if elapsed >= p.max_isolation_s:  # false alarm: resume watching (a new alarm dates itself anew)
                 self._onset = self._cusum_start = None
@@ -612,6 +619,17 @@ class FaultDetector:
             return []
         close = tuple(dict.fromkeys(f.label(self.eta) for f in rivals if best.score - f.score < p.decide_margin))
         return self._declare(t_s, onset, best, close)
+
+    def _overwhelming(self, fits: list[_Fit], noisy: float) -> bool:
+        """The best fit is whole units lost, scoring `overwhelming_factor` times the report score of this air and
+        leading every different explanation by decide_margin x `noisy`: a step this large (a dead unit: a sixth
+        of a 3x2's lift and a large roll/pitch moment) is not the air (a gust's best fit scores tens), and each
+        tick more on the wrong allocation tips the assembly further."""
+        p = self.params
+        if not fits or fits[0].units is None or fits[0].score < p.overwhelming_factor * p.detect_score * noisy:
+            return False
+        rivals = [f.score for f in fits[1:] if f.key != fits[0].key]
+        return not rivals or fits[0].score - rivals[0] >= p.decide_margin * noisy
 
     def _parsimonious(self, fits: list[_Fit]) -> tuple[_Fit, list[_Fit]]:
         """The best fit, or a fit of fewer rotors inside it that scores within `nested_min_share` of its
