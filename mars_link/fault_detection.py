@@ -504,15 +504,16 @@ class FaultDetector:
         m_res = h - np.array([k.thrust_integral_ns for k in ticks]) @ (self.B_mom * self.eta).T
         return np.concatenate([[f_res.std()], m_res.std(axis=0)])
 
-    def _fits(self, A: np.ndarray, g: np.ndarray, c: float, dof: int) -> list[_Fit]:
+    def _fits(self, A: np.ndarray, g: np.ndarray, c: float, dof: int, margin: float | None = None) -> list[_Fit]:
         """Bounded least-squares fit of every hypothesis, scored (improvement - penalty), best first.
 
         Improvements are divided by the best fit's residual variance when that exceeds the noise
         model (unmodelled effects), so decisions keep their meaning at any signal-to-noise ratio.
-        Returns the best fit and every fit within `decide_margin` of it or up to the first
-        different explanation, whichever is longer (the rest cannot change the decision).
+        Returns the best fit and every fit within `margin` (default `decide_margin`) of it or up to the
+        first different explanation, whichever is longer (the rest cannot change the decision).
         """
         p = self.params
+        margin = p.decide_margin if margin is None else margin
         lo_all, hi_all = self.eta - 1.0, self.eta.copy()  # 0 <= eta_new <= 1
         ridge = 1e-9 * (np.trace(A) / self.n + 1e-12)
         groups: list[tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray | None, bool]] = []  # (.., combined)
@@ -546,7 +547,7 @@ class FaultDetector:
                 continue
             fits.append(fit)
             differs = any(f.key != fits[0].key for f in fits)
-            if differs and fits[0].score - fit.score >= p.decide_margin:
+            if differs and fits[0].score - fit.score >= margin:
                 break
         return fits
 
@@ -598,7 +599,10 @@ class FaultDetector:
         early = elapsed < self._min_isolation_s(onset) - 1e-9  # noisy air: only an overwhelming unit loss now
         A, g, c, dof = self._regression(onset)
         noisy = self._noise_ratio(onset) ** 2
-        fits = [f for f in self._fits(A, g, c, dof) if self._moment_confirmed(f, noisy)]
+        fits = self._fits(A, g, c, dof)
+        if early and self._overwhelming(fits, noisy, rival_listed=False):  # list down to another place's best fit
+            fits = self._fits(A, g, c, dof, p.decide_margin * noisy)
+        fits = [f for f in fits if self._moment_confirmed(f, noisy)]
         if self._noise_var is None:  # just aloft, the air's level not yet measured: what came before the onset
             need = p.detect_score * self._early_noise_ratio(onset) ** 2
             fits = [f for f in fits if f.units is not None or f.score >= need]
@@ -620,16 +624,24 @@ class FaultDetector:
         close = tuple(dict.fromkeys(f.label(self.eta) for f in rivals if best.score - f.score < p.decide_margin))
         return self._declare(t_s, onset, best, close)
 
-    def _overwhelming(self, fits: list[_Fit], noisy: float) -> bool:
+    def _overwhelming(self, fits: list[_Fit], noisy: float, rival_listed: bool = True) -> bool:
         """The best fit is whole units lost, scoring `overwhelming_factor` times the report score of this air and
         leading every different explanation by decide_margin x `noisy`: a step this large (a dead unit: a sixth
         of a 3x2's lift and a large roll/pitch moment) is not the air (a gust's best fit scores tens), and each
-        tick more on the wrong allocation tips the assembly further."""
+        tick more on the wrong allocation tips the assembly further. `rival_listed` False: the score test alone
+        (is it worth listing the fits down to the best rival of another place?)."""
         p = self.params
-        if not fits or fits[0].units is None or fits[0].score < p.overwhelming_factor * p.detect_score * noisy:
+        best = fits[0] if fits else None
+        if best is None or best.units is None or best.score < p.overwhelming_factor * p.detect_score * noisy:
             return False
-        rivals = [f.score for f in fits[1:] if f.key != fits[0].key]
-        return not rivals or fits[0].score - rivals[0] >= p.decide_margin * noisy
+        if not rival_listed:
+            return True
+        # part of the same units (moderate air: "u2r1, u2r2, u2r4 dead" 0.3 % behind "unit 2 failed") is the
+        # same place, not a rival the air could fake: it needs the still-air lead only
+        nested = [f.score for f in fits[1:] if f.key < best.key]
+        others = [f.score for f in fits[1:] if f.key != best.key and not f.key < best.key]
+        return ((not nested or best.score - nested[0] >= p.decide_margin)
+                and (not others or best.score - others[0] >= p.decide_margin * noisy))
 
     def _parsimonious(self, fits: list[_Fit]) -> tuple[_Fit, list[_Fit]]:
         """The best fit, or a fit of fewer rotors inside it that scores within `nested_min_share` of its
