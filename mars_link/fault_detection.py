@@ -80,8 +80,9 @@ class FaultDetectorParams:
     nested_min_share: float = 0.01  # an extra rotor must add this share of the fit's improvement (_parsimonious)
     noisy_isolation_factor: float = 3.0  # in noisy air, wait up to this many min_isolation_s before deciding
     # ... unless a whole unit's loss is overwhelming: its fit scores this many times what a report needs there and
-    # leads every rival by decide_margin times (noise ratio)². It then decides at min_isolation_s, as in still air
-    # (a dead corner unit flown 0.2 s on the wrong allocation in light air lost the flight that, told, held)
+    # leads every other place's explanation by decide_margin times (noise ratio)². It then decides at
+    # min_isolation_s, as in still air (light air, units {2,4}: 1.59 m mean error after 0.20 s on the wrong
+    # allocation, 1.38 m after 0.07 s, 1.18 m told; fault-free moderate spirals: whole-unit fits score <= 0)
     overwhelming_factor: float = 10.0
     noise_window_s: float = 0.5  # the residuals' spread, measured over windows this long ...
     noise_memory_s: float = 5.0  # ... and remembered over this long (the air's level)
