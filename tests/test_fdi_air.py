@@ -1,6 +1,7 @@
 """The fault detector in moving air and at take-off, on the real in-process loop (JSBSim physics, the units'
 motor models, sensor noise and the EKF; faults never told): a gust is not a fault, a partial rotor loss in
-moderate turbulence is found with its efficiency, and a unit dead before take-off is found once aloft
+moderate turbulence is found with its efficiency, a dead corner unit in light air is found as fast as in still
+air, and a unit dead before take-off is found once aloft
 (the air-aware detector measures the residuals' spread aloft; that must not teach it a dead unit as normal)."""
 
 from __future__ import annotations
@@ -41,6 +42,20 @@ def test_a_half_rotor_in_moderate_turbulence_is_found_with_its_eta() -> None:
     d = r.detections[0]
     assert 10.0 <= d["t_detected"] < 10.5
     assert abs(d["eta_estimated"] - 0.5) <= 0.15
+
+
+def test_a_dead_corner_unit_in_light_air_is_found_as_fast_as_in_still_air() -> None:
+    """Unit 3 (a corner of the 3x2) dead at 10 s of the spiral in 5 m/s wind and light turbulence: a loss that
+    large decides at the still-air min_isolation_s (0.06 s after its onset), not after the 0.18 s that gusty air
+    asks of smaller losses (0.2 s on the wrong allocation lost this flight). Unit 3 and nothing else."""
+    from mars_link.reproduce import CASES, scenario_for
+
+    case = next(c for c in CASES if c.name == "F3 units {3}")
+    air = {"wind_ned_mps": [5.0, 0.0, 0.0], "turbulence": "light"}
+    r = run_trial(scenario_for(case, "cascaded", "qp", 10.6, 10.0, False, air, None), 1)
+    found = [(d["unit"], d["rotor"]) for d in r.detections]
+    assert found == [(3, None)], r.detections
+    assert 10.0 < r.detections[0]["t_detected"] < 10.12, r.detections
 
 
 def test_a_unit_dead_before_take_off_is_found_once_aloft() -> None:
