@@ -3,7 +3,11 @@
 The tests start `sitl up`, unit and Zenoh processes and then stop them with SIGINT or SIGTERM. A child
 inherits its parent's signal mask and ignored signals, so a library that left SIGINT blocked or ignored
 in this process would make every later child deaf to Ctrl-C (a hang far from the test that caused it).
-Such a change is undone after the test and reported as a warning that names the test."""
+Such a change is undone after the test and reported as a warning that names the test.
+
+A suite started with SIGINT ignored (a background job of a non-interactive shell, `nohup`) passes that on
+to every child too, and Python then installs no KeyboardInterrupt handler in them: the tests that stop a
+child with Ctrl-C would hang. The session therefore starts with Python's own Ctrl-C handler."""
 
 from __future__ import annotations
 
@@ -29,6 +33,12 @@ def _state() -> tuple:
     blocked = signal.pthread_sigmask(signal.SIG_BLOCK, [])
     return (tuple(signal.getsignal(s) for s in _WATCHED), frozenset(s for s in _WATCHED if s in blocked),
             _ignored_in_kernel())
+
+
+def pytest_configure(config) -> None:
+    """Ctrl-C as in an interactive shell, whatever the suite was started from (see above)."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(autouse=True)
