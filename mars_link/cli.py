@@ -188,7 +188,7 @@ def cmd_sitl(args) -> int:
             check_flight(setup.scenario, setup.model)
     from mars_link.flight_view import world_view_args
 
-    view = world_view_args(args, docked=setup.docked)  # a busy --foxglove port: one line, exit 2, before any process
+    view = world_view_args(args)  # a busy --foxglove port: one line, exit 2, before any process
     out = v.check_out_dir(args.out or _default_out(name + "-sitl"), force=args.force)
     from firmware_models.signing import signing_from_args
 

@@ -888,11 +888,7 @@ def pieces_view(flight, out_dir: Path | None, live: str | None = None) -> Flight
     return view
 
 
-def world_view_args(args, docked: bool = True) -> tuple[str, ...]:
+def world_view_args(args) -> tuple[str, ...]:
     """The SITL world process's view options from --no-mcap / --foxglove (checked now: one line, exit 2)."""
     live = live_address(args)
-    if not docked:
-        if live is not None:
-            raise UserInputError("--foxglove shows a docked assembly (a scenario or --layout), not --units")
-        return ()
     return (() if getattr(args, "no_mcap", False) else ("--mcap",)) + (() if live is None else ("--foxglove", live))

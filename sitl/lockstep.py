@@ -390,8 +390,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
 
 def _world_view(setup: SitlSetup, world, out: Path, mcap: bool, live: str | None):
     """(FlightView, ViewFeed, the scenario's trajectory or None, t -> rotor eta) of a docked world; Nones if
-    neither run.mcap nor a live view is asked for (or the units fly free: no bodies to show as one)."""
-    if not (mcap or live) or not setup.docked:
+    neither run.mcap nor a live view is asked for. Free units (--units): each its own body, no coordinator (no
+    reference, estimate or events but the world's own)."""
+    if not (mcap or live):
         return None, None, None, None
     from mars_link.build import tracked_offset
     from mars_link.flight_view import open_view
@@ -399,6 +400,12 @@ def _world_view(setup: SitlSetup, world, out: Path, mcap: bool, live: str | None
     from sitl.view_feed import ViewFeed
 
     sc, model = setup.scenario, setup.model
+    if not setup.docked:
+        model = world.view_model
+        duration = setup.steps / sc.sim.control_hz if setup.steps is not None else math.inf
+        view = open_view(out, model, sc, sc.sim.control_hz, None, duration, live, None, mcap)
+        healthy = np.ones(model.n_rotors)
+        return view, ViewFeed(np.zeros(3)), None, lambda t: healthy
     reference = _trajectory(sc, model) if setup.steps is not None else None  # --vehicle: the coordinator's only
     duration = setup.steps / sc.sim.control_hz if setup.steps is not None else math.inf
     view = open_view(out, model, sc, sc.sim.control_hz, reference, duration, live, sc.tracked_unit(), mcap)

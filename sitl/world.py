@@ -461,10 +461,19 @@ class FreeUnitsWorld:
             for u in self.unit_ids
         }
         self.dead_units: set[int] = set()
+        # the flight view's surface (mars_link.flight_view): all units in one model (slot order = unit order), one
+        # body per unit, world ids
+        self.view_model = AssemblyModel.from_layout(["X" * n_units], vehicle)
+        self.bodies = [Body.of(self.model, (u,), w.body, self.view_model) for u, w in self.worlds.items()]
 
     @property
     def t_s(self) -> float:
         return next(iter(self.worlds.values())).t_s
+
+    @property
+    def rotor_thrust_n(self) -> np.ndarray:
+        """Every unit's rotor thrusts, in unit order (the view's rotor slots)."""
+        return np.concatenate([w.rotor_thrust_n for w in self.worlds.values()])
 
     def actuate(self, output: ActuatorOutput) -> None:
         w = self.worlds.get(output.unit_id)

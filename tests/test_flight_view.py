@@ -279,3 +279,75 @@ def test_layout_file_is_the_generated_one_and_names_our_topics():
     for topic in ("/scene", "/error.error_m", "/rotors.thrust_n[23]", "/events"):
         assert f'"{topic}"' in text
 
+
+def _two_free_udp_ports() -> int:
+    """A port p with p + 1 free too (sitl up gives unit i the API port base + i - 1)."""
+    for _ in range(50):
+        a = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        a.bind(("127.0.0.1", 0))
+        p = a.getsockname()[1]
+        b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            b.bind(("127.0.0.1", p + 1))
+            return p
+        except OSError:
+            continue
+        finally:
+            a.close()
+            b.close()
+    raise RuntimeError("no two consecutive free UDP ports")
+
+
+def test_sitl_up_free_units_write_run_mcap(tmp_path):
+    """`sitl up --units 2` (free units, no coordinator; the world process writes the file): unit 2 takes off on
+    a client's commands (pymavlink on its API port), unit 1 stays on the ground. run.mcap after SIGTERM: both
+    units' /tf poses equal the world's own truth log, unit 2 in the air, one /scene entity per unit."""
+    from pymavlink import mavutil
+
+    from sitl.launcher import free_udp_port
+
+    api = _two_free_udp_ports()
+    out = tmp_path / "up"
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sitl", "up", "--units", "2", "--speed", "3",
+                             "--api-port", str(api), "--gcs-port", str(free_udp_port()), "--any-bind",
+                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    client = mavutil.mavlink_connection(f"udpin:127.0.0.1:{api + 1}", source_system=255)
+    try:
+        assert client.wait_heartbeat(timeout=60) is not None, "unit 2 sent no heartbeat"
+        assert client.target_system == 2
+        m = client.mav
+        deadline = time.monotonic() + 60
+        airborne = False
+        while time.monotonic() < deadline and not airborne:  # arm, take off; repeat until it climbs
+            m.command_long_send(2, 1, mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+            m.command_long_send(2, 1, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, math.nan, math.nan, math.nan,
+                                math.nan)
+            end = time.monotonic() + 2.0
+            while time.monotonic() < end:
+                pos = client.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=0.5)
+                if pos is not None and pos.z < -1.5:
+                    airborne = True
+                    break
+        assert airborne, "unit 2 did not climb"
+        time.sleep(2.0)
+    finally:
+        client.close()
+        proc.send_signal(signal.SIGINT)  # sitl up stops every child it started; the world finishes the file
+        text = proc.communicate(timeout=60)[0]
+    assert proc.returncode in (0, 130), text[-2000:]
+    topics = read_mcap(out / "run.mcap")
+    check_log_times(topics)
+    assert {"/tf", "/scene", "/rotors"} <= set(topics)
+    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True)
+    ns, last = topics["/tf"][-1]
+    t_s = ns / 1e9
+    row = truth[np.argmin(np.abs(truth["t_s"] - t_s))]
+    assert abs(row["t_s"] - t_s) < 1e-6
+    tfs = {tf.child_frame_id: tf for tf in last.transforms}
+    for u in (1, 2):
+        body = tfs[f"body_u{u}"]
+        p = np.array([body.translation.x, body.translation.y, body.translation.z])
+        assert np.allclose(p, [row[f"u{u}_pos_n_m"], row[f"u{u}_pos_e_m"], row[f"u{u}_pos_d_m"]], atol=1e-6), u
+    assert row["u2_pos_d_m"] < -1.5 and row["u1_pos_d_m"] > -0.1  # unit 2 flies, unit 1 stands
+    scene = topics["/scene"][-1][1]
+    assert sorted(e.id for e in scene.entities if e.id.startswith("unit_")) == ["unit_1", "unit_2"]
