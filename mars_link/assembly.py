@@ -68,6 +68,13 @@ class VehicleParams:
             return self.rotor_max_thrust_n
         return self.unit_mass_kg * GRAVITY_MPS2
 
+    @property
+    def command_range_n(self) -> tuple[float, float]:
+        """Per-rotor thrust a unit accepts on the wire (controls in [min, 1] x full scale; a plant without a
+        rotor minimum takes reversed thrust down to -full scale): every command is clipped to it."""
+        lo = -self.full_scale_thrust_n if self.rotor_min_thrust_n is None else self.rotor_min_thrust_n
+        return lo, self.full_scale_thrust_n
+
 
 PRESETS: dict[str, VehicleParams] = {
     # Paper 000 (Huang et al.) CoppeliaSim plant, specs/ftc.md §2: unit inertia mapped from the

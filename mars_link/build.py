@@ -92,15 +92,24 @@ def check_flight(scenario: Scenario, model: AssemblyModel | None = None) -> int:
     return steps
 
 
-def make_controller(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> Controller:
+def allocator_bounds(scenario: Scenario, model: AssemblyModel) -> tuple[float | None, float | None]:
+    """The rotor thrust bounds (N) the allocator is given. `qp`, the saturation-aware mode, gets the range
+    every command is clipped to before it leaves (the plant's limits; on paper 000's plant, which has none,
+    the wire's full scale, +-5.1 N): its priorities, not that clip, then decide what a demand beyond the
+    rotors gives up (yaw first). The other modes get the plant's limits: on the paper plant none, so the
+    paper's closed-form modes fly as published."""
     v = model.vehicle
+    if scenario.ftc == "qp":
+        return v.command_range_n
+    return v.rotor_min_thrust_n, v.rotor_max_thrust_n
+
+
+def make_controller(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> Controller:
     if scenario.controller == "cascaded":
         from mars_link.allocation import make_allocator
         from mars_link.control.cascaded import CascadedController
 
-        allocator = make_allocator(
-            scenario.ftc, model, eta=eta, min_thrust_n=v.rotor_min_thrust_n, max_thrust_n=v.rotor_max_thrust_n,
-        )
+        allocator = make_allocator(scenario.ftc, model, eta, *allocator_bounds(scenario, model))
         return CascadedController(
             model, allocator, tracked_offset_frd_m=tracked_offset(model, scenario),
             control_hz=scenario.sim.control_hz,
@@ -216,9 +225,7 @@ def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: 
     from mars_link.control.cascaded import CascadedController
     from mars_link.coordinator import Coordinator
 
-    v = piece.vehicle
-    allocator = make_allocator(scenario.ftc, piece, eta=eta, min_thrust_n=v.rotor_min_thrust_n,
-                               max_thrust_n=v.rotor_max_thrust_n)
+    allocator = make_allocator(scenario.ftc, piece, eta, *allocator_bounds(scenario, piece))
     if detector is not None:
         detector.set_model(piece, eta)
     coordinator = Coordinator(piece, reference, CascadedController(piece, allocator, control_hz=scenario.sim.control_hz),

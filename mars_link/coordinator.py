@@ -90,11 +90,7 @@ class Coordinator:
         if telemetry_timeout_s is not None and not (math.isfinite(telemetry_timeout_s) and telemetry_timeout_s > 0):
             raise UserInputError(f"telemetry_timeout_s must be a number > 0, got {telemetry_timeout_s!r}")
         self.telemetry_timeout_s = telemetry_timeout_s
-        v = model.vehicle
-        # per-rotor thrust a unit accepts on the wire (controls in [min, 1] x full scale; a plant without a
-        # rotor minimum takes reversed thrust down to -full scale): commands are saturated to it
-        self.command_range_n = (
-            -v.full_scale_thrust_n if v.rotor_min_thrust_n is None else v.rotor_min_thrust_n, v.full_scale_thrust_n)
+        self.command_range_n = model.vehicle.command_range_n  # what a unit accepts: commands are saturated to it
         # a SensorGuard estimator (sensor_health) reports sensor failures; `failsafe` (position_failsafe) flies
         # the position-loss failsafe over the trajectory (set by the composition root for trajectory flights)
         self.guard = estimator if hasattr(estimator, "take_events") else None

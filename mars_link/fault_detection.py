@@ -696,7 +696,9 @@ class FaultDetector:
         live = np.flatnonzero(self.eta > 0.0)  # rotors believed dead get no probe (no negative thrust)
         b_eta = self.B[:, live] * self.eta[live]
         _, sv, vt = np.linalg.svd(b_eta)
-        rank = int(np.sum(sv > 1e-9 * sv[0]))
+        rank = int(np.sum(sv > 1e-9 * sv[0])) if sv.size else 0
+        if len(live) <= rank:  # (one unit left, or none): no offset leaves the wrench alone, no probe
+            return np.zeros(self.n)
         null = np.zeros((self.n, len(live) - rank))
         null[live] = vt[rank:].T  # (n, n_live - rank)
         diff = np.vstack([self.B * (best.delta - r.delta) for r in rivals])

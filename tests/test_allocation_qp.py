@@ -1,5 +1,6 @@
 """qp mode: its answer is the exact optimum of its own objective (not just a good wrench), hover
-splits evenly, and the answer moves continuously as a demand crosses into saturation."""
+splits evenly, the answer moves continuously as a demand crosses into saturation, and a saturated
+demand gives up yaw, not thrust, roll or pitch."""
 
 from __future__ import annotations
 
@@ -23,7 +24,9 @@ def faulted(model: AssemblyModel) -> np.ndarray:
 
 def exact_optimum(model: AssemblyModel, eta: np.ndarray, bounds, demand: np.ndarray) -> np.ndarray:
     """The qp objective ||W^1/2 (B t - w)||^2 + lambda * sum (t - mean t)^2 (mean over all rotor
-    slots, dead ones at 0), solved independently as a bounded least-squares problem (BVLS)."""
+    slots, dead ones at 0) in its two stages, solved independently as bounded least-squares problems
+    (BVLS): thrust, roll and pitch first (the yaw row left out), then the yaw row with the first
+    stage's thrust, roll and pitch held (as rows weighted far above the rest)."""
     w = row_weights(model)
     n = model.n_rotors
     lam = VARIANCE_WEIGHT * w[3] * model.vehicle.yaw_moment_per_thrust_m ** 2 * n
@@ -33,10 +36,15 @@ def exact_optimum(model: AssemblyModel, eta: np.ndarray, bounds, demand: np.ndar
     centring = np.eye(k) - np.ones((k, k)) / n  # symmetric PSD: its own square root up to eigh
     vals, vecs = np.linalg.eigh(centring)
     root = (vecs * np.sqrt(np.clip(vals, 0.0, None))).T
-    a = np.vstack([np.sqrt(w)[:, None] * b, np.sqrt(lam) * root])
-    rhs = np.concatenate([np.sqrt(w) * demand, np.zeros(k)])
     lo = -np.inf if bounds[0] is None else bounds[0]
     hi = np.inf if bounds[1] is None else bounds[1]
+    first = np.sqrt(w[:3])[:, None] * b[:3]
+    a = np.vstack([first, np.sqrt(lam) * root])
+    rhs = np.concatenate([np.sqrt(w[:3]) * demand[:3], np.zeros(k)])
+    t1 = lsq_linear(a, rhs, bounds=(lo, hi), method="bvls", tol=1e-14).x
+    held = 1e3 * first  # the first stage's rows, weighted 1e6 above themselves (BVLS: 1e5 lost the yaw's digits)
+    a = np.vstack([np.sqrt(w[3]) * b[3], np.sqrt(lam) * root, held])
+    rhs = np.concatenate([[np.sqrt(w[3]) * demand[3]], np.zeros(k), held @ t1])
     sol = lsq_linear(a, rhs, bounds=(lo, hi), method="bvls", tol=1e-14)
     t = np.zeros(n)
     t[live] = sol.x
@@ -92,3 +100,40 @@ def test_qp_answer_does_not_jump_where_rotors_start_to_saturate() -> None:
     plain = ~at_bound.any(axis=1)[1:] & ~at_bound.any(axis=1)[:-1]
     assert len(onset) >= 1 and plain.sum() > 50
     assert steps[onset].max() < 3 * np.median(steps[plain])
+
+
+def test_saturated_qp_keeps_thrust_roll_and_pitch_and_gives_yaw_only_what_remains() -> None:
+    """The dead corner unit's yaw (issue 15): the 20 live rotors of the paper 3x2 cannot make the yaw the
+    controller asks after the fault in wind. The bounds are the composition root's (the paper plant has
+    none; qp gets the +-5.1 N every command is clipped to), the effectiveness the real one. Asked thrust,
+    roll and pitch are met exactly and yaw is the most any answer meeting them can make (exact LP); the
+    unbounded answer clipped to the same range (what flew before) keeps almost none of the thrust."""
+    from scipy.optimize import linprog
+
+    from mars_link.build import allocator_bounds
+    from mars_link.reproduce import CASES, scenario_for
+
+    case = next(c for c in CASES if c.name == "F3 units {3}")
+    scenario = scenario_for(case, "cascaded", "qp", t_fault_s=10.0)
+    model = scenario.model()
+    lo, hi = allocator_bounds(scenario, model)
+    assert (lo, hi) == pytest.approx((-5.0995, 5.0995), abs=1e-4)  # the wire's full scale: 0.52 kg x g
+    eta = model.nominal_eta()
+    eta[model.unit_slots(3)] = 0.0
+    qp = make_allocator("qp", model, eta, lo, hi)
+    clipped = make_allocator("qp", model, eta)  # before: unbounded, then the coordinator's clip
+    b = model.effectiveness(eta)
+    live = eta > 0.0
+    weight = model.mass_kg * GRAVITY_MPS2
+    for yaw in (-0.6, -1.25, -6.0):  # N·m; -1.25: what the controller asked 0.4 s after the fault
+        demand = np.array([weight, 0.3, -0.2, yaw])
+        t = qp.allocate(demand)
+        best = linprog(b[3, live], A_eq=b[:3, live], b_eq=demand[:3], bounds=(lo, hi), method="highs")
+        assert best.status == 0
+        produced = b @ t
+        assert t.min() >= lo - 1e-12 and t.max() <= hi + 1e-12 and np.all(t[~live] == 0.0)
+        np.testing.assert_allclose(produced[:3], demand[:3], rtol=0, atol=1e-4)  # (the variance term: 1e-5 N)
+        assert produced[3] == pytest.approx(max(yaw, best.fun), abs=1e-4)  # all the yaw there is
+        if yaw <= -1.25:
+            assert (b @ np.clip(clipped.allocate(demand), lo, hi))[0] < 0.05 * weight  # the old collective
+    assert qp.saturated == 3 and qp.solves == 0

@@ -20,10 +20,20 @@ the right wrench but an arbitrary split between rotors (a fresh allocator asked 
 nominal 3x2 spread its rotors over 60-110 % of the hover thrust), and that split jumps as a
 demand crosses into saturation. So the answer is the exact optimum:
 * no bound active: the optimum is linear in w, `gain @ w`, precomputed per fault set; returned
-  when it fits the bounds (always for the unbounded paper plant);
-* a bound active: a primal active-set method on the same objective (`box_qp_active_set`) starts
-  from that optimum clipped to the bounds (a better seed than OSQP's answer, measured) and takes
-  at most one step per live rotor; only if it does not settle does OSQP (warm-started) answer.
+  when it fits the bounds (always for an unbounded allocator);
+* a bound active: yaw gets only what remains (`allocate`), in two exact solves by a primal
+  active-set method (`box_qp_active_set`): first thrust, roll and pitch alone (the same weights and
+  variance term, the yaw row left out), started from their own unbounded optimum clipped to the
+  bounds (a better seed than OSQP's answer, measured), then the yaw row and the variance term with
+  the first solve's thrust, roll and pitch held as equalities; only if the first does not settle
+  does OSQP (warm-started, the weighted objective above) answer.
+
+Why two solves and not the weights alone: a weight is a price, and a yaw demand the rotors cannot meet
+buys thrust with it. W prices 1 N·m of missed yaw on the paper 3x2 like 11.7 N of missed thrust, and a
+rotor at its bound trades k_q N·m of yaw per newton, so the weighted optimum gave up 1.17 N of collective
+per N·m of yaw it could not make (a dead corner unit in wind asks for more than 1 N·m). PX4's sequential
+desaturation likewise mixes yaw last and desaturates it along its own column only (mixYaw in
+src/modules/control_allocator/ControlAllocation/ControlAllocationSequentialDesaturation.cpp).
 """
 
 from __future__ import annotations
@@ -91,13 +101,23 @@ class QpAllocator(Allocator):
         bl = b[:, alive]
         k = bl.shape[1]
         dl = d[alive]
-        self._hess = bl.T @ (w[:, None] * bl) + lam * (np.diag(dl**2) - np.outer(dl, dl) / n)
+        spread = lam * (np.diag(dl**2) - np.outer(dl, dl) / n)
+        self._hess = bl.T @ (w[:, None] * bl) + spread
         self._bw = bl.T * w
+        # saturated: thrust, roll, pitch first (yaw row left out), then yaw with those held (module docstring)
+        w_first = w * np.array([1.0, 1.0, 1.0, 0.0])
+        self._hess_first = bl.T @ (w_first[:, None] * bl) + spread
+        self._bw_first = bl.T * w_first
+        self._hess_yaw = w[3] * np.outer(bl[3], bl[3]) + spread
+        self._bw_yaw = w[3] * bl[3]
+        self._held_rows = bl[:3]
         # resolves 0.1 % of a hover thrust in the variance term's gradient 2 lam (t - mean)
         self._grad_tol = 1e-3 * lam * m.hover_thrust_per_rotor_n()
         self._gain = np.zeros((n, 4))
+        self._gain_first = np.zeros((k, 4))
         if k:
             self._gain[alive] = np.linalg.solve(self._hess, self._bw)
+            self._gain_first = np.linalg.solve(self._hess_first, self._bw_first)
 
     def allocate(self, wrench: np.ndarray) -> np.ndarray:
         w = np.asarray(wrench, dtype=float)
@@ -107,12 +127,14 @@ class QpAllocator(Allocator):
                 return t
             self.saturated += 1
             live = self._live
+            lo, hi, k = self._lo[live], self._hi[live], int(live.sum())
             x, done = box_qp_active_set(
-                self._hess, self._bw @ w, t[live], self._lo[live], self._hi[live], int(live.sum()),
-                self._grad_tol,
+                self._hess_first, self._bw_first @ w, self._gain_first @ w, lo, hi, k, self._grad_tol,
             )
-            if done:
-                t[live] = x
+            if done:  # yaw with what remains: any answer of the second solve keeps the first's rows and bounds
+                t[live], _ = box_qp_active_set(
+                    self._hess_yaw, self._bw_yaw * w[3], x, lo, hi, 2 * k, self._grad_tol, held_rows=self._held_rows,
+                )
                 return t
             self.solves += 1
         return self._solve(w)
@@ -150,12 +172,15 @@ class QpAllocator(Allocator):
 
 def box_qp_active_set(
     h: np.ndarray, g: np.ndarray, x: np.ndarray, lo: np.ndarray, hi: np.ndarray, max_steps: int,
-    grad_tol: float,
+    grad_tol: float, held_rows: np.ndarray | None = None,
 ) -> tuple[np.ndarray, bool]:
     """Exact minimiser of x'Hx/2 - g'x over lo <= x <= hi (H positive definite) by a primal
     active-set method: one bound held or released per step, so it cannot cycle. Starts at the
     feasible point clip(x) with the bounds it touches held; a held bound is released when the
-    gradient pulls away from it by more than grad_tol. Returns (x, converged)."""
+    gradient pulls away from it by more than grad_tol. `held_rows` A: also keep A x at its value at
+    the start (each step moves the free variables within A's null space; the bounds are judged on
+    the gradient plus A' times the equalities' multipliers). The objective never rises from the start,
+    so x is feasible and no worse whatever happens. Returns (x, converged)."""
     span = np.where(np.isfinite(hi - lo), hi - lo, 1.0)
     x = np.clip(x, lo, hi)
     at_lo = x <= lo + 1e-6 * span
@@ -164,9 +189,15 @@ def box_qp_active_set(
     for _ in range(max_steps + 1):
         grad = h @ x - g
         free = np.flatnonzero(~(at_lo | at_hi))
+        nu = None
         if free.size:
             xf = x[free]
-            d = np.linalg.solve(h[free[:, None], free], -grad[free])  # to the optimum over the free
+            if held_rows is None:
+                d = np.linalg.solve(h[free[:, None], free], -grad[free])  # to the optimum over the free
+            else:
+                d, nu = _equality_step(h[free[:, None], free], held_rows[:, free], grad[free])
+                if d is None:
+                    return x, False
             new = xf + d
             above, below = new > hi[free], new < lo[free]
             if above.any() or below.any():  # a free rotor reaches its bound first: hold it there
@@ -183,6 +214,10 @@ def box_qp_active_set(
                 continue
             x[free] = new
             grad = h @ x - g
+        if held_rows is not None:  # the bounds see the gradient the equalities leave
+            if nu is None:  # nothing free: least-squares multipliers
+                nu = np.linalg.lstsq(held_rows.T, -grad, rcond=None)[0]
+            grad = grad + held_rows.T @ nu
         # optimal when the gradient is >= 0 at every held lower bound and <= 0 at every upper one
         pull = np.where(at_lo, -grad, np.where(at_hi, grad, 0.0))
         k = int(np.argmax(pull))
@@ -190,3 +225,23 @@ def box_qp_active_set(
             return x, True
         at_lo[k] = at_hi[k] = False  # release the bound that holds the optimum back most
     return x, False
+
+
+def _equality_step(h: np.ndarray, a: np.ndarray, grad: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+    """The step d to the optimum over the free variables with a d = 0, and the equalities' multipliers
+    (the KKT system; least squares, minimum-norm multipliers, when a's free columns do not span its rows)."""
+    nf, m = a.shape[1], a.shape[0]
+    kkt = np.zeros((nf + m, nf + m))
+    kkt[:nf, :nf], kkt[:nf, nf:], kkt[nf:, :nf] = h, a.T, a
+    rhs = np.zeros(nf + m)
+    rhs[:nf] = -grad
+    gram = a @ a.T
+    try:  # the rows independent on the free columns (a well-conditioned Gram): the exact solve
+        chol = np.diag(np.linalg.cholesky(gram))
+        spans = nf >= m and chol.min() ** 2 > 1e-12 * np.trace(gram)
+    except np.linalg.LinAlgError:
+        spans = False
+    sol = np.linalg.solve(kkt, rhs) if spans else np.linalg.lstsq(kkt, rhs, rcond=None)[0]
+    if not np.all(np.isfinite(sol)):
+        return None, np.zeros(m)
+    return sol[:nf], sol[nf:]
