@@ -244,7 +244,9 @@ class FlightRecorder:
         f = self.flight
         truth, rec = v.truth, v.record
         tracked = f.world.tracked_point(f.tracked_offset_frd_m, truth)
-        err, _ = self.metrics.add(v.t_s, tracked, rec.reference.position_ned_m, truth.quaternion_wxyz)
+        failsafe = getattr(f.coordinator, "failsafe", None)
+        err, _ = self.metrics.add(v.t_s, tracked, rec.reference.position_ned_m, truth.quaternion_wxyz,
+                                  position_lost=failsafe is not None and failsafe.state != "normal")
         log = self.log
         if log is not None:
             roll, pitch, yaw = quat_to_euler(truth.quaternion_wxyz)

@@ -54,14 +54,16 @@ class TrackingMetrics:
         self.divergence: dict | None = None  # the "diverged" event, once
 
     def add(self, t_s: float, tracked_ned_m: np.ndarray, reference_ned_m: np.ndarray,
-            quaternion_wxyz: np.ndarray) -> tuple[float, float]:
+            quaternion_wxyz: np.ndarray, position_lost: bool = False) -> tuple[float, float]:
         """One sample: (error m, tilt deg). Sets `diverged` (and its event) the first time the error or
-        the tilt passes its limit, or the error is not finite."""
+        the tilt passes its limit, or the error is not finite. `position_lost`: the flight flies on a
+        dead-reckoned estimate (the position failsafe), so its error against the truth measures the
+        estimate's drift, not the control: only the tilt and a non-finite error end it then."""
         err = float(np.linalg.norm(tracked_ned_m - reference_ned_m))
         tilt = tilt_deg(quaternion_wxyz)
         self.add_error(err)
         self.max_tilt_deg = max(self.max_tilt_deg, tilt)
-        if not (err < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG and math.isfinite(err)):
+        if not ((err < DIVERGENCE_ERROR_M or position_lost) and tilt < DIVERGENCE_TILT_DEG and math.isfinite(err)):
             self.mark_diverged(t_s, err, tilt)
         return err, tilt
 

@@ -9,9 +9,9 @@ or return and it lands. Here (`PositionFailsafeParams`, documented in the README
   assembly is (it dead-reckons on the IMUs), the trajectory paused;
 * position back before `land_after_s`: the trajectory resumes where it paused (its clock shifted by
   the hold), "Position regained: resuming";
-* still lost `land_after_s` (15 s) after the last position: **land** straight down from the held
-  point at `land_speed_mps` (MPC_LAND_SPEED); a landing is not undone when the position returns
-  (a failsafe land is final in PX4 too);
+* still lost `land_after_s` (15 s) after the last position: **land** at `land_speed_mps`
+  (MPC_LAND_SPEED) as PX4's Descend does, the horizontal reference on the estimate (velocity damped, no
+  drifting position chased); a landing is not undone when the position returns (final in PX4 too);
 * landed: motors off. Two detectors, neither needing a position fix: the rotors asked for under half
   the weight for `landed_s` while the IMUs still read a full g (the ground carries it); or the
   dead-reckoned estimate is `landed_margin_sigma` vertical sigmas (at least `landed_margin_min_m`)
@@ -108,8 +108,11 @@ class PositionFailsafe:
         hold = self._hold_point
         if self.state == "land":
             ref_down = float(hold.position_ned_m[2]) + p.land_speed_mps * (t_s - self._land_since)
-            point = np.array([hold.position_ned_m[0], hold.position_ned_m[1], ref_down])
             self._estimate_point = estimate.position_ned_m + quat_to_rotmat(estimate.quaternion_wxyz) @ self.offset_frd_m
+            # PX4's Descend (a landing without a position): no horizontal position to go back to, only the
+            # estimate's velocity damped. Chasing the held point with a dead-reckoned estimate walked the
+            # assembly metres away and, at touchdown, tipped it onto one edge as the position error grew.
+            point = np.array([self._estimate_point[0], self._estimate_point[1], ref_down])
             return TrajectoryPoint(point, np.array([0.0, 0.0, p.land_speed_mps]), yaw_rad=hold.yaw_rad)
         return TrajectoryPoint(self._landed_point, yaw_rad=hold.yaw_rad)  # landed: where it came down
 
