@@ -212,7 +212,7 @@ class Coordinator:
         lo, hi = self.command_range_n
         if thrusts.max() > hi or thrusts.min() < lo:  # what a unit accepts (rotor_intake), not more
             thrusts = np.clip(thrusts, lo, hi)
-        if self.detector is not None:
+        if self.detector is not None and not self._landing_near_ground():
             imus = [p.imu for p in packets if p.imu is not None] if guard is None else guard.usable_imus
             self._to_detect = (t_s, thrusts.copy(), estimate, imus)
         c2 = time.perf_counter()
@@ -249,6 +249,13 @@ class Coordinator:
             self.controller.set_available(np.repeat(scale, ROTORS_PER_UNIT))
             if getattr(self.detector, "max_thrust_n", None) is not None:  # its thrust model clips as the packs do
                 self.detector.max_thrust_n = self.controller.allocator.upper_bounds()
+
+    def _landing_near_ground(self) -> bool:
+        """A failsafe landing within reach of the ground: contact forces are no rotor fault (the detector rests)."""
+        fs = self.failsafe
+        if fs is None or fs.state not in ("land", "landed"):
+            return False
+        return fs.near_ground(float(fs.estimate_point_ned_m[2]), math.sqrt(max(float(self.guard.covariance[2, 2]), 0.0)))
 
     def _failsafe_motors(self, t_s: float, thrusts: np.ndarray) -> None:
         """What the failsafe's land detector reads: the thrust asked and the IMUs' mean specific force."""

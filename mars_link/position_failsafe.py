@@ -18,7 +18,10 @@ or return and it lands. Here (`PositionFailsafeParams`, documented in the README
   below the take-off ground (the descent went on past where the ground must be). The second exists
   because the simulated IMU samples the specific force at the control rate: a touchdown's contact
   impulse (a few physics steps) is mostly missed, the estimate keeps descending, and the controller
-  keeps hover thrust on the ground.
+  keeps hover thrust on the ground. A third: a touchdown bounce, landing within `ground_zone_m` of the
+  take-off ground with the estimate moving up faster than `touchdown_rebound_mps` (the ground's push; in
+  wind the assembly touches down tilted on its low edge, and thrust kept on tipped it over). In that zone
+  the coordinator also rests the rotor fault detector (`near_ground`): contact forces are no rotor fault.
 
 Every change is an event with a STATUSTEXT line.
 """
@@ -43,6 +46,9 @@ class PositionFailsafeParams:
     landed_s: float = 1.0  # ... for this long, while the IMUs feel the ground carry the weight
     landed_margin_sigma: float = 3.0  # or: the estimate this many vertical sigmas below the take-off ground ...
     landed_margin_min_m: float = 0.5  # ... and at least this far
+    touchdown_rebound_mps: float = 0.5  # or: landing near the ground, the estimate moving up this fast (a bounce)
+    ground_zone_m: float = 1.0  # landing this close to the take-off ground (or 3 vertical sigmas): the ground may
+    # carry the assembly at any moment, so the rotor fault detector rests (PX4's failure detector acts in the air)
 
 
 def past_ground(estimate_down_m: float, ground_down_m: float | None, sigma_down_m: float,
@@ -72,11 +78,26 @@ class PositionFailsafe:
         self._land_since: float | None = None
         self._slow_since: float | None = None
         self._estimate_point = np.zeros(3)
+        self._estimate_up_mps = 0.0
         self._landed_point = np.zeros(3)
+
+    @property
+    def estimate_point_ned_m(self) -> np.ndarray:
+        """The tracked point's estimate at the last landing step."""
+        return self._estimate_point
 
     @property
     def motors_off(self) -> bool:
         return self.state == "landed"
+
+    def near_ground(self, estimate_down_m: float, sigma_down_m: float) -> bool:
+        """Landing within reach of the ground (the dead-reckoned height: its sigmas count), or landed."""
+        if self.state == "landed":
+            return True
+        if self.state != "land" or self.ground_down_m is None:
+            return False
+        zone = max(self.params.ground_zone_m, self.params.landed_margin_sigma * sigma_down_m)
+        return estimate_down_m > self.ground_down_m - zone
 
     def _event(self, t_s: float, kind: str, text: str) -> None:
         self.events.append({"t_s": round(t_s, 6), "type": kind, "text": text})
@@ -109,6 +130,7 @@ class PositionFailsafe:
         if self.state == "land":
             ref_down = float(hold.position_ned_m[2]) + p.land_speed_mps * (t_s - self._land_since)
             self._estimate_point = estimate.position_ned_m + quat_to_rotmat(estimate.quaternion_wxyz) @ self.offset_frd_m
+            self._estimate_up_mps = -float(estimate.velocity_ned_mps[2])
             # PX4's Descend (a landing without a position): no horizontal position to go back to, only the
             # estimate's velocity damped. Chasing the held point with a dead-reckoned estimate walked the
             # assembly metres away and, at touchdown, tipped it onto one edge as the position error grew.
@@ -125,6 +147,9 @@ class PositionFailsafe:
         p = self.params
         if past_ground(float(self._estimate_point[2]), self.ground_down_m, sigma_down_m, p):
             self._landed(t_s, "Landed (estimate past ground): motors off")
+            return
+        if self._estimate_up_mps > p.touchdown_rebound_mps and self.near_ground(float(self._estimate_point[2]), sigma_down_m):
+            self._landed(t_s, "Landed (touchdown bounce): motors off")
             return
         supported = thrust_n < p.landed_thrust_fraction * weight_n and -specific_force_down_mps2 > 0.8 * GRAVITY_MPS2
         if not supported:
