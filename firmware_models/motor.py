@@ -65,6 +65,12 @@ class MotorParams:
         return cls.for_vehicle(model.vehicle, model.n_units)
 
 
+def _all_finite(values: np.ndarray) -> bool:
+    """True if no value is NaN or infinite (a unit's four rotors: Python's sum of the list is 4x cheaper
+    than numpy's reduction)."""
+    return math.isfinite(sum(values.tolist()) if values.size <= 8 else values.sum())
+
+
 class MotorModel:
     """`step(commands_n, dt_s) -> thrusts_n`; faults by `set_eta`. Cheap: a few numpy ops per step."""
 
@@ -128,7 +134,7 @@ class MotorModel:
         """What the motors are driven towards: cleaned, clamped, eta-scaled command (a new array, or the
         command itself when nothing changes it: no limits, every eta 1, every value finite)."""
         if self._plain and isinstance(commands_n, np.ndarray) and commands_n.shape == self.thrust_n.shape \
-                and math.isfinite(commands_n.sum()):
+                and _all_finite(commands_n):
             return commands_n
         if self._hi == math.inf and self._lo == -math.inf and isinstance(commands_n, np.ndarray) \
                 and commands_n.shape == self.thrust_n.shape:

@@ -121,6 +121,7 @@ class ParamStore:
         if len(self._index) != len(self.specs) or any(len(s.name) > NAME_MAX_LEN for s in self.specs):
             raise ValueError("parameter names must be unique and at most 16 characters")
         self._values = [float(s.default) for s in self.specs]
+        self.version = 0  # counts stored changes: readers may cache derived values until it moves
         for name, value in (overrides or {}).items():
             self.configure(name, value)
         self.rejected_sets = 0
@@ -157,6 +158,7 @@ class ParamStore:
         if problem:
             raise UserInputError(f"parameter {name} = {value!r} is {problem}")
         self._values[i] = value
+        self.version += 1
 
     def set_from_wire(self, name: str, wire_value: float, wire_kind: int) -> bool:
         """PARAM_SET: True if stored. Unknown names, read-only entries and bad values are refused
@@ -174,6 +176,7 @@ class ParamStore:
             self.rejected_sets += 1
             return False
         self._values[i] = value
+        self.version += 1
         return True
 
     def value_message(self, index: int) -> mavlink.MAVLink_param_value_message:

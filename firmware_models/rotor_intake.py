@@ -64,16 +64,25 @@ class RotorIntake:
     """State machine: `offer(msg, sim_time_s)` then `command_n(sim_time_s)` (None = lost / never)."""
 
     def __init__(self, params: IntakeParams) -> None:
-        self.params = params
+        self.params = params  # (sets the hold window too)
         self.counters: dict[str, int] = {}
         self.accepted = 0
         self.lost_events = 0  # fresh -> lost transitions (fail-safe entries)
         self.thrusts_n = np.zeros(ROTORS_PER_UNIT)
-        self.normalised = np.zeros(ROTORS_PER_UNIT)
         self._last_usec: int | None = None
         self._accepted_at_s: float | None = None  # unit sim time of the last accepted frame
         self._clock_offset_s: float | None = None  # coordinator time - unit sim time
         self._was_live = False
+
+    @property
+    def params(self) -> IntakeParams:
+        return self._params
+
+    @params.setter
+    def params(self, params: IntakeParams) -> None:
+        """New limits (a parameter change); the hold window is kept as a number: checked every step."""
+        self._params = params
+        self._live_window_s = params.hold_s + 1e-9
 
     def drop(self, reason: str) -> bool:
         self.counters[reason] = self.counters.get(reason, 0) + 1
@@ -104,7 +113,8 @@ class RotorIntake:
             return self.drop("out_of_range")
         if self._last_usec is not None and t_usec <= self._last_usec:
             return self.drop("out_of_order")
-        live = self.is_live(sim_time_s)
+        a = self._accepted_at_s
+        live = a is not None and sim_time_s - a <= self._live_window_s  # (is_live, inlined: every command)
         t_s = t_usec * 1e-6
         if live and self._clock_offset_s is not None:
             skew = t_s - sim_time_s - self._clock_offset_s
@@ -116,8 +126,7 @@ class RotorIntake:
             self._clock_offset_s = t_s - sim_time_s
         self._last_usec = t_usec
         self._accepted_at_s = sim_time_s
-        self.normalised[:] = (c0, c1, c2, c3)
-        self.thrusts_n = self.normalised * p.full_scale_thrust_n if thrusts_n is None else thrusts_n
+        self.thrusts_n = np.array((c0, c1, c2, c3)) * p.full_scale_thrust_n if thrusts_n is None else thrusts_n
         self.accepted += 1
         self._was_live = True
         return True
@@ -125,11 +134,12 @@ class RotorIntake:
     def is_live(self, sim_time_s: float) -> bool:
         """A command accepted within the hold window (sim time)."""
         a = self._accepted_at_s
-        return a is not None and sim_time_s - a <= self.params.hold_s + 1e-9
+        return a is not None and sim_time_s - a <= self._live_window_s
 
     def command_n(self, sim_time_s: float) -> np.ndarray | None:
         """The held rotor thrusts (N), or None once the stream is lost (counts the transition)."""
-        if self.is_live(sim_time_s):
+        a = self._accepted_at_s
+        if a is not None and sim_time_s - a <= self._live_window_s:  # (is_live, inlined: every step)
             return self.thrusts_n
         if self._was_live:
             self._was_live = False

@@ -192,6 +192,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self._pending_text: list[tuple[int, str]] = []
         self._battery_pending = None  # a BATTERY_STATUS from the world, measured with the next IMU frame
         self.battery = BatteryMonitor()  # the pack as measured (world's samples over HIL); thresholds, action
+        self._battery_checked: tuple[float, int] | None = None  # (remaining, params.version) last checked
         self._hil_pending: tuple[int, str] | None = None  # (time_usec, link) of an unanswered HIL step
         self.defer_own_state = False  # set by the lockstep unit runner: see run_deferred
         self._deferred: list = []
@@ -505,9 +506,11 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             self.motor_commands_n = np.zeros(4)
             return
         cmd = self.intake.command_n(t)
-        if not (self.mode == MODE_OFFBOARD and cmd is not None):
+        driven = cmd is not None and self.mode == MODE_OFFBOARD
+        if not driven:
             self.run_deferred()  # the unit's own control and fail-safes read its state
-        if self.mode == MODE_OFFBOARD and cmd is not None:
+            driven = cmd is not None and self.mode == MODE_OFFBOARD
+        if driven:
             if self.source != "coordinator":
                 self.source = "coordinator"
                 self._text("Coordinator drives the rotors")

@@ -124,7 +124,8 @@ class HilMixin:
         while self._scheduled_failures and self._scheduled_failures[0][0] <= self.sim_s + 1e-9:
             _, rotor, eta = self._scheduled_failures.pop(0)
             self.inject_failure(rotor, eta)
-        self._count("hil_steps")
+        stats = self.stats  # (_count, inlined: every step)
+        stats["hil_steps"] = stats.get("hil_steps", 0) + 1
         self._control_step()
         return self.motors.setpoint(self.motor_commands_n if self.armed else np.zeros(4))
 
@@ -164,7 +165,8 @@ class HilMixin:
         t_usec = round(cmd.t_s * 1e6)
         if not self.intake.accept(a / s, b / s, c / s, d / s, t_usec, self.sim_s, cmd.thrusts_n):
             return False
-        self._count("rotor_commands")
+        stats = self.stats  # (_count, inlined: every step)
+        stats["rotor_commands"] = stats.get("rotor_commands", 0) + 1
         self._last_rotor_usec = t_usec
         self.latch_setpoint = cmd.latch_setpoint
         return True

@@ -231,6 +231,10 @@ class StreamsMixin:
         """A low-battery level crossed: STATUSTEXT, and the action COM_LOW_BAT_ACT asks for when this
         vehicle flies itself (a unit under the coordinator only reports: the assembly decides)."""
         p = self.params
+        checked = (self.battery.remaining, p.version)  # a level changes only when one of them moves
+        if checked == self._battery_checked:
+            return
+        self._battery_checked = checked
         change = self.battery.level_change(p["BAT_LOW_THR"], p["BAT_CRIT_THR"], p["BAT_EMERGEN_THR"],
                                            int(p["COM_LOW_BAT_ACT"]))
         if change is None:
