@@ -1,8 +1,8 @@
 """Generate a JSBSim aircraft definition for an assembly (specs/dependencies.md §1.2).
 
 One pointmass per unit (JSBSim sums the parallel-axis terms itself), a non-rotating spherical planet
-with g = 9.80665 m/s² at the surface, ground contacts on the hull of the units' feet, and per rotor one BODY
-force (thrust) and one BODY moment (reaction torque) in `external_reactions`. When the vehicle feels the
+with g = 9.80665 m/s² at the surface, ground contacts on the hull of the units' feet, and the rotors' net thrust and moments as one BODY
+force and three BODY moments in `external_reactions` (the per-rotor sums are made in sitl.physics). When the vehicle feels the
 air (mars_link.aerodynamics), the `aerodynamics` section holds body drag and rotor H-force drag as
 body-axis functions of JSBSim's own airspeed (wind, gusts and turbulence included).
 
@@ -84,6 +84,14 @@ def _barycentric_in_fan(poly: np.ndarray, p: np.ndarray) -> np.ndarray:
     return weights
 
 
+#: the rotors' net effect, written by sitl.physics each step: total thrust (lbf, along body -z, at the model
+#: origin) and the body roll, pitch and yaw moments about that origin (lbf·ft). Four writes and four
+#: reactions whatever the rotor count: one force and one moment per rotor made JSBSim's step and the
+#: writes grow with the assembly (10x10: 800 reactions, about a third of the loop's physics time).
+ROTOR_FORCE = "rotors"
+ROTOR_MOMENTS = ("rotors_l", "rotors_m", "rotors_n")
+
+
 def aircraft_xml(model: AssemblyModel, name: str) -> str:
     v = model.vehicle
     ju = v.unit_inertia_kgm2
@@ -138,19 +146,18 @@ def aircraft_xml(model: AssemblyModel, name: str) -> str:
             f'      <damping_coeff unit="N/M/SEC">{c_total * share:.6f}</damping_coeff>',
             "    </contact>",
         ]
-    lines += ["  </ground_reactions>", "  <external_reactions>"]
-    for r in model.rotors:
-        x, y, z = _structural(r.position_m)
-        tag = f"u{r.unit_id}r{r.index}"
-        lines += [
-            f'    <force name="{tag}" frame="BODY" unit="LBS">',
-            f'      <location unit="M"><x>{x:.9f}</x><y>{y:.9f}</y><z>{z:.9f}</z></location>',
-            "      <direction><x>0</x><y>0</y><z>-1</z></direction>",
-            "    </force>",
-            f'    <moment name="{tag}_q" frame="BODY" unit="LBSFT">',
-            "      <direction><x>0</x><y>0</y><z>1</z></direction>",
-            "    </moment>",
-        ]
+    lines += ["  </ground_reactions>", "  <external_reactions>",
+              # every rotor pushes along body -z: their sum acts at the model origin, and the moments of the
+              # thrusts about that origin and their reaction torques are three BODY moments (sitl.physics)
+              f'    <force name="{ROTOR_FORCE}" frame="BODY" unit="LBS">',
+              '      <location unit="M"><x>0</x><y>0</y><z>0</z></location>',
+              "      <direction><x>0</x><y>0</y><z>-1</z></direction>",
+              "    </force>"]
+    for name, axis in zip(ROTOR_MOMENTS, ("<x>1</x><y>0</y><z>0</z>", "<x>0</x><y>1</y><z>0</z>",
+                                          "<x>0</x><y>0</y><z>1</z>")):
+        lines += [f'    <moment name="{name}" frame="BODY" unit="LBSFT">',
+                  f"      <direction>{axis}</direction>",
+                  "    </moment>"]
     lines += ["  </external_reactions>", *aerodynamics_xml(model), "</fdm_config>", ""]
     return "\n".join(lines)
 

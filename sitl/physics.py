@@ -26,7 +26,8 @@ from mars_link.assembly import AssemblyModel
 from mars_link.errors import UserInputError
 from mars_link.rotations import euler_to_quat, quat_to_euler
 from mars_link.state import RigidBodyState
-from sitl.jsbsim_model import EARTH_RADIUS_M, EMPTY_MASS_KG, ROTOR_SUM_PROPERTIES, SLUGFT2_PER_KGM2, write_aircraft
+from sitl.jsbsim_model import (EARTH_RADIUS_M, EMPTY_MASS_KG, ROTOR_FORCE, ROTOR_MOMENTS, ROTOR_SUM_PROPERTIES,
+                               SLUGFT2_PER_KGM2, write_aircraft)
 
 FT = 0.3048
 LBF = 4.4482216152605
@@ -142,16 +143,16 @@ class JsbsimBody:
             fdm[key] = value
         self.fdm = fdm
         node = fdm.get_property_manager().get_node
-        self._force_nodes = [node(f"external_reactions/u{r.unit_id}r{r.index}/magnitude") for r in model.rotors]
-        self._moment_nodes = [
-            node(f"external_reactions/u{r.unit_id}r{r.index}_q/magnitude-lbsft") for r in model.rotors
-        ]
-        # thrust N -> force lbf and reaction moment lbf·ft per rotor, folded into one factor each
-        self._force_scale = 1.0 / LBF
-        self._moment_scales = [
-            r.yaw_sign * model.vehicle.yaw_moment_per_thrust_m / (LBF * FT) for r in model.rotors
-        ]
-        self._last = [math.nan] * model.n_rotors
+        # thrusts (N) -> total thrust (lbf) and roll, pitch, yaw moments about the model origin (lbf·ft): a
+        # thrust T at FRD (x, y) pushing along -z gives (-y·T, x·T, 0), its reaction yaw_sign·k·T about z
+        self._rotor_nodes = [node(f"external_reactions/{ROTOR_FORCE}/magnitude")] + [
+            node(f"external_reactions/{m}/magnitude-lbsft") for m in ROTOR_MOMENTS]
+        pos = np.array([r.position_m for r in model.rotors], dtype=float).reshape(-1, 3)
+        k = model.vehicle.yaw_moment_per_thrust_m
+        self._rotor_effect = np.stack([
+            np.full(len(pos), 1.0 / LBF), -pos[:, 1] / (LBF * FT), pos[:, 0] / (LBF * FT),
+            np.array([r.yaw_sign * k for r in model.rotors], dtype=float).reshape(-1) / (LBF * FT)])
+        self._last = np.full(model.n_rotors, math.nan)
         # rotor H-force drag (sitl.jsbsim_model.aerodynamics_xml): sqrt-thrust sums over the rotors
         self._rotor_sum_nodes = [node(p) for p in ROTOR_SUM_PROPERTIES] if model.vehicle.rotor_drag_coeff > 0 else []
         xy = np.array([r.position_m[:2] for r in model.rotors], dtype=float).reshape(-1, 2)
@@ -224,22 +225,18 @@ class JsbsimBody:
     def set_rotor_thrusts(self, thrusts_n) -> None:
         """Actual rotor thrusts (N, up positive, slot order of the model) after faults and motor lag.
 
-        Each rotor also gets its reaction torque yaw_sign · yaw_moment_per_thrust_m · thrust. Only
-        changed values are written (node writes dominate the step cost for large assemblies).
+        Each rotor also gets its reaction torque yaw_sign · yaw_moment_per_thrust_m · thrust. JSBSim gets
+        their net force and moments (four writes, only when a thrust changed), whatever the rotor count.
         """
-        values = thrusts_n.tolist() if isinstance(thrusts_n, np.ndarray) else [float(f) for f in thrusts_n]
-        last = self._last
-        if len(values) != len(last):
-            raise ValueError(f"expected {len(last)} rotor thrusts, got {len(values)}")
-        fs = self._force_scale
-        changed = False
-        for i, f in enumerate(values):
-            if f != last[i]:
-                last[i] = f
-                changed = True
-                self._force_nodes[i].set_double_value(f * fs)
-                self._moment_nodes[i].set_double_value(f * self._moment_scales[i])
-        if changed and self._rotor_sum_nodes:
+        values = np.asarray(thrusts_n, dtype=float)
+        if values.shape != self._last.shape:
+            raise ValueError(f"expected {len(self._last)} rotor thrusts, got {values.size}")
+        if np.array_equal(values, self._last):
+            return
+        self._last = values.copy()
+        for node, value in zip(self._rotor_nodes, (self._rotor_effect @ values).tolist()):
+            node.set_double_value(value)
+        if self._rotor_sum_nodes:
             # a rotor's speed follows sqrt(|T|) (a reversed rotor drags too)
             for node, total in zip(self._rotor_sum_nodes, (self._rotor_moments @ np.sqrt(np.abs(values))).tolist()):
                 node.set_double_value(total)
