@@ -58,29 +58,33 @@ def contact_points(model: AssemblyModel) -> list[tuple[np.ndarray, float]]:
     feet = unit_feet_frd_m(model)
     xy = feet[:, :2]
     hull = list(ConvexHull(xy).vertices)  # counter-clockwise in (x, y)
-    share = dict.fromkeys(hull, 0.0)
     n = len(hull)
-    for f in xy:
-        # averaged over the fans from every corner, so symmetric layouts get symmetric shares
-        share_of = sum(np.roll(_barycentric_in_fan(np.roll(xy[hull], -r, axis=0), f), r) for r in range(n)) / n
-        for corner, w in zip(hull, share_of):
-            share[corner] += w / len(feet)
-    return [(feet[i], share[i]) for i in hull]
+    # averaged over the fans from every corner, so symmetric layouts get symmetric shares
+    share = sum(np.roll(_barycentric_in_fan(np.roll(xy[hull], -r, axis=0), xy), r, axis=1) for r in range(n)) / n
+    share = share.sum(axis=0) / len(feet)
+    return [(feet[i], float(share[k])) for k, i in enumerate(hull)]
 
 
-def _barycentric_in_fan(poly: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """Weights (>= 0, sum 1) of the polygon corners that reproduce p, from a fan triangle holding p."""
-    weights = np.zeros(len(poly))
-    best, best_w = -np.inf, None
+def _barycentric_in_fan(poly: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Weights (>= 0, each row summing to 1) of the polygon corners that reproduce each point, from the
+    fan triangle that holds it (all points solved at once per triangle: a 20x20 has 1,600 feet)."""
+    rows = np.arange(len(points))
+    rhs = np.vstack([points.T, np.ones(len(points))])
+    best = np.full(len(points), -np.inf)
+    best_w = np.zeros((len(points), 3))
+    best_j = np.zeros(len(points), dtype=int)
     for j in range(1, len(poly) - 1):
-        tri = np.array([poly[0], poly[j], poly[j + 1]])
-        m = np.array([[tri[0, 0], tri[1, 0], tri[2, 0]], [tri[0, 1], tri[1, 1], tri[2, 1]], [1.0, 1.0, 1.0]])
-        w = np.linalg.solve(m, np.array([p[0], p[1], 1.0]))
-        if w.min() > best:  # the triangle that holds p best (all weights >= 0 up to rounding)
-            best, best_w = w.min(), (j, w)
-    j, w = best_w
-    w = np.clip(w, 0.0, None)
-    weights[[0, j, j + 1]] += w / w.sum()
+        tri = poly[[0, j, j + 1]]
+        w = np.linalg.solve(np.vstack([tri.T, np.ones(3)]), rhs).T
+        low = w.min(axis=1)
+        better = low > best  # the triangle that holds a point best (all weights >= 0 up to rounding)
+        best[better], best_w[better], best_j[better] = low[better], w[better], j
+    w = np.clip(best_w, 0.0, None)
+    w /= w.sum(axis=1, keepdims=True)
+    weights = np.zeros((len(points), len(poly)))
+    weights[rows, 0] += w[:, 0]
+    weights[rows, best_j] += w[:, 1]
+    weights[rows, best_j + 1] += w[:, 2]
     return weights
 
 
