@@ -90,7 +90,7 @@ class RotorIntake:
 
     def offer(self, msg, sim_time_s: float) -> bool:
         """Check one decoded SET_ACTUATOR_CONTROL_TARGET; True if it became the held command."""
-        p = self.params
+        p = self._params
         if msg.get_srcSystem() != p.coordinator_sysid or msg.get_srcComponent() != p.coordinator_compid:
             return self.drop("wrong_source")
         if msg.target_system != p.unit_sysid or msg.target_component not in (p.unit_compid, 0):
@@ -105,7 +105,7 @@ class RotorIntake:
         """The value checks of `offer` on a command already addressed to this unit (the in-process
         path hands the four wire controls and the wire time directly, and `thrusts_n`, the controls
         times full scale as the sender computed them); True if it is now held."""
-        p = self.params
+        p = self._params
         if not (math.isfinite(c0) and math.isfinite(c1) and math.isfinite(c2) and math.isfinite(c3)):
             return self.drop("non_finite")
         lo, hi = p.control_min, p.control_max

@@ -63,11 +63,17 @@ class InProcessUnits:
         """The coordinator's commands into the units; their motor outputs into the world. A live unit
         without a command this step still answers (it flies itself, or its fail-safe does), as every unit
         answers every HIL step in SITL."""
-        done = self.dead
+        done, actuate, taken_over, vehicles = self.dead, self.world.actuate, self._taken_over, self.vehicles
         for cmd in commands:
-            if cmd.unit_id in done:
+            u = cmd.unit_id
+            if u in done:
                 continue
-            self.world.actuate(self.command(cmd))
+            if u in taken_over:  # (`command`, inlined for the steady state: every unit, every step)
+                v = vehicles[u]
+                v.take_rotor_command(cmd)
+                actuate(v.drive_motors())
+            else:
+                actuate(self.command(cmd))
         if len(commands) < len(self.vehicles):
             commanded = {c.unit_id for c in commands}
             for u, v in self.vehicles.items():
