@@ -255,14 +255,18 @@ class Coordinator:
         fs = self.failsafe
         if fs is None or fs.state not in ("land", "landed"):
             return False
-        return fs.near_ground(float(fs.estimate_point_ned_m[2]), math.sqrt(max(float(self.guard.covariance[2, 2]), 0.0)))
+        return fs.near_ground(float(fs.estimate_point_ned_m[2]), self._vertical_sigma_m())
+
+    def _vertical_sigma_m(self) -> float:
+        """The guard's standard deviation of the estimated height (m)."""
+        return math.sqrt(max(float(self.guard.covariance[2, 2]), 0.0))
 
     def _failsafe_motors(self, t_s: float, thrusts: np.ndarray) -> None:
         """What the failsafe's land detector reads: the thrust asked and the IMUs' mean specific force."""
         imus = self.guard.usable_imus
         f_down = float(np.mean([s.accel_frd_mps2[2] for s in imus])) if imus else None
         self.failsafe.observe(t_s, float(thrusts.sum()), f_down, self.model.mass_kg * GRAVITY_MPS2,
-                              math.sqrt(max(float(self.guard.covariance[2, 2]), 0.0)))
+                              self._vertical_sigma_m())
         self.events += self.failsafe.events
         self.failsafe.events.clear()
 
