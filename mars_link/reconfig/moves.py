@@ -1,0 +1,177 @@
+"""Reconfiguration by single-piece moves: split one piece off, dock it back elsewhere, repeat.
+
+Paper 001's plans (`sequencing`) disassemble first and then assemble, into the same layout with units
+permuted; every piece of the plan must hover within the thrust limits. This module searches the other
+family of manoeuvres: one piece at a time leaves the body along a straight break line and docks back at
+another place on a straight line, so the body in between may take any shape. It answers whether a body
+that paper 001's plans cannot improve has a reachable better arrangement, and which moves reach it.
+
+A move is valid when the piece and the rest each hover alone and the docked result hovers, all within
+the rotor thrust limits with the faults they carry (exact LP, `hover_thrust_share`). An arrangement's
+cost is Σ T² of the flight's own allocator (`qp`, its bounds) at hover: the force integral's rate.
+The search is breadth-first over arrangements up to translation (`best_moves`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mars_link.assembly import GRAVITY_MPS2, VehicleParams
+from mars_link.latches import components, neighbour_links
+from mars_link.reconfig.execution import PieceShape, local_eta
+from mars_link.reconfig.flyability import Cell
+
+Arrangement = frozenset  # of (unit, cell): a rigid body up to translation (normalised: min row, col = 0)
+
+
+def normalised(cells: dict[int, Cell]) -> Arrangement:
+    r0 = min(r for r, _ in cells.values())
+    c0 = min(c for _, c in cells.values())
+    return frozenset((u, (r - r0, c - c0)) for u, (r, c) in cells.items())
+
+
+@dataclass
+class HoverCosts:
+    """Hover figures of arrangements with fixed rotor healths (memoised: the search asks many times)."""
+
+    vehicle: VehicleParams
+    eta_of: dict[int, np.ndarray]  # unit -> its four rotor efficiencies
+    _cache: dict = field(default_factory=dict)
+
+    def share(self, cells: dict[int, Cell]) -> float:
+        """The least largest rotor command with which the body hovers, as a share of the maximum (> 1: it cannot)."""
+        return self._figures(normalised(cells))[0]
+
+    def sum_sq_n2(self, cells: dict[int, Cell]) -> float:
+        """Σ T² (N²) of the qp allocator's hover (inf when the body cannot hover)."""
+        return self._figures(normalised(cells))[1]
+
+    def _figures(self, key: Arrangement) -> tuple[float, float]:
+        hit = self._cache.get(key)
+        if hit is None:
+            hit = self._cache[key] = self._compute(dict(key))
+        return hit
+
+    def _compute(self, cells: dict[int, Cell]) -> tuple[float, float]:
+        from mars_link.allocation import hover_thrust_share, make_allocator
+
+        v = self.vehicle
+        shape = PieceShape(cells)
+        model = shape.model(v)
+        eta = local_eta(shape, self.eta_of)
+        share = hover_thrust_share(model, eta, v.rotor_max_thrust_n)
+        if not share <= 1.0:
+            return share, float("inf")
+        alloc = make_allocator("qp", model, eta, v.rotor_min_thrust_n, v.rotor_max_thrust_n)
+        thrusts = alloc.allocate(np.array([model.mass_kg * GRAVITY_MPS2, 0.0, 0.0, 0.0]))
+        return share, float(thrusts @ thrusts)
+
+
+@dataclass(frozen=True)
+class Move:
+    """`units` split off along a straight line and docked back so that they sit at `cells`."""
+
+    units: tuple[int, ...]
+    cells: tuple[Cell, ...]  # the units' cells after the dock, in the frame of the structure before it
+
+
+def splits(cells: dict[int, Cell]):
+    """(piece, rest) pairs of a straight break line: the piece is a connected group of one side, the
+    rest stays connected (the undock `sequencing` allows)."""
+    links = neighbour_links(cells)
+    seen = set()
+    for axis in (0, 1):
+        values = sorted({c[axis] for c in cells.values()})
+        for line in values[1:]:
+            low = [u for u, c in cells.items() if c[axis] < line]
+            high = [u for u, c in cells.items() if c[axis] >= line]
+            for side in (low, high):
+                for group in components(side, links):
+                    rest = set(cells) - group
+                    key = frozenset(group)
+                    if key in seen or len(components(rest, links)) != 1:
+                        continue
+                    seen.add(key)
+                    yield sorted(group), sorted(rest)
+
+
+def docks(piece: dict[int, Cell], rest: dict[int, Cell]):
+    """Every place where `piece` docks to `rest` on a straight line: no overlap, at least one face in
+    contact, and a grid line with the piece wholly on one side and the rest on the other (the approach
+    is clear). Yields the piece's cells there."""
+    occupied = set(rest.values())
+    pr = [c[0] for c in piece.values()]
+    pc = [c[1] for c in piece.values()]
+    rr = [c[0] for c in occupied]
+    rc = [c[1] for c in occupied]
+    for dr in range(min(rr) - max(pr) - 1, max(rr) - min(pr) + 2):
+        for dc in range(min(rc) - max(pc) - 1, max(rc) - min(pc) + 2):
+            moved = {u: (r + dr, c + dc) for u, (r, c) in piece.items()}
+            mine = set(moved.values())
+            if mine & occupied:
+                continue
+            if not any((r + a, c + b) in occupied for r, c in mine for a, b in ((1, 0), (-1, 0), (0, 1), (0, -1))):
+                continue
+            separated = False
+            for k in (0, 1):
+                lo, hi = min(x[k] for x in mine), max(x[k] for x in mine)
+                if hi < min(x[k] for x in occupied) or lo > max(x[k] for x in occupied):
+                    separated = True
+            if separated:
+                yield moved
+
+
+def moves(cells: dict[int, Cell], costs: HoverCosts, max_piece_units: int | None = None):
+    """Every valid single move from `cells`: (Move, the body after it)."""
+    for piece_units, rest_units in splits(cells):
+        if max_piece_units is not None and len(piece_units) > max_piece_units:
+            continue
+        piece = {u: cells[u] for u in piece_units}
+        rest = {u: cells[u] for u in rest_units}
+        if costs.share(piece) > 1.0 or costs.share(rest) > 1.0:
+            continue
+        for moved in docks(piece, rest):
+            after = {**rest, **moved}
+            if costs.share(after) <= 1.0:
+                yield Move(tuple(piece_units), tuple(moved[u] for u in piece_units)), after
+
+
+@dataclass
+class MoveSearch:
+    start_sum_sq_n2: float
+    best_sum_sq_n2: float
+    moves: list[Move]
+    final: dict[int, Cell]
+    arrangements_seen: int
+    first_moves: int  # valid moves from the start (0: no piece can leave and come back hovering)
+
+
+def best_moves(cells: dict[int, Cell], costs: HoverCosts, depth: int = 2,
+               max_piece_units: int | None = None) -> MoveSearch:
+    """The lowest-Σ T² arrangement reachable in at most `depth` moves (breadth first: fewest moves among
+    equals), and the moves that reach it."""
+    start = normalised(cells)
+    best_cost = costs.sum_sq_n2(cells)
+    best: tuple[list[Move], dict[int, Cell]] = ([], dict(cells))
+    frontier = [(dict(cells), [])]
+    visited = {start}
+    first = None
+    for _ in range(depth):
+        nxt = []
+        for body, path in frontier:
+            found = list(moves(body, costs, max_piece_units))
+            if first is None:
+                first = len(found)
+            for move, after in found:
+                key = normalised(after)
+                if key in visited:
+                    continue
+                visited.add(key)
+                cost = costs.sum_sq_n2(after)
+                nxt.append((after, path + [move]))
+                if cost < best_cost - 1e-12:
+                    best_cost, best = cost, (path + [move], after)
+        frontier = nxt
+    return MoveSearch(costs.sum_sq_n2(cells), best_cost, best[0], best[1], len(visited), first or 0)
