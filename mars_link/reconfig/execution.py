@@ -186,6 +186,11 @@ class PieceReference(Trajectory):
 
 
 # ----------------------------------------------------------------------------- parameters and actions
+#: the final body resumes the mission once its estimate holds within these of its point for settle_s
+STEADY_POSITION_M = 0.03
+STEADY_SPEED_MPS = 0.03
+
+
 @dataclass
 class ExecutionParams:
     """Timing and geometry of the manoeuvre; distances default to multiples of the unit pitch."""
@@ -289,6 +294,7 @@ class Executor:
         self.refs[whole.key] = self._mission_reference(whole, 0.0)
         self._replan_lost: set[int] = set()  # units lost during the docking layers: re-plan before the next one
         self.hold_until_s = -math.inf  # a commanded separation: the pieces fly apart until then (inf: for good)
+        self._steady_since: float | None = None  # the final body has held its point since (the return waits)
         self.free_start = free_start
         self.assembling = free_start is not None  # the first manoeuvre builds the structure from free units
         if free_start is not None:
@@ -455,6 +461,8 @@ class Executor:
             if not self.docks and t_s >= max(self.phase_end_t, self.hold_until_s):
                 if self._replan_lost and not self._replan_docks(t_s):
                     self._give_up(t_s)
+                elif self._last_layer_done() and not self._steady(t_s, states):
+                    pass  # the docked body is still moving: the mission does not resume on it yet
                 else:
                     self._next_dock_layer(t_s)
         if self.phase == "return" and t_s >= self.phase_end_t:
@@ -469,6 +477,29 @@ class Executor:
             self.events.append({"t_s": round(t_s, 6), "type": "mission_resumed", "shift_s": round(self.shift_s, 4),
                                 "text": self._resume_text})
         return []
+
+    def _last_layer_done(self) -> bool:
+        return not any(m.layer > self.layer for m in self.plan.merges)
+
+    def _steady(self, t_s: float, states: dict) -> bool:
+        """The body about to fly the mission has held its point (estimate within STEADY_POSITION_M of it,
+        slower than STEADY_SPEED_MPS) for `settle_s`, or it has tried for `dock_timeout_s`. A dock is an
+        impact the pieces' merged estimate did not see: the body drifts and its estimate's velocity is
+        off by centimetres per second for seconds; resuming at once carried that into the mission."""
+        key = self.main_key()
+        s = states.get(key)
+        near = s is not None and (
+            float(np.linalg.norm(s.position_ned_m - self.refs[key].end_position())) < STEADY_POSITION_M
+            and float(np.linalg.norm(s.velocity_ned_mps)) < STEADY_SPEED_MPS)
+        if not near:
+            self._steady_since = None
+        elif self._steady_since is None:
+            self._steady_since = t_s
+        held = self._steady_since is not None and t_s - self._steady_since >= self.params.settle_s - 1e-9
+        if held or t_s - self.phase_end_t >= self.params.dock_timeout_s:
+            self._steady_since = None
+            return True
+        return False
 
     def _stop(self, t_s: float) -> None:
         (key,) = self.shapes

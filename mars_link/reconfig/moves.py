@@ -75,11 +75,14 @@ class Move:
 
     units: tuple[int, ...]
     cells: tuple[Cell, ...]  # the units' cells after the dock, in the frame of the structure before it
+    cut: tuple[int, int] = (0, 0)  # the break line it leaves along: (axis 0 rows / 1 columns, index)
+    dock_axis: int = 0  # the axis it approaches along to dock
 
 
 def splits(cells: dict[int, Cell]):
-    """(piece, rest) pairs of a straight break line: the piece is a connected group of one side, the
-    rest stays connected (the undock `sequencing` allows)."""
+    """(piece, rest, (axis, index)) of a straight break line (axis 0: between rows index-1 and index, 1:
+    between columns): the piece is a connected group of one side, the rest stays connected (the undock
+    `sequencing` allows)."""
     links = neighbour_links(cells)
     seen = set()
     for axis in (0, 1):
@@ -94,13 +97,13 @@ def splits(cells: dict[int, Cell]):
                     if key in seen or len(components(rest, links)) != 1:
                         continue
                     seen.add(key)
-                    yield sorted(group), sorted(rest)
+                    yield sorted(group), sorted(rest), (axis, line)
 
 
 def docks(piece: dict[int, Cell], rest: dict[int, Cell]):
     """Every place where `piece` docks to `rest` on a straight line: no overlap, at least one face in
     contact, and a grid line with the piece wholly on one side and the rest on the other (the approach
-    is clear). Yields the piece's cells there."""
+    is clear). Yields the piece's cells there and that line's axis (0: rows, 1: columns)."""
     occupied = set(rest.values())
     pr = [c[0] for c in piece.values()]
     pc = [c[1] for c in piece.values()]
@@ -114,28 +117,25 @@ def docks(piece: dict[int, Cell], rest: dict[int, Cell]):
                 continue
             if not any((r + a, c + b) in occupied for r, c in mine for a, b in ((1, 0), (-1, 0), (0, 1), (0, -1))):
                 continue
-            separated = False
-            for k in (0, 1):
+            for k in (0, 1):  # (face contact: at most one axis separates them)
                 lo, hi = min(x[k] for x in mine), max(x[k] for x in mine)
                 if hi < min(x[k] for x in occupied) or lo > max(x[k] for x in occupied):
-                    separated = True
-            if separated:
-                yield moved
+                    yield moved, k
 
 
 def moves(cells: dict[int, Cell], costs: HoverCosts, max_piece_units: int | None = None):
     """Every valid single move from `cells`: (Move, the body after it)."""
-    for piece_units, rest_units in splits(cells):
+    for piece_units, rest_units, cut in splits(cells):
         if max_piece_units is not None and len(piece_units) > max_piece_units:
             continue
         piece = {u: cells[u] for u in piece_units}
         rest = {u: cells[u] for u in rest_units}
         if costs.share(piece) > 1.0 or costs.share(rest) > 1.0:
             continue
-        for moved in docks(piece, rest):
+        for moved, dock_axis in docks(piece, rest):
             after = {**rest, **moved}
             if costs.share(after) <= 1.0:
-                yield Move(tuple(piece_units), tuple(moved[u] for u in piece_units)), after
+                yield Move(tuple(piece_units), tuple(moved[u] for u in piece_units), cut, dock_axis), after
 
 
 @dataclass
@@ -150,11 +150,12 @@ class MoveSearch:
 
 def best_moves(cells: dict[int, Cell], costs: HoverCosts, depth: int = 2,
                max_piece_units: int | None = None) -> MoveSearch:
-    """The lowest-Σ T² arrangement reachable in at most `depth` moves (breadth first: fewest moves among
-    equals), and the moves that reach it."""
+    """The lowest-Σ T² arrangement reachable in at most `depth` moves (breadth first; among equal costs the
+    fewest units moved, then the fewest moves), and the moves that reach it."""
     start = normalised(cells)
     best_cost = costs.sum_sq_n2(cells)
     best: tuple[list[Move], dict[int, Cell]] = ([], dict(cells))
+    best_moved = 0  # units moved by the best sequence (among equal costs, the fewest win)
     frontier = [(dict(cells), [])]
     visited = {start}
     first = None
@@ -171,7 +172,35 @@ def best_moves(cells: dict[int, Cell], costs: HoverCosts, depth: int = 2,
                 visited.add(key)
                 cost = costs.sum_sq_n2(after)
                 nxt.append((after, path + [move]))
-                if cost < best_cost - 1e-12:
-                    best_cost, best = cost, (path + [move], after)
+                moved = sum(len(m.units) for m in path) + len(move.units)
+                if cost < best_cost - 1e-9 * best_cost or (
+                        cost <= best_cost + 1e-9 * best_cost and best[0] and moved < best_moved):
+                    best_cost, best, best_moved = cost, (path + [move], after), moved
         frontier = nxt
     return MoveSearch(costs.sum_sq_n2(cells), best_cost, best[0], best[1], len(visited), first or 0)
+
+
+def move_plan(cells: dict[int, Cell], move: Move, sum_sq_n2: float) -> "ReconfigPlan":
+    """One move as the executor's plan: one split layer (the piece leaves across its break line), one dock
+    layer (it approaches the rest along `dock_axis`). Cells are shifted so both frames start at 0."""
+    from mars_link.assembly import layout_of_cells
+    from mars_link.reconfig.placement import Placement
+    from mars_link.reconfig.sequencing import BreakLine, MergeStep, ReconfigPlan, SplitStep
+
+    initial = dict(normalised(cells))
+    shift = {k: min(c[k] for c in cells.values()) for k in (0, 1)}
+    target = {**cells, **dict(zip(move.units, move.cells))}
+    target = dict(normalised(target))
+    mover = sorted(move.units)
+    rest = sorted(set(cells) - set(mover))
+    axis_name = ("row", "col")
+    cut_axis, cut_index = move.cut
+    split = SplitStep(1, sorted(cells), BreakLine(axis_name[cut_axis], cut_index - shift[cut_axis]), mover, rest)
+    k = move.dock_axis
+    mover_max = max(target[u][k] for u in mover)
+    low = mover_max < min(target[u][k] for u in rest)  # the mover on the low side: it travels + along k
+    index = mover_max + 1 if low else max(target[u][k] for u in rest) + 1
+    merge = MergeStep(1, 0, rest, mover, BreakLine(axis_name[k], index), ("+" if low else "-") + axis_name[k])
+    return ReconfigPlan(layout_of_cells(initial.values()), initial, Placement(target, sum_sq_n2, "moves", 0.0),
+                        True, 1, 1, [split], [merge], [mover, rest],
+                        reason=f"one move: units {mover} split off and dock elsewhere")

@@ -153,19 +153,43 @@ def plan_separation(model: AssemblyModel, units, redock: bool) -> ReconfigPlan:
                          "separates exactly these units")
 
 
+#: a single move is flown only if it lowers the hover Σ T² by at least this share (a manoeuvre has its risks)
+MOVE_MIN_GAIN = 0.01
+
+
 def plan_or_reason(scenario: Scenario, model: AssemblyModel, mission, eta: np.ndarray,
                    current: dict | None = None) -> tuple[ReconfigPlan | None, str]:
     """A plan worth executing for the faults `eta` from the structure `current` (feasible, with something
-    to split, every piece able to hover), else None and why not."""
+    to split, every piece able to hover), else None and why not. Paper 001's plan first; where it finds
+    nothing to fly, the best single move (`mars_link.reconfig.moves`) if it saves MOVE_MIN_GAIN of the
+    hover Σ T²."""
     try:
         plan = make_plan(scenario, model, mission, eta, current)
     except UserInputError as exc:
         return None, str(exc)
     if not plan.feasible:
-        return None, f"no feasible plan: {plan.reason}"
-    if not plan.disassembly_layers:
-        return None, "the structure is already the best one for these faults"
-    bad = unhoverable_pieces(plan, model, eta)
-    if bad:
-        return None, "; ".join(bad)
-    return plan, ""
+        reason = f"no feasible plan: {plan.reason}"
+    elif not plan.disassembly_layers:
+        reason = "the structure is already the best one for these faults"
+    else:
+        bad = unhoverable_pieces(plan, model, eta)
+        if not bad:
+            return plan, ""
+        reason = "; ".join(bad)
+    if not scenario.reconfig.get("moves", True):
+        return None, reason
+    move = best_single_move(model, eta, current)
+    return (move, "") if move is not None else (None, reason + "; no single move saves "
+                                                 f"{100 * MOVE_MIN_GAIN:.0f} % of the hover force either")
+
+
+def best_single_move(model: AssemblyModel, eta: np.ndarray, current: dict | None = None) -> ReconfigPlan | None:
+    """The single move with the lowest hover Σ T², as a plan, if it saves MOVE_MIN_GAIN of it."""
+    from mars_link.reconfig.moves import HoverCosts, best_moves, move_plan
+
+    cells = dict(current) if current is not None else nominal_cells(model)
+    costs = HoverCosts(model.vehicle, {u: eta[model.unit_slots(u)] for u in model.unit_ids})
+    found = best_moves(cells, costs, depth=1)
+    if not found.moves or found.best_sum_sq_n2 > (1.0 - MOVE_MIN_GAIN) * found.start_sum_sq_n2:
+        return None
+    return move_plan(cells, found.moves[0], found.best_sum_sq_n2)
