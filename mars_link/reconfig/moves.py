@@ -152,31 +152,30 @@ def best_moves(cells: dict[int, Cell], costs: HoverCosts, depth: int = 2,
                max_piece_units: int | None = None) -> MoveSearch:
     """The lowest-Σ T² arrangement reachable in at most `depth` moves (breadth first; among equal costs the
     fewest units moved, then the fewest moves), and the moves that reach it."""
-    start = normalised(cells)
     best_cost = costs.sum_sq_n2(cells)
     best: tuple[list[Move], dict[int, Cell]] = ([], dict(cells))
     best_moved = 0  # units moved by the best sequence (among equal costs, the fewest win)
     frontier = [(dict(cells), [])]
-    visited = {start}
+    visited = {normalised(cells)}
     first = None
     for _ in range(depth):
-        nxt = []
+        reached: dict[Arrangement, tuple[dict[int, Cell], list[Move], int]] = {}  # the fewest units moved to each
         for body, path in frontier:
             found = list(moves(body, costs, max_piece_units))
             if first is None:
                 first = len(found)
             for move, after in found:
                 key = normalised(after)
-                if key in visited:
-                    continue
-                visited.add(key)
-                cost = costs.sum_sq_n2(after)
-                nxt.append((after, path + [move]))
                 moved = sum(len(m.units) for m in path) + len(move.units)
-                if cost < best_cost - 1e-9 * best_cost or (
-                        cost <= best_cost + 1e-9 * best_cost and best[0] and moved < best_moved):
-                    best_cost, best, best_moved = cost, (path + [move], after), moved
-        frontier = nxt
+                if key not in visited and (key not in reached or moved < reached[key][2]):
+                    reached[key] = (after, path + [move], moved)
+        visited.update(reached)
+        for after, path, moved in reached.values():
+            cost = costs.sum_sq_n2(after)
+            if cost < best_cost - 1e-9 * best_cost or (
+                    cost <= best_cost + 1e-9 * best_cost and best[0] and moved < best_moved):
+                best_cost, best, best_moved = cost, (path, after), moved
+        frontier = [(after, path) for after, path, _ in reached.values()]
     return MoveSearch(costs.sum_sq_n2(cells), best_cost, best[0], best[1], len(visited), first or 0)
 
 

@@ -178,18 +178,21 @@ def plan_or_reason(scenario: Scenario, model: AssemblyModel, mission, eta: np.nd
         reason = "; ".join(bad)
     if not scenario.reconfig.get("moves", True):
         return None, reason
-    move = best_single_move(model, eta, current)
-    return (move, "") if move is not None else (None, reason + "; no single move saves "
-                                                 f"{100 * MOVE_MIN_GAIN:.0f} % of the hover force either")
+    move, why_not = best_single_move(model, eta, current)
+    return (move, "") if move is not None else (None, f"{reason}; {why_not}")
 
 
-def best_single_move(model: AssemblyModel, eta: np.ndarray, current: dict | None = None) -> ReconfigPlan | None:
-    """The single move with the lowest hover Σ T², as a plan, if it saves MOVE_MIN_GAIN of it."""
+def best_single_move(model: AssemblyModel, eta: np.ndarray,
+                     current: dict | None = None) -> tuple[ReconfigPlan | None, str]:
+    """The single move with the lowest hover Σ T², as a plan, if it saves MOVE_MIN_GAIN of it; else None
+    and why not."""
     from mars_link.reconfig.moves import HoverCosts, best_moves, move_plan
 
     cells = dict(current) if current is not None else nominal_cells(model)
     costs = HoverCosts(model.vehicle, {u: eta[model.unit_slots(u)] for u in model.unit_ids})
     found = best_moves(cells, costs, depth=1)
+    if found.first_moves == 0:
+        return None, "no piece can split off and dock back with every body hovering"
     if not found.moves or found.best_sum_sq_n2 > (1.0 - MOVE_MIN_GAIN) * found.start_sum_sq_n2:
-        return None
-    return move_plan(cells, found.moves[0], found.best_sum_sq_n2)
+        return None, f"no single move saves {100 * MOVE_MIN_GAIN:.0f} % of the hover force"
+    return move_plan(cells, found.moves[0], found.best_sum_sq_n2), ""
