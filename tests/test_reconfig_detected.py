@@ -25,17 +25,17 @@ def test_donut_reconfigures_on_detected_faults_and_beats_flying_on():
     assert r["mission_force_integral_n2s"] < nr["mission_force_integral_n2s"]
 
 
-def test_plus5_plan_from_found_faults_is_refused_when_a_piece_cannot_hover():
-    """plus-5, unit 1 (an arm's tip) with 3 dead rotors: found in < 0.5 s; every straight cut that would move it
-    leaves it alone on one rotor, so the planner finds no reachable arrangement better than the current one;
-    the coordinator says so (an event) and flies on with FTC."""
-    r = fly(0, "R")
+def test_plus5_six_faults_found_no_manoeuvre_is_flown_and_the_coordinator_says_why():
+    """plus-5, unit 1 dead and unit 2's rotors 1 and 4: found in < 0.5 s; paper 001's plan has nothing to
+    fly and no piece can split off and dock back with every body hovering (tests/test_reconfig_moves.py),
+    so the coordinator says so (an event) and flies on with FTC."""
+    r = fly(2, "R")
     assert r["completed"] and not r["reconfigured"] and r["detection_s"] < 0.5
-    assert r["refused"] and "best" in r["refused"]
+    assert r["refused"] and "no piece can split off" in r["refused"]
 
 
 def test_plus5_faulty_tip_cannot_be_carried_to_the_centre():
-    """Why R = NR for the plus-5 in flight: the faulty tip (unit 1) reaches the centre only as the pair
+    """Why paper 001's plans cannot improve the plus-5: the faulty tip (unit 1) reaches the centre only as the pair
     {1, 3} (the tips touch the centre only), and that pair cannot hover with ModQuad's thrust limits: 116 %
     of a rotor's maximum with unit 1's rotor 2 left (3 faults), and at no thrust with unit 1 dead."""
     import math
