@@ -404,6 +404,15 @@ class _UnitRows:
     vel_rows: np.ndarray  # (k, 3) rows of each unit's velocity
 
 
+@dataclass
+class StackedSamples:
+    """A tick's samples already stacked by the caller, rows in the order of the lists given with them (the
+    sensor gate stacks them for its own checks; `step` then does not stack them again)."""
+
+    imu: tuple[tuple[int, ...], np.ndarray] | None = None  # (units, (2k, 3): the gyros, then the specific forces)
+    positions: tuple[tuple[int, ...], np.ndarray] | None = None  # (units, (k, 3) positions)
+
+
 class AssemblyEstimator:
     """EKF for one rigid body (an assembly of docked units).
 
@@ -472,11 +481,13 @@ class AssemblyEstimator:
         self.stats.rejected[reason] = self.stats.rejected.get(reason, 0) + 1
 
     def step(
-        self, t_s: float, imu_samples: list[ImuSample], position_samples: list[PositionSample]
+        self, t_s: float, imu_samples: list[ImuSample], position_samples: list[PositionSample],
+        stacked: StackedSamples | None = None,
     ) -> RigidBodyState:
-        """Feed one tick's samples, process everything up to `t_s`, return the estimate at `t_s`."""
+        """Feed one tick's samples, process everything up to `t_s`, return the estimate at `t_s`.
+        `stacked`: the same samples' values, already stacked (used on the batch path only)."""
         if not self._pending_imu and not self._pending_pos:
-            batch = self._batch(t_s, imu_samples, position_samples)
+            batch = self._batch(t_s, imu_samples, position_samples, stacked)
             if batch is not None:  # the usual tick: checked and stacked at once, same result
                 tau, imu_arrays, pos_group = batch
                 if tau is not None:
@@ -492,20 +503,22 @@ class AssemblyEstimator:
         self.predict_to(t_s)
         return self.state()
 
-    def _batch(self, t_s: float, imus: list[ImuSample], poss: list[PositionSample]):
+    def _batch(self, t_s: float, imus: list[ImuSample], poss: list[PositionSample], stacked: StackedSamples | None = None):
         """The tick's samples stacked, when they are one instant <= t_s of distinct known units with
         finite values and none stale: (tau, (units, gyros, accels) | None, position group | None).
         None for anything else, which the per-sample path then counts and drops as usual."""
         tau = None
         imu_arrays = pos_group = None
+        given_imu, given_pos = (None, None) if stacked is None else (stacked.imu, stacked.positions)
         try:
             if imus:
                 tau = imus[0].t_s
-                units = tuple([s.unit_id for s in imus])
+                units = tuple([s.unit_id for s in imus]) if given_imu is None else given_imu[0]
                 if not self._instant_ok(t_s, tau, imus, units):
                     return None
                 k = len(units)
-                both = np.array([s.gyro_frd_radps for s in imus] + [s.accel_frd_mps2 for s in imus], dtype=float)
+                both = (np.array([s.gyro_frd_radps for s in imus] + [s.accel_frd_mps2 for s in imus], dtype=float)
+                        if given_imu is None else given_imu[1])
                 if both.shape != (2 * k, 3) or not math.isfinite(_sum(both, None)):
                     return None
                 imu_arrays = (units, both[:k], both[k:])
@@ -514,21 +527,20 @@ class AssemblyEstimator:
                 if tau is not None and tp != tau:
                     return None
                 tau = tp
-                units = tuple([s.unit_id for s in poss])
+                units = tuple([s.unit_id for s in poss]) if given_pos is None else given_pos[0]
                 if not self._instant_ok(t_s, tau, poss, units):
                     return None
                 k = len(units)
-                values = [s.position_ned_m for s in poss]
                 vels = [s.velocity_ned_mps for s in poss]
-                with_vel = any(v is not None for v in vels)
-                if with_vel:
-                    if any(v is None for v in vels):
-                        return None
-                    values += vels
-                both = np.array(values, dtype=float)
-                if both.shape != ((2 if with_vel else 1) * k, 3) or not math.isfinite(_sum(both, None)):
+                missing = [v is None for v in vels].count(True)
+                if 0 < missing < k:  # some units carry a velocity, some do not
                     return None
-                pos_group = (units, both[:k], both[k:] if with_vel else None, None)
+                pos = np.array([s.position_ned_m for s in poss], dtype=float) if given_pos is None else given_pos[1]
+                vel = np.array(vels, dtype=float) if missing == 0 else None
+                if pos.shape != (k, 3) or (vel is not None and vel.shape != (k, 3)) or not math.isfinite(
+                        _sum(pos, None) + (0.0 if vel is None else _sum(vel, None))):
+                    return None
+                pos_group = (units, pos, vel, None)
         except (TypeError, ValueError, AttributeError):
             return None
         return tau, imu_arrays, pos_group
