@@ -101,9 +101,9 @@ def bench_flight_split(scenario_name: str = "spiral_3x2", seed: int = 1) -> tupl
     fuse, plain = [], []
     original = AssemblyEstimator.step
 
-    def timed_step(self, t_s, imu_samples, position_samples):
+    def timed_step(self, t_s, imu_samples, position_samples, stacked=None):
         c = time.perf_counter()
-        out = original(self, t_s, imu_samples, position_samples)
+        out = original(self, t_s, imu_samples, position_samples, stacked)
         (fuse if position_samples else plain).append(time.perf_counter() - c)
         return out
 

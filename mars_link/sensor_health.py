@@ -44,6 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mars_link.estimation import AssemblyEstimator, StackedSamples
 from mars_link.rotations import quat_to_rotmat
 from mars_link.state import ImuSample, PositionSample, RigidBodyState
 
@@ -135,6 +136,10 @@ class SensorGuard:
         self._aux_seen: dict[tuple[int, str], float] = {}  # (unit, baro|mag) -> last sample's time
         self._aux_last: dict[str, tuple] = {}  # baro|mag -> (units, values) of the last batch
         self._aux_watch: dict[str, bool] = {}  # baro|mag -> the per-unit path runs (a part failed or recovering)
+        # this tick's samples as the usual-step checks stacked them, handed to the EKF (it need not stack them again)
+        self._hand_over = isinstance(estimator, AssemblyEstimator) and outdoor is None
+        self._stacked_imu: tuple | None = None
+        self._stacked_pos: tuple | None = None
 
     def __getattr__(self, name: str):  # everything else is the estimator's (initialised, stats, set_model, ...)
         if name == "ekf":
@@ -199,11 +204,14 @@ class SensorGuard:
              outdoor=None) -> RigidBodyState:
         """`outdoor`: the gps profile's samples (estimation_outdoor.OutdoorInputs), for an estimator that takes them."""
         self.imu_changed = False
+        self._stacked_imu = self._stacked_pos = None
         imus = self._screen_imus(t_s, imu_samples)
         self.usable_imus = imus
         positions, drift = self._screen_positions(t_s, position_samples)
         fused = bool(positions)
-        if self._axis_w is None:
+        if self._hand_over:
+            estimate = self.ekf.step(t_s, imus, positions, StackedSamples(self._stacked_imu, self._stacked_pos))
+        elif self._axis_w is None:
             estimate = self.ekf.step(t_s, imus, positions)
         else:
             outdoor, fix_drift = self._screen_outdoor(t_s, outdoor, [s.unit_id for s in imu_samples if s is not None])
@@ -418,6 +426,7 @@ class SensorGuard:
             d = stacked - (np.add.reduce(stacked, 1) / k)[:, None, :]
             if not ((d * d).sum(axis=2).max(axis=1) <= limits[1]).all():
                 return False
+        self._stacked_imu = (units, both)  # (`live` goes to the EKF as it is)
         return True
 
     def _screen_positions(self, t_s: float, samples: list[PositionSample],
@@ -444,6 +453,7 @@ class SensorGuard:
         if miss is not None and not self._gps_watch and last is not None and last[0] == units:  # the usual batch
             gate = self._gate_m()
             if (gated * gated).sum(axis=1).max() <= gate * gate and not (pos == last[1]).all(axis=1).any():
+                self._stacked_pos = (units, pos)
                 return samples, (self._drift(_mean_rows(miss)) if self.position_lost else None)
         finite = np.isfinite(pos).all(axis=1)
         repeated = np.zeros(len(units), dtype=bool) if last is None or last[0] != units else (pos == last[1]).all(axis=1)
@@ -451,6 +461,7 @@ class SensorGuard:
         gate = self._gate_m() if miss is not None else math.inf
         if not self._gps_watch and finite.all() and not repeated.any() and (dist <= gate).all():
             drift = self._drift(_mean_rows(miss)) if miss is not None and self.position_lost else None
+            self._stacked_pos = (units, pos)
             return samples, drift
         kept, rejected, innovations = [], [], []
         for k, s in enumerate(samples):

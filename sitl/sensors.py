@@ -101,8 +101,17 @@ class SensorModel:
         self, t_s: float, body: RigidBodyState, specific_force_frd: np.ndarray, offsets_frd_m: np.ndarray,
         unit_ids: list[int], angular_accel_frd_radps2: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """All units of one body at once (the hot path): gyro, accel (N, 3) FRD; position, velocity
-        (N, 3) NED. Same physics as imu() + position()."""
+        """All units of one body at once: gyro, accel (N, 3) FRD; position, velocity (N, 3) NED (views of
+        `sample_block`). Same physics as imu() + position()."""
+        block = self.sample_block(t_s, body, specific_force_frd, offsets_frd_m, unit_ids, angular_accel_frd_radps2)
+        return block[:, 0:3], block[:, 3:6], block[:, 6:9], block[:, 9:12]
+
+    def sample_block(
+        self, t_s: float, body: RigidBodyState, specific_force_frd: np.ndarray, offsets_frd_m: np.ndarray,
+        unit_ids: list[int], angular_accel_frd_radps2: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """`sample_units` as one (N, 12) array, columns gyro, accel, position, velocity (the hot path: the
+        world rounds it to the wire in one call)."""
         w = body.angular_velocity_frd_radps
         alpha = (
             self._angular_acceleration(tuple(unit_ids), t_s, w) if angular_accel_frd_radps2 is None
@@ -120,6 +129,7 @@ class SensorModel:
         m9 = np.concatenate((ax + wx @ wx, rot, rot @ wx))
         out = r @ m9.T  # (N, 9): accel, pos, vel columns
         out += np.concatenate((specific_force_frd, body.position_ned_m, body.velocity_ned_mps))
+        block = np.empty((n, 12))
         if self.noise:
             key = tuple(unit_ids)
             bias = self._bias_rows.get(key)
@@ -127,12 +137,12 @@ class SensorModel:
                 bias = self._bias_rows[key] = np.array([self.gyro_bias(u) for u in unit_ids])
             noise = self.rng.normal(0.0, 1.0, (n, 12))
             noise *= self._noise_scale()
-            gyro = w + bias + noise[:, 0:3]
-            out += noise[:, 3:12]
+            np.add(w + bias, noise[:, 0:3], out=block[:, 0:3])
+            np.add(out, noise[:, 3:12], out=block[:, 3:12])
         else:
-            gyro = np.tile(w, (n, 1))
-        accel, pos, vel = out[:, 0:3], out[:, 3:6], out[:, 6:9]
-        return gyro, accel, pos, vel
+            block[:, 0:3] = w
+            block[:, 3:12] = out
+        return block
 
     def _noise_scale(self) -> np.ndarray:
         """1-sigma of the 12 columns of one unit's sample: gyro, accel, position, velocity (3 each)."""

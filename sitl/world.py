@@ -347,26 +347,25 @@ class World:
         with_battery = self.packs is not None and self.exchange_index % self.battery_every == 0
         tw = wire_time(t)
         packets = []
+        latch, dead = self.latches.mask, self.dead_units
         for b in self.bodies:
             truth = b.jsbsim.state()
-            gyro, accel, pos, vel = (
-                f32(a)
-                for a in self.sensors.sample_units(
-                    t, truth, b.jsbsim.specific_force_frd(), b.offsets_frd_m, list(b.units),
-                    b.jsbsim.angular_acceleration_frd(),
-                )
-            )
+            block = f32(self.sensors.sample_block(  # (N, 12): gyro, accel, position, velocity, rounded at once
+                t, truth, b.jsbsim.specific_force_frd(), b.offsets_frd_m, list(b.units),
+                b.jsbsim.angular_acceleration_frd(),
+            ))
+            # each unit's vectors as row views (made in one call per column group, not indexed one by one)
+            gyro, accel, pos, vel = list(block[:, 0:3]), list(block[:, 3:6]), list(block[:, 6:9]), list(block[:, 9:12])
             state = None if self.config.noise else wire_state(truth)
-            latch = self.latches.mask
             outdoor = self._outdoor_samples(tw, b, truth) if self.outdoor is not None else None
             for i, unit_id in enumerate(b.units):
-                if unit_id in self.dead_units:
+                if unit_id in dead:
                     continue
                 imu = ImuSample(tw, unit_id, gyro[i], accel[i])
                 battery = self.packs.sample(unit_id - 1) if with_battery else None
                 if outdoor is None:
                     p = PositionSample(tw, unit_id, pos[i], vel[i]) if with_position else None
-                    packets.append(SensorPacket(tw, unit_id, imu, p, state, latch(unit_id), battery=battery))
+                    packets.append(SensorPacket(tw, unit_id, imu, p, state, latch(unit_id), None, None, None, battery))
                 else:
                     packets.append(SensorPacket(tw, unit_id, imu, None, state, latch(unit_id), *outdoor[i],
                                                 battery=battery))

@@ -502,3 +502,37 @@ def test_tick_a_rounding_error_after_the_samples_is_not_a_propagation_step():
         assert np.abs(sa.position_ned_m - sb.position_ned_m).max() < 1e-12
     assert steps[a] == steps[b] == 99
     assert sb.t_s == t + 2e-15
+
+
+def test_the_gate_skips_its_solves_only_when_every_unit_is_inside_the_bound(monkeypatch):
+    """Each unit's S_i = H_i P H_i^T + R_i is at least R_i, so its NIS is at most sum(y^2 / R): when that bound is
+    inside the gate for every unit, the 3x3 solves are skipped (the usual tick). A unit beyond the bound is still
+    judged on its own S_i: accepted when the covariance explains its miss, gated when not."""
+    model = AssemblyModel.from_layout(["XXX", "XXX"], "mars-ftcc")
+    rng = np.random.default_rng(5)
+    biases = {u: np.zeros(3) for u in model.unit_ids}
+    motion = Motion(rest_s=10.0)
+    est = AssemblyEstimator(model)
+    solves = []
+    solve = np.linalg.solve
+    monkeypatch.setattr(np.linalg, "solve", lambda *a: solves.append(1) or solve(*a))
+
+    def tick(k, shift_m=0.0):
+        t = k / 100.0
+        imus, poss = unit_measurements(model, motion.truth(t), t, rng, biases)
+        poss[2].position_ned_m = poss[2].position_ned_m + np.array([shift_m, 0.0, 0.0])
+        est.step(t, imus, poss)
+
+    for k in range(100):
+        tick(k)
+    assert solves == [] and est.stats.rejected.get("position_gate", 0) == 0  # every usual tick: no solve
+    before = est.p.copy()
+    tick(100, shift_m=1.0)  # 1 m off: beyond the bound and beyond its S_i: solved, gated
+    assert len(solves) == 1 and est.stats.rejected["position_gate"] == 1
+    assert np.abs(est.p - before).max() < 0.02  # the others still fused, the outlier did not pull the body
+    est._ekf.P[0:3, 0:3] += np.eye(3) * 0.1 ** 2  # the filter unsure of its position by 10 cm
+    s = est._ekf.P[0, 0] + 1e-4
+    shift = 0.08  # bound (0.08 / 1 cm)^2 = 64 > 30, but its NIS about 0.08^2 / s < 1: accepted
+    assert shift ** 2 / 1e-4 > est.params.position_gate_nis > shift ** 2 / s
+    tick(101, shift_m=shift)
+    assert len(solves) == 2 and est.stats.rejected["position_gate"] == 1

@@ -34,9 +34,9 @@ def test_spiral_3x2_estimate_equals_the_joint_update_over_the_whole_flight(monke
     ticks = []
     step = AssemblyEstimator.step
 
-    def recording_step(self, t_s, imus, poss):
+    def recording_step(self, t_s, imus, poss, stacked=None):
         ticks.append((t_s, copy.deepcopy(imus), copy.deepcopy(poss)))
-        return step(self, t_s, imus, poss)
+        return step(self, t_s, imus, poss, stacked)
 
     monkeypatch.setattr(AssemblyEstimator, "step", recording_step)
     sc = load_scenario("spiral_3x2")
