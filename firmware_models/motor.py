@@ -130,11 +130,12 @@ class MotorModel:
             raise UserInputError(f"expected {self.params.n_rotors} finite rotor thrusts")
         self.thrust_n[:] = values
 
-    def setpoint(self, commands_n) -> np.ndarray:
+    def setpoint(self, commands_n, checked: bool = False) -> np.ndarray:
         """What the motors are driven towards: cleaned, clamped, eta-scaled command (a new array, or the
-        command itself when nothing changes it: no limits, every eta 1, every value finite)."""
-        if self._plain and isinstance(commands_n, np.ndarray) and commands_n.shape == self.thrust_n.shape \
-                and _all_finite(commands_n):
+        command itself when nothing changes it: no limits, every eta 1, every value finite). `checked`:
+        the command is already known to be a finite array of the right shape (a rotor intake's)."""
+        if self._plain and (checked or isinstance(commands_n, np.ndarray) and commands_n.shape == self.thrust_n.shape
+                            and _all_finite(commands_n)):
             return commands_n
         if self._hi == math.inf and self._lo == -math.inf and isinstance(commands_n, np.ndarray) \
                 and commands_n.shape == self.thrust_n.shape:

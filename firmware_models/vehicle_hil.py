@@ -127,7 +127,10 @@ class HilMixin:
         stats = self.stats  # (_count, inlined: every step)
         stats["hil_steps"] = stats.get("hil_steps", 0) + 1
         self._control_step()
-        return self.motors.setpoint(self.motor_commands_n if self.armed else np.zeros(4))
+        if not self.armed:
+            return self.motors.setpoint(np.zeros(4))
+        cmd = self.motor_commands_n  # the intake's held command is finite and of 4 values (rotor_intake.accept)
+        return self.motors.setpoint(cmd, checked=cmd is self.intake.thrusts_n)
 
     # ================================================================= in-process messages
     # The same steps as the HIL and coordinator links, with the messages as objects instead of MAVLink
@@ -141,10 +144,11 @@ class HilMixin:
             self.set_state(unit_truth)
         if self._scheduled_sensor_failures:
             self._sensor_failures_due(packet.t_s)
+        failures = self.sensor_failures
         if packet.baro is not None or packet.mag is not None:
-            self.sensor_failures.note_carried(packet.baro is not None, packet.mag is not None)
-        if self.sensor_failures.any:
-            packet = self.sensor_failures.apply(packet)
+            failures.note_carried(packet.baro is not None, packet.mag is not None)
+        if failures.active:  # (failures.any without the property call: every unit, every step)
+            packet = failures.apply(packet)
         self.latches = packet.latches
         self.imu = packet.imu
         if packet.truth is not None:

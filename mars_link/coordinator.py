@@ -224,10 +224,8 @@ class Coordinator:
         )
         wired = wire_thrust(thrusts, scale)  # the whole vector at once: same rounding as RotorCommand.as_wire
         t_w = wire_time(t_s)
-        return [
-            RotorCommand(t_w, uid, wired[(uid - 1) * ROTORS_PER_UNIT : uid * ROTORS_PER_UNIT])
-            for uid in self.model.unit_ids
-        ]
+        per_unit = wired.reshape(-1, ROTORS_PER_UNIT)  # (row views, cheaper than slices)
+        return [RotorCommand(t_w, uid, per_unit[uid - 1]) for uid in self.model.unit_ids]
 
     def _watch_batteries(self, packets: list[SensorPacket]) -> None:
         """The units' reported pack voltages -> the thrust each can still give (mars_link.battery.thrust_scale);

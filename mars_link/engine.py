@@ -50,13 +50,14 @@ class InProcessUnits:
 
     def take_sensors(self, packets: list[SensorPacket]) -> list[SensorPacket]:
         """The world's sensor packets into each unit; the units' telemetry to the coordinator."""
+        vehicles, unit_truth = self.vehicles, self.world.unit_truth
         out = []
         for p in packets:
-            v = self.vehicles[p.unit_id]
+            v = vehicles[p.unit_id]
             # the unit's own state (HIL_STATE_QUATERNION in SITL) matters only while it flies itself or may
             # have to (arming, a command stream about to lapse): the world computes it only then
             own = v.source != "coordinator" or not v.intake.is_live(p.t_s + v.control_dt_s)
-            out.append(v.take_sensors(p, self.world.unit_truth(p.unit_id) if own else None))
+            out.append(v.take_sensors(p, unit_truth(p.unit_id)) if own else v.take_sensors(p))
         return out
 
     def drive(self, commands: list[RotorCommand]) -> None:
