@@ -161,6 +161,15 @@ class Link:
         self.transport.send(data, addr)  # a peer gone (send_failed, counted): its silence is handled by the timeouts
         self._log(data)
 
+    def prepare_peers(self, sysids) -> None:
+        """Ready the path to the peers `sysids` before a paced run's first step: the transport's set-up (a
+        Zenoh publisher), then one HEARTBEAT through it (the route and the receiver's first datagram, slow
+        the first time, are paid before the clock starts)."""
+        for sysid in sysids:
+            addr = self.peers[sysid]
+            self.transport.prepare(addr)
+            self.heartbeat(addr)
+
     def heartbeat(self, addr: Address) -> None:
         self.send(mavlink.MAVLink_heartbeat_message(
             mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE, 3), addr)

@@ -298,11 +298,13 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     view, feed, reference, eta_at = _world_view(setup, world, out, mcap, foxglove)
     try:
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
+        link.prepare_peers(live)  # (the first sends' set-up, paid in the first step, stalled a paced start)
         wall0 = time.perf_counter()
         # sim time on the wall clock at `speed`; behind it, the world catches up (no re-anchoring): the
         # lockstep's real-time factor stays the one asked for
+        # (anchored at the first step's wait, once its datagrams are ready: the first sensing and logging,
+        # slow the first time, then belong to start-up as in every later step they precede the wait)
         pacer = Pacer(speed, reanchor_s=math.inf, clock=time.perf_counter)
-        pacer.start(world.t_s)
         cpu0 = time.process_time()  # CPU of the stepping loop alone (start-up excluded)
         k = 0
         while (setup.steps is None or k < setup.steps) and not stop.requested:
@@ -646,6 +648,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         timing.write("t_s,telemetry_first_wall_s,telemetry_all_wall_s,computed_wall_s,sent_wall_s,step_cpu_s,send_cpu_s\n")
     try:
         _await_peers(link, live, 60.0, stop)
+        link.prepare_peers(live)
         cpu0 = time.process_time()
         world = ports.address("world")
         events_fed = 0

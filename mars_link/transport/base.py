@@ -55,6 +55,10 @@ class Transport:
         c.bytes_sent += len(data)
         return True
 
+    def prepare(self, peer: Address) -> None:
+        """Get ready to send to `peer` (a Zenoh publisher is declared and matched), so that the first datagram
+        of a paced run does not pay for it; nothing to do on links whose sends need no set-up."""
+
     def recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
         """The next datagram and its sender, or None when nothing arrives within `timeout_s`
         (<= 0: only what is already waiting)."""
@@ -138,6 +142,9 @@ class TappedTransport(Transport):
 
     def fileno(self) -> int:
         return self.inner.fileno()
+
+    def prepare(self, peer: Address) -> None:
+        self.inner.prepare(peer)
 
     def send(self, data: bytes, peer: Address) -> bool:
         ok = self.inner.send(data, peer)

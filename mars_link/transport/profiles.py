@@ -122,6 +122,9 @@ class ProfiledTransport(Transport):
     def fileno(self) -> int:
         return self.inner.fileno()
 
+    def prepare(self, peer: Address) -> None:
+        self.inner.prepare(peer)
+
     def model(self, peer: Address) -> LinkModel:
         m = self._models.get(peer)
         if m is None:

@@ -204,6 +204,14 @@ class ZenohTransport(Transport):
 
 
     def _send(self, data: bytes, peer: Address) -> None:
+        pub = self._publishers.get(key_for(self.params.fleet, self.node, str(peer)))
+        (pub or self._publisher(peer)).put(data)
+
+    def prepare(self, peer: Address) -> None:
+        self._publisher(peer)
+
+    def _publisher(self, peer: Address) -> zenoh.Publisher:
+        """The publisher to `peer`, declared once (and, the first time, matched: up to first_send_wait_s)."""
         key = key_for(self.params.fleet, self.node, str(peer))
         pub = self._publishers.get(key)
         if pub is None:
@@ -212,7 +220,7 @@ class ZenohTransport(Transport):
             deadline = time.monotonic() + self.params.first_send_wait_s
             while not pub.matching_status.matching and time.monotonic() < deadline:
                 time.sleep(0.005)  # a process still starting up; later frames go out at once
-        pub.put(data)
+        return pub
 
     def _recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
         if not self._queue and timeout_s > 0:
