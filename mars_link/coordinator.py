@@ -105,6 +105,9 @@ class Coordinator:
         self.rejected: dict[str, int] = {}  # reason -> packets dropped here
         self._last_seen_s: dict[int, float] = {}
         self._to_detect: tuple | None = None  # (t, thrusts, estimate, IMU samples) for finish_step
+        #: resting on the ground with the motors off (a piece parked during a manoeuvre on the ground): zero
+        #: commands, and no fault detection (no thrust, nothing to learn about the rotors)
+        self.motors_off = False
 
     def _event(self, t_s: float, kind: str, text: str, **fields) -> dict:
         event = {"t_s": round(t_s, 6), "type": kind, **fields, "text": short_text(text)}
@@ -203,7 +206,9 @@ class Coordinator:
             self._failsafe_motors(t_s, thrusts)
             if self.failsafe.motors_off:
                 thrusts = np.zeros_like(thrusts)
-        if self.detector is not None:
+        if self.motors_off:
+            thrusts = np.zeros_like(thrusts)
+        elif self.detector is not None:
             # while explanations tie (e.g. units {2,5}, {1,6}, {3,4} of a 3x2: each a pure lift loss),
             # the detector asks for a probe with zero net wrench on the believed assembly
             probe = self.detector.excitation_n(t_s)
@@ -212,7 +217,7 @@ class Coordinator:
         lo, hi = self.command_range_n
         if thrusts.max() > hi or thrusts.min() < lo:  # what a unit accepts (rotor_intake), not more
             thrusts = np.clip(thrusts, lo, hi)
-        if self.detector is not None and not self._landing_near_ground():
+        if self.detector is not None and not self.motors_off and not self._landing_near_ground():
             imus = [p.imu for p in packets if p.imu is not None] if guard is None else guard.usable_imus
             self._to_detect = (t_s, thrusts.copy(), estimate, imus)
         c2 = time.perf_counter()

@@ -331,7 +331,9 @@ class PiecesCoordinator:
         for action in self.executor.step(t_s, self.estimates()):
             self._begin_split(t_s, action)
         commands = []
-        for p in self.pieces.values():
+        parked = self.executor.parked
+        for key, p in self.pieces.items():
+            p.coordinator.motors_off = key in parked
             cmds = p.coordinator.step(t_s, [local_packet(by_unit[u], k + 1)
                                             for k, u in enumerate(p.units) if u in by_unit])
             for c in cmds:

@@ -338,15 +338,18 @@ _RECONFIG_NUMBERS = {"at_s", "trigger_delay_s", "speed_mps", "approach_speed_mps
 
 
 def _reconfig_table(table: dict, src: str) -> dict:
-    """[reconfig]: enabled (bool), target (unit ids per cell, row-major), moves (bool, default true), and the
+    """[reconfig]: enabled (bool), target (unit ids per cell, row-major), moves and ground (bools, default true), and the
     executor's timing and distances (mars_link.reconfig.execution.ExecutionParams); checked against the layout later."""
-    _check_keys(table, {"enabled", "target", "moves"} | _RECONFIG_NUMBERS, "[reconfig]", src)
+    _check_keys(table, {"enabled", "target", "moves", "ground"} | _RECONFIG_NUMBERS, "[reconfig]", src)
     out: dict[str, Any] = {"enabled": table.get("enabled", False)}
-    for key in ("enabled", "moves"):  # moves: where paper 001 finds no plan, fly the best single move
+    # moves: where paper 001 finds no plan, fly the best single move; ground: where no move either, land
+    # and rebuild on the ground
+    for key in ("enabled", "moves", "ground"):
         if key in table and not isinstance(table[key], bool):
             raise UserInputError(f"{src}: [reconfig] {key} must be true or false")
-    if "moves" in table:
-        out["moves"] = table["moves"]
+    for key in ("moves", "ground"):
+        if key in table:
+            out[key] = table[key]
     if "target" in table:
         target = table["target"]
         if not isinstance(target, list) or not all(isinstance(u, int) and not isinstance(u, bool) for u in target):

@@ -3,6 +3,7 @@ donut with 3 dead rotors at t = 5 s (tools/reconfig_detect_eval.py flies the who
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -10,7 +11,11 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tools"))
 
-from reconfig_detect_eval import fly  # noqa: E402
+from reconfig_detect_eval import FAULT_T_S, detected_scenario, fly  # noqa: E402
+
+from mars_link.reconfig.flight import run_reconfig_trial  # noqa: E402
+
+PLUS = [".X.", "XXX", ".X."]
 
 
 @pytest.mark.slow
@@ -25,13 +30,18 @@ def test_donut_reconfigures_on_detected_faults_and_beats_flying_on():
     assert r["mission_force_integral_n2s"] < nr["mission_force_integral_n2s"]
 
 
-def test_plus5_six_faults_found_no_manoeuvre_is_flown_and_the_coordinator_says_why():
+def test_plus5_six_faults_found_and_the_rebuild_on_the_ground_turned_off_the_coordinator_says_why():
     """plus-5, unit 1 dead and unit 2's rotors 1 and 4: found in < 0.5 s; paper 001's plan has nothing to
-    fly and no piece can split off and dock back with every body hovering (tests/test_reconfig_moves.py),
-    so the coordinator says so (an event) and flies on with FTC."""
-    r = fly(2, "R")
-    assert r["completed"] and not r["reconfigured"] and r["detection_s"] < 0.5
-    assert r["refused"] and "no piece can split off" in r["refused"]
+    fly and no piece can split off and dock back with every body hovering (tests/test_reconfig_moves.py);
+    with the rebuild on the ground turned off (`[reconfig] ground = false`) the coordinator says so (an
+    event) and flies on with FTC."""
+    sc = detected_scenario(PLUS, 6, True)
+    r = run_reconfig_trial(dataclasses.replace(sc, reconfig={**sc.reconfig, "ground": False}), 1)
+    assert r.completed and not r.reconfigured and not r.diverged
+    found = [e for e in r.events if e["type"] == "fault_detected"]
+    assert found and found[0]["t_s"] - FAULT_T_S < 0.5
+    refused = next(e["reason"] for e in r.events if e["type"] == "reconfig_refused")
+    assert "no piece can split off" in refused
 
 
 def test_plus5_faulty_tip_cannot_be_carried_to_the_centre():

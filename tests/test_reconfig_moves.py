@@ -1,5 +1,6 @@
 """Single-piece moves (mars_link.reconfig.moves) on paper 001's plus-5: where paper 001's plans find nothing
-better, moves can; with 6 faults nothing can leave the body and come back hovering."""
+better, moves can; with 6 faults nothing can leave the body and come back hovering in the air, and the
+structure rebuilds itself on the ground instead."""
 
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ from reconfig_eval import paper_faults, scenario  # noqa: E402
 from mars_link.allocation import hover_thrust_share  # noqa: E402
 from mars_link.reconfig.execution import PieceShape, local_eta  # noqa: E402
 from mars_link.reconfig.flight import run_reconfig_trial  # noqa: E402
-from mars_link.reconfig.moves import HoverCosts, best_moves, docks, moves, splits  # noqa: E402
+from mars_link.reconfig.moves import (  # noqa: E402
+    HoverCosts, best_ground_moves, best_moves, docks, ground_plan, moves, slots, splits)
 from mars_link.reconfig.placement import nominal_cells  # noqa: E402
 from mars_link.scenario import eta_after  # noqa: E402
 
@@ -89,3 +91,59 @@ def test_plus5_three_faults_found_in_flight_the_coordinator_flies_one_move_and_s
     assert any(e["type"] == "dock" for e in r.events)
     assert r.mission_force_integral_n2s < 0.97 * nr.mission_force_integral_n2s
     assert r.rmse_m <= nr.rmse_m
+
+
+def hover_share(cells: dict, model, eta_of) -> float:
+    shape = PieceShape(cells)
+    return hover_thrust_share(shape.model(model.vehicle), local_eta(shape, eta_of), model.vehicle.rotor_max_thrust_n)
+
+
+def test_plus5_six_faults_a_rebuild_on_the_ground_saves_a_fifth_of_the_hover_force():
+    """Landed, the body need not hover: healthy units lift off it and come down into better slots. Replayed:
+    each lifted piece hovers alone, each slot touches the body and overlaps nothing, the result hovers."""
+    model, eta_of, costs = plus_case(6)
+    cells = nominal_cells(model)
+    found = best_ground_moves(cells, costs)
+    assert found.best_sum_sq_n2 < 0.8 * found.start_sum_sq_n2
+    lifted = {u for units, _ in found.lifts for u in units}
+    assert lifted and not lifted & {1, 2}  # the dead unit and the one with two dead rotors stay on the ground
+    body = dict(cells)
+    for units, _ in found.lifts:
+        piece = {u: body.pop(u) for u in units}
+        assert hover_share(piece, model, eta_of) <= 1.0
+    assert hover_share(body, model, eta_of) > 1.0  # what rests on the ground could not hover
+    for units, where in found.placements:
+        piece = dict(zip(units, where))
+        assert piece in [m for m in slots({u: cells[u] for u in units}, body)]
+        body.update(piece)
+    assert body == found.final
+    assert hover_share(body, model, eta_of) <= 1.0
+    plan = ground_plan(cells, found)
+    assert plan.on_ground and plan.feasible and all(m.approach == "down" for m in plan.merges)
+    assert [s.detached for s in plan.splits] == [sorted(units) for units, _ in found.lifts]
+
+
+def test_plus5_six_faults_found_in_flight_the_structure_lands_rebuilds_and_flies_on_better():
+    """Faults hit at 5 s, found (not told), noise on: no move exists in the air, so the structure lands,
+    units 1-3 (which cannot hover without the others) rest on the ground with their motors off while two
+    healthy units move, and the rebuilt body takes off and resumes the mission with less force."""
+    runs = {which: run_reconfig_trial(detected_scenario(PLUS, 6, which == "R"), 1) for which in ("NR", "R")}
+    nr, r = runs["NR"], runs["R"]
+    assert not nr.reconfigured and r.reconfigured
+    assert not (nr.diverged or r.diverged) and r.completed
+    kinds = [e["type"] for e in r.events]
+    assert kinds.count("split") == 2 and kinds.count("dock") == 2 and "landing" in kinds
+    first_split = next(e["t_s"] for e in r.events if e["type"] == "split")
+    last_dock = [e["t_s"] for e in r.events if e["type"] == "dock"][-1]
+    rows = np.array(r.unit_rows, dtype=float)
+    resting = rows[(rows[:, 0] >= first_split) & (rows[:, 0] <= last_dock) & np.isin(rows[:, 1], [1, 2, 3])]
+    assert len(resting) and np.all(np.abs(resting[:, 4] + model_gear_depth()) < 0.005)  # on its feet throughout
+    flew = rows[(rows[:, 0] > first_split) & (rows[:, 0] < last_dock) & np.isin(rows[:, 1], [4, 5])]
+    assert flew[:, 4].min() < -0.25  # the movers left the ground
+    assert r.min_clearance_m > -1e-3  # no two bodies overlap
+    assert r.rmse_m <= nr.rmse_m
+    assert r.mission_force_integral_n2s < 0.9 * nr.mission_force_integral_n2s
+
+
+def model_gear_depth() -> float:
+    return plus_case(0)[0].vehicle.gear_depth_m

@@ -240,7 +240,11 @@ class DockRequest:
 
 
 _APPROACH = {"+row": np.array([-1.0, 0, 0]), "-row": np.array([1.0, 0, 0]),
-             "+col": np.array([0, 1.0, 0]), "-col": np.array([0, -1.0, 0])}
+             "+col": np.array([0, 1.0, 0]), "-col": np.array([0, -1.0, 0]),
+             "down": np.array([0, 0, 1.0])}  # (on the ground: into the slot from above)
+
+#: a landing's reference ends this far below the CoM's resting height (m): the body sits firmly on its feet
+LAND_PRESS_M = 0.01
 
 
 def _rz(yaw: float) -> np.ndarray:
@@ -295,6 +299,10 @@ class Executor:
         self._replan_lost: set[int] = set()  # units lost during the docking layers: re-plan before the next one
         self.hold_until_s = -math.inf  # a commanded separation: the pieces fly apart until then (inf: for good)
         self._steady_since: float | None = None  # the final body has held its point since (the return waits)
+        #: pieces resting on the ground with their motors off (a manoeuvre on the ground, `plan.on_ground`)
+        self.parked: set[Key] = set()
+        self.ground_down_m = -vehicle.gear_depth_m  # the CoM's down coordinate at rest on the ground (NED 0)
+        self._lift_down_m = 0.0  # where the final body of a manoeuvre on the ground climbs back to
         self.free_start = free_start
         self.assembling = free_start is not None  # the first manoeuvre builds the structure from free units
         if free_start is not None:
@@ -452,6 +460,13 @@ class Executor:
                 self._stop(t_s)
             return []
         if self.phase == "stop" and t_s >= self.phase_end_t:
+            if self.plan.on_ground:
+                self._land(t_s)
+                return []
+            self.phase, self.layer = "disassembly", 0
+            return self._next_split_layer(t_s)
+        if self.phase == "land" and t_s >= self.phase_end_t:
+            self.parked = set(self.shapes)  # (landed: motors off)
             self.phase, self.layer = "disassembly", 0
             return self._next_split_layer(t_s)
         if self.phase == "disassembly" and t_s >= self.phase_end_t:
@@ -518,6 +533,18 @@ class Executor:
                             "assembly_layers": self.plan.assembly_layers,
                             "text": f"Reconfig: {self.plan.disassembly_layers} split, {self.plan.assembly_layers} dock layers"})
 
+    def _land(self, t_s: float) -> None:
+        """A manoeuvre on the ground: the stopped body descends straight down and rests on its feet; the
+        pieces' altitude levels count from the ground, and the final body climbs back to this height."""
+        (key,) = self.shapes
+        ref = self.refs[key]
+        here = ref.end_position()
+        self._lift_down_m = float(here[2])
+        self.hold_down_m = self.ground_down_m + LAND_PRESS_M
+        end = ref.move(t_s, [here[0], here[1], self.hold_down_m], self.params.speed_mps, min_s=3.0)
+        self.phase, self.phase_end_t = "land", end + self.params.settle_s
+        self.events.append({"t_s": round(t_s, 6), "type": "landing", "text": "Reconfig: landing to rebuild"})
+
     def _next_split_layer(self, t_s: float) -> list[SplitAction]:
         self.layer += 1
         splits = [s for s in self.plan.splits if s.layer == self.layer]
@@ -549,8 +576,11 @@ class Executor:
                 start = hold + rz @ off
                 ref = PieceReference(TrajectoryPoint(start, yaw_rad=self.yaw))
                 self.shapes[shape.key], self.refs[shape.key], self.levels[shape.key] = shape, ref, lvl
-            target = hold + rz @ (offsets[0] + away * p.separation_m)
-            target[2] = self._altitude(level)
+            target = hold + rz @ (offsets[0] + (0.0 if self.plan.on_ground else p.separation_m) * away)
+            target[2] = self._altitude(level)  # (on the ground: straight up, out of the resting body's way)
+            if parent.key in self.parked:
+                self.parked.discard(parent.key)
+                self.parked.add(rest.key)
             end = max(end, self.refs[det.key].move(t_s, target, p.speed_mps, start=TrajectoryPoint(
                 hold + rz @ offsets[0], yaw_rad=self.yaw)))
             actions.append(SplitAction(parent.key, [det, rest], offsets))
@@ -637,6 +667,13 @@ class Executor:
         ref = PieceReference(TrajectoryPoint(hold, yaw_rad=self.yaw))
         self.shapes[merged.key], self.refs[merged.key], self.levels[merged.key] = merged, ref, level
         self.phase_end_t = max(self.phase_end_t, t_s + self.params.settle_s)
+        if req.stationary in self.parked:
+            self.parked.discard(req.stationary)
+            if self.docks or not self._last_layer_done():
+                self.parked.add(merged.key)
+            else:  # the final body: motors on, it climbs back to where the structure stopped
+                end = ref.move(t_s, [hold[0], hold[1], self._lift_down_m], self.params.speed_mps, min_s=3.0)
+                self.phase_end_t = max(self.phase_end_t, end)
         self.events.append({"t_s": round(t_s, 6), "type": "dock", "layer": self.layer,
                             "stationary": sorted(req.stationary), "mover": sorted(req.mover),
                             "result": sorted(merged.key), "text": f"Docked L{self.layer}: u{units_text(merged.key)}"[:50]})

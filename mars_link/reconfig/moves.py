@@ -100,11 +100,11 @@ def splits(cells: dict[int, Cell]):
                     yield sorted(group), sorted(rest), (axis, line)
 
 
-def docks(piece: dict[int, Cell], rest: dict[int, Cell]):
-    """Every place where `piece` docks to `rest` on a straight line: no overlap, at least one face in
-    contact, and a grid line with the piece wholly on one side and the rest on the other (the approach
-    is clear). Yields the piece's cells there and that line's axis (0: rows, 1: columns)."""
-    occupied = set(rest.values())
+def slots(piece: dict[int, Cell], body: dict[int, Cell]):
+    """Every place where `piece` touches `body`: no overlap, at least one face in contact (from above, as on
+    the ground, every such place is reachable; `docks` keeps those a straight level approach reaches).
+    Yields the piece's cells there."""
+    occupied = set(body.values())
     pr = [c[0] for c in piece.values()]
     pc = [c[1] for c in piece.values()]
     rr = [c[0] for c in occupied]
@@ -113,14 +113,22 @@ def docks(piece: dict[int, Cell], rest: dict[int, Cell]):
         for dc in range(min(rc) - max(pc) - 1, max(rc) - min(pc) + 2):
             moved = {u: (r + dr, c + dc) for u, (r, c) in piece.items()}
             mine = set(moved.values())
-            if mine & occupied:
-                continue
-            if not any((r + a, c + b) in occupied for r, c in mine for a, b in ((1, 0), (-1, 0), (0, 1), (0, -1))):
-                continue
-            for k in (0, 1):  # (face contact: at most one axis separates them)
-                lo, hi = min(x[k] for x in mine), max(x[k] for x in mine)
-                if hi < min(x[k] for x in occupied) or lo > max(x[k] for x in occupied):
-                    yield moved, k
+            if not mine & occupied and any((r + a, c + b) in occupied for r, c in mine
+                                           for a, b in ((1, 0), (-1, 0), (0, 1), (0, -1))):
+                yield moved
+
+
+def docks(piece: dict[int, Cell], rest: dict[int, Cell]):
+    """Every place where `piece` docks to `rest` on a straight line: no overlap, at least one face in
+    contact, and a grid line with the piece wholly on one side and the rest on the other (the approach
+    is clear). Yields the piece's cells there and that line's axis (0: rows, 1: columns)."""
+    occupied = set(rest.values())
+    for moved in slots(piece, rest):
+        mine = set(moved.values())
+        for k in (0, 1):  # (face contact: at most one axis separates them)
+            lo, hi = min(x[k] for x in mine), max(x[k] for x in mine)
+            if hi < min(x[k] for x in occupied) or lo > max(x[k] for x in occupied):
+                yield moved, k
 
 
 def moves(cells: dict[int, Cell], costs: HoverCosts, max_piece_units: int | None = None):
@@ -203,3 +211,105 @@ def move_plan(cells: dict[int, Cell], move: Move, sum_sq_n2: float) -> "Reconfig
     return ReconfigPlan(layout_of_cells(initial.values()), initial, Placement(target, sum_sq_n2, "moves", 0.0),
                         True, 1, 1, [split], [merge], [mover, rest],
                         reason=f"one move: units {mover} split off and dock elsewhere")
+
+
+# ----------------------------------------------------------------------------- on the ground
+@dataclass
+class GroundSearch:
+    """The best reconfiguration on the ground: the body lands, `lifts` take off one after the other (each
+    a piece that flies alone, cut off the resting body along a straight line), then `placements` come
+    down into their slots beside it, one after the other; the final body must hover."""
+
+    start_sum_sq_n2: float
+    best_sum_sq_n2: float
+    lifts: list[tuple[tuple[int, ...], tuple[int, int]]]  # (piece units, cut (axis, index) of the body then)
+    placements: list[tuple[tuple[int, ...], tuple[Cell, ...]]]  # (piece units, their cells, start frame)
+    final: dict[int, Cell]
+    searched: int  # final bodies evaluated
+    exhaustive: bool = True  # False: the search stopped at its budget (the best found so far)
+
+
+class _Budget(Exception):
+    pass
+
+
+def best_ground_moves(cells: dict[int, Cell], costs: HoverCosts, max_lifts: int = 2,
+                      max_piece_units: int = 2, budget: int = 5_000) -> GroundSearch:
+    """Lift up to `max_lifts` pieces (each of at most `max_piece_units` units, able to hover alone) off the
+    landed body and put them back in the slots that give the lowest hover Σ T² of the final body (among
+    equal costs, the fewest units moved). The body on the ground need not hover in between: it rests.
+    At most `budget` final bodies are evaluated (the plus-5: 248; the planner runs inside the control loop)."""
+    start = costs.sum_sq_n2(cells)
+    best = {"cost": start, "moved": 0, "lifts": [], "placements": [], "final": dict(cells)}
+    searched = [0]
+
+    def place(body, waiting, lifts, placed):
+        if not waiting:
+            if searched[0] >= budget:
+                raise _Budget
+            searched[0] += 1
+            cost = costs.sum_sq_n2(body)
+            moved = sum(len(u) for u, _ in placed)
+            if cost < best["cost"] * (1 - 1e-9) or (cost <= best["cost"] * (1 + 1e-9) and best["lifts"]
+                                                    and moved < best["moved"]):
+                best.update(cost=cost, moved=moved, lifts=list(lifts), placements=list(placed), final=dict(body))
+            return
+        for i, (units, piece) in enumerate(waiting):  # (in any order: a slot may need a piece placed before)
+            for moved in slots(piece, body):
+                place({**body, **moved}, waiting[:i] + waiting[i + 1:], lifts,
+                      placed + [(units, tuple(moved[u] for u in units))])
+
+    def lift(body, waiting, lifts):
+        if waiting:
+            place(body, waiting, lifts, [])
+        if len(lifts) == max_lifts:
+            return
+        for piece_units, rest_units, cut in splits(body):
+            if len(piece_units) > max_piece_units or len(rest_units) == 0:
+                continue
+            piece = {u: body[u] for u in piece_units}
+            if costs.share(piece) > 1.0:
+                continue
+            lift({u: body[u] for u in rest_units}, waiting + [(tuple(piece_units), piece)],
+                 lifts + [(tuple(piece_units), cut)])
+
+    try:
+        lift(dict(cells), [], [])
+        exhaustive = True
+    except _Budget:
+        exhaustive = False
+    return GroundSearch(start, best["cost"], best["lifts"], best["placements"], best["final"], searched[0],
+                        exhaustive)
+
+
+def ground_plan(cells: dict[int, Cell], found: GroundSearch) -> "ReconfigPlan":
+    """A ground search's result as the executor's plan (`on_ground`): one split layer per lift, one dock
+    layer per placement (approach "down": into its slot from above). Cells are shifted to start at 0."""
+    from mars_link.assembly import layout_of_cells
+    from mars_link.reconfig.placement import Placement
+    from mars_link.reconfig.sequencing import BreakLine, MergeStep, ReconfigPlan, SplitStep
+
+    initial = dict(normalised(cells))
+    shift = {k: min(c[k] for c in cells.values()) for k in (0, 1)}
+    body = set(cells)
+    splits_, pieces = [], []
+    for layer, (units, (axis, index)) in enumerate(found.lifts, 1):
+        rest = body - set(units)
+        splits_.append(SplitStep(layer, sorted(body), BreakLine(("row", "col")[axis], index - shift[axis]),
+                                 sorted(units), sorted(rest)))
+        pieces.append(sorted(units))
+        body = rest
+    pieces.append(sorted(body))
+    target = {**cells}
+    for units, where in found.placements:
+        target.update(zip(units, where))
+    target = dict(normalised(target))
+    merges = []
+    for layer, (units, _) in enumerate(found.placements, 1):
+        merges.append(MergeStep(layer, 0, sorted(body), sorted(units), BreakLine("row", 0), "down"))
+        body = body | set(units)
+    moved = sorted(u for units, _ in found.lifts for u in units)
+    return ReconfigPlan(layout_of_cells(initial.values()), initial,
+                        Placement(target, found.best_sum_sq_n2, "ground moves", 0.0), True, len(splits_),
+                        len(merges), splits_, merges, pieces, on_ground=True,
+                        reason=f"on the ground: units {moved} lift off and come down elsewhere")

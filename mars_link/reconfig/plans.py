@@ -162,7 +162,7 @@ def plan_or_reason(scenario: Scenario, model: AssemblyModel, mission, eta: np.nd
     """A plan worth executing for the faults `eta` from the structure `current` (feasible, with something
     to split, every piece able to hover), else None and why not. Paper 001's plan first; where it finds
     nothing to fly, the best single move (`mars_link.reconfig.moves`) if it saves MOVE_MIN_GAIN of the
-    hover Σ T²."""
+    hover Σ T²; where no move does, the best rebuild on the ground (`best_ground_plan`), on the same gain."""
     try:
         plan = make_plan(scenario, model, mission, eta, current)
     except UserInputError as exc:
@@ -176,10 +176,17 @@ def plan_or_reason(scenario: Scenario, model: AssemblyModel, mission, eta: np.nd
         if not bad:
             return plan, ""
         reason = "; ".join(bad)
-    if not scenario.reconfig.get("moves", True):
-        return None, reason
-    move, why_not = best_single_move(model, eta, current)
-    return (move, "") if move is not None else (None, f"{reason}; {why_not}")
+    if scenario.reconfig.get("moves", True):
+        move, why_not = best_single_move(model, eta, current)
+        if move is not None:
+            return move, ""
+        reason = f"{reason}; {why_not}"
+    if scenario.reconfig.get("ground", True):
+        plan, why_not = best_ground_plan(model, eta, current)
+        if plan is not None:
+            return plan, ""
+        reason = f"{reason}; on the ground: {why_not}"
+    return None, reason
 
 
 def best_single_move(model: AssemblyModel, eta: np.ndarray,
@@ -196,3 +203,19 @@ def best_single_move(model: AssemblyModel, eta: np.ndarray,
     if not found.moves or found.best_sum_sq_n2 > (1.0 - MOVE_MIN_GAIN) * found.start_sum_sq_n2:
         return None, f"no single move saves {100 * MOVE_MIN_GAIN:.0f} % of the hover force"
     return move_plan(cells, found.moves[0], found.best_sum_sq_n2), ""
+
+
+def best_ground_plan(model: AssemblyModel, eta: np.ndarray,
+                     current: dict | None = None) -> tuple[ReconfigPlan | None, str]:
+    """The best rebuild on the ground (`moves.best_ground_moves`: land, lift up to two pieces that fly alone
+    off the resting body, put them down in better slots, take off) as a plan, if it saves MOVE_MIN_GAIN of
+    the hover Σ T²; else None and why not. For a body no move in the air improves: one that can hover
+    only whole (paper 001's plus with 6 faults)."""
+    from mars_link.reconfig.moves import HoverCosts, best_ground_moves, ground_plan
+
+    cells = dict(current) if current is not None else nominal_cells(model)
+    costs = HoverCosts(model.vehicle, {u: eta[model.unit_slots(u)] for u in model.unit_ids})
+    found = best_ground_moves(cells, costs)
+    if not found.lifts or found.best_sum_sq_n2 > (1.0 - MOVE_MIN_GAIN) * found.start_sum_sq_n2:
+        return None, f"no rebuild saves {100 * MOVE_MIN_GAIN:.0f} % of the hover force"
+    return ground_plan(cells, found), ""

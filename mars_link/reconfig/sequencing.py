@@ -120,6 +120,9 @@ class ReconfigPlan:
     optimal: bool = True
     states: int = 0
     timings_s: dict[str, float] = field(default_factory=dict)
+    #: the manoeuvre happens on the ground: the body lands, the pieces that fly leave it and come down
+    #: into their slots from above (approach "down"), the rest waits on the ground with its motors off
+    on_ground: bool = False
 
     @property
     def target(self) -> dict[int, Cell]:
