@@ -79,6 +79,18 @@ def test_life_cycle_in_sitl_over_zenoh_equals_inproc(tmp_path: Path, name: str) 
     assert summary["mode"] == "sitl-pieces" and summary["sitl"]["transport"] == "zenoh"
 
 
+@pytest.mark.slow
+@pytest.mark.long
+@pytest.mark.sitl
+def test_rebuild_on_the_ground_in_sitl_over_zenoh_equals_inproc(tmp_path: Path) -> None:
+    """paper 001's plus with 6 faults found: it lands, units 4 and 5 move while units 1-3 rest with their
+    motors off (zero commands on the wire), and it resumes the helix; the same flight in both modes."""
+    sitl, inproc = _fly_both("reconfig_plus_ground", tmp_path)
+    _assert_same_flight(sitl, inproc, tmp_path)
+    assert sitl["reconfigured"] and inproc.reconfigured
+    assert [e["type"] for e in sitl["events"]].count("dock") == 2
+
+
 def test_a_unit_lost_during_a_dock_approach_inproc_the_structure_replans_without_it():
     """assemble_3x2, unit 3's process dies at 12 s while it approaches unit 2: the coordinator loses it
     (no telemetry for 5 periods), the other layer-1 dock goes on, the next layers are re-planned from the

@@ -7,7 +7,7 @@ paper 001's helix with ModQuad modules, sensor noise on (every piece on its own 
 `faults_known = false`: the faults (paper 001's pattern) hit at t = 5 s and only the units' motor
 models know them. NR: the pieces' detector finds them and the qp allocator flies on as one body.
 R: the same, and the coordinator plans a reconfiguration from the faults it found and executes it
-(split, move, dock), then resumes the helix. Reported: detection latency (first detection after the
+(paper 001's plan, else one move in the air, else a rebuild on the ground), then resumes the helix. Reported: detection latency (first detection after the
 fault), RMSE and max error of the tracked point while the mission flies, the force integral
 (Σ rotors ∫ thrust² dt) over the whole flight and while the mission flies (the manoeuvre excluded,
 so R and NR cover the same mission time), and whether the flight diverged.
@@ -56,8 +56,22 @@ def fly(idx: int, which: str) -> dict:
         "diverged": bool(r.diverged or r.max_error_m > DIVERGED_MAX_ERROR_M), "completed": r.completed,
         "reconfigured": r.reconfigured, "reconfig_time_s": r.reconfig_time_s,
         "refused": next((e.get("reason") for e in r.events if e["type"] == "reconfig_refused"), None),
+        "manoeuvre": manoeuvre(r.events),
         "sim_time_s": r.sim_time_s, "wall_s": time.perf_counter() - t0,
     }
+
+
+def manoeuvre(events: list[dict]) -> str | None:
+    """What the coordinator flew: paper 001's plan, one move in the air, or a rebuild on the ground."""
+    plan = next((e for e in events if e["type"] == "plan"), None)
+    if plan is None:
+        return None
+    reason = plan.get("reason") or ""
+    if reason.startswith("on the ground"):
+        return f"rebuilt on the ground ({plan['disassembly_layers']} lifts, {plan['assembly_layers']} docks)"
+    if reason.startswith("one move"):
+        return "one move in the air"
+    return f"paper 001's plan ({plan['disassembly_layers']} split, {plan['assembly_layers']} dock layers)"
 
 
 def cell(res: dict) -> str:
@@ -105,7 +119,7 @@ def main(argv=None) -> int:
     for c in cases:
         nr, rr = results[(c, "NR")], results[(c, "R")]
         det = max((x["detection_s"] for x in (nr, rr) if x["detection_s"] is not None), default=None)
-        executed = "yes" if rr["reconfigured"] else f"no: {rr['refused'] or 'not planned'}"
+        executed = f"yes: {rr['manoeuvre']}" if rr["reconfigured"] else f"no: {rr['refused'] or 'not planned'}"
         better = (nr["diverged"] and not rr["diverged"]) or (not rr["diverged"] and rr["rmse_m"] <= nr["rmse_m"])
         less = (nr["diverged"] and not rr["diverged"]) or rr["mission_force_integral_n2s"] < nr["mission_force_integral_n2s"]
         lines.append(f"| {nr['shape']} | {nr['faults']} | {'-' if det is None else f'{det:.2f}'} | {cell(nr)} | "

@@ -5,8 +5,10 @@
 For each case of `reconfig_eval.CASES` (ModQuad modules, thrust limits on, paper 001's fault pattern)
 prints the hover Σ T² (the qp allocator's, N²) of the structure as it is, the best arrangement that at
 most `--depth` moves reach (`mars_link.reconfig.moves`: one piece splits off along a straight line and
-docks back elsewhere, the piece, the rest and the result each able to hover) and those moves. Paper
-001's plans (disassemble, then assemble into the same layout) are the other family; the README compares.
+docks back elsewhere, the piece, the rest and the result each able to hover) and those moves, then the
+best rebuild on the ground (`best_ground_moves`: the body lands, up to two pieces that fly alone lift
+off and come down into other slots; what rests need not hover). Paper 001's plans (disassemble, then
+assemble into the same layout) are the other family; the README compares.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from mars_link.assembly import layout_of_cells  # noqa: E402
-from mars_link.reconfig.moves import HoverCosts, best_moves  # noqa: E402
+from mars_link.reconfig.moves import HoverCosts, best_ground_moves, best_moves  # noqa: E402
 from mars_link.reconfig.placement import nominal_cells  # noqa: E402
 from mars_link.scenario import eta_after  # noqa: E402
 from reconfig_eval import CASES, paper_faults, scenario  # noqa: E402
@@ -52,11 +54,20 @@ def main() -> int:
               f"{time.perf_counter() - t0:.1f} s")
         if not found.moves:
             print("  no reachable arrangement is better")
+        else:
+            print(f"  best {found.best_sum_sq_n2:.5f} N^2 ({100 * gain:.1f} % less) in {len(found.moves)} moves, "
+                  f"shape {','.join(layout_of_cells(found.final.values()))}")
+            for m in found.moves:
+                print(f"    move units {list(m.units)} to cells {list(m.cells)}")
+        ground = best_ground_moves(nominal_cells(model), costs)
+        if not ground.lifts:
+            print("  on the ground: no rebuild is better")
             continue
-        print(f"  best {found.best_sum_sq_n2:.5f} N^2 ({100 * gain:.1f} % less) in {len(found.moves)} moves, "
-              f"shape {','.join(layout_of_cells(found.final.values()))}")
-        for m in found.moves:
-            print(f"    move units {list(m.units)} to cells {list(m.cells)}")
+        gain = 1.0 - ground.best_sum_sq_n2 / ground.start_sum_sq_n2
+        print(f"  on the ground: {ground.best_sum_sq_n2:.5f} N^2 ({100 * gain:.1f} % less), shape "
+              f"{','.join(layout_of_cells(ground.final.values()))} ({ground.searched} bodies tried)")
+        for units, cells in ground.placements:
+            print(f"    units {list(units)} lift off and come down at cells {list(cells)}")
     return 0
 
 
