@@ -109,6 +109,14 @@ class PiecesVehicle(AssemblyVehicle):
         last = piece.coordinator.last
         return None if last is None else last.estimate
 
+    def _land_detect(self, t: float) -> str | None:
+        """No landing while the coordinator manoeuvres: a rebuild on the ground sets the structure down on
+        purpose, and it takes off again by itself (PX4 would disarm the vehicle on the ground)."""
+        if self.pieces.executor.phase != "mission":
+            self._touch_since_s = None
+            return None
+        return super()._land_detect(t)
+
     def flying(self) -> bool:
         """Armed and off the ground under a guidance phase (not landing): manoeuvres may start."""
         phase = self.autopilot.phase

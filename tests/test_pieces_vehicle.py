@@ -141,6 +141,40 @@ def test_a_fault_found_in_flight_reconfigures_under_the_vehicle() -> None:
         sim.close()
 
 
+def test_six_faults_injected_the_vehicle_rebuilds_itself_on_the_ground_and_holds_again() -> None:
+    """reconfig_plus_ground's plus (faults found, not told): the ground station injects unit 1's four
+    motors and unit 2's rotors 1 and 4 OFF in a hover. No move helps in the air, so the structure lands
+    (the vehicle neither reports a landing nor disarms: the manoeuvre owns the motors), units 5 and 4
+    lift off and come down beside units 1-3, and the rebuilt body climbs back to the hold point."""
+    sc = load_scenario("reconfig_plus_ground")
+    sc.faults = []
+    sim = PiecesSim(sc)
+    gcs = Gcs(sim)
+    try:
+        gcs.run(1.0)
+        gcs.send(mavlink.MAVLink_param_set_message(1, 1, b"SYS_FAILURE_EN", 1.0, mavlink.MAV_PARAM_TYPE_INT32))
+        gcs.command(CMD_ARM, 1.0)
+        gcs.command(CMD_TAKEOFF, 0, 0, 0, 0, 0, 0, math.nan)
+        gcs.run(15.0, until=lambda: "Takeoff complete: holding" in gcs.texts())
+        gcs.run(2.0)
+        hold = followed_truth(sim).copy()
+        for motor in (1, 2, 3, 4, 5, 8):  # unit 1 whole, unit 2 rotors 1 and 4
+            gcs.command(CMD_INJECT_FAILURE, 101, 1, motor)
+        gcs.run(90.0, until=lambda: "Reconfig: mission resumed" in gcs.texts())
+        texts = gcs.texts()
+        order = ["Fault found: Unit 1", "Reconfig: landing to rebuild", "Split L1: u5 off", "Split L2: u4 off",
+                 "Docked L1: u1-3,5", "Docked L2: u1-5", "Reconfig: mission resumed"]
+        assert all(t in texts for t in order), texts
+        assert [texts.index(t) for t in order] == sorted(texts.index(t) for t in order), texts
+        assert "Landed" not in texts and sim.vehicle.armed
+        assert sim.coordinator.pieces_final() == [{"layout": ["XXX", "XX."], "units": [5, 1, 4, 2, 3]}]
+        gcs.run(3.0)
+        assert np.linalg.norm(followed_truth(sim) - hold) < 0.1  # back where the vehicle held
+        assert gcs.last("EXTENDED_SYS_STATE").landed_state == mavlink.MAV_LANDED_STATE_IN_AIR
+    finally:
+        sim.close()
+
+
 def test_no_manoeuvre_starts_on_the_ground() -> None:
     """A separation due while the vehicle is landed waits until it flies (it would split on the ground)."""
     sc = load_scenario("separate_3x2")
