@@ -69,6 +69,17 @@ def followed_truth(sim: PiecesSim) -> np.ndarray:
     return sim.truth().position_ned_m
 
 
+def take_off_ready_for_failures(gcs: Gcs) -> np.ndarray:
+    """Allow injected failures (SYS_FAILURE_EN), arm, take off, hover 2 s: where the followed piece holds."""
+    gcs.run(1.0)
+    gcs.send(mavlink.MAVLink_param_set_message(1, 1, b"SYS_FAILURE_EN", 1.0, mavlink.MAV_PARAM_TYPE_INT32))
+    gcs.command(CMD_ARM, 1.0)
+    gcs.command(CMD_TAKEOFF, 0, 0, 0, 0, 0, 0, math.nan)
+    gcs.run(15.0, until=lambda: "Takeoff complete: holding" in gcs.texts())
+    gcs.run(2.0)
+    return followed_truth(gcs.sim).copy()
+
+
 def test_free_units_assemble_when_the_vehicle_takes_off_and_land_as_one() -> None:
     """assemble_3x2: six units rest apart until the ground station arms and takes off; then they dock
     in 3 layers (5 docks), the structure climbs to the takeoff setpoint above where the followed unit
@@ -114,13 +125,7 @@ def test_a_fault_found_in_flight_reconfigures_under_the_vehicle() -> None:
     sim = PiecesSim(sc)
     gcs = Gcs(sim)
     try:
-        gcs.run(1.0)
-        gcs.send(mavlink.MAVLink_param_set_message(1, 1, b"SYS_FAILURE_EN", 1.0, mavlink.MAV_PARAM_TYPE_INT32))
-        gcs.command(CMD_ARM, 1.0)
-        gcs.command(CMD_TAKEOFF, 0, 0, 0, 0, 0, 0, math.nan)
-        gcs.run(15.0, until=lambda: "Takeoff complete: holding" in gcs.texts())
-        gcs.run(2.0)
-        hold = followed_truth(sim).copy()
+        hold = take_off_ready_for_failures(gcs)
         t_fault = sim.t_s
         gcs.command(CMD_INJECT_FAILURE, 101, 1, 12)  # SYSTEM_MOTOR, OFF, motor 12 = unit 3 rotor 4
         assert (CMD_INJECT_FAILURE, 0) in gcs.acks()
@@ -151,13 +156,7 @@ def test_six_faults_injected_the_vehicle_rebuilds_itself_on_the_ground_and_holds
     sim = PiecesSim(sc)
     gcs = Gcs(sim)
     try:
-        gcs.run(1.0)
-        gcs.send(mavlink.MAVLink_param_set_message(1, 1, b"SYS_FAILURE_EN", 1.0, mavlink.MAV_PARAM_TYPE_INT32))
-        gcs.command(CMD_ARM, 1.0)
-        gcs.command(CMD_TAKEOFF, 0, 0, 0, 0, 0, 0, math.nan)
-        gcs.run(15.0, until=lambda: "Takeoff complete: holding" in gcs.texts())
-        gcs.run(2.0)
-        hold = followed_truth(sim).copy()
+        hold = take_off_ready_for_failures(gcs)
         for motor in (1, 2, 3, 4, 5, 8):  # unit 1 whole, unit 2 rotors 1 and 4
             gcs.command(CMD_INJECT_FAILURE, 101, 1, motor)
         gcs.run(90.0, until=lambda: "Reconfig: mission resumed" in gcs.texts())
