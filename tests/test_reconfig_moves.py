@@ -21,7 +21,7 @@ from mars_link.reconfig.flight import run_reconfig_trial  # noqa: E402
 from mars_link.reconfig.moves import (  # noqa: E402
     HoverCosts, best_ground_moves, best_moves, docks, ground_plan, moves, slots, splits)
 from mars_link.reconfig.placement import nominal_cells  # noqa: E402
-from mars_link.scenario import eta_after  # noqa: E402
+from mars_link.scenario import eta_after, load_scenario  # noqa: E402
 
 PLUS = [".X.", "XXX", ".X."]
 
@@ -143,6 +143,21 @@ def test_plus5_six_faults_found_in_flight_the_structure_lands_rebuilds_and_flies
     assert r.min_clearance_m > -1e-3  # no two bodies overlap
     assert r.rmse_m <= nr.rmse_m
     assert r.mission_force_integral_n2s < 0.9 * nr.mission_force_integral_n2s
+
+
+def test_a_unit_lost_while_the_structure_rebuilds_on_the_ground_it_stays_landed():
+    """reconfig_plus_ground, unit 4's firmware dies at 22 s (lifted, at its altitude level) while unit 5
+    comes down to its slot: unit 5 still docks, unit 4 falls, and what rests stays on the ground with its
+    motors off (units 1-3 cannot hover alone, and 1-3 + 5 is not the body the plan would take up)."""
+    r = run_reconfig_trial(load_scenario("reconfig_plus_ground"), 1, unit_deaths={4: 22.0})
+    assert r.completed and not r.diverged
+    kinds = [e["type"] for e in r.events]
+    assert "reconfig_abandoned" in kinds and "mission_resumed" not in kinds
+    assert kinds.index("unit_lost") < kinds.index("dock")  # unit 5's dock went on
+    assert r.pieces_final == [{"layout": ["XX", "XX"], "units": [5, 1, 2, 3]}]
+    rows = np.array(r.unit_rows, dtype=float)
+    last = rows[(rows[:, 0] == rows[-1, 0]) & np.isin(rows[:, 1], [1, 2, 3, 5])]
+    assert len(last) == 4 and np.all(np.abs(last[:, 4] + model_gear_depth()) < 0.005)  # landed
 
 
 def model_gear_depth() -> float:

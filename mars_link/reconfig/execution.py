@@ -343,8 +343,9 @@ class Executor:
         dropped (they fall). In the docking layers, the docks of whole pieces go on and the layers after
         them are re-planned from the pieces there are (`_replan_docks`); otherwise, or if no docking
         sequence builds the rest, the manoeuvre ends with the pieces there are: the mission resumes on the
-        main piece while the others hold where they are (`_give_up`). Returns the dropped pieces. During
-        the mission nothing changes here (FTC flies on with the unit lost)."""
+        main piece while the others hold where they are (`_give_up`). A rebuild on the ground ends there
+        instead, landed (`_stay_landed`). Returns the dropped pieces. During the mission nothing changes
+        here (FTC flies on with the unit lost)."""
         if self.phase == "mission" and self.trigger_t == math.inf:
             return []
         dropped = [k for k in self.shapes if k <= lost]
@@ -355,6 +356,9 @@ class Executor:
         self.trigger_t = math.inf
         if not self.shapes:
             self.failed = "every unit of the structure was lost"
+            return dropped
+        if self.plan.on_ground and self.phase in ("land", "disassembly", "assembly"):
+            self._stay_landed(t_s, lost)
             return dropped
         if self.phase in ("assembly", "grounded"):  # the docks of whole pieces go on; the next layers are re-planned
             self.docks = [d for d in self.docks if d.request.stationary in self.shapes and d.request.mover in self.shapes]
@@ -382,6 +386,22 @@ class Executor:
         if self.pause_t is None:
             self.pause_t = t_s - self.shift_s
         self._return(t_s, abandoned=True)
+
+    def _stay_landed(self, t_s: float, lost: set[int]) -> None:
+        """A unit lost while the structure rebuilds itself on the ground: the manoeuvre ends there. A piece
+        already over its slot (coming down to it) docks (the latches would close anyway), the other pieces in the
+        air hold where they are (as `_give_up` leaves them), and what rests stays landed: it may be unable
+        to hover, so no piece takes the mission up again on its own."""
+        self.docks = [d for d in self.docks if d.stage in ("descend", "approach")
+                      and d.request.stationary in self.shapes and d.request.mover in self.shapes]
+        coming = {d.request.mover for d in self.docks}
+        for key, ref in self.refs.items():
+            if key not in self.parked and key not in coming:
+                ref.move(t_s, ref.sample(t_s).position_ned_m, self.params.speed_mps)
+        self.phase, self.phase_end_t = "landed", math.inf
+        self.events.append({"t_s": round(t_s, 6), "type": "reconfig_abandoned", "lost": sorted(lost),
+                            "pieces": [sorted(k) for k in self.shapes],
+                            "text": f"Reconfig off: u{units_text(sorted(lost))} lost, landed"[:50]})
 
     def _replan_docks(self, t_s: float) -> bool:
         """Between docking layers, after units were lost: dock the pieces there are into the target without
@@ -471,6 +491,8 @@ class Executor:
             return self._next_split_layer(t_s)
         if self.phase == "disassembly" and t_s >= self.phase_end_t:
             return self._next_split_layer(t_s)
+        if self.phase == "landed":  # (a rebuild on the ground that ended early: its last docks finish)
+            self._advance_docks(t_s, states)
         if self.phase == "assembly":
             self._advance_docks(t_s, states)
             if not self.docks and t_s >= max(self.phase_end_t, self.hold_until_s):
@@ -669,7 +691,7 @@ class Executor:
         self.phase_end_t = max(self.phase_end_t, t_s + self.params.settle_s)
         if req.stationary in self.parked:
             self.parked.discard(req.stationary)
-            if self.docks or not self._last_layer_done():
+            if self.docks or not self._last_layer_done() or self.phase == "landed":
                 self.parked.add(merged.key)
             else:  # the final body: motors on, it climbs back to where the structure stopped
                 end = ref.move(t_s, [hold[0], hold[1], self._lift_down_m], self.params.speed_mps, min_s=3.0)
