@@ -237,8 +237,9 @@ def best_ground_moves(cells: dict[int, Cell], costs: HoverCosts, max_lifts: int 
                       max_piece_units: int = 2, budget: int = 5_000) -> GroundSearch:
     """Lift up to `max_lifts` pieces (each of at most `max_piece_units` units, able to hover alone) off the
     landed body and put them back in the slots that give the lowest hover Σ T² of the final body (among
-    equal costs, the fewest units moved). The body on the ground need not hover in between: it rests.
-    At most `budget` final bodies are evaluated (the plus-5: 248; the planner runs inside the control loop)."""
+    equal costs, the fewest units moved). Each lifted piece waits straight above the cells it left, so no
+    piece comes down into a slot under another one still waiting. The body on the ground need not hover in between: it rests.
+    At most `budget` final bodies are evaluated (the plus-5: 216; the planner runs inside the control loop)."""
     start = costs.sum_sq_n2(cells)
     best = {"cost": start, "moved": 0, "lifts": [], "placements": [], "final": dict(cells)}
     searched = [0]
@@ -255,7 +256,11 @@ def best_ground_moves(cells: dict[int, Cell], costs: HoverCosts, max_lifts: int 
                 best.update(cost=cost, moved=moved, lifts=list(lifts), placements=list(placed), final=dict(body))
             return
         for i, (units, piece) in enumerate(waiting):  # (in any order: a slot may need a piece placed before)
+            # the pieces still in the air wait over the cells they left: a piece comes down elsewhere
+            below = {c for j, (_, other) in enumerate(waiting) if j != i for c in other.values()}
             for moved in slots(piece, body):
+                if below.intersection(moved.values()):
+                    continue
                 place({**body, **moved}, waiting[:i] + waiting[i + 1:], lifts,
                       placed + [(units, tuple(moved[u] for u in units))])
 
