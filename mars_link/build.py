@@ -424,7 +424,8 @@ def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: T
     duration = scenario.sim.duration_s or mission.duration_s
 
     def end_s() -> float:
-        if executor.phase == "mission" or executor.hold_until_s == math.inf:  # (apart for good: the mission's end)
+        # (apart for good, or landed for good after a rebuild on the ground that ended early: the mission's end)
+        if executor.phase in ("mission", "landed") or executor.hold_until_s == math.inf:
             return duration + executor.shift_s
         return duration + MAX_RECONFIG_S
 

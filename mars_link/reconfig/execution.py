@@ -399,6 +399,8 @@ class Executor:
             if key not in self.parked and key not in coming:
                 ref.move(t_s, ref.sample(t_s).position_ned_m, self.params.speed_mps)
         self.phase, self.phase_end_t = "landed", math.inf
+        if self.pause_t is not None:  # (the flight ends when the paused mission would have: `shift_s` on)
+            self.shift_s = t_s - self.pause_t
         self.events.append({"t_s": round(t_s, 6), "type": "reconfig_abandoned", "lost": sorted(lost),
                             "pieces": [sorted(k) for k in self.shapes],
                             "text": f"Reconfig off: u{units_text(sorted(lost))} lost, landed"[:50]})
