@@ -96,18 +96,23 @@ def print_summary(summary: dict, out: Path) -> None:
     from rich.table import Table
 
     table = Table(title=f"mars-link run: {summary['scenario']}", show_header=False)
+    def fig(key: str, form: str) -> str:
+        """A summary figure, or "n/a" where this mode does not measure it (the SITL pieces: no body tilt)."""
+        value = summary.get(key)
+        return "n/a" if value is None else format(value, form)
+
     rows = [
         ("layout / preset", f"{','.join(summary['layout'])} / {summary['preset']}"),
         ("controller / ftc", f"{summary['controller']} / {summary['ftc']}"),
         ("trials (seed)", f"{summary['trials']} ({summary['seed']})"),
         ("completed", str(summary["completed"])),
         ("diverged", str(summary["diverged"])),
-        ("mean error", f"{summary['mean_error_m']:.4f} m ± {summary['mean_error_std_m']:.4f}"),
-        ("rmse / max error", f"{summary['rmse_m']:.4f} / {summary['max_error_m']:.4f} m"),
-        ("max tilt", f"{summary['max_tilt_deg']:.2f} deg"),
-        ("force integral", f"{summary['force_integral_n2s']:.1f} N²s"),
+        ("mean error", f"{fig('mean_error_m', '.4f')} m ± {fig('mean_error_std_m', '.4f')}"),
+        ("rmse / max error", f"{fig('rmse_m', '.4f')} / {fig('max_error_m', '.4f')} m"),
+        ("max tilt", f"{fig('max_tilt_deg', '.2f')} deg"),
+        ("force integral", f"{fig('force_integral_n2s', '.1f')} N²s"),
         ("sim / wall time", f"{summary['sim_time_s']:.2f} s / {summary['wall_time_s']:.2f} s"),
-        ("real-time factor", f"{summary['real_time_factor']:.1f}x"),
+        ("real-time factor", f"{fig('real_time_factor', '.1f')}x"),
         ("events", str(len(summary["events"]))),
         ("run directory", str(out)),
     ]

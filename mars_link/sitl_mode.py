@@ -449,7 +449,7 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
         "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
         "completed": not metrics.diverged and not coordinator.get("failed") and not world.get("stopped", False),
         "diverged": metrics.diverged, "reconfigured": "reconfig_done" in kinds,
-        "mean_error_m": metrics.mean_error_m if metrics.n else math.nan,
+        "mean_error_m": metrics.mean_error_m if metrics.n else math.nan, "mean_error_std_m": 0.0,  # (one trial)
         "rmse_m": metrics.rmse_m if metrics.n else math.nan, "max_error_m": metrics.max_error_m if metrics.n else math.nan,
         "sim_time_s": sim_t, "wall_time_s": wall, "real_time_factor": sim_t / wall if wall > 0 else math.inf,
         "force_integral_n2s": float(world.get("force_integral_n2s", math.nan)),

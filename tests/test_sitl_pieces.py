@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from mars_link.cli import print_summary
 from mars_link.reconfig.flight import run_reconfig_trial
 from mars_link.scenario import load_scenario
 from mars_link.sitl_mode import run_sitl_scenario
@@ -50,10 +51,13 @@ def _assert_same_flight(sitl: dict, inproc, out: Path) -> None:
 
 
 @pytest.mark.sitl
-def test_docking_3x1_in_sitl_equals_inproc_and_the_latches_travel_as_mavlink(tmp_path: Path) -> None:
+def test_docking_3x1_in_sitl_equals_inproc_and_the_latches_travel_as_mavlink(tmp_path: Path, capsys) -> None:
     sitl, inproc = _fly_both("docking_3x1", tmp_path)
     _assert_same_flight(sitl, inproc, tmp_path)
     assert sitl["reconfigured"] and inproc.reconfigured
+    print_summary(sitl, tmp_path)  # what `mars-link run --mode sitl` prints: every row (a missing key was a traceback)
+    printed = capsys.readouterr().out
+    assert "rmse / max error" in printed and "max tilt" in printed and "n/a deg" in printed
     # the latch sensor and setpoint on the wire: unit 1 reported its latches open after the split and
     # latched again after the dock; its commands opened its right latch (controls[4] = the latches to open)
     log = mavutil.mavlink_connection(str(tmp_path / "unit1.tlog"))
