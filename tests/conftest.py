@@ -7,16 +7,28 @@ Such a change is undone after the test and reported as a warning that names the 
 
 A suite started with SIGINT ignored (a background job of a non-interactive shell, `nohup`) passes that on
 to every child too, and Python then installs no KeyboardInterrupt handler in them: the tests that stop a
-child with Ctrl-C would hang. The session therefore starts with Python's own Ctrl-C handler."""
+child with Ctrl-C would hang. The session therefore starts with Python's own Ctrl-C handler.
+
+The suite runs on every core (pytest-xdist, `-n auto` in pyproject.toml). A test marked `exclusive` needs
+the machine's cores to itself: a multi-process flight paced to the wall clock that asserts its real-time
+factor. It runs with no other test beside it (`pytest_runtest_protocol` below)."""
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
+import os
+import shutil
 import signal
+import tempfile
 import warnings
+from pathlib import Path
 
 import pytest
 
 _WATCHED = (signal.SIGINT, signal.SIGTERM)
+_LOCKS_KEY = pytest.StashKey[str]()
+_LOCKS_ENV = "MARS_LINK_TEST_LOCKS"  # the controller's lock folder, inherited by the xdist workers
 
 
 def _ignored_in_kernel() -> frozenset:
@@ -39,6 +51,15 @@ def pytest_configure(config) -> None:
     """Ctrl-C as in an interactive shell, whatever the suite was started from (see above)."""
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    if not hasattr(config, "workerinput") and config.getoption("numprocesses", None):  # the xdist controller
+        config.stash[_LOCKS_KEY] = os.environ[_LOCKS_ENV] = tempfile.mkdtemp(prefix="mars-link-tests-")
+
+
+def pytest_unconfigure(config) -> None:
+    folder = config.stash.get(_LOCKS_KEY, None)
+    if folder is not None:
+        shutil.rmtree(folder, ignore_errors=True)
+        os.environ.pop(_LOCKS_ENV, None)
 
 
 @pytest.fixture(autouse=True)
@@ -54,3 +75,30 @@ def _signals_restored(request):
     signal.pthread_sigmask(signal.SIG_UNBLOCK, [s for s in now_blocked if s not in blocked])
     warnings.warn(f"{request.node.nodeid} left the process's signals changed (handlers {now_handlers}, blocked "
                   f"{sorted(now_blocked)}, ignored {sorted(now_ignored)}); restored", RuntimeWarning, stacklevel=1)
+
+
+@contextlib.contextmanager
+def _flock(path: Path, mode: int):
+    with open(path, "a+b") as f:
+        fcntl.flock(f, mode)
+        yield
+
+
+@pytest.hookimpl(hookwrapper=True, tryfirst=True)  # (outside pytest-timeout's timer: waiting is no test time)
+def pytest_runtest_protocol(item, nextitem):
+    """Under xdist, every test holds a shared lock while it runs (set-up and teardown included), and an
+    `exclusive` test holds it alone. A turnstile in front keeps the other workers from starting new tests
+    while an exclusive one waits (flock itself lets readers starve a writer)."""
+    folder = os.environ.get(_LOCKS_ENV) if hasattr(item.config, "workerinput") else None
+    if folder is None:  # (one process: nothing runs beside any test)
+        yield
+        return
+    turnstile, lock = Path(folder) / "turnstile", Path(folder) / "lock"
+    with contextlib.ExitStack() as held:
+        if item.get_closest_marker("exclusive") is not None:
+            held.enter_context(_flock(turnstile, fcntl.LOCK_EX))
+            held.enter_context(_flock(lock, fcntl.LOCK_EX))
+        else:
+            with _flock(turnstile, fcntl.LOCK_EX):
+                held.enter_context(_flock(lock, fcntl.LOCK_SH))
+        yield

@@ -42,6 +42,7 @@ def test_batch_scheduling_is_taken_without_privilege() -> None:
 
 
 @pytest.mark.sitl
+@pytest.mark.exclusive  # (asserts the world keeps real time)
 def test_a_real_time_run_logs_every_stage_in_causal_order(tmp_path: Path) -> None:
     sc = load_scenario("hover_3x2")
     sc = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, duration_s=1.5))

@@ -206,6 +206,7 @@ def vehicle_endpoint_lines(proc: subprocess.Popen) -> list[str]:
             return lines
 
 
+@pytest.mark.exclusive  # (asserts the eight processes keep real time)
 @pytest.mark.parametrize("transport,full", [("udp", True), ("zenoh", False)])
 def test_mavsdk_flies_the_multiprocess_3x2_as_one_vehicle(transport: str, full: bool, tmp_path: Path) -> None:
     """UDP: the whole flight; Zenoh (units <-> coordinator/world on Zenoh, the vehicle's client links
