@@ -11,7 +11,8 @@ child with Ctrl-C would hang. The session therefore starts with Python's own Ctr
 
 The suite runs on every core (pytest-xdist, `-n auto` in pyproject.toml). A test marked `exclusive` needs
 the machine's cores to itself: a multi-process flight paced to the wall clock that asserts its real-time
-factor. It runs with no other test beside it (`pytest_runtest_protocol` below)."""
+factor or judges the flight at wall-clock instants. It runs with no other test beside it, once the cores are
+quiet (`pytest_runtest_protocol` below)."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ import os
 import shutil
 import signal
 import tempfile
+import time
 import warnings
 from pathlib import Path
 
@@ -84,6 +86,29 @@ def _flock(path: Path, mode: int):
         yield
 
 
+def _idle_fraction(window_s: float = 0.5) -> float:
+    """The share of all cores idle over `window_s` (/proc/stat); 1.0 where it cannot be read."""
+    def read() -> tuple[int, int]:
+        with open("/proc/stat") as f:
+            ticks = [int(x) for x in f.readline().split()[1:]]
+        return ticks[3] + ticks[4], sum(ticks)  # idle + iowait, all
+    try:
+        idle0, all0 = read()
+        time.sleep(window_s)
+        idle1, all1 = read()
+    except (OSError, ValueError, IndexError):
+        return 1.0
+    return (idle1 - idle0) / max(all1 - all0, 1)
+
+
+def _wait_for_quiet_cores(timeout_s: float = 30.0, idle: float = 0.85) -> None:
+    """Processes a finished test started can take a moment to end (and a worker's set-up runs outside any
+    test): an exclusive test starts once the cores are quiet, or after `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while _idle_fraction() < idle and time.monotonic() < deadline:
+        pass
+
+
 @pytest.hookimpl(hookwrapper=True, tryfirst=True)  # (outside pytest-timeout's timer: waiting is no test time)
 def pytest_runtest_protocol(item, nextitem):
     """Under xdist, every test holds a shared lock while it runs (set-up and teardown included), and an
@@ -98,6 +123,7 @@ def pytest_runtest_protocol(item, nextitem):
         if item.get_closest_marker("exclusive") is not None:
             held.enter_context(_flock(turnstile, fcntl.LOCK_EX))
             held.enter_context(_flock(lock, fcntl.LOCK_EX))
+            _wait_for_quiet_cores()
         else:
             with _flock(turnstile, fcntl.LOCK_EX):
                 held.enter_context(_flock(lock, fcntl.LOCK_SH))

@@ -25,7 +25,8 @@ from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
 from mavsdk.asyncio.plugins.failure import FailureAsync, FailureType, FailureUnit  # noqa: E402
 from mavsdk.asyncio.plugins.param import ParamAsync  # noqa: E402
 
-pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(240)]
+pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(240),
+              pytest.mark.exclusive]  # (flights paced to the wall clock, judged at wall-clock instants)
 LOSS_AT_S, LOSS_S = 15.0, 10.0
 
 

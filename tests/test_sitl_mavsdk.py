@@ -23,7 +23,8 @@ from mavsdk.asyncio.plugins.failure import FailureAsync, FailureType, FailureUni
 from mavsdk.asyncio.plugins.offboard import OffboardAsync, PositionNedYaw  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import FlightMode, TelemetryAsync  # noqa: E402
 
-pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(180)]
+pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(180),
+              pytest.mark.exclusive]  # (flights paced to the wall clock, judged at wall-clock instants)
 
 
 def _truth(out: Path) -> dict:

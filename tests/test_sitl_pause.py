@@ -20,7 +20,8 @@ import pytest
 
 from firmware_models.udp_runner import read_status
 
-pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(300)]
+pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(300),
+              pytest.mark.exclusive]  # (flights paced to the wall clock, judged at wall-clock instants)
 ROOT = Path(__file__).resolve().parent.parent
 DURATION_S = 14.0
 PAUSED_UNIT = 3
