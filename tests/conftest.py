@@ -9,7 +9,7 @@ A suite started with SIGINT ignored (a background job of a non-interactive shell
 to every child too, and Python then installs no KeyboardInterrupt handler in them: the tests that stop a
 child with Ctrl-C would hang. The session therefore starts with Python's own Ctrl-C handler.
 
-With `-n auto --dist loadfile` the suite runs on every core (pytest-xdist). A test marked `exclusive` needs
+The suite runs on every core (pytest-xdist, `-n auto` in pyproject.toml). A test marked `exclusive` needs
 the machine's cores to itself: a multi-process flight paced to the wall clock that asserts its real-time
 factor or judges the flight at wall-clock instants. It runs with no other test beside it, once the cores are
 quiet (`pytest_runtest_protocol` below)."""
