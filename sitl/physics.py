@@ -130,13 +130,19 @@ class JsbsimBody:
         self._own_dir = work_dir is None
         self._dir = Path(tempfile.mkdtemp(prefix="mars-jsbsim-")) if work_dir is None else Path(work_dir)
         name = "assembly"
-        write_aircraft(model, self._dir, name)
-        fdm = jsbsim.FGFDMExec(str(self._dir))
-        fdm.set_debug_level(0)
-        with _quiet_output():
-            ok = fdm.load_model(name)
+        try:
+            write_aircraft(model, self._dir, name)
+            fdm = jsbsim.FGFDMExec(str(self._dir))
+            fdm.set_debug_level(0)
+            with _quiet_output():
+                ok = fdm.load_model(name)
+        finally:
+            if self._own_dir:
+                # JSBSim has read every file it needs; removing the folder now means a killed process
+                # (SITL units end by signal) or a body dropped without close() leaves nothing in /tmp
+                shutil.rmtree(self._dir, ignore_errors=True)
         if not ok:
-            self.close()
+            self.fdm = None
             raise RuntimeError("JSBSim could not load the generated assembly model")
         fdm.set_dt(self.dt_s)
         for key, value in INTEGRATORS.items():
@@ -315,10 +321,8 @@ class JsbsimBody:
         return mass, com, j
 
     def close(self) -> None:
-        """Drop the FDMExec and remove the generated aircraft directory (if this body made it)."""
+        """Drop the FDMExec (the generated aircraft folder is already gone, see __init__)."""
         self.fdm = None
-        if self._own_dir:
-            shutil.rmtree(self._dir, ignore_errors=True)
 
     def __enter__(self) -> "JsbsimBody":
         return self
