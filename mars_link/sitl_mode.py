@@ -365,6 +365,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "transport": link.kind,
         "link_profile": link.profile,
         "world_real_time_factor": world.get("real_time_factor"),
+        "world_cores_idle_fraction": world.get("cores_idle_fraction"),
         "dead_units": world.get("dead_units", []),
         "world_dropped": world.get("dropped", {}),
         "coordinator_dropped": coordinator.get("dropped", {}),
@@ -457,6 +458,7 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
         "pieces_final": coordinator.get("pieces_final", []), "bodies_final": world.get("bodies", []),
         "plan": coordinator.get("plan"), "events": [dict(e, trial=0) for e in events],
         "sitl": {"transport": link.kind, "realtime": realtime, "world_real_time_factor": world.get("real_time_factor"),
+                 "world_cores_idle_fraction": world.get("cores_idle_fraction"),
                  "dead_units": world.get("dead_units", []), "world_dropped": world.get("dropped", {}),
                  "coordinator_dropped": coordinator.get("dropped", {}), "lost_units": coordinator.get("lost_units", [])},
     }

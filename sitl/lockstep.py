@@ -82,6 +82,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.signing import add_signing_args, signing_from_args
 from sitl.parent_watch import die_with_parent
 from mars_link.errors import EnvironmentFailure, UserInputError
+from mars_link.machine_load import IdleMeter
 from mars_link.messages import BatterySample, SensorPacket
 from mars_link.outputs import write_json
 from mars_link.pacing import Pacer
@@ -306,6 +307,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         # slow the first time, then belong to start-up as in every later step they precede the wait)
         pacer = Pacer(speed, reanchor_s=math.inf, clock=time.perf_counter)
         cpu0 = time.process_time()  # CPU of the stepping loop alone (start-up excluded)
+        idle = IdleMeter()  # the machine's idle cores over the loop: behind the wall clock, starved or at fault?
         k = 0
         while (setup.steps is None or k < setup.steps) and not stop.requested:
             t = world.t_s
@@ -373,7 +375,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
                    "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
                    "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time(),
-                   "cpu_loop_s": time.process_time() - cpu0, "force_integral_n2s": getattr(world, "force_integral_n2s", None),  # (free units: none)
+                   "cpu_loop_s": time.process_time() - cpu0, "cores_idle_fraction": idle.fraction(),
+                   "force_integral_n2s": getattr(world, "force_integral_n2s", None),  # (free units: none)
                    "latch_events": getattr(world, "latch_events", []),
                    "bodies": [list(b.units) for b in getattr(world, "bodies", [])], "logging": truth_log.status()}
         packs = getattr(world, "packs", None)

@@ -27,6 +27,7 @@ import warnings
 from pathlib import Path
 
 import pytest
+from machine import idle_fraction_now
 
 _WATCHED = (signal.SIGINT, signal.SIGTERM)
 _LOCKS_KEY = pytest.StashKey[str]()
@@ -86,26 +87,11 @@ def _flock(path: Path, mode: int):
         yield
 
 
-def _idle_fraction(window_s: float = 0.5) -> float:
-    """The share of all cores idle over `window_s` (/proc/stat); 1.0 where it cannot be read."""
-    def read() -> tuple[int, int]:
-        with open("/proc/stat") as f:
-            ticks = [int(x) for x in f.readline().split()[1:]]
-        return ticks[3] + ticks[4], sum(ticks)  # idle + iowait, all
-    try:
-        idle0, all0 = read()
-        time.sleep(window_s)
-        idle1, all1 = read()
-    except (OSError, ValueError, IndexError):
-        return 1.0
-    return (idle1 - idle0) / max(all1 - all0, 1)
-
-
 def _wait_for_quiet_cores(timeout_s: float = 30.0, idle: float = 0.85) -> None:
     """Processes a finished test started can take a moment to end (and a worker's set-up runs outside any
     test): an exclusive test starts once the cores are quiet, or after `timeout_s`."""
     deadline = time.monotonic() + timeout_s
-    while _idle_fraction() < idle and time.monotonic() < deadline:
+    while idle_fraction_now() < idle and time.monotonic() < deadline:
         pass
 
 

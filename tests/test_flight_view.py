@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from machine import CpuWindow
 from mcap.reader import NonSeekingReader, make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
@@ -254,17 +255,27 @@ def test_live_foxglove_view_of_sitl_up(tmp_path):
             except OSError:
                 assert proc.poll() is None, proc.stdout.read()[-2000:]
                 time.sleep(0.2)
-        got = asyncio.run(listen(f"ws://127.0.0.1:{port}", ("/scene", "/tf"), 4.0))
+        while time.monotonic() < deadline:  # ... and listened to once the flight runs (start-up is not judged)
+            status = out / "world_status.json"
+            if status.exists() and json.loads(status.read_text())["sim_time_s"] > 0.5:
+                break
+            time.sleep(0.1)
+        with CpuWindow() as cpu:
+            got = asyncio.run(listen(f"ws://127.0.0.1:{port}", ("/scene", "/tf"), 4.0))
     finally:
         proc.terminate()  # sitl up stops every child it started
         proc.wait(30)
+        proc.stdout.close()
     for topic, msgs in got.items():
         arrivals = [a for a, _ in msgs]
         times = [t for _, t in msgs]
         span = arrivals[-1] - arrivals[0]
-        assert len(msgs) >= 20 and (len(msgs) - 1) / span >= 10.0, (topic, len(msgs), span)
+        assert len(msgs) >= 20, (topic, len(msgs), span)
+        # >= 10 per wall second (the server sends /scene at 15 Hz, /tf at 20), unless starved (tests/machine.py)
+        cpu.judge((len(msgs) - 1) / span >= 10.0, f"{topic} at {(len(msgs) - 1) / span:.1f} Hz")
         assert all(b > a for a, b in zip(times, times[1:])), topic  # simulation time advances
-        assert (times[-1] - times[0]) / 1e9 > 0.5 * span  # ~real time (the world is paced at 1x)
+        sim_span = (times[-1] - times[0]) / 1e9
+        cpu.judge(sim_span > 0.5 * span, f"{topic}: {sim_span:.2f} s simulated in {span:.2f} s")  # paced at 1x
 
 
 def test_layout_file_is_the_generated_one_and_names_our_topics():

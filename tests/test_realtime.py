@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from machine import judge
 
 from mars_link.scenario import load_scenario
 from mars_link.sitl_mode import run_sitl_scenario, stage_times
@@ -50,7 +51,9 @@ def test_a_real_time_run_logs_every_stage_in_causal_order(tmp_path: Path) -> Non
     summary = run_sitl_scenario(sc, out, link=LinkSpec("udp"), realtime=True, plots=False)
     sitl = summary["sitl"]
     assert summary["completed"] and sitl["realtime"] and sitl["dead_units"] == []
-    assert 0.95 < sitl["world_real_time_factor"] < 1.05  # paced to the wall clock
+    rtf = sitl["world_real_time_factor"]
+    assert rtf < 1.05  # never ahead of the wall clock, and paced to it unless starved (tests/machine.py):
+    judge(rtf > 0.95, sitl["world_cores_idle_fraction"], f"the world ran at {rtf:.3f}x real time")
     assert sitl["cpu_wake_latency"].startswith(("held", "not held"))
     age = sitl["command_age"]
     assert age["n"] == 6 * 150  # every unit, every step, driven with a coordinator command

@@ -10,6 +10,7 @@ import time
 
 import numpy as np
 import pytest
+from machine import CpuWindow
 from pymavlink.dialects.v20 import common as mavlink
 from test_vehicle_protocol import LINK_API, T0, Client
 
@@ -85,11 +86,16 @@ def test_mavsdk_set_rate_imu_250_hz_from_a_unit_process(tmp_path) -> None:
                 if time.monotonic() - t0 > 3.0:
                     return stamps
 
-    with api_unit(tmp_path, "--control-hz", "250") as (api_port, _):
+    with api_unit(tmp_path, "--control-hz", "250") as (api_port, _), CpuWindow() as cpu:
         stamps = asyncio.run(run(api_port))
     t = np.unique(np.array(stamps[len(stamps) // 3:])) * 1e-6  # after the rate change took hold
     rate = (len(t) - 1) / (t[-1] - t[0])
     gaps = np.diff(t)
     print(f"MAVSDK imu(): {rate:.1f} samples per second of sim time over {t[-1] - t[0]:.2f} s; "
-          f"median gap {np.median(gaps) * 1e3:.2f} ms")
-    assert rate == pytest.approx(250.0, rel=0.03) and np.median(gaps) == pytest.approx(0.004, rel=0.01)
+          f"median gap {np.median(gaps) * 1e3:.2f} ms; {cpu.idle_fraction} of the cores idle")
+    # the unit sends every 4 ms of sim time: the samples sit on that grid, most gaps are one step
+    assert np.median(gaps) == pytest.approx(0.004, rel=0.01)
+    assert np.allclose(gaps / 0.004, np.round(gaps / 0.004), atol=0.01)
+    assert rate <= 250.0 * 1.01
+    # and all of them arrive, unless a starved client lost datagrams on the way in (tests/machine.py)
+    cpu.judge(rate == pytest.approx(250.0, rel=0.03), f"{rate:.1f} IMU samples per simulated second")

@@ -1,0 +1,40 @@
+"""The machine's idle CPU over a stretch of wall time (/proc/stat), reported beside a paced run's
+real-time factor.
+
+A run paced to the wall clock that falls behind it either lost time the machine had to give (a wait, a
+lock or a socket in the way: a fault) or was starved: every core busy with its own processes, another
+tenant's, or time the hypervisor took (steal). The share of all cores left idle over the run tells
+which, so the SITL world reports it beside its real-time factor.
+"""
+
+from __future__ import annotations
+
+
+PROC_STAT = "/proc/stat"
+
+
+def cpu_ticks(path: str = PROC_STAT) -> tuple[int, int] | None:
+    """(idle + iowait, all) jiffies of all cores since boot; None where /proc/stat cannot be read."""
+    try:
+        with open(path) as f:
+            ticks = [int(x) for x in f.readline().split()[1:9]]  # user nice system idle iowait irq softirq steal
+        return ticks[3] + ticks[4], sum(ticks)
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+class IdleMeter:
+    """The share of all cores idle since `start()` (None where unknown, e.g. not Linux)."""
+
+    def __init__(self, path: str = PROC_STAT) -> None:
+        self._path = path
+        self._start = cpu_ticks(path)
+
+    def start(self) -> None:
+        self._start = cpu_ticks(self._path)
+
+    def fraction(self) -> float | None:
+        end = cpu_ticks(self._path)
+        if self._start is None or end is None or end[1] <= self._start[1]:
+            return None
+        return (end[0] - self._start[0]) / (end[1] - self._start[1])
