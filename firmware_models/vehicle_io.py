@@ -113,7 +113,9 @@ class VehicleSockets:
         if tlog:
             from mars_link.outputs import SafeWriter
 
-            self._tlog = SafeWriter.open(tlog, "ab", max_bytes=tlog_max_bytes,  # unbuffered: flushed as it goes
+            # unbuffered, by a thread of its own: on disk as it goes, and a stalled write() never holds up
+            # the frames between the unit's sensors and its answer (a unit late by 1 s is lost)
+            self._tlog = SafeWriter.open(tlog, "ab", max_bytes=tlog_max_bytes, background=True,
                                          on_stop=lambda reason: vehicle.notify(f"Log off: {reason.split(' (logging')[0]}"[:50]))
             vehicle.on_frame_in = lambda link, frame: self._log(bytes(frame))
 

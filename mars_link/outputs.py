@@ -6,6 +6,10 @@ non-finite float becomes null (documented in README "Hardening").
 
 Why `SafeWriter`: logging is never flight-critical. A full disk (ENOSPC) or any write error on a
 log file switches that log off with a reason, counted, and the flight goes on; the summary says so.
+Nor may a slow disk hold a flight up: a log written in a flight loop's critical path (a unit's .tlog
+takes every frame between its sensors and its answer) can be written by a thread of its own
+(`background=True`), so a write() that the kernel stalls (dirty-page throttling on a busy host, a slow
+mount) stalls only that thread.
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ import fnmatch
 import json
 import math
 import os
+import threading
+from collections import deque
 from pathlib import Path
 from typing import IO, Any, Callable
 
@@ -84,6 +90,68 @@ def _injected_failure_after(name: str) -> int | None:
     return int(size) if any(fnmatch.fnmatch(base, p) for p in patterns.split(",")) else None
 
 
+#: a background log holds at most this much not yet written; beyond it, records are dropped and counted
+BACKGROUND_QUEUE_BYTES = 16 * 2**20
+#: its thread writes what is queued this often (one wake-up and one write() for many records: waking it
+#: per record cost a unit process 15 % more CPU), or at once when this much is waiting
+BACKGROUND_PERIOD_S = 0.02
+BACKGROUND_WAKE_BYTES = 256 * 2**10
+
+
+class _WriterThread:
+    """The file side of a background `SafeWriter`: a daemon thread writes the queued records every
+    `BACKGROUND_PERIOD_S`, all that is waiting in one write(). The first OSError ends it (`error`: the
+    caller's next write reports it, in the caller's thread)."""
+
+    def __init__(self, file: IO, name: str, max_queued_bytes: int) -> None:
+        self.file = file
+        self.max_queued_bytes = max_queued_bytes
+        self.error: OSError | None = None
+        self._queue: deque = deque()
+        self._queued_bytes = 0
+        self._closing = False
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._run, name=f"log {Path(name).name}", daemon=True)
+        self._thread.start()
+
+    def put(self, data) -> bool:
+        """Queue one record; False when the queue is full (the disk is that far behind)."""
+        with self._cond:
+            if self._queued_bytes + len(data) > self.max_queued_bytes:
+                return False
+            self._queue.append(data)
+            self._queued_bytes += len(data)
+            if self._queued_bytes >= BACKGROUND_WAKE_BYTES:
+                self._cond.notify()
+        return True
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                if not self._closing:
+                    self._cond.wait(BACKGROUND_PERIOD_S)
+                if not self._queue:
+                    if self._closing:
+                        return
+                    continue
+                records = list(self._queue)
+                self._queue.clear()
+                self._queued_bytes = 0
+            try:
+                self.file.write(records[0][:0].join(records))
+            except OSError as exc:
+                self.error = exc
+                return
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Write what is queued (waiting at most `timeout_s`), then close the file."""
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        self._thread.join(timeout_s)
+        self.file.close()
+
+
 class SafeWriter:
     """A log file (text, or bytes in a "b" mode) whose write errors are counted and switch it off
     instead of raising.
@@ -95,7 +163,9 @@ class SafeWriter:
     """
 
     def __init__(self, file: IO, name: str | None = None, max_bytes: int | None = None,
-                 on_stop: Callable[[str], None] | None = None) -> None:
+                 on_stop: Callable[[str], None] | None = None, background: bool = False) -> None:
+        """`background`: a thread of its own writes the file (see the module docstring); `write` only
+        queues, `flush` has nothing to do, `close` writes what is queued."""
         self._file: IO | None = file
         self.name = name or getattr(file, "name", "log")
         self.errors = 0
@@ -105,6 +175,7 @@ class SafeWriter:
         self.max_bytes = max_bytes
         self.on_stop = on_stop
         self._fail_after = _injected_failure_after(self.name)
+        self._thread = _WriterThread(file, self.name, BACKGROUND_QUEUE_BYTES) if background else None
 
     @classmethod
     def open(cls, path: str | os.PathLike, mode: str = "w", **kw) -> "SafeWriter":
@@ -120,9 +191,8 @@ class SafeWriter:
         if exc is not None:
             self.errors += 1
         self.stopped_reason = f"{Path(self.name).name}: {why or exc.strerror or exc} (logging stopped)"
-        f, self._file = self._file, None
         try:
-            f.close()
+            self._close_file()
         except OSError:
             pass
         if self.on_stop is not None:
@@ -139,7 +209,15 @@ class SafeWriter:
         try:
             if self._fail_after is not None and self.bytes_written + len(data) > self._fail_after:
                 raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
-            n = self._file.write(data)
+            if self._thread is None:
+                n = self._file.write(data)
+            elif self._thread.error is not None:
+                raise self._thread.error
+            elif self._thread.put(data):
+                n = len(data)
+            else:  # the disk is BACKGROUND_QUEUE_BYTES behind: this record is lost, the log goes on
+                self.dropped_writes += 1
+                return 0
         except OSError as exc:
             self._stop(exc)
             return 0
@@ -147,16 +225,26 @@ class SafeWriter:
         return n
 
     def flush(self) -> None:
-        if self._file is not None:
+        if self._file is not None and self._thread is None:
             try:
                 self._file.flush()
             except OSError as exc:
                 self._stop(exc)
 
+    def _close_file(self) -> None:
+        f, thread, self._file, self._thread = self._file, self._thread, None, None
+        if thread is not None:
+            thread.close()  # (closes f)
+        else:
+            f.close()
+
     def close(self) -> None:
         if self._file is not None:
             try:
-                self._file.close()
+                thread = self._thread
+                self._close_file()
+                if thread is not None and thread.error is not None:
+                    raise thread.error
             except OSError as exc:
                 self.errors += 1
                 self.stopped_reason = self.stopped_reason or f"{Path(self.name).name}: {exc.strerror or exc}"

@@ -103,6 +103,9 @@ def test_tlog_holds_only_parsed_frames_and_stops_at_its_cap(tmp_path) -> None:
         deadline = time.monotonic() + 3
         while v.stats.get("rx", 0) < 50 and time.monotonic() < deadline:
             io.poll(0.05)
+        deadline = time.monotonic() + 3  # (the .tlog's own thread writes it, within moments)
+        while tlog.read_bytes().count(good) < v.stats.get("rx", 0) and time.monotonic() < deadline:
+            time.sleep(0.01)
         data = tlog.read_bytes()
         assert b"\x55" * 50 not in data
         assert data.count(good) == v.stats["rx"] == 50  # every accepted frame logged, nothing else received

@@ -9,18 +9,22 @@ full length, exit 0, and summary.json and the printed summary say which logs sto
 
 from __future__ import annotations
 
+import errno
 import json
 import math
+import os
 import shutil
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.udp_runner import read_status, stop_unit
+from mars_link import outputs
 from mars_link.outputs import INJECT_ENOSPC_ENV
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
@@ -133,3 +137,58 @@ def test_inprocess_run_with_a_failing_log_flies_to_the_end(tmp_path) -> None:
     assert summary["logging"]["stopped_reason"] == "telemetry.csv: No space left on device (logging stopped)"
     assert (out / "telemetry.csv").stat().st_size <= 20000
     assert "logging stopped" in done.stdout and "Traceback" not in done.stderr
+
+
+class _StalledDisk:
+    """A file whose write() blocks until released (the kernel throttling a busy disk), then fails if told."""
+
+    def __init__(self, fail: OSError | None = None) -> None:
+        self.released = threading.Event()
+        self.entered = threading.Event()
+        self.fail = fail
+        self.data = b""
+        self.closed = False
+
+    def write(self, data: bytes) -> int:
+        self.entered.set()
+        assert self.released.wait(30)
+        if self.fail is not None:
+            raise self.fail
+        self.data += data
+        return len(data)
+
+    def close(self) -> None:
+        self.closed = True
+
+
+def test_a_stalled_disk_never_holds_up_a_background_log(monkeypatch) -> None:
+    """A unit's .tlog is written by a thread of its own (SafeWriter(background=True)): while the disk
+    stalls, write() returns at once; past the queue's bound records are dropped and counted; released,
+    the file gets every queued record, in order."""
+    monkeypatch.setattr(outputs, "BACKGROUND_QUEUE_BYTES", 1000)
+    disk = _StalledDisk()
+    log = outputs.SafeWriter(disk, "unit1.tlog", background=True)
+    assert log.write(b"first;") == 6
+    assert disk.entered.wait(10)  # the thread is inside the stalled write() ...
+    for i in range(300):  # ... and the flight goes on writing (the caller would deadlock here otherwise)
+        log.write(b"record %03d;" % i)
+    assert not disk.released.is_set() and log.dropped_writes > 0 and log.stopped_reason is None
+    kept = 300 - log.dropped_writes
+    disk.released.set()
+    log.close()
+    assert disk.closed and disk.data == b"first;" + b"".join(b"record %03d;" % i for i in range(kept))
+
+
+def test_a_background_log_that_fails_stops_with_its_reason_in_the_callers_thread() -> None:
+    disk = _StalledDisk(fail=OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)))
+    stops: list[tuple[str, str]] = []
+    log = outputs.SafeWriter(disk, "unit1.tlog", background=True,
+                             on_stop=lambda why: stops.append((why, threading.current_thread().name)))
+    log.write(b"first;")
+    disk.released.set()
+    deadline = time.monotonic() + 10
+    while log.stopped_reason is None and time.monotonic() < deadline:  # the next write reports the failure
+        log.write(b"more;")
+        time.sleep(0.01)
+    assert stops == [("unit1.tlog: No space left on device (logging stopped)", threading.main_thread().name)]
+    assert log.errors == 1 and log.write(b"after;") == 0 and disk.closed
