@@ -139,6 +139,7 @@ class _WriterThread:
                 self._queued_bytes = 0
             try:
                 self.file.write(records[0][:0].join(records))
+                self.file.flush()  # (a text file's buffer too: on disk as it goes)
             except OSError as exc:
                 self.error = exc
                 return

@@ -289,7 +289,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     status_path = out / "world_status.json"
     from mars_link.outputs import SafeWriter
 
-    truth_log = SafeWriter.open(out / "world_truth.csv")  # a write error stops the log, never the world
+    # a write error stops the log, never the world; its own thread writes it, so a slow disk never paces the world
+    truth_log = SafeWriter.open(out / "world_truth.csv", background=True)
     truth_log.write("t_s," + columns + "\n")
     wall0 = time.perf_counter()
     next_status = 0.0

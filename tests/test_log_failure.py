@@ -157,6 +157,9 @@ class _StalledDisk:
         self.data += data
         return len(data)
 
+    def flush(self) -> None:
+        pass
+
     def close(self) -> None:
         self.closed = True
 
