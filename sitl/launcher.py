@@ -9,6 +9,7 @@ finished (`mars-link sitl up`: one line names it, exit 1); a unit process that d
 
 from __future__ import annotations
 
+import json
 import signal
 import socket
 import subprocess
@@ -22,6 +23,33 @@ from firmware_models.signing import load_key
 from sitl.parent_watch import child_env
 from sitl.links import LOOPBACK
 from sitl.lockstep import SitlSetup, _start_pose, load_setup, position_every
+
+
+MCAP_FINISH_S = 30.0  # the most `Run.stop` waits for an orphaned run.mcap writer to finish the file
+
+
+def _await_mcap_writer(status_path: Path, timeout_s: float) -> None:
+    """Wait for the world's run.mcap writer (its pid in the world's status file) to end, if it is still
+    writing: it finishes the file on its own once its pipe from the world closes. Only waits; never
+    signals a process this one did not start."""
+    try:
+        pid = json.loads(status_path.read_text()).get("mcap_writer_pid")
+    except (OSError, ValueError, AttributeError):
+        return
+    if not isinstance(pid, int):
+        return
+
+    def writing() -> bool:
+        try:
+            return b"_writer_main" in Path(f"/proc/{pid}/cmdline").read_bytes()
+        except OSError:
+            return False
+
+    deadline = time.monotonic() + timeout_s
+    if writing():
+        print(f"waiting for run.mcap to be finished (writer pid {pid})", file=sys.stderr)
+    while writing() and time.monotonic() < deadline:
+        time.sleep(0.05)
 
 
 def bound_udp_socket() -> socket.socket:
@@ -78,8 +106,10 @@ class SitlRun:
     processes: dict[str, subprocess.Popen] = field(default_factory=dict)
     unit_process: dict[int, str] = field(default_factory=dict)  # unit id -> the name of the process hosting it
 
-    def stop(self, grace_s: float = 3.0) -> None:
-        """SIGTERM every child still running, wait, SIGKILL the ones that did not end (by PID)."""
+    def stop(self, grace_s: float = 3.0, mcap_finish_s: float = MCAP_FINISH_S) -> None:
+        """SIGTERM every child still running, wait, SIGKILL the ones that did not end (by PID). Then, if the
+        world's run.mcap writer outlived the world (the world was killed before it finished the file), wait
+        up to `mcap_finish_s` for it to finish: when this returns, run.mcap is whole."""
         for proc in self.processes.values():
             if proc.poll() is None:
                 proc.terminate()
@@ -90,6 +120,7 @@ class SitlRun:
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
+        _await_mcap_writer(self.out / "world_status.json", mcap_finish_s)
 
     def endpoints(self) -> list[str]:
         lines = [f"world: pid {self.processes['world'].pid}, HIL link udp {LOOPBACK}:{self.world_port} (lockstep)"]

@@ -298,6 +298,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     latch_sent: dict[int, int] = {}  # the latch mask each unit last heard
     truth_row = world.units_row if setup.pieces else world.truth_row
     view, feed, reference, eta_at = _world_view(setup, world, out, mcap, foxglove)
+    writer_pid = view.process.pid if view is not None and mcap else None
     try:
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
         link.prepare_peers(live)  # (the first sends' set-up, paid in the first step, stalled a paced start)
@@ -318,7 +319,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                                 eta_at(t), [deaths, feed.events])
             if time.monotonic() >= next_status:
                 next_status = time.monotonic() + STATUS_PERIOD_S
-                _write_world_status(status_path, world, setup, live, t, time.perf_counter() - wall0)
+                _write_world_status(status_path, world, setup, live, t, time.perf_counter() - wall0, writer_pid)
                 truth_log.flush()
             datagrams = []  # sampled and encoded before the pacing wait: at t they only go out
             for p in world.sense():
@@ -372,7 +373,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             world.advance()
             k += 1
         wall = time.perf_counter() - wall0
-        _write_world_status(status_path, world, setup, live, world.t_s, wall)
+        _write_world_status(status_path, world, setup, live, world.t_s, wall, writer_pid)
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
                    "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
                    "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time(),
@@ -387,10 +388,10 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         write_json(out / "world_summary.json", summary)
     finally:
         truth_log.close()
+        if view is not None:  # (before the link: a Zenoh session can take seconds to close, and run.mcap
+            view.finish(event_lists=[deaths, feed.events])  # must be whole when `sitl up` ends)
         world.close()
         link.close()
-        if view is not None:
-            view.finish(event_lists=[deaths, feed.events])
     return 0
 
 
@@ -436,8 +437,10 @@ def actuator_controls_ok(controls, control_min: float = 0.0) -> bool:
     return len(c) == 4 and all(math.isfinite(x) and control_min <= x <= 1.0 for x in c)
 
 
-def _write_world_status(path: Path, world, setup: SitlSetup, live: set[int], t_s: float, wall_s: float) -> None:
-    """The world's truth for operators and tests (units' centres, NED), replaced atomically."""
+def _write_world_status(path: Path, world, setup: SitlSetup, live: set[int], t_s: float, wall_s: float,
+                        mcap_writer_pid: int | None = None) -> None:
+    """The world's truth for operators and tests (units' centres, NED), replaced atomically; and the pid of
+    the process writing run.mcap, which `sitl up` waits for if it outlives the world (`Run.stop`)."""
     from firmware_models.vehicle_io import write_json_atomic
 
     units = {}
@@ -449,7 +452,8 @@ def _write_world_status(path: Path, world, setup: SitlSetup, live: set[int], t_s
                          "rotor_thrust_n": [float(x) for x in world.unit_rotor_thrust_n(u)]}
     write_json_atomic(path, {"sim_time_s": t_s, "wall_time_s": wall_s, "wall_clock_s": time.time(),
                              "real_time_factor": t_s / wall_s if wall_s > 0 else None,
-                             "dead_units": sorted(set(setup.unit_ids) - live), "units": units})
+                             "dead_units": sorted(set(setup.unit_ids) - live), "units": units,
+                             "mcap_writer_pid": mcap_writer_pid})
 
 
 # ----------------------------------------------------------------------------- unit

@@ -23,7 +23,8 @@ from mars_link.machine_load import IdleMeter
 #: below this share of idle cores, a missed wall-clock figure is put down to starvation. A 3x2 Zenoh
 #: lockstep at real time leaves about 25 % of 2 cores idle, the UDP one about 50 %. A pacing fault cuts the
 #: flight's CPU use with its real-time factor, so it leaves more idle than that, where starvation leaves
-#: less. (Seen once: a 1.5 s UDP 3x2 lockstep at 0.75x with 17 % idle; the next three runs kept real time.)
+#: less. (Seen: a 1.5 s UDP 3x2 lockstep at 0.75x with 17 % idle while a busy loop held one core; three
+#: more runs beside it kept real time. A lockstep's chain of processes can be starved with a core idle.)
 SATURATED_IDLE = 0.20
 
 

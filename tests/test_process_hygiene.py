@@ -134,3 +134,25 @@ def test_sigterm_of_run_mode_sitl_stops_every_child_and_keeps_the_logs(tmp_path)
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_stop_waits_for_a_run_mcap_writer_that_outlived_the_world(tmp_path: Path) -> None:
+    """A world killed before it finished run.mcap leaves its writer finishing the file on its own; `sitl up`
+    (Run.stop) waits for that pid, named in the world's status file, so the file is whole when it ends. A pid
+    that is no run.mcap writer is not waited for."""
+    from sitl.launcher import _await_mcap_writer
+
+    status = tmp_path / "world_status.json"
+    writer = subprocess.Popen([sys.executable, "-c", "_writer_main = None; import time; time.sleep(1.5)"])
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        status.write_text(json.dumps({"mcap_writer_pid": other.pid}))
+        _await_mcap_writer(status, 20.0)
+        assert other.poll() is None  # returned at once: not a writer
+        status.write_text(json.dumps({"mcap_writer_pid": writer.pid}))
+        _await_mcap_writer(status, 20.0)
+        assert _ppid_and_state(writer.pid) in (None, (os.getpid(), "Z"))  # it had ended (a zombie until reaped)
+    finally:
+        for p in (writer, other):
+            p.kill()
+            p.wait()
