@@ -126,31 +126,35 @@ class _WriterThread:
         return True
 
     def _run(self) -> None:
-        while True:
-            with self._cond:
-                if not self._closing:
-                    self._cond.wait(BACKGROUND_PERIOD_S)
-                if not self._queue:
-                    if self._closing:
-                        return
-                    continue
-                records = list(self._queue)
-                self._queue.clear()
-                self._queued_bytes = 0
-            try:
+        try:
+            while True:
+                with self._cond:
+                    if not self._closing:
+                        self._cond.wait(BACKGROUND_PERIOD_S)
+                    if not self._queue:
+                        if self._closing:
+                            return
+                        continue
+                    records = list(self._queue)
+                    self._queue.clear()
+                    self._queued_bytes = 0
                 self.file.write(records[0][:0].join(records))
                 self.file.flush()  # (a text file's buffer too: on disk as it goes)
+        except OSError as exc:
+            self.error = exc
+        finally:  # (this thread closes the file: never under a write() still in progress)
+            try:
+                self.file.close()
             except OSError as exc:
-                self.error = exc
-                return
+                self.error = self.error or exc
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Write what is queued (waiting at most `timeout_s`), then close the file."""
+        """Write what is queued, close the file; wait at most `timeout_s` for that (0: a log stopped
+        mid-flight never waits for a stalled disk)."""
         with self._cond:
             self._closing = True
             self._cond.notify()
         self._thread.join(timeout_s)
-        self.file.close()
 
 
 class SafeWriter:
@@ -193,7 +197,7 @@ class SafeWriter:
             self.errors += 1
         self.stopped_reason = f"{Path(self.name).name}: {why or exc.strerror or exc} (logging stopped)"
         try:
-            self._close_file()
+            self._close_file(wait_s=0.0)
         except OSError:
             pass
         if self.on_stop is not None:
@@ -232,10 +236,10 @@ class SafeWriter:
             except OSError as exc:
                 self._stop(exc)
 
-    def _close_file(self) -> None:
+    def _close_file(self, wait_s: float = 5.0) -> None:
         f, thread, self._file, self._thread = self._file, self._thread, None, None
         if thread is not None:
-            thread.close()  # (closes f)
+            thread.close(wait_s)  # (its thread closes f)
         else:
             f.close()
 

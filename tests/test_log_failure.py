@@ -195,3 +195,19 @@ def test_a_background_log_that_fails_stops_with_its_reason_in_the_callers_thread
         time.sleep(0.01)
     assert stops == [("unit1.tlog: No space left on device (logging stopped)", threading.main_thread().name)]
     assert log.errors == 1 and log.write(b"after;") == 0 and disk.closed
+
+
+def test_a_background_log_stopped_at_its_cap_during_a_stall_does_not_wait_for_the_disk() -> None:
+    disk = _StalledDisk()
+    log = outputs.SafeWriter(disk, "unit1.tlog", background=True, max_bytes=60)
+    log.write(b"first;")
+    assert disk.entered.wait(10)
+    for _ in range(10):  # past the cap while the disk is stalled: the log stops at once, its thread finishes later
+        log.write(b"0123456789")
+    assert log.stopped_reason == "unit1.tlog: size cap of 60 bytes reached (logging stopped)"
+    assert not disk.released.is_set() and not disk.closed
+    disk.released.set()
+    deadline = time.monotonic() + 10
+    while not disk.closed and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert disk.closed and len(disk.data) <= 60
