@@ -388,10 +388,12 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         write_json(out / "world_summary.json", summary)
     finally:
         truth_log.close()
-        if view is not None:  # (before the link: a Zenoh session can take seconds to close, and run.mcap
-            view.finish(event_lists=[deaths, feed.events])  # must be whole when `sitl up` ends)
-        world.close()
-        link.close()
+        try:  # run.mcap before the link: a Zenoh session can take seconds to close, and the file must be
+            if view is not None:  # whole when `sitl up` ends
+                view.finish(event_lists=[deaths, feed.events])
+        finally:
+            world.close()
+            link.close()
     return 0
 
 
