@@ -95,6 +95,7 @@ from mars_link.wire import (
     battery_report_message,
     actuator_output_from_message,
     rotor_command_message,
+    new_mav,
     sensor_packet_messages,
     usec,
 )
@@ -244,6 +245,51 @@ def shutdown_message() -> mavlink.MAVLink_message:
                                                 2, 0, 0, 0, 0, 0, 0)
 
 
+def step_sent_message(t_us: int) -> mavlink.MAVLink_message:
+    """The world to the coordinator, after it has sent every live unit its sensors for step `t_us`:
+    SYSTEM_TIME stamped with the step's simulation time. The coordinator starts a step's silence deadline
+    only once this is in, so a world stopped or descheduled between two units' sensor datagrams (the
+    units it had not reached yet are silent through no fault of theirs) loses nobody."""
+    return mavlink.MAVLink_system_time_message(t_us, t_us // 1000)
+
+
+def step_sent_packer(key: bytes | None):
+    """t_us -> the world's step-sent frame, signed when the run is (the coordinator's link then drops
+    unsigned frames); the world's own link stays unsigned (its HIL traffic is not signed)."""
+    from firmware_models.signing import advance_outgoing_clock, enable_outgoing_signing
+    from mars_link import mavlink_codec
+
+    enc = new_mav(WORLD_SYSID)
+    if key is not None:
+        enable_outgoing_signing(enc, key, 1, time.time())
+
+    def pack(t_us: int) -> bytes:
+        if key is not None:
+            advance_outgoing_clock(enc, time.time())
+        return mavlink_codec.encode(step_sent_message(t_us), enc)
+    return pack
+
+
+#: test hook "T_S:SECONDS": the world sleeps SECONDS after sending the first unit its sensors of the first
+#: step at or after T_S (a world stopped or descheduled between two units' datagrams; tests/test_sitl_pause.py)
+STALL_ENV = "MARS_LINK_TEST_WORLD_STALL"
+
+
+def _stall_from_env() -> tuple[float, float] | None:
+    at, _, seconds = os.environ.get(STALL_ENV, "").partition(":")
+    try:
+        return float(at), float(seconds)
+    except ValueError:
+        return None
+
+
+def _step_sent_us(m) -> int | None:
+    """The step a world's step-sent marker names (None: not one)."""
+    if m.get_type() == "SYSTEM_TIME" and m.get_srcSystem() == WORLD_SYSID:
+        return int(m.time_unix_usec)
+    return None
+
+
 def _is_shutdown(m) -> bool:
     return (m.get_type() == "COMMAND_LONG" and m.get_srcSystem() == COORDINATOR_SYSID
             and m.target_system == WORLD_SYSID and m.command == mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN
@@ -253,7 +299,7 @@ def _is_shutdown(m) -> bool:
 # ----------------------------------------------------------------------------- world
 def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout_s: float = WORLD_UNIT_TIMEOUT_S,
               speed: float = 0.0, start: tuple[np.ndarray, float] | None = None, mcap: bool = False,
-              foxglove: str | None = None) -> int:
+              foxglove: str | None = None, key: bytes | None = None) -> int:
     """Own the bodies, run the lockstep; `speed` > 0 paces sim time to that many x wall time. `start`
     (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory. `mcap`: run.mcap in
     `out`; `foxglove`: HOST:PORT of the live Foxglove view (sitl.view_feed says why the world hosts them)."""
@@ -302,6 +348,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     try:
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
         link.prepare_peers(live)  # (the first sends' set-up, paid in the first step, stalled a paced start)
+        coordinator_addr = link.peers.get(COORDINATOR_SYSID) if setup.docked else None
+        step_sent = step_sent_packer(key)
+        stall = _stall_from_env()
         wall0 = time.perf_counter()
         # sim time on the wall clock at `speed`; behind it, the world catches up (no re-anchoring): the
         # lockstep's real-time factor stays the one asked for
@@ -333,8 +382,13 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                         msgs.append(battery_report_message(p.battery))
                     datagrams.append((link.pack(msgs + sensor_packet_messages(p)), link.peers[p.unit_id]))
             pacer.wait(t)
-            for data, addr in datagrams:
+            for i, (data, addr) in enumerate(datagrams):
                 link.send_bytes(data, addr)
+                if i == 0 and stall is not None and t >= stall[0]:  # (test hook: stopped between two units)
+                    time.sleep(stall[1])
+                    stall = None
+            if coordinator_addr is not None:  # every unit has its step: the coordinator may now time them
+                link.send_bytes(step_sent(usec(t)), coordinator_addr)
             if pacer.paced:  # the answers are read in one go from mid-period on, so the world is not
                 # woken once per unit while the units and the coordinator work on the step (2-core machines)
                 time.sleep(max(0.0, pacer.wait_s(t + ANSWER_READ_PHASE / cfg.exchange_hz)))
@@ -661,17 +715,21 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         link.prepare_peers(live)
         cpu0 = time.process_time()
         world = ports.address("world")
+        link.peers.setdefault(WORLD_SYSID, world)  # (its step-sent markers come from there)
         events_fed = 0
         finish_at = None  # when the last period's fault detection runs (Coordinator.finish_step)
         link.heartbeat(world)
         next_hello = time.monotonic() + 0.2
         t_last = -math.inf  # the last step's time: a packet not newer is a backlog (a paused unit resumed)
+        world_marks, world_sent_us = False, -1  # the world's step-sent markers: seen any, the latest step
         for k in (range(setup.steps) if setup.steps is not None else itertools.count()):
             if stop.requested:
                 break
             packets: dict[int, SensorPacket] = {}
             # a unit is lost when it stays silent for unit_timeout_s after the first telemetry of the
-            # step came in; before that, the world may be waiting for a dead unit (it drives the clock)
+            # step came in and the world said it had sent every unit the step (step_sent_message; a world
+            # that sends no such marker: from the first telemetry); before that, the world may be waiting
+            # for a dead unit (it drives the clock), or be stopped between two units' sensors
             idle_deadline = time.monotonic() + WORLD_IDLE_TIMEOUT_S
             deadline = None
             t_expected = None
@@ -693,6 +751,10 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                 if final and not msgs:
                     break
                 for m in msgs:
+                    sent_us = _step_sent_us(m)
+                    if sent_us is not None:
+                        world_marks, world_sent_us = True, max(world_sent_us, sent_us)
+                        continue
                     if m.get_type() == "COMMAND_ACK":
                         if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in accepted:
                             accepted[m.get_srcSystem()].add(m.command)
@@ -722,12 +784,13 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                         continue  # live unit's packet look stale and lose them all)
                     if t_expected is None:
                         t_expected = p.t_s
-                        deadline = time.monotonic() + unit_timeout_s
                         first_wall = time.time()
                     if p.t_s == t_expected and p.unit_id in live:
                         packets[p.unit_id] = p
                     else:
                         link.drop("stale_telemetry")
+                if deadline is None and t_expected is not None and (not world_marks or world_sent_us >= usec(t_expected)):
+                    deadline = time.monotonic() + unit_timeout_s
             if stop.requested:  # stopped mid-step: the units stop too; none of them is lost
                 break
             if not packets:  # no telemetry at all for WORLD_IDLE_TIMEOUT_S: the world is gone
@@ -950,7 +1013,8 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
         if args.start_pose:  # the launcher computed them: spares the world importing the coordinator stack
             n, e, d, yaw = (float(x) for x in args.start_pose.split(","))
             start = (np.array([n, e, d]), yaw)
-        return run_world(setup, ports, out, seed, speed=speed, start=start, mcap=args.mcap, foxglove=args.foxglove)
+        return run_world(setup, ports, out, seed, speed=speed, start=start, mcap=args.mcap, foxglove=args.foxglove,
+                         key=key)
     if args.role == "unit":
         units, api_ports = _int_list(args.unit, "--unit"), _int_list(args.api_port, "--api-port")
         for u in units:

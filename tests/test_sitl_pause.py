@@ -150,3 +150,23 @@ def test_a_paused_world_resumes_and_a_paused_coordinator_lands_the_units(tmp_pat
         assert unit["armed"] is False and unit["stats"]["coordinator_failsafe"] == 1, unit
     for log in out.glob("*.log"):
         assert "Traceback" not in log.read_text(), log.name
+
+
+def test_a_world_stalled_between_two_units_sensors_loses_nobody(tmp_path: Path) -> None:
+    """The world stops for 2.5 s after sending unit 1 its sensors and before the others (a SIGSTOP that lands
+    mid-send did this once): the coordinator, holding unit 1's telemetry, starts the step's 1 s silence
+    deadline only once the world says every unit has its step (sitl.lockstep.step_sent_message), so no unit
+    is lost and the hover flies to its end."""
+    from sitl.lockstep import STALL_ENV
+
+    out = tmp_path / "run"
+    env = {**os.environ, STALL_ENV: "1.0:2.5"}
+    done = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_3x2", "--mode", "sitl", "--duration",
+                           "2", "--quiet", "--out", str(out)], capture_output=True, text=True, timeout=150, env=env)
+    assert done.returncode == 0, done.stderr[-2000:]
+    coordinator = json.loads((out / "coordinator_summary.json").read_text())
+    world = json.loads((out / "world_summary.json").read_text())
+    assert coordinator["lost_units"] == [] and world["dead_units"] == [], (coordinator["lost_units"], world["dead_units"])
+    assert world["wall_time_s"] > 2.5  # (the stall happened)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] and summary["max_error_m"] < 0.1
