@@ -4,6 +4,7 @@ loopback UDP (default) or Zenoh (`--transport zenoh`).
 
 Contract per exchange k (PX4's simulator lockstep, specs/mavlink.md §1.1):
   world --[HIL_STATE_QUATERNION] ODOMETRY.. HIL_SENSOR--> unit i   (one datagram; sensor time stamps the step)
+  world --SYSTEM_TIME--> coordinator                                 (docked: every unit has the step)
   unit i --HIGHRES_IMU (+ODOMETRY)--> coordinator                   (docked assembly only)
   coordinator --SET_ACTUATOR_CONTROL_TARGET--> unit i               (per-rotor thrust for that time)
   unit i --HIL_ACTUATOR_CONTROLS (LOCKSTEP)--> world
