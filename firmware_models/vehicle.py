@@ -75,6 +75,7 @@ from firmware_models.vehicle_shell import ShellMixin
 from firmware_models.vehicle_streams import (  # noqa: F401 (re-exported)
     CAPABILITIES, DEFAULT_STREAM_HZ, MIN_STREAM_INTERVAL_S, REFUSED_MESSAGES, SENSORS, StreamsMixin,
 )
+from firmware_models.vehicle_streams import next_stream_due
 from mars_link import mavlink_codec
 from mars_link.assembly import VehicleParams, vehicle_preset
 from mars_link.errors import UserInputError
@@ -390,7 +391,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         for mid, interval in self.stream_interval_s.items():
             due = self._next_stream.get(mid, wall_time_s)
             if wall_time_s + 1e-6 >= due:  # (a tick exactly on the interval counts despite float rounding)
-                self._next_stream[mid] = max(due + interval, wall_time_s + 0.5 * interval)
+                self._next_stream[mid] = next_stream_due(due, interval, wall_time_s)
                 try:
                     msg = self._stream_message(mid)
                 except (*mavlink_codec.ENCODE_ERRORS, FloatingPointError):  # e.g. int() of a NaN state

@@ -16,6 +16,7 @@ from mars_link.rotations import quat_to_euler, quat_to_rotmat
 from firmware_models.vehicle_links import finite as _finite
 from firmware_models.vehicle_modes import MAIN_AUTO, MAIN_OFFBOARD, MODE_MISSION
 from mars_link.messages import BatterySample, wire_battery
+from mars_link.pacing import REANCHOR_S
 from mars_link.wire import battery_status
 
 MIN_STREAM_INTERVAL_S = 0.001  # 1 kHz: the protocol's floor; the vehicle's own is one message per tick
@@ -58,8 +59,6 @@ SENSORS = (
     | mavlink.MAV_SYS_STATUS_SENSOR_BATTERY | mavlink.MAV_SYS_STATUS_PREARM_CHECK
     | mavlink.MAV_SYS_STATUS_SENSOR_PROPULSION
 )
-#: commands whose identical resend within COMMAND_DEDUP_S is answered from the cache, not re-run
-
 
 #: SYS_STATUS sensor bit of each failure-injectable sensor
 SENSOR_BITS = {
@@ -67,6 +66,18 @@ SENSOR_BITS = {
     "gyro": mavlink.MAV_SYS_STATUS_SENSOR_3D_GYRO, "mag": mavlink.MAV_SYS_STATUS_SENSOR_3D_MAG,
     "baro": mavlink.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE,
 }
+
+#: a stream sent on a tick this late (wall clock) stays on its grid: the late tick and the runner's catch-up
+#: ticks after it send what fell due, one message per tick, so a starved moment loses no sample. Later than
+#: this the runner re-anchors its pacing (mars_link.pacing), and the stream starts again from now.
+STREAM_CATCH_UP_S = REANCHOR_S
+
+
+def next_stream_due(due_s: float, interval_s: float, now_s: float) -> float:
+    """When a stream that fell due at `due_s` and went out at `now_s` is due again (wall clock)."""
+    if now_s - due_s < STREAM_CATCH_UP_S:
+        return due_s + interval_s
+    return now_s + 0.5 * interval_s
 
 
 class StreamsMixin:

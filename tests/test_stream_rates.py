@@ -22,15 +22,16 @@ R = mavlink
 IMU = R.MAVLINK_MSG_ID_HIGHRES_IMU
 
 
-def _run(v: Vehicle, seconds: float, api: Client, each_tick: list) -> None:
-    """The vehicle ticked once per control step over a JSBSim body at 500 Hz, in lockstep."""
+def _run(v: Vehicle, seconds: float, api: Client, each_tick: list, late_s=lambda k: 0.0) -> None:
+    """The vehicle ticked once per control step over a JSBSim body at 500 Hz, in lockstep; tick k comes
+    `late_s(k)` after its time on the wall clock."""
     body = getattr(v, "_test_body", None)
     if body is None:
         body = v._test_body = JsbsimBody(AssemblyModel.from_layout(["X"], v.vehicle), 500.0)
         v.set_state(body.state())
     sub = round(500.0 * v.control_dt_s)
-    for _ in range(round(seconds / v.control_dt_s)):
-        each_tick += api.decode(v.tick(T0 + body.t_s, body.t_s))
+    for k in range(round(seconds / v.control_dt_s)):
+        each_tick += api.decode(v.tick(T0 + body.t_s + late_s(k), body.t_s))
         for _ in range(sub):
             body.set_rotor_thrusts(v.step_motors(0.002))
             body.step(1)
@@ -64,6 +65,38 @@ def test_highres_imu_rate_up_to_the_control_rate(control_hz, asked_hz, expected_
     print(f"control {control_hz:g} Hz, asked {asked_hz:g} Hz: HIGHRES_IMU {rate:.1f} Hz ({n} in the last second)")
     assert rate == pytest.approx(expected_hz, rel=0.01)
     assert v.stream_cap_hz == control_hz
+
+
+@pytest.mark.parametrize("late_ms, every", [(3.0, 7), (30.0, 50), (150.0, 100)])
+def test_a_late_tick_loses_no_sample(late_ms, every) -> None:
+    """A tick that comes late on the wall clock (a descheduled unit process) sends what fell due, and the
+    runner's catch-up ticks after it send the rest: every 4 ms sample goes out, one per tick. (PX4's
+    rule, which keeps a stream's grid only within 1.5 intervals, lost a sample at each 3 ms jitter here.)"""
+    v = Vehicle(VehicleConfig(unit_id=1, control_hz=250.0), T0)
+    api = Client(v, LINK_API)
+    api.command(R.MAV_CMD_SET_MESSAGE_INTERVAL, IMU, 4000)
+    got: list = []
+    # tick k = n*every comes late_ms late; the next ticks catch up (4 per ms of lateness), as the runner's do
+    catch_up = round(late_ms / 4.0)
+    _run(v, 2.0, api, got, late_s=lambda k: max(0.0, late_ms - 4.0 * (k % every)) * 1e-3 if k % every <= catch_up else 0.0)
+    rate, n = _rate(got)
+    print(f"late {late_ms:g} ms every {every} ticks: HIGHRES_IMU {rate:.1f} Hz of sim time ({n} in the last second)")
+    assert rate == pytest.approx(250.0, rel=1e-6)
+
+
+def test_a_tick_later_than_the_catch_up_window_restarts_the_stream() -> None:
+    """Later than the pacing's re-anchoring (the runner gives up catching up and goes on from now), a
+    stream starts again from now instead of bursting a backlog of stale samples."""
+    v = Vehicle(VehicleConfig(unit_id=1, control_hz=250.0), T0)
+    api = Client(v, LINK_API)
+    api.command(R.MAV_CMD_SET_MESSAGE_INTERVAL, IMU, 20000)  # 50 Hz, below the 250 Hz ticks
+    got: list = []
+    _run(v, 1.0, api, got, late_s=lambda k: 0.0 if k < 100 else 0.5)  # from tick 100 on, 0.5 s behind
+    t = np.array([m.time_usec for m in got if m.get_type() == "HIGHRES_IMU"]) * 1e-6
+    gaps = np.diff(t[t >= 0.4 - 1e-9])
+    print(f"gaps after the jump: {np.round(gaps * 1e3, 1)} ms")
+    # (the first one again half an interval after the late tick, on the next tick: 12 ms; a kept grid: 4 ms)
+    assert len(gaps) >= 25 and gaps.min() >= 0.01 - 1e-6 and np.median(gaps) == pytest.approx(0.02, abs=1e-6)
 
 
 @pytest.mark.slow
