@@ -130,5 +130,6 @@ def test_mavsdk_set_rate_imu_250_hz_from_a_unit_process(tmp_path) -> None:
     assert np.median(gaps) == pytest.approx(0.004, rel=0.01)
     assert np.allclose(gaps / 0.004, np.round(gaps / 0.004), atol=0.01)
     assert rate <= 250.0 * 1.01
-    # and all of them arrive, unless a starved client lost datagrams on the way in (tests/machine.py)
+    # and all of them arrive: a late unit catches up and sends what fell due, unless it fell so far behind
+    # (0.25 s) that it re-anchored, which only a saturated machine excuses (tests/machine.py)
     cpu.judge(rate == pytest.approx(250.0, rel=0.03), f"{rate:.1f} IMU samples per simulated second")
