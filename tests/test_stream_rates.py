@@ -70,8 +70,9 @@ def test_highres_imu_rate_up_to_the_control_rate(control_hz, asked_hz, expected_
 @pytest.mark.parametrize("late_ms, every", [(3.0, 7), (30.0, 50), (150.0, 100)])
 def test_a_late_tick_loses_no_sample(late_ms, every) -> None:
     """A tick that comes late on the wall clock (a descheduled unit process) sends what fell due, and the
-    runner's catch-up ticks after it send the rest: every 4 ms sample goes out, one per tick. (PX4's
-    rule, which keeps a stream's grid only within 1.5 intervals, lost a sample at each 3 ms jitter here.)"""
+    runner's catch-up ticks after it send the rest: every 4 ms sample goes out, one per tick. (The rule
+    before, which re-anchored a stream after a tick half an interval late, lost a sample at each 3 ms jitter
+    here: 213.9 Hz.)"""
     v = Vehicle(VehicleConfig(unit_id=1, control_hz=250.0), T0)
     api = Client(v, LINK_API)
     api.command(R.MAV_CMD_SET_MESSAGE_INTERVAL, IMU, 4000)
