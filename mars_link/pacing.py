@@ -69,3 +69,43 @@ class Pacer:
         """Block until `t_s` is due; `idle(timeout_s)` is what waiting does (sleep, or poll sockets)."""
         while not self.is_due(t_s, period_s):
             idle(max(0.0, self.wait_s(t_s)))
+
+
+#: a wait that came back this much later than it was meant to: its process was not running meanwhile
+#: (descheduled, stopped, or the whole host stalled)
+STALL_S = 0.25
+
+
+class SilenceDeadline:
+    """How long a watcher still waits for a silent peer (a unit's telemetry, its answer), counting only
+    the time the watcher itself was running to see the silence.
+
+    A host-wide stall (a starved or paused machine) stops the watched process and its watcher alike;
+    when both run again, the watcher must not judge the peer by time in which neither ran. So the owner
+    announces each wait (`before_wait`), and a wait that comes back more than STALL_S late pushes the
+    deadline back by the overrun, at most `max_postpone_s` in all (a watcher kept busy by a flood cannot
+    put the deadline off for ever)."""
+
+    def __init__(self, seconds: float, max_postpone_s: float = 30.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock = clock
+        self.at_s = clock() + seconds
+        self.postponed_s = 0.0
+        self._max_postpone_s = max_postpone_s
+        self._back_by: float | None = None
+
+    def before_wait(self, wait_s: float) -> None:
+        """The owner is about to block for at most `wait_s`."""
+        self._back_by = self.clock() + wait_s
+
+    def left_s(self) -> float:
+        """Seconds still to wait (0: the peer has been silent for the whole deadline)."""
+        now = self.clock()
+        if self._back_by is not None:
+            late = now - self._back_by
+            self._back_by = None
+            if late > STALL_S:
+                postpone = min(late, self._max_postpone_s - self.postponed_s)
+                self.at_s += postpone
+                self.postponed_s += postpone
+        return max(0.0, self.at_s - now)

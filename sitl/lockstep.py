@@ -45,7 +45,9 @@ world stays unsigned; client links check signed frames (a signed client has full
 
 Timeouts (wall time): coordinator 1 s < unit 2 s < world 3 s, so that when a unit process dies the
 coordinator gives up on it first, the other units still get their commands, and only the dead unit is
-declared dead by the world.
+declared dead by the world. Each counts only the time its own process ran (mars_link.pacing.
+SilenceDeadline): after a host-wide stall the first process to run again must not judge the others by
+time in which none of them ran.
 
 Real time (the world paced, `--speed` > 0): the world samples and encodes a step before the pacing
 wait and reads the units' answers from mid-period on; each unit forwards its sensors at once and
@@ -86,7 +88,7 @@ from mars_link.errors import EnvironmentFailure, UserInputError
 from mars_link.machine_load import IdleMeter
 from mars_link.messages import BatterySample, SensorPacket
 from mars_link.outputs import write_json
-from mars_link.pacing import Pacer
+from mars_link.pacing import STALL_S, Pacer, SilenceDeadline
 from mars_link.transport import LinkSpec, add_link_args, spec_from_args
 from mars_link.wire import (
     LatchSensor,
@@ -394,10 +396,11 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                 # woken once per unit while the units and the coordinator work on the step (2-core machines)
                 time.sleep(max(0.0, pacer.wait_s(t + ANSWER_READ_PHASE / cfg.exchange_hz)))
             waiting = set(live)
-            deadline = time.monotonic() + unit_timeout_s
+            deadline = SilenceDeadline(unit_timeout_s)  # (time this process did not run is nobody's silence)
             t_us = usec(t)
             while waiting and not (stop.requested or stop.ended):
-                left = max(0.0, deadline - time.monotonic())
+                left = deadline.left_s()
+                deadline.before_wait(min(left, STOP_POLL_S))
                 msgs = link.receive(min(left, STOP_POLL_S))  # (a SIGTERM is seen within STOP_POLL_S)
                 if not msgs and left == 0.0:  # (past the deadline, what was already queued is read first:
                     break  # after this process itself was stopped, the answers wait in its socket)
@@ -547,10 +550,15 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
         while active and not stop.requested:
             now = time.monotonic()
             wake = min(unit.housekeeping(now) for unit in active)
-            for key_, _ in sel.select(max(0.0, wake - now)):
+            back_by = max(now, wake)
+            for key_, _ in sel.select(back_by - now):
                 unit, name = key_.data
                 if unit.io.drain(name, key_.fileobj):
                     unit.last_io = time.monotonic()
+            late = time.monotonic() - back_by
+            if late > STALL_S:  # this process did not run meanwhile: nobody's silence (pacing.SilenceDeadline)
+                for unit in active:
+                    unit.postpone_command_timeout(late)
             for unit in active:
                 unit.check_command_timeout()
             for unit in [u for u in active if u.done]:
@@ -632,6 +640,12 @@ class _UnitLoop:
         if self.pending_since is not None:
             wake = min(wake, self.pending_since + self.command_timeout_s)
         return wake
+
+    def postpone_command_timeout(self, seconds: float) -> None:
+        """This process did not run for `seconds` (a stall): the wait for the coordinator's command
+        does not count them."""
+        if self.pending_since is not None:
+            self.pending_since += seconds
 
     def check_command_timeout(self) -> None:
         vehicle = self.vehicle
@@ -737,15 +751,18 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             final = False  # past the deadline: read what is already queued, then stop waiting (after this
             while set(packets) < live and not stop.requested:  # process was stopped, the telemetry waits in its socket)
                 now = time.monotonic()
-                final = final or (deadline is not None and now >= deadline) or now >= idle_deadline
+                left = None if deadline is None else deadline.left_s()
+                final = final or left == 0.0 or now >= idle_deadline
                 if k == 0 and not packets and now >= next_hello:  # hello until the world starts
                     link.heartbeat(world)
                     next_hello = now + 0.2
                 if finish_at is not None and now >= finish_at:
                     coordinator.finish_step()
                     finish_at = None
-                wait_s = 0.0 if final else min(0.2, (deadline or idle_deadline) - now,
+                wait_s = 0.0 if final else min(0.2, idle_deadline - now if left is None else left,
                                                math.inf if finish_at is None else finish_at - now)
+                if deadline is not None:
+                    deadline.before_wait(wait_s)
                 if hosted is not None:  # client links and wall-clock heartbeats while the lockstep waits
                     wait_s = hosted.wait(link, wait_s)
                 msgs = link.receive(wait_s)
@@ -791,7 +808,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                     else:
                         link.drop("stale_telemetry")
                 if deadline is None and t_expected is not None and (not world_marks or world_sent_us >= usec(t_expected)):
-                    deadline = time.monotonic() + unit_timeout_s
+                    deadline = SilenceDeadline(unit_timeout_s)  # (time this process did not run: not the units')
             if stop.requested:  # stopped mid-step: the units stop too; none of them is lost
                 break
             if not packets:  # no telemetry at all for WORLD_IDLE_TIMEOUT_S: the world is gone
