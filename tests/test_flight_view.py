@@ -182,7 +182,8 @@ def test_sigkill_leaves_a_readable_mcap(tmp_path):
         while not (out / "run.mcap").exists() and time.monotonic() < deadline:
             time.sleep(0.05)
         started = time.monotonic()
-        time.sleep(2.0)
+        with CpuWindow() as cpu:
+            time.sleep(2.0)
         os.killpg(proc.pid, signal.SIGKILL)  # the run and its writer process (the group this test started)
         elapsed = time.monotonic() - started
     finally:
@@ -195,8 +196,12 @@ def test_sigkill_leaves_a_readable_mcap(tmp_path):
                     times.append(message.log_time / 1e9)
         except Exception:  # the truncated tail (no footer): what came before it is what counts
             pass
-    assert times, "nothing readable"
-    assert elapsed - 1.0 <= times[-1] <= elapsed + 0.5  # real time: sim time at the kill ~ the wall time flown
+    # the writer runs at idle priority (logging is never flight-critical): on a saturated machine it falls
+    # behind, and what it had not written is lost with it (tests/machine.py)
+    cpu.judge(bool(times), "nothing readable")
+    if times:
+        assert times[-1] <= elapsed + 0.5  # real time: sim time at the kill ~ the wall time flown
+        cpu.judge(elapsed - 1.0 <= times[-1], f"run.mcap read to {times[-1]:.2f} s of a kill at {elapsed:.2f} s")
 
 
 def test_unwritable_run_directory_one_line_exit_2(tmp_path):
@@ -323,29 +328,30 @@ def test_sitl_up_free_units_write_run_mcap(tmp_path):
     proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sitl", "up", "--units", "2", "--speed", "3",
                              "--api-port", str(api), "--gcs-port", str(free_udp_port()), "--any-bind",
                              "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    client = mavutil.mavlink_connection(f"udpin:127.0.0.1:{api + 1}", source_system=255)
-    try:
-        assert client.wait_heartbeat(timeout=60) is not None, "unit 2 sent no heartbeat"
-        assert client.target_system == 2
-        m = client.mav
-        deadline = time.monotonic() + 60
-        airborne = False
-        while time.monotonic() < deadline and not airborne:  # arm, take off; repeat until it climbs
-            m.command_long_send(2, 1, mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
-            m.command_long_send(2, 1, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, math.nan, math.nan, math.nan,
-                                math.nan)
-            end = time.monotonic() + 2.0
-            while time.monotonic() < end:
-                pos = client.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=0.5)
-                if pos is not None and pos.z < -1.5:
-                    airborne = True
-                    break
-        assert airborne, "unit 2 did not climb"
-        time.sleep(2.0)
-    finally:
-        client.close()
-        proc.send_signal(signal.SIGINT)  # sitl up stops every child it started; the world finishes the file
-        text = proc.communicate(timeout=60)[0]
+    with CpuWindow() as cpu:  # (the run's writer keeps up unless the machine is saturated)
+        client = mavutil.mavlink_connection(f"udpin:127.0.0.1:{api + 1}", source_system=255)
+        try:
+            assert client.wait_heartbeat(timeout=60) is not None, "unit 2 sent no heartbeat"
+            assert client.target_system == 2
+            m = client.mav
+            deadline = time.monotonic() + 60
+            airborne = False
+            while time.monotonic() < deadline and not airborne:  # arm, take off; repeat until it climbs
+                m.command_long_send(2, 1, mavutil.mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0)
+                m.command_long_send(2, 1, mavutil.mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, math.nan, math.nan, math.nan,
+                                    math.nan)
+                end = time.monotonic() + 2.0
+                while time.monotonic() < end:
+                    pos = client.recv_match(type="LOCAL_POSITION_NED", blocking=True, timeout=0.5)
+                    if pos is not None and pos.z < -1.5:
+                        airborne = True
+                        break
+            assert airborne, "unit 2 did not climb"
+            time.sleep(2.0)
+        finally:
+            client.close()
+            proc.send_signal(signal.SIGINT)  # sitl up stops every child it started; the world finishes the file
+            text = proc.communicate(timeout=60)[0]
     assert proc.returncode in (0, 130), text[-2000:]
     topics = read_mcap(out / "run.mcap")
     check_log_times(topics)
@@ -360,6 +366,9 @@ def test_sitl_up_free_units_write_run_mcap(tmp_path):
         body = tfs[f"body_u{u}"]
         p = np.array([body.translation.x, body.translation.y, body.translation.z])
         assert np.allclose(p, [row[f"u{u}_pos_n_m"], row[f"u{u}_pos_e_m"], row[f"u{u}_pos_d_m"]], atol=1e-6), u
-    assert row["u2_pos_d_m"] < -1.5 and row["u1_pos_d_m"] > -0.1  # unit 2 flies, unit 1 stands
+    assert row["u1_pos_d_m"] > -0.1  # unit 1 stands
+    # unit 2 flies at the file's end, unless the idle-priority writer fell behind on a saturated machine and
+    # the tail it had not written was dropped (logging never holds up the flight; tests/machine.py)
+    cpu.judge(row["u2_pos_d_m"] < -1.5, f"unit 2 at {-row['u2_pos_d_m']:.2f} m at run.mcap's last /tf ({t_s:.2f} s)")
     scene = topics["/scene"][-1][1]
     assert sorted(e.id for e in scene.entities if e.id.startswith("unit_")) == ["unit_1", "unit_2"]
