@@ -88,7 +88,7 @@ from mars_link.errors import EnvironmentFailure, UserInputError
 from mars_link.machine_load import IdleMeter
 from mars_link.messages import BatterySample, SensorPacket
 from mars_link.outputs import write_json
-from mars_link.pacing import STALL_S, Pacer, SilenceDeadline
+from mars_link.pacing import Pacer, SilenceDeadline
 from mars_link.transport import LinkSpec, add_link_args, spec_from_args
 from mars_link.wire import (
     LatchSensor,
@@ -550,15 +550,13 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
         while active and not stop.requested:
             now = time.monotonic()
             wake = min(unit.housekeeping(now) for unit in active)
-            back_by = max(now, wake)
-            for key_, _ in sel.select(back_by - now):
+            for unit in active:  # (a stall of this process is not the coordinator's silence)
+                if unit.command_deadline is not None:
+                    unit.command_deadline.before_wait(max(0.0, wake - now))
+            for key_, _ in sel.select(max(0.0, wake - now)):
                 unit, name = key_.data
                 if unit.io.drain(name, key_.fileobj):
                     unit.last_io = time.monotonic()
-            late = time.monotonic() - back_by
-            if late > STALL_S:  # this process did not run meanwhile: nobody's silence (pacing.SilenceDeadline)
-                for unit in active:
-                    unit.postpone_command_timeout(late)
             for unit in active:
                 unit.check_command_timeout()
             for unit in [u for u in active if u.done]:
@@ -601,7 +599,7 @@ class _UnitLoop:
         self.hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.docked else [])
         self.status_path = out / f"unit{unit_id}_status.json"
         self.next_hello = self.next_tick = self.next_status = 0.0
-        self.pending_since: float | None = None
+        self.command_deadline: SilenceDeadline | None = None  # (while a HIL step waits for its command)
         self.last_io = -math.inf
         vehicle.defer_own_state = setup.docked  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
 
@@ -619,9 +617,9 @@ class _UnitLoop:
         vehicle, io = self.vehicle, self.io
         steps = vehicle.stats.get("hil_steps", 0)
         if vehicle.hil_pending:
-            self.pending_since = self.pending_since if self.pending_since is not None else now
+            self.command_deadline = self.command_deadline or SilenceDeadline(self.command_timeout_s)
         due = min(self.next_hello, self.next_tick, self.next_status)
-        quiet_at = math.inf if self.pending_since is not None else self.last_io + UNIT_QUIET_S
+        quiet_at = math.inf if self.command_deadline is not None else self.last_io + UNIT_QUIET_S
         start_at = max(now if vehicle.has_deferred else due, quiet_at)
         if now >= min(start_at, due + HOUSEKEEPING_DEFER_S):
             vehicle.run_deferred()
@@ -637,25 +635,18 @@ class _UnitLoop:
             due = min(self.next_hello, self.next_tick, self.next_status)
             start_at = max(due, quiet_at)
         wake = min(start_at, due + HOUSEKEEPING_DEFER_S)
-        if self.pending_since is not None:
-            wake = min(wake, self.pending_since + self.command_timeout_s)
+        if self.command_deadline is not None:
+            wake = min(wake, self.command_deadline.at_s)
         return wake
-
-    def postpone_command_timeout(self, seconds: float) -> None:
-        """This process did not run for `seconds` (a stall): the wait for the coordinator's command
-        does not count them."""
-        if self.pending_since is not None:
-            self.pending_since += seconds
 
     def check_command_timeout(self) -> None:
         vehicle = self.vehicle
-        if vehicle.hil_pending and self.pending_since is not None \
-                and time.monotonic() - self.pending_since > self.command_timeout_s:
+        if vehicle.hil_pending and self.command_deadline is not None and self.command_deadline.left_s() == 0.0:
             print(f"unit {self.unit_id}: no coordinator command for {self.command_timeout_s:.1f} s at "
                   f"t={vehicle.sim_s:.2f}: answering with the held command / fail-safe", file=sys.stderr)
             self.io.send(vehicle.release_hil(time.time()))
         if not vehicle.hil_pending:
-            self.pending_since = None
+            self.command_deadline = None
 
     def finish(self, cpu_loop_s: float | None) -> None:
         """The last deferred work and the final status (`cpu_loop_s`: this process's stepping CPU when it
