@@ -6,6 +6,7 @@
    wall-clock and CPU-time real-time factors, with bare JSBSim stepping of the same body (per-step rotor
    writes) timed in the same run beside it, and the same flight without run.mcap.
 2. The helix, noise on, qp allocation, on 10x10 (100 units) and 20x20 (400 units): whole flights.
+   The 10x10's units batched (the default) against the units taken one by one, alternated.
 3. The estimator's cost per control step against the unit count N = 1, 9, 25, 49, 100, 400 (synthetic
    noisy hover at 100 Hz, positions with velocities at 50 Hz: the runner's rhythm) and the fitted
    log-log slope of cost against N.
@@ -24,6 +25,7 @@ import numpy as np
 
 from mars_link.assembly import AssemblyModel, parse_layout
 from mars_link.blas_threads import single_blas_thread
+from mars_link.engine import InProcessUnits
 from mars_link.estimation import AssemblyEstimator
 from mars_link.runner import run_scenario
 from mars_link.scenario import load_scenario
@@ -84,6 +86,32 @@ def helix(n: int, duration_s: float | None) -> None:
     print("  per control step: " + ", ".join(f"{k} {1e3 * v / steps:.2f} ms" for k, v in summary["stage_time_s"].items()))
 
 
+def batched_against_one_by_one(n: int, duration_s: float, runs: int) -> None:
+    """The in-process units' batched steady state (InProcessUnits.batched) against the units taken one by
+    one, flights alternated in one run: the motors stage (every unit's firmware, command in to motor
+    outputs out) and the whole flight."""
+    sc = load_scenario("helix_plus5")
+    sc.layout = parse_layout(",".join(["X" * n] * n))
+    sc.ftc = "qp"
+    sc.sim.noise = True
+    sc.sim.duration_s = duration_s
+    figures: dict[bool, list[tuple[float, float]]] = {False: [], True: []}
+    try:
+        for _ in range(runs):
+            for batched in (False, True):
+                InProcessUnits.batched = batched
+                summary, _ = timed_flight(sc, None, mcap=False)
+                figures[batched].append((summary["stage_time_s"]["motors"], summary["real_time_factor"]))
+    finally:
+        InProcessUnits.batched = True
+    steps = duration_s * sc.sim.control_hz
+    med = {b: (1e6 * float(np.median([m for m, _ in f])) / steps, float(np.median([r for _, r in f])))
+           for b, f in figures.items()}
+    print(f"helix {n}x{n}, units batched vs one by one ({runs} flights each of {duration_s:g} s, alternated): "
+          f"motors {med[True][0]:.0f} vs {med[False][0]:.0f} us per control step "
+          f"({med[True][0] / med[False][0]:.2f}x), real time {med[True][1]:.2f}x vs {med[False][1]:.2f}x")
+
+
 def hover_ticks(model: AssemblyModel, n_ticks: int, seed: int = 0):
     rng = np.random.default_rng(seed)
     offsets = np.array([model.unit_position(u) for u in model.unit_ids])
@@ -134,6 +162,7 @@ def main() -> None:
     if not args.skip_flights:
         default_scenario(10.0 if args.quick else None)
         helix(10, 5.0 if args.quick else None)
+        batched_against_one_by_one(10, 2.0 if args.quick else 5.0, 3)
         helix(20, 2.0 if args.quick else None)
     estimator_scaling(100 if args.quick else 400)
 

@@ -130,6 +130,11 @@ class MotorModel:
             raise UserInputError(f"expected {self.params.n_rotors} finite rotor thrusts")
         self.thrust_n[:] = values
 
+    @property
+    def plain(self) -> bool:
+        """No limits and every eta 1: a finite command is the setpoint itself (`setpoint` returns it)."""
+        return self._plain
+
     def setpoint(self, commands_n, checked: bool = False) -> np.ndarray:
         """What the motors are driven towards: cleaned, clamped, eta-scaled command (a new array, or the
         command itself when nothing changes it: no limits, every eta 1, every value finite). `checked`:

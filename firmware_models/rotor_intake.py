@@ -111,6 +111,25 @@ class RotorIntake:
         lo, hi = p.control_min, p.control_max
         if not (lo <= c0 <= hi and lo <= c1 <= hi and lo <= c2 <= hi and lo <= c3 <= hi):
             return self.drop("out_of_range")
+        if thrusts_n is None:
+            thrusts_n = np.array((c0, c1, c2, c3)) * p.full_scale_thrust_n
+        return self._hold(t_usec, sim_time_s, thrusts_n)
+
+    def accept_bounded(self, least: float, greatest: float, t_usec: int, sim_time_s: float,
+                       thrusts_n: np.ndarray) -> bool:
+        """`accept` for the command `thrusts_n` (finite wire thrusts) whose four controls lie within
+        [least, greatest]: the in-process engine bounds every unit's command in one array
+        (InProcessUnits.drive). Bounds outside this unit's range: its four controls are checked one by one."""
+        p = self._params
+        if not (p.control_min <= least and greatest <= p.control_max):
+            s = p.full_scale_thrust_n
+            a, b, c, d = thrusts_n.tolist()
+            return self.accept(a / s, b / s, c / s, d / s, t_usec, sim_time_s, thrusts_n)
+        return self._hold(t_usec, sim_time_s, thrusts_n)
+
+    def _hold(self, t_usec: int, sim_time_s: float, thrusts_n: np.ndarray) -> bool:
+        """The time checks of a command whose values passed; True if it is now held."""
+        p = self._params
         if self._last_usec is not None and t_usec <= self._last_usec:
             return self.drop("out_of_order")
         a = self._accepted_at_s
@@ -126,7 +145,7 @@ class RotorIntake:
             self._clock_offset_s = t_s - sim_time_s
         self._last_usec = t_usec
         self._accepted_at_s = sim_time_s
-        self.thrusts_n = np.array((c0, c1, c2, c3)) * p.full_scale_thrust_n if thrusts_n is None else thrusts_n
+        self.thrusts_n = thrusts_n
         self.accepted += 1
         self._was_live = True
         return True

@@ -515,9 +515,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             if self.source != "coordinator":
                 self.source = "coordinator"
                 self._text("Coordinator drives the rotors")
-            self.motor_commands_n = cmd  # (the intake's own array: a new one per accepted command)
-            self.autopilot.landed = False
-            self._battery_step()
+            self._drive_from_coordinator(cmd)
             return
         if self.source == "coordinator":  # the stream was lost: fail-safe (MARS_FS_ACT)
             self._count("coordinator_failsafe")
@@ -548,6 +546,12 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         elif event == "landed":
             self._landed_since = t
             self._text("Landed")
+
+    def _drive_from_coordinator(self, held_n: np.ndarray) -> None:
+        """A control step under the coordinator: its held command drives the motors."""
+        self.motor_commands_n = held_n  # (the intake's own array: a new one per accepted command)
+        self.autopilot.landed = False
+        self._battery_step()
 
     def _watchdogs(self) -> None:
         p = self.params

@@ -11,6 +11,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.geo import WIRE_ORIGIN
+from firmware_models.vehicle_modes import MODE_OFFBOARD
 from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
 from mars_link.state import ImuSample, RigidBodyState
 from mars_link.wire import (BARO_FIELDS, MAG_FIELDS, SensorFrames, battery_from_message, battery_report_message,
@@ -118,10 +119,15 @@ class HilMixin:
         out.append(Outgoing(lk.name, self._pack(lk, mavlink.MAVLink_hil_actuator_controls_message(
             time_usec, controls, mode, 1))))
 
+    def _failure_due(self) -> bool:
+        """A scenario fault scheduled in the motor model is due at this step."""
+        f = self._scheduled_failures
+        return bool(f) and f[0][0] <= self.sim_s + 1e-9
+
     def _motor_setpoint_n(self) -> np.ndarray:
         """One HIL step's motor outputs (N): due scenario faults enter the motor model, the control step
         runs, and the motors are driven to the clamped, eta-scaled command."""
-        while self._scheduled_failures and self._scheduled_failures[0][0] <= self.sim_s + 1e-9:
+        while self._failure_due():
             _, rotor, eta = self._scheduled_failures.pop(0)
             self.inject_failure(rotor, eta)
         stats = self.stats  # (_count, inlined: every step)
@@ -163,16 +169,45 @@ class HilMixin:
         """A coordinator command (SET_ACTUATOR_CONTROL_TARGET's values); True if it is now held."""
         if cmd.unit_id != self.sysid:
             return self.intake.drop("wrong_target")
+        return self._accept_rotor_command(cmd)
+
+    def _accept_rotor_command(self, cmd: RotorCommand) -> bool:
+        """The intake's checks on a command addressed to this unit; True if it is now held."""
         # cmd.thrusts_n are wire values (float32 controls x full scale): x / full scale is the control back
         s = self.full_scale_n
         a, b, c, d = cmd.thrusts_n.tolist()
         t_usec = round(cmd.t_s * 1e6)
         if not self.intake.accept(a / s, b / s, c / s, d / s, t_usec, self.sim_s, cmd.thrusts_n):
             return False
+        self._note_rotor_command(t_usec, cmd.latch_setpoint)
+        return True
+
+    def _note_rotor_command(self, t_usec: int, latch_setpoint: int) -> None:
         stats = self.stats  # (_count, inlined: every step)
         stats["rotor_commands"] = stats.get("rotor_commands", 0) + 1
         self._last_rotor_usec = t_usec
-        self.latch_setpoint = cmd.latch_setpoint
+        self.latch_setpoint = latch_setpoint
+
+    def drive_steady(self, thrusts_n: np.ndarray, least: float, greatest: float, t_usec: int,
+                     latch_setpoint: int) -> bool | None:
+        """`take_rotor_command` then `drive_motors`, batched by the in-process engine (InProcessUnits.drive)
+        for a unit in the steady state: armed, OFFBOARD under the coordinator, motors that pass a command as
+        it is, no scheduled fault due. It takes the command's wire thrusts (all four known finite), bounds
+        on its controls (RotorIntake.accept_bounded) and its wire time, and makes the same checks and state
+        changes.
+        True: the command is held and is this step's motor setpoint as it is. False: the intake dropped it
+        (counted); the caller takes `drive_motors`' answer, as after any dropped command. None: the unit is
+        not in the steady state and nothing changed; the caller takes the general path."""
+        f = self._scheduled_failures
+        if not (self.armed and self.source == "coordinator" and self.mode == MODE_OFFBOARD and self.motors.plain
+                and not (f and f[0][0] <= self.sim_s + 1e-9)):  # (_failure_due, inlined: every unit, every step)
+            return None
+        if not self.intake.accept_bounded(least, greatest, t_usec, self.sim_s, thrusts_n):
+            return False
+        self._note_rotor_command(t_usec, latch_setpoint)
+        stats = self.stats
+        stats["hil_steps"] = stats.get("hil_steps", 0) + 1  # (_motor_setpoint_n's count)
+        self._drive_from_coordinator(thrusts_n)
         return True
 
     def drive_motors(self) -> ActuatorOutput:

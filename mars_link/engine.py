@@ -33,6 +33,9 @@ from mars_link.trajectories import Trajectory
 class InProcessUnits:
     """The units of one flight, driven by direct calls in lockstep with the world."""
 
+    batched = True  # the steady state of every unit in one pass (_drive_steady); False: unit by unit, the
+    # reference the batched pass must equal (tests/test_engine_batched.py, benchmarks/bench_scale.py)
+
     def __init__(self, vehicles: dict, world) -> None:
         self.vehicles = vehicles  # unit id -> firmware_models.vehicle.Vehicle
         self.world = world
@@ -65,11 +68,12 @@ class InProcessUnits:
         without a command this step still answers (it flies itself, or its fail-safe does), as every unit
         answers every HIL step in SITL."""
         done, actuate, taken_over, vehicles = self.dead, self.world.actuate, self._taken_over, self.vehicles
-        for cmd in commands:
+        rest = self._drive_steady(commands) if self.batched and len(commands) > 1 else commands
+        for cmd in rest:
             u = cmd.unit_id
             if u in done:
                 continue
-            if u in taken_over:  # (`command`, inlined for the steady state: every unit, every step)
+            if u in taken_over:  # (`command` without the take-over)
                 v = vehicles[u]
                 v.take_rotor_command(cmd)
                 actuate(v.drive_motors())
@@ -83,6 +87,42 @@ class InProcessUnits:
                     if out.unit_id != u:  # (a lone unit keeps its own system id; the world calls it u)
                         out = dataclasses.replace(out, unit_id=u)
                     self.world.actuate(out)
+
+    def _drive_steady(self, commands: list[RotorCommand]) -> list[RotorCommand]:
+        """Every unit in the steady state under the coordinator in one pass: the commands' values are
+        bounded as one array, each unit takes the same checks and state changes as `take_rotor_command`
+        then `drive_motors` (Vehicle.drive_steady), and the world takes their thrusts in one copy. Returns
+        the commands left to the general path (the others, or all of them when any value is not finite:
+        the general path counts it)."""
+        t_s = commands[0].t_s
+        rows = [c.thrusts_n for c in commands]
+        block = np.concatenate(rows)
+        least_n, greatest_n = float(block.min()), float(block.max())  # (NaN anywhere makes the least NaN)
+        if not (math.isfinite(least_n) and math.isfinite(greatest_n)):
+            return commands
+        t_usec = round(t_s * 1e6)
+        vehicles, taken_over, done = self.vehicles, self._taken_over, self.dead
+        world_latches = self.world.latches.setpoint
+        rest, ids, held = [], [], []
+        for i, c in enumerate(commands):
+            u = c.unit_id
+            v = vehicles.get(u)
+            if (v is None or u not in taken_over or u in done or c.t_s != t_s or v.sysid != u
+                    or c.latch_setpoint != world_latches.get(u)):
+                rest.append(c)
+                continue
+            s = v.full_scale_n
+            driven = v.drive_steady(rows[i], least_n / s, greatest_n / s, t_usec, c.latch_setpoint)
+            if driven:
+                ids.append(u)
+                held.append(rows[i])
+            elif driven is None:  # not in the steady state
+                rest.append(c)
+            else:  # dropped by the intake (counted): the unit answers as after any dropped command
+                self.world.actuate(v.drive_motors())
+        if ids:
+            self.world.actuate_rows(ids, held)
+        return rest
 
     def command(self, cmd: RotorCommand) -> ActuatorOutput:
         v = self.vehicles[cmd.unit_id]

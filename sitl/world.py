@@ -129,6 +129,7 @@ class World:
         self.exchange_index = 0
         self.force_integral_n2s = 0.0
         self._unit_slots = {u: model.unit_slots(u) for u in model.unit_ids}  # (the hot path's lookup)
+        self._unit_order = sorted(self._unit_slots, key=lambda u: self._unit_slots[u].start)  # slot order
         self.latches = LatchBoard(model.unit_ids)
         for b in self.bodies:
             self.latches.add(neighbour_links(b.cells))
@@ -215,6 +216,17 @@ class World:
         if output.latch_setpoint != self.latches.setpoint[output.unit_id] and self.latches.command(
                 output.unit_id, output.latch_setpoint):
             self._released = True
+
+    def actuate_rows(self, unit_ids: list[int], thrusts_n: list[np.ndarray]) -> None:
+        """`actuate` for many units whose latch setpoints are unchanged (the in-process engine's steady
+        state): unit_ids[i] drives its motors to thrusts_n[i]."""
+        sp = self.rotor_setpoint_n
+        if not self.dead_units and unit_ids == self._unit_order:  # every unit, in slot order: one copy
+            sp[:] = np.concatenate(thrusts_n)
+            return
+        for u, t in zip(unit_ids, thrusts_n):
+            if u not in self.dead_units:
+                sp[self._unit_slots[u]] = t
 
     def declare_dead(self, unit_id: int) -> None:
         """A unit that stopped answering: its motors stop, it stays attached as dead weight."""

@@ -1,0 +1,143 @@
+"""The in-process units' batched steady state (InProcessUnits._drive_steady, Vehicle.drive_steady) flies
+exactly as the units taken one by one: the same motor setpoints into the world at every step, the same
+counts and drops in every unit, across faults, a unit's death, a separation and bad commands."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import sitl.world
+from mars_link.build import build_flight
+from mars_link.engine import Engine, FlightRecorder, InProcessUnits
+from mars_link.messages import RotorCommand
+from mars_link.reconfig.flight import run_reconfig_trial
+from mars_link.runner import run_trial
+from mars_link.scenario import FaultSpec, load_scenario
+
+
+def _setpoints_into_the_world(monkeypatch, fly) -> tuple[list, object]:
+    """(every world step's (time, rotor setpoints) as they were integrated, fly()'s result)."""
+    seen = []
+    advance = sitl.world.World.advance
+
+    def recording(world) -> None:
+        seen.append((world.t_s, world.rotor_setpoint_n.copy()))
+        advance(world)
+
+    monkeypatch.setattr(sitl.world.World, "advance", recording)
+    result = fly()
+    monkeypatch.setattr(sitl.world.World, "advance", advance)
+    return seen, result
+
+
+def _both_ways(monkeypatch, fly) -> tuple:
+    out = {}
+    for batched in (False, True):
+        monkeypatch.setattr(InProcessUnits, "batched", batched)
+        out[batched] = _setpoints_into_the_world(monkeypatch, fly)
+    return out[False], out[True]
+
+
+def _assert_same_setpoints(one_by_one: list, batched: list) -> None:
+    assert len(one_by_one) == len(batched) > 100
+    for (t_a, sp_a), (t_b, sp_b) in zip(one_by_one, batched):
+        assert t_a == t_b and np.array_equal(sp_a, sp_b), f"setpoints differ at t = {t_a}"
+
+
+def _hover_with_faults():
+    sc = load_scenario("hover_3x2")
+    sc.sim.duration_s = 4.0
+    sc.faults = [FaultSpec(unit=2, rotor=3, eta=0.5, t_s=1.0), FaultSpec(unit=5, rotor=None, eta=0.0, t_s=2.5)]
+    sc.faults_known = False
+    return sc
+
+
+def test_batched_units_fly_a_faulted_hover_with_a_death_exactly_as_one_by_one(monkeypatch) -> None:
+    units = {}
+
+    def fly():
+        flight = build_flight(_hover_with_faults(), 3, unit_deaths={4: 2.0})
+        engine = Engine(flight, [FlightRecorder(flight)])
+        try:
+            engine.run()
+        finally:
+            flight.world.close()
+        units[InProcessUnits.batched] = flight.units
+        return engine
+
+    (a, engine_a), (b, engine_b) = _both_ways(monkeypatch, fly)
+    _assert_same_setpoints(a, b)
+    assert engine_a.events == engine_b.events and any(e["type"] == "unit_died" for e in engine_b.events)
+    for u, va in units[False].vehicles.items():
+        vb = units[True].vehicles[u]
+        assert va.stats == vb.stats and va.intake.counters == vb.intake.counters, f"unit {u}"
+        assert va.intake.accepted == vb.intake.accepted and va.intake.lost_events == vb.intake.lost_events
+        assert np.array_equal(va.motors.eta, vb.motors.eta) and va.mode == vb.mode and va.armed == vb.armed
+    # the batch really ran: the healthy units' steady state, and it is most of the flight
+    assert units[True].vehicles[1].stats["hil_steps"] == 400
+
+
+def test_batched_units_fly_a_separation_and_redock_exactly_as_one_by_one(monkeypatch) -> None:
+    sc = load_scenario("separate_3x2")  # latches open at 10 s, the 2x1 flies off, and docks back from 25 s
+
+    def fly():
+        return run_reconfig_trial(sc, 2)
+
+    (a, ra), (b, rb) = _both_ways(monkeypatch, fly)
+    _assert_same_setpoints(a, b)
+    assert ra.events == rb.events and {"separation", "split", "dock_latched"} <= {e["type"] for e in rb.events}
+
+
+def test_batched_drops_bad_commands_exactly_as_one_by_one() -> None:
+    """Out of range, not finite and out of order commands, and a latch opened, in the middle of a steady
+    flight: the same drops counted in the same units, and the same setpoints and latches in the world."""
+    worlds = {}
+    for batched in (False, True):
+        sc = load_scenario("hover_3x2")
+        sc.sim.duration_s = 1.0
+        flight = build_flight(sc, 1)
+        Engine(flight, [FlightRecorder(flight)]).run()
+        units = flight.units
+        units.batched = batched
+        v1 = units.vehicles[1]
+        t = v1.sim_s + 1e-3
+        full = v1.full_scale_n
+        ok = np.full(4, 0.3 * full)
+        steps = [
+            [RotorCommand(t, u, ok * (4.0 if u == 3 else 1.0)) for u in units.vehicles],  # unit 3 out of range
+            [RotorCommand(t + 1e-3, u, np.array([0.3 * full, np.nan, 0.3 * full, 0.3 * full]) if u == 2 else ok)
+             for u in units.vehicles],  # unit 2 not finite: the whole step takes the general path
+            [RotorCommand(t + 1e-3, u, ok * 0.9) for u in units.vehicles],  # out of order for all but unit 2
+            [RotorCommand(t + 2e-3, u, ok, 0 if u == 4 else 15) for u in units.vehicles],  # unit 4 opens its latches
+        ]
+        setpoints = []
+        for commands in steps:
+            units.drive(commands)
+            setpoints.append(flight.world.rotor_setpoint_n.copy())
+        worlds[batched] = (setpoints, {u: dict(v.intake.counters) for u, v in units.vehicles.items()},
+                           {u: dict(v.stats) for u, v in units.vehicles.items()}, dict(flight.world.latches.setpoint))
+        flight.world.close()
+    (sp_a, drops_a, stats_a, latches_a), (sp_b, drops_b, stats_b, latches_b) = worlds[False], worlds[True]
+    assert drops_a == drops_b and stats_a == stats_b and latches_a == latches_b and latches_b[4] == 0
+    assert all(np.array_equal(x, y) for x, y in zip(sp_a, sp_b))
+    assert drops_b[3]["out_of_range"] == 1 and drops_b[2]["non_finite"] == 1
+    assert drops_b[1]["out_of_order"] == 1 and "out_of_order" not in drops_b[2]
+
+
+@pytest.mark.parametrize("layout", ["XXX,XXX", "XXXXX,XXXXX,XXXXX,XXXXX,XXXXX"])
+def test_batched_helix_summary_equals_one_by_one(monkeypatch, layout) -> None:
+    from mars_link.assembly import parse_layout
+
+    sc = load_scenario("helix_plus5")
+    sc.layout = parse_layout(layout)
+    sc.ftc = "qp"
+    sc.sim.noise = True
+    sc.sim.duration_s = 2.0
+
+    def fly():
+        return run_trial(sc, 5)
+
+    (a, ra), (b, rb) = _both_ways(monkeypatch, fly)
+    _assert_same_setpoints(a, b)
+    assert ra.mean_error_m == rb.mean_error_m and ra.max_error_m == rb.max_error_m
