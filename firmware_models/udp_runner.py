@@ -52,7 +52,7 @@ from firmware_models.vehicle_io import (
 )
 from mars_link.assembly import AssemblyModel
 from mars_link.errors import UserInputError
-from mars_link.pacing import Pacer
+from mars_link.pacing import Pacer, StallMeter
 
 STATUS_PERIOD_S = 0.2
 WORLD_UNIT = 1  # the world's name for its one unit (the vehicle keeps its own system id on the wire)
@@ -129,6 +129,7 @@ class UnitRunner:
         self.running = True
         self.sim_s = 0.0
         self.pacer = Pacer(self.speed)
+        self.stalls = StallMeter()  # (read at each tick: the vehicle's watchdogs run there)
 
     def ports(self) -> dict[str, int]:
         return self.io.ports()
@@ -152,7 +153,9 @@ class UnitRunner:
             now = time.monotonic()
             if self.duration_s is not None and now - start >= self.duration_s:
                 break
-            self.io.poll(pacer.wait_s(self.sim_s))
+            wait_s = pacer.wait_s(self.sim_s)
+            self.stalls.waiting(wait_s)
+            self.io.poll(wait_s)
             now = time.monotonic()
             if pacer.is_due(self.sim_s):  # (fell behind on a busy machine: re-anchored, an overrun)
                 self.engine.step()  # sensors -> the unit flies itself (its _tick below) -> motors -> physics
@@ -166,7 +169,11 @@ class UnitRunner:
     def _tick(self, t_s: float, telemetry) -> list:
         """The engine's command source for a lone unit: no coordinator; the unit's heartbeats, streams and
         replies go out (its control step runs when it drives its motors, right after)."""
-        self.io.send(self.vehicle.tick(time.time(), t_s))
+        wall_s = time.time()
+        stalled_s = self.stalls.take()
+        if stalled_s:  # the host stalled this process, and most likely its clients too
+            self.vehicle.discount_stall(stalled_s, wall_s)
+        self.io.send(self.vehicle.tick(wall_s, t_s))
         return []
 
     def close(self) -> None:

@@ -553,6 +553,15 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self.autopilot.landed = False
         self._battery_step()
 
+    def discount_stall(self, stalled_s: float, wall_time_s: float) -> None:
+        """This process did not run for `stalled_s` (a host-wide stall, as its runner measures it:
+        mars_link.pacing.StallMeter). Its clients most likely did not run either, so the watchdogs
+        on their silence (offboard setpoints, manual sticks) do not count that time. Never past
+        `wall_time_s` (now): a client heard from since is not credited twice."""
+        if self._setpoint_wall is not None:
+            self._setpoint_wall = min(wall_time_s, self._setpoint_wall + stalled_s)
+        self._sticks_wall = min(wall_time_s, self._sticks_wall + stalled_s)
+
     def _watchdogs(self) -> None:
         p = self.params
         if self.mode == MODE_OFFBOARD and self.source == "own":

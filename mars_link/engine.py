@@ -239,11 +239,11 @@ class Engine:
             self.pacer.wait(t, 1.0 / f.scenario.sim.control_hz)
         self._faults_due(t)
         c0 = clock()
-        packets = world.sense()
+        telemetry = f.units.take_sensors(world.sense())  # the sensors stage: the world's samples into the units
         c1 = clock()
         coordinator = f.coordinator
         before = None if coordinator is None else coordinator.last
-        commands = self.command_source(t, f.units.take_sensors(packets))
+        commands = self.command_source(t, telemetry)
         c2 = clock()
         f.units.drive(commands)
         c3 = clock()

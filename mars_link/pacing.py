@@ -109,3 +109,28 @@ class SilenceDeadline:
                 self.at_s += postpone
                 self.postponed_s += postpone
         return max(0.0, self.at_s - now)
+
+
+class StallMeter:
+    """Time in which this thread neither ran nor waited by its own choice: a host-wide stall (a starved or
+    paused machine), measured between two readings as wall time less this thread's CPU time less the
+    waits it announced. A watchdog on a client's silence discounts it: the client most likely did not
+    run either (firmware_models.vehicle.Vehicle.discount_stall)."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic,
+                 cpu_clock: Callable[[], float] = time.thread_time) -> None:
+        self._clock, self._cpu_clock = clock, cpu_clock
+        self._wall_s, self._cpu_s = clock(), cpu_clock()
+        self._waits_s = 0.0
+
+    def waiting(self, wait_s: float) -> None:
+        """The owner is about to block for at most `wait_s` (a wait that returns early only makes the
+        stall look smaller)."""
+        self._waits_s += max(0.0, wait_s)
+
+    def take(self) -> float:
+        """Seconds stalled since the last reading: 0.0 unless more than STALL_S."""
+        wall_s, cpu_s = self._clock(), self._cpu_clock()
+        stalled = (wall_s - self._wall_s) - (cpu_s - self._cpu_s) - self._waits_s
+        self._wall_s, self._cpu_s, self._waits_s = wall_s, cpu_s, 0.0
+        return stalled if stalled > STALL_S else 0.0
