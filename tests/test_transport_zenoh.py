@@ -154,3 +154,53 @@ def test_a_flood_is_dropped_at_the_queue_and_the_link_keeps_working() -> None:
         assert got == 500 and rx.counters.dropped["queue_full"] == 4500
         tx.send(_frame(2, 7), "world")
         assert rx.recv(2.0) == (_frame(2, 7), "unit/2")
+
+
+@pytest.mark.parametrize("eventfd", [True, False])
+def test_wake_descriptor_is_readable_from_set_until_clear(monkeypatch, eventfd: bool) -> None:
+    """The descriptor a loop selects on (an eventfd, or a socket pair where the OS has none): readable after
+    any number of sets until one clear, and a set after close writes nothing (Zenoh's thread may be late)."""
+    import select
+
+    from mars_link.transport import zenoh_link
+
+    if not eventfd:
+        monkeypatch.delattr(zenoh_link.os, "eventfd", raising=False)
+    elif not hasattr(os, "eventfd"):
+        pytest.skip("no eventfd on this OS")
+    wake = zenoh_link._WakeFd()
+    assert (wake._pair is None) == eventfd
+
+    def readable() -> bool:
+        return bool(select.select([wake], [], [], 0)[0])
+
+    assert not readable()
+    wake.set()
+    wake.set()
+    assert readable()
+    wake.clear()
+    assert not readable()
+    wake.clear()  # nothing to read: no error
+    wake.set()
+    assert readable()
+    wake.close()
+    wake.set()  # after close: ignored
+    wake.close()
+
+
+def test_a_burst_wakes_the_loop_once_and_every_frame_arrives(pair) -> None:
+    """Ten frames sent at once: the link is readable, all ten come out in order, then it is not readable."""
+    import select
+
+    a, b = pair
+    frames = [_frame(3, t_us=1000 + k) for k in range(10)]
+    for f in frames:
+        assert b.send(f, "coordinator")
+    deadline = time.monotonic() + 5
+    while len(a._queue) < 10 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert select.select([a], [], [], 1.0)[0]
+    got = [a.recv(0) for _ in range(10)]
+    assert [g[0] for g in got] == frames and {g[1] for g in got} == {"unit/3"}
+    assert a.recv(0) is None
+    assert not select.select([a], [], [], 0)[0]

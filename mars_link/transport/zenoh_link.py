@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import collections
 import json
+import os
 import re
 import select
 import signal
 import socket
+import threading
 import time
 from dataclasses import dataclass
 
@@ -149,11 +151,10 @@ class ZenohTransport(Transport):
         self._queue: collections.deque = collections.deque()  # (appended by Zenoh's thread, popped by ours)
         self._armed = False  # the wake socket holds a byte: no further write until we drained it
         self._publishers: dict[str, zenoh.Publisher] = {}
+        self._peer_publishers: dict[Address, zenoh.Publisher] = {}  # (the key computed once per peer)
         self._congestion = zenoh.CongestionControl.BLOCK if params.block_when_congested else zenoh.CongestionControl.DROP
         # readable while frames wait, so a selector can wait on this link next to UDP sockets
-        self._wake_r, self._wake_w = socket.socketpair()
-        self._wake_r.setblocking(False)
-        self._wake_w.setblocking(False)
+        self._wake_fd = _WakeFd()
         self._owns_session = session is None
         self.session = session if session is not None else open_session(make_config(params))
         try:
@@ -186,17 +187,11 @@ class ZenohTransport(Transport):
         self._queue.append((sample.payload.to_bytes(), sender))
         if not self._armed:  # one wake-up per burst, not one system call per frame
             self._armed = True
-            self._wake()
-
-    def _wake(self) -> None:
-        try:
-            self._wake_w.send(b"\0")
-        except OSError:  # full: it is readable anyway
-            pass
+            self._wake_fd.set()
 
     def fileno(self) -> int:
         """A descriptor that is readable while received frames wait (for select/selectors)."""
-        return self._wake_r.fileno()
+        return self._wake_fd.fileno()
 
     @property
     def local_address(self) -> str:
@@ -204,11 +199,13 @@ class ZenohTransport(Transport):
 
 
     def _send(self, data: bytes, peer: Address) -> None:
-        pub = self._publishers.get(key_for(self.params.fleet, self.node, str(peer)))
-        (pub or self._publisher(peer)).put(data)
+        pub = self._peer_publishers.get(peer)
+        if pub is None:
+            pub = self._peer_publishers[peer] = self._publisher(peer)
+        pub.put(data)
 
     def prepare(self, peer: Address) -> None:
-        self._publisher(peer)
+        self._peer_publishers[peer] = self._publisher(peer)
 
     def _publisher(self, peer: Address) -> zenoh.Publisher:
         """The publisher to `peer`, declared once (and, the first time, matched: up to first_send_wait_s)."""
@@ -224,21 +221,17 @@ class ZenohTransport(Transport):
 
     def _recv(self, timeout_s: float) -> tuple[bytes, Address] | None:
         if not self._queue and timeout_s > 0:
-            select.select([self._wake_r], [], [], timeout_s)
+            select.select([self._wake_fd], [], [], timeout_s)
         try:
             item = self._queue.popleft()
         except IndexError:
             return None
         if not self._queue:  # level-triggered readiness: clear, then re-arm if a frame slipped in meanwhile
             self._armed = False
-            try:
-                while self._wake_r.recv(4096):
-                    pass
-            except OSError:
-                pass
+            self._wake_fd.clear()
             if self._queue:
                 self._armed = True
-                self._wake()
+                self._wake_fd.set()
         return item
 
     def _close(self) -> None:
@@ -250,8 +243,62 @@ class ZenohTransport(Transport):
         finally:
             if self._owns_session:
                 self.session.close()
-            self._wake_r.close()
-            self._wake_w.close()
+            self._wake_fd.close()
+
+
+class _WakeFd:
+    """A descriptor that is readable once `set` until `clear`ed: how Zenoh's receiving thread wakes a loop
+    that waits in select() (selectors) next to sockets and timers. An eventfd where the OS has one (Linux):
+    one system call to set and one to clear, where a socket pair takes a send, and a recv until it would
+    block (bench_zenoh_floor.py: round trip 12 % shorter, 12 % less CPU); a socket pair elsewhere."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()  # a late `set` from Zenoh's thread never writes to a closed (reused) number
+        self._closed = False
+        if hasattr(os, "eventfd"):
+            self._fd = os.eventfd(0, os.EFD_NONBLOCK | os.EFD_CLOEXEC)
+            self._pair = None
+        else:
+            self._pair = socket.socketpair()
+            for end in self._pair:
+                end.setblocking(False)
+            self._fd = self._pair[0].fileno()
+
+    def fileno(self) -> int:
+        return self._fd
+
+    def set(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            try:
+                if self._pair is None:
+                    os.eventfd_write(self._fd, 1)
+                else:
+                    self._pair[1].send(b"\0")
+            except OSError:  # full: it is readable anyway
+                pass
+
+    def clear(self) -> None:
+        try:
+            if self._pair is None:
+                os.eventfd_read(self._fd)  # reads and zeroes the counter
+            else:
+                while self._pair[0].recv(4096):
+                    pass
+        except OSError:  # (nothing to read: already clear)
+            pass
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            if self._pair is None:
+                os.close(self._fd)
+            else:
+                for end in self._pair:
+                    end.close()
 
 
 def open_router(port: int | None = None, listen: tuple[str, ...] = (), fleet: str = "default") -> tuple[zenoh.Session, str]:
