@@ -76,7 +76,8 @@ class Ports:
 
         spec = self.link
         params = ZenohParams(node=node, fleet=spec.fleet, mode=spec.zenoh_mode, connect=spec.connect,
-                             listen=spec.listen, only_from=peer, first_send_wait_s=FIRST_SEND_WAIT_S)
+                             listen=spec.listen, only_from=peer, first_send_wait_s=FIRST_SEND_WAIT_S,
+                             validate_frames=False)  # as on UDP: Link/Vehicle parse and count (no second parse)
         if self._session is None:
             import zenoh
 
