@@ -150,8 +150,7 @@ class ZenohTransport(Transport):
             raise ValueError(f"zenoh fleet {params.fleet!r}: expected [A-Za-z0-9_-]")
         self._queue: collections.deque = collections.deque()  # (appended by Zenoh's thread, popped by ours)
         self._armed = False  # the wake descriptor is set: no further system call until we cleared it
-        self._publishers: dict[str, zenoh.Publisher] = {}
-        self._peer_publishers: dict[Address, zenoh.Publisher] = {}  # (the key computed once per peer)
+        self._publishers: dict[Address, zenoh.Publisher] = {}  # by peer: its key is formed and checked once
         self._congestion = zenoh.CongestionControl.BLOCK if params.block_when_congested else zenoh.CongestionControl.DROP
         # readable while frames wait, so a selector can wait on this link next to UDP sockets
         self._wake_fd = _WakeFd()
@@ -199,20 +198,17 @@ class ZenohTransport(Transport):
 
 
     def _send(self, data: bytes, peer: Address) -> None:
-        pub = self._peer_publishers.get(peer)
-        if pub is None:
-            pub = self._peer_publishers[peer] = self._publisher(peer)
-        pub.put(data)
+        (self._publishers.get(peer) or self._publisher(peer)).put(data)
 
     def prepare(self, peer: Address) -> None:
-        self._peer_publishers[peer] = self._publisher(peer)
+        self._publisher(peer)
 
     def _publisher(self, peer: Address) -> zenoh.Publisher:
         """The publisher to `peer`, declared once (and, the first time, matched: up to first_send_wait_s)."""
-        key = key_for(self.params.fleet, self.node, str(peer))
-        pub = self._publishers.get(key)
+        pub = self._publishers.get(peer)
         if pub is None:
-            pub = self._publishers[key] = self.session.declare_publisher(
+            key = key_for(self.params.fleet, self.node, str(peer))
+            pub = self._publishers[peer] = self.session.declare_publisher(
                 key, express=True, congestion_control=self._congestion)
             deadline = time.monotonic() + self.params.first_send_wait_s
             while not pub.matching_status.matching and time.monotonic() < deadline:
