@@ -51,7 +51,7 @@ time in which none of them ran.
 
 Real time (the world paced, `--speed` > 0): the world samples and encodes a step before the pacing
 wait and reads the units' answers from mid-period on; each unit forwards its sensors at once and
-leaves its own bookkeeping (state, heartbeats, streams, status) for the quiet after the step; the
+leaves its own bookkeeping (state, heartbeats, streams, status) until it has answered the step; the
 coordinator sends the commands before it runs fault detection (Coordinator.finish_step, 2 ms later);
 with --sched-batch (what `--realtime` runs pass) the world and units are SCHED_BATCH so that only the
 coordinator's wake-ups preempt. The path sensor -> unit -> coordinator -> unit -> motors is then
@@ -119,8 +119,7 @@ STATUS_PERIOD_S = 0.2  # world status (truth) file
 ANSWER_READ_PHASE = 0.5  # paced world: first read of the units' answers, as a fraction of the period
 UNIT_STATUS_PERIOD_S = 1.0  # unit status files (a file replace costs milliseconds here)
 TICK_PERIOD_S = 0.02  # unit: heartbeats and streams (<= 20 Hz) served on this wall-clock grid
-HOUSEKEEPING_DEFER_S = 0.02  # unit: housekeeping waits at most this long past its time for a quiet moment
-UNIT_QUIET_S = 0.001  # unit: housekeeping starts this long after the last datagram (no step in flight)
+HOUSEKEEPING_DEFER_S = 0.02  # unit: housekeeping waits at most this long past its time for a step in flight
 COORDINATOR_QUIET_S = 0.002  # coordinator: fault detection this long after the commands went out
 STOP_POLL_S = 0.2  # world: longest wait before it looks at its stop flag again (a SIGTERM ends it in time to
 # write its summary within the launcher's 3 s grace, also while it waits for units that were stopped with it)
@@ -555,8 +554,7 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
                     unit.command_deadline.before_wait(max(0.0, wake - now))
             for key_, _ in sel.select(max(0.0, wake - now)):
                 unit, name = key_.data
-                if unit.io.drain(name, key_.fileobj):
-                    unit.last_io = time.monotonic()
+                unit.io.drain(name, key_.fileobj)
             for unit in active:
                 unit.check_command_timeout()
             for unit in [u for u in active if u.done]:
@@ -600,7 +598,6 @@ class _UnitLoop:
         self.status_path = out / f"unit{unit_id}_status.json"
         self.next_hello = self.next_tick = self.next_status = 0.0
         self.command_deadline: SilenceDeadline | None = None  # (while a HIL step waits for its command)
-        self.last_io = -math.inf
         vehicle.defer_own_state = setup.docked  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
 
     @property
@@ -609,9 +606,9 @@ class _UnitLoop:
 
     def housekeeping(self, now: float) -> float:
         """The unit's own state, heartbeats, streams and status file when due; returns when to wake next.
-        Housekeeping waits while a step is in flight and for UNIT_QUIET_S after the last datagram (the
-        other units are then reading their commands on the same CPUs), at most HOUSEKEEPING_DEFER_S
-        past its time."""
+        Housekeeping waits while a step is in flight, at most HOUSEKEEPING_DEFER_S past its time, and
+        runs in the wake-up that answered the step: a wake-up of its own finds the caches cold after the
+        other processes ran (with 25 unit processes that cost more than the work itself)."""
         from firmware_models.vehicle_io import vehicle_status, write_json_atomic
 
         vehicle, io = self.vehicle, self.io
@@ -619,8 +616,8 @@ class _UnitLoop:
         if vehicle.hil_pending:
             self.command_deadline = self.command_deadline or SilenceDeadline(self.command_timeout_s)
         due = min(self.next_hello, self.next_tick, self.next_status)
-        quiet_at = math.inf if self.command_deadline is not None else self.last_io + UNIT_QUIET_S
-        start_at = max(now if vehicle.has_deferred else due, quiet_at)
+        in_flight = self.command_deadline is not None
+        start_at = math.inf if in_flight else (now if vehicle.has_deferred else due)
         if now >= min(start_at, due + HOUSEKEEPING_DEFER_S):
             vehicle.run_deferred()
             if now >= self.next_hello:  # hello until the world talks, then the 1 Hz wall-clock heartbeat
@@ -633,7 +630,7 @@ class _UnitLoop:
                 self.next_status = now + UNIT_STATUS_PERIOD_S
                 write_json_atomic(self.status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **io.counters()))
             due = min(self.next_hello, self.next_tick, self.next_status)
-            start_at = max(due, quiet_at)
+            start_at = math.inf if in_flight else due
         wake = min(start_at, due + HOUSEKEEPING_DEFER_S)
         if self.command_deadline is not None:
             wake = min(wake, self.command_deadline.at_s)
