@@ -8,6 +8,9 @@ process spends per simulated second, and the per-message costs on its path.
         --units-per-process 1,5 --n 0     # 5x5: 25 unit processes, then 5 processes of 5
 
 RTF = simulated time / wall time of the world's stepping loop (start-up excluded; printed apart).
+Wake-ups per step: the times each process's main thread went to sleep in its stepping loop (voluntary
+context switches, `mars_link.machine_load.LoopMeter`) over the world's steps; for the unit processes,
+per process.
 The per-message part reuses bench_mavlink's timing (best of `--repeats` runs of `--n` calls; the
 machine is shared): one exchange of one unit, piece by piece, as each process sees it.
 """
@@ -71,9 +74,12 @@ def rtf_runs(scenario: str, runs: int, layout: str | None = None, transport: str
                    "units": sum(h["cpu_loop_s"] for h in hosts) if hosts else sum(u["cpu_loop_s"] for u in units)}
             whole = {"world": s["cpu_s"], "coordinator": c["cpu_s"],
                      "units": sum(h["cpu_s"] for h in hosts) if hosts else sum(u["cpu_s"] for u in units)}
+            unit_procs = hosts or units
+            wakeups = {"world": s["wakeups_loop"] / s["steps"], "coordinator": c["wakeups_loop"] / s["steps"],
+                       "unit process": sum(p["wakeups_loop"] for p in unit_procs) / len(unit_procs) / s["steps"]}
             rows.append({"rtf": s["real_time_factor"], "sim_s": s["sim_time_s"], "wall_s": s["wall_time_s"],
                          "startup_s": total - s["wall_time_s"], "units": len(s["units"]), "cpu": cpu,
-                         "cpu_whole": whole, "processes": len(session.run.processes)})
+                         "cpu_whole": whole, "wakeups_per_step": wakeups, "processes": len(session.run.processes)})
     return rows
 
 
@@ -183,7 +189,8 @@ def main() -> None:
                       f"CPU per simulated s: world {cpu['world'] / sim:.3f}, coordinator {cpu['coordinator'] / sim:.3f}, "
                       f"units {cpu['units'] / sim:.3f} ({1e3 * cpu['units'] / sim / r['units']:.1f} ms per unit), "
                       f"total {per_sim:.3f} s (CPU bound on 2 idle cores: {2 / per_sim:.2f}x); "
-                      f"whole unit processes incl. start-up {r['cpu_whole']['units']:.1f} CPU-s", flush=True)
+                      f"whole unit processes incl. start-up {r['cpu_whole']['units']:.1f} CPU-s; wake-ups per step: "
+                      + ", ".join(f"{who} {n:.1f}" for who, n in r["wakeups_per_step"].items()), flush=True)
             rtf = [r["rtf"] for r in runs]
             unit_ms = statistics.median(1e3 * r["cpu"]["units"] / r["sim_s"] / r["units"] for r in runs)
             table.append((transport, k, r0["processes"], statistics.median(rtf), max(rtf), unit_ms))

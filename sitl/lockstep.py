@@ -85,7 +85,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.signing import add_signing_args, signing_from_args
 from sitl.parent_watch import die_with_parent
 from mars_link.errors import EnvironmentFailure, UserInputError
-from mars_link.machine_load import IdleMeter
+from mars_link.machine_load import IdleMeter, LoopMeter
 from mars_link.messages import BatterySample, SensorPacket
 from mars_link.outputs import write_json
 from mars_link.pacing import Pacer, SilenceDeadline
@@ -359,7 +359,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         # (anchored at the first step's wait, once its datagrams are ready: the first sensing and logging,
         # slow the first time, then belong to start-up as in every later step they precede the wait)
         pacer = Pacer(speed, reanchor_s=math.inf, clock=time.perf_counter)
-        cpu0 = time.process_time()  # CPU of the stepping loop alone (start-up excluded)
+        loop = LoopMeter()  # the stepping loop alone (start-up excluded)
         idle = IdleMeter()  # the machine's idle cores over the loop: behind the wall clock, starved or at fault?
         k = 0
         while (setup.steps is None or k < setup.steps) and not stop.requested:
@@ -434,7 +434,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
                    "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
                    "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time(),
-                   "cpu_loop_s": time.process_time() - cpu0, "cores_idle_fraction": idle.fraction(),
+                   **loop.figures(), "cores_idle_fraction": idle.fraction(),
                    "force_integral_n2s": getattr(world, "force_integral_n2s", None),  # (free units: none)
                    "latch_events": getattr(world, "latch_events", []),
                    "bodies": [list(b.units) for b in getattr(world, "bodies", [])], "logging": truth_log.status()}
@@ -544,7 +544,7 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
                 sel.register(t, selectors.EVENT_READ, (unit, name))
         for unit in units:
             print(json.dumps({"ready": True, "unit": unit.unit_id, "ports": unit.io.ports()}), flush=True)
-        cpu0 = time.process_time()
+        loop = LoopMeter()
         active = list(units)
         while active and not stop.requested:
             now = time.monotonic()
@@ -559,12 +559,12 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
                 unit.check_command_timeout()
             for unit in [u for u in active if u.done]:
                 active.remove(unit)
-                unit.finish(time.process_time() - cpu0 if len(units) == 1 else None)
+                unit.finish(loop.figures() if len(units) == 1 else None)
         for unit in active:
-            unit.finish(time.process_time() - cpu0 if len(units) == 1 else None)
+            unit.finish(loop.figures() if len(units) == 1 else None)
         if len(units) > 1:  # the process's CPU, once (each unit's status has its own counters only)
             write_json_atomic(out / f"unit_host{unit_ids[0]}_status.json",
-                              {"units": unit_ids, "cpu_s": time.process_time(), "cpu_loop_s": time.process_time() - cpu0})
+                              {"units": unit_ids, "cpu_s": time.process_time(), **loop.figures()})
     finally:
         sel.close()
         for unit in units:
@@ -645,14 +645,15 @@ class _UnitLoop:
         if not vehicle.hil_pending:
             self.command_deadline = None
 
-    def finish(self, cpu_loop_s: float | None) -> None:
-        """The last deferred work and the final status (`cpu_loop_s`: this process's stepping CPU when it
-        hosts this unit alone; a host of several writes its own status file)."""
+    def finish(self, loop: dict[str, float] | None) -> None:
+        """The last deferred work and the final status (`loop`: this process's stepping loop's CPU and
+        wake-ups, `LoopMeter.figures`, when it hosts this unit alone; a host of several writes its own
+        status file)."""
         from firmware_models.vehicle_io import vehicle_status, write_json_atomic
 
         vehicle = self.vehicle
         vehicle.run_deferred()
-        cpu = {} if cpu_loop_s is None else {"cpu_s": time.process_time(), "cpu_loop_s": cpu_loop_s}
+        cpu = {} if loop is None else {"cpu_s": time.process_time(), **loop}
         write_json_atomic(self.status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **cpu,
                                                            **self.io.counters()))
 
@@ -716,7 +717,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     try:
         _await_peers(link, live, 60.0, stop)
         link.prepare_peers(live)
-        cpu0 = time.process_time()
+        loop = LoopMeter()
         world = ports.address("world")
         link.peers.setdefault(WORLD_SYSID, world)  # (its step-sent markers come from there)
         events_fed = 0
@@ -862,7 +863,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
              "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,
                              "eta_estimated": round(float(d.eta_estimated), 4), "reason": d.reason}
                             for d in coordinator.detections],
-             "cpu_loop_s": time.process_time() - cpu0,
+             **loop.figures(),
              "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}})
     finally:
         link.close()

@@ -40,3 +40,25 @@ def test_a_missed_wall_clock_figure_fails_unless_the_cores_were_saturated() -> N
         judge(False, 0.03, "0.7x real time")
     assert [w.category for w in caught] == [Starved] and "3% of the cores idle" in str(caught[0].message)
 
+
+
+def test_loop_meter_counts_this_threads_sleeps_and_cpu():
+    """Each sleep of the thread that made the meter is one wake-up; busy work is CPU, not wake-ups; a
+    sleeping second thread is not counted (its wake-ups are not the loop's)."""
+    import threading
+    import time
+
+    from mars_link.machine_load import LoopMeter
+
+    meter = LoopMeter()
+    other = threading.Thread(target=lambda: [time.sleep(0.002) for _ in range(20)])
+    other.start()
+    other.join()  # (one sleep here while the other thread runs)
+    for _ in range(10):
+        time.sleep(0.002)
+    end = time.process_time() + 0.05
+    while time.process_time() < end:
+        pass
+    f = meter.figures()
+    assert 10 <= f["wakeups_loop"] < 25, f  # (with the other thread's 20 sleeps it would be 30 or more)
+    assert f["cpu_loop_s"] >= 0.05 and f["preempted_loop"] >= 0
