@@ -1,15 +1,18 @@
 """The idle-cores share reported beside a paced run's real-time factor (mars_link.machine_load), and the
-rule the paced tests judge their wall-clock figures by (tests/machine.py)."""
+rule the paced tests judge their wall-clock figures by (tests/machine.py); a stepping loop's CPU and
+wake-ups (LoopMeter)."""
 
 from __future__ import annotations
 
+import threading
+import time
 import warnings
 from pathlib import Path
 
 import pytest
 from machine import Starved, judge
 
-from mars_link.machine_load import IdleMeter, cpu_ticks
+from mars_link.machine_load import IdleMeter, LoopMeter, cpu_ticks
 
 
 def _stat(path: Path, user: int, idle: int, iowait: int, steal: int) -> None:
@@ -41,15 +44,9 @@ def test_a_missed_wall_clock_figure_fails_unless_the_cores_were_saturated() -> N
     assert [w.category for w in caught] == [Starved] and "3% of the cores idle" in str(caught[0].message)
 
 
-
-def test_loop_meter_counts_this_threads_sleeps_and_cpu():
+def test_loop_meter_counts_this_threads_sleeps_and_cpu() -> None:
     """Each sleep of the thread that made the meter is one wake-up; busy work is CPU, not wake-ups; a
     sleeping second thread is not counted (its wake-ups are not the loop's)."""
-    import threading
-    import time
-
-    from mars_link.machine_load import LoopMeter
-
     meter = LoopMeter()
     other = threading.Thread(target=lambda: [time.sleep(0.002) for _ in range(20)])
     other.start()
