@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from mars_link.errors import UserInputError
+from mars_link.scheduling import leave_realtime_class
 
 #: Foxglove's 3D panel is z-up: the NED world hangs under an ENU "map" frame (north = y, east = x, down = -z)
 _S = math.sqrt(0.5)
@@ -335,6 +336,7 @@ class FlightView:
 
     def _send_loop(self) -> None:
         """Off the control loop: batches into the pipe (a slow writer holds this thread, never the loop)."""
+        leave_realtime_class()  # (the SITL world's thread may run in SCHED_FIFO: this one need not)
         conn = self._conn
         try:
             while True:
@@ -419,6 +421,7 @@ def _writer_main(read_fd: int) -> None:
     from multiprocessing.connection import Connection
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the flight's: this process ends at the pipe's end
+    leave_realtime_class()  # (SCHED_IDLE below may be refused: then not the world's SCHED_FIFO either)
     try:  # the control loop first: the writer runs on CPU time nobody else wants (SCHED_IDLE), else niced
         os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
     except (AttributeError, OSError):

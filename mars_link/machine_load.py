@@ -5,12 +5,14 @@ A run paced to the wall clock that falls behind it either lost time the machine 
 lock or a socket in the way: a fault) or was starved: every core busy with its own processes, another
 tenant's, or time the hypervisor took (steal). The share of all cores left idle over the run tells
 which, so the SITL world reports it beside its real-time factor. `LoopMeter` is the process's own side:
-the CPU and the wake-ups its stepping loop cost.
+the CPU and the wake-ups its stepping loop cost, and the scheduling class it ran in.
 """
 
 from __future__ import annotations
 
 import time
+
+from mars_link.scheduling import scheduling_class
 
 try:
     import resource
@@ -66,7 +68,7 @@ class LoopMeter:
         self._cpu0 = time.process_time()
         self._switches0 = _main_thread_switches()
 
-    def figures(self) -> dict[str, float]:
+    def figures(self) -> dict[str, float | str]:
         voluntary, involuntary = _main_thread_switches()
         return {"cpu_loop_s": time.process_time() - self._cpu0, "wakeups_loop": voluntary - self._switches0[0],
-                "preempted_loop": involuntary - self._switches0[1]}
+                "preempted_loop": involuntary - self._switches0[1], "scheduling": scheduling_class()}

@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from firmware_models.unit_controller import Phase
+from mars_link.scheduling import leave_realtime_class
 from mars_link.trajectories import TrajectoryPoint
 
 SAMPLE_DT_S = 0.01
@@ -105,6 +106,7 @@ WORKER_NICE = 10  # the worker yields the CPU to the control loop on a busy mach
 
 
 def _yield_cpu() -> None:
+    leave_realtime_class()  # (started by a real-time coordinator: it would inherit SCHED_FIFO)
     try:
         os.nice(WORKER_NICE)
     except OSError:  # (not permitted: planning still runs, at the same priority)

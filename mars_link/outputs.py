@@ -26,6 +26,8 @@ from typing import IO, Any, Callable
 
 import numpy as np
 
+from mars_link.scheduling import leave_realtime_class
+
 
 def strict(obj: Any) -> Any:
     """A copy of `obj` that `json.dumps(..., allow_nan=False)` accepts: NaN/inf -> None, numpy
@@ -128,6 +130,7 @@ class _WriterThread:
         return True
 
     def _run(self) -> None:
+        leave_realtime_class()  # (a real-time process's log: off the control path)
         try:
             while True:
                 with self._cond:

@@ -102,8 +102,8 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
         role_args["unit"].append("--command-age")
     if realtime:  # the coordinator logs its timing
         role_args["coordinator"].append("--timing-log")
-        role_args["world"].append("--sched-batch")  # (sitl.lockstep.set_batch_scheduling)
-        role_args["unit"].append("--sched-batch")
+        for role in ("world", "coordinator", "unit"):  # (mars_link.scheduling.take_realtime_class)
+            role_args[role].append("--sched-realtime")
         from mars_link.transport.realtime import CpuWakeLatency
 
         session.wake_latency = CpuWakeLatency()
@@ -308,6 +308,17 @@ class _ProgressWatcher:
             self._thread.join(1.0)
 
 
+def _scheduling_classes(out: Path, world: dict, coordinator: dict) -> dict:
+    """The CPU scheduling class each process's stepping loop ran in: the world's, the coordinator's, and
+    each class the unit processes ran in (their status files; a host of several units writes its own)."""
+    units = set()
+    for path in [*out.glob("unit_host*_status.json"), *out.glob("unit[0-9]*_status.json")]:
+        label = _read_json(path).get("scheduling")
+        if label:
+            units.add(label)
+    return {"world": world.get("scheduling"), "coordinator": coordinator.get("scheduling"), "units": sorted(units)}
+
+
 def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True,
                        realtime: bool = False, cpu_wake_latency: str | None = None) -> dict:
     """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them."""
@@ -375,6 +386,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         # sim time is wall time only when paced: as fast as possible, an age would mean nothing
         "command_age": command_age_summary(out) if realtime else {"n": 0, "note": "measured with --realtime only"},
         "cpu_wake_latency": cpu_wake_latency,  # real time: idle CPUs kept awake (transport.realtime.CpuWakeLatency)
+        "scheduling": _scheduling_classes(out, world, coordinator),  # (mars_link.scheduling)
     }
     summary["logging"] = _logging_status(log.status(), world, out, scenario)
     write_json(out / "summary.json", summary)

@@ -53,8 +53,9 @@ Real time (the world paced, `--speed` > 0): the world samples and encodes a step
 wait and reads the units' answers from mid-period on; each unit forwards its sensors at once and
 leaves its own bookkeeping (state, heartbeats, streams, status) until it has answered the step; the
 coordinator sends the commands before it runs fault detection (Coordinator.finish_step, 2 ms later);
-with --sched-batch (what `--realtime` runs pass) the world and units are SCHED_BATCH so that only the
-coordinator's wake-ups preempt. The path sensor -> unit -> coordinator -> unit -> motors is then
+with --sched-realtime (what `--realtime` runs pass) every process takes SCHED_FIFO where it may, or else
+the world and units are SCHED_BATCH so that only the coordinator's wake-ups preempt
+(mars_link.scheduling). The path sensor -> unit -> coordinator -> unit -> motors is then
 mostly Python work shared by 8 processes; --timing-log and the units' command-age logs show where it goes.
 
 Links: every process builds its links once at start from `--transport udp|zenoh` (`sitl.links.Ports`)
@@ -89,6 +90,7 @@ from mars_link.machine_load import IdleMeter, LoopMeter
 from mars_link.messages import BatterySample, SensorPacket
 from mars_link.outputs import write_json
 from mars_link.pacing import Pacer, SilenceDeadline
+from mars_link.scheduling import take_realtime_class
 from mars_link.transport import LinkSpec, add_link_args, spec_from_args
 from mars_link.wire import (
     LatchSensor,
@@ -902,19 +904,6 @@ def _with_takeover(unit: int, accepted: set[int], rotor_cmd) -> list:
 
 
 # ----------------------------------------------------------------------------- entry point
-def set_batch_scheduling() -> bool:
-    """SCHED_BATCH for this process (Linux; no privilege needed): a batch task that wakes up never
-    preempts the one running. In real time the world and the units take it, so a unit woken by its
-    sensor datagram or rotor command waits for a free CPU instead of interrupting the coordinator
-    (or the world) halfway through sending the step's datagrams; the coordinator, the only other
-    process on the critical path, keeps the normal class and preempts them."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
-        return True
-    except (AttributeError, OSError):  # not Linux, or refused: the normal class
-        return False
-
-
 def main(argv: list[str] | None = None) -> int:
     die_with_parent()  # started by the launcher: never outlive it (sitl.parent_watch)
     ap = argparse.ArgumentParser(prog="python -m sitl.lockstep")
@@ -940,8 +929,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--api-bind", type=int, default=None)
     ap.add_argument("--forever", action="store_true", help="docked: run until stopped (ignores --steps)")
     ap.add_argument("--vehicle", action="store_true", help="coordinator: serve the assembly as one MAVLink vehicle")
-    ap.add_argument("--sched-batch", action="store_true",
-                    help="world/unit: run as SCHED_BATCH (its wake-ups never preempt the coordinator; real time)")
+    ap.add_argument("--sched-realtime", action="store_true",
+                    help="real time: SCHED_FIFO when permitted; else world/unit SCHED_BATCH (mars_link.scheduling)")
     ap.add_argument("--timing-log", action="store_true", help="coordinator: each step's wall-clock times (coordinator_timing.csv)")
     ap.add_argument("--mcap", action="store_true", help="world: run.mcap in --out (mars_link.flight_view)")
     ap.add_argument("--foxglove", default=None, metavar="HOST:PORT", help="world: the live Foxglove view there")
@@ -957,8 +946,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--command-age", action="store_true",
                     help="unit: log the command age at the motor (command_age_unit<id>.csv/.json; real-time runs)")
     args = ap.parse_args(argv)
-    if args.sched_batch:
-        set_batch_scheduling()
+    if args.sched_realtime:  # (before the links open: Zenoh's threads take the same class)
+        take_realtime_class(fallback_batch=args.role != "coordinator")
     try:
         setup = load_setup(args.scenario, args.units, args.layout, args.steps)
         key, args.require_signing = signing_from_args(args)

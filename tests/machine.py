@@ -15,6 +15,8 @@ second) against the share of all cores left idle meanwhile (`mars_link.machine_l
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 import warnings
 
@@ -64,3 +66,11 @@ def idle_fraction_now(window_s: float = 0.5) -> float:
     with CpuWindow() as w:
         time.sleep(window_s)
     return 1.0 if w.idle_fraction is None else w.idle_fraction
+
+
+def fifo_granted() -> bool:
+    """Whether this machine lets a process take SCHED_FIFO at priority 10 (asked of the OS directly, in a
+    child, so that this process's class never changes): what a real-time flight's processes then run in."""
+    code = ("import os\ntry:\n    os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(10)); print('yes')\n"
+            "except (AttributeError, OSError):\n    print('no')")
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60).stdout.split() == ["yes"]

@@ -1,6 +1,6 @@
 """Real-time SITL: the stage logs of a paced run are complete and in causal order, the command age is
 taken at the motor, and the process tuning reports what it got (`mars_link.transport.realtime`,
-`sitl.lockstep.set_batch_scheduling`). Speed itself is claimed in benchmarks/bench_realtime.py."""
+`mars_link.scheduling`). Speed itself is claimed in benchmarks/bench_realtime.py."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from machine import judge
+from machine import fifo_granted, judge
 
 from mars_link.scenario import load_scenario
 from mars_link.sitl_mode import run_sitl_scenario, stage_times
@@ -36,7 +36,7 @@ def test_cpu_wake_latency_says_whether_it_held(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(not hasattr(os, "SCHED_BATCH"), reason="SCHED_BATCH is Linux only")
 def test_batch_scheduling_is_taken_without_privilege() -> None:
-    code = ("import os; from sitl.lockstep import set_batch_scheduling; "
+    code = ("import os; from mars_link.scheduling import set_batch_scheduling; "
             "print(set_batch_scheduling(), os.sched_getscheduler(0) == os.SCHED_BATCH)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert out.stdout.split() == ["True", "True"], out.stderr
@@ -55,6 +55,10 @@ def test_a_real_time_run_logs_every_stage_in_causal_order(tmp_path: Path) -> Non
     assert rtf < 1.05  # never ahead of the wall clock, and paced to it unless starved (tests/machine.py):
     judge(rtf > 0.95, sitl["world_cores_idle_fraction"], f"the world ran at {rtf:.3f}x real time")
     assert sitl["cpu_wake_latency"].startswith(("held", "not held"))
+    # every process in SCHED_FIFO where the machine grants it; else the world and units in SCHED_BATCH
+    fifo = fifo_granted()
+    assert sitl["scheduling"] == ({"world": "fifo:10", "coordinator": "fifo:10", "units": ["fifo:10"]} if fifo else
+                                  {"world": "batch", "coordinator": "normal", "units": ["batch"]})
     age = sitl["command_age"]
     assert age["n"] == 6 * 150  # every unit, every step, driven with a coordinator command
     for path in sorted(out.glob("command_age_unit*.csv")):
