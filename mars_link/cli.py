@@ -116,6 +116,15 @@ def print_summary(summary: dict, out: Path) -> None:
         ("events", str(len(summary["events"]))),
         ("run directory", str(out)),
     ]
+    sitl = summary.get("sitl") or {}
+    if sitl.get("realtime"):  # paced to the wall clock: how late the commands reached the motors, and why
+        from mars_link.scheduling import describe_classes
+
+        age = sitl.get("command_age") or {}
+        if age.get("n"):
+            rows.append(("command age at motor", f"p50 {age['p50_ms']:.2f} / p99 {age['p99_ms']:.2f} ms "
+                         f"({age.get('deadline_misses', 0)}/{age['n']} late)"))  # (older than a control period)
+        rows.append(("scheduling", describe_classes(sitl.get("scheduling") or {})))
     logging = summary.get("logging") or {}
     if logging.get("stopped_reason"):  # a write error stopped a log; the flight went on
         more = len(logging.get("stopped", [])) - 1

@@ -69,3 +69,14 @@ def leave_realtime_class() -> None:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except (AttributeError, OSError):
         pass
+
+
+def describe_classes(classes: dict) -> str:
+    """One line for a run's summary from `{"world": ..., "coordinator": ..., "units": [...]}` (summary.json
+    `sitl.scheduling`), with what would grant SCHED_FIFO where a process did not get it."""
+    labels = {"world": classes.get("world"), "coordinator": classes.get("coordinator"),
+              "units": ", ".join(classes.get("units") or []) or None}
+    text = ", ".join(f"{who} {label or 'unknown'}" for who, label in labels.items())
+    if not all(str(label).startswith("fifo") for label in labels.values()):
+        text += f" (SCHED_FIFO needs root, CAP_SYS_NICE or an rtprio limit >= {REALTIME_PRIORITY})"
+    return text

@@ -83,3 +83,20 @@ def test_a_real_time_run_logs_every_stage_in_causal_order(tmp_path: Path) -> Non
     first = min(epochs.values())
     per_unit = [np.genfromtxt(p, delimiter=",", names=True)["age_s"] + (e - first) for p, e in sorted(epochs.items())]
     assert stages["at_motors"] == pytest.approx(np.median(np.max(per_unit, axis=0)) * 1e3, rel=1e-9)
+
+
+@pytest.mark.sitl
+@pytest.mark.exclusive  # (a flight paced to the wall clock)
+def test_a_real_time_sitl_run_prints_its_command_age_and_scheduling(tmp_path: Path) -> None:
+    out = tmp_path / "rt"
+    proc = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_3x2", "--mode", "sitl", "--realtime",
+                           "--duration", "1", "--out", str(out)], capture_output=True, text=True, cwd=ROOT,
+                          timeout=120, env={**os.environ, "COLUMNS": "200"})
+    assert proc.returncode == 0, proc.stderr
+    summary = json.loads((out / "summary.json").read_text())
+    age = summary["sitl"]["command_age"]
+    assert age["n"] == 6 * 100
+    assert f"p50 {age['p50_ms']:.2f} / p99 {age['p99_ms']:.2f} ms ({age['deadline_misses']}/600 late)" in proc.stdout
+    expected = "world fifo:10, coordinator fifo:10, units fifo:10" if fifo_granted() else \
+        "world batch, coordinator normal, units batch (SCHED_FIFO needs root"
+    assert expected in proc.stdout

@@ -59,3 +59,13 @@ def test_leaving_the_real_time_class_is_a_no_op_in_another_class() -> None:
     out = _in_child("import os\nfrom mars_link.scheduling import leave_realtime_class, scheduling_class, "
                     "set_batch_scheduling\nset_batch_scheduling()\nleave_realtime_class()\nprint(scheduling_class())")
     assert out == ["batch"]
+
+
+def test_the_summary_line_names_each_class_and_what_would_grant_fifo() -> None:
+    from mars_link.scheduling import describe_classes
+
+    fifo = {"world": "fifo:10", "coordinator": "fifo:10", "units": ["fifo:10"]}
+    assert describe_classes(fifo) == "world fifo:10, coordinator fifo:10, units fifo:10"
+    refused = describe_classes({"world": "batch", "coordinator": "normal", "units": ["batch"]})
+    assert refused.startswith("world batch, coordinator normal, units batch (SCHED_FIFO needs root")
+    assert "units unknown" in describe_classes({"world": "fifo:10", "coordinator": "fifo:10"})
