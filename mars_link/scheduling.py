@@ -21,6 +21,8 @@ from __future__ import annotations
 import os
 
 REALTIME_PRIORITY = 10  # SCHED_FIFO 1..99: low, under the kernel's own threaded interrupts (50)
+#: a real-time flight this far behind the wall clock cannot keep real time on this machine (OverloadValve)
+OVERLOAD_BEHIND_S = 1.0
 
 _NAMES = {getattr(os, name): label for name, label in (
     ("SCHED_OTHER", "normal"), ("SCHED_BATCH", "batch"), ("SCHED_IDLE", "idle"), ("SCHED_FIFO", "fifo"),
@@ -69,6 +71,27 @@ def leave_realtime_class() -> None:
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except (AttributeError, OSError):
         pass
+
+
+class OverloadValve:
+    """The paced process of a real-time flight (the SITL world) gives up SCHED_FIFO once it falls
+    `behind_s` behind the wall clock: the flight cannot keep real time on this machine, and catching up
+    flat out in SCHED_FIFO would leave everything else on it (a ground station, a shell) the kernel's 5 %.
+    The other processes work only on the world's steps, so the flight then shares the machine."""
+
+    def __init__(self, behind_s: float = OVERLOAD_BEHIND_S) -> None:
+        self.behind_s = behind_s
+        self.armed = scheduling_class().startswith(("fifo", "rr"))
+        self.left_at_s: float | None = None  # the sim time it left the class at
+
+    def check(self, behind_s: float, t_s: float) -> bool:
+        """`behind_s`: how late the step at sim time `t_s` is. True the once the class is left."""
+        if not self.armed or not behind_s > self.behind_s:
+            return False
+        leave_realtime_class()
+        self.armed = False
+        self.left_at_s = t_s
+        return True
 
 
 def describe_classes(classes: dict) -> str:

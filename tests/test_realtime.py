@@ -100,3 +100,26 @@ def test_a_real_time_sitl_run_prints_its_command_age_and_scheduling(tmp_path: Pa
     expected = "world fifo:10, coordinator fifo:10, units fifo:10" if fifo_granted() else \
         "world batch, coordinator normal, units batch (SCHED_FIFO needs root"
     assert expected in proc.stdout
+
+
+@pytest.mark.sitl
+@pytest.mark.exclusive  # (a flight paced to the wall clock)
+def test_a_world_that_falls_a_second_behind_leaves_sched_fifo(tmp_path: Path, monkeypatch) -> None:
+    """A real-time flight this far behind cannot keep real time here, and catching up flat out in SCHED_FIFO
+    would leave the rest of the machine 5 % of it: the world (here stopped 1.5 s mid-step) leaves the class."""
+    from sitl.lockstep import STALL_ENV
+
+    monkeypatch.setenv(STALL_ENV, "0.5:1.5")
+    sc = load_scenario("hover_3x2")
+    sc = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, duration_s=1.0))
+    out = tmp_path / "rt"
+    summary = run_sitl_scenario(sc, out, link=LinkSpec("udp"), realtime=True, plots=False)
+    assert summary["completed"] and summary["sitl"]["dead_units"] == []
+    world = json.loads((out / "world_summary.json").read_text())
+    if fifo_granted():
+        assert world["realtime_class_left_at_s"] == pytest.approx(0.51)  # the first step after the stall
+        assert summary["sitl"]["scheduling"]["world"] == "normal"
+        assert summary["sitl"]["scheduling"]["units"] == ["fifo:10"]  # (they work only on the world's steps)
+        assert "leaving SCHED_FIFO" in (out / "world.log").read_text()
+    else:
+        assert world["realtime_class_left_at_s"] is None

@@ -69,3 +69,20 @@ def test_the_summary_line_names_each_class_and_what_would_grant_fifo() -> None:
     refused = describe_classes({"world": "batch", "coordinator": "normal", "units": ["batch"]})
     assert refused.startswith("world batch, coordinator normal, units batch (SCHED_FIFO needs root")
     assert "units unknown" in describe_classes({"world": "fifo:10", "coordinator": "fifo:10"})
+
+
+def test_the_overload_valve_leaves_fifo_once_and_only_past_its_threshold() -> None:
+    out = _in_child("""
+from mars_link.scheduling import OverloadValve, scheduling_class, take_realtime_class
+idle = OverloadValve()
+print(idle.armed, idle.check(5.0, 1.0))  # the normal class: nothing to leave
+take_realtime_class(fallback_batch=True)
+valve = OverloadValve(behind_s=1.0)
+print(valve.check(0.9, 2.0), scheduling_class(), valve.check(1.2, 2.01), scheduling_class(), valve.check(3.0, 2.02),
+      valve.left_at_s)
+""")
+    assert out[:2] == ["False", "False"]
+    if fifo_granted():
+        assert out[2:] == ["False", "fifo:10", "True", "normal", "False", "2.01"]
+    else:  # (batch: never armed)
+        assert out[2:] == ["False", "batch", "False", "batch", "False", "None"]
