@@ -56,9 +56,10 @@ def test_a_real_time_run_logs_every_stage_in_causal_order(tmp_path: Path) -> Non
     judge(rtf > 0.95, sitl["world_cores_idle_fraction"], f"the world ran at {rtf:.3f}x real time")
     assert sitl["cpu_wake_latency"].startswith(("held", "not held"))
     # every process in SCHED_FIFO where the machine grants it; else the world and units in SCHED_BATCH
-    fifo = fifo_granted()
-    assert sitl["scheduling"] == ({"world": "fifo:10", "coordinator": "fifo:10", "units": ["fifo:10"]} if fifo else
-                                  {"world": "batch", "coordinator": "normal", "units": ["batch"]})
+    # (a world starved 1 s behind the wall clock leaves SCHED_FIFO: see the test below)
+    left = json.loads((out / "world_summary.json").read_text())["realtime_class_left_at_s"] is not None
+    assert sitl["scheduling"] == ({"world": "normal" if left else "fifo:10", "coordinator": "fifo:10", "units": ["fifo:10"]}
+                                  if fifo_granted() else {"world": "batch", "coordinator": "normal", "units": ["batch"]})
     age = sitl["command_age"]
     assert age["n"] == 6 * 150  # every unit, every step, driven with a coordinator command
     for path in sorted(out.glob("command_age_unit*.csv")):
@@ -97,7 +98,7 @@ def test_a_real_time_sitl_run_prints_its_command_age_and_scheduling(tmp_path: Pa
     age = summary["sitl"]["command_age"]
     assert age["n"] == 6 * 100
     assert f"p50 {age['p50_ms']:.2f} / p99 {age['p99_ms']:.2f} ms ({age['deadline_misses']}/600 late)" in proc.stdout
-    expected = "world fifo:10, coordinator fifo:10, units fifo:10" if fifo_granted() else \
+    expected = "coordinator fifo:10, units fifo:10" if fifo_granted() else \
         "world batch, coordinator normal, units batch (SCHED_FIFO needs root"
     assert expected in proc.stdout
 
