@@ -387,9 +387,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                         msgs.append(battery_report_message(p.battery))
                     datagrams.append((link.pack(msgs + sensor_packet_messages(p)), link.peers[p.unit_id]))
             pacer.wait(t)
-            if valve.armed and valve.check(-pacer.wait_s(t), t):
-                print(f"world: {-pacer.wait_s(t):.1f} s behind the wall clock at t={t:.2f}: leaving SCHED_FIFO, so that "
-                      "the flight shares the machine", file=sys.stderr)
+            if valve.armed and valve.check(behind_s := -pacer.wait_s(t), t):
+                print(f"world: {behind_s:.1f} s behind the wall clock at t={t:.2f}: leaving SCHED_FIFO, so that the "
+                      "flight shares the machine", file=sys.stderr)
             for i, (data, addr) in enumerate(datagrams):
                 link.send_bytes(data, addr)
                 if i == 0 and stall is not None and t >= stall[0]:  # (test hook: stopped between two units)
