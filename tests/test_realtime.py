@@ -118,7 +118,7 @@ def test_a_world_that_falls_a_second_behind_leaves_sched_fifo(tmp_path: Path, mo
     assert summary["completed"] and summary["sitl"]["dead_units"] == []
     world = json.loads((out / "world_summary.json").read_text())
     if fifo_granted():
-        assert world["realtime_class_left_at_s"] == pytest.approx(0.51)  # the first step after the stall
+        assert 0.0 < world["realtime_class_left_at_s"] <= 0.51  # the first step after the stall (or, starved, before)
         assert summary["sitl"]["scheduling"]["world"] == "normal"
         assert summary["sitl"]["scheduling"]["units"] == ["fifo:10"]  # (they work only on the world's steps)
         assert "leaving SCHED_FIFO" in (out / "world.log").read_text()
