@@ -30,6 +30,7 @@ sys.path.insert(0, str(ROOT))
 
 from mars_link.errors import UserInputError  # noqa: E402
 from mars_link.scenario import load_scenario  # noqa: E402
+from mars_link.scheduling import describe_classes  # noqa: E402
 from mars_link.sitl_mode import run_sitl_scenario, stage_times  # noqa: E402
 from mars_link.transport import LinkSpec  # noqa: E402
 
@@ -77,6 +78,7 @@ def main() -> int:
                       f"{age['deadline_misses']:>4}/{age['n']:<5} {p99_settled:>9.2f}   "
                       + " ".join(f"{stages.get(k, float('nan')):>12.2f}" for k in STAGES), flush=True)
         wake = s["sitl"].get("cpu_wake_latency")
+        scheduling = describe_classes(s["sitl"].get("scheduling") or {})  # (the last run's: SCHED_FIFO or not)
     medians = {}
     for transport, ages in rows.items():
         p50 = statistics.median(r["p50_ms"] for r in ages)
@@ -87,6 +89,7 @@ def main() -> int:
         (z50, z99), (u50, u99) = medians["zenoh"], medians["udp"]
         print(f"zenoh / udp (same minutes): p50 {z50 / u50:.2f}x, p99 {z99 / u99:.2f}x")
     print(f"idle CPUs: {wake}; load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (the machine is shared)")
+    print(f"scheduling: {scheduling}")
     if a.png:
         _plot(ages_by_run, Path(a.png))
         print(f"wrote {a.png}")
