@@ -651,7 +651,7 @@ class _UnitLoop:
         if not vehicle.hil_pending:
             self.command_deadline = None
 
-    def finish(self, loop: dict[str, float] | None) -> None:
+    def finish(self, loop: dict[str, float | str] | None) -> None:
         """The last deferred work and the final status (`loop`: this process's stepping loop's CPU and
         wake-ups, `LoopMeter.figures`, when it hosts this unit alone; a host of several writes its own
         status file)."""
