@@ -5,7 +5,7 @@
 Three variants of the same scenario, flown alternately `--repeats` times each (so a busy machine
 slows them alike) and compared by the median real-time factor:
 * still: the scenario as it is (the paper plant, no drag);
-* drag: the preset's drag on (mars_link.aerodynamics), still air: the cost of the generated
+* drag: the preset's drag on (mars_link.models.aerodynamics), still air: the cost of the generated
   aerodynamics functions;
 * air: drag on, 5 m/s steady wind and moderate Milspec turbulence (JSBSim's FGWinds every step).
 Prints each variant's median RTF and the ratios to still air.
@@ -21,10 +21,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from mars_link.aerodynamics import AERO_PRESETS  # noqa: E402
-from mars_link.environment import SEVERITIES, EnvironmentParams  # noqa: E402
-from mars_link.runner import run_scenario  # noqa: E402
-from mars_link.scenario import load_scenario  # noqa: E402
+from mars_link.models.aerodynamics import AERO_PRESETS  # noqa: E402
+from mars_link.models.environment import SEVERITIES, EnvironmentParams  # noqa: E402
+from mars_link.flight.runner import run_scenario  # noqa: E402
+from mars_link.config.scenario import load_scenario  # noqa: E402
 
 
 def variants(name: str, duration_s: float | None) -> dict:

@@ -16,7 +16,7 @@ import time
 import numpy as np
 
 from mars_link.allocation import ALLOCATION_MODES, make_allocator
-from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
+from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
 
 REPEATS = 5
 LAYOUTS = (("3x2", ["XXX", "XXX"]), ("5x5", ["XXXXX"] * 5))

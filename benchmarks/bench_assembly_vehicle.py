@@ -18,9 +18,9 @@ import time
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.assembly import parse_layout
-from mars_link.assembly_vehicle import AssemblySim
-from mars_link.scenario import load_scenario
+from mars_link.core.assembly import parse_layout
+from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.config.scenario import load_scenario
 
 
 def main() -> None:

@@ -23,10 +23,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from mars_link.battery import battery_table  # noqa: E402
-from mars_link.build import build_flight  # noqa: E402
-from mars_link.engine import Engine, FlightRecorder  # noqa: E402
-from mars_link.scenario import load_scenario  # noqa: E402
+from mars_link.models.battery import battery_table  # noqa: E402
+from mars_link.flight.build import build_flight  # noqa: E402
+from mars_link.flight.engine import Engine, FlightRecorder  # noqa: E402
+from mars_link.config.scenario import load_scenario  # noqa: E402
 
 
 def variants(name: str, duration_s: float | None) -> dict:

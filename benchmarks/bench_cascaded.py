@@ -14,11 +14,11 @@ import time
 import numpy as np
 
 from mars_link.allocation import make_allocator
-from mars_link.assembly import AssemblyModel
+from mars_link.core.assembly import AssemblyModel
 from mars_link.control.cascaded import CascadedController
-from mars_link.rotations import euler_to_quat
-from mars_link.state import RigidBodyState
-from mars_link.trajectories import TRAJECTORY_KINDS, build_trajectory
+from mars_link.core.rotations import euler_to_quat
+from mars_link.core.state import RigidBodyState
+from mars_link.models.trajectories import TRAJECTORY_KINDS, build_trajectory
 
 LAYOUTS = {"1x1": ["X"], "3x2": ["XXX", "XXX"], "plus-5": [".X.", "XXX", ".X."], "L-4": ["X..", "XXX"]}
 

@@ -22,10 +22,10 @@ import time
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
-from mars_link.estimation import AssemblyEstimator
-from mars_link.fault_detection import FaultDetector
-from mars_link.state import ImuSample, PositionSample
+from mars_link.core.assembly import AssemblyModel
+from mars_link.models.estimation import AssemblyEstimator
+from mars_link.models.fault_detection import FaultDetector
+from mars_link.core.state import ImuSample, PositionSample
 
 LAYOUTS = {"1x1": ["X"], "2x2": ["XX", "XX"], "3x2": ["XXX", "XXX"], "4x1": ["XXXX"], "3x3": ["XXX", "XXX", "XXX"]}
 RATE_HZ = 100.0
@@ -95,8 +95,8 @@ def bench_step_split(model: AssemblyModel, n: int = 4000, repeats: int = 3) -> t
 
 def bench_flight_split(scenario_name: str = "spiral_3x2", seed: int = 1) -> tuple[float, float, int]:
     """The real loop: median microseconds of AssemblyEstimator.step on fusion and plain steps."""
-    from mars_link.runner import run_trial
-    from mars_link.scenario import load_scenario
+    from mars_link.flight.runner import run_trial
+    from mars_link.config.scenario import load_scenario
 
     fuse, plain = [], []
     original = AssemblyEstimator.step
@@ -181,7 +181,7 @@ def bench_parts(model: AssemblyModel, n: int = 2000) -> dict[str, np.ndarray]:
 
 
 def bench_flight(seed: int = 1) -> None:
-    from mars_link.reproduce import ekf_accuracy
+    from mars_link.apps.reproduce import ekf_accuracy
 
     c = time.perf_counter()
     acc = ekf_accuracy("spiral_3x2", seed)

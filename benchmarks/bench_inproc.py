@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
 
 
 def bare_physics_steps_per_s(scenario, seconds: float = 2.0) -> float:

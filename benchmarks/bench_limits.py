@@ -1,4 +1,4 @@
-"""What a run allocates, against the caps of mars_link/limits.py and run_log.PLOT_ROWS_MAX.
+"""What a run allocates, against the caps of mars_link/core/limits.py and run_log.PLOT_ROWS_MAX.
 
     python benchmarks/bench_limits.py [--quick]
 
@@ -8,7 +8,7 @@ the peak of Python allocations (tracemalloc) and the peak resident size:
   * memory per simulated second: hover_3x2 (perfect sensors) for 20, 80 and 320 s (flat once the
     plot rows reach PLOT_ROWS_MAX, 40 s at 100 Hz);
   * memory in the unit count: an in-process flight of 0.05 s on square layouts up to 20x20 (400
-    units), against the byte budget's model of mars_link/limits.py (its linear cost per unit).
+    units), against the byte budget's model of mars_link/core/limits.py (its linear cost per unit).
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ import sys
 
 CASE = r"""
 import json, resource, sys, time, tracemalloc
-from mars_link.assembly import parse_layout
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
+from mars_link.core.assembly import parse_layout
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
 kind, arg = sys.argv[1], float(sys.argv[2])
 tracemalloc.start()
 t0 = time.perf_counter()
@@ -62,7 +62,7 @@ def main() -> None:
         print(f"duration {d0:.0f} -> {d1:.0f} s: peak {r0['peak_mb']:.2f} -> {r1['peak_mb']:.2f} MB, "
               f"{(r1['peak_mb'] - r0['peak_mb']) / (d1 - d0) * 1e3:.1f} KB per simulated second "
               f"({d1 / r1['wall_s']:.1f}x real time)")
-    from mars_link.limits import BYTES_PER_UNIT_SQUARED, MAX_UNITS_PER_RUN, RUN_BUDGET_BYTES, run_bytes
+    from mars_link.core.limits import BYTES_PER_UNIT_SQUARED, MAX_UNITS_PER_RUN, RUN_BUDGET_BYTES, run_bytes
 
     sides = (2, 4, 8) if args.quick else (2, 4, 8, 12, 14, 20)
     peaks = {}
@@ -75,7 +75,7 @@ def main() -> None:
     lo, hi = min(peaks), max(peaks)  # the linear part per unit, the QP's dense Hessian taken out
     linear = [(peaks[n] - BYTES_PER_UNIT_SQUARED * n * n) for n in (lo, hi)]
     print(f"linear part: {(linear[1] - linear[0]) / (hi - lo) / 1e3:.0f} KB per unit ({lo} -> {hi} units); "
-          f"the cap: {MAX_UNITS_PER_RUN} units within {RUN_BUDGET_BYTES / 2**20:.0f} MiB (mars_link/limits.py)")
+          f"the cap: {MAX_UNITS_PER_RUN} units within {RUN_BUDGET_BYTES / 2**20:.0f} MiB (mars_link/core/limits.py)")
 
 
 if __name__ == "__main__":

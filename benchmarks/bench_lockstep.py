@@ -9,7 +9,7 @@ process spends per simulated second, and the per-message costs on its path.
 
 RTF = simulated time / wall time of the world's stepping loop (start-up excluded; printed apart).
 Wake-ups per step: the times each process's main thread went to sleep in its stepping loop (voluntary
-context switches, `mars_link.machine_load.LoopMeter`) over the world's steps; for the unit processes,
+context switches, `mars_link.runtime.machine_load.LoopMeter`) over the world's steps; for the unit processes,
 per process.
 The per-message part reuses bench_mavlink's timing (best of `--repeats` runs of `--n` calls; the
 machine is shared): one exchange of one unit, piece by piece, as each process sees it.
@@ -31,9 +31,9 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from bench_mavlink import best_us
 from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL, Vehicle, VehicleConfig
-from mars_link.messages import ActuatorOutput, ImuSample, PositionSample, RotorCommand, SensorPacket
-from mars_link.state import RigidBodyState
-from mars_link.wire import (
+from mars_link.core.messages import ActuatorOutput, ImuSample, PositionSample, RotorCommand, SensorPacket
+from mars_link.core.state import RigidBodyState
+from mars_link.mavlink.wire import (
     SensorPacketAssembler,
     actuator_output_from_message,
     actuator_output_message,
@@ -42,7 +42,7 @@ from mars_link.wire import (
     sensor_packet_messages,
 )
 from sitl.hil import hil_state_message
-from sitl.lockstep import _with_takeover
+from mars_link.processes.lockstep import _with_takeover
 
 ROOT = Path(__file__).resolve().parent.parent
 FULL_SCALE_N = 10.0
@@ -52,7 +52,7 @@ def rtf_runs(scenario: str, runs: int, layout: str | None = None, transport: str
              units_per_process: int = 1) -> list[dict]:
     """Lockstep runs as fast as possible (`run --mode sitl`'s processes on `transport`); per run the RTF of
     the world's stepping loop and the CPU seconds of every process (stepping loop and whole process)."""
-    from mars_link.sitl_mode import start_sitl
+    from mars_link.processes.sitl_mode import start_sitl
     from mars_link.transport import LinkSpec
 
     rows = []

@@ -19,9 +19,9 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.motor import MotorModel, MotorParams
-from firmware_models.signing import SignatureVerifier, enable_outgoing_signing
+from mars_link.mavlink.signing import SignatureVerifier, enable_outgoing_signing
 from firmware_models.vehicle import LINK_API, LINK_COORDINATOR, Vehicle, VehicleConfig, split_frames
-from mars_link.state import RigidBodyState
+from mars_link.core.state import RigidBodyState
 
 KEY = hashlib.sha256(b"bench").digest()
 T0 = 1.7e9

@@ -1,4 +1,4 @@
-"""What run.mcap and the live Foxglove view cost (mars_link.flight_view), measured in one invocation.
+"""What run.mcap and the live Foxglove view cost (mars_link.flight.flight_view), measured in one invocation.
 
     python benchmarks/bench_mcap.py [--runs 3] [--duration S] [--size-duration 10] [--rt-runs 2] [--rt-duration 8]
 
@@ -8,7 +8,7 @@
 2. run.mcap size per simulated minute: the 3x2 spiral and a 10x10 hover (default rates).
 3. Real-time SITL (`run --mode sitl --realtime`, 3x2 hover, world paced at 1x): command age at the motor
    and deadline misses with run.mcap and no server, and with the live server and a Foxglove WebSocket client
-   subscribed to every topic (mars_link.foxglove_probe), runs alternated.
+   subscribed to every topic (mars_link.apps.foxglove_probe), runs alternated.
 The machine is shared: compare the figures of one invocation, not across days.
 """
 
@@ -27,8 +27,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from mars_link.runner import run_scenario  # noqa: E402
-from mars_link.scenario import load_scenario  # noqa: E402
+from mars_link.flight.runner import run_scenario  # noqa: E402
+from mars_link.config.scenario import load_scenario  # noqa: E402
 
 
 def inproc_rtf(duration_s: float, runs: int, tmp: Path) -> None:
@@ -36,7 +36,7 @@ def inproc_rtf(duration_s: float, runs: int, tmp: Path) -> None:
     if duration_s is not None:
         sc.sim.duration_s = duration_s
     else:  # the default scenario as `mars-link run` flies it: the whole spiral
-        from mars_link.build import flight_duration_s
+        from mars_link.flight.build import flight_duration_s
 
         duration_s = flight_duration_s(sc)
     import resource
@@ -93,7 +93,7 @@ class _Client(threading.Thread):
         self.url, self.seconds, self.got = url, seconds, {}
 
     def run(self) -> None:
-        from mars_link.foxglove_probe import listen
+        from mars_link.apps.foxglove_probe import listen
 
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline and not self.got:
@@ -106,8 +106,8 @@ class _Client(threading.Thread):
 def realtime_deadlines(runs: int, duration_s: float, tmp: Path) -> None:
     import socket
 
-    from mars_link.foxglove_probe import rates
-    from mars_link.sitl_mode import run_sitl_scenario
+    from mars_link.apps.foxglove_probe import rates
+    from mars_link.processes.sitl_mode import run_sitl_scenario
     from mars_link.transport import LinkSpec
 
     sc = load_scenario("hover_3x2")

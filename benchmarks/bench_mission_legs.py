@@ -1,6 +1,6 @@
 """Leg planning against the control deadline: the damaged 3x2 (unit 2 failed, found by the detector) flies
 the five-waypoint walls mission as `mars-link vehicle` does (AssemblySim in process, paced to real time), its legs
-planned around ../shared/data/mars_ftcc_walls.csv in the worker process (mars_link.mission_legs). Every
+planned around ../shared/data/mars_ftcc_walls.csv in the worker process (mars_link.planning.mission_legs). Every
 control period's compute time (sensing, EKF, vehicle tick, coordinator, motors, physics) is split by
 whether a leg was being planned meanwhile, against the 10 ms deadline of 100 Hz; the planning times
 come from the worker. One run measures both sides, so their ratio is of the same minutes.
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mars_link.planning.evaluate import walls_mission_flight
+from mars_link.apps.planning_eval import walls_mission_flight
 
 DEADLINE_MS = 10.0
 

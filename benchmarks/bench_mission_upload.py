@@ -1,6 +1,6 @@
 """Mission upload time over loopback UDP: a pymavlink client uploads N waypoints (MISSION_COUNT ->
 MISSION_REQUEST_INT / MISSION_ITEM_INT ... -> MISSION_ACK, one item per request as QGroundControl and
-MAVSDK do) to a lone unit process (`firmware_models.udp_runner`, which also flies its JSBSim body in
+MAVSDK do) to a lone unit process (`mars_link.processes.udp_runner`, which also flies its JSBSim body in
 real time), then downloads them back. Median and best of `--repeats` runs per size.
 
     python benchmarks/bench_mission_upload.py [--sizes 100 1000] [--repeats 5]
@@ -16,7 +16,7 @@ import time
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.udp_runner import free_udp_port, spawn_unit, stop_unit
+from mars_link.processes.udp_runner import free_udp_port, spawn_unit, stop_unit
 
 HOME = (47.397742, 8.545594)
 

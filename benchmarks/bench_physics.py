@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
-from mars_link.rotations import euler_to_quat
-from mars_link.state import RigidBodyState
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.rotations import euler_to_quat
+from mars_link.core.state import RigidBodyState
 from sitl.physics import JsbsimBody
 
 PHYSICS_HZ = 500.0

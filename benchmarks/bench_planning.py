@@ -24,8 +24,8 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mars_link.assembly import AssemblyModel  # noqa: E402
-from mars_link.planning.evaluate import WALLS_CSV, WALLS_GOAL, WALLS_START  # noqa: E402
+from mars_link.core.assembly import AssemblyModel  # noqa: E402
+from mars_link.apps.planning_eval import WALLS_CSV, WALLS_GOAL, WALLS_START  # noqa: E402
 from mars_link.planning.maps import ForestParams, load_map, random_forest  # noqa: E402
 from mars_link.planning.pipeline import Planner, resolve_data_path  # noqa: E402
 
@@ -87,7 +87,7 @@ def main() -> int:
                [forest_once(seed, method, args.density) for seed in range(args.repeats)])
     for method in ("ours", "svsdf"):
         out = ROOT / "runs" / f"bench_plan_{method}"
-        cmd = [sys.executable, "-m", "mars_link.cli", "plan", str(resolve_data_path(WALLS_CSV)), "--layout", "XXX,XXX",
+        cmd = [sys.executable, "-m", "mars_link.apps.cli", "plan", str(resolve_data_path(WALLS_CSV)), "--layout", "XXX,XXX",
                "--fault", "2=0", "--start", ",".join(map(str, WALLS_START)), "--goal", ",".join(map(str, WALLS_GOAL)),
                "--method", method, "--out", str(out), "--quiet"]
         t0 = time.perf_counter()

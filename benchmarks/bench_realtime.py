@@ -28,10 +28,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from mars_link.errors import UserInputError  # noqa: E402
-from mars_link.scenario import load_scenario  # noqa: E402
-from mars_link.scheduling import describe_classes  # noqa: E402
-from mars_link.sitl_mode import run_sitl_scenario, stage_times  # noqa: E402
+from mars_link.core.errors import UserInputError  # noqa: E402
+from mars_link.config.scenario import load_scenario  # noqa: E402
+from mars_link.runtime.scheduling import describe_classes  # noqa: E402
+from mars_link.processes.sitl_mode import run_sitl_scenario, stage_times  # noqa: E402
 from mars_link.transport import LinkSpec  # noqa: E402
 
 STAGES = ("sensors_in", "telemetry_in", "computed", "sent", "commands_in", "at_motors")

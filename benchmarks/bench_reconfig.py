@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
+from mars_link.core.assembly import AssemblyModel
 from mars_link.reconfig import solve_placement
 from mars_link.reconfig.sequencing import Sequencer
 

@@ -10,7 +10,7 @@
 3. The estimator's cost per control step against the unit count N = 1, 9, 25, 49, 100, 400 (synthetic
    noisy hover at 100 Hz, positions with velocities at 50 Hz: the runner's rhythm) and the fitted
    log-log slope of cost against N.
-No environment variable is needed: the project sets its BLAS pools itself (mars_link.blas_threads).
+No environment variable is needed: the project sets its BLAS pools itself (mars_link.runtime.blas_threads).
 """
 
 from __future__ import annotations
@@ -23,13 +23,13 @@ from pathlib import Path
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel, parse_layout
-from mars_link.blas_threads import single_blas_thread
-from mars_link.engine import InProcessUnits
-from mars_link.estimation import AssemblyEstimator
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
-from mars_link.state import ImuSample, PositionSample
+from mars_link.core.assembly import AssemblyModel, parse_layout
+from mars_link.runtime.blas_threads import single_blas_thread
+from mars_link.flight.engine import InProcessUnits
+from mars_link.models.estimation import AssemblyEstimator
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
+from mars_link.core.state import ImuSample, PositionSample
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_inproc import bare_physics_steps_per_s  # noqa: E402  (a sibling script)

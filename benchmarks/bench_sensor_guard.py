@@ -1,4 +1,4 @@
-"""What the EKF's sensor-health gate (mars_link/sensor_health.py) costs: the in-process 3x2 spiral with
+"""What the EKF's sensor-health gate (mars_link/models/sensor_health.py) costs: the in-process 3x2 spiral with
 the gate in front of the EKF (as every flight has it) against the bare EKF, alternated in one run.
 
     python benchmarks/bench_sensor_guard.py [--duration 20] [--runs 3] [--sensors mocap|gps|both]
@@ -19,10 +19,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from mars_link.build import build_flight  # noqa: E402
-from mars_link.engine import Engine  # noqa: E402
-from mars_link.scenario import load_scenario  # noqa: E402
-from mars_link.sensor_profiles import PROFILES  # noqa: E402
+from mars_link.flight.build import build_flight  # noqa: E402
+from mars_link.flight.engine import Engine  # noqa: E402
+from mars_link.config.scenario import load_scenario  # noqa: E402
+from mars_link.models.sensor_profiles import PROFILES  # noqa: E402
 
 
 def fly(duration_s: float, guarded: bool, sensors: str = "mocap") -> tuple[float, float, float]:

@@ -5,7 +5,7 @@
 
 The same sweep (default: 200 flights of the bundled 3x2 spiral, full length, each with one random
 rotor failure, eta 0, drawn from the sweep seed and the flight's slot) flown in full by each worker
-count on local processes (mars_link.sweep_pool). Why rounds: the machine is shared and its load drifts
+count on local processes (mars_link.apps.sweep_pool). Why rounds: the machine is shared and its load drifts
 over minutes, so the flights are cut into `--rounds` chunks and each chunk is flown by every worker
 count in turn (the order reversed every round), each count on its own pool opened once (its start-up
 counted in its first round). Printed per worker count: wall time (sum over rounds), flights per
@@ -29,10 +29,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from mars_link.sweep import RESULT_FIELDS, parse_faults, plan_sweep, read_scenario_doc  # noqa: E402
-from mars_link.sweep_cli import run_sweep  # noqa: E402
-from mars_link.sweep_pool import PoolSpec, open_pool  # noqa: E402
-from mars_link.sweep_report import cell  # noqa: E402
+from mars_link.apps.sweep import RESULT_FIELDS, parse_faults, plan_sweep, read_scenario_doc  # noqa: E402
+from mars_link.apps.sweep_cli import run_sweep  # noqa: E402
+from mars_link.apps.sweep_pool import PoolSpec, open_pool  # noqa: E402
+from mars_link.apps.sweep_report import cell  # noqa: E402
 
 
 def children_cpu_s() -> float:

@@ -136,8 +136,8 @@ def bench_latency(kind: str, cycles: int) -> dict:
 
 # ----------------------------------------------------------------------------- 2. real-time SITL
 def bench_realtime(kind: str, seconds: float, profile: str | None = None) -> dict:
-    from mars_link.scenario import load_scenario
-    from mars_link.sitl_mode import run_sitl_scenario
+    from mars_link.config.scenario import load_scenario
+    from mars_link.processes.sitl_mode import run_sitl_scenario
     from mars_link.transport import LinkSpec
 
     sc = load_scenario(str(ROOT / "scenarios" / "hover_3x2.toml"))
@@ -156,8 +156,8 @@ def bench_realtime(kind: str, seconds: float, profile: str | None = None) -> dic
 def bench_step_cpu(kind: str, seconds: float) -> dict:
     """CPU time (user + system, all eight processes) per 100 Hz lockstep step of the 3x2 hover: a run of
     `seconds` minus a 1 s run, so start-up (about 0.6 CPU-s per process, and noisy) is left out."""
-    from mars_link.scenario import load_scenario
-    from mars_link.sitl_mode import start_sitl, write_scenario_copy
+    from mars_link.config.scenario import load_scenario
+    from mars_link.processes.sitl_mode import start_sitl, write_scenario_copy
     from mars_link.transport import LinkSpec
 
     def run(duration: float) -> tuple[float, int]:

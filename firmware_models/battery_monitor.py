@@ -2,7 +2,7 @@
 them, and PX4's low-battery levels and failsafe action.
 
 Like PX4's battery estimation: at the first measurement the remaining charge is read from the resting
-voltage (the open-circuit curve of mars_link.battery, the I*R drop added back with BAT1_R_INTERNAL), then
+voltage (the open-circuit curve of mars_link.models.battery, the I*R drop added back with BAT1_R_INTERNAL), then
 counted down from the measured current against BAT1_CAPACITY. The levels follow BAT_LOW_THR,
 BAT_CRIT_THR and BAT_EMERGEN_THR (fractions of the capacity); COM_LOW_BAT_ACT picks the action at the
 critical and emergency levels: 0 warning only, 2 land, 3 return at critical then land at emergency.
@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from mars_link.battery import soc_from_cell_v
+from mars_link.models.battery import soc_from_cell_v
 
 #: the levels in order, with PX4's names for them
 LEVELS = ("ok", "low", "critical", "emergency")

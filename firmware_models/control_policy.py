@@ -5,7 +5,7 @@ Why a module of its own: PX4's mavlink module splits by microservice; here the r
 whether a frame may act stay in one place, apart from the vehicle's flight logic.
 
 Authority of one frame (highest first):
-  SAFETY  a genuinely signed frame (HMAC checked first, firmware_models.signing), or any frame when
+  SAFETY  a genuinely signed frame (HMAC checked first, mars_link.mavlink.signing), or any frame when
           the vehicle has no signing key at all (SITL on loopback, PX4's default: no authentication)
   FLY     an unsigned frame on a link that does not require signing, on a vehicle that has a key
   READ    an unsigned frame on a link that requires signing but lets unsigned clients read

@@ -20,7 +20,7 @@ import numpy as np
 import shapely
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.geo import GeoOrigin
+from mars_link.core.geo import GeoOrigin
 from firmware_models.mission_protocol import LOCAL_FRAMES, LOCAL_SCALE, MissionItem
 
 R = mavlink

@@ -30,7 +30,7 @@ from dataclasses import dataclass, replace
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.geo import GeoOrigin
+from mars_link.core.geo import GeoOrigin
 
 R = mavlink
 MISSION, FENCE, RALLY, TYPE_ALL = (R.MAV_MISSION_TYPE_MISSION, R.MAV_MISSION_TYPE_FENCE, R.MAV_MISSION_TYPE_RALLY,

@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.geo import GeoOrigin
+from mars_link.core.geo import GeoOrigin
 from firmware_models.mission_protocol import GLOBAL_REL, HERE_OK, LOCAL_SCALE, MissionItem
-from mars_link.state import RigidBodyState
+from mars_link.core.state import RigidBodyState
 
 R = mavlink
 DEFAULT_ACCEPTANCE_M = 0.5  # NAV_WAYPOINT p2 = 0/NaN (PX4's NAV_ACC_RAD is 10 m, sized for larger craft)

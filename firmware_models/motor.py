@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel, VehicleParams
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel, VehicleParams
+from mars_link.core.errors import UserInputError
 
 
 @dataclass(frozen=True)

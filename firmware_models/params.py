@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.assembly import VehicleParams
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import VehicleParams
+from mars_link.core.errors import UserInputError
 
 INT32 = mavlink.MAV_PARAM_TYPE_INT32
 REAL32 = mavlink.MAV_PARAM_TYPE_REAL32

@@ -17,7 +17,7 @@ from pathlib import Path
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.mission_protocol import FENCE, MISSION, RALLY, TYPE_NAMES, MissionItem, check_item
-from mars_link.errors import UserInputError
+from mars_link.core.errors import UserInputError
 
 R = mavlink
 

@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.assembly import ROTORS_PER_UNIT
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import ROTORS_PER_UNIT
+from mars_link.core.errors import UserInputError
 
 MSG_ID = 139  # SET_ACTUATOR_CONTROL_TARGET
 

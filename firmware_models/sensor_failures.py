@@ -28,8 +28,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.messages import SensorPacket
-from mars_link.state import ImuSample, PositionSample
+from mars_link.core.messages import SensorPacket
+from mars_link.core.state import ImuSample, PositionSample
 
 #: FAILURE_UNIT (MAVLink common.xml) of each sensor, by the name scenarios and logs use
 SENSOR_UNITS = {"gyro": 0, "accel": 1, "mag": 2, "baro": 3, "gps": 4}
@@ -222,7 +222,7 @@ class SensorFailures:
 
 def _moved_fix(fix, offset_ned_m) -> object:
     """A HIL_GPS fix moved by `offset_ned_m` (a multipath jump), at the wire's precision."""
-    from mars_link.gnss import gps_ned, home
+    from mars_link.core.gnss import gps_ned, home
 
     origin = home()
     pos, _ = gps_ned(fix, origin)

@@ -18,11 +18,11 @@ from enum import Enum
 import numpy as np
 
 from mars_link.allocation import make_allocator
-from mars_link.assembly import AssemblyModel, VehicleParams
+from mars_link.core.assembly import AssemblyModel, VehicleParams
 from mars_link.control.cascaded import CascadedController
-from mars_link.rotations import quat_to_euler, wrap_pi
-from mars_link.state import RigidBodyState
-from mars_link.trajectories import TrajectoryPoint
+from mars_link.core.rotations import quat_to_euler, wrap_pi
+from mars_link.core.state import RigidBodyState
+from mars_link.models.trajectories import TrajectoryPoint
 
 TOUCH_HEIGHT_M = 0.08  # a body this close to its ground height with ~no vertical speed is touching
 TOUCH_SPEED_MPS = 0.25
@@ -226,7 +226,7 @@ class UnitAutopilot:
     def guide(self, t_s: float, state: RigidBodyState, lim: GuidanceLimits, land_speed_mps: float
               ) -> tuple[TrajectoryPoint | None, str | None]:
         """The guidance half of `update`: this step's reference (None: idle on the ground) and event.
-        Apart so a reference can be flown ahead of time (mars_link.mission_trajectory)."""
+        Apart so a reference can be flown ahead of time (mars_link.planning.mission_trajectory)."""
         event = None
         ph = self.phase
         if ph == Phase.IDLE:

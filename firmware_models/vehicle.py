@@ -37,16 +37,16 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models import control_policy as policy
-from firmware_models.geo import EARTH_RADIUS_M  # noqa: F401 (re-exported)
+from mars_link.core.geo import EARTH_RADIUS_M  # noqa: F401 (re-exported)
 from firmware_models.battery_monitor import BatteryMonitor
-from firmware_models.geo import GeoOrigin, origin_from_env
+from mars_link.core.geo import GeoOrigin, origin_from_env
 from firmware_models.mission_protocol import MissionProtocol
 from firmware_models.mission_runner import MissionRunner
 from firmware_models.motor import MotorModel, MotorParams
 from firmware_models.params import ParamStore, unit_param_specs
 from firmware_models.rotor_intake import IntakeParams, RotorIntake
 from firmware_models.sensor_failures import SensorFailures
-from firmware_models.signing import ACCEPTED, UNSIGNED, advance_outgoing_clock, is_signed
+from mars_link.mavlink.signing import ACCEPTED, UNSIGNED, advance_outgoing_clock, is_signed
 from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
 from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
     ACTION_COMMANDS, COMMAND_DEDUP_S, FAILURE_TYPE_ETA, FAILURE_UNIT_SYSTEM_MOTOR, SETPOINT_PROOF_OF_LIFE_S,
@@ -76,14 +76,14 @@ from firmware_models.vehicle_streams import (  # noqa: F401 (re-exported)
     CAPABILITIES, DEFAULT_STREAM_HZ, MIN_STREAM_INTERVAL_S, REFUSED_MESSAGES, SENSORS, StreamsMixin,
 )
 from firmware_models.vehicle_streams import next_stream_due
-from mars_link import mavlink_codec
-from mars_link.assembly import VehicleParams, vehicle_preset
-from mars_link.errors import UserInputError
-from mars_link.messages import LATCH_ALL
-from mars_link.state import ImuSample, RigidBodyState
-from mars_link.wire import SensorFrameAssembler
+from mars_link.mavlink import codec as mavlink_codec
+from mars_link.core.assembly import VehicleParams, vehicle_preset
+from mars_link.core.errors import UserInputError
+from mars_link.core.messages import LATCH_ALL
+from mars_link.core.state import ImuSample, RigidBodyState
+from mars_link.mavlink.wire import SensorFrameAssembler
 
-WORLD_SYSID = 200  # the SITL world process (sitl/lockstep.py)
+WORLD_SYSID = 200  # the SITL world process (mars_link/processes/lockstep.py)
 
 
 @dataclass
@@ -137,7 +137,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
-    object with UnitAutopilot's guidance methods, e.g. the assembly's (mars_link.assembly_vehicle).
+    object with UnitAutopilot's guidance methods, e.g. the assembly's (mars_link.vehicles.assembly_vehicle).
     """
 
     motor_count = 4  # highest motor instance MAV_CMD_INJECT_FAILURE may name
@@ -214,7 +214,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self._init_follow()
         self._init_shell()
         self._init_logs()
-        self.legs = None  # mission legs between the runner and the core (mars_link.mission_legs)
+        self.legs = None  # mission legs between the runner and the core (mars_link.planning.mission_legs)
         self.speed_override_mps: float | None = None  # MAV_CMD_DO_CHANGE_SPEED (else MPC_XY_CRUISE)
 
     def _intake_params(self) -> IntakeParams:
@@ -420,7 +420,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
 
     def _pack(self, lk: Link, msg) -> bytes:
         """Encode for this link; a field outside its wire range is clamped and counted
-        (telemetry.clamped), never raised (mars_link.mavlink_codec.encode_clamped)."""
+        (telemetry.clamped), never raised (mars_link.mavlink.codec.encode_clamped)."""
         if lk.policy.sign_outgoing:
             advance_outgoing_clock(lk.encoder, self.wall_s)
         frame, clamped = mavlink_codec.encode_clamped(msg, lk.encoder)
@@ -555,7 +555,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
 
     def discount_stall(self, stalled_s: float, wall_time_s: float) -> None:
         """This process did not run for `stalled_s` (a host-wide stall, as its runner measures it:
-        mars_link.pacing.StallMeter). Its clients most likely did not run either, so the watchdogs
+        mars_link.runtime.pacing.StallMeter). Its clients most likely did not run either, so the watchdogs
         on their silence (offboard setpoints, manual sticks) do not count that time. Never past
         `wall_time_s` (now): a client heard from since is not credited twice."""
         if self._setpoint_wall is not None:

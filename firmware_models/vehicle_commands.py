@@ -12,7 +12,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.control_policy import FORCE_DISARM_MAGIC
 from firmware_models.unit_controller import Phase
-from mars_link.state import RigidBodyState
+from mars_link.core.state import RigidBodyState
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
 from firmware_models.vehicle_modes import (
     MODE_FOLLOW,

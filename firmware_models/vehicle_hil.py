@@ -10,11 +10,11 @@ import dataclasses
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.geo import WIRE_ORIGIN
+from mars_link.core.geo import WIRE_ORIGIN
 from firmware_models.vehicle_modes import MODE_OFFBOARD
-from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
-from mars_link.state import ImuSample, RigidBodyState
-from mars_link.wire import (BARO_FIELDS, MAG_FIELDS, SensorFrames, battery_from_message, battery_report_message,
+from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
+from mars_link.core.state import ImuSample, RigidBodyState
+from mars_link.mavlink.wire import (BARO_FIELDS, MAG_FIELDS, SensorFrames, battery_from_message, battery_report_message,
                             latch_from_message, latch_message, latches_open, sensor_packet_messages)
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
 

@@ -9,8 +9,8 @@ from typing import NamedTuple
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.control_policy import SenderBudgets
-from firmware_models.signing import SignatureVerifier, enable_outgoing_signing
-from mars_link import mavlink_codec
+from mars_link.mavlink.signing import SignatureVerifier, enable_outgoing_signing
+from mars_link.mavlink import codec as mavlink_codec
 
 LINK_GCS, LINK_API, LINK_COORDINATOR, LINK_HIL = "gcs", "api", "coordinator", "hil"
 

@@ -31,9 +31,9 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.unit_controller import Phase
 from firmware_models.vehicle_links import Link, Outgoing, finite
 from firmware_models.vehicle_modes import MODE_FOLLOW, MODE_HOLD, MODE_MISSION, MODE_OFFBOARD, MODE_ORBIT, MODE_POSCTL
-from mars_link.assembly import GRAVITY_MPS2
-from mars_link.rotations import quat_multiply, quat_to_euler, quat_to_rotmat
-from mars_link.trajectories import TrajectoryPoint
+from mars_link.core.assembly import GRAVITY_MPS2
+from mars_link.core.rotations import quat_multiply, quat_to_euler, quat_to_rotmat
+from mars_link.models.trajectories import TrajectoryPoint
 
 R = mavlink
 INT32_MAX = 2**31 - 1

@@ -10,8 +10,8 @@ import math
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.rotations import quat_to_euler
-from mars_link.wire import latch_setpoint_of
+from mars_link.core.rotations import quat_to_euler
+from mars_link.mavlink.wire import latch_setpoint_of
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
 from firmware_models.unit_controller import Phase
 from firmware_models.vehicle_modes import MODE_OFFBOARD

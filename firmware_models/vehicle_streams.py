@@ -11,13 +11,13 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.unit_controller import Phase
-from mars_link.assembly import GRAVITY_MPS2
-from mars_link.rotations import quat_to_euler, quat_to_rotmat
+from mars_link.core.assembly import GRAVITY_MPS2
+from mars_link.core.rotations import quat_to_euler, quat_to_rotmat
 from firmware_models.vehicle_links import finite as _finite
 from firmware_models.vehicle_modes import MAIN_AUTO, MAIN_OFFBOARD, MODE_MISSION
-from mars_link.messages import BatterySample, wire_battery
-from mars_link.pacing import REANCHOR_S
-from mars_link.wire import battery_status
+from mars_link.core.messages import BatterySample, wire_battery
+from mars_link.runtime.pacing import REANCHOR_S
+from mars_link.mavlink.wire import battery_status
 
 MIN_STREAM_INTERVAL_S = 0.001  # 1 kHz: the protocol's floor; the vehicle's own is one message per tick
 #: (its control rate: streams go out when the runner ticks it, once per control step; `stream_cap_hz`)
@@ -69,7 +69,7 @@ SENSOR_BITS = {
 
 #: a stream sent on a tick this late (wall clock) stays on its grid: the late tick and the runner's catch-up
 #: ticks after it send what fell due, one message per tick, so a starved moment loses no sample. Later than
-#: this the runner re-anchors its pacing (mars_link.pacing), and the stream starts again from now.
+#: this the runner re-anchors its pacing (mars_link.runtime.pacing), and the stream starts again from now.
 STREAM_CATCH_UP_S = REANCHOR_S
 
 

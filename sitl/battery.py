@@ -1,5 +1,5 @@
 """The units' battery packs as the world owns them: charge drawn by the rotors, voltage under load, and
-the thrust each pack can still give (formulas and sources in mars_link.battery).
+the thrust each pack can still give (formulas and sources in mars_link.models.battery).
 
 Vectorised over the world's units (unit id order, four rotor slots each). The rotors' energy is counted at
 every exchange period (one power law over the thrusts); the packs themselves (current, charge, voltage,
@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mars_link.battery import BatterySpec, ocv_per_cell_v, thrust_scale
-from mars_link.messages import BatterySample, wire_battery
+from mars_link.models.battery import BatterySpec, ocv_per_cell_v, thrust_scale
+from mars_link.core.messages import BatterySample, wire_battery
 
 
 class Packs:

@@ -27,9 +27,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
-from mars_link.rotations import quat_to_euler, quat_to_rotmat, wrap_pi
-from mars_link.state import RigidBodyState
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.rotations import quat_to_euler, quat_to_rotmat, wrap_pi
+from mars_link.core.state import RigidBodyState
 from sitl.physics import JsbsimBody
 
 

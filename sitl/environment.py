@@ -13,7 +13,7 @@ starts on the first exchange at or after its time, in every body that exists the
 
 from __future__ import annotations
 
-from mars_link.environment import TURBULENCE_MODELS, EnvironmentParams, Gust
+from mars_link.models.environment import TURBULENCE_MODELS, EnvironmentParams, Gust
 
 FT = 0.3048
 GUST_FRAME_LOCAL = 3

@@ -1,7 +1,7 @@
 """World -> unit ground truth as PX4's simulators send it: HIL_STATE_QUATERNION.
 
 Position goes as latitude/longitude on the spherical Earth the unit firmware assumes (origin 0, 0,
-local NED north = R * lat, `firmware_models.geo.WIRE_ORIGIN`): 1e-7 deg is about 1.1 cm;
+local NED north = R * lat, `mars_link.core.geo.WIRE_ORIGIN`): 1e-7 deg is about 1.1 cm;
 altitude in mm, velocity in cm/s, as the message defines them. The firmware uses it for its own
 telemetry and arming checks; a coordinator never receives it.
 """
@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.geo import WIRE_ORIGIN
-from mars_link.state import RigidBodyState
+from mars_link.core.geo import WIRE_ORIGIN
+from mars_link.core.state import RigidBodyState
 
 
 def _int16(x: float) -> int:

@@ -3,7 +3,7 @@
 One pointmass per unit (JSBSim sums the parallel-axis terms itself), a non-rotating spherical planet
 with g = 9.80665 m/s² at the surface, ground contacts on the hull of the units' feet, and the rotors' net thrust and moments as one BODY
 force and three BODY moments in `external_reactions` (the per-rotor sums are made in sitl.physics). When the vehicle feels the
-air (mars_link.aerodynamics), the `aerodynamics` section holds body drag and rotor H-force drag as
+air (mars_link.models.aerodynamics), the `aerodynamics` section holds body drag and rotor H-force drag as
 body-axis functions of JSBSim's own airspeed (wind, gusts and turbulence included).
 
 JSBSim's structural frame is x aft, y right, z up; body FRD positions convert as x_s = -x, y_s = y,
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
+from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
 
 FT_M = 0.3048
 LBF_N = 4.4482216152605

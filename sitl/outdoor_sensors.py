@@ -1,7 +1,7 @@
 """The `gps` profile's sensors on every unit: a GNSS receiver, a barometer and a magnetometer.
 
 Seeded streams of their own (the IMU's stream is not touched, so mocap flights are unchanged). Error
-models (mars_link.sensor_profiles says why): GNSS position = truth of `gps_latency_s` earlier + a
+models (mars_link.models.sensor_profiles says why): GNSS position = truth of `gps_latency_s` earlier + a
 first-order Gauss-Markov walk common to the world's receivers + each receiver's white noise;
 velocity = delayed truth + white noise. Barometer: pressure altitude + a random-walk drift common to
 the world (weather) + white noise per unit. Magnetometer: the Earth's field (declination, inclination)
@@ -15,10 +15,10 @@ from collections import deque
 
 import numpy as np
 
-from mars_link.gnss import earth_field_ned_gauss, gps_sample, home, horizontal_field_gauss, isa_pressure_hpa
-from mars_link.messages import f32
-from mars_link.sensor_profiles import SensorProfile
-from mars_link.state import BaroSample, GpsSample, MagSample
+from mars_link.core.gnss import earth_field_ned_gauss, gps_sample, home, horizontal_field_gauss, isa_pressure_hpa
+from mars_link.core.messages import f32
+from mars_link.models.sensor_profiles import SensorProfile
+from mars_link.core.state import BaroSample, GpsSample, MagSample
 
 #: barometer and magnetometer samples per second (PX4's SITL sends them at about this rate)
 BARO_MAG_RATE_HZ = 50.0

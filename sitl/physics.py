@@ -22,10 +22,10 @@ from pathlib import Path
 import jsbsim
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
-from mars_link.errors import UserInputError
-from mars_link.rotations import euler_to_quat, quat_to_euler
-from mars_link.state import RigidBodyState
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.errors import UserInputError
+from mars_link.core.rotations import euler_to_quat, quat_to_euler
+from mars_link.core.state import RigidBodyState
 from sitl.jsbsim_model import (EARTH_RADIUS_M, EMPTY_MASS_KG, ROTOR_FORCE, ROTOR_MOMENTS, ROTOR_SUM_PROPERTIES,
                                SLUGFT2_PER_KGM2, write_aircraft)
 

@@ -12,9 +12,9 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from mars_link.errors import UserInputError
-from mars_link.rotations import cross3, quat_to_rotmat
-from mars_link.state import ImuSample, PositionSample, RigidBodyState
+from mars_link.core.errors import UserInputError
+from mars_link.core.rotations import cross3, quat_to_rotmat
+from mars_link.core.state import ImuSample, PositionSample, RigidBodyState
 
 
 @dataclass

@@ -13,16 +13,16 @@ from dataclasses import KW_ONLY, dataclass, field
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel, layout_of_cells
-from mars_link.messages import ActuatorOutput, SensorPacket, f32, wire_state, wire_time
-from mars_link.rotations import quat_to_rotmat
-from mars_link.state import ImuSample, PositionSample, RigidBodyState
+from mars_link.core.assembly import AssemblyModel, layout_of_cells
+from mars_link.core.messages import ActuatorOutput, SensorPacket, f32, wire_state, wire_time
+from mars_link.core.rotations import quat_to_rotmat
+from mars_link.core.state import ImuSample, PositionSample, RigidBodyState
 from sitl.docking import DockTolerance, dock_check
-from mars_link.latches import SIDE_STEPS, LatchBoard, components, neighbour_links, opposite
-from mars_link.environment import EnvironmentParams
-from mars_link.sensor_profiles import SensorProfile
+from mars_link.core.latches import SIDE_STEPS, LatchBoard, components, neighbour_links, opposite
+from mars_link.models.environment import EnvironmentParams
+from mars_link.models.sensor_profiles import SensorProfile
 from sitl.environment import Air
-from mars_link.battery import BatterySpec
+from mars_link.models.battery import BatterySpec
 from sitl.battery import Packs
 from sitl.physics import JsbsimBody
 from sitl.outdoor_sensors import OutdoorSensors
@@ -472,7 +472,7 @@ class FreeUnitsWorld:
             for u in self.unit_ids
         }
         self.dead_units: set[int] = set()
-        # the flight view's surface (mars_link.flight_view): all units in one model (slot order = unit order), one
+        # the flight view's surface (mars_link.flight.flight_view): all units in one model (slot order = unit order), one
         # body per unit, world ids
         self.view_model = AssemblyModel.from_layout(["X" * n_units], vehicle)
         self.bodies = [Body.of(self.model, (u,), w.body, self.view_model) for u, w in self.worlds.items()]

@@ -4,7 +4,7 @@ A flight paced to the wall clock keeps real time only if the machine gives it th
 host is shared and its speed swings (bare JSBSim ran at 243x one morning and 90x that afternoon, on an
 idle machine), and in the slow spells the paced multi-process tests fell behind the wall clock with
 nothing wrong in them. So those tests judge a wall-clock figure (a real-time factor, messages per wall
-second) against the share of all cores left idle meanwhile (`mars_link.machine_load`):
+second) against the share of all cores left idle meanwhile (`mars_link.runtime.machine_load`):
 
 - cores sat idle while the flight fell behind: the pacing (or a wait, a lock, a socket) lost time the
   machine had to give. That is a fault, and the test fails;
@@ -20,7 +20,7 @@ import sys
 import time
 import warnings
 
-from mars_link.machine_load import IdleMeter
+from mars_link.runtime.machine_load import IdleMeter
 
 #: below this share of idle cores, a missed wall-clock figure is put down to starvation. A 3x2 Zenoh
 #: lockstep at real time leaves about 25 % of 2 cores idle, the UDP one about 50 %. A pacing fault cuts the

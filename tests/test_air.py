@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq
 
-from mars_link.aerodynamics import AERO_PRESETS, RHO_SEA_LEVEL_KGPM3
-from mars_link.assembly import GRAVITY_MPS2, AssemblyModel, vehicle_preset
-from mars_link.environment import SEVERITIES, EnvironmentParams, Gust, dryden_low_altitude
-from mars_link.state import RigidBodyState
+from mars_link.models.aerodynamics import AERO_PRESETS, RHO_SEA_LEVEL_KGPM3
+from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel, vehicle_preset
+from mars_link.models.environment import SEVERITIES, EnvironmentParams, Gust, dryden_low_altitude
+from mars_link.core.state import RigidBodyState
 from sitl.environment import Air
 from sitl.jsbsim_model import EMPTY_MASS_KG
 from sitl.physics import FT, LBF, JsbsimBody
@@ -194,9 +194,9 @@ def _hover_tilt_rad(vehicle, wind_mps: float) -> tuple[float, float]:
 def test_hovering_unit_in_steady_wind_settles_at_the_balance_tilt() -> None:
     """A 1x1 holding 2 m in a steady 5 m/s wind (cascaded, truth): the tilt settles where thrust balances
     weight and drag, arctan(drag / weight) within 5 %."""
-    from mars_link.build import build_flight
-    from mars_link.engine import Engine
-    from mars_link.scenario import scenario_from_dict
+    from mars_link.flight.build import build_flight
+    from mars_link.flight.engine import Engine
+    from mars_link.config.scenario import scenario_from_dict
 
     sc = scenario_from_dict({
         "name": "wind_hover", "vehicle": {"preset": "mars-ftcc"}, "assembly": {"layout": ["X"], "tracked": "com"},

@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from mars_link.metrics import gust_response
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
+from mars_link.flight.metrics import gust_response
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
 
 
 def test_spiral_in_wind_and_moderate_turbulence_completes() -> None:
@@ -46,7 +46,7 @@ def test_detector_takes_no_vertical_gust_for_a_rotor_fault() -> None:
     """Seed 8 of the fault-free spiral in 5 m/s wind and moderate turbulence (faults not told) alarmed 9
     times before partial losses had to be confirmed by the moments: a change of lift without a moment is
     the air. 20 seeds: `python tools/fdi_eval.py --turbulence moderate --wind 5,0,0 --false-alarm-seeds 20`."""
-    from mars_link.reproduce import fdi_false_alarm_flight
+    from mars_link.apps.reproduce import fdi_false_alarm_flight
 
     assert fdi_false_alarm_flight(8, environment={"wind_ned_mps": [5.0, 0.0, 0.0], "turbulence": "moderate"}) == []
 

@@ -7,9 +7,9 @@ import pytest
 
 from mars_link.allocation import ALLOCATION_MODES, check_controllable, make_allocator
 from mars_link.allocation.modes import RedistributedPseudoInverse, row_weights
-from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
+from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
 from mars_link.control.paper_tables import thrust_shares
-from mars_link.errors import UserInputError
+from mars_link.core.errors import UserInputError
 
 FTC_MODES = [m for m in ALLOCATION_MODES if m != "none"]
 

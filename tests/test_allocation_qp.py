@@ -11,7 +11,7 @@ from scipy.optimize import lsq_linear
 from mars_link.allocation import make_allocator
 from mars_link.allocation.modes import row_weights
 from mars_link.allocation.qp import VARIANCE_WEIGHT
-from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
+from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
 
 
 def faulted(model: AssemblyModel) -> np.ndarray:
@@ -110,8 +110,8 @@ def test_saturated_qp_keeps_thrust_roll_and_pitch_and_gives_yaw_only_what_remain
     unbounded answer clipped to the same range (what flew before) keeps almost none of the thrust."""
     from scipy.optimize import linprog
 
-    from mars_link.build import allocator_bounds
-    from mars_link.reproduce import CASES, scenario_for
+    from mars_link.flight.build import allocator_bounds
+    from mars_link.apps.reproduce import CASES, scenario_for
 
     case = next(c for c in CASES if c.name == "F3 units {3}")
     scenario = scenario_for(case, "cascaded", "qp", t_fault_s=10.0)

@@ -10,13 +10,13 @@ import sys
 import numpy as np
 import pytest
 
-from mars_link.assembly import AssemblyModel
-from mars_link.reconfig.flight import run_reconfig_trial
+from mars_link.core.assembly import AssemblyModel
+from mars_link.flight.reconfig_flight import run_reconfig_trial
 from mars_link.reconfig.sequencing import plan_assembly
-from mars_link.rotations import euler_to_quat
-from mars_link.runner import run_trial
-from mars_link.scenario import load_scenario
-from mars_link.state import RigidBodyState
+from mars_link.core.rotations import euler_to_quat
+from mars_link.flight.runner import run_trial
+from mars_link.config.scenario import load_scenario
+from mars_link.core.state import RigidBodyState
 from sitl.docking import momentum
 from sitl.world import World, WorldConfig
 
@@ -110,7 +110,7 @@ def test_bad_free_start_is_one_line_exit_2(tmp_path, extra, message) -> None:
     path = tmp_path / "s.toml"
     path.write_text(f'name = "t"\n[assembly]\nlayout = ["XX"]\nstart = "free"\n{extra}\n[sim]\nnoise = false\n'
                     .replace('start = "free"\nstart', 'start'))
-    p = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", str(path), "--quiet", "--out",
+    p = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", str(path), "--quiet", "--out",
                         str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and message in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
 
@@ -122,7 +122,7 @@ def test_free_start_with_told_faults_is_refused_in_both_modes(tmp_path) -> None:
     path.write_text('name = "t"\n[assembly]\nlayout = ["XX"]\nstart = "free"\n[control]\nfaults_known = true\n'
                     '[sim]\nnoise = false\n[[faults]]\nt = 5.0\nunit = 1\nrotor = 1\neta = 0.5\n')
     for argv in (["run", str(path)], ["run", str(path), "--mode", "sitl"]):
-        p = subprocess.run([sys.executable, "-m", "mars_link.cli", *argv, "--quiet", "--out", str(tmp_path / "o")],
+        p = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", *argv, "--quiet", "--out", str(tmp_path / "o")],
                            capture_output=True, text=True, timeout=120)
         assert p.returncode == 2 and len(p.stderr.strip().splitlines()) == 1, p.stderr
         assert "faults_known = false" in p.stderr

@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
-from mars_link.assembly_vehicle import AssemblySim
-from mars_link.realtime import spawn_vehicle
-from mars_link.scenario import FaultSpec, load_scenario
+from mars_link.processes.udp_runner import free_udp_port, read_status, stop_unit
+from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.processes.realtime import spawn_vehicle
+from mars_link.config.scenario import FaultSpec, load_scenario
 from test_mavproxy_unit import run_mavproxy  # the unit MAVProxy test's harness
 from test_robustness import Listener, _flood, _kernel_drops  # the unit robustness test's helpers
 
@@ -259,8 +259,8 @@ class Gcs:
 def test_qgc_connect_then_hostile_traffic_counted_and_dropped(tmp_path: Path) -> None:
     """QGC's connect sequence on the gcs link gets timely answers; then hostile traffic on the api
     link is counted by reason and never acted on while the legitimate client keeps being answered."""
-    from mars_link.assembly import AssemblyModel, vehicle_preset
-    from mars_link.assembly_vehicle import assembly_param_specs
+    from mars_link.core.assembly import AssemblyModel, vehicle_preset
+    from mars_link.vehicles.assembly_vehicle import assembly_param_specs
     from test_qgc_connect import TIMELY_S, Qgc
 
     status = tmp_path / "status.json"
@@ -347,8 +347,8 @@ def test_qgc_connect_then_hostile_traffic_counted_and_dropped(tmp_path: Path) ->
 def test_mavproxy_watches_the_assembly_on_the_gcs_link(tmp_path: Path) -> None:
     """MAVProxy 1.8 (non-interactive, udpout to the gcs link): the assembly detected as one vehicle,
     PX4 mode decoded, the assembly's parameter table fetched, attitude and position shown, arm ACKed."""
-    from mars_link.assembly import AssemblyModel, vehicle_preset
-    from mars_link.assembly_vehicle import assembly_param_specs
+    from mars_link.core.assembly import AssemblyModel, vehicle_preset
+    from mars_link.vehicles.assembly_vehicle import assembly_param_specs
 
     n_params = len(assembly_param_specs(SYSID, AssemblyModel.from_layout(["XXX", "XXX"], vehicle_preset("mars-ftcc")), "none"))
     expected = {
@@ -428,7 +428,7 @@ def test_undeclared_fault_is_detected_and_reported_without_sockets() -> None:
     (["--ftc", "magic"], "unknown mode"),
 ])
 def test_bad_vehicle_arguments_are_one_line_and_exit_2(argv, needle, capsys) -> None:
-    from mars_link.cli import main
+    from mars_link.apps.cli import main
 
     assert main(["vehicle", "--gcs-bind", "0", "--api-bind", "0", "--duration", "0.1", *argv]) == 2
     err = capsys.readouterr().err.strip()

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.assembly_vehicle import AssemblySim
-from mars_link.battery import FULL_CELL_V, PROPULSION, ocv_per_cell_v, soc_from_cell_v, thrust_scale
-from mars_link.build import build_flight
-from mars_link.engine import Engine
-from mars_link.errors import UserInputError
-from mars_link.scenario import scenario_from_dict
+from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.models.battery import FULL_CELL_V, PROPULSION, ocv_per_cell_v, soc_from_cell_v, thrust_scale
+from mars_link.flight.build import build_flight
+from mars_link.flight.engine import Engine
+from mars_link.core.errors import UserInputError
+from mars_link.config.scenario import scenario_from_dict
 from sitl.battery import Packs
 
 HOVER_3X2 = {"name": "hover", "assembly": {"layout": ["XXX", "XXX"], "tracked": "com"},
@@ -161,7 +161,7 @@ def test_zero_capacity_at_the_cli_is_one_line_exit_2(tmp_path) -> None:
     path.write_text('name = "bad"\n[assembly]\nlayout = ["X"]\n[trajectory]\nkind = "hover"\n'
                     '[battery]\ncapacity_ah = 0\n', encoding="utf-8")
     out = tmp_path / "out"
-    r = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", str(path), "--out", str(out)],
+    r = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", str(path), "--out", str(out)],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip().count("\n") == 0 and "capacity_ah must be > 0" in r.stderr and "Traceback" not in r.stderr
@@ -174,7 +174,7 @@ def test_a_lone_unit_flying_itself_lands_on_its_own_critical_battery() -> None:
     level, says so, lands and disarms (on the world's truth)."""
     import dataclasses
 
-    from mars_link.build import make_unit
+    from mars_link.flight.build import make_unit
     from sitl.world import FreeUnitsWorld, WorldConfig
 
     sc = scenario_from_dict({"name": "lone", "assembly": {"layout": ["X"], "tracked": "com"},
@@ -208,7 +208,7 @@ def test_a_lone_unit_flying_itself_lands_on_its_own_critical_battery() -> None:
 def test_a_sagging_pack_is_not_read_as_a_rotor_fault() -> None:
     """Faults not told (the detector on), unit 3's pack at 12 %: 20 s of hover give no detection (the
     detector's thrust model clips as the packs do); a half rotor on unit 2 at 6 s is still found in < 0.5 s."""
-    from mars_link.runner import run_trial
+    from mars_link.flight.runner import run_trial
 
     base = {"name": "fdi", "assembly": {"layout": ["XXX", "XXX"], "tracked": "com"},
             "trajectory": {"kind": "hover", "duration_s": 20.0}, "control": {"ftc": "qp", "faults_known": False},
@@ -223,8 +223,8 @@ def test_a_sagging_pack_is_not_read_as_a_rotor_fault() -> None:
 
 def test_battery_table_round_trips_to_the_sitl_children(tmp_path) -> None:
     """`run --mode sitl` hands the child processes a TOML copy of the scenario: the packs go with it."""
-    from mars_link.scenario import load_scenario
-    from mars_link.sitl_mode import write_scenario_copy
+    from mars_link.config.scenario import load_scenario
+    from mars_link.processes.sitl_mode import write_scenario_copy
 
     sc = scenario_from_dict({**HOVER_3X2, "battery": {"capacity_ah": 1.5, "com_low_bat_act": 3,
                                                       "units": [{"unit": 3, "initial_soc": 0.3, "cells": 3}]}})

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 from mars_link.allocation import make_allocator
-from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
+from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
 from mars_link.control.cascaded import CascadedController, CascadedGains
-from mars_link.errors import UserInputError
-from mars_link.rotations import euler_to_quat, quat_multiply, quat_to_euler, quat_to_rotmat, tilt_deg
-from mars_link.state import RigidBodyState
-from mars_link.trajectories import Trajectory, TrajectoryPoint, build_trajectory
+from mars_link.core.errors import UserInputError
+from mars_link.core.rotations import euler_to_quat, quat_multiply, quat_to_euler, quat_to_rotmat, tilt_deg
+from mars_link.core.state import RigidBodyState
+from mars_link.models.trajectories import Trajectory, TrajectoryPoint, build_trajectory
 
 LAYOUTS = {
     "1x1": ["X"],
@@ -250,7 +250,7 @@ def test_reset_clears_the_integral() -> None:
 
 # ----------------------------------------------------------------------------- JSBSim runner (slow)
 def _runner_scenario(layout, kind, preset="mars-ftcc", **sim):
-    from mars_link.scenario import scenario_from_dict
+    from mars_link.config.scenario import scenario_from_dict
 
     return scenario_from_dict({
         "name": "cascaded",
@@ -274,7 +274,7 @@ def _runner_scenario(layout, kind, preset="mars-ftcc", **sim):
 )
 def test_runner_flights_with_noise(layout, kind, preset, sim) -> None:
     pytest.importorskip("jsbsim")
-    from mars_link.runner import run_scenario
+    from mars_link.flight.runner import run_scenario
 
     summary = run_scenario(_runner_scenario(layout, kind, preset, **sim))
     assert summary["completed"] and not summary["diverged"]

@@ -22,7 +22,7 @@ duration_s = 1
 
 
 def run_cli(tmp_path: Path, toml_text: str | None, *extra: str) -> subprocess.CompletedProcess:
-    args = [sys.executable, "-m", "mars_link.cli", "run"]
+    args = [sys.executable, "-m", "mars_link.apps.cli", "run"]
     if toml_text is not None:
         path = tmp_path / "scenario.toml"
         path.write_text(toml_text)
@@ -68,7 +68,7 @@ def test_bad_input_is_one_line_exit_2(tmp_path: Path, name: str) -> None:
     text, extra, needle = CASES[name]
     if text is None:
         proc = subprocess.run(
-            [sys.executable, "-m", "mars_link.cli", "run", *extra, "--quiet"],
+            [sys.executable, "-m", "mars_link.apps.cli", "run", *extra, "--quiet"],
             capture_output=True, text=True, timeout=60,
         )
     else:
@@ -82,10 +82,10 @@ def test_bad_input_is_one_line_exit_2(tmp_path: Path, name: str) -> None:
 
 
 def test_reconfig_plan_is_reachable_from_the_main_cli() -> None:
-    ok = subprocess.run([sys.executable, "-m", "mars_link.cli", "reconfig", "plan", "--layout", "XX,XX", "--json"],
+    ok = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "reconfig", "plan", "--layout", "XX,XX", "--json"],
                         capture_output=True, text=True, timeout=120)
     assert ok.returncode == 0, ok.stderr
     assert '"cost_layers"' in ok.stdout
-    bad = subprocess.run([sys.executable, "-m", "mars_link.cli", "reconfig", "plan", "--layout", "X.X"],
+    bad = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "reconfig", "plan", "--layout", "X.X"],
                          capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "not connected" in bad.stderr and "Traceback" not in bad.stderr

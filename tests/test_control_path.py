@@ -17,8 +17,8 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.params import decode_value, encode_value
-from firmware_models.signing import advance_outgoing_clock, enable_outgoing_signing
-from firmware_models.udp_runner import read_status, spawn_unit, stop_unit
+from mars_link.mavlink.signing import advance_outgoing_clock, enable_outgoing_signing
+from mars_link.processes.udp_runner import read_status, spawn_unit, stop_unit
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 LOOP = "127.0.0.1"
@@ -305,7 +305,7 @@ def test_sitl_up_require_signing_reaches_the_unit_processes(tmp_path) -> None:
     api.bind((LOOP, 0))
     gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     gcs.bind((LOOP, 0))
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sitl", "up", "hover_3x2", "--any-bind", "--speed", "1",
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "hover_3x2", "--any-bind", "--speed", "1",
                              "--require-signing", "--signing-key-file", str(key_file), "--gcs-port",
                              str(gcs.getsockname()[1]), "--api-port", str(api.getsockname()[1]), "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
@@ -341,7 +341,7 @@ def test_sitl_up_require_signing_reaches_the_unit_processes(tmp_path) -> None:
 def test_vehicle_require_signing(tmp_path) -> None:
     """`mars-link vehicle --require-signing`: an unsigned client cannot arm the assembly or inject a
     failure into it; the key holder arms it."""
-    from mars_link.realtime import spawn_vehicle
+    from mars_link.processes.realtime import spawn_vehicle
 
     key_file = tmp_path / "key"
     key_file.write_bytes(KEY)

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
-from mars_link.rotations import euler_to_quat, quat_to_rotmat
-from mars_link.state import RigidBodyState
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.rotations import euler_to_quat, quat_to_rotmat
+from mars_link.core.state import RigidBodyState
 from sitl.docking import DockTolerance, dock_check, merge_bodies, momentum, split_body
 from sitl.physics import JsbsimBody
 

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 
 from firmware_models.vehicle import MODE_OFFBOARD
-from mars_link.build import build_flight
-from mars_link.engine import Engine, FlightRecorder
-from mars_link.messages import RotorCommand
-from mars_link.pacing import Pacer
-from mars_link.runner import run_trial
-from mars_link.scenario import FaultSpec, load_scenario
+from mars_link.flight.build import build_flight
+from mars_link.flight.engine import Engine, FlightRecorder
+from mars_link.core.messages import RotorCommand
+from mars_link.runtime.pacing import Pacer
+from mars_link.flight.runner import run_trial
+from mars_link.config.scenario import FaultSpec, load_scenario
 
 
 class _Clock:
@@ -94,7 +94,7 @@ def test_inprocess_real_time_run_is_paced_to_the_wall_clock() -> None:
 
 def test_wire_thrust_fast_path_rounds_exactly_as_numpy_float32() -> None:
     """One unit's rotors go through struct's float32 packing (cheaper): the same bits as numpy's cast."""
-    from mars_link.messages import f32, wire_thrust
+    from mars_link.core.messages import f32, wire_thrust
 
     rng = np.random.default_rng(7)
     for n in (1, 4, 8, 24):

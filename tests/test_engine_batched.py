@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 import sitl.world
-from mars_link.build import build_flight
-from mars_link.engine import Engine, FlightRecorder, InProcessUnits
-from mars_link.messages import RotorCommand
-from mars_link.reconfig.flight import run_reconfig_trial
-from mars_link.runner import run_trial
-from mars_link.scenario import FaultSpec, load_scenario
+from mars_link.flight.build import build_flight
+from mars_link.flight.engine import Engine, FlightRecorder, InProcessUnits
+from mars_link.core.messages import RotorCommand
+from mars_link.flight.reconfig_flight import run_reconfig_trial
+from mars_link.flight.runner import run_trial
+from mars_link.config.scenario import FaultSpec, load_scenario
 
 
 def _setpoints_into_the_world(monkeypatch, fly) -> tuple[list, object]:
@@ -132,7 +132,7 @@ def test_batched_drops_bad_commands_exactly_as_one_by_one() -> None:
 
 @pytest.mark.parametrize("layout", ["XXX,XXX", "XXXXX,XXXXX,XXXXX,XXXXX,XXXXX"])
 def test_batched_helix_summary_equals_one_by_one(monkeypatch, layout) -> None:
-    from mars_link.assembly import parse_layout
+    from mars_link.core.assembly import parse_layout
 
     sc = load_scenario("helix_plus5")
     sc.layout = parse_layout(layout)

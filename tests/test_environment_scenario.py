@@ -7,10 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from mars_link.aerodynamics import AERO_PRESETS
-from mars_link.errors import UserInputError
-from mars_link.scenario import load_scenario, scenario_from_dict
-from mars_link.sitl_mode import write_scenario_copy
+from mars_link.models.aerodynamics import AERO_PRESETS
+from mars_link.core.errors import UserInputError
+from mars_link.config.scenario import load_scenario, scenario_from_dict
+from mars_link.processes.sitl_mode import write_scenario_copy
 
 BASE = {"name": "t", "assembly": {"layout": ["XX"]}, "trajectory": {"kind": "hover"}}
 

@@ -9,11 +9,11 @@ import tracemalloc
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
-from mars_link.estimation import AssemblyEstimator
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
-from mars_link.state import ImuSample, PositionSample
+from mars_link.core.assembly import AssemblyModel
+from mars_link.models.estimation import AssemblyEstimator
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
+from mars_link.core.state import ImuSample, PositionSample
 
 
 def _joint_update(ekf):
@@ -44,7 +44,7 @@ def test_spiral_3x2_estimate_equals_the_joint_update_over_the_whole_flight(monke
     monkeypatch.undo()
     assert summary["sim_time_s"] > 45 and len(ticks) > 4500
     model = sc.model()
-    from mars_link.build import make_estimator
+    from mars_link.flight.build import make_estimator
 
     new, ref = make_estimator(sc, model), make_estimator(sc, model)
     ref._ekf.update_independent = _joint_update(ref._ekf)
@@ -100,8 +100,8 @@ def test_a_flight_runs_its_blas_libraries_on_one_thread():
     import sys
 
     env = {k: v for k, v in os.environ.items() if not k.endswith("_NUM_THREADS")}
-    code = ("import json; from threadpoolctl import threadpool_info; from mars_link.build import build_flight; "
-            "from mars_link.scenario import load_scenario; import numpy, scipy.linalg; "
+    code = ("import json; from threadpoolctl import threadpool_info; from mars_link.flight.build import build_flight; "
+            "from mars_link.config.scenario import load_scenario; import numpy, scipy.linalg; "
             "before = [l['num_threads'] for l in threadpool_info() if l['user_api'] == 'blas']; "
             "build_flight(load_scenario('spiral_3x2'), 1); "
             "print(json.dumps([before, [l['num_threads'] for l in threadpool_info() if l['user_api'] == 'blas']]))")

@@ -9,12 +9,12 @@ import math
 import numpy as np
 import pytest
 
-from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
-from mars_link.errors import UserInputError
-from mars_link.estimation import AssemblyEstimator
-from mars_link.fault_detection import FaultDetector, FaultDetectorParams
-from mars_link.rotations import quat_to_rotmat, skew, vee
-from mars_link.state import ImuSample, PositionSample, RigidBodyState
+from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
+from mars_link.core.errors import UserInputError
+from mars_link.models.estimation import AssemblyEstimator
+from mars_link.models.fault_detection import FaultDetector, FaultDetectorParams
+from mars_link.core.rotations import quat_to_rotmat, skew, vee
+from mars_link.core.state import ImuSample, PositionSample, RigidBodyState
 
 G_NED = np.array([0.0, 0.0, GRAVITY_MPS2])
 LAYOUT_3X2 = ["XXX", "XXX"]
@@ -287,7 +287,7 @@ def _runner():
     try:
         import sitl.physics  # noqa: F401
         import sitl.world  # noqa: F401
-        from mars_link import reproduce
+        from mars_link.apps import reproduce
     except ImportError as err:  # the runner's pieces are written by other engineers
         pytest.skip(f"in-process runner not complete yet: {err}")
     return reproduce
@@ -326,7 +326,7 @@ def test_runner_3x2_spiral_faults_at_10s_are_found_and_flown_like_told(case_name
 
 def test_fdi_scoring_counts_false_alarms_delay_and_eta_error():
     """The evaluation's own arithmetic, on hand-made detection records."""
-    from mars_link.reproduce import CASES, FdiTrial
+    from mars_link.apps.reproduce import CASES, FdiTrial
 
     case = next(c for c in CASES if c.name == "F3 units {2,4}")
     dets = [{"t_detected": 10.2, "unit": 2, "rotor": None, "eta_estimated": 0.0},
@@ -342,9 +342,9 @@ def test_fdi_scoring_counts_false_alarms_delay_and_eta_error():
 
 
 def _coordinator(detector: bool = True, **kwargs):
-    from mars_link.coordinator import Coordinator
-    from mars_link.build import make_controller, make_trajectory
-    from mars_link.scenario import load_scenario
+    from mars_link.coordination.coordinator import Coordinator
+    from mars_link.flight.build import make_controller, make_trajectory
+    from mars_link.config.scenario import load_scenario
 
     scenario = load_scenario("spiral_3x2")
     scenario.ftc = "qp"  # dead rotors get exactly zero
@@ -375,7 +375,7 @@ def test_unit_lost_is_a_failed_unit_with_a_detection_and_events(with_detector):
 
 
 def test_event_texts_fit_one_statustext():
-    from mars_link.coordinator import TEXT_MAX, fault_summary, short_text
+    from mars_link.coordination.coordinator import TEXT_MAX, fault_summary, short_text
 
     coord = _coordinator()
     model = coord.model
@@ -398,7 +398,7 @@ def test_bad_telemetry_timeout_is_refused(bad):
 def test_silent_unit_is_declared_lost_after_the_timeout_and_its_late_packets_are_ignored():
     """Sans-IO: packets from units 1, 2, 4, 5, 6 only; unit 3 is declared lost once it has been
     silent longer than the timeout, not before; a stray packet of it afterwards changes nothing."""
-    from mars_link.messages import SensorPacket
+    from mars_link.core.messages import SensorPacket
 
     coord = _coordinator(detector=False, telemetry_timeout_s=0.05)
     model = coord.model
@@ -442,8 +442,8 @@ def test_runner_unit_process_death_mid_spiral_is_survived():
     motors stop (sitl World.declare_dead). The coordinator, not told, declares it lost within the
     timeout, reallocates and the assembly finishes the spiral."""
     reproduce = _runner()
-    from mars_link.build import UNIT_TIMEOUT_PERIODS
-    from mars_link.runner import run_trial
+    from mars_link.flight.build import UNIT_TIMEOUT_PERIODS
+    from mars_link.flight.runner import run_trial
 
     sc = reproduce.scenario_for(reproduce.CASES[0], "cascaded", "qp", None, faults_known=False)
     r = run_trial(sc, 1, unit_deaths={3: 10.0})
@@ -481,7 +481,7 @@ def test_fdi_eval_bad_arguments_are_one_line_and_exit_2(argv, message, capsys):
 
 def test_fdi_eval_report_and_plot_from_trials(tmp_path):
     """The table and the PNG from hand-made trials (the flights themselves are the slow tests')."""
-    from mars_link.reproduce import CASES, FdiTrial
+    from mars_link.apps.reproduce import CASES, FdiTrial
 
     tool = _fdi_tool()
     rows = []
@@ -502,8 +502,8 @@ def test_a_dead_corner_unit_is_found_in_gusty_air_while_the_assembly_drops():
     """Moderate turbulence and 5 m/s wind: unit 3 (a corner of the 3x2) dies at 10 s and the assembly sinks on
     little thrust. The detector keeps watching aloft (the ground level is known: no contact to fear) and names
     unit 3 within 0.5 s (it stopped watching below 60 % of the weight and never found it)."""
-    from mars_link.runner import run_trial
-    from mars_link.scenario import FaultSpec, load_scenario
+    from mars_link.flight.runner import run_trial
+    from mars_link.config.scenario import FaultSpec, load_scenario
 
     sc = load_scenario("spiral_3x2_wind")
     sc.sim.duration_s = 10.6

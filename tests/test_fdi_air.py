@@ -11,9 +11,9 @@ import math
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.assembly_vehicle import AssemblySim
-from mars_link.runner import run_trial
-from mars_link.scenario import FaultSpec, load_scenario
+from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.flight.runner import run_trial
+from mars_link.config.scenario import FaultSpec, load_scenario
 
 pytestmark = pytest.mark.slow
 
@@ -48,7 +48,7 @@ def test_a_dead_corner_unit_in_light_air_is_found_as_fast_as_in_still_air() -> N
     """Unit 3 (a corner of the 3x2) dead at 10 s of the spiral in 5 m/s wind and light turbulence: a loss that
     large decides at the still-air min_isolation_s (0.06 s after its onset), not after the 0.18 s that gusty air
     asks of smaller losses (0.2 s on the wrong allocation lost this flight). Unit 3 and nothing else."""
-    from mars_link.reproduce import CASES, scenario_for
+    from mars_link.apps.reproduce import CASES, scenario_for
 
     case = next(c for c in CASES if c.name == "F3 units {3}")
     air = {"wind_ned_mps": [5.0, 0.0, 0.0], "turbulence": "light"}
@@ -88,7 +88,7 @@ def test_gusts_just_after_take_off_are_not_faults(seed: int) -> None:
     """The first 3 s of the moderate-turbulence spiral, seeds whose gusts raised the alarm within 0.4 s of
     lift-off, before the detector had measured the air (it named u4r4 at 1.0 s and u1r1 at 1.46 s when it
     judged those fits against its still-air models): nothing is reported."""
-    from mars_link.reproduce import fdi_false_alarm_flight
+    from mars_link.apps.reproduce import fdi_false_alarm_flight
 
     air = {"wind_ned_mps": [5.0, 0.0, 0.0], "turbulence": "moderate"}
     assert fdi_false_alarm_flight(seed, "qp", 3.0, "cascaded", air, None) == []

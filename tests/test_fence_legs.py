@@ -1,4 +1,4 @@
-"""The geofence as a constraint of the leg planner (mars_link.mission_legs): the 3x2 as `mars-link vehicle`
+"""The geofence as a constraint of the leg planner (mars_link.planning.mission_legs): the 3x2 as `mars-link vehicle`
 flies it (AssemblySim, in process, JSBSim) takes a .plan whose straight legs would cross an exclusion
 zone and cut the corner of an L-shaped inclusion fence; the legs are planned around both, and every
 unit of the true assembly stays inside the inclusion and outside the exclusion all flight long."""
@@ -15,8 +15,8 @@ from pymavlink.dialects.v20 import common as R
 from test_mavsdk_mission import HOME, _latlon
 
 from firmware_models.qgc_plan import load_plan, preload
-from mars_link.mission_legs import fence_walls
-from mars_link.rotations import quat_to_rotmat
+from mars_link.planning.mission_legs import fence_walls
+from mars_link.core.rotations import quat_to_rotmat
 
 ALT_M = 2.5
 W1, W2 = (8.0, 0.0), (0.0, 10.0)  # the straight leg 0 -> W1 crosses the exclusion; W1 -> W2 leaves the L
@@ -52,8 +52,8 @@ def test_fence_edges_become_walls_on_the_zone_boundaries() -> None:
 
 
 def test_the_3x2_plans_its_legs_around_the_fence(tmp_path: Path) -> None:
-    from mars_link.assembly_vehicle import AssemblySim
-    from mars_link.scenario import load_scenario
+    from mars_link.vehicles.assembly_vehicle import AssemblySim
+    from mars_link.config.scenario import load_scenario
 
     path = tmp_path / "fence.plan"
     path.write_text(json.dumps(fence_plan()))

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.runner import run_scenario
-from mars_link.scenario import scenario_from_dict
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import scenario_from_dict
 
 FLIGHTS = {
     "1x1": (["X"], "helix"),

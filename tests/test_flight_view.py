@@ -1,4 +1,4 @@
-"""run.mcap (mars_link.flight_view, written with Foxglove's SDK) read back with the `mcap` reader library:
+"""run.mcap (mars_link.flight.flight_view, written with Foxglove's SDK) read back with the `mcap` reader library:
 channels and schemas, message counts against the flight's steps and rates, monotonic log times, one
 /events entry per summary.json event, the /tf pose of unit 3 against the run's own CSV; a SIGKILLed run's
 file; bad input (unwritable run directory, busy --foxglove port)."""
@@ -21,10 +21,10 @@ from machine import CpuWindow
 from mcap.reader import NonSeekingReader, make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from mars_link.assembly_vehicle import event_text
-from mars_link.flight_view import ViewRates, expected_count
-from mars_link.rotations import euler_to_quat, quat_to_rotmat
-from mars_link.scenario import load_scenario
+from mars_link.flight.events import event_text
+from mars_link.flight.flight_view import ViewRates, expected_count
+from mars_link.core.rotations import euler_to_quat, quat_to_rotmat
+from mars_link.config.scenario import load_scenario
 
 SCHEMAS = {
     "/tf": ("foxglove.FrameTransforms", "protobuf"), "/scene": ("foxglove.SceneUpdate", "protobuf"),
@@ -92,7 +92,7 @@ def check_events(topics: dict, summary: dict) -> None:
 def test_default_scenario_run_mcap(tmp_path):
     """`mars-link run` (the default 3x2 spiral, shortened, a rotor fault at 5 s): run.mcap read back."""
     out = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "--duration", "12", "--fault", "3:1=0.5@5",
+    proc = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", "--duration", "12", "--fault", "3:1=0.5@5",
                            "--out", str(out), "--quiet"], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     summary = json.loads((out / "summary.json").read_text())
@@ -136,7 +136,7 @@ def test_default_scenario_run_mcap(tmp_path):
 
 def test_reconfiguration_flight_mcap(tmp_path):
     """A reconfiguration flight (paper 000's docking scenario, shortened): bodies split and dock in /tf."""
-    from mars_link.reconfig.flight import run_reconfig_scenario
+    from mars_link.flight.reconfig_flight import run_reconfig_scenario
     from tests.test_reconfig_flight import docking
 
     out = tmp_path / "reconfig"
@@ -175,7 +175,7 @@ def test_sigkill_leaves_a_readable_mcap(tmp_path):
     """A real-time run killed (SIGKILL, its writer process too) 2 s into the flight: run.mcap reads up to
     within a second of the kill."""
     out = tmp_path / "killed"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "run", "--realtime", "--out", str(out), "--quiet"],
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "run", "--realtime", "--out", str(out), "--quiet"],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     try:
         deadline = time.monotonic() + 60
@@ -207,7 +207,7 @@ def test_sigkill_leaves_a_readable_mcap(tmp_path):
 def test_unwritable_run_directory_one_line_exit_2(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    proc = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "--duration", "1", "--out",
+    proc = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", "--duration", "1", "--out",
                            str(blocker / "run"), "--quiet"], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1, proc.stderr
     assert "Traceback" not in proc.stderr
@@ -220,7 +220,7 @@ def test_busy_foxglove_port_one_line_exit_2_before_flight(tmp_path, command):
         busy.listen()
         port = busy.getsockname()[1]
         out = tmp_path / "run"
-        proc = subprocess.run([sys.executable, "-m", "mars_link.cli", *command, "--foxglove", f"127.0.0.1:{port}",
+        proc = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", *command, "--foxglove", f"127.0.0.1:{port}",
                                "--out", str(out), "--quiet" if command[0] == "run" else "--force"],
                               capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2, proc.stderr
@@ -240,15 +240,15 @@ def free_tcp_port() -> int:
 @pytest.mark.exclusive  # (asserts >= 10 Hz of a real-time sitl up)
 def test_live_foxglove_view_of_sitl_up(tmp_path):
     """`mars-link sitl up --foxglove` (world process hosts the server, real time): a Foxglove WebSocket client
-    (mars_link.foxglove_probe: the websockets package) subscribed to /scene and /tf receives both at >= 10 Hz
+    (mars_link.apps.foxglove_probe: the websockets package) subscribed to /scene and /tf receives both at >= 10 Hz
     with advancing times."""
     import asyncio
 
-    from mars_link.foxglove_probe import listen
+    from mars_link.apps.foxglove_probe import listen
 
     port = free_tcp_port()
     out = tmp_path / "sitl"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sitl", "up", "--layout", "XXX,XXX", "--speed", "1",
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "--layout", "XXX,XXX", "--speed", "1",
                              "--any-bind", "--foxglove", f"127.0.0.1:{port}", "--out", str(out), "--force"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -321,11 +321,11 @@ def test_sitl_up_free_units_write_run_mcap(tmp_path):
     units' /tf poses equal the world's own truth log, unit 2 in the air, one /scene entity per unit."""
     from pymavlink import mavutil
 
-    from sitl.launcher import free_udp_port
+    from mars_link.processes.launcher import free_udp_port
 
     api = _two_free_udp_ports()
     out = tmp_path / "up"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sitl", "up", "--units", "2", "--speed", "3",
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "--units", "2", "--speed", "3",
                              "--api-port", str(api), "--gcs-port", str(free_udp_port()), "--any-bind",
                              "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     with CpuWindow() as cpu:  # (the run's writer keeps up unless the machine is saturated)

@@ -16,7 +16,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from test_geofence import _set
 from test_vehicle_protocol import LINK_API, Client, Flight, _ack, _vehicle
 
-from firmware_models.geo import GeoOrigin
+from mars_link.core.geo import GeoOrigin
 
 R = mavlink
 SPEED_MPS = 1.0
@@ -87,8 +87,8 @@ def test_a_unit_follows_a_walking_target_at_the_configured_distance_and_height()
 
 
 def test_the_3x2_follows_a_walking_target() -> None:
-    from mars_link.assembly_vehicle import AssemblySim
-    from mars_link.scenario import load_scenario
+    from mars_link.vehicles.assembly_vehicle import AssemblySim
+    from mars_link.config.scenario import load_scenario
 
     sim = AssemblySim(load_scenario("hover_3x2"))
     try:
@@ -139,14 +139,14 @@ def test_mavsdk_follow_me_against_a_unit_and_mars_link_vehicle(vehicle: str, tmp
     from test_mavsdk_mission import _latlon, spawn_api_unit
     from test_mavsdk_unit import _until, autopilot
 
-    from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
+    from mars_link.processes.udp_runner import free_udp_port, read_status, stop_unit
 
     api_port = free_udp_port()
     status = tmp_path / "status.json"
     if vehicle == "unit":
         proc, _ = spawn_api_unit(api_port, status)
     else:
-        from mars_link.realtime import spawn_vehicle
+        from mars_link.processes.realtime import spawn_vehicle
 
         proc, _ = spawn_vehicle(["--layout", "XXX,XXX", "--api-port", str(api_port), "--api-bind", "0",
                                  "--gcs-port", str(free_udp_port()), "--gcs-bind", "0"], status)

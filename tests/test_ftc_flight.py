@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from mars_link.reproduce import CASES, scenario_for
-from mars_link.runner import run_trial
+from mars_link.apps.reproduce import CASES, scenario_for
+from mars_link.flight.runner import run_trial
 
 FAULTED = [c for c in CASES if c.faults]
 SEED = 2
@@ -40,7 +40,7 @@ def test_ignoring_the_faults_is_markedly_worse(case) -> None:
 
 @pytest.mark.slow
 def test_a_mid_flight_fault_that_cannot_be_flown_is_logged_not_fatal() -> None:
-    from mars_link.scenario import scenario_from_dict
+    from mars_link.config.scenario import scenario_from_dict
 
     sc = scenario_from_dict({
         "assembly": {"layout": ["XX"]},

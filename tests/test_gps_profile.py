@@ -13,16 +13,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.build import make_estimator, make_world, world_config
-from mars_link.errors import UserInputError
-from mars_link.estimation_outdoor import OutdoorEstimator
-from mars_link.gnss import gps_ned, home, isa_pressure_hpa
-from mars_link.messages import ActuatorOutput
-from mars_link.rotations import quat_to_rotmat
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario, scenario_from_dict
-from mars_link.sensor_profiles import PROFILES
-from mars_link.wire import BARO_FIELDS, MAG_FIELDS, gps_from_message, gps_message, new_mav, sensor_packet_messages
+from mars_link.flight.build import make_estimator, make_world, world_config
+from mars_link.core.errors import UserInputError
+from mars_link.models.estimation_outdoor import OutdoorEstimator
+from mars_link.core.gnss import gps_ned, home, isa_pressure_hpa
+from mars_link.core.messages import ActuatorOutput
+from mars_link.core.rotations import quat_to_rotmat
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario, scenario_from_dict
+from mars_link.models.sensor_profiles import PROFILES
+from mars_link.mavlink.wire import BARO_FIELDS, MAG_FIELDS, gps_from_message, gps_message, new_mav, sensor_packet_messages
 from sitl.outdoor_sensors import OutdoorSensors
 
 BASE = {"name": "t", "assembly": {"layout": ["XXX", "XXX"]}, "trajectory": {"kind": "hover"}}
@@ -244,7 +244,7 @@ def test_bad_gps_figure_at_the_cli_is_one_line_exit_2(tmp_path: Path) -> None:
     path = tmp_path / "bad.toml"
     path.write_text('name = "b"\n[assembly]\nlayout = ["X"]\n[trajectory]\nkind = "hover"\n'
                     '[sensors]\nprofile = "gps"\nvertical_noise_m = -1.0\n')
-    r = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", str(path), "--out", str(tmp_path / "o")],
+    r = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", str(path), "--out", str(tmp_path / "o")],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "vertical_noise_m must be >= 0" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and "Traceback" not in r.stderr
@@ -253,7 +253,7 @@ def test_bad_gps_figure_at_the_cli_is_one_line_exit_2(tmp_path: Path) -> None:
 def test_unit_forwards_hil_gps_and_baro_mag_to_the_coordinator_unchanged() -> None:
     """World -> unit (HIL_GPS, HIL_SENSOR) -> coordinator (HIL_GPS, HIGHRES_IMU), all as bytes parsed by
     pymavlink: the coordinator's packet has the world's GNSS, barometer and magnetometer samples exactly."""
-    from mars_link.wire import SensorFrameAssembler, SensorPacketAssembler
+    from mars_link.mavlink.wire import SensorFrameAssembler, SensorPacketAssembler
 
     sc = scenario_from_dict({**BASE, "sensors": {"profile": "gps"}})
     model = sc.model()
@@ -283,7 +283,7 @@ def test_unit_forwards_hil_gps_and_baro_mag_to_the_coordinator_unchanged() -> No
 def test_fault_detector_waits_for_more_height_on_gps_only() -> None:
     """Ground contact is not a rotor fault: on gps the detector starts 0.5 m above the landed height
     (the wind slides and tips a landed assembly before its late lift-off); mocap keeps 0.15 m."""
-    from mars_link.build import make_detector
+    from mars_link.flight.build import make_detector
 
     doc = {**BASE, "control": {"faults_known": False}}
     mocap, gps = scenario_from_dict(doc), scenario_from_dict({**doc, "sensors": {"profile": "gps"}})

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from mars_link.cli import main as cli_main
+from mars_link.apps.cli import main as cli_main
 
 HOVER = 'name = "t"\n[assembly]\nlayout = ["XXX", "XXX"]\n[trajectory]\nkind = "hover"\n[sim]\nduration_s = 1\n'
 WALLS = "cx,cy,length_m,thickness_m,height_m,yaw_deg\n-3.8,5,6,0.15,2.4,90\n3.8,5,6,0.15,2.4,90\n"
@@ -60,7 +60,7 @@ VERBS = ["run", "sitl up", "plan"]
 
 # ----------------------------------------------------------------------------- class 1: seeds, numbers
 def test_run_negative_seed_is_one_line_in_a_real_process(tmp_path) -> None:
-    proc = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", scenario(tmp_path), "--seed", "-7", "--quiet",
+    proc = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", scenario(tmp_path), "--seed", "-7", "--quiet",
                            "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, proc.stderr[-2000:]
     assert "--seed" in one_line(proc.stderr) and "0..4294967295" in proc.stderr
@@ -176,7 +176,7 @@ def test_five_thousand_digit_unit_id_in_plan(tmp_path, capsys) -> None:
 def test_unit_runner_bad_arguments_are_one_line(tmp_path) -> None:
     for args, needle, code in ((["--status-file", str(tmp_path / "nodir" / "s.json")], "does not exist", 2),
                                (["--unit", "0"], "--unit", 2), (["--physics-hz", "nan"], "--physics-hz", 2)):
-        proc = subprocess.run([sys.executable, "-m", "firmware_models.udp_runner", *args, "--duration", "0.1"],
+        proc = subprocess.run([sys.executable, "-m", "mars_link.processes.udp_runner", *args, "--duration", "0.1"],
                               capture_output=True, text=True, timeout=60)
         assert proc.returncode == code, (args, proc.stderr[-2000:])
         assert needle in one_line(proc.stderr)

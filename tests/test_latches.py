@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
-from mars_link.latches import ALL_SIDES, components, neighbour_links, side_toward
-from mars_link.messages import ActuatorOutput
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.latches import ALL_SIDES, components, neighbour_links, side_toward
+from mars_link.core.messages import ActuatorOutput
 from sitl.docking import momentum
 from sitl.physics import JsbsimBody
 from sitl.world import World, WorldConfig

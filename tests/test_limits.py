@@ -12,13 +12,13 @@ from pathlib import Path
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle import LINK_API, LINK_GCS, Vehicle, VehicleConfig
-from firmware_models.vehicle_io import LinkSpec, VehicleSockets
-from mars_link.cli import main as cli_main
-from mars_link.limits import MAX_SITL_UNIT_PROCESSES, MAX_UNITS_PER_RUN, RUN_BUDGET_BYTES, run_bytes
-from mars_link.run_log import RunLog
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
-from mars_link.state import RigidBodyState
+from mars_link.processes.vehicle_io import LinkSpec, VehicleSockets
+from mars_link.apps.cli import main as cli_main
+from mars_link.core.limits import MAX_SITL_UNIT_PROCESSES, MAX_UNITS_PER_RUN, RUN_BUDGET_BYTES, run_bytes
+from mars_link.flight.run_log import RunLog
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
+from mars_link.core.state import RigidBodyState
 
 LOOP = "127.0.0.1"
 
@@ -133,8 +133,8 @@ def test_rotor_plot_of_a_20x20_stays_a_readable_size(tmp_path) -> None:
 
     import numpy as np
 
-    from mars_link.assembly import AssemblyModel, vehicle_preset
-    from mars_link.plots import write_run_plots
+    from mars_link.core.assembly import AssemblyModel, vehicle_preset
+    from mars_link.flight.plots import write_run_plots
 
     model = AssemblyModel.from_layout(["X" * 20] * 20, vehicle_preset("mars-ftcc"))
     n = model.n_rotors

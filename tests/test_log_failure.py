@@ -23,9 +23,9 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.udp_runner import read_status, stop_unit
-from mars_link import outputs
-from mars_link.outputs import INJECT_ENOSPC_ENV
+from mars_link.processes.udp_runner import read_status, stop_unit
+from mars_link.logs import outputs
+from mars_link.logs.outputs import INJECT_ENOSPC_ENV
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 LOOP = "127.0.0.1"
@@ -52,7 +52,7 @@ def test_vehicle_tlog_on_a_full_tmpfs_keeps_flying(tmp_path) -> None:
     gcs_sink.bind((LOOP, 0))
     status = tmp_path / "status.json"
     cmd = ["unshare", "-rm", "sh", "-c", 'mount -t tmpfs -o size=16k tmpfs "$0" && exec "$@"', str(small),
-           sys.executable, "-m", "mars_link.cli", "vehicle", "--tlog", str(small / "vehicle.tlog"),
+           sys.executable, "-m", "mars_link.apps.cli", "vehicle", "--tlog", str(small / "vehicle.tlog"),
            "--status-file", str(status), "--api-port", str(api.getsockname()[1]), "--api-bind", "0",
            "--gcs-port", str(gcs_sink.getsockname()[1]), "--gcs-bind", "0", "--duration", "25"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -107,7 +107,7 @@ def test_vehicle_tlog_on_a_full_tmpfs_keeps_flying(tmp_path) -> None:
 def test_run_mode_sitl_with_failing_logs_flies_to_the_end(tmp_path) -> None:
     out = tmp_path / "run"
     env = {**__import__("os").environ, INJECT_ENOSPC_ENV: "50000:world_truth.csv,unit3.tlog"}
-    done = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_3x2", "--mode", "sitl", "--transport",
+    done = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_3x2", "--mode", "sitl", "--transport",
                            "udp", "--duration", "6", "--quiet", "--out", str(out)],
                           capture_output=True, text=True, timeout=200, env=env)
     assert done.returncode == 0, done.stderr[-2000:]  # the flight completed: exit 0 as without the failure
@@ -129,7 +129,7 @@ def test_run_mode_sitl_with_failing_logs_flies_to_the_end(tmp_path) -> None:
 def test_inprocess_run_with_a_failing_log_flies_to_the_end(tmp_path) -> None:
     out = tmp_path / "run"
     env = {**__import__("os").environ, INJECT_ENOSPC_ENV: "20000:telemetry.csv"}
-    done = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_1x1", "--duration", "3", "--quiet",
+    done = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_1x1", "--duration", "3", "--quiet",
                            "--out", str(out)], capture_output=True, text=True, timeout=120, env=env)
     assert done.returncode == 0, done.stderr[-2000:]
     summary = json.loads((out / "summary.json").read_text())

@@ -1,4 +1,4 @@
-"""The idle-cores share reported beside a paced run's real-time factor (mars_link.machine_load), and the
+"""The idle-cores share reported beside a paced run's real-time factor (mars_link.runtime.machine_load), and the
 rule the paced tests judge their wall-clock figures by (tests/machine.py); a stepping loop's CPU and
 wake-ups (LoopMeter)."""
 
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 from machine import Starved, judge
 
-from mars_link.machine_load import IdleMeter, LoopMeter, cpu_ticks
+from mars_link.runtime.machine_load import IdleMeter, LoopMeter, cpu_ticks
 
 
 def _stat(path: Path, user: int, idle: int, iowait: int, steal: int) -> None:

@@ -1,4 +1,4 @@
-"""mars_link.mavlink_codec against pymavlink itself, for every message type of the dialect: the same
+"""mars_link.mavlink.codec against pymavlink itself, for every message type of the dialect: the same
 bytes out, the same message (fields, header, buffers, CRC) back, the same errors."""
 
 from __future__ import annotations
@@ -9,8 +9,8 @@ import random
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.signing import enable_outgoing_signing
-from mars_link.mavlink_codec import decode, encode
+from mars_link.mavlink.signing import enable_outgoing_signing
+from mars_link.mavlink.codec import decode, encode
 
 INT_RANGES = {"int8_t": (-128, 127), "uint8_t": (0, 255), "int16_t": (-32768, 32767), "uint16_t": (0, 65535),
               "int32_t": (-2**31, 2**31 - 1), "uint32_t": (0, 2**32 - 1), "int64_t": (-2**63, 2**63 - 1),

@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 
 from firmware_models.params import unit_param_specs
-from firmware_models.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
-from mars_link.assembly import vehicle_preset
+from mars_link.processes.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
+from mars_link.core.assembly import vehicle_preset
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(150)]
 

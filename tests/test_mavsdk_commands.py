@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
-from mars_link.assembly import vehicle_preset
-from mars_link.rotations import quat_to_euler
+from mars_link.processes.udp_runner import free_udp_port, read_status, stop_unit
+from mars_link.core.assembly import vehicle_preset
+from mars_link.core.rotations import quat_to_euler
 
 mavsdk = pytest.importorskip("mavsdk")
 from mavsdk.asyncio.plugins.action import ActionAsync, ActionError  # noqa: E402
@@ -182,7 +182,7 @@ def test_mavsdk_goto_orbit_fence_manual_rally_attitude_land_and_logs(tmp_path: P
     if vehicle == "unit":
         proc, _ = spawn_api_unit(api, status, "--tlog", str(tlog))
     else:
-        from mars_link.realtime import spawn_vehicle
+        from mars_link.processes.realtime import spawn_vehicle
 
         proc, _ = spawn_vehicle(["--layout", "XXX,XXX", "--ftc", "qp", "--api-port", str(api), "--api-bind", "0",
                                  "--gcs-port", str(free_udp_port()), "--gcs-bind", "0", "--tlog", str(tlog)], status)

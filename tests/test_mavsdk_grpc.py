@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
+from mars_link.processes.udp_runner import free_udp_port, read_status, stop_unit
 from test_mavsdk_mission import _latlon, spawn_api_unit
 
 mavsdk_grpc = pytest.importorskip("mavsdk_grpc")

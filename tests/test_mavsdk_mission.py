@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware_models.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
+from mars_link.processes.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
 
 mavsdk = pytest.importorskip("mavsdk")
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
@@ -126,7 +126,7 @@ def test_mavsdk_mission_flown_against_the_truth(tmp_path: Path, vehicle: str) ->
     if vehicle == "unit":
         proc, _ = spawn_api_unit(api, status)
     else:
-        from mars_link.realtime import spawn_vehicle
+        from mars_link.processes.realtime import spawn_vehicle
 
         proc, _ = spawn_vehicle(["--layout", "XXX,XXX", "--ftc", "qp", "--api-port", str(api), "--api-bind", "0",
                                  "--gcs-port", str(free_udp_port()), "--gcs-bind", "0"], status)

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware_models.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
+from mars_link.processes.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
 
 mavsdk = pytest.importorskip("mavsdk")
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402

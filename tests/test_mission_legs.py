@@ -1,4 +1,4 @@
-"""Missions flown by the assembly vehicle on planned legs (mars_link.mission_legs): a damaged 3x2 (unit 2
+"""Missions flown by the assembly vehicle on planned legs (mars_link.planning.mission_legs): a damaged 3x2 (unit 2
 failed, found by the coordinator's fault detector, not told) flies a five-waypoint mission through the
 CoppeliaSim walls (../shared/data/mars_ftcc_walls.csv). Every leg is planned for the layout and the
 believed faults in a worker process: no wall contact of the true footprint. The same mission on
@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.mission_legs import min_snap_leg, septic
-from mars_link.planning.evaluate import walls_mission_flight
+from mars_link.planning.mission_legs import min_snap_leg, septic
+from mars_link.apps.planning_eval import walls_mission_flight
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 HAVE_WALLS = (SHARED / "data" / "mars_ftcc_walls.csv").exists()
@@ -71,7 +71,7 @@ def test_a_fault_found_mid_leg_brakes_and_plans_the_rest_again() -> None:
     ("cx,cy,length_m,thickness_m,height_m,yaw_deg\n1,2,nan,0.1,2,0\n", "finite"),
 ])
 def test_a_bad_vehicle_map_is_one_line_and_exit_2(text, needle, tmp_path, capsys) -> None:
-    from mars_link.cli import main
+    from mars_link.apps.cli import main
 
     path = tmp_path / "map.csv"
     if text is not None:

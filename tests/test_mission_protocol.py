@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.geo import GeoOrigin, origin_from_env
+from mars_link.core.geo import GeoOrigin, origin_from_env
 from firmware_models.mission_protocol import MissionLimits
 from firmware_models.vehicle import LINK_API, LINK_GCS, Vehicle, VehicleConfig
-from mars_link.errors import UserInputError
-from mars_link.state import RigidBodyState
+from mars_link.core.errors import UserInputError
+from mars_link.core.state import RigidBodyState
 
 R = mavlink
 NAN = math.nan
@@ -54,7 +54,7 @@ def _vehicle() -> Vehicle:
 
 
 def _deg(north_m: float, east_m: float) -> tuple[int, int]:
-    """degE7 of a point north/east of PX4 SITL's home (computed here, not with firmware_models.geo)."""
+    """degE7 of a point north/east of PX4 SITL's home (computed here, not with mars_link.core.geo)."""
     lat = HOME_LAT + math.degrees(north_m / 6371000.0)
     lon = HOME_LON + math.degrees(east_m / (6371000.0 * math.cos(math.radians(HOME_LAT))))
     return int(round(lat * 1e7)), int(round(lon * 1e7))

@@ -37,7 +37,7 @@ seed = 3
 def run_cli(tmp_path: Path, text: str, *extra: str) -> subprocess.CompletedProcess:
     path = tmp_path / "scenario.toml"
     path.write_text(text)
-    return subprocess.run([sys.executable, "-m", "mars_link.cli", "run", str(path), "--out", str(tmp_path / "out"),
+    return subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", str(path), "--out", str(tmp_path / "out"),
                            "--quiet", *extra], capture_output=True, text=True, timeout=600)
 
 
@@ -55,8 +55,8 @@ def check_flown(out: Path, alt_m: float) -> None:
 
 
 def test_a_qgc_plan_is_the_reference_of_mars_link_run(tmp_path: Path) -> None:
-    from mars_link.build import make_trajectory
-    from mars_link.scenario import load_scenario
+    from mars_link.flight.build import make_trajectory
+    from mars_link.config.scenario import load_scenario
 
     plan = tmp_path / "x.plan"
     plan.write_text(json.dumps(qgc_plan_json()))

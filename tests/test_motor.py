@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from firmware_models.motor import MotorModel, MotorParams
-from mars_link.assembly import AssemblyModel
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.errors import UserInputError
 
 
 def test_without_lag_thrust_is_the_clamped_eta_scaled_command() -> None:

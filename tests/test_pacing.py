@@ -1,11 +1,11 @@
 """The silence deadline of the SITL's watchers (world, coordinator) counts only the time its own process
-ran: a host-wide stall is nobody's silence (mars_link.pacing.SilenceDeadline)."""
+ran: a host-wide stall is nobody's silence (mars_link.runtime.pacing.SilenceDeadline)."""
 
 from __future__ import annotations
 
 import pytest
 
-from mars_link.pacing import STALL_S, SilenceDeadline
+from mars_link.runtime.pacing import STALL_S, SilenceDeadline
 
 
 class Clock:

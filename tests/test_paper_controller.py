@@ -13,17 +13,17 @@ import math
 import numpy as np
 import pytest
 
-from mars_link.assembly import AssemblyModel
+from mars_link.core.assembly import AssemblyModel
 from mars_link.control.paper import (
     MIXER_ROWS,
     PaperController,
     rotor_baselines,
 )
 from mars_link.control.paper_tables import TABLES, formula_table, named_table, table_for, thrust_shares
-from mars_link.errors import UserInputError
-from mars_link.rotations import euler_to_quat, quat_multiply, quat_to_rotmat
-from mars_link.state import RigidBodyState
-from mars_link.trajectories import TrajectoryPoint
+from mars_link.core.errors import UserInputError
+from mars_link.core.rotations import euler_to_quat, quat_multiply, quat_to_rotmat
+from mars_link.core.state import RigidBodyState
+from mars_link.models.trajectories import TrajectoryPoint
 
 G_SCENE = 9.81
 #: scene <-> project map of ftc.md §1.3 (its own inverse)
@@ -512,8 +512,8 @@ def test_dead_rotor_needs_the_residual_passed_on():
 def test_runner_flies_the_paper_spiral_within_30_percent_of_the_paper():
     """Acceptance: mars-ftcc-paper on the 3x2 spiral through the in-process runner (JSBSim)."""
     try:
-        from mars_link.runner import run_trial
-        from mars_link.scenario import Scenario, SimSpec
+        from mars_link.flight.runner import run_trial
+        from mars_link.config.scenario import Scenario, SimSpec
         import sitl.physics  # noqa: F401  (JSBSim body)
     except ImportError as err:  # the runner's pieces are written by other engineers
         pytest.skip(f"in-process runner not complete yet: {err}")

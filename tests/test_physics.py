@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
-from mars_link.errors import UserInputError
-from mars_link.rotations import euler_to_quat, quat_to_euler, tilt_deg
-from mars_link.state import RigidBodyState
+from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
+from mars_link.core.errors import UserInputError
+from mars_link.core.rotations import euler_to_quat, quat_to_euler, tilt_deg
+from mars_link.core.state import RigidBodyState
 from sitl.physics import JsbsimBody
 
 LAYOUTS = {"1x1": ["X"], "3x2": ["XXX", "XXX"], "L": ["X.", "XX"]}

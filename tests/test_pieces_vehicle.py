@@ -1,4 +1,4 @@
-"""The assembly MAVLink vehicle over a flight of pieces (mars_link.pieces_vehicle): a ground station sees
+"""The assembly MAVLink vehicle over a flight of pieces (mars_link.vehicles.pieces_vehicle): a ground station sees
 one vehicle while free units assemble in the air, and while a fault it injects is found, the structure
 splits, docks into a better arrangement and returns to its setpoint. The vehicle's position is the
 piece with the most units, checked against that body's JSBSim truth; every split, dock and change of
@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.udp_runner import read_status
-from mars_link.pieces_vehicle import PiecesSim
-from mars_link.scenario import load_scenario
+from mars_link.processes.udp_runner import read_status
+from mars_link.vehicles.pieces_vehicle import PiecesSim
+from mars_link.config.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parents[1]
 CMD_ARM, CMD_TAKEOFF, CMD_LAND, CMD_INJECT_FAILURE = 400, 22, 21, 420
@@ -190,12 +190,12 @@ def test_no_manoeuvre_starts_on_the_ground() -> None:
 
 def test_vehicle_of_pieces_writes_its_run_mcap(tmp_path: Path) -> None:
     """`mars-link vehicle assemble_3x2 --out DIR`: the six resting bodies in run.mcap's /tf and /truth."""
-    from firmware_models.udp_runner import free_udp_port
+    from mars_link.processes.udp_runner import free_udp_port
     from mcap.reader import make_reader
 
     out = tmp_path / "run"
     api, gcs = free_udp_port(), free_udp_port()
-    r = subprocess.run([sys.executable, "-m", "mars_link.cli", "vehicle", "assemble_3x2", "--duration", "3",
+    r = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "vehicle", "assemble_3x2", "--duration", "3",
                         "--out", str(out), "--api-port", str(api), "--gcs-port", str(gcs), "--api-bind", "0",
                         "--gcs-bind", "0"], cwd=REPO, capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr[-2000:]
@@ -227,7 +227,7 @@ def test_mavsdk_takes_off_assembles_and_lands_the_multiprocess_pieces(tmp_path: 
     assembled body's truth; it lands and disarms."""
     out = tmp_path / "run"
     base = _port_block(8)
-    cmd = [sys.executable, "-m", "mars_link.cli", "sitl", "up", "assemble_3x2", "--vehicle", "--transport", "udp",
+    cmd = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "assemble_3x2", "--vehicle", "--transport", "udp",
            "--any-bind", "--speed", "4", "--vehicle-api-port", str(base), "--gcs-port", str(base + 1),
            "--api-port", str(base + 2), "--out", str(out)]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.assembly import AssemblyModel
+from mars_link.core.assembly import AssemblyModel
 from mars_link.planning.astar import FrontEnd, NoPathError
 from mars_link.planning.attitude import OptimalYaw
 from mars_link.planning.footprint import Footprint, footprint_clearance
@@ -77,7 +77,7 @@ def test_no_path_when_the_gap_is_too_narrow():
 
 
 def walls_planner(layout: str, unit: int) -> tuple[Planner, np.ndarray, np.ndarray]:
-    from mars_link.planning.evaluate import WALLS_GOAL, WALLS_START, walls_map
+    from mars_link.apps.planning_eval import WALLS_GOAL, WALLS_START, walls_map
 
     if not (SHARED / "data" / "mars_ftcc_walls.csv").exists():
         pytest.skip("shared data not beside the repository")

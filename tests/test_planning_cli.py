@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.planning.cli import plan_command
-from mars_link.trajectories import build_trajectory
+from mars_link.apps.plan_cli import plan_command
+from mars_link.models.trajectories import build_trajectory
 
 HEADER = "cx,cy,length_m,thickness_m,height_m,yaw_deg\n"
 # scene frame: a 6 m wall along scene x (= east) at scene y 5 (= north 5), with a 1.6 m gap at x = 0
@@ -27,7 +27,7 @@ def walls(tmp_path: Path) -> Path:
 
 def test_plan_writes_a_replayable_trajectory_json_and_png(tmp_path, walls):
     out = tmp_path / "out"
-    args = [sys.executable, "-m", "mars_link.cli", "plan", str(walls), "--layout", "XXX,XXX", "--fault", "2=0",
+    args = [sys.executable, "-m", "mars_link.apps.cli", "plan", str(walls), "--layout", "XXX,XXX", "--fault", "2=0",
             "--start", "0,0,-2", "--goal", "10,0,-2", "--out", str(out)]
     proc = subprocess.run(args, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr

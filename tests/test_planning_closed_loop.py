@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from mars_link.planning.evaluate import WALLS_CSV, WALLS_GOAL, WALLS_START, fly, replay_published, walls_map
-from mars_link.scenario import load_scenario
+from mars_link.apps.planning_eval import WALLS_CSV, WALLS_GOAL, WALLS_START, fly, replay_published, walls_map
+from mars_link.config.scenario import load_scenario
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 pytestmark = pytest.mark.skipif(not (SHARED / "data" / "mars_ftcc_walls.csv").exists(),

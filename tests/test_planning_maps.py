@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.assembly import AssemblyModel
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.errors import UserInputError
 from mars_link.planning.attitude import OptimalYaw, authority, wrap_half_pi
 from mars_link.planning.footprint import Footprint, footprint_clearance, rounded_rect_distance
 from mars_link.planning.maps import (

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.assembly import AssemblyModel
+from mars_link.core.assembly import AssemblyModel
 from mars_link.planning import backend as B
 from mars_link.planning.attitude import OptimalYaw
 from mars_link.planning.footprint import Footprint, footprint_clearance
@@ -162,7 +162,7 @@ def test_back_end_rejects_a_single_pose():
 @pytest.fixture(scope="module")
 def walls_3x2():
     """3x2 with unit 2 failed on the paper's walls: the planner and both methods' plans."""
-    from mars_link.planning.evaluate import WALLS_GOAL, WALLS_START, walls_map
+    from mars_link.apps.planning_eval import WALLS_GOAL, WALLS_START, walls_map
     from mars_link.planning.pipeline import PlanParams
 
     if not (SHARED / "data" / "mars_ftcc_walls.csv").exists():
@@ -202,7 +202,7 @@ def test_ours_turns_less_than_svsdf_on_the_walls(walls_3x2):
 
 
 def test_plan_command_reports_the_minco_back_end(tmp_path):
-    from mars_link.planning.cli import plan_command
+    from mars_link.apps.plan_cli import plan_command
 
     walls = tmp_path / "walls.csv"
     walls.write_text("cx,cy,length_m,thickness_m,height_m,yaw_deg\n-3.8,5,6,0.15,2.4,90\n3.8,5,6,0.15,2.4,90\n")

@@ -59,7 +59,7 @@ def _sim_time(out: Path) -> float:
 
 
 def _start(argv: list[str]) -> tuple[subprocess.Popen, list[int]]:
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", *argv], stdout=subprocess.DEVNULL,
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", *argv], stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 60
     kids: list[int] = []
@@ -80,7 +80,7 @@ def test_sigkill_of_the_parent_leaves_no_child(tmp_path, verb) -> None:
     proc, kids = _start([*verb, "--out", str(out)])
     try:
         # while it lives, the run directory is its own: a second run, even with --force, is refused (exit 1)
-        second = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_3x2", "--duration", "0.5",
+        second = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_3x2", "--duration", "0.5",
                                  "--quiet", "--out", str(out), "--force"], capture_output=True, text=True, timeout=120)
         assert second.returncode == 1 and "another run is using this directory" in second.stderr, second.stderr
         assert len(second.stderr.strip().splitlines()) == 1
@@ -91,7 +91,7 @@ def test_sigkill_of_the_parent_leaves_no_child(tmp_path, verb) -> None:
         alive = [k for k in kids if _alive(k)]
         assert alive == [], f"children still alive 2 s after SIGKILL of the parent: {alive}"
         # the directory is free again (its owner died): the same second run now goes through
-        again = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_3x2", "--duration", "0.5",
+        again = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_3x2", "--duration", "0.5",
                                 "--quiet", "--out", str(out), "--force"], capture_output=True, text=True, timeout=120)
         assert again.returncode == 0, again.stderr
     finally:
@@ -148,7 +148,7 @@ def test_stop_waits_for_a_run_mcap_writer_that_outlived_the_world(tmp_path: Path
     """A world killed before it finished run.mcap leaves its writer finishing the file on its own; `sitl up`
     (Run.stop) waits for that pid, named in the world's status file, so the file is whole when it ends. A pid
     that is no run.mcap writer is not waited for."""
-    from sitl.launcher import _await_mcap_writer
+    from mars_link.processes.launcher import _await_mcap_writer
 
     status = tmp_path / "world_status.json"
     writer = subprocess.Popen([sys.executable, "-c", "_writer_main = None; import time; time.sleep(1.5)"])

@@ -10,8 +10,8 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.params import unit_param_specs
-from firmware_models.udp_runner import free_udp_port, spawn_unit, stop_unit
-from mars_link.assembly import vehicle_preset
+from mars_link.processes.udp_runner import free_udp_port, spawn_unit, stop_unit
+from mars_link.core.assembly import vehicle_preset
 
 N_PARAMS = len(unit_param_specs(5, vehicle_preset("mars-ftcc")))  # the unit's table
 

@@ -17,8 +17,8 @@ from firmware_models.qgc_plan import load_plan, preload
 
 
 def test_a_qgc_plan_is_preloaded_and_flown_by_the_3x2(tmp_path: Path) -> None:
-    from mars_link.assembly_vehicle import AssemblySim
-    from mars_link.scenario import load_scenario
+    from mars_link.vehicles.assembly_vehicle import AssemblySim
+    from mars_link.config.scenario import load_scenario
 
     path = tmp_path / "x.plan"
     path.write_text(json.dumps(qgc_plan_json()))
@@ -79,7 +79,7 @@ def _bad(doc_change) -> dict:
     (_bad(lambda d: d["rallyPoints"]["points"].append([1.0, 2.0])), "rally point 3"),
 ])
 def test_a_bad_plan_is_one_line_and_exit_2(doc, needle, tmp_path, capsys) -> None:
-    from mars_link.cli import main
+    from mars_link.apps.cli import main
 
     path = tmp_path / "bad.plan"
     path.write_text(doc if isinstance(doc, str) else json.dumps(doc))

@@ -10,12 +10,12 @@ from pathlib import Path
 
 import pytest
 
-from mars_link.build import build_flight
-from mars_link.engine import Engine
-from mars_link.realtime import DEFAULT_SCENARIO as VEHICLE_DEFAULT
-from mars_link.reproduce import CASES, scenario_for
-from mars_link.rotations import quat_to_euler
-from mars_link.scenario import INTERACTIVE_SCENARIO, load_scenario, scenario_from_dict
+from mars_link.flight.build import build_flight
+from mars_link.flight.engine import Engine
+from mars_link.processes.realtime import DEFAULT_SCENARIO as VEHICLE_DEFAULT
+from mars_link.apps.reproduce import CASES, scenario_for
+from mars_link.core.rotations import quat_to_euler
+from mars_link.config.scenario import INTERACTIVE_SCENARIO, load_scenario, scenario_from_dict
 
 
 def test_defaults_fly_the_realistic_plant_and_the_papers_keep_theirs() -> None:

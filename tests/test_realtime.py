@@ -1,6 +1,6 @@
 """Real-time SITL: the stage logs of a paced run are complete and in causal order, the command age is
 taken at the motor, and the process tuning reports what it got (`mars_link.transport.realtime`,
-`mars_link.scheduling`). Speed itself is claimed in benchmarks/bench_realtime.py."""
+`mars_link.runtime.scheduling`). Speed itself is claimed in benchmarks/bench_realtime.py."""
 
 from __future__ import annotations
 
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from machine import fifo_granted, judge
 
-from mars_link.scenario import load_scenario
-from mars_link.sitl_mode import run_sitl_scenario, stage_times
+from mars_link.config.scenario import load_scenario
+from mars_link.processes.sitl_mode import run_sitl_scenario, stage_times
 from mars_link.transport import LinkSpec
 from mars_link.transport.realtime import CPU_DMA_LATENCY, CpuWakeLatency
 
@@ -36,7 +36,7 @@ def test_cpu_wake_latency_says_whether_it_held(tmp_path: Path) -> None:
 
 @pytest.mark.skipif(not hasattr(os, "SCHED_BATCH"), reason="SCHED_BATCH is Linux only")
 def test_batch_scheduling_is_taken_without_privilege() -> None:
-    code = ("import os; from mars_link.scheduling import set_batch_scheduling; "
+    code = ("import os; from mars_link.runtime.scheduling import set_batch_scheduling; "
             "print(set_batch_scheduling(), os.sched_getscheduler(0) == os.SCHED_BATCH)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert out.stdout.split() == ["True", "True"], out.stderr
@@ -90,7 +90,7 @@ def test_a_real_time_run_logs_every_stage_in_causal_order(tmp_path: Path) -> Non
 @pytest.mark.exclusive  # (a flight paced to the wall clock)
 def test_a_real_time_sitl_run_prints_its_command_age_and_scheduling(tmp_path: Path) -> None:
     out = tmp_path / "rt"
-    proc = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_3x2", "--mode", "sitl", "--realtime",
+    proc = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_3x2", "--mode", "sitl", "--realtime",
                            "--duration", "1", "--out", str(out)], capture_output=True, text=True, cwd=ROOT,
                           timeout=120, env={**os.environ, "COLUMNS": "200"})
     assert proc.returncode == 0, proc.stderr
@@ -108,7 +108,7 @@ def test_a_real_time_sitl_run_prints_its_command_age_and_scheduling(tmp_path: Pa
 def test_a_world_that_falls_a_second_behind_leaves_sched_fifo(tmp_path: Path, monkeypatch) -> None:
     """A real-time flight this far behind cannot keep real time here, and catching up flat out in SCHED_FIFO
     would leave the rest of the machine 5 % of it: the world (here stopped 1.5 s mid-step) leaves the class."""
-    from sitl.lockstep import STALL_ENV
+    from mars_link.processes.lockstep import STALL_ENV
 
     monkeypatch.setenv(STALL_ENV, "0.5:1.5")
     sc = load_scenario("hover_3x2")

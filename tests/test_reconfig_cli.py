@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from mars_link.reconfig.cli import reconfig_plan_command
+from mars_link.apps.reconfig_cli import reconfig_plan_command
 
 
 def run(argv, capsys):

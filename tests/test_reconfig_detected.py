@@ -13,7 +13,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tools"))
 
 from reconfig_detect_eval import FAULT_T_S, detected_scenario, fly  # noqa: E402
 
-from mars_link.reconfig.flight import run_reconfig_trial  # noqa: E402
+from mars_link.flight.reconfig_flight import run_reconfig_trial  # noqa: E402
 
 PLUS = [".X.", "XXX", ".X."]
 
@@ -54,7 +54,7 @@ def test_plus5_faulty_tip_cannot_be_carried_to_the_centre():
     from reconfig_eval import scenario
 
     from mars_link.allocation import hover_thrust_share
-    from mars_link.assembly import AssemblyModel
+    from mars_link.core.assembly import AssemblyModel
 
     vehicle = scenario([".X.", "XXX", ".X."], [], "qp", {"enabled": False}).model().vehicle
     pair = AssemblyModel.from_layout(["X", "X"], vehicle)
@@ -99,8 +99,8 @@ def test_a_second_fault_set_is_planned_from_the_structure_the_first_manoeuvre_le
 
     from reconfig_eval import CASES, paper_faults, scenario
 
-    from mars_link.reconfig.flight import run_reconfig_trial
-    from mars_link.scenario import FaultSpec
+    from mars_link.flight.reconfig_flight import run_reconfig_trial
+    from mars_link.config.scenario import FaultSpec
 
     _, layout, _ = CASES[3]
     faults = [FaultSpec(f.unit, f.rotor, f.eta, 5.0) for f in paper_faults(3)]

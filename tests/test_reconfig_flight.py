@@ -1,4 +1,4 @@
-"""Reconfiguration executed in flight (mars_link/reconfig/flight.py): several JSBSim bodies, split and
+"""Reconfiguration executed in flight (mars_link/flight/reconfig_flight.py): several JSBSim bodies, split and
 docked, FTC on every piece; paper 000's docking scenario; `mars-link run` dispatch and bad input."""
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.build import make_trajectory
-from mars_link.reconfig.flight import run_reconfig_trial
+from mars_link.flight.build import make_trajectory
+from mars_link.flight.reconfig_flight import run_reconfig_trial
 from mars_link.reconfig.plans import make_plan, unhoverable_pieces
-from mars_link.scenario import eta_after
-from mars_link.scenario import load_scenario, scenario_from_dict
+from mars_link.config.scenario import eta_after
+from mars_link.config.scenario import load_scenario, scenario_from_dict
 
 FAST = {"at_s": 5.0, "speed_mps": 0.6, "approach_speed_mps": 0.3, "settle_s": 0.5, "stop_s": 1.0}
 
@@ -105,7 +105,7 @@ def test_flight_plans_only_use_pieces_that_can_hover():
 def _cli(tmp_path: Path, text: str, *extra: str) -> subprocess.CompletedProcess:
     path = tmp_path / "s.toml"
     path.write_text(text, encoding="utf-8")
-    return subprocess.run([sys.executable, "-m", "mars_link.cli", "run", str(path), "--out", str(tmp_path / "out"),
+    return subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", str(path), "--out", str(tmp_path / "out"),
                            "--quiet", *extra], capture_output=True, text=True, timeout=120)
 
 

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from mars_link.assembly import AssemblyModel
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.errors import UserInputError
 from mars_link.reconfig import HelixReference, SnapWeights, rotor_from_paper001, solve_placement
 from mars_link.reconfig.placement import health_from_eta, nominal_cells
 from mars_link.reconfig.tree import polyomino_layouts

@@ -16,8 +16,8 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
-from mars_link.assembly import AssemblyModel
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.errors import UserInputError
 from mars_link.reconfig import is_flyable, plan_reconfiguration, solve_placement
 from mars_link.reconfig.flyability import CellMasks, FlyabilityChecker
 from mars_link.reconfig.placement import nominal_cells

@@ -14,8 +14,8 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.signing import advance_outgoing_clock, enable_outgoing_signing
-from firmware_models.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
+from mars_link.mavlink.signing import advance_outgoing_clock, enable_outgoing_signing
+from mars_link.processes.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(180)]
 LOOP = "127.0.0.1"

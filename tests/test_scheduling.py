@@ -1,4 +1,4 @@
-"""The scheduling class of a real-time flight's processes (mars_link.scheduling): SCHED_FIFO where the
+"""The scheduling class of a real-time flight's processes (mars_link.runtime.scheduling): SCHED_FIFO where the
 machine grants it, the old batch scheme where it does not, and work off the control path (a log's
 writer thread) back in the normal class. Each case runs in a child process, so this one's class never
 changes."""
@@ -27,8 +27,8 @@ def test_a_real_time_process_takes_fifo_or_falls_back_and_its_log_writer_leaves_
     log = tmp_path / "a.log"
     code = f"""
 import os, threading
-from mars_link.outputs import SafeWriter
-from mars_link.scheduling import scheduling_class, take_realtime_class
+from mars_link.logs.outputs import SafeWriter
+from mars_link.runtime.scheduling import scheduling_class, take_realtime_class
 print(take_realtime_class(fallback_batch=True))
 seen = []
 t = threading.Thread(target=lambda: seen.append(scheduling_class())); t.start(); t.join()
@@ -50,19 +50,19 @@ w.close()
 
 
 def test_the_coordinator_keeps_the_normal_class_when_fifo_is_refused() -> None:
-    taken = _in_child("from mars_link.scheduling import take_realtime_class\n"
+    taken = _in_child("from mars_link.runtime.scheduling import take_realtime_class\n"
                       "print(take_realtime_class(fallback_batch=False))")
     assert taken == (["fifo:10"] if fifo_granted() else ["normal"])
 
 
 def test_leaving_the_real_time_class_is_a_no_op_in_another_class() -> None:
-    out = _in_child("import os\nfrom mars_link.scheduling import leave_realtime_class, scheduling_class, "
+    out = _in_child("import os\nfrom mars_link.runtime.scheduling import leave_realtime_class, scheduling_class, "
                     "set_batch_scheduling\nset_batch_scheduling()\nleave_realtime_class()\nprint(scheduling_class())")
     assert out == ["batch"]
 
 
 def test_the_summary_line_names_each_class_and_what_would_grant_fifo() -> None:
-    from mars_link.scheduling import describe_classes
+    from mars_link.runtime.scheduling import describe_classes
 
     fifo = {"world": "fifo:10", "coordinator": "fifo:10", "units": ["fifo:10"]}
     assert describe_classes(fifo) == "world fifo:10, coordinator fifo:10, units fifo:10"
@@ -73,7 +73,7 @@ def test_the_summary_line_names_each_class_and_what_would_grant_fifo() -> None:
 
 def test_the_overload_valve_leaves_fifo_once_and_only_past_its_threshold() -> None:
     out = _in_child("""
-from mars_link.scheduling import OverloadValve, scheduling_class, take_realtime_class
+from mars_link.runtime.scheduling import OverloadValve, scheduling_class, take_realtime_class
 idle = OverloadValve()
 print(idle.armed, idle.check(5.0, 1.0))  # the normal class: nothing to leave
 take_realtime_class(fallback_batch=True)

@@ -17,14 +17,14 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle import LINK_API, LINK_COORDINATOR, LINK_HIL, Vehicle, VehicleConfig
 from firmware_models.vehicle_streams import SENSOR_BITS
-from mars_link.assembly_vehicle import AssemblySim
-from mars_link.build import build_flight
-from mars_link.engine import Engine, FlightRecorder
-from mars_link.messages import SensorPacket
-from mars_link.scenario import load_scenario
-from mars_link.scenario_sensor_faults import SensorFaultSpec
-from mars_link.state import ImuSample, PositionSample
-from mars_link.wire import new_mav, sensor_packet_messages
+from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.flight.build import build_flight
+from mars_link.flight.engine import Engine, FlightRecorder
+from mars_link.core.messages import SensorPacket
+from mars_link.config.scenario import load_scenario
+from mars_link.config.scenario_sensor_faults import SensorFaultSpec
+from mars_link.core.state import ImuSample, PositionSample
+from mars_link.mavlink.wire import new_mav, sensor_packet_messages
 from test_cli_bad_input import GOOD  # a 1 s 3x2 hover
 
 NAN = math.nan
@@ -332,7 +332,7 @@ def test_bad_sensor_faults_are_one_line_exit_2(tmp_path: Path, name: str) -> Non
     (tmp_path / "s.toml").write_text(text)
     (tmp_path / "out").mkdir()
     (tmp_path / "out" / "keep.txt").write_text("already here")
-    proc = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", str(tmp_path / "s.toml"), "--out",
+    proc = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", str(tmp_path / "s.toml"), "--out",
                            str(tmp_path / "out"), "--quiet"], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     err = proc.stderr.strip()

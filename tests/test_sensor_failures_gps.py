@@ -1,4 +1,4 @@
-"""Sensor failures on the `gps` profile (issue 15): the health gate (mars_link/sensor_health.py) around the
+"""Sensor failures on the `gps` profile (issue 15): the health gate (mars_link/models/sensor_health.py) around the
 outdoor EKF (delayed GNSS fixes, barometers, magnetometers). Checked against the world's truth: the GNSS
 lost for 10 s mid-spiral in 5 m/s wind with moderate turbulence (bridged, drift reported, tracking back),
 a longer loss (hold, land, motors off; still and windy), the barometers off and the magnetometers stuck
@@ -14,13 +14,13 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle_streams import SENSOR_BITS
-from mars_link.assembly_vehicle import AssemblySim
-from mars_link.build import build_flight
-from mars_link.engine import Engine
-from mars_link.rotations import quat_to_rotmat, tilt_deg
-from mars_link.scenario import load_scenario
-from mars_link.scenario_sensor_faults import SensorFaultSpec
-from mars_link.sensor_profiles import PROFILES
+from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.flight.build import build_flight
+from mars_link.flight.engine import Engine
+from mars_link.core.rotations import quat_to_rotmat, tilt_deg
+from mars_link.config.scenario import load_scenario
+from mars_link.config.scenario_sensor_faults import SensorFaultSpec
+from mars_link.models.sensor_profiles import PROFILES
 
 
 class Track:

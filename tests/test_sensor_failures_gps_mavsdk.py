@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
-from mars_link.realtime import spawn_vehicle
+from mars_link.processes.udp_runner import free_udp_port, read_status, stop_unit
+from mars_link.processes.realtime import spawn_vehicle
 
 mavsdk = pytest.importorskip("mavsdk")
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402

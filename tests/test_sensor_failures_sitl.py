@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_models.udp_runner import read_status
-from mars_link.build import make_trajectory
-from mars_link.scenario import load_scenario
-from sitl.launcher import ClientPorts, free_udp_port, start, wait
+from mars_link.processes.udp_runner import read_status
+from mars_link.flight.build import make_trajectory
+from mars_link.config.scenario import load_scenario
+from mars_link.processes.launcher import ClientPorts, free_udp_port, start, wait
 
 mavsdk = pytest.importorskip("mavsdk")
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
@@ -143,7 +143,7 @@ def test_scheduled_sensor_faults_fly_the_same_in_sitl_and_in_process(tmp_path: P
     finally:
         run.stop()
     assert code == 0
-    from mars_link.runner import run_scenario
+    from mars_link.flight.runner import run_scenario
 
     summary = run_scenario(load_scenario(str(scenario)), tmp_path / "inproc", seed=4, plots=False, mcap=False)
     a = np.genfromtxt(tmp_path / "inproc" / "telemetry.csv", delimiter=",", names=True)
@@ -217,7 +217,7 @@ def test_mavsdk_gps_off_on_the_sitl_up_vehicle_holds_then_lands(tmp_path: Path) 
 
     out = tmp_path / "run"
     base = _port_block(8)
-    cmd = [sys.executable, "-m", "mars_link.cli", "sitl", "up", "hover_3x2", "--vehicle", "--any-bind",
+    cmd = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "hover_3x2", "--vehicle", "--any-bind",
            "--vehicle-api-port", str(base), "--gcs-port", str(base + 1), "--api-port", str(base + 2), "--out", str(out)]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:

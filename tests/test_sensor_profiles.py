@@ -7,12 +7,12 @@ from pathlib import Path
 
 import pytest
 
-from mars_link.build import make_estimator, position_every, world_config
-from mars_link.errors import UserInputError
-from mars_link.estimation import EstimatorParams
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario, scenario_from_dict
-from mars_link.sitl_mode import write_scenario_copy
+from mars_link.flight.build import make_estimator, position_every, world_config
+from mars_link.core.errors import UserInputError
+from mars_link.models.estimation import EstimatorParams
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario, scenario_from_dict
+from mars_link.processes.sitl_mode import write_scenario_copy
 from sitl.sensors import SensorParams
 
 BASE = {"name": "t", "assembly": {"layout": ["XXX", "XXX"]}, "trajectory": {"kind": "hover"}}

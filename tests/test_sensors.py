@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mars_link.rotations import euler_to_quat, quat_to_rotmat
-from mars_link.state import RigidBodyState
+from mars_link.core.rotations import euler_to_quat, quat_to_rotmat
+from mars_link.core.state import RigidBodyState
 from sitl.sensors import SensorModel, SensorParams
 
 G = 9.80665
@@ -63,7 +63,7 @@ def test_accelerometer_sees_the_centripetal_lever_arm_term() -> None:
 
 
 def test_accelerometer_of_every_unit_reads_minus_g_at_rest_on_the_ground() -> None:
-    from mars_link.assembly import AssemblyModel
+    from mars_link.core.assembly import AssemblyModel
     from sitl.physics import JsbsimBody
 
     model = AssemblyModel.from_layout(["X.", "XX"])
@@ -80,8 +80,8 @@ def test_accelerometer_of_every_unit_reads_minus_g_at_rest_on_the_ground() -> No
 
 def test_lever_arm_terms_on_a_spinning_jsbsim_body_match_the_unit_velocity_derivative() -> None:
     """Independent check: d/dt of the unit centre's NED velocity, rotated into the body, minus g."""
-    from mars_link.assembly import AssemblyModel
-    from mars_link.rotations import cross3
+    from mars_link.core.assembly import AssemblyModel
+    from mars_link.core.rotations import cross3
     from sitl.physics import JsbsimBody
 
     model = AssemblyModel.from_layout(["XXX", "XXX"])
@@ -138,7 +138,7 @@ def test_position_velocity_can_be_left_out() -> None:
 
 @pytest.mark.parametrize("bad", [{"gyro_noise_radps": -0.1}, {"position_noise_m": float("nan")}])
 def test_bad_sensor_parameters_are_refused_with_one_line(bad) -> None:
-    from mars_link.errors import UserInputError
+    from mars_link.core.errors import UserInputError
 
     with pytest.raises(UserInputError, match=next(iter(bad))):
         SensorParams(**bad)

@@ -9,8 +9,8 @@ import sys
 
 import pytest
 
-from mars_link.reconfig.flight import run_reconfig_trial
-from mars_link.scenario import load_scenario
+from mars_link.flight.reconfig_flight import run_reconfig_trial
+from mars_link.config.scenario import load_scenario
 
 
 def test_a_column_of_the_3x2_separates_flies_apart_and_redocks_on_command():
@@ -41,7 +41,7 @@ SEP = ('name = "t"\n[assembly]\nlayout = ["XXX"]\n[trajectory]\nkind = "hover"\n
 def test_bad_separation_is_one_line_exit_2(tmp_path, table, message):
     path = tmp_path / "s.toml"
     path.write_text(SEP + "\n[[separations]]\n" + table + "\n")
-    p = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", str(path), "--quiet", "--out",
+    p = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", str(path), "--quiet", "--out",
                         str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
     assert p.returncode == 2 and message in p.stderr and len(p.stderr.strip().splitlines()) == 1, p.stderr
     assert not (tmp_path / "o").exists()

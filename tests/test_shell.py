@@ -137,7 +137,7 @@ def test_mavproxy_nsh_runs_commands_on_the_unit(tmp_path) -> None:
     `commander arm` shows as MAVProxy's own ARMED (from the heartbeat)."""
     from test_mavproxy_unit import run_mavproxy
 
-    from firmware_models.udp_runner import free_udp_port, spawn_unit, stop_unit
+    from mars_link.processes.udp_runner import free_udp_port, spawn_unit, stop_unit
 
     bind = free_udp_port()
     proc, _ = spawn_unit(["--unit", "1", "--gcs-port", str(free_udp_port()), "--gcs-bind", str(bind),

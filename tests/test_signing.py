@@ -8,9 +8,9 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models import signing
-from firmware_models.signing import SignatureVerifier, enable_outgoing_signing, load_key
-from mars_link.errors import UserInputError
+from mars_link.mavlink import signing
+from mars_link.mavlink.signing import SignatureVerifier, enable_outgoing_signing, load_key
+from mars_link.core.errors import UserInputError
 
 KEY = hashlib.sha256(b"unit-1 test key").digest()
 

@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.build import build_flight
-from mars_link.engine import Engine
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
-from sitl.launcher import ClientPorts, free_udp_port, start, wait
+from mars_link.flight.build import build_flight
+from mars_link.flight.engine import Engine
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
+from mars_link.processes.launcher import ClientPorts, free_udp_port, start, wait
 
 SCENARIO = """
 name = "hover_3x2_weak_pack"

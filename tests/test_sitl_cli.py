@@ -1,12 +1,12 @@
-"""`mars-link sitl up` and `python -m sitl.lockstep` refuse bad arguments with one line and exit 2,
+"""`mars-link sitl up` and `python -m mars_link.processes.lockstep` refuse bad arguments with one line and exit 2,
 before any process starts."""
 
 from __future__ import annotations
 
 import pytest
 
-from mars_link.cli import main as cli_main
-from sitl.lockstep import main as lockstep_main
+from mars_link.apps.cli import main as cli_main
+from mars_link.processes.lockstep import main as lockstep_main
 
 BAD_SITL_UP = [
     (["--units", "0"], "--units must be 1..10"),
@@ -45,7 +45,7 @@ def test_lockstep_process_refuses_a_unit_outside_the_run(capsys, tmp_path) -> No
 def test_api_ports_step_over_the_gcs_port_and_the_bound_ones() -> None:
     """PX4's 14540 + i would send the 11th unit's API traffic to QGC's 14550; a 5x5 gets 25 distinct ports
     that are neither the GCS port nor a port a unit or the assembly vehicle binds."""
-    from sitl.launcher import ClientPorts
+    from mars_link.processes.launcher import ClientPorts
 
     c = ClientPorts.consecutive(14550, 14540, 25)
     assert c.api_ports[:10] == list(range(14540, 14550)) and c.api_ports[10] == 14551

@@ -17,9 +17,9 @@ from pathlib import Path
 import pytest
 from pymavlink import mavutil
 
-from firmware_models.udp_runner import read_status
-from mars_link.wire import new_mav
-from sitl.launcher import ClientPorts, free_udp_port, start, wait
+from mars_link.processes.udp_runner import read_status
+from mars_link.mavlink.wire import new_mav
+from mars_link.processes.launcher import ClientPorts, free_udp_port, start, wait
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(120)]
 ROOT = Path(__file__).resolve().parent.parent
@@ -77,7 +77,7 @@ def test_killed_unit_is_declared_dead_and_the_run_finishes(tmp_path: Path) -> No
 
 
 def _spawn_sitl_up(tmp_path: Path, *extra: str, gcs_port: int | None = None) -> tuple[subprocess.Popen, dict[str, int]]:
-    argv = [sys.executable, "-m", "mars_link.cli", "sitl", "up", *extra, "--gcs-port", str(gcs_port or free_udp_port()),
+    argv = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", *extra, "--gcs-port", str(gcs_port or free_udp_port()),
             "--api-port", str(free_udp_port()), "--any-bind", "--out", str(tmp_path / "up")]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     pids: dict[str, int] = {}

@@ -1,4 +1,4 @@
-"""The lockstep's links are Transports chosen at process start (sitl.links.Ports): one HIL exchange
+"""The lockstep's links are Transports chosen at process start (mars_link.processes.links.Ports): one HIL exchange
 world <-> unit firmware over UDP and over Zenoh (real sessions), the unit's client links staying UDP,
 the command-age tap on the unit's links, and a unit's coordinator link over a serial line (pty pair)."""
 
@@ -12,15 +12,15 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL, Vehicle, VehicleConfig
-from firmware_models.vehicle_io import LinkSpec, VehicleSockets, client_links
-from mars_link.messages import ImuSample, PositionSample, SensorPacket
+from mars_link.processes.vehicle_io import LinkSpec, VehicleSockets, client_links
+from mars_link.core.messages import ImuSample, PositionSample, SensorPacket
 from mars_link.transport import LinkSpec as TransportSpec
 from mars_link.transport.serial_link import FdStream, SerialParams, SerialTransport
 from mars_link.transport.zenoh_link import free_tcp_port
-from mars_link.wire import sensor_packet_messages
-from sitl.launcher import free_udp_port
-from sitl.links import Link, Ports
-from sitl.lockstep import COORDINATOR_SYSID, WORLD_SYSID
+from mars_link.mavlink.wire import sensor_packet_messages
+from mars_link.processes.launcher import free_udp_port
+from mars_link.processes.links import Link, Ports
+from mars_link.processes.lockstep import COORDINATOR_SYSID, WORLD_SYSID
 
 
 def _sensors(t_s: float, unit: int = 1) -> list:
@@ -107,7 +107,7 @@ def test_a_unit_coordinator_link_over_a_serial_line() -> None:
     (["--world-port", "9", "--link-profile", "wifi"], "--link-profile applies to the zenoh transport"),
 ])
 def test_a_lockstep_process_refuses_bad_link_options_with_one_line(args, text, capsys, tmp_path) -> None:
-    from sitl.lockstep import main
+    from mars_link.processes.lockstep import main
 
     code = main(["unit", "-", "--units", "1", "--out", str(tmp_path / "run"), *args])
     err = capsys.readouterr().err

@@ -14,11 +14,11 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.signing import enable_outgoing_signing
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
-from mars_link.wire import new_mav
-from sitl.launcher import ClientPorts, free_udp_port, start, wait
+from mars_link.mavlink.signing import enable_outgoing_signing
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
+from mars_link.mavlink.wire import new_mav
+from mars_link.processes.launcher import ClientPorts, free_udp_port, start, wait
 
 SCENARIO = str(Path(__file__).resolve().parent.parent / "scenarios" / "hover_3x2.toml")
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from firmware_models.udp_runner import read_status
-from sitl.launcher import ClientPorts, free_udp_port, start, wait
+from mars_link.processes.udp_runner import read_status
+from mars_link.processes.launcher import ClientPorts, free_udp_port, start, wait
 from test_mavsdk_unit import _is, _near, _north_near, _not, _until
 
 mavsdk = pytest.importorskip("mavsdk")

@@ -11,9 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
-from mars_link.sitl_mode import run_sitl_scenario
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
+from mars_link.processes.sitl_mode import run_sitl_scenario
 from mars_link.transport import LinkSpec
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -53,7 +53,7 @@ def test_sitl_over_zenoh_matches_inproc_within_1mm_on_the_3x2_spiral(tmp_path: P
 
 
 def test_bad_sitl_options_are_one_line_and_exit_2(tmp_path: Path, capsys) -> None:
-    from mars_link.cli import main
+    from mars_link.apps.cli import main
 
     for args in (["run", "hover_1x1", "--mode", "sitl", "--transport", "carrier-pigeon"],
                  ["run", "hover_1x1", "--mode", "warp"],
@@ -80,7 +80,7 @@ def test_a_killed_unit_process_is_a_failed_unit_and_the_flight_goes_on(tmp_path:
     scenario = tmp_path / "hover.toml"
     scenario.write_text((ROOT / "scenarios" / "hover_3x2.toml").read_text().replace("[sim]", "[sim]\nduration_s = 4.0"))
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "run", str(scenario), "--mode", "sitl",
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "run", str(scenario), "--mode", "sitl",
                              "--transport", "udp", "--ftc", "qp", "--out", str(out), "--quiet"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:

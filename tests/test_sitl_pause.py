@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from firmware_models.udp_runner import read_status
+from mars_link.processes.udp_runner import read_status
 
 pytestmark = [pytest.mark.slow, pytest.mark.sitl, pytest.mark.timeout(300),
               pytest.mark.exclusive]  # (flights paced to the wall clock, judged at wall-clock instants)
@@ -43,7 +43,7 @@ def _sim_time(out: Path) -> float:
 
 
 def _unit_pid(parent: int, unit: int | None, timeout_s: float = 60.0, role: str = "unit") -> int:
-    """The PID of `python -m sitl.lockstep ROLE ... [--unit N]`, a child of `parent` (found in /proc)."""
+    """The PID of `python -m mars_link.processes.lockstep ROLE ... [--unit N]`, a child of `parent` (found in /proc)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         for entry in os.listdir("/proc"):
@@ -90,7 +90,7 @@ def _check_the_flight(out: Path) -> None:
 
 def _fly(argv: list[str], out: Path, during) -> None:
     """Run the CLI to its end with `during(proc)` done mid-flight; it must exit 0."""
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", *argv, "--out", str(out)],
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", *argv, "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         during(proc)
@@ -155,13 +155,13 @@ def test_a_paused_world_resumes_and_a_paused_coordinator_lands_the_units(tmp_pat
 def test_a_world_stalled_between_two_units_sensors_loses_nobody(tmp_path: Path) -> None:
     """The world stops for 2.5 s after sending unit 1 its sensors and before the others (a SIGSTOP that lands
     mid-send did this once): the coordinator, holding unit 1's telemetry, starts the step's 1 s silence
-    deadline only once the world says every unit has its step (sitl.lockstep.step_sent_message), so no unit
+    deadline only once the world says every unit has its step (mars_link.processes.lockstep.step_sent_message), so no unit
     is lost and the hover flies to its end."""
-    from sitl.lockstep import STALL_ENV
+    from mars_link.processes.lockstep import STALL_ENV
 
     out = tmp_path / "run"
     env = {**os.environ, STALL_ENV: "1.0:2.5"}
-    done = subprocess.run([sys.executable, "-m", "mars_link.cli", "run", "hover_3x2", "--mode", "sitl", "--duration",
+    done = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_3x2", "--mode", "sitl", "--duration",
                            "2", "--quiet", "--out", str(out)], capture_output=True, text=True, timeout=150, env=env)
     assert done.returncode == 0, done.stderr[-2000:]
     _nobody_lost(out, stalled_s=2.5)
@@ -177,7 +177,7 @@ def _children(parent: int) -> dict[int, str]:
                 argv = Path(f"/proc/{entry}/cmdline").read_bytes().split(b"\0")
             except OSError:
                 continue
-            if int(stat.rsplit(")", 1)[1].split()[1]) == parent and argv[2:3] == [b"sitl.lockstep"]:
+            if int(stat.rsplit(")", 1)[1].split()[1]) == parent and argv[2:3] == [b"mars_link.processes.lockstep"]:
                 kids[int(entry)] = argv[3].decode()
     return kids
 
@@ -186,7 +186,7 @@ def test_a_host_wide_stall_loses_nobody(tmp_path: Path) -> None:
     """Every process of the flight stopped at once for 1.2 s, eight times: the machine stalled. (Seen in a
     CI run: unit 4 and the coordinator were both off the CPU for 1.7 s; the coordinator ran first, found
     the step's 1 s silence deadline long past and lost unit 4, which had not yet run to answer.) Each
-    silence deadline now counts only the time its own process ran (mars_link.pacing.SilenceDeadline), so
+    silence deadline now counts only the time its own process ran (mars_link.runtime.pacing.SilenceDeadline), so
     nobody is lost, whichever process runs first after the stall; here the coordinator, 20 ms ahead."""
     out = tmp_path / "run"
 

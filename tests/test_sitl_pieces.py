@@ -13,10 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.cli import print_summary
-from mars_link.reconfig.flight import run_reconfig_trial
-from mars_link.scenario import load_scenario
-from mars_link.sitl_mode import run_sitl_scenario
+from mars_link.apps.cli import print_summary
+from mars_link.flight.reconfig_flight import run_reconfig_trial
+from mars_link.config.scenario import load_scenario
+from mars_link.processes.sitl_mode import run_sitl_scenario
 from mars_link.transport import LinkSpec
 from pymavlink import mavutil
 
@@ -118,8 +118,8 @@ def test_a_unit_process_sigkilled_during_a_dock_approach_is_lost_and_the_run_fin
     import signal
     import time
 
-    from firmware_models.udp_runner import read_status
-    from mars_link.sitl_mode import start_sitl, summarize_sitl_pieces_run, write_scenario_copy
+    from mars_link.processes.udp_runner import read_status
+    from mars_link.processes.sitl_mode import start_sitl, summarize_sitl_pieces_run, write_scenario_copy
 
     sc = load_scenario("assemble_3x2")
     out = tmp_path / "run"

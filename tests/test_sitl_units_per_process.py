@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
-from mars_link.wire import new_mav
-from sitl.launcher import ClientPorts, free_udp_port, start, wait
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
+from mars_link.mavlink.wire import new_mav
+from mars_link.processes.launcher import ClientPorts, free_udp_port, start, wait
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(300)]
 ROOT = Path(__file__).resolve().parent.parent
@@ -80,7 +80,7 @@ def test_three_units_per_process_fly_the_inproc_hover(tmp_path: Path) -> None:
 @pytest.mark.parametrize("argv", [["sitl", "up", "hover_3x2", "--units-per-process", "0"],
                                   ["run", "hover_3x2", "--mode", "sitl", "--units-per-process", "x"]])
 def test_a_bad_units_per_process_is_one_line_exit_2(tmp_path: Path, argv) -> None:
-    got = subprocess.run([sys.executable, "-m", "mars_link.cli", *argv, "--out", str(tmp_path / "o")],
+    got = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", *argv, "--out", str(tmp_path / "o")],
                          capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert got.returncode == 2 and "--units-per-process" in got.stderr and "Traceback" not in got.stderr, got.stderr
     assert not (tmp_path / "o").exists()  # refused before anything was written

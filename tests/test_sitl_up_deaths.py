@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_models.udp_runner import read_status
+from mars_link.processes.udp_runner import read_status
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(240)]
 ROOT = Path(__file__).resolve().parent.parent
@@ -49,7 +49,7 @@ def _until_sim(out: Path, proc: subprocess.Popen, t_s: float, timeout_s: float =
 
 
 def _sitl_up(scenario: str, out: Path) -> tuple[subprocess.Popen, dict[str, int]]:
-    argv = [sys.executable, "-m", "mars_link.cli", "sitl", "up", scenario, "--any-bind", "--speed", "1",
+    argv = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", scenario, "--any-bind", "--speed", "1",
             "--out", str(out)]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     pids: dict[str, int] = {}

@@ -22,9 +22,9 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.udp_runner import read_status
+from mars_link.processes.udp_runner import read_status
 from machine import CpuWindow
-from mars_link.cli import main as cli_main
+from mars_link.apps.cli import main as cli_main
 
 mavsdk = pytest.importorskip("mavsdk")
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk  # noqa: E402
@@ -230,7 +230,7 @@ def test_mavsdk_flies_the_multiprocess_3x2_as_one_vehicle(transport: str, full: 
     out = tmp_path / "run"
     base = _port_block(8)  # vehicle API, GCS, the units' API ports
     api = base
-    cmd = [sys.executable, "-m", "mars_link.cli", "sitl", "up", "hover_3x2", "--vehicle", "--transport", transport,
+    cmd = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "hover_3x2", "--vehicle", "--transport", transport,
            "--any-bind",
            "--vehicle-api-port", str(api), "--gcs-port", str(base + 1), "--api-port", str(base + 2),
            "--out", str(out)]

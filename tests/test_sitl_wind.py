@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
-from sitl.launcher import ClientPorts, free_udp_port, start, wait
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
+from mars_link.processes.launcher import ClientPorts, free_udp_port, start, wait
 
 SCENARIO = """
 name = "hover_3x2_air"

@@ -15,7 +15,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from test_vehicle_protocol import LINK_API, T0, Client
 
 from firmware_models.vehicle import Vehicle, VehicleConfig
-from mars_link.assembly import AssemblyModel
+from mars_link.core.assembly import AssemblyModel
 from sitl.physics import JsbsimBody
 
 R = mavlink

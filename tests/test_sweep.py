@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from mars_link.cli import main
-from mars_link.sweep_report import read_csv, result_columns
+from mars_link.apps.cli import main
+from mars_link.apps.sweep_report import read_csv, result_columns
 
 #: a short real flight: the bundled 1x1 hover (10 s), one random rotor failure per flight, without and with FTC
 SMALL = ["hover_1x1", "--seeds", "3", "--faults", "random:1", "--param", "ftc=none,qp", "--quiet", "--no-plots"]
@@ -156,7 +156,7 @@ def test_a_killed_sweep_keeps_its_rows_and_leaves_no_workers(tmp_path):
     import psutil
 
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sweep", "hover_1x1", "--seeds", "40",
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sweep", "hover_1x1", "--seeds", "40",
                              "--workers", "2", "--quiet", "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:

@@ -16,8 +16,8 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle import DEFAULT_STREAM_HZ, LINK_GCS, Vehicle, VehicleConfig
-from mars_link import mavlink_codec
-from mars_link.state import RigidBodyState
+from mars_link.mavlink import codec as mavlink_codec
+from mars_link.core.state import RigidBodyState
 
 ALL_STREAMS = {mid: 1000.0 for mid in DEFAULT_STREAM_HZ}  # every stream due on every tick
 
@@ -54,8 +54,8 @@ def test_battery_current_above_int16_is_clamped_not_raised() -> None:
 def test_the_3x2_assembly_vehicle_reports_a_high_draw_instead_of_crashing() -> None:
     """`mars-link vehicle` / `sitl up --vehicle`: the assembly's current is its units' sum (six units at 60 A
     each: 360 A, beyond the int16 centiamperes)."""
-    from mars_link.assembly_vehicle import AssemblySim
-    from mars_link.scenario import load_scenario
+    from mars_link.vehicles.assembly_vehicle import AssemblySim
+    from mars_link.config.scenario import load_scenario
 
     sim = AssemblySim(load_scenario("hover_3x2"), wall_time_s=0.0)
     try:
@@ -64,7 +64,7 @@ def test_the_3x2_assembly_vehicle_reports_a_high_draw_instead_of_crashing() -> N
         v.armed = True
         from types import SimpleNamespace
 
-        from mars_link.messages import BatterySample
+        from mars_link.core.messages import BatterySample
 
         v.take_unit_batteries(0.0, [SimpleNamespace(unit_id=u, battery=BatterySample(15.0, 60.0, 0.4 + 0.01 * u))
                                     for u in range(1, 7)])
@@ -159,7 +159,7 @@ class FullDisk(io.StringIO):
 
 
 def test_safe_writer_stops_logging_on_enospc_and_never_raises() -> None:
-    from mars_link.outputs import SafeWriter
+    from mars_link.logs.outputs import SafeWriter
 
     w = SafeWriter(FullDisk(), "telemetry.csv")
     for _ in range(5):
@@ -186,7 +186,7 @@ def tiny_tmpfs(tmp_path):
 
 
 def test_safe_writer_on_a_really_full_tmpfs(tiny_tmpfs) -> None:
-    from mars_link.outputs import SafeWriter
+    from mars_link.logs.outputs import SafeWriter
 
     w = SafeWriter.open(tiny_tmpfs / "telemetry.csv")
     row = "0," * 100 + "\n"
@@ -214,8 +214,8 @@ def test_inproc_run_goes_on_when_the_log_disk_fills(tmp_path, monkeypatch, capsy
     import json as _json
     import sys
 
-    from mars_link import runner
-    from mars_link.cli import main as cli_main
+    from mars_link.flight import runner
+    from mars_link.apps.cli import main as cli_main
 
     log_module = sys.modules[runner.RunLog.__module__]  # where the runner's RunLog lives (it is moving)
 

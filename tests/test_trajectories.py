@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from mars_link.errors import UserInputError
-from mars_link.trajectories import TRAJECTORY_KINDS, build_trajectory
+from mars_link.core.errors import UserInputError
+from mars_link.models.trajectories import TRAJECTORY_KINDS, build_trajectory
 
 REST = 0.05
 

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.runner import run_scenario
-from mars_link.scenario import load_scenario
-from mars_link.sitl_mode import start_sitl, summarize_sitl_run
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
+from mars_link.processes.sitl_mode import start_sitl, summarize_sitl_run
 from mars_link.transport import LinkSpec
 from mars_link.transport.zenoh_link import free_tcp_port, open_router
 
@@ -87,14 +87,14 @@ def _fly(tmp_path: Path, host_ip: str, unit_prefix, coordinator_prefix: list[str
     out = tmp_path / "sitl"
     coordinator = None
     try:
-        from mars_link.sitl_mode import write_scenario_copy
+        from mars_link.processes.sitl_mode import write_scenario_copy
 
         out.mkdir()
         copy = write_scenario_copy(sc, out / "scenario.toml")
         link = LinkSpec("zenoh", fleet="netns", connect=(endpoint,))  # every process reaches the router on the bridge
         session = start_sitl(str(copy), out, link, seed=4, unit_prefix=unit_prefix, roles=("world", "units"))
         with open(out / "coordinator.log", "w") as log:
-            coordinator = subprocess.Popen([*coordinator_prefix, sys.executable, "-m", "mars_link.cli", "coordinator",
+            coordinator = subprocess.Popen([*coordinator_prefix, sys.executable, "-m", "mars_link.apps.cli", "coordinator",
                                             str(copy), "--fleet", "netns", "--zenoh-connect", endpoint, "--out", str(out)],
                                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
         time.sleep(1.0)

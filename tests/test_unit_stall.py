@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
+from mars_link.processes.udp_runner import free_udp_port, read_status, spawn_unit, stop_unit
 from firmware_models.vehicle import Vehicle
-from mars_link.pacing import STALL_S, StallMeter
+from mars_link.runtime.pacing import STALL_S, StallMeter
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(120)]
 LOOP = "127.0.0.1"

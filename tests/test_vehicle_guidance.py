@@ -11,7 +11,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from test_mission_protocol import _deg
 from test_vehicle_protocol import LINK_API, Flight, _ack, _airborne, _vehicle, Client
 
-from mars_link.rotations import euler_to_quat, quat_to_euler
+from mars_link.core.rotations import euler_to_quat, quat_to_euler
 
 R = mavlink
 NAN = math.nan

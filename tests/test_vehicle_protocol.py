@@ -11,7 +11,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.params import decode_value
-from firmware_models.signing import enable_outgoing_signing
+from mars_link.mavlink.signing import enable_outgoing_signing
 from firmware_models.vehicle import (
     LINK_API,
     LINK_COORDINATOR,
@@ -20,11 +20,11 @@ from firmware_models.vehicle import (
     Vehicle,
     VehicleConfig,
 )
-from mars_link.assembly import AssemblyModel
-from mars_link.errors import UserInputError
-from mars_link.messages import SensorPacket
-from mars_link.state import ImuSample, RigidBodyState
-from mars_link.wire import sensor_packet_messages
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.errors import UserInputError
+from mars_link.core.messages import SensorPacket
+from mars_link.core.state import ImuSample, RigidBodyState
+from mars_link.mavlink.wire import sensor_packet_messages
 from sitl.physics import JsbsimBody
 
 NAN = math.nan

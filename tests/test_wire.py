@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mars_link.messages import ActuatorOutput, RotorCommand, SensorPacket
-from mars_link.state import ImuSample, PositionSample, RigidBodyState
-from mars_link.wire import (
+from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket
+from mars_link.core.state import ImuSample, PositionSample, RigidBodyState
+from mars_link.mavlink.wire import (
     SensorPacketAssembler,
     actuator_output_from_message,
     actuator_output_message,
@@ -83,7 +83,7 @@ def test_rotor_command_and_actuator_output_roundtrip() -> None:
 def test_a_units_forward_built_from_received_fields_equals_the_packet_path() -> None:
     """SensorFrames.upstream_messages (what a unit forwards to the coordinator, no arrays) gives the
     same bytes as encoding the decoded packet, with and without position, truth and velocity."""
-    from mars_link.wire import SensorFrameAssembler
+    from mars_link.mavlink.wire import SensorFrameAssembler
 
     rng = np.random.default_rng(4)
     world, unit = new_mav(200), new_mav(3)

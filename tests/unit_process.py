@@ -8,7 +8,7 @@ from pathlib import Path
 
 from test_mavsdk_mission import spawn_api_unit
 
-from firmware_models.udp_runner import free_udp_port, read_status, stop_unit
+from mars_link.processes.udp_runner import free_udp_port, read_status, stop_unit
 
 
 @contextmanager

@@ -27,11 +27,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from mars_link.errors import UserInputError  # noqa: E402
-from mars_link.metrics import gust_response  # noqa: E402
-from mars_link.runner import run_scenario  # noqa: E402
-from mars_link.scenario import load_scenario  # noqa: E402
-from mars_link.sensor_profiles import PROFILES  # noqa: E402
+from mars_link.core.errors import UserInputError  # noqa: E402
+from mars_link.flight.metrics import gust_response  # noqa: E402
+from mars_link.flight.runner import run_scenario  # noqa: E402
+from mars_link.config.scenario import load_scenario  # noqa: E402
+from mars_link.models.sensor_profiles import PROFILES  # noqa: E402
 
 FLIGHTS = ("spiral", "gust")
 

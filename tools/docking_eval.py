@@ -23,10 +23,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from mars_link.outputs import write_json  # noqa: E402
-from mars_link.reconfig.flight import run_reconfig_trial  # noqa: E402
-from mars_link.scenario import load_scenario  # noqa: E402
-from mars_link.sweep_pool import add_pool_arguments, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
+from mars_link.logs.outputs import write_json  # noqa: E402
+from mars_link.flight.reconfig_flight import run_reconfig_trial  # noqa: E402
+from mars_link.config.scenario import load_scenario  # noqa: E402
+from mars_link.apps.sweep_pool import add_pool_arguments, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
 
 FAULTY_UNIT = 3
 AFTER_DOCK_S = 3.0

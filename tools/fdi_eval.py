@@ -37,13 +37,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from mars_link.errors import UserInputError  # noqa: E402
-from mars_link.outputs import write_json  # noqa: E402
-from mars_link.reproduce import (  # noqa: E402
+from mars_link.core.errors import UserInputError  # noqa: E402
+from mars_link.logs.outputs import write_json  # noqa: E402
+from mars_link.apps.reproduce import (  # noqa: E402
     CASES, FDI_MAX_DELAY_S, FDI_MAX_ETA_ERROR, FDI_MAX_ERROR_RATIO, FdiTrial, fdi_false_alarm_flight, fdi_lost_trial,
     fdi_trial,
 )
-from mars_link.sweep_pool import add_pool_arguments, call, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
+from mars_link.apps.sweep_pool import add_pool_arguments, call, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
 
 FTC_CHOICES = ("qp", "paper", "unit", "partial", "full", "hybrid")
 CONTROLLERS = ("cascaded", "mars-ftcc-paper")
@@ -66,7 +66,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     add_pool_arguments(ap)  # --workers / --scheduler: the flights go through the sweep's executor
     args = ap.parse_args(argv)
     args.environment = air_table(args.turbulence, args.wind)
-    from mars_link.sensor_profiles import PROFILES
+    from mars_link.models.sensor_profiles import PROFILES
 
     if args.sensors not in PROFILES:
         raise UserInputError(f"unknown --sensors profile {args.sensors!r} (known: {', '.join(PROFILES)})")
@@ -86,7 +86,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
 
 def air_table(turbulence: str, wind: str) -> dict | None:
     """The [environment] table of --turbulence / --wind (None: still air), checked as a scenario's."""
-    from mars_link.scenario_environment import environment_table
+    from mars_link.config.scenario_environment import environment_table
 
     try:
         turb: str | float = float(turbulence)

@@ -26,15 +26,15 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from mars_link.assembly import AssemblyModel  # noqa: E402
-from mars_link.outputs import write_json  # noqa: E402
-from mars_link.planning.evaluate import (  # noqa: E402
+from mars_link.core.assembly import AssemblyModel  # noqa: E402
+from mars_link.logs.outputs import write_json  # noqa: E402
+from mars_link.apps.planning_eval import (  # noqa: E402
     PAPER_CASES, WALLS_CSV, WALLS_GOAL, WALLS_START, fly, forest_sweep, replay_published, walls_map,
 )
 from mars_link.planning.maps import ForestParams  # noqa: E402
 from mars_link.planning.pipeline import Planner, PlanParams  # noqa: E402
 from mars_link.planning.plots import plot_plan  # noqa: E402
-from mars_link.sweep_pool import (  # noqa: E402
+from mars_link.apps.sweep_pool import (  # noqa: E402
     PoolSpec, add_pool_arguments, map_flights, pool_from_args, print_progress, values_or_raise,
 )
 
@@ -50,7 +50,7 @@ def log(msg: str) -> None:
 
 
 def fly_plan(traj: dict, layout: str, unit: int, obstacles, controller: str, noise: bool, seed: int):
-    """One walls flight in a sweep worker (mars_link.planning.evaluate.fly)."""
+    """One walls flight in a sweep worker (mars_link.apps.planning_eval.fly)."""
     return fly(traj, layout, unit, obstacles, controller=controller, noise=noise, seed=seed)
 
 
@@ -111,7 +111,7 @@ def walls_table(rows: list[dict]) -> str:
 
 
 def replay_flight(layout: str, unit: int, method: str, work_dir: Path, controller: str, noise: bool):
-    """One published CSV flown in a sweep worker (mars_link.planning.evaluate.replay_published); each controller
+    """One published CSV flown in a sweep worker (mars_link.apps.planning_eval.replay_published); each controller
     converts into its own directory (two flights of one CSV may run at once)."""
     return replay_published(layout, unit, method, work_dir / KEYS[controller, noise], controller=controller,
                             noise=noise)

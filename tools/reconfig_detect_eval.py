@@ -25,9 +25,9 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tools"))
 
-from mars_link.outputs import write_json  # noqa: E402
-from mars_link.scenario import FaultSpec  # noqa: E402
-from mars_link.sweep_pool import add_pool_arguments, map_flights, pool_from_args, values_or_raise  # noqa: E402
+from mars_link.logs.outputs import write_json  # noqa: E402
+from mars_link.config.scenario import FaultSpec  # noqa: E402
+from mars_link.apps.sweep_pool import add_pool_arguments, map_flights, pool_from_args, values_or_raise  # noqa: E402
 from reconfig_eval import CASES, DIVERGED_MAX_ERROR_M, paper_faults, scenario  # noqa: E402
 
 FAULT_T_S = 5.0
@@ -40,7 +40,7 @@ def detected_scenario(layout, n_faults: int, reconfigure: bool):
 
 
 def fly(idx: int, which: str) -> dict:
-    from mars_link.reconfig.flight import run_reconfig_trial
+    from mars_link.flight.reconfig_flight import run_reconfig_trial
 
     shape, layout, n = CASES[idx]
     t0 = time.perf_counter()

@@ -38,15 +38,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from mars_link.outputs import write_json  # noqa: E402
+from mars_link.logs.outputs import write_json  # noqa: E402
 from mars_link.reconfig import HelixReference, rotor_from_paper001  # noqa: E402
 from mars_link.reconfig.placement import SnapWeights, health_from_eta, nominal_cells, solve_placement  # noqa: E402
-from mars_link.build import make_trajectory  # noqa: E402
-from mars_link.scenario import eta_after  # noqa: E402
-from mars_link.run_log import RunLog  # noqa: E402
-from mars_link.runner import run_trial  # noqa: E402
-from mars_link.scenario import FaultSpec, scenario_from_dict  # noqa: E402
-from mars_link.sweep_pool import add_pool_arguments, call, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
+from mars_link.flight.build import make_trajectory  # noqa: E402
+from mars_link.config.scenario import eta_after  # noqa: E402
+from mars_link.flight.run_log import RunLog  # noqa: E402
+from mars_link.flight.runner import run_trial  # noqa: E402
+from mars_link.config.scenario import FaultSpec, scenario_from_dict  # noqa: E402
+from mars_link.apps.sweep_pool import add_pool_arguments, call, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
 
 CASES = [
     ("plus-5", [".X.", "XXX", ".X."], 3),
@@ -115,7 +115,7 @@ def fly_row(layout, faults: list[FaultSpec], mode: str) -> dict:
 
 
 def fly_inflight(layout, faults: list[FaultSpec], out: Path) -> dict:
-    from mars_link.reconfig.flight import run_reconfig_trial
+    from mars_link.flight.reconfig_flight import run_reconfig_trial
 
     late = [FaultSpec(f.unit, f.rotor, f.eta, 5.0) for f in faults]
     sc = scenario(layout, late, "qp", {"enabled": True})

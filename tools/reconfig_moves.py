@@ -23,10 +23,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from mars_link.assembly import layout_of_cells  # noqa: E402
+from mars_link.core.assembly import layout_of_cells  # noqa: E402
 from mars_link.reconfig.moves import HoverCosts, best_ground_moves, best_moves  # noqa: E402
 from mars_link.reconfig.placement import nominal_cells  # noqa: E402
-from mars_link.scenario import eta_after  # noqa: E402
+from mars_link.config.scenario import eta_after  # noqa: E402
 from reconfig_eval import CASES, paper_faults, scenario  # noqa: E402
 
 

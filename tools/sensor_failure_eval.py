@@ -28,11 +28,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from mars_link.build import build_flight  # noqa: E402
-from mars_link.engine import Engine, FlightRecorder  # noqa: E402
-from mars_link.errors import UserInputError  # noqa: E402
-from mars_link.scenario import load_scenario  # noqa: E402
-from mars_link.scenario_sensor_faults import SensorFaultSpec  # noqa: E402
+from mars_link.flight.build import build_flight  # noqa: E402
+from mars_link.flight.engine import Engine, FlightRecorder  # noqa: E402
+from mars_link.core.errors import UserInputError  # noqa: E402
+from mars_link.config.scenario import load_scenario  # noqa: E402
+from mars_link.config.scenario_sensor_faults import SensorFaultSpec  # noqa: E402
 
 
 class _Track:
@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _aux_table(false_alarms: int) -> int:
     """gps profile: every unit's barometer off / magnetometer stuck for 6 s from 5 s of a 3x2 hover."""
-    from mars_link.sensor_profiles import PROFILES
+    from mars_link.models.sensor_profiles import PROFILES
 
     print("\nEvery unit's barometer or magnetometer failing for 6 s from 5 s of a 3x2 hover, gps profile (seed 1)\n")
     print("| failure | named at [s] (reason) | rotor faults | tracking error mean before / during [m] | height error max during [m] |")

@@ -14,8 +14,8 @@ from mars_link.allocation.base import Allocator
 from mars_link.allocation.modes import Full, Hybrid, Partial, UnitShares
 from mars_link.allocation.pseudo_inverse import NominalPseudoInverse
 from mars_link.allocation.qp import QpAllocator
-from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
+from mars_link.core.errors import UserInputError
 
 _MODES: dict[str, type[Allocator]] = {
     "none": NominalPseudoInverse,

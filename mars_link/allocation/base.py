@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
+from mars_link.core.assembly import AssemblyModel
 
 
 class Allocator:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from mars_link.allocation.base import Allocator
-from mars_link.assembly import GRAVITY_MPS2, ROTORS_PER_UNIT, AssemblyModel
+from mars_link.core.assembly import GRAVITY_MPS2, ROTORS_PER_UNIT, AssemblyModel
 
 _RCOND = 1e-9
 #: relative priority of (thrust, roll, pitch, yaw) once each row is normalised to hover scale

@@ -6,8 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mars_link.state import RigidBodyState
-from mars_link.trajectories import TrajectoryPoint
+from mars_link.core.state import RigidBodyState
+from mars_link.models.trajectories import TrajectoryPoint
 
 
 @dataclass

@@ -23,11 +23,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from mars_link.allocation.base import Allocator
-from mars_link.assembly import GRAVITY_MPS2, AssemblyModel
+from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
 from mars_link.control.base import ControlOutput, Controller
-from mars_link.errors import UserInputError
-from mars_link.state import RigidBodyState
-from mars_link.trajectories import TrajectoryPoint
+from mars_link.core.errors import UserInputError
+from mars_link.core.state import RigidBodyState
+from mars_link.models.trajectories import TrajectoryPoint
 
 
 @dataclass
@@ -38,7 +38,7 @@ class CascadedGains:
     position_damping: float = 0.9
     position_ki_per_s3: float = 0.8  # integral gain, m/s² per (m·s)
     # |∫e dt| bound per axis, m·s: ki·limit = 3.2 m/s² trims a steady wind's drag (a 5 m/s wind needs
-    # 2.4 m/s² with the RotorPy drag, mars_link.aerodynamics); still-air flights never reach 0.5
+    # 2.4 m/s² with the RotorPy drag, mars_link.models.aerodynamics); still-air flights never reach 0.5
     integral_limit_ms: float = 4.0
     attitude_wn_radps: float = 12.0
     attitude_damping: float = 0.85

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.assembly import (
+from mars_link.core.assembly import (
     GRAVITY_MPS2,
     ROTOR_QUADRANT_SIGNS,
     ROTOR_YAW_SIGNS,
@@ -48,10 +48,10 @@ from mars_link.control.paper_tables import (
     named_table,
     table_for,
 )
-from mars_link.errors import UserInputError
-from mars_link.rotations import quat_to_rotmat, wrap_pi
-from mars_link.state import RigidBodyState
-from mars_link.trajectories import TrajectoryPoint
+from mars_link.core.errors import UserInputError
+from mars_link.core.rotations import quat_to_rotmat, wrap_pi
+from mars_link.core.state import RigidBodyState
+from mars_link.models.trajectories import TrajectoryPoint
 
 #: the scenes' script step; per-step differences and the integrator are defined at this rate
 PAPER_CONTROL_HZ = 20.0

@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.errors import UserInputError
 
 #: rank tolerance of the thrust-share constraint matrix (positions in metres)
 _RANK_TOL = 1e-9

@@ -18,7 +18,7 @@ import math
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
+from mars_link.core.assembly import AssemblyModel
 
 
 def wrap_pi(a):

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from mars_link.assembly import AssemblyModel
+from mars_link.core.assembly import AssemblyModel
 from mars_link.planning.maps import ObstacleMap
 
 #: paper 000 scene: rotor discs of 0.16 m diameter on a 0.35 m unit; scaled with the pitch for other presets

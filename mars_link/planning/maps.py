@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import distance_transform_edt
 
-from mars_link.errors import UserInputError
+from mars_link.core.errors import UserInputError
 
 BOX_COLUMNS = ("cx", "cy", "length_m", "thickness_m", "height_m", "yaw_deg")
 

@@ -17,13 +17,13 @@ from pathlib import Path
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.errors import UserInputError
 from mars_link.planning.astar import AStarParams, FrontEnd, NoPathError
 from mars_link.planning.attitude import OptimalYaw
 from mars_link.planning.footprint import Footprint, footprint_clearance
 from mars_link.planning.maps import ObstacleMap, SignedDistanceField
-from mars_link.trajectories import TakeoffTrajectory, Trajectory, TrajectoryPoint
+from mars_link.models.trajectories import TakeoffTrajectory, Trajectory, TrajectoryPoint
 
 METHODS = ("ours", "svsdf")
 
@@ -317,9 +317,9 @@ def resolve_data_path(text: str) -> Path:
 
 def build_plan_trajectory(params: dict, rest_height_m: float):
     """`[trajectory] kind = "plan"`: plan now (map, start, goal, method, ...) and fly the result."""
-    from mars_link.assembly import AssemblyModel, parse_layout, vehicle_preset
+    from mars_link.core.assembly import AssemblyModel, parse_layout, vehicle_preset
     from mars_link.planning.maps import load_map
-    from mars_link.scenario import eta_after, parse_fault_arg
+    from mars_link.config.scenario import eta_after, parse_fault_arg
 
     def point(key):
         v = params[key]

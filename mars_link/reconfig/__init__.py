@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.errors import UserInputError
+from mars_link.core.errors import UserInputError
 from mars_link.reconfig.flyability import FlyabilityRule, is_flyable
 from mars_link.reconfig.placement import Placement, SnapWeights, health_from_eta, solve_placement
 from mars_link.reconfig.sequencing import ReconfigPlan, Sequencer, plan_reconfiguration

@@ -29,12 +29,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel, VehicleParams, layout_of_cells
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import AssemblyModel, VehicleParams, layout_of_cells
+from mars_link.core.errors import UserInputError
 from mars_link.reconfig.flyability import Cell
 from mars_link.reconfig.sequencing import ReconfigPlan
-from mars_link.rotations import quat_to_euler
-from mars_link.trajectories import Trajectory, TrajectoryPoint, smoothstep
+from mars_link.core.rotations import quat_to_euler
+from mars_link.models.trajectories import Trajectory, TrajectoryPoint, smoothstep
 
 Key = frozenset
 

@@ -18,7 +18,7 @@ from typing import Iterable
 
 import numpy as np
 
-from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
+from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel
 
 Cell = tuple[int, int]  # (row, col) in the layout; row 0 = front, col grows to the right
 
@@ -294,7 +294,7 @@ class FlyabilityChecker:
     def _hovers(self, mask: int) -> bool:
         """Exact hover LP of the piece (its own model, rotor healths in its row-major slot order)."""
         from mars_link.allocation import check_controllable
-        from mars_link.errors import UserInputError
+        from mars_link.core.errors import UserInputError
 
         cells = sorted(self.grid.cells(mask))
         r0, c0 = min(r for r, _ in cells), min(c for _, c in cells)

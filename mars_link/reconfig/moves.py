@@ -18,8 +18,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mars_link.assembly import GRAVITY_MPS2, VehicleParams
-from mars_link.latches import components, neighbour_links
+from mars_link.core.assembly import GRAVITY_MPS2, VehicleParams
+from mars_link.core.latches import components, neighbour_links
 from mars_link.reconfig.execution import PieceShape, local_eta
 from mars_link.reconfig.flyability import Cell
 
@@ -190,7 +190,7 @@ def best_moves(cells: dict[int, Cell], costs: HoverCosts, depth: int = 2,
 def move_plan(cells: dict[int, Cell], move: Move, sum_sq_n2: float) -> "ReconfigPlan":
     """One move as the executor's plan: one split layer (the piece leaves across its break line), one dock
     layer (it approaches the rest along `dock_axis`). Cells are shifted so both frames start at 0."""
-    from mars_link.assembly import layout_of_cells
+    from mars_link.core.assembly import layout_of_cells
     from mars_link.reconfig.placement import Placement
     from mars_link.reconfig.sequencing import BreakLine, MergeStep, ReconfigPlan, SplitStep
 
@@ -290,7 +290,7 @@ def best_ground_moves(cells: dict[int, Cell], costs: HoverCosts, max_lifts: int 
 def ground_plan(cells: dict[int, Cell], found: GroundSearch) -> "ReconfigPlan":
     """A ground search's result as the executor's plan (`on_ground`): one split layer per lift, one dock
     layer per placement (approach "down": into its slot from above). Cells are shifted to start at 0."""
-    from mars_link.assembly import layout_of_cells
+    from mars_link.core.assembly import layout_of_cells
     from mars_link.reconfig.placement import Placement
     from mars_link.reconfig.sequencing import BreakLine, MergeStep, ReconfigPlan, SplitStep
 

@@ -22,8 +22,8 @@ from typing import Iterable
 import numpy as np
 from scipy.optimize import Bounds, LinearConstraint, linear_sum_assignment, milp
 
-from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel
+from mars_link.core.errors import UserInputError
 
 Cell = tuple[int, int]
 
@@ -50,7 +50,7 @@ class SnapWeights:
 
         The integral of |snap| is the total variation of jerk, summed from jerk samples, so no
         numerical differentiation is needed. `trajectory.sample(t)` returns a point with
-        `jerk_ned_mps3` (mars_link.trajectories); x = north, y = east.
+        `jerk_ned_mps3` (mars_link.models.trajectories); x = north, y = east.
         """
         t_end = getattr(trajectory, "duration_s", None) if duration_s is None else duration_s
         if t_end is None or not t_end > 0:

@@ -1,6 +1,6 @@
 """What a flight of pieces plans: the reconfiguration for its faults, a commanded separation, where free
-units rest, and the checks made before flight. `mars_link.build` puts the executor and the flight
-together (`make_executor`, `build_pieces_flight`); `mars_link.reconfig.flight` writes its outputs.
+units rest, and the checks made before flight. `mars_link.flight.build` puts the executor and the flight
+together (`make_executor`, `build_pieces_flight`); `mars_link.flight.reconfig_flight` writes its outputs.
 """
 
 from __future__ import annotations
@@ -9,13 +9,13 @@ import math
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import AssemblyModel
+from mars_link.core.errors import UserInputError
 from mars_link.reconfig.execution import ExecutionParams, PieceShape, local_eta
 from mars_link.reconfig.flyability import FlyabilityRule
 from mars_link.reconfig.placement import SnapWeights, health_from_eta, nominal_cells
 from mars_link.reconfig.sequencing import ReconfigPlan, plan_reconfiguration
-from mars_link.scenario import Scenario, eta_after
+from mars_link.config.scenario import Scenario, eta_after
 
 
 def execution_params(scenario: Scenario) -> ExecutionParams:
@@ -127,7 +127,7 @@ def plan_separation(model: AssemblyModel, units, redock: bool) -> ReconfigPlan:
     """A commanded separation: `units` undock along one straight cut and, with `redock`, dock back into
     their cells (one split layer, one dock layer). A set of units that no straight cut separates, or that
     leaves either side in several parts, is a UserInputError."""
-    from mars_link.latches import components, neighbour_links
+    from mars_link.core.latches import components, neighbour_links
     from mars_link.reconfig.placement import Placement
     from mars_link.reconfig.sequencing import BreakLine, MergeStep, SplitStep
 

@@ -35,8 +35,8 @@ from typing import Iterator
 
 import numpy as np
 
-from mars_link.assembly import AssemblyModel, VehicleParams, layout_of_cells
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import AssemblyModel, VehicleParams, layout_of_cells
+from mars_link.core.errors import UserInputError
 from mars_link.reconfig.flyability import Cell, CellMasks, FlyabilityChecker, FlyabilityRule
 from mars_link.reconfig.placement import (
     Placement,

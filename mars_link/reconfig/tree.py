@@ -14,8 +14,8 @@ from typing import Iterable
 
 import numpy as np
 
-from mars_link.assembly import ROTORS_PER_UNIT, AssemblyModel
-from mars_link.errors import UserInputError
+from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel
+from mars_link.core.errors import UserInputError
 from mars_link.reconfig.flyability import Cell, FlyabilityRule
 from mars_link.reconfig.placement import SnapWeights, nominal_cells
 

@@ -43,7 +43,7 @@ class LinkSpec:
 
 
 def add_link_args(ap) -> None:
-    """The command-line options every SITL process (`python -m sitl.lockstep`) takes to build its links
+    """The command-line options every SITL process (`python -m mars_link.processes.lockstep`) takes to build its links
     (see LinkSpec.to_args)."""
     ap.add_argument("--transport", choices=TRANSPORTS, default="udp")
     ap.add_argument("--fleet", default="default")

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mars_link.outputs import write_json
+from mars_link.logs.outputs import write_json
 from mars_link.transport.base import TappedTransport, Transport
 
 CPU_DMA_LATENCY = "/dev/cpu_dma_latency"

@@ -1,0 +1,295 @@
+"""`mars-link sweep`: many flights of one scenario over seeds, random faults and parameter values.
+
+What a sweep is: the cartesian product of the `--param` values, each flown with `--seeds N` seeds.
+Seed slot j (0..N-1) flies with seed `sweep seed + j` and draws its random faults from a generator
+seeded with (sweep seed, j) only, so a flight's result does not depend on the worker count or on which
+worker flew it, and every parameter value meets the same seeds and faults (paired comparisons). Each
+row names its seed and faults in `mars-link run --seed S --fault U:R=ETA@T` form: one flight of a
+sweep can be flown again alone. The flights run on `mars_link.apps.sweep_pool` (local processes or Dask).
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import math
+import re
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from mars_link.core.errors import UserInputError
+from mars_link.config.scenario import FaultSpec, Scenario, resolve_scenario_path, scenario_from_dict, SCENARIO_DIR
+from mars_link.core.validation import SEED_MAX
+
+#: random faults act between these fractions of the flight (after take-off, with time left to see it)
+FAULT_T_MIN_FRAC = 0.1
+FAULT_T_MAX_FRAC = 0.6
+#: bare --param keys and the scenario table they live in
+PARAM_ALIASES = {
+    "ftc": "control.ftc", "controller": "control.controller", "faults_known": "control.faults_known",
+    "noise": "sim.noise", "physics_hz": "sim.physics_hz", "control_hz": "sim.control_hz",
+    "duration_s": "sim.duration_s", "preset": "vehicle.preset",
+}
+PARAM_TABLES = ("vehicle", "assembly", "trajectory", "control", "sim", "reconfig", "docking", "environment", "sensors")
+_FAULTS_RE = re.compile(r"random:(?P<k>\d{1,4})(?:,(?P<kind>units|rotors))?")
+
+
+@dataclass(frozen=True)
+class RandomFaults:
+    """`--faults random:K[,units|rotors]`: K distinct rotors (or whole units) fail (eta 0) per flight."""
+
+    count: int
+    kind: str = "rotors"
+
+
+@dataclass(frozen=True)
+class Param:
+    """`--param KEY=V1,V2,...`: `key` is `table.key` of the scenario TOML."""
+
+    key: str
+    values: tuple[Any, ...]
+
+
+@dataclass(frozen=True)
+class FlightSpec:
+    """One flight of a sweep: its index, seed slot and seed, parameter values and faults."""
+
+    index: int
+    seed_index: int
+    seed: int
+    params: tuple[tuple[str, Any], ...] = ()
+    faults: tuple[FaultSpec, ...] = ()
+
+    def params_text(self) -> str:
+        return " ".join(f"{k}={_value_text(v)}" for k, v in self.params)
+
+    def faults_text(self) -> str:
+        return " ".join(fault_arg(f) for f in self.faults)
+
+
+@dataclass
+class SweepPlan:
+    """A checked sweep: the scenario's TOML document, where it came from, and its flights."""
+
+    doc: dict
+    src: str
+    name: str
+    sweep_seed: int
+    flights: list[FlightSpec] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------- parsing
+def parse_faults(text: str | None) -> RandomFaults | None:
+    if text is None or text == "none":
+        return None
+    m = _FAULTS_RE.fullmatch(text.strip())
+    if not m or int(m["k"]) < 1:
+        raise UserInputError(f"--faults {text[:60]!r}: expected random:K[,units|rotors] with K >= 1, e.g. random:1")
+    return RandomFaults(int(m["k"]), m["kind"] or "rotors")
+
+
+def parse_param(text: str) -> Param:
+    """`KEY=V1,V2,...`; values are TOML literals (100, 0.02, true, "a") or bare words (qp)."""
+    key, sep, rest = text.partition("=")
+    key = key.strip()
+    if not sep or not key or not rest.strip():
+        raise UserInputError(f"--param {text[:60]!r}: expected KEY=V1,V2,... e.g. ftc=none,qp")
+    key = PARAM_ALIASES.get(key, key)
+    table, dot, name = key.partition(".")
+    if not dot or table not in PARAM_TABLES or not re.fullmatch(r"[A-Za-z_][A-Za-z0-9_]*", name):
+        raise UserInputError(f"--param {text[:60]!r}: unknown key {key!r} (use TABLE.KEY with TABLE one of "
+                             f"{', '.join(PARAM_TABLES)}, or one of {', '.join(PARAM_ALIASES)})")
+    if key == "sim.seed":
+        raise UserInputError("--param sim.seed: seeds are set with --seed and --seeds")
+    values = tuple(_parse_value(v, key) for v in _split_values(rest))
+    if len(set(map(repr, values))) != len(values):
+        raise UserInputError(f"--param {key}: a value is listed twice")
+    return Param(key, values)
+
+
+def _split_values(text: str) -> list[str]:
+    """Split on commas outside [...] (a value may be a TOML array)."""
+    parts, depth, cur = [], 0, ""
+    for ch in text:
+        depth += (ch == "[") - (ch == "]")
+        if ch == "," and depth == 0:
+            parts.append(cur)
+            cur = ""
+        else:
+            cur += ch
+    parts.append(cur)
+    return [p.strip() for p in parts]
+
+
+def _parse_value(text: str, key: str) -> Any:
+    if not text:
+        raise UserInputError(f"--param {key}: an empty value")
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        if re.fullmatch(r"[A-Za-z_][A-Za-z0-9_.:/+-]*", text):
+            return text  # a bare word: a string (qp, modquad-cf2)
+        raise UserInputError(f"--param {key}: {text[:40]!r} is not a value (a number, true/false, a word or "
+                             "a TOML literal)") from None
+
+
+def _value_text(v: Any) -> str:
+    return str(v).lower() if isinstance(v, bool) else str(v)
+
+
+def fault_arg(f: FaultSpec) -> str:
+    """A fault in `mars-link run --fault` form: UNIT[:ROTOR]=ETA@T."""
+    return f"{f.unit}{f':{f.rotor}' if f.rotor else ''}={f.eta:g}@{f.t_s:g}"
+
+
+def with_params(doc: dict, params: tuple[tuple[str, Any], ...]) -> dict:
+    """A copy of the scenario document with each `table.key` set."""
+    out = copy.deepcopy(doc)
+    for key, value in params:
+        table, _, name = key.partition(".")
+        if not isinstance(out.setdefault(table, {}), dict):
+            raise UserInputError(f"--param {key}: [{table}] is not a table in this scenario")
+        out[table][name] = value
+    return out
+
+
+# ----------------------------------------------------------------------------- the plan
+def read_scenario_doc(arg: str | None) -> tuple[dict, str]:
+    """The scenario's TOML document and its source name (as mars_link.config.scenario.load_scenario names it)."""
+    path = resolve_scenario_path(arg)
+    src = path.name if path.resolve().is_relative_to(SCENARIO_DIR) else str(path)
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserInputError(f"{src}: cannot read scenario: {exc}") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise UserInputError(f"{src}: malformed TOML: {exc}") from None
+    doc.setdefault("name", path.stem)
+    return doc, src
+
+
+def scenario_for(doc: dict, src: str, params: tuple[tuple[str, Any], ...]) -> Scenario:
+    try:
+        return scenario_from_dict(with_params(doc, params), src)
+    except UserInputError as exc:
+        shown = " ".join(f"{k}={_value_text(v)}" for k, v in params)
+        raise UserInputError(f"--param {shown}: {exc}" if params else str(exc)) from None
+
+
+def plan_sweep(doc: dict, src: str, seeds: int, sweep_seed: int | None = None,
+               faults: RandomFaults | None = None, params: list[Param] | None = None) -> SweepPlan:
+    """Every flight of the sweep, each parameter combination checked now (one line, exit 2, before any
+    flight): a bad value, a flight too short, random faults that do not fit the assembly."""
+    from mars_link.flight.build import check_flight, flight_duration_s
+
+    params = params or []
+    keys = [p.key for p in params]
+    if len(set(keys)) != len(keys):
+        raise UserInputError("--param: a key is given twice (list its values in one --param KEY=V1,V2)")
+    if not 1 <= seeds <= 100_000:
+        raise UserInputError(f"--seeds must be 1..100000, got {seeds}")
+    combos = [tuple(zip(keys, values)) for values in itertools.product(*(p.values for p in params))]
+    base = scenario_for(doc, src, ())
+    sweep_seed = base.sim.seed if sweep_seed is None else sweep_seed
+    if sweep_seed + seeds - 1 > SEED_MAX:
+        raise UserInputError(f"--seed {sweep_seed} + --seeds {seeds}: flight seeds go past {SEED_MAX}")
+    plan = SweepPlan(doc, src, base.name, sweep_seed)
+    for combo in combos:
+        sc = scenario_for(doc, src, combo)
+        model = sc.model()
+        if not sc.has_pieces:
+            check_flight(sc, model)
+        duration = flight_duration_s(sc, model) if faults else 0.0
+        for j in range(seeds):
+            drawn = draw_faults(faults, sweep_seed, j, model, duration, sc.sim.control_hz) if faults else ()
+            plan.flights.append(FlightSpec(len(plan.flights), j, sweep_seed + j, combo, drawn))
+    return plan
+
+
+def draw_faults(faults: RandomFaults, sweep_seed: int, seed_index: int, model, duration_s: float,
+                control_hz: float) -> tuple[FaultSpec, ...]:
+    """Seed slot `seed_index`'s faults: K distinct rotors (or units), eta 0, each at a time uniform in
+    [FAULT_T_MIN_FRAC, FAULT_T_MAX_FRAC] of the flight, on a control step. Drawn from (sweep seed, slot) only."""
+    import numpy as np
+
+    if faults.kind == "units":
+        pool: list[tuple[int, int | None]] = [(u, None) for u in model.unit_ids]
+    else:
+        pool = [(u, r) for u in model.unit_ids for r in range(1, 5)]
+    if faults.count > len(pool):
+        raise UserInputError(f"--faults random:{faults.count},{faults.kind}: the assembly has only {len(pool)} "
+                             f"{faults.kind}")
+    rng = np.random.default_rng([sweep_seed, seed_index])
+    picks = rng.choice(len(pool), size=faults.count, replace=False)
+    fracs = rng.uniform(FAULT_T_MIN_FRAC, FAULT_T_MAX_FRAC, size=faults.count)
+    out = []
+    for k, frac in sorted(zip(picks, fracs), key=lambda p: p[1]):
+        unit, rotor = pool[int(k)]
+        t = math.floor(duration_s * float(frac) * control_hz) / control_hz  # on a control step
+        out.append(FaultSpec(unit, rotor, 0.0, round(t, 6)))
+    return tuple(out)
+
+
+# ----------------------------------------------------------------------------- one flight (in a worker)
+ROW_FIELDS = ("flight", "seed", "faults", "params", "completed", "diverged", "mean_error_m", "rmse_m", "max_error_m",
+              "force_integral_n2s", "detection_time_s", "sim_time_s", "wall_time_s", "error")
+#: what must be equal between two sweeps of the same flights (all but the wall time)
+RESULT_FIELDS = tuple(f for f in ROW_FIELDS if f != "wall_time_s")
+
+
+def fly_flight(doc: dict, src: str, spec: FlightSpec, mcap_dir: str | None = None) -> dict:
+    """Fly one flight of a sweep in this process; its row. `mcap_dir`: write its run.mcap there."""
+    import time
+
+    t0 = time.perf_counter()
+    sc = scenario_for(doc, src, spec.params)
+    sc.faults.extend(spec.faults)
+    out = None if mcap_dir is None else Path(mcap_dir)
+    if out is not None:  # (run.mcap's writer is a subprocess: a daemonic Dask worker may start it)
+        out.mkdir(parents=True, exist_ok=True)
+    if sc.has_pieces:
+        from mars_link.flight.flight_view import pieces_view
+        from mars_link.flight.reconfig_flight import run_reconfig_trial
+
+        r = run_reconfig_trial(sc, spec.seed, None, view=None if out is None else (lambda f: pieces_view(f, out)))
+        detected = [e["t_s"] for e in r.detections]
+    else:
+        from mars_link.flight.runner import run_trial
+
+        r = run_trial(sc, spec.seed, view=None if out is None else _one_body_view(sc, out))
+        detected = [d["t_detected"] for d in r.detections]
+    return row_of(spec, r, detected, time.perf_counter() - t0)
+
+
+def _one_body_view(sc: Scenario, out: Path):
+    def make(flight):
+        from mars_link.flight.flight_view import open_view
+
+        return open_view(out, flight.model, sc, sc.sim.control_hz, flight.trajectory, flight.duration_s, None,
+                         sc.tracked_unit())
+
+    return make
+
+
+def row_of(spec: FlightSpec, r, detected_t_s: list[float], wall_s: float) -> dict:
+    """A flight's row: its figures as the flight gave them (floats kept whole, so equal flights give equal rows)."""
+    t_fault = min((f.t_s for f in spec.faults), default=None)
+    after = sorted(t for t in detected_t_s if t_fault is not None and t >= t_fault - 1e-9)
+    return {
+        "flight": spec.index, "seed": spec.seed, "faults": spec.faults_text(), "params": spec.params_text(),
+        "completed": bool(r.completed), "diverged": bool(r.diverged), "mean_error_m": float(r.mean_error_m),
+        "rmse_m": float(r.rmse_m), "max_error_m": float(r.max_error_m),
+        "force_integral_n2s": float(r.force_integral_n2s),
+        "detection_time_s": (after[0] - t_fault) if after else None,
+        "sim_time_s": float(r.sim_time_s), "wall_time_s": wall_s, "error": None,
+    }
+
+
+def error_row(spec: FlightSpec, error: str, wall_s: float) -> dict:
+    """The row of a flight that raised: its error, no figures."""
+    row = {k: None for k in ROW_FIELDS}
+    row.update(flight=spec.index, seed=spec.seed, faults=spec.faults_text(), params=spec.params_text(),
+               completed=False, diverged=False, wall_time_s=wall_s, error=error)
+    return row

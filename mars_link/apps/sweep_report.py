@@ -1,0 +1,155 @@
+"""A sweep's results on disk: one row per flight as CSV and markdown, and plots of the distributions.
+
+Why floats are written whole (repr): two sweeps of the same flights must give byte-equal result
+columns whatever the worker count; a rounded CSV would hide a difference in the 10th digit.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+from mars_link.apps.sweep import RESULT_FIELDS, ROW_FIELDS
+
+#: the figures plotted, (column, label)
+PLOTTED = (("mean_error_m", "mean tracking error [m]"), ("max_error_m", "max tracking error [m]"),
+           ("force_integral_n2s", "force integral [N²s]"), ("wall_time_s", "wall time per flight [s]"))
+
+
+def cell(value: Any) -> str:
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value) if math.isfinite(value) else ("nan" if math.isnan(value) else repr(value))
+    return str(value)
+
+
+def csv_header(handle) -> csv.writer:
+    w = csv.writer(handle)
+    w.writerow(ROW_FIELDS)
+    return w
+
+
+def write_csv(path: Path, rows: Iterable[dict]) -> Path:
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="", encoding="utf-8") as f:
+        w = csv_header(f)
+        for row in rows:
+            w.writerow([cell(row.get(k)) for k in ROW_FIELDS])
+    tmp.replace(path)
+    return path
+
+
+def read_csv(path: Path) -> list[dict[str, str]]:
+    with path.open(newline="", encoding="utf-8") as f:
+        return list(csv.DictReader(f))
+
+
+def result_columns(rows: Sequence[dict[str, str]]) -> list[tuple[str, ...]]:
+    """The columns that must match between two sweeps of the same flights (all but wall time), per row."""
+    return [tuple(r[k] for k in RESULT_FIELDS) for r in rows]
+
+
+def _fmt(value: Any, digits: int) -> str:
+    if value is None:
+        return "—"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def group_table(rows: Sequence[dict]) -> list[str]:
+    """Per parameter combination: flights, completed, diverged, raised, medians over the completed flights."""
+    import numpy as np
+
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(r["params"] or "all flights", []).append(r)
+    lines = ["| params | flights | completed | diverged | raised | median mean / max error [m] (completed) | "
+             "median force integral [N²s] | median detection [s] |", "|---|---|---|---|---|---|---|---|"]
+
+    def med(rs: list[dict], key: str, digits: int) -> str:
+        vals = [r[key] for r in rs if r.get(key) is not None and math.isfinite(r[key])]
+        return f"{np.median(vals):.{digits}f}" if vals else "—"
+
+    for name, rs in groups.items():
+        ok = [r for r in rs if r.get("error") is None and r["completed"]]
+        lines.append(f"| {name} | {len(rs)} | {len(ok)} | {sum(bool(r['diverged']) for r in rs)} | "
+                     f"{sum(r.get('error') is not None for r in rs)} | {med(ok, 'mean_error_m', 4)} / "
+                     f"{med(ok, 'max_error_m', 4)} | {med(ok, 'force_integral_n2s', 2)} | "
+                     f"{med(rs, 'detection_time_s', 3)} |")
+    return lines
+
+
+def markdown(rows: Sequence[dict], title: str) -> str:
+    lines = [f"### {title}", "", *group_table(rows), "",
+             "| flight | seed | faults | params | completed | diverged | mean / rms / max error [m] | "
+             "force integral [N²s] | detection [s] | wall [s] | error |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        errs = " / ".join(_fmt(r.get(k), 4) for k in ("mean_error_m", "rmse_m", "max_error_m"))
+        lines.append(f"| {r['flight']} | {r['seed']} | {r['faults'] or '—'} | {r['params'] or '—'} | "
+                     f"{_fmt(r['completed'], 0)} | {_fmt(r['diverged'], 0)} | {errs} | "
+                     f"{_fmt(r.get('force_integral_n2s'), 2)} | {_fmt(r.get('detection_time_s'), 3)} | "
+                     f"{_fmt(r.get('wall_time_s'), 2)} | {(r.get('error') or '').replace('|', '/')} |")
+    return "\n".join(lines) + "\n"
+
+
+def totals(rows: Sequence[dict]) -> dict:
+    """Counts and medians over the flights that flew (for the summary line and sweep.json)."""
+    import numpy as np
+
+    flown = [r for r in rows if r.get("error") is None]
+    out = {"flights": len(rows), "raised": len(rows) - len(flown),
+           "completed": sum(bool(r["completed"]) for r in flown), "diverged": sum(bool(r["diverged"]) for r in flown)}
+    for key, _ in PLOTTED:
+        vals = [r[key] for r in flown if r.get(key) is not None and math.isfinite(r[key])]
+        out[f"median_{key}"] = float(np.median(vals)) if vals else None
+    return out
+
+
+def plot_distributions(rows: Sequence[dict], plots_dir: Path, title: str) -> list[Path]:
+    """One histogram per figure of PLOTTED over the flights that completed (a diverged flight stops early: its
+    figures cover less time), a colour per parameter combination on shared bins; returns the files."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    plots_dir.mkdir(parents=True, exist_ok=True)
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(r["params"] or "all flights", []).append(r)
+    paths = []
+    for key, label in PLOTTED:
+        fig, ax = plt.subplots(figsize=(6.4, 3.8))
+        series = {name: [r[key] for r in rs if r.get("error") is None and r["completed"] and r.get(key) is not None
+                         and math.isfinite(r[key])] for name, rs in groups.items()}
+        every = [v for vals in series.values() for v in vals]
+        if every:
+            n_bins = min(30, max(5, len(every) // (4 * len(series))))
+            lo, hi = min(every), max(every)
+            bins = np.linspace(lo, hi if hi > lo else lo + 1e-9, n_bins + 1)
+            for name, vals in series.items():
+                rs = groups[name]
+                diverged = sum(bool(r["diverged"]) for r in rs)
+                raised = sum(r.get("error") is not None for r in rs)
+                ax.hist(vals, bins=bins, alpha=0.55, label=f"{name}: {len(vals)} completed, {diverged} diverged"
+                        + (f", {raised} raised" if raised else ""))
+            ax.legend(fontsize=7)
+        ax.set_xlabel(label)
+        ax.set_ylabel("flights")
+        ax.set_title(title, fontsize=9)
+        fig.tight_layout()
+        path = plots_dir / f"{key}.png"
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        paths.append(path)
+    return paths

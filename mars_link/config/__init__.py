@@ -1,0 +1,1 @@
+"""The scenario: TOML in, validated dataclasses out."""

@@ -1,0 +1,304 @@
+"""The coordinator as a sans-IO component: unit telemetry in, per-rotor commands out.
+
+One control step: fuse the units' sensor packets into a rigid-body estimate (EKF; or the ground truth
+the world provides when sensor noise is off), sample the trajectory, run the controller and its
+allocator, and split the 4N rotor thrusts into one `RotorCommand` per unit. The same object runs in
+the in-process runner and in the SITL coordinator process.
+
+Faults reach the allocation three ways: told (`set_faults`), found in the residuals by the
+`detector` (faults_known = false), or a unit that stops reporting (`unit_lost`, called by the
+transport's heartbeat watch or by the optional telemetry timeout here). Each records an event whose
+"text" fits one MAVLink STATUSTEXT (50 characters).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mars_link.core.assembly import GRAVITY_MPS2, ROTORS_PER_UNIT, AssemblyModel
+from mars_link.control.base import Controller
+from mars_link.core.errors import UserInputError
+from mars_link.models.fault_detection import Detection
+from mars_link.models.battery import thrust_scale
+from mars_link.models.estimation_outdoor import step_estimator
+from mars_link.core.messages import BatterySample, RotorCommand, SensorPacket, wire_thrust, wire_time
+from mars_link.core.state import RigidBodyState
+from mars_link.models.trajectories import Trajectory, TrajectoryPoint
+
+
+#: MAVLink STATUSTEXT carries 50 characters
+TEXT_MAX = 50
+#: a unit's available-thrust share must move this much before the allocator is set up again
+AVAILABLE_STEP = 0.01
+
+
+def short_text(text: str, limit: int = TEXT_MAX) -> str:
+    """`text` as one STATUSTEXT frame: ASCII, one line, at most `limit` bytes ('...' marks a cut)."""
+    text = " ".join(str(text).split()).encode("ascii", "replace").decode("ascii")
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def fault_summary(model: AssemblyModel, eta: np.ndarray) -> str:
+    """Compact believed fault set, e.g. 'u2 dead, u4r1 .50' ('none' when healthy)."""
+    parts = []
+    for uid in model.unit_ids:
+        e = np.asarray(eta)[model.unit_slots(uid)]
+        if np.all(e <= 0.0):
+            parts.append(f"u{uid} dead")
+            continue
+        parts += [f"u{uid}r{r + 1} {x:.2f}".replace(" 0.", " .") for r, x in enumerate(e) if x < 1.0]
+    return ", ".join(parts) if parts else "none"
+
+
+@dataclass
+class StepRecord:
+    """What the coordinator decided at one step (for logs and metrics)."""
+
+    t_s: float
+    estimate: RigidBodyState
+    reference: TrajectoryPoint
+    thrusts_n: np.ndarray
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+class Coordinator:
+    def __init__(
+        self,
+        model: AssemblyModel,
+        trajectory: Trajectory,
+        controller: Controller,
+        estimator=None,
+        detector=None,
+        telemetry_timeout_s: float | None = None,
+    ) -> None:
+        """`telemetry_timeout_s`: a unit that sends no packet for this long while others do is
+        declared lost (`unit_lost`); None (default) leaves that call to the transport's heartbeat
+        watch, which knows its own link's loss and latency."""
+        self.model = model
+        self.trajectory = trajectory
+        self.controller = controller
+        self.estimator = estimator
+        self.detector = detector  # None: faults are told (set_faults), not detected
+        self.detections: list = []  # fault_detection.Detection, from residuals and lost units
+        self.eta_believed = model.nominal_eta()
+        self.events: list[dict] = []  # every event has "t_s", "type" and "text" (<= 50 chars, STATUSTEXT)
+        self.last: StepRecord | None = None
+        if telemetry_timeout_s is not None and not (math.isfinite(telemetry_timeout_s) and telemetry_timeout_s > 0):
+            raise UserInputError(f"telemetry_timeout_s must be a number > 0, got {telemetry_timeout_s!r}")
+        self.telemetry_timeout_s = telemetry_timeout_s
+        self.command_range_n = model.vehicle.command_range_n  # what a unit accepts: commands are saturated to it
+        # a SensorGuard estimator (sensor_health) reports sensor failures; `failsafe` (position_failsafe) flies
+        # the position-loss failsafe over the trajectory (set by the composition root for trajectory flights)
+        self.guard = estimator if hasattr(estimator, "take_events") else None
+        self.guard_events = True  # False: someone else (the assembly vehicle) reports the guard's findings
+        self.failsafe = None
+        self.lost_units: set[int] = set()
+        # each unit's pack as its telemetry reports it (BATTERY_STATUS); with `battery_cells` set (unit ->
+        # cells in series), the allocator's bounds follow the thrust each pack still gives
+        self.battery_cells: dict[int, int] | None = None
+        self.unit_battery: dict[int, BatterySample] = {}
+        self.available = np.ones(model.n_units)  # per unit: the share of the rotors' maximum the allocator uses
+        self.rejected: dict[str, int] = {}  # reason -> packets dropped here
+        self._last_seen_s: dict[int, float] = {}
+        self._to_detect: tuple | None = None  # (t, thrusts, estimate, IMU samples) for finish_step
+        #: resting on the ground with the motors off (a piece parked during a manoeuvre on the ground): zero
+        #: commands, and no fault detection (no thrust, nothing to learn about the rotors)
+        self.motors_off = False
+
+    def _event(self, t_s: float, kind: str, text: str, **fields) -> dict:
+        event = {"t_s": round(t_s, 6), "type": kind, **fields, "text": short_text(text)}
+        self.events.append(event)
+        return event
+
+    def set_faults(self, eta: np.ndarray, t_s: float, reason: str) -> None:
+        """Switch the allocation to a new believed fault set (told, or detected)."""
+        from mars_link.allocation import check_controllable
+
+        self.eta_believed = np.asarray(eta, dtype=float).copy()
+        try:
+            v = self.model.vehicle
+            check_controllable(self.model, self.eta_believed, (v.rotor_min_thrust_n, v.rotor_max_thrust_n))
+        except UserInputError as exc:  # mid-flight: log it and allocate as well as possible, never stop
+            self._event(t_s, "uncontrollable", "Uncontrollable faults: best effort", reason=str(exc))
+        self.controller.set_faults(self.eta_believed)
+        self._event(t_s, "reallocation", "Realloc " + fault_summary(self.model, self.eta_believed), reason=reason)
+
+    def unit_lost(self, unit_id: int, t_s: float, reason: str = "telemetry lost") -> Detection | None:
+        """A unit stopped reporting (its process died, its link broke): it is a failed unit.
+
+        All its rotors are believed dead (eta 0), the allocation switches, a detection is recorded
+        and an event raised. A unit already lost returns None and changes nothing. Unknown unit ids
+        raise UserInputError (the caller names units from its own configuration).
+        """
+        self.model.check_rotor(unit_id, None)
+        if unit_id in self.lost_units:
+            return None
+        self.lost_units.add(unit_id)
+        det = None
+        if self.detector is not None:
+            det = self.detector.on_unit_silent(unit_id, t_s)
+        if det is None:
+            det = Detection(t_s, unit_id, None, 0.0, reason="silent")
+        self.detections.append(det)
+        self._event(t_s, "unit_lost", f"Unit {unit_id} lost: {reason}", unit=unit_id, reason=reason)
+        eta = self.eta_believed.copy()
+        eta[self.model.unit_slots(unit_id)] = 0.0
+        self.set_faults(eta, t_s, f"unit {unit_id} lost ({reason})")
+        return det
+
+    def _watch_telemetry(self, t_s: float, packets: list[SensorPacket]) -> None:
+        for p in packets:
+            if p.unit_id in self.model.unit_cells:  # unknown ids (untrusted input) are not remembered
+                self._last_seen_s[p.unit_id] = t_s
+        if not packets:  # nobody reported: our own input stalled, not the units
+            return
+        for uid in self.model.unit_ids:
+            seen = self._last_seen_s.setdefault(uid, t_s)  # the clock starts at the first step
+            if uid not in self.lost_units and t_s - seen > self.telemetry_timeout_s + 1e-9:
+                self.unit_lost(uid, t_s, f"no telemetry for {t_s - seen:.2f} s")
+
+    def step(self, t_s: float, packets: list[SensorPacket]) -> list[RotorCommand]:
+        """One control period: `commands`, then `finish_step` (what the in-process runners call)."""
+        commands = self.commands(t_s, packets)
+        c = time.perf_counter()
+        self.finish_step()
+        self.last.timings_s["control"] += time.perf_counter() - c
+        return commands
+
+    def commands(self, t_s: float, packets: list[SensorPacket]) -> list[RotorCommand]:
+        """Estimate, control and allocation: this period's rotor commands. Fault detection is left to
+        `finish_step`, which a real-time runner calls once the commands are out: what it finds changes
+        the allocation from the next period on, never this period's commands."""
+        c0 = time.perf_counter()
+        if self.telemetry_timeout_s is not None:
+            self._watch_telemetry(t_s, packets)
+        if self.lost_units:  # a lost unit's late or stray packets are not trusted: counted, dropped
+            kept = [p for p in packets if p.unit_id not in self.lost_units]
+            if len(kept) != len(packets):
+                self.rejected["lost_unit"] = self.rejected.get("lost_unit", 0) + len(packets) - len(kept)
+            packets = kept
+        if self.estimator is None:
+            truth = next((p.truth for p in packets if p.truth is not None), None)
+            if truth is None:
+                raise ValueError("no estimator and no ground truth in the sensor packets")
+            estimate = truth
+        else:
+            estimate = step_estimator(self.estimator, t_s, packets)
+        if self.battery_cells is not None:
+            self._watch_batteries(packets)
+        c1 = time.perf_counter()
+        guard = self.guard
+        if guard is not None:
+            self._sensor_health(t_s)
+        if self.failsafe is None:
+            reference = self.trajectory.sample(t_s)
+        else:
+            reference = self.failsafe.reference(t_s, estimate, self.trajectory, guard.lost_since_s)
+            self.events += self.failsafe.events
+            self.failsafe.events.clear()
+        out = self.controller.update(t_s, estimate, reference)
+        thrusts = np.asarray(out.rotor_thrusts_n, dtype=float)
+        if self.failsafe is not None and self.failsafe.state != "normal":
+            self._failsafe_motors(t_s, thrusts)
+            if self.failsafe.motors_off:
+                thrusts = np.zeros_like(thrusts)
+        if self.motors_off:
+            thrusts = np.zeros_like(thrusts)
+        elif self.detector is not None:
+            # while explanations tie (e.g. units {2,5}, {1,6}, {3,4} of a 3x2: each a pure lift loss),
+            # the detector asks for a probe with zero net wrench on the believed assembly
+            probe = self.detector.excitation_n(t_s)
+            if probe.any():
+                thrusts = thrusts + probe
+        lo, hi = self.command_range_n
+        if thrusts.max() > hi or thrusts.min() < lo:  # what a unit accepts (rotor_intake), not more
+            thrusts = np.clip(thrusts, lo, hi)
+        if self.detector is not None and not self.motors_off and not self._landing_near_ground():
+            imus = [p.imu for p in packets if p.imu is not None] if guard is None else guard.usable_imus
+            self._to_detect = (t_s, thrusts.copy(), estimate, imus)
+        c2 = time.perf_counter()
+        alloc = out.timings_s.get("allocation", 0.0)
+        scale = self.model.vehicle.full_scale_thrust_n
+        self.last = StepRecord(
+            t_s, estimate, reference, thrusts,
+            {"estimation": c1 - c0, "control": c2 - c1 - alloc, "allocation": alloc},
+        )
+        wired = wire_thrust(thrusts, scale)  # the whole vector at once: same rounding as RotorCommand.as_wire
+        t_w = wire_time(t_s)
+        per_unit = wired.reshape(-1, ROTORS_PER_UNIT)  # (row views, cheaper than slices)
+        return [RotorCommand(t_w, uid, per_unit[uid - 1]) for uid in self.model.unit_ids]
+
+    def _watch_batteries(self, packets: list[SensorPacket]) -> None:
+        """The units' reported pack voltages -> the thrust each can still give (mars_link.models.battery.thrust_scale);
+        the allocator's bounds move when a unit's share changed by AVAILABLE_STEP (a re-setup costs ~1 ms)."""
+        fresh = False
+        for p in packets:
+            if p.battery is not None and p.unit_id in self.battery_cells:
+                self.unit_battery[p.unit_id] = p.battery
+                fresh = True
+        if not fresh or not hasattr(self.controller, "set_available"):
+            return
+        scale = self.available.copy()
+        for k, uid in enumerate(self.model.unit_ids):
+            b = self.unit_battery.get(uid)
+            if b is not None:
+                scale[k] = float(thrust_scale(b.voltage_v, self.battery_cells[uid]))
+        if np.max(np.abs(scale - self.available)) >= AVAILABLE_STEP:
+            self.available = scale
+            self.controller.set_available(np.repeat(scale, ROTORS_PER_UNIT))
+            if getattr(self.detector, "max_thrust_n", None) is not None:  # its thrust model clips as the packs do
+                self.detector.max_thrust_n = self.controller.allocator.upper_bounds()
+
+    def _landing_near_ground(self) -> bool:
+        """A failsafe landing within reach of the ground: contact forces are no rotor fault (the detector rests)."""
+        fs = self.failsafe
+        if fs is None or fs.state not in ("land", "landed"):
+            return False
+        return fs.near_ground(float(fs.estimate_point_ned_m[2]), self._vertical_sigma_m())
+
+    def _vertical_sigma_m(self) -> float:
+        """The guard's standard deviation of the estimated height (m)."""
+        return math.sqrt(max(float(self.guard.covariance[2, 2]), 0.0))
+
+    def _failsafe_motors(self, t_s: float, thrusts: np.ndarray) -> None:
+        """What the failsafe's land detector reads: the thrust asked and the IMUs' mean specific force."""
+        imus = self.guard.usable_imus
+        f_down = float(np.mean([s.accel_frd_mps2[2] for s in imus])) if imus else None
+        self.failsafe.observe(t_s, float(thrusts.sum()), f_down, self.model.mass_kg * GRAVITY_MPS2,
+                              self._vertical_sigma_m())
+        self.events += self.failsafe.events
+        self.failsafe.events.clear()
+
+    def _sensor_health(self, t_s: float) -> None:
+        """The guard's findings into the record; a sensor part that failed restarts the fault detector's
+        history (its residuals held that sensor's bad samples)."""
+        if self.guard_events:
+            self.events += self.guard.take_events()
+        if self.guard.imu_changed and self.detector is not None:
+            self.detector.restart()
+
+    def finish_step(self) -> None:
+        """Fault detection on the last period's commanded thrusts and IMU samples; a finding is an
+        event, a detection record and a reallocation (for the periods to come)."""
+        if self._to_detect is None:
+            return
+        t_s, thrusts, estimate, imus = self._to_detect
+        self._to_detect = None
+        found = self.detector.update(t_s, thrusts, estimate, imus)
+        if not found:
+            return
+        self.detections.extend(found)
+        for d in found:
+            where = f"Unit {d.unit}" + (f" rotor {d.rotor}" if d.rotor else "")
+            what = f"{where} eta {d.eta_estimated:.2f}" if d.rotor else f"{where} failed"
+            self._event(t_s, "fault_detected", f"Fault found: {what}", unit=d.unit, rotor=d.rotor,
+                        eta_estimated=round(float(d.eta_estimated), 4), t_onset=round(float(d.t_onset), 6))
+        what = ", ".join(
+            f"unit {d.unit}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
+            for d in found
+        )
+        self.set_faults(np.clip(self.detector.eta_estimate, 0.0, 1.0), t_s, f"detected: {what}")

@@ -1,0 +1,1 @@
+"""Core types and geometry: the assembly model, states and messages, rotations, limits, errors, input validation."""

@@ -1,0 +1,291 @@
+"""One validation layer for every entry point (`mars-link` verbs, `mars-link plan`, `reconfig plan`,
+`python -m mars_link.processes.udp_runner`, scenario files).
+
+Why: each verb used to check its own arguments, and what nobody checked (a negative seed, `nan`
+seconds, an output path under a file, a 5,000-digit unit id) surfaced as a traceback from deep inside
+numpy, pathlib or zenoh. Here every check either returns the clean value or raises one line:
+`UserInputError` (wrong input, exit 2) or `EnvironmentFailure` (the machine refused, exit 1).
+The argparse `type=` functions raise `argparse.ArgumentTypeError`, which `OneLineParser` turns into
+a `UserInputError` naming the option.
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import fcntl
+import ipaddress
+import math
+import os
+import re
+import shutil
+from pathlib import Path
+
+from mars_link.core.errors import EnvironmentFailure, OneLineArgumentParser, UserInputError
+
+EXIT_USAGE = 2  # wrong input
+EXIT_ENVIRONMENT = 1  # disk, port, permission
+SEED_MAX = 2**32 - 1  # numpy's SeedSequence takes any non-negative int; 32 bits is plenty and printable
+MAX_ID_DIGITS = 6  # a unit/rotor id longer than this is not an id (and int() of 5,000 digits raises)
+NAME_MAX = 255  # bytes in one path component (Linux)
+PATH_MAX = 4096
+RUN_NAME_MAX = 80  # a run directory name derived from a scenario name
+ENV_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EADDRINUSE,
+              errno.EADDRNOTAVAIL, errno.EMFILE, errno.ENFILE}
+
+
+OneLineParser = OneLineArgumentParser  # one-line usage errors (UserInputError, exit 2)
+
+
+# ----------------------------------------------------------------------------- numbers
+def finite_float(text: str, what: str = "value") -> float:
+    try:
+        value = float(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"{what} must be a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{what} must be a finite number, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0 (durations, rates)."""
+    value = finite_float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return value
+
+
+def nonneg_float(text: str) -> float:
+    value = finite_float(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {text!r}")
+    return value
+
+
+def bounded_int(lo: int, hi: int):
+    """argparse type factory: an integer in lo..hi."""
+    def parse(text: str) -> int:
+        text = str(text).strip()
+        if not re.fullmatch(r"[-+]?\d{1,20}", text):
+            raise argparse.ArgumentTypeError(f"invalid int value {text[:30]!r} (expected an integer {lo}..{hi})")
+        value = int(text)
+        if not lo <= value <= hi:
+            raise argparse.ArgumentTypeError(f"must be {lo}..{hi}, got {value}")
+        return value
+
+    parse.__name__ = f"int {lo}..{hi}"
+    return parse
+
+
+seed = bounded_int(0, SEED_MAX)
+port = bounded_int(1, 65535)
+port_or_zero = bounded_int(0, 65535)
+
+
+def check_seed(value, what: str = "seed") -> int:
+    """A seed from a scenario file or an API caller: an int in 0..2^32-1."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= SEED_MAX:
+        raise UserInputError(f"{what} must be an integer 0..{SEED_MAX}, got {value!r}")
+    return value
+
+
+def check_id_digits(text: str, what: str) -> int:
+    """A unit or rotor id written in decimal: refuse absurd lengths before int() does."""
+    if len(text) > MAX_ID_DIGITS:
+        raise UserInputError(f"{what}: id {text[:12]}... has {len(text)} digits (at most {MAX_ID_DIGITS})")
+    return int(text)
+
+
+# ----------------------------------------------------------------------------- endpoints
+_ENDPOINT_RE = re.compile(r"^(?P<proto>tcp|udp|tls|quic)/(?P<host>\[[0-9A-Fa-f:.]+\]|[^/\s:\[\]]+):(?P<port>\d{1,5})$")
+_HOSTNAME_RE = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+
+
+def check_endpoint(text: str, what: str = "zenoh endpoint") -> str:
+    """`proto/host:port` (Zenoh's locator syntax): proto tcp|udp|tls|quic, host an IP address or a
+    host name, port 1..65535."""
+    m = _ENDPOINT_RE.match(text or "")
+    if not m:
+        raise UserInputError(f"{what} {text!r}: expected e.g. tcp/127.0.0.1:7447")
+    host = m["host"].strip("[]")
+    if re.fullmatch(r"[\d.]+", host):  # looks like IPv4: must be one
+        try:
+            ipaddress.IPv4Address(host)
+        except ValueError:
+            raise UserInputError(f"{what} {text!r}: {host!r} is not an IPv4 address") from None
+    elif m["host"].startswith("["):
+        try:
+            ipaddress.IPv6Address(host)
+        except ValueError:
+            raise UserInputError(f"{what} {text!r}: {host!r} is not an IPv6 address") from None
+    elif not _HOSTNAME_RE.match(host):
+        raise UserInputError(f"{what} {text!r}: {host!r} is not a host name")
+    if not 1 <= int(m["port"]) <= 65535:
+        raise UserInputError(f"{what} {text!r}: port must be 1..65535")
+    return text
+
+
+def check_link_endpoints(args) -> None:
+    """--zenoh-connect / --zenoh-listen of any verb that has them."""
+    for opt in ("zenoh_connect", "zenoh_listen"):
+        for text in getattr(args, opt, None) or []:
+            check_endpoint(text, f"--{opt.replace('_', '-')}")
+
+
+# ----------------------------------------------------------------------------- paths
+def safe_run_name(name: str) -> str:
+    """A scenario `name` as one path component: no separators, no `..`, printable, bounded length."""
+    clean = re.sub(r"[^A-Za-z0-9._-]+", "_", name).strip("._-")[:RUN_NAME_MAX]
+    return clean or "run"
+
+
+def _check_path_syntax(path: Path, what: str) -> None:
+    text = os.fsencode(path)
+    if b"\x00" in text:
+        raise UserInputError(f"{what}: the path contains a NUL byte")
+    if len(text) >= PATH_MAX:
+        raise UserInputError(f"{what}: path is {len(text)} bytes long (at most {PATH_MAX - 1})")
+    for part in path.parts:
+        if len(os.fsencode(part)) > NAME_MAX:
+            raise UserInputError(f"{what}: the name {part[:24]}... is {len(os.fsencode(part))} bytes long "
+                                 f"(at most {NAME_MAX})")
+
+
+def _nearest_existing(path: Path) -> Path:
+    p = path.absolute()
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    return p
+
+
+def _guarded(path: Path) -> bool:
+    """Directories --force must never clear: /, home, the working directory and its ancestors."""
+    p = path.resolve()
+    cwd = Path.cwd().resolve()
+    return p == Path(p.anchor) or p == Path.home().resolve() or p == cwd or p in cwd.parents
+
+
+def check_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool | None = None) -> Path:
+    """Refuse, before anything starts, an output directory that cannot be one: a file, under a file,
+    too long a name, a read-only place. `force` not None: a non-empty directory is refused unless
+    force (which `prepare_out_dir` then clears). Creates nothing."""
+    p = Path(path)
+    _check_path_syntax(p, what)
+    if p.exists() and not p.is_dir():
+        raise UserInputError(f"{what} {str(p)!r}: is a file, not a directory")
+    if p.is_symlink() and not p.exists():
+        raise UserInputError(f"{what} {str(p)!r}: is a symbolic link to nothing")
+    base = _nearest_existing(p)
+    if not base.is_dir():
+        raise UserInputError(f"{what} {str(p)!r}: {str(base)!r} is a file, not a directory")
+    if not os.access(base, os.W_OK | os.X_OK):
+        reason = "read-only file system" if _read_only_fs(base) else "permission denied"
+        raise EnvironmentFailure(f"{what} {str(p)!r}: cannot write in {str(base)!r} ({reason})")
+    if force is not None and p.is_dir() and any(p.iterdir()):
+        if not force:
+            raise UserInputError(f"{what} {str(p)!r}: directory is not empty (use --force to clear it first, "
+                                 f"or choose another directory)")
+        if _guarded(p):
+            raise UserInputError(f"{what} {str(p)!r}: --force will not clear /, home or the working directory")
+    return p
+
+
+def _read_only_fs(path: Path) -> bool:
+    try:
+        return bool(os.statvfs(path).f_flag & os.ST_RDONLY)
+    except OSError:
+        return False
+
+
+def prepare_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool = False) -> Path:
+    """`check_out_dir`, then clear it (force) and create it. A refusal from the machine is an
+    EnvironmentFailure line."""
+    p = check_out_dir(path, what, force=force)
+    try:
+        if force and p.is_dir():
+            for child in p.iterdir():
+                if child.is_dir() and not child.is_symlink():
+                    shutil.rmtree(child)
+                else:
+                    child.unlink()
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise environment_failure(exc, f"{what} {str(p)!r}") from None
+    return p
+
+
+_HELD_DIRS: dict[Path, tuple[int, bool]] = {}  # run directory -> (fd holding its lock, created by us)
+
+
+def claim_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool = False) -> Path:
+    """`prepare_out_dir` under an exclusive lock on the directory, held while this process lives (or
+    until `release_out_dirs`): a second run into a directory that a live run owns is refused with one
+    line (exit 1) before anything in it is touched, --force included."""
+    p = check_out_dir(path, what, force=force)
+    created = not p.exists()
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+        fd = os.open(p, os.O_RDONLY | os.O_DIRECTORY)  # (not inherited by children: O_CLOEXEC)
+    except OSError as exc:
+        raise environment_failure(exc, f"{what} {str(p)!r}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise EnvironmentFailure(f"{what} {str(p)!r}: another run is using this directory "
+                                 "(wait for it to end, or choose another)") from None
+    _HELD_DIRS[p.resolve()] = (fd, created)
+    return prepare_out_dir(p, what, force=force)
+
+
+def release_out_dirs() -> None:
+    """Give up every run-directory lock this process holds (the end of a command); a directory it
+    created and nothing was written to (a run refused by a later check) is removed again."""
+    while _HELD_DIRS:
+        path, (fd, created) = _HELD_DIRS.popitem()
+        os.close(fd)
+        if created:
+            try:
+                path.rmdir()  # only if empty
+            except OSError:
+                pass
+
+
+def check_file_parent(path: str | os.PathLike | None, what: str) -> Path | None:
+    """A file the process will write (--status-file, --tlog): its directory must exist and be writable."""
+    if path is None:
+        return None
+    p = Path(path)
+    _check_path_syntax(p, what)
+    if p.is_dir():
+        raise UserInputError(f"{what} {str(p)!r}: is a directory, not a file")
+    parent = p.absolute().parent
+    if not parent.exists():
+        raise UserInputError(f"{what} {str(p)!r}: directory {str(parent)!r} does not exist")
+    if not parent.is_dir():
+        raise UserInputError(f"{what} {str(p)!r}: {str(parent)!r} is not a directory")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise EnvironmentFailure(f"{what} {str(p)!r}: cannot write in {str(parent)!r}")
+    return p
+
+
+def environment_failure(exc: OSError, where: str = "") -> EnvironmentFailure:
+    """An OSError as one line: '<where>: <reason> (<file>)'."""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    name = f" ({exc.filename})" if getattr(exc, "filename", None) else ""
+    return EnvironmentFailure(f"{where + ': ' if where else ''}{reason}{name}")
+
+
+def report(exc: BaseException, prefix: str = "mars-link") -> tuple[str, int]:
+    """The one line and exit code for an error that reached a command's top level."""
+    if isinstance(exc, EnvironmentFailure):  # first: PortUnavailable is both
+        return f"{prefix}: error: {exc}", EXIT_ENVIRONMENT
+    if isinstance(exc, UserInputError):
+        return f"{prefix}: error: {exc}", EXIT_USAGE
+    if type(exc).__module__.split(".")[0] == "zenoh":  # zenoh.ZError: a listener that cannot bind, ...
+        return f"{prefix}: error: zenoh: {str(exc).split(' at /')[0]}", EXIT_ENVIRONMENT
+    if isinstance(exc, OSError):
+        code = EXIT_USAGE if exc.errno in (errno.ENAMETOOLONG, errno.ENOTDIR, errno.EISDIR, errno.EEXIST) else EXIT_ENVIRONMENT
+        return f"{prefix}: error: {environment_failure(exc)}", code
+    return f"{prefix}: error: {type(exc).__name__}: {exc}".splitlines()[0], EXIT_ENVIRONMENT

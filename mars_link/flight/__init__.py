@@ -1,0 +1,1 @@
+"""The flight engine, the composition root that builds a flight, its observers and the in-process run."""

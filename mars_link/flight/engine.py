@@ -1,0 +1,314 @@
+"""The flight engine: one lockstep loop over the flight's components, and their in-process wiring
+(messages as objects, moved by direct calls).
+
+`InProcessUnits` is every unit's firmware (`firmware_models.vehicle.Vehicle`, the object a unit process
+runs) on its HIL and coordinator links, without the MAVLink bytes: sensors in, telemetry out; rotor
+commands in, motor outputs out. The coordinator takes the units over as it does in SITL: at its first
+command to a unit it arms it and switches it to OFFBOARD around that command.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from firmware_models.vehicle import MODE_OFFBOARD
+from mars_link.core.assembly import AssemblyModel
+from mars_link.coordination.coordinator import Coordinator
+from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
+from mars_link.flight.metrics import STAGES, TrackingMetrics
+from mars_link.runtime.pacing import Pacer
+from mars_link.core.rotations import quat_to_euler
+from mars_link.flight.run_log import RunLog
+from mars_link.config.scenario import FaultSpec, Scenario, eta_after
+from mars_link.core.state import RigidBodyState
+from mars_link.models.trajectories import Trajectory
+
+
+class InProcessUnits:
+    """The units of one flight, driven by direct calls in lockstep with the world."""
+
+    batched = True  # the steady state of every unit in one pass (_drive_steady); False: unit by unit, the
+    # reference the batched pass must equal (tests/test_engine_batched.py, benchmarks/bench_scale.py)
+
+    def __init__(self, vehicles: dict, world) -> None:
+        self.vehicles = vehicles  # unit id -> firmware_models.vehicle.Vehicle
+        self.world = world
+        self.dead: set[int] = set()  # units whose process died: they neither sense nor drive
+        self._taken_over: set[int] = set()
+
+    def kill(self, unit_id: int) -> None:
+        """The unit's process dies: no more telemetry, its motors stop (the world's dead weight)."""
+        self.dead.add(unit_id)
+        self.world.declare_dead(unit_id)
+
+    def inject_failure(self, unit_id: int, rotor: int | None, eta: float) -> None:
+        """A fault in the unit's motor model (rotor 1..4, None = all four): only the unit knows it."""
+        self.vehicles[unit_id].inject_failure(rotor or 0, eta)
+
+    def take_sensors(self, packets: list[SensorPacket]) -> list[SensorPacket]:
+        """The world's sensor packets into each unit; the units' telemetry to the coordinator."""
+        vehicles, unit_truth = self.vehicles, self.world.unit_truth
+        out = []
+        for p in packets:
+            v = vehicles[p.unit_id]
+            # the unit's own state (HIL_STATE_QUATERNION in SITL) matters only while it flies itself or may
+            # have to (arming, a command stream about to lapse): the world computes it only then
+            own = v.source != "coordinator" or not v.intake.is_live(p.t_s + v.control_dt_s)
+            out.append(v.take_sensors(p, unit_truth(p.unit_id)) if own else v.take_sensors(p))
+        return out
+
+    def drive(self, commands: list[RotorCommand]) -> None:
+        """The coordinator's commands into the units; their motor outputs into the world. A live unit
+        without a command this step still answers (it flies itself, or its fail-safe does), as every unit
+        answers every HIL step in SITL."""
+        done, actuate, taken_over, vehicles = self.dead, self.world.actuate, self._taken_over, self.vehicles
+        rest = self._drive_steady(commands) if self.batched and len(commands) > 1 else commands
+        for cmd in rest:
+            u = cmd.unit_id
+            if u in done:
+                continue
+            if u in taken_over:  # (`command` without the take-over)
+                v = vehicles[u]
+                v.take_rotor_command(cmd)
+                actuate(v.drive_motors())
+            else:
+                actuate(self.command(cmd))
+        if len(commands) < len(self.vehicles):
+            commanded = {c.unit_id for c in commands}
+            for u, v in self.vehicles.items():
+                if u not in commanded and u not in done:
+                    out = v.drive_motors()
+                    if out.unit_id != u:  # (a lone unit keeps its own system id; the world calls it u)
+                        out = dataclasses.replace(out, unit_id=u)
+                    self.world.actuate(out)
+
+    def _drive_steady(self, commands: list[RotorCommand]) -> list[RotorCommand]:
+        """Every unit in the steady state under the coordinator in one pass: the commands' values are
+        bounded as one array, each unit takes the same checks and state changes as `take_rotor_command`
+        then `drive_motors` (Vehicle.drive_steady), and the world takes their thrusts in one copy. Returns
+        the commands left to the general path (the others, or all of them when any value is not finite:
+        the general path counts it)."""
+        t_s = commands[0].t_s
+        rows = [c.thrusts_n for c in commands]
+        block = np.concatenate(rows)
+        least_n, greatest_n = float(block.min()), float(block.max())  # (NaN anywhere makes the least NaN)
+        if not (math.isfinite(least_n) and math.isfinite(greatest_n)):
+            return commands
+        t_usec = round(t_s * 1e6)
+        vehicles, taken_over, done = self.vehicles, self._taken_over, self.dead
+        world_latches = self.world.latches.setpoint
+        rest, ids, held = [], [], []
+        for i, c in enumerate(commands):
+            u = c.unit_id
+            v = vehicles.get(u)
+            if (v is None or u not in taken_over or u in done or c.t_s != t_s or v.sysid != u
+                    or c.latch_setpoint != world_latches.get(u)):
+                rest.append(c)
+                continue
+            s = v.full_scale_n
+            driven = v.drive_steady(rows[i], least_n / s, greatest_n / s, t_usec, c.latch_setpoint)
+            if driven:
+                ids.append(u)
+                held.append(rows[i])
+            elif driven is None:  # not in the steady state
+                rest.append(c)
+            else:  # dropped by the intake (counted): the unit answers as after any dropped command
+                self.world.actuate(v.drive_motors())
+        if ids:
+            self.world.actuate_rows(ids, held)
+        return rest
+
+    def command(self, cmd: RotorCommand) -> ActuatorOutput:
+        v = self.vehicles[cmd.unit_id]
+        if cmd.unit_id not in self._taken_over:  # ARM before the first command, OFFBOARD after it
+            v.arm()
+            v.take_rotor_command(cmd)
+            v.set_mode(MODE_OFFBOARD)
+            self._taken_over.add(cmd.unit_id)
+        else:
+            v.take_rotor_command(cmd)
+        return v.drive_motors()
+
+    def eta(self, unit_ids) -> np.ndarray:
+        """Every rotor's true efficiency (the units' motor models), in `unit_ids` order."""
+        return np.concatenate([self.vehicles[u].motors.eta for u in unit_ids])
+
+
+# ----------------------------------------------------------------------------- the loop
+@dataclass
+class Flight:
+    """A flight's parts, built by `mars_link.flight.build.build_flight` from a scenario and a seed."""
+
+    scenario: Scenario
+    model: AssemblyModel
+    seed: int
+    trajectory: Trajectory
+    world: object  # sitl.world.World
+    units: InProcessUnits
+    coordinator: Coordinator | None  # None: the units fly themselves (a lone unit under a ground station)
+    faults: list[FaultSpec]  # sorted by time: they act in the units' motor models (scheduled there)
+    deaths: list[tuple[float, int]] = field(default_factory=list)  # (time, unit): the unit's process dies
+    tracked_offset_frd_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    duration_s: float = 0.0
+    end_s: Callable[[], float] | None = None  # a flight whose end moves (a reconfiguration): its end sim time
+
+    @property
+    def n_steps(self) -> float:
+        """Control periods to fly (math.inf: until stopped)."""
+        if math.isinf(self.duration_s):
+            return math.inf
+        return int(round(self.duration_s * self.scenario.sim.control_hz))
+
+
+@dataclass
+class StepView:
+    """What observers see after a control step: the coordinator's record and the world's truth."""
+
+    index: int
+    t_s: float
+    record: object  # coordinator.StepRecord of this step (None if the coordinator did not run)
+    truth: RigidBodyState
+
+
+class Engine:
+    """The one lockstep loop: faults due -> world senses -> units take sensors -> coordinator commands ->
+    units drive motors -> world actuates and advances -> observers. Pacing is a parameter (`Pacer`),
+    not another loop. An observer's `on_step` returning True ends the flight (e.g. divergence).
+
+    `command_source(t, telemetry) -> commands` stands for the coordinator's step (default
+    `flight.coordinator.step`): the assembly vehicle puts its flight modes in front of the coordinator
+    there. `on_fault(fault, t)` replaces the default record-and-tell of a scenario fault coming due."""
+
+    def __init__(self, flight: Flight, observers: list | None = None, pacer: Pacer | None = None,
+                 command_source: Callable[[float, list[SensorPacket]], list[RotorCommand]] | None = None,
+                 on_fault: Callable[[FaultSpec, float], None] | None = None) -> None:
+        self.flight = flight
+        self.observers = list(observers or [])
+        self.pacer = pacer or Pacer(0.0)
+        self.command_source = command_source or flight.coordinator.step  # (a flight without one names its own)
+        self.on_fault = on_fault or self._record_fault
+        self.events: list[dict] = []
+        self.stage_time_s = dict.fromkeys(STAGES, 0.0)
+        self.steps = 0
+        self.stopped = False
+        self._next_fault = 0
+        self._deaths = list(flight.deaths)
+        # [[sensor_faults]] act in the units' sensor paths (scheduled there); their start and end are events here
+        self._sensor_events = sorted(
+            [(t, kind, sf) for sf in flight.scenario.sensor_faults for t, _, kind in sf.schedule()], key=lambda e: e[0])
+
+    def _faults_due(self, t: float) -> None:
+        f = self.flight
+        faults = f.faults
+        while self._next_fault < len(faults) and faults[self._next_fault].t_s <= t + 1e-9:
+            self._next_fault += 1
+            self.on_fault(faults[self._next_fault - 1], t)
+        while self._sensor_events and self._sensor_events[0][0] <= t + 1e-9:
+            _, kind, sf = self._sensor_events.pop(0)
+            self.events.append({"t_s": round(t, 6), "type": "sensor_fault", "sensor": sf.sensor, "unit": sf.unit,
+                                "failure": kind, "text": sf.text(end=kind == "ok" and sf.kind != "ok")})
+        while self._deaths and self._deaths[0][0] <= t + 1e-9:
+            _, u = self._deaths.pop(0)
+            f.units.kill(u)
+            self.events.append({"t_s": round(t, 6), "type": "unit_died", "unit": u, "text": f"Unit {u} process died"})
+
+    def _record_fault(self, fault: FaultSpec, t: float) -> None:
+        """A scenario fault came due (the unit's motor model applies it): an event; told to the coordinator
+        when the scenario says faults are known."""
+        f = self.flight
+        self.events.append({"t_s": round(t, 6), "type": "fault", "unit": fault.unit, "rotor": fault.rotor,
+                            "eta": fault.eta, "text": fault.event_text()})
+        if f.scenario.faults_known:
+            f.coordinator.set_faults(eta_after(f.model, f.faults[:self._next_fault], t), t,
+                                     "fault told to the coordinator")
+
+    def step(self) -> bool:
+        """One control period; False once the flight is over (its duration flown, or an observer stopped it)."""
+        f = self.flight
+        if self.stopped or (self.steps >= f.n_steps if f.end_s is None else f.world.t_s >= f.end_s() - 1e-9):
+            return False
+        world, stage, clock = f.world, self.stage_time_s, time.perf_counter
+        t = wire_time(world.t_s)  # the step's time as its sensor packets carry it (as a SITL coordinator reads it)
+        if self.pacer.paced:
+            self.pacer.wait(t, 1.0 / f.scenario.sim.control_hz)
+        self._faults_due(t)
+        c0 = clock()
+        telemetry = f.units.take_sensors(world.sense())  # the sensors stage: the world's samples into the units
+        c1 = clock()
+        coordinator = f.coordinator
+        before = None if coordinator is None else coordinator.last
+        commands = self.command_source(t, telemetry)
+        c2 = clock()
+        f.units.drive(commands)
+        c3 = clock()
+        rec = None if coordinator is None else coordinator.last
+        if rec is before:  # (the assembly vehicle on the ground: its coordinator did not run)
+            rec = None
+        stage["sensors"] += c1 - c0
+        if rec is not None:
+            for name in ("estimation", "control", "allocation"):
+                stage[name] += rec.timings_s[name]
+        stage["motors"] += c3 - c2
+        view = StepView(self.steps, t, rec, world.truth())
+        for obs in self.observers:
+            if obs.on_step(self, view):
+                self.stopped = True
+        c4 = clock()
+        stage["logging"] += c4 - c3
+        if self.stopped:
+            return False
+        world.advance()
+        stage["physics"] += clock() - c4
+        self.steps += 1
+        return True
+
+    def run(self, on_progress: Callable[[float], None] | None = None) -> None:
+        n = self.flight.n_steps
+        every = max(1, n // 200)
+        while self.step():
+            if on_progress is not None and self.steps % every == 1:
+                on_progress((self.steps - 1) / max(n, 1))
+
+
+class FlightRecorder:
+    """Observer: the tracked point's error on the world's truth (metrics.TrackingMetrics) and the run's
+    time series (run_log.RunLog); ends the flight when it diverges."""
+
+    def __init__(self, flight: Flight, log: RunLog | None = None, trial_index: int = 0) -> None:
+        self.flight = flight
+        self.log = log
+        self.trial_index = trial_index
+        self.metrics = TrackingMetrics()
+        self._flush_every = max(1, int(flight.scenario.sim.control_hz))
+
+    def on_step(self, engine: Engine, v: StepView) -> bool:
+        f = self.flight
+        truth, rec = v.truth, v.record
+        tracked = f.world.tracked_point(f.tracked_offset_frd_m, truth)
+        failsafe = getattr(f.coordinator, "failsafe", None)
+        err, _ = self.metrics.add(v.t_s, tracked, rec.reference.position_ned_m, truth.quaternion_wxyz,
+                                  position_lost=failsafe is not None and failsafe.state != "normal")
+        log = self.log
+        if log is not None:
+            roll, pitch, yaw = quat_to_euler(truth.quaternion_wxyz)
+            er, ep, ey = quat_to_euler(rec.estimate.quaternion_wxyz)
+            log.telemetry(
+                [self.trial_index, v.t_s, *rec.reference.position_ned_m, *tracked,
+                 math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
+                 *rec.estimate.position_ned_m, math.degrees(er), math.degrees(ep), math.degrees(ey),
+                 *truth.position_ned_m]
+            )
+            if log.rotor_due(v.t_s):
+                log.rotors(self.trial_index, v.t_s, rec.thrusts_n, f.world.rotor_thrust_n, f.units.eta(f.model.unit_ids))
+            if v.index % self._flush_every == 0:
+                log.flush()
+        if self.metrics.diverged:
+            engine.events.append(self.metrics.divergence)
+            return True
+        return False

@@ -1,0 +1,170 @@
+"""Flight metrics, one implementation for every mode: the tracking error of a point against its
+reference, tilt, divergence, and the run summary built from per-trial results.
+
+The in-process runner feeds `TrackingMetrics` every control step; the SITL summary feeds it the world's
+truth log row by row; reconfiguration flights feed it while the mission runs. All of them then report
+the same figures under the same names in summary.json.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mars_link.core.rotations import tilt_deg
+
+#: a run is declared diverged when the tracked point is this far from its reference...
+DIVERGENCE_ERROR_M = 5.0
+#: ...or the assembly tilts beyond this
+DIVERGENCE_TILT_DEG = 80.0
+STAGES = ("physics", "sensors", "estimation", "control", "allocation", "motors", "logging")
+
+
+@dataclass
+class TrialResult:
+    seed: int
+    completed: bool
+    diverged: bool
+    mean_error_m: float
+    rmse_m: float
+    max_error_m: float
+    sim_time_s: float
+    wall_time_s: float
+    force_integral_n2s: float
+    max_tilt_deg: float
+    events: list[dict] = field(default_factory=list)
+    stage_time_s: dict[str, float] = field(default_factory=dict)
+    physics_steps: int = 0
+    control_steps: int = 0
+    detections: list[dict] = field(default_factory=list)
+
+
+class TrackingMetrics:
+    """Running error statistics of a tracked point; `add` says when the flight diverged."""
+
+    def __init__(self) -> None:
+        self.n = 0
+        self.error_sum_m = 0.0
+        self.error_sq_m2 = 0.0
+        self.max_error_m = 0.0
+        self.max_tilt_deg = 0.0
+        self.diverged = False
+        self.divergence: dict | None = None  # the "diverged" event, once
+
+    def add(self, t_s: float, tracked_ned_m: np.ndarray, reference_ned_m: np.ndarray,
+            quaternion_wxyz: np.ndarray, position_lost: bool = False) -> tuple[float, float]:
+        """One sample: (error m, tilt deg). Sets `diverged` (and its event) the first time the error or
+        the tilt passes its limit, or the error is not finite. `position_lost`: the flight flies on a
+        dead-reckoned estimate (the position failsafe), so its error against the truth measures the
+        estimate's drift, not the control: only the tilt and a non-finite error end it then."""
+        err = float(np.linalg.norm(tracked_ned_m - reference_ned_m))
+        tilt = tilt_deg(quaternion_wxyz)
+        self.add_error(err)
+        self.max_tilt_deg = max(self.max_tilt_deg, tilt)
+        if not ((err < DIVERGENCE_ERROR_M or position_lost) and tilt < DIVERGENCE_TILT_DEG and math.isfinite(err)):
+            self.mark_diverged(t_s, err, tilt)
+        return err, tilt
+
+    def add_error(self, err_m: float) -> None:
+        self.n += 1
+        self.error_sum_m += err_m
+        self.error_sq_m2 += err_m * err_m
+        self.max_error_m = max(self.max_error_m, err_m)
+
+    def mark_diverged(self, t_s: float, err_m: float, tilt_deg_: float, **fields) -> None:
+        if not self.diverged:
+            self.diverged = True
+            self.divergence = {"t_s": round(t_s, 6), "type": "diverged", "error_m": err_m, "tilt_deg": tilt_deg_,
+                               **fields}
+
+    @property
+    def mean_error_m(self) -> float:
+        return self.error_sum_m / max(self.n, 1)
+
+    @property
+    def rmse_m(self) -> float:
+        return math.sqrt(self.error_sq_m2 / max(self.n, 1))
+
+
+def fault_time(faults, unit: int, rotor: int | None, deaths: dict[int, float] | None = None) -> float | None:
+    """When the injected fault that a detection names happened (None: a false alarm)."""
+    times = [f.t_s for f in faults if f.unit == unit and (rotor is None or f.rotor in (None, rotor))]
+    times += [t for u, t in (deaths or {}).items() if u == unit]
+    return min(times) if times else None
+
+
+def detection_rows(detections, faults, deaths: dict[int, float] | None = None) -> list[dict]:
+    """summary.json `detections`: each detection with the time of the fault it names."""
+    return [
+        {
+            "t_fault": fault_time(faults, d.unit, d.rotor, deaths),
+            "t_detected": round(d.t_detected, 6),
+            "unit": d.unit,
+            "rotor": d.rotor,
+            "eta_estimated": round(float(d.eta_estimated), 4),
+        }
+        for d in detections
+    ]
+
+
+def summarize(scenario, results: list[TrialResult], seed: int, mode: str = "inproc") -> dict:
+    """summary.json of a run of one or more trials (every mode writes these keys)."""
+    def mean(attr: str) -> float:
+        return float(np.mean([getattr(r, attr) for r in results]))
+
+    sim_time = sum(r.sim_time_s for r in results)
+    wall_time = sum(r.wall_time_s for r in results)
+    stage = {k: sum(r.stage_time_s.get(k, 0.0) for r in results) for k in STAGES}
+    return {
+        "scenario": scenario.name,
+        "source": scenario.source,
+        "mode": mode,
+        "layout": list(scenario.layout),
+        "preset": scenario.preset,
+        "controller": scenario.controller,
+        "ftc": scenario.ftc,
+        "seed": seed,
+        "trials": len(results),
+        "noise": scenario.sim.noise,
+        "physics_hz": scenario.sim.physics_hz,
+        "control_hz": scenario.sim.control_hz,
+        "completed": all(r.completed for r in results),
+        "diverged": any(r.diverged for r in results),
+        "mean_error_m": mean("mean_error_m"),
+        "mean_error_std_m": float(np.std([r.mean_error_m for r in results])),
+        "rmse_m": mean("rmse_m"),
+        "max_error_m": float(max(r.max_error_m for r in results)),
+        "sim_time_s": mean("sim_time_s"),
+        "wall_time_s": wall_time,
+        "real_time_factor": sim_time / wall_time if wall_time > 0 else float("inf"),
+        "force_integral_n2s": mean("force_integral_n2s"),
+        "max_tilt_deg": float(max(r.max_tilt_deg for r in results)),
+        "stage_time_s": stage,
+        "events": [dict(e, trial=i) for i, r in enumerate(results) for e in r.events],
+        "detections": [dict(d, trial=i) for i, r in enumerate(results) for d in r.detections],
+        "per_trial": [
+            {"seed": r.seed, "mean_error_m": r.mean_error_m, "rmse_m": r.rmse_m,
+             "max_error_m": r.max_error_m, "diverged": r.diverged}
+            for r in results
+        ],
+    }
+
+
+def gust_response(t_s, error_m, onset_s: float, tolerance_m: float = 0.05) -> dict:
+    """How a hold rides out a disturbance that starts at `onset_s`: the peak deviation after it, when,
+    and the recovery time (from the onset until the error stays within `tolerance_m` for good; inf if
+    it never does before the end)."""
+    t, e = np.asarray(t_s, dtype=float), np.asarray(error_m, dtype=float)
+    after = t >= onset_s
+    if not after.any():
+        raise ValueError(f"no sample after the onset at {onset_s:g} s")
+    k = int(np.argmax(np.where(after, e, -np.inf)))
+    outside = np.flatnonzero(after & (e > tolerance_m))
+    recovered = len(outside) == 0 or outside[-1] + 1 < len(t)
+    return {
+        "peak_deviation_m": float(e[k]), "peak_after_s": float(t[k] - onset_s),
+        "recovery_s": (0.0 if len(outside) == 0 else float(t[outside[-1] + 1] - onset_s)) if recovered else math.inf,
+        "tolerance_m": tolerance_m, "before_onset_max_m": float(e[~after].max()) if (~after).any() else 0.0,
+    }

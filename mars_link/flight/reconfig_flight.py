@@ -1,0 +1,279 @@
+"""Flights of pieces (free units assembling, reconfiguration): the observer and the outputs.
+
+The flight runs on the one engine (`mars_link.flight.engine.Engine`) with the parts `build.build_pieces_flight`
+makes: a world of rigid bodies that split when latches open and merge when facing latches close
+(`sitl.world`, momentum kept), every unit's firmware in the motor path, and a `PiecesCoordinator`
+(`mars_link.coordination.pieces`) that flies every piece on its own EKF, detector, controller and allocator and runs
+the reconfiguration executor. The coordinator learns splits and docks from the units' latch sensors,
+never from the world's truth. Faults are told (`faults_known = true`: the plan for all of them is made
+before flight) or found by the pieces' detectors (the plan is made from the believed faults).
+Deterministic for a seed.
+
+Outputs (like `mars_link.flight.runner`): summary.json keys mean_error_m, rmse_m, max_error_m,
+force_integral_n2s (Σ rotors ∫ thrust² dt over every body), diverged, events (faults, detections, each
+split and dock, reconfig start/done, mission resume); telemetry.csv (tracked point vs the mission, per
+control step), units.csv (every unit's position, velocity and attitude at 20 Hz) and plots/.
+The mission error is measured while the mission runs (before the pause and after the resume); the
+time the manoeuvre took is `reconfig_time_s`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from mars_link.flight.build import build_pieces_flight
+from mars_link.flight.engine import Engine, Flight, StepView
+from mars_link.flight.metrics import DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, TrackingMetrics, TrialResult
+from mars_link.logs.outputs import write_json
+from mars_link.runtime.pacing import Pacer
+from mars_link.coordination.pieces import PiecesCoordinator
+from mars_link.core.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
+from mars_link.config.scenario import Scenario
+
+UNIT_LOG_HZ = 20.0
+
+
+@dataclass
+class ReconfigResult(TrialResult):
+    """A trial's figures plus the manoeuvre: whether it completed, how long it took, the plan."""
+
+    reconfigured: bool = False
+    reconfig_time_s: float = 0.0
+    plan: dict | None = None
+    unit_rows: list[list[float]] = field(default_factory=list)
+    telemetry_rows: list[list[float]] = field(default_factory=list)
+    assembled: bool = False  # a free start became the whole structure
+    min_clearance_m: float = math.inf  # smallest gap between units of different bodies over the flight
+    pieces_final: list[dict] = field(default_factory=list)  # each piece at the end: layout rows, unit ids
+    detections: list[dict] = field(default_factory=list)  # the faults the pieces' detectors found (events)
+    mission_force_integral_n2s: float = 0.0  # the force integral while the mission flies (manoeuvre excluded)
+
+
+class ReconfigRecorder:
+    """Observer of a flight of pieces: the mission error of the tracked point (while the mission runs),
+    every piece's tilt and deviation from its reference (divergence), the smallest gap between bodies,
+    and the telemetry.csv / units.csv time series. It ends the flight on divergence or a failed manoeuvre."""
+
+    def __init__(self, flight: Flight, out_dir: Path | None) -> None:
+        self.flight = flight
+        self.coordinator: PiecesCoordinator = flight.coordinator
+        self.metrics = TrackingMetrics()
+        self.min_clearance_m = math.inf
+        self.unit_rows: list[list[float]] = []
+        self.telemetry_rows: list[list[float]] = []
+        self.failed = False
+        self.mission_force_integral_n2s = 0.0  # Σ rotors ∫ thrust² dt while the mission flies (not the manoeuvre)
+        self._force_seen = 0.0
+        self._next_unit_log = 0.0
+        self._flush_every = max(1, int(flight.scenario.sim.control_hz))
+        self.tel_f = self.units_f = None
+        if out_dir is not None:
+            out_dir.mkdir(parents=True, exist_ok=True)
+            self.tel_f = open(out_dir / "telemetry.csv", "w", encoding="utf-8")
+            self.tel_f.write("t_s,mission_t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,error_m,pieces\n")
+            self.units_f = open(out_dir / "units.csv", "w", encoding="utf-8")
+            self.units_f.write("t_s,unit,n_m,e_m,d_m,vn_mps,ve_mps,vd_mps,roll_deg,pitch_deg,yaw_deg,piece_units\n")
+
+    def close(self) -> None:
+        for f in (self.tel_f, self.units_f):
+            if f:
+                f.close()
+
+    def on_step(self, engine: Engine, v: StepView) -> bool:
+        world, coord = self.flight.world, self.coordinator
+        executor, metrics, t = coord.executor, self.metrics, v.t_s
+        pieces = coord.pieces
+        if coord.failed and not self.failed:
+            self.failed = True
+            engine.events.append({"t_s": round(t, 6), "type": "reconfig_failed", "reason": coord.failed,
+                                  "text": f"Reconfig failed: {coord.failed}"[:50]})
+            return True
+        states = {key: world.body_state(p.units[0]) for key, p in pieces.items()}
+        for key, p in pieces.items():
+            state = states[key]
+            tilt = tilt_deg(state.quaternion_wxyz)
+            metrics.max_tilt_deg = max(metrics.max_tilt_deg, tilt)
+            dev = float(np.linalg.norm(state.position_ned_m - p.coordinator.last.reference.position_ned_m))
+            if not (dev < DIVERGENCE_ERROR_M and tilt < DIVERGENCE_TILT_DEG):
+                metrics.mark_diverged(t, dev, tilt, phase=executor.phase)
+        self.min_clearance_m = min(self.min_clearance_m, world.min_clearance_m())
+        if executor.mission_active(t):
+            self.mission_force_integral_n2s += world.force_integral_n2s - self._force_seen
+        self._force_seen = world.force_integral_n2s
+        if executor.mission_active(t):  # the mission metric, on the truth
+            p = coord.tracked_piece()
+            s = states[p.shape.key]
+            pos = s.position_ned_m + quat_to_rotmat(s.quaternion_wxyz) @ executor.tracked_offset(p.shape)
+            ref = executor.mission.sample(executor.mission_time(t)).position_ned_m
+            err = float(np.linalg.norm(pos - ref))
+            metrics.add_error(err)
+            if err >= DIVERGENCE_ERROR_M or not math.isfinite(err):
+                metrics.mark_diverged(t, err, tilt_deg(s.quaternion_wxyz), phase=executor.phase)
+            row = [t, executor.mission_time(t), *ref, *pos, err, len(pieces)]
+            self.telemetry_rows.append(row)
+            if self.tel_f:
+                self.tel_f.write(",".join(f"{x:.6g}" for x in row) + "\n")
+        if t + 1e-9 >= self._next_unit_log:
+            self._next_unit_log = t + 1.0 / UNIT_LOG_HZ
+            self._log_units(t, states)
+        if v.index % self._flush_every == 0 and self.tel_f:
+            self.tel_f.flush()
+            self.units_f.flush()
+        if metrics.diverged:
+            engine.events.append(dict(metrics.divergence, text=f"Diverged ({executor.phase})"[:50]))
+            return True
+        return False
+
+    def _log_units(self, t: float, states: dict) -> None:
+        for p in self.coordinator.pieces.values():
+            s = states[p.shape.key]
+            r = quat_to_rotmat(s.quaternion_wxyz)
+            w = r @ s.angular_velocity_frd_radps
+            roll, pitch, yaw = (math.degrees(a) for a in quat_to_euler(s.quaternion_wxyz))
+            for i, u in enumerate(p.units):
+                rr = r @ p.model.unit_position(i + 1)
+                row = [t, u, *(s.position_ned_m + rr), *(s.velocity_ned_mps + np.cross(w, rr)),
+                       roll, pitch, yaw, len(p.shape.cells)]
+                self.unit_rows.append(row)
+                if self.units_f:
+                    self.units_f.write(",".join(f"{x:.6g}" for x in row) + "\n")
+
+
+def run_reconfig_trial(
+    scenario: Scenario, seed: int, out_dir: Path | None = None,
+    on_progress: Callable[[float], None] | None = None, realtime_rate: float = 0.0,
+    unit_deaths: dict[int, float] | None = None, view: Callable | None = None,
+) -> ReconfigResult:
+    """One flight of pieces on the engine (`build.build_pieces_flight`); `unit_deaths` (unit -> time): that
+    unit's process dies then. `view(flight)`: its run.mcap / live Foxglove view (flight_view.pieces_view)."""
+    flight = build_pieces_flight(scenario, seed, unit_deaths)
+    coord: PiecesCoordinator = flight.coordinator
+    executor = coord.executor
+    recorder = ReconfigRecorder(flight, out_dir)
+    view = view(flight) if view is not None else None
+    engine = Engine(flight, [recorder] + ([view] if view is not None else []), Pacer(realtime_rate))
+    wall0 = time.perf_counter()
+    try:
+        step_every = 50
+        while engine.step():
+            if on_progress is not None and engine.steps % step_every == 0:
+                on_progress(min(1.0, flight.world.t_s / max(flight.duration_s + executor.shift_s, 1e-9)))
+    finally:
+        flight.world.close()
+        recorder.close()
+        if view is not None:
+            view.finish(engine)
+    t = flight.world.t_s
+    latched = [e for e in flight.world.latch_events if e["type"] == "dock_latched"]
+    events = sorted(engine.events + coord.events + executor.events + latched, key=lambda e: e["t_s"])
+    done = [e for e in events if e["type"] == "reconfig_done"]
+    begun = [e for e in events if e["type"] == "reconfig_start"]
+    reconfigured = bool(done)
+    metrics = recorder.metrics
+    return ReconfigResult(
+        seed=seed, completed=not (metrics.diverged or recorder.failed), diverged=metrics.diverged,
+        reconfigured=reconfigured, mean_error_m=metrics.mean_error_m, rmse_m=metrics.rmse_m,
+        max_error_m=metrics.max_error_m, sim_time_s=t, wall_time_s=time.perf_counter() - wall0,
+        force_integral_n2s=flight.world.force_integral_n2s, max_tilt_deg=metrics.max_tilt_deg,
+        reconfig_time_s=executor.shift_s if reconfigured else (t - begun[0]["t_s"] if begun else 0.0),
+        plan=executor.plan.to_json() if executor.plan.disassembly_layers or executor.plan.assembly_layers else None,
+        events=events, unit_rows=recorder.unit_rows, telemetry_rows=recorder.telemetry_rows,
+        assembled=any(e["type"] == "assembly_done" for e in events), min_clearance_m=recorder.min_clearance_m,
+        pieces_final=[{"layout": list(p.shape.layout()), "units": list(p.units)} for p in coord.pieces.values()],
+        detections=[e for e in events if e["type"] == "fault_detected"],
+        mission_force_integral_n2s=recorder.mission_force_integral_n2s,
+    )
+
+
+def run_reconfig_scenario(
+    scenario: Scenario, out_dir: Path | None = None, trials: int = 1, seed: int | None = None,
+    on_progress: Callable[[int, float], None] | None = None, plots: bool = True, realtime_rate: float = 0.0,
+    mcap: bool = True, live: str | None = None,
+) -> dict:
+    """One flight of pieces; the run directory gets summary.json, CSVs, plots/ and run.mcap (unless not `mcap`;
+    `live`: HOST:PORT of a live Foxglove view). `realtime_rate`: the engine's pacing (0 as fast as possible,
+    1 real time)."""
+    from mars_link.flight.flight_view import pieces_view
+
+    seed = scenario.sim.seed if seed is None else seed
+    cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
+    r = run_reconfig_trial(scenario, seed, out_dir, cb, realtime_rate=realtime_rate,
+                           view=lambda flight: pieces_view(flight, out_dir if mcap else None, live))
+    summary = {
+        "scenario": scenario.name, "source": scenario.source, "mode": "inproc-reconfig",
+        "layout": list(scenario.layout), "preset": scenario.preset, "controller": scenario.controller,
+        "ftc": scenario.ftc, "seed": seed, "trials": 1, "noise": scenario.sim.noise,
+        "faults_known": scenario.faults_known,
+        "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
+        "completed": r.completed, "diverged": r.diverged, "reconfigured": r.reconfigured,
+        "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m, "max_error_m": r.max_error_m,
+        "sim_time_s": r.sim_time_s, "wall_time_s": r.wall_time_s,
+        "real_time_factor": r.sim_time_s / r.wall_time_s if r.wall_time_s > 0 else float("inf"),
+        "force_integral_n2s": r.force_integral_n2s, "mission_force_integral_n2s": r.mission_force_integral_n2s,
+        "max_tilt_deg": r.max_tilt_deg, "reconfig_time_s": r.reconfig_time_s, "plan": r.plan, "start": scenario.start, "assembled": r.assembled,
+        "min_clearance_m": r.min_clearance_m, "pieces_final": r.pieces_final,
+        "events": [dict(e, trial=0) for e in r.events],
+        "per_trial": [{"seed": seed, "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m,
+                       "max_error_m": r.max_error_m, "diverged": r.diverged}],
+    }
+    if out_dir is not None:
+        write_json(out_dir / "summary.json", summary)
+        if plots:
+            write_reconfig_plots(out_dir, r)
+            from mars_link.flight.replay_gif import write_flight_gif
+
+            write_flight_gif(out_dir / "plots" / "flight.gif", r.unit_rows, r.events)  # the animated replay
+    return summary
+
+
+def write_reconfig_plots(out_dir: Path, r: ReconfigResult) -> list[Path]:
+    """Top view of every unit's path (split/dock events marked) and the mission error vs time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    plots = out_dir / "plots"
+    plots.mkdir(parents=True, exist_ok=True)
+    written = []
+    rows = np.array(r.unit_rows) if r.unit_rows else np.zeros((0, 12))
+    fig, (ax, az) = plt.subplots(1, 2, figsize=(12, 5))
+    for u in sorted(set(rows[:, 1].astype(int))) if len(rows) else []:
+        m = rows[:, 1] == u
+        ax.plot(rows[m, 3], rows[m, 2], lw=1, label=f"unit {u}")
+        az.plot(rows[m, 0], -rows[m, 4], lw=1, label=f"unit {u}")
+    for e in r.events:
+        if e["type"] in ("split", "dock"):
+            az.axvline(e["t_s"], color="k", ls=":", lw=0.8)
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title("units, top view")
+    az.set_xlabel("time [s]")
+    az.set_ylabel("up [m]")
+    az.set_title("altitude (dotted: split / dock)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    path = plots / "units.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    written.append(path)
+    if r.telemetry_rows:
+        tel = np.array(r.telemetry_rows)
+        fig, ax = plt.subplots(figsize=(8, 3.5))
+        ax.plot(tel[:, 0], tel[:, 8], lw=1)
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("mission error [m]")
+        ax.set_title("tracked point vs mission reference (paused during the reconfiguration)")
+        fig.tight_layout()
+        path = plots / "error.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    return written

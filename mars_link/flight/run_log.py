@@ -1,0 +1,124 @@
+"""The run's time series, written as the flight goes (flushed), so a crash loses nothing flown:
+telemetry.csv (every control step: reference, tracked point, attitude, error, estimate, CoM) and
+rotors.csv (per rotor: command, thrust, eta). Every mode writes these two files through this class.
+Logging is never flight-critical: a write error (a full disk) stops that file, and `status()` says so.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from mars_link.core.assembly import AssemblyModel
+from mars_link.logs.outputs import SafeWriter
+
+#: rotors.csv rows per second (telemetry.csv has every control step)
+ROTOR_LOG_HZ = 20.0
+#: rows kept in memory for the plots (first trial only) when bounded: beyond, every other row is dropped
+#: and the keeping stride doubles, so memory stays flat however many trials or seconds are flown
+PLOT_ROWS_MAX = 4_000  # (a plot 880 px wide needs no more)
+PLOT_BYTES_MAX = 8 * 2**20  # per series: fewer rows for a large assembly's wide rotor rows
+
+
+class _PlotRows:
+    """The first trial's rows for the plots, at most `cap` (decimated by 2 each time it fills)."""
+
+    def __init__(self, rows: list, cap: int) -> None:
+        self.rows, self.cap, self.stride, self.seen = rows, cap, 1, 0
+
+    def add(self, row) -> None:
+        if row[0] != 0:  # (plots.write_run_plots draws the first trial; the CSVs hold every trial)
+            return
+        if self.seen == 0:
+            self.cap = max(100, min(self.cap, PLOT_BYTES_MAX // (8 * len(row) + 100)))
+        if self.seen % self.stride == 0:
+            self.rows.append(row)
+            if len(self.rows) >= self.cap:
+                del self.rows[1::2]
+                self.stride *= 2
+        self.seen += 1
+
+
+class RunLog:
+    """CSV time series written as the flight goes (flushed), so a crash loses nothing flown."""
+
+    def __init__(self, out_dir: Path | None, model: AssemblyModel, rotor_log_hz: float,
+                 plot_rows_max: int | None = None) -> None:
+        """`plot_rows_max`: keep in memory only the first trial's rows, at most that many (decimated);
+        None keeps every row (evaluations that read `telemetry_rows` whole)."""
+        self.out_dir = out_dir
+        self.model = model
+        self.rotor_log_period_s = 1.0 / rotor_log_hz
+        self._next_rotor_t = 0.0
+        self._tel = self._rot = None
+        self._closed: list[dict] = []  # status of the files already closed
+        self.telemetry_rows: list[list[float]] = []
+        self.rotor_rows: list[np.ndarray] = []
+        self._bounded = None if plot_rows_max is None else (
+            _PlotRows(self.telemetry_rows, plot_rows_max), _PlotRows(self.rotor_rows, plot_rows_max))
+        if out_dir is None:
+            return
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self._tel = _safe_open(out_dir / "telemetry.csv")
+        self._tel.write(
+            "trial,t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,roll_deg,pitch_deg,yaw_deg,"
+            "error_m,est_n_m,est_e_m,est_d_m,est_roll_deg,est_pitch_deg,est_yaw_deg,com_n_m,com_e_m,com_d_m\n"
+        )
+        self._tel_format = ",".join(["%.6g"] * 18 + ["%.9f"] * 3) + "\n"
+        self._rot = _safe_open(out_dir / "rotors.csv")
+        cols = []
+        for kind in ("cmd", "thrust", "eta"):
+            cols += [f"{kind}_u{r.unit_id}r{r.index}" for r in model.rotors]
+        self._rot.write("trial,t_s," + ",".join(cols) + "\n")
+        self._rot_format = ",".join(["%.5g"] * (2 + len(cols))) + "\n"  # (one % pass: no per-value call)
+
+    def telemetry(self, row: list[float]) -> None:
+        if self._bounded is None:
+            self.telemetry_rows.append(row)
+        else:
+            self._bounded[0].add(row)
+        if self._tel:
+            self._tel.write(self._tel_format % tuple(row))
+
+    def rotor_due(self, t_s: float) -> bool:
+        """Whether a rotors row is due at `t_s` (rows go at the rotor log rate)."""
+        return t_s + 1e-9 >= self._next_rotor_t
+
+    def rotors(self, trial: int, t_s: float, cmd, thrust, eta) -> None:
+        if t_s + 1e-9 < self._next_rotor_t:
+            return
+        self._next_rotor_t = t_s + self.rotor_log_period_s
+        row = np.concatenate(([trial, t_s], cmd, thrust, eta))
+        if self._bounded is None:
+            self.rotor_rows.append(row)
+        else:
+            self._bounded[1].add(row)
+        if self._rot:
+            self._rot.write(self._rot_format % tuple(row.tolist()))
+
+    def new_trial(self) -> None:
+        self._next_rotor_t = 0.0
+
+    def flush(self) -> None:
+        for f in (self._tel, self._rot):
+            if f:
+                f.flush()
+
+    def close(self) -> None:
+        for f in (self._tel, self._rot):
+            if f:
+                f.close()
+                self._closed.append(f.status())
+        self._tel = self._rot = None
+
+    def status(self) -> dict:
+        """summary.json "logging": whether the time series were written whole, and why not."""
+        files = [f.status() for f in (self._tel, self._rot) if f is not None] + list(self._closed)
+        reason = next((f["stopped_reason"] for f in files if f["stopped_reason"]), None)
+        return {"complete": reason is None, "stopped_reason": reason, "files": files}
+
+
+def _safe_open(path: Path) -> SafeWriter:
+    return SafeWriter(open(path, "w", encoding="utf-8"), str(path))
+

@@ -1,0 +1,127 @@
+"""In-process runs ("inproc" mode): trials of a scenario through the engine, and the run directory.
+
+The flight itself is `mars_link.flight.engine.Engine` over the parts `mars_link.flight.build.build_flight` makes:
+the same world, unit firmware and coordinator objects as the multi-process SITL, wired by direct calls.
+Lockstep and deterministic for a seed; as fast as possible unless a real-time rate is asked for.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Callable
+
+
+from mars_link.flight.build import build_flight
+from mars_link.flight.engine import Engine, FlightRecorder
+from mars_link.flight.metrics import TrialResult, detection_rows, summarize
+from mars_link.logs.outputs import write_json
+from mars_link.runtime.pacing import Pacer
+from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
+from mars_link.config.scenario import Scenario
+
+
+# ----------------------------------------------------------------------------- one trial
+def run_trial(
+    scenario: Scenario,
+    seed: int,
+    trial_index: int = 0,
+    log: RunLog | None = None,
+    on_progress: Callable[[float], None] | None = None,
+    unit_deaths: dict[int, float] | None = None,
+    realtime_rate: float = 0.0,
+    view=None,
+) -> TrialResult:
+    """One flight through the engine (mars_link.flight.engine): world, units and coordinator by direct calls.
+
+    `unit_deaths` (unit -> time): that unit's process dies then (no more telemetry, motors stop); the
+    coordinator, not told, declares it lost after `UNIT_TIMEOUT_PERIODS` silent control periods.
+    `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time.
+    `view` (flight_view.FlightView, or a callable flight -> one): run.mcap and/or the live Foxglove view.
+    """
+    flight = build_flight(scenario, seed, unit_deaths)
+    recorder = FlightRecorder(flight, log, trial_index)
+    view = view(flight) if callable(view) else view
+    engine = Engine(flight, [recorder] + ([view] if view is not None else []), Pacer(realtime_rate))
+    wall0 = time.perf_counter()
+    try:
+        engine.run(on_progress)
+    finally:
+        flight.world.close()
+        if view is not None:
+            view.finish(engine)
+        if log is not None:
+            log.flush()
+    wall = time.perf_counter() - wall0
+    world, metrics = flight.world, recorder.metrics
+    return TrialResult(
+        seed=seed,
+        completed=not metrics.diverged,
+        diverged=metrics.diverged,
+        mean_error_m=metrics.mean_error_m,
+        rmse_m=metrics.rmse_m,
+        max_error_m=metrics.max_error_m,
+        sim_time_s=world.t_s,
+        wall_time_s=wall,
+        force_integral_n2s=world.force_integral_n2s,
+        max_tilt_deg=metrics.max_tilt_deg,
+        events=sorted(engine.events + flight.coordinator.events, key=lambda e: e["t_s"]),
+        stage_time_s=engine.stage_time_s,
+        physics_steps=world.exchange_index * world.substeps,
+        control_steps=metrics.n,
+        detections=detection_rows(flight.coordinator.detections, flight.faults, unit_deaths),
+    )
+
+
+# ----------------------------------------------------------------------------- whole run
+def run_scenario(
+    scenario: Scenario,
+    out_dir: Path | None = None,
+    trials: int = 1,
+    seed: int | None = None,
+    on_progress: Callable[[int, float], None] | None = None,
+    plots: bool = True,
+    realtime_rate: float = 0.0,
+    mcap: bool = True,
+    live=None,
+) -> dict:
+    """Fly `trials` trials (seeds seed, seed+1, ...); write the run directory if `out_dir` is given.
+    `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time.
+    `mcap`: run.mcap in `out_dir` (trial i > 0: run_trial<i>.mcap); `live`: HOST:PORT of a live Foxglove view (flight_view)."""
+    seed = scenario.sim.seed if seed is None else seed
+    log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ),
+                 plot_rows_max=PLOT_ROWS_MAX)  # streamed to the CSVs; memory flat in trials and duration
+    results = []
+    try:
+        for i in range(trials):
+            log.new_trial()
+            cb = None if on_progress is None else (lambda frac, i=i: on_progress(i, frac))
+            view = _view_maker(scenario, out_dir if mcap else None, live, "run.mcap" if i == 0 else f"run_trial{i}.mcap")
+            results.append(run_trial(scenario, seed + i, i, log, cb, realtime_rate=realtime_rate, view=view))
+            if on_progress is not None:
+                on_progress(i, 1.0)
+    finally:
+        log.close()
+    summary = summarize(scenario, results, seed)
+    summary["logging"] = log.status()
+    if out_dir is not None:
+        write_json(out_dir / "summary.json", summary)
+        if plots:
+            from mars_link.flight.plots import write_run_plots
+
+            write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model())
+    return summary
+
+
+def _view_maker(scenario: Scenario, out_dir: Path | None, live, name: str):
+    """flight -> its FlightView (run.mcap in `out_dir` and/or `live`), or None when neither is asked for."""
+    if out_dir is None and live is None:
+        return None
+
+    def make(flight):
+        from mars_link.flight.flight_view import open_view
+
+        return open_view(out_dir, flight.model, scenario, scenario.sim.control_hz, flight.trajectory,
+                         flight.duration_s, live, scenario.tracked_unit(), name=name)
+
+    return make

@@ -1,0 +1,1 @@
+"""MAVLink: the frame codec, the wire conversions of our messages, signing."""

@@ -1,0 +1,329 @@
+"""Real-time runner: the assembly (in-process JSBSim physics + coordinator) behind its MAVLink endpoint.
+
+    mars-link vehicle [SCENARIO.toml] [--layout ROWS] [--gcs-port P] [--api-port P] [--sysid N]
+
+`AssemblySim` (mars_link.vehicles.assembly_vehicle) is stepped once per control period, paced to wall time
+(scaled by --speed); between steps the UDP sockets are drained into the vehicle. Links, all on
+127.0.0.1 (PX4's SITL conventions, specs/mavlink.md §1.1):
+  gcs  the vehicle sends to --gcs-port (default 14550: QGroundControl, MAVProxy `udpin`) from
+       --gcs-bind (default 18560)
+  api  the vehicle sends to --api-port (default 14540: MAVSDK `udpin://127.0.0.1:14540`) from
+       --api-bind (default 14560)
+  On both, whoever last sent a valid frame to the bound port also gets the traffic (MAVProxy
+  `--master=udpout:127.0.0.1:18560`). A bind port 0 means any free port.
+Socket handling (flood limits, loopback-only senders, peers) is every Vehicle runner's
+(`mars_link.processes.vehicle_io.VehicleSockets`).
+Runs until Ctrl-C / SIGTERM (or --duration wall seconds). A machine too slow to keep up is re-anchored
+(counted as an overrun) instead of racing to catch up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from firmware_models.vehicle import LINK_API, LINK_GCS
+from mars_link.processes.vehicle_io import API_PORT_BASE, GCS_PORT, LOOPBACK, LinkSpec, VehicleSockets, write_json_atomic
+from mars_link.vehicles.assembly_vehicle import DEFAULT_SYSID, AssemblySim, SimConfig
+from mars_link.core import validation
+from mars_link.core.errors import UserInputError
+from mars_link.runtime.pacing import Pacer
+from mars_link.config.scenario import INTERACTIVE_SCENARIO as DEFAULT_SCENARIO  # (the realistic plant)
+
+STATUS_PERIOD_S = 0.2
+API_PORT = API_PORT_BASE  # the assembly takes instance 0's ports, like a single PX4 SITL drone
+GCS_BIND, API_BIND = 18560, 14560  # below the units' 18570+i / 14580+i
+
+
+class AssemblyRunner:
+    """Sockets (mars_link.processes.vehicle_io.VehicleSockets, as every Vehicle runner) and clocks for an
+    AssemblySim."""
+
+    def __init__(self, sim: AssemblySim, ports: dict[str, int], speed: float = 1.0,
+                 status_file: str | None = None, duration_s: float | None = None, tlog: str | None = None) -> None:
+        self.sim = sim
+        self.vehicle = sim.vehicle
+        self.speed = speed
+        self.io = VehicleSockets(sim.vehicle, {
+            LINK_GCS: LinkSpec(ports["gcs_bind"], (LOOPBACK, ports["gcs_port"])),
+            LINK_API: LinkSpec(ports["api_bind"], (LOOPBACK, ports["api_port"])),
+        }, Path(tlog) if tlog else None)
+        self.status_path = Path(status_file) if status_file else None
+        self.duration_s = duration_s
+        self.running = True
+        self.pacer = Pacer(speed)  # overruns (re-anchored) and late steps are counted there
+        self.steps = 0
+        self._step_s: list[float] = []  # compute time per step (a rolling window)
+
+    def endpoints(self) -> dict:
+        p = self.io.ports()
+        return {"sysid": self.vehicle.sysid, "gcs": {"to": self.io.dest[LINK_GCS][1], "from": p[LINK_GCS]},
+                "api": {"to": self.io.dest[LINK_API][1], "from": p[LINK_API]}}
+
+    def write_status(self) -> None:
+        if self.status_path is None:
+            return
+        v, sim = self.vehicle, self.sim
+        s = sim.truth()
+        est = sim.estimate
+        steps = np.array(self._step_s[-2000:]) if self._step_s else np.zeros(1)
+        status = {
+            "sysid": v.sysid, "layout": list(sim.scenario.layout), "sim_time_s": sim.t_s, "wall_time_s": time.time(),
+            "armed": v.armed, "mode": list(v.mode), "phase": v.autopilot.phase.value, "landed": bool(v.landed),
+            "truth_position_ned_m": [float(x) for x in s.position_ned_m],
+            "truth_velocity_ned_mps": [float(x) for x in s.velocity_ned_mps],
+            "truth_quaternion_wxyz": [float(x) for x in s.quaternion_wxyz],
+            "estimate_position_ned_m": None if est is None else [float(x) for x in est.position_ned_m],
+            "unit_eta": sim.unit_eta(), "eta_believed": [float(x) for x in sim.eta_believed()],
+            "rotor_thrust_n": [float(x) for x in sim.world.rotor_thrust_n],
+            "events": sorted(sum(sim.event_lists(), []), key=lambda e: e["t_s"])[-50:], "statustext": [t for _, t in v.events[-50:]],
+            "drops": v.drop_counts(), "stats": v.stats, "estimator_resets": sim.estimator_resets,
+            **self.io.counters(), "overruns": self.overruns, "steps": self.steps, "late_steps": self.late_steps,
+            "step_p50_ms": float(np.percentile(steps, 50) * 1e3), "step_p99_ms": float(np.percentile(steps, 99) * 1e3),
+            "endpoints": self.endpoints(),
+            "mission_reached": v.mission_reached, "mission_counts": v.mission.counts,
+        }
+        write_json_atomic(self.status_path, status)
+
+    def run(self) -> int:
+        start = time.monotonic()
+        pacer = self.pacer
+        pacer.start(self.sim.t_s)
+        next_status = start
+        self.write_status()
+        while self.running:
+            now = time.monotonic()
+            if self.duration_s is not None and now - start >= self.duration_s:
+                break
+            self.io.poll(pacer.wait_s(self.sim.t_s))
+            now = time.monotonic()
+            if pacer.is_due(self.sim.t_s, self.sim.control_dt_s):
+                c0 = time.perf_counter()
+                self.io.send(self.sim.step(time.time()))
+                self._step_s.append(time.perf_counter() - c0)
+                if len(self._step_s) > 20000:
+                    del self._step_s[:10000]
+                self.steps += 1
+            if now >= next_status:
+                next_status = now + STATUS_PERIOD_S
+                self.write_status()
+        self.write_status()
+        return 0
+
+    @property
+    def overruns(self) -> int:
+        return self.pacer.overruns
+
+    @property
+    def late_steps(self) -> int:
+        return self.pacer.late_steps
+
+    def close(self) -> None:
+        self.io.close()
+        self.sim.close()
+
+
+# ----------------------------------------------------------------------------- command line
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("scenario", nargs="?", help=f"scenario TOML file or bundled name (default {DEFAULT_SCENARIO}); "
+                   "its vehicle, layout, control and faults are used, its trajectory is not")
+    p.add_argument("--layout", help="layout rows separated by commas, e.g. XXX,XXX (overrides the scenario)")
+    p.add_argument("--sysid", type=int, default=DEFAULT_SYSID, help=f"MAVLink system id (default {DEFAULT_SYSID})")
+    p.add_argument("--gcs-port", type=int, default=GCS_PORT, help=f"ground stations listen here (default {GCS_PORT})")
+    p.add_argument("--api-port", type=int, default=API_PORT, help=f"MAVSDK listens here (default {API_PORT})")
+    p.add_argument("--gcs-bind", type=int, default=GCS_BIND, help=f"local port of the gcs link (default {GCS_BIND}; 0 any)")
+    p.add_argument("--api-bind", type=int, default=API_BIND, help=f"local port of the api link (default {API_BIND}; 0 any)")
+    p.add_argument("--seed", type=validation.seed, default=None, help=f"0..{validation.SEED_MAX}")
+    p.add_argument("--ftc", help="allocation mode: none, unit, partial, full, hybrid, qp")
+    p.add_argument("--fault", action="append", metavar="UNIT[:ROTOR]=ETA[@T]", help="T: seconds after start")
+    p.add_argument("--no-noise", action="store_true", help="perfect sensors (truth state)")
+    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
+    p.add_argument("--mission", default=None, metavar="FILE.plan",
+                   help="QGroundControl .plan preloaded (mission, geofence, rally), as if a client had uploaded it")
+    p.add_argument("--map", default=None, metavar="FILE",
+                   help="obstacle map (boxes .csv or .pcd): mission legs planned around it (default: [mission] map)")
+    p.add_argument("--speed", type=float, default=1.0, help="simulation speed, x real time")
+    p.add_argument("--status-file", help="JSON snapshot (truth, mode, counters) a few times a second")
+    p.add_argument("--tlog", help="MAVLink log of both links (pymavlink .tlog), appended and flushed as it goes")
+    p.add_argument("--duration", type=validation.positive_float, help="stop after this many wall seconds")
+    from mars_link.mavlink.signing import add_signing_args
+
+    add_signing_args(p, "the gcs and api links")
+    p.add_argument("--out", default=None, help="run directory for run.mcap (Foxglove; none without --out)")
+    from mars_link.flight.flight_view import add_view_arguments
+
+    add_view_arguments(p)  # --no-mcap, --foxglove [HOST:PORT]
+
+
+def _check_port(name: str, value: int, allow_zero: bool) -> int:
+    lo = 0 if allow_zero else 1
+    if not lo <= value <= 65535:
+        raise UserInputError(f"{name} must be {lo}..65535, got {value}")
+    return value
+
+
+def build_sim(args: argparse.Namespace) -> AssemblySim:
+    """Scenario + command-line overrides -> AssemblySim; every problem is a UserInputError."""
+    from mars_link.core.assembly import parse_layout
+    from mars_link.config.scenario import FTC_MODES, load_scenario, parse_fault_arg, validate_fault
+
+    scenario = load_scenario(args.scenario or DEFAULT_SCENARIO)
+    if args.layout is not None:
+        scenario.layout = parse_layout(args.layout)
+    if args.ftc:
+        if args.ftc not in FTC_MODES:
+            raise UserInputError(f"--ftc {args.ftc!r}: unknown mode (known: {', '.join(FTC_MODES)})")
+        scenario.ftc = args.ftc
+    for text in args.fault or []:
+        scenario.faults.append(parse_fault_arg(text))
+    model = scenario.model()
+    for f in scenario.faults:
+        validate_fault(f, model, f"fault {f.describe()}")
+    from mars_link.config.scenario import check_faults_controllable
+
+    check_faults_controllable(scenario, model)  # the check `run` and `sitl up` make
+    if args.seed is not None:
+        scenario.sim.seed = args.seed
+    if args.no_noise:
+        scenario.sim.noise = False
+    if not (math.isfinite(args.speed) and 0.05 <= args.speed <= 20.0):
+        raise UserInputError(f"--speed must be 0.05..20, got {args.speed}")
+    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
+        raise UserInputError(f"--duration must be > 0, got {args.duration}")
+    if scenario.controller != "cascaded":
+        raise UserInputError(f"controller {scenario.controller!r}: the vehicle flies setpoints with 'cascaded' only")
+    if not 1 <= args.sysid <= 250 or args.sysid in (200, 201):
+        raise UserInputError(f"--sysid must be 1..250 and not 200/201 (world, coordinator), got {args.sysid}")
+    from mars_link.mavlink.signing import signing_from_args
+    from mars_link.processes.udp_runner import _params  # NAME=VALUE parsing, as the unit runner's --param
+
+    key, require = signing_from_args(args)
+    map_path = args.map or scenario.mission.get("map")
+    if map_path is not None:
+        check_map(map_path, "--map" if args.map else f"{scenario.source}: [mission] map")
+    from mars_link.vehicles.pieces_vehicle import make_sim
+
+    return make_sim(scenario, SimConfig(sysid=args.sysid, params=_params(args.param), signing_key=key,
+                                        require_signing=require, map_path=map_path), time.time())
+
+
+def check_map(path: str, what: str) -> None:
+    """The map loads (before any socket opens): else one UserInputError line."""
+    from mars_link.planning.maps import load_map
+    from mars_link.planning.pipeline import resolve_data_path
+
+    resolved = resolve_data_path(path)
+    if not resolved.is_file():
+        raise UserInputError(f"{what} {path!r}: no such file")
+    try:
+        load_map(resolved)
+    except (OSError, ValueError) as exc:
+        raise UserInputError(f"{what} {path!r}: {exc}") from None
+
+
+def vehicle_command(args: argparse.Namespace) -> int:
+    ports = {
+        "gcs_port": _check_port("--gcs-port", args.gcs_port, False),
+        "api_port": _check_port("--api-port", args.api_port, False),
+        "gcs_bind": _check_port("--gcs-bind", args.gcs_bind, True),
+        "api_bind": _check_port("--api-bind", args.api_bind, True),
+    }
+    validation.check_file_parent(args.status_file, "--status-file")
+    validation.check_file_parent(args.tlog, "--tlog")
+    from mars_link.flight.flight_view import live_address
+
+    live = live_address(args)  # a busy --foxglove port: one line, exit 2, before the vehicle starts
+    out = None
+    if args.out is not None and not args.no_mcap:
+        out = validation.check_out_dir(args.out)
+        validation.prepare_out_dir(out)
+    sim = build_sim(args)
+    try:
+        if args.mission is not None:
+            from firmware_models.qgc_plan import load_plan, preload
+
+            preload(sim.vehicle, load_plan(args.mission), args.mission)
+        runner = AssemblyRunner(sim, ports, args.speed, args.status_file, args.duration, args.tlog)
+    except (UserInputError, OSError) as exc:
+        sim.close()
+        if isinstance(exc, OSError):
+            raise UserInputError(f"cannot open {exc.filename}: {exc.strerror}") from None
+        raise
+    view = _attach_view(sim, out, live)
+    from firmware_models.vehicle_logs import LogStore
+
+    sim.vehicle.logs = LogStore([args.tlog, out / "run.mcap" if out is not None else None])  # LOG_* download
+    ep = runner.endpoints()
+    s = sim.scenario
+    print(f"mars-link vehicle: {s.name}, layout {','.join(s.layout)} ({sim.model.n_units} units, "
+          f"{sim.model.n_rotors} rotors), ftc {s.ftc}, MAVLink system {ep['sysid']} component 1")
+    print(f"  GCS: udp {LOOPBACK}:{ep['gcs']['from']} -> {LOOPBACK}:{ep['gcs']['to']}  "
+          f"(QGroundControl; mavproxy.py --master=udpout:{LOOPBACK}:{ep['gcs']['from']})")
+    print(f"  API: udp {LOOPBACK}:{ep['api']['from']} -> {LOOPBACK}:{ep['api']['to']}  "
+          f"(MAVSDK udpin://{LOOPBACK}:{ep['api']['to']})")
+    print("  Ctrl-C to stop", flush=True)
+
+    def stop(*_):
+        runner.running = False
+
+    old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        code = runner.run()
+    finally:
+        for sig, h in old.items():
+            signal.signal(sig, h)
+        runner.close()
+        if view is not None:
+            view.finish(sim.engine)
+    print(f"stopped after {sim.t_s:.1f} s simulated; overruns {runner.overruns}, late steps {runner.late_steps}",
+          flush=True)
+    if runner.io.logging_stopped:  # a write error (or the size cap) stopped the .tlog; the flight went on
+        print(f"logging stopped: {runner.io.logging_stopped}", flush=True)
+    return code
+
+
+def _attach_view(sim: AssemblySim, out: Path | None, live: str | None):
+    """run.mcap in `out` and/or the live Foxglove view, as an observer of the vehicle's engine (or None)."""
+    from mars_link.flight.flight_view import open_view
+
+    view = open_view(out, sim.model, sim.scenario, sim.scenario.sim.control_hz, None, math.inf, live,
+                     sim.scenario.tracked_unit())
+    if view is not None:
+        view.event_lists = sim.event_lists()  # faults (scenario and MAVLink), the coordinator's
+        if sim.scenario.has_pieces:  # the tracked point is the followed piece's, not the coordinator's record
+            from mars_link.flight.flight_view import pieces_point
+
+            view.point_of = pieces_point
+        sim.engine.observers.append(view)
+    return view
+
+
+def spawn_vehicle(args: list[str], status_file: str | os.PathLike, timeout_s: float = 60.0) -> tuple[subprocess.Popen, dict]:
+    """Start `mars-link vehicle ARGS --status-file F` and return the process and its first status once
+    it is up (endpoints under "endpoints"). Stop it with `mars_link.processes.udp_runner.stop_unit`."""
+    from mars_link.processes.udp_runner import read_status, stop_unit
+
+    status_file = Path(status_file)
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "vehicle", *args, "--status-file", str(status_file)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if status_file.exists():
+            return proc, read_status(status_file)
+        if proc.poll() is not None:
+            break
+        time.sleep(0.05)
+    if proc.poll() is None:
+        stop_unit(proc)
+        raise RuntimeError("vehicle did not start in time")
+    err = proc.stderr.read()[-2000:]
+    stop_unit(proc)
+    raise RuntimeError(f"vehicle did not start: {err}")

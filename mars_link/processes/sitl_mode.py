@@ -1,0 +1,789 @@
+"""The multi-process SITL on a chosen transport, `mars-link run --mode sitl`, and `mars-link coordinator`.
+
+`start_sitl` starts the same processes as mars_link.processes.launcher (world, one per unit, coordinator), each given
+`--transport zenoh|udp ...` (mars_link.processes.lockstep builds its links on that transport). Zenoh with no
+endpoints given: peers on 127.0.0.1 (world and coordinator listen, units connect to both), or a router
+session hosted by this process (closed when the run ends, also on Ctrl-C) that the children join.
+
+`run_sitl_scenario` flies a scenario that way (lockstep: the same flight as inproc for the same seed;
+the coordinator is not told the faults unless the scenario file sets [control] faults_known)
+and writes the inproc outputs: summary.json (mode "sitl", plus a "sitl" block: transport, dead units,
+drops, command age at the motor), telemetry.csv from the world's truth (estimate columns empty: the
+estimate lives in the coordinator process), rotors.csv and the force integral from the units' .tlogs
+(the coordinator's command in, what the unit drove its motors with out) and the plots.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from mars_link.core.errors import UserInputError
+from mars_link.transport import LinkSpec
+
+
+@dataclass
+class SitlSession:
+    run: object  # mars_link.processes.launcher.SitlRun
+    link: LinkSpec
+    router: object | None = None  # zenoh.Session in router mode, or None
+    router_endpoint: str | None = None
+    wake_latency: object | None = None  # transport.realtime.CpuWakeLatency while a real-time run lasts
+
+    def wait(self, timeout_s: float | None = None, units_may_die: bool = False) -> int:
+        from mars_link.processes.launcher import wait
+
+        try:
+            return wait(self.run, timeout_s, units_may_die=units_may_die)
+        finally:
+            self.close()
+
+    def stop(self) -> None:
+        try:
+            self.run.stop()
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        if self.wake_latency is not None:
+            self.wake_latency.close()
+        if self.router is not None:
+            self.router.close()
+            self.router = None
+
+
+def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, seed: int | None = None,
+               units: int | None = None, layout: str | None = None, realtime: bool = False,
+               clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units"),
+               topology: str = "peer", signing_key_file: str | None = None, vehicle=None,
+               require_signing: bool = False, view: tuple[str, ...] = (), units_per_process: int = 1) -> SitlSession:
+    """Start the SITL processes (mars_link.processes.launcher.start) with their links on `link` (default Zenoh).
+    `unit_prefix(u)` -> argv to run unit u under (e.g. `ip netns exec NS`); `roles` may leave out the
+    coordinator (one started elsewhere attaches).
+
+    Zenoh without connect endpoints: `topology` "peer" (default, one hop): the world and the coordinator
+    listen on 127.0.0.1, the coordinator connects to the world, units connect to both; "router": this
+    process hosts a router session every child joins as a client (two hops; what an external
+    coordinator attaches to). `vehicle` (mars_link.processes.vehicle_host.VehiclePorts): the coordinator serves the
+    assembly as one MAVLink vehicle (its client links on UDP) and the run goes on, paced to real time
+    unless `speed` says otherwise, until stopped."""
+    from mars_link.processes.launcher import ClientPorts, start
+    from mars_link.processes.lockstep import load_setup
+
+    link = link or LinkSpec("zenoh")
+    load_setup(scenario, units, layout)  # bad input: refused before any session opens
+    session = SitlSession(None, link)
+    role_links = {role: link for role in ("world", "coordinator", "unit")}
+    if link.kind == "zenoh" and not link.connect:
+        from mars_link.transport.zenoh_link import free_tcp_port, open_router
+
+        if topology == "router" or link.listen:
+            session.router, session.router_endpoint = open_router(listen=link.listen, fleet=link.fleet)
+            link = replace(link, zenoh_mode="client", connect=(session.router_endpoint,), listen=())
+            role_links = {role: link for role in role_links}
+        elif topology == "peer":
+            w, c = (f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2))
+            role_links = {"world": replace(link, zenoh_mode="peer", listen=(w,)),
+                          "coordinator": replace(link, zenoh_mode="peer", listen=(c,), connect=(w,)),
+                          "unit": replace(link, zenoh_mode="peer", connect=(w, c))}
+        else:
+            raise UserInputError(f"zenoh topology {topology!r}: expected peer or router")
+    role_args = {role: spec.to_args() for role, spec in role_links.items()}
+    if realtime or link.kind != "udp":  # the units log the command age at the motor
+        role_args["unit"].append("--command-age")
+    if realtime:  # the coordinator logs its timing
+        role_args["coordinator"].append("--timing-log")
+        for role in ("world", "coordinator", "unit"):  # (mars_link.runtime.scheduling.take_realtime_class)
+            role_args[role].append("--sched-realtime")
+        from mars_link.transport.realtime import CpuWakeLatency
+
+        session.wake_latency = CpuWakeLatency()
+    if vehicle is not None:
+        role_args["coordinator"] += vehicle.argv()
+        speed = 1.0 if speed is None else speed
+    if require_signing:  # the client links of the units and of the vehicle (firmware_models.control_policy)
+        role_args["unit"].append("--require-signing")
+        role_args["coordinator"].append("--require-signing")
+    try:
+        session.run = start(scenario, out, units, layout, seed, 1.0 if realtime else speed,
+                            clients or ClientPorts(bind_any=True), signing_key_file, role_args=role_args,
+                            unit_prefix=unit_prefix, skip=() if "coordinator" in roles else ("coordinator",),
+                            forever=vehicle is not None, view=view, units_per_process=units_per_process)
+    except BaseException:
+        session.close()
+        raise
+    return session
+
+
+# ----------------------------------------------------------------------------- run --mode sitl
+def write_scenario_copy(scenario, path: Path) -> Path:
+    """The (possibly overridden) scenario as a TOML file the child processes can load."""
+    from mars_link.models.battery import BATTERY_BY_DEFAULT, battery_doc
+
+    doc = {
+        "name": scenario.name,
+        "vehicle": {"preset": scenario.preset, **scenario.vehicle_options},
+        "assembly": {"layout": list(scenario.layout), "tracked": scenario.tracked, "start": scenario.start,
+                     "free_spacing_m": scenario.free_spacing_m},
+        "trajectory": dict(scenario.trajectory),
+        "control": {"controller": scenario.controller, "ftc": scenario.ftc, "faults_known": scenario.faults_known},
+        "sim": {k: v for k, v in vars(scenario.sim).items() if v is not None},
+        "faults": [{k: v for k, v in (("t", f.t_s), ("unit", f.unit), ("rotor", f.rotor), ("eta", f.eta)) if v is not None}
+                   for f in scenario.faults],
+    }
+    if not doc["faults"]:
+        del doc["faults"]
+    if scenario.reconfig:
+        doc["reconfig"] = dict(scenario.reconfig)
+    if scenario.docking:
+        doc["docking"] = dict(scenario.docking)
+    if scenario.separations:
+        doc["separations"] = [{"t": s.t_s, "units": list(s.units), **({} if s.redock_t_s is None else
+                                                                        {"redock_t": s.redock_t_s})}
+                              for s in scenario.separations]
+    if scenario.sensors != type(scenario.sensors)():
+        doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.written()}
+    if scenario.battery is not None or scenario.preset in BATTERY_BY_DEFAULT:
+        doc["battery"] = battery_doc(scenario.battery)
+    if scenario.environment.moves_air:
+        from mars_link.models.environment import environment_doc
+
+        doc["environment"] = environment_doc(scenario.environment)
+    path.write_text(_toml(doc), encoding="utf-8")
+    return path
+
+
+
+
+def _toml(doc: dict) -> str:
+    def value(v) -> str:
+        if isinstance(v, bool):
+            return "true" if v else "false"
+        if isinstance(v, (int, float)):
+            return repr(v)
+        if isinstance(v, str):
+            return json.dumps(v)
+        if isinstance(v, (list, tuple)):
+            return "[" + ", ".join(value(x) for x in v) + "]"
+        if isinstance(v, dict):  # inline table (e.g. [environment] gusts)
+            return "{" + ", ".join(f"{kk} = {value(vv)}" for kk, vv in v.items()) + "}"
+        raise TypeError(f"cannot write {v!r} to TOML")
+
+    lines = []
+    for k, v in doc.items():
+        if not isinstance(v, (dict, list)) or (isinstance(v, list) and not (v and isinstance(v[0], dict))):
+            lines.append(f"{k} = {value(v)}")
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            lines.append(f"\n[{k}]")
+            lines += [f"{kk} = {value(vv)}" for kk, vv in v.items()]
+        elif isinstance(v, list) and v and isinstance(v[0], dict):
+            for item in v:
+                lines.append(f"\n[[{k}]]")
+                lines += [f"{kk} = {value(vv)}" for kk, vv in item.items()]
+    return "\n".join(lines) + "\n"
+
+
+def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSpec | None = None,
+                      realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
+                      on_progress=None, view: tuple[str, ...] = ("--mcap",), units_per_process: int = 1) -> dict:
+    """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary."""
+    pieces = scenario.has_pieces
+    seed = scenario.sim.seed if seed is None else seed
+    if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
+        scenario = replace(scenario, faults_known=False)
+    out.mkdir(parents=True, exist_ok=True)
+    copy = write_scenario_copy(_absolute_paths(scenario), out / "scenario.toml")
+    wall0 = time.perf_counter()
+    session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view, units_per_process=units_per_process)
+    watcher = _ProgressWatcher(out / "world_status.json", scenario, on_progress)
+    try:
+        with _sigterm_as_interrupt():
+            code = session.wait(timeout_s, units_may_die=True)  # a dead unit process is a failed unit
+    except KeyboardInterrupt:  # SIGTERM or Ctrl-C: every child was stopped by SIGTERM and wrote its summary;
+        _summarize_interrupted(scenario, out, seed, time.perf_counter() - wall0, session)  # the part flown
+        raise
+    finally:
+        watcher.stop()
+    wall = time.perf_counter() - wall0
+    if code != 0 or not (out / "world_truth.csv").exists():
+        logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
+        raise RuntimeError(f"SITL run failed (exit {code}); process logs in {out}: {logs}")
+    held = session.wake_latency.state if session.wake_latency is not None else None
+    if pieces:
+        return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime)
+    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held)
+
+
+@contextlib.contextmanager
+def _sigterm_as_interrupt():
+    """SIGTERM raises KeyboardInterrupt while the flight runs (main thread only), so the children are
+    stopped by PID and the part flown is summarised, as on Ctrl-C."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(*_):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _summarize_interrupted(scenario, out: Path, seed: int, wall_s: float, session: SitlSession) -> None:
+    """summary.json of an interrupted flight (completed: false; the world says it was stopped) from the
+    logs the children closed; nothing if the world logged nothing yet."""
+    if not (out / "world_summary.json").exists():
+        return
+    if scenario.has_pieces:
+        summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link)
+    else:
+        summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False)
+
+
+def _sets_faults_known(scenario) -> bool:
+    """Whether the scenario file says [control] faults_known itself (else --mode sitl uses false)."""
+    import tomllib
+
+    from mars_link.config.scenario import resolve_scenario_path
+
+    try:  # source: a path, or a bundled scenario's file name
+        with open(resolve_scenario_path(scenario.source), "rb") as f:
+            return "faults_known" in tomllib.load(f).get("control", {})
+    except (OSError, ValueError, UserInputError):
+        return True  # built in or not a file: keep what the scenario object says
+
+
+def _absolute_paths(scenario):
+    traj = dict(scenario.trajectory)
+    if "path" in traj and not Path(traj["path"]).is_absolute() and scenario.source not in ("", "<built-in>"):
+        traj["path"] = str((Path(scenario.source).parent / traj["path"]).resolve())
+    if isinstance(traj.get("plan"), str):  # kind "mission": as make_trajectory finds it
+        from mars_link.planning.mission_trajectory import resolve_plan_path
+
+        traj["plan"] = str(resolve_plan_path(traj["plan"], scenario.source).resolve())
+    return replace(scenario, trajectory=traj)
+
+
+class _ProgressWatcher:
+    """Reports the world's sim time (world_status.json) to `on_progress(fraction)` from a thread."""
+
+    def __init__(self, path: Path, scenario, on_progress) -> None:
+        import threading
+
+        self._stop = threading.Event()
+        self._thread = None
+        if on_progress is None:
+            return
+        from mars_link.flight.build import make_trajectory
+
+        duration = scenario.sim.duration_s or make_trajectory(scenario, scenario.model()).duration_s
+
+        def loop() -> None:
+            while not self._stop.wait(0.25):
+                try:
+                    t = json.loads(path.read_text())["sim_time_s"]
+                except (OSError, ValueError, KeyError):
+                    continue
+                on_progress(min(1.0, t / duration))
+
+        self._thread = threading.Thread(target=loop, daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(1.0)
+
+
+def _scheduling_classes(out: Path, world: dict, coordinator: dict) -> dict:
+    """The CPU scheduling class each process's stepping loop ran in: the world's, the coordinator's, and
+    each class the unit processes ran in (their status files; a host of several units writes its own)."""
+    units = set()
+    for path in [*out.glob("unit_host*_status.json"), *out.glob("unit[0-9]*_status.json")]:
+        label = _read_json(path).get("scheduling")
+        if label:
+            units.add(label)
+    return {"world": world.get("scheduling"), "coordinator": coordinator.get("scheduling"), "units": sorted(units)}
+
+
+def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True,
+                       realtime: bool = False, cpu_wake_latency: str | None = None) -> dict:
+    """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them."""
+    from mars_link.flight.build import make_trajectory, tracked_offset
+    from mars_link.flight.metrics import TrackingMetrics, TrialResult, summarize
+    from mars_link.core.rotations import quat_to_euler, quat_to_rotmat
+    from mars_link.logs.outputs import write_json
+    from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
+
+    model = scenario.model()
+    trajectory = make_trajectory(scenario, model)
+    offset = tracked_offset(model, scenario)
+    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, ndmin=1)
+    world = _read_json(out / "world_summary.json")
+    coordinator = _read_json(out / "coordinator_summary.json")
+    log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX)
+    metrics = TrackingMetrics()
+    events = []
+    nan3 = [math.nan] * 3
+    try:
+        for row in truth:
+            t = float(row["t_s"])
+            pos = np.array([row["pos_n_m"], row["pos_e_m"], row["pos_d_m"]])
+            q = np.array([row["qw"], row["qx"], row["qy"], row["qz"]])
+            tracked = pos + quat_to_rotmat(q) @ offset
+            ref = trajectory.sample(t).position_ned_m
+            err, _ = metrics.add(t, tracked, ref, q)
+            roll, pitch, yaw = quat_to_euler(q)
+            log.telemetry([0, t, *ref, *tracked, math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
+                           *nan3, *nan3, *pos])
+            if metrics.diverged:
+                events.append(metrics.divergence)
+                break
+        force_integral = _write_rotor_log(log, scenario, model, out)
+    finally:
+        log.close()
+    no_rows = metrics.n == 0  # (the world logged nothing: NaN figures, never a clean 0 m)
+    coord_events = coordinator.get("events", [])
+    for death in world.get("deaths", []):
+        events.append({"t_s": death["t_s"], "type": "unit_died", "unit": death["unit"],
+                       "text": f"Unit {death['unit']} silent: motors off"})
+    result = TrialResult(
+        seed=seed, completed=not metrics.diverged and not world.get("stopped", False), diverged=metrics.diverged,
+        mean_error_m=math.nan if no_rows else metrics.mean_error_m, rmse_m=math.nan if no_rows else metrics.rmse_m,
+        max_error_m=math.nan if no_rows else metrics.max_error_m,
+        sim_time_s=float(world.get("sim_time_s", 0.0)), wall_time_s=wall_s,
+        force_integral_n2s=float(world.get("force_integral_n2s", force_integral)),
+        max_tilt_deg=math.nan if no_rows else metrics.max_tilt_deg,
+        events=sorted(events + list(coord_events), key=lambda e: e.get("t_s", 0.0)),
+        control_steps=metrics.n,
+        detections=_detections(scenario, coordinator, world),
+    )
+    summary = summarize(scenario, [result], seed, mode="sitl")
+    summary["sitl"] = {
+        "transport": link.kind,
+        "link_profile": link.profile,
+        "world_real_time_factor": world.get("real_time_factor"),
+        "world_cores_idle_fraction": world.get("cores_idle_fraction"),
+        "dead_units": world.get("dead_units", []),
+        "world_dropped": world.get("dropped", {}),
+        "coordinator_dropped": coordinator.get("dropped", {}),
+        "realtime": realtime,
+        "rotor_bounds_n": [model.vehicle.rotor_min_thrust_n, model.vehicle.rotor_max_thrust_n],
+        "faults_known": scenario.faults_known,
+        # sim time is wall time only when paced: as fast as possible, an age would mean nothing
+        "command_age": command_age_summary(out) if realtime else {"n": 0, "note": "measured with --realtime only"},
+        "cpu_wake_latency": cpu_wake_latency,  # real time: idle CPUs kept awake (transport.realtime.CpuWakeLatency)
+        "scheduling": _scheduling_classes(out, world, coordinator),  # (mars_link.runtime.scheduling)
+    }
+    summary["logging"] = _logging_status(log.status(), world, out, scenario)
+    write_json(out / "summary.json", summary)
+    if plots and log.telemetry_rows:
+        from mars_link.flight.plots import write_run_plots
+
+        write_run_plots(out, log.telemetry_rows, log.rotor_rows, model)
+    return summary
+
+
+def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
+    """summary.json "logging" for a SITL run: this process's logs and every child's (the world's truth
+    log, each unit's .tlog). A log stopped by a write error (or its size cap) is listed with its reason;
+    the flight went on, but figures computed from the truth log cover only what it holds."""
+    stopped = [own["stopped_reason"]] if own.get("stopped_reason") else []
+    truth = world.get("logging") or {}
+    if truth.get("stopped_reason"):
+        stopped.append(truth["stopped_reason"] + " (errors and tilt cover the flight up to there)")
+    for unit in scenario.model().unit_ids:
+        reason = _read_json(out / f"unit{unit}_status.json").get("logging_stopped")
+        if reason:
+            stopped.append(reason)
+    return {**own, "complete": not stopped, "stopped_reason": stopped[0] if stopped else None, "stopped": stopped}
+
+
+def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec,
+                              realtime: bool = False) -> dict:
+    """The summary of a flight of pieces in SITL, with the in-process keys (mars_link.flight.reconfig_flight): the
+    tracked point's error while the mission flies, from the world's per-unit truth and the coordinator's
+    per-step record of the mission (its clock, reference and the units carrying the tracked point)."""
+    from mars_link.flight.metrics import DIVERGENCE_ERROR_M, TrackingMetrics
+    from mars_link.logs.outputs import write_json
+
+    world = _read_json(out / "world_summary.json")
+    coordinator = _read_json(out / "coordinator_summary.json")
+    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, ndmin=1)
+    steps = {}
+    with open(out / "pieces_steps.csv", encoding="utf-8") as f:
+        next(f)
+        for line in f:
+            t, mission, mission_t, rn, re, rd, tracked_units, n_pieces = line.rstrip("\n").split(",")
+            steps[round(float(t), 6)] = (mission == "1", float(mission_t), np.array([float(rn), float(re), float(rd)]),
+                                         [int(u) for u in tracked_units.split()], int(n_pieces))
+    tracked_unit = scenario.tracked_unit()
+    metrics = TrackingMetrics()
+    with open(out / "telemetry.csv", "w", encoding="utf-8") as tel:
+        tel.write("t_s,mission_t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,error_m,pieces\n")
+        for row in truth:
+            step = steps.get(round(float(row["t_s"]), 6))
+            if step is None or not step[0]:
+                continue
+            _, mission_t, ref, units, n_pieces = step
+            centres = [np.array([row[f"u{u}_n_m"], row[f"u{u}_e_m"], row[f"u{u}_d_m"]])
+                       for u in ([tracked_unit] if tracked_unit is not None else units)]
+            pos = np.mean(centres, axis=0)
+            err = float(np.linalg.norm(pos - ref))
+            metrics.add_error(err)
+            if not err < DIVERGENCE_ERROR_M:
+                metrics.mark_diverged(float(row["t_s"]), err, math.nan, phase="mission")
+            tel.write(",".join(f"{x:.6g}" for x in (float(row["t_s"]), mission_t, *ref, *pos, err, n_pieces)) + "\n")
+    faults = [{"t_s": round(f.t_s, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta,
+               "text": f.event_text()} for f in scenario.faults]
+    deaths = [{"t_s": d["t_s"], "type": "unit_died", "unit": d["unit"], "text": f"Unit {d['unit']} silent: motors off"}
+              for d in world.get("deaths", [])]
+    latched = [e for e in world.get("latch_events", []) if e["type"] == "dock_latched"]
+    events = sorted(coordinator.get("events", []) + latched + faults + deaths, key=lambda e: e["t_s"])
+    kinds = [e["type"] for e in events]
+    sim_t, wall = float(world.get("sim_time_s", 0.0)), wall_s
+    summary = {
+        "scenario": scenario.name, "source": scenario.source, "mode": "sitl-pieces", "layout": list(scenario.layout),
+        "preset": scenario.preset, "controller": scenario.controller, "ftc": scenario.ftc, "seed": seed, "trials": 1,
+        "noise": scenario.sim.noise, "faults_known": scenario.faults_known,
+        "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
+        "completed": not metrics.diverged and not coordinator.get("failed") and not world.get("stopped", False),
+        "diverged": metrics.diverged, "reconfigured": "reconfig_done" in kinds,
+        "mean_error_m": metrics.mean_error_m if metrics.n else math.nan, "mean_error_std_m": 0.0,  # (one trial)
+        "rmse_m": metrics.rmse_m if metrics.n else math.nan, "max_error_m": metrics.max_error_m if metrics.n else math.nan,
+        "sim_time_s": sim_t, "wall_time_s": wall, "real_time_factor": sim_t / wall if wall > 0 else math.inf,
+        "force_integral_n2s": float(world.get("force_integral_n2s", math.nan)),
+        "start": scenario.start, "assembled": "assembly_done" in kinds,
+        "pieces_final": coordinator.get("pieces_final", []), "bodies_final": world.get("bodies", []),
+        "plan": coordinator.get("plan"), "events": [dict(e, trial=0) for e in events],
+        "sitl": {"transport": link.kind, "realtime": realtime, "world_real_time_factor": world.get("real_time_factor"),
+                 "world_cores_idle_fraction": world.get("cores_idle_fraction"),
+                 "dead_units": world.get("dead_units", []), "world_dropped": world.get("dropped", {}),
+                 "coordinator_dropped": coordinator.get("dropped", {}), "lost_units": coordinator.get("lost_units", [])},
+    }
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def tlog_frames(path: Path):
+    """(wall time s, frame bytes) of a .tlog whose records may hold several frames (batched datagrams)."""
+    data = path.read_bytes()
+    i, n = 0, len(data)
+    while i + 8 <= n:
+        t = int.from_bytes(data[i:i + 8], "big") / 1e6
+        i += 8
+        while i < n and data[i] in (0xFD, 0xFE):
+            if data[i] == 0xFD:
+                if i + 10 > n:
+                    return
+                total = 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
+            else:
+                total = 8 + data[i + 1]
+            yield t, data[i:i + total]
+            i += total
+
+
+def _write_rotor_log(log, scenario, model, out: Path) -> float:
+    """rotors.csv from the units' .tlogs: the coordinator's command (SET_ACTUATOR_CONTROL_TARGET in) and
+    what each unit drove its motors with (HIL_ACTUATOR_CONTROLS out, faults included); returns the force
+    integral Σ rotors ∫ thrust² dt over the control steps."""
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from mars_link.config.scenario import eta_after
+
+    scale = model.vehicle.full_scale_thrust_n
+    cmd: dict[int, dict[int, np.ndarray]] = {}
+    drv: dict[int, dict[int, np.ndarray]] = {}
+    for u in model.unit_ids:
+        path = out / f"unit{u}.tlog"
+        if not path.exists():
+            continue
+        parser = mavlink.MAVLink(None, 255, 0)
+        cmd[u], drv[u] = {}, {}
+        for _, frame in tlog_frames(path):
+            msgid = frame[7] | (frame[8] << 8) | (frame[9] << 16) if frame[0] == 0xFD else frame[5]
+            if msgid not in (139, 93):  # SET_ACTUATOR_CONTROL_TARGET, HIL_ACTUATOR_CONTROLS
+                continue
+            try:
+                m = parser.decode(bytearray(frame))
+            except Exception:  # a frame the unit itself dropped as malformed
+                continue
+            if msgid == 139 and m.get_srcSystem() != u:
+                cmd[u][m.time_usec] = np.array(m.controls[:4]) * scale
+            elif msgid == 93 and m.get_srcSystem() == u:
+                drv[u][m.time_usec] = np.array(m.controls[:4]) * scale
+    steps = sorted(set().union(*[set(d) for d in drv.values()])) if drv else []
+    dt = 1.0 / scenario.sim.control_hz
+    nan4 = np.full(4, np.nan)
+    integral = 0.0
+    for t_us in steps:
+        c = np.concatenate([cmd.get(u, {}).get(t_us, nan4) for u in model.unit_ids])
+        d = np.concatenate([drv.get(u, {}).get(t_us, np.zeros(4)) for u in model.unit_ids])
+        integral += float(np.sum(d * d)) * dt
+        log.rotors(0, t_us / 1e6, c, d, eta_after(model, scenario.faults, t_us / 1e6))
+    return integral if steps else math.nan
+
+
+def _detections(scenario, coordinator: dict, world: dict) -> list[dict]:
+    """summary.json `detections` as in-process: t_fault from the scenario's faults or the world's
+    declared deaths (a killed unit process), None for a false alarm."""
+    from mars_link.flight.metrics import fault_time
+
+    deaths = {d["unit"]: d["t_s"] for d in world.get("deaths", [])}
+    return [{"t_fault": fault_time(scenario.faults, d["unit"], d["rotor"], deaths), **d}
+            for d in coordinator.get("detections", [])]
+
+
+def command_age_summary(out: Path) -> dict:
+    """Command age at the motor over every unit (from the units' command_age_unit<i>.csv)."""
+    from mars_link.transport.realtime import percentiles_ms
+
+    ages, misses = [], 0
+    for path in sorted(out.glob("command_age_unit*.json")):
+        misses += _read_json(path).get("deadline_misses", 0)
+    for path in sorted(out.glob("command_age_unit*.csv")):
+        a = np.genfromtxt(path, delimiter=",", names=True, ndmin=1)
+        ages += list(np.atleast_1d(a["age_s"]))
+    stats = percentiles_ms(ages)
+    stats["deadline_misses"] = misses
+    return stats
+
+
+def stage_times(out: Path) -> dict:
+    """Medians over steps (ms after the sample time) of a real-time run's stages: the last unit reading
+    its sensors (`sensors_in`), the coordinator holding all telemetry (`telemetry_in`), commands
+    `computed` and `sent`, the last unit reading its command (`commands_in`) and driving its motors with it
+    (`at_motors`: the command age). Empty if not logged."""
+    epochs = [_read_json(p).get("epoch_s") for p in out.glob("command_age_unit*.json")]
+    epochs = [e for e in epochs if isinstance(e, float) and math.isfinite(e)]
+    coordinator = out / "coordinator_timing.csv"
+    if not epochs or not coordinator.exists():
+        return {}
+    epoch = min(epochs)  # each unit's estimate is the epoch plus its smallest delay: take the smallest
+    per_step: dict[float, dict[str, float]] = {}
+    for path in sorted(out.glob("command_age_unit*.csv")):
+        offset = _read_json(path.with_suffix(".json")).get("epoch_s", epoch) - epoch
+        for row in np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, ndmin=1)):
+            step = per_step.setdefault(round(float(row["t_s"]), 6), {})
+            for stage, column in (("sensors_in", "sensors_in_s"), ("commands_in", "command_in_s"), ("at_motors", "age_s")):
+                value = float(row[column]) + offset
+                if math.isfinite(value):
+                    step[stage] = max(step.get(stage, -math.inf), value)
+    columns = {"telemetry_in": "telemetry_all_wall_s", "computed": "computed_wall_s", "sent": "sent_wall_s"}
+    for row in np.atleast_1d(np.genfromtxt(coordinator, delimiter=",", names=True, ndmin=1)):
+        t = round(float(row["t_s"]), 6)
+        step = per_step.setdefault(t, {})
+        for stage, column in columns.items():
+            step[stage] = float(row[column]) - epoch - t
+    return {stage: float(np.median([s[stage] for s in per_step.values() if stage in s])) * 1e3
+            for stage in ("sensors_in", "telemetry_in", "computed", "sent", "commands_in", "at_motors")
+            if any(stage in s for s in per_step.values())}
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+# ----------------------------------------------------------------------------- command line
+def _endpoint(text: str) -> str:
+    import re
+
+    if not re.match(r"^(tcp|udp|tls|quic)/[^/\s]+:\d{1,5}$", text):
+        raise UserInputError(f"zenoh endpoint {text!r}: expected e.g. tcp/127.0.0.1:7447")
+    return text
+
+
+def _link_from_args(args, default_kind: str) -> LinkSpec:
+    kind = getattr(args, "transport", None) or default_kind
+    if kind not in ("udp", "zenoh"):
+        raise UserInputError(f"--transport {kind!r}: expected zenoh or udp")
+    profile = getattr(args, "link_profile", None)
+    if profile:
+        from mars_link.transport.profiles import profile_from_name
+
+        try:
+            profile_from_name(profile)
+        except ValueError as e:
+            raise UserInputError(f"--link-profile: {e}") from None
+        if kind != "zenoh":
+            raise UserInputError("--link-profile applies to the zenoh transport")
+    connect = tuple(_endpoint(e) for e in getattr(args, "zenoh_connect", None) or [])
+    listen = tuple(_endpoint(e) for e in getattr(args, "zenoh_listen", None) or [])
+    fleet = getattr(args, "fleet", "default")
+    import re
+
+    if not re.match(r"^[A-Za-z0-9_-]+$", fleet):
+        raise UserInputError(f"--fleet {fleet!r}: letters, digits, _ and - only")
+    return LinkSpec(kind, fleet, "client", connect, listen, profile)
+
+
+def _add_units_per_process(p) -> None:
+    from mars_link.core.validation import bounded_int
+
+    p.add_argument("--units-per-process", type=bounded_int(1, 199), default=1, metavar="K",
+                   help="host up to K unit firmwares per process (each its own MAVLink system and links; default 1)")
+
+
+def _add_link_options(p, default_kind: str) -> None:
+    p.add_argument("--transport", default=None, help=f"zenoh or udp (default {default_kind})")
+    p.add_argument("--fleet", default="default", help="Zenoh key prefix mars/<fleet>/...")
+    p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447 (repeatable)")
+    p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT", help="extra router endpoint (repeatable)")
+    p.add_argument("--link-profile", help="ideal | lan | wifi | radio57600 [,key=value...] on the coordinator <-> unit links")
+
+
+def add_sitl_run_arguments(p) -> None:
+    _add_link_options(p, "zenoh")
+    _add_units_per_process(p)
+    p.add_argument("--realtime", action="store_true",
+                   help="pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
+
+
+def sitl_runner(args):
+    """`run_scenario`'s signature for `mars-link run --mode sitl` (options checked here, before any output)."""
+    link = _link_from_args(args, "zenoh")
+    if getattr(args, "trials", 1) != 1:
+        raise UserInputError("--mode sitl runs one trial (vary --seed instead)")
+
+    from mars_link.flight.flight_view import world_view_args
+
+    view = world_view_args(args)  # (a busy --foxglove port: refused now, before any process)
+
+    def runner(scenario, out, trials=1, seed=None, on_progress=None, mcap=True, live=None):
+        if trials != 1:
+            raise UserInputError("--mode sitl runs one trial (vary --seed instead)")
+        cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
+        try:
+            return run_sitl_scenario(scenario, out, seed, link, realtime=args.realtime, on_progress=cb, view=view,
+                                     units_per_process=args.units_per_process)
+        except RuntimeError as e:
+            raise UserInputError(str(e)) from None
+
+    return runner
+
+
+def add_sitl_up_arguments(p) -> None:
+    _add_link_options(p, "udp")
+    _add_units_per_process(p)
+    p.add_argument("--realtime", action="store_true", help="pace the world to the wall clock")
+    p.add_argument("--external-coordinator", action="store_true",
+                   help="start no coordinator: attach one with `mars-link coordinator`")
+
+
+def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None, view: tuple[str, ...] = ()) -> int:
+    """`mars-link sitl up --transport zenoh ...`: start, print the endpoints, run to the end or Ctrl-C."""
+    import signal
+
+    link = _link_from_args(args, "udp")
+    roles = ("world", "units") if args.external_coordinator else ("coordinator", "world", "units")
+    from mars_link.processes.launcher import ClientPorts
+
+    units, layout = getattr(args, "units", None), getattr(args, "layout", None)
+    from mars_link.processes.lockstep import load_setup
+
+    n = len(load_setup(scenario_path, units, layout).unit_ids)
+    clients = ClientPorts.consecutive(getattr(args, "gcs_port", 14550), getattr(args, "api_port", 14540), n,
+                                      getattr(args, "any_bind", False))
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def interrupt(*_):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, interrupt)
+    session = None
+    try:
+        session = start_sitl(scenario_path, out, link, args.seed, units=units, layout=layout, realtime=args.realtime,
+                             clients=clients, speed=getattr(args, "speed", None), roles=roles,
+                             topology="router" if args.external_coordinator else "peer",
+                             signing_key_file=getattr(args, "signing_key_file", None), vehicle=vehicle,
+                             require_signing=getattr(args, "require_signing", False), view=view,
+                             units_per_process=args.units_per_process)
+        for line in _endpoints(session, link):
+            print(line, flush=True)
+        if vehicle is not None:
+            print(vehicle.describe(out), flush=True)
+        if link.kind == "zenoh":
+            where = session.router_endpoint or ", ".join(link.connect) or "none (peers: world and coordinator listen on 127.0.0.1)"
+            print(f"zenoh: fleet {link.fleet!r}, router {where}" + (f" (+ {', '.join(link.listen)})" if link.listen else "")
+                  + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>", flush=True)
+        if args.external_coordinator:
+            attach = f"mars-link coordinator {scenario_path or ''} --out {out}"
+            if getattr(args, "signing_key_file", None):
+                attach += f" --signing-key-file {Path(args.signing_key_file).resolve()}"
+            attach += (f" --transport zenoh --zenoh-connect {(link.listen or (session.router_endpoint,))[0]}" if link.kind == "zenoh"
+                       else f" --transport udp --world-port {session.run.world_port} --coordinator-port {session.run.coordinator_port}")
+            print(f"waiting for a coordinator: {attach}", flush=True)
+        code = session.wait(units_may_die=True)  # a dead unit is a failed unit (FTC flies on)
+        print(f"run directory: {out}")
+        return code
+    except KeyboardInterrupt:
+        print("sitl: interrupted, stopping every child", file=sys.stderr)
+        if session is not None:
+            session.stop()
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _endpoints(session, link: LinkSpec) -> list[str]:
+    run = session.run
+    if link.kind == "udp":
+        return run.endpoints()
+    lines = [f"{name}: pid {run.processes[name].pid}, zenoh node {name!r}" for name in ("world", "coordinator")
+             if name in run.processes]
+    for i, u in enumerate(run.setup.unit_ids):
+        lines.append(f"unit {u}: pid {run.processes[run.unit_process[u]].pid}, system id {u}, zenoh node 'unit/{u}', "
+                     f"GCS udp 127.0.0.1:{run.clients.gcs_port}, API udp 127.0.0.1:{run.clients.api_port(i)}, "
+                     f"log {run.out / f'unit{u}.tlog'}")
+    return lines
+
+
+def add_coordinator_arguments(p) -> None:
+    p.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default: hover_3x2_real, as sitl up)")
+    p.add_argument("--out", default=".", help="where coordinator_summary.json goes")
+    p.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port (printed by sitl up)")
+    p.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to")
+    p.add_argument("--signing-key-file", default=None, help="sign the unit links (else $MARS_LINK_SIGNING_KEY)")
+    _add_link_options(p, "zenoh")
+
+
+def cmd_coordinator(args) -> int:
+    """`mars-link coordinator ...`: the coordinator process alone, in this process (Ctrl-C ends it)."""
+    from mars_link.config.scenario import load_scenario, resolve_scenario_path
+
+    from mars_link.config.scenario import INTERACTIVE_SCENARIO
+
+    path = resolve_scenario_path(args.scenario or INTERACTIVE_SCENARIO)
+    load_scenario(str(path))
+    link = _link_from_args(args, "zenoh")
+    if link.kind == "zenoh" and not link.connect:
+        raise UserInputError("coordinator --transport zenoh needs --zenoh-connect ENDPOINT (the router `sitl up` prints)")
+    if link.kind == "udp" and not (0 < args.world_port < 65536 and 0 < args.coordinator_port < 65536):
+        raise UserInputError("coordinator --transport udp needs --world-port and --coordinator-port (printed by sitl up)")
+    from mars_link.processes.lockstep import main as lockstep_main
+
+    argv = ["coordinator", str(path), "--out", args.out, *link.to_args()]
+    if link.kind == "udp":
+        argv += ["--world-port", str(args.world_port), "--coordinator-port", str(args.coordinator_port)]
+    if args.signing_key_file:
+        from mars_link.mavlink.signing import load_key
+
+        load_key(args.signing_key_file)  # a bad key file: one line, exit 2
+        argv += ["--signing-key-file", str(Path(args.signing_key_file).resolve())]
+    return lockstep_main(argv)

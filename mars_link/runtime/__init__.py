@@ -1,0 +1,1 @@
+"""The operating-system side of a process: pacing to the wall clock, scheduling classes, machine load, BLAS threads."""

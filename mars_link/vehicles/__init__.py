@@ -1,0 +1,1 @@
+"""MAVLink personas of the whole structure (the assembly vehicle) in front of the coordinator."""
