@@ -279,13 +279,14 @@ class Px4UnitInterface:
 
     def _arm_disarm(self, cmd: VehicleCommand, time_s: float) -> int:
         s = self._s
-        p1 = float(cmd.param1)
-        action = int(round(p1)) if math.isfinite(p1) else -1
+        action = _round_half_away(float(cmd.param1))  # as PX4's lroundf
+        reason = (VehicleStatus.ARM_DISARM_REASON_COMMAND_EXTERNAL if cmd.from_external
+                  else VehicleStatus.ARM_DISARM_REASON_COMMAND_INTERNAL)
         if action == VehicleCommand.ARMING_ACTION_DISARM:
-            self._disarm(time_s, VehicleStatus.ARM_DISARM_REASON_COMMAND_EXTERNAL)
+            self._disarm(time_s, reason)
             return VehicleCommandAck.VEHICLE_CMD_RESULT_ACCEPTED
         if action != VehicleCommand.ARMING_ACTION_ARM:
-            return VehicleCommandAck.VEHICLE_CMD_RESULT_DENIED
+            return VehicleCommandAck.VEHICLE_CMD_RESULT_UNSUPPORTED
         if s.armed:
             return VehicleCommandAck.VEHICLE_CMD_RESULT_ACCEPTED
         if s.terminated:
@@ -294,7 +295,7 @@ class Px4UnitInterface:
             return VehicleCommandAck.VEHICLE_CMD_RESULT_TEMPORARILY_REJECTED
         s.armed = True
         s.armed_time_us = time_us(time_s)
-        s.arming_reason = VehicleStatus.ARM_DISARM_REASON_COMMAND_EXTERNAL
+        s.arming_reason = reason
         s.failsafe = False
         self._event(time_s, "armed")
         return VehicleCommandAck.VEHICLE_CMD_RESULT_ACCEPTED
@@ -313,6 +314,12 @@ class Px4UnitInterface:
         s.user_nav_state = nav_state
         self._set_nav_state(nav_state, time_us(time_s))
         return VehicleCommandAck.VEHICLE_CMD_RESULT_ACCEPTED
+
+
+def _round_half_away(value: float) -> int | None:
+    if not math.isfinite(value):
+        return None
+    return int(math.floor(abs(value) + 0.5)) * (1 if value >= 0 else -1)
 
 
 def motor_commands(msg: ActuatorMotors, motor_count: int) -> tuple[np.ndarray, np.ndarray]:
