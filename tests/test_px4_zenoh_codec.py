@@ -15,7 +15,8 @@ import zenoh
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.base import Nodetype
 
-from mars_link.px4 import cdr, definitions as d, rmw_zenoh as rz
+from mars_link.px4 import cdr, definitions as d, rmw_zenoh as rz, telemetry
+from mars_link.px4.endpoint import Px4UnitEndpoint
 from mars_link.px4.type_hash import rihs01
 from mars_link.px4.unit_interface import (
     OffboardLossAction, Px4MainMode, Px4UnitInterface, Px4UnitParams, motor_commands,
@@ -428,6 +429,46 @@ def test_vehicle_status_reflects_state_and_round_trips():
     assert status.arming_state == cdr.VehicleStatus.ARMING_STATE_DISARMED and status.failsafe
 
 
+def test_endpoint_keys_decode_and_reordering():
+    endpoint = Px4UnitEndpoint(5)
+    assert set(t.base_name for t in endpoint.subscribe_keys().values()) == {
+        "/fmu/in/offboard_control_mode", "/fmu/in/actuator_motors", "/fmu/in/vehicle_command"}
+    assert all(k.startswith("0/px4_5/fmu/out/") for k in endpoint.publish_keys())
+    seq = rz.PublisherSequence(bytes(16))
+    key = rz.data_key(rz.ACTUATOR_MOTORS, "px4_5")
+    first, second = seq.next(1), seq.next(2)
+    payload = cdr.encode(cdr.ActuatorMotors(timestamp=7))
+    assert endpoint.decode(key, payload, second).message.timestamp == 7
+    endpoint.decode(key, payload, first)                   # an older sample arrives late: kept, counted
+    assert endpoint.reordered == 1
+    with pytest.raises(ValueError, match="not an inbound topic"):
+        endpoint.decode(rz.data_key(rz.ACTUATOR_MOTORS, "px4_6"), payload, None)   # another unit's
+    wrong_hash = key.rsplit("/", 1)[0] + "/RIHS01_" + "0" * 64
+    with pytest.raises(ValueError, match="not an inbound topic"):
+        endpoint.decode(wrong_hash, payload, None)
+    with pytest.raises(ValueError, match="not published"):
+        endpoint.encode(rz.ACTUATOR_MOTORS, cdr.ActuatorMotors(), 0.0)
+    key, _, attachment = endpoint.encode(rz.VEHICLE_STATUS, cdr.VehicleStatus(), 1.25)
+    assert rz.decode_attachment(attachment).source_timestamp_ns == 1_250_000_000
+    assert key == rz.data_key(rz.VEHICLE_STATUS, "px4_5")
+    assert Px4UnitEndpoint(5, version_suffix=True).key(rz.VEHICLE_STATUS).startswith(
+        "0/px4_5/fmu/out/vehicle_status_v1/")
+
+
+def test_telemetry_builders_carry_si_values():
+    odom = cdr.decode("VehicleOdometry", cdr.encode(telemetry.vehicle_odometry(
+        2.5, [1.0, -2.0, -3.0], [0.5, 0.5, 0.5, 0.5], [0.1, 0.2, -0.3], [0.01, 0.02, 0.03])))
+    assert odom.timestamp == 2_500_000 and odom.pose_frame == cdr.VehicleOdometry.POSE_FRAME_NED
+    assert np.allclose(odom.position, [1.0, -2.0, -3.0]) and np.allclose(odom.q, [0.5] * 4)
+    imu = telemetry.sensor_combined(1.0, [0.1, 0.0, 0.0], [0.0, 0.0, -9.81], integral_dt_s=0.004)
+    assert imu.gyro_integral_dt == 4000 and np.isclose(imu.accelerometer_m_s2[2], -9.81)
+    lpos = telemetry.vehicle_local_position(1.0, [1, 2, -3], [0.5, 0, 0], [0, 0, 0], 0.25,
+                                            ref_lat_deg=47.4, ref_lon_deg=8.5, ref_alt_m=400.0)
+    assert (lpos.x, lpos.z, lpos.vx, lpos.xy_global) == (1.0, -3.0, 0.5, True)
+    battery = telemetry.battery_status(1.0, 15.2, 12.0, 0.8, cell_count=4)
+    assert np.allclose(battery.voltage_cell_v[:4], 3.8) and np.isnan(battery.voltage_cell_v[4])
+
+
 # --- over real zenoh sessions on loopback ---------------------------------------------------------------
 
 
@@ -458,23 +499,25 @@ def _recv(subscriber, deadline_s: float = 10.0):
 
 
 def test_arm_and_drive_a_unit_over_zenoh_with_rmw_keys():
-    """A host session arms a unit and streams ActuatorMotors on the rmw_zenoh keys, with attachments; the
-    unit session subscribes by the rmw_zenoh pattern (any vehicle namespace, exact type and hash), feeds
-    Px4UnitInterface and answers with VehicleCommandAck; liveliness tokens are visible to the host."""
+    """A host session arms a unit and streams ActuatorMotors on the rmw_zenoh keys, with attachments. The
+    unit side subscribes by the rmw_zenoh pattern (any vehicle namespace, exact type and hash), decodes
+    through Px4UnitEndpoint, feeds Px4UnitInterface and answers with VehicleCommandAck and VehicleStatus;
+    the host sees its liveliness tokens. The host side uses only the key conventions and the codec."""
     port = _free_port()
     unit_session = zenoh.open(_loopback_config([f"tcp/127.0.0.1:{port}"], []))
     host_session = zenoh.open(_loopback_config([], [f"tcp/127.0.0.1:{port}"]))
     try:
         ns = rz.vehicle_namespace(SYS)
         unit = Px4UnitInterface(Px4UnitParams(system_id=SYS))
-        node = rz.NodeIdentity(0, str(unit_session.zid()), "px4_" + rz.unit_gid(SYS).hex())
-        tokens = [unit_session.liveliness().declare_token(t) for t in rz.unit_liveliness_tokens(node, ns)]
+        endpoint = Px4UnitEndpoint(SYS)
+        tokens = [unit_session.liveliness().declare_token(t)
+                  for t in endpoint.liveliness_tokens(str(unit_session.zid()))]
         inbound = {t.spec.name: unit_session.declare_subscriber(
             f"0/*/{t.base_name.lstrip('/')}/{t.spec.dds_type_name}/{rihs01(t.spec)}")
-            for t in (rz.OFFBOARD_CONTROL_MODE, rz.ACTUATOR_MOTORS, rz.VEHICLE_COMMAND)}
-        ack_pub = unit_session.declare_publisher(rz.data_key(rz.VEHICLE_COMMAND_ACK, ns))
-        ack_seq = rz.PublisherSequence(rz.unit_gid(SYS, "vehicle_command_ack"))
+            for t in endpoint.subscribe_keys().values()}
+        unit_pubs = {key: unit_session.declare_publisher(key) for key in endpoint.publish_keys()}
         ack_sub = host_session.declare_subscriber(rz.data_key(rz.VEHICLE_COMMAND_ACK, ns))
+        status_sub = host_session.declare_subscriber(f"0/{ns}/fmu/out/vehicle_status/**")
 
         host_gid = bytes(range(100, 116))
         host_pubs = {t.spec.name: (host_session.declare_publisher(rz.data_key(t, ns)), rz.PublisherSequence(host_gid))
@@ -485,7 +528,8 @@ def test_arm_and_drive_a_unit_over_zenoh_with_rmw_keys():
         while len(seen) < len(tokens) and time.monotonic() < end:
             seen = {str(r.ok.key_expr) for r in host_session.liveliness().get("@ros2_lv/0/**") if r.ok}
             time.sleep(0.05)
-        assert seen == set(rz.unit_liveliness_tokens(node, ns))
+        assert seen == set(endpoint.liveliness_tokens(str(unit_session.zid())))
+        assert any(f"/MS/%/%/px4_{rz.unit_gid(SYS).hex()}/%{ns}%fmu%in%actuator_motors/" in t for t in seen)
 
         def host_send(msg, sim_time_s: float) -> None:
             publisher, seq = host_pubs[type(msg).SPEC.name]
@@ -493,23 +537,28 @@ def test_arm_and_drive_a_unit_over_zenoh_with_rmw_keys():
 
         def unit_take(name: str, sim_time_s: float):
             sample = _recv(inbound[name])
-            key = rz.parse_data_key(str(sample.key_expr))
-            assert key.topic.startswith(f"/{ns}/fmu/in/")
-            attachment = rz.decode_attachment(sample.attachment.to_bytes())
-            assert attachment.source_gid == host_gid and attachment.source_timestamp_ns == int(sim_time_s * 1e9)
-            return cdr.decode(name, sample.payload.to_bytes()), attachment
+            got = endpoint.decode(str(sample.key_expr), sample.payload.to_bytes(), sample.attachment.to_bytes())
+            assert got.attachment.source_gid == host_gid
+            assert got.attachment.source_timestamp_ns == int(sim_time_s * 1e9)
+            return got
+
+        def unit_publish(topic, msg, sim_time_s: float) -> None:
+            key, payload, attachment = endpoint.encode(topic, msg, sim_time_s)
+            unit_pubs[key].put(payload, attachment=attachment)
 
         def round_trip_command(cmd, sim_time_s: float):
             host_send(cmd, sim_time_s)
-            received, _ = unit_take("VehicleCommand", sim_time_s)
-            ack = unit.on_vehicle_command(received, sim_time_s)
-            ack_pub.put(cdr.encode(ack), attachment=ack_seq.next(int(sim_time_s * 1e9)))
-            return cdr.decode("VehicleCommandAck", _recv(ack_sub).payload.to_bytes())
+            ack = unit.on_vehicle_command(unit_take("VehicleCommand", sim_time_s).message, sim_time_s)
+            unit_publish(rz.VEHICLE_COMMAND_ACK, ack, sim_time_s)
+            sample = _recv(ack_sub)
+            assert rz.decode_attachment(sample.attachment.to_bytes()).source_gid == rz.unit_gid(
+                SYS, rz.VEHICLE_COMMAND_ACK.base_name)
+            return cdr.decode("VehicleCommandAck", sample.payload.to_bytes())
 
         host_send(cdr.OffboardControlMode(timestamp=0, direct_actuator=True), 0.0)
-        keepalive, attachment = unit_take("OffboardControlMode", 0.0)
-        assert attachment.sequence_number == 1
-        unit.on_offboard_control_mode(keepalive, 0.0)
+        keepalive = unit_take("OffboardControlMode", 0.0)
+        assert keepalive.attachment.sequence_number == 1
+        unit.on_offboard_control_mode(keepalive.message, 0.0)
         common = dict(target_system=SYS, target_component=1, source_system=HOST_SYS, source_component=HOST_COMP,
                       from_external=True)
         ack = round_trip_command(cdr.VehicleCommand(timestamp=10_000, command=176, param1=1.0, param2=6.0, **common),
@@ -521,11 +570,18 @@ def test_arm_and_drive_a_unit_over_zenoh_with_rmw_keys():
         control = np.full(12, np.nan, dtype=np.float32)
         control[:4] = [0.31, 0.42, np.nan, 0.64]
         host_send(cdr.ActuatorMotors(timestamp=30_000, timestamp_sample=29_000, control=control), 0.03)
-        motors, _ = unit_take("ActuatorMotors", 0.03)
-        unit.on_actuator_motors(motors, 0.03)
+        unit.on_actuator_motors(unit_take("ActuatorMotors", 0.03).message, 0.03)
         out = unit.update(0.03)
         assert out.running.tolist() == [True, True, False, True]
         assert np.allclose(out.thrust_fraction, [0.31, 0.42, 0.0, 0.64], atol=1e-6)
+
+        unit_publish(rz.VEHICLE_STATUS, unit.vehicle_status(0.04), 0.04)
+        status_sample = _recv(status_sub)
+        assert rz.parse_data_key(str(status_sample.key_expr)).type_hash == rihs01(d.VEHICLE_STATUS)
+        status = cdr.decode("VehicleStatus", status_sample.payload.to_bytes())
+        assert (status.arming_state, status.nav_state, status.system_id) == (
+            cdr.VehicleStatus.ARMING_STATE_ARMED, OFFBOARD, SYS)
+        assert endpoint.reordered == 0
         del tokens
     finally:
         host_session.close()
