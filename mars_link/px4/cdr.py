@@ -61,7 +61,8 @@ def _make_class(spec: d.MessageSpec) -> type:
     for f in spec.fields:
         _, _, dtype = _PRIMITIVE[f.type]
         if f.array_length is not None:
-            fields.append((f.name, np.ndarray, dataclasses.field(default_factory=_array_default(dtype, f.array_length))))
+            default = dataclasses.field(default_factory=_array_default(dtype, f.array_length))
+            fields.append((f.name, np.ndarray, default))
         elif f.type == "bool":
             fields.append((f.name, bool, dataclasses.field(default=False)))
         elif f.type.startswith("float"):
@@ -89,7 +90,8 @@ class _Codec:
             if f.array_length is not None:
                 arr = np.asarray(value)
                 if arr.shape != (f.array_length,):
-                    raise CdrError(f"{self.spec.name}.{f.name}: expected {f.array_length} values, got shape {arr.shape}")
+                    raise CdrError(f"{self.spec.name}.{f.name}: expected {f.array_length} values, "
+                                   f"got shape {arr.shape}")
                 values.extend(arr.tolist() if f.type != "bool" else [bool(v) for v in arr])
             elif f.type == "bool":
                 values.append(bool(value))

@@ -88,7 +88,7 @@ class Px4UnitParams:
 class Px4MotorOutput:
     """What the motors do at `time_s`."""
     time_s: float
-    thrust_fraction: np.ndarray          # (motor_count,) normalised command in [0, 1] (reversible: [-1, 1]); 0 when stopped
+    thrust_fraction: np.ndarray          # (motor_count,) normalised in [0, 1] (reversible: [-1, 1]); 0: stopped
     running: np.ndarray                  # (motor_count,) bool: the motor is driven (False: stopped / disarmed)
     armed: bool
     nav_state: int                       # VehicleStatus.NAVIGATION_STATE_*
