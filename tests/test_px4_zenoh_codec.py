@@ -252,6 +252,11 @@ def test_attachment_layout():
     assert rz.decode_attachment(raw) == rz.Attachment(-2, 1_700_000_000_123_456_789, gid)
     with pytest.raises(ValueError):
         rz.decode_attachment(raw[:-1])
+    keyed = (b"\x0fsequence_number" + (5).to_bytes(8, "little") + b"\x10source_timestamp" + (6).to_bytes(8, "little")
+             + b"\x0asource_gid\x10" + gid)            # the earlier rmw_zenoh layout, still decoded
+    assert rz.decode_attachment(keyed) == rz.Attachment(5, 6, gid)
+    with pytest.raises(ValueError, match="field name"):
+        rz.decode_attachment(keyed.replace(b"source_gid", b"source_gie"))
     seq = rz.PublisherSequence(rz.unit_gid(4, "actuator_motors"))
     assert [rz.decode_attachment(seq.next(t)).sequence_number for t in (5, 6, 7)] == [1, 2, 3]
 

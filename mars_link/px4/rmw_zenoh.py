@@ -140,13 +140,38 @@ def encode_attachment(a: Attachment) -> bytes:
 
 
 def decode_attachment(data: bytes | bytearray | memoryview) -> Attachment:
+    """The 33-byte layout of design.md; also the earlier keyed layout (each value preceded by its name
+    as a zenoh-ext string: "sequence_number", "source_timestamp", "source_gid"), which older rmw_zenoh
+    releases and some PX4 zenoh module builds send."""
     raw = bytes(data)
-    if len(raw) != ATTACHMENT_SIZE:
-        raise ValueError(f"attachment of {len(raw)} bytes; rmw_zenoh's is {ATTACHMENT_SIZE}")
-    seq, stamp, gid_len, gid = _ATTACHMENT.unpack(raw)
-    if gid_len != GID_SIZE:
-        raise ValueError(f"attachment gid length {gid_len}; rmw_zenoh's is {GID_SIZE}")
-    return Attachment(seq, stamp, gid)
+    if len(raw) == ATTACHMENT_SIZE:
+        seq, stamp, gid_len, gid = _ATTACHMENT.unpack(raw)
+        if gid_len != GID_SIZE:
+            raise ValueError(f"attachment gid length {gid_len}; rmw_zenoh's is {GID_SIZE}")
+        return Attachment(seq, stamp, gid)
+    if len(raw) == _KEYED_SIZE:
+        return _decode_keyed_attachment(raw)
+    raise ValueError(f"attachment of {len(raw)} bytes; rmw_zenoh's is {ATTACHMENT_SIZE}")
+
+
+_KEYED_NAMES = (b"sequence_number", b"source_timestamp", b"source_gid")
+_KEYED_SIZE = sum(1 + len(n) for n in _KEYED_NAMES) + 8 + 8 + 1 + GID_SIZE
+
+
+def _decode_keyed_attachment(raw: bytes) -> Attachment:
+    offset, values = 0, []
+    for name in _KEYED_NAMES:
+        if raw[offset] != len(name) or raw[offset + 1:offset + 1 + len(name)] != name:
+            raise ValueError(f"attachment: expected the field name {name.decode()} at byte {offset}")
+        offset += 1 + len(name)
+        if name == b"source_gid":
+            if raw[offset] != GID_SIZE:
+                raise ValueError(f"attachment gid length {raw[offset]}; rmw_zenoh's is {GID_SIZE}")
+            values.append(raw[offset + 1:offset + 1 + GID_SIZE])
+        else:
+            values.append(struct.unpack_from("<q", raw, offset)[0])
+            offset += 8
+    return Attachment(values[0], values[1], values[2])
 
 
 def unit_gid(unit_id: int, entity: str = "") -> bytes:
