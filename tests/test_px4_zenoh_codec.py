@@ -503,11 +503,52 @@ def _recv(subscriber, deadline_s: float = 10.0):
     raise AssertionError("no sample before the deadline")
 
 
+class _IndependentHost:
+    """An off-board computer that knows only rmw_zenoh's conventions (design.md) and PX4's message text:
+    payloads and type hashes from rosbags fed PX4_V1_17_FIELDS, keys and attachments written out here.
+    No project code."""
+
+    def __init__(self, session: zenoh.Session, namespace: str):
+        self.session, self.ns = session, namespace
+        self.store = get_typestore(Stores.EMPTY)
+        for name, text in PX4_V1_17_FIELDS.items():
+            self.store.register(get_types_from_msg(text, f"px4_msgs/msg/{name}"))
+        self.gid = bytes(range(100, 116))
+        self.sequence = 0
+        self.publishers: dict[str, zenoh.Publisher] = {}
+
+    def key(self, topic: str, type_name: str) -> str:
+        type_hash = self.store.hash_rihs01(f"px4_msgs/msg/{type_name}")
+        return f"0/{self.ns}/{topic}/px4_msgs::msg::dds_::{type_name}_/{type_hash}"
+
+    def send(self, topic: str, type_name: str, sim_time_s: float, **fields) -> None:
+        key = self.key(topic, type_name)
+        if key not in self.publishers:
+            self.publishers[key] = self.session.declare_publisher(key)
+        message = self.store.types[f"px4_msgs/msg/{type_name}"](**fields)
+        payload = bytes(self.store.serialize_cdr(message, f"px4_msgs/msg/{type_name}"))
+        self.sequence += 1
+        attachment = struct.pack("<qqB16s", self.sequence, int(sim_time_s * 1e9), 16, self.gid)
+        self.publishers[key].put(payload, attachment=attachment)
+
+    def decode(self, sample, type_name: str):
+        return self.store.deserialize_cdr(sample.payload.to_bytes(), f"px4_msgs/msg/{type_name}")
+
+
+def _defaults(type_name: str) -> dict:
+    """Every field of a PX4 message at zero (rosbags wants them all)."""
+    out = {}
+    for name, kind, length in _parsed_fields(PX4_V1_17_FIELDS[type_name], type_name):
+        dtype = np.dtype(bool if kind == "bool" else kind)
+        out[name] = np.zeros(length, dtype=dtype) if length else (False if kind == "bool" else dtype.type(0).item())
+    return out
+
+
 def test_arm_and_drive_a_unit_over_zenoh_with_rmw_keys():
-    """A host session arms a unit and streams ActuatorMotors on the rmw_zenoh keys, with attachments. The
-    unit side subscribes by the rmw_zenoh pattern (any vehicle namespace, exact type and hash), decodes
-    through Px4UnitEndpoint, feeds Px4UnitInterface and answers with VehicleCommandAck and VehicleStatus;
-    the host sees its liveliness tokens. The host side uses only the key conventions and the codec."""
+    """An independent host (rosbags + design.md, no project code) arms a unit and streams ActuatorMotors
+    over loopback zenoh. The unit side subscribes by the rmw_zenoh pattern (any vehicle namespace, exact
+    type and hash), decodes through Px4UnitEndpoint, feeds Px4UnitInterface and answers with
+    VehicleCommandAck and VehicleStatus; the host discovers it through its liveliness tokens."""
     port = _free_port()
     unit_session = zenoh.open(_loopback_config([f"tcp/127.0.0.1:{port}"], []))
     host_session = zenoh.open(_loopback_config([], [f"tcp/127.0.0.1:{port}"]))
@@ -521,29 +562,27 @@ def test_arm_and_drive_a_unit_over_zenoh_with_rmw_keys():
             f"0/*/{t.base_name.lstrip('/')}/{t.spec.dds_type_name}/{rihs01(t.spec)}")
             for t in endpoint.subscribe_keys().values()}
         unit_pubs = {key: unit_session.declare_publisher(key) for key in endpoint.publish_keys()}
-        ack_sub = host_session.declare_subscriber(rz.data_key(rz.VEHICLE_COMMAND_ACK, ns))
-        status_sub = host_session.declare_subscriber(f"0/{ns}/fmu/out/vehicle_status/**")
 
-        host_gid = bytes(range(100, 116))
-        host_pubs = {t.spec.name: (host_session.declare_publisher(rz.data_key(t, ns)), rz.PublisherSequence(host_gid))
-                     for t in (rz.OFFBOARD_CONTROL_MODE, rz.ACTUATOR_MOTORS, rz.VEHICLE_COMMAND)}
-        # Liveliness: the host sees the unit's node and its endpoints (discovery as rmw_zenoh does it).
+        host = _IndependentHost(host_session, ns)
+        ack_sub = host_session.declare_subscriber(host.key("fmu/out/vehicle_command_ack", "VehicleCommandAck"))
+        status_sub = host_session.declare_subscriber(host.key("fmu/out/vehicle_status", "VehicleStatus"))
+        # Discovery as rmw_zenoh does it: the unit's node and a subscription on actuator_motors.
+        node_name = f"px4_{rz.unit_gid(SYS).hex()}"
+        motors_token_tail = (f"/MS/%/%/{node_name}/%{ns}%fmu%in%actuator_motors/px4_msgs::msg::dds_::ActuatorMotors_/"
+                             f"{host.store.hash_rihs01('px4_msgs/msg/ActuatorMotors')}/::,7:,:,:,,")
         seen: set[str] = set()
         end = time.monotonic() + 10.0
         while len(seen) < len(tokens) and time.monotonic() < end:
             seen = {str(r.ok.key_expr) for r in host_session.liveliness().get("@ros2_lv/0/**") if r.ok}
             time.sleep(0.05)
-        assert seen == set(endpoint.liveliness_tokens(str(unit_session.zid())))
-        assert any(f"/MS/%/%/px4_{rz.unit_gid(SYS).hex()}/%{ns}%fmu%in%actuator_motors/" in t for t in seen)
-
-        def host_send(msg, sim_time_s: float) -> None:
-            publisher, seq = host_pubs[type(msg).SPEC.name]
-            publisher.put(cdr.encode(msg), attachment=seq.next(int(sim_time_s * 1e9)))
+        assert f"@ros2_lv/0/{unit_session.zid()}/0/0/NN/%/%/{node_name}" in seen
+        assert any(t.endswith(motors_token_tail) for t in seen)
+        assert len(seen) == 1 + len(rz.UNIT_TOPICS)
 
         def unit_take(name: str, sim_time_s: float):
             sample = _recv(inbound[name])
             got = endpoint.decode(str(sample.key_expr), sample.payload.to_bytes(), sample.attachment.to_bytes())
-            assert got.attachment.source_gid == host_gid
+            assert got.attachment.source_gid == host.gid
             assert got.attachment.source_timestamp_ns == int(sim_time_s * 1e9)
             return got
 
@@ -551,41 +590,40 @@ def test_arm_and_drive_a_unit_over_zenoh_with_rmw_keys():
             key, payload, attachment = endpoint.encode(topic, msg, sim_time_s)
             unit_pubs[key].put(payload, attachment=attachment)
 
-        def round_trip_command(cmd, sim_time_s: float):
-            host_send(cmd, sim_time_s)
+        def round_trip_command(sim_time_s: float, **fields):
+            values = _defaults("VehicleCommand") | dict(
+                timestamp=int(sim_time_s * 1e6), target_system=SYS, target_component=1, source_system=HOST_SYS,
+                source_component=HOST_COMP, from_external=True) | fields
+            host.send("fmu/in/vehicle_command", "VehicleCommand", sim_time_s, **values)
             ack = unit.on_vehicle_command(unit_take("VehicleCommand", sim_time_s).message, sim_time_s)
             unit_publish(rz.VEHICLE_COMMAND_ACK, ack, sim_time_s)
             sample = _recv(ack_sub)
-            assert rz.decode_attachment(sample.attachment.to_bytes()).source_gid == rz.unit_gid(
+            assert struct.unpack("<qqB16s", sample.attachment.to_bytes())[3] == rz.unit_gid(
                 SYS, rz.VEHICLE_COMMAND_ACK.base_name)
-            return cdr.decode("VehicleCommandAck", sample.payload.to_bytes())
+            return host.decode(sample, "VehicleCommandAck")
 
-        host_send(cdr.OffboardControlMode(timestamp=0, direct_actuator=True), 0.0)
+        host.send("fmu/in/offboard_control_mode", "OffboardControlMode", 0.0,
+                  **(_defaults("OffboardControlMode") | dict(direct_actuator=True)))
         keepalive = unit_take("OffboardControlMode", 0.0)
         assert keepalive.attachment.sequence_number == 1
         unit.on_offboard_control_mode(keepalive.message, 0.0)
-        common = dict(target_system=SYS, target_component=1, source_system=HOST_SYS, source_component=HOST_COMP,
-                      from_external=True)
-        ack = round_trip_command(cdr.VehicleCommand(timestamp=10_000, command=176, param1=1.0, param2=6.0, **common),
-                                 0.01)
+        ack = round_trip_command(0.01, command=176, param1=np.float32(1.0), param2=np.float32(6.0))
         assert (ack.command, ack.result, ack.target_system) == (176, ACCEPTED, HOST_SYS)
-        ack = round_trip_command(cdr.VehicleCommand(timestamp=20_000, command=400, param1=1.0, **common), 0.02)
+        ack = round_trip_command(0.02, command=400, param1=np.float32(1.0))
         assert (ack.command, ack.result) == (400, ACCEPTED)
 
         control = np.full(12, np.nan, dtype=np.float32)
         control[:4] = [0.31, 0.42, np.nan, 0.64]
-        host_send(cdr.ActuatorMotors(timestamp=30_000, timestamp_sample=29_000, control=control), 0.03)
+        host.send("fmu/in/actuator_motors", "ActuatorMotors", 0.03,
+                  **(_defaults("ActuatorMotors") | dict(timestamp=30_000, timestamp_sample=29_000, control=control)))
         unit.on_actuator_motors(unit_take("ActuatorMotors", 0.03).message, 0.03)
         out = unit.update(0.03)
         assert out.running.tolist() == [True, True, False, True]
         assert np.allclose(out.thrust_fraction, [0.31, 0.42, 0.0, 0.64], atol=1e-6)
 
         unit_publish(rz.VEHICLE_STATUS, unit.vehicle_status(0.04), 0.04)
-        status_sample = _recv(status_sub)
-        assert rz.parse_data_key(str(status_sample.key_expr)).type_hash == rihs01(d.VEHICLE_STATUS)
-        status = cdr.decode("VehicleStatus", status_sample.payload.to_bytes())
-        assert (status.arming_state, status.nav_state, status.system_id) == (
-            cdr.VehicleStatus.ARMING_STATE_ARMED, OFFBOARD, SYS)
+        status = host.decode(_recv(status_sub), "VehicleStatus")
+        assert (status.arming_state, status.nav_state, status.system_id) == (2, 14, SYS)  # armed, offboard
         assert endpoint.reordered == 0
         del tokens
     finally:
