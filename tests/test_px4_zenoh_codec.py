@@ -424,6 +424,57 @@ def test_terminate_action_latches_until_reset():
     assert _set_mode(unit, 2.1).result == ACCEPTED and _arm(unit, 2.2).result == ACCEPTED
 
 
+def _recorded_stream() -> list[tuple[float, str, bytes, bytes]]:
+    """A host's command stream as a run log would keep it: (arrival time, key, payload, attachment);
+    a 250 Hz setpoint stream with a 10 Hz keep-alive that stops at 0.6 s."""
+    ns, seq, stream = "px4_3", rz.PublisherSequence(bytes(range(16))), []
+
+    def put(t, topic, msg):
+        stream.append((t, rz.data_key(topic, ns), cdr.encode(msg), seq.next(int(t * 1e9))))
+
+    put(0.0, rz.OFFBOARD_CONTROL_MODE, cdr.OffboardControlMode(direct_actuator=True))
+    common = dict(target_system=SYS, target_component=1, source_system=HOST_SYS, source_component=HOST_COMP)
+    put(0.001, rz.VEHICLE_COMMAND, cdr.VehicleCommand(command=176, param1=1.0, param2=6.0, **common))
+    put(0.002, rz.VEHICLE_COMMAND, cdr.VehicleCommand(command=400, param1=1.0, **common))
+    for k in range(1, 500):
+        t = k * 0.004
+        if k % 25 == 0 and k <= 150:                       # t <= 0.6 s
+            put(t, rz.OFFBOARD_CONTROL_MODE, cdr.OffboardControlMode(timestamp=int(t * 1e6), direct_actuator=True))
+        control = np.full(12, np.nan, dtype=np.float32)
+        control[:4] = 0.5 + 0.4 * np.sin(t * np.array([1.0, 2.0, 3.0, 4.0]))
+        put(t, rz.ACTUATOR_MOTORS, cdr.ActuatorMotors(timestamp=int(t * 1e6), control=control))
+    return stream
+
+
+def _replay(stream, **params) -> bytes:
+    endpoint, unit = Px4UnitEndpoint(SYS), Px4UnitInterface(Px4UnitParams(system_id=SYS, **params))
+    outputs = []
+    for t, key, payload, attachment in stream:
+        got = endpoint.decode(key, payload, attachment)
+        if got.topic is rz.OFFBOARD_CONTROL_MODE:
+            unit.on_offboard_control_mode(got.message, t)
+        elif got.topic is rz.ACTUATOR_MOTORS:
+            unit.on_actuator_motors(got.message, t)
+        else:
+            unit.on_vehicle_command(got.message, t)
+        out = unit.update(t)
+        outputs.append(np.concatenate([[t], out.thrust_fraction, out.running]).tobytes())
+    return b"".join(outputs)
+
+
+def test_replayed_command_stream_reproduces_motor_outputs_byte_for_byte():
+    stream = _recorded_stream()
+    first = _replay(stream)
+    assert first == _replay(stream)
+    rows = np.frombuffer(first, dtype=np.float64).reshape(-1, 9)
+    running_until = rows[rows[:, 5:].all(axis=1), 0].max()
+    assert abs(running_until - (0.6 + 1.0 - 0.004)) < 1e-9      # last step before COM_OF_LOSS_T ran out
+    assert not rows[rows[:, 0] >= 1.6, 5:].any()
+    # A unit with the test switch that breaks its keep-alive keeps the motors running: the harness's red case.
+    broken = np.frombuffer(_replay(stream, keepalive_timeout_enabled=False), dtype=np.float64).reshape(-1, 9)
+    assert broken[broken[:, 0] >= 1.6, 5:].all()
+
+
 def test_vehicle_status_reflects_state_and_round_trips():
     unit = _flying_unit()
     status = cdr.decode("VehicleStatus", cdr.encode(unit.vehicle_status(0.5)))

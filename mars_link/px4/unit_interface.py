@@ -74,6 +74,9 @@ class Px4UnitParams:
     offboard_loss_timeout_s: float = 1.0  # COM_OF_LOSS_T
     offboard_loss_action: OffboardLossAction = OffboardLossAction.DISARM  # COM_OBL_RC_ACT
     fallback_nav_state: int = VehicleStatus.NAVIGATION_STATE_POSCTL  # shown while the signal is lost
+    # Test switch, never for flight: False makes a deliberately broken unit whose keep-alive never
+    # times out (the conformance harness must catch it).
+    keepalive_timeout_enabled: bool = True
 
     def __post_init__(self) -> None:
         if not 1 <= self.system_id <= 255:
@@ -232,6 +235,8 @@ class Px4UnitInterface:
         k = s.keepalive
         any_flag = (k.position or k.velocity or k.acceleration or k.attitude or k.body_rate
                     or k.thrust_and_torque or k.direct_actuator)
+        if not self.params.keepalive_timeout_enabled:
+            return bool(any_flag)
         timeout_us = time_us(self.params.offboard_loss_timeout_s)
         return bool(any_flag) and now_us < s.keepalive_time_us + timeout_us
 
