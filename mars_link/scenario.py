@@ -7,6 +7,7 @@ can print it and exit 2 without a traceback. The schema is documented in README.
 from __future__ import annotations
 
 import math
+import os
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -18,8 +19,8 @@ from mars_link.battery import BatterySpec, battery_table
 from mars_link.environment import EnvironmentParams
 from mars_link.sensor_profiles import SensorProfile
 from mars_link.errors import UserInputError
-from mars_link.validation import (MAX_TOML_BYTES, MAX_TOML_DEPTH, check_id_digits, check_seed, note_input,
-                                  read_input_file)
+from mars_link.validation import (MAX_CSV_BYTES, MAX_TOML_BYTES, MAX_TOML_DEPTH, MAX_WAYPOINTS, check_id_digits,
+                                  check_regular_file, check_seed, note_input, read_input_file)
 from mars_link.table_checks import check_keys as _check_keys, integer as _integer, number as _number, table as _table
 
 CONTROLLERS = ("cascaded", "mars-ftcc-paper")
@@ -234,6 +235,7 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
         if "kind" not in trajectory:
             raise UserInputError(f"{src}: [trajectory] needs a kind")
         sc.trajectory = dict(trajectory)
+        _check_trajectory_inputs(sc.trajectory, src)
 
     control = _table(doc, "control", src)
     _check_keys(control, _CONTROL_KEYS, "[control]", src)
@@ -469,6 +471,19 @@ def read_toml_file(path: Path, src: str) -> dict:
     doc = parse_toml(text, src)
     _note_named_files(doc, path)
     return doc
+
+
+def _check_trajectory_inputs(trajectory: dict, src: str) -> None:
+    """The caps on a trajectory's inputs (mars_link.validation), checked with the scenario: before the run
+    directory is made, although the trajectory is built later."""
+    points = trajectory.get("points")
+    if trajectory.get("kind") == "waypoints" and isinstance(points, list) and len(points) > MAX_WAYPOINTS:
+        raise UserInputError(f"{src}: [trajectory] {len(points):,} waypoints: at most {MAX_WAYPOINTS:,} "
+                             "(split the mission)")
+    csv_path = trajectory.get("path")  # (a file missing here may be on a sweep's workers: theirs to read)
+    if trajectory.get("kind") == "csv" and isinstance(csv_path, str) and "\x00" not in csv_path \
+            and os.path.exists(csv_path):
+        check_regular_file(csv_path, f"{src}: [trajectory] csv file", MAX_CSV_BYTES)
 
 
 def _note_named_files(doc: dict, path: Path) -> None:
