@@ -193,25 +193,29 @@ def test_sweep_of_a_million_flights_is_refused_before_listing_them(tmp_path) -> 
 
 
 def test_sweep_stops_on_ctrl_c_and_leaves_no_workers(tmp_path) -> None:
-    """SIGINT to the sweep while its workers fly (queued flights waiting): exit 130, the run ends (a hang
-    guard only, no timing assertion), and its worker processes are gone, not left flying."""
+    """SIGINT to the sweep while its workers fly (200 flights, most still to come): exit 130, the run ends (a
+    hang guard only, no timing assertion), its worker processes are gone, and no flight starts after it
+    (each flight makes its flights/<i> directory as it starts: those are the flights flown, plus the ones in
+    flight). Before, the pool's shutdown flew every queued flight first."""
     import psutil
 
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sweep", "hover_1x1", "--seeds", "60",
-                             "--workers", "2", "--quiet", "--no-plots", "--out", str(out)],
+    seeds, workers_n = 200, 2
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sweep", "hover_1x1", "--seeds", str(seeds),
+                             "--workers", str(workers_n), "--quiet", "--no-plots", "--mcap",
+                             "--param", "duration_s=2", "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         partial = out / "sweep.partial.csv"
         deadline = time.monotonic() + HANG_GUARD_S
         while time.monotonic() < deadline and proc.poll() is None and (
-                not partial.exists() or len(partial.read_text().splitlines()) < 2):
+                not partial.exists() or len(partial.read_text().splitlines()) < 3):
             time.sleep(0.2)
         assert proc.poll() is None, proc.stderr.read()
         workers = [p.pid for p in psutil.Process(proc.pid).children()]
-        assert len(workers) >= 2
+        assert len(workers) >= workers_n
         os.kill(proc.pid, signal.SIGINT)  # the sweep alone, as `kill -INT`: its workers hear nothing
-        code = proc.wait(60)  # (a hang guard: the flights left would take minutes)
+        code = proc.wait(120)  # (a hang guard: the flights left would take many minutes)
         err = proc.stderr.read()
     finally:
         if proc.poll() is None:
@@ -219,10 +223,12 @@ def test_sweep_stops_on_ctrl_c_and_leaves_no_workers(tmp_path) -> None:
             proc.wait()
     assert code == 130, err[-3000:]
     assert "Traceback" not in err, err[-3000:]
+    time.sleep(1.0)  # (the killed workers are reaped by their new parent)
     alive = [pid for pid in workers if psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE]
     assert alive == []
-    rows = partial.read_text().splitlines()
-    assert 2 <= len(rows) < 61  # the flights flown are kept, the rest were not flown
+    flown = len(partial.read_text().splitlines()) - 1  # (the header)
+    started = len(list((out / "flights").iterdir()))
+    assert 2 <= flown and started <= flown + 2 * workers_n, (flown, started)
 
 
 # ----------------------------------------------------------------------------- --force
