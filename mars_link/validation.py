@@ -42,7 +42,7 @@ ENV_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT
 
 MAX_WAYPOINTS = 20_000
 """Points of a `[trajectory] kind = "waypoints"` (the minimum-snap planning cost is linear in them: about
-10 s and 200 MB at the cap, and 20,000 points at 2 s each are an 11-hour flight)."""
+1 s and 200 MB at the cap, benchmarks/bench_planning_waypoints.py; 20,000 points are a day's flight)."""
 
 MAX_TOML_BYTES = 1 << 20
 """Size of a scenario TOML file (1 MiB: about 35,000 waypoints; the bundled scenarios are under 4 KB)."""
