@@ -32,7 +32,8 @@ REFUSAL_RSS_MIB = 300
 FLIGHT_RSS_MIB = 600
 #: what a child may map at all (a regression that reads /dev/zero fails here instead of filling the machine)
 ADDRESS_SPACE_CAP = 8 << 30
-HANG_GUARD_S = 300  # a refusal that hangs (a FIFO) fails the test instead of blocking the suite
+HANG_GUARD_S = 300
+WALLS = "cx,cy,length_m,thickness_m,height_m,yaw_deg\n-3.8,5,6,0.15,2.4,90\n3.8,5,6,0.15,2.4,90\n"  # a refusal that hangs (a FIFO) fails the test instead of blocking the suite
 
 _WRAPPER = r"""
 import json, resource, subprocess, sys
@@ -276,3 +277,35 @@ def test_force_refuses_a_directory_that_is_not_a_run(tmp_path, verb) -> None:
     assert_refused(code, err, peak, RUN_MARKER)
     assert (mine / "2024" / "a.jpg").read_text() == "keep" and (mine / "notes.txt").read_text() == "keep"
     assert not (mine / RUN_MARKER).exists()
+
+
+def test_force_keeps_a_map_inside_out(tmp_path) -> None:
+    """`mars-link plan MAP --out DIR --force` with MAP in a previous plan's directory: the map stays."""
+    out = tmp_path / "plan"
+    walls = tmp_path / "walls.csv"
+    walls.write_text(WALLS)
+    argv = ["--layout", "XXX,XXX", "--start", "0,0,-2", "--goal", "10,0,-2", "--quiet", "--out", str(out)]
+    code, err, _ = mars_link("plan", str(walls), *argv)
+    assert code == 0 and (out / RUN_MARKER).is_file(), err[-3000:]
+    inside = out / "walls.csv"
+    inside.write_text(WALLS)
+    code, err, _ = mars_link("plan", str(inside), *argv, "--force")
+    assert code == 0, err[-3000:]
+    assert inside.read_text() == WALLS and (out / "plan.json").is_file()
+
+
+def test_force_keeps_a_signing_key_inside_out(tmp_path) -> None:
+    """The key file is read (firmware_models.signing.load_key) before the run directory is claimed, as
+    `sitl up --signing-key-file` does: clearing the directory keeps it and removes the rest."""
+    from firmware_models.signing import load_key
+    from mars_link.validation import prepare_out_dir
+
+    out = prepare_out_dir(tmp_path / "run")
+    key = out / "fleet.key"
+    key.write_bytes(bytes(range(32)))
+    (out / "old").mkdir()
+    (out / "old" / "unit1.tlog").write_bytes(b"x")
+    assert load_key(key) == bytes(range(32))
+    prepare_out_dir(out, force=True)
+    assert key.read_bytes() == bytes(range(32))
+    assert not (out / "old").exists() and (out / RUN_MARKER).is_file()
