@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from mars_link.apps.cli import main as cli_main
+from mars_link.core.validation import RUN_MARKER
 
 HOVER = 'name = "t"\n[assembly]\nlayout = ["XXX", "XXX"]\n[trajectory]\nkind = "hover"\n[sim]\nduration_s = 1\n'
 WALLS = "cx,cy,length_m,thickness_m,height_m,yaw_deg\n-3.8,5,6,0.15,2.4,90\n3.8,5,6,0.15,2.4,90\n"
@@ -218,6 +219,7 @@ def test_force_clears_the_old_run_first(tmp_path, capsys) -> None:
     (out / "plots").mkdir(parents=True)
     (out / "plots" / "old.png").write_text("old")
     (out / "summary.json").write_text('{"old": true}')
+    (out / RUN_MARKER).write_text("")  # a run directory of ours (a previous run wrote it)
     code = cli_main(["run", scenario(tmp_path, HOVER.replace("duration_s = 1", "duration_s = 0.2")), "--quiet",
                      "--out", str(out), "--force"])
     assert code == 0, capsys.readouterr().err

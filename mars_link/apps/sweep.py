@@ -14,14 +14,14 @@ import copy
 import itertools
 import math
 import re
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from mars_link.core.errors import UserInputError
-from mars_link.config.scenario import FaultSpec, Scenario, resolve_scenario_path, scenario_from_dict, SCENARIO_DIR
-from mars_link.core.validation import SEED_MAX
+from mars_link.config.scenario import (FaultSpec, Scenario, parse_toml, read_toml_file, resolve_scenario_path,
+                                scenario_from_dict, SCENARIO_DIR)
+from mars_link.core.validation import MAX_SWEEP_FLIGHTS, SEED_MAX
 
 #: random faults act between these fractions of the flight (after take-off, with time left to see it)
 FAULT_T_MIN_FRAC = 0.1
@@ -127,8 +127,8 @@ def _parse_value(text: str, key: str) -> Any:
     if not text:
         raise UserInputError(f"--param {key}: an empty value")
     try:
-        return tomllib.loads(f"v = {text}")["v"]
-    except tomllib.TOMLDecodeError:
+        return parse_toml(f"v = {text}", f"--param {key}")["v"]  # (nesting capped: MAX_TOML_DEPTH)
+    except UserInputError:
         if re.fullmatch(r"[A-Za-z_][A-Za-z0-9_.:/+-]*", text):
             return text  # a bare word: a string (qp, modquad-cf2)
         raise UserInputError(f"--param {key}: {text[:40]!r} is not a value (a number, true/false, a word or "
@@ -160,12 +160,7 @@ def read_scenario_doc(arg: str | None) -> tuple[dict, str]:
     """The scenario's TOML document and its source name (as mars_link.config.scenario.load_scenario names it)."""
     path = resolve_scenario_path(arg)
     src = path.name if path.resolve().is_relative_to(SCENARIO_DIR) else str(path)
-    try:
-        doc = tomllib.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserInputError(f"{src}: cannot read scenario: {exc}") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise UserInputError(f"{src}: malformed TOML: {exc}") from None
+    doc = read_toml_file(path, src)  # (the caps on size and depth of mars_link.core.validation)
     doc.setdefault("name", path.stem)
     return doc, src
 
@@ -190,6 +185,10 @@ def plan_sweep(doc: dict, src: str, seeds: int, sweep_seed: int | None = None,
         raise UserInputError("--param: a key is given twice (list its values in one --param KEY=V1,V2)")
     if not 1 <= seeds <= 100_000:
         raise UserInputError(f"--seeds must be 1..100000, got {seeds}")
+    grid = math.prod(len(p.values) for p in params)  # counted, not listed: a refusal costs no memory
+    if seeds * grid > MAX_SWEEP_FLIGHTS:
+        raise UserInputError(f"sweep of {seeds * grid:,} flights ({seeds:,} seeds x {grid:,} parameter combinations): "
+                             f"at most {MAX_SWEEP_FLIGHTS:,} (fewer --seeds or --param values, or several sweeps)")
     combos = [tuple(zip(keys, values)) for values in itertools.product(*(p.values for p in params))]
     base = scenario_for(doc, src, ())
     sweep_seed = base.sim.seed if sweep_seed is None else sweep_seed

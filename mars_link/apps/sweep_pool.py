@@ -11,13 +11,14 @@ every worker process, two workers on two cores over-subscribe them and run slowe
 
 from __future__ import annotations
 
+import itertools
 import os
 import time
 import traceback
-from concurrent.futures import Executor, Future, ProcessPoolExecutor, as_completed
+from concurrent.futures import FIRST_COMPLETED, Executor, Future, ProcessPoolExecutor, wait
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterable, Iterator, Sequence
 
 from mars_link.core.errors import UserInputError
 
@@ -136,22 +137,70 @@ def connect(address: str):
                              f"{CONNECT_TIMEOUT_S:g} s ({type(exc).__name__})") from None
 
 
-def run_all(pool: Executor, fn: Callable[..., Any], arg_list: Sequence[tuple],
-            on_done: Callable[[int, Outcome], None] | None = None) -> list[Outcome]:
+def run_all(pool: Executor, fn: Callable[..., Any], arg_list: Iterable[tuple],
+            on_done: Callable[[int, Outcome], None] | None = None, window: int | None = None) -> list[Outcome]:
     """`fn(*args)` for every args of `arg_list` on `pool`; the outcomes in `arg_list`'s order. `on_done(i,
-    outcome)` as each finishes (progress). A worker that dies is that task's error, not the sweep's end."""
-    futures: dict[Future, int] = {pool.submit(run_task, fn, args): i for i, args in enumerate(arg_list)}
-    outcomes: list[Outcome | None] = [None] * len(arg_list)
-    for fut in as_completed(futures):
-        i = futures[fut]
+    outcome)` as each finishes (progress). A worker that dies is that task's error, not the sweep's end.
+
+    At most `window` tasks (default SWEEP_WINDOW_PER_WORKER per worker) are submitted ahead of the results,
+    the next as one finishes, and `arg_list` is read as they go: memory stays flat however many tasks. A
+    KeyboardInterrupt (Ctrl-C) cancels what waits and ends the local workers at once (`stop_pool`)."""
+    from mars_link.core.validation import SWEEP_WINDOW_PER_WORKER
+
+    window = window or SWEEP_WINDOW_PER_WORKER * pool_workers(pool)
+    pending: dict[Future, int] = {}
+    outcomes: dict[int, Outcome] = {}
+    todo = iter(enumerate(arg_list))
+    try:
+        while True:
+            for i, args in itertools.islice(todo, max(0, window - len(pending))):
+                pending[pool.submit(run_task, fn, args)] = i
+            if not pending:
+                break
+            finished, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                i = pending.pop(fut)
+                try:
+                    outcome = fut.result()
+                except Exception as exc:  # noqa: BLE001 - the worker process died or the cluster lost the task
+                    outcome = Outcome(None, f"{type(exc).__name__}: {exc}".splitlines()[0][:300])
+                outcomes[i] = outcome
+                if on_done is not None:
+                    on_done(i, outcome)
+    except BaseException:  # Ctrl-C, or on_done raised: nothing more is flown
+        stop_pool(pool, pending)
+        raise
+    return [outcomes[i] for i in sorted(outcomes)]
+
+
+def pool_workers(pool: Executor) -> int:
+    """How many tasks `pool` runs at once: a local pool's processes, a Dask cluster's threads (else 1)."""
+    local = getattr(pool, "_max_workers", None)
+    if isinstance(local, int) and local > 0:
+        return local
+    client = getattr(pool, "_client", None)
+    if client is not None:
         try:
-            outcome = fut.result()
-        except Exception as exc:  # noqa: BLE001 - the worker process died or the cluster lost the task
-            outcome = Outcome(None, f"{type(exc).__name__}: {exc}".splitlines()[0][:300])
-        outcomes[i] = outcome
-        if on_done is not None:
-            on_done(i, outcome)
-    return [o for o in outcomes if o is not None]
+            return max(1, sum(client.nthreads().values()))
+        except Exception:  # noqa: BLE001 - a cluster that does not answer: the window of one worker
+            return 1
+    return 1
+
+
+def stop_pool(pool: Executor, pending: Iterable[Future] = ()) -> None:
+    """Cancel the tasks not yet started and end a local pool's worker processes now (a flight in a worker
+    would otherwise run to its end, and the pool's shutdown waits for it). A Dask cluster's tasks are
+    cancelled; its workers are the cluster's."""
+    for fut in pending:
+        fut.cancel()
+    if isinstance(pool, ProcessPoolExecutor):
+        processes = list((getattr(pool, "_processes", None) or {}).values())
+        for proc in processes:  # (ours: this pool started them)
+            if proc.is_alive():
+                proc.kill()
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in processes:
+            proc.join(timeout=1.0)
 
 
 def map_flights(fn: Callable[..., Any], arg_list: Sequence[tuple], spec: PoolSpec | None = None,

@@ -7,6 +7,7 @@ can print it and exit 2 without a traceback. The schema is documented in README.
 from __future__ import annotations
 
 import math
+import os
 import re
 import tomllib
 from dataclasses import dataclass, field
@@ -18,7 +19,8 @@ from mars_link.models.battery import BatterySpec, battery_table
 from mars_link.models.environment import EnvironmentParams
 from mars_link.models.sensor_profiles import SensorProfile
 from mars_link.core.errors import UserInputError
-from mars_link.core.validation import check_id_digits, check_seed
+from mars_link.core.validation import (MAX_CSV_BYTES, MAX_TOML_BYTES, MAX_TOML_DEPTH, MAX_WAYPOINTS, check_id_digits,
+                                  check_regular_file, check_seed, note_input, read_input_file)
 from mars_link.core.table_checks import check_keys as _check_keys, integer as _integer, number as _number, table as _table
 
 CONTROLLERS = ("cascaded", "mars-ftcc-paper")
@@ -233,6 +235,7 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
         if "kind" not in trajectory:
             raise UserInputError(f"{src}: [trajectory] needs a kind")
         sc.trajectory = dict(trajectory)
+        _check_trajectory_inputs(sc.trajectory, src)
 
     control = _table(doc, "control", src)
     _check_keys(control, _CONTROL_KEYS, "[control]", src)
@@ -458,12 +461,65 @@ def resolve_scenario_path(arg: str | None) -> Path:
 def load_scenario(arg: str | None) -> Scenario:
     path = resolve_scenario_path(arg)
     src = str(path) if not path.is_relative_to(SCENARIO_DIR) else path.name
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserInputError(f"{src}: cannot read scenario: {exc}") from None
+    return scenario_from_dict(read_toml_file(path, src), src)
+
+
+def read_toml_file(path: Path, src: str) -> dict:
+    """A scenario file's TOML document, within the caps of mars_link.core.validation (MAX_TOML_BYTES, a
+    regular file, MAX_TOML_DEPTH): anything else is one UserInputError line, before it is parsed whole."""
+    text = read_input_file(path, f"{src}: scenario", MAX_TOML_BYTES)
+    doc = parse_toml(text, src)
+    _note_named_files(doc, path)
+    return doc
+
+
+def _check_trajectory_inputs(trajectory: dict, src: str) -> None:
+    """The caps on a trajectory's inputs (mars_link.core.validation), checked with the scenario: before the run
+    directory is made, although the trajectory is built later."""
+    points = trajectory.get("points")
+    if trajectory.get("kind") == "waypoints" and isinstance(points, list) and len(points) > MAX_WAYPOINTS:
+        raise UserInputError(f"{src}: [trajectory] {len(points):,} waypoints: at most {MAX_WAYPOINTS:,} "
+                             "(split the mission)")
+    csv_path = trajectory.get("path")  # (a file missing here may be on a sweep's workers: theirs to read)
+    if trajectory.get("kind") == "csv" and isinstance(csv_path, str) and "\x00" not in csv_path \
+            and os.path.exists(csv_path):
+        check_regular_file(csv_path, f"{src}: [trajectory] csv file", MAX_CSV_BYTES)
+
+
+def _note_named_files(doc: dict, path: Path) -> None:
+    """The files a scenario names (a trajectory's csv, map or plan, the mission's map) are inputs of its run
+    (mars_link.core.validation.note_input: `--force` keeps them), noted before the run directory is cleared
+    (some are read only later). Each as given and beside the scenario, the two places they are looked for."""
+    for table, key in (("trajectory", "path"), ("trajectory", "map"), ("trajectory", "plan"), ("mission", "map")):
+        section = doc.get(table)
+        name = section.get(key) if isinstance(section, dict) else None
+        if isinstance(name, str) and name and "\x00" not in name:
+            note_input(name)
+            note_input(path.parent / name)
+
+
+def parse_toml(text: str, src: str) -> dict:
+    """`tomllib.loads`, its errors as one line: malformed, or nested deeper than MAX_TOML_DEPTH (the
+    parser recurses per level: a deep enough nesting raises RecursionError, also reported as one line)."""
     try:
         doc = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise UserInputError(f"{src}: malformed TOML: {exc}") from None
-    return scenario_from_dict(doc, src)
+    except RecursionError:
+        raise UserInputError(f"{src}: TOML nested too deep (at most {MAX_TOML_DEPTH} levels)") from None
+    depth = toml_depth(doc)
+    if depth > MAX_TOML_DEPTH:
+        raise UserInputError(f"{src}: TOML nested {depth} levels deep (at most {MAX_TOML_DEPTH})")
+    return doc
+
+
+def toml_depth(doc: Any) -> int:
+    """How deep tables and arrays nest in `doc` (a scalar 0, a table of scalars 1), without recursion."""
+    deepest, stack = 0, [(doc, 1)]
+    while stack:
+        value, depth = stack.pop()
+        if isinstance(value, (dict, list)):
+            deepest = max(deepest, depth)
+            children = value.values() if isinstance(value, dict) else value
+            stack.extend((child, depth + 1) for child in children if isinstance(child, (dict, list)))
+    return deepest

@@ -19,6 +19,7 @@ import math
 import os
 import re
 import shutil
+import stat
 from pathlib import Path
 
 from mars_link.core.errors import EnvironmentFailure, OneLineArgumentParser, UserInputError
@@ -32,6 +33,43 @@ PATH_MAX = 4096
 RUN_NAME_MAX = 80  # a run directory name derived from a scenario name
 ENV_ERRNOS = {errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EADDRINUSE,
               errno.EADDRNOTAVAIL, errno.EMFILE, errno.ENFILE}
+
+# ----------------------------------------------------------------------------- caps on inputs
+# Why caps: an input that is only "large" (a 60 KB file of 2,000 waypoints, a TOML array nested 300,000 deep,
+# `path = "/dev/zero"`, a sweep of 10^6 flights) must not exhaust the machine's memory or hang before the
+# user hears of it. Each cap is checked before any work starts, and a refusal is one line (exit 2).
+# INPUT_CAPS lists them for the documentation.
+
+MAX_WAYPOINTS = 20_000
+"""Points of a `[trajectory] kind = "waypoints"` (the minimum-snap planning cost is linear in them: about
+1 s and 200 MB at the cap, benchmarks/bench_planning_waypoints.py; 20,000 points are a day's flight)."""
+
+MAX_TOML_BYTES = 1 << 20
+"""Size of a scenario TOML file (1 MiB: about 35,000 waypoints; the bundled scenarios are under 4 KB)."""
+
+MAX_TOML_DEPTH = 32
+"""Nesting of tables and arrays in a scenario TOML file (the deepest a scenario needs is 4: a table, an
+array of points, a point)."""
+
+MAX_CSV_BYTES = 16 << 20
+"""Size of a `[trajectory] kind = "csv"` file (16 MiB: about 400,000 rows, an hour at 100 Hz); only a
+regular file is read (not a device such as /dev/zero, not a FIFO, which would block)."""
+
+MAX_MISSION_PLAN_BYTES = 16 << 20
+"""Size of a `[trajectory] kind = "mission"` plan file (QGC .plan or WPL 110); a regular file only."""
+
+MAX_MAP_BYTES = 64 << 20
+"""Size of an obstacle map (boxes CSV or ASCII PCD) for planning; a regular file only."""
+
+MAX_SWEEP_FLIGHTS = 100_000
+"""Flights of one `mars-link sweep` (seeds x the --param grid), counted before any flight is listed."""
+
+SWEEP_WINDOW_PER_WORKER = 2
+"""A sweep submits at most this many flights per worker ahead of the results (memory stays flat
+whatever the sweep's size; a Ctrl-C has little to cancel)."""
+
+INPUT_CAPS = ("MAX_WAYPOINTS", "MAX_TOML_BYTES", "MAX_TOML_DEPTH", "MAX_CSV_BYTES", "MAX_MISSION_PLAN_BYTES",
+              "MAX_MAP_BYTES", "MAX_SWEEP_FLIGHTS", "SWEEP_WINDOW_PER_WORKER")
 
 
 OneLineParser = OneLineArgumentParser  # one-line usage errors (UserInputError, exit 2)
@@ -182,13 +220,65 @@ def check_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool |
     if not os.access(base, os.W_OK | os.X_OK):
         reason = "read-only file system" if _read_only_fs(base) else "permission denied"
         raise EnvironmentFailure(f"{what} {str(p)!r}: cannot write in {str(base)!r} ({reason})")
-    if force is not None and p.is_dir() and any(p.iterdir()):
+    if force is not None and p.is_dir() and any(child.name != RUN_MARKER for child in p.iterdir()):
         if not force:
             raise UserInputError(f"{what} {str(p)!r}: directory is not empty (use --force to clear it first, "
                                  f"or choose another directory)")
         if _guarded(p):
             raise UserInputError(f"{what} {str(p)!r}: --force will not clear /, home or the working directory")
+        if not is_run_dir(p):
+            raise UserInputError(f"{what} {str(p)!r}: --force clears only a run directory of mars-link (one with "
+                                 f"a {RUN_MARKER} file), and this is not one: choose a new directory")
     return p
+
+
+RUN_MARKER = ".mars-link-run"
+"""The file written into every run directory when it is made: `--force` clears a directory only if it holds
+one (a run of ours), whatever its path, so a mistyped --out never empties a directory of the user's."""
+_RUN_MARKER_TEXT = "A run directory of mars-link: `--force` may clear it (the run's inputs inside are kept).\n"
+
+_RUN_INPUTS: set[Path] = set()
+
+
+def note_input(path: str | os.PathLike) -> None:
+    """Record a file this run reads (scenario, trajectory CSV, map, plan, key): `--force` keeps it when it
+    lies inside the run directory, which the run would otherwise delete before it reads it again."""
+    try:
+        _RUN_INPUTS.add(Path(os.path.abspath(path)))  # as named (it may be a link inside the run directory)
+        _RUN_INPUTS.add(Path(path).resolve())  # and what it is
+    except (OSError, RuntimeError, ValueError):
+        pass
+
+
+def run_inputs() -> frozenset[Path]:
+    """Every input noted so far (each as named, absolute, and resolved)."""
+    return frozenset(_RUN_INPUTS)
+
+
+def is_run_dir(path: Path) -> bool:
+    """Whether `path` holds the RUN_MARKER (a regular file, not a link)."""
+    try:
+        return stat.S_ISREG(os.lstat(path / RUN_MARKER).st_mode)
+    except OSError:
+        return False
+
+
+def _clear_keeping_inputs(directory: Path, keep: frozenset[Path]) -> list[Path]:
+    """Delete what `directory` holds, except the files of `keep` (and the directories on their way);
+    the kept files. A symbolic link is removed as a link (what it points to is left alone)."""
+    kept: list[Path] = []
+    for child in directory.iterdir():
+        named = Path(os.path.abspath(child))
+        if named in keep or (not child.is_symlink() and child.resolve() in keep):
+            kept.append(child)
+        elif child.is_dir() and not child.is_symlink():
+            if any(named in k.parents or child.resolve() in k.parents for k in keep):
+                kept += _clear_keeping_inputs(child, keep)
+            else:
+                shutil.rmtree(child)
+        else:
+            child.unlink()
+    return kept
 
 
 def _read_only_fs(path: Path) -> bool:
@@ -199,17 +289,16 @@ def _read_only_fs(path: Path) -> bool:
 
 
 def prepare_out_dir(path: str | os.PathLike, what: str = "--out", *, force: bool = False) -> Path:
-    """`check_out_dir`, then clear it (force) and create it. A refusal from the machine is an
-    EnvironmentFailure line."""
+    """`check_out_dir`, then clear it (force: all but the run's inputs, `note_input`) and create it with its
+    RUN_MARKER. A refusal from the machine is an EnvironmentFailure line."""
     p = check_out_dir(path, what, force=force)
     try:
         if force and p.is_dir():
-            for child in p.iterdir():
-                if child.is_dir() and not child.is_symlink():
-                    shutil.rmtree(child)
-                else:
-                    child.unlink()
+            _clear_keeping_inputs(p, run_inputs())
         p.mkdir(parents=True, exist_ok=True)
+        marker = p / RUN_MARKER
+        if not is_run_dir(p):
+            marker.write_text(_RUN_MARKER_TEXT, encoding="utf-8")
     except OSError as exc:
         raise environment_failure(exc, f"{what} {str(p)!r}") from None
     return p
@@ -247,6 +336,8 @@ def release_out_dirs() -> None:
         os.close(fd)
         if created:
             try:
+                if [c.name for c in path.iterdir()] == [RUN_MARKER]:
+                    (path / RUN_MARKER).unlink()
                 path.rmdir()  # only if empty
             except OSError:
                 pass
@@ -268,6 +359,61 @@ def check_file_parent(path: str | os.PathLike | None, what: str) -> Path | None:
     if not os.access(parent, os.W_OK | os.X_OK):
         raise EnvironmentFailure(f"{what} {str(p)!r}: cannot write in {str(parent)!r}")
     return p
+
+
+def check_regular_file(path: str | os.PathLike, what: str, max_bytes: int) -> os.stat_result:
+    """An input file that can be read whole without risk: a regular file (a symbolic link to one is fine)
+    of at most `max_bytes`. Refuses, before it is opened, a device (/dev/zero is endless), a FIFO (its
+    open blocks), a directory, a socket, and an oversized file."""
+    try:
+        st = os.stat(path)
+    except (OSError, ValueError) as exc:
+        reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise UserInputError(f"{what} {str(path)!r} cannot be read: {reason}") from None
+    _check_stat(st, path, what, max_bytes)
+    note_input(path)  # (--force keeps it)
+    return st
+
+
+def _check_stat(st: os.stat_result, path, what: str, max_bytes: int) -> None:
+    if not stat.S_ISREG(st.st_mode):
+        kind = ("a directory" if stat.S_ISDIR(st.st_mode) else "a FIFO" if stat.S_ISFIFO(st.st_mode)
+                else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode)
+                else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a file")
+        raise UserInputError(f"{what} {str(path)!r} is {kind}, not a regular file")
+    if st.st_size > max_bytes:
+        raise UserInputError(f"{what} {str(path)!r} is {st.st_size:,} bytes (at most {max_bytes:,})")
+
+
+def read_input_file(path: str | os.PathLike, what: str, max_bytes: int) -> str:
+    """The UTF-8 text of an input file, read only if `check_regular_file` allows it; opened non-blocking
+    and checked again on the open file (a file swapped for a FIFO in between does not hang), and never
+    more than `max_bytes` read. Every problem is one UserInputError line."""
+    check_regular_file(path, what, max_bytes)
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except OSError as exc:
+        raise UserInputError(f"{what} {str(path)!r} cannot be read: {exc.strerror}") from None
+    try:
+        _check_stat(os.fstat(fd), path, what, max_bytes)
+        chunks, left = [], max_bytes + 1
+        while left > 0:
+            chunk = os.read(fd, min(left, 1 << 20))
+            if not chunk:
+                break
+            chunks.append(chunk)
+            left -= len(chunk)
+    except OSError as exc:
+        raise UserInputError(f"{what} {str(path)!r} cannot be read: {exc.strerror}") from None
+    finally:
+        os.close(fd)
+    data = b"".join(chunks)
+    if len(data) > max_bytes:  # (it grew while read)
+        raise UserInputError(f"{what} {str(path)!r} is over {max_bytes:,} bytes")
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UserInputError(f"{what} {str(path)!r} is not UTF-8 text ({exc.reason} at byte {exc.start})") from None
 
 
 def environment_failure(exc: OSError, where: str = "") -> EnvironmentFailure:

@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 
 from mars_link.core.errors import UserInputError
+from mars_link.core.validation import note_input
 
 SIGNATURE_BLOCK_LEN = 13
 IFLAG_SIGNED = 0x01
@@ -70,6 +71,7 @@ def load_key(path: str | os.PathLike | None = None, env_var: str = DEFAULT_KEY_E
         p = Path(path)
         if not p.is_file():
             raise UserInputError(f"signing key file {str(p)!r} does not exist")
+        note_input(p)  # (an input of the run: --force keeps it)
         raw = p.read_bytes()
         if len(raw) == 32:
             return raw

@@ -19,6 +19,7 @@ import numpy as np
 from scipy.ndimage import distance_transform_edt
 
 from mars_link.core.errors import UserInputError
+from mars_link.core.validation import MAX_MAP_BYTES, read_input_file
 
 BOX_COLUMNS = ("cx", "cy", "length_m", "thickness_m", "height_m", "yaw_deg")
 
@@ -81,10 +82,7 @@ def load_boxes_csv(path: str | Path, altitude_m: float | None = None) -> Obstacl
     """Boxes CSV (`cx,cy,length_m,thickness_m,height_m,yaw_deg`, z-up scene frame, yaw 0 = length
     along scene y). Boxes whose top is below `altitude_m` (metres up) are left out: flown over."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserInputError(f"map {str(path)!r} cannot be read: {exc}") from None
+    text = read_input_file(path, "map", MAX_MAP_BYTES)  # a regular file, capped; an input of the run
     rows = list(csv.reader(text.splitlines()))
     if not rows or tuple(c.strip() for c in rows[0]) != BOX_COLUMNS:
         raise UserInputError(f"map {str(path)!r}: the header must be {','.join(BOX_COLUMNS)}")
@@ -115,10 +113,7 @@ def load_pcd(path: str | Path, altitude_m: float | None = None, band_m: float = 
     """ASCII PCD (fields x y z first, z up); points within `band_m` of the flight altitude (all
     points when the altitude is None) become discs of `point_radius_m`."""
     path = Path(path)
-    try:
-        lines = path.read_text(encoding="utf-8").splitlines()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserInputError(f"map {str(path)!r} cannot be read: {exc}") from None
+    lines = read_input_file(path, "map", MAX_MAP_BYTES).splitlines()  # a regular file, capped; an input of the run
     fields, n_points, start = None, None, None
     for i, line in enumerate(lines):
         parts = line.split()

@@ -38,6 +38,7 @@ from mars_link.core.errors import UserInputError
 from mars_link.core.rotations import euler_to_quat
 from mars_link.core.state import RigidBodyState
 from mars_link.models.trajectories import Trajectory, TrajectoryPoint
+from mars_link.core.validation import MAX_MISSION_PLAN_BYTES, check_regular_file
 
 R = mavlink
 CONTROL_HZ = 100.0
@@ -70,6 +71,7 @@ def resolve_plan_path(text: str, scenario_source: str = "") -> Path:
 
 def load_mission_file(path: Path) -> tuple[tuple[MissionItem, ...], tuple[MissionItem, ...]]:
     """(mission items, fence items) of a QGC .plan or a QGC WPL 110 file; one line for any problem."""
+    check_regular_file(path, "[trajectory] mission plan", MAX_MISSION_PLAN_BYTES)  # not /dev/zero, not a FIFO
     try:
         head = path.read_text(encoding="utf-8", errors="replace")[:64]
     except OSError as exc:
