@@ -265,7 +265,7 @@ class VehicleUlog:
             w.data(ids["vehicle_local_position_setpoint"], {
                 "timestamp": t_us, "x": rp[0], "y": rp[1], "z": rp[2], "vx": rv[0], "vy": rv[1], "vz": rv[2],
                 "acceleration": ref.acceleration_ned_mps2, "yaw": ref.yaw_rad, "yawspeed": ref.yaw_rate_radps})
-        imu = v.imu
+        imu = v.imu or _assembly_imu(v)
         if imu is not None:
             dt_us = self._period_us
             w.data(ids["sensor_combined"], {
@@ -339,6 +339,13 @@ class VehicleUlog:
         params = getattr(v, "params", None)
         if params is not None and params.version != self._params_version:
             self._write_parameters()
+
+
+def _assembly_imu(v):
+    """The assembly vehicle has no IMU of its own: its first unit's IMU sample of this step (the units are
+    rigidly docked, so every unit's gyro reads the assembly's rates)."""
+    packets = getattr(getattr(getattr(v, "autopilot", None), "drive", None), "packets", None)
+    return packets[0].imu if packets else None
 
 
 def _heading(q: np.ndarray) -> float:
