@@ -357,3 +357,71 @@ def test_sitl_units_write_ulogs_by_default(tmp_path) -> None:
         status = json.loads((out / f"unit{u}_status.json").read_text())
         assert status["ulog"]["stopped_reason"] is None and status["ulog"]["samples"] > 100
     assert truth["t_s"][-1] >= 2.9
+
+
+@pytest.mark.sitl
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_sitl_assembly_vehicle_writes_its_estimate_to_vehicle_ulg(tmp_path) -> None:
+    """`sitl up --vehicle`: armed and taken off by COMMAND_LONG; vehicle.ulg holds the assembly's estimate
+    (within the position sensor's noise of the world's truth of the CoM), its modes and its STATUSTEXTs."""
+    import signal
+    import socket
+    import time
+
+    from firmware_models.udp_runner import read_status
+    from mars_link.scenario import load_scenario
+    from test_sitl_vehicle import _port_block, vehicle_endpoint_lines
+
+    out = tmp_path / "run"
+    api = _port_block(8)
+    cmd = [sys.executable, "-m", "mars_link.cli", "sitl", "up", "hover_3x2", "--vehicle", "--transport", "udp",
+           "--any-bind", "--vehicle-api-port", str(api), "--gcs-port", str(api + 1), "--api-port", str(api + 2),
+           "--out", str(out)]
+    listen = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listen.bind(("127.0.0.1", api))
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        vehicle_endpoint_lines(proc)
+        deadline = time.monotonic() + 60.0
+        while not (out / "vehicle_status.json").exists():
+            assert time.monotonic() < deadline, "the vehicle did not start"
+            time.sleep(0.1)
+        st = read_status(out / "vehicle_status.json")
+        to = ("127.0.0.1", st["endpoints"]["api"]["from"])
+        gcs = mavlink.MAVLink(None, 245, 190)
+        for cmd_id, p1, p7 in ((mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+                               (mavlink.MAV_CMD_NAV_TAKEOFF, 0.0, math.nan)):
+            listen.sendto(bytes(mavlink.MAVLink_command_long_message(st["sysid"], 1, cmd_id, 0, p1, 0, 0, 0, 0, 0,
+                                                                     p7).pack(gcs)), to)
+            time.sleep(0.5)
+        while "Takeoff complete: holding" not in read_status(out / "vehicle_status.json")["statustext"]:
+            assert time.monotonic() < deadline + 60.0, "no takeoff"
+            time.sleep(0.2)
+        time.sleep(1.0)
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)  # sitl up stops every child
+        try:
+            proc.wait(20.0)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        listen.close()
+    ulog = ULog(str(out / "vehicle.ulg"))
+    _assert_monotonic(ulog)
+    assert ulog.msg_info_dict["sys_mars_role"] == "assembly"
+    lp = ulog.get_dataset("vehicle_local_position").data
+    assert len(ulog.get_dataset("vehicle_attitude").data["timestamp"]) == len(lp["timestamp"])
+    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True)
+    at = {round(t * 1e6): (n, e, d) for t, n, e, d in zip(truth["t_s"], truth["pos_n_m"], truth["pos_e_m"],
+                                                           truth["pos_d_m"])}
+    errors = [np.linalg.norm(np.array([lp["x"][i], lp["y"][i], lp["z"][i]]) - at[int(t)])
+              for i, t in enumerate(lp["timestamp"]) if int(t) in at]
+    noise_m = load_scenario("hover_3x2").sensors.position_noise_m
+    assert len(errors) > 100 and max(errors) < 5 * noise_m * math.sqrt(3), max(errors)
+    assert lp["z"][-1] < -1.5  # it took off
+    assert "Takeoff complete: holding" in [m.message for m in ulog.logged_messages]
+    assert T.NAV_AUTO_TAKEOFF in ulog.get_dataset("vehicle_status").data["nav_state"]
+    for u in range(1, 7):  # ... and every unit process wrote its own
+        assert "vehicle_local_position" in {d.name for d in ULog(str(out / f"unit{u}.ulg")).data_list}
