@@ -168,7 +168,7 @@ def test_inprocess_units_write_ulogs_of_their_truth_and_fault(tmp_path) -> None:
         _assert_monotonic(ulog)
         lp = ulog.get_dataset("vehicle_local_position").data
         att = ulog.get_dataset("vehicle_attitude").data
-        assert len(lp["timestamp"]) >= 140  # 50 Hz over 3 s of simulated time
+        assert len(lp["timestamp"]) >= 70  # 25 Hz over 3 s of simulated time
         assert lp["timestamp"][-1] >= 2_900_000  # microseconds of simulated time
         matched = 0
         for i, t in enumerate(lp["timestamp"]):
@@ -245,7 +245,7 @@ def test_assembly_vehicle_ulog_estimate_within_sensor_noise(tmp_path) -> None:
     noise_m = scenario.sensors.position_noise_m  # the position sensor's 1 sigma per axis
     errors = [np.linalg.norm(np.array([lp["x"][i], lp["y"][i], lp["z"][i]]) - truth[int(t)])
               for i, t in enumerate(lp["timestamp"]) if int(t) in truth]
-    assert len(errors) >= 250 and max(errors) < 5 * noise_m * math.sqrt(3), max(errors)
+    assert len(errors) >= 125 and max(errors) < 5 * noise_m * math.sqrt(3), max(errors)
     assert lp["z"][-1] == pytest.approx(-2.0, abs=0.15)  # took off to MIS_TAKEOFF_ALT
     setpoint = ulog.get_dataset("vehicle_local_position_setpoint").data
     assert setpoint["z"][-1] == pytest.approx(lp["z"][-1], abs=0.1)  # holding where it took off to
@@ -355,7 +355,7 @@ def test_sitl_units_write_ulogs_by_default(tmp_path) -> None:
         lp = ulog.get_dataset("vehicle_local_position").data
         assert lp["timestamp"][-1] >= 2_500_000 and lp["z"][-1] < -1.0  # simulated time; the climb
         status = json.loads((out / f"unit{u}_status.json").read_text())
-        assert status["ulog"]["stopped_reason"] is None and status["ulog"]["samples"] > 100
+        assert status["ulog"]["stopped_reason"] is None and status["ulog"]["samples"] > 50
     assert truth["t_s"][-1] >= 2.9
 
 
@@ -419,7 +419,7 @@ def test_sitl_assembly_vehicle_writes_its_estimate_to_vehicle_ulg(tmp_path) -> N
     errors = [np.linalg.norm(np.array([lp["x"][i], lp["y"][i], lp["z"][i]]) - at[int(t)])
               for i, t in enumerate(lp["timestamp"]) if int(t) in at]
     noise_m = load_scenario("hover_3x2").sensors.position_noise_m
-    assert len(errors) > 100 and max(errors) < 5 * noise_m * math.sqrt(3), max(errors)
+    assert len(errors) > 50 and max(errors) < 5 * noise_m * math.sqrt(3), max(errors)
     assert lp["z"][-1] < -1.5  # it took off
     assert "Takeoff complete: holding" in [m.message for m in ulog.logged_messages]
     assert T.NAV_AUTO_TAKEOFF in ulog.get_dataset("vehicle_status").data["nav_state"]

@@ -125,8 +125,19 @@ NAV_AUTO_TAKEOFF, NAV_AUTO_LAND, NAV_AUTO_FOLLOW_TARGET, NAV_AUTO_PRECLAND, NAV_
 FAILURE_MOTOR = 128  # vehicle_status.failure_detector_status bit
 
 
+_NAV_STATES: dict[tuple[int, int], int] = {}
+
+
 def nav_state(main_mode: int, sub_mode: int) -> int:
     """PX4's nav_state of a PX4 custom mode (main, sub), as HEARTBEAT carries it."""
+    key = (main_mode, sub_mode)
+    nav = _NAV_STATES.get(key)
+    if nav is None:
+        nav = _NAV_STATES[key] = _nav_state(main_mode, sub_mode)
+    return nav
+
+
+def _nav_state(main_mode: int, sub_mode: int) -> int:
     from firmware_models import vehicle_modes as m
 
     if main_mode == m.MAIN_AUTO:

@@ -69,37 +69,32 @@ class Topic:
                 raise ValueError(f"{name}.{f.name}: unknown type {f.type!r} or bad count {f.count}")
         self.struct = struct.Struct("<" + "".join(f"{f.count}{TYPE_CODES[f.type]}" if f.count > 1 else TYPE_CODES[f.type]
                                                   for f in self.fields))
-        self._defaults = [_default(f) for f in self.fields]
+        # (name, count, default, padding of a short array) per field: `pack` runs for every sample
+        self._plan = [(f.name, f.count, _default(f), [_default(Field(f.type, f.name))] * f.count) for f in self.fields]
 
     def format_text(self) -> str:
         return f"{self.name}:" + "".join(f.declaration() + ";" for f in self.fields)
 
     def pack(self, values: Mapping[str, object]) -> bytes:
+        """The fields' values in order (numbers, numpy scalars, sequences or arrays for array fields;
+        bytes for char); a missing field is zero (NaN for floats), a short array padded the same way."""
         flat: list = []
-        for f, default in zip(self.fields, self._defaults):
-            v = values.get(f.name, default)
-            if f.count == 1:
-                flat.append(_coerce(f.type, v))
+        get = values.get
+        for name, count, default, padding in self._plan:
+            v = get(name, default)
+            if count == 1:
+                flat.append(v)
             else:
-                items = list(v)[:f.count]
-                items += [_coerce(f.type, default[0])] * (f.count - len(items))
-                flat.extend(_coerce(f.type, x) for x in items)
+                items = v.tolist() if hasattr(v, "tolist") else list(v)
+                if len(items) != count:
+                    items = (items + padding)[:count]
+                flat.extend(items)
         return self.struct.pack(*flat)
 
 
 def _default(f: Field):
     one = math.nan if f.type in ("float", "double") else (b"\0" if f.type == "char" else 0)
     return one if f.count == 1 else [one] * f.count
-
-
-def _coerce(kind: str, v):
-    if kind in ("float", "double"):
-        return float(v)
-    if kind == "bool":
-        return bool(v)
-    if kind == "char":
-        return v if isinstance(v, bytes) else str(v).encode()[:1] or b"\0"
-    return int(v)
 
 
 class UlogWriter:
@@ -112,20 +107,33 @@ class UlogWriter:
 
     def __init__(self, write: Callable[[bytes], object], start_us: int) -> None:
         self._write = write
+        self._pending: list[bytes] = []
+        self.batch = False  # True: messages wait for `commit`
         self.topics: dict[str, Topic] = {}
         self._in_data = False
         self._ids: dict[tuple[str, int], int] = {}
         self._id_topic: list[Topic] = []
         self._last_us: list[int] = []
         self.non_monotonic = 0
-        self._write(MAGIC + bytes((FILE_VERSION,)) + struct.pack("<Q", int(start_us)))
+        self._pending.append(MAGIC + bytes((FILE_VERSION,)) + struct.pack("<Q", int(start_us)))
         # 'B' flag bits: no compat or incompat flag set, no appended data (40 bytes)
         self._message(b"B", bytes(8) + bytes(8) + struct.pack("<3Q", 0, 0, 0))
 
     def _message(self, kind: bytes, payload: bytes) -> None:
         if len(payload) > MAX_PAYLOAD_BYTES:
             raise ValueError(f"ULog message of {len(payload)} bytes exceeds {MAX_PAYLOAD_BYTES}")
-        self._write(struct.pack("<HB", len(payload), kind[0]) + payload)
+        self._pending.append(struct.pack("<HB", len(payload), kind[0]))
+        self._pending.append(payload)
+        if not self.batch:
+            self.commit()
+
+    def commit(self) -> None:
+        """Hand what was written since the last commit to `write`, in one call (`batch`: the caller
+        commits once per sample of several topics)."""
+        if self._pending:
+            data = b"".join(self._pending)
+            self._pending.clear()
+            self._write(data)
 
     # ------------------------------------------------------------------ definitions
     def info(self, name: str, value: str | int | float, kind: str | None = None) -> None:
@@ -170,7 +178,11 @@ class UlogWriter:
             self.non_monotonic += 1
             return False
         self._last_us[msg_id] = t_us
-        self._message(b"D", struct.pack("<H", msg_id) + self._id_topic[msg_id].pack(values))
+        payload = self._id_topic[msg_id].pack(values)
+        self._pending.append(struct.pack("<HBH", len(payload) + 2, 68, msg_id))  # 68: 'D'
+        self._pending.append(payload)
+        if not self.batch:
+            self.commit()
         return True
 
     def text(self, level: int, t_us: int, message: str) -> None:

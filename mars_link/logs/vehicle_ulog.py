@@ -45,7 +45,8 @@ COMMIT_ENV = "MARS_LINK_COMMIT"
 @dataclass
 class UlogConfig:
     path: str | os.PathLike
-    rate_hz: float = 50.0  # state, IMU and actuator topics (simulated time); PX4's default profile logs 10-50 Hz
+    # state, IMU and actuator topics, per second of simulated time (PX4's default logging profile: 10-20 Hz)
+    rate_hz: float = 25.0
     status_hz: float = 2.0  # vehicle_status, battery_status, failure_detector_status (and at once on a change)
     max_bytes: int | None = ULOG_MAX_BYTES
     # a thread of its own writes the file (SafeWriter background): for a unit process's real-time path
@@ -171,9 +172,11 @@ class VehicleUlog:
             notify(f"ULog stopped: {reason}"[:50])
 
     def _guarded(self, fn, *args) -> None:
-        """Run `fn`; any error stops this log with its reason (logging never raises into the flight)."""
+        """Run `fn` and write what it logged, in one write; any error stops this log with its reason
+        (logging never raises into the flight)."""
         try:
             fn(*args)
+            self.writer.commit()
         except Exception as exc:  # noqa: BLE001 (the flight goes on whatever the log's bug)
             self._error = f"{self.path.name}: {type(exc).__name__}: {exc} (logging stopped)"
             if self._sink is not None:
@@ -184,6 +187,7 @@ class VehicleUlog:
         v = self.vehicle
         t0 = _usec(getattr(v, "sim_s", 0.0))
         self.writer = w = UlogWriter(self._sink.write, t0)
+        w.batch = True  # (committed by _guarded: one write per sample)
         w.info("sys_name", SYS_NAME)
         w.info("ver_hw", VER_HW)
         w.info("ver_sw", software_version())
@@ -298,8 +302,11 @@ class VehicleUlog:
         armed = bool(v.armed)
         nav = T.nav_state(*v.mode)
         eta = self._failed_eta()
-        failed = tuple(int(i) for i in np.flatnonzero(eta < 1.0 - 1e-9))
-        stopped = tuple(int(i) for i in np.flatnonzero(eta <= 1e-9))
+        if eta.min() >= 1.0 - 1e-9:  # (every step of a healthy flight)
+            failed = stopped = ()
+        else:
+            failed = tuple(int(i) for i in np.flatnonzero(eta < 1.0 - 1e-9))
+            stopped = tuple(int(i) for i in np.flatnonzero(eta <= 1e-9))
         key = (armed, nav, failed, stopped)
         if failed != self._failed_seen:
             self._failed_seen = failed
