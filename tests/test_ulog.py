@@ -212,6 +212,22 @@ def test_ulog_does_not_change_the_flight(tmp_path) -> None:
             np.testing.assert_array_equal(s.position_ned_m, bare.by_usec[t][u].position_ned_m)
 
 
+def test_run_scenario_writes_unit_ulogs_on_request(tmp_path) -> None:
+    """`run_scenario(..., logs={"ulog"})` (what `run --logs ulog` will pass): unit<id>.ulg beside the run's
+    outputs, accounted for in summary.json's "logging"; none without it."""
+    from mars_link.runner import run_scenario
+    from mars_link.scenario import load_scenario
+
+    scenario = load_scenario("hover_1x1")
+    scenario.sim.duration_s = 1.0
+    summary = run_scenario(scenario, tmp_path / "with", plots=False, mcap=False, logs=frozenset({"ulog"}))
+    ulog = ULog(str(tmp_path / "with" / "unit1.ulg"))
+    assert {"vehicle_local_position", "vehicle_attitude"} <= {d.name for d in ulog.data_list}
+    assert "unit1.ulg" in [f["file"] for f in summary["logging"]["files"]] and summary["logging"]["complete"]
+    run_scenario(scenario, tmp_path / "without", plots=False, mcap=False)
+    assert not list((tmp_path / "without").glob("*.ulg"))
+
+
 # ----------------------------------------------------------------------------- the assembly vehicle
 def test_assembly_vehicle_ulog_estimate_within_sensor_noise(tmp_path) -> None:
     from mars_link.assembly_vehicle import AssemblySim, SimConfig
@@ -260,6 +276,38 @@ def test_assembly_vehicle_ulog_estimate_within_sensor_noise(tmp_path) -> None:
     assert "Fault: unit 2 rotor 2 eta 0.5" in texts and "Rotor failures: 6 eta 0.50" in texts
     failures = ulog.get_dataset("failure_detector_status").data
     assert failures["motor_failure_mask"][-1] == 1 << 5
+
+
+@pytest.mark.sitl
+@pytest.mark.timeout(120)
+def test_vehicle_out_writes_vehicle_ulg(tmp_path) -> None:
+    """`mars-link vehicle --out DIR` (the in-process assembly behind MAVLink, real time): vehicle.ulg in DIR,
+    its estimate on the ground where the world starts it, listed for LOG_* download."""
+    import socket
+
+    from firmware_models.udp_runner import stop_unit
+    from mars_link.realtime import spawn_vehicle
+
+    sinks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(2)]
+    for sk in sinks:
+        sk.bind(("127.0.0.1", 0))
+    out = tmp_path / "run"
+    proc, _ = spawn_vehicle(["--out", str(out), "--duration", "4", "--api-bind", "0", "--gcs-bind", "0",
+                             "--api-port", str(sinks[0].getsockname()[1]),
+                             "--gcs-port", str(sinks[1].getsockname()[1])], tmp_path / "status.json")
+    try:
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            stop_unit(proc)
+        for sk in sinks:
+            sk.close()
+    assert proc.returncode == 0 and "Traceback" not in err, err[-2000:]
+    ulog = ULog(str(out / "vehicle.ulg"))
+    _assert_monotonic(ulog)
+    lp = ulog.get_dataset("vehicle_local_position").data
+    assert len(lp["timestamp"]) > 25 and abs(lp["z"][-1]) < 0.3 and abs(lp["x"][-1]) < 0.1  # landed at the origin
+    assert len(ulog.get_dataset("vehicle_attitude").data["timestamp"]) == len(lp["timestamp"])
 
 
 # ----------------------------------------------------------------------------- a full disk

@@ -2,16 +2,20 @@
 
 from mars_link.logs.vehicle_ulog import UlogConfig, VehicleUlog
 
-__all__ = ["UlogConfig", "VehicleUlog", "attach_ulogs", "close_ulogs"]
+__all__ = ["LOG_KINDS", "UlogConfig", "VehicleUlog", "attach_ulogs", "close_ulogs"]
 
 
-def attach_ulogs(vehicles: dict, out_dir, **config) -> list:
+#: what a run may write per unit or vehicle, beside its own outputs (`--logs`, once the CLI offers it)
+LOG_KINDS = ("tlog", "ulog")
+
+
+def attach_ulogs(vehicles: dict, out_dir, name: str = "unit{unit}.ulg", **config) -> list:
     """Start a .ulg for each unit of an in-process flight (`flight.units.vehicles`: unit id -> Vehicle),
-    named unit<id>.ulg in `out_dir`; returns the recorders. `config`: UlogConfig's fields."""
+    named `name` (with {unit}) in `out_dir`; returns the recorders. `config`: UlogConfig's fields."""
     from pathlib import Path
 
     out = Path(out_dir)
-    return [v.start_ulog(UlogConfig(out / f"unit{u}.ulg", **config)) for u, v in vehicles.items()]
+    return [v.start_ulog(UlogConfig(out / name.format(unit=u), **config)) for u, v in vehicles.items()]
 
 
 def close_ulogs(vehicles: dict) -> list[dict]:
