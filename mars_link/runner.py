@@ -45,7 +45,8 @@ def run_trial(
     if ulog_dir is not None:
         from mars_link.logs import attach_ulogs
 
-        attach_ulogs(flight.units.vehicles, ulog_dir, "unit{unit}.ulg" if trial_index == 0 else f"unit{{unit}}_trial{trial_index}.ulg")
+        name = "unit{unit}.ulg" if trial_index == 0 else f"unit{{unit}}_trial{trial_index}.ulg"
+        attach_ulogs(flight.units.vehicles, ulog_dir, name)
     recorder = FlightRecorder(flight, log, trial_index)
     view = view(flight) if callable(view) else view
     engine = Engine(flight, [recorder] + ([view] if view is not None else []), Pacer(realtime_rate))

@@ -20,7 +20,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass
-from typing import Callable, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
 MAGIC = b"ULog\x01\x12\x35"
 FILE_VERSION = 1
@@ -75,7 +75,7 @@ class Topic:
     def format_text(self) -> str:
         return f"{self.name}:" + "".join(f.declaration() + ";" for f in self.fields)
 
-    def pack(self, values: Mapping[str, object]) -> bytes:
+    def pack(self, values: Mapping[str, Any]) -> bytes:
         """The fields' values in order (numbers, numpy scalars, sequences or arrays for array fields;
         bytes for char); a missing field is zero (NaN for floats), a short array padded the same way."""
         flat: list = []
@@ -171,7 +171,7 @@ class UlogWriter:
         self._message(b"A", struct.pack("<BH", multi_id, msg_id) + topic_name.encode())
         return msg_id
 
-    def data(self, msg_id: int, values: Mapping[str, object]) -> bool:
+    def data(self, msg_id: int, values: Mapping[str, Any]) -> bool:
         """One sample of a subscribed topic; False if dropped (its timestamp went back)."""
         t_us = int(values["timestamp"])
         if t_us < self._last_us[msg_id]:

@@ -186,6 +186,7 @@ class VehicleUlog:
     def _write_definitions(self) -> None:
         v = self.vehicle
         t0 = _usec(getattr(v, "sim_s", 0.0))
+        assert self._sink is not None
         self.writer = w = UlogWriter(self._sink.write, t0)
         w.batch = True  # (committed by _guarded: one write per sample)
         w.info("sys_name", SYS_NAME)
@@ -302,9 +303,9 @@ class VehicleUlog:
         armed = bool(v.armed)
         nav = T.nav_state(*v.mode)
         eta = self._failed_eta()
-        if eta.min() >= 1.0 - 1e-9:  # (every step of a healthy flight)
-            failed = stopped = ()
-        else:
+        failed: tuple[int, ...] = ()
+        stopped: tuple[int, ...] = ()
+        if eta.min() < 1.0 - 1e-9:  # (not on every step of a healthy flight)
             failed = tuple(int(i) for i in np.flatnonzero(eta < 1.0 - 1e-9))
             stopped = tuple(int(i) for i in np.flatnonzero(eta <= 1e-9))
         key = (armed, nav, failed, stopped)
