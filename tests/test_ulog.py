@@ -393,7 +393,7 @@ def test_sitl_units_write_ulogs_by_default(tmp_path) -> None:
                            "udp", "--duration", "3", "--quiet", "--out", str(out)],
                           capture_output=True, text=True, timeout=280)
     assert done.returncode == 0, done.stderr[-2000:]
-    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True)
+    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, invalid_raise=False)
     for u in range(1, 7):
         ulog = ULog(str(out / f"unit{u}.ulg"))
         names = {d.name for d in ulog.data_list}
@@ -461,7 +461,8 @@ def test_sitl_assembly_vehicle_writes_its_estimate_to_vehicle_ulg(tmp_path) -> N
     assert ulog.msg_info_dict["sys_mars_role"] == "assembly"
     lp = ulog.get_dataset("vehicle_local_position").data
     assert len(ulog.get_dataset("vehicle_attitude").data["timestamp"]) == len(lp["timestamp"])
-    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True)
+    # (the world may be stopped mid-line: a partial last row is skipped)
+    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, invalid_raise=False)
     at = {round(t * 1e6): (n, e, d) for t, n, e, d in zip(truth["t_s"], truth["pos_n_m"], truth["pos_e_m"],
                                                            truth["pos_d_m"])}
     errors = [np.linalg.norm(np.array([lp["x"][i], lp["y"][i], lp["z"][i]]) - at[int(t)])
