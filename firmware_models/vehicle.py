@@ -110,6 +110,8 @@ class VehicleConfig:
     # False: an in-process unit (direct calls; no MAVLink frame carries its id), so its id may go beyond
     # MAVLink's system ids 1..250 (an in-process flight of 20x20 units)
     on_wire: bool = True
+    # set: this vehicle writes a ULog (.ulg) there from the start (mars_link.logs; or later: start_ulog)
+    ulog_path: str | None = None
 
     def checked(self) -> "VehicleConfig":
         if not self.on_wire and isinstance(self.unit_id, int) and self.unit_id >= 1:
@@ -145,6 +147,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
     def __init__(self, config: VehicleConfig | None = None, wall_time_s: float = 0.0, flight_core=None) -> None:
         c = (config or VehicleConfig()).checked()
         self.config = c
+        self.ulog = None  # mars_link.logs.VehicleUlog while this vehicle writes a .ulg
         self.origin = c.origin()
         self.vehicle = vehicle_preset(c.vehicle) if isinstance(c.vehicle, str) else c.vehicle
         self.sysid, self.compid = c.unit_id, c.component_id
@@ -216,6 +219,8 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self._init_logs()
         self.legs = None  # mission legs between the runner and the core (mars_link.planning.mission_legs)
         self.speed_override_mps: float | None = None  # MAV_CMD_DO_CHANGE_SPEED (else MPC_XY_CRUISE)
+        if c.ulog_path:
+            self.start_ulog(c.ulog_path)
 
     def _intake_params(self) -> IntakeParams:
         p = self.params
@@ -364,6 +369,35 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             self._answer_hil(out)
         return out
 
+    def start_ulog(self, config):
+        """Write a ULog (.ulg) from now on: `config` a path or a `mars_link.logs.UlogConfig`. Returns the
+        recorder (`mars_link.logs.VehicleUlog`); a file that cannot be opened is reported, never raised."""
+        from firmware_models.vehicle_ulog import UlogConfig, VehicleUlog
+
+        self.stop_ulog()
+        self.ulog = VehicleUlog(self, config if isinstance(config, UlogConfig) else UlogConfig(config))
+        return self.ulog
+
+    def stop_ulog(self) -> dict | None:
+        """Close the .ulg (if any); its status (file, stopped_reason, errors, dropped_writes, samples)."""
+        log, self.ulog = self.ulog, None
+        if log is None:
+            return None
+        log.close()
+        return log.status()
+
+    def _ulog_sample(self) -> None:
+        """The ULog's topics for this step, when due at their rate. A runner that defers the unit's own
+        state (`defer_own_state`) gets them off the step's critical path, with that state."""
+        log = self.ulog
+        if log is None or not log.due(self.sim_s):
+            return
+        t_s = self.sim_s
+        if self.defer_own_state:
+            self._deferred.append(lambda: log.sample(t_s))
+        else:
+            log.sample(t_s)
+
     def notify(self, text: str, severity: int = mavlink.MAV_SEVERITY_WARNING) -> None:
         """A STATUSTEXT from the runner (e.g. "logging stopped"), sent with the next tick."""
         self._text(text, severity)
@@ -384,6 +418,8 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             self._next_control = max(self._next_control + self.control_dt_s, sim_time_s + 0.5 * self.control_dt_s)
         else:
             self.sim_s = max(self.sim_s, sim_time_s)
+        if self.ulog is not None:
+            self._ulog_sample()
         self._watchdogs()
         if wall_time_s >= self._next_heartbeat:
             self._next_heartbeat = max(self._next_heartbeat + 1.0, wall_time_s + 0.5)
@@ -450,6 +486,8 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
                 self._send(lk, msg, out)
 
     def _text(self, text: str, severity: int = mavlink.MAV_SEVERITY_INFO) -> None:
+        if self.ulog is not None:
+            self.ulog.text(severity, text, self.sim_s)
         self.events.append((self.sim_s, text))
         if len(self.events) > 200:
             del self.events[:100]

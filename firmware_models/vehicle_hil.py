@@ -133,6 +133,8 @@ class HilMixin:
         stats = self.stats  # (_count, inlined: every step)
         stats["hil_steps"] = stats.get("hil_steps", 0) + 1
         self._control_step()
+        if self.ulog is not None:
+            self._ulog_sample()
         if not self.armed:
             return self.motors.setpoint(np.zeros(4))
         cmd = self.motor_commands_n  # the intake's held command is finite and of 4 values (rotor_intake.accept)
@@ -208,6 +210,8 @@ class HilMixin:
         stats = self.stats
         stats["hil_steps"] = stats.get("hil_steps", 0) + 1  # (_motor_setpoint_n's count)
         self._drive_from_coordinator(thrusts_n)
+        if self.ulog is not None:
+            self._ulog_sample()
         return True
 
     def drive_motors(self) -> ActuatorOutput:

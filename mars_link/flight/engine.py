@@ -58,8 +58,9 @@ class InProcessUnits:
         for p in packets:
             v = vehicles[p.unit_id]
             # the unit's own state (HIL_STATE_QUATERNION in SITL) matters only while it flies itself or may
-            # have to (arming, a command stream about to lapse): the world computes it only then
-            own = v.source != "coordinator" or not v.intake.is_live(p.t_s + v.control_dt_s)
+            # have to (arming, a command stream about to lapse), or logs it now (.ulg): the world computes it only then
+            own = (v.source != "coordinator" or not v.intake.is_live(p.t_s + v.control_dt_s)
+                   or v.ulog is not None and v.ulog.due(p.t_s))
             out.append(v.take_sensors(p, unit_truth(p.unit_id)) if own else v.take_sensors(p))
         return out
 

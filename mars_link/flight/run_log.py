@@ -112,6 +112,10 @@ class RunLog:
                 self._closed.append(f.status())
         self._tel = self._rot = None
 
+    def add_closed_logs(self, statuses: list[dict]) -> None:
+        """Other logs of the run, closed (e.g. the units' .ulg: mars_link.logs): `status()` accounts for them."""
+        self._closed.extend(statuses)
+
     def status(self) -> dict:
         """summary.json "logging": whether the time series were written whole, and why not."""
         files = [f.status() for f in (self._tel, self._rot) if f is not None] + list(self._closed)

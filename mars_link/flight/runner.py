@@ -31,6 +31,7 @@ def run_trial(
     unit_deaths: dict[int, float] | None = None,
     realtime_rate: float = 0.0,
     view=None,
+    ulog_dir: Path | None = None,
 ) -> TrialResult:
     """One flight through the engine (mars_link.flight.engine): world, units and coordinator by direct calls.
 
@@ -38,8 +39,14 @@ def run_trial(
     coordinator, not told, declares it lost after `UNIT_TIMEOUT_PERIODS` silent control periods.
     `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time.
     `view` (flight_view.FlightView, or a callable flight -> one): run.mcap and/or the live Foxglove view.
+    `ulog_dir`: each unit writes unit<id>.ulg there (trial i > 0: unit<id>_trial<i>.ulg; mars_link.logs).
     """
     flight = build_flight(scenario, seed, unit_deaths)
+    if ulog_dir is not None:
+        from firmware_models.vehicle_ulog import attach_ulogs
+
+        name = "unit{unit}.ulg" if trial_index == 0 else f"unit{{unit}}_trial{trial_index}.ulg"
+        attach_ulogs(flight.units.vehicles, ulog_dir, name)
     recorder = FlightRecorder(flight, log, trial_index)
     view = view(flight) if callable(view) else view
     engine = Engine(flight, [recorder] + ([view] if view is not None else []), Pacer(realtime_rate))
@@ -48,6 +55,12 @@ def run_trial(
         engine.run(on_progress)
     finally:
         flight.world.close()
+        if ulog_dir is not None:
+            from firmware_models.vehicle_ulog import close_ulogs
+
+            ulogs = close_ulogs(flight.units.vehicles)
+            if log is not None:
+                log.add_closed_logs(ulogs)
         if view is not None:
             view.finish(engine)
         if log is not None:
@@ -84,10 +97,12 @@ def run_scenario(
     realtime_rate: float = 0.0,
     mcap: bool = True,
     live=None,
+    logs: frozenset[str] = frozenset(),
 ) -> dict:
     """Fly `trials` trials (seeds seed, seed+1, ...); write the run directory if `out_dir` is given.
     `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time.
-    `mcap`: run.mcap in `out_dir` (trial i > 0: run_trial<i>.mcap); `live`: HOST:PORT of a live Foxglove view (flight_view)."""
+    `mcap`: run.mcap in `out_dir` (trial i > 0: run_trial<i>.mcap); `live`: HOST:PORT of a live Foxglove view (flight_view).
+    `logs`: per-unit logs beside the run's own ("ulog": unit<id>.ulg in `out_dir`; mars_link.logs.LOG_KINDS)."""
     seed = scenario.sim.seed if seed is None else seed
     log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ),
                  plot_rows_max=PLOT_ROWS_MAX)  # streamed to the CSVs; memory flat in trials and duration
@@ -97,7 +112,8 @@ def run_scenario(
             log.new_trial()
             cb = None if on_progress is None else (lambda frac, i=i: on_progress(i, frac))
             view = _view_maker(scenario, out_dir if mcap else None, live, "run.mcap" if i == 0 else f"run_trial{i}.mcap")
-            results.append(run_trial(scenario, seed + i, i, log, cb, realtime_rate=realtime_rate, view=view))
+            results.append(run_trial(scenario, seed + i, i, log, cb, realtime_rate=realtime_rate, view=view,
+                                     ulog_dir=out_dir if "ulog" in logs and out_dir is not None else None))
             if on_progress is not None:
                 on_progress(i, 1.0)
     finally:

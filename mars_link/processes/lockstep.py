@@ -532,10 +532,11 @@ class UnitPorts:
 
 def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, clients: list[UnitPorts],
               command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None,
-              require_signing: bool = False) -> int:
+              require_signing: bool = False, ulog: bool = True) -> int:
     """Several units' firmwares in this process (`--units-per-process K`), each its own MAVLink system
-    with its own links, tlog and status file, served by one event loop: one wake-up serves every unit
-    whose datagram came in, and the start-up (imports) is paid once. One unit is the default."""
+    with its own links, tlog, ULog (unit<id>.ulg, unless `ulog` is False) and status file, served by one
+    event loop: one wake-up serves every unit whose datagram came in, and the start-up (imports) is paid
+    once. One unit is the default."""
     from mars_link.processes.vehicle_io import write_json_atomic
 
     out.mkdir(parents=True, exist_ok=True)
@@ -544,7 +545,7 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
     sel = selectors.DefaultSelector()
     try:
         for u, client in zip(unit_ids, clients):
-            unit = _UnitLoop(setup, u, ports, out, client, command_timeout_s, key, require_signing)
+            unit = _UnitLoop(setup, u, ports, out, client, command_timeout_s, key, require_signing, ulog)
             units.append(unit)
             for name, t in unit.io.links.items():
                 sel.register(t, selectors.EVENT_READ, (unit, name))
@@ -582,7 +583,7 @@ class _UnitLoop:
     """One unit's firmware, its links and its wall-clock housekeeping, driven by `run_units`' loop."""
 
     def __init__(self, setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: UnitPorts,
-                 command_timeout_s: float, key: bytes | None, require_signing: bool) -> None:
+                 command_timeout_s: float, key: bytes | None, require_signing: bool, ulog: bool = True) -> None:
         from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL
         from mars_link.flight.build import make_unit
         from mars_link.processes.vehicle_io import LinkSpec, VehicleSockets, client_links
@@ -600,6 +601,10 @@ class _UnitLoop:
         self.vehicle = vehicle
         self.io = VehicleSockets(vehicle, links, tlog=out / f"unit{unit_id}.tlog")
         self.io.batch = True
+        if ulog:  # (its own writer thread, sampled in the step's slack: the lockstep never waits for the disk)
+            from firmware_models.vehicle_ulog import UlogConfig
+
+            vehicle.start_ulog(UlogConfig(out / f"unit{unit_id}.ulg", background=True))
         self.hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.docked else [])
         self.status_path = out / f"unit{unit_id}_status.json"
         self.next_hello = self.next_tick = self.next_status = 0.0
@@ -661,7 +666,7 @@ class _UnitLoop:
         vehicle.run_deferred()
         cpu = {} if loop is None else {"cpu_s": time.process_time(), **loop}
         write_json_atomic(self.status_path, vehicle_status(vehicle, vehicle.state, vehicle.sim_s, **cpu,
-                                                           **self.io.counters()))
+                                                           **self.io.counters(), ulog=vehicle.stop_ulog()))
 
 
 # ----------------------------------------------------------------------------- coordinator

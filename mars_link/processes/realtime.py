@@ -258,9 +258,14 @@ def vehicle_command(args: argparse.Namespace) -> int:
             raise UserInputError(f"cannot open {exc.filename}: {exc.strerror}") from None
         raise
     view = _attach_view(sim, out, live)
+    if out is not None:  # the vehicle's ULog, as PX4 SITL writes one (mars_link.logs; closed by sim.close)
+        from firmware_models.vehicle_ulog import UlogConfig
+
+        sim.vehicle.start_ulog(UlogConfig(out / "vehicle.ulg", background=True))
     from firmware_models.vehicle_logs import LogStore
 
-    sim.vehicle.logs = LogStore([args.tlog, out / "run.mcap" if out is not None else None])  # LOG_* download
+    sim.vehicle.logs = LogStore([args.tlog, out / "run.mcap" if out is not None else None,  # LOG_* download
+                                 out / "vehicle.ulg" if out is not None else None])
     ep = runner.endpoints()
     s = sim.scenario
     print(f"mars-link vehicle: {s.name}, layout {','.join(s.layout)} ({sim.model.n_units} units, "

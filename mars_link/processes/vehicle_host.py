@@ -75,7 +75,8 @@ class HostedVehicle:
     """AssemblyVehicle + its client sockets, stepped by the lockstep coordinator."""
 
     def __init__(self, scenario, model, detector, ports: VehiclePorts, out: Path, signing_key: bytes | None = None,
-                 require_signing: bool = False) -> None:
+                 require_signing: bool = False, ulog: bool = True) -> None:
+        """`ulog`: the vehicle writes vehicle.ulg in `out` (mars_link.logs), by default as PX4 SITL logs."""
         from firmware_models.vehicle import LINK_API, LINK_GCS
         from mars_link.processes.vehicle_io import LOOPBACK, LinkSpec, VehicleSockets
         from mars_link.vehicles.assembly_vehicle import AssemblyVehicle, SetpointSource, _KnownEstimate, vehicle_scenario
@@ -122,6 +123,10 @@ class HostedVehicle:
             LINK_GCS: LinkSpec(ports.gcs_bind, (LOOPBACK, ports.gcs_port)),
             LINK_API: LinkSpec(ports.api_bind, (LOOPBACK, ports.api_port)),
         }, out / "vehicle.tlog")
+        if ulog:  # (its own writer thread: the coordinator's lockstep never waits for the disk)
+            from firmware_models.vehicle_ulog import UlogConfig
+
+            self.vehicle.start_ulog(UlogConfig(out / "vehicle.ulg", background=True))
         self.status_path = out / "vehicle_status.json"
         self.estimate: RigidBodyState | None = None
         self.steps = 0
@@ -254,10 +259,12 @@ class HostedVehicle:
             "pieces": None if self.flight is None else self.coordinator.pieces_final(),
             "statustext": [t for _, t in v.events[-50:]], "drops": v.drop_counts(), "stats": v.stats,
             "estimator_resets": self.estimator_resets, "steps": self.steps, **self.io.counters(),
+            "ulog": v.ulog.status() if v.ulog is not None else getattr(self, "ulog_status", None),
             "endpoints": self.endpoints(),
         })
 
     def close(self) -> None:
+        self.ulog_status = self.vehicle.stop_ulog()
         self.write_status()
         self.legs.close()
         self.io.close()

@@ -232,6 +232,11 @@ def vehicle_status(vehicle: Vehicle, truth: RigidBodyState | None, sim_time_s: f
             truth_velocity_ned_mps=[float(x) for x in truth.velocity_ned_mps],
             truth_quaternion_wxyz=[float(x) for x in truth.quaternion_wxyz],
         )
+    ulog = extra.pop("ulog", None) or (v.ulog.status() if v.ulog is not None else None)
+    if ulog is not None:  # (a stopped .ulg is a stopped log too: the run's summary lists it)
+        status["ulog"] = ulog
+        if ulog["stopped_reason"] and not extra.get("logging_stopped"):
+            status["logging_stopped"] = ulog["stopped_reason"]
     status.update(extra)
     return status
 

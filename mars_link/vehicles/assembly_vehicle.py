@@ -264,6 +264,7 @@ class SimConfig:
     signing_key: bytes | None = None  # MAVLink signing on the client links (control_policy)
     require_signing: bool = False  # unsigned clients may only read
     map_path: str | None = None  # obstacle map: mission legs planned around it (mars_link.planning.mission_legs)
+    ulog_path: str | None = None  # set: the vehicle writes a ULog (.ulg) there (mars_link.logs)
 
 
 def vehicle_scenario(scenario: Scenario) -> Scenario:
@@ -320,6 +321,7 @@ class EngineSim:
         return [float(x) for x in self.units.eta(self.model.unit_ids)]
 
     def close(self) -> None:
+        self.vehicle.stop_ulog()
         self.legs.close()
         self.world.close()
 
@@ -354,6 +356,8 @@ class AssemblySim(EngineSim):
         self.vehicle.on_failure = self.inject
         self.vehicle.on_sensor_failure = self.inject_sensor
         self.legs = attach_legs(self.vehicle, s, cfg.map_path, self.eta_believed)
+        if cfg.ulog_path:
+            self.vehicle.start_ulog(cfg.ulog_path)
         self.estimate: RigidBodyState | None = None
         self.estimator_resets = 0  # the EKF's own restarts on the measured positions (after gated batches)
         self.events: list[dict] = []  # faults (scenario and MAVLink), with coordinator.events = the record
