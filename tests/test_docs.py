@@ -150,7 +150,17 @@ def test_readme_is_short_and_opens_with_the_two_commands():
     ci = (ROOT / ".ci" / "run").read_text(encoding="utf-8")
     test_command = re.search(r"^(python -m pytest .*)$", ci, re.M)[1].strip()
     assert f'python -m pip install -e ".[test]" && {test_command}' in head
-    assert "../shared" not in README.read_text(encoding="utf-8")
+
+
+def test_the_repository_needs_nothing_beside_it():
+    """No tracked file points outside the repository (a fresh clone must run as it is)."""
+    outside = "../" + "shared"
+    files = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True).stdout.split()
+    if not files:
+        pytest.skip("not a git checkout")
+    hits = [f for f in files if (ROOT / f).suffix in (".py", ".toml", ".md", ".csv", ".yml", ".cfg", ".json")
+            and (ROOT / f).is_file() and outside in (ROOT / f).read_text(encoding="utf-8", errors="replace")]
+    assert not hits, hits
 
 
 def test_readme_commands_parse_against_the_real_parsers():
