@@ -198,6 +198,34 @@ def test_readme_python_blocks_compile_and_import():
                 exec(line, {})
 
 
+def test_docs_mars_link_commands_parse_against_the_real_parser():
+    """Every `mars-link ...` line in the site's bash blocks and indented examples parses, and names a scenario
+    that exists (continued lines and the own-parser subcommands `plan` / `reconfig plan` aside)."""
+    parser = build_parser()
+    checked = 0
+    for page in sorted((ROOT / "docs").rglob("*.md")):
+        text = page.read_text(encoding="utf-8")
+        blocks = re.findall(r"```bash\n(.*?)```", text, re.S) + re.findall(r"(?:^|\n)((?:    mars-link [^\n]*\n)+)", text)
+        for block in blocks:
+            for line in block.splitlines():
+                if not line.strip().startswith("mars-link ") or line.rstrip().endswith("\\"):
+                    continue  # (a continued command line is not checked)
+                argv = shlex.split(line.strip(), comments=True)
+                for i, token in enumerate(argv):  # the first command of `a & b`, `a && b`, `a; b`
+                    if token in ("&", "&&", ";", "|"):
+                        argv = argv[:i]
+                        break
+                if len(argv) < 2:
+                    continue
+                if argv[1] == "plan" or argv[1:3] == ["reconfig", "plan"]:
+                    continue
+                args = parser.parse_args(argv[1:])
+                if getattr(args, "scenario", None):
+                    resolve_scenario_path(args.scenario)
+                checked += 1
+    assert checked >= 10
+
+
 def test_readme_scenarios_command_lists_every_bundled_scenario():
     import json
 
