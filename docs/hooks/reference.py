@@ -34,9 +34,9 @@ if str(ROOT) not in sys.path:
 PAGES = ("reference/scenario.md", "reference/cli.md", "reference/mavlink.md", "reference/outputs.md")
 
 #: unit of a key by its suffix (the project names SI units in its keys: `thrust_n`, `duration_s`)
-SUFFIX_UNITS = (("_mps2", "m/s²"), ("_mps", "m/s"), ("_radps", "rad/s"), ("_hz", "Hz"), ("_deg", "deg"),
+SUFFIX_UNITS = (("_per_sqrt_s", "m/√s"), ("_mps2", "m/s²"), ("_mps", "m/s"), ("_radps", "rad/s"), ("_hz", "Hz"), ("_deg", "deg"),
                 ("_m2", "m²"), ("_m", "m"), ("_s", "s"), ("_n", "N"), ("_ah", "Ah"), ("_ohm", "ohm"),
-                ("_thr", "fraction"), ("_soc", "fraction"), ("_share", "fraction"), ("_per_sqrt_s", "m/√s"))
+                ("_thr", "fraction"), ("_soc", "fraction"), ("_share", "fraction"))
 
 
 def unit_of(key: str) -> str:
@@ -116,7 +116,9 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
                  "docking": "table", "separations": "array of tables", "environment": "table", "sensors": "table",
                  "mission": "table", "battery": "table", "sensor_faults": "array of tables"}
     sections.append(("top level", "The tables and the name a scenario file may hold (mars_link.scenario._TOP_KEYS).",
-                     [(f"`{k}`", "string" if k == "name" else "table", "", "—", "", top_notes.get(k, ""))
+                     [(f"`{k}`", "string" if k == "name" else
+                       ("array of tables" if "array" in top_notes.get(k, "") else "table"), "", "—", "",
+                       top_notes.get(k, "") if k == "name" else "")
                       for k in sorted(S._TOP_KEYS)]))
 
     from mars_link.assembly import vehicle_preset
@@ -125,11 +127,12 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
     vrows = [row("preset", S.DEFAULT_PRESET, ", ".join(f"`{p}`" for p in sorted(PRESETS)),
                  "a file naming no preset flies the realistic plant")]
     for key in sorted(S._VEHICLE_KEYS - {"preset"}):
-        vrows.append(row(key, getattr(vp, key, None), "", f"default: the preset's (shown: {S.DEFAULT_PRESET})",
+        shown_default = None if key == "rotor_drag_coeff" else getattr(vp, key, None)  # (drag: when it is on)
+        vrows.append(row(key, shown_default, "", f"default: the preset's (shown: {S.DEFAULT_PRESET})",
                          typ="float"))
     vrows.append(row("drag", None, "`true`, `false`", "default: on when [environment] moves the air", typ="bool"))
-    vrows.append(row("drag_area_frd_m2", getattr(vp, "drag_area_frd_m2", None), "3 numbers >= 0",
-                     "body Cd·A per unit along x, y, z; default: the preset's", typ="array"))
+    vrows.append(row("drag_area_frd_m2", None, "3 numbers >= 0",
+                     "body Cd·A per unit along x, y, z; default: the preset's when drag is on", typ="array"))
     assert {k for k in S._AERO_KEYS} <= {"drag", "drag_area_frd_m2"}
     sections.append(("[vehicle]", "The airframe: a preset and its overrides.", vrows))
 
@@ -234,7 +237,7 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
                 continue
             seen.add(key)
             gps_only = key in GPS_FIGURES
-            default = PROFILES["mocap"].figures.get(key, value) if not gps_only else value
+            default = PROFILES["gps" if gps_only else "mocap"].figures.get(key, value)
             srows.append(row(key, default, ">= 0" if key != "mag_declination_deg" else "-180..180",
                              ("gps profile only; " if gps_only else "") + "default: the profile's (shown: "
                              + ("gps" if gps_only else "mocap") + ")"))
