@@ -140,7 +140,7 @@ def bench_realtime(kind: str, seconds: float, profile: str | None = None) -> dic
     from mars_link.processes.sitl_mode import run_sitl_scenario
     from mars_link.transport import LinkSpec
 
-    sc = load_scenario(str(ROOT / "scenarios" / "hover_3x2.toml"))
+    sc = load_scenario(str(ROOT / "mars_link" / "scenarios" / "hover_3x2.toml"))
     sc.sim.duration_s = seconds
     with tempfile.TemporaryDirectory() as d:
         s = run_sitl_scenario(sc, Path(d) / kind, seed=4, link=LinkSpec(kind, profile=profile), realtime=True,
@@ -161,7 +161,7 @@ def bench_step_cpu(kind: str, seconds: float) -> dict:
     from mars_link.transport import LinkSpec
 
     def run(duration: float) -> tuple[float, int]:
-        sc = load_scenario(str(ROOT / "scenarios" / "hover_3x2.toml"))
+        sc = load_scenario(str(ROOT / "mars_link" / "scenarios" / "hover_3x2.toml"))
         sc.sim.duration_s = duration
         with tempfile.TemporaryDirectory() as d:
             out = Path(d)

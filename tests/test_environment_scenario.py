@@ -58,7 +58,7 @@ def test_bad_environment_is_one_line(env: dict, needle: str) -> None:
 
 
 def test_bundled_wind_scenarios_parse() -> None:
-    for path in sorted(Path(__file__).resolve().parent.parent.joinpath("scenarios").glob("*wind*.toml")):
+    for path in sorted(Path(__file__).resolve().parent.parent.joinpath("mars_link", "scenarios").glob("*wind*.toml")):
         sc = load_scenario(str(path))
         assert sc.environment.moves_air and sc.model().vehicle.has_drag
         tomllib.loads(path.read_text())

@@ -1,6 +1,6 @@
 """Missions flown by the assembly vehicle on planned legs (mars_link.planning.mission_legs): a damaged 3x2 (unit 2
 failed, found by the coordinator's fault detector, not told) flies a five-waypoint mission through the
-CoppeliaSim walls (../shared/data/mars_ftcc_walls.csv). Every leg is planned for the layout and the
+walls of paper 000's planning scenes (the bundled map paper000_walls.csv). Every leg is planned for the layout and the
 believed faults in a worker process: no wall contact of the true footprint. The same mission on
 minimum-snap legs (no map) touches the walls; both counts are printed. A fault found mid-leg makes the
 vehicle brake and plan the rest again."""
@@ -8,7 +8,6 @@ vehicle brake and plan the rest again."""
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,8 +15,6 @@ import pytest
 from mars_link.planning.mission_legs import min_snap_leg, septic
 from mars_link.apps.planning_eval import walls_mission_flight
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
-HAVE_WALLS = (SHARED / "data" / "mars_ftcc_walls.csv").exists()
 
 
 def test_minimum_snap_leg_starts_and_ends_at_rest_within_its_limits() -> None:
@@ -34,7 +31,6 @@ def test_minimum_snap_leg_starts_and_ends_at_rest_within_its_limits() -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not HAVE_WALLS, reason="shared data not beside the repository")
 def test_damaged_3x2_flies_five_waypoints_through_the_walls_on_planned_legs() -> None:
     planned = walls_mission_flight(True, 0.0)
     straight = walls_mission_flight(False, 0.0)
@@ -54,7 +50,6 @@ def test_damaged_3x2_flies_five_waypoints_through_the_walls_on_planned_legs() ->
 
 
 @pytest.mark.long  # (a second walls flight, for CI's time: run with -m long)
-@pytest.mark.skipif(not HAVE_WALLS, reason="shared data not beside the repository")
 def test_a_fault_found_mid_leg_brakes_and_plans_the_rest_again() -> None:
     res = walls_mission_flight(True, 33.0)  # unit 2 fails while the first leg is flown
     assert [(u, r) for u, r, _ in res["detections"]] == [(2, None)] and res["detections"][0][2] >= 33.0

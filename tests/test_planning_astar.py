@@ -15,7 +15,6 @@ from mars_link.planning.footprint import Footprint, footprint_clearance
 from mars_link.planning.maps import ObstacleMap, SignedDistanceField
 from mars_link.planning.pipeline import Planner, sample_trajectory
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 
 
 def gap_map(gap_m: float, bounds=(-1.0, 11.0, -4.0, 4.0)) -> ObstacleMap:
@@ -79,8 +78,6 @@ def test_no_path_when_the_gap_is_too_narrow():
 def walls_planner(layout: str, unit: int) -> tuple[Planner, np.ndarray, np.ndarray]:
     from mars_link.apps.planning_eval import WALLS_GOAL, WALLS_START, walls_map
 
-    if not (SHARED / "data" / "mars_ftcc_walls.csv").exists():
-        pytest.skip("shared data not beside the repository")
     model = AssemblyModel.from_layout(layout)
     eta = model.nominal_eta()
     eta[model.unit_slots(unit)] = 0.0

@@ -22,7 +22,6 @@ from mars_link.planning.maps import (
     random_forest,
 )
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 HEADER = "cx,cy,length_m,thickness_m,height_m,yaw_deg\n"
 
 
@@ -65,10 +64,10 @@ def test_malformed_boxes_csv(tmp_path, text, msg):
         load_boxes_csv(write(tmp_path, "bad.csv", text))
 
 
-def test_walls_file_from_the_shared_data():
-    if not (SHARED / "data" / "mars_ftcc_walls.csv").exists():
-        pytest.skip("shared data not beside the repository")
-    m = load_boxes_csv(SHARED / "data" / "mars_ftcc_walls.csv", altitude_m=2.3)
+def test_bundled_walls_map_of_paper_000():
+    from mars_link.planning.pipeline import resolve_data_path
+
+    m = load_boxes_csv(resolve_data_path("paper000_walls.csv"), altitude_m=2.3)
     assert len(m.boxes) == 28
     # the scaled 3.3 m wall at scene (0.15, 5.175), yaw 90, runs along east at north 5.175
     assert m.signed_distance(np.array([[5.175, 1.5]]))[0] < 0

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,7 +17,6 @@ from mars_link.planning.maps import ObstacleMap, SignedDistanceField
 from mars_link.planning.minco import Minco, MincoSpline, basis
 from mars_link.planning.pipeline import Planner, sample_trajectory
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 
 
 def random_problem(seed: int = 0, n: int = 6):
@@ -165,8 +163,6 @@ def walls_3x2():
     from mars_link.apps.planning_eval import WALLS_GOAL, WALLS_START, walls_map
     from mars_link.planning.pipeline import PlanParams
 
-    if not (SHARED / "data" / "mars_ftcc_walls.csv").exists():
-        pytest.skip("shared data not beside the repository")
     model = AssemblyModel.from_layout("XXX,XXX")
     eta = model.nominal_eta()
     eta[model.unit_slots(2)] = 0.0

@@ -109,7 +109,7 @@ def _cli(tmp_path: Path, text: str, *extra: str) -> subprocess.CompletedProcess:
                            "--quiet", *extra], capture_output=True, text=True, timeout=120)
 
 
-DOCK = (Path(__file__).resolve().parent.parent / "scenarios" / "docking_3x1.toml").read_text(encoding="utf-8")
+DOCK = (Path(__file__).resolve().parent.parent / "mars_link" / "scenarios" / "docking_3x1.toml").read_text(encoding="utf-8")
 
 
 def test_mars_link_run_dispatches_reconfig_scenarios(tmp_path):

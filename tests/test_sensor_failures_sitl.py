@@ -89,7 +89,7 @@ def test_gps_lost_10_s_mid_spiral_through_mavsdk_on_sitl_up(tmp_path: Path) -> N
     out = tmp_path / "run"
     apis = [free_udp_port() for _ in range(6)]
     scenario = tmp_path / "spiral_3x2_fdi.toml"  # spiral_3x2 with the fault detector on (faults not told)
-    scenario.write_text((Path(__file__).resolve().parent.parent / "scenarios" / "spiral_3x2.toml").read_text()
+    scenario.write_text((Path(__file__).resolve().parent.parent / "mars_link" / "scenarios" / "spiral_3x2.toml").read_text()
                         .replace('ftc = "none"', 'ftc = "qp"\nfaults_known = false'))
     run = start(str(scenario), out, speed=2.0, clients=ClientPorts(free_udp_port(), apis, bind_any=True))
     truth: list = []
@@ -131,7 +131,7 @@ def test_scheduled_sensor_faults_fly_the_same_in_sitl_and_in_process(tmp_path: P
     """[[sensor_faults]] are scheduled in the unit firmware, so `sitl up` (six unit processes, the failed
     sensors in what they forward over MAVLink) flies the in-process flight: every unit's GPS off 4-6 s and
     unit 3's accelerometer stuck 3-5 s in the 3x2 hover; CoM truth equal within 1 mm, same findings."""
-    base = (Path(__file__).resolve().parent.parent / "scenarios" / "hover_3x2.toml").read_text()
+    base = (Path(__file__).resolve().parent.parent / "mars_link" / "scenarios" / "hover_3x2.toml").read_text()
     scenario = tmp_path / "hover_3x2_sensor_faults.toml"
     scenario.write_text(base + '\n[[sensor_faults]]\nt = 4.0\nsensor = "gps"\ntype = "off"\nduration_s = 2.0\n'
                         '\n[[sensor_faults]]\nt = 3.0\nsensor = "accel"\ntype = "stuck"\nunit = 3\nduration_s = 2.0\n')

@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def _short_hover(tmp_path: Path, duration_s: float) -> str:
-    text = (ROOT / "scenarios" / "hover_3x2.toml").read_text()
+    text = (ROOT / "mars_link" / "scenarios" / "hover_3x2.toml").read_text()
     path = tmp_path / "hover_short.toml"
     path.write_text(text.replace("[sim]", f"[sim]\nduration_s = {duration_s}"))
     return str(path)

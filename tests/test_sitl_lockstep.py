@@ -20,7 +20,7 @@ from mars_link.config.scenario import load_scenario
 from mars_link.mavlink.wire import new_mav
 from mars_link.processes.launcher import ClientPorts, free_udp_port, start, wait
 
-SCENARIO = str(Path(__file__).resolve().parent.parent / "scenarios" / "hover_3x2.toml")
+SCENARIO = str(Path(__file__).resolve().parent.parent / "mars_link" / "scenarios" / "hover_3x2.toml")
 
 
 def _unit_ports(out: Path, unit: int, timeout_s: float = 60.0) -> dict:

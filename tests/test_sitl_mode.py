@@ -17,7 +17,7 @@ from mars_link.processes.sitl_mode import run_sitl_scenario
 from mars_link.transport import LinkSpec
 
 ROOT = Path(__file__).resolve().parent.parent
-SPIRAL = ROOT / "scenarios" / "spiral_3x2.toml"
+SPIRAL = ROOT / "mars_link" / "scenarios" / "spiral_3x2.toml"
 DURATION_S = 2.0
 
 
@@ -78,7 +78,7 @@ def test_a_killed_unit_process_is_a_failed_unit_and_the_flight_goes_on(tmp_path:
     import time
 
     scenario = tmp_path / "hover.toml"
-    scenario.write_text((ROOT / "scenarios" / "hover_3x2.toml").read_text().replace("[sim]", "[sim]\nduration_s = 4.0"))
+    scenario.write_text((ROOT / "mars_link" / "scenarios" / "hover_3x2.toml").read_text().replace("[sim]", "[sim]\nduration_s = 4.0"))
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "run", str(scenario), "--mode", "sitl",
                              "--transport", "udp", "--ftc", "qp", "--out", str(out), "--quiet"],

@@ -28,7 +28,7 @@ PAUSED_UNIT = 3
 
 
 def _scenario(tmp_path: Path) -> str:
-    text = (ROOT / "scenarios" / "hover_3x2.toml").read_text().replace('ftc = "none"', 'ftc = "qp"')
+    text = (ROOT / "mars_link" / "scenarios" / "hover_3x2.toml").read_text().replace('ftc = "none"', 'ftc = "qp"')
     text = text.replace("duration_s = 8.0", f"duration_s = {DURATION_S}")
     path = tmp_path / "hover_qp.toml"
     path.write_text(text)

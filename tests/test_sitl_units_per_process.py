@@ -21,7 +21,7 @@ from mars_link.processes.launcher import ClientPorts, free_udp_port, start, wait
 
 pytestmark = [pytest.mark.sitl, pytest.mark.timeout(300)]
 ROOT = Path(__file__).resolve().parent.parent
-SCENARIO = str(ROOT / "scenarios" / "hover_3x2.toml")
+SCENARIO = str(ROOT / "mars_link" / "scenarios" / "hover_3x2.toml")
 
 
 def _heartbeat_sources(sock: socket.socket) -> set[int]:

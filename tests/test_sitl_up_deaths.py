@@ -25,7 +25,7 @@ KILLED_UNIT = 3
 
 
 def _scenario(tmp_path: Path, duration_s: float) -> str:
-    text = (ROOT / "scenarios" / "hover_3x2.toml").read_text().replace('ftc = "none"', 'ftc = "qp"')
+    text = (ROOT / "mars_link" / "scenarios" / "hover_3x2.toml").read_text().replace('ftc = "none"', 'ftc = "qp"')
     path = tmp_path / "hover_qp.toml"
     path.write_text(text.replace("duration_s = 8.0", f"duration_s = {duration_s}"))
     return str(path)

@@ -26,7 +26,7 @@ from mars_link.transport import LinkSpec
 from mars_link.transport.zenoh_link import free_tcp_port, open_router
 
 ROOT = Path(__file__).resolve().parent.parent
-HOVER = ROOT / "scenarios" / "hover_3x2.toml"
+HOVER = ROOT / "mars_link" / "scenarios" / "hover_3x2.toml"
 UNITS = [1, 2, 3, 4, 5, 6]
 
 

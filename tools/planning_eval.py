@@ -5,7 +5,8 @@
 Walls: for 4x1 (unit 3 failed), 4x1 (unit 4 failed), 3x2 (unit 2 failed) both planners plan on the
 paper's walls at 2.3 m; each plan is flown with FTC (cascaded + hybrid allocation with sensor noise,
 the same without noise, and the paper's own controller + hybrid) and the true footprint is checked against the walls.
-Replay: the four published planner CSVs (shared/data) flown the same way. Forest: seeded random
+Replay: the four published planner CSVs flown the same way (`--published DIR`: they are not shipped;
+mars_link.apps.planning_eval.PUBLISHED_SOURCE says where to get them). Forest: seeded random
 forests, success / clearance / time per stage. Prints markdown tables; writes results.json and PNGs.
 """
 
@@ -29,8 +30,9 @@ sys.path.insert(0, str(ROOT))
 from mars_link.core.assembly import AssemblyModel  # noqa: E402
 from mars_link.logs.outputs import write_json  # noqa: E402
 from mars_link.apps.planning_eval import (  # noqa: E402
-    PAPER_CASES, WALLS_CSV, WALLS_GOAL, WALLS_START, fly, forest_sweep, replay_published, walls_map,
+    PAPER_CASES, WALLS_CSV, WALLS_GOAL, WALLS_START, fly, forest_sweep, published_csv, replay_published, walls_map,
 )
+from mars_link.core.errors import UserInputError  # noqa: E402
 from mars_link.planning.maps import ForestParams  # noqa: E402
 from mars_link.planning.pipeline import Planner, PlanParams  # noqa: E402
 from mars_link.planning.plots import plot_plan  # noqa: E402
@@ -110,15 +112,19 @@ def walls_table(rows: list[dict]) -> str:
     return head + "\n".join(lines)
 
 
-def replay_flight(layout: str, unit: int, method: str, work_dir: Path, controller: str, noise: bool):
+def replay_flight(layout: str, unit: int, method: str, work_dir: Path, controller: str, noise: bool,
+                  published_dir: str | None = None):
     """One published CSV flown in a sweep worker (mars_link.apps.planning_eval.replay_published); each controller
     converts into its own directory (two flights of one CSV may run at once)."""
-    return replay_published(layout, unit, method, work_dir / KEYS[controller, noise], controller=controller,
-                            noise=noise)
+    return replay_published(layout, unit, method, work_dir / KEYS[controller, noise], published_dir,
+                            controller=controller, noise=noise)
 
 
-def replay(out: Path, pool: PoolSpec) -> list[dict]:
-    tasks = [(layout, unit, method, out / "paper_csv", controller, noise)
+def replay(out: Path, pool: PoolSpec, published_dir: str | None = None) -> list[dict]:
+    for layout, _ in PAPER_CASES:  # all there, or one line saying where to get them, before any flight
+        for method in ("ours", "svsdf"):
+            published_csv(layout, method, published_dir)
+    tasks = [(layout, unit, method, out / "paper_csv", controller, noise, published_dir)
              for layout, unit in PAPER_CASES for method in ("ours", "svsdf") for controller, noise in CONTROLLERS]
     flights = iter(values_or_raise(map_flights(replay_flight, tasks, pool, print_progress(len(tasks), "replay flights")),
                                    "replay flight"))
@@ -206,6 +212,9 @@ def main() -> int:
     ap.add_argument("--density", type=float, default=10.0, help="forest trunks per 100 m²")
     ap.add_argument("--margin", type=float, default=0.3, help="planning margin on the walls [m]")
     ap.add_argument("--out", default="runs/planning_eval")
+    ap.add_argument("--published", metavar="DIR", default=None,
+                    help="folder of the published planner CSVs for --what replay (not shipped; default: "
+                         "$MARS_LINK_PUBLISHED_PLANS). Where to get them: mars_link.apps.planning_eval.PUBLISHED_SOURCE")
     add_pool_arguments(ap)  # --workers / --scheduler: the walls and replay flights go through the sweep's executor
     args = ap.parse_args()
     out = Path(args.out)
@@ -217,7 +226,11 @@ def main() -> int:
         results["walls"] = walls(out, args.margin, args.flight_seeds, pool_from_args(args))
         print(f"\n### Walls map (margin {args.margin} m)\n\n" + walls_table(results["walls"]))
     if "replay" in what:
-        results["replay"] = replay(out, pool_from_args(args))
+        try:
+            results["replay"] = replay(out, pool_from_args(args), args.published)
+        except UserInputError as exc:
+            log(f"planning_eval: {exc}")
+            return 2
         print("\n### Published planner CSVs replayed\n\n" + replay_table(results["replay"]))
     if "forest" in what:
         results["forest"] = forest(out, args.seeds, args.density, 0.1)

@@ -259,6 +259,22 @@ def cmd_vehicle(args) -> int:
     return vehicle_command(args)
 
 
+def cmd_scenarios(args) -> int:
+    """The bundled scenarios: name and the first line of each file's header comment (--json: with paths)."""
+    import json
+
+    from mars_link.config.scenario import bundled_scenarios
+
+    found = bundled_scenarios()
+    if args.json:
+        print(json.dumps(found, indent=2))
+    else:
+        width = max((len(s["name"]) for s in found), default=0)
+        for s in found:
+            print(f"{s['name']:<{width}}  {s['description']}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mars-link", description="SITL flight stack for modular aerial robots")
     sub = parser.add_subparsers(dest="command", parser_class=_Parser)
@@ -283,6 +299,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_view_arguments(run)  # --no-mcap, --foxglove [HOST:PORT]
     run.add_argument("--quiet", action="store_true", help="no progress bar")
     run.set_defaults(func=cmd_run)
+
+    scen = sub.add_parser("scenarios", help="list the bundled scenarios (name and one-line description)")
+    scen.add_argument("--json", action="store_true", help="a JSON list of {name, description, path}")
+    scen.set_defaults(func=cmd_scenarios)
 
     sitl = sub.add_parser("sitl", help="up [SCENARIO] [--units N | --layout ROWS]: world, one process per unit (MAVLink), coordinator; lockstep")
     sitl.add_argument("action", help="up")

@@ -77,7 +77,10 @@ def plan_from_args(args) -> tuple:
         if not (math.isfinite(args.margin) and 0 <= args.margin <= 2):
             raise UserInputError(f"--margin {args.margin:g}: must be in [0, 2] m")
         params.margin_m = args.margin
-    obstacles = load_map(args.map, altitude_m=-start[2]).with_bounds_around(start, goal, pad_m=params.map_pad_m)
+    from mars_link.planning.pipeline import resolve_data_path
+
+    # a path, or a bundled map's name
+    obstacles = load_map(resolve_data_path(args.map), altitude_m=-start[2]).with_bounds_around(start, goal, pad_m=params.map_pad_m)
     planner = Planner(obstacles, model, eta_after(model, faults, math.inf), params)
     s = np.array([start[0], start[1], math.radians(args.start_yaw)])
     return planner, planner.plan(s, goal[:2], args.method, start[2]), obstacles

@@ -8,6 +8,7 @@ the truth pose in the telemetry (CoM, yaw) is checked against the exact obstacle
 from __future__ import annotations
 
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,19 +19,25 @@ from mars_link.planning.footprint import Footprint, footprint_clearance
 from mars_link.planning.maps import ObstacleMap, load_boxes_csv
 from mars_link.planning.pipeline import resolve_data_path
 
-#: published planner paths (shared/data/README.md): scale, time scale, offsets, flight height
+#: how paper 000's planning scenes map the published planner paths into simulation metres: scale, time
+#: scale, offsets, flight height
 PAPER_SCALE, PAPER_TIME_SCALE, PAPER_T0_S = 0.5, 2.0, 5.0
 PAPER_START_SIM = (0.35, 0.175)
 PAPER_HEIGHT_M = 2.3
-WALLS_CSV = "../shared/data/mars_ftcc_walls.csv"
+WALLS_CSV = "paper000_walls.csv"  # the bundled map (mars_link/planning/data)
+#: where the published planner outputs come from (not shipped: that repository has no licence); `published_dir`
+#: arguments and the MARS_LINK_PUBLISHED_PLANS environment variable name a folder holding these files
+PUBLISHED_SOURCE = ("github.com/RuiHuangNUS/MARS-FTCC at commit d4d719230f8c952b5d0a6ecb8f4793258f8643ee, folder "
+                    "Simulation/trajectory_planning: '3X2 trajectory data/data_3x2.csv' (saved as "
+                    "mars_ftcc_plan_3x2_svsdf.csv), 'data_3x2_ours.csv' (mars_ftcc_plan_3x2_ours.csv), and the same for 4X1")
 #: the three fault cases of paper 000's planning figures: (layout, failed unit)
 PAPER_CASES = (("XXXX", 3), ("XXXX", 4), ("XXX,XXX", 2))
 #: start and goal of the published paths in sim metres, as NED (north = y_sim, east = x_sim)
 WALLS_START = (0.175, 0.35, -PAPER_HEIGHT_M)
 WALLS_GOAL = (27.175, 11.35, -PAPER_HEIGHT_M)
-#: a five-waypoint mission along the published 3x2 path (these fractions of it): straight lines between
-#: them cross walls
-MISSION_FRACTIONS = (0.3, 0.45, 0.7, 0.9, 1.0)
+#: a five-waypoint mission (north, east in metres) along the published 3x2 path ("ours"), at 30, 45, 70, 90
+#: and 100 % of its samples: straight lines between them cross walls
+MISSION_WAYPOINTS_NE = ((9.2104, 2.3062), (14.3159, 3.0013), (25.8196, 6.5713), (27.7508, 10.3899), (27.175, 11.35))
 
 
 @dataclass
@@ -84,13 +91,22 @@ def fly(trajectory: dict, layout: str, failed_unit: int | None, obstacles: Obsta
 
 
 # ----------------------------------------------------------------------------- published CSVs
-def published_csv(layout: str, method: str) -> Path:
+def published_csv(layout: str, method: str, published_dir: str | Path | None = None) -> Path:
+    """The published planner CSV of a layout and method in `published_dir` (default: the folder named by
+    MARS_LINK_PUBLISHED_PLANS); a UserInputError saying where to get it when it is not there."""
+    from mars_link.core.errors import UserInputError
+
     name = {"XXXX": "4x1", "XXX,XXX": "3x2"}[layout]
-    return resolve_data_path(f"../shared/data/mars_ftcc_plan_{name}_{method}.csv")
+    folder = published_dir if published_dir is not None else os.environ.get("MARS_LINK_PUBLISHED_PLANS")
+    path = Path(folder or ".") / f"mars_ftcc_plan_{name}_{method}.csv"
+    if not path.is_file():
+        raise UserInputError(f"published planner output {path} not found: get it from {PUBLISHED_SOURCE}, and name "
+                             "its folder with --published DIR or MARS_LINK_PUBLISHED_PLANS")
+    return path
 
 
 def convert_published(path: Path) -> np.ndarray:
-    """Rows (t, n, e, d, yaw_ned) in sim metres as the scenes map them (README of shared/data):
+    """Rows (t, n, e, d, yaw_ned) in sim metres as paper 000's planning scenes map them:
     t = 2 t + 5 s from row 2 on, p = 0.5 (p - p0) + (0.35, 0.175), row 1 at t = 0 at the start;
     north = y_sim, east = x_sim, yaw_NED = -(yaw - yaw0) (rebased for both layouts)."""
     data = np.loadtxt(path, delimiter=",", skiprows=1)
@@ -111,9 +127,10 @@ def path_metrics(rows: np.ndarray) -> dict:
             "length_m": float(np.hypot(*np.diff(rows[:, 1:3], axis=0).T).sum()), "duration_s": float(rows[-1, 0])}
 
 
-def replay_published(layout: str, failed_unit: int, method: str, work_dir: Path, **fly_kw) -> tuple[dict, FlightResult]:
+def replay_published(layout: str, failed_unit: int, method: str, work_dir: Path, published_dir: str | Path | None = None,
+                     **fly_kw) -> tuple[dict, FlightResult]:
     """Fly a published planner CSV (converted once into `work_dir`) with FTC; count wall contacts."""
-    rows = convert_published(published_csv(layout, method))
+    rows = convert_published(published_csv(layout, method, published_dir))
     work_dir.mkdir(parents=True, exist_ok=True)
     out = work_dir / f"paper_{layout.replace(',', '_')}_{method}.csv"
     np.savetxt(out, rows, delimiter=",", fmt="%.6f", header="t_s,n_m,e_m,d_m,yaw_rad", comments="")
@@ -170,8 +187,7 @@ def walls_mission_flight(use_map: bool, fault_t_s: float, on_step=None, paced: b
                                     map_path=WALLS_CSV if use_map else None))
     sim.legs.wait_for_plans = not paced
     wall0 = time.monotonic()
-    rows = convert_published(published_csv("XXX,XXX", "ours"))
-    wps = [rows[int(round(f * (len(rows) - 1)))][1:3] for f in MISSION_FRACTIONS]
+    wps = [np.array(ne) for ne in MISSION_WAYPOINTS_NE]
     gcs, dec = R.MAVLink(None, 245, 190), R.MAVLink(None, 0, 0)
     got: list = []
     res: dict = {"poses": [], "reached": [], "texts": []}

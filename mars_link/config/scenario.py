@@ -1,16 +1,19 @@
 """Scenario files (TOML): load, validate and turn into plain dataclasses.
 
 Every problem is reported as one `UserInputError` line that names the file and the key, so the CLI
-can print it and exit 2 without a traceback. The schema is documented in README.md.
+can print it and exit 2 without a traceback. The keys are listed in the documentation's scenario reference,
+which docs/hooks/reference.py generates from this module.
 """
 
 from __future__ import annotations
 
+import difflib
 import math
 import os
 import re
 import tomllib
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +28,8 @@ from mars_link.core.table_checks import check_keys as _check_keys, integer as _i
 
 CONTROLLERS = ("cascaded", "mars-ftcc-paper")
 FTC_MODES = ("none", "unit", "partial", "full", "hybrid", "qp")
-SCENARIO_DIR = Path(__file__).resolve().parents[2] / "scenarios"
+#: the bundled scenarios: package data (found from any working directory, also in a non-editable install)
+SCENARIO_DIR = Path(str(resources.files("mars_link").joinpath("scenarios")))
 DEFAULT_SCENARIO = "spiral_3x2"
 #: what `mars-link vehicle`, `sitl up` and `mars-link coordinator` fly when no scenario is named: the realistic plant
 INTERACTIVE_SCENARIO = "hover_3x2_real"
@@ -455,7 +459,31 @@ def resolve_scenario_path(arg: str | None) -> Path:
     bundled = SCENARIO_DIR / (arg if arg.endswith(".toml") else f"{arg}.toml")
     if bundled.exists():
         return bundled
-    raise UserInputError(f"scenario {arg!r} not found (no such file, and no bundled scenario of that name)")
+    close = difflib.get_close_matches(Path(arg).name.removesuffix(".toml"), bundled_scenario_names(), n=3)
+    hint = f"; did you mean {' or '.join(close)}?" if close else "; `mars-link scenarios` lists them"
+    raise UserInputError(f"scenario {arg!r} not found (no such file, and no bundled scenario of that name){hint}")
+
+
+def bundled_scenario_names() -> list[str]:
+    return sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
+
+
+def scenario_description(path: Path) -> str:
+    """A scenario file's one-line description: the first line of its header comment ("" when it has none)."""
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except (OSError, UnicodeDecodeError):
+        return ""
+    for line in lines:
+        if line.strip():
+            return line.strip().lstrip("#").strip() if line.lstrip().startswith("#") else ""
+    return ""
+
+
+def bundled_scenarios() -> list[dict[str, str]]:
+    """Every bundled scenario: name, one-line description and path (what `mars-link scenarios` prints)."""
+    return [{"name": p.stem, "description": scenario_description(p), "path": str(p)}
+            for p in sorted(SCENARIO_DIR.glob("*.toml"))]
 
 
 def load_scenario(arg: str | None) -> Scenario:

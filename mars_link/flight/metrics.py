@@ -117,6 +117,8 @@ def summarize(scenario, results: list[TrialResult], seed: int, mode: str = "inpr
     sim_time = sum(r.sim_time_s for r in results)
     wall_time = sum(r.wall_time_s for r in results)
     stage = {k: sum(r.stage_time_s.get(k, 0.0) for r in results) for k in STAGES}
+    from mars_link.provenance import provenance
+
     return {
         "scenario": scenario.name,
         "source": scenario.source,
@@ -149,6 +151,7 @@ def summarize(scenario, results: list[TrialResult], seed: int, mode: str = "inpr
              "max_error_m": r.max_error_m, "diverged": r.diverged}
             for r in results
         ],
+        "provenance": provenance(scenario),  # version, commit, the scenario as resolved
     }
 
 

@@ -1,7 +1,7 @@
 """Planar obstacle maps (local NED, metres) and the signed distance field the planner queries.
 
 Obstacles are oriented boxes and discs in the north-east plane at the flight altitude. Sources:
-a boxes CSV in the z-up scene frame of `data/mars_ftcc_walls.csv` (converted once here:
+a boxes CSV in the z-up scene frame of paper 000's walls (`mars_link/planning/data/paper000_walls.csv`) (converted once here:
 north = y, east = x, NED angle = -yaw), ASCII `.pcd` point clouds (same z-up frame; each point a
 small disc) and a seeded random forest of discs. The SDF is a scipy EDT of the rasterised
 obstacles; `query` is a bilinear interpolant with its exact gradient, so an optimiser sees a
@@ -83,7 +83,7 @@ def load_boxes_csv(path: str | Path, altitude_m: float | None = None) -> Obstacl
     along scene y). Boxes whose top is below `altitude_m` (metres up) are left out: flown over."""
     path = Path(path)
     text = read_input_file(path, "map", MAX_MAP_BYTES)  # a regular file, capped; an input of the run
-    rows = list(csv.reader(text.splitlines()))
+    rows = list(csv.reader(line for line in text.splitlines() if not line.lstrip().startswith("#")))  # (# comments)
     if not rows or tuple(c.strip() for c in rows[0]) != BOX_COLUMNS:
         raise UserInputError(f"map {str(path)!r}: the header must be {','.join(BOX_COLUMNS)}")
     boxes = []

@@ -13,6 +13,7 @@ import importlib
 import math
 import time
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -306,13 +307,18 @@ class PlannedTrajectory(Trajectory):
         return TrajectoryPoint(vec[0], vec[1], vec[2], vec[3], float(d[0][2]), float(d[1][2]) if moving else 0.0)
 
 
+#: maps that ship with the package (a scenario names them by file name, e.g. "paper000_walls.csv")
+MAP_DIR = Path(str(resources.files("mars_link.planning").joinpath("data")))
+
+
 def resolve_data_path(text: str) -> Path:
-    """A path as given (relative to the working directory), else relative to the repository root
-    (scenarios name shared data as ../shared/..., beside the repository)."""
+    """A map path as given (relative to the working directory), else a bundled map of that name
+    (MAP_DIR), so a scenario names its map the same way from any directory and from an installed package."""
     path = Path(text)
     if path.exists() or path.is_absolute():
         return path
-    return Path(__file__).resolve().parents[2] / path
+    bundled = MAP_DIR / path
+    return bundled if bundled.exists() else path
 
 
 def build_plan_trajectory(params: dict, rest_height_m: float):
