@@ -452,7 +452,11 @@ def resolve_scenario_path(arg: str | None) -> Path:
     bundled = SCENARIO_DIR / (arg if arg.endswith(".toml") else f"{arg}.toml")
     if bundled.exists():
         return bundled
-    raise UserInputError(f"scenario {arg!r} not found (no such file, and no bundled scenario of that name)")
+    from mars_link.errors import did_you_mean
+
+    names = sorted(p.stem for p in SCENARIO_DIR.glob("*.toml"))
+    raise UserInputError(f"scenario {arg!r} not found (no such file, and no bundled scenario of that name)"
+                         + did_you_mean(Path(arg).stem, names))
 
 
 def load_scenario(arg: str | None) -> Scenario:
