@@ -245,6 +245,12 @@ def vehicle_command(args: argparse.Namespace) -> int:
     print(f"  API: udp {LOOPBACK}:{ep['api']['from']} -> {LOOPBACK}:{ep['api']['to']}  "
           f"(MAVSDK udpin://{LOOPBACK}:{ep['api']['to']})")
     print("  Ctrl-C to stop", flush=True)
+    from sitl.vehicle_host import DEFAULT_VEHICLE_API_PORT, DEFAULT_VEHICLE_SYSID
+
+    if args.api_port == DEFAULT_VEHICLE_API_PORT and args.sysid == DEFAULT_VEHICLE_SYSID:  # the defaults that moved
+        print(f"mars-link: note: the vehicle is MAVLink system {DEFAULT_VEHICLE_SYSID} on API port "
+              f"{DEFAULT_VEHICLE_API_PORT}, as under `sitl up --vehicle` (it was system 1 on 14540: "
+              f"--sysid 1 --api-port {API_PORT})", file=sys.stderr, flush=True)
     if args.duration is not None:  # the one change of meaning: said once, after every check passed
         print(f"mars-link: note: vehicle --duration {args.duration:g} is simulated seconds (it was wall seconds; "
               "--wall-time SECONDS limits wall time)", file=sys.stderr, flush=True)

@@ -718,8 +718,8 @@ def _endpoints(session, link: LinkSpec) -> list[str]:
              if name in run.processes]
     for i, u in enumerate(run.setup.unit_ids):
         lines.append(f"unit {u}: pid {run.processes[run.unit_process[u]].pid}, system id {u}, zenoh node 'unit/{u}', "
-                     f"GCS udp 127.0.0.1:{run.clients.gcs_port}, API udp 127.0.0.1:{run.clients.api_port(i)}, "
-                     f"log {run.out / f'unit{u}.tlog'}")
+                     f"GCS udp 127.0.0.1:{run.clients.gcs_port}, API udp 127.0.0.1:{run.clients.api_port(i)} "
+                     f"(MAVSDK udpin://127.0.0.1:{run.clients.api_port(i)}), log {run.out / f'unit{u}.tlog'}")
     return lines
 
 
