@@ -363,8 +363,9 @@ def _add_quiet(p) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
 
 
-def _add_layout(p, what: str) -> None:
-    p.add_argument("--layout", default=None, metavar="ROWS", help=f"layout rows separated by commas, e.g. XXX,XXX ({what})")
+def _add_layout(p, what: str, required: bool = False) -> None:
+    p.add_argument("--layout", default=None, required=required, metavar="ROWS",
+                   help=f"layout rows separated by commas, e.g. XXX,XXX ({what})")
 
 
 def _add_fault(p, when: str = "T: simulated seconds after the start") -> None:
@@ -595,7 +596,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "1 = none found (reason on stderr and in plan.json), 2 = bad input.", cmd_plan)
     plan.add_argument("map", help="boxes .csv (columns cx,cy,length_m,thickness_m,height_m,yaw_deg; z-up scene frame) "
                       "or ASCII .pcd")
-    _add_layout(plan, "required")
+    _add_layout(plan, "the assembly to plan for", required=True)
     _add_fault(plan, "counted as in effect for the whole plan")
     plan.add_argument("--start", required=True, metavar="N,E,D", help="start position [m, NED]")
     plan.add_argument("--goal", required=True, metavar="N,E,D", help="goal position [m, NED] (same D: planning is planar)")

@@ -179,3 +179,32 @@ def test_aliases_still_accepted() -> None:
     assert args.workers == 3
     args = tree["sitl up"].parse_args(["--sign-client-links"])
     assert args.require_signing is True
+
+
+#: every option each subcommand had before the one tree (its own parsers included): all still accepted
+BEFORE = {
+    "run": "--out --force --seed --trials --ftc --controller --fault --duration --no-noise --mode --transport --fleet "
+           "--zenoh-connect --zenoh-listen --link-profile --units-per-process --realtime --no-mcap --foxglove --quiet",
+    "sitl up": "--out --force --seed --units --layout --speed --gcs-port --api-port --signing-key-file --require-signing "
+               "--sign-client-links --any-bind --vehicle --vehicle-sysid --vehicle-api-port --vehicle-gcs-port --map "
+               "--no-mcap --foxglove --transport --fleet --zenoh-connect --zenoh-listen --link-profile "
+               "--units-per-process --realtime --external-coordinator",
+    "coordinator": "--out --world-port --coordinator-port --signing-key-file --transport --fleet --zenoh-connect "
+                   "--zenoh-listen --link-profile",
+    "vehicle": "--layout --sysid --gcs-port --api-port --gcs-bind --api-bind --seed --ftc --fault --no-noise --param "
+               "--mission --map --speed --status-file --tlog --duration --signing-key-file --require-signing "
+               "--sign-client-links --out --no-mcap --foxglove",
+    "plan": "--layout --fault --start --goal --start-yaw --method --preset --margin --out --force --quiet",
+    "reconfig plan": "--fault --layout --preset --target --snap-weights --json",
+    "reproduce": "--seeds --controllers --modes --duration --out --quiet --workers --jobs --scheduler",
+    "sweep": "--seeds --seed --faults --param --workers --jobs --scheduler --out --force --mcap --no-plots --quiet",
+}
+
+
+def test_every_earlier_option_is_still_accepted() -> None:
+    tree = subcommands(build_parser())
+    for name, options in BEFORE.items():
+        known = set(tree[name]._option_string_actions)
+        assert set(options.split()) <= known, (name, set(options.split()) - known)
+    required = {a.dest for a in tree["plan"]._actions if a.required}
+    assert required == {"map", "layout", "start", "goal", "out"}
