@@ -110,7 +110,7 @@ def main() -> int:
     base = port_block(8)
     out = Path(tempfile.mkdtemp(prefix="bench-sitl-vehicle-"))
     client = Client(base)
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sitl", "up", "hover_3x2", "--vehicle", "--transport", "udp", "--any-bind",
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.cli", "sitl", "up", "hover_3x2", "--vehicle", "--any-bind",
                              "--transport", a.transport, "--vehicle-api-port", str(base), "--gcs-port", str(base + 1),
                              "--api-port", str(base + 2), "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=Path(__file__).resolve().parents[1])

@@ -161,6 +161,11 @@ def cmd_reproduce(args) -> int:
     for c in controllers:
         if c not in ("mars-ftcc-paper", "cascaded"):
             raise UserInputError(f"--controllers: unknown controller {c!r}")
+    from mars_link.sweep_pool import PoolSpec, connect
+
+    if args.scheduler:  # an unreachable scheduler: one line, exit 2, before any flight (as sweep)
+        connect(args.scheduler).close()
+    pool = PoolSpec(args.workers, args.scheduler)
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), disable=args.quiet) as progress:
         task = progress.add_task("table1", total=None)
@@ -168,9 +173,7 @@ def cmd_reproduce(args) -> int:
         def on_progress(done: int, total: int, name: str) -> None:
             progress.update(task, completed=done, total=total, description=name[:48])
 
-        from mars_link.sweep_pool import pool_from_args
-
-        rows = reproduce_table1(args.seeds, controllers, modes, args.duration, on_progress, pool_from_args(args))
+        rows = reproduce_table1(args.seeds, controllers, modes, args.duration, on_progress, pool)
     path = write_results(rows, args.seeds, Path(args.out))
     print(markdown_table(rows, args.seeds))
     print(f"saved {path}")
