@@ -421,7 +421,9 @@ def _add_sitl_processes(p, realtime_help: str) -> None:
 
 def _add_client_ports(p, api_port: int, api_help: str) -> None:
     """The UDP ports the MAVLink clients listen on (PX4's SITL conventions)."""
-    p.add_argument("--gcs-port", type=int, default=14550,
+    from firmware_models.vehicle_io import GCS_PORT
+
+    p.add_argument("--gcs-port", type=int, default=GCS_PORT,
                    help="UDP port ground stations listen on (QGroundControl, MAVProxy `udpin`)")
     p.add_argument("--api-port", type=int, default=api_port, help=api_help)
 
@@ -554,7 +556,6 @@ def build_parser() -> argparse.ArgumentParser:
     _add_link(coord, "the coordinator and the units (as the `sitl up` it attaches to)")
 
     # -- vehicle
-    from firmware_models.vehicle_io import GCS_PORT
     from mars_link.realtime import API_BIND, GCS_BIND
 
     veh = _command(sub, "vehicle", "the assembly as one MAVLink vehicle in real time (MAVSDK, MAVProxy, QGC)",

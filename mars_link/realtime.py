@@ -7,8 +7,8 @@
 127.0.0.1 (PX4's SITL conventions, specs/mavlink.md §1.1):
   gcs  the vehicle sends to --gcs-port (default 14550: QGroundControl, MAVProxy `udpin`) from
        --gcs-bind (default 18560)
-  api  the vehicle sends to --api-port (default 14540: MAVSDK `udpin://127.0.0.1:14540`) from
-       --api-bind (default 14560)
+  api  the vehicle sends to --api-port (default 14539: MAVSDK `udpin://127.0.0.1:14539`, as under
+       `sitl up --vehicle`, whose units take PX4's 14540+i) from --api-bind (default 14560)
   On both, whoever last sent a valid frame to the bound port also gets the traffic (MAVProxy
   `--master=udpout:127.0.0.1:18560`). A bind port 0 means any free port.
 Socket handling (flood limits, loopback-only senders, peers) is every Vehicle runner's
@@ -31,15 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from firmware_models.vehicle import LINK_API, LINK_GCS
-from firmware_models.vehicle_io import API_PORT_BASE, GCS_PORT, LOOPBACK, LinkSpec, VehicleSockets, write_json_atomic
-from mars_link.assembly_vehicle import DEFAULT_SYSID, AssemblySim, SimConfig
+from firmware_models.vehicle_io import API_PORT_BASE, LOOPBACK, LinkSpec, VehicleSockets, write_json_atomic
+from mars_link.assembly_vehicle import AssemblySim, SimConfig
 from mars_link import validation
 from mars_link.errors import UserInputError
 from mars_link.pacing import Pacer
 from mars_link.scenario import INTERACTIVE_SCENARIO as DEFAULT_SCENARIO  # (the realistic plant)
 
 STATUS_PERIOD_S = 0.2
-API_PORT = API_PORT_BASE  # the assembly takes instance 0's ports, like a single PX4 SITL drone
+API_PORT = API_PORT_BASE  # PX4 SITL instance 0's API port (the vehicle's default until it agreed with sitl up --vehicle)
 GCS_BIND, API_BIND = 18560, 14560  # below the units' 18570+i / 14580+i
 
 
