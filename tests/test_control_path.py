@@ -305,7 +305,7 @@ def test_sitl_up_require_signing_reaches_the_unit_processes(tmp_path) -> None:
     api.bind((LOOP, 0))
     gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     gcs.bind((LOOP, 0))
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "hover_3x2", "--any-bind", "--speed", "1",
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "hover_3x2", "--transport", "udp", "--any-bind", "--speed", "1",
                              "--require-signing", "--signing-key-file", str(key_file), "--gcs-port",
                              str(gcs.getsockname()[1]), "--api-port", str(api.getsockname()[1]), "--out", str(out)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)

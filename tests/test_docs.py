@@ -241,4 +241,4 @@ def test_a_misspelled_scenario_name_gets_did_you_mean_on_stderr():
     res = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", "spiral_3x3"], cwd=ROOT / "tests",
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 2
-    assert "did you mean spiral_3x2" in res.stderr and "Traceback" not in res.stderr
+    assert "did you mean 'spiral_3x2'" in res.stderr and "Traceback" not in res.stderr

@@ -248,7 +248,7 @@ def test_live_foxglove_view_of_sitl_up(tmp_path):
 
     port = free_tcp_port()
     out = tmp_path / "sitl"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "--layout", "XXX,XXX", "--speed", "1",
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "--layout", "XXX,XXX", "--speed", "1", "--transport", "udp",
                              "--any-bind", "--foxglove", f"127.0.0.1:{port}", "--out", str(out), "--force"],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -325,7 +325,7 @@ def test_sitl_up_free_units_write_run_mcap(tmp_path):
 
     api = _two_free_udp_ports()
     out = tmp_path / "up"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "--units", "2", "--speed", "3",
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "--units", "2", "--speed", "3", "--transport", "udp",
                              "--api-port", str(api), "--gcs-port", str(free_udp_port()), "--any-bind",
                              "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     with CpuWindow() as cpu:  # (the run's writer keeps up unless the machine is saturated)

@@ -73,7 +73,7 @@ def _start(argv: list[str]) -> tuple[subprocess.Popen, list[int]]:
     return proc, kids
 
 
-@pytest.mark.parametrize("verb", [["sitl", "up", "hover_3x2", "--any-bind", "--speed", "1"],
+@pytest.mark.parametrize("verb", [["sitl", "up", "hover_3x2", "--transport", "udp", "--any-bind", "--speed", "1"],
                                   ["run", "hover_3x2", "--mode", "sitl", "--quiet"]])
 def test_sigkill_of_the_parent_leaves_no_child(tmp_path, verb) -> None:
     out = tmp_path / "run"

@@ -83,7 +83,7 @@ def test_explicit_target(capsys):
 def test_bad_input_is_one_line_and_exit_2(argv, message, capsys):
     code, out, err = run(argv, capsys)
     assert code == 2 and out == ""
-    assert message in err and err.count("\n") == 1 and err.startswith("error: ")
+    assert message in err and err.count("\n") == 1 and err.startswith("mars-link: error: ")
 
 
 def test_malformed_scenario(tmp_path, capsys):

@@ -217,7 +217,7 @@ def test_mavsdk_gps_off_on_the_sitl_up_vehicle_holds_then_lands(tmp_path: Path) 
 
     out = tmp_path / "run"
     base = _port_block(8)
-    cmd = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "hover_3x2", "--vehicle", "--any-bind",
+    cmd = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "hover_3x2", "--vehicle", "--transport", "udp", "--any-bind",
            "--vehicle-api-port", str(base), "--gcs-port", str(base + 1), "--api-port", str(base + 2), "--out", str(out)]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:

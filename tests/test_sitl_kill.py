@@ -77,7 +77,7 @@ def test_killed_unit_is_declared_dead_and_the_run_finishes(tmp_path: Path) -> No
 
 
 def _spawn_sitl_up(tmp_path: Path, *extra: str, gcs_port: int | None = None) -> tuple[subprocess.Popen, dict[str, int]]:
-    argv = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", *extra, "--gcs-port", str(gcs_port or free_udp_port()),
+    argv = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", *extra, "--transport", "udp", "--gcs-port", str(gcs_port or free_udp_port()),
             "--api-port", str(free_udp_port()), "--any-bind", "--out", str(tmp_path / "up")]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     pids: dict[str, int] = {}

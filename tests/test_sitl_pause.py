@@ -108,7 +108,7 @@ def _fly_with_a_pause(argv: list[str], out: Path) -> None:
 
 
 def test_sitl_up_survives_a_paused_unit(tmp_path: Path) -> None:
-    _fly_with_a_pause(["sitl", "up", _scenario(tmp_path), "--any-bind", "--speed", "1"], tmp_path / "up")
+    _fly_with_a_pause(["sitl", "up", _scenario(tmp_path), "--transport", "udp", "--any-bind", "--speed", "1"], tmp_path / "up")
 
 
 @pytest.mark.long  # (CI time: -m long; the sitl up case stays in the default run)
@@ -139,7 +139,7 @@ def test_a_paused_world_resumes_and_a_paused_coordinator_lands_the_units(tmp_pat
         assert all(abs(-s["position_ned_m"][2] - 2.0) < 0.15 for s in status["units"].values()), status["units"]
         _pause_mid_flight(proc, out, coordinator, at_s=7.0)
 
-    _fly(["sitl", "up", _scenario(tmp_path), "--any-bind", "--speed", "1"], out, pauses)
+    _fly(["sitl", "up", _scenario(tmp_path), "--transport", "udp", "--any-bind", "--speed", "1"], out, pauses)
     world_summary = json.loads((out / "world_summary.json").read_text())
     assert world_summary["sim_time_s"] == pytest.approx(DURATION_S, abs=0.02) and world_summary["dead_units"] == []
     assert json.loads((out / "coordinator_summary.json").read_text())["lost_units"] == []  # (it ran to the end)

@@ -49,7 +49,7 @@ def _until_sim(out: Path, proc: subprocess.Popen, t_s: float, timeout_s: float =
 
 
 def _sitl_up(scenario: str, out: Path) -> tuple[subprocess.Popen, dict[str, int]]:
-    argv = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", scenario, "--any-bind", "--speed", "1",
+    argv = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", scenario, "--transport", "udp", "--any-bind", "--speed", "1",
             "--out", str(out)]
     proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     pids: dict[str, int] = {}

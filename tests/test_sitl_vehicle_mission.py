@@ -67,7 +67,7 @@ async def _mission(api_port: int, out: Path) -> dict:
 def test_sitl_up_vehicle_flies_a_mavsdk_mission(tmp_path: Path) -> None:
     out = tmp_path / "run"
     base = _port_block(8)
-    cmd = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "hover_3x2", "--vehicle", "--any-bind",
+    cmd = [sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "hover_3x2", "--vehicle", "--transport", "udp", "--any-bind",
            "--vehicle-api-port", str(base), "--gcs-port", str(base + 1), "--api-port", str(base + 2), "--out", str(out)]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     lines: list[str] = []

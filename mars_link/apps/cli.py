@@ -1,5 +1,15 @@
-"""`mars-link` command line. Every user error is one line on stderr and exit code 2; a refusal from
-the machine (disk, port, permission) one line and exit code 1 (mars_link.core.validation)."""
+"""`mars-link` command line: the one place where the product's subcommands and options are defined.
+
+Every subcommand and option is added here with `add_argument`; subcommands that share an option share
+its definition (one `_add_*` helper per group: `--out`/`--force`, `--seed`, the transport and its
+endpoints, client ports, `--duration`, `--quiet` ...). The command functions (`cmd_*`, or the
+modules' own `*_command(args)`) take the parsed arguments. Internal process entry points that users do
+not type (`python -m mars_link.processes.lockstep ROLE`, `python -m mars_link.processes.udp_runner`) keep their own parsers.
+
+Every user error is one line on stderr, "mars-link: error: ...", and exit code 2; a refusal from the
+machine (disk, port, permission) one line and exit code 1 (mars_link.core.validation). `--duration` is
+simulated seconds wherever it appears; a wall-clock limit is `--wall-time`.
+"""
 
 from __future__ import annotations
 
@@ -9,10 +19,9 @@ import time
 from pathlib import Path
 
 from mars_link.core import validation as v
-from mars_link.core.errors import UserInputError
+from mars_link.core.errors import UserInputError, did_you_mean
 
 EXIT_USAGE = v.EXIT_USAGE
-_Parser = v.OneLineParser  # one-line usage errors (errors.OneLineArgumentParser)
 
 
 def _default_out(name: str) -> Path:
@@ -152,6 +161,11 @@ def cmd_reproduce(args) -> int:
     for c in controllers:
         if c not in ("mars-ftcc-paper", "cascaded"):
             raise UserInputError(f"--controllers: unknown controller {c!r}")
+    from mars_link.apps.sweep_pool import PoolSpec, connect
+
+    if args.scheduler:  # an unreachable scheduler: one line, exit 2, before any flight (as sweep)
+        connect(args.scheduler).close()
+    pool = PoolSpec(args.workers, args.scheduler)
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), disable=args.quiet) as progress:
         task = progress.add_task("table1", total=None)
@@ -159,9 +173,7 @@ def cmd_reproduce(args) -> int:
         def on_progress(done: int, total: int, name: str) -> None:
             progress.update(task, completed=done, total=total, description=name[:48])
 
-        from mars_link.apps.sweep_pool import pool_from_args
-
-        rows = reproduce_table1(args.seeds, controllers, modes, args.duration, on_progress, pool_from_args(args))
+        rows = reproduce_table1(args.seeds, controllers, modes, args.duration, on_progress, pool)
     path = write_results(rows, args.seeds, Path(args.out))
     print(markdown_table(rows, args.seeds))
     print(f"saved {path}")
@@ -174,13 +186,12 @@ def cmd_sweep(args) -> int:
     return sweep_command(args, _default_out)
 
 
-def cmd_sitl(args) -> int:
+def cmd_sitl_up(args) -> int:
+    """`mars-link sitl up`: every check first (one line, exit 2, before any process), then the one
+    implementation (mars_link.processes.sitl_mode.sitl_up_command) on the chosen transport."""
     from mars_link.config.scenario import INTERACTIVE_SCENARIO, resolve_scenario_path
-    from mars_link.processes.launcher import sitl_up
     from mars_link.processes.lockstep import load_setup
 
-    if args.action != "up":
-        raise UserInputError(f"sitl {args.action!r}: only 'up' is available")
     if args.units is not None and args.layout is not None:
         raise UserInputError("--units and --layout exclude each other")
     if args.speed is not None and not (args.speed >= 0 and args.speed < float("inf")):
@@ -193,6 +204,11 @@ def cmd_sitl(args) -> int:
     setup = load_setup(path, args.units, args.layout)  # refuse bad input before starting any process
     vehicle = _vehicle_ports(args, setup)
     v.check_link_endpoints(args)
+    from mars_link.processes.sitl_mode import link_from_args
+
+    link = link_from_args(args)
+    if vehicle is not None and args.external_coordinator:
+        raise UserInputError("--vehicle is served by the coordinator sitl up starts: not with --external-coordinator")
     if setup.docked:  # a docked assembly: the shared checks of `run` and `vehicle`
         from mars_link.flight.build import check_flight
         from mars_link.config.scenario import check_faults_controllable
@@ -209,26 +225,15 @@ def cmd_sitl(args) -> int:
     _, require_signing = signing_from_args(args)  # a bad key file is refused before the run directory exists
     from mars_link.processes.launcher import ClientPorts
 
-    n = len(setup.unit_ids)  # the client ports of either transport (sitl_mode builds the same)
-    clients = ClientPorts.consecutive(args.gcs_port, args.api_port, n, args.any_bind)
+    clients = ClientPorts.consecutive(args.gcs_port, args.api_port, len(setup.unit_ids), args.any_bind)
     for what, port in (("--gcs-port", args.gcs_port), ("--api-port", args.api_port),
                        ("--api-port + units", clients.api_ports[-1])):
         if not 1 <= port <= 65535:
             raise UserInputError(f"{what} must be 1..65535, got {port}")
-    if getattr(args, "transport", None) not in (None, "udp") or getattr(args, "external_coordinator", False) \
-            or getattr(args, "realtime", False) or getattr(args, "link_profile", None):
-        if vehicle is not None and getattr(args, "external_coordinator", False):
-            raise UserInputError("--vehicle is served by the coordinator sitl up starts: not with --external-coordinator")
-        from mars_link.processes.sitl_mode import sitl_up_command
+    from mars_link.processes.sitl_mode import sitl_up_command
 
-        v.claim_out_dir(out, force=args.force)
-        return sitl_up_command(args, path, out, vehicle, view)
     v.claim_out_dir(out, force=args.force)
-    code = sitl_up(path, out, units=args.units, layout=args.layout, seed=args.seed, speed=args.speed, clients=clients,
-                   signing_key_file=args.signing_key_file, vehicle=vehicle, require_signing=require_signing,
-                   view=view, units_per_process=args.units_per_process)
-    print(f"run directory: {out}")
-    return code
+    return sitl_up_command(args, path, out, link, clients, vehicle, view, require_signing)
 
 
 def _vehicle_ports(args, setup):
@@ -253,6 +258,14 @@ def _vehicle_ports(args, setup):
     return ports
 
 
+def cmd_coordinator(args) -> int:
+    v.check_link_endpoints(args)  # the shared checks first (endpoints, --out)
+    v.check_out_dir(args.out)
+    from mars_link.processes.sitl_mode import cmd_coordinator as coordinator_command
+
+    return coordinator_command(args)
+
+
 def cmd_vehicle(args) -> int:
     from mars_link.processes.realtime import vehicle_command
 
@@ -275,131 +288,439 @@ def cmd_scenarios(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="mars-link", description="SITL flight stack for modular aerial robots")
-    sub = parser.add_subparsers(dest="command", parser_class=_Parser)
+def cmd_plan(args) -> int:
+    from mars_link.apps.plan_cli import plan_command_args
 
-    run = sub.add_parser("run", help="fly a scenario (default: the bundled 3x2 spiral)")
-    run.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name")
-    run.add_argument("--out", help="run directory (default runs/<name>-<time>); must be empty unless --force")
-    run.add_argument("--force", action="store_true", help="clear a non-empty --out first")
-    run.add_argument("--seed", type=v.seed, default=None, help=f"0..{v.SEED_MAX}")
-    run.add_argument("--trials", type=v.bounded_int(1, 100_000), default=1)
-    run.add_argument("--ftc", help="allocation mode: none, unit, partial, full, hybrid, qp")
-    run.add_argument("--controller", choices=("cascaded", "mars-ftcc-paper"))
-    run.add_argument("--fault", action="append", metavar="UNIT[:ROTOR]=ETA[@T]")
-    run.add_argument("--duration", type=v.positive_float, help="override the simulated duration [s]")
-    run.add_argument("--no-noise", action="store_true", help="perfect sensors (truth state)")
-    run.add_argument("--mode", default="inproc", help="inproc (default) or sitl")
-    from mars_link.processes.sitl_mode import add_sitl_run_arguments, add_coordinator_arguments, cmd_coordinator
+    return plan_command_args(args)
 
-    add_sitl_run_arguments(run)  # --transport, --realtime, --link-profile (with --mode sitl)
-    from mars_link.flight.flight_view import add_view_arguments
 
-    add_view_arguments(run)  # --no-mcap, --foxglove [HOST:PORT]
-    run.add_argument("--quiet", action="store_true", help="no progress bar")
-    run.set_defaults(func=cmd_run)
+def cmd_reconfig_plan(args) -> int:
+    from mars_link.apps.reconfig_cli import reconfig_plan_args
 
-    scen = sub.add_parser("scenarios", help="list the bundled scenarios (name and one-line description)")
-    scen.add_argument("--json", action="store_true", help="a JSON list of {name, description, path}")
-    scen.set_defaults(func=cmd_scenarios)
+    return reconfig_plan_args(args)
 
-    sitl = sub.add_parser("sitl", help="up [SCENARIO] [--units N | --layout ROWS]: world, one process per unit (MAVLink), coordinator; lockstep")
-    sitl.add_argument("action", help="up")
-    sitl.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default: hover_3x2_real, the "
-                      "realistic plant)")
-    sitl.add_argument("--out", help="run directory (default runs/<name>-sitl-<time>); must be empty unless --force")
-    sitl.add_argument("--force", action="store_true", help="clear a non-empty --out first")
-    sitl.add_argument("--seed", type=v.seed, default=None, help=f"0..{v.SEED_MAX}")
-    sitl.add_argument("--units", type=int, default=None,
-                      help="N free units side by side on the ground, each flying itself (no coordinator)")
-    sitl.add_argument("--layout", default=None, help="docked assembly of these rows, e.g. XXX,XXX (with coordinator)")
-    sitl.add_argument("--speed", type=float, default=None,
-                      help="world pacing, x real time (default 1 for --units, 0 = as fast as possible otherwise)")
-    sitl.add_argument("--gcs-port", type=int, default=14550, help="UDP port the units send GCS traffic to (QGC, MAVProxy)")
-    sitl.add_argument("--api-port", type=int, default=14540, help="API port of unit index 0 (MAVSDK); unit i uses this + i")
-    from mars_link.mavlink.signing import add_signing_args
 
-    add_signing_args(sitl, "the coordinator <-> unit links, signed both ways, and the client links")
-    sitl.add_argument("--any-bind", action="store_true",
-                      help="bind the units' client sockets to free ports instead of PX4's 18570+i / 14580+i")
+# ----------------------------------------------------------------------------- the parser
+def _version() -> str:
+    """The installed distribution's version, else the package's own (a source checkout on PYTHONPATH)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("mars-link")
+    except metadata.PackageNotFoundError:
+        from mars_link import __version__
+
+        return __version__
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Each option's help ends with its default, unless the text already says it (or there is none)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if action.default in (None, False, argparse.SUPPRESS, []) or "default" in text or "%(default)" in text:
+            return text
+        if not action.option_strings and action.nargs not in ("?", "*"):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+class _Parser(v.OneLineParser):
+    """The product's parser (and every subcommand's): usage errors are one UserInputError line naming the
+    subcommand ("mars-link: error: sitl up: ..."), an unknown name gets a "did you mean"."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str) -> None:
+        where = self.prog.removeprefix("mars-link").strip()
+        raise UserInputError(f"{where}: {message}" if where else message)
+
+    def _check_value(self, action: argparse.Action, value) -> None:
+        choices = action.choices
+        if choices is None or value in choices:
+            return
+        names = [str(c) for c in choices]
+        what = "command" if isinstance(action, argparse._SubParsersAction) else "choice"
+        if len(names) == 1:
+            text = f"unknown {what} {value!r}: only {names[0]!r} is available"
+        else:
+            text = f"unknown {what} {value!r} (choose from {', '.join(names)}){did_you_mean(str(value), names)}"
+        raise argparse.ArgumentError(None if what == "command" else action, text)
+
+
+def _command(sub, name: str, help: str, description: str, func) -> argparse.ArgumentParser:
+    """One subcommand: `help` is its line in the parent's list, `description` the top of its own --help."""
+    p = sub.add_parser(name, help=help, description=description)
+    p.set_defaults(func=func)
+    return p
+
+
+# Shared option groups: one definition each, used by every subcommand that has the option.
+def _add_scenario(p, default: str, why: str = "") -> None:
+    p.add_argument("scenario", nargs="?", help=f"scenario TOML file or bundled name (default {default}{why})")
+
+
+def _add_out(p, default_text: str, force: bool = True) -> None:
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help=f"run directory (default {default_text})" + ("; must be empty unless --force" if force else ""))
+    if force:
+        p.add_argument("--force", action="store_true", help="clear a non-empty --out first")
+
+
+def _add_seed(p, what: str = "the flight's random seed (default: the scenario's [sim] seed)") -> None:
+    p.add_argument("--seed", type=v.seed, default=None, help=f"{what}; 0..{v.SEED_MAX}")
+
+
+def _add_duration(p, what: str) -> None:
+    p.add_argument("--duration", type=v.positive_float, default=None, metavar="SECONDS",
+                   help=f"{what} [simulated s]")
+
+
+def _add_quiet(p) -> None:
+    p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
+
+
+def _add_layout(p, what: str, required: bool = False) -> None:
+    p.add_argument("--layout", default=None, required=required, metavar="ROWS",
+                   help=f"layout rows separated by commas, e.g. XXX,XXX ({what})")
+
+
+def _add_fault(p, when: str = "T: simulated seconds after the start") -> None:
+    p.add_argument("--fault", action="append", default=[], metavar="UNIT[:ROTOR]=ETA[@T]",
+                   help=f"add a rotor (or whole-unit) failure: ETA is the remaining effectiveness 0..1, rotors 1..4 = "
+                        f"FR, FL, RL, RR; {when}; repeatable")
+
+
+def _add_flight_overrides(p) -> None:
+    """What `run` and `vehicle` may override in the scenario."""
+    p.add_argument("--ftc", default=None, help="allocation mode: none, unit, partial, full, hybrid, qp "
+                   "(default: the scenario's [control] ftc)")
+    _add_fault(p)
+    p.add_argument("--no-noise", action="store_true", help="perfect sensors (the estimator gets the truth state)")
+
+
+def _add_view(p, where: str = "") -> None:
+    """--no-mcap, --foxglove [HOST:PORT] (mars_link.flight.flight_view)."""
+    from mars_link.flight.flight_view import DEFAULT_LIVE
+
+    p.add_argument("--no-mcap", action="store_true", help="write no run.mcap")
+    p.add_argument("--foxglove", nargs="?", const=DEFAULT_LIVE, default=None, metavar="HOST:PORT",
+                   help=f"live Foxglove view{where}: Foxglove's WebSocket server (without a value {DEFAULT_LIVE}); "
+                        "open it in Foxglove with 'Open connection' -> Foxglove WebSocket")
+
+
+def _add_link(p, roles: str) -> None:
+    """The transport of the SITL processes' links and its endpoints. One default everywhere: Zenoh, the
+    product's bus (`--transport udp`: plain loopback sockets, no Zenoh)."""
+    from mars_link.transport import TRANSPORTS
+
+    p.add_argument("--transport", choices=TRANSPORTS, default="zenoh",
+                   help=f"the links between {roles}: zenoh (the product's bus) or udp (loopback sockets)")
+    p.add_argument("--fleet", default="default", help="Zenoh key prefix mars/<fleet>/...")
+    p.add_argument("--zenoh-connect", action="append", default=None, metavar="ENDPOINT",
+                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; default: peers on 127.0.0.1)")
+    p.add_argument("--zenoh-listen", action="append", default=None, metavar="ENDPOINT",
+                   help="extra Zenoh router endpoint to listen on (repeatable)")
+    p.add_argument("--link-profile", default=None, metavar="PROFILE",
+                   help="ideal | lan | wifi | radio57600 [,key=value...]: delays and losses on the coordinator <-> "
+                        "unit links (zenoh only; default: none)")
+
+
+def _add_sitl_processes(p, realtime_help: str) -> None:
+    """How the SITL processes run: units per process and wall-clock pacing."""
+    p.add_argument("--units-per-process", type=v.bounded_int(1, 199), default=1, metavar="K",
+                   help="host up to K unit firmwares per process (each its own MAVLink system and links)")
+    p.add_argument("--realtime", action="store_true", help=realtime_help)
+
+
+def _add_client_ports(p, api_port: int, api_help: str) -> None:
+    """The UDP ports the MAVLink clients listen on (PX4's SITL conventions)."""
+    from mars_link.processes.vehicle_io import GCS_PORT
+
+    p.add_argument("--gcs-port", type=int, default=GCS_PORT,
+                   help="UDP port ground stations listen on (QGroundControl, MAVProxy `udpin`)")
+    p.add_argument("--api-port", type=int, default=api_port, help=api_help)
+
+
+def _add_signing(p, links: str) -> None:
+    from mars_link.mavlink.signing import DEFAULT_KEY_ENV
+
+    p.add_argument("--signing-key-file", default=None, metavar="FILE",
+                   help=f"MAVLink signing key for {links} (default: ${DEFAULT_KEY_ENV}, else unsigned); one key per "
+                        "process, each link signs with its own link id")
+    p.add_argument("--require-signing", "--sign-client-links", dest="require_signing", action="store_true",
+                   help="every link requires signing: unsigned GCS/API clients may only read (telemetry, "
+                        "parameters, mission download); the coordinator link drops unsigned frames")
+
+
+def _add_pool(p) -> None:
+    """--workers / --scheduler: flights go through the sweep's executor (mars_link.apps.sweep_pool)."""
+    p.add_argument("--workers", "--jobs", type=v.bounded_int(1, 4096), default=None,
+                   help="local worker processes flying at once (default: every core)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="fly on the Dask cluster of this scheduler (tcp://HOST:PORT) instead (default: local)")
+
+
+def _add_map(p, what: str) -> None:
+    p.add_argument("--map", default=None, metavar="FILE",
+                   help=f"obstacle map (boxes .csv or .pcd): mission legs planned around it ({what})")
+
+
+# The assembly as one MAVLink vehicle: `vehicle` and `sitl up --vehicle` give it the same system id and
+# ports, so a client set up for one works with the other. Why not PX4's instance-0 ports (14540, system
+# 1): `sitl up` gives those to its units (unit i: system i, API port 14540 + i), and the vehicle beside them.
+def _vehicle_defaults() -> tuple[int, int]:
     from mars_link.processes.vehicle_host import DEFAULT_VEHICLE_API_PORT, DEFAULT_VEHICLE_SYSID
 
-    sitl.add_argument("--vehicle", action="store_true",
-                      help="the docked assembly as ONE MAVLink vehicle (served by the coordinator; arm, takeoff, "
-                           "offboard, land from MAVSDK/QGC); runs in real time until Ctrl-C")
-    sitl.add_argument("--vehicle-sysid", type=int, default=DEFAULT_VEHICLE_SYSID,
-                      help=f"with --vehicle: its MAVLink system id (default {DEFAULT_VEHICLE_SYSID})")
-    sitl.add_argument("--vehicle-api-port", type=int, default=DEFAULT_VEHICLE_API_PORT,
-                      help=f"with --vehicle: MAVSDK's port (default {DEFAULT_VEHICLE_API_PORT}: udpin://127.0.0.1:"
-                           f"{DEFAULT_VEHICLE_API_PORT})")
-    sitl.add_argument("--vehicle-gcs-port", type=int, default=None,
-                      help="with --vehicle: its ground-station port (default: --gcs-port, 14550)")
-    sitl.add_argument("--map", default=None, metavar="FILE",
-                      help="with --vehicle: obstacle map (boxes .csv or .pcd); mission legs planned around it")
-    sitl.set_defaults(func=cmd_sitl)
-    add_view_arguments(sitl)  # --no-mcap, --foxglove [HOST:PORT] (served by the world process)
-    from mars_link.processes.sitl_mode import add_sitl_up_arguments
+    return DEFAULT_VEHICLE_SYSID, DEFAULT_VEHICLE_API_PORT
 
-    add_sitl_up_arguments(sitl)  # --transport zenoh|udp and its options (mars_link.processes.sitl_mode)
 
-    coord = sub.add_parser("coordinator", help="the coordinator process alone, attaching to running units")
-    add_coordinator_arguments(coord)
+_VEHICLE_WHY = "the same as `sitl up --vehicle`, whose units take systems 1..N and PX4's API ports 14540+i"
 
-    def checked_coordinator(args) -> int:  # the shared checks first (endpoints, --out)
-        v.check_link_endpoints(args)
-        v.check_out_dir(args.out)
-        return cmd_coordinator(args)
 
-    coord.set_defaults(func=checked_coordinator)
+def build_parser() -> argparse.ArgumentParser:
+    """Every subcommand and option of `mars-link`."""
+    from mars_link.config.scenario import DEFAULT_SCENARIO, INTERACTIVE_SCENARIO
 
-    veh = sub.add_parser("vehicle", help="the assembly as one MAVLink vehicle in real time (MAVSDK, MAVProxy, QGC)")
-    from mars_link.processes.realtime import add_arguments
+    parser = _Parser(prog="mars-link", description="SITL flight stack for modular aerial robots (MARS): fly a "
+                     "scenario in one process or as MAVLink processes, serve it to ground stations, plan, sweep, "
+                     "reproduce the papers' results.")
+    parser.add_argument("--version", action="version", version=f"mars-link {_version()}",
+                        help="print the version and exit")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", title="commands")
+    vehicle_sysid, vehicle_api_port = _vehicle_defaults()
 
-    add_arguments(veh)
-    veh.set_defaults(func=cmd_vehicle)
+    # -- run
+    run = _command(sub, "run", "fly a scenario and write its results (summary.json, telemetry, plots, run.mcap)",
+                   "Fly a scenario, in this process (--mode inproc) or as the multi-process MAVLink SITL (--mode "
+                   "sitl, lockstep: the same flight for the same seed), and write summary.json, telemetry.csv, "
+                   "rotors.csv, plots/ and run.mcap; print a one-screen table. Exit 0 when the flight completed, "
+                   "1 when not, 2 on bad input.", cmd_run)
+    _add_scenario(run, DEFAULT_SCENARIO, ", the 3x2 spiral")
+    _add_out(run, "runs/<name>-<time>")
+    _add_seed(run)
+    run.add_argument("--trials", type=v.bounded_int(1, 100_000), default=1,
+                     help="flights with seeds SEED, SEED+1, ... (in-process only)")
+    _add_flight_overrides(run)
+    run.add_argument("--controller", choices=("cascaded", "mars-ftcc-paper"), default=None,
+                     help="position/attitude controller (default: the scenario's [control] controller)")
+    _add_duration(run, "override the scenario's flight length")
+    run.add_argument("--mode", choices=("inproc", "sitl"), default="inproc",
+                     help="inproc: one process, the engine steps everything; sitl: world, one process per unit "
+                          "and the coordinator, talking MAVLink over --transport")
+    _add_link(run, "the SITL processes (with --mode sitl)")
+    _add_sitl_processes(run, "pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
+    _add_view(run)
+    _add_quiet(run)
 
-    sub.add_parser("plan", help="plan MAP --layout ROWS --start N,E,D --goal N,E,D [--method ours|svsdf] --out DIR")
-    sub.add_parser("reconfig", help="reconfig plan SCENARIO.toml [--fault ...] [--json]: paper 001 reconfiguration plan")
+    # -- scenarios
+    scen = _command(sub, "scenarios", "list the bundled scenarios (name and one-line description)",
+                    "List the scenarios bundled with mars-link: the name to give `run`, `sitl up` or `sweep`, and the "
+                    "first line of each file's header comment.", cmd_scenarios)
+    scen.add_argument("--json", action="store_true", help="a JSON list of {name, description, path}")
 
-    rep = sub.add_parser("reproduce", help="reproduce a paper table (table1: paper 000 Table I + Fig. 3)")
-    rep.add_argument("what", help="table1")
-    rep.add_argument("--seeds", type=v.bounded_int(1, 10_000), default=10)
-    rep.add_argument("--controllers", default="mars-ftcc-paper,cascaded")
-    rep.add_argument("--modes", help="cascaded FTC modes, comma-separated (default: all)")
-    rep.add_argument("--duration", type=v.positive_float, help="shorten every flight [s] (quick look)")
-    rep.add_argument("--out", default="runs/table1")
-    rep.add_argument("--quiet", action="store_true")
-    from mars_link.apps.sweep_pool import add_pool_arguments
+    # -- sitl up
+    sitl = sub.add_parser("sitl", help="the multi-process SITL for clients: `sitl up` (world, one MAVLink process "
+                                       "per unit, coordinator)",
+                          description="The multi-process SITL, interactive: units that MAVLink clients connect to.")
+    sitl_sub = sitl.add_subparsers(dest="action", metavar="ACTION", title="actions", required=True)
+    up = _command(sitl_sub, "up", "start the world, one process per unit and the coordinator; run until the flight "
+                  "ends or Ctrl-C",
+                  "Start the world, one MAVLink process per unit (PX4's client ports: unit i sends to GCS port "
+                  "14550 and API port 14540+i, like PX4 SITL instance i) and, for a docked assembly, the "
+                  "coordinator; print the endpoints; run until the flight ends, Ctrl-C or a child's death. "
+                  "--vehicle adds the whole assembly as one MAVLink vehicle.", cmd_sitl_up)
+    _add_scenario(up, INTERACTIVE_SCENARIO, ", the realistic plant")
+    _add_out(up, "runs/<name>-sitl-<time>")
+    _add_seed(up)
+    up.add_argument("--units", type=int, default=None,
+                    help="N free units side by side on the ground, each flying itself (no coordinator; default: "
+                         "the scenario's assembly)")
+    _add_layout(up, "a docked assembly, with coordinator; overrides the scenario")
+    up.add_argument("--speed", type=float, default=None, metavar="X",
+                    help="world pacing, x real time (default 1 for --units and --vehicle, 0 = as fast as possible "
+                         "otherwise)")
+    _add_client_ports(up, 14540, "API port of unit index 0 (MAVSDK); unit i uses this + i (PX4's ports)")
+    _add_signing(up, "the coordinator <-> unit links, signed both ways, and the client links")
+    up.add_argument("--any-bind", action="store_true",
+                    help="bind the units' client sockets to free ports instead of PX4's 18570+i / 14580+i")
+    up.add_argument("--vehicle", action="store_true",
+                    help="the docked assembly as ONE MAVLink vehicle (served by the coordinator; arm, takeoff, "
+                         "offboard, land from MAVSDK/QGC); runs in real time until Ctrl-C")
+    up.add_argument("--vehicle-sysid", type=int, default=vehicle_sysid,
+                    help=f"with --vehicle: its MAVLink system id ({_VEHICLE_WHY}; default {vehicle_sysid})")
+    up.add_argument("--vehicle-api-port", type=int, default=vehicle_api_port,
+                    help=f"with --vehicle: MAVSDK's port, udpin://127.0.0.1:PORT ({_VEHICLE_WHY}; default "
+                         f"{vehicle_api_port})")
+    up.add_argument("--vehicle-gcs-port", type=int, default=None,
+                    help="with --vehicle: its ground-station port (default: --gcs-port, 14550)")
+    _add_map(up, "with --vehicle")
+    _add_view(up, " (served by the world process)")
+    _add_link(up, "the world, the units and the coordinator (the clients' links are UDP either way)")
+    _add_sitl_processes(up, "pace the world to the wall clock")
+    up.add_argument("--external-coordinator", action="store_true",
+                    help="start no coordinator: attach one with `mars-link coordinator` (printed)")
 
-    add_pool_arguments(rep)  # --workers / --scheduler: the flights go through the sweep's executor
-    rep.set_defaults(func=cmd_reproduce)
+    # -- coordinator
+    coord = _command(sub, "coordinator", "the coordinator process alone, attaching to the units of a running "
+                     "`sitl up --external-coordinator`",
+                     "Run the coordinator in this process, attached to the world and units that `mars-link sitl up "
+                     "--external-coordinator` started (it prints this command); Ctrl-C ends it.", cmd_coordinator)
+    _add_scenario(coord, INTERACTIVE_SCENARIO, ", as sitl up")
+    coord.add_argument("--out", default=".", metavar="DIR", help="where coordinator_summary.json goes")
+    coord.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port (printed by sitl up)")
+    coord.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to "
+                       "(printed by sitl up)")
+    coord.add_argument("--signing-key-file", default=None, metavar="FILE",
+                       help="sign the unit links (default: $MARS_LINK_SIGNING_KEY, else unsigned)")
+    _add_link(coord, "the coordinator and the units (as the `sitl up` it attaches to)")
 
-    from mars_link.apps.sweep_cli import add_arguments as add_sweep_arguments
+    # -- vehicle
+    from mars_link.processes.realtime import API_BIND, GCS_BIND
 
-    swp = sub.add_parser("sweep", help="many flights of a scenario over seeds, random faults and parameters, "
-                                       "on local cores or a Dask cluster (mars_link.apps.sweep)")
-    add_sweep_arguments(swp)
-    swp.set_defaults(func=cmd_sweep)
+    veh = _command(sub, "vehicle", "the assembly as one MAVLink vehicle in real time (MAVSDK, MAVProxy, QGC)",
+                   "The assembly (physics and coordinator in this process) behind one MAVLink endpoint, paced to "
+                   "real time: arm, take off, fly missions, offboard and land from a ground station or MAVSDK. "
+                   "The scenario's vehicle, layout, control and faults are used, not its trajectory. Runs until "
+                   "Ctrl-C, --duration (simulated) or --wall-time.", cmd_vehicle)
+    _add_scenario(veh, INTERACTIVE_SCENARIO, ", the realistic plant")
+    _add_layout(veh, "overrides the scenario")
+    veh.add_argument("--sysid", type=int, default=vehicle_sysid,
+                     help=f"MAVLink system id ({_VEHICLE_WHY}; default {vehicle_sysid})")
+    _add_client_ports(veh, vehicle_api_port, f"MAVSDK listens here, udpin://127.0.0.1:PORT ({_VEHICLE_WHY}; "
+                      f"default {vehicle_api_port})")
+    veh.add_argument("--gcs-bind", type=int, default=GCS_BIND,
+                     help=f"local port of the gcs link (0: any; default {GCS_BIND}, below the units' 18570+i)")
+    veh.add_argument("--api-bind", type=int, default=API_BIND,
+                     help=f"local port of the api link (0: any; default {API_BIND}, below the units' 14580+i)")
+    _add_seed(veh)
+    _add_flight_overrides(veh)
+    veh.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
+    veh.add_argument("--mission", default=None, metavar="FILE.plan",
+                     help="QGroundControl .plan preloaded (mission, geofence, rally), as if a client had uploaded it")
+    _add_map(veh, "default: the scenario's [mission] map")
+    veh.add_argument("--speed", type=float, default=1.0, metavar="X",
+                     help="simulation speed, x real time (0.05..20)")
+    veh.add_argument("--status-file", default=None, metavar="FILE",
+                     help="JSON snapshot (truth, mode, counters) a few times a second")
+    veh.add_argument("--tlog", default=None, metavar="FILE",
+                     help="MAVLink log of both links (pymavlink .tlog), appended and flushed as it goes")
+    _add_duration(veh, "stop after this much simulated time (it once meant wall seconds: that is --wall-time now)")
+    veh.add_argument("--wall-time", type=v.positive_float, default=None, metavar="SECONDS",
+                     help="stop after this many wall-clock seconds [wall s]")
+    _add_signing(veh, "the gcs and api links")
+    _add_out(veh, "none: no run.mcap", force=False)
+    _add_view(veh)
+
+    # -- plan
+    plan = _command(sub, "plan", "a collision-free trajectory for an assembly on a map (trajectory.csv, plan.json, "
+                    "plan.png)",
+                    "Plan a collision-free trajectory for an assembly on an obstacle map; write trajectory.csv (the "
+                    "'csv' trajectory kind replays it), plan.json and plan.png. Exit 0 = a collision-free plan, "
+                    "1 = none found (reason on stderr and in plan.json), 2 = bad input.", cmd_plan)
+    plan.add_argument("map", help="boxes .csv (columns cx,cy,length_m,thickness_m,height_m,yaw_deg; z-up scene frame) "
+                      "or ASCII .pcd")
+    _add_layout(plan, "the assembly to plan for", required=True)
+    _add_fault(plan, "counted as in effect for the whole plan")
+    plan.add_argument("--start", required=True, metavar="N,E,D", help="start position [m, NED]")
+    plan.add_argument("--goal", required=True, metavar="N,E,D", help="goal position [m, NED] (same D: planning is planar)")
+    plan.add_argument("--start-yaw", type=float, default=0.0, metavar="DEG", help="start yaw [deg, NED]")
+    plan.add_argument("--method", default="ours", help="ours (dynamics-aware) or svsdf (baseline)")
+    plan.add_argument("--preset", default="mars-ftcc", help="vehicle preset")
+    plan.add_argument("--margin", type=float, default=None, metavar="M", help="footprint inflation [m] (default 0.1)")
+    plan.add_argument("--out", required=True, metavar="DIR", help="output directory (must be empty unless --force)")
+    plan.add_argument("--force", action="store_true", help="clear a non-empty --out first")
+    _add_quiet(plan)
+
+    # -- reconfig plan
+    reconfig = sub.add_parser("reconfig", help="self-reconfiguration (paper 001): `reconfig plan`",
+                              description="Self-reconfiguration of an assembly with faulty units (paper 001).")
+    reconfig_sub = reconfig.add_subparsers(dest="action", metavar="ACTION", title="actions", required=True)
+    rplan = _command(reconfig_sub, "plan", "the reconfiguration the scenario's faults call for, as text or JSON",
+                     "Plan the self-reconfiguration (paper 001) for the scenario's faults and --fault: which unit "
+                     "goes to which cell, and the split/move/dock layers. Exit 0 = a plan, 1 = no feasible plan "
+                     "(the JSON still says why), 2 = bad input.", cmd_reconfig_plan)
+    rplan.add_argument("scenario", nargs="?", default=None,
+                       help="scenario TOML file or bundled name (default: none; then --layout is needed)")
+    _add_fault(rplan, "T is ignored: every fault counts")
+    _add_layout(rplan, "overrides the scenario")
+    rplan.add_argument("--preset", default=None, help="vehicle preset (overrides the scenario; default modquad-cf2)")
+    rplan.add_argument("--target", default=None, metavar="IDS",
+                       help="plan to this allocation instead of the optimal one: unit ids for the layout's cells in "
+                            "row-major order, e.g. 3,2,1")
+    rplan.add_argument("--snap-weights", default=None, metavar="BX,BY",
+                       help="snap integrals along north and east (default: from the scenario's trajectory, else equal)")
+    rplan.add_argument("--json", action="store_true", help="print one JSON object")
+
+    # -- reproduce
+    rep = _command(sub, "reproduce", "reproduce a paper's table (table1: paper 000 Table I + Fig. 3)",
+                   "Fly every flight of a paper's table and print it beside the paper's numbers (table1: paper 000 "
+                   "Table I and Fig. 3, controllers x FTC modes x seeds).", cmd_reproduce)
+    rep.add_argument("what", choices=("table1",), help="the table: table1")
+    rep.add_argument("--seeds", type=v.bounded_int(1, 10_000), default=10, help="flights per controller and mode")
+    rep.add_argument("--controllers", default="mars-ftcc-paper,cascaded", help="comma-separated")
+    rep.add_argument("--modes", default=None, help="cascaded FTC modes, comma-separated (default: all)")
+    _add_duration(rep, "shorten every flight (a quick look; default: the paper's)")
+    rep.add_argument("--out", default="runs/table1", metavar="DIR", help="where the results go (replaced on a re-run)")
+    _add_quiet(rep)
+    _add_pool(rep)
+
+    # -- sweep
+    swp = _command(sub, "sweep", "many flights of a scenario over seeds, random faults and parameters, on local "
+                   "cores or a Dask cluster",
+                   "Fly a scenario many times: over seeds, random faults and parameter grids, on local cores or a "
+                   "Dask cluster; write sweep.csv (rows appended to sweep.partial.csv as flights finish), sweep.md, "
+                   "sweep.json and plots/. Exit 0 when every flight flew (diverged or not), 1 when one raised.",
+                   cmd_sweep)
+    _add_scenario(swp, DEFAULT_SCENARIO)
+    swp.add_argument("--seeds", type=v.bounded_int(1, 100_000), default=10, help="flights per parameter combination")
+    _add_seed(swp, "the sweep seed (default: the scenario's); seed slot j flies seed SEED + j")
+    swp.add_argument("--faults", default=None, metavar="random:K[,units|rotors]",
+                     help="K random rotor (or unit) failures per flight, eta 0, drawn from the sweep seed and the slot")
+    swp.add_argument("--param", action="append", default=[], metavar="KEY=V1,V2,...",
+                     help="scenario TABLE.KEY (or ftc, controller, noise, ...) values to sweep; repeat for a grid")
+    _add_pool(swp)
+    _add_out(swp, "runs/<name>-sweep-<time>")
+    swp.add_argument("--mcap", action="store_true", help="each flight writes flights/<i>/run.mcap")
+    swp.add_argument("--no-plots", action="store_true", help="write no plots/")
+    _add_quiet(swp)
     return parser
+
+
+def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    """Every subcommand's parser by its full name ("run", "sitl up", ...), nested ones included: for the
+    documentation generator and the tests that walk the tree."""
+    found: dict[str, argparse.ArgumentParser] = {}
+
+    def walk(p: argparse.ArgumentParser, prefix: str) -> None:
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, child in action.choices.items():
+                    full = f"{prefix} {name}".strip()
+                    found[full] = child
+                    walk(child, full)
+
+    walk(parser, "")
+    return found
 
 
 def main(argv: list[str] | None = None) -> int:
     from mars_link.processes.parent_watch import hear_stop_signals
 
     hear_stop_signals()  # Ctrl-C stops every command, whatever mask the parent left
-    argv = sys.argv[1:] if argv is None else argv
-    if argv[:2] == ["reconfig", "plan"]:  # its own parser and exit codes (0 plan, 1 none feasible, 2 bad input)
-        from mars_link.apps.reconfig_cli import reconfig_plan_command
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv[:1] == ["plan"]:  # before numpy loads: threaded BLAS is 10x slower for the planner (spec §6.1)
+        import os
 
-        return reconfig_plan_command(argv[2:])
-    if argv[:1] == ["plan"]:  # collision-free planning: its own parser (0 plan, 1 none found, 2 bad input)
-        from mars_link.apps.plan_cli import plan_command
-
-        return plan_command(argv[1:])
-    parser = build_parser()
+        os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     try:
-        args = parser.parse_args(argv)
+        parser = build_parser()
+        try:
+            args = parser.parse_args(argv)
+        except SystemExit as exc:  # --help, --version: printed, exit 0
+            return exc.code if isinstance(exc.code, int) else 0
         if not getattr(args, "func", None):
             parser.print_help()
             return EXIT_USAGE

@@ -1,4 +1,4 @@
-"""`mars-link plan MAP --layout ROWS --start N,E,D --goal N,E,D [...] --out DIR`.
+"""`mars-link plan MAP --layout ROWS --start N,E,D --goal N,E,D [...] --out DIR` (options: mars_link.apps.cli).
 
 Writes trajectory.csv (t_s, n_m, e_m, d_m, yaw_rad: the "csv" trajectory kind replays it), plan.json
 and plan.png. Exit 0 = collision-free plan, 1 = no plan (reason on stderr and in plan.json),
@@ -9,14 +9,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from mars_link.core.errors import EnvironmentFailure, UserInputError
-from mars_link.core.validation import check_out_dir, prepare_out_dir, report
+from mars_link.core.errors import UserInputError
+from mars_link.core.validation import check_out_dir, prepare_out_dir
 
 
 def parse_point(text: str, what: str) -> np.ndarray:
@@ -28,25 +27,6 @@ def parse_point(text: str, what: str) -> np.ndarray:
     if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise UserInputError(f"{what} {text!r}: expected three finite numbers N,E,D")
     return np.array(values)
-
-
-def build_parser() -> argparse.ArgumentParser:
-    from mars_link.core.errors import OneLineArgumentParser
-
-    p = OneLineArgumentParser(prog="mars-link plan", description="collision-free trajectory for an assembly on a map")
-    p.add_argument("map", help="boxes .csv (columns of data/mars_ftcc_walls.csv, z-up scene frame) or ASCII .pcd")
-    p.add_argument("--layout", required=True, help="layout rows separated by commas, e.g. XXX,XXX")
-    p.add_argument("--fault", action="append", default=[], metavar="UNIT[:ROTOR]=ETA[@T]")
-    p.add_argument("--start", required=True, help="N,E,D [m]")
-    p.add_argument("--goal", required=True, help="N,E,D [m] (same D: planning is planar)")
-    p.add_argument("--start-yaw", type=float, default=0.0, help="start yaw [deg, NED]")
-    p.add_argument("--method", default="ours", help="ours (dynamics-aware) or svsdf (baseline)")
-    p.add_argument("--preset", default="mars-ftcc")
-    p.add_argument("--margin", type=float, default=None, help="footprint inflation [m] (default 0.1)")
-    p.add_argument("--out", required=True, help="output directory (must be empty unless --force)")
-    p.add_argument("--force", action="store_true", help="clear a non-empty --out first")
-    p.add_argument("--quiet", action="store_true")
-    return p
 
 
 def plan_from_args(args) -> tuple:
@@ -104,20 +84,14 @@ def write_outputs(out: Path, planner, result, obstacles, title: str, force: bool
     plot_plan(out / "plan.png", obstacles, planner.footprint, [result], title)
 
 
-def plan_command(argv: list[str]) -> int:
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # spec §6.1: threaded BLAS is 10x slower here
-    try:
-        args = build_parser().parse_args(argv)
-        out = check_out_dir(args.out, force=args.force)  # before planning: a bad --out costs nothing
-        if not args.quiet:
-            print(f"planning {args.method} for {args.layout} on {args.map} ...", file=sys.stderr)
-        planner, result, obstacles = plan_from_args(args)
-        write_outputs(out, planner, result, obstacles,
-                      f"{args.layout} {' '.join(args.fault)} {args.method}: {result.message}", args.force)
-    except (UserInputError, EnvironmentFailure, OSError) as exc:
-        line, code = report(exc)
-        print(line, file=sys.stderr)
-        return code
+def plan_command_args(args: argparse.Namespace) -> int:
+    """The verb, its options parsed by mars_link.apps.cli; a bad input raises (one line there, exit 2)."""
+    out = check_out_dir(args.out, force=args.force)  # before planning: a bad --out costs nothing
+    if not args.quiet:
+        print(f"planning {args.method} for {args.layout} on {args.map} ...", file=sys.stderr)
+    planner, result, obstacles = plan_from_args(args)
+    write_outputs(out, planner, result, obstacles,
+                  f"{args.layout} {' '.join(args.fault)} {args.method}: {result.message}", args.force)
     if not args.quiet:
         st = result.stage_time_s
         print("  " + ", ".join(f"{k} {v:.3f} s" for k, v in st.items()), file=sys.stderr)
@@ -127,6 +101,13 @@ def plan_command(argv: list[str]) -> int:
     print(f"plan ok: {result.length_m:.2f} m, {result.duration_s:.2f} s, min clearance {result.min_clearance_m:.3f} m, "
           f"total yaw {math.degrees(result.total_yaw_rad):.0f} deg -> {out}")
     return 0
+
+
+def plan_command(argv: list[str]) -> int:
+    """`mars-link plan ARGV...` (scripts and tests): the main command line's parsing and error lines."""
+    from mars_link.apps.cli import main
+
+    return main(["plan", *argv])
 
 
 if __name__ == "__main__":

@@ -1,4 +1,4 @@
-"""`mars-link reconfig plan`: the reconfiguration a fault set calls for, as text or JSON.
+"""`mars-link reconfig plan`: the reconfiguration a fault set calls for, as text or JSON (options: mars_link.apps.cli).
 
 Exit codes: 0 a plan was found, 1 no feasible plan (the JSON still says why), 2 bad input (one
 line on stderr).
@@ -11,27 +11,8 @@ import sys
 
 from mars_link.core.errors import UserInputError
 from mars_link.logs.outputs import dumps
-from mars_link.core.validation import OneLineParser
 
 EXIT_OK, EXIT_INFEASIBLE, EXIT_USAGE = 0, 1, 2
-
-
-def _parser() -> OneLineParser:
-    p = OneLineParser(prog="mars-link reconfig plan",
-                description="Plan the self-reconfiguration (paper 001) for the scenario's faults.")
-    p.add_argument("scenario", nargs="?", help="scenario TOML (or a bundled scenario name)")
-    p.add_argument("--fault", action="append", default=[], metavar="UNIT[:ROTOR]=ETA[@T]",
-                   help="add a fault (rotors 1..4 = FR, FL, RL, RR); repeatable")
-    p.add_argument("--layout", help="layout rows separated by commas, e.g. XXX,XXX (overrides the scenario)")
-    p.add_argument("--preset", help="vehicle preset (overrides the scenario; default modquad-cf2)")
-    p.add_argument("--target", metavar="IDS",
-                   help="plan to this allocation instead of the optimal one: unit ids for the layout's "
-                        "cells in row-major order, e.g. 3,2,1")
-    p.add_argument("--snap-weights", metavar="BX,BY",
-                   help="snap integrals along north and east (default: from the scenario's trajectory, "
-                        "else equal)")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
-    return p
 
 
 def _parse_pair(text: str, what: str) -> tuple[float, float]:
@@ -124,18 +105,13 @@ def _print_text(model, faults, weights, plan) -> None:
             print(f"  A{s['layer']} dock {s['bodies'][1]} to {s['bodies'][0]}{where}")
 
 
-def reconfig_plan_command(argv: list[str]) -> int:
-    """Entry point for `mars-link reconfig plan ...` (the lead wires it into the main CLI)."""
+def reconfig_plan_args(args) -> int:
+    """The verb, its options parsed by mars_link.apps.cli; a bad input raises (one line there, exit 2)."""
     from mars_link.reconfig.sequencing import plan_reconfiguration
 
-    try:
-        args = _parser().parse_args(argv)
-        model, faults, health, weights = _setup(args)
-        target = _parse_target(args.target, model) if args.target else None
-        plan = plan_reconfiguration(model, health, weights, target=target)
-    except UserInputError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
+    model, faults, health, weights = _setup(args)
+    target = _parse_target(args.target, model) if args.target else None
+    plan = plan_reconfiguration(model, health, weights, target=target)
     if args.json:
         out = plan.to_json()
         out.update({
@@ -147,6 +123,13 @@ def reconfig_plan_command(argv: list[str]) -> int:
     else:
         _print_text(model, faults, weights, plan)
     return EXIT_OK if plan.feasible else EXIT_INFEASIBLE
+
+
+def reconfig_plan_command(argv: list[str]) -> int:
+    """`mars-link reconfig plan ARGV...` (scripts and tests): the main command line's parsing and error lines."""
+    from mars_link.apps.cli import main
+
+    return main(["reconfig", "plan", *argv])
 
 
 if __name__ == "__main__":  # pragma: no cover

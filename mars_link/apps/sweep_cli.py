@@ -1,5 +1,6 @@
 """`mars-link sweep SCENARIO [--seeds N] [--faults random:K[,units|rotors]] [--param KEY=V1,V2,...]
-[--workers W] [--scheduler ADDRESS] [--out DIR] [--mcap]`: the verb, and `run_sweep` for scripts.
+[--workers W] [--scheduler ADDRESS] [--out DIR] [--mcap]`: the verb (its options: mars_link.apps.cli), and
+`run_sweep` for scripts.
 
 Why rows are appended to sweep.partial.csv as flights finish: a sweep of hours that is stopped keeps
 every flight it flew; sweep.csv (in flight order) replaces it at the end.
@@ -52,27 +53,6 @@ def run_sweep(plan: SweepPlan, pool: PoolSpec, out_dir: Path | None = None, mcap
         if partial is not None:
             partial.close()
     return [r for r in rows if r is not None]
-
-
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    from mars_link.core import validation as v
-
-    p.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default spiral_3x2)")
-    p.add_argument("--seeds", type=v.bounded_int(1, 100_000), default=10, help="flights per parameter combination")
-    p.add_argument("--seed", type=v.seed, default=None, help="the sweep seed (default: the scenario's); "
-                   "seed slot j flies seed SEED + j")
-    p.add_argument("--faults", default=None, metavar="random:K[,units|rotors]",
-                   help="K random rotor (or unit) failures per flight, eta 0, drawn from the sweep seed and the slot")
-    p.add_argument("--param", action="append", default=[], metavar="KEY=V1,V2,...",
-                   help="scenario TABLE.KEY (or ftc, controller, noise, ...) values to sweep; repeat for a grid")
-    from mars_link.apps.sweep_pool import add_pool_arguments
-
-    add_pool_arguments(p)  # --workers W (default: every core), --scheduler ADDRESS (a Dask cluster)
-    p.add_argument("--out", help="sweep directory (default runs/<name>-sweep-<time>); must be empty unless --force")
-    p.add_argument("--force", action="store_true", help="clear a non-empty --out first")
-    p.add_argument("--mcap", action="store_true", help="each flight writes flights/<i>/run.mcap")
-    p.add_argument("--no-plots", action="store_true", help="write no plots/")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
 def sweep_command(args: argparse.Namespace, default_out: Callable[[str], Path]) -> int:

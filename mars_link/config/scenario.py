@@ -7,7 +7,6 @@ which docs/hooks/reference.py generates from this module.
 
 from __future__ import annotations
 
-import difflib
 import math
 import os
 import re
@@ -459,8 +458,10 @@ def resolve_scenario_path(arg: str | None) -> Path:
     bundled = SCENARIO_DIR / (arg if arg.endswith(".toml") else f"{arg}.toml")
     if bundled.exists():
         return bundled
-    close = difflib.get_close_matches(Path(arg).name.removesuffix(".toml"), bundled_scenario_names(), n=3)
-    hint = f"; did you mean {' or '.join(close)}?" if close else "; `mars-link scenarios` lists them"
+    from mars_link.core.errors import did_you_mean
+
+    hint = did_you_mean(Path(arg).name.removesuffix(".toml"), bundled_scenario_names()) or \
+        "; `mars-link scenarios` lists them"
     raise UserInputError(f"scenario {arg!r} not found (no such file, and no bundled scenario of that name){hint}")
 
 

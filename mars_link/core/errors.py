@@ -1,6 +1,8 @@
 """Errors that carry a message meant for the user (one line, no traceback)."""
 
 import argparse
+import difflib
+from collections.abc import Iterable
 
 
 class UserInputError(ValueError):
@@ -21,3 +23,12 @@ class EnvironmentFailure(RuntimeError):
 class PortUnavailable(EnvironmentFailure, UserInputError):
     """A port that cannot be bound (in use, not permitted): the machine's refusal, exit 1; still a
     UserInputError for the processes that catch only those (one line either way)."""
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """"; did you mean 'x'?" for the closest known names to a misspelled one (difflib), else "": appended
+    to the one error line, so a typo costs one look instead of a listing."""
+    close = difflib.get_close_matches(word, [str(c) for c in choices], n=3, cutoff=0.6)
+    if not close:
+        return ""
+    return "; did you mean " + " or ".join(repr(c) for c in close) + "?"

@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from mars_link.core.errors import UserInputError
+from mars_link.core.errors import UserInputError, did_you_mean
 
 
 def check_keys(table: dict, allowed: set[str], where: str, src: str) -> None:
@@ -15,6 +15,7 @@ def check_keys(table: dict, allowed: set[str], where: str, src: str) -> None:
         if key not in allowed:
             raise UserInputError(
                 f"{src}: unknown key {key!r} in {where} (allowed: {', '.join(sorted(allowed))})"
+                + did_you_mean(str(key), allowed)
             )
 
 

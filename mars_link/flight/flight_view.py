@@ -829,14 +829,6 @@ def open_view(out_dir: Path | None, model, scenario, control_hz: float, trajecto
 
 
 # ----------------------------------------------------------------------------- command line
-def add_view_arguments(p) -> None:
-    """--no-mcap and --foxglove [HOST:PORT] (loopback by default)."""
-    p.add_argument("--no-mcap", action="store_true", help="write no run.mcap")
-    p.add_argument("--foxglove", nargs="?", const=DEFAULT_LIVE, default=None, metavar="HOST:PORT",
-                   help=f"live Foxglove view: Foxglove's WebSocket server (default {DEFAULT_LIVE}); open it in "
-                        "Foxglove with 'Open connection' -> Foxglove WebSocket")
-
-
 def live_address(args) -> str | None:
     """--foxglove HOST:PORT checked now (bad text or a busy port: one line, exit 2, before any flight), or None."""
     address = getattr(args, "foxglove", None)

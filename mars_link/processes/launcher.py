@@ -275,51 +275,9 @@ def death_line(run: SitlRun, dead: list[str]) -> str:
     return f"sitl: {'; '.join(parts)} before the flight ended: stopping every child (logs in {run.out})"
 
 
-def sitl_up(scenario: str | None, out: Path, units: int | None = None, layout: str | None = None,
-            seed: int | None = None, speed: float | None = None, clients: ClientPorts | None = None,
-            signing_key_file: str | None = None, vehicle=None, require_signing: bool = False,
-            view: tuple[str, ...] = (), units_per_process: int = 1) -> int:
-    """`mars-link sitl up`: start, print the endpoints, run until the end, Ctrl-C or a child's death.
-    With `vehicle` (mars_link.processes.vehicle_host.VehiclePorts) the coordinator serves the docked assembly as one
-    MAVLink vehicle and the run goes on, paced to real time (unless `speed`), until stopped.
-    `require_signing`: every unit's and the vehicle's client links too (unsigned clients only read)."""
-    previous = signal.getsignal(signal.SIGTERM)
-    signal.signal(signal.SIGTERM, _raise_interrupt)
-    run = None
-    try:
-        extra = ["--require-signing"] if require_signing else []
-        role_args = {"unit": extra, "coordinator": (vehicle.argv() if vehicle is not None else []) + extra}
-        if vehicle is None:
-            run = start(scenario, out, units, layout, seed, speed, clients, signing_key_file, role_args=role_args,
-                        view=view, units_per_process=units_per_process)
-        else:
-            run = start(scenario, out, units, layout, seed, 1.0 if speed is None else speed, clients, signing_key_file,
-                        role_args=role_args, forever=True, view=view, units_per_process=units_per_process)
-        for line in run.endpoints():
-            print(line, flush=True)
-        if vehicle is not None:
-            print(vehicle.describe(out), flush=True)
-        steps = run.setup.steps
-        sc = run.setup.scenario
-        print(f"running {'until Ctrl-C' if steps is None else f'{steps / sc.sim.control_hz:.1f} s of sim time'}; "
-              f"run directory {out}", flush=True)
-        return wait(run, units_may_die=True)  # a dead unit is a failed unit (FTC flies on)
-    except KeyboardInterrupt:
-        print("sitl: interrupted, stopping every child", file=sys.stderr)
-        if run is not None:
-            run.stop()
-        return 130
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-
-
 def _last_line(path: Path) -> str:
     try:
         lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
     except OSError:
         return ""
     return lines[-1][:300] if lines else ""
-
-
-def _raise_interrupt(*_) -> None:
-    raise KeyboardInterrupt

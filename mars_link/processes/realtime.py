@@ -7,13 +7,13 @@
 127.0.0.1 (PX4's SITL conventions, specs/mavlink.md §1.1):
   gcs  the vehicle sends to --gcs-port (default 14550: QGroundControl, MAVProxy `udpin`) from
        --gcs-bind (default 18560)
-  api  the vehicle sends to --api-port (default 14540: MAVSDK `udpin://127.0.0.1:14540`) from
-       --api-bind (default 14560)
+  api  the vehicle sends to --api-port (default 14539: MAVSDK `udpin://127.0.0.1:14539`, as under
+       `sitl up --vehicle`, whose units take PX4's 14540+i) from --api-bind (default 14560)
   On both, whoever last sent a valid frame to the bound port also gets the traffic (MAVProxy
   `--master=udpout:127.0.0.1:18560`). A bind port 0 means any free port.
 Socket handling (flood limits, loopback-only senders, peers) is every Vehicle runner's
 (`mars_link.processes.vehicle_io.VehicleSockets`).
-Runs until Ctrl-C / SIGTERM (or --duration wall seconds). A machine too slow to keep up is re-anchored
+Runs until Ctrl-C / SIGTERM, --duration simulated seconds or --wall-time wall seconds. A machine too slow to keep up is re-anchored
 (counted as an overrun) instead of racing to catch up.
 """
 
@@ -31,15 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from firmware_models.vehicle import LINK_API, LINK_GCS
-from mars_link.processes.vehicle_io import API_PORT_BASE, GCS_PORT, LOOPBACK, LinkSpec, VehicleSockets, write_json_atomic
-from mars_link.vehicles.assembly_vehicle import DEFAULT_SYSID, AssemblySim, SimConfig
+from mars_link.processes.vehicle_io import API_PORT_BASE, LOOPBACK, LinkSpec, VehicleSockets, write_json_atomic
+from mars_link.vehicles.assembly_vehicle import AssemblySim, SimConfig
 from mars_link.core import validation
 from mars_link.core.errors import UserInputError
 from mars_link.runtime.pacing import Pacer
 from mars_link.config.scenario import INTERACTIVE_SCENARIO as DEFAULT_SCENARIO  # (the realistic plant)
 
 STATUS_PERIOD_S = 0.2
-API_PORT = API_PORT_BASE  # the assembly takes instance 0's ports, like a single PX4 SITL drone
+API_PORT = API_PORT_BASE  # PX4 SITL instance 0's API port (the vehicle's default until it agreed with sitl up --vehicle)
 GCS_BIND, API_BIND = 18560, 14560  # below the units' 18570+i / 14580+i
 
 
@@ -48,7 +48,8 @@ class AssemblyRunner:
     AssemblySim."""
 
     def __init__(self, sim: AssemblySim, ports: dict[str, int], speed: float = 1.0,
-                 status_file: str | None = None, duration_s: float | None = None, tlog: str | None = None) -> None:
+                 status_file: str | None = None, duration_s: float | None = None, tlog: str | None = None,
+                 wall_time_s: float | None = None) -> None:
         self.sim = sim
         self.vehicle = sim.vehicle
         self.speed = speed
@@ -57,7 +58,8 @@ class AssemblyRunner:
             LINK_API: LinkSpec(ports["api_bind"], (LOOPBACK, ports["api_port"])),
         }, Path(tlog) if tlog else None)
         self.status_path = Path(status_file) if status_file else None
-        self.duration_s = duration_s
+        self.duration_s = duration_s  # simulated seconds
+        self.wall_time_s = wall_time_s
         self.running = True
         self.pacer = Pacer(speed)  # overruns (re-anchored) and late steps are counted there
         self.steps = 0
@@ -101,7 +103,9 @@ class AssemblyRunner:
         self.write_status()
         while self.running:
             now = time.monotonic()
-            if self.duration_s is not None and now - start >= self.duration_s:
+            if self.wall_time_s is not None and now - start >= self.wall_time_s:
+                break
+            if self.duration_s is not None and self.sim.t_s >= self.duration_s - 1e-9:
                 break
             self.io.poll(pacer.wait_s(self.sim.t_s))
             now = time.monotonic()
@@ -131,38 +135,7 @@ class AssemblyRunner:
         self.sim.close()
 
 
-# ----------------------------------------------------------------------------- command line
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("scenario", nargs="?", help=f"scenario TOML file or bundled name (default {DEFAULT_SCENARIO}); "
-                   "its vehicle, layout, control and faults are used, its trajectory is not")
-    p.add_argument("--layout", help="layout rows separated by commas, e.g. XXX,XXX (overrides the scenario)")
-    p.add_argument("--sysid", type=int, default=DEFAULT_SYSID, help=f"MAVLink system id (default {DEFAULT_SYSID})")
-    p.add_argument("--gcs-port", type=int, default=GCS_PORT, help=f"ground stations listen here (default {GCS_PORT})")
-    p.add_argument("--api-port", type=int, default=API_PORT, help=f"MAVSDK listens here (default {API_PORT})")
-    p.add_argument("--gcs-bind", type=int, default=GCS_BIND, help=f"local port of the gcs link (default {GCS_BIND}; 0 any)")
-    p.add_argument("--api-bind", type=int, default=API_BIND, help=f"local port of the api link (default {API_BIND}; 0 any)")
-    p.add_argument("--seed", type=validation.seed, default=None, help=f"0..{validation.SEED_MAX}")
-    p.add_argument("--ftc", help="allocation mode: none, unit, partial, full, hybrid, qp")
-    p.add_argument("--fault", action="append", metavar="UNIT[:ROTOR]=ETA[@T]", help="T: seconds after start")
-    p.add_argument("--no-noise", action="store_true", help="perfect sensors (truth state)")
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
-    p.add_argument("--mission", default=None, metavar="FILE.plan",
-                   help="QGroundControl .plan preloaded (mission, geofence, rally), as if a client had uploaded it")
-    p.add_argument("--map", default=None, metavar="FILE",
-                   help="obstacle map (boxes .csv or .pcd): mission legs planned around it (default: [mission] map)")
-    p.add_argument("--speed", type=float, default=1.0, help="simulation speed, x real time")
-    p.add_argument("--status-file", help="JSON snapshot (truth, mode, counters) a few times a second")
-    p.add_argument("--tlog", help="MAVLink log of both links (pymavlink .tlog), appended and flushed as it goes")
-    p.add_argument("--duration", type=validation.positive_float, help="stop after this many wall seconds")
-    from mars_link.mavlink.signing import add_signing_args
-
-    add_signing_args(p, "the gcs and api links")
-    p.add_argument("--out", default=None, help="run directory for run.mcap (Foxglove; none without --out)")
-    from mars_link.flight.flight_view import add_view_arguments
-
-    add_view_arguments(p)  # --no-mcap, --foxglove [HOST:PORT]
-
-
+# ----------------------------------------------------------------------------- command line (options: mars_link.apps.cli)
 def _check_port(name: str, value: int, allow_zero: bool) -> int:
     lo = 0 if allow_zero else 1
     if not lo <= value <= 65535:
@@ -196,8 +169,9 @@ def build_sim(args: argparse.Namespace) -> AssemblySim:
         scenario.sim.noise = False
     if not (math.isfinite(args.speed) and 0.05 <= args.speed <= 20.0):
         raise UserInputError(f"--speed must be 0.05..20, got {args.speed}")
-    if args.duration is not None and not (math.isfinite(args.duration) and args.duration > 0):
-        raise UserInputError(f"--duration must be > 0, got {args.duration}")
+    for name, value in (("--duration", args.duration), ("--wall-time", getattr(args, "wall_time", None))):
+        if value is not None and not (math.isfinite(value) and value > 0):
+            raise UserInputError(f"{name} must be > 0, got {value}")
     if scenario.controller != "cascaded":
         raise UserInputError(f"controller {scenario.controller!r}: the vehicle flies setpoints with 'cascaded' only")
     if not 1 <= args.sysid <= 250 or args.sysid in (200, 201):
@@ -251,7 +225,8 @@ def vehicle_command(args: argparse.Namespace) -> int:
             from firmware_models.qgc_plan import load_plan, preload
 
             preload(sim.vehicle, load_plan(args.mission), args.mission)
-        runner = AssemblyRunner(sim, ports, args.speed, args.status_file, args.duration, args.tlog)
+        runner = AssemblyRunner(sim, ports, args.speed, args.status_file, args.duration, args.tlog,
+                                getattr(args, "wall_time", None))
     except (UserInputError, OSError) as exc:
         sim.close()
         if isinstance(exc, OSError):
@@ -275,6 +250,15 @@ def vehicle_command(args: argparse.Namespace) -> int:
     print(f"  API: udp {LOOPBACK}:{ep['api']['from']} -> {LOOPBACK}:{ep['api']['to']}  "
           f"(MAVSDK udpin://{LOOPBACK}:{ep['api']['to']})")
     print("  Ctrl-C to stop", flush=True)
+    from mars_link.processes.vehicle_host import DEFAULT_VEHICLE_API_PORT, DEFAULT_VEHICLE_SYSID
+
+    if args.api_port == DEFAULT_VEHICLE_API_PORT and args.sysid == DEFAULT_VEHICLE_SYSID:  # the defaults that moved
+        print(f"mars-link: note: the vehicle is MAVLink system {DEFAULT_VEHICLE_SYSID} on API port "
+              f"{DEFAULT_VEHICLE_API_PORT}, as under `sitl up --vehicle` (it was system 1 on 14540: "
+              f"--sysid 1 --api-port {API_PORT})", file=sys.stderr, flush=True)
+    if args.duration is not None:  # the one change of meaning: said once, after every check passed
+        print(f"mars-link: note: vehicle --duration {args.duration:g} is simulated seconds (it was wall seconds; "
+              "--wall-time SECONDS limits wall time)", file=sys.stderr, flush=True)
 
     def stop(*_):
         runner.running = False

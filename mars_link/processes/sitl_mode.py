@@ -609,8 +609,9 @@ def _endpoint(text: str) -> str:
     return text
 
 
-def _link_from_args(args, default_kind: str) -> LinkSpec:
-    kind = getattr(args, "transport", None) or default_kind
+def link_from_args(args) -> LinkSpec:
+    """The links of the SITL processes from the command line (mars_link.apps.cli `--transport` and its options)."""
+    kind = getattr(args, "transport", None) or "zenoh"
     if kind not in ("udp", "zenoh"):
         raise UserInputError(f"--transport {kind!r}: expected zenoh or udp")
     profile = getattr(args, "link_profile", None)
@@ -633,31 +634,9 @@ def _link_from_args(args, default_kind: str) -> LinkSpec:
     return LinkSpec(kind, fleet, "client", connect, listen, profile)
 
 
-def _add_units_per_process(p) -> None:
-    from mars_link.core.validation import bounded_int
-
-    p.add_argument("--units-per-process", type=bounded_int(1, 199), default=1, metavar="K",
-                   help="host up to K unit firmwares per process (each its own MAVLink system and links; default 1)")
-
-
-def _add_link_options(p, default_kind: str) -> None:
-    p.add_argument("--transport", default=None, help=f"zenoh or udp (default {default_kind})")
-    p.add_argument("--fleet", default="default", help="Zenoh key prefix mars/<fleet>/...")
-    p.add_argument("--zenoh-connect", action="append", metavar="ENDPOINT", help="e.g. tcp/127.0.0.1:7447 (repeatable)")
-    p.add_argument("--zenoh-listen", action="append", metavar="ENDPOINT", help="extra router endpoint (repeatable)")
-    p.add_argument("--link-profile", help="ideal | lan | wifi | radio57600 [,key=value...] on the coordinator <-> unit links")
-
-
-def add_sitl_run_arguments(p) -> None:
-    _add_link_options(p, "zenoh")
-    _add_units_per_process(p)
-    p.add_argument("--realtime", action="store_true",
-                   help="pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
-
-
 def sitl_runner(args):
     """`run_scenario`'s signature for `mars-link run --mode sitl` (options checked here, before any output)."""
-    link = _link_from_args(args, "zenoh")
+    link = link_from_args(args)
     if getattr(args, "trials", 1) != 1:
         raise UserInputError("--mode sitl runs one trial (vary --seed instead)")
 
@@ -678,28 +657,15 @@ def sitl_runner(args):
     return runner
 
 
-def add_sitl_up_arguments(p) -> None:
-    _add_link_options(p, "udp")
-    _add_units_per_process(p)
-    p.add_argument("--realtime", action="store_true", help="pace the world to the wall clock")
-    p.add_argument("--external-coordinator", action="store_true",
-                   help="start no coordinator: attach one with `mars-link coordinator`")
-
-
-def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None, view: tuple[str, ...] = ()) -> int:
-    """`mars-link sitl up --transport zenoh ...`: start, print the endpoints, run to the end or Ctrl-C."""
+def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, clients, vehicle=None,
+                    view: tuple[str, ...] = (), require_signing: bool = False) -> int:
+    """`mars-link sitl up` (its options checked by mars_link.apps.cli first): start the processes on `link`,
+    print the endpoints, run until the flight ends, Ctrl-C or a child's death. With `vehicle`
+    (mars_link.processes.vehicle_host.VehiclePorts) the coordinator serves the docked assembly as one MAVLink vehicle and
+    the run goes on, paced to real time (unless --speed), until stopped."""
     import signal
 
-    link = _link_from_args(args, "udp")
     roles = ("world", "units") if args.external_coordinator else ("coordinator", "world", "units")
-    from mars_link.processes.launcher import ClientPorts
-
-    units, layout = getattr(args, "units", None), getattr(args, "layout", None)
-    from mars_link.processes.lockstep import load_setup
-
-    n = len(load_setup(scenario_path, units, layout).unit_ids)
-    clients = ClientPorts.consecutive(getattr(args, "gcs_port", 14550), getattr(args, "api_port", 14540), n,
-                                      getattr(args, "any_bind", False))
     previous = signal.getsignal(signal.SIGTERM)
 
     def interrupt(*_):
@@ -708,12 +674,11 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None, vi
     signal.signal(signal.SIGTERM, interrupt)
     session = None
     try:
-        session = start_sitl(scenario_path, out, link, args.seed, units=units, layout=layout, realtime=args.realtime,
-                             clients=clients, speed=getattr(args, "speed", None), roles=roles,
+        session = start_sitl(scenario_path, out, link, args.seed, units=args.units, layout=args.layout,
+                             realtime=args.realtime, clients=clients, speed=args.speed, roles=roles,
                              topology="router" if args.external_coordinator else "peer",
-                             signing_key_file=getattr(args, "signing_key_file", None), vehicle=vehicle,
-                             require_signing=getattr(args, "require_signing", False), view=view,
-                             units_per_process=args.units_per_process)
+                             signing_key_file=args.signing_key_file, vehicle=vehicle,
+                             require_signing=require_signing, view=view, units_per_process=args.units_per_process)
         for line in _endpoints(session, link):
             print(line, flush=True)
         if vehicle is not None:
@@ -724,11 +689,15 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, vehicle=None, vi
                   + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>", flush=True)
         if args.external_coordinator:
             attach = f"mars-link coordinator {scenario_path or ''} --out {out}"
-            if getattr(args, "signing_key_file", None):
+            if args.signing_key_file:
                 attach += f" --signing-key-file {Path(args.signing_key_file).resolve()}"
             attach += (f" --transport zenoh --zenoh-connect {(link.listen or (session.router_endpoint,))[0]}" if link.kind == "zenoh"
                        else f" --transport udp --world-port {session.run.world_port} --coordinator-port {session.run.coordinator_port}")
             print(f"waiting for a coordinator: {attach}", flush=True)
+        steps = session.run.setup.steps
+        control_hz = session.run.setup.scenario.sim.control_hz
+        print(f"running {'until Ctrl-C' if steps is None else f'{steps / control_hz:.1f} s of sim time'}; "
+              f"run directory {out}", flush=True)
         code = session.wait(units_may_die=True)  # a dead unit is a failed unit (FTC flies on)
         print(f"run directory: {out}")
         return code
@@ -749,18 +718,9 @@ def _endpoints(session, link: LinkSpec) -> list[str]:
              if name in run.processes]
     for i, u in enumerate(run.setup.unit_ids):
         lines.append(f"unit {u}: pid {run.processes[run.unit_process[u]].pid}, system id {u}, zenoh node 'unit/{u}', "
-                     f"GCS udp 127.0.0.1:{run.clients.gcs_port}, API udp 127.0.0.1:{run.clients.api_port(i)}, "
-                     f"log {run.out / f'unit{u}.tlog'}")
+                     f"GCS udp 127.0.0.1:{run.clients.gcs_port}, API udp 127.0.0.1:{run.clients.api_port(i)} "
+                     f"(MAVSDK udpin://127.0.0.1:{run.clients.api_port(i)}), log {run.out / f'unit{u}.tlog'}")
     return lines
-
-
-def add_coordinator_arguments(p) -> None:
-    p.add_argument("scenario", nargs="?", help="scenario TOML file or bundled name (default: hover_3x2_real, as sitl up)")
-    p.add_argument("--out", default=".", help="where coordinator_summary.json goes")
-    p.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port (printed by sitl up)")
-    p.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to")
-    p.add_argument("--signing-key-file", default=None, help="sign the unit links (else $MARS_LINK_SIGNING_KEY)")
-    _add_link_options(p, "zenoh")
 
 
 def cmd_coordinator(args) -> int:
@@ -771,7 +731,7 @@ def cmd_coordinator(args) -> int:
 
     path = resolve_scenario_path(args.scenario or INTERACTIVE_SCENARIO)
     load_scenario(str(path))
-    link = _link_from_args(args, "zenoh")
+    link = link_from_args(args)
     if link.kind == "zenoh" and not link.connect:
         raise UserInputError("coordinator --transport zenoh needs --zenoh-connect ENDPOINT (the router `sitl up` prints)")
     if link.kind == "udp" and not (0 < args.world_port < 65536 and 0 < args.coordinator_port < 65536):
