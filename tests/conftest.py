@@ -26,8 +26,17 @@ import time
 import warnings
 from pathlib import Path
 
+import sys
+
 import pytest
-from machine import idle_fraction_now
+
+# The tests live in folders by concept (tests/<concept>/README.md). Some reuse another file's harness by
+# module name (`from test_mavsdk_unit import _until`): every folder is importable, as the flat folder was.
+for _folder in sorted(Path(__file__).resolve().parent.iterdir()):
+    if _folder.is_dir() and any(_folder.glob("test_*.py")) and str(_folder) not in sys.path:
+        sys.path.insert(1, str(_folder))
+
+from machine import idle_fraction_now  # noqa: E402
 
 _WATCHED = (signal.SIGINT, signal.SIGTERM)
 _LOCKS_KEY = pytest.StashKey[str]()

@@ -268,7 +268,7 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
 
 
 def scenario_keys_accepted() -> set[str]:
-    """Every key name the loader accepts, from its own key sets (what tests/test_docs.py checks the page for)."""
+    """Every key name the loader accepts, from its own key sets (what tests/apps/test_docs.py checks the page for)."""
     from mars_link.models import battery
     from mars_link.config import scenario as S, scenario_environment as E, scenario_sensor_faults as SF
     from mars_link.models import trajectories as T
@@ -388,7 +388,7 @@ def walk_parsers_map():
 
 
 def cli_options() -> set[str]:
-    """Every option string and positional of build_parser() and the own parsers (tests/test_docs.py)."""
+    """Every option string and positional of build_parser() and the own parsers (tests/apps/test_docs.py)."""
     from mars_link.apps.cli import build_parser
 
     names = set()

@@ -17,7 +17,7 @@ scene αE = R_s[z, y] = -R[2, 0] (pitch error), scene βE = R_s[z, x] = -R[2, 1]
 error), scene s_y / s_x = target forward / right in the tracked unit's frame, scene yaw
 γ = atan2(-R_s[0, 1], R_s[0, 0]) = -ψ_rel, and the scene rotor order propeller[0..3] is
 rotors FR, FL, RL, RR. The gain tables are mapped in `paper_tables` (k_alpha -> pitch,
-k_beta -> roll). tests/test_paper_controller.py checks this against a literal scene-frame copy.
+k_beta -> roll). tests/control/test_paper_controller.py checks this against a literal scene-frame copy.
 
 FTC (ftc.md §4): "none" = nominal table, failed units' controllers off (zero commands);
 "unit" = k_f and E_i for the failed-unit set (repo table, else eq. (1) + formula E_i);

@@ -34,7 +34,7 @@ class InProcessUnits:
     """The units of one flight, driven by direct calls in lockstep with the world."""
 
     batched = True  # the steady state of every unit in one pass (_drive_steady); False: unit by unit, the
-    # reference the batched pass must equal (tests/test_engine_batched.py, benchmarks/bench_scale.py)
+    # reference the batched pass must equal (tests/engine/test_engine_batched.py, benchmarks/bench_scale.py)
 
     def __init__(self, vehicles: dict, world) -> None:
         self.vehicles = vehicles  # unit id -> firmware_models.vehicle.Vehicle

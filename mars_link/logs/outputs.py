@@ -80,7 +80,7 @@ def rewrite_strict(path: str | os.PathLike) -> bool:
 
 #: test hook "BYTES:NAME,NAME...": a SafeWriter whose file name matches one of the (fnmatch) patterns
 #: fails with ENOSPC the write that would take it past BYTES (the code path of a full disk; children
-#: inherit it; tests/test_log_failure.py)
+#: inherit it; tests/core/test_log_failure.py)
 INJECT_ENOSPC_ENV = "MARS_LINK_INJECT_ENOSPC"
 
 

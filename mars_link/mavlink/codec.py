@@ -1,6 +1,6 @@
 """MAVLink 2 frame encode/decode with the per-message-type work done once: what pymavlink's
 `MAVLink.decode` and `MAVLink_message.pack` do, byte for byte and field for field, at a third of the
-cost (tests/test_mavlink_codec.py checks every message of the dialect against pymavlink).
+cost (tests/core/test_mavlink_codec.py checks every message of the dialect against pymavlink).
 
 Why: in real-time SITL every frame of the lockstep (world -> unit -> coordinator -> unit) is decoded
 and encoded in Python on the sensor-to-motor path, eight processes share two cores, and pymavlink

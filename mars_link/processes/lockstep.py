@@ -275,7 +275,7 @@ def step_sent_packer(key: bytes | None):
 
 
 #: test hook "T_S:SECONDS": the world sleeps SECONDS after sending the first unit its sensors of the first
-#: step at or after T_S (a world stopped or descheduled between two units' datagrams; tests/test_sitl_pause.py)
+#: step at or after T_S (a world stopped or descheduled between two units' datagrams; tests/processes/test_sitl_pause.py)
 STALL_ENV = "MARS_LINK_TEST_WORLD_STALL"
 
 

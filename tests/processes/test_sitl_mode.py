@@ -1,0 +1,112 @@
+"""`mars-link run --mode sitl`: the scenario through the multi-process SITL (world, six unit firmware
+processes, coordinator; MAVLink frames on Zenoh between peer sessions, lockstep) flies the same flight
+as `--mode inproc` for the same seed. The 3x2 spiral is cut to its first 2 s to keep the test short
+(process start-up dominates; the lockstep makes every later step the same kind of exchange)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mars_link.flight.runner import run_scenario
+from mars_link.config.scenario import load_scenario
+from mars_link.processes.sitl_mode import run_sitl_scenario
+from mars_link.transport import LinkSpec
+
+ROOT = Path(__file__).resolve().parents[2]
+SPIRAL = ROOT / "mars_link" / "scenarios" / "spiral_3x2.toml"
+DURATION_S = 2.0
+
+
+@pytest.mark.sitl
+def test_sitl_over_zenoh_matches_inproc_within_1mm_on_the_3x2_spiral(tmp_path: Path) -> None:
+    sc = load_scenario(str(SPIRAL))
+    sc.sim.duration_s = DURATION_S
+    sitl = run_sitl_scenario(sc, tmp_path / "sitl", seed=5, link=LinkSpec("zenoh"), timeout_s=150, plots=False)
+    inproc = run_scenario(sc, tmp_path / "inproc", seed=5, plots=False)
+
+    assert sitl["mode"] == "sitl" and sitl["sitl"]["transport"] == "zenoh"
+    assert sitl["sitl"]["faults_known"] is False  # SITL: the coordinator detects faults itself (none here)
+    assert sitl["completed"] and sitl["sitl"]["dead_units"] == [] and sitl["sitl"]["world_dropped"] == {}
+    a = np.genfromtxt(tmp_path / "inproc" / "telemetry.csv", delimiter=",", names=True)
+    b = np.genfromtxt(tmp_path / "sitl" / "telemetry.csv", delimiter=",", names=True)
+    assert len(a) == len(b) == int(DURATION_S * sc.sim.control_hz)
+    com_a = np.c_[a["com_n_m"], a["com_e_m"], a["com_d_m"]]
+    com_b = np.c_[b["com_n_m"], b["com_e_m"], b["com_d_m"]]
+    assert com_a[:, 2].min() < com_a[0, 2] - 0.05  # it took off and climbed
+    assert np.linalg.norm(com_a - com_b, axis=1).max() < 1e-3
+    assert abs(sitl["mean_error_m"] - inproc["mean_error_m"]) < 1e-3
+    # rotors.csv and the force integral come from the units' MAVLink logs (what each drove its motors with)
+    assert sitl["force_integral_n2s"] == pytest.approx(inproc["force_integral_n2s"], rel=1e-4)
+    rot = np.genfromtxt(tmp_path / "sitl" / "rotors.csv", delimiter=",", names=True)
+    assert len(rot) == int(DURATION_S * 20) and np.isfinite(rot["cmd_u6r4"]).all()
+    # the same run files as inproc
+    for name in ("summary.json", "telemetry.csv", "rotors.csv"):
+        assert (tmp_path / "sitl" / name).exists()
+    assert json.loads((tmp_path / "sitl" / "summary.json").read_text())["seed"] == 5
+    # the units' links really went through the transport child (its tap logs every command a unit got)
+    ages = [np.genfromtxt(p, delimiter=",", names=True) for p in sorted((tmp_path / "sitl").glob("command_age_unit*.csv"))]
+    assert len(ages) == 6 and all(len(x) == len(b) for x in ages)
+
+
+def test_bad_sitl_options_are_one_line_and_exit_2(tmp_path: Path, capsys) -> None:
+    from mars_link.apps.cli import main
+
+    for args in (["run", "hover_1x1", "--mode", "sitl", "--transport", "carrier-pigeon"],
+                 ["run", "hover_1x1", "--mode", "warp"],
+                 ["run", "hover_1x1", "--mode", "sitl", "--zenoh-connect", "not-an-endpoint"],
+                 ["run", "hover_1x1", "--mode", "sitl", "--link-profile", "radio9600"],
+                 ["run", "hover_1x1", "--mode", "sitl", "--trials", "3"],
+                 ["coordinator", "hover_1x1"]):
+        assert main([*args, "--out", str(tmp_path / "o")]) == 2, args
+        err = capsys.readouterr().err
+        assert len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
+        assert not (tmp_path / "o").exists()  # refused before anything started
+
+
+@pytest.mark.sitl
+def test_a_killed_unit_process_is_a_failed_unit_and_the_flight_goes_on(tmp_path: Path) -> None:
+    """SIGKILL of unit 3's process mid-flight (`run --mode sitl`, UDP, qp): the run is not aborted;
+    the world declares the unit dead, the coordinator finds it silent, reallocates and completes."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    scenario = tmp_path / "hover.toml"
+    scenario.write_text((ROOT / "mars_link" / "scenarios" / "hover_3x2.toml").read_text().replace("[sim]", "[sim]\nduration_s = 4.0"))
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "run", str(scenario), "--mode", "sitl",
+                             "--transport", "udp", "--ftc", "qp", "--out", str(out), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline, victim = time.monotonic() + 90, None
+        while victim is None and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.1)
+            try:
+                t = json.loads((out / "world_status.json").read_text())["sim_time_s"]
+            except (FileNotFoundError, ValueError, KeyError):
+                continue
+            if t >= 1.0:  # the children of the process this test started: find unit 3's PID
+                kids = subprocess.run(["ps", "-o", "pid=", "--ppid", str(proc.pid)], capture_output=True, text=True).stdout
+                argv = {int(k): Path(f"/proc/{int(k)}/cmdline").read_bytes().split(b"\0") for k in kids.split()}
+                victim = next(k for k, a in argv.items() if b"unit" in a and a[a.index(b"--unit") + 1] == b"3")
+        assert victim is not None, "the flight did not get going"
+        os.kill(victim, signal.SIGKILL)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, err
+    assert "unit3 died" in err and "the flight goes on" in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] and not summary["diverged"] and summary["sitl"]["dead_units"] == [3]
+    assert summary["max_error_m"] < 0.2
+    (det,) = summary["detections"]
+    assert det["unit"] == 3 and det["rotor"] is None and det["eta_estimated"] == 0.0 and det["reason"] == "silent"
+    assert 1.0 <= det["t_fault"] <= det["t_detected"] < det["t_fault"] + 0.5
+    assert {"unit_died", "unit_lost", "reallocation"} <= {e["type"] for e in summary["events"]}
