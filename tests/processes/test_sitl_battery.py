@@ -42,6 +42,7 @@ noise = true
 
 @pytest.mark.slow
 @pytest.mark.sitl
+@pytest.mark.long  # (the default run's parity: tests/processes/test_parity.py)
 def test_sitl_flies_the_same_packs_as_inproc(tmp_path: Path) -> None:
     path = tmp_path / "weak.toml"
     path.write_text(SCENARIO)

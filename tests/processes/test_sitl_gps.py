@@ -37,6 +37,7 @@ noise = true
 
 
 @pytest.mark.sitl
+@pytest.mark.long  # (the default run's parity: tests/processes/test_parity.py)
 def test_sitl_gps_hover_equals_inproc(tmp_path: Path) -> None:
     path = tmp_path / "gps.toml"
     path.write_text(SCENARIO)

@@ -22,6 +22,7 @@ DURATION_S = 2.0
 
 
 @pytest.mark.sitl
+@pytest.mark.long  # (the default run's parity: tests/processes/test_parity.py)
 def test_sitl_over_zenoh_matches_inproc_within_1mm_on_the_3x2_spiral(tmp_path: Path) -> None:
     sc = load_scenario(str(SPIRAL))
     sc.sim.duration_s = DURATION_S
