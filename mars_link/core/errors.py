@@ -3,6 +3,7 @@
 import argparse
 import difflib
 from collections.abc import Iterable
+from typing import NoReturn
 
 
 class UserInputError(ValueError):
@@ -12,7 +13,7 @@ class UserInputError(ValueError):
 class OneLineArgumentParser(argparse.ArgumentParser):
     """argparse that reports a usage error as one UserInputError line (exit 2), no usage dump."""
 
-    def error(self, message: str) -> None:
+    def error(self, message: str) -> NoReturn:
         raise UserInputError(f"{self.prog}: {message}")
 
 

@@ -34,8 +34,8 @@ def gps_sample(t_s: float, unit_id: int, pos_ned_m, vel_ned_mps, eph_m: float, e
                origin: GeoOrigin) -> GpsSample:
     """A receiver's report at wire precision (HIL_GPS's integer fields)."""
     lat, lon, alt = origin.to_global_int(pos_ned_m)
-    vel = tuple(max(-INT16_MAX, min(INT16_MAX, int(round(float(v) * 100.0)))) for v in vel_ned_mps)
-    return GpsSample(t_s, unit_id, lat, lon, alt, vel, min(65534, int(round(eph_m * 100))),
+    vn, ve, vd = (max(-INT16_MAX, min(INT16_MAX, int(round(float(v) * 100.0)))) for v in vel_ned_mps)
+    return GpsSample(t_s, unit_id, lat, lon, alt, (vn, ve, vd), min(65534, int(round(eph_m * 100))),
                      min(65534, int(round(epv_m * 100))))
 
 

@@ -177,7 +177,7 @@ class SafeWriter:
         """`background`: a thread of its own writes the file (see the module docstring); `write` only
         queues, `flush` has nothing to do, `close` writes what is queued."""
         self._file: IO | None = file
-        self.name = name or getattr(file, "name", "log")
+        self.name: str = name if name else getattr(file, "name", "log")
         self.errors = 0
         self.dropped_writes = 0
         self.stopped_reason: str | None = None
@@ -200,7 +200,10 @@ class SafeWriter:
     def _stop(self, exc: OSError | None, why: str | None = None) -> None:
         if exc is not None:
             self.errors += 1
-        self.stopped_reason = f"{Path(self.name).name}: {why or exc.strerror or exc} (logging stopped)"
+        if not why:
+            assert exc is not None  # (every caller gives the error or a reason)
+            why = exc.strerror or str(exc)
+        self.stopped_reason = f"{Path(self.name).name}: {why} (logging stopped)"
         try:
             self._close_file(wait_s=0.0)
         except OSError:
@@ -245,7 +248,7 @@ class SafeWriter:
         f, thread, self._file, self._thread = self._file, self._thread, None, None
         if thread is not None:
             thread.close(wait_s)  # (its thread closes f)
-        else:
+        elif f is not None:
             f.close()
 
     def close(self) -> None:

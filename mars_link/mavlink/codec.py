@@ -29,6 +29,8 @@ MAGIC_V2 = 0xFD
 HEADER_LEN_V2 = 10
 SIGNATURE_LEN = 13
 _HEADER_V2 = struct.Struct("<BBBBBBBHB")
+#: a generated pymavlink message class (its class attributes describe the wire layout)
+MessageClass = type[mavlink.MAVLink_message]
 _CRC = struct.Struct("<H")
 
 
@@ -36,14 +38,14 @@ _CRC = struct.Struct("<H")
 class _TypePlan:
     """What decoding and encoding one message type needs, computed once."""
 
-    cls: type
+    cls: MessageClass
     crc_extra_byte: bytes
     size: int  # full (untrimmed) payload length
     to_fields: Callable[[tuple], list]  # struct tuple (wire order) -> constructor arguments (field order)
     to_wire: Callable[[object], tuple]  # message -> struct arguments (wire order)
 
 
-def _plan(cls: type) -> _TypePlan:
+def _plan(cls: MessageClass) -> _TypePlan:
     unpacker = cls.unpacker
     orders, lengths = cls.orders, cls.lengths
     sample = unpacker.unpack(bytes(unpacker.size))
@@ -201,9 +203,10 @@ def _invalid_table() -> dict[str, dict[str, str]]:
         xml = Path(mavlink.__file__).with_suffix(".xml")
         try:
             for m in ET.parse(xml).getroot().iter("message"):
-                fields = {f.get("name"): f.get("invalid") for f in m.iter("field") if f.get("invalid") is not None}
+                fields = {f.get("name", ""): f.get("invalid", "") for f in m.iter("field")
+                          if f.get("invalid") is not None}
                 if fields:
-                    table[m.get("name")] = fields
+                    table[m.get("name", "")] = fields
         except (OSError, ET.ParseError):
             pass
         _INVALID = table
@@ -251,7 +254,8 @@ def clamp_fields(msg: mavlink.MAVLink_message) -> int:
     """Clamp every numeric field of `msg`, in place, to its wire type's range (NaN in an integer
     field -> its invalid value); returns how many values changed."""
     changed = 0
-    for name, ftype, n, unknown in _numeric_fields(type(msg)):
+    msg_class: type = type(msg)  # (as `type`: mypy takes type[Any] for unhashable, lru_cache needs hashable)
+    for name, ftype, n, unknown in _numeric_fields(msg_class):
         value = getattr(msg, name)
         if n:
             items = list(value) if isinstance(value, (list, tuple)) else [value] * n
@@ -267,7 +271,7 @@ def clamp_fields(msg: mavlink.MAVLink_message) -> int:
 
 
 @functools.lru_cache(maxsize=None)
-def _numeric_fields(cls: type) -> tuple:
+def _numeric_fields(cls: MessageClass) -> tuple:
     """(name, type, array length, invalid value) of each numeric field, once per message type."""
     return tuple((name, ftype, cls.array_lengths[cls.ordered_fieldnames.index(name)],
                   invalid_value(cls.msgname, name, ftype))

@@ -79,7 +79,8 @@ def sensor_packet_messages(packet: SensorPacket, upstream: bool = False) -> list
         flags |= FLAG_HAS_TRUTH | (FLAG_ON_GROUND if s.on_ground else 0)
     if packet.gps is not None:
         msgs.append(gps_message(t, packet.gps))
-    mag, pressure, pressure_alt = (0.0, 0.0, 0.0), 0.0, 0.0
+    mag: tuple[float, ...] = (0.0, 0.0, 0.0)
+    pressure, pressure_alt = 0.0, 0.0
     if packet.mag is not None:
         mag = tuple(map(float, packet.mag.field_frd_gauss))
         flags |= MAG_FIELDS

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -150,7 +151,7 @@ def battery_table(table: dict, preset: str, src: str) -> BatterySpec | None:
         return None
 
     def pack(doc: dict, base: PackParams, where: str) -> PackParams:
-        values = {}
+        values: dict[str, Any] = {}  # (cells an int, the rest floats)
         for key in _PACK_KEYS & set(doc):
             values[key] = integer(doc[key], f"{where} {key}", src) if key == "cells" else number(doc[key], f"{where} {key}", src)
         return replace(base, **values).check(f"{src}: {where}")
@@ -169,10 +170,11 @@ def battery_table(table: dict, preset: str, src: str) -> BatterySpec | None:
         if unit in overrides:
             raise UserInputError(f"{src}: {where} unit {unit} is listed twice")
         overrides[unit] = pack(doc, base, where)
-    failsafe = {}
-    thresholds = {}
+    failsafe: dict[str, float] = {}
+    thresholds: dict[str, float] = {}
     for key, name in _FAILSAFE_KEYS.items():
         if key in table:
+            value: float
             if name == "COM_LOW_BAT_ACT":
                 value = integer(table[key], f"[battery] {key}", src)
                 if value not in (0, 2, 3):

@@ -41,6 +41,7 @@ from scipy.linalg import lapack
 
 from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
 from mars_link.core.errors import UserInputError
+from mars_link.core.geo import GeoOrigin
 from mars_link.core.rotations import euler_to_quat, quat_to_rotmat, rotmat_to_quat, skew
 from mars_link.core.state import ImuSample, PositionSample, RigidBodyState
 
@@ -284,9 +285,14 @@ class _ErrorStateEkf(ExtendedKalmanFilter):
     """
 
     _last_update: tuple | None = None  # (H, r_diag, prior P) of the last update_independent
+    _s: np.ndarray | None  # (S, SI, K as set; None: not formed yet)
+    _si: np.ndarray | None
+    _k: np.ndarray | None
+    P: np.ndarray  # (filterpy's covariance, and the posterior one of the last update)
+    P_post: np.ndarray
 
     @property
-    def S(self) -> np.ndarray:
+    def S(self) -> np.ndarray | None:
         if self._s is None and self._last_update is not None:
             H, r_diag, prior = self._last_update
             self._s = H @ prior @ H.T + np.diag(r_diag)
@@ -297,7 +303,7 @@ class _ErrorStateEkf(ExtendedKalmanFilter):
         self._s = value
 
     @property
-    def SI(self) -> np.ndarray:
+    def SI(self) -> np.ndarray | None:
         if self._si is None and self.S is not None:
             self._si = np.linalg.inv(self.S)
         return self._si
@@ -307,7 +313,7 @@ class _ErrorStateEkf(ExtendedKalmanFilter):
         self._si = value
 
     @property
-    def K(self) -> np.ndarray:
+    def K(self) -> np.ndarray | None:
         if self._k is None and self._last_update is not None:
             H, r_diag, _ = self._last_update
             self._k = self.P_post @ (H.T / r_diag)  # K = P+ H^T R^-1
@@ -427,7 +433,7 @@ class AssemblyEstimator:
     # the GNSS samples' origin of an estimator that takes the gps profile's outdoor samples (OutdoorEstimator);
     # None here. (A class attribute: `step_estimator` asks every tick, and through the sensor gate a missing
     # attribute costs two raised AttributeErrors, ~5 us.)
-    home = None
+    home: GeoOrigin | None = None
 
     def __init__(self, model: AssemblyModel, params: EstimatorParams | None = None) -> None:
         self.params = params or EstimatorParams()
@@ -501,10 +507,10 @@ class AssemblyEstimator:
                 if self.initialised and t_s > self.t_s:
                     self._propagate(t_s, None)
                 return self.state()
-        for s in imu_samples:
-            self.on_imu(s)
-        for s in position_samples:
-            self.on_position(s)
+        for imu_sample in imu_samples:
+            self.on_imu(imu_sample)
+        for position_sample in position_samples:
+            self.on_position(position_sample)
         self.predict_to(t_s)
         return self.state()
 

@@ -34,7 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mars_link.models.estimation import N_ERR, TH_, AssemblyEstimator, EstimatorParams, _euler_rotmat, _rotmat_rows
+from mars_link.models.estimation import (N_ERR, TH_, AssemblyEstimator, CombinedImu, EstimatorParams, StackedSamples,
+                                         _euler_rotmat, _rotmat_rows)
 from mars_link.core.gnss import GeoOrigin, gps_ned, home
 from mars_link.core.rotations import rotmat_to_quat
 from mars_link.core.state import ImuSample, PositionSample, RigidBodyState
@@ -78,7 +79,7 @@ class _Tick:
     bg: np.ndarray
     ba: np.ndarray
     P: np.ndarray
-    imu: object
+    imu: CombinedImu | None
     inputs: OutdoorInputs | None
 
 
@@ -97,8 +98,10 @@ class OutdoorEstimator(AssemblyEstimator):
 
     # ----------------------------------------------------------------- the tick
     def step(self, t_s: float, imu_samples: list[ImuSample], position_samples: list[PositionSample],
-             outdoor: OutdoorInputs | None = None) -> RigidBodyState:
-        state = super().step(t_s, imu_samples, position_samples)
+             stacked: StackedSamples | None = None, outdoor: OutdoorInputs | None = None) -> RigidBodyState:
+        """AssemblyEstimator.step, then this tick's outdoor samples (give them by name: the fourth
+        argument is the base class's `stacked`)."""
+        state = super().step(t_s, imu_samples, position_samples, stacked)
         if outdoor is None:
             if self.initialised:
                 self._remember(t_s, None)
@@ -107,7 +110,7 @@ class OutdoorEstimator(AssemblyEstimator):
             self._last_mag = outdoor.mag_frd_gauss.mean(axis=0)
         if not self.initialised:
             if outdoor.gps and self._init_imu is not None:
-                self._initialise_outdoor(t_s, outdoor.gps)
+                self._initialise_outdoor(t_s, outdoor.gps, self._init_imu)
             return self.state()
         self._fuse_aux(outdoor)
         self._remember(t_s, outdoor)
@@ -250,13 +253,13 @@ class OutdoorEstimator(AssemblyEstimator):
         self._inject()
 
     # ----------------------------------------------------------------- start
-    def _initialise_outdoor(self, t_s: float, gps: list[PositionSample]) -> None:
+    def _initialise_outdoor(self, t_s: float, gps: list[PositionSample], init_imu: CombinedImu) -> None:
         """At rest on the first GNSS batch: tilt from the IMU, heading from the magnetometer."""
         units = tuple(s.unit_id for s in gps if s.unit_id in self.combiner._index)
         if not units:
             return
         world = np.array([s.position_ned_m for s in gps if s.unit_id in self.combiner._index], dtype=float)
-        self._initialise(t_s, self._init_imu, units, world)
+        self._initialise(t_s, init_imu, units, world)
         if self._last_mag is not None:
             r = _rotmat_rows(self.q.tolist())
             roll, pitch = math.atan2(r[7], r[8]), -math.asin(max(-1.0, min(1.0, r[6])))
@@ -307,7 +310,7 @@ def step_estimator(estimator, t_s: float, packets) -> RigidBodyState:
     positions = [p.position for p in packets if p.position is not None]
     home = getattr(estimator, "home", None)  # an OutdoorEstimator, or its health gate (sensor_health)
     if home is not None:
-        return estimator.step(t_s, imus, positions, outdoor_inputs(packets, home))
+        return estimator.step(t_s, imus, positions, outdoor=outdoor_inputs(packets, home))
     return estimator.step(t_s, imus, positions)
 
 

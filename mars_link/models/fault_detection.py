@@ -291,6 +291,7 @@ class FaultDetector:
             self._thrust_state = cmd.copy()
             return []
         dt = t_s - prev[0]
+        assert self._thrust_state is not None  # (every tick that leaves a `_prev` leaves a thrust state)
         x1, mean = self._motor_response(self._thrust_state, prev[2], dt)
         self._thrust_state = x1
         self._thrust_integral = self._thrust_integral + mean * dt
@@ -343,7 +344,8 @@ class FaultDetector:
             return enough
         down = float(state.position_ned_m[2])
         if not enough:
-            if self._ground_given and not state.on_ground and self._ground_down_m - down >= p.min_height_m:
+            if (self._ground_given and self._ground_down_m is not None  # (a given ground is never forgotten)
+                    and not state.on_ground and self._ground_down_m - down >= p.min_height_m):
                 return True  # aloft on little thrust (a dive; a dead corner unit's collapse): no ground to touch
             self._ground_down_m = down if self._ground_down_m is None else max(self._ground_down_m, down)
             return False

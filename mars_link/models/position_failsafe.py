@@ -114,6 +114,8 @@ class PositionFailsafe:
                 self._event(t_s, "failsafe_hold", "Position lost: holding")
             else:
                 return trajectory.sample(t_s - self.shift_s)
+        # (hold, land and landed are only reached through the hold branch above, which sets the hold's time and point)
+        assert self._hold_since is not None and self._hold_point is not None
         if self.state == "hold":
             if lost_since_s is None:
                 self.shift_s += t_s - self._hold_since
@@ -128,6 +130,7 @@ class PositionFailsafe:
                 return self._hold_point
         hold = self._hold_point
         if self.state == "land":
+            assert self._land_since is not None  # (set on entering land)
             ref_down = float(hold.position_ned_m[2]) + p.land_speed_mps * (t_s - self._land_since)
             self._estimate_point = estimate.position_ned_m + quat_to_rotmat(estimate.quaternion_wxyz) @ self.offset_frd_m
             self._estimate_up_mps = -float(estimate.velocity_ned_mps[2])

@@ -124,7 +124,7 @@ class SensorGuard:
         self._next_drift_report = math.inf
         self.last_drift_m: float | None = None
         self._imu_units: tuple = ()
-        self._imu_last: tuple | None = None
+        self._imu_last: np.ndarray | None = None  # the last step's gyros then specific forces, (2k, 3)
         self._imu_watch = True  # the per-sample path runs until every part has a clean history
         self._gps_watch = True
         self._pos_last: tuple | None = None
@@ -217,7 +217,7 @@ class SensorGuard:
             outdoor, fix_drift = self._screen_outdoor(t_s, outdoor, [s.unit_id for s in imu_samples if s is not None])
             drift = drift if fix_drift is None else fix_drift
             fused = fused or bool(outdoor is not None and outdoor.gps)
-            estimate = self.ekf.step(t_s, imus, positions, outdoor)
+            estimate = self.ekf.step(t_s, imus, positions, outdoor=outdoor)
         self._position_status(t_s, fused, drift)
         return estimate
 
@@ -449,15 +449,15 @@ class SensorGuard:
             p, q = pose if pose is not None else (ekf.p, ekf.q)
             miss = pos - (p + offsets @ quat_to_rotmat(q).T)
         last, self._pos_last = self._pos_last, (units, pos)
-        gated = miss if miss is None or self._axis_w is None else miss * self._axis_w
-        if miss is not None and not self._gps_watch and last is not None and last[0] == units:  # the usual batch
+        gated = miss if miss is None or self._axis_w is None else miss * self._axis_w  # (None when miss is)
+        if miss is not None and gated is not None and not self._gps_watch and last is not None and last[0] == units:  # the usual batch
             gate = self._gate_m()
             if (gated * gated).sum(axis=1).max() <= gate * gate and not (pos == last[1]).all(axis=1).any():
                 self._stacked_pos = (units, pos)
                 return samples, (self._drift(_mean_rows(miss)) if self.position_lost else None)
         finite = np.isfinite(pos).all(axis=1)
         repeated = np.zeros(len(units), dtype=bool) if last is None or last[0] != units else (pos == last[1]).all(axis=1)
-        dist = np.full(len(units), 0.0) if miss is None else np.sqrt((np.nan_to_num(gated) ** 2).sum(axis=1))
+        dist = np.full(len(units), 0.0) if gated is None else np.sqrt((np.nan_to_num(gated) ** 2).sum(axis=1))
         gate = self._gate_m() if miss is not None else math.inf
         if not self._gps_watch and finite.all() and not repeated.any() and (dist <= gate).all():
             drift = self._drift(_mean_rows(miss)) if miss is not None and self.position_lost else None

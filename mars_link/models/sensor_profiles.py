@@ -20,6 +20,7 @@ receiver's own white noise (the rest of the variance). The total stationary 1-si
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from typing import Any
 
 
 @dataclass(frozen=True)
@@ -39,7 +40,8 @@ class SensorProfile:
     mag_declination_deg: float = 0.0  # the field's declination (east of true north positive)
 
     def with_overrides(self, **figures: float) -> "SensorProfile":
-        return replace(self, **figures)
+        changes: dict[str, Any] = figures  # (replace's check would hold each value against `name: str` too)
+        return replace(self, **changes)
 
     @property
     def figures(self) -> dict[str, float]:

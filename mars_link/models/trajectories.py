@@ -355,7 +355,8 @@ def _retimed_min_snap(pts: np.ndarray, cruise_mps: float, min_segment_s: float) 
     factor = np.full(len(lengths), 1.2)
     factor[0] = factor[-1] = 1.9  # end segments start or stop at rest
     durations = _neighbour_bounded(np.maximum(factor * lengths / cruise_mps, min_segment_s))
-    best, best_miss = None, math.inf
+    best: PiecewisePolynomial | None = None
+    best_miss = math.inf
     for _ in range(6):
         path = PiecewisePolynomial(pts, durations, 0.0)
         peaks = path.segment_peak_speeds()
@@ -366,6 +367,7 @@ def _retimed_min_snap(pts: np.ndarray, cruise_mps: float, min_segment_s: float) 
         if miss < 0.03:
             break
         durations = _neighbour_bounded(np.maximum(durations * np.clip(peaks / cruise_mps, 0.7, 1.4), min_segment_s))
+    assert best is not None, "no finite min-snap path"  # (finite waypoints: the first try's miss is finite)
     return best
 
 
@@ -423,7 +425,7 @@ class CsvTrajectory(Trajectory):
 
 def _read_csv_rows(path: Path) -> list[list[float]]:
     text = read_input_file(path, "[trajectory] csv file", MAX_CSV_BYTES)  # a regular file, capped
-    rows = []
+    rows: list[list[float]] = []
     for n, row in enumerate(csv.reader(text.splitlines()), 1):
         if not row or all(not c.strip() for c in row):
             continue

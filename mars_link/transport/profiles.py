@@ -16,6 +16,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -61,7 +62,8 @@ def profile_from_name(text: str) -> LinkProfile:
             raise ValueError(f"link profile override {item!r}: not a number") from None
         if not math.isfinite(v) and key != "bandwidth_bps" or v < 0 or (key == "loss" and v > 1):
             raise ValueError(f"link profile override {item!r}: out of range")
-        profile = replace(profile, **{key: v})
+        change: dict[str, Any] = {key: v}  # (one float field, named at run time)
+        profile = replace(profile, **change)
     return profile
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import socket
 from dataclasses import dataclass
+from typing import cast
 
 from mars_link.transport.base import Address, Transport
 
@@ -58,7 +59,7 @@ class UdpTransport(Transport):
 
     def _send(self, data: bytes, peer: Address) -> bool:
         try:
-            self.sock.sendto(data, peer)
+            self.sock.sendto(data, cast(tuple[str, int], peer))  # (a UDP link's peers are (host, port))
         except OSError:  # e.g. a full buffer or an unreachable peer: a datagram link loses it
             self.counters.drop("send_failed")
             return False

@@ -155,7 +155,7 @@ def _record(scenario, seconds: float, tmp_path: Path):
 
     def recording(self, t_s, imus, poss, outdoor=None):
         ticks.append((t_s, copy.deepcopy(imus), copy.deepcopy(poss), copy.deepcopy(outdoor)))
-        return step(self, t_s, imus, poss, outdoor)
+        return step(self, t_s, imus, poss, outdoor=outdoor)
 
     OutdoorEstimator.step = recording
     try:
@@ -173,7 +173,7 @@ def _replay_rms(scenario, ticks, truth, compensate: bool) -> float:
     est.outdoor.delay_compensation = compensate
     errs = []
     for t, imus, poss, od in ticks:
-        x = est.step(t, copy.deepcopy(imus), copy.deepcopy(poss), copy.deepcopy(od))
+        x = est.step(t, copy.deepcopy(imus), copy.deepcopy(poss), outdoor=copy.deepcopy(od))
         if t > 5.0:
             errs.append(x.position_ned_m - truth[round(t, 6)])
     assert not compensate or est.delayed_batches > 0
