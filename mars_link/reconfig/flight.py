@@ -1,6 +1,6 @@
 """Flights of pieces (free units assembling, reconfiguration): the observer and the outputs.
 
-The flight runs on the one engine (`mars_link.engine.Engine`) with the parts `build.build_pieces_flight`
+The flight runs on the one engine (`mars_link.engine.Engine`) with the parts `build.build_flight`
 makes: a world of rigid bodies that split when latches open and merge when facing latches close
 (`sitl.world`, momentum kept), every unit's firmware in the motor path, and a `PiecesCoordinator`
 (`mars_link.pieces`) that flies every piece on its own EKF, detector, controller and allocator and runs
@@ -27,7 +27,7 @@ from typing import Callable
 
 import numpy as np
 
-from mars_link.build import build_pieces_flight
+from mars_link.build import build_flight
 from mars_link.engine import Engine, Flight, StepView
 from mars_link.metrics import DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, TrackingMetrics, TrialResult
 from mars_link.outputs import write_json
@@ -150,9 +150,9 @@ def run_reconfig_trial(
     on_progress: Callable[[float], None] | None = None, realtime_rate: float = 0.0,
     unit_deaths: dict[int, float] | None = None, view: Callable | None = None,
 ) -> ReconfigResult:
-    """One flight of pieces on the engine (`build.build_pieces_flight`); `unit_deaths` (unit -> time): that
+    """One flight of pieces on the engine (`build.build_flight`); `unit_deaths` (unit -> time): that
     unit's process dies then. `view(flight)`: its run.mcap / live Foxglove view (flight_view.pieces_view)."""
-    flight = build_pieces_flight(scenario, seed, unit_deaths)
+    flight = build_flight(scenario, seed, unit_deaths)
     coord: PiecesCoordinator = flight.coordinator
     executor = coord.executor
     recorder = ReconfigRecorder(flight, out_dir)
