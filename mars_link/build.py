@@ -241,7 +241,7 @@ def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: 
                               estimator, detector, telemetry_timeout_s=telemetry_timeout_s)
     coordinator.unit_names = unit_names
     coordinator.eta_believed = np.asarray(eta, dtype=float).copy()
-    if t_s > 0.0:  # (a piece made in flight: its faults, told or found, are the structure's)
+    if t_s > 0.0 and np.any(np.asarray(eta) < 1.0):  # a piece made in flight with faults (told or found): say so
         coordinator.set_faults(eta, t_s, "piece created")
     _follow_packs(scenario, piece, coordinator, unit_names)
     if coordinator.guard is not None:  # a trajectory flight: position lost -> hold, then land
