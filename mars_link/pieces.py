@@ -161,6 +161,8 @@ class PiecesCoordinator:
 
     def tracked_piece(self) -> Piece:
         """The piece carrying the tracked unit (else, or once that unit is lost, the one with the most units)."""
+        if len(self.pieces) == 1:  # (a docked flight: every step asks)
+            return next(iter(self.pieces.values()))
         if self.tracked_unit is not None and self.tracked_unit not in self.lost:
             return self.piece_of(self.tracked_unit)
         return max(self.pieces.values(), key=lambda p: (len(p.units), -min(p.units)))
@@ -345,10 +347,13 @@ class PiecesCoordinator:
         by_unit = {p.unit_id: p for p in packets}
         if self.telemetry_timeout_s is not None:
             self._watch_telemetry(t_s, by_unit)
-        self._learn_topology(t_s, {u: p.latches for u, p in by_unit.items()})
+        executor = self.executor
+        if self.pending_splits or executor.docks:  # (the latches tell nothing new otherwise)
+            self._learn_topology(t_s, {u: p.latches for u, p in by_unit.items()})
         if self.manoeuvres_allowed:
             self._start_manoeuvres(t_s)
-        for action in self.executor.step(t_s, self.estimates()):
+        # (flying the mission, the executor only watches for its trigger: no estimates needed)
+        for action in executor.step(t_s, {} if executor.phase == "mission" else self.estimates()):
             self._begin_split(t_s, action)
         commands = []
         parked = self.executor.parked
