@@ -8,6 +8,7 @@ link in lockstep (a step happens only when every live unit has answered for the 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import KW_ONLY, dataclass, field
 
@@ -64,8 +65,9 @@ class Body:
         """World unit id -> its (row, col) cell in the body's layout."""
         return {u: self.model.unit_cells[k + 1] for k, u in enumerate(self.units)}
 
-    @property
+    @functools.cached_property
     def radius_m(self) -> float:
+        """The farthest unit centre from the CoM (the offsets never change: a split or dock makes new bodies)."""
         return float(np.max(np.linalg.norm(self.offsets_frd_m, axis=1)))
 
     @classmethod

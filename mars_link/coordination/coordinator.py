@@ -42,15 +42,17 @@ def short_text(text: str, limit: int = TEXT_MAX) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def fault_summary(model: AssemblyModel, eta: np.ndarray) -> str:
-    """Compact believed fault set, e.g. 'u2 dead, u4r1 .50' ('none' when healthy)."""
+def fault_summary(model: AssemblyModel, eta: np.ndarray, unit_names: tuple[int, ...] | None = None) -> str:
+    """Compact believed fault set, e.g. 'u2 dead, u4r1 .50' ('none' when healthy); `unit_names`: the id
+    shown for each of the model's units (default: its own)."""
     parts = []
     for uid in model.unit_ids:
         e = np.asarray(eta)[model.unit_slots(uid)]
+        name = uid if unit_names is None else unit_names[uid - 1]
         if np.all(e <= 0.0):
-            parts.append(f"u{uid} dead")
+            parts.append(f"u{name} dead")
             continue
-        parts += [f"u{uid}r{r + 1} {x:.2f}".replace(" 0.", " .") for r, x in enumerate(e) if x < 1.0]
+        parts += [f"u{name}r{r + 1} {x:.2f}".replace(" 0.", " .") for r, x in enumerate(e) if x < 1.0]
     return ", ".join(parts) if parts else "none"
 
 
@@ -108,6 +110,13 @@ class Coordinator:
         #: resting on the ground with the motors off (a piece parked during a manoeuvre on the ground): zero
         #: commands, and no fault detection (no thrust, nothing to learn about the rotors)
         self.motors_off = False
+        #: the structure's id of each of the model's units (k + 1 -> id), as events and texts name them: a
+        #: piece of a reconfiguring structure numbers its units 1..n; None: the model's ids are the structure's
+        self.unit_names: tuple[int, ...] | None = None
+
+    def name_of(self, unit_id: int) -> int:
+        """The structure's id of the model's unit `unit_id`."""
+        return unit_id if self.unit_names is None else self.unit_names[unit_id - 1]
 
     def _event(self, t_s: float, kind: str, text: str, **fields) -> dict:
         event = {"t_s": round(t_s, 6), "type": kind, **fields, "text": short_text(text)}
@@ -125,7 +134,8 @@ class Coordinator:
         except UserInputError as exc:  # mid-flight: log it and allocate as well as possible, never stop
             self._event(t_s, "uncontrollable", "Uncontrollable faults: best effort", reason=str(exc))
         self.controller.set_faults(self.eta_believed)
-        self._event(t_s, "reallocation", "Realloc " + fault_summary(self.model, self.eta_believed), reason=reason)
+        self._event(t_s, "reallocation", "Realloc " + fault_summary(self.model, self.eta_believed, self.unit_names),
+                    reason=reason)
 
     def unit_lost(self, unit_id: int, t_s: float, reason: str = "telemetry lost") -> Detection | None:
         """A unit stopped reporting (its process died, its link broke): it is a failed unit.
@@ -144,10 +154,11 @@ class Coordinator:
         if det is None:
             det = Detection(t_s, unit_id, None, 0.0, reason="silent")
         self.detections.append(det)
-        self._event(t_s, "unit_lost", f"Unit {unit_id} lost: {reason}", unit=unit_id, reason=reason)
+        name = self.name_of(unit_id)
+        self._event(t_s, "unit_lost", f"Unit {name} lost: {reason}", unit=name, reason=reason)
         eta = self.eta_believed.copy()
         eta[self.model.unit_slots(unit_id)] = 0.0
-        self.set_faults(eta, t_s, f"unit {unit_id} lost ({reason})")
+        self.set_faults(eta, t_s, f"unit {name} lost ({reason})")
         return det
 
     def _watch_telemetry(self, t_s: float, packets: list[SensorPacket]) -> None:
@@ -293,12 +304,13 @@ class Coordinator:
             return
         self.detections.extend(found)
         for d in found:
-            where = f"Unit {d.unit}" + (f" rotor {d.rotor}" if d.rotor else "")
+            name = self.name_of(d.unit)
+            where = f"Unit {name}" + (f" rotor {d.rotor}" if d.rotor else "")
             what = f"{where} eta {d.eta_estimated:.2f}" if d.rotor else f"{where} failed"
-            self._event(t_s, "fault_detected", f"Fault found: {what}", unit=d.unit, rotor=d.rotor,
+            self._event(t_s, "fault_detected", f"Fault found: {what}", unit=name, rotor=d.rotor,
                         eta_estimated=round(float(d.eta_estimated), 4), t_onset=round(float(d.t_onset), 6))
         what = ", ".join(
-            f"unit {d.unit}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
+            f"unit {self.name_of(d.unit)}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
             for d in found
         )
         self.set_faults(np.clip(self.detector.eta_estimate, 0.0, 1.0), t_s, f"detected: {what}")

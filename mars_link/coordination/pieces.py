@@ -31,7 +31,7 @@ from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel, VehicleParam
 from mars_link.coordination.coordinator import Coordinator, StepRecord
 from mars_link.core.latches import LATCH_ALL, Link, neighbour_links
 from mars_link.core.messages import RotorCommand, SensorPacket
-from mars_link.reconfig.execution import Executor, Key, PieceShape, SplitAction, local_eta, units_text
+from mars_link.reconfig.execution import Executor, Key, PieceShape, SplitAction, TrackedPointReference, local_eta, units_text
 from mars_link.reconfig.sequencing import ReconfigPlan
 from mars_link.core.state import ImuSample, PositionSample
 
@@ -58,8 +58,10 @@ class _PendingSplit:
     deadline_s: float
 
 
-#: (piece model, reference, believed eta of its rotors, time, estimator or None) -> the piece's coordinator
-PieceCoordinatorFactory = Callable[[AssemblyModel, object, np.ndarray, float, object], Coordinator]
+#: (piece shape, piece model, reference of its tracked point, the tracked unit's id in the piece or None,
+#: believed eta of its rotors, time, estimator or None) -> the piece's coordinator
+PieceCoordinatorFactory = Callable[[PieceShape, AssemblyModel, TrackedPointReference, int | None, np.ndarray, float,
+                                    object], Coordinator]
 #: (believed eta per unit, the structure's cells: unit -> cell of the layout) -> (a plan to execute, or None
 #: and the reason there is none)
 Planner = Callable[[dict[int, np.ndarray], dict], tuple[ReconfigPlan | None, str]]
@@ -114,15 +116,34 @@ class PiecesCoordinator:
         #: until it is True again: the assembly vehicle sets it while it is not flying
         self.manoeuvres_allowed = True
         self._told_trigger_s: float | None = None
+        self._identity = {len(unit_ids): tuple(sorted(unit_ids))} if tuple(sorted(unit_ids)) == tuple(
+            range(1, len(unit_ids) + 1)) else {}  # unit count -> (1..n): a piece whose local ids are the structure's
         for shape in executor.shapes.values():
             self.pieces[shape.key] = self._new_piece(shape, 0.0, None)
 
     # ----------------------------------------------------------------- pieces
     def _new_piece(self, shape: PieceShape, t_s: float, estimator) -> Piece:
+        """A piece's coordinator flies its tracked point (the tracked unit's centre if it carries it, else its
+        CoM) on the executor's reference: while it flies the mission, the mission itself."""
         m = shape.model(self.vehicle)
-        coord = self.new_coordinator(m, self.executor.refs[shape.key], local_eta(shape, self.eta_believed), t_s,
+        units = tuple(shape.units_local_order())
+        tracked = units.index(self.tracked_unit) + 1 if self.tracked_unit in units else None
+        reference = TrackedPointReference(self.executor.refs[shape.key], self.executor.tracked_offset(shape))
+        coord = self.new_coordinator(shape, m, reference, tracked, local_eta(shape, self.eta_believed), t_s,
                                      estimator)
-        return Piece(shape, m, tuple(shape.units_local_order()), coord)
+        piece = Piece(shape, m, units, coord)
+        self._take_events(piece, t_s)
+        return piece
+
+    def _take_events(self, piece: Piece, t_s: float) -> None:
+        """The piece coordinator's events (they name the structure's units) into the record, and its new
+        detections, in the structure's unit ids."""
+        c = piece.coordinator
+        if c.events:
+            self.events += c.events
+            c.events.clear()
+        if len(c.detections) > piece.detections_seen:
+            self._collect_detections(piece, t_s)
 
     @staticmethod
     def _moved_estimate(piece: Piece, model: AssemblyModel, shift_frd_m: np.ndarray):
@@ -140,9 +161,16 @@ class PiecesCoordinator:
 
     def tracked_piece(self) -> Piece:
         """The piece carrying the tracked unit (else, or once that unit is lost, the one with the most units)."""
+        if len(self.pieces) == 1:  # (a docked flight: every step asks)
+            return next(iter(self.pieces.values()))
         if self.tracked_unit is not None and self.tracked_unit not in self.lost:
             return self.piece_of(self.tracked_unit)
         return max(self.pieces.values(), key=lambda p: (len(p.units), -min(p.units)))
+
+    @property
+    def failsafe(self):
+        """The tracked piece's position-loss failsafe (None without one)."""
+        return self.tracked_piece().coordinator.failsafe
 
     def estimates(self) -> dict[Key, object]:
         return {k: (None if p.coordinator.last is None else p.coordinator.last.estimate)
@@ -156,6 +184,7 @@ class PiecesCoordinator:
             self.eta_believed[u] = np.asarray(eta[(u - 1) * ROTORS_PER_UNIT:u * ROTORS_PER_UNIT], dtype=float).copy()
         for p in self.pieces.values():
             p.coordinator.set_faults(local_eta(p.shape, self.eta_believed), t_s, reason)
+            self._take_events(p, t_s)
         self.told += 1
         if self.told_faults_expected and self.told == self.told_faults_expected:
             self._told_trigger_s = t_s  # (started in `_start_manoeuvres`: at once, or once flying)
@@ -168,14 +197,8 @@ class PiecesCoordinator:
         piece.detections_seen = len(c.detections)
         for k, u in enumerate(piece.units):
             self.eta_believed[u] = c.eta_believed[k * ROTORS_PER_UNIT:(k + 1) * ROTORS_PER_UNIT].copy()
-        for d in new:
-            u = piece.units[d.unit - 1]
-            self.detections.append(dataclasses.replace(d, unit=u))
-            where = f"Unit {u}" + (f" rotor {d.rotor}" if d.rotor else "")
-            self.events.append({"t_s": round(t_s, 6), "type": "fault_detected", "unit": u, "rotor": d.rotor,
-                                "eta_estimated": round(float(d.eta_estimated), 4),
-                                "t_onset": round(float(d.t_onset), 6),
-                                "text": f"Fault found: {where}"[:50]})
+        for d in new:  # (the piece's coordinator recorded each finding as an event)
+            self.detections.append(dataclasses.replace(d, unit=piece.units[d.unit - 1]))
         if self.planner is not None and self.at_s is None:  # (planned once the mission flies as one body)
             self._plan_at_s = min(self._plan_at_s, t_s + self.executor.params.trigger_delay_s)
 
@@ -270,8 +293,7 @@ class PiecesCoordinator:
         self.lost.add(unit_id)
         piece = self.piece_of(unit_id)
         det = piece.coordinator.unit_lost(piece.units.index(unit_id) + 1, t_s, reason)
-        self.events.append({"t_s": round(t_s, 6), "type": "unit_lost", "unit": unit_id, "reason": reason,
-                            "text": f"Unit {unit_id} lost: {reason}"[:50]})
+        self._take_events(piece, t_s)
         for key in self.executor.abandon(t_s, self.lost):
             self.pieces.pop(key, None)
         self.pending_splits = [p for p in self.pending_splits if p.action.parent in self.pieces]
@@ -325,22 +347,33 @@ class PiecesCoordinator:
         by_unit = {p.unit_id: p for p in packets}
         if self.telemetry_timeout_s is not None:
             self._watch_telemetry(t_s, by_unit)
-        self._learn_topology(t_s, {u: p.latches for u, p in by_unit.items()})
+        executor = self.executor
+        if self.pending_splits or executor.docks:  # (the latches tell nothing new otherwise)
+            self._learn_topology(t_s, {u: p.latches for u, p in by_unit.items()})
         if self.manoeuvres_allowed:
             self._start_manoeuvres(t_s)
-        for action in self.executor.step(t_s, self.estimates()):
+        # (flying the mission, the executor only watches for its trigger: no estimates needed)
+        for action in executor.step(t_s, {} if executor.phase == "mission" else self.estimates()):
             self._begin_split(t_s, action)
         commands = []
         parked = self.executor.parked
+        latches = self.latch_setpoint
         for key, p in self.pieces.items():
             p.coordinator.motors_off = key in parked
-            cmds = p.coordinator.step(t_s, [local_packet(by_unit[u], k + 1)
-                                            for k, u in enumerate(p.units) if u in by_unit])
-            for c in cmds:
-                u = p.units[c.unit_id - 1]
-                commands.append(RotorCommand(c.t_s, u, c.thrusts_n, self.latch_setpoint[u]))
-            if p.coordinator.detector is not None:
-                self._collect_detections(p, t_s)
+            units = p.units
+            if units == self._identity.get(len(units)):  # (the whole structure in its own order: ids kept)
+                cmds = p.coordinator.step(t_s, packets if len(by_unit) == len(packets)
+                                          else [by_unit[u] for u in units if u in by_unit])
+                for c in cmds:
+                    commands.append(c if c.latch_setpoint == latches[c.unit_id]
+                                    else RotorCommand(c.t_s, c.unit_id, c.thrusts_n, latches[c.unit_id]))
+            else:
+                cmds = p.coordinator.step(t_s, [local_packet(by_unit[u], k + 1)
+                                                for k, u in enumerate(units) if u in by_unit])
+                for c in cmds:
+                    u = units[c.unit_id - 1]
+                    commands.append(RotorCommand(c.t_s, u, c.thrusts_n, latches[u]))
+            self._take_events(p, t_s)
         self.last = self.tracked_piece().coordinator.last
         if self.executor.failed and self.failed is None:
             self.failed = self.executor.failed

@@ -105,22 +105,26 @@ def allocator_bounds(scenario: Scenario, model: AssemblyModel) -> tuple[float | 
 
 
 def make_controller(scenario: Scenario, model: AssemblyModel, eta: np.ndarray) -> Controller:
+    """The scenario's controller for the whole structure, its tracked point the scenario's."""
+    return make_piece_controller(scenario, model, eta, scenario.tracked_unit())
+
+
+def make_piece_controller(scenario: Scenario, piece: AssemblyModel, eta: np.ndarray,
+                          tracked_unit: int | None) -> Controller:
+    """The scenario's controller (cascaded or paper 000's) over `piece`'s rotors, its reference for the
+    centre of the piece's unit `tracked_unit` (the piece's own numbering; None: the piece's CoM)."""
     if scenario.controller == "cascaded":
         from mars_link.allocation import make_allocator
         from mars_link.control.cascaded import CascadedController
 
-        allocator = make_allocator(scenario.ftc, model, eta, *allocator_bounds(scenario, model))
-        return CascadedController(
-            model, allocator, tracked_offset_frd_m=tracked_offset(model, scenario),
-            control_hz=scenario.sim.control_hz,
-        )
+        allocator = make_allocator(scenario.ftc, piece, eta, *allocator_bounds(scenario, piece))
+        offset = np.zeros(3) if tracked_unit is None else piece.unit_position(tracked_unit).copy()
+        return CascadedController(piece, allocator, tracked_offset_frd_m=offset, control_hz=scenario.sim.control_hz)
     if scenario.controller == "mars-ftcc-paper":
         from mars_link.control.paper import PaperController
 
-        return PaperController(
-            model, tracked_unit_id=scenario.tracked_unit(), control_hz=scenario.sim.control_hz,
-            ftc=scenario.ftc, eta=eta,
-        )
+        return PaperController(piece, tracked_unit_id=tracked_unit, control_hz=scenario.sim.control_hz,
+                               ftc=scenario.ftc, eta=eta)
     raise UserInputError(f"unknown controller {scenario.controller!r}")
 
 
@@ -217,34 +221,47 @@ def make_detector(scenario: Scenario, model: AssemblyModel, ground_down_m: float
 
 
 def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: Trajectory, eta: np.ndarray,
-                           t_s: float, estimator=None, detector=None) -> Coordinator:
-    """The coordinator of one piece of a reconfiguring assembly: the scenario's FTC mode over the piece's
-    own rotors, its CoM on the piece's reference, told the piece's believed faults (`eta`); its detector,
-    if any, starts from them."""
-    from mars_link.allocation import make_allocator
-    from mars_link.control.cascaded import CascadedController
+                           t_s: float, estimator=None, detector=None, *, tracked_unit: int | None = None,
+                           unit_names: tuple[int, ...] | None = None, ground_down_m: float | None = None,
+                           telemetry_timeout_s: float | None = None) -> Coordinator:
+    """The coordinator of one rigid piece (the whole docked structure is a piece too): the scenario's
+    controller and FTC mode over the piece's own rotors, told the piece's believed faults (`eta`), its
+    detector, if any, starting from them.
+
+    `reference` is for the centre of the piece's unit `tracked_unit` (its own numbering; None: the CoM);
+    `unit_names`: the structure's id of each of the piece's units (events and texts); `ground_down_m`: the
+    tracked point's down coordinate landed (the position failsafe lands there; default: the reference's
+    start). With the scenario's packs the allocator's bounds follow the units' voltages; on an estimator
+    with a sensor guard, the position-loss failsafe flies the reference."""
     from mars_link.coordination.coordinator import Coordinator
 
-    allocator = make_allocator(scenario.ftc, piece, eta, *allocator_bounds(scenario, piece))
     if detector is not None:
         detector.set_model(piece, eta)
-    coordinator = Coordinator(piece, reference, CascadedController(piece, allocator, control_hz=scenario.sim.control_hz),
-                              estimator, detector)
-    coordinator.set_faults(eta, t_s, "piece created")
-    _follow_packs(scenario, piece, coordinator, local_ids=True)
+    coordinator = Coordinator(piece, reference, make_piece_controller(scenario, piece, eta, tracked_unit),
+                              estimator, detector, telemetry_timeout_s=telemetry_timeout_s)
+    coordinator.unit_names = unit_names
+    coordinator.eta_believed = np.asarray(eta, dtype=float).copy()
+    if t_s > 0.0 and np.any(np.asarray(eta) < 1.0):  # a piece made in flight with faults (told or found): say so
+        coordinator.set_faults(eta, t_s, "piece created")
+    _follow_packs(scenario, piece, coordinator, unit_names)
+    if coordinator.guard is not None:  # a trajectory flight: position lost -> hold, then land
+        from mars_link.models.position_failsafe import PositionFailsafe
+
+        offset = np.zeros(3) if tracked_unit is None else piece.unit_position(tracked_unit).copy()
+        ground = float(reference.sample(0.0).position_ned_m[2]) if ground_down_m is None else ground_down_m
+        coordinator.failsafe = PositionFailsafe(tracked_offset_frd_m=offset, ground_down_m=ground)
     return coordinator
 
 
-def _follow_packs(scenario: Scenario, model: AssemblyModel, coordinator: Coordinator, local_ids: bool = False) -> None:
+def _follow_packs(scenario: Scenario, model: AssemblyModel, coordinator: Coordinator,
+                  unit_names: tuple[int, ...] | None = None) -> None:
     """With simulated packs and rotor limits, the coordinator's allocator bounds follow each unit's reported
-    voltage. (A piece numbers its units locally: its packs must then have one cell count.)"""
+    voltage (`unit_names`: the structure's id of each of the model's units, whose pack it is)."""
     spec = scenario.battery
     if spec is None or model.vehicle.rotor_max_thrust_n is None:
         return
-    cells = {p.cells for p in (spec.pack, *spec.overrides.values())}
-    if local_ids and len(cells) > 1:
-        return
-    coordinator.battery_cells = {u: spec.pack_of(u).cells for u in model.unit_ids}
+    coordinator.battery_cells = {u: spec.pack_of(u if unit_names is None else unit_names[u - 1]).cells
+                                 for u in model.unit_ids}
 
 
 def initial_eta(scenario: Scenario, model: AssemblyModel) -> np.ndarray:
@@ -302,29 +319,6 @@ def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordin
 
 #: a unit silent for this many control periods is declared lost (in-process flights with unit deaths)
 UNIT_TIMEOUT_PERIODS = 5
-
-
-def build_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, float] | None = None):
-    """Every part of one in-process flight, wired for `mars_link.flight.engine.Engine`.
-
-    `unit_deaths` (unit -> time): that unit's process dies then; the coordinator, not told, declares it
-    lost after `UNIT_TIMEOUT_PERIODS` silent control periods."""
-    from mars_link.flight.engine import Flight, InProcessUnits
-
-    model = scenario.model()
-    trajectory = make_trajectory(scenario, model)
-    com_start, yaw_start = start_pose(scenario, model, trajectory)
-    deaths = sorted((t_d, u) for u, t_d in (unit_deaths or {}).items())
-    for _, u in deaths:
-        model.check_rotor(u, None)
-    timeout = UNIT_TIMEOUT_PERIODS / scenario.sim.control_hz if deaths else None
-    coordinator = make_coordinator(scenario, model, trajectory, make_estimator(scenario, model),
-                                   make_detector(scenario, model, float(com_start[2])), telemetry_timeout_s=timeout)
-    world = make_world(scenario, model, seed, com_start, yaw_start)
-    units = InProcessUnits({u: make_unit(scenario, model, u, on_wire=False) for u in model.unit_ids}, world)
-    return Flight(scenario, model, seed, trajectory, world, units, coordinator,
-                  sorted(scenario.faults, key=lambda f: f.t_s), deaths, tracked_offset(model, scenario),
-                  scenario.sim.duration_s or trajectory.duration_s)
 
 
 #: cap on a reconfiguration manoeuvre: a flight of pieces ends this long after its mission would have
@@ -397,15 +391,25 @@ def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: T
     from mars_link.coordination.pieces import PiecesCoordinator
     from mars_link.reconfig.plans import check_reconfig_scenario, plan_or_reason, plan_separation
 
-    check_reconfig_scenario(scenario, faults_may_come=vehicle)
+    if scenario.has_pieces:
+        check_reconfig_scenario(scenario, faults_may_come=vehicle)
     executor, plan_events, told = make_executor(scenario, model, mission, plan_for, defer_take_off=vehicle)
-    ground_down_m = 0.0  # every piece starts landed: its CoM near the ground plane
 
-    def new_coordinator(piece: AssemblyModel, reference, eta, t_s, estimator):
+    def new_coordinator(shape, piece: AssemblyModel, reference, tracked_unit, eta, t_s, estimator):
+        """A piece at the start stands landed under its reference's first point (its detector's and
+        failsafe's ground); one made in flight has the ground the structure took off from."""
         if estimator is None:
             estimator = make_estimator(scenario, piece)
+        names = tuple(shape.units_local_order())
+        if t_s == 0.0:
+            ground = float(reference.sample(0.0).position_ned_m[2])
+            com_ground = float(reference.com_reference.sample(0.0).position_ned_m[2])
+        else:
+            com_ground = executor.ground_down_m
+            ground = com_ground + float(reference.offset[2])
         return make_piece_coordinator(scenario, piece, reference, eta, t_s, estimator,
-                                      make_detector(scenario, piece, ground_down_m))
+                                      make_detector(scenario, piece, com_ground), tracked_unit=tracked_unit,
+                                      unit_names=names, ground_down_m=ground)
 
     enabled = bool(scenario.reconfig.get("enabled", False))
     at_s = scenario.reconfig.get("at_s")
@@ -432,15 +436,19 @@ def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: T
     return coordinator, end_s
 
 
-def build_pieces_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, float] | None = None):
-    """Every part of a flight of pieces (free units assembling, a reconfiguration), wired for the engine:
-    the world starts with one body per piece of the executor's start, every unit is its firmware, and
-    the coordinator is a `PiecesCoordinator`. `unit_deaths` (unit -> time): that unit's process dies then
-    and the coordinator, not told, loses it after `UNIT_TIMEOUT_PERIODS` silent control periods."""
+def build_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, float] | None = None):
+    """Every part of one in-process flight, wired for `mars_link.flight.engine.Engine`: a world of rigid bodies
+    (one per piece of the executor's start: the docked structure is one), every unit's firmware, and the
+    coordinator of pieces (a docked flight is a flight of one piece, flying the mission itself).
+
+    `unit_deaths` (unit -> time): that unit's process dies then; the coordinator, not told, declares it
+    lost after `UNIT_TIMEOUT_PERIODS` silent control periods. A flight that may become several bodies
+    ends when its executor says (a manoeuvre moves the mission's end); the others after their duration."""
     from mars_link.flight.engine import Flight, InProcessUnits
 
     model = scenario.model()
-    check_planned_unit_count(model.n_units, "a flight of pieces' layout")
+    if scenario.has_pieces:
+        check_planned_unit_count(model.n_units, "a flight of pieces' layout")
     mission = make_trajectory(scenario, model)
     deaths = sorted((t_d, u) for u, t_d in (unit_deaths or {}).items())
     for _, u in deaths:
@@ -451,4 +459,6 @@ def build_pieces_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, fl
     units = InProcessUnits({u: make_unit(scenario, model, u, on_wire=False) for u in model.unit_ids}, world)
     faults = sorted(scenario.faults, key=lambda f: f.t_s)
     return Flight(scenario, model, seed, mission, world, units, coordinator, faults, deaths,
-                  duration_s=scenario.sim.duration_s or mission.duration_s, end_s=end_s)
+                  tracked_offset(model, scenario), scenario.sim.duration_s or mission.duration_s,
+                  end_s=end_s if scenario.has_pieces else None)
+

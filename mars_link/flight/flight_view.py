@@ -871,7 +871,7 @@ def pieces_point(engine, view) -> ViewPoint | None:
 
 
 def pieces_view(flight, out_dir: Path | None, live: str | None = None) -> FlightView | None:
-    """The view of a flight of pieces (build.build_pieces_flight): its points (`pieces_point`) and the events
+    """The view of a flight of pieces (build.build_flight): its points (`pieces_point`) and the events
     of its summary (engine, coordinator, executor, the world's latched docks)."""
     sc = flight.scenario
     view = open_view(out_dir, flight.model, sc, sc.sim.control_hz, flight.coordinator.executor.mission,

@@ -1,6 +1,6 @@
 """Flights of pieces (free units assembling, reconfiguration): the observer and the outputs.
 
-The flight runs on the one engine (`mars_link.flight.engine.Engine`) with the parts `build.build_pieces_flight`
+The flight runs on the one engine (`mars_link.flight.engine.Engine`) with the parts `build.build_flight`
 makes: a world of rigid bodies that split when latches open and merge when facing latches close
 (`sitl.world`, momentum kept), every unit's firmware in the motor path, and a `PiecesCoordinator`
 (`mars_link.coordination.pieces`) that flies every piece on its own EKF, detector, controller and allocator and runs
@@ -27,7 +27,7 @@ from typing import Callable
 
 import numpy as np
 
-from mars_link.flight.build import build_pieces_flight
+from mars_link.flight.build import build_flight
 from mars_link.flight.engine import Engine, Flight, StepView
 from mars_link.flight.metrics import DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, TrackingMetrics, TrialResult
 from mars_link.logs.outputs import write_json
@@ -71,6 +71,7 @@ class ReconfigRecorder:
         self.mission_force_integral_n2s = 0.0  # Σ rotors ∫ thrust² dt while the mission flies (not the manoeuvre)
         self._force_seen = 0.0
         self._next_unit_log = 0.0
+        self._offsets: dict[int, tuple] = {}  # id(piece model) -> (model, its unit offsets)
         self._flush_every = max(1, int(flight.scenario.sim.control_hz))
         self.tel_f = self.units_f = None
         if out_dir is not None:
@@ -130,16 +131,25 @@ class ReconfigRecorder:
             return True
         return False
 
+    def _unit_offsets(self, piece) -> np.ndarray:
+        """The piece's unit centres from its CoM, FRD, in its order (one array per piece model, kept)."""
+        offsets = self._offsets.get(id(piece.model))
+        if offsets is None or offsets[0] is not piece.model:
+            offsets = self._offsets[id(piece.model)] = (
+                piece.model, np.array([piece.model.unit_position(k + 1) for k in range(len(piece.units))]))
+        return offsets[1]
+
     def _log_units(self, t: float, states: dict) -> None:
         for p in self.coordinator.pieces.values():
             s = states[p.shape.key]
             r = quat_to_rotmat(s.quaternion_wxyz)
             w = r @ s.angular_velocity_frd_radps
             roll, pitch, yaw = (math.degrees(a) for a in quat_to_euler(s.quaternion_wxyz))
+            arms = self._unit_offsets(p) @ r.T  # every unit's centre from the CoM, NED
+            positions = (s.position_ned_m + arms).tolist()
+            velocities = (s.velocity_ned_mps + np.cross(w, arms)).tolist()
             for i, u in enumerate(p.units):
-                rr = r @ p.model.unit_position(i + 1)
-                row = [t, u, *(s.position_ned_m + rr), *(s.velocity_ned_mps + np.cross(w, rr)),
-                       roll, pitch, yaw, len(p.shape.cells)]
+                row = [t, u, *positions[i], *velocities[i], roll, pitch, yaw, len(p.shape.cells)]
                 self.unit_rows.append(row)
                 if self.units_f:
                     self.units_f.write(",".join(f"{x:.6g}" for x in row) + "\n")
@@ -150,9 +160,9 @@ def run_reconfig_trial(
     on_progress: Callable[[float], None] | None = None, realtime_rate: float = 0.0,
     unit_deaths: dict[int, float] | None = None, view: Callable | None = None,
 ) -> ReconfigResult:
-    """One flight of pieces on the engine (`build.build_pieces_flight`); `unit_deaths` (unit -> time): that
+    """One flight of pieces on the engine (`build.build_flight`); `unit_deaths` (unit -> time): that
     unit's process dies then. `view(flight)`: its run.mcap / live Foxglove view (flight_view.pieces_view)."""
-    flight = build_pieces_flight(scenario, seed, unit_deaths)
+    flight = build_flight(scenario, seed, unit_deaths)
     coord: PiecesCoordinator = flight.coordinator
     executor = coord.executor
     recorder = ReconfigRecorder(flight, out_dir)

@@ -185,6 +185,43 @@ class PieceReference(Trajectory):
         return TrajectoryPoint(self._hold.position_ned_m.copy(), yaw_rad=self.yaw_rad)
 
 
+class TrackedPointReference(Trajectory):
+    """What a piece's coordinator flies: the reference of the point it tracks, `offset_frd_m` from the
+    piece's CoM (the tracked unit's centre; zero: the CoM). While the piece flies the mission it is the
+    mission itself, sampled as a one-body flight samples it; otherwise the executor's CoM reference moved
+    out to that point (ComMission's terms, inverted)."""
+
+    def __init__(self, com_reference: PieceReference, offset_frd_m: np.ndarray) -> None:
+        self.com_reference = com_reference
+        self.offset = np.asarray(offset_frd_m, dtype=float)
+        self._moved = bool(self.offset.any())
+        self._tail: object = None  # the last mission tail found to be for this point (ComMission, same offset)
+
+    @property
+    def duration_s(self) -> float:  # type: ignore[override]
+        return self.com_reference.duration_s
+
+    def sample(self, t_s: float) -> TrajectoryPoint:
+        ref = self.com_reference
+        tail = ref.tail
+        if ref.live is None and tail is not None and t_s >= tail[1]:
+            traj = tail[0]
+            if traj is self._tail or (isinstance(traj, ComMission) and np.array_equal(traj.offset, self.offset)):
+                self._tail = traj
+                return traj.mission.sample(t_s - tail[2])
+        r = ref.sample(t_s)
+        if not self._moved:
+            return r
+        cy, sy = math.cos(r.yaw_rad), math.sin(r.yaw_rad)
+        ox, oy, oz = self.offset
+        dx, dy = cy * ox - sy * oy, sy * ox + cy * oy
+        w = r.yaw_rate_radps
+        return TrajectoryPoint(r.position_ned_m + np.array([dx, dy, oz]),
+                               r.velocity_ned_mps - np.array([w * dy, -w * dx, 0.0]),
+                               r.acceleration_ned_mps2 - np.array([w * w * dx, w * w * dy, 0.0]),
+                               r.jerk_ned_mps3, r.yaw_rad, w)
+
+
 # ----------------------------------------------------------------------------- parameters and actions
 #: the final body resumes the mission once its estimate holds within these of its point for settle_s
 STEADY_POSITION_M = 0.03
@@ -280,6 +317,7 @@ class Executor:
         self.params = params.resolved(self.pitch)
         self.mission = mission
         self.tracked_unit = tracked_unit
+        self._offsets: dict[tuple, np.ndarray] = {}  # the piece's cells -> the tracked unit's offset
         whole = PieceShape(dict(plan.initial))
         self.shapes: dict[Key, PieceShape] = {whole.key: whole}
         self.refs: dict[Key, PieceReference] = {}
@@ -310,10 +348,15 @@ class Executor:
 
     # ----------------------------------------------------------------- helpers
     def tracked_offset(self, shape: PieceShape) -> np.ndarray:
+        """The tracked unit's centre from `shape`'s CoM, FRD (zero when the piece does not carry it)."""
         if self.tracked_unit is None or self.tracked_unit not in shape.cells:
             return np.zeros(3)
-        local = shape.units_local_order().index(self.tracked_unit) + 1
-        return shape.model(self.vehicle).unit_position(local).copy()
+        cells = tuple(sorted(shape.cells.items()))
+        offset = self._offsets.get(cells)
+        if offset is None:  # (a model per call cost a tenth of a flight of pieces: the recorder asks every step)
+            local = shape.units_local_order().index(self.tracked_unit) + 1
+            offset = self._offsets[cells] = shape.model(self.vehicle).unit_position(local).copy()
+        return offset.copy()
 
     def _mission_reference(self, shape: PieceShape, shift: float) -> PieceReference:
         com = ComMission(self.mission, self.tracked_offset(shape))

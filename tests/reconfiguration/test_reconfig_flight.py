@@ -166,3 +166,45 @@ def test_a_flight_of_pieces_paced_by_the_engine_flies_the_same_in_the_wall_clock
     assert [(e["t_s"], e["type"]) for e in paced.events] == [(e["t_s"], e["type"]) for e in fast.events]
     assert paced.mean_error_m == fast.mean_error_m
     assert paced.wall_time_s >= 0.97 * paced.sim_time_s / 5.0
+
+
+def test_a_docked_flight_is_one_piece_flying_the_mission_itself_with_the_scenario_controller():
+    """`build_flight` makes every flight through the coordinator of pieces: a docked structure is one piece
+    whose coordinator flies the tracked unit's centre on the mission itself (not a CoM reference moved
+    back and forth), with the scenario's controller, and names the structure's units in its events."""
+    from mars_link.flight.build import build_flight
+    from mars_link.control.paper import PaperController
+    from mars_link.flight.engine import Engine
+    from mars_link.coordination.pieces import PiecesCoordinator
+    from mars_link.apps.reproduce import CASES, scenario_for
+
+    case = next(c for c in CASES if c.name == "F3 units {2}")
+    flight = build_flight(scenario_for(case, "mars-ftcc-paper", "unit", duration_s=2.0), 1)
+    coord = flight.coordinator
+    assert isinstance(coord, PiecesCoordinator) and len(coord.pieces) == 1
+    (piece,) = coord.pieces.values()
+    assert isinstance(piece.coordinator.controller, PaperController)
+    assert piece.coordinator.controller.tracked_unit_id == 1
+    for t in (0.0, 0.7, 1.3):  # bit for bit the mission's point
+        a, b = piece.coordinator.trajectory.sample(t), flight.trajectory.sample(t)
+        assert np.array_equal(a.position_ned_m, b.position_ned_m) and a.yaw_rad == b.yaw_rad
+    Engine(flight).run()
+    flight.world.close()
+    lost = [e for e in coord.events if e["type"] == "reallocation"]
+    assert lost and "u2 dead" in lost[0]["text"]
+
+
+def test_a_piece_reference_off_the_mission_is_its_com_reference_moved_to_the_tracked_point():
+    """Off the mission (a quintic move) the tracked point's reference is the CoM reference moved out by the
+    tracked unit's offset (yaw applied): what the controller moves back to the CoM."""
+    from mars_link.reconfig.execution import PieceReference, TrackedPointReference
+    from mars_link.models.trajectories import TrajectoryPoint
+
+    com = PieceReference(TrajectoryPoint(np.array([1.0, 2.0, -1.0]), yaw_rad=math.pi / 2))
+    com.move(0.0, np.array([3.0, 2.0, -1.5]), 0.5)
+    offset = np.array([0.35, -0.175, 0.0])
+    tracked = TrackedPointReference(com, offset)
+    for t in (0.0, 1.0, 2.5, 10.0):
+        c, p = com.sample(t), tracked.sample(t)
+        np.testing.assert_allclose(p.position_ned_m - c.position_ned_m, [0.175, 0.35, 0.0], atol=1e-12)
+        np.testing.assert_allclose(p.velocity_ned_mps, c.velocity_ned_mps, atol=1e-12)  # (no yaw rate)
