@@ -57,7 +57,7 @@ def _yaw_step(tmp_path: Path, preset: str | None, ftc: str) -> dict:
     try:
         Engine(flight, [Watch()]).run()
         seen["yaw_deg"] = math.degrees(quat_to_euler(flight.world.truth().quaternion_wxyz)[2])
-        seen["saturated"] = getattr(flight.coordinator.controller.allocator, "saturated", 0)
+        seen["saturated"] = getattr(flight.coordinator.tracked_piece().coordinator.controller.allocator, "saturated", 0)
         seen["max_n"] = flight.model.vehicle.rotor_max_thrust_n
     finally:
         flight.world.close()
@@ -87,7 +87,7 @@ def _dead_corner_flight(bounded: bool) -> dict:
     case = next(c for c in CASES if c.name == "F3 units {3}")
     sc = scenario_for(case, "cascaded", "qp", 13.0, 10.0, True, {"wind_ned_mps": [5.0, 0.0, 0.0], "turbulence": "light"})
     flight = build_flight(sc, 1)
-    controller = flight.coordinator.controller
+    controller = flight.coordinator.tracked_piece().coordinator.controller
     if not bounded:
         controller.allocator = make_allocator("qp", flight.model, controller.allocator.eta)
     seen = {"sink": 0.0, "yaw_err": 0.0, "collective": math.inf}

@@ -134,7 +134,8 @@ def test_a_weak_pack_in_a_3x2_sheds_load_to_the_fuller_units() -> None:
     assert np.allclose(even, 1 / 6, atol=0.002)
     assert weak[2] < even[2] - 0.012  # > 1.2 points of the total moved off unit 3
     assert np.allclose(blind, 1 / 6, atol=0.002)
-    assert flight.coordinator.available[2] < 0.85 < flight.coordinator.available[0]
+    available = flight.coordinator.tracked_piece().coordinator.available  # (a docked flight: one piece)
+    assert available[2] < 0.85 < available[0]
     truth = flight.world.truth().position_ned_m
     assert abs(truth[2] + 2.0) < 0.1 and math.hypot(truth[0], truth[1]) < 0.05  # it still hovers where asked
 

@@ -137,7 +137,7 @@ def test_default_scenario_run_mcap(tmp_path):
 def test_reconfiguration_flight_mcap(tmp_path):
     """A reconfiguration flight (paper 000's docking scenario, shortened): bodies split and dock in /tf."""
     from mars_link.flight.reconfig_flight import run_reconfig_scenario
-    from tests.test_reconfig_flight import docking
+    from test_reconfig_flight import docking
 
     out = tmp_path / "reconfig"
     summary = run_reconfig_scenario(docking("qp"), out)

@@ -141,7 +141,7 @@ def _force_noise_ratio_max(raw: bool) -> float:
     fault detector measured (its memory of the residual's spread over its model), fed the guard's IMUs or,
     with `raw`, every unit's raw IMU (as before the guard)."""
     flight = build_flight(_hover("garbage", "accel"), 1)
-    c = flight.coordinator
+    c = flight.coordinator.tracked_piece().coordinator  # (a docked flight: one piece)
     commands = c.commands
 
     def raw_imus(t, packets):

@@ -40,7 +40,7 @@ class Track:
         yaw = math.degrees(abs(math.atan2((r_true.T @ r_est)[1, 0], (r_true.T @ r_est)[0, 0])))
         self.rows.append((v.t_s, float(np.linalg.norm(tracked - rec.reference.position_ned_m)), *err.tolist(),
                           float(tr.position_ned_m[2]), yaw))
-        self.unhealthy.append((v.t_s, set(self.f.coordinator.guard.unhealthy_sensors())))
+        self.unhealthy.append((v.t_s, set(self.f.coordinator.tracked_piece().coordinator.guard.unhealthy_sensors())))
         return False
 
     def between(self, t0: float, t1: float) -> np.ndarray:
