@@ -437,7 +437,7 @@ def _add_sitl_processes(p, realtime_help: str) -> None:
 
 def _add_client_ports(p, api_port: int, api_help: str) -> None:
     """The UDP ports the MAVLink clients listen on (PX4's SITL conventions)."""
-    from mars_link.processes.vehicle_io import GCS_PORT
+    from mars_link.processes.ports import GCS_PORT
 
     p.add_argument("--gcs-port", type=int, default=GCS_PORT,
                    help="UDP port ground stations listen on (QGroundControl, MAVProxy `udpin`)")
@@ -472,7 +472,7 @@ def _add_map(p, what: str) -> None:
 # ports, so a client set up for one works with the other. Why not PX4's instance-0 ports (14540, system
 # 1): `sitl up` gives those to its units (unit i: system i, API port 14540 + i), and the vehicle beside them.
 def _vehicle_defaults() -> tuple[int, int]:
-    from mars_link.processes.vehicle_host import DEFAULT_VEHICLE_API_PORT, DEFAULT_VEHICLE_SYSID
+    from mars_link.processes.ports import DEFAULT_VEHICLE_API_PORT, DEFAULT_VEHICLE_SYSID
 
     return DEFAULT_VEHICLE_SYSID, DEFAULT_VEHICLE_API_PORT
 
@@ -578,7 +578,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_link(coord, "the coordinator and the units (as the `sitl up` it attaches to)")
 
     # -- vehicle
-    from mars_link.processes.realtime import API_BIND, GCS_BIND
+    from mars_link.processes.ports import VEHICLE_API_BIND as API_BIND, VEHICLE_GCS_BIND as GCS_BIND
 
     veh = _command(sub, "vehicle", "the assembly as one MAVLink vehicle in real time (MAVSDK, MAVProxy, QGC)",
                    "The assembly (physics and coordinator in this process) behind one MAVLink endpoint, paced to "

@@ -36,11 +36,12 @@ from mars_link.vehicles.assembly_vehicle import AssemblySim, SimConfig
 from mars_link.core import validation
 from mars_link.core.errors import UserInputError
 from mars_link.runtime.pacing import Pacer
+from mars_link.processes.ports import VEHICLE_API_BIND, VEHICLE_GCS_BIND
 from mars_link.config.scenario import INTERACTIVE_SCENARIO as DEFAULT_SCENARIO  # (the realistic plant)
 
 STATUS_PERIOD_S = 0.2
 API_PORT = API_PORT_BASE  # PX4 SITL instance 0's API port (the vehicle's default until it agreed with sitl up --vehicle)
-GCS_BIND, API_BIND = 18560, 14560  # below the units' 18570+i / 14580+i
+GCS_BIND, API_BIND = VEHICLE_GCS_BIND, VEHICLE_API_BIND  # below the units' 18570+i / 14580+i
 
 
 class AssemblyRunner:

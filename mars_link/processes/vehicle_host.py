@@ -31,9 +31,8 @@ from mars_link.models.estimation_outdoor import estimate_settled, step_estimator
 from mars_link.core.messages import RotorCommand, SensorPacket
 from mars_link.core.state import RigidBodyState
 
-DEFAULT_VEHICLE_SYSID = 202
-DEFAULT_VEHICLE_API_PORT = 14539
-VEHICLE_GCS_BIND, VEHICLE_API_BIND = 18560, 14560  # below the units' 18570+i / 14580+i
+from mars_link.processes.ports import (  # noqa: F401  (their home; re-exported for the vehicle's callers)
+    DEFAULT_VEHICLE_API_PORT, DEFAULT_VEHICLE_SYSID, VEHICLE_API_BIND, VEHICLE_GCS_BIND)
 TICK_PERIOD_S = 0.02  # heartbeats and streams (<= 20 Hz) on this wall-clock grid
 STATUS_PERIOD_S = 0.2
 RESERVED_SYSIDS = (200, 201)  # world, coordinator

@@ -28,11 +28,7 @@ RECV_BUFFER_BYTES = 4 * 1024 * 1024
 MAX_DATAGRAMS_PER_WAKE = 4000  # per socket: keep the control loop on time during a flood
 TLOG_MAX_BYTES = 100 * 2**20  # per .tlog file; then that log stops (one STATUSTEXT), the flight goes on
 PEER_TIMEOUT_S = 10.0  # a client link also serves the last sender of valid frames (MAVProxy udpout)
-GCS_PORT = 14550
-API_PORT_BASE = 14540  # + unit index (0-based)
-GCS_BIND_BASE = 18570
-API_BIND_BASE = 14580
-COORD_BIND_BASE = 14600
+from mars_link.processes.ports import API_BIND_BASE, API_PORT_BASE, COORD_BIND_BASE, GCS_BIND_BASE, GCS_PORT  # noqa: F401
 
 
 @dataclass

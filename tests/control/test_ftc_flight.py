@@ -9,6 +9,11 @@ from mars_link.apps.reproduce import CASES, scenario_for
 from mars_link.flight.runner import run_trial
 
 FAULTED = [c for c in CASES if c.faults]
+REPRESENTATIVE = "F3 units {2,5}"  # (CI time: the other cases under -m long)
+
+
+def _cases(cases):
+    return [pytest.param(c, id=c.name, marks=() if c.name == REPRESENTATIVE else pytest.mark.long) for c in cases]
 SEED = 2
 
 
@@ -20,7 +25,7 @@ def fault_free_error_m() -> float:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", ["hybrid", "qp"])
-@pytest.mark.parametrize("case", FAULTED, ids=[c.name for c in FAULTED])
+@pytest.mark.parametrize("case", _cases(FAULTED))
 def test_fault_tolerant_modes_fly_every_case_near_the_fault_free_error(case, mode, fault_free_error_m) -> None:
     result = run_trial(scenario_for(case, "cascaded", mode), SEED)
     assert result.completed
@@ -29,7 +34,7 @@ def test_fault_tolerant_modes_fly_every_case_near_the_fault_free_error(case, mod
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("case", FAULTED, ids=[c.name for c in FAULTED])
+@pytest.mark.parametrize("case", _cases(FAULTED))
 def test_ignoring_the_faults_is_markedly_worse(case) -> None:
     ftc = run_trial(scenario_for(case, "cascaded", "hybrid"), SEED)
     none = run_trial(scenario_for(case, "cascaded", "none"), SEED)

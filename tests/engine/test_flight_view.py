@@ -238,6 +238,7 @@ def free_tcp_port() -> int:
 
 @pytest.mark.sitl
 @pytest.mark.exclusive  # (asserts >= 10 Hz of a real-time sitl up)
+@pytest.mark.long  # (paced to the wall clock; CI time: the MCAP of sitl up stays in the default run)
 def test_live_foxglove_view_of_sitl_up(tmp_path):
     """`mars-link sitl up --foxglove` (world process hosts the server, real time): a Foxglove WebSocket client
     (mars_link.apps.foxglove_probe: the websockets package) subscribed to /scene and /tf receives both at >= 10 Hz

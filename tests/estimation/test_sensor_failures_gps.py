@@ -108,7 +108,7 @@ def test_gps_lost_10_s_mid_spiral_in_wind_on_the_gps_profile() -> None:
     assert est_after < est_clean + 0.3
 
 
-@pytest.mark.parametrize("air, held_ptp_m", [("still", 0.3), ("wind", 0.5)])
+@pytest.mark.parametrize("air, held_ptp_m", [("still", 0.3), pytest.param("wind", 0.5, marks=pytest.mark.long)])
 def test_longer_gps_loss_on_the_gps_profile_holds_then_lands(air: str, held_ptp_m: float) -> None:
     """GNSS off for good at 15 s, in still air and in the windy spiral (5 m/s, moderate turbulence; the
     height held measured 0.32 m peak to peak there): hold after 1 s, land 15 s after the last fix (PX4's

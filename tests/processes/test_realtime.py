@@ -44,6 +44,7 @@ def test_batch_scheduling_is_taken_without_privilege() -> None:
 
 @pytest.mark.sitl
 @pytest.mark.exclusive  # (asserts the world keeps real time)
+@pytest.mark.long  # (CI time: a real-time run printing its command age stays in the default run)
 def test_a_real_time_run_logs_every_stage_in_causal_order(tmp_path: Path) -> None:
     sc = load_scenario("hover_3x2")
     sc = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, duration_s=1.5))
@@ -105,6 +106,7 @@ def test_a_real_time_sitl_run_prints_its_command_age_and_scheduling(tmp_path: Pa
 
 @pytest.mark.sitl
 @pytest.mark.exclusive  # (a flight paced to the wall clock)
+@pytest.mark.long  # (CI time: a real-time run printing its command age stays in the default run)
 def test_a_world_that_falls_a_second_behind_leaves_sched_fifo(tmp_path: Path, monkeypatch) -> None:
     """A real-time flight this far behind cannot keep real time here, and catching up flat out in SCHED_FIFO
     would leave the rest of the machine 5 % of it: the world (here stopped 1.5 s mid-step) leaves the class."""

@@ -85,6 +85,7 @@ async def _lose_gps(api_ports: list[int], out: Path, truth: list, world_ended) -
     return r
 
 
+@pytest.mark.long  # (CI time: the scheduled sensor faults below cover SITL in the default run)
 def test_gps_lost_10_s_mid_spiral_through_mavsdk_on_sitl_up(tmp_path: Path) -> None:
     out = tmp_path / "run"
     apis = [free_udp_port() for _ in range(6)]

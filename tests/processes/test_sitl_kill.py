@@ -49,6 +49,7 @@ def _sim_time(out: Path) -> float:
         return 0.0
 
 
+@pytest.mark.long  # (CI time: test_sitl_mode.py kills a unit process of `run --mode sitl` in the default run)
 def test_killed_unit_is_declared_dead_and_the_run_finishes(tmp_path: Path) -> None:
     out = tmp_path / "run"
     clients = ClientPorts(free_udp_port(), [free_udp_port() for _ in range(6)], bind_any=True)

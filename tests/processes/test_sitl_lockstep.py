@@ -51,6 +51,7 @@ def _attack(port: int, n: int) -> None:
 
 @pytest.mark.slow
 @pytest.mark.sitl
+@pytest.mark.long  # (CI time: processes/test_parity.py flies the lockstep processes against the engine by default)
 def test_six_unit_processes_hold_a_3x2_hover_identical_to_inproc(tmp_path: Path) -> None:
     sitl_out = tmp_path / "sitl"
     key_file = tmp_path / "key"

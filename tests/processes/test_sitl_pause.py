@@ -119,6 +119,7 @@ def test_run_mode_sitl_survives_a_paused_unit(tmp_path: Path) -> None:
     assert summary["completed"] and summary["max_error_m"] < 1.0, (summary["completed"], summary["max_error_m"])
 
 
+@pytest.mark.long  # (CI time: -m long; a paused unit of sitl up stays in the default run)
 def test_a_paused_world_resumes_and_a_paused_coordinator_lands_the_units(tmp_path: Path) -> None:
     """The world drives the clock: while it is stopped nobody waits for a step in flight, so after SIGCONT
     the flight resumes where it was (no unit lost). The coordinator stopped for 5 s: each unit answers its
@@ -152,6 +153,7 @@ def test_a_paused_world_resumes_and_a_paused_coordinator_lands_the_units(tmp_pat
         assert "Traceback" not in log.read_text(), log.name
 
 
+@pytest.mark.long  # (CI time: -m long; a paused unit of sitl up stays in the default run)
 def test_a_world_stalled_between_two_units_sensors_loses_nobody(tmp_path: Path) -> None:
     """The world stops for 2.5 s after sending unit 1 its sensors and before the others (a SIGSTOP that lands
     mid-send did this once): the coordinator, holding unit 1's telemetry, starts the step's 1 s silence
@@ -182,6 +184,7 @@ def _children(parent: int) -> dict[int, str]:
     return kids
 
 
+@pytest.mark.long  # (CI time: -m long; a paused unit of sitl up stays in the default run)
 def test_a_host_wide_stall_loses_nobody(tmp_path: Path) -> None:
     """Every process of the flight stopped at once for 1.2 s, eight times: the machine stalled. (Seen in a
     CI run: unit 4 and the coordinator were both off the CPU for 1.7 s; the coordinator ran first, found

@@ -51,6 +51,7 @@ def _assert_same_flight(sitl: dict, inproc, out: Path) -> None:
 
 
 @pytest.mark.sitl
+@pytest.mark.long  # (CI time: the parity test flies one multi-process case per transport by default)
 def test_docking_3x1_in_sitl_equals_inproc_and_the_latches_travel_as_mavlink(tmp_path: Path, capsys) -> None:
     sitl, inproc = _fly_both("docking_3x1", tmp_path)
     _assert_same_flight(sitl, inproc, tmp_path)
@@ -95,6 +96,7 @@ def test_rebuild_on_the_ground_in_sitl_over_zenoh_equals_inproc(tmp_path: Path) 
     assert [e["type"] for e in sitl["events"]].count("dock") == 2
 
 
+@pytest.mark.long  # (CI time: test_reconfig_moves.py loses a unit while the structure rebuilds in the default run)
 def test_a_unit_lost_during_a_dock_approach_inproc_the_structure_replans_without_it():
     """assemble_3x2, unit 3's process dies at 12 s while it approaches unit 2: the coordinator loses it
     (no telemetry for 5 periods), the other layer-1 dock goes on, the next layers are re-planned from the
