@@ -16,6 +16,7 @@ from mars_link.allocation.pseudo_inverse import NominalPseudoInverse
 from mars_link.allocation.qp import QpAllocator
 from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
 from mars_link.core.errors import UserInputError
+from mars_link.core.ftc import FTC_MODES
 
 _MODES: dict[str, type[Allocator]] = {
     "none": NominalPseudoInverse,
@@ -26,6 +27,7 @@ _MODES: dict[str, type[Allocator]] = {
     "qp": QpAllocator,
 }
 ALLOCATION_MODES = tuple(_MODES)
+assert ALLOCATION_MODES == FTC_MODES, "an FTC mode without its allocator (or the other way round)"
 
 
 def make_allocator(

@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from mars_link.core.ftc import FTC_MODES
 from mars_link.logs.outputs import write_json
 from mars_link.flight.runner import run_trial
 from mars_link.config.scenario import scenario_from_dict
@@ -44,7 +45,7 @@ CASES = (
     Case("F3 units {2,5}", ((2, None, 0.0), (5, None, 0.0)), 1.11, 0.205, "resim", True),
     Case("F3 units {3,4}", ((3, None, 0.0), (4, None, 0.0)), 0.83, 0.178, "resim", True),
 )
-CASCADED_MODES = ("none", "unit", "partial", "full", "hybrid", "qp")
+CASCADED_MODES = FTC_MODES  # (the cascaded controller flies every mode)
 
 
 def paper_ftc(case: Case) -> str:

@@ -25,8 +25,9 @@ from mars_link.core.validation import (MAX_CSV_BYTES, MAX_TOML_BYTES, MAX_TOML_D
                                   check_regular_file, check_seed, note_input, read_input_file)
 from mars_link.core.table_checks import check_keys as _check_keys, integer as _integer, number as _number, table as _table
 
+from mars_link.core.ftc import FTC_MODES  # (the one list; re-exported for the schema's callers)
+
 CONTROLLERS = ("cascaded", "mars-ftcc-paper")
-FTC_MODES = ("none", "unit", "partial", "full", "hybrid", "qp")
 #: the bundled scenarios: package data (found from any working directory, also in a non-editable install)
 SCENARIO_DIR = Path(str(resources.files("mars_link").joinpath("scenarios")))
 DEFAULT_SCENARIO = "spiral_3x2"

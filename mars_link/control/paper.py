@@ -49,13 +49,13 @@ from mars_link.control.paper_tables import (
     table_for,
 )
 from mars_link.core.errors import UserInputError
+from mars_link.core.ftc import PAPER_FTC_MODES as FTC_MODES
 from mars_link.core.rotations import quat_to_rotmat, wrap_pi
 from mars_link.core.state import RigidBodyState
 from mars_link.models.trajectories import TrajectoryPoint
 
 #: the scenes' script step; per-step differences and the integrator are defined at this rate
 PAPER_CONTROL_HZ = 20.0
-FTC_MODES = ("none", "unit", "partial", "full", "hybrid")
 #: eta at or below this counts as a dead rotor; a unit with four dead rotors is a failed unit
 DEAD_ETA = 1e-9
 #: how far an eta (e.g. an estimate) may stray outside [0, 1] before it is refused
