@@ -104,12 +104,13 @@ def _gone(pid: int) -> bool:
         return True
 
 
-def _heartbeats(sock: socket.socket, seconds: float) -> dict[int, int]:
-    """HEARTBEATs per system id received on the GCS socket within `seconds` of wall time."""
+def _heartbeats(sock: socket.socket, systems: set[int], each: int, timeout_s: float) -> dict[int, int]:
+    """HEARTBEATs per system id received on the GCS socket, until every one of `systems` has sent `each`
+    (or `timeout_s` of wall time: a loaded machine delays them, it does not stop them)."""
     mav = new_mav(255)
     counts: dict[int, int] = {}
-    deadline = time.monotonic() + seconds
-    while (left := deadline - time.monotonic()) > 0:
+    deadline = time.monotonic() + timeout_s
+    while (left := deadline - time.monotonic()) > 0 and any(counts.get(s, 0) < each for s in systems):
         sock.settimeout(left)
         try:
             data = sock.recv(65536)
@@ -133,7 +134,7 @@ def test_sitl_up_flies_on_without_a_dead_unit_stops_on_the_worlds_death_and_on_c
         os.kill(pids["world"], signal.SIGSTOP)
         try:
             paused_at = _sim_time(out)
-            counts = _heartbeats(gcs, 2.3)
+            counts = _heartbeats(gcs, {1, 2}, each=2, timeout_s=20.0)
             assert _sim_time(out) == paused_at
         finally:
             os.kill(pids["world"], signal.SIGCONT)
