@@ -524,6 +524,9 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             self._drop(f"policy.denied_{policy.AUTHORITY_NAMES[self._authority]}")
             for m in policy.refusal(msg):
                 self._reply(lk, m, out)
+            if t in ("COMMAND_LONG", "COMMAND_INT"):
+                self._tell_refusal(msg.command, mavlink.MAV_RESULT_DENIED,
+                                   f"this link may only {policy.AUTHORITY_NAMES[self._authority]} (unsigned?)")
             return
         getattr(self, handler)(msg, lk, out)
 
