@@ -91,7 +91,7 @@ def test_every_refused_command_is_followed_by_one_statustext_saying_why() -> Non
         ((420, 101, 1, 9), R.MAV_RESULT_DENIED, "Failure injection refused: no motor 9 (1..4, 0 all)"),
         ((31000,), R.MAV_RESULT_UNSUPPORTED, "WAYPOINT_USER_1 refused: not supported"),
         ((55555,), R.MAV_RESULT_UNSUPPORTED, "Command 55555 refused: not supported"),
-        ((512, 300), R.MAV_RESULT_UNSUPPORTED, "Message request refused: PROTOCOL_VERSION not sent"),
+        ((512, 300), R.MAV_RESULT_UNSUPPORTED, "Message request refused: message 300 not sent"),
     ]
     for k, (params, result, text) in enumerate(cases):
         wall = f.wall + 2.0 * k
