@@ -525,8 +525,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             for m in policy.refusal(msg):
                 self._reply(lk, m, out)
             if t in ("COMMAND_LONG", "COMMAND_INT"):
-                self._tell_refusal(msg.command, mavlink.MAV_RESULT_DENIED,
-                                   f"this link may only {policy.AUTHORITY_NAMES[self._authority]} (unsigned?)")
+                self._tell_refusal(msg.command, mavlink.MAV_RESULT_DENIED, "needs a signed link")
             return
         getattr(self, handler)(msg, lk, out)
 

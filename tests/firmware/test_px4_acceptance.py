@@ -13,7 +13,7 @@ import math
 from pymavlink.dialects.v20 import common as mavlink
 from test_geofence import SQUARE, _fence_items, _vertices
 from test_mission_protocol import upload
-from test_vehicle_protocol import LINK_API, Client, Flight, _ack, _vehicle
+from test_vehicle_protocol import KEY, LINK_API, Client, Flight, _ack, _vehicle
 
 R = mavlink
 FENCE = R.MAV_MISSION_TYPE_FENCE
@@ -106,3 +106,11 @@ def test_every_refused_command_is_followed_by_one_statustext_saying_why() -> Non
     # accepted commands say nothing of refusal
     assert _ack(api.command(400, 1, wall=f.wall + 40.0), 400) == 0
     assert not any("refused" in t for t in _texts(v, f, api))
+
+
+def test_a_command_refused_for_want_of_signing_says_so() -> None:
+    v = _vehicle(signing_key=KEY, sign_client_links=True)
+    unsigned = Client(v, LINK_API)
+    assert _ack(unsigned.command(22), 22) == R.MAV_RESULT_DENIED
+    said = [m.text for m in unsigned.decode(v.tick(1.7e9 + 0.01, 0.01)) if m.get_type() == "STATUSTEXT"]
+    assert said == ["Takeoff refused: needs a signed link"]
