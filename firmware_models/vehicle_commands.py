@@ -95,7 +95,7 @@ class CommandsMixin:
         """The one place a refused command becomes a STATUSTEXT (a client's identical retry within
         REFUSAL_REPEAT_S is not told twice)."""
         text = refusal_text(cmd, result, why)
-        said = self.__dict__.setdefault("_refusals_told", {})
+        said = self._refusals_told
         if self.wall_s - said.get(text, -1e9) < REFUSAL_REPEAT_S:
             return
         said[text] = self.wall_s
