@@ -9,6 +9,12 @@ zone when any exists, and outside every exclusion zone; GF_MAX_HOR_DIST / GF_MAX
 the distance from home horizontally and the height above home (0 = off). Polygon vertices come
 as consecutive NAV_FENCE_POLYGON_VERTEX_* items whose param1 is the vertex count; circles as
 NAV_FENCE_CIRCLE_* with param1 the radius (m). Geometry is in metres north/east of the origin.
+
+Circles as PX4 stores and checks them (PX4 v1.14, navigator/geofence.cpp and mavlink_mission.cpp): the
+radius is stored as sent, unchecked, and a point is inside when its squared distance from the centre is
+below the squared radius. So a circle of radius 0 (or NaN) is a zone that contains nothing: beside a
+polygon (MAVSDK's geofence example sends one at 0 N 0 E) it changes nothing; an inclusion circle of
+radius 0 alone allows nowhere. A negative radius counts as its magnitude.
 """
 
 from __future__ import annotations
@@ -64,12 +70,25 @@ def fence_shape_error(items: tuple[MissionItem, ...]) -> tuple[int, str] | None:
     return None
 
 
+#: a circle whose radius is infinite holds every point a unit can reach (PX4: d^2 < inf^2 always holds)
+UNBOUNDED_RADIUS_M = 1.0e7
+
+
+def circle_radius_m(param1: float) -> float:
+    """The radius a fence circle's param1 means to PX4: |r|; NaN contains nothing (0), infinity everything."""
+    if math.isnan(param1):
+        return 0.0
+    return min(abs(float(param1)), UNBOUNDED_RADIUS_M)
+
+
 class Geofence:
     """Inclusion and exclusion zones (shapely geometry, north/east metres) plus the GF_* distance limits."""
 
     def __init__(self, inclusion: list, exclusion: list) -> None:
         self.inclusion = shapely.union_all(inclusion) if inclusion else None
         self.exclusion = shapely.union_all(exclusion) if exclusion else None
+        if self.exclusion is not None and self.exclusion.is_empty:
+            self.exclusion = None  # only radius-0 exclusion circles: they exclude nothing
         for g in (self.inclusion, self.exclusion):
             if g is not None:
                 shapely.prepare(g)
@@ -92,7 +111,7 @@ class Geofence:
                 i += n
                 continue
             if it.command in (R.MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION, R.MAV_CMD_NAV_FENCE_CIRCLE_EXCLUSION):
-                disc = shapely.Point(_item_ne(it, origin, home_ned)).buffer(float(it.param1), quad_segs=32)
+                disc = shapely.Point(_item_ne(it, origin, home_ned)).buffer(circle_radius_m(it.param1), quad_segs=32)
                 (inc if it.command == R.MAV_CMD_NAV_FENCE_CIRCLE_INCLUSION else exc).append(disc)
             i += 1
         return cls(inc, exc)
@@ -126,6 +145,8 @@ class Geofence:
         a planning margin."""
         pt = shapely.Point(north_m, east_m)
         best = math.inf
+        if self.inclusion is not None and self.inclusion.is_empty:
+            return -math.inf  # only empty inclusion zones (radius-0 circles): nowhere is allowed
         if self.inclusion is not None:
             d = self.inclusion.boundary.distance(pt)
             best = min(best, d if shapely.contains_xy(self.inclusion, north_m, east_m) else -d)

@@ -150,9 +150,12 @@ def check_item(item: MissionItem, count: int, origin: GeoOrigin) -> tuple[int, s
         return R.MAV_MISSION_UNSUPPORTED_FRAME, "unsupported_frame"
     if not positional and frame not in POSITION_FRAMES | {R.MAV_FRAME_MISSION}:
         return R.MAV_MISSION_UNSUPPORTED_FRAME, "unsupported_frame"
+    # a fence zone's altitude is not used and its place is not flown to: PX4 stores both unchecked
+    # (MAVSDK's geofence example sends a radius-0 circle at 0 N 0 E, thousands of km away)
+    zone = cmd in FENCE_VERTICES or cmd in FENCE_CIRCLES
     if positional:
         here = cmd in HERE_OK and item.x == 0 and item.y == 0
-        if not math.isfinite(item.z) or abs(item.z) > MAX_ALTITUDE_M:
+        if not zone and (not math.isfinite(item.z) or abs(item.z) > MAX_ALTITUDE_M):
             return R.MAV_MISSION_INVALID_PARAM7, "invalid_z"
         if frame in GLOBAL_FRAMES and not here:
             lat, lon = item.x * 1e-7, item.y * 1e-7
@@ -160,12 +163,12 @@ def check_item(item: MissionItem, count: int, origin: GeoOrigin) -> tuple[int, s
                 return R.MAV_MISSION_INVALID_PARAM5_X, "invalid_latitude"
             if not -180.0 <= lon <= 180.0:
                 return R.MAV_MISSION_INVALID_PARAM6_Y, "invalid_longitude"
-            p = origin.to_ned(lat, lon, origin.amsl_m)
+            p = (0.0, 0.0) if zone else origin.to_ned(lat, lon, origin.amsl_m)
             if abs(p[0]) > MAX_DISTANCE_M:
                 return R.MAV_MISSION_INVALID_PARAM5_X, "too_far"
             if abs(p[1]) > MAX_DISTANCE_M:
                 return R.MAV_MISSION_INVALID_PARAM6_Y, "too_far"
-        elif frame in LOCAL_FRAMES:
+        elif frame in LOCAL_FRAMES and not zone:
             if abs(item.x) > MAX_DISTANCE_M * LOCAL_SCALE:
                 return R.MAV_MISSION_INVALID_PARAM5_X, "too_far"
             if abs(item.y) > MAX_DISTANCE_M * LOCAL_SCALE:
@@ -201,9 +204,6 @@ def check_item(item: MissionItem, count: int, origin: GeoOrigin) -> tuple[int, s
     elif cmd in FENCE_VERTICES:
         if not (math.isfinite(p1) and p1 == int(p1) and 3 <= p1 <= 255):
             return R.MAV_MISSION_INVALID_PARAM1, "invalid_vertex_count"
-    elif cmd in FENCE_CIRCLES:
-        if not (math.isfinite(p1) and 0.0 < p1 <= MAX_DISTANCE_M):
-            return R.MAV_MISSION_INVALID_PARAM1, "invalid_radius"
     return R.MAV_MISSION_ACCEPTED, ""
 
 

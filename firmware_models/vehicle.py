@@ -194,6 +194,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self._took_off = False
         self._last_cmd: dict[tuple, tuple] = {}
         self._pending_text: list[tuple[int, str]] = []
+        self._refusals_told: dict[str, float] = {}  # refusal STATUSTEXT -> wall time told (vehicle_commands)
         self._battery_pending = None  # a BATTERY_STATUS from the world, measured with the next IMU frame
         self.battery = BatteryMonitor()  # the pack as measured (world's samples over HIL); thresholds, action
         self._battery_checked: tuple[float, int] | None = None  # (remaining, params.version) last checked
@@ -524,6 +525,8 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             self._drop(f"policy.denied_{policy.AUTHORITY_NAMES[self._authority]}")
             for m in policy.refusal(msg):
                 self._reply(lk, m, out)
+            if t in ("COMMAND_LONG", "COMMAND_INT"):
+                self._tell_refusal(msg.command, mavlink.MAV_RESULT_DENIED, "needs a signed link")
             return
         getattr(self, handler)(msg, lk, out)
 

@@ -1,5 +1,9 @@
 """COMMAND_LONG / COMMAND_INT of the unit firmware: arming, modes, takeoff, land, RTL, goto, failure injection.
 
+Every refused command (COMMAND_ACK DENIED, TEMPORARILY_REJECTED, UNSUPPORTED, FAILED) is followed by one
+STATUSTEXT saying why, so a ground station's user is not left with a bare "denied". A handler states its
+reason with `_refuse(result, why)`; `_on_command` turns it into the text, in one place for every command.
+
 A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing (_reply, _text, ...).
 """
 
@@ -41,8 +45,68 @@ ACTION_COMMANDS = {
 }
 
 
+#: how a refused command's STATUSTEXT names it (others: their MAV_CMD name)
+COMMAND_WORDS = {
+    mavlink.MAV_CMD_COMPONENT_ARM_DISARM: "Arming", mavlink.MAV_CMD_NAV_TAKEOFF: "Takeoff",
+    mavlink.MAV_CMD_NAV_LAND: "Land", mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH: "Return",
+    mavlink.MAV_CMD_DO_SET_MODE: "Mode change", mavlink.MAV_CMD_DO_REPOSITION: "Goto",
+    mavlink.MAV_CMD_DO_ORBIT: "Orbit", mavlink.MAV_CMD_DO_CHANGE_SPEED: "Speed change",
+    mavlink.MAV_CMD_MISSION_START: "Mission start", mavlink.MAV_CMD_DO_SET_MISSION_CURRENT: "Mission item",
+    mavlink.MAV_CMD_INJECT_FAILURE: "Failure injection", mavlink.MAV_CMD_REQUEST_MESSAGE: "Message request",
+    mavlink.MAV_CMD_SET_MESSAGE_INTERVAL: "Message interval", mavlink.MAV_CMD_GET_MESSAGE_INTERVAL: "Message interval",
+    mavlink.MAV_CMD_GET_HOME_POSITION: "Home position",
+}
+#: the reason when a handler gave none
+RESULT_WORDS = {mavlink.MAV_RESULT_DENIED: "denied", mavlink.MAV_RESULT_TEMPORARILY_REJECTED: "not now, try again",
+                mavlink.MAV_RESULT_UNSUPPORTED: "not supported", mavlink.MAV_RESULT_FAILED: "failed"}
+#: requests for information: their refusal is told at INFO, not as a warning (clients probe them at connect)
+QUERY_COMMANDS = {
+    mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES,
+    mavlink.MAV_CMD_GET_HOME_POSITION, mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, mavlink.MAV_CMD_GET_MESSAGE_INTERVAL,
+    mavlink.MAV_CMD_REQUEST_PROTOCOL_VERSION,
+}
+REFUSAL_REPEAT_S = 1.0  # the same refusal text again within a second (a client's retries) is not repeated
+
+
+def command_name(cmd: int) -> str:
+    """A command's name for people: our word for it, else its MAV_CMD name, else its number."""
+    if cmd in COMMAND_WORDS:
+        return COMMAND_WORDS[cmd]
+    entry = mavlink.enums["MAV_CMD"].get(cmd)
+    return entry.name.removeprefix("MAV_CMD_") if entry is not None else f"Command {cmd}"
+
+
+def refusal_text(cmd: int, result: int, why: str | None) -> str:
+    """The STATUSTEXT that follows a refused command: what was refused and why."""
+    return f"{command_name(cmd)} refused: {why or RESULT_WORDS.get(result, f'result {result}')}"
+
+
 class CommandsMixin:
+    _refusal_why: str | None = None  # set by _refuse while a command runs
+
     # ----------------------------------------------------------------- commands
+    def _refuse(self, result: int, why: str) -> int:
+        """A command handler's refusal with its reason (told once by _on_command as a STATUSTEXT)."""
+        if self._refusal_why is None:
+            self._refusal_why = why
+        return result
+
+    def _tell_refusal(self, cmd: int, result: int, why: str | None) -> None:
+        """The one place a refused command becomes a STATUSTEXT (a client's identical retry within
+        REFUSAL_REPEAT_S is not told twice)."""
+        text = refusal_text(cmd, result, why)
+        said = self._refusals_told
+        if self.wall_s - said.get(text, -1e9) < REFUSAL_REPEAT_S:
+            return
+        said[text] = self.wall_s
+        if len(said) > 64:
+            said.pop(next(iter(said)))
+        self._count("command_refusal_told")
+        if cmd in QUERY_COMMANDS:  # a client's protocol probes: told, but not a flight event
+            self._pending_text.append((mavlink.MAV_SEVERITY_INFO, text))
+        else:
+            self._text(text, mavlink.MAV_SEVERITY_WARNING)
+
     def _on_command(self, msg, lk: Link, out: list[Outgoing]) -> None:
         if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
             self._drop("wrong_target")
@@ -61,7 +125,11 @@ class CommandsMixin:
                 self._count("command_duplicate")
                 self._ack(lk, msg, cmd, last[2], out)
                 return
+        self._refusal_why = None
         result, followups = self._execute(cmd, p, is_int, msg)
+        if result in RESULT_WORDS:
+            self._tell_refusal(cmd, result, self._refusal_why)
+        self._refusal_why = None
         if cmd in ACTION_COMMANDS:  # only a success is replayed: a refused command may succeed now
             self._last_cmd[src] = (key, self.wall_s, result) if result == mavlink.MAV_RESULT_ACCEPTED else (None, 0.0, 0)
             if len(self._last_cmd) > 64:
@@ -80,11 +148,11 @@ class CommandsMixin:
         targets (goto, return, missions) from now on, within MPC_XY_VEL_MAX; -2 back to MPC_XY_CRUISE,
         -1 unchanged. Climb/descent speed types (2, 3) are refused: MPC_Z_VEL_MAX_* set those."""
         if not (math.isnan(speed_type) or speed_type in (0, 1)):
-            return mavlink.MAV_RESULT_DENIED
+            return self._refuse(mavlink.MAV_RESULT_DENIED, "only ground/air speed (MPC_Z_VEL_MAX_* climb)")
         if speed_mps == -2.0:
             self.speed_override_mps = None
         elif not (math.isfinite(speed_mps) and (speed_mps == -1.0 or 0.0 < speed_mps <= MAX_SPEED_MPS)):
-            return mavlink.MAV_RESULT_DENIED
+            return self._refuse(mavlink.MAV_RESULT_DENIED, f"speed not in 0..{MAX_SPEED_MPS:g} m/s")
         elif speed_mps > 0:
             self.speed_override_mps = float(speed_mps)
         return mavlink.MAV_RESULT_ACCEPTED
@@ -101,10 +169,10 @@ class CommandsMixin:
             return self._set_mode(MODE_RTL), []
         if cmd == R.MAV_CMD_DO_SET_MODE:
             if not _finite(p[0], p[1]) or not (int(p[0]) & R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED):
-                return R.MAV_RESULT_DENIED, []
+                return self._refuse(R.MAV_RESULT_DENIED, "only PX4 custom modes"), []
             sub = int(p[2]) if math.isfinite(p[2]) else 0
             if not (0 <= p[1] <= 255 and 0 <= sub <= 255):
-                return R.MAV_RESULT_DENIED, []
+                return self._refuse(R.MAV_RESULT_DENIED, "no such mode"), []
             return self._set_mode((int(p[1]), sub)), []
         if cmd == R.MAV_CMD_DO_REPOSITION:
             return self._reposition(p, is_int), []
@@ -115,7 +183,7 @@ class CommandsMixin:
         if cmd == R.MAV_CMD_MISSION_START:
             first = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else None  # PX4: start at p1 if given
             if first is not None and not self.runner.set_current(first, reset_jumps=True):
-                return R.MAV_RESULT_DENIED, []
+                return self._refuse(R.MAV_RESULT_DENIED, f"no mission item {first}"), []
             return self._set_mode(MODE_MISSION), []
         if cmd == R.MAV_CMD_DO_SET_MISSION_CURRENT:
             return self._set_mission_current(p[0], p[1] == 1), []
@@ -124,19 +192,24 @@ class CommandsMixin:
         if cmd == R.MAV_CMD_REQUEST_MESSAGE:
             return self._request_message(p[0], p[1])
         if cmd == R.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
-            return (R.MAV_RESULT_ACCEPTED, [self._autopilot_version()]) if p[0] == 1 else (R.MAV_RESULT_DENIED, [])
+            if p[0] != 1:
+                return self._refuse(R.MAV_RESULT_DENIED, "param1 must be 1"), []
+            return R.MAV_RESULT_ACCEPTED, [self._autopilot_version()]
         if cmd == R.MAV_CMD_GET_HOME_POSITION:
             home = self._home_position()
-            return (R.MAV_RESULT_ACCEPTED, [home]) if home else (R.MAV_RESULT_TEMPORARILY_REJECTED, [])
+            if not home:
+                return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet"), []
+            return R.MAV_RESULT_ACCEPTED, [home]
         if cmd == R.MAV_CMD_SET_MESSAGE_INTERVAL:
             return self._set_interval(p[0], p[1]), []
         if cmd == R.MAV_CMD_GET_MESSAGE_INTERVAL:
             if not math.isfinite(p[0]) or int(p[0]) not in DEFAULT_STREAM_HZ:
-                return R.MAV_RESULT_DENIED, []
+                return self._refuse(R.MAV_RESULT_DENIED, f"message {p[0]:g} is not streamed"), []
             iv = self.stream_interval_s.get(int(p[0]))
             return R.MAV_RESULT_ACCEPTED, [R.MAVLink_message_interval_message(
                 int(p[0]), -1 if iv is None else int(round(iv * 1e6)))]
         return R.MAV_RESULT_UNSUPPORTED, []  # includes REQUEST_PROTOCOL_VERSION (519): MAVLink 2 only
+        # (the default reason, "not supported", is the STATUSTEXT)
 
     def _arm_disarm(self, arm: float, force: float) -> int:
         R = mavlink
@@ -144,9 +217,9 @@ class CommandsMixin:
             if self.armed:
                 return R.MAV_RESULT_ACCEPTED
             if self.state is None:
-                return R.MAV_RESULT_TEMPORARILY_REJECTED  # no position yet
+                return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
             if not self.autopilot.touching(self.state):
-                return R.MAV_RESULT_DENIED  # never arm in the air
+                return self._refuse(R.MAV_RESULT_DENIED, "not on the ground")  # never arm in the air
             self.armed = True
             self.home_ned = np.array(self.state.position_ned_m, dtype=float)
             self.autopilot.idle(float(self.state.position_ned_m[2]))
@@ -158,10 +231,10 @@ class CommandsMixin:
             if not self.armed:
                 return R.MAV_RESULT_ACCEPTED
             if not self.landed and force != FORCE_DISARM_MAGIC:
-                return R.MAV_RESULT_DENIED
+                return self._refuse(R.MAV_RESULT_DENIED, "flying: land first (or force)")
             self._disarm("Disarmed" if force != FORCE_DISARM_MAGIC else "Killed: motors off")
             return R.MAV_RESULT_ACCEPTED
-        return R.MAV_RESULT_DENIED
+        return self._refuse(R.MAV_RESULT_DENIED, "param1 must be 0 or 1")
 
     def _disarm(self, why: str) -> None:
         self.armed = False
@@ -174,21 +247,25 @@ class CommandsMixin:
 
     def _takeoff(self, altitude_amsl_m: float) -> int:
         R = mavlink
-        if not self.armed or self.state is None:
-            return R.MAV_RESULT_TEMPORARILY_REJECTED
+        if self.state is None:
+            return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
+        if not self.armed:
+            return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not armed")
         if self.mode == MODE_TAKEOFF or not self.landed:
             return R.MAV_RESULT_ACCEPTED  # already on its way / flying: nothing to restart
         ground = float(self.home_ned[2])
+        lowest = ground - self.params["MIS_TAKEOFF_ALT"]
+        target = lowest
         if math.isfinite(altitude_amsl_m):
+            # PX4 (navigator/takeoff.cpp): an altitude (AMSL) below home + MIS_TAKEOFF_ALT is raised to it
+            # and said; MAVProxy's `takeoff 10` is 10 m AMSL to PX4
             target = -(altitude_amsl_m - self.origin.amsl_m)
-            if not (ground - 100.0 <= target <= ground - 0.3):
-                return R.MAV_RESULT_DENIED
-        else:
-            target = ground - self.params["MIS_TAKEOFF_ALT"]
+            if target > lowest + 0.1:  # (PX4 says nothing for less than 10 cm)
+                self._text(f"Using minimum takeoff altitude: {ground - lowest:.2f} m", R.MAV_SEVERITY_CRITICAL)
+            target = min(target, lowest)
         why = self.fence_violation(np.array([self.state.position_ned_m[0], self.state.position_ned_m[1], target]))
         if why is not None:
-            self._text(f"Takeoff refused: {why}", R.MAV_SEVERITY_WARNING)
-            return R.MAV_RESULT_DENIED
+            return self._refuse(R.MAV_RESULT_DENIED, why)
         self.source = "own"
         self.autopilot.takeoff(self.state, target)
         self.mode = MODE_TAKEOFF
@@ -217,13 +294,13 @@ class CommandsMixin:
                 self.autopilot.hold(s)
         elif mode == MODE_LAND:
             if s is None:
-                return R.MAV_RESULT_TEMPORARILY_REJECTED
+                return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
             if self.source != "own":
                 self._hand_back(s)
             self.autopilot.land(s)
         elif mode == MODE_RTL:
             if s is None or self.home_ned is None:
-                return R.MAV_RESULT_TEMPORARILY_REJECTED
+                return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet (arm first)")
             if self.source != "own":
                 self._hand_back(s)
             self.autopilot.rtl(s, self.return_point_ned(), self.params["RTL_RETURN_ALT"])
@@ -232,14 +309,14 @@ class CommandsMixin:
         elif mode == MODE_OFFBOARD:
             live_sp = self._setpoint_wall is not None and self.wall_s - self._setpoint_wall <= SETPOINT_PROOF_OF_LIFE_S
             if not (live_sp or self.intake.is_live(self.sim_s)):
-                return R.MAV_RESULT_DENIED  # PX4: no OFFBOARD without a live setpoint stream
+                return self._refuse(R.MAV_RESULT_DENIED, "no setpoint stream (send setpoints first)")  # as PX4
             self.mode = mode
             if live_sp:
                 self._apply_setpoint()
             self._text("Offboard")
             return R.MAV_RESULT_ACCEPTED
         else:
-            return R.MAV_RESULT_UNSUPPORTED  # manual/stabilised/acro modes need RC
+            return self._refuse(R.MAV_RESULT_UNSUPPORTED, "mode needs RC sticks (manual/stabilized/acro)")
         self.mode = mode
         self._text({MODE_HOLD: "Hold", MODE_POSCTL: "Position", MODE_LAND: "Land", MODE_RTL: "Return"}[mode])
         return R.MAV_RESULT_ACCEPTED
@@ -254,18 +331,17 @@ class CommandsMixin:
     def _reposition(self, p: list, is_int: bool) -> int:
         R = mavlink
         if self.state is None or not self.armed or self.landed:
-            return R.MAV_RESULT_TEMPORARILY_REJECTED
+            return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")
         lat = p[4] * 1e-7 if is_int else p[4]
         lon = p[5] * 1e-7 if is_int else p[5]
         if not _finite(lat, lon, p[6]) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
-            return R.MAV_RESULT_DENIED
+            return self._refuse(R.MAV_RESULT_DENIED, "no valid latitude, longitude and altitude")
         target = self._global_to_ned(lat, lon, p[6])
         if np.linalg.norm(target[:2] - self.state.position_ned_m[:2]) > MAX_POSITION_M:
-            return R.MAV_RESULT_DENIED
+            return self._refuse(R.MAV_RESULT_DENIED, f"farther than {MAX_POSITION_M:g} m")
         why = self.fence_violation(target)
         if why is not None:
-            self._text(f"Goto refused: {why}", R.MAV_SEVERITY_WARNING)
-            return R.MAV_RESULT_DENIED
+            return self._refuse(R.MAV_RESULT_DENIED, why)
         yaw = math.radians(p[3]) if math.isfinite(p[3]) else None
         if self.source != "own":
             self._hand_back(self.state)
@@ -276,26 +352,26 @@ class CommandsMixin:
     def _inject(self, p: list) -> int:
         R = mavlink
         if int(self.params["SYS_FAILURE_EN"]) != 1:
-            return R.MAV_RESULT_DENIED
+            return self._refuse(R.MAV_RESULT_DENIED, "SYS_FAILURE_EN is 0")
         if _finite(p[0], p[1], p[2]) and int(p[0]) in UNIT_SENSORS:  # a sensor: its path (sensor_failures)
             kind = TYPE_NAMES.get(int(p[1]))
             instance = int(p[2])
             if kind is None:
-                return R.MAV_RESULT_UNSUPPORTED
+                return self._refuse(R.MAV_RESULT_UNSUPPORTED, f"failure type {p[1]:g} not simulated")
             if instance != p[2] or instance < 0:
-                return R.MAV_RESULT_DENIED
+                return self._refuse(R.MAV_RESULT_DENIED, "no such sensor instance")
             result = self.inject_sensor_failure(UNIT_SENSORS[int(p[0])], kind, instance)
             if result == R.MAV_RESULT_ACCEPTED:
                 self._count("failures_injected")
             return result
         if not _finite(p[0], p[1], p[2]) or int(p[0]) != FAILURE_UNIT_SYSTEM_MOTOR:
-            return R.MAV_RESULT_UNSUPPORTED
+            return self._refuse(R.MAV_RESULT_UNSUPPORTED, "failure unit not simulated")
         eta = FAILURE_TYPE_ETA.get(int(p[1]))
         if eta is None:
-            return R.MAV_RESULT_UNSUPPORTED
+            return self._refuse(R.MAV_RESULT_UNSUPPORTED, "only motor ok/off/slow")
         instance = int(p[2])
         if instance != p[2] or not 0 <= instance <= self.motor_count:
-            return R.MAV_RESULT_DENIED
+            return self._refuse(R.MAV_RESULT_DENIED, f"no motor {p[2]:g} (1..{self.motor_count}, 0 all)")
         self.inject_failure(instance, eta)
         self._count("failures_injected")
         self._text(f"Failure injected: motor {instance or 'all'} eta {eta:g}", mavlink.MAV_SEVERITY_WARNING)
@@ -305,9 +381,9 @@ class CommandsMixin:
         """A failure of this unit's own sensor (one of each: instance 0 or 1) in its sensor path."""
         R = mavlink
         if instance > 1:
-            return R.MAV_RESULT_DENIED
-        if not self.sensor_failures.supports(sensor, kind):
-            return R.MAV_RESULT_UNSUPPORTED  # e.g. a barometer this flight's sensors do not have
+            return self._refuse(R.MAV_RESULT_DENIED, f"one {sensor} (instance 0 or 1)")
+        if not self.sensor_failures.supports(sensor, kind):  # e.g. a barometer this flight's sensors lack
+            return self._refuse(R.MAV_RESULT_UNSUPPORTED, f"no {sensor} {kind} in this flight")
         self.sensor_failures.inject(sensor, kind)
         self._text(f"Failure injected: {sensor} {kind}", mavlink.MAV_SEVERITY_WARNING)
         return R.MAV_RESULT_ACCEPTED

@@ -76,7 +76,7 @@ class FollowMixin:
     def _enter_follow(self) -> int:
         s = self.state
         if s is None or not self.armed or self.landed:
-            return R.MAV_RESULT_TEMPORARILY_REJECTED  # (PX4 follows from the air: take off first)
+            return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")  # as PX4
         if self.source != "own":
             self._hand_back(s)
         self.autopilot.hold(s)

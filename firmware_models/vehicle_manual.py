@@ -62,10 +62,10 @@ class ManualMixin:
     def _do_orbit(self, p: list, is_int: bool) -> int:
         s = self.state
         if s is None or not self.armed or self.landed:
-            return R.MAV_RESULT_TEMPORARILY_REJECTED
+            return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")
         radius = p[0]
         if not math.isfinite(radius) or not ORBIT_MIN_RADIUS_M <= abs(radius) <= ORBIT_MAX_RADIUS_M:
-            return R.MAV_RESULT_DENIED
+            return self._refuse(R.MAV_RESULT_DENIED, f"radius not in {ORBIT_MIN_RADIUS_M:g}..{ORBIT_MAX_RADIUS_M:g} m")
         speed = ORBIT_DEFAULT_SPEED_MPS if not math.isfinite(p[1]) else abs(p[1])
         direction = 1.0 if radius > 0 else -1.0  # positive: clockwise seen from above
         if math.isfinite(p[1]) and p[1] < 0:
@@ -77,15 +77,14 @@ class ManualMixin:
         else:
             lat, lon = (p[4] * 1e-7, p[5] * 1e-7) if is_int else (p[4], p[5])
             if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-                return R.MAV_RESULT_DENIED
+                return self._refuse(R.MAV_RESULT_DENIED, "centre: no valid latitude/longitude")
             center = self._global_to_ned(lat, lon, self.origin.amsl_m)[:2]
         z = -(p[6] - self.origin.amsl_m) if math.isfinite(p[6]) else float(s.position_ned_m[2])
         for a in np.linspace(0.0, 2 * math.pi, 24, endpoint=False):  # the whole circle inside the fence
             ring = np.array([center[0] + abs(radius) * math.cos(a), center[1] + abs(radius) * math.sin(a), z])
             why = self.fence_violation(ring)
             if why is not None:
-                self._text(f"Orbit refused: {why}", R.MAV_SEVERITY_WARNING)
-                return R.MAV_RESULT_DENIED
+                return self._refuse(R.MAV_RESULT_DENIED, f"circle {why}")
         orbits = p[3] if math.isfinite(p[3]) and p[3] > 0 else math.inf
         yaw_mode = int(p[2]) if math.isfinite(p[2]) else 0
         if self.source != "own":

@@ -17,14 +17,12 @@ class MissionsMixin:
     def _enter_mission(self) -> int:
         R = mavlink
         if not self.runner.items:
-            self._text("Mission: no mission stored", mavlink.MAV_SEVERITY_WARNING)
-            return R.MAV_RESULT_DENIED
+            return self._refuse(R.MAV_RESULT_DENIED, "no mission stored")
         if self.state is None or self.home_ned is None:
-            return R.MAV_RESULT_TEMPORARILY_REJECTED
+            return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet (arm first)")
         refusal = self._mission_fence_refusal()
         if refusal is not None:
-            self._text(refusal[:50], mavlink.MAV_SEVERITY_WARNING)
-            return R.MAV_RESULT_DENIED
+            return self._refuse(R.MAV_RESULT_DENIED, refusal)
         if self.source != "own":
             self._hand_back(self.state)
         if self.runner.complete:
@@ -37,7 +35,7 @@ class MissionsMixin:
 
     def _set_mission_current(self, seq: float, reset_jumps: bool) -> int:
         if not math.isfinite(seq) or seq != int(seq) or not self.runner.set_current(int(seq), reset_jumps):
-            return mavlink.MAV_RESULT_DENIED
+            return self._refuse(mavlink.MAV_RESULT_DENIED, f"no mission item {seq:g}")
         self.mission.current_seq = self.runner.current
         self._mission_msgs.append(self.runner.current_message(self.mode == MODE_MISSION))
         return mavlink.MAV_RESULT_ACCEPTED

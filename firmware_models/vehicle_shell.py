@@ -183,8 +183,10 @@ class ShellMixin:
         act = actions.get(args[0]) if args else None
         if act is None:
             return "usage: commander arm|disarm|takeoff|land|hold|rtl\n"
+        self._refusal_why = None
         result = act()
-        return f"commander {args[0]}: {RESULT_NAMES.get(result, str(result))}\n"
+        why, self._refusal_why = self._refusal_why, None  # (the reason a refusal gives: vehicle_commands)
+        return f"commander {args[0]}: {RESULT_NAMES.get(result, str(result))}" + (f" ({why})" if why else "") + "\n"
 
     def _sh_listener(self, args: list[str]) -> str:
         topic = args[0] if args else ""

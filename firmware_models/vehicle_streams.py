@@ -89,7 +89,7 @@ class StreamsMixin:
     def _request_message(self, msgid: float, p2: float) -> tuple[int, list]:
         R = mavlink
         if not math.isfinite(msgid) or msgid != int(msgid):
-            return R.MAV_RESULT_DENIED, []
+            return self._refuse(R.MAV_RESULT_DENIED, "param1 is no message id"), []
         mid = int(msgid)
         if mid == R.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return R.MAV_RESULT_ACCEPTED, [self._autopilot_version()]
@@ -97,8 +97,12 @@ class StreamsMixin:
             return R.MAV_RESULT_ACCEPTED, [self._heartbeat()]
         if mid in DEFAULT_STREAM_HZ:
             msg = self._stream_message(mid)
-            return (R.MAV_RESULT_ACCEPTED, [msg]) if msg is not None else (R.MAV_RESULT_TEMPORARILY_REJECTED, [])
-        return R.MAV_RESULT_UNSUPPORTED, []  # incl. REFUSED_MESSAGES (PROTOCOL_VERSION, AVAILABLE_MODES, ...)
+            if msg is None:
+                return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, f"no {R.mavlink_map[mid].msgname} yet"), []
+            return R.MAV_RESULT_ACCEPTED, [msg]
+        # (incl. REFUSED_MESSAGES: PROTOCOL_VERSION, AVAILABLE_MODES, ...)
+        name = R.mavlink_map[mid].msgname if mid in R.mavlink_map else f"message {mid}"
+        return self._refuse(R.MAV_RESULT_UNSUPPORTED, f"{name} not sent"), []
 
     @property
     def stream_cap_hz(self) -> float:
@@ -111,7 +115,7 @@ class StreamsMixin:
         MESSAGE_INTERVAL then reports the interval in force)."""
         R = mavlink
         if not _finite(msgid, interval_us) or int(msgid) not in DEFAULT_STREAM_HZ:
-            return R.MAV_RESULT_DENIED
+            return self._refuse(R.MAV_RESULT_DENIED, "not a streamed message")
         mid = int(msgid)
         if interval_us < 0:
             self.stream_interval_s.pop(mid, None)

@@ -94,7 +94,7 @@ def cmd_run(args) -> int:
         summary = runner(
             scenario, out, trials=args.trials, seed=args.seed,
             on_progress=lambda i, frac: progress.update(task, completed=i + frac), **pacing,
-            mcap=not args.no_mcap, live=live,
+            mcap=not args.no_mcap, live=live, plot_format=args.plot_format,
         )
     print_summary(summary, out)
     return 0 if summary["completed"] else 1
@@ -146,7 +146,9 @@ def print_summary(summary: dict, out: Path) -> None:
 def cmd_reproduce(args) -> int:
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from mars_link.apps.reproduce import CASCADED_MODES, markdown_table, reproduce_table1, write_results
+    from mars_link.apps.reproduce import (
+        CASCADED_MODES, estimate_table1, markdown_table, reproduce_table1, write_fig3, write_results,
+    )
 
     if args.what != "table1":
         raise UserInputError(f"reproduce {args.what!r}: only 'table1' is available")
@@ -166,6 +168,12 @@ def cmd_reproduce(args) -> int:
     if args.scheduler:  # an unreachable scheduler: one line, exit 2, before any flight (as sweep)
         connect(args.scheduler).close()
     pool = PoolSpec(args.workers, args.scheduler)
+    # how much and how long, before the first flight (a cluster's size is not known here: one worker's time)
+    estimate = estimate_table1(args.seeds, controllers, modes, args.duration,
+                               1 if args.scheduler else pool.local_workers())
+    print(f"reproduce table1: {estimate.text()}", file=sys.stderr, flush=True)
+    if args.dry_run:
+        return 0
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                   TimeElapsedColumn(), disable=args.quiet) as progress:
         task = progress.add_task("table1", total=None)
@@ -177,6 +185,9 @@ def cmd_reproduce(args) -> int:
     path = write_results(rows, args.seeds, Path(args.out))
     print(markdown_table(rows, args.seeds))
     print(f"saved {path}")
+    fig3 = write_fig3(rows, Path(args.out), args.plot_format)
+    if fig3 is not None:
+        print(f"saved {fig3}")
     return 0
 
 
@@ -378,6 +389,13 @@ def _add_duration(p, what: str) -> None:
                    help=f"{what} [simulated s]")
 
 
+def _add_plot_format(p) -> None:
+    from mars_link.flight.plots import PLOT_FORMATS, PNG_DPI
+
+    p.add_argument("--plot-format", choices=PLOT_FORMATS, default="png",
+                   help=f"plots/ as PNG ({PNG_DPI} dpi) or vector PDF/SVG for a paper (default png)")
+
+
 def _add_quiet(p) -> None:
     p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
 
@@ -513,6 +531,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_link(run, "the SITL processes (with --mode sitl)")
     _add_sitl_processes(run, "pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
     _add_view(run)
+    _add_plot_format(run)
     _add_quiet(run)
 
     # -- scenarios
@@ -657,13 +676,19 @@ def build_parser() -> argparse.ArgumentParser:
     # -- reproduce
     rep = _command(sub, "reproduce", "reproduce a paper's table (table1: paper 000 Table I + Fig. 3)",
                    "Fly every flight of a paper's table and print it beside the paper's numbers (table1: paper 000 "
-                   "Table I and Fig. 3, controllers x FTC modes x seeds).", cmd_reproduce)
+                   "Table I and Fig. 3, controllers x FTC modes x seeds). Prints the number of flights and an "
+                   "estimate of the time first (--dry-run: only that); writes table1.md, table1.json and the "
+                   "Fig. 3 figure (fig3.png, or --plot-format pdf/svg) with the paper's values beside ours.",
+                   cmd_reproduce)
     rep.add_argument("what", choices=("table1",), help="the table: table1")
     rep.add_argument("--seeds", type=v.bounded_int(1, 10_000), default=10, help="flights per controller and mode")
     rep.add_argument("--controllers", default="mars-ftcc-paper,cascaded", help="comma-separated")
     rep.add_argument("--modes", default=None, help="cascaded FTC modes, comma-separated (default: all)")
     _add_duration(rep, "shorten every flight (a quick look; default: the paper's)")
     rep.add_argument("--out", default="runs/table1", metavar="DIR", help="where the results go (replaced on a re-run)")
+    rep.add_argument("--dry-run", action="store_true",
+                     help="print the number of flights and the time estimate, fly nothing")
+    _add_plot_format(rep)
     _add_quiet(rep)
     _add_pool(rep)
 

@@ -188,6 +188,89 @@ def write_results(rows: list[Row], seeds: int, out_dir: Path) -> Path:
 
 
 
+# ----------------------------------------------------------------------------- before: how long; after: Fig. 3
+#: simulated seconds of the calibration flight that times each controller before the table starts
+CALIBRATION_SIM_S = 1.0
+
+
+@dataclass(frozen=True)
+class TableEstimate:
+    """How much `reproduce table1` will fly, and roughly how long it takes on this machine."""
+
+    flights: int
+    sim_s: float  # simulated seconds, all flights together
+    wall_s: float  # estimated wall time on `workers` local processes
+    workers: int
+
+    def text(self) -> str:
+        minutes = self.wall_s / 60.0
+        took = f"{minutes:.0f} min" if minutes >= 1.5 else f"{self.wall_s:.0f} s"
+        return (f"{self.flights} flights, {self.sim_s / 60.0:.0f} simulated minutes: about {took} on "
+                f"{self.workers} worker(s) (timed on a {CALIBRATION_SIM_S:g} s flight of each controller)")
+
+
+def estimate_table1(
+    seeds: int, controllers: tuple[str, ...], modes: tuple[str, ...], duration_s: float | None, workers: int,
+) -> TableEstimate:
+    """Count the flights and time a short flight of each controller here: wall seconds per simulated second
+    times the simulated seconds to fly, shared among the workers (a guess: faults and noise change it)."""
+    import time
+
+    from mars_link.flight.build import flight_duration_s
+
+    runs = plan_runs(controllers, modes)
+    wall_per_sim: dict[str, float] = {}
+    for controller in sorted({c for _, c, _ in runs}):
+        started = time.perf_counter()
+        run_trial(scenario_for(CASES[0], controller, "none", CALIBRATION_SIM_S), 1)
+        wall_per_sim[controller] = (time.perf_counter() - started) / CALIBRATION_SIM_S
+    sim_total = wall_total = 0.0
+    for case, controller, ftc in runs:
+        flight_s = duration_s or flight_duration_s(scenario_for(case, controller, ftc))
+        sim_total += flight_s * seeds
+        wall_total += flight_s * seeds * wall_per_sim[controller]
+    workers = max(1, workers)
+    return TableEstimate(len(runs) * seeds, sim_total, wall_total / min(workers, len(runs) * seeds), workers)
+
+
+def write_fig3(rows: list[Row], out_dir: Path, plot_format: str = "png") -> Path | None:
+    """Paper 000's Fig. 3 cases (unit failures) as bars: our mean error (± std over seeds) per controller and
+    FTC mode, the paper's value (its Fig. 3 curves re-simulated, specs: "resim") marked beside each, log scale
+    (errors span 0.2 m to 18 m). None when no Fig. 3 case was flown."""
+    from mars_link.flight.plots import pyplot, save_figure
+
+    fig3 = [r for r in rows if r.case.unit_failure]
+    if not fig3:
+        return None
+    plt = pyplot()
+    cases = list(dict.fromkeys(r.case.name for r in fig3))
+    kinds = list(dict.fromkeys((r.controller, r.ftc) for r in fig3))
+    width = 0.8 / len(kinds)
+    fig, ax = plt.subplots(figsize=(max(7.0, 1.4 * len(cases) + 2.0), 4.2))
+    paper_labelled = False
+    for k, (controller, ftc) in enumerate(kinds):
+        xs, means, stds, papers = [], [], [], []
+        for i, name in enumerate(cases):
+            row = next((r for r in fig3 if r.case.name == name and (r.controller, r.ftc) == (controller, ftc)), None)
+            if row is None:
+                continue
+            xs.append(i - 0.4 + width * (k + 0.5))
+            means.append(row.mean_m if math.isfinite(row.mean_m) else np.nan)
+            stds.append(row.std_m if math.isfinite(row.std_m) else 0.0)
+            papers.append(np.nan if row.paper_m is None else row.paper_m)
+        ax.bar(xs, means, width * 0.9, yerr=stds, capsize=2, label=f"{controller} / FTC {ftc}", color=f"C{k}")
+        ax.scatter(xs, papers, marker="_", s=180, color="k", zorder=3, linewidths=2,
+                   label=None if paper_labelled else "paper (Fig. 3, re-simulated)")
+        paper_labelled = True
+    ax.set_xticks(range(len(cases)), [c.removeprefix("F3 ") for c in cases])
+    ax.set_yscale("log")
+    ax.set_ylabel("mean tracking error [m]")
+    ax.set_title("paper 000, Fig. 3: unit failures on the 3x2 spiral")
+    ax.grid(axis="y", alpha=0.3, which="both")
+    ax.legend(fontsize=7, ncol=2)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    return save_figure(fig, out_dir, "fig3", plot_format)
+
 # ----------------------------------------------------------------------------- fault detection (FDI)
 #: issue 5 acceptance: detection delay, eta accuracy, tracking with detected vs told faults
 FDI_MAX_DELAY_S = 0.5

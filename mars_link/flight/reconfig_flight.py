@@ -204,7 +204,7 @@ def run_reconfig_trial(
 def run_reconfig_scenario(
     scenario: Scenario, out_dir: Path | None = None, trials: int = 1, seed: int | None = None,
     on_progress: Callable[[int, float], None] | None = None, plots: bool = True, realtime_rate: float = 0.0,
-    mcap: bool = True, live: str | None = None,
+    mcap: bool = True, live: str | None = None, plot_format: str = "png",
 ) -> dict:
     """One flight of pieces; the run directory gets summary.json, CSVs, plots/ and run.mcap (unless not `mcap`;
     `live`: HOST:PORT of a live Foxglove view). `realtime_rate`: the engine's pacing (0 as fast as possible,
@@ -235,19 +235,20 @@ def run_reconfig_scenario(
     if out_dir is not None:
         write_json(out_dir / "summary.json", summary)
         if plots:
-            write_reconfig_plots(out_dir, r)
+            write_reconfig_plots(out_dir, r, scenario.name, plot_format)
             from mars_link.flight.replay_gif import write_flight_gif
 
             write_flight_gif(out_dir / "plots" / "flight.gif", r.unit_rows, r.events)  # the animated replay
     return summary
 
 
-def write_reconfig_plots(out_dir: Path, r: ReconfigResult) -> list[Path]:
-    """Top view of every unit's path (split/dock events marked) and the mission error vs time."""
-    import matplotlib
+def write_reconfig_plots(out_dir: Path, r: ReconfigResult, name: str = "", plot_format: str = "png") -> list[Path]:
+    """Top view of every unit's path and the altitudes and mission error vs time with the flight's events
+    marked (mars_link.flight.plots: format, dpi, markers)."""
+    from mars_link.flight.plots import mark_events, pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
+    title = (lambda what: f"{name}: {what}") if name else (lambda what: what)
 
     plots = out_dir / "plots"
     plots.mkdir(parents=True, exist_ok=True)
@@ -258,32 +259,27 @@ def write_reconfig_plots(out_dir: Path, r: ReconfigResult) -> list[Path]:
         m = rows[:, 1] == u
         ax.plot(rows[m, 3], rows[m, 2], lw=1, label=f"unit {u}")
         az.plot(rows[m, 0], -rows[m, 4], lw=1, label=f"unit {u}")
-    for e in r.events:
-        if e["type"] in ("split", "dock"):
-            az.axvline(e["t_s"], color="k", ls=":", lw=0.8)
+    mark_events(az, r.events)
     ax.set_xlabel("east [m]")
     ax.set_ylabel("north [m]")
     ax.set_aspect("equal", adjustable="datalim")
-    ax.set_title("units, top view")
+    ax.set_title(title("units, top view"))
     az.set_xlabel("time [s]")
     az.set_ylabel("up [m]")
-    az.set_title("altitude (dotted: split / dock)")
+    az.set_title(title("altitude"))
     ax.legend(fontsize=7)
+    az.legend(fontsize=7)
     fig.tight_layout()
-    path = plots / "units.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    written.append(path)
+    written.append(save_figure(fig, plots, "units", plot_format))
     if r.telemetry_rows:
         tel = np.array(r.telemetry_rows)
         fig, ax = plt.subplots(figsize=(8, 3.5))
-        ax.plot(tel[:, 0], tel[:, 8], lw=1)
+        ax.plot(tel[:, 0], tel[:, 8], lw=1, label="mission error")
+        mark_events(ax, r.events)
         ax.set_xlabel("time [s]")
         ax.set_ylabel("mission error [m]")
-        ax.set_title("tracked point vs mission reference (paused during the reconfiguration)")
+        ax.set_title(title("tracked point vs mission reference (paused while reconfiguring)"))
+        ax.legend(fontsize=7)
         fig.tight_layout()
-        path = plots / "error.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        written.append(path)
+        written.append(save_figure(fig, plots, "error", plot_format))
     return written

@@ -98,11 +98,13 @@ def run_scenario(
     mcap: bool = True,
     live=None,
     logs: frozenset[str] = frozenset(),
+    plot_format: str = "png",
 ) -> dict:
     """Fly `trials` trials (seeds seed, seed+1, ...); write the run directory if `out_dir` is given.
     `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time.
     `mcap`: run.mcap in `out_dir` (trial i > 0: run_trial<i>.mcap); `live`: HOST:PORT of a live Foxglove view (flight_view).
-    `logs`: per-unit logs beside the run's own ("ulog": unit<id>.ulg in `out_dir`; mars_link.logs.LOG_KINDS)."""
+    `logs`: per-unit logs beside the run's own ("ulog": unit<id>.ulg in `out_dir`; mars_link.logs.LOG_KINDS).
+    `plot_format`: plots/ as png (300 dpi), pdf or svg."""
     seed = scenario.sim.seed if seed is None else seed
     log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ),
                  plot_rows_max=PLOT_ROWS_MAX)  # streamed to the CSVs; memory flat in trials and duration
@@ -125,7 +127,8 @@ def run_scenario(
         if plots:
             from mars_link.flight.plots import write_run_plots
 
-            write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model())
+            write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model(), scenario.name,
+                            summary["events"], plot_format)
     return summary
 
 

@@ -195,8 +195,10 @@ def _toml(doc: dict) -> str:
 
 def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSpec | None = None,
                       realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
-                      on_progress=None, view: tuple[str, ...] = ("--mcap",), units_per_process: int = 1) -> dict:
-    """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary."""
+                      on_progress=None, view: tuple[str, ...] = ("--mcap",), units_per_process: int = 1,
+                      plot_format: str = "png") -> dict:
+    """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary
+    (`plot_format`: plots/ as png at 300 dpi, pdf or svg)."""
     pieces = scenario.has_pieces
     seed = scenario.sim.seed if seed is None else seed
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
@@ -221,7 +223,7 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     held = session.wake_latency.state if session.wake_latency is not None else None
     if pieces:
         return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime)
-    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held)
+    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held, plot_format)
 
 
 @contextlib.contextmanager
@@ -320,7 +322,7 @@ def _scheduling_classes(out: Path, world: dict, coordinator: dict) -> dict:
 
 
 def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True,
-                       realtime: bool = False, cpu_wake_latency: str | None = None) -> dict:
+                       realtime: bool = False, cpu_wake_latency: str | None = None, plot_format: str = "png") -> dict:
     """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them."""
     from mars_link.flight.build import make_trajectory, tracked_offset
     from mars_link.flight.metrics import TrackingMetrics, TrialResult, summarize
@@ -393,7 +395,8 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     if plots and log.telemetry_rows:
         from mars_link.flight.plots import write_run_plots
 
-        write_run_plots(out, log.telemetry_rows, log.rotor_rows, model)
+        write_run_plots(out, log.telemetry_rows, log.rotor_rows, model, scenario.name, summary.get("events", ()),
+                        plot_format)
     return summary
 
 
@@ -644,13 +647,13 @@ def sitl_runner(args):
 
     view = world_view_args(args)  # (a busy --foxglove port: refused now, before any process)
 
-    def runner(scenario, out, trials=1, seed=None, on_progress=None, mcap=True, live=None):
+    def runner(scenario, out, trials=1, seed=None, on_progress=None, mcap=True, live=None, plot_format="png"):
         if trials != 1:
             raise UserInputError("--mode sitl runs one trial (vary --seed instead)")
         cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
         try:
             return run_sitl_scenario(scenario, out, seed, link, realtime=args.realtime, on_progress=cb, view=view,
-                                     units_per_process=args.units_per_process)
+                                     units_per_process=args.units_per_process, plot_format=plot_format)
         except RuntimeError as e:
             raise UserInputError(str(e)) from None
 

@@ -134,11 +134,12 @@ def test_rotor_plot_of_a_20x20_stays_a_readable_size(tmp_path) -> None:
     import numpy as np
 
     from mars_link.core.assembly import AssemblyModel, vehicle_preset
-    from mars_link.flight.plots import write_run_plots
+    from mars_link.flight.plots import PNG_DPI, write_run_plots
 
     model = AssemblyModel.from_layout(["X" * 20] * 20, vehicle_preset("mars-ftcc"))
     n = model.n_rotors
     rows = [np.concatenate([[0, k * 0.1], np.zeros(n), np.full(n, 1.0 + k)]) for k in range(5)]
     written = write_run_plots(tmp_path, [], rows, model)
     image = mpimg.imread(written[-1])
-    assert written[-1].name == "rotor_thrust.png" and 1000 < image.shape[0] < 1700
+    height_in = image.shape[0] / PNG_DPI
+    assert written[-1].name == "rotor_thrust.png" and 9.0 < height_in < 15.0
