@@ -81,9 +81,11 @@ def cmd_run(args) -> int:
         TimeElapsedColumn(), console=console, transient=False, disable=args.quiet,
     ) as progress:
         task = progress.add_task(f"{scenario.name} x{args.trials}", total=args.trials)
-        runner, pacing = run_scenario, {}
+        runner, options = run_scenario, {}
         if args.realtime and sitl_run is None:  # in-process: the engine paced to the wall clock
-            pacing = {"realtime_rate": 1.0}
+            options["realtime_rate"] = 1.0
+        if args.logs and sitl_run is None and not scenario.has_pieces:  # (SITL units always write theirs)
+            options["logs"] = args.logs
         if scenario.has_pieces:  # several bodies (mars_link.flight.reconfig_flight)
             from mars_link.flight.reconfig_flight import run_reconfig_scenario as runner
 
@@ -93,54 +95,27 @@ def cmd_run(args) -> int:
             runner = sitl_run
         summary = runner(
             scenario, out, trials=args.trials, seed=args.seed,
-            on_progress=lambda i, frac: progress.update(task, completed=i + frac), **pacing,
+            on_progress=lambda i, frac: progress.update(task, completed=i + frac), **options,
             mcap=not args.no_mcap, live=live, plot_format=args.plot_format,
         )
+    from mars_link.flight.report import print_summary
+
     print_summary(summary, out)
     return 0 if summary["completed"] else 1
 
 
-def print_summary(summary: dict, out: Path) -> None:
-    from rich.console import Console
-    from rich.table import Table
+def _log_kinds(text: str) -> frozenset[str]:
+    """`--logs ulog[,tlog]` -> the kinds; an unknown or not yet offered kind is one line (exit 2)."""
+    from mars_link.logs import LOG_KINDS
 
-    table = Table(title=f"mars-link run: {summary['scenario']}", show_header=False)
-    def fig(key: str, form: str) -> str:
-        """A summary figure, or "n/a" where this mode does not measure it (the SITL pieces: no body tilt)."""
-        value = summary.get(key)
-        return "n/a" if value is None else format(value, form)
-
-    rows = [
-        ("layout / preset", f"{','.join(summary['layout'])} / {summary['preset']}"),
-        ("controller / ftc", f"{summary['controller']} / {summary['ftc']}"),
-        ("trials (seed)", f"{summary['trials']} ({summary['seed']})"),
-        ("completed", str(summary["completed"])),
-        ("diverged", str(summary["diverged"])),
-        ("mean error", f"{fig('mean_error_m', '.4f')} m ± {fig('mean_error_std_m', '.4f')}"),
-        ("rmse / max error", f"{fig('rmse_m', '.4f')} / {fig('max_error_m', '.4f')} m"),
-        ("max tilt", f"{fig('max_tilt_deg', '.2f')} deg"),
-        ("force integral", f"{fig('force_integral_n2s', '.1f')} N²s"),
-        ("sim / wall time", f"{summary['sim_time_s']:.2f} s / {summary['wall_time_s']:.2f} s"),
-        ("real-time factor", f"{fig('real_time_factor', '.1f')}x"),
-        ("events", str(len(summary["events"]))),
-        ("run directory", str(out)),
-    ]
-    sitl = summary.get("sitl") or {}
-    if sitl.get("realtime"):  # paced to the wall clock: how late the commands reached the motors, and why
-        from mars_link.runtime.scheduling import describe_classes
-
-        age = sitl.get("command_age") or {}
-        if age.get("n"):
-            rows.append(("command age at motor", f"p50 {age['p50_ms']:.2f} / p99 {age['p99_ms']:.2f} ms "
-                         f"({age.get('deadline_misses', 0)}/{age['n']} late)"))  # (older than a control period)
-        rows.append(("scheduling", describe_classes(sitl.get("scheduling") or {})))
-    logging = summary.get("logging") or {}
-    if logging.get("stopped_reason"):  # a write error stopped a log; the flight went on
-        more = len(logging.get("stopped", [])) - 1
-        rows.append(("logging stopped", logging["stopped_reason"] + (f" (+{more} more logs)" if more > 0 else "")))
-    for key, value in rows:
-        table.add_row(key, value)
-    Console().print(table)
+    kinds = frozenset(k.strip() for k in text.split(",") if k.strip())
+    unknown = sorted(kinds - set(LOG_KINDS))
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown log kind {unknown[0]!r} (known: {', '.join(LOG_KINDS)})")
+    if "tlog" in kinds:
+        raise argparse.ArgumentTypeError("an in-process run writes no .tlog (its units exchange no MAVLink frames); "
+                                         "--mode sitl writes one per unit")
+    return kinds
 
 
 def cmd_reproduce(args) -> int:
@@ -530,6 +505,9 @@ def build_parser() -> argparse.ArgumentParser:
                           "and the coordinator, talking MAVLink over --transport")
     _add_link(run, "the SITL processes (with --mode sitl)")
     _add_sitl_processes(run, "pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
+    run.add_argument("--logs", type=_log_kinds, default=frozenset(), metavar="KINDS",
+                     help="per-unit logs beside the run's own, comma-separated: ulog (unit<id>.ulg, PX4's topics; "
+                          "in-process) - --mode sitl always writes unit<id>.tlog and unit<id>.ulg")
     _add_view(run)
     _add_plot_format(run)
     _add_quiet(run)
@@ -630,8 +608,9 @@ def build_parser() -> argparse.ArgumentParser:
     veh.add_argument("--wall-time", type=v.positive_float, default=None, metavar="SECONDS",
                      help="stop after this many wall-clock seconds [wall s]")
     _add_signing(veh, "the gcs and api links")
-    _add_out(veh, "none: no run.mcap", force=False)
+    _add_out(veh, "none: nothing written; with DIR: run.mcap, vehicle.ulg, summary.json, telemetry, plots", force=False)
     _add_view(veh)
+    _add_plot_format(veh)
 
     # -- plan
     plan = _command(sub, "plan", "a collision-free trajectory for an assembly on a map (trajectory.csv, plan.json, "

@@ -281,8 +281,11 @@ class FlightRecorder:
     """Observer: the tracked point's error on the world's truth (metrics.TrackingMetrics) and the run's
     time series (run_log.RunLog); ends the flight when it diverges."""
 
-    def __init__(self, flight: Flight, log: RunLog | None = None, trial_index: int = 0) -> None:
+    def __init__(self, flight: Flight, log: RunLog | None = None, trial_index: int = 0,
+                 ends_on_divergence: bool = True) -> None:
         self.flight = flight
+        self.ends_on_divergence = ends_on_divergence  # (a vehicle a client flies reports it, flies on)
+        self._divergence_told = False
         self.log = log
         self.trial_index = trial_index
         self.metrics = TrackingMetrics()
@@ -291,6 +294,8 @@ class FlightRecorder:
     def on_step(self, engine: Engine, v: StepView) -> bool:
         f = self.flight
         truth, rec = v.truth, v.record
+        if rec is None:  # (the assembly vehicle on the ground: no reference to track)
+            return False
         tracked = f.world.tracked_point(f.tracked_offset_frd_m, truth)
         failsafe = getattr(f.coordinator, "failsafe", None)
         err, _ = self.metrics.add(v.t_s, tracked, rec.reference.position_ned_m, truth.quaternion_wxyz,
@@ -309,7 +314,8 @@ class FlightRecorder:
                 log.rotors(self.trial_index, v.t_s, rec.thrusts_n, f.world.rotor_thrust_n, f.units.eta(f.model.unit_ids))
             if v.index % self._flush_every == 0:
                 log.flush()
-        if self.metrics.diverged:
+        if self.metrics.diverged and not self._divergence_told:
             engine.events.append(self.metrics.divergence)
-            return True
+            self._divergence_told = True
+            return self.ends_on_divergence
         return False

@@ -65,8 +65,17 @@ def run_trial(
             view.finish(engine)
         if log is not None:
             log.flush()
-    wall = time.perf_counter() - wall0
+    return trial_result(flight, engine, recorder, seed, time.perf_counter() - wall0, unit_deaths)
+
+
+def trial_result(flight, engine: Engine, recorder: FlightRecorder, seed: int, wall_s: float,
+                 unit_deaths: dict[int, float] | None = None, events: list[dict] | None = None) -> TrialResult:
+    """A flown flight's figures, from its recorder's metrics and the world: one function for every way of
+    flying (`run`, `vehicle --out`). `events`: the run's event records (default: the engine's and the
+    coordinator's)."""
     world, metrics = flight.world, recorder.metrics
+    if events is None:
+        events = engine.events + flight.coordinator.events
     return TrialResult(
         seed=seed,
         completed=not metrics.diverged,
@@ -75,10 +84,10 @@ def run_trial(
         rmse_m=metrics.rmse_m,
         max_error_m=metrics.max_error_m,
         sim_time_s=world.t_s,
-        wall_time_s=wall,
+        wall_time_s=wall_s,
         force_integral_n2s=world.force_integral_n2s,
         max_tilt_deg=metrics.max_tilt_deg,
-        events=sorted(engine.events + flight.coordinator.events, key=lambda e: e["t_s"]),
+        events=sorted(events, key=lambda e: e["t_s"]),
         stage_time_s=engine.stage_time_s,
         physics_steps=world.exchange_index * world.substeps,
         control_steps=metrics.n,

@@ -217,7 +217,7 @@ def vehicle_command(args: argparse.Namespace) -> int:
 
     live = live_address(args)  # a busy --foxglove port: one line, exit 2, before the vehicle starts
     out = None
-    if args.out is not None and not args.no_mcap:
+    if args.out is not None:
         out = validation.check_out_dir(args.out)
         validation.prepare_out_dir(out)
     sim = build_sim(args)
@@ -233,7 +233,8 @@ def vehicle_command(args: argparse.Namespace) -> int:
         if isinstance(exc, OSError):
             raise UserInputError(f"cannot open {exc.filename}: {exc.strerror}") from None
         raise
-    view = _attach_view(sim, out, live)
+    view = _attach_view(sim, None if args.no_mcap else out, live)
+    record = _attach_record(sim, out) if out is not None else None
     if out is not None:  # the vehicle's ULog, as PX4 SITL writes one (mars_link.logs; closed by sim.close)
         from firmware_models.vehicle_ulog import UlogConfig
 
@@ -265,6 +266,7 @@ def vehicle_command(args: argparse.Namespace) -> int:
         runner.running = False
 
     old = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
+    wall0 = time.perf_counter()
     try:
         code = runner.run()
     finally:
@@ -277,7 +279,54 @@ def vehicle_command(args: argparse.Namespace) -> int:
           flush=True)
     if runner.io.logging_stopped:  # a write error (or the size cap) stopped the .tlog; the flight went on
         print(f"logging stopped: {runner.io.logging_stopped}", flush=True)
+    if record is not None:
+        summary = record.finish(sim, time.perf_counter() - wall0, args.plot_format)
+        from mars_link.flight.report import print_summary
+
+        print_summary(summary, out)
     return code
+
+
+class _VehicleRecord:
+    """`vehicle --out`: what `run` writes (telemetry.csv, rotors.csv, summary.json, plots/), from the same
+    recorder observing the vehicle's engine. The error is the tracked point's against the vehicle's own
+    setpoints; steps on the ground (the coordinator idle) are not recorded; a divergence is reported,
+    it does not stop a vehicle a client flies."""
+
+    def __init__(self, sim: AssemblySim, out: Path) -> None:
+        from mars_link.flight.engine import FlightRecorder
+        from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
+
+        s = sim.scenario
+        self.log = RunLog(out, sim.model, rotor_log_hz=min(s.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX)
+        self.log.new_trial()
+        self.recorder = FlightRecorder(sim.engine.flight, self.log, 0, ends_on_divergence=False)
+        self.out = out
+        sim.engine.observers.append(self.recorder)
+
+    def finish(self, sim: AssemblySim, wall_s: float, plot_format: str) -> dict:
+        from mars_link.flight.metrics import summarize
+        from mars_link.flight.runner import trial_result
+        from mars_link.logs.outputs import write_json
+
+        self.log.close()
+        events = [e for events in sim.event_lists() for e in events]
+        result = trial_result(sim.engine.flight, sim.engine, self.recorder, sim.scenario.sim.seed, wall_s,
+                              events=events + sim.engine.events)
+        summary = summarize(sim.scenario, [result], sim.scenario.sim.seed, mode="vehicle")
+        summary["completed"] = not result.diverged  # (a vehicle flies until stopped: stopping is its end)
+        summary["logging"] = self.log.status()
+        write_json(self.out / "summary.json", summary)
+        if self.log.telemetry_rows:
+            from mars_link.flight.plots import write_run_plots
+
+            write_run_plots(self.out, self.log.telemetry_rows, self.log.rotor_rows, sim.model, sim.scenario.name,
+                            summary["events"], plot_format)
+        return summary
+
+
+def _attach_record(sim: AssemblySim, out: Path) -> _VehicleRecord:
+    return _VehicleRecord(sim, out)
 
 
 def _attach_view(sim: AssemblySim, out: Path | None, live: str | None):

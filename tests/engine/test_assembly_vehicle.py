@@ -7,6 +7,8 @@ while the link keeps working; the sans-IO core reports told and detected faults;
 from __future__ import annotations
 
 import asyncio
+import csv
+import json
 import math
 import random
 import shutil
@@ -179,10 +181,10 @@ async def _has(texts: list[str], prefix: str) -> bool:
 
 def test_mavsdk_flies_the_3x2_assembly_as_one_vehicle(tmp_path: Path) -> None:
     api = free_udp_port()
-    status = tmp_path / "status.json"
+    status, out = tmp_path / "status.json", tmp_path / "run"
     proc, first = spawn_vehicle(["--layout", "XXX,XXX", "--ftc", "qp", "--sysid", str(SYSID), "--param", "COM_DISARM_LAND=0.5",
                                  "--api-port", str(api), "--api-bind", "0",
-                                 "--gcs-port", str(free_udp_port()), "--gcs-bind", "0"], status)
+                                 "--gcs-port", str(free_udp_port()), "--gcs-bind", "0", "--out", str(out)], status)
     try:
         r = asyncio.run(_fly(api, status))
     finally:
@@ -198,6 +200,16 @@ def test_mavsdk_flies_the_3x2_assembly_as_one_vehicle(tmp_path: Path) -> None:
     assert "Fault: unit 2 rotor 2 eta 0.5" in r["texts"] and "Takeoff complete: holding" in r["texts"]
     assert abs(r["landed_down_m"]) < 0.05
     assert not r["drops"], r["drops"]  # MAVSDK's own traffic is all understood
+    # `vehicle --out` ends as `run` does: summary.json, telemetry.csv (the world's truth of the flight
+    # flown), rotors.csv and plots/, with the injected fault among the events
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["mode"] == "vehicle" and summary["completed"] and not summary["diverged"]
+    assert any(e["type"] == "fault" and e["unit"] == 2 for e in summary["events"]), summary["events"]
+    rows = list(csv.DictReader((out / "telemetry.csv").open()))
+    assert min(float(row["com_d_m"]) for row in rows) < -1.9  # the climb to 2 m, as the truth saw it
+    assert max(float(row["com_n_m"]) for row in rows) > 0.9  # and the metre north
+    assert summary["mean_error_m"] < 0.1 and (out / "rotors.csv").exists()
+    assert {p.stem for p in (out / "plots").iterdir()} >= {"error", "path_3d", "rotor_thrust"}
 
 
 # ----------------------------------------------------------------------------- QGroundControl

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.apps.cli import print_summary
+from mars_link.flight.report import print_summary
 from mars_link.flight.reconfig_flight import run_reconfig_trial
 from mars_link.config.scenario import load_scenario
 from mars_link.processes.sitl_mode import run_sitl_scenario
