@@ -75,10 +75,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", default="spiral_3x2")
     ap.add_argument("--faults", default="random:1")
     ap.add_argument("--dask", type=int, default=0, help="also on a Dask LocalCluster of this many worker processes")
-    ap.add_argument("--quick", action="store_true", help="8 flights in 2 rounds")
+    ap.add_argument("--quick", action="store_true", help="4 flights in 2 rounds")
     add_json_option(ap)
     args = ap.parse_args(argv)
-    apply_quick(ap, args, flights=8, rounds=2)
+    apply_quick(ap, args, flights=4, rounds=2)
     rec = Recorder.start("bench_sweep", args)
     counts = [int(w) for w in args.workers.split(",")]
     doc, src = read_scenario_doc(args.scenario)
