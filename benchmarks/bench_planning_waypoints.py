@@ -65,7 +65,8 @@ def main() -> None:
     ratios = {}
     if len(rows) >= 2:
         a, b = rows[0], rows[-1]
-        grow = (b["peak_rss_mib"] - b["rss_before_build_mib"]) / max(a["peak_rss_mib"] - a["rss_before_build_mib"], 1e-9)
+        first_growth_mib = a["peak_rss_mib"] - a["rss_before_build_mib"]  # below 1 MiB: lost in the RSS's noise
+        grow = (b["peak_rss_mib"] - b["rss_before_build_mib"]) / first_growth_mib if first_growth_mib >= 1.0 else float("nan")
         ratios = {"waypoints": b["waypoints"] / a["waypoints"], "build_time": b["build_s"] / a["build_s"],
                   "build_memory": grow}
         print(f"{b['waypoints']} / {a['waypoints']} waypoints ({ratios['waypoints']:g}x): build time "
