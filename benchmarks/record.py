@@ -133,6 +133,7 @@ class Recorder:
         self.figures: list[Figure] = []
         self.started = datetime.datetime.now(datetime.timezone.utc)
         self._t0 = time.perf_counter()
+        self._commit, self._dirty = git_commit() if enabled else (None, None)  # the code as the run started
         self._bare_before = bare_jsbsim_steps_per_s() if enabled else None
 
     @classmethod
@@ -153,7 +154,7 @@ class Recorder:
         bare_after = bare_jsbsim_steps_per_s() if self.enabled else None
         rates = [r for r in (self._bare_before, bare_after) if r]
         mean = sum(rates) / len(rates) if rates else None
-        commit, dirty = git_commit()
+        commit, dirty = self._commit, self._dirty
         try:
             load = os.getloadavg()[0]
         except OSError:
