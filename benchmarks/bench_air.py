@@ -46,10 +46,10 @@ def main() -> None:
     ap.add_argument("scenario", nargs="?", default="spiral_3x2")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--duration", type=float, default=None)
-    ap.add_argument("--quick", action="store_true", help="5 s flights, one of each")
+    ap.add_argument("--quick", action="store_true", help="5 s flights, three of each (alternated)")
     add_json_option(ap)
     args = ap.parse_args()
-    apply_quick(ap, args, duration=5.0, repeats=1)
+    apply_quick(ap, args, duration=5.0, repeats=3)
     rec = Recorder.start("bench_air", args)
     runs = variants(args.scenario, args.duration)
     rtf: dict[str, list[float]] = {k: [] for k in runs}
