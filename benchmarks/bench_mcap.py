@@ -166,10 +166,10 @@ def main() -> int:
     ap.add_argument("--rt-duration", type=float, default=8.0)
     ap.add_argument("--skip-realtime", action="store_true")
     ap.add_argument("--only", choices=("rtf", "size", "realtime"), default=None, help="one part only")
-    ap.add_argument("--quick", action="store_true", help="one run of each, 5 s flights, 3 s size and real-time runs")
+    ap.add_argument("--quick", action="store_true", help="two runs of each in-process flight (5 s), 3 s size runs, one 3 s real-time run of each")
     add_json_option(ap)
     a = ap.parse_args()
-    apply_quick(ap, a, runs=1, duration=5.0, size_duration=3.0, rt_runs=1, rt_duration=3.0)
+    apply_quick(ap, a, runs=2, duration=5.0, size_duration=3.0, rt_runs=1, rt_duration=3.0)
     if a.runs < 1 or a.rt_runs < 1 or not ((a.duration is None or a.duration > 0) and a.size_duration > 0 and a.rt_duration > 0):
         ap.error("--runs/--rt-runs must be >= 1 and durations > 0")
     rec = Recorder.start("bench_mcap", a)
