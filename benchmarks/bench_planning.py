@@ -72,7 +72,8 @@ def report(name: str, runs: list[dict], rec: Recorder, headline: bool = False) -
     print(f"{name:<34} " + " ".join(f"{k} {med[k] * 1e3:7.1f} ms" for k in STAGES)
           + f"  ({ok}/{len(runs)} ok, {minco} by the MINCO back end)")
     note = f"{name}: end to end in process, median of {len(runs)} ({ok} ok); CPU {med['cpu']:.3f} s"
-    (rec.headline if headline else rec.figure)(name.replace(" ", "_") + "_total_s", med["total"], "s", note)
+    key = name.replace("XXX,XXX", "3x2").replace("XXXX", "4x1").replace(" ", "_")
+    (rec.headline if headline else rec.figure)(key + "_total_s", med["total"], "s", note)
 
 
 def main() -> int:
