@@ -1,6 +1,6 @@
 """In-process real-time factor of the default scenario with the air on, against still air, in one run.
 
-    python benchmarks/bench_air.py [SCENARIO] [--repeats 3] [--duration S]
+    python benchmarks/bench_air.py [SCENARIO] [--repeats 3] [--duration S] [--quick] [--json]
 
 Three variants of the same scenario, flown alternately `--repeats` times each (so a busy machine
 slows them alike) and compared by the median real-time factor:
@@ -20,6 +20,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from record import Recorder, add_json_option, apply_quick  # noqa: E402
 
 from mars_link.models.aerodynamics import AERO_PRESETS  # noqa: E402
 from mars_link.models.environment import SEVERITIES, EnvironmentParams  # noqa: E402
@@ -44,9 +46,16 @@ def main() -> None:
     ap.add_argument("scenario", nargs="?", default="spiral_3x2")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--duration", type=float, default=None)
+    ap.add_argument("--quick", action="store_true", help="5 s flights, three of each (alternated)")
+    add_json_option(ap)
     args = ap.parse_args()
+    apply_quick(ap, args, duration=5.0, repeats=3)
+    rec = Recorder.start("bench_air", args)
     runs = variants(args.scenario, args.duration)
     rtf: dict[str, list[float]] = {k: [] for k in runs}
+    warm = copy.deepcopy(runs["air"])  # imports and first-use costs stay out of the first variant's figure
+    warm.sim.duration_s = 0.5
+    run_scenario(warm, None, plots=False)
     for i in range(args.repeats):
         for k, sc in runs.items():
             s = run_scenario(sc, None, plots=False)
@@ -57,6 +66,11 @@ def main() -> None:
     print(f"{args.scenario}, in-process, median of {args.repeats} (noise on, EKF in the loop)")
     for k in runs:
         print(f"  {k:5s}: RTF {med[k]:6.1f}x   ratio to still air {med[k] / med['still']:.3f}")
+        rec.figure(f"rtf_{k}", med[k], "x real time", f"{args.scenario}, median of {args.repeats}")
+    rec.figure("drag_vs_still", med["drag"] / med["still"], "ratio", "RTF with drag on / still air")
+    rec.headline("air_vs_still", med["air"] / med["still"], "ratio",
+                 "RTF with drag, 5 m/s wind and moderate turbulence / still air (same run, alternated)")
+    rec.finish()
 
 
 if __name__ == "__main__":

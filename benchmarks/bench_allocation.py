@@ -2,7 +2,7 @@
 with rotor thrust bounds; plus how well each mode meets the demand (max |B(eta) t - w| relative
 to the weight, over the same calls).
 
-    python benchmarks/bench_allocation.py [--calls N]
+    python benchmarks/bench_allocation.py [--calls N] [--quick] [--json]
 
 Demands are hover plus random moments, drawn independently each call (harder on a warm-started
 solver than a flight, where successive demands are close).
@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from record import Recorder, add_json_option, apply_quick
 from mars_link.allocation import ALLOCATION_MODES, make_allocator
 from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel
 
@@ -56,7 +57,7 @@ def measure(mode: str, model: AssemblyModel, eta: np.ndarray, bounds, wrenches: 
     return cost_us, err, getattr(alloc, "fallbacks", None)
 
 
-def qp_saturation_rows(calls: int) -> list[str]:
+def qp_saturation_rows(calls: int, rec: Recorder | None = None) -> list[str]:
     """qp when rotors saturate (bounded preset, moments of about a third of weight x assembly
     half-width): how many calls hit a bound, how many of those the active-set step left to OSQP,
     and the cost per call over all calls."""
@@ -76,13 +77,20 @@ def qp_saturation_rows(calls: int) -> list[str]:
             for w in wrenches:
                 alloc.allocate(w)
             rows.append(f"{name:<7}{label:<9}{cost_us:>9.1f}{alloc.saturated:>8}/{calls:<6}{alloc.solves:>6}")
+            if rec is not None:
+                rec.figure(f"qp_saturated_{name}_{label}_us", cost_us, "us",
+                           f"qp per call under heavy saturation, modquad-cf2; {alloc.saturated}/{calls} calls saturated")
     return rows
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--calls", type=int, default=2000)
+    ap.add_argument("--quick", action="store_true", help="500 calls per case")
+    add_json_option(ap)
     args = ap.parse_args()
+    apply_quick(ap, args, calls=500)
+    rec = Recorder.start("bench_allocation", args)
     modes = ALLOCATION_MODES
     header = f"{'preset':<13}{'layout':<7}{'faults':<9}" + "".join(f"{m:>9}" for m in modes)
     rows_cost, rows_err, notes = [], [], []
@@ -97,6 +105,12 @@ def main() -> None:
                 lead = f"{preset:<13}{name:<7}{label:<9}"
                 rows_cost.append(lead + "".join(f"{c:>9.1f}" for c, _, _ in cells))
                 rows_err.append(lead + "".join(f"{e:>9.0e}" for _, e, _ in cells))
+                for m, (c, e, _) in zip(modes, cells):
+                    note = f"{preset} {name} {label}, per allocate() call; max wrench error / weight {e:.0e}"
+                    if (m, preset, name, label) == ("qp", "mars-ftcc", "3x2", "nominal"):
+                        rec.headline(f"{m}_{preset}_{name}_{label}_us", c, "us", note + " (target < 200 us)")
+                    else:
+                        rec.figure(f"{m}_{preset}_{name}_{label}_us", c, "us", note)
                 fb = cells[modes.index("qp")][2]
                 if fb:
                     notes.append(f"{preset} {name} {label}: qp did not converge on {fb}/{args.calls} calls")
@@ -113,7 +127,8 @@ def main() -> None:
     print(f"\nqp under heavy saturation (modquad-cf2, {calls} calls): us per call, calls with a bound")
     print("active, calls the active-set step left to OSQP")
     print(f"{'layout':<7}{'faults':<9}{'us':>9}{'saturated':>14}{'osqp':>6}")
-    print("\n".join(qp_saturation_rows(calls)))
+    print("\n".join(qp_saturation_rows(calls, rec)))
+    rec.finish()
 
 
 if __name__ == "__main__":

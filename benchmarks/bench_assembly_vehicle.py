@@ -6,7 +6,7 @@ substeps) against the 10 ms real-time deadline of `mars-link vehicle`, and of on
 Arms and takes off by COMMAND_LONG bytes, then hovers under offboard setpoints, without sockets and
 without pacing (as fast as it computes). Prints p50 / p99 / max per step on the ground and in flight.
 
-    python benchmarks/bench_assembly_vehicle.py [--layout XXX,XXX] [--seconds S] [--ftc qp]
+    python benchmarks/bench_assembly_vehicle.py [--layout XXX,XXX] [--seconds S] [--ftc qp] [--quick] [--json]
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import time
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from record import Recorder, add_json_option, apply_quick
 from mars_link.core.assembly import parse_layout
 from mars_link.vehicles.assembly_vehicle import AssemblySim
 from mars_link.config.scenario import load_scenario
@@ -28,7 +29,11 @@ def main() -> None:
     ap.add_argument("--layout", default="XXX,XXX")
     ap.add_argument("--seconds", type=float, default=10.0, help="simulated seconds in flight")
     ap.add_argument("--ftc", default="qp")
+    ap.add_argument("--quick", action="store_true", help="3 s in flight")
+    add_json_option(ap)
     a = ap.parse_args()
+    apply_quick(ap, a, seconds=3.0)
+    rec = Recorder.start("bench_assembly_vehicle", a)
     scenario = load_scenario("hover_3x2")
     scenario.layout = parse_layout(a.layout)
     scenario.ftc = a.ftc
@@ -74,9 +79,16 @@ def main() -> None:
                            ("offboard setpoint datagram (us)", np.array(setpoint_us), "us"),
                            ("REQUEST_MESSAGE + ACK + reply (us)", np.array(ping), "us")):
         print(f"{name:34s} {np.percentile(xs, 50):8.2f} {np.percentile(xs, 99):8.2f} {xs.max():8.2f}")
+        key = name.split(" (")[0].replace(" ", "_").replace("+", "and").lower()
+        rec.figure(f"{key}_p50", np.percentile(xs, 50), unit, f"{a.layout}, ftc {a.ftc}: {name.split(' (')[0]}, median")
+        rec.figure(f"{key}_p99", np.percentile(xs, 99), unit, f"{a.layout}, ftc {a.ftc}: {name.split(' (')[0]}, p99")
     budget = sim.control_dt_s * 1e3
     print(f"flight steps over the {budget:.0f} ms deadline: {int((flight > budget).sum())} of {len(flight)}; "
           f"real-time factor in flight {budget / flight.mean():.1f}x")
+    rec.figure("deadline_misses", int((flight > budget).sum()), "steps", f"of {len(flight)} flight steps over {budget:.0f} ms")
+    rec.headline("rtf_in_flight", budget / flight.mean(), "x real time",
+                 f"{a.layout}, ftc {a.ftc}: control period / mean compute per step in flight (unpaced)")
+    rec.finish()
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """In-process real-time factor with the units' batteries on, against them off, in one run.
 
-    python benchmarks/bench_battery.py [SCENARIO] [--repeats 4] [--duration S]
+    python benchmarks/bench_battery.py [SCENARIO] [--repeats 4] [--duration S] [--quick] [--json]
 
 The same scenario (default: spiral_3x2 on the realistic plant, mars-real, qp) flown alternately
 `--repeats` times each way (so a busy machine slows both alike), compared by the median real-time factor:
@@ -22,6 +22,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from record import Recorder, add_json_option, apply_quick  # noqa: E402
 
 from mars_link.models.battery import battery_table  # noqa: E402
 from mars_link.flight.build import build_flight  # noqa: E402
@@ -47,7 +49,10 @@ def fly(sc) -> tuple[float, float, float, int]:
     flight = build_flight(sc, sc.sim.seed)
     recorder = FlightRecorder(flight)
     setups = [0]
-    ctrl = flight.coordinator.controller
+    coordinator = flight.coordinator  # (a flight of pieces: the docked structure is its one piece)
+    if hasattr(coordinator, "tracked_piece"):
+        coordinator = coordinator.tracked_piece().coordinator
+    ctrl = coordinator.controller
     if hasattr(ctrl, "set_available"):
         inner = ctrl.set_available
 
@@ -70,11 +75,18 @@ def main() -> None:
     ap.add_argument("scenario", nargs="?", default="spiral_3x2")
     ap.add_argument("--repeats", type=int, default=4)
     ap.add_argument("--duration", type=float, default=None)
+    ap.add_argument("--quick", action="store_true", help="5 s flights, three of each (alternated)")
+    add_json_option(ap)
     args = ap.parse_args()
+    apply_quick(ap, args, duration=5.0, repeats=3)
+    rec = Recorder.start("bench_battery", args)
     runs = variants(args.scenario, args.duration)
     rtf: dict[str, list[float]] = {k: [] for k in runs}
     cpu: dict[str, list[float]] = {k: [] for k in runs}
     setups = 0
+    warm = copy.deepcopy(runs["on"])  # imports and first-use costs stay out of the first variant's figure
+    warm.sim.duration_s = 0.5
+    fly(warm)
     for i in range(args.repeats):
         for k, sc in runs.items():
             r, rc, err, n = fly(sc)
@@ -91,6 +103,14 @@ def main() -> None:
         print(f"  batteries {k:3s}: RTF {med[k]:6.1f}x wall, {med_cpu[k]:6.1f}x per CPU second")
     print(f"  ratio on/off: {med['on'] / med['off']:.3f} wall, {med_cpu['on'] / med_cpu['off']:.3f} CPU "
           f"(allocator set up again {setups} times in a flight)")
+    for k in runs:
+        rec.figure(f"rtf_batteries_{k}", med[k], "x real time", f"{args.scenario}, wall, median of {args.repeats}")
+        rec.figure(f"rtf_cpu_batteries_{k}", med_cpu[k], "x real time", "per CPU second")
+    rec.figure("on_vs_off_wall", med["on"] / med["off"], "ratio", "RTF with batteries / without, wall time")
+    rec.headline("on_vs_off_cpu", med_cpu["on"] / med_cpu["off"], "ratio",
+                 "RTF per CPU second with batteries / without (same run, alternated)")
+    rec.figure("allocator_setups", setups, "per flight", "times the allocator was set up again")
+    rec.finish()
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Cost of one cascaded-controller update (control law and allocation) and of a trajectory sample.
 
-    python benchmarks/bench_cascaded.py [--steps N]
+    python benchmarks/bench_cascaded.py [--steps N] [--quick] [--json]
 
 Feeds a moving state along the paper's spiral (tracked point unit 1) so every branch runs; prints
 median and 95th percentile per layout and allocator, in microseconds.
@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from record import Recorder, add_json_option, apply_quick
 from mars_link.allocation import make_allocator
 from mars_link.core.assembly import AssemblyModel
 from mars_link.control.cascaded import CascadedController
@@ -47,12 +48,21 @@ def bench_controller(layout: list[str], mode: str, steps: int) -> tuple[float, f
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--steps", type=int, default=3000)
+    ap.add_argument("--quick", action="store_true", help="500 steps")
+    add_json_option(ap)
     args = ap.parse_args()
+    apply_quick(ap, args, steps=500)
+    rec = Recorder.start("bench_cascaded", args)
     print(f"{'layout':8} {'allocator':9} {'update median':>14} {'p95':>8} {'control law':>12}  (us)")
     for name, layout in LAYOUTS.items():
         for mode in ("none", "full"):
             med, p95, ctl = bench_controller(layout, mode, args.steps)
             print(f"{name:8} {mode:9} {med * 1e6:14.1f} {p95 * 1e6:8.1f} {ctl * 1e6:12.1f}")
+            note = f"{name}, allocator {mode}: cascaded update (control law + allocation), median; p95 {p95 * 1e6:.1f} us"
+            if (name, mode) == ("3x2", "full"):
+                rec.headline(f"update_{name}_{mode}_us", med * 1e6, "us", note)
+            else:
+                rec.figure(f"update_{name}_{mode}_us", med * 1e6, "us", note)
     print()
     for kind in TRAJECTORY_KINDS:
         if kind == "csv":
@@ -62,7 +72,10 @@ def main() -> None:
         t0 = time.perf_counter()
         for t in ts:
             traj.sample(t)
-        print(f"{kind:17} sample {(time.perf_counter() - t0) / len(ts) * 1e6:6.1f} us")
+        sample_us = (time.perf_counter() - t0) / len(ts) * 1e6
+        print(f"{kind:17} sample {sample_us:6.1f} us")
+        rec.figure(f"sample_{kind}_us", sample_us, "us", f"trajectory {kind}: one sample")
+    rec.finish()
 
 
 if __name__ == "__main__":

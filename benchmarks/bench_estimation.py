@@ -11,17 +11,19 @@ The step split is the runner's rhythm: IMU every tick, positions with velocities
 hot (median of many; best of 3 runs for the synthetic hover) on the synthetic hover and on the
 real spiral (hover_1x1, spiral_3x2 through the runner: JSBSim and the controller run between steps,
 so caches are colder there).
-Run: python benchmarks/bench_estimation.py [--no-flight] [--split-only]
+Run: python benchmarks/bench_estimation.py [--no-flight] [--split-only] [--quick] [--json]
+(`--quick`: no flights, the layouts 1x1 and 3x2 only.)
 """
 
 from __future__ import annotations
 
+import argparse
 import copy
-import sys
 import time
 
 import numpy as np
 
+from record import Recorder, add_json_option
 from mars_link.core.assembly import AssemblyModel
 from mars_link.models.estimation import AssemblyEstimator
 from mars_link.models.fault_detection import FaultDetector
@@ -115,17 +117,21 @@ def bench_flight_split(scenario_name: str = "spiral_3x2", seed: int = 1) -> tupl
     return float(np.median(fuse)) * 1e6, float(np.median(plain)) * 1e6, len(fuse) + len(plain)
 
 
-def print_split(flight: bool) -> None:
+def print_split(flight: bool, rec: Recorder) -> None:
     print("AssemblyEstimator.step, hot, median microseconds (fusion = propagate + stacked position/velocity")
     print("update of every unit; plain = IMU propagation only; positions at 50 Hz, IMU at 100 Hz)")
     print(f"{'case':>22} {'fusion':>7} {'plain':>7} {'mean':>7}")
     for name in ("1x1", "3x2"):
         fuse, plain = bench_step_split(AssemblyModel.from_layout(LAYOUTS[name], "mars-ftcc"))
         print(f"{'synthetic hover ' + name:>22} {fuse:>7.0f} {plain:>7.0f} {(fuse + plain) / 2:>7.0f}")
+        rec.figure(f"ekf_fusion_step_{name}_us", fuse, "us", f"synthetic hover {name}: propagate + stacked position update, hot median")
+        rec.figure(f"ekf_plain_step_{name}_us", plain, "us", f"synthetic hover {name}: IMU propagation only, hot median")
     if flight:
         for scenario in ("hover_1x1", "spiral_3x2"):
             fuse, plain, steps = bench_flight_split(scenario)
             print(f"{scenario + ' (runner)':>22} {fuse:>7.0f} {plain:>7.0f} {(fuse + plain) / 2:>7.0f}")
+            rec.figure(f"ekf_fusion_step_{scenario}_us", fuse, "us", f"{scenario} through the runner, median")
+            rec.figure(f"ekf_plain_step_{scenario}_us", plain, "us", f"{scenario} through the runner, median")
 
 
 def bench_detector(model: AssemblyModel, n: int = 1000) -> tuple[np.ndarray, np.ndarray]:
@@ -180,7 +186,7 @@ def bench_parts(model: AssemblyModel, n: int = 2000) -> dict[str, np.ndarray]:
     return {k: np.array(v[100:]) * 1e6 for k, v in per_tick.items()}
 
 
-def bench_flight(seed: int = 1) -> None:
+def bench_flight(rec: Recorder, seed: int = 1) -> None:
     from mars_link.apps.reproduce import ekf_accuracy
 
     c = time.perf_counter()
@@ -194,17 +200,31 @@ def bench_flight(seed: int = 1) -> None:
           "   (target RMS < 2 cm)")
     print(f"  attitude error              RMS {acc['attitude_rms_deg']:.3f} deg, max {acc['attitude_max_deg']:.3f} deg"
           "   (target RMS < 0.5 deg)")
+    rec.figure("flight_estimator_per_control_step_us", acc["estimation_s_per_step"] * 1e6, "us",
+               "3x2 spiral through the runner, mean incl. IMU combination")
+    rec.figure("flight_position_rms_cm", acc["position_rms_m"] * 100, "cm", "CoM, target < 2 cm")
+    rec.figure("flight_attitude_rms_deg", acc["attitude_rms_deg"], "deg", "target < 0.5 deg")
 
 
 def main() -> None:
-    flight = "--no-flight" not in sys.argv[1:]
-    print_split(flight)
-    if "--split-only" in sys.argv[1:]:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--no-flight", action="store_true", help="no JSBSim flights (synthetic hovers only)")
+    ap.add_argument("--split-only", action="store_true", help="only the fusion / plain step split")
+    ap.add_argument("--quick", action="store_true", help="no flights, layouts 1x1 and 3x2 only")
+    add_json_option(ap)
+    args = ap.parse_args()
+    rec = Recorder.start("bench_estimation", args)
+    flight = not (args.no_flight or args.quick)
+    print_split(flight, rec)
+    if args.split_only:
+        rec.finish()
         return
     print()
     print(f"per control tick at {RATE_HZ:.0f} Hz, every unit's IMU and position each tick (microseconds)")
     print(f"{'layout':>6} {'units':>5} {'est_median':>10} {'est_p99':>8} {'fdi_watch':>9} {'fdi_isolate':>11} {'cpu_share':>9}")
     for name, layout in LAYOUTS.items():
+        if args.quick and name not in ("1x1", "3x2"):
+            continue
         model = AssemblyModel.from_layout(layout, "mars-ftcc")
         est = bench_estimator(model)
         watch, iso = bench_detector(model)
@@ -213,17 +233,26 @@ def main() -> None:
             f"{name:>6} {model.n_units:>5} {np.median(est):>10.0f} {np.percentile(est, 99):>8.0f} "
             f"{np.median(watch):>9.0f} {np.median(iso):>11.0f} {share:>9.1%}"
         )
+        note = f"{name}, every unit's IMU and position each tick at {RATE_HZ:.0f} Hz, median"
+        if name == "3x2":
+            rec.headline(f"estimator_step_{name}_us", np.median(est), "us", note)
+        else:
+            rec.figure(f"estimator_step_{name}_us", np.median(est), "us", note)
+        rec.figure(f"detector_watch_{name}_us", np.median(watch), "us", f"{name}, fault detector watching, median")
+        rec.figure(f"detector_isolate_{name}_us", np.median(iso), "us", f"{name}, fault detector deciding, median")
+        rec.figure(f"cpu_share_{name}", share, "fraction of a core", f"{name}: (estimator + detector watching) x rate")
     print("cpu_share = (estimator + detector watching) x rate, of one core; isolation runs only for")
     print("the <= 0.3 s after an alarm")
     print()
     print("EKF step split (median microseconds per tick; update = one stacked position update of every unit)")
     print(f"{'layout':>6} {'combine':>8} {'propagate':>9} {'update':>7}")
-    for name in ("1x1", "3x2", "3x3"):
+    for name in ("1x1", "3x2") if args.quick else ("1x1", "3x2", "3x3"):
         parts = bench_parts(AssemblyModel.from_layout(LAYOUTS[name], "mars-ftcc"))
         print(f"{name:>6} {np.median(parts['combine']):>8.0f} {np.median(parts['propagate']):>9.0f} "
               f"{np.median(parts['update']):>7.0f}")
     if flight:
-        bench_flight()
+        bench_flight(rec)
+    rec.finish()
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """In-process real-time factor of a scenario, with a per-stage breakdown.
 
-    python benchmarks/bench_inproc.py [SCENARIO] [--duration S] [--no-log]
+    python benchmarks/bench_inproc.py [SCENARIO] [--duration S] [--no-log] [--no-noise] [--quick] [--json]
 
 Default: the bundled 3x2 spiral at 500 Hz physics / 100 Hz control, noise on (EKF in the loop).
 Also times bare JSBSim stepping of the same assembly in the same run, so the ratio to the physics
@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from record import Recorder, add_json_option, apply_quick
 from mars_link.flight.runner import run_scenario
 from mars_link.config.scenario import load_scenario
 
@@ -42,7 +43,11 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=None)
     ap.add_argument("--no-log", action="store_true", help="do not write the run directory")
     ap.add_argument("--no-noise", action="store_true", help="perfect sensors: the controller flies on the truth")
+    ap.add_argument("--quick", action="store_true", help="a 5 s flight")
+    add_json_option(ap)
     args = ap.parse_args()
+    apply_quick(ap, args, duration=5.0)
+    rec = Recorder.start("bench_inproc", args)
     sc = load_scenario(args.scenario)
     if args.duration:
         sc.sim.duration_s = args.duration
@@ -84,6 +89,17 @@ def main() -> None:
     print(f"world and units alone (physics + sensors + motors): {plant_us:.1f} us per physics step, "
           f"{plant_us * phys_rate / 1e6:.2f}x bare JSBSim's step: at most {sim_t / plant_s:.1f}x real time with "
           "the coordinator and logging free")
+    what = f"{sc.name}, {sim_t:.1f} s, noise {sc.sim.noise}, run directory {'off' if args.no_log else 'on'}"
+    rec.figure("rtf_wall", summary["real_time_factor"], "x real time", what)
+    rec.figure("rtf_cpu", sim_t / cpu_s, "x real time", "per CPU second")
+    rec.figure("bare_jsbsim_same_body", bound, "x real time", "bare JSBSim stepping of the same assembly, this run")
+    rec.headline("loop_vs_bare_jsbsim", summary["real_time_factor"] / bound, "ratio",
+                 f"{what}: the full loop's RTF / bare JSBSim's of the same body (same run)")
+    for name, sec in stage.items():
+        rec.figure(f"stage_{name}_us", 1e6 * sec / steps, "us", "per physics step")
+    rec.figure("plant_vs_bare_step", plant_us * phys_rate / 1e6, "bare JSBSim steps",
+               "physics + sensors + motors per physics step")
+    rec.finish()
 
 
 if __name__ == "__main__":

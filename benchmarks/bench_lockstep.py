@@ -6,6 +6,7 @@ process spends per simulated second, and the per-message costs on its path.
         [--transport udp,zenoh] [--units-per-process 1,5] [--n N] [--repeats R]
     python benchmarks/bench_lockstep.py --layout XXXXX,XXXXX,XXXXX,XXXXX,XXXXX --transport udp,zenoh \\
         --units-per-process 1,5 --n 0     # 5x5: 25 unit processes, then 5 processes of 5
+    python benchmarks/bench_lockstep.py --quick --json   # one run, fewer calls; write the results file
 
 RTF = simulated time / wall time of the world's stepping loop (start-up excluded; printed apart).
 Wake-ups per step: the times each process's main thread went to sleep in its stepping loop (voluntary
@@ -30,6 +31,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from bench_mavlink import best_us
+from record import Recorder, add_json_option, apply_quick
 from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL, Vehicle, VehicleConfig
 from mars_link.core.messages import ActuatorOutput, ImuSample, PositionSample, RotorCommand, SensorPacket
 from mars_link.core.state import RigidBodyState
@@ -159,7 +161,10 @@ def main() -> None:
     ap.add_argument("--units-per-process", default="1", help="K unit firmwares per process; several: 1,5")
     ap.add_argument("--n", type=int, default=2000, help="calls per timing run (message costs; 0: skip them)")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--quick", action="store_true", help="one lockstep run, 500 calls x 2 per message cost")
+    add_json_option(ap)
     a = ap.parse_args()
+    apply_quick(ap, a, runs=1, n=500, repeats=2)
     try:
         transports = [t for t in a.transport.split(",")]
         ks = [int(k) for k in a.units_per_process.split(",")]
@@ -167,13 +172,16 @@ def main() -> None:
         ap.error(f"--units-per-process {a.units_per_process!r}: expected integers, e.g. 1,5")
     if any(t not in ("udp", "zenoh") for t in transports) or any(k < 1 for k in ks) or a.runs < 0 or a.n < 0:
         ap.error("--transport is udp and/or zenoh, --units-per-process >= 1, --runs and --n >= 0")
+    rec = Recorder.start("bench_lockstep", a)
     if a.n > 0:
         rows = message_costs(a.n, a.repeats)
         width = max(len(k) for k, _ in rows)
         print(f"{'per exchange, one unit':<{width}}  {'us/call':>9}")
         for k, us in rows:
             print(f"{k:<{width}}  {us:>9.1f}")
+            rec.figure(k, us, "us", "per call, best of the repeats")
     if a.runs == 0:
+        rec.finish()
         return
     table = []
     for transport in transports:
@@ -194,6 +202,11 @@ def main() -> None:
             rtf = [r["rtf"] for r in runs]
             unit_ms = statistics.median(1e3 * r["cpu"]["units"] / r["sim_s"] / r["units"] for r in runs)
             table.append((transport, k, r0["processes"], statistics.median(rtf), max(rtf), unit_ms))
+            what = f"{Path(a.scenario).stem}, {r0['units']} units, {transport}, {k} unit(s) per process"
+            fig = rec.headline if (transport, k) == (transports[0], ks[0]) else rec.figure
+            fig(f"rtf_{transport}_k{k}", statistics.median(rtf), "x real time",
+                f"{what}: lockstep RTF, median of {len(runs)} (read beside the bare-JSBSim rate)")
+            rec.figure(f"unit_cpu_ms_per_sim_s_{transport}_k{k}", unit_ms, "ms", f"{what}: unit CPU per simulated s")
     print(f"\n{'transport':>9} {'K':>3} {'processes':>9} {'RTF median':>10} {'RTF best':>8} {'unit CPU ms per sim s':>22}")
     for t, k, procs, med, best, unit_ms in table:
         print(f"{t:>9} {k:>3} {procs:>9} {med:>9.2f}x {best:>7.2f}x {unit_ms:>22.1f}")
@@ -202,6 +215,7 @@ def main() -> None:
         if k != 1 and base[t] is not None:
             print(f"  {t} K={k} / K=1: RTF {med / base[t][3]:.2f}x, unit CPU {unit_ms / base[t][5]:.2f}x")
     print(f"load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (the machine is shared; compare rows of one run)")
+    rec.finish()
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ model step. Best of `--repeats` runs of `--n` calls (the machine is shared).
 Reference (specs/mavlink.md §4.2, pymavlink 2.4.50 on 2 vCPU): pack ~8.5 us, parse ~14.5 us unsigned,
 ~16.5 us with signature verification.
 
-    python benchmarks/bench_mavlink.py [--n N] [--repeats R]
+    python benchmarks/bench_mavlink.py [--n N] [--repeats R] [--quick] [--json]
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import time
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from record import Recorder, add_json_option, apply_quick
 from firmware_models.motor import MotorModel, MotorParams
 from mars_link.mavlink.signing import SignatureVerifier, enable_outgoing_signing
 from firmware_models.vehicle import LINK_API, LINK_COORDINATOR, Vehicle, VehicleConfig, split_frames
@@ -41,7 +42,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--n", type=int, default=5000, help="calls per run")
     ap.add_argument("--repeats", type=int, default=5, help="runs per case; the best is reported")
+    ap.add_argument("--quick", action="store_true", help="1000 calls, 2 runs per case")
+    add_json_option(ap)
     a = ap.parse_args()
+    apply_quick(ap, a, n=1000, repeats=2)
+    rec = Recorder.start("bench_mavlink", a)
     n, r = a.n, a.repeats
     rows: list[tuple[str, float]] = []
 
@@ -134,6 +139,9 @@ def main() -> None:
     print(f"{'case':<{width}}  {'us/call':>9}  {'calls/s':>10}")
     for k, us in rows:
         print(f"{k:<{width}}  {us:>9.2f}  {1e6 / us:>10,.0f}")
+        fig = rec.headline if k == "Vehicle.handle signed rotor command (accepted)" else rec.figure
+        fig(k, us, "us", "per call, best of the runs")
+    rec.finish()
 
 
 if __name__ == "__main__":

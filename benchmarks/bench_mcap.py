@@ -1,6 +1,7 @@
 """What run.mcap and the live Foxglove view cost (mars_link.flight.flight_view), measured in one invocation.
 
     python benchmarks/bench_mcap.py [--runs 3] [--duration S] [--size-duration 10] [--rt-runs 2] [--rt-duration 8]
+        [--quick] [--json]
 
 1. In-process real-time factor of the default scenario (3x2 spiral, its whole flight unless --duration) with run.mcap on and off, runs alternated
    (off, on, off, on, ...); wall time of the whole run (the writer process finishing its file included);
@@ -27,11 +28,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from record import Recorder, add_json_option, apply_quick  # noqa: E402
 from mars_link.flight.runner import run_scenario  # noqa: E402
 from mars_link.config.scenario import load_scenario  # noqa: E402
 
 
-def inproc_rtf(duration_s: float, runs: int, tmp: Path) -> None:
+def inproc_rtf(duration_s: float, runs: int, tmp: Path, rec: Recorder) -> None:
     sc = load_scenario("spiral_3x2")
     if duration_s is not None:
         sc.sim.duration_s = duration_s
@@ -65,9 +67,13 @@ def inproc_rtf(duration_s: float, runs: int, tmp: Path) -> None:
     c_on, c_off = statistics.median(cpu[True]), statistics.median(cpu[False])
     print(f"   median CPU per run: off {c_off:.2f} s, on {c_on:.2f} s -> CPU-bound RTF on/off = {c_off / c_on:.3f} "
           "(what a fully loaded machine would see)")
+    rec.figure("rtf_mcap_off", off, "x real time", f"spiral_3x2, {duration_s:.0f} s, median of {runs}")
+    rec.figure("rtf_mcap_on", on, "x real time", f"spiral_3x2, {duration_s:.0f} s, median of {runs}")
+    rec.headline("mcap_on_vs_off", on / off, "ratio", "in-process RTF with run.mcap / without (alternated; target >= 0.90)")
+    rec.figure("mcap_on_vs_off_cpu", c_off / c_on, "ratio", "CPU-bound RTF with run.mcap / without")
 
 
-def mcap_size(duration_s: float, tmp: Path) -> None:
+def mcap_size(duration_s: float, tmp: Path, rec: Recorder) -> None:
     print(f"2. run.mcap size per simulated minute ({duration_s:.0f} s flights)")
     cases = [("3x2 spiral", "spiral_3x2", None), ("10x10 hover", "hover_3x2", ["X" * 10] * 10)]
     for name, scenario, layout in cases:
@@ -83,6 +89,8 @@ def mcap_size(duration_s: float, tmp: Path) -> None:
         size = (out / "run.mcap").stat().st_size
         print(f"   {name:12}: {size / 1e6:6.2f} MB for {s['sim_time_s']:.0f} s -> "
               f"{size / 1e6 * 60.0 / s['sim_time_s']:6.2f} MB per simulated minute (run {wall:.1f} s wall)", flush=True)
+        rec.figure(f"mcap_mb_per_min_{name.replace(' ', '_')}", size / 1e6 * 60.0 / s["sim_time_s"], "MB/min",
+                   f"run.mcap per simulated minute, {name}")
 
 
 class _Client(threading.Thread):
@@ -103,7 +111,7 @@ class _Client(threading.Thread):
                 time.sleep(0.2)
 
 
-def realtime_deadlines(runs: int, duration_s: float, tmp: Path) -> None:
+def realtime_deadlines(runs: int, duration_s: float, tmp: Path, rec: Recorder) -> None:
     import socket
 
     from mars_link.apps.foxglove_probe import rates
@@ -145,6 +153,8 @@ def realtime_deadlines(runs: int, duration_s: float, tmp: Path) -> None:
         ratio = "" if rows is base else (f" -> p99 {p99 / statistics.median(r['p99_ms'] for r in base):.2f}x"
                                          f" of no server")
         print(f"   median {name:24}: p50 {p50:5.2f} ms  p99 {p99:5.2f} ms  misses {misses}/{n}{ratio}")
+        rec.figure(f"command_age_p99_{'live_view' if rows is not base else 'no_server'}_ms", p99, "ms",
+                   f"real-time SITL hover_3x2, {name}: command age at the motor, p99, median of {runs}")
 
 
 def main() -> int:
@@ -156,16 +166,21 @@ def main() -> int:
     ap.add_argument("--rt-duration", type=float, default=8.0)
     ap.add_argument("--skip-realtime", action="store_true")
     ap.add_argument("--only", choices=("rtf", "size", "realtime"), default=None, help="one part only")
+    ap.add_argument("--quick", action="store_true", help="two runs of each in-process flight (5 s), 3 s size runs, one 3 s real-time run of each")
+    add_json_option(ap)
     a = ap.parse_args()
+    apply_quick(ap, a, runs=2, duration=5.0, size_duration=3.0, rt_runs=1, rt_duration=3.0)
     if a.runs < 1 or a.rt_runs < 1 or not ((a.duration is None or a.duration > 0) and a.size_duration > 0 and a.rt_duration > 0):
         ap.error("--runs/--rt-runs must be >= 1 and durations > 0")
+    rec = Recorder.start("bench_mcap", a)
     with tempfile.TemporaryDirectory() as tmp:
         if a.only in (None, "rtf"):
-            inproc_rtf(a.duration, a.runs, Path(tmp))
+            inproc_rtf(a.duration, a.runs, Path(tmp), rec)
         if a.only in (None, "size"):
-            mcap_size(a.size_duration, Path(tmp))
+            mcap_size(a.size_duration, Path(tmp), rec)
         if a.only in (None, "realtime") and not a.skip_realtime:
-            realtime_deadlines(a.rt_runs, a.rt_duration, Path(tmp))
+            realtime_deadlines(a.rt_runs, a.rt_duration, Path(tmp), rec)
+    rec.finish()
     return 0
 
 

@@ -3,7 +3,7 @@ MISSION_REQUEST_INT / MISSION_ITEM_INT ... -> MISSION_ACK, one item per request 
 MAVSDK do) to a lone unit process (`mars_link.processes.udp_runner`, which also flies its JSBSim body in
 real time), then downloads them back. Median and best of `--repeats` runs per size.
 
-    python benchmarks/bench_mission_upload.py [--sizes 100 1000] [--repeats 5]
+    python benchmarks/bench_mission_upload.py [--sizes 100 1000] [--repeats 5] [--quick] [--json]
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink
 
 from mars_link.processes.udp_runner import free_udp_port, spawn_unit, stop_unit
+from record import Recorder, add_json_option, apply_quick
 
 HOME = (47.397742, 8.545594)
 
@@ -76,9 +77,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[100, 1000], help="items per upload (1..1000)")
     ap.add_argument("--repeats", type=int, default=5, help="uploads per size")
+    ap.add_argument("--quick", action="store_true", help="two uploads per size")
+    add_json_option(ap)
     a = ap.parse_args()
+    apply_quick(ap, a, repeats=2)
     if any(not 1 <= s <= 1000 for s in a.sizes) or a.repeats < 1:
         ap.error("--sizes must be 1..1000 (the unit stores 1000 mission items) and --repeats >= 1")
+    rec = Recorder.start("bench_mission_upload", a)
     bind = free_udp_port()
     proc, _ = spawn_unit(["--unit", "1", "--gcs-port", str(free_udp_port()), "--gcs-bind", str(bind),
                           "--api-port", str(free_udp_port()), "--api-bind", "0", "--coord-bind", "0"])
@@ -98,9 +103,15 @@ def main() -> None:
             print(f"{n:5d} items: upload median {statistics.median(up) * 1e3:7.1f} ms (best {min(up) * 1e3:.1f}), "
                   f"download median {statistics.median(down) * 1e3:7.1f} ms (best {min(down) * 1e3:.1f}), "
                   f"download re-requests {retries[0]}")
+            fig = rec.headline if n == a.sizes[-1] else rec.figure
+            fig(f"upload_{n}_items_ms", statistics.median(up) * 1e3, "ms",
+                f"{n} items, loopback UDP to one unit process, median of {a.repeats}")
+            rec.figure(f"download_{n}_items_ms", statistics.median(down) * 1e3, "ms",
+                       f"{n} items, median of {a.repeats}; {retries[0]} re-requests")
         conn.close()
     finally:
         stop_unit(proc)
+    rec.finish()
 
 
 if __name__ == "__main__":

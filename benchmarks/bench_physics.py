@@ -5,7 +5,7 @@ step, with and without reading the full state each step, for a single unit and a
 Best of `--repeats` runs (the machine is shared). Spec target (specs/dependencies.md §1.4): ~45 k
 steps/s for 6 units with per-step writes.
 
-    python benchmarks/bench_physics.py [--seconds S] [--repeats N]
+    python benchmarks/bench_physics.py [--seconds S] [--repeats N] [--quick] [--json]
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 
+from record import Recorder, add_json_option, apply_quick
 from mars_link.core.assembly import AssemblyModel
 from mars_link.core.rotations import euler_to_quat
 from mars_link.core.state import RigidBodyState
@@ -49,7 +50,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=2.0, help="simulated seconds per run")
     ap.add_argument("--repeats", type=int, default=3, help="runs per case; the best is reported")
+    ap.add_argument("--quick", action="store_true", help="0.5 s per run, one run per case")
+    add_json_option(ap)
     args = ap.parse_args()
+    apply_quick(ap, args, seconds=0.5, repeats=1)
+    rec = Recorder.start("bench_physics", args)
+    rates = {}
     print(f"{'layout':<8}{'rotors':>7}  {'thrust writes':<16}{'state read':<12}{'steps/s':>10}"
           f"{'us/step':>9}{'x real time':>13}")
     for name, layout in LAYOUTS:
@@ -57,8 +63,15 @@ def main() -> None:
         for every, label in ((1, "every step"), (5, "every 5th")):
             for read in (False, True):
                 r = steps_per_s(layout, every, read, args.seconds, args.repeats)
+                key = f"{name}_{'every' if every == 1 else 'every5'}_{'read' if read else 'noread'}"
+                rates[key] = r
+                rec.figure(f"steps_per_s_{key}", round(r), "steps/s",
+                           f"{name}, thrust writes {label}, state read {'yes' if read else 'no'}")
                 print(f"{name:<8}{rotors:>7}  {label:<16}{'yes' if read else 'no':<12}{r:>10,.0f}"
                       f"{1e6 / r:>9.1f}{r / PHYSICS_HZ:>13.1f}")
+    rec.headline("state_read_cost_3x2", rates["3x2_every_read"] / rates["3x2_every_noread"], "ratio",
+                 "3x2, writes every step: steps/s with a full state read every step / without (same run)")
+    rec.finish()
 
 
 if __name__ == "__main__":

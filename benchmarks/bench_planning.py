@@ -1,6 +1,6 @@
 """Planning time per stage: walls map (paper 000 scene) and a 50 m random forest.
 
-    python benchmarks/bench_planning.py [--repeats 5]
+    python benchmarks/bench_planning.py [--repeats 5] [--quick] [--json]
 
 End to end = map file loaded, SDF, clearance table, A*, back end, exact validation (in process,
 median of the repeats; wall clock, and this process's CPU time, which a busy machine inflates less),
@@ -24,6 +24,7 @@ import numpy as np  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from record import Recorder, add_json_option, apply_quick  # noqa: E402
 from mars_link.core.assembly import AssemblyModel  # noqa: E402
 from mars_link.apps.planning_eval import WALLS_CSV, WALLS_GOAL, WALLS_START  # noqa: E402
 from mars_link.planning.maps import ForestParams, load_map, random_forest  # noqa: E402
@@ -64,28 +65,36 @@ def forest_once(seed: int, method: str, density: float) -> dict:
     return st
 
 
-def report(name: str, runs: list[dict]) -> None:
+def report(name: str, runs: list[dict], rec: Recorder, headline: bool = False) -> None:
     med = {k: float(np.median([r.get(k, 0.0) for r in runs])) for k in STAGES}
     ok = sum(bool(r["success"]) for r in runs)
     minco = sum(r.get("back_end_name") == "minco" for r in runs)
     print(f"{name:<34} " + " ".join(f"{k} {med[k] * 1e3:7.1f} ms" for k in STAGES)
           + f"  ({ok}/{len(runs)} ok, {minco} by the MINCO back end)")
+    note = f"{name}: end to end in process, median of {len(runs)} ({ok} ok); CPU {med['cpu']:.3f} s"
+    key = name.replace("XXX,XXX", "3x2").replace("XXXX", "4x1").replace(" ", "_")
+    (rec.headline if headline else rec.figure)(key + "_total_s", med["total"], "s", note)
 
 
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--density", type=float, default=10.0)
+    ap.add_argument("--quick", action="store_true", help="one run per line, no `mars-link plan` subprocess")
+    add_json_option(ap)
     args = ap.parse_args()
+    apply_quick(ap, args, repeats=1)
+    rec = Recorder.start("bench_planning", args)
     print(f"median of {args.repeats} runs per line, in process, OPENBLAS_NUM_THREADS={os.environ['OPENBLAS_NUM_THREADS']}, "
           f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores (cpu = this process's CPU time)")
     for layout, unit in (("XXX,XXX", 2), ("XXXX", 3)):
         for method in ("ours", "svsdf"):
-            report(f"walls {layout} u{unit} {method}", [walls_once(layout, unit, method) for _ in range(args.repeats)])
+            report(f"walls {layout} u{unit} {method}", [walls_once(layout, unit, method) for _ in range(args.repeats)],
+                   rec, headline=(layout, method) == ("XXX,XXX", "ours"))
     for method in ("ours", "svsdf"):
         report(f"forest 50x20 m d={args.density:g} {method}",
-               [forest_once(seed, method, args.density) for seed in range(args.repeats)])
-    for method in ("ours", "svsdf"):
+               [forest_once(seed, method, args.density) for seed in range(args.repeats)], rec)
+    for method in () if args.quick else ("ours", "svsdf"):
         out = ROOT / "runs" / f"bench_plan_{method}"
         cmd = [sys.executable, "-m", "mars_link.apps.cli", "plan", str(resolve_data_path(WALLS_CSV)), "--layout", "XXX,XXX",
                "--fault", "2=0", "--start", ",".join(map(str, WALLS_START)), "--goal", ",".join(map(str, WALLS_GOAL)),
@@ -93,6 +102,8 @@ def main() -> int:
         t0 = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT)
         print(f"mars-link plan (subprocess, walls 3x2 u2 {method}): {time.perf_counter() - t0:.2f} s wall, exit {proc.returncode}")
+        rec.figure(f"cli_plan_{method}_s", time.perf_counter() - t0, "s", "whole `mars-link plan`, walls 3x2 u2, subprocess")
+    rec.finish()
     return 0
 
 

@@ -3,19 +3,20 @@ in one run, each built in a fresh child process (so each peak memory is its own)
 (retiming included) and the child's peak RSS. The minimum-snap system is banded (mars_link.models.trajectories),
 so both ratios should be near 2 (linear); a dense solve gave 8x the time and 4x the memory per doubling.
 
-    python benchmarks/bench_planning_waypoints.py [--sizes 2000 4000] [--json FILE]
+    python benchmarks/bench_planning_waypoints.py [--sizes 2000 4000] [--repeats 3] [--quick] [--json]
 
-`--json FILE` writes the date, the commit and the figures.
+Each size is built `--repeats` times (each in its own child); the fastest build is reported (other load on
+this shared machine only ever adds time).
 """
 
 from __future__ import annotations
 
 import argparse
-import datetime
 import json
-import os
 import subprocess
 import sys
+
+from record import Recorder, add_json_option, apply_quick
 
 _CHILD = r"""
 import json, resource, sys, time
@@ -47,42 +48,38 @@ def measure(n: int) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def commit() -> str | None:
-    try:
-        here = os.path.dirname(os.path.abspath(__file__))
-        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True,
-                              check=True).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        return None
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[2000, 4000], help="waypoint counts (default 2000 4000)")
-    ap.add_argument("--json", metavar="FILE", help="write the date, the commit and the figures to FILE")
+    ap.add_argument("--repeats", type=int, default=3, help="builds per size, each in a fresh child; the fastest counts")
+    ap.add_argument("--quick", action="store_true", help="1000 and 2000 waypoints")
+    add_json_option(ap)
     args = ap.parse_args()
+    apply_quick(ap, args, sizes=[1000, 2000])
+    rec = Recorder.start("bench_planning_waypoints", args)
     rows = []
     for n in args.sizes:
-        row = measure(n)
+        row = min((measure(n) for _ in range(max(args.repeats, 1))), key=lambda r: r["build_s"])
         rows.append(row)
         print(f"{n:6d} waypoints: build {row['build_s']:.3f} s, peak RSS {row['peak_rss_mib']:.0f} MiB "
               f"(before the build {row['rss_before_build_mib']:.0f} MiB), sample {row['sample_us']:.1f} us, "
               f"flight {row['duration_s']:.0f} s", flush=True)
+        rec.figure(f"build_{n}_s", row["build_s"], "s", f"{n} waypoints: minimum-snap build incl. retiming")
+        rec.figure(f"peak_rss_{n}_mib", row["peak_rss_mib"], "MiB", f"{n} waypoints, child's peak RSS")
     ratios = {}
     if len(rows) >= 2:
         a, b = rows[0], rows[-1]
-        grow = (b["peak_rss_mib"] - b["rss_before_build_mib"]) / max(a["peak_rss_mib"] - a["rss_before_build_mib"], 1e-9)
+        first_growth_mib = a["peak_rss_mib"] - a["rss_before_build_mib"]  # below 1 MiB: lost in the RSS's noise
+        grow = (b["peak_rss_mib"] - b["rss_before_build_mib"]) / first_growth_mib if first_growth_mib >= 1.0 else float("nan")
         ratios = {"waypoints": b["waypoints"] / a["waypoints"], "build_time": b["build_s"] / a["build_s"],
                   "build_memory": grow}
         print(f"{b['waypoints']} / {a['waypoints']} waypoints ({ratios['waypoints']:g}x): build time "
               f"{ratios['build_time']:.2f}x, memory grown by the build {ratios['build_memory']:.2f}x "
               f"(linear: about {ratios['waypoints']:g}x)")
-    if args.json:
-        doc = {"benchmark": "bench_planning_waypoints", "date": datetime.datetime.now(datetime.timezone.utc).isoformat(),
-               "commit": commit(), "rows": rows, "ratios": ratios}
-        with open(args.json, "w", encoding="utf-8") as f:
-            json.dump(doc, f, indent=2)
-            f.write("\n")
+        rec.headline("build_time_growth", ratios["build_time"], "ratio",
+                     f"build time {b['waypoints']} / {a['waypoints']} waypoints (linear: {ratios['waypoints']:g})")
+        rec.figure("build_memory_growth", ratios["build_memory"], "ratio", "memory grown by the build, same sizes")
+    rec.finish()
 
 
 if __name__ == "__main__":

@@ -3,6 +3,7 @@
 loopback UDP), run after run, with where the time goes.
 
     python benchmarks/bench_realtime.py [--runs 3] [--duration 30] [--transport udp|zenoh|zenoh,udp] [--png PATH]
+        [--quick] [--json]
 
 Command age at the motor = when a unit drives its motors with the coordinator's command for a step (its
 HIL_ACTUATOR_CONTROLS leaves for the simulator) - that step's sensor sample time (PX4's timestamp_sample
@@ -28,6 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from record import Recorder, add_json_option, apply_quick  # noqa: E402
 from mars_link.core.errors import UserInputError  # noqa: E402
 from mars_link.config.scenario import load_scenario  # noqa: E402
 from mars_link.runtime.scheduling import describe_classes  # noqa: E402
@@ -47,7 +49,10 @@ def main() -> int:
                     help="udp, zenoh, or both (zenoh,udp: runs alternate, medians and their ratio printed)")
     ap.add_argument("--scenario", default="hover_3x2")
     ap.add_argument("--png", default=None, help="write the command-age distribution of every run here")
+    ap.add_argument("--quick", action="store_true", help="one run of 8 s per transport")
+    add_json_option(ap)
     a = ap.parse_args()
+    apply_quick(ap, a, runs=1, duration=8.0)
     transports = a.transport.split(",")
     if a.runs < 1 or not a.duration > 0 or any(t not in ("udp", "zenoh") for t in transports):
         ap.error("--runs must be >= 1, --duration > 0, --transport udp and/or zenoh")
@@ -56,6 +61,7 @@ def main() -> int:
     except UserInputError as e:
         ap.error(str(e))
     sc = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, duration_s=a.duration))
+    rec = Recorder.start("bench_realtime", a)
     rows: dict[str, list] = {t: [] for t in transports}
     ages_by_run = []
     print(f"{a.runs} runs of {a.scenario}, {a.duration:.0f} s each, {' and '.join(transports)} (alternating), real time",
@@ -85,14 +91,22 @@ def main() -> int:
         p99 = statistics.median(r["p99_ms"] for r in ages)
         medians[transport] = (p50, p99)
         print(f"{transport}: median of runs p50 {p50:.2f} ms, p99 {p99:.2f} ms (target p99 < 5 ms)")
+        what = f"real-time SITL {a.scenario}, {transport}, {a.duration:g} s, median of {a.runs}"
+        rec.figure(f"command_age_p50_{transport}_ms", p50, "ms", what + ": command age at the motor, p50")
+        (rec.headline if transport == transports[0] else rec.figure)(
+            f"command_age_p99_{transport}_ms", p99, "ms", what + ": command age at the motor, p99 (target < 5 ms)")
+        rec.figure(f"deadline_misses_{transport}", sum(r["deadline_misses"] for r in ages), "commands",
+                   f"of {sum(r['n'] for r in ages)} over the 10 ms deadline")
     if len(medians) == 2:
         (z50, z99), (u50, u99) = medians["zenoh"], medians["udp"]
         print(f"zenoh / udp (same minutes): p50 {z50 / u50:.2f}x, p99 {z99 / u99:.2f}x")
+        rec.figure("zenoh_vs_udp_p99", z99 / u99, "ratio", "command age p99, Zenoh / UDP, runs alternated")
     print(f"idle CPUs: {wake}; load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (the machine is shared)")
     print(f"scheduling: {scheduling}")
     if a.png:
         _plot(ages_by_run, Path(a.png))
         print(f"wrote {a.png}")
+    rec.finish()
     return 0
 
 

@@ -1,6 +1,6 @@
 """Reconfiguration planning time vs size: paper 001 Fig. 6 "inversion" tests (spec §12.3).
 
-    python benchmarks/bench_reconfig.py [--sizes 8,16,...,100] [--exhaustive] [--plot PATH]
+    python benchmarks/bench_reconfig.py [--sizes 8,16,...,100] [--exhaustive] [--plot PATH] [--quick] [--json]
 
 Shapes (units numbered along the shape's path; the target puts the k-th unit from the end at the
 k-th cell from the start; fault-free, as the paper's timing runs presumably were):
@@ -26,6 +26,7 @@ import time
 
 import numpy as np
 
+from record import Recorder, add_json_option, apply_quick
 from mars_link.core.assembly import AssemblyModel
 from mars_link.reconfig import solve_placement
 from mars_link.reconfig.sequencing import Sequencer
@@ -156,7 +157,11 @@ def main() -> None:
     ap.add_argument("--exhaustive", action="store_true", help="also time the unpruned DP (N <= --exhaustive-max)")
     ap.add_argument("--exhaustive-max", type=int, default=64)
     ap.add_argument("--plot", metavar="PATH", help="save a log-log PNG of time vs modules")
+    ap.add_argument("--quick", action="store_true", help="sizes 8,16,32,50 and one run each")
+    add_json_option(ap)
     args = ap.parse_args()
+    apply_quick(ap, args, sizes="8,16,32,50", repeats=1)
+    rec = Recorder.start("bench_reconfig", args)
     sizes = [int(s) for s in args.sizes.split(",")]
     shapes = args.shapes.split(",")
     rows = []
@@ -177,6 +182,7 @@ def main() -> None:
                 continue
             slope, r2 = growth([r for r in sel if r[key] is not None], key)
             print(f"{shape:7s} {name:19s} growth order {slope:5.2f} (log-log slope, N >= 16); poly5 R^2 {r2:.4f}")
+            rec.figure(f"growth_{shape}_{key}", slope, "log-log slope", f"{shape}, {name}, N >= 16")
     print()
     for (shape, n), limit in TARGETS_S.items():
         hit = [r for r in rows if r["shape"] == shape and r["n"] == n]
@@ -184,9 +190,12 @@ def main() -> None:
             t = hit[0]["alg2"] + hit[0]["alg3"]
             print(f"target {shape}-{n}: {t:.3f} s planning (Alg. 2 + Alg. 3) < {limit} s: "
                   f"{'PASS' if t < limit else 'FAIL'}")
+            (rec.headline if (shape, n) == ("spiral", 50) else rec.figure)(
+                f"plan_{shape}_{n}_s", t, "s", f"{shape}-{n} inversion: Alg. 2 + Alg. 3 (target < {limit} s)")
     if args.plot:
         plot(rows, args.plot)
         print(f"plot written to {args.plot}")
+    rec.finish()
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """Issue 16's in-process figures, measured in one run (ratios on the same machine state).
 
-    python benchmarks/bench_scale.py [--quick] [--skip-flights]
+    python benchmarks/bench_scale.py [--quick] [--skip-flights] [--json]
 
 1. The default scenario (`mars-link run`: 3x2 spiral, 500 Hz physics, noise on, run.mcap written) as
    wall-clock and CPU-time real-time factors, with bare JSBSim stepping of the same body (per-step rotor
@@ -33,6 +33,7 @@ from mars_link.core.state import ImuSample, PositionSample
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_inproc import bare_physics_steps_per_s  # noqa: E402  (a sibling script)
+from record import Recorder, add_json_option  # noqa: E402
 
 SIDES = {1: (1, 1), 9: (3, 3), 25: (5, 5), 49: (7, 7), 100: (10, 10), 400: (20, 20)}
 
@@ -44,7 +45,7 @@ def timed_flight(scenario, out: Path | None, mcap: bool) -> tuple[dict, float]:
     return summary, time.process_time() - cpu0
 
 
-def default_scenario(duration_s: float | None) -> None:
+def default_scenario(duration_s: float | None, rec: Recorder) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         warm = load_scenario("spiral_3x2")
         warm.sim.duration_s = 0.5
@@ -68,9 +69,14 @@ def default_scenario(duration_s: float | None) -> None:
     steps = sim * sc.sim.control_hz
     print("  per control step (without run.mcap): " + ", ".join(
         f"{k} {1e6 * v / steps:.0f} us" for k, v in stages.items()))
+    rec.figure("default_rtf_mcap", with_mcap["real_time_factor"], "x real time", f"spiral_3x2, {sim:.1f} s, run.mcap on")
+    rec.figure("default_rtf_no_mcap", no_mcap["real_time_factor"], "x real time", "the same without run.mcap")
+    rec.figure("bare_jsbsim_same_body", bare, "x real time", "bare JSBSim stepping of the same body, this run")
+    rec.headline("default_loop_vs_bare_jsbsim", with_mcap["real_time_factor"] / bare, "ratio",
+                 "default scenario as `mars-link run` flies it: its RTF / bare JSBSim's of the same body (same run)")
 
 
-def helix(n: int, duration_s: float | None) -> None:
+def helix(n: int, duration_s: float | None, rec: Recorder) -> None:
     sc = load_scenario("helix_plus5")
     sc.layout = parse_layout(",".join(["X" * n] * n))
     sc.ftc = "qp"
@@ -84,9 +90,11 @@ def helix(n: int, duration_s: float | None) -> None:
           f"(setup included), completed {summary['completed']}, mean error {summary['mean_error_m'] * 1000:.1f} mm")
     steps = sim * sc.sim.control_hz
     print("  per control step: " + ", ".join(f"{k} {1e3 * v / steps:.2f} ms" for k, v in summary["stage_time_s"].items()))
+    rec.figure(f"helix_{n}x{n}_rtf", summary["real_time_factor"], "x real time",
+               f"{n * n} units, noise on, qp, {sim:.1f} s, wall; {sim / cpu_s:.2f}x per CPU second")
 
 
-def batched_against_one_by_one(n: int, duration_s: float, runs: int) -> None:
+def batched_against_one_by_one(n: int, duration_s: float, runs: int, rec: Recorder) -> None:
     """The in-process units' batched steady state (InProcessUnits.batched) against the units taken one by
     one, flights alternated in one run: the motors stage (every unit's firmware, command in to motor
     outputs out) and the whole flight."""
@@ -110,6 +118,8 @@ def batched_against_one_by_one(n: int, duration_s: float, runs: int) -> None:
     print(f"helix {n}x{n}, units batched vs one by one ({runs} flights each of {duration_s:g} s, alternated): "
           f"motors {med[True][0]:.0f} vs {med[False][0]:.0f} us per control step "
           f"({med[True][0] / med[False][0]:.2f}x), real time {med[True][1]:.2f}x vs {med[False][1]:.2f}x")
+    rec.figure(f"helix_{n}x{n}_batched_vs_one_by_one", med[True][1] / med[False][1], "ratio",
+               f"RTF with the units batched / one by one, {runs} alternated flights of {duration_s:g} s")
 
 
 def hover_ticks(model: AssemblyModel, n_ticks: int, seed: int = 0):
@@ -141,7 +151,7 @@ def estimator_cost(n_units: int, n_ticks: int) -> float:
     return best * 1e6
 
 
-def estimator_scaling(n_ticks: int) -> None:
+def estimator_scaling(n_ticks: int, rec: Recorder) -> None:
     ns = sorted(SIDES)
     costs = [estimator_cost(n, n_ticks if n <= 100 else max(40, n_ticks // 4)) for n in ns]
     print("estimator per control step (IMU every step, positions + velocities every 2nd):")
@@ -151,20 +161,26 @@ def estimator_scaling(n_ticks: int) -> None:
     slope_big = np.polyfit(np.log(ns[2:]), np.log(costs[2:]), 1)[0]
     print(f"  fitted log-log slope over N = 1..400: {slope:.2f}; over N = 25..400: {slope_big:.2f} "
           "(1.0 = linear; the joint update it replaced grows as N^2 in memory and N^3 in its solve)")
+    for n, c in zip(ns, costs):
+        rec.figure(f"estimator_n{n}_us", c, "us", f"estimator per control step, {n} units")
+    rec.figure("estimator_slope", slope, "log-log slope", "estimator cost against N = 1..400 (target <= 1.1)")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="shorter flights and fewer ticks (a look, not the figures)")
     ap.add_argument("--skip-flights", action="store_true", help="only the estimator's scaling")
+    add_json_option(ap)
     args = ap.parse_args()
     single_blas_thread()
+    rec = Recorder.start("bench_scale", args)
     if not args.skip_flights:
-        default_scenario(10.0 if args.quick else None)
-        helix(10, 5.0 if args.quick else None)
-        batched_against_one_by_one(10, 2.0 if args.quick else 5.0, 3)
-        helix(20, 2.0 if args.quick else None)
-    estimator_scaling(100 if args.quick else 400)
+        default_scenario(10.0 if args.quick else None, rec)
+        helix(10, 5.0 if args.quick else None, rec)
+        batched_against_one_by_one(10, 2.0 if args.quick else 5.0, 3, rec)
+        helix(20, 2.0 if args.quick else None, rec)
+    estimator_scaling(100 if args.quick else 400, rec)
+    rec.finish()
 
 
 if __name__ == "__main__":

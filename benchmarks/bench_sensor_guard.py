@@ -1,7 +1,7 @@
 """What the EKF's sensor-health gate (mars_link/models/sensor_health.py) costs: the in-process 3x2 spiral with
 the gate in front of the EKF (as every flight has it) against the bare EKF, alternated in one run.
 
-    python benchmarks/bench_sensor_guard.py [--duration 20] [--runs 3] [--sensors mocap|gps|both]
+    python benchmarks/bench_sensor_guard.py [--duration 20] [--runs 3] [--sensors mocap|gps|both] [--quick] [--json]
 
 Prints the CPU time per simulated second of each, their medians and the ratio (guarded / bare), and the
 gate's own share: the time inside SensorGuard.step minus the EKF's step it calls. `--sensors gps`: the
@@ -19,6 +19,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from record import Recorder, add_json_option, apply_quick  # noqa: E402
 from mars_link.flight.build import build_flight  # noqa: E402
 from mars_link.flight.engine import Engine  # noqa: E402
 from mars_link.config.scenario import load_scenario  # noqa: E402
@@ -31,7 +32,10 @@ def fly(duration_s: float, guarded: bool, sensors: str = "mocap") -> tuple[float
     sc.sim.duration_s = duration_s
     sc.sensors = PROFILES[sensors]
     flight = build_flight(sc, 1)
-    guard = flight.coordinator.estimator
+    coordinator = flight.coordinator  # (a flight of pieces: the docked structure is its one piece)
+    if hasattr(coordinator, "tracked_piece"):
+        coordinator = coordinator.tracked_piece().coordinator
+    guard = coordinator.estimator
     ekf = guard.ekf
     spent = {"guard": 0.0, "ekf": 0.0}
 
@@ -46,10 +50,10 @@ def fly(duration_s: float, guarded: bool, sensors: str = "mocap") -> tuple[float
 
     ekf.step = timed(ekf.step, "ekf")
     if guarded:
-        flight.coordinator.estimator = type("Timed", (), {"step": staticmethod(timed(guard.step, "guard")),
-                                                          "home": getattr(ekf, "home", None)})()
+        coordinator.estimator = type("Timed", (), {"step": staticmethod(timed(guard.step, "guard")),
+                                                   "home": getattr(ekf, "home", None)})()
     else:
-        flight.coordinator.estimator, flight.coordinator.guard, flight.coordinator.failsafe = ekf, None, None
+        coordinator.estimator, coordinator.guard, coordinator.failsafe = ekf, None, None
     cpu0 = time.process_time()
     Engine(flight).run()
     cpu = time.process_time() - cpu0
@@ -62,18 +66,23 @@ def main() -> None:
     ap.add_argument("--duration", type=float, default=20.0)
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--sensors", default="mocap", help="mocap | gps | both")
+    ap.add_argument("--quick", action="store_true", help="5 s flights, two runs")
+    add_json_option(ap)
     a = ap.parse_args()
+    apply_quick(ap, a, duration=5.0, runs=2)
     if a.duration <= 0 or a.runs < 1:
         print("error: --duration must be > 0 and --runs >= 1", file=sys.stderr)
         sys.exit(2)
     if a.sensors not in ("mocap", "gps", "both"):
         print(f"error: --sensors must be mocap, gps or both, got {a.sensors!r}", file=sys.stderr)
         sys.exit(2)
+    rec = Recorder.start("bench_sensor_guard", a)
     for sensors in (("mocap", "gps") if a.sensors == "both" else (a.sensors,)):
-        compare(a.duration, a.runs, sensors)
+        compare(a.duration, a.runs, sensors, rec)
+    rec.finish()
 
 
-def compare(duration_s: float, runs: int, sensors: str) -> None:
+def compare(duration_s: float, runs: int, sensors: str, rec: Recorder) -> None:
     fly(1.0, True, sensors)  # warm-up: imports and first-use costs
     rows = {True: [], False: []}
     for k in range(runs):
@@ -87,6 +96,10 @@ def compare(duration_s: float, runs: int, sensors: str) -> None:
     own = statistics.median(r[1] for r in rows[True])
     print(f"{sensors}: median CPU per simulated second: guarded {g * 1e3:.1f} ms, bare {b * 1e3:.1f} ms, "
           f"ratio {g / b:.3f}; the gate's own work {own * 1e3:.1f} ms ({own / g:.1%} of the guarded flight)", flush=True)
+    what = f"spiral_3x2 on {sensors}, {duration_s:g} s, median of the runs"
+    (rec.headline if not rec.figures else rec.figure)(f"guarded_vs_bare_{sensors}", g / b, "ratio",
+                                                     f"{what}: CPU per simulated s with the sensor gate / bare EKF")
+    rec.figure(f"gate_own_{sensors}_ms_per_sim_s", own * 1e3, "ms", f"{what}: the gate's own CPU per simulated s")
 
 
 if __name__ == "__main__":

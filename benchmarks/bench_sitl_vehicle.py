@@ -6,7 +6,7 @@ coordinator's CPU per control step (its loop, vehicle included).
 
 Arms and takes off by COMMAND_LONG bytes from a plain UDP client (pymavlink), no MAVSDK.
 
-    python benchmarks/bench_sitl_vehicle.py [--seconds S] [--transport udp|zenoh]
+    python benchmarks/bench_sitl_vehicle.py [--seconds S] [--transport udp|zenoh] [--quick] [--json]
 """
 
 from __future__ import annotations
@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
+
+from record import Recorder, add_json_option, apply_quick
 
 LOOP = "127.0.0.1"
 SYSID = 202
@@ -106,7 +108,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=10.0, help="measured wall seconds on the ground and in the air")
     ap.add_argument("--transport", default="udp", choices=("udp", "zenoh"))
+    ap.add_argument("--quick", action="store_true", help="4 s per phase")
+    add_json_option(ap)
     a = ap.parse_args()
+    apply_quick(ap, a, seconds=4.0)
+    rec = Recorder.start("bench_sitl_vehicle", a)
     base = port_block(8)
     out = Path(tempfile.mkdtemp(prefix="bench-sitl-vehicle-"))
     client = Client(base)
@@ -155,12 +161,22 @@ def main() -> int:
         r = "n/a" if rtt.size == 0 else f"{np.percentile(rtt, 50):.2f}/{np.percentile(rtt, 99):.2f}/{rtt.max():.2f}"
         print(f"{phase:10s} {r:>28s} {f'{rtt.size}/{asked}':>9s} {hb.max():21.0f} "
               f"{f'{np.percentile(pos, 50):.0f}/{pos.max():.0f}':>34s}")
+        key = phase.split()[0]
+        if rtt.size:
+            (rec.headline if key == "hover" else rec.figure)(
+                f"command_rtt_p50_{key}_ms", np.percentile(rtt, 50), "ms",
+                f"{phase}, {a.transport}: REQUEST_MESSAGE -> COMMAND_ACK on the api link, p50 ({rtt.size}/{asked} answered)")
+            rec.figure(f"command_rtt_p99_{key}_ms", np.percentile(rtt, 99), "ms", f"{phase}: the same, p99")
+        rec.figure(f"heartbeat_gap_max_{key}_ms", hb.max(), "ms", f"{phase}: longest gap between HEARTBEATs")
     steps = max(world["steps"], 1)
     print(f"world: {world['sim_time_s']:.1f} s simulated in {world['wall_time_s']:.1f} s wall "
           f"(real-time factor {world['real_time_factor']:.3f}), dead units {world['dead_units']}")
     print(f"coordinator (vehicle included): {coord['cpu_loop_s'] / steps * 1e3:.2f} ms CPU per control step "
           f"over {steps} steps")
     print(f"run directory {out}")
+    rec.figure("world_rtf", world["real_time_factor"], "x real time", "paced to real time: 1.0 is on time")
+    rec.figure("coordinator_cpu_per_step_ms", coord["cpu_loop_s"] / steps * 1e3, "ms", "vehicle included")
+    rec.finish()
     return 0
 
 

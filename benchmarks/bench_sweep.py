@@ -1,7 +1,7 @@
 """What local parallel workers buy a sweep (mars-link sweep), measured in one invocation.
 
     python benchmarks/bench_sweep.py [--flights 200] [--workers 1,2] [--rounds 4] [--dask 2]
-                                     [--scenario spiral_3x2] [--faults random:1]
+                                     [--scenario spiral_3x2] [--faults random:1] [--quick] [--json]
 
 The same sweep (default: 200 flights of the bundled 3x2 spiral, full length, each with one random
 rotor failure, eta 0, drawn from the sweep seed and the flight's slot) flown in full by each worker
@@ -29,6 +29,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from record import Recorder, add_json_option, apply_quick  # noqa: E402
 from mars_link.apps.sweep import RESULT_FIELDS, parse_faults, plan_sweep, read_scenario_doc  # noqa: E402
 from mars_link.apps.sweep_cli import run_sweep  # noqa: E402
 from mars_link.apps.sweep_pool import PoolSpec, open_pool  # noqa: E402
@@ -74,7 +75,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenario", default="spiral_3x2")
     ap.add_argument("--faults", default="random:1")
     ap.add_argument("--dask", type=int, default=0, help="also on a Dask LocalCluster of this many worker processes")
+    ap.add_argument("--quick", action="store_true", help="4 flights in 2 rounds")
+    add_json_option(ap)
     args = ap.parse_args(argv)
+    apply_quick(ap, args, flights=4, rounds=2)
+    rec = Recorder.start("bench_sweep", args)
     counts = [int(w) for w in args.workers.split(",")]
     doc, src = read_scenario_doc(args.scenario)
     plan = plan_sweep(doc, src, args.flights, None, parse_faults(args.faults))
@@ -124,6 +129,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {label} | {s['wall_s']:.1f} | {len(s['rows']) / s['wall_s']:.2f} | {s['cpu_s']:.0f} | "
               f"{s['cpu_s'] / s['wall_s']:.2f} | {min(s['loads']):.1f}-{max(s['loads']):.1f} | "
               f"{s['wall_s'] / base['wall_s']:.3f} |")
+        rec.figure(f"flights_per_s_{label.replace(' ', '_')}", len(s["rows"]) / s["wall_s"], "flights/s",
+                   f"{label} worker(s), {n} flights of {args.scenario}; {s['cpu_s'] / s['wall_s']:.2f} cores used")
+        if s is not base:
+            (rec.headline if label == str(counts[-1]) else rec.figure)(
+                f"wall_vs_{counts[0]}_{label.replace(' ', '_')}", s["wall_s"] / base["wall_s"], "ratio",
+                f"sweep wall time with {label} worker(s) / with {counts[0]} (rounds alternated)")
     if autogroup_on():
         print("(Linux autogroup is on: this session's processes share one CPU share against other sessions, so on a "
               "machine other sessions keep busy, more workers get little more CPU: read 'cores used')")
@@ -133,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     completed = sum(bool(row["completed"]) for row in base["rows"])
     print(f"\nidentical results per flight across {', '.join(label for label, _ in runs)} worker(s): {same} "
           f"({len(base['rows'])} flights; {completed} completed, {raised} raised)")
+    rec.figure("identical_results", same, "", "every flight's result columns identical across the worker counts")
+    rec.finish()
     if not same:
         for label, s in runs:
             for i, (a, b) in enumerate(zip(ref, results(s["rows"]))):

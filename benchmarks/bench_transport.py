@@ -12,7 +12,7 @@
 3. Per-frame cost per transport: pymavlink pack and parse, frame validation, and one frame's send ->
    receive inside one process (UDP sockets, two Zenoh peer sessions, two through a router, a pty pair).
 
-    python benchmarks/bench_transport.py [--cycles 1000] [--realtime-s 5] [--cpu-s 10] [--skip-sitl]
+    python benchmarks/bench_transport.py [--cycles 1000] [--realtime-s 5] [--cpu-s 10] [--skip-sitl] [--quick] [--json]
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ from pymavlink.dialects.v20 import common as mavlink
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
+from record import Recorder, add_json_option, apply_quick  # noqa: E402
 from mars_link.transport.framing import check_datagram  # noqa: E402
 from mars_link.transport.realtime import percentiles_ms  # noqa: E402
 from mars_link.transport.udp import UdpParams, UdpTransport  # noqa: E402
@@ -244,22 +245,34 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=2000)
     ap.add_argument("--cpu-s", type=float, default=10.0, help="sim seconds of the CPU-per-step run")
     ap.add_argument("--skip-sitl", action="store_true")
+    ap.add_argument("--quick", action="store_true", help="300 cycles, 500 frames, 3 s SITL runs")
+    add_json_option(ap)
     args = ap.parse_args()
     if args.relay:
         kind, unit, where, world_port = args.relay
         relay(kind, int(unit), where, int(world_port))
         return 0
+    apply_quick(ap, args, cycles=300, frames=500, realtime_s=3.0, cpu_s=3.0)
+    rec = Recorder.start("bench_transport", args)
     results = {"frames": bench_frames(args.frames)}
     print("per frame (best of 5):", json.dumps(results["frames"], indent=1))
+    for key, value in results["frames"].items():
+        rec.figure(key, value, "bytes" if key == "frame_bytes" else "us", "one SET_ACTUATOR_CONTROL_TARGET frame, best of 5")
     results["latency"] = [bench_latency(k, args.cycles) for k in ("zenoh", "zenoh-router", "udp")]
     for r in results["latency"]:
         print(f"command latency coordinator -> unit -> world, {r['transport']:12s}: p50 {r['p50_ms']:.3f} ms, "
               f"p99 {r['p99_ms']:.3f} ms, max {r['max_ms']:.3f} ms ({r['n']} commands, 6 unit processes, 100 Hz)")
+        rec.figure(f"latency_p50_{r['transport']}_ms", r["p50_ms"], "ms", "coordinator -> unit -> world, p50")
+        rec.figure(f"latency_p99_{r['transport']}_ms", r["p99_ms"], "ms", "coordinator -> unit -> world, p99")
+    by_kind = {r["transport"]: r for r in results["latency"]}
+    rec.headline("latency_p50_zenoh_vs_udp", by_kind["zenoh"]["p50_ms"] / by_kind["udp"]["p50_ms"], "ratio",
+                 "command latency p50 over Zenoh peers / over UDP (same run, 6 relay processes)")
     if not args.skip_sitl:
         results["step_cpu"] = [bench_step_cpu(k, args.cpu_s) for k in ("zenoh", "udp")]
         for r in results["step_cpu"]:
             print(f"lockstep SITL CPU per 100 Hz step (world + 6 units + coordinator), {r['transport']:5s}: "
                   f"{r['cpu_ms_per_step']:.2f} ms")
+            rec.figure(f"step_cpu_{r['transport']}_ms", r["cpu_ms_per_step"], "ms", "lockstep SITL CPU per 100 Hz step")
         # profiles on the coordinator <-> unit links; a lost frame would stall the lockstep for its timeouts,
         # so Wi-Fi is run with its latency and jitter but no loss
         runs = [("zenoh", None), ("udp", None), ("zenoh", "lan"), ("zenoh", "wifi,loss=0")]
@@ -268,7 +281,10 @@ def main() -> int:
             print(f"real-time 3x2 SITL, {r['transport']:18s}: command age at the motor p50 {r['command_age_p50_ms']:.2f} ms, "
                   f"p99 {r['command_age_p99_ms']:.2f} ms, max {r['command_age_max_ms']:.2f} ms; "
                   f"missed 10 ms deadlines {r['deadline_misses']} of {r['commands']}; world RTF {r['world_real_time_factor']:.3f}")
+            rec.figure(f"command_age_p99_{r['transport'].replace(' ', '_')}_ms", r["command_age_p99_ms"], "ms",
+                       f"real-time 3x2 SITL, {args.realtime_s:g} s: command age at the motor, p99")
     print(json.dumps(results))
+    rec.finish()
     return 0
 
 

@@ -2,7 +2,7 @@
 processes, over loopback UDP and over Zenoh (peer, TCP loopback, declared express publishers) with
 different ways of receiving, and with shared-memory buffers (zenoh.shm, unstable API).
 
-    python benchmarks/bench_zenoh_floor.py [--n 2000] [--bytes 200]
+    python benchmarks/bench_zenoh_floor.py [--n 2000] [--bytes 200] [--quick] [--json]
 
 Zenoh receive paths, both ends alike:
 - `zenoh`: a callback subscriber that answers in the callback (the least Python work a sample can cost);
@@ -33,6 +33,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+
+from record import Recorder, add_json_option, apply_quick  # noqa: E402
 
 
 def _zenoh_session(listen: str | None, connect: str | None, shm: bool):
@@ -237,16 +239,20 @@ def main() -> int:
     ap.add_argument("--kinds", default=",".join(KINDS), help=f"comma-separated, of {', '.join(KINDS)} (udp is "
                     "always measured: the ratios' base)")
     ap.add_argument("--pong", nargs=2, metavar=("KIND", "ENDPOINT"), help=argparse.SUPPRESS)
+    ap.add_argument("--quick", action="store_true", help="300 round trips per link")
+    add_json_option(ap)
     a = ap.parse_args()
     if a.pong:
         pong(a.pong[0], a.pong[1], a.bytes)
         return 0
+    apply_quick(ap, a, n=300)
     if a.n < 10 or not 16 <= a.bytes <= 60000:
         ap.error("--n must be >= 10 and --bytes 16..60000")
     kinds = ["udp"] + [k for k in a.kinds.split(",") if k and k != "udp"]
     unknown = sorted(set(kinds) - set(KINDS))
     if unknown:
         ap.error(f"--kinds: unknown {', '.join(unknown)} (expected some of {', '.join(KINDS)})")
+    rec = Recorder.start("bench_zenoh_floor", a)
     rows = []
     for k, kind in enumerate(kinds):
         print(f"[{k + 1}/{len(kinds)}] {kind} ...", file=sys.stderr, flush=True)
@@ -259,6 +265,11 @@ def main() -> int:
     print(f"{'link':>12} {'median us':>10} {'p99 us':>8} {'x UDP median':>13} {'ping CPU us':>12} {'answered':>9}")
     for kind, med, p99, cpu, got in rows:
         print(f"{kind:>12} {med:>10.0f} {p99:>8.0f} {med / udp[1]:>13.2f} {cpu:>12.0f} {got:>9}")
+        rec.figure(f"rtt_median_{kind}_us", med, "us", f"{a.bytes} B round trip between two processes; p99 {p99:.0f} us")
+        if kind != "udp":
+            (rec.headline if kind == "zenoh-link" else rec.figure)(
+                f"rtt_{kind}_vs_udp", med / udp[1], "ratio", f"median round trip over {kind} / over UDP (same run)")
+    rec.finish()
     return 0
 
 
