@@ -209,3 +209,23 @@ def test_fault_and_plot_writes_the_figure_and_flies_on(tmp_path: Path) -> None:
     after = float(re.search(r"max error after the fault:\s+(\S+) m", done.stdout).group(1))
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert after < 0.1 and after <= summary["max_error_m"] and not summary["diverged"]
+
+
+# ----------------------------------------------------------------------------- the listing
+def test_every_example_is_listed_documented_and_run_here() -> None:
+    """A new script in examples/ is named in its README (so in the docs page made from it) and run above."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("docs_examples_hook", EXAMPLES.parent / "docs" / "hooks" / "examples.py")
+    hook = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hook)
+    page = hook.examples_page()
+    readme = (EXAMPLES / "README.md").read_text(encoding="utf-8")
+    this_file = Path(__file__).read_text(encoding="utf-8")
+    scripts = sorted(p.name for p in EXAMPLES.glob("*.py"))
+    assert len(scripts) == 5
+    for name in scripts + ["mavproxy_mission.txt"]:
+        assert f"`{name}`" in readme and f"### {name}" in page, name
+    for name in scripts:
+        assert f'EXAMPLES / "{name}"' in this_file, f"{name} is not run by this test file"
+    assert "examples/README.md" in (EXAMPLES.parent / "README.md").read_text(encoding="utf-8")
