@@ -38,20 +38,22 @@ class MavproxyConsole:
         self.process = subprocess.Popen(["mavproxy.py", f"--master={master}", "--no-state"],
                                         stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                                         text=True)
+        assert self.process.stdin is not None and self.process.stdout is not None  # (both are pipes)
+        self.stdin, self.stdout = self.process.stdin, self.process.stdout
         self.lines: list[str] = []
         self.reader = threading.Thread(target=self._read, daemon=True)
         self.reader.start()
 
     def _read(self) -> None:
-        for line in self.process.stdout:
+        for line in self.stdout:
             line = line.rstrip()
             self.lines.append(line)
             print(f"  mavproxy| {line}", flush=True)
 
     def type(self, command: str) -> None:
         print(f"> {command}", flush=True)
-        self.process.stdin.write(command + "\n")
-        self.process.stdin.flush()
+        self.stdin.write(command + "\n")
+        self.stdin.flush()
 
     def wait_for(self, text: str, timeout_s: float, start: int = 0) -> int:
         """Wait until a line (from index `start` on) contains `text`; return the index after it."""
@@ -68,7 +70,7 @@ class MavproxyConsole:
     def close(self) -> None:
         """End of input, then SIGTERM, then SIGKILL: MAVProxy's console has no quit command that always works."""
         try:
-            self.process.stdin.close()
+            self.stdin.close()
         except OSError:
             pass
         for stop in (self.process.terminate, self.process.kill):

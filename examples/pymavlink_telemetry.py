@@ -17,6 +17,7 @@ import argparse
 import math
 import sys
 import time
+from typing import Any
 
 from pymavlink import mavutil
 
@@ -29,8 +30,8 @@ class Telemetry:
 
     def __init__(self, link) -> None:
         self.link = link
-        self.position = None
-        self.attitude = None
+        self.position: Any = None  # (pymavlink's messages are built at run time: no static types)
+        self.attitude: Any = None
         self.armed = False
         self.last_print_s = 0.0
 

@@ -1,8 +1,8 @@
 """Every script in examples/ runs as examples/README.md says, with short options, and does what it says.
 
-The scripts that fly `mars-link vehicle` get one started here (free ports, a status file with the
-world's truth), stopped by its PID; the MAVSDK and MAVProxy missions share one vehicle (each lands
-where its mission ends; each is judged from where it started), the rotor failure gets its own. While an
+The scripts that fly `mars-link vehicle` share one started here (free ports, a status file with the
+world's truth), stopped by its PID: each flight ends landed and disarmed and is judged from where it
+started; the rotor failure, which stays in the motors, flies last. While an
 example runs, the test samples the vehicle's truth: waypoints passed, altitude held, landing place.
 The in-process examples (sweep, fault and plot) are judged by their printed table and their figure."""
 
@@ -71,23 +71,25 @@ def closest_m(samples: list[dict], point: tuple[float, float, float]) -> float:
 
 
 @pytest.fixture(scope="module")
-def mission_vehicle(tmp_path_factory):
-    """One vehicle for the mission examples (each flies from wherever the last one landed)."""
-    vehicle = Vehicle(tmp_path_factory.mktemp("mission_vehicle"))
-    yield vehicle
-    assert vehicle.stop() == 0
+def vehicle(tmp_path_factory):
+    """One vehicle for the examples that fly it, in this file's order (pytest-xdist keeps a worker's tests
+    in file order): each flies from wherever the last one landed and is judged from there; the rotor
+    failure, which stays in the units' motors, comes last."""
+    shared = Vehicle(tmp_path_factory.mktemp("vehicle"))
+    yield shared
+    assert shared.stop() == 0
 
 
 # ----------------------------------------------------------------------------- MAVSDK
 @pytest.mark.slow
 @pytest.mark.sitl
 @pytest.mark.timeout(150)
-def test_mavsdk_mission_flies_the_assembly_through_its_waypoints(mission_vehicle: Vehicle, tmp_path: Path) -> None:
+def test_mavsdk_mission_flies_the_assembly_through_its_waypoints(vehicle: Vehicle, tmp_path: Path) -> None:
     pytest.importorskip("mavsdk.asyncio")
     leg_m, alt_m = 2.0, 2.0
-    start = mission_vehicle.status()["truth_position_ned_m"]
-    done, samples = run_sampling(mission_vehicle, [str(EXAMPLES / "mavsdk_mission.py"), "--url",
-                                                   f"udpin://127.0.0.1:{mission_vehicle.api_port}", "--leg", str(leg_m)],
+    start = vehicle.status()["truth_position_ned_m"]
+    done, samples = run_sampling(vehicle, [str(EXAMPLES / "mavsdk_mission.py"), "--url",
+                                                   f"udpin://127.0.0.1:{vehicle.api_port}", "--leg", str(leg_m)],
                                  120.0, tmp_path)
     print(done.stdout, done.stderr[-2000:])
     assert done.returncode == 0, done.stderr[-2000:]
@@ -113,9 +115,9 @@ def test_mavsdk_mission_flies_the_assembly_through_its_waypoints(mission_vehicle
 @pytest.mark.sitl
 @pytest.mark.timeout(150)
 @pytest.mark.skipif(shutil.which("mavproxy.py") is None, reason="MAVProxy not installed")
-def test_mavproxy_mission_flies_the_wpl_file(mission_vehicle: Vehicle, tmp_path: Path) -> None:
-    done, samples = run_sampling(mission_vehicle, [str(EXAMPLES / "mavproxy_mission.py"), "--master",
-                                                   f"udpin:127.0.0.1:{mission_vehicle.gcs_port}"], 120.0, tmp_path)
+def test_mavproxy_mission_flies_the_wpl_file(vehicle: Vehicle, tmp_path: Path) -> None:
+    done, samples = run_sampling(vehicle, [str(EXAMPLES / "mavproxy_mission.py"), "--master",
+                                                   f"udpin:127.0.0.1:{vehicle.gcs_port}"], 120.0, tmp_path)
     print(done.stdout[-4000:], done.stderr[-2000:])
     assert done.returncode == 0, done.stderr[-2000:]
     # the file's waypoints, read back as the vehicle's local frame around home
@@ -142,16 +144,13 @@ def test_mavproxy_mission_flies_the_wpl_file(mission_vehicle: Vehicle, tmp_path:
 @pytest.mark.slow
 @pytest.mark.sitl
 @pytest.mark.timeout(150)
-def test_pymavlink_reads_telemetry_and_fails_a_rotor_the_assembly_flies_on(tmp_path: Path) -> None:
-    vehicle = Vehicle(tmp_path)  # its own: the failure stays in the units' motors
-    try:
-        start = vehicle.status()["truth_position_ned_m"]
-        done, samples = run_sampling(vehicle, [str(EXAMPLES / "pymavlink_telemetry.py"), "--url",
-                                               f"udpin:127.0.0.1:{vehicle.gcs_port}", "--watch", "3"], 120.0, tmp_path)
-    finally:
-        rc = vehicle.stop()
+def test_pymavlink_reads_telemetry_and_fails_a_rotor_the_assembly_flies_on(vehicle: Vehicle, tmp_path: Path) -> None:
+    start = vehicle.status()["truth_position_ned_m"]
+    assert sum(vehicle.status()["unit_eta"]) == 24.0  # (no failure yet: this test is the vehicle's last)
+    done, samples = run_sampling(vehicle, [str(EXAMPLES / "pymavlink_telemetry.py"), "--url",
+                                           f"udpin:127.0.0.1:{vehicle.gcs_port}", "--watch", "3"], 120.0, tmp_path)
     print(done.stdout[-4000:], done.stderr[-2000:])
-    assert done.returncode == 0 and rc == 0, done.stderr[-2000:]
+    assert done.returncode == 0, done.stderr[-2000:]
     out = done.stdout
     assert "COMMAND_ACK: MAV_CMD_INJECT_FAILURE MAV_RESULT_ACCEPTED" in out
     assert "STATUSTEXT: Fault: unit 2 rotor 2 eta 0.5" in out and "STATUSTEXT: Realloc" in out
