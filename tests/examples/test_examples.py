@@ -228,3 +228,20 @@ def test_every_example_is_listed_documented_and_run_here() -> None:
     for name in scripts:
         assert f'EXAMPLES / "{name}"' in this_file, f"{name} is not run by this test file"
     assert "examples/README.md" in (EXAMPLES.parent / "README.md").read_text(encoding="utf-8")
+
+
+def test_the_vehicle_examples_default_to_the_ports_of_mars_link_vehicle() -> None:
+    """Without options, each vehicle example talks to a `mars-link vehicle` started without options."""
+    import argparse
+
+    from mars_link.apps.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    defaults = {a.dest: a.default for a in sub.choices["vehicle"]._actions}
+    expected = {"mavsdk_mission.py": f"udpin://127.0.0.1:{defaults['api_port']}",
+                "pymavlink_telemetry.py": f"udpin:127.0.0.1:{defaults['gcs_port']}",
+                "mavproxy_mission.py": f"udpin:127.0.0.1:{defaults['gcs_port']}"}
+    readme = (EXAMPLES / "README.md").read_text(encoding="utf-8")
+    for name, url in expected.items():
+        assert f'default="{url}"' in (EXAMPLES / name).read_text(encoding="utf-8"), name
+        assert url in readme, url
