@@ -20,6 +20,7 @@ import sys
 import time
 
 from mavsdk.asyncio import ComponentType, Configuration, Mavsdk
+from mavsdk.asyncio.exceptions import MavsdkConnectionError
 from mavsdk.asyncio.plugins.action import ActionAsync
 from mavsdk.asyncio.plugins.mission import MissionAsync
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync
@@ -109,6 +110,9 @@ def main() -> int:
     args = parser.parse_args()
     try:
         asyncio.run(fly(args))
+    except MavsdkConnectionError as exc:  # a malformed URL, a port in use
+        print(f"mavsdk_mission: cannot connect on {args.url}: {exc}", file=sys.stderr)
+        return 2
     except TimeoutError as exc:
         print(f"mavsdk_mission: {exc}", file=sys.stderr)
         return 1

@@ -90,7 +90,11 @@ def main() -> int:
     parser.add_argument("--timeout", type=float, default=30.0, help="give up on any one step after this many seconds")
     args = parser.parse_args()
 
-    link = mavutil.mavlink_connection(args.url, source_system=255, source_component=190)
+    try:
+        link = mavutil.mavlink_connection(args.url, source_system=255, source_component=190)
+    except (OSError, ValueError) as exc:  # a host that does not resolve, a port in use, a malformed URL
+        print(f"pymavlink_telemetry: cannot open {args.url}: {exc}", file=sys.stderr)
+        return 2
     print(f"waiting for a heartbeat on {args.url} ...", flush=True)
     if link.wait_heartbeat(timeout=args.timeout) is None:
         print(f"pymavlink_telemetry: no heartbeat on {args.url} (is `mars-link vehicle` running?)", file=sys.stderr)
