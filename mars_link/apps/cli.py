@@ -105,16 +105,13 @@ def cmd_run(args) -> int:
 
 
 def _log_kinds(text: str) -> frozenset[str]:
-    """`--logs ulog[,tlog]` -> the kinds; an unknown or not yet offered kind is one line (exit 2)."""
+    """`--logs ulog,tlog` -> the kinds; an unknown kind is one line (exit 2)."""
     from mars_link.logs import LOG_KINDS
 
     kinds = frozenset(k.strip() for k in text.split(",") if k.strip())
     unknown = sorted(kinds - set(LOG_KINDS))
     if unknown:
         raise argparse.ArgumentTypeError(f"unknown log kind {unknown[0]!r} (known: {', '.join(LOG_KINDS)})")
-    if "tlog" in kinds:
-        raise argparse.ArgumentTypeError("an in-process run writes no .tlog (its units exchange no MAVLink frames); "
-                                         "--mode sitl writes one per unit")
     return kinds
 
 
@@ -506,8 +503,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_link(run, "the SITL processes (with --mode sitl)")
     _add_sitl_processes(run, "pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
     run.add_argument("--logs", type=_log_kinds, default=frozenset(), metavar="KINDS",
-                     help="per-unit logs beside the run's own, comma-separated: ulog (unit<id>.ulg, PX4's topics; "
-                          "in-process) - --mode sitl always writes unit<id>.tlog and unit<id>.ulg")
+                     help="per-unit logs of an in-process run, comma-separated: ulog (unit<id>.ulg, PX4's topics), "
+                          "tlog (unit<id>.tlog: the unit's MAVLink exchange with the coordinator, sim-time "
+                          "stamps); --mode sitl always writes both")
     _add_view(run)
     _add_plot_format(run)
     _add_quiet(run)

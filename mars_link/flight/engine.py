@@ -175,6 +175,8 @@ class StepView:
     t_s: float
     record: object  # coordinator.StepRecord of this step (None if the coordinator did not run)
     truth: RigidBodyState
+    telemetry: list = field(default_factory=list)  # the units' SensorPackets to the coordinator
+    commands: list = field(default_factory=list)  # the coordinator's RotorCommands to the units
 
 
 class Engine:
@@ -256,7 +258,7 @@ class Engine:
             for name in ("estimation", "control", "allocation"):
                 stage[name] += rec.timings_s[name]
         stage["motors"] += c3 - c2
-        view = StepView(self.steps, t, rec, world.truth())
+        view = StepView(self.steps, t, rec, world.truth(), telemetry, commands)
         for obs in self.observers:
             if obs.on_step(self, view):
                 self.stopped = True

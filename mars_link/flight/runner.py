@@ -32,6 +32,7 @@ def run_trial(
     realtime_rate: float = 0.0,
     view=None,
     ulog_dir: Path | None = None,
+    tlog_dir: Path | None = None,
 ) -> TrialResult:
     """One flight through the engine (mars_link.flight.engine): world, units and coordinator by direct calls.
 
@@ -40,6 +41,7 @@ def run_trial(
     `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time.
     `view` (flight_view.FlightView, or a callable flight -> one): run.mcap and/or the live Foxglove view.
     `ulog_dir`: each unit writes unit<id>.ulg there (trial i > 0: unit<id>_trial<i>.ulg; mars_link.logs).
+    `tlog_dir`: each unit's MAVLink exchange with the coordinator as unit<id>.tlog (mars_link.flight.unit_tlogs).
     """
     flight = build_flight(scenario, seed, unit_deaths)
     if ulog_dir is not None:
@@ -49,7 +51,15 @@ def run_trial(
         attach_ulogs(flight.units.vehicles, ulog_dir, name)
     recorder = FlightRecorder(flight, log, trial_index)
     view = view(flight) if callable(view) else view
-    engine = Engine(flight, [recorder] + ([view] if view is not None else []), Pacer(realtime_rate))
+    observers: list = [recorder] + ([view] if view is not None else [])
+    tlogs = None
+    if tlog_dir is not None:
+        from mars_link.flight.unit_tlogs import UnitTlogs
+
+        name = "unit{unit}.tlog" if trial_index == 0 else f"unit{{unit}}_trial{trial_index}.tlog"
+        tlogs = UnitTlogs(tlog_dir, flight.model.unit_ids, flight.model.vehicle.full_scale_thrust_n, name)
+        observers.append(tlogs)
+    engine = Engine(flight, observers, Pacer(realtime_rate))
     wall0 = time.perf_counter()
     try:
         engine.run(on_progress)
@@ -61,6 +71,10 @@ def run_trial(
             ulogs = close_ulogs(flight.units.vehicles)
             if log is not None:
                 log.add_closed_logs(ulogs)
+        if tlogs is not None:
+            statuses = tlogs.close()
+            if log is not None:
+                log.add_closed_logs(statuses)
         if view is not None:
             view.finish(engine)
         if log is not None:
@@ -112,7 +126,8 @@ def run_scenario(
     """Fly `trials` trials (seeds seed, seed+1, ...); write the run directory if `out_dir` is given.
     `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time.
     `mcap`: run.mcap in `out_dir` (trial i > 0: run_trial<i>.mcap); `live`: HOST:PORT of a live Foxglove view (flight_view).
-    `logs`: per-unit logs beside the run's own ("ulog": unit<id>.ulg in `out_dir`; mars_link.logs.LOG_KINDS).
+    `logs`: per-unit logs beside the run's own ("ulog": unit<id>.ulg, "tlog": unit<id>.tlog in `out_dir`;
+    mars_link.logs.LOG_KINDS).
     `plot_format`: plots/ as png (300 dpi), pdf or svg."""
     seed = scenario.sim.seed if seed is None else seed
     log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ),
@@ -124,7 +139,8 @@ def run_scenario(
             cb = None if on_progress is None else (lambda frac, i=i: on_progress(i, frac))
             view = _view_maker(scenario, out_dir if mcap else None, live, "run.mcap" if i == 0 else f"run_trial{i}.mcap")
             results.append(run_trial(scenario, seed + i, i, log, cb, realtime_rate=realtime_rate, view=view,
-                                     ulog_dir=out_dir if "ulog" in logs and out_dir is not None else None))
+                                     ulog_dir=out_dir if "ulog" in logs and out_dir is not None else None,
+                                     tlog_dir=out_dir if "tlog" in logs and out_dir is not None else None))
             if on_progress is not None:
                 on_progress(i, 1.0)
     finally:

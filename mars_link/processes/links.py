@@ -210,7 +210,7 @@ class Link:
 
     def _log(self, data: bytes) -> None:
         if self._tlog:
-            from mars_link.processes.vehicle_io import tlog_records
+            from mars_link.mavlink.tlog import tlog_records
 
             self._tlog.write(tlog_records(data))
 

@@ -28,6 +28,7 @@ RECV_BUFFER_BYTES = 4 * 1024 * 1024
 MAX_DATAGRAMS_PER_WAKE = 4000  # per socket: keep the control loop on time during a flood
 TLOG_MAX_BYTES = 100 * 2**20  # per .tlog file; then that log stops (one STATUSTEXT), the flight goes on
 PEER_TIMEOUT_S = 10.0  # a client link also serves the last sender of valid frames (MAVProxy udpout)
+from mars_link.mavlink.tlog import tlog_records  # noqa: F401  (its home is the MAVLink floor)
 from mars_link.processes.ports import API_BIND_BASE, API_PORT_BASE, COORD_BIND_BASE, GCS_BIND_BASE, GCS_PORT  # noqa: F401
 
 
@@ -192,24 +193,6 @@ class VehicleSockets:
             t.close()
         if self._tlog:
             self._tlog.close()
-
-
-def tlog_records(data: bytes, t_s: float | None = None) -> bytes:
-    """pymavlink .tlog records of one datagram: each frame preceded by its 8-byte big-endian
-    microsecond timestamp (a datagram may carry several frames; bytes that are no frame go as one)."""
-    stamp = int((time.time() if t_s is None else t_s) * 1e6).to_bytes(8, "big")
-    parts = []
-    i, n = 0, len(data)
-    while i < n:
-        if data[i] == 0xFD and i + 3 <= n:
-            size = 12 + data[i + 1] + (13 if data[i + 2] & 0x01 else 0)
-        elif data[i] == 0xFE and i + 2 <= n:
-            size = 8 + data[i + 1]
-        else:
-            size = n - i
-        parts.append(stamp + data[i:i + size])
-        i += size
-    return b"".join(parts)
 
 
 def vehicle_status(vehicle: Vehicle, truth: RigidBodyState | None, sim_time_s: float, **extra) -> dict:
