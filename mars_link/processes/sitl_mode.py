@@ -142,6 +142,8 @@ def write_scenario_copy(scenario, path: Path) -> Path:
     }
     if not doc["faults"]:
         del doc["faults"]
+    if scenario.unit_interface != "mavlink":
+        doc["units"] = {"interface": scenario.unit_interface}
     if scenario.reconfig:
         doc["reconfig"] = dict(scenario.reconfig)
     if scenario.docking:
