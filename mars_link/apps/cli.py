@@ -426,6 +426,10 @@ def _add_link(p, roles: str) -> None:
     p.add_argument("--link-profile", default=None, metavar="PROFILE",
                    help="ideal | lan | wifi | radio57600 [,key=value...]: delays and losses on the coordinator <-> "
                         "unit links (zenoh only; default: none)")
+    p.add_argument("--unit-interface", choices=("mavlink", "px4-zenoh"), default=None,
+                   help="how the units are commanded: mavlink (SET_ACTUATOR_CONTROL_TARGET) or px4-zenoh (PX4 "
+                        "v1.17's OffboardControlMode + ActuatorMotors over rmw_zenoh, /px4_<unit id>/fmu/...; needs "
+                        "--transport zenoh); default: the scenario's [units] interface")
 
 
 def _add_sitl_processes(p, realtime_help: str) -> None:

@@ -199,6 +199,10 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
                       realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
                       on_progress=None, view: tuple[str, ...] = ("--mcap",), units_per_process: int = 1) -> dict:
     """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary."""
+    link = link or LinkSpec("zenoh")
+    if link.unit_interface:  # (the command line over the scenario's [units] interface)
+        scenario = replace(scenario, unit_interface=link.unit_interface)
+    check_unit_interface(scenario, link)
     pieces = scenario.has_pieces
     seed = scenario.sim.seed if seed is None else seed
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
@@ -224,6 +228,15 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     if pieces:
         return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime)
     return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held)
+
+
+def check_unit_interface(scenario, link: LinkSpec) -> None:
+    """PX4's interface needs Zenoh and a flight it can carry (UserInputError, one line)."""
+    link.check_unit_interface(scenario.unit_interface)
+    if scenario.unit_interface == "px4-zenoh":
+        from mars_link.flight.build import check_px4_interface
+
+        check_px4_interface(scenario, scenario.model())
 
 
 @contextlib.contextmanager
@@ -633,7 +646,11 @@ def link_from_args(args) -> LinkSpec:
 
     if not re.match(r"^[A-Za-z0-9_-]+$", fleet):
         raise UserInputError(f"--fleet {fleet!r}: letters, digits, _ and - only")
-    return LinkSpec(kind, fleet, "client", connect, listen, profile)
+    link = LinkSpec(kind, fleet, "client", connect, listen, profile,
+                    unit_interface=getattr(args, "unit_interface", None))
+    if link.unit_interface:
+        link.check_unit_interface(link.unit_interface)
+    return link
 
 
 def sitl_runner(args):

@@ -46,13 +46,13 @@ class Px4Commander:
     def taken_over(self) -> bool:
         return {VehicleCommand.VEHICLE_CMD_DO_SET_MODE, VehicleCommand.VEHICLE_CMD_COMPONENT_ARM_DISARM} <= self.acked
 
-    def step(self, t_s: float, thrusts_n: np.ndarray) -> list[tuple[rz.Px4Topic, Any]]:
+    def step(self, t_s: float, thrusts_n: np.ndarray, *, count: bool = True) -> list[tuple[rz.Px4Topic, Any]]:
         """The messages of one control step, in the order they must be handled."""
         stamp = time_us(t_s)
         out: list[tuple[rz.Px4Topic, Any]] = []
         if self._step % self.keepalive_every == 0 or not self.taken_over:
             out.append((rz.OFFBOARD_CONTROL_MODE, OffboardControlMode(timestamp=stamp, direct_actuator=True)))
-        self._step += 1
+        self._step += int(count)
         if VehicleCommand.VEHICLE_CMD_DO_SET_MODE not in self.acked:
             out.append((rz.VEHICLE_COMMAND, self._command(stamp, VehicleCommand.VEHICLE_CMD_DO_SET_MODE,
                                                           MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, Px4MainMode.OFFBOARD)))
@@ -61,6 +61,12 @@ class Px4Commander:
                                                           VehicleCommand.ARMING_ACTION_ARM, 0)))
         out.append((rz.ACTUATOR_MOTORS, self.motors(stamp, thrusts_n)))
         return out
+
+    def take_over(self, t_s: float) -> list[tuple[rz.Px4Topic, Any]]:
+        """The keep-alive and the commands not acked yet, without motors: what a sender that waits for
+        the acks before the first ActuatorMotors sends first (samples on different keys may overtake
+        each other on the way)."""
+        return [m for m in self.step(t_s, np.zeros(0), count=False) if m[0] is not rz.ACTUATOR_MOTORS]
 
     def motors(self, stamp_us: int, thrusts_n: np.ndarray) -> ActuatorMotors:
         control = np.full(NUM_CONTROLS, np.nan, dtype=np.float32)
