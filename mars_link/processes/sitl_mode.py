@@ -80,7 +80,12 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     from mars_link.processes.lockstep import load_setup
 
     link = link or LinkSpec("zenoh")
-    load_setup(scenario, units, layout)  # bad input: refused before any session opens
+    setup = load_setup(scenario, units, layout)  # bad input: refused before any session opens
+    interface = link.unit_interface or setup.scenario.unit_interface
+    link.check_unit_interface(interface)
+    if interface == "px4-zenoh" and setup.pieces:
+        raise UserInputError("--unit-interface px4-zenoh carries no docking-latch commands: a flight of pieces "
+                             "needs the mavlink interface")
     session = SitlSession(None, link)
     role_links = {role: link for role in ("world", "coordinator", "unit")}
     if link.kind == "zenoh" and not link.connect:
@@ -706,6 +711,11 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
             where = session.router_endpoint or ", ".join(link.connect) or "none (peers: world and coordinator listen on 127.0.0.1)"
             print(f"zenoh: fleet {link.fleet!r}, router {where}" + (f" (+ {', '.join(link.listen)})" if link.listen else "")
                   + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>", flush=True)
+        if (link.unit_interface or session.run.setup.scenario.unit_interface) == "px4-zenoh":
+            print("px4: every unit speaks PX4 v1.17's per-rotor interface over rmw_zenoh (domain 0): subscribes "
+                  "/px4_<unit id>/fmu/in/{offboard_control_mode,actuator_motors,vehicle_command}, publishes "
+                  "/px4_<unit id>/fmu/out/{vehicle_status,vehicle_command_ack,vehicle_odometry,sensor_combined,"
+                  "battery_status,vehicle_local_position}", flush=True)
         if args.external_coordinator:
             attach = f"mars-link coordinator {scenario_path or ''} --out {out}"
             if args.signing_key_file:
