@@ -539,6 +539,13 @@ class UnitPorts:
     api_bind: int | None = None  # None: 14580 + index
 
 
+def px4_input_log_name(unit_id: int) -> str:
+    """A unit's log of the PX4-interface samples it received: one JSON object a line, in arrival order, with
+    the unit's sim time and the wall time on arrival, the key, and the CDR payload and attachment in hex
+    (what a replay feeds the firmware again, and where rotors.csv finds the commands)."""
+    return f"unit{unit_id}_px4_in.jsonl"
+
+
 def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, clients: list[UnitPorts],
               command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None,
               require_signing: bool = False, ulog: bool = True) -> int:
@@ -592,6 +599,7 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
             unit.io.close()
             if unit.px4_link is not None:
                 unit.px4_link.close()
+                unit.px4_log.close()
     return 0
 
 
@@ -627,6 +635,7 @@ class _UnitLoop:
         self.command_deadline: SilenceDeadline | None = None  # (while a HIL step waits for its command)
         vehicle.defer_own_state = setup.docked  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
         self.px4_link = None  # PX4's own interface over rmw_zenoh, beside the MAVLink persona (vehicle_px4)
+        self.px4_log = None  # every rmw_zenoh sample it received, as received (px4_input_log_name)
         self.command_age = ports.taps.get(unit_id)
         if sc.unit_interface == "px4-zenoh":
             from mars_link.processes.px4_link import Px4UnitLink
@@ -634,13 +643,17 @@ class _UnitLoop:
             vehicle.px4_keepalive_timeout = not os.environ.get(BROKEN_KEEPALIVE_ENV)  # (conformance: a test switch)
             vehicle.px4_interface()
             self.px4_link = Px4UnitLink(ports.zenoh_session(), vehicle.px4_endpoint)
+            self.px4_log = open(out / px4_input_log_name(unit_id), "w", encoding="utf-8")  # (replayable)
 
     def drain_px4(self) -> None:
         """Every rmw_zenoh sample received: into the firmware; its answers out (a HIL step it completes,
         command acks and status)."""
         vehicle, link, tap = self.vehicle, self.px4_link, self.command_age
+        log = self.px4_log
         for key, payload, attachment in link.take():
             now = time.time()
+            log.write(json.dumps({"sim_s": vehicle.sim_s, "wall_s": now, "key": key, "payload": payload.hex(),
+                                  "attachment": None if attachment is None else attachment.hex()}) + "\n")
             out, samples = vehicle.px4_sample(key, payload, attachment, now)
             if tap is not None and ACTUATOR_MOTORS_TOPIC in key and vehicle._last_rotor_usec is not None:
                 tap.on_command(vehicle._last_rotor_usec / 1e6, now)

@@ -51,12 +51,17 @@ class _Inbox:
         return self._wake.fileno()
 
     def take(self) -> list[Sample]:
-        self._armed = False
-        self._wake.clear()
+        """Every sample waiting. Disarmed only once the queue was seen empty after the wake-up was cleared:
+        a sample that came in while we drained either is taken here or sets the wake-up again (never one
+        left behind with the wake-up cleared and `_armed` still set, which would silence the link)."""
         out = []
-        while self._queue:
-            out.append(self._queue.popleft())
-        return out
+        while True:
+            while self._queue:
+                out.append(self._queue.popleft())
+            self._armed = False
+            self._wake.clear()
+            if not self._queue:
+                return out
 
     def close(self) -> None:
         self._wake.close()

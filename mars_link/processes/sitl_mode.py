@@ -545,6 +545,8 @@ def _write_rotor_log(log, scenario, model, out: Path) -> float:
                 cmd[u][m.time_usec] = np.array(m.controls[:4]) * scale
             elif msgid == 93 and m.get_srcSystem() == u:
                 drv[u][m.time_usec] = np.array(m.controls[:4]) * scale
+        if not cmd[u]:  # PX4's interface ([units] interface = "px4-zenoh"): the ActuatorMotors it received
+            cmd[u] = _px4_commands(out, u, scale)
     steps = sorted(set().union(*[set(d) for d in drv.values()])) if drv else []
     dt = 1.0 / scenario.sim.control_hz
     nan4 = np.full(4, np.nan)
@@ -555,6 +557,26 @@ def _write_rotor_log(log, scenario, model, out: Path) -> float:
         integral += float(np.sum(d * d)) * dt
         log.rotors(0, t_us / 1e6, c, d, eta_after(model, scenario.faults, t_us / 1e6))
     return integral if steps else math.nan
+
+
+def _px4_commands(out: Path, unit: int, scale: float) -> dict[int, np.ndarray]:
+    """time_usec -> commanded thrusts (N) of every ActuatorMotors in the unit's PX4 input log (none: {})."""
+    from mars_link.processes.lockstep import px4_input_log_name
+    from mars_link.px4 import cdr
+
+    path = out / px4_input_log_name(unit)
+    commands: dict[int, np.ndarray] = {}
+    if not path.exists():
+        return commands
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            record = json.loads(line)
+            if "/fmu/in/actuator_motors/" in record["key"]:
+                m = cdr.decode("ActuatorMotors", bytes.fromhex(record["payload"]))
+                commands[int(m.timestamp)] = np.asarray(m.control[:4], dtype=float) * scale
+        except (ValueError, KeyError, TypeError):  # a torn last line, a sample the unit dropped as malformed
+            continue
+    return commands
 
 
 def _detections(scenario, coordinator: dict, world: dict) -> list[dict]:

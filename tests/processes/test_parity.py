@@ -83,6 +83,8 @@ def test_sitl_flies_the_inproc_flight(tmp_path: Path, feature: str, transport: s
         for u in sc.model().unit_ids:
             stats = json.loads((tmp_path / "sitl" / f"unit{u}_status.json").read_text())["stats"]
             assert stats["px4.actuator_motors"] == stats["hil_steps"] and "rotor_commands" not in stats
+        rotors = np.genfromtxt(tmp_path / "sitl" / "rotors.csv", delimiter=",", names=True)  # commands from the
+        assert np.allclose(rotors["cmd_u1r1"], rotors["thrust_u1r1"], rtol=1e-5)  # units' PX4 input logs
     assert sitl["completed"] == inproc["completed"]
     a = np.genfromtxt(tmp_path / "inproc" / "telemetry.csv", delimiter=",", names=True)
     b = np.genfromtxt(tmp_path / "sitl" / "world_truth.csv", delimiter=",", names=True)  # the world's own truth
