@@ -10,6 +10,7 @@ name; the px4_msgs types used here have none.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 
@@ -50,8 +51,10 @@ def canonical_json(spec: d.MessageSpec) -> str:
                       separators=(", ", ": "), sort_keys=False)
 
 
+@functools.lru_cache(maxsize=None)
 def rihs01(spec: d.MessageSpec) -> str:
-    """'RIHS01_' + the SHA-256 of the canonical type description, in hex."""
+    """'RIHS01_' + the SHA-256 of the canonical type description, in hex (computed once per type: every
+    key of every sample names it)."""
     return RIHS01_PREFIX + hashlib.sha256(canonical_json(spec).encode("utf-8")).hexdigest()
 
 
