@@ -690,7 +690,27 @@ def build_parser() -> argparse.ArgumentParser:
     swp.add_argument("--mcap", action="store_true", help="each flight writes flights/<i>/run.mcap")
     swp.add_argument("--no-plots", action="store_true", help="write no plots/")
     _add_quiet(swp)
+
+    # -- conformance
+    conf = _command(sub, "conformance", "the unit command pipeline's conformance checks, in simulated time",
+                    "Check a unit's command pipeline on its command interfaces, in simulated time (lockstep, the unit "
+                    "firmware on the ground in the in-process world, commands as wire bytes): keep-alive loss and "
+                    "its bound, recovery only on a fresh arm, arming and OFFBOARD gating, NaN and out-of-range "
+                    "controls, stale and reordered messages, and a recorded command stream replayed to the same "
+                    "motor outputs byte for byte. One table per interface; exit 1 when a check fails.",
+                    cmd_conformance)
+    conf.add_argument("--unit-interface", choices=("both", "px4-zenoh", "mavlink"), default="both",
+                      help="the interface to check: px4-zenoh (PX4 v1.17's OffboardControlMode, VehicleCommand, "
+                           "ActuatorMotors as rmw_zenoh samples), mavlink (SET_ACTUATOR_CONTROL_TARGET), or both")
+    conf.add_argument("--test-broken-keepalive", action="store_true",
+                      help="test switch: a unit whose PX4 keep-alive never times out (the checks must fail)")
     return parser
+
+
+def cmd_conformance(args) -> int:
+    from mars_link.apps.conformance import conformance_command
+
+    return conformance_command(args)
 
 
 def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
