@@ -127,6 +127,8 @@ COORDINATOR_QUIET_S = 0.002  # coordinator: fault detection this long after the 
 PX4_KEEPALIVE_HZ = 10.0  # coordinator: OffboardControlMode rate on PX4's interface (PX4 wants >= 2 Hz)
 PX4_TAKEOVER_WAIT_S = 2.0  # coordinator: longest wait for a unit's acks to arm and enter OFFBOARD
 PX4_TAKEOVER_ROUND_S = 0.5  # coordinator: longest wait for one round of those acks
+PX4_TELEMETRY_PERIOD_S = 0.1  # unit: /fmu/out telemetry at 10 Hz of wall time (vehicle_status also answers
+# every command); what PX4's dds_topics.yaml allows is more, but it is CPU the lockstep shares
 PX4_LINK = "px4"  # a unit's rmw_zenoh endpoint in the unit loop's selector (mars_link.processes.px4_link)
 ACTUATOR_MOTORS_TOPIC = "/fmu/in/actuator_motors/"  # (in a unit's data key: a per-rotor command)
 #: set (to anything) in a unit process's environment: its PX4 keep-alive never times out. A test switch for the
@@ -636,6 +638,7 @@ class _UnitLoop:
         vehicle.defer_own_state = setup.docked  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
         self.px4_link = None  # PX4's own interface over rmw_zenoh, beside the MAVLink persona (vehicle_px4)
         self.px4_log = None  # every rmw_zenoh sample it received, as received (px4_input_log_name)
+        self.next_px4_telemetry = 0.0
         self.command_age = ports.taps.get(unit_id)
         if sc.unit_interface == "px4-zenoh":
             from mars_link.processes.px4_link import Px4UnitLink
@@ -687,8 +690,9 @@ class _UnitLoop:
                 self.next_hello = now + (0.2 if steps == 0 else 1.0)
             if now >= self.next_tick:  # heartbeats and streams on wall time, even while the lockstep waits
                 io.send(vehicle.tick(time.time(), vehicle.sim_s))
-                if self.px4_link is not None:  # (/fmu/out at the streams' pace)
+                if self.px4_link is not None and now >= self.next_px4_telemetry:  # /fmu/out
                     self.px4_link.publish(vehicle.px4_telemetry_samples())
+                    self.next_px4_telemetry = now + PX4_TELEMETRY_PERIOD_S
                 self.next_tick = now + TICK_PERIOD_S
             if now >= self.next_status:
                 self.next_status = now + UNIT_STATUS_PERIOD_S

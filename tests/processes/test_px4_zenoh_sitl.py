@@ -206,3 +206,74 @@ def test_plain_zenoh_client_arms_and_drives_a_sitl_up_unit(tmp_path: Path) -> No
         text = proc.communicate(timeout=60)[0]
     assert proc.returncode in (0, 130), text[-2000:]
     assert "px4: every unit speaks PX4 v1.17's per-rotor interface" in text
+
+
+@pytest.mark.slow
+@pytest.mark.sitl
+def test_plain_zenoh_session_sees_a_run_drive_its_units_through_px4(tmp_path: Path) -> None:
+    """`run --mode sitl --unit-interface px4-zenoh`: the coordinator is the off-board computer. A plain session
+    on the run's bus, with the same client knowledge, finds the units by their liveliness tokens, decodes the
+    coordinator's ARM and OFFBOARD commands and the units' acks, and every ActuatorMotors; the thrusts the
+    units drove (rotors.csv, from their HIL answers) are the decoded controls times one full scale."""
+    port = _free_port()
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_3x2", "--mode", "sitl",
+                             "--duration", "1", "--transport", "zenoh", "--unit-interface", "px4-zenoh",
+                             "--zenoh-listen", f"tcp/127.0.0.1:{port}", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    session = None
+    seen: dict[str, list] = {"motors": [], "commands": [], "acks": []}
+    lock = threading.Lock()
+    try:
+        end = time.monotonic() + HANG_S
+        while session is None:
+            try:
+                session = zenoh.open(_client_config(f"tcp/127.0.0.1:{port}"))
+            except zenoh.ZError:
+                if time.monotonic() > end or proc.poll() is not None:
+                    raise
+                time.sleep(0.1)
+        host = _IndependentHost(session, "*")  # any vehicle: 0/*/fmu/...
+
+        def keep(kind: str, type_name: str):
+            def on(sample) -> None:
+                unit = int(str(sample.key_expr).split("/")[1].removeprefix("px4_"))
+                with lock:
+                    seen[kind].append((unit, host.decode(sample, type_name)))
+            return on
+
+        subs = [session.declare_subscriber(host.key("fmu/in/actuator_motors", "ActuatorMotors"), keep("motors", "ActuatorMotors")),
+                session.declare_subscriber(host.key("fmu/in/vehicle_command", "VehicleCommand"), keep("commands", "VehicleCommand")),
+                session.declare_subscriber(host.key("fmu/out/vehicle_command_ack", "VehicleCommandAck"), keep("acks", "VehicleCommandAck"))]
+        tokens: set[str] = set()
+        while proc.poll() is None and time.monotonic() < end + HANG_S:
+            tokens |= {str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/0/**") if r.ok}
+            time.sleep(0.2)
+        for s in subs:
+            s.undeclare()
+    finally:
+        if session is not None:
+            session.close()
+        text = proc.communicate(timeout=HANG_S)[0]
+    assert proc.returncode == 0, text[-2000:]
+    units = range(1, 7)
+    motors_hash = host.store.hash_rihs01("px4_msgs/msg/ActuatorMotors")
+    for u in units:  # each unit announced its ActuatorMotors subscription as PX4's zenoh module does
+        assert any(f"/MS/%/%/" in t and t.split("/")[-4] == f"%px4_{u}%fmu%in%actuator_motors"
+                   and t.split("/")[-2] == motors_hash for t in tokens), u
+        arms = [c for v, c in seen["commands"] if v == u and c.command == VEHICLE_CMD_COMPONENT_ARM_DISARM]
+        assert arms and arms[0].param1 == 1.0 and arms[0].target_system == u
+        accepted = {a.command for v, a in seen["acks"] if v == u and a.result == RESULT_ACCEPTED}
+        assert {VEHICLE_CMD_DO_SET_MODE, VEHICLE_CMD_COMPONENT_ARM_DISARM} <= accepted
+    rotors = np.genfromtxt(out / "rotors.csv", delimiter=",", names=True)
+    by_time = {int(round(t * 1e6)): i for i, t in enumerate(rotors["t_s"])}
+    ratios = []
+    for u, m in seen["motors"]:
+        row = by_time.get(int(m.timestamp))
+        if row is None:
+            continue
+        for r in range(4):
+            ratios.append(rotors[f"thrust_u{u}r{r + 1}"][row] / float(m.control[r]))
+        assert np.isnan(m.control[4:]).all()  # the unused motors: NaN (disarmed)
+    assert len(ratios) >= 4 * 6 * 90  # (nearly) every step of every unit
+    assert np.ptp(ratios) / np.mean(ratios) < 1e-4  # thrust = control x the unit's one full scale (rotors.csv: 5 decimals)
