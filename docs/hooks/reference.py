@@ -168,7 +168,7 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
     ]))
     assert S._UNITS_KEYS == {"interface"}
     sections.append(("[units]", "How the coordinator commands the units (CLI `--unit-interface` overrides it).", [
-        row("interface", S.Scenario().unit_interface, ", ".join(f"`{i}`" for i in S.UNIT_INTERFACES),
+        row("interface", S.Scenario(name="").unit_interface, ", ".join(f"`{i}`" for i in S.UNIT_INTERFACES),
             "mavlink: SET_ACTUATOR_CONTROL_TARGET; px4-zenoh: PX4 v1.17's OffboardControlMode + ActuatorMotors "
             "over rmw_zenoh (SITL needs `--transport zenoh`)"),
     ]))

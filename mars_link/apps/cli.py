@@ -46,6 +46,12 @@ def _apply_overrides(scenario, args) -> None:
         scenario.sim.duration_s = args.duration
     if getattr(args, "no_noise", False):
         scenario.sim.noise = False
+    if getattr(args, "unit_interface", None):  # (in process too: the same messages as objects)
+        scenario.unit_interface = args.unit_interface
+        if scenario.unit_interface == "px4-zenoh":
+            from mars_link.flight.build import check_px4_interface
+
+            check_px4_interface(scenario, scenario.model())
 
 
 def cmd_run(args) -> int:

@@ -286,3 +286,26 @@ def test_plain_zenoh_session_sees_a_run_drive_its_units_through_px4(tmp_path: Pa
         assert np.isnan(m.control[4:]).all()  # the unused motors: NaN (disarmed)
     assert len(ratios) >= 4 * 6 * (len(rotors) - 2)  # every row of rotors.csv (it samples the steps), every rotor
     assert np.ptp(ratios) / np.mean(ratios) < 1e-4  # thrust = control x the unit's one full scale (rotors.csv: 5 decimals)
+
+
+PIECES_SCENARIO = "assemble_3x2"  # a free start: a flight of pieces
+
+
+def test_px4_interface_refusals_are_one_line(tmp_path: Path, capsys) -> None:
+    """PX4's interface rides on Zenoh and carries no latch commands; a bad [units] interface is named. One
+    line on stderr, exit 2, before any process starts."""
+    from mars_link.apps.cli import main as cli_main
+
+    cases = ((["sitl", "up", "--units", "1", "--transport", "udp", "--unit-interface", "px4-zenoh"], "needs --transport zenoh"),
+             (["run", "hover_3x2", "--mode", "sitl", "--transport", "udp", "--unit-interface", "px4-zenoh"],
+              "needs --transport zenoh"),
+             (["run", PIECES_SCENARIO, "--unit-interface", "px4-zenoh"], "needs the mavlink interface"))
+    for argv, needle in cases:
+        code = cli_main([*argv, "--out", str(tmp_path / "out")])
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and len(err.splitlines()) == 1 and needle in err, (argv, err)
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[units]\ninterface = "dds"\n')
+    assert cli_main(["run", str(bad), "--out", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "[units] interface must be one of 'mavlink', 'px4-zenoh'" in err and len(err.splitlines()) == 1
