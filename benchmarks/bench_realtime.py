@@ -2,8 +2,8 @@
 6 unit processes with the full firmware, coordinator with EKF and fault detection, MAVLink over
 loopback UDP), run after run, with where the time goes.
 
-    python benchmarks/bench_realtime.py [--runs 3] [--duration 30] [--transport udp|zenoh|zenoh,udp] [--png PATH]
-        [--quick] [--json]
+    python benchmarks/bench_realtime.py [--runs 3] [--duration 30] [--transport udp|zenoh|px4-zenoh|zenoh,px4-zenoh]
+        [--png PATH] [--quick] [--json]
 
 Command age at the motor = when a unit drives its motors with the coordinator's command for a step (its
 HIL_ACTUATOR_CONTROLS leaves for the simulator) - that step's sensor sample time (PX4's timestamp_sample
@@ -11,6 +11,9 @@ sense: sensor -> unit -> coordinator -> unit -> motors). The stage columns are m
 time from the sample to: the last unit reading its sensor datagram, the coordinator holding every unit's
 telemetry, its rotor commands computed, sent, the last unit reading its command and the last unit's
 motors driven (the units' command_age_unit<i>.csv and coordinator_timing.csv of each run).
+`px4-zenoh`: the units commanded through PX4's own per-rotor interface over rmw_zenoh (ActuatorMotors,
+with OffboardControlMode at 10 Hz) instead of SET_ACTUATOR_CONTROL_TARGET; the sensors still reach the
+coordinator as MAVLink over Zenoh, so zenoh vs px4-zenoh isolates the command interface.
 The machine is shared: compare runs of one invocation, not figures across days.
 """
 
@@ -36,6 +39,7 @@ from mars_link.runtime.scheduling import describe_classes  # noqa: E402
 from mars_link.processes.sitl_mode import run_sitl_scenario, stage_times  # noqa: E402
 from mars_link.transport import LinkSpec  # noqa: E402
 
+LINKS = {"udp": LinkSpec("udp"), "zenoh": LinkSpec("zenoh"), "px4-zenoh": LinkSpec("zenoh", unit_interface="px4-zenoh")}
 STAGES = ("sensors_in", "telemetry_in", "computed", "sent", "commands_in", "at_motors")
 
 
@@ -46,7 +50,7 @@ def main() -> int:
                     help="simulated (= wall) seconds per run (default 30: in a 5 s run, 1 %% of the commands is the "
                          "first 50 ms, so its p99 measures the start-up, not the control path)")
     ap.add_argument("--transport", default="udp",
-                    help="udp, zenoh, or both (zenoh,udp: runs alternate, medians and their ratio printed)")
+                    help="udp, zenoh, px4-zenoh, or several (zenoh,udp: runs alternate, medians and their ratio printed)")
     ap.add_argument("--scenario", default="hover_3x2")
     ap.add_argument("--png", default=None, help="write the command-age distribution of every run here")
     ap.add_argument("--quick", action="store_true", help="one run of 8 s per transport")
@@ -54,8 +58,8 @@ def main() -> int:
     a = ap.parse_args()
     apply_quick(ap, a, runs=1, duration=8.0)
     transports = a.transport.split(",")
-    if a.runs < 1 or not a.duration > 0 or any(t not in ("udp", "zenoh") for t in transports):
-        ap.error("--runs must be >= 1, --duration > 0, --transport udp and/or zenoh")
+    if a.runs < 1 or not a.duration > 0 or any(t not in LINKS for t in transports):
+        ap.error(f"--runs must be >= 1, --duration > 0, --transport one or more of {', '.join(LINKS)}")
     try:
         sc = load_scenario(a.scenario)
     except UserInputError as e:
@@ -66,21 +70,21 @@ def main() -> int:
     ages_by_run = []
     print(f"{a.runs} runs of {a.scenario}, {a.duration:.0f} s each, {' and '.join(transports)} (alternating), real time",
           flush=True)
-    header = (f"{'link':>5} {'run':>3} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'misses':>10} {'p99 t>=1s':>9}   "
+    header = (f"{'link':>9} {'run':>3} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'misses':>10} {'p99 t>=1s':>9}   "
               + " ".join(f"{s:>12}" for s in STAGES))
     print(header)
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(a.runs):
             for transport in transports:
                 out = Path(tmp) / f"{transport}{i}"
-                s = run_sitl_scenario(sc, out, link=LinkSpec(transport), realtime=True, plots=False)
+                s = run_sitl_scenario(sc, out, link=LINKS[transport], realtime=True, plots=False)
                 age = s["sitl"]["command_age"]
                 stages = stage_times(out)
                 rows[transport].append(age)
                 ages_by_run.append(_ages(out))
                 settled = _ages(out, after_s=1.0)  # the start-up (arming, the first exchanges) left out
                 p99_settled = float(np.percentile(settled, 99)) if settled.size else float("nan")
-                print(f"{transport:>5} {i + 1:>3} {age['p50_ms']:>7.2f} {age['p99_ms']:>7.2f} {age['max_ms']:>7.1f} "
+                print(f"{transport:>9} {i + 1:>3} {age['p50_ms']:>7.2f} {age['p99_ms']:>7.2f} {age['max_ms']:>7.1f} "
                       f"{age['deadline_misses']:>4}/{age['n']:<5} {p99_settled:>9.2f}   "
                       + " ".join(f"{stages.get(k, float('nan')):>12.2f}" for k in STAGES), flush=True)
         wake = s["sitl"].get("cpu_wake_latency")
@@ -97,10 +101,11 @@ def main() -> int:
             f"command_age_p99_{transport}_ms", p99, "ms", what + ": command age at the motor, p99 (target < 5 ms)")
         rec.figure(f"deadline_misses_{transport}", sum(r["deadline_misses"] for r in ages), "commands",
                    f"of {sum(r['n'] for r in ages)} over the 10 ms deadline")
-    if len(medians) == 2:
-        (z50, z99), (u50, u99) = medians["zenoh"], medians["udp"]
-        print(f"zenoh / udp (same minutes): p50 {z50 / u50:.2f}x, p99 {z99 / u99:.2f}x")
-        rec.figure("zenoh_vs_udp_p99", z99 / u99, "ratio", "command age p99, Zenoh / UDP, runs alternated")
+    for a_name, b_name in (("zenoh", "udp"), ("px4-zenoh", "zenoh")):
+        if a_name in medians and b_name in medians:
+            (a50, a99), (b50, b99) = medians[a_name], medians[b_name]
+            print(f"{a_name} / {b_name} (same minutes): p50 {a50 / b50:.2f}x, p99 {a99 / b99:.2f}x")
+            rec.figure(f"{a_name}_vs_{b_name}_p99", a99 / b99, "ratio", f"command age p99, {a_name} / {b_name}, runs alternated")
     print(f"idle CPUs: {wake}; load average now {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs (the machine is shared)")
     print(f"scheduling: {scheduling}")
     if a.png:

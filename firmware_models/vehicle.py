@@ -70,6 +70,7 @@ from firmware_models.vehicle_modes import (  # noqa: F401 (re-exported)
 )
 from firmware_models.vehicle_offboard import MAX_POSITION_M, MAX_SPEED_MPS, OffboardMixin  # noqa: F401
 from firmware_models.vehicle_params import ParamsMixin
+from firmware_models.vehicle_px4 import Px4Mixin
 from firmware_models.vehicle_services import ServicesMixin
 from firmware_models.vehicle_shell import ShellMixin
 from firmware_models.vehicle_streams import (  # noqa: F401 (re-exported)
@@ -135,7 +136,7 @@ class VehicleConfig:
 
 
 class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixin, MissionsMixin, GeofenceMixin,
-              LogsMixin, ServicesMixin, ShellMixin, HilMixin, StreamsMixin):
+              LogsMixin, ServicesMixin, ShellMixin, HilMixin, StreamsMixin, Px4Mixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -218,6 +219,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self._init_follow()
         self._init_shell()
         self._init_logs()
+        self._init_px4()
         self.legs = None  # mission legs between the runner and the core (mars_link.planning.mission_legs)
         self.speed_override_mps: float | None = None  # MAV_CMD_DO_CHANGE_SPEED (else MPC_XY_CRUISE)
         if c.ulog_path:
@@ -547,6 +549,17 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         if not self.armed:
             self.motor_commands_n = np.zeros(4)
             return
+        if self.px4 is not None:  # PX4's own interface (vehicle_px4) drives the rotors while it lets them run
+            px4_n = self._px4_command_n(t)
+            if not self.armed:  # (its failsafe disarmed the unit)
+                self.motor_commands_n = np.zeros(4)
+                return
+            if px4_n is not None:
+                if self.source != "coordinator":
+                    self.source = "coordinator"
+                    self._text("PX4 offboard (direct actuator) drives the rotors")
+                self._drive_from_coordinator(px4_n)
+                return
         cmd = self.intake.command_n(t)
         driven = cmd is not None and self.mode == MODE_OFFBOARD
         if not driven:

@@ -238,6 +238,7 @@ class CommandsMixin:
 
     def _disarm(self, why: str) -> None:
         self.armed = False
+        self._px4_disarmed()  # (the unit's other persona: PX4's interface, vehicle_px4)
         self.source = "own"
         self.autopilot.idle()
         self.motor_commands_n = np.zeros(4)

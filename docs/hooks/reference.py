@@ -115,7 +115,7 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
     top_notes = {"name": "default: the file's name", "vehicle": "table", "assembly": "table", "trajectory": "table",
                  "control": "table", "faults": "array of tables", "sim": "table", "reconfig": "table",
                  "docking": "table", "separations": "array of tables", "environment": "table", "sensors": "table",
-                 "mission": "table", "battery": "table", "sensor_faults": "array of tables"}
+                 "mission": "table", "battery": "table", "sensor_faults": "array of tables", "units": "table"}
     sections.append(("top level", "The tables and the name a scenario file may hold (mars_link.config.scenario._TOP_KEYS).",
                      [(f"`{k}`", "string" if k == "name" else
                        ("array of tables" if "array" in top_notes.get(k, "") else "table"), "", "—", "",
@@ -165,6 +165,12 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
         row("control_hz", sim.control_hz, "> 0"),
         row("seed", sim.seed, "0..2^32-1"),
         row("noise", sim.noise, "`true`, `false`", "false: perfect sensors"),
+    ]))
+    assert S._UNITS_KEYS == {"interface"}
+    sections.append(("[units]", "How the coordinator commands the units (CLI `--unit-interface` overrides it).", [
+        row("interface", S.Scenario(name="").unit_interface, ", ".join(f"`{i}`" for i in S.UNIT_INTERFACES),
+            "mavlink: SET_ACTUATOR_CONTROL_TARGET; px4-zenoh: PX4 v1.17's OffboardControlMode + ActuatorMotors "
+            "over rmw_zenoh (SITL needs `--transport zenoh`)"),
     ]))
 
     kinds = []
@@ -275,7 +281,7 @@ def scenario_keys_accepted() -> set[str]:
     from mars_link.models.sensor_profiles import PROFILES
 
     keys = set(S._TOP_KEYS) | S._VEHICLE_KEYS | S._AERO_KEYS | S._ASSEMBLY_KEYS | S._CONTROL_KEYS | S._FAULT_KEYS
-    keys |= S._SIM_KEYS | S._RECONFIG_NUMBERS | {"enabled", "target", "moves", "ground"} | set(S.DOCKING_RANGES)
+    keys |= S._SIM_KEYS | S._UNITS_KEYS | S._RECONFIG_NUMBERS | {"enabled", "target", "moves", "ground"} | set(S.DOCKING_RANGES)
     keys |= S._SEPARATION_KEYS | E._ENV_KEYS | E._GUST_KEYS | {"profile"} | battery._PACK_KEYS
     keys |= set(battery._FAILSAFE_KEYS) | {"units", "unit", "map", "kind"} | SF.KEYS
     keys |= {k for p in PROFILES.values() for k in p.figures}

@@ -46,6 +46,12 @@ def _apply_overrides(scenario, args) -> None:
         scenario.sim.duration_s = args.duration
     if getattr(args, "no_noise", False):
         scenario.sim.noise = False
+    if getattr(args, "unit_interface", None):  # (in process too: the same messages as objects)
+        scenario.unit_interface = args.unit_interface
+        if scenario.unit_interface == "px4-zenoh":
+            from mars_link.flight.build import check_px4_interface
+
+            check_px4_interface(scenario, scenario.model())
 
 
 def cmd_run(args) -> int:
@@ -416,6 +422,10 @@ def _add_link(p, roles: str) -> None:
     p.add_argument("--link-profile", default=None, metavar="PROFILE",
                    help="ideal | lan | wifi | radio57600 [,key=value...]: delays and losses on the coordinator <-> "
                         "unit links (zenoh only; default: none)")
+    p.add_argument("--unit-interface", choices=("mavlink", "px4-zenoh"), default=None,
+                   help="how the units are commanded: mavlink (SET_ACTUATOR_CONTROL_TARGET) or px4-zenoh (PX4 "
+                        "v1.17's OffboardControlMode + ActuatorMotors over rmw_zenoh, /px4_<unit id>/fmu/...; needs "
+                        "--transport zenoh); default: the scenario's [units] interface")
 
 
 def _add_sitl_processes(p, realtime_help: str) -> None:
@@ -688,7 +698,27 @@ def build_parser() -> argparse.ArgumentParser:
     swp.add_argument("--mcap", action="store_true", help="each flight writes flights/<i>/run.mcap")
     swp.add_argument("--no-plots", action="store_true", help="write no plots/")
     _add_quiet(swp)
+
+    # -- conformance
+    conf = _command(sub, "conformance", "the unit command pipeline's conformance checks, in simulated time",
+                    "Check a unit's command pipeline on its command interfaces, in simulated time (lockstep, the unit "
+                    "firmware on the ground in the in-process world, commands as wire bytes): keep-alive loss and "
+                    "its bound, recovery only on a fresh arm, arming and OFFBOARD gating, NaN and out-of-range "
+                    "controls, stale and reordered messages, and a recorded command stream replayed to the same "
+                    "motor outputs byte for byte. One table per interface; exit 1 when a check fails.",
+                    cmd_conformance)
+    conf.add_argument("--unit-interface", choices=("both", "px4-zenoh", "mavlink"), default="both",
+                      help="the interface to check: px4-zenoh (PX4 v1.17's OffboardControlMode, VehicleCommand, "
+                           "ActuatorMotors as rmw_zenoh samples), mavlink (SET_ACTUATOR_CONTROL_TARGET), or both")
+    conf.add_argument("--test-broken-keepalive", action="store_true",
+                      help="test switch: a unit whose PX4 keep-alive never times out (the checks must fail)")
     return parser
+
+
+def cmd_conformance(args) -> int:
+    from mars_link.apps.conformance import conformance_command
+
+    return conformance_command(args)
 
 
 def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:

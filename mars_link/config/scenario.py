@@ -111,6 +111,7 @@ class Scenario:
     mission: dict[str, Any] = field(default_factory=dict)  # [mission]: map = obstacle map for the vehicle's legs
     battery: BatterySpec | None = None  # [battery]: the units' packs (mars_link.models.battery); None = an ideal supply
     sensor_faults: list = field(default_factory=list)  # [[sensor_faults]] (scenario_sensor_faults.SensorFaultSpec)
+    unit_interface: str = "mavlink"  # [units] interface: "mavlink" | "px4-zenoh" (UNIT_INTERFACES)
 
     @property
     def starts_free(self) -> bool:
@@ -135,7 +136,7 @@ class Scenario:
 #: free units on the ground stand at least this far apart, edge to edge
 FREE_CLEARANCE_M = 0.3
 _TOP_KEYS = {"name", "vehicle", "assembly", "trajectory", "control", "faults", "sim", "reconfig", "docking",
-             "separations", "environment", "sensors", "mission", "battery", "sensor_faults"}
+             "separations", "environment", "sensors", "mission", "battery", "sensor_faults", "units"}
 _VEHICLE_KEYS = {
     "preset",
     "motor_time_constant_s",
@@ -148,6 +149,10 @@ _ASSEMBLY_KEYS = {"layout", "tracked", "start", "free_spacing_m"}
 _CONTROL_KEYS = {"controller", "ftc", "faults_known"}
 _FAULT_KEYS = {"t", "unit", "rotor", "eta"}
 _SIM_KEYS = {"duration_s", "physics_hz", "control_hz", "seed", "noise"}
+_UNITS_KEYS = {"interface"}
+#: [units] interface: how the coordinator commands the units: the MAVLink persona (SET_ACTUATOR_CONTROL_TARGET)
+#: or PX4's own per-rotor interface (OffboardControlMode + ActuatorMotors, uORB over rmw_zenoh: mars_link.px4)
+UNIT_INTERFACES = ("mavlink", "px4-zenoh")
 
 
 def validate_fault(fault: FaultSpec, model: AssemblyModel, src: str = "fault") -> None:
@@ -278,6 +283,14 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
                 t_s=_number(f.get("t", 0.0), f"{where} t", src),
             )
         )
+
+    units = _table(doc, "units", src)
+    _check_keys(units, _UNITS_KEYS, "[units]", src)
+    if "interface" in units:
+        if units["interface"] not in UNIT_INTERFACES:
+            raise UserInputError(f"{src}: [units] interface must be one of {', '.join(map(repr, UNIT_INTERFACES))}, "
+                                 f"got {units['interface']!r}")
+        sc.unit_interface = units["interface"]
 
     sim = _table(doc, "sim", src)
     _check_keys(sim, _SIM_KEYS, "[sim]", src)

@@ -317,6 +317,16 @@ def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordin
 
 
 
+def check_px4_interface(scenario: Scenario, model: AssemblyModel) -> None:
+    """What PX4's per-rotor interface cannot carry, as one UserInputError: more units than PX4 system ids,
+    and the latch commands of a flight of pieces (ActuatorMotors has no docking latch)."""
+    if model.n_units > 255:
+        raise UserInputError(f"[units] interface = \"px4-zenoh\": at most 255 units (PX4 system ids), got {model.n_units}")
+    if scenario.has_pieces:
+        raise UserInputError("[units] interface = \"px4-zenoh\" carries no docking-latch commands: a flight of "
+                             "pieces (free start, reconfiguration, separations) needs the mavlink interface")
+
+
 #: a unit silent for this many control periods is declared lost (in-process flights with unit deaths)
 UNIT_TIMEOUT_PERIODS = 5
 
@@ -457,6 +467,9 @@ def build_flight(scenario: Scenario, seed: int, unit_deaths: dict[int, float] | 
     coordinator, end_s = make_pieces_coordinator(scenario, model, mission, timeout)
     world = make_pieces_world(scenario, model, seed, coordinator.executor)
     units = InProcessUnits({u: make_unit(scenario, model, u, on_wire=False) for u in model.unit_ids}, world)
+    if scenario.unit_interface == "px4-zenoh":
+        check_px4_interface(scenario, model)
+        units.use_px4_interface(model.vehicle.full_scale_thrust_n, reversible=model.vehicle.rotor_min_thrust_n is None)
     faults = sorted(scenario.faults, key=lambda f: f.t_s)
     return Flight(scenario, model, seed, mission, world, units, coordinator, faults, deaths,
                   tracked_offset(model, scenario), scenario.sim.duration_s or mission.duration_s,

@@ -41,6 +41,15 @@ class InProcessUnits:
         self.world = world
         self.dead: set[int] = set()  # units whose process died: they neither sense nor drive
         self._taken_over: set[int] = set()
+        self.px4: dict | None = None  # unit id -> mars_link.px4.commander.Px4Commander: PX4's interface instead
+
+    def use_px4_interface(self, full_scale_thrust_n: float, reversible: bool) -> None:
+        """Drive every unit through PX4's per-rotor interface ([units] interface = "px4-zenoh"): the same
+        messages as over rmw_zenoh (OffboardControlMode, VehicleCommand, ActuatorMotors; acks back), as objects."""
+        from mars_link.px4.commander import Px4Commander
+
+        self.px4 = {u: Px4Commander(u, full_scale_thrust_n, reversible) for u in self.vehicles}
+        self.batched = False
 
     def kill(self, unit_id: int) -> None:
         """The unit's process dies: no more telemetry, its motors stop (the world's dead weight)."""
@@ -127,6 +136,8 @@ class InProcessUnits:
 
     def command(self, cmd: RotorCommand) -> ActuatorOutput:
         v = self.vehicles[cmd.unit_id]
+        if self.px4 is not None:
+            return self._command_px4(v, cmd)
         if cmd.unit_id not in self._taken_over:  # ARM before the first command, OFFBOARD after it
             v.arm()
             v.take_rotor_command(cmd)
@@ -134,6 +145,17 @@ class InProcessUnits:
             self._taken_over.add(cmd.unit_id)
         else:
             v.take_rotor_command(cmd)
+        return v.drive_motors()
+
+    def _command_px4(self, v, cmd: RotorCommand) -> ActuatorOutput:
+        from mars_link.px4.rmw_zenoh import VEHICLE_COMMAND_ACK
+
+        assert self.px4 is not None
+        commander = self.px4[cmd.unit_id]
+        for topic, message in commander.step(cmd.t_s, cmd.thrusts_n):
+            for reply_topic, reply in v.px4_take(topic, message):
+                if reply_topic is VEHICLE_COMMAND_ACK:
+                    commander.take_ack(reply)
         return v.drive_motors()
 
     def eta(self, unit_ids) -> np.ndarray:

@@ -93,6 +93,13 @@ class Ports:
             t = ProfiledTransport(t, profile_from_name(spec.profile), seed=spec.seed + zlib.crc32(f"{node}<{peer}".encode()))
         return t
 
+    def zenoh_session(self):
+        """This process's one Zenoh session (opened with its first link): what PX4's interface rides on
+        (mars_link.processes.px4_link)."""
+        if self.link.kind != "zenoh" or self._session is None:
+            raise UserInputError("--unit-interface px4-zenoh needs --transport zenoh")
+        return self._session
+
     def _tapped(self, t: Transport, node: str, peer: str | None) -> Transport:
         if self.command_age_period_s is None or not node.startswith("unit/") or peer not in ("world", "coordinator"):
             return t

@@ -72,6 +72,7 @@ import itertools
 import json
 import math
 import os
+import select
 import selectors
 import signal
 import sys
@@ -123,6 +124,16 @@ UNIT_STATUS_PERIOD_S = 1.0  # unit status files (a file replace costs millisecon
 TICK_PERIOD_S = 0.02  # unit: heartbeats and streams (<= 20 Hz) served on this wall-clock grid
 HOUSEKEEPING_DEFER_S = 0.02  # unit: housekeeping waits at most this long past its time for a step in flight
 COORDINATOR_QUIET_S = 0.002  # coordinator: fault detection this long after the commands went out
+PX4_KEEPALIVE_HZ = 10.0  # coordinator: OffboardControlMode rate on PX4's interface (PX4 wants >= 2 Hz)
+PX4_TAKEOVER_WAIT_S = 2.0  # coordinator: longest wait for a unit's acks to arm and enter OFFBOARD
+PX4_TAKEOVER_ROUND_S = 0.5  # coordinator: longest wait for one round of those acks
+PX4_TELEMETRY_PERIOD_S = 0.1  # unit: /fmu/out telemetry at 10 Hz of wall time (vehicle_status also answers
+# every command); what PX4's dds_topics.yaml allows is more, but it is CPU the lockstep shares
+PX4_LINK = "px4"  # a unit's rmw_zenoh endpoint in the unit loop's selector (mars_link.processes.px4_link)
+ACTUATOR_MOTORS_TOPIC = "/fmu/in/actuator_motors/"  # (in a unit's data key: a per-rotor command)
+#: set (to anything) in a unit process's environment: its PX4 keep-alive never times out. A test switch for the
+#: conformance harness's red run, never for flight (mars_link.px4.unit_interface keepalive_timeout_enabled)
+BROKEN_KEEPALIVE_ENV = "MARS_LINK_TEST_BROKEN_PX4_KEEPALIVE"
 STOP_POLL_S = 0.2  # world: longest wait before it looks at its stop flag again (a SIGTERM ends it in time to
 # write its summary within the launcher's 3 s grace, also while it waits for units that were stopped with it)
 
@@ -530,6 +541,13 @@ class UnitPorts:
     api_bind: int | None = None  # None: 14580 + index
 
 
+def px4_input_log_name(unit_id: int) -> str:
+    """A unit's log of the PX4-interface samples it received: one JSON object a line, in arrival order, with
+    the unit's sim time and the wall time on arrival, the key, and the CDR payload and attachment in hex
+    (what a replay feeds the firmware again, and where rotors.csv finds the commands)."""
+    return f"unit{unit_id}_px4_in.jsonl"
+
+
 def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, clients: list[UnitPorts],
               command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None,
               require_signing: bool = False, ulog: bool = True) -> int:
@@ -549,6 +567,8 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
             units.append(unit)
             for name, t in unit.io.links.items():
                 sel.register(t, selectors.EVENT_READ, (unit, name))
+            if unit.px4_link is not None:
+                sel.register(unit.px4_link, selectors.EVENT_READ, (unit, PX4_LINK))
         for unit in units:
             print(json.dumps({"ready": True, "unit": unit.unit_id, "ports": unit.io.ports()}), flush=True)
         loop = LoopMeter()
@@ -561,7 +581,10 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
                     unit.command_deadline.before_wait(max(0.0, wake - now))
             for key_, _ in sel.select(max(0.0, wake - now)):
                 unit, name = key_.data
-                unit.io.drain(name, key_.fileobj)
+                if name == PX4_LINK:
+                    unit.drain_px4()
+                else:
+                    unit.io.drain(name, key_.fileobj)
             for unit in active:
                 unit.check_command_timeout()
             for unit in [u for u in active if u.done]:
@@ -576,6 +599,9 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
         sel.close()
         for unit in units:
             unit.io.close()
+            if unit.px4_link is not None:
+                unit.px4_link.close()
+                unit.px4_log.close()
     return 0
 
 
@@ -610,6 +636,34 @@ class _UnitLoop:
         self.next_hello = self.next_tick = self.next_status = 0.0
         self.command_deadline: SilenceDeadline | None = None  # (while a HIL step waits for its command)
         vehicle.defer_own_state = setup.docked  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
+        self.px4_link = None  # PX4's own interface over rmw_zenoh, beside the MAVLink persona (vehicle_px4)
+        self.px4_log = None  # every rmw_zenoh sample it received, as received (px4_input_log_name)
+        self.next_px4_telemetry = 0.0
+        self.command_age = ports.taps.get(unit_id)
+        if sc.unit_interface == "px4-zenoh":
+            from mars_link.processes.px4_link import Px4UnitLink
+
+            vehicle.px4_keepalive_timeout = not os.environ.get(BROKEN_KEEPALIVE_ENV)  # (conformance: a test switch)
+            vehicle.px4_interface()
+            self.px4_link = Px4UnitLink(ports.zenoh_session(), vehicle.px4_endpoint)
+            self.px4_log = open(out / px4_input_log_name(unit_id), "w", encoding="utf-8")  # (replayable)
+
+    def drain_px4(self) -> None:
+        """Every rmw_zenoh sample received: into the firmware; its answers out (a HIL step it completes,
+        command acks and status)."""
+        vehicle, link, tap = self.vehicle, self.px4_link, self.command_age
+        log = self.px4_log
+        for key, payload, attachment in link.take():
+            now = time.time()
+            log.write(json.dumps({"sim_s": vehicle.sim_s, "wall_s": now, "key": key, "payload": payload.hex(),
+                                  "attachment": None if attachment is None else attachment.hex()}) + "\n")
+            out, samples = vehicle.px4_sample(key, payload, attachment, now)
+            if tap is not None and ACTUATOR_MOTORS_TOPIC in key and vehicle._last_rotor_usec is not None:
+                tap.on_command(vehicle._last_rotor_usec / 1e6, now)
+            if out:
+                self.io.send(out)
+            if samples:
+                link.publish(samples)
 
     @property
     def done(self) -> bool:
@@ -636,6 +690,9 @@ class _UnitLoop:
                 self.next_hello = now + (0.2 if steps == 0 else 1.0)
             if now >= self.next_tick:  # heartbeats and streams on wall time, even while the lockstep waits
                 io.send(vehicle.tick(time.time(), vehicle.sim_s))
+                if self.px4_link is not None and now >= self.next_px4_telemetry:  # /fmu/out
+                    self.px4_link.publish(vehicle.px4_telemetry_samples())
+                    self.next_px4_telemetry = now + PX4_TELEMETRY_PERIOD_S
                 self.next_tick = now + TICK_PERIOD_S
             if now >= self.next_status:
                 self.next_status = now + UNIT_STATUS_PERIOD_S
@@ -725,9 +782,21 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     timing = open(out / "coordinator_timing.csv", "w", encoding="utf-8") if timing_log else None
     if timing:
         timing.write("t_s,telemetry_first_wall_s,telemetry_all_wall_s,computed_wall_s,sent_wall_s,step_cpu_s,send_cpu_s\n")
+    px4 = None  # PX4's own interface ([units] interface = "px4-zenoh"): the commands go over rmw_zenoh
+    if sc.unit_interface == "px4-zenoh":
+        from mars_link.processes.px4_link import Px4CoordinatorLink
+        from mars_link.px4.commander import Px4Commander
+
+        px4 = Px4CoordinatorLink(ports.zenoh_session(), model.unit_ids)
+        keepalive_every = max(1, int(sc.sim.control_hz // PX4_KEEPALIVE_HZ))
+        commanders = {u: Px4Commander(u, scale, model.vehicle.rotor_min_thrust_n is None, keepalive_every)
+                      for u in model.unit_ids}
     try:
         _await_peers(link, live, 60.0, stop)
         link.prepare_peers(live)
+        if px4 is not None:
+            for u in live:
+                px4.prepare(u)
         loop = LoopMeter()
         world = ports.address("world")
         link.peers.setdefault(WORLD_SYSID, world)  # (its step-sent markers come from there)
@@ -844,12 +913,22 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             datagrams = []  # all encoded first, then sent back to back (a woken unit may take the CPU)
             if pieces_log is not None:
                 _log_pieces_step(pieces_log, coordinator, t)
+            samples = []  # (PX4's interface: the same, as rmw_zenoh samples)
+            if px4 is not None:
+                _px4_take_over(px4, commanders, [c.unit_id for c in commands if c.unit_id in live], t, accepted)
             for cmd in commands:
                 if cmd.unit_id in live:
-                    msgs = _with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale))
+                    if px4 is not None:
+                        samples += px4.encode(cmd.unit_id, commanders[cmd.unit_id].step(t, cmd.thrusts_n), t)
+                        msgs = []
+                    else:
+                        msgs = _with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale))
                     if hosted is not None:  # e.g. a failure injected on the vehicle, for this unit's motors
                         msgs += hosted.unit_commands(cmd.unit_id)
-                    datagrams.append((link.pack(msgs), link.peers[cmd.unit_id]))
+                    if msgs:
+                        datagrams.append((link.pack(msgs), link.peers[cmd.unit_id]))
+            if samples:
+                px4.send(samples)
             for data, addr in datagrams:
                 link.send_bytes(data, addr)
             sent_wall, send_cpu = time.time(), time.thread_time() - send_cpu
@@ -877,6 +956,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
              **loop.figures(),
              "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}})
     finally:
+        if px4 is not None:
+            px4.close()
         link.close()
         if timing:
             timing.close()
@@ -897,6 +978,40 @@ def _log_pieces_step(log, coordinator, t: float) -> None:
     piece = coordinator.tracked_piece()
     log.write(f"{t:.6f},{int(active)},{mt:.6f},{ref[0]:.9f},{ref[1]:.9f},{ref[2]:.9f},"
               f"{' '.join(str(u) for u in piece.units)},{len(coordinator.pieces)}\n")
+
+
+def _px4_take_over(px4, commanders: dict, units: list[int], t: float, accepted: dict[int, set[int]]) -> None:
+    """PX4's interface: the acks received so far; then every unit not yet armed in OFFBOARD gets the
+    keep-alive, DO_SET_MODE and ARM, and the coordinator waits (at most PX4_TAKEOVER_WAIT_S) for their
+    acks before the step's ActuatorMotors go out. Samples on different keys may overtake each other: a
+    DO_SET_MODE that arrived before its keep-alive is refused (TEMPORARILY_REJECTED) and sent again with
+    a fresh keep-alive once every unit of the round has answered. The unit then runs its first commanded
+    step armed and in OFFBOARD, as the in-process flight does."""
+    from mars_link.px4.rmw_zenoh import VEHICLE_COMMAND
+
+    answered: dict[int, int] = {}
+
+    def take_acks() -> None:
+        for u, ack in px4.acks():
+            if u in commanders:
+                answered[u] = answered.get(u, 0) + 1
+                if commanders[u].take_ack(ack):
+                    accepted[u].add(int(ack.command))
+
+    take_acks()
+    deadline = time.monotonic() + PX4_TAKEOVER_WAIT_S
+    while time.monotonic() < deadline:
+        waiting = [u for u in units if not commanders[u].taken_over]
+        if not waiting:
+            return
+        answered.clear()
+        rounds = {u: commanders[u].take_over(t) for u in waiting}
+        px4.send([s for u, msgs in rounds.items() for s in px4.encode(u, msgs, t)])
+        expected = {u: sum(topic is VEHICLE_COMMAND for topic, _ in msgs) for u, msgs in rounds.items()}
+        round_end = min(deadline, time.monotonic() + PX4_TAKEOVER_ROUND_S)
+        while any(answered.get(u, 0) < n for u, n in expected.items()) and time.monotonic() < round_end:
+            select.select([px4], [], [], max(0.0, min(0.05, round_end - time.monotonic())))
+            take_acks()
 
 
 def _with_takeover(unit: int, accepted: set[int], rotor_cmd) -> list:
@@ -966,6 +1081,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.forever:
         setup.steps = None
+    if link.unit_interface:  # (the command line over the scenario's [units] interface)
+        setup.scenario.unit_interface = link.unit_interface
+    try:
+        link.check_unit_interface(setup.scenario.unit_interface)
+    except UserInputError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     ports = Ports(args.world_port, args.coordinator_port, args.world_fd, args.coordinator_fd, link,
                   1.0 / setup.scenario.sim.control_hz if args.command_age else None)
     out = Path(args.out)

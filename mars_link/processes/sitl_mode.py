@@ -80,7 +80,12 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     from mars_link.processes.lockstep import load_setup
 
     link = link or LinkSpec("zenoh")
-    load_setup(scenario, units, layout)  # bad input: refused before any session opens
+    setup = load_setup(scenario, units, layout)  # bad input: refused before any session opens
+    interface = link.unit_interface or setup.scenario.unit_interface
+    link.check_unit_interface(interface)
+    if interface == "px4-zenoh" and setup.pieces:
+        raise UserInputError("--unit-interface px4-zenoh carries no docking-latch commands: a flight of pieces "
+                             "needs the mavlink interface")
     session = SitlSession(None, link)
     role_links = {role: link for role in ("world", "coordinator", "unit")}
     if link.kind == "zenoh" and not link.connect:
@@ -142,6 +147,8 @@ def write_scenario_copy(scenario, path: Path) -> Path:
     }
     if not doc["faults"]:
         del doc["faults"]
+    if scenario.unit_interface != "mavlink":
+        doc["units"] = {"interface": scenario.unit_interface}
     if scenario.reconfig:
         doc["reconfig"] = dict(scenario.reconfig)
     if scenario.docking:
@@ -199,6 +206,10 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
                       plot_format: str = "png") -> dict:
     """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary
     (`plot_format`: plots/ as png at 300 dpi, pdf or svg)."""
+    link = link or LinkSpec("zenoh")
+    if link.unit_interface:  # (the command line over the scenario's [units] interface)
+        scenario = replace(scenario, unit_interface=link.unit_interface)
+    check_unit_interface(scenario, link)
     pieces = scenario.has_pieces
     seed = scenario.sim.seed if seed is None else seed
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
@@ -224,6 +235,15 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     if pieces:
         return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime)
     return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held, plot_format)
+
+
+def check_unit_interface(scenario, link: LinkSpec) -> None:
+    """PX4's interface needs Zenoh and a flight it can carry (UserInputError, one line)."""
+    link.check_unit_interface(scenario.unit_interface)
+    if scenario.unit_interface == "px4-zenoh":
+        from mars_link.flight.build import check_px4_interface
+
+        check_px4_interface(scenario, scenario.model())
 
 
 @contextlib.contextmanager
@@ -528,6 +548,8 @@ def _write_rotor_log(log, scenario, model, out: Path) -> float:
                 cmd[u][m.time_usec] = np.array(m.controls[:4]) * scale
             elif msgid == 93 and m.get_srcSystem() == u:
                 drv[u][m.time_usec] = np.array(m.controls[:4]) * scale
+        if not cmd[u]:  # PX4's interface ([units] interface = "px4-zenoh"): the ActuatorMotors it received
+            cmd[u] = _px4_commands(out, u, scale)
     steps = sorted(set().union(*[set(d) for d in drv.values()])) if drv else []
     dt = 1.0 / scenario.sim.control_hz
     nan4 = np.full(4, np.nan)
@@ -538,6 +560,26 @@ def _write_rotor_log(log, scenario, model, out: Path) -> float:
         integral += float(np.sum(d * d)) * dt
         log.rotors(0, t_us / 1e6, c, d, eta_after(model, scenario.faults, t_us / 1e6))
     return integral if steps else math.nan
+
+
+def _px4_commands(out: Path, unit: int, scale: float) -> dict[int, np.ndarray]:
+    """time_usec -> commanded thrusts (N) of every ActuatorMotors in the unit's PX4 input log (none: {})."""
+    from mars_link.processes.lockstep import px4_input_log_name
+    from mars_link.px4 import cdr
+
+    path = out / px4_input_log_name(unit)
+    commands: dict[int, np.ndarray] = {}
+    if not path.exists():
+        return commands
+    for line in path.read_text(encoding="utf-8").splitlines():
+        try:
+            record = json.loads(line)
+            if "/fmu/in/actuator_motors/" in record["key"]:
+                m = cdr.decode("ActuatorMotors", bytes.fromhex(record["payload"]))
+                commands[int(m.timestamp)] = np.asarray(m.control[:4], dtype=float) * scale
+        except (ValueError, KeyError, TypeError):  # a torn last line, a sample the unit dropped as malformed
+            continue
+    return commands
 
 
 def _detections(scenario, coordinator: dict, world: dict) -> list[dict]:
@@ -634,7 +676,11 @@ def link_from_args(args) -> LinkSpec:
 
     if not re.match(r"^[A-Za-z0-9_-]+$", fleet):
         raise UserInputError(f"--fleet {fleet!r}: letters, digits, _ and - only")
-    return LinkSpec(kind, fleet, "client", connect, listen, profile)
+    link = LinkSpec(kind, fleet, "client", connect, listen, profile,
+                    unit_interface=getattr(args, "unit_interface", None))
+    if link.unit_interface:
+        link.check_unit_interface(link.unit_interface)
+    return link
 
 
 def sitl_runner(args):
@@ -690,6 +736,11 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
             where = session.router_endpoint or ", ".join(link.connect) or "none (peers: world and coordinator listen on 127.0.0.1)"
             print(f"zenoh: fleet {link.fleet!r}, router {where}" + (f" (+ {', '.join(link.listen)})" if link.listen else "")
                   + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>", flush=True)
+        if (link.unit_interface or session.run.setup.scenario.unit_interface) == "px4-zenoh":
+            print("px4: every unit speaks PX4 v1.17's per-rotor interface over rmw_zenoh (domain 0): subscribes "
+                  "/px4_<unit id>/fmu/in/{offboard_control_mode,actuator_motors,vehicle_command}, publishes "
+                  "/px4_<unit id>/fmu/out/{vehicle_status,vehicle_command_ack,vehicle_odometry,sensor_combined,"
+                  "battery_status,vehicle_local_position}", flush=True)
         if args.external_coordinator:
             attach = f"mars-link coordinator {scenario_path or ''} --out {out}"
             if args.signing_key_file:

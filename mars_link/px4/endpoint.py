@@ -30,17 +30,28 @@ class Px4UnitEndpoint:
     reordered: int = 0
     _last_sequence: dict[tuple[str, bytes], int] = field(default_factory=dict)
     _out: dict[str, rz.PublisherSequence] = field(default_factory=dict)
+    _inbound: tuple[tuple, dict[str, rz.Px4Topic]] | None = None
+    _keys: dict[tuple, str] = field(default_factory=dict)
 
     @property
     def namespace(self) -> str:
         return rz.vehicle_namespace(self.unit_id)
 
     def key(self, topic: rz.Px4Topic) -> str:
-        return rz.data_key(topic, self.namespace, domain_id=self.domain_id, version_suffix=self.version_suffix)
+        spelled = (topic.base_name, self.unit_id, self.domain_id, self.version_suffix)
+        key = self._keys.get(spelled)
+        if key is None:  # (once per topic: a unit publishes several samples per step)
+            key = self._keys[spelled] = rz.data_key(topic, self.namespace, domain_id=self.domain_id,
+                                                    version_suffix=self.version_suffix)
+        return key
 
     def subscribe_keys(self) -> dict[str, rz.Px4Topic]:
-        """Key -> topic of everything the unit receives (`/fmu/in`)."""
-        return {self.key(t): t for t in rz.UNIT_TOPICS if t.direction is rz.Direction.IN}
+        """Key -> topic of everything the unit receives (`/fmu/in`); built once (every received sample looks
+        its key up here)."""
+        spelled = (self.unit_id, self.domain_id, self.version_suffix)
+        if self._inbound is None or self._inbound[0] != spelled:
+            self._inbound = (spelled, {self.key(t): t for t in rz.UNIT_TOPICS if t.direction is rz.Direction.IN})
+        return self._inbound[1]
 
     def publish_keys(self) -> dict[str, rz.Px4Topic]:
         return {self.key(t): t for t in rz.UNIT_TOPICS if t.direction is rz.Direction.OUT}

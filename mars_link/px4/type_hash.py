@@ -50,9 +50,18 @@ def canonical_json(spec: d.MessageSpec) -> str:
                       separators=(", ", ": "), sort_keys=False)
 
 
+_COMPUTED: dict[int, tuple[d.MessageSpec, str]] = {}  # id(spec) -> (spec, hash): every key of every sample names it
+
+
 def rihs01(spec: d.MessageSpec) -> str:
-    """'RIHS01_' + the SHA-256 of the canonical type description, in hex."""
-    return RIHS01_PREFIX + hashlib.sha256(canonical_json(spec).encode("utf-8")).hexdigest()
+    """'RIHS01_' + the SHA-256 of the canonical type description, in hex. Computed once per spec object
+    (looked up by identity: hashing a frozen spec walks all its fields)."""
+    known = _COMPUTED.get(id(spec))
+    if known is not None and known[0] is spec:
+        return known[1]
+    value = RIHS01_PREFIX + hashlib.sha256(canonical_json(spec).encode("utf-8")).hexdigest()
+    _COMPUTED[id(spec)] = (spec, value)
+    return value
 
 
 TYPE_HASHES: dict[str, str] = {spec.name: rihs01(spec) for spec in d.ALL_MESSAGES}

@@ -172,6 +172,12 @@ class Px4UnitInterface:
             target_system=int(cmd.source_system), target_component=int(cmd.source_component),
             from_external=False)
 
+    def disarm(self, time_s: float) -> None:
+        """Disarm from inside the unit (its own firmware disarmed it: a ground station's command on the
+        other persona, the land detector), as PX4's commander does for an internal request."""
+        self._evaluate(time_s)
+        self._disarm(time_s, VehicleStatus.ARM_DISARM_REASON_COMMAND_INTERNAL)
+
     # --- outputs ----------------------------------------------------------------------------------
 
     def update(self, time_s: float) -> Px4MotorOutput:

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from mars_link.transport.base import Address, Counters, Transport
 
 TRANSPORTS = ("udp", "zenoh")  # what the SITL processes can run on (serial is point to point)
+UNIT_INTERFACES = ("mavlink", "px4-zenoh")  # (as mars_link.config.scenario.UNIT_INTERFACES: this floor is below it)
 
 
 @dataclass
@@ -28,6 +29,8 @@ class LinkSpec:
     listen: tuple[str, ...] = ()
     profile: str | None = None             # a profiles.PRESETS name (+ overrides): coordinator <-> unit links
     seed: int = 0                          # link-profile randomness (mixed with each link's name)
+    unit_interface: str | None = None      # how the coordinator commands the units: "mavlink" | "px4-zenoh"
+    # (PX4's own per-rotor interface over rmw_zenoh, zenoh only); None: the scenario's [units] interface
 
     def to_args(self) -> list[str]:
         args = ["--transport", self.kind]
@@ -39,7 +42,16 @@ class LinkSpec:
                 args += ["--zenoh-listen", e]
         if self.profile:
             args += ["--link-profile", self.profile]
+        if self.unit_interface:
+            args += ["--unit-interface", self.unit_interface]
         return args
+
+    def check_unit_interface(self, interface: str) -> None:
+        """PX4's interface rides on Zenoh: refused (UserInputError) on another transport."""
+        if interface == "px4-zenoh" and self.kind != "zenoh":
+            from mars_link.core.errors import UserInputError
+
+            raise UserInputError(f"--unit-interface px4-zenoh needs --transport zenoh (got --transport {self.kind})")
 
 
 def add_link_args(ap) -> None:
@@ -51,11 +63,16 @@ def add_link_args(ap) -> None:
     ap.add_argument("--zenoh-connect", action="append", default=[])
     ap.add_argument("--zenoh-listen", action="append", default=[])
     ap.add_argument("--link-profile", default=None, help="a profiles.PRESETS name (+ overrides), zenoh only")
+    ap.add_argument("--unit-interface", choices=UNIT_INTERFACES, default=None,
+                    help="how the coordinator commands the units: mavlink (SET_ACTUATOR_CONTROL_TARGET) or px4-zenoh "
+                         "(PX4 v1.17's OffboardControlMode + ActuatorMotors over rmw_zenoh; needs --transport zenoh); "
+                         "default: the scenario's [units] interface")
 
 
 def spec_from_args(args) -> LinkSpec:
     return LinkSpec(args.transport, args.fleet, args.zenoh_mode, tuple(args.zenoh_connect),
-                    tuple(args.zenoh_listen), args.link_profile)
+                    tuple(args.zenoh_listen), args.link_profile,
+                    unit_interface=getattr(args, "unit_interface", None))
 
 
 __all__ = ["add_link_args", "spec_from_args", "Address", "Counters", "LinkSpec", "Transport", "TRANSPORTS"]

@@ -91,6 +91,10 @@ class CommandAgeTap:
         for t_us in frame_times_usec(data, MSG_SET_ACTUATOR_CONTROL_TARGET):
             self.commands.setdefault(t_us / 1e6, now_s)
 
+    def on_command(self, t_s: float, now_s: float | None = None) -> None:
+        """A per-rotor command for sim time `t_s` read from another interface (PX4's ActuatorMotors)."""
+        self.commands.setdefault(t_s, time.time() if now_s is None else now_s)
+
     def on_motor_output(self, data: bytes, now_s: float | None = None) -> None:
         """A datagram the unit sent to the simulator: its motor outputs for the steps it names."""
         now_s = time.time() if now_s is None else now_s

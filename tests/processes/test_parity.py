@@ -5,12 +5,15 @@ both transports. One parametrized test instead of one pasted comparison per feat
 Each flight is cut short (process start-up dominates; the lockstep makes every later step the same kind of
 exchange), a scenario's sensor failure is moved into that window, and the in-process flight is told no
 fault either (SITL's coordinator learns faults from what it observes). Compared: the centre of mass over
-the whole flight (within 1 mm) and every event at the same control step. One case per transport runs by
-default; the rest of the matrix is `-m long`."""
+the whole flight (within 1 mm) and every event at the same control step. The links: MAVLink over Zenoh or
+UDP, and PX4's own per-rotor interface over rmw_zenoh (`px4-zenoh`: OffboardControlMode, VehicleCommand and
+ActuatorMotors to /px4_<unit>/fmu/in/...). One case per link runs by default; the rest of the matrix is
+`-m long`."""
 
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -44,8 +47,10 @@ FEATURES = {
     "gps": "spiral_3x2_gps_profile_loss",
     "sensor_failure": "spiral_3x2_gps_loss",
 }
-#: the cases of the default run: one per transport
-DEFAULT = {("spiral", "zenoh"), ("battery", "udp")}
+#: the links: transport, unit interface
+LINKS = {"zenoh": LinkSpec("zenoh"), "udp": LinkSpec("udp"), "px4-zenoh": LinkSpec("zenoh", unit_interface="px4-zenoh")}
+#: the cases of the default run: one per link
+DEFAULT = {("spiral", "zenoh"), ("battery", "udp"), ("spiral", "px4-zenoh")}
 #: known gaps, until every process steps the engine (issue 38): a sensor failure moves the SITL flight off the
 #: in-process one 4 steps after it starts (3 mm on mocap), and the SITL summary carries none of its events
 GAPS = {"sensor_failure": pytest.mark.xfail(strict=True, reason="SITL applies and reports sensor failures apart "
@@ -57,7 +62,7 @@ def _marks(feature: str, transport: str) -> list:
     return marks + ([GAPS[feature]] if feature in GAPS else [])
 
 
-CASES = [pytest.param(f, t, marks=_marks(f, t), id=f"{f}-{t}") for f in FEATURES for t in ("zenoh", "udp")]
+CASES = [pytest.param(f, t, marks=_marks(f, t), id=f"{f}-{t}") for f in FEATURES for t in LINKS]
 
 
 def _events(summary: dict, control_hz: float) -> list[tuple[int, str]]:
@@ -69,11 +74,17 @@ def _events(summary: dict, control_hz: float) -> list[tuple[int, str]]:
 @pytest.mark.parametrize("feature, transport", CASES)
 def test_sitl_flies_the_inproc_flight(tmp_path: Path, feature: str, transport: str) -> None:
     sc = _short(feature)
-    sitl = run_sitl_scenario(sc, tmp_path / "sitl", seed=SEED, link=LinkSpec(transport), timeout_s=240, plots=False,
-                             view=())
+    link = LINKS[transport]
+    sitl = run_sitl_scenario(sc, tmp_path / "sitl", seed=SEED, link=link, timeout_s=240, plots=False, view=())
     inproc = run_scenario(sc, tmp_path / "inproc", seed=SEED, plots=False, mcap=False)
 
-    assert sitl["sitl"]["transport"] == transport and sitl["sitl"]["dead_units"] == []
+    assert sitl["sitl"]["transport"] == link.kind and sitl["sitl"]["dead_units"] == []
+    if link.unit_interface == "px4-zenoh":  # every unit flew the per-rotor commands of PX4's interface
+        for u in sc.model().unit_ids:
+            stats = json.loads((tmp_path / "sitl" / f"unit{u}_status.json").read_text())["stats"]
+            assert stats["px4.actuator_motors"] == stats["hil_steps"] and "rotor_commands" not in stats
+        rotors = np.genfromtxt(tmp_path / "sitl" / "rotors.csv", delimiter=",", names=True)  # commands from the
+        assert np.allclose(rotors["cmd_u1r1"], rotors["thrust_u1r1"], rtol=1e-5)  # units' PX4 input logs
     assert sitl["completed"] == inproc["completed"]
     a = np.genfromtxt(tmp_path / "inproc" / "telemetry.csv", delimiter=",", names=True)
     b = np.genfromtxt(tmp_path / "sitl" / "world_truth.csv", delimiter=",", names=True)  # the world's own truth

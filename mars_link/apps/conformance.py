@@ -1,0 +1,401 @@
+"""`mars-link conformance`: the command pipeline's conformance checks, judged in simulated time.
+
+A unit's firmware (`firmware_models.vehicle.Vehicle`, the object a unit process runs) stands on the ground
+in the in-process world (JSBSim, lockstep), and the harness plays the off-board computer on one of its
+command interfaces, with wire bytes:
+
+  px4-zenoh  rmw_zenoh samples (key, CDR payload, attachment) of PX4's OffboardControlMode, VehicleCommand,
+             ActuatorMotors into `Vehicle.px4_sample`; VehicleCommandAck samples back
+  mavlink    MAVLink 2 frames (COMMAND_LONG, SET_ACTUATOR_CONTROL_TARGET) on the unit's coordinator link
+             into `Vehicle.handle`; COMMAND_ACK frames back
+
+Every check starts from a fresh unit and world, steps the control loop (100 Hz) and reads what the motors
+are driven to at each step (the HIL answer). The bounds are each interface's documented ones: PX4's
+COM_OF_LOSS_T (keep-alive: OffboardControlMode), the MAVLink persona's MARS_CMD_MISS periods of
+MARS_CMD_HZ (the rotor command is its own keep-alive). A table per check with the measured figure; the
+exit code is 1 when a check fails.
+
+Not covered here: a unit behind a network link (the checks drive the firmware object in process, so the
+harness needs no world of its own); command-age jitter in real time (benchmarks/bench_realtime.py).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+CONTROL_HZ = 100.0
+CONTROLS = (0.20, 0.25, 0.30, 0.35)  # below hover: the unit stays on the ground with its rotors spinning
+INTERFACES = ("px4-zenoh", "mavlink")
+
+
+@dataclass
+class CheckResult:
+    name: str
+    passed: bool
+    measured: str
+    expected: str
+
+
+class Bench:
+    """One unit on the ground in lockstep, commanded over `interface` with wire bytes."""
+
+    def __init__(self, interface: str, broken_keepalive: bool = False) -> None:
+        from mars_link.config.scenario import Scenario
+        from mars_link.flight.build import build_flight
+
+        self.interface = interface
+        sc = Scenario(name="conformance", layout=("X",), source="<conformance>")
+        sc.sim.control_hz = CONTROL_HZ
+        sc.sim.duration_s = 600.0
+        self.flight = build_flight(sc, 0)
+        self.world = self.flight.world
+        self.unit_id = 1
+        self.vehicle = self.flight.units.vehicles[self.unit_id]
+        self.vehicle.px4_keepalive_timeout = not broken_keepalive
+        self.full_scale_n = self.vehicle.full_scale_n
+        self.dt_s = 1.0 / CONTROL_HZ
+        self.t_s = 0.0
+        self.outputs: list[tuple[float, np.ndarray]] = []  # (t, motor setpoint N) of every step
+        self.recorded: list[tuple[int, str, bytes, bytes | None]] = []  # (step, key, payload, attachment) sent
+        self.acks: list[tuple[int, int]] = []  # (command, result)
+        if interface == "px4-zenoh":
+            from mars_link.px4 import rmw_zenoh as rz
+
+            self._rz = rz
+            self._seq: dict[str, object] = {}
+            self.vehicle.px4_interface()
+        else:
+            from mars_link.mavlink.wire import new_mav
+
+            self._mav = new_mav(201)
+        self.step_index = 0
+        self.last_keepalive_s: float | None = None  # when the unit last heard its keep-alive
+
+    # ----------------------------------------------------------------- the loop
+    def step(self, actions: Callable[["Bench"], None] | None = None) -> np.ndarray:
+        """One control period: sensors into the unit, the harness's messages, the motors, physics."""
+        from mars_link.core.messages import wire_time
+
+        world = self.world
+        self.t_s = wire_time(world.t_s)
+        self.flight.units.take_sensors(world.sense())
+        if actions is not None:
+            actions(self)
+        out = self.vehicle.drive_motors()
+        world.actuate(dataclasses.replace(out, unit_id=self.unit_id))
+        world.advance()
+        self.outputs.append((self.t_s, np.array(out.thrusts_n, dtype=float)))
+        self.step_index += 1
+        return self.outputs[-1][1]
+
+    def run(self, seconds: float, actions: Callable[["Bench"], None] | None = None) -> None:
+        for _ in range(int(round(seconds * CONTROL_HZ))):
+            self.step(actions)
+
+    # ----------------------------------------------------------------- messages (wire bytes)
+    def _px4_send(self, topic, message) -> None:
+        from mars_link.px4 import cdr
+        from mars_link.px4.rmw_zenoh import PublisherSequence, data_key, unit_gid, vehicle_namespace
+
+        key = data_key(topic, vehicle_namespace(self.unit_id))
+        seq = self._seq.setdefault(key, PublisherSequence(unit_gid(201, key)))
+        self.send_raw(key, cdr.encode(message), seq.next(int(round(self.t_s * 1e9))))  # type: ignore[attr-defined]
+
+    def send_raw(self, key: str, payload: bytes, attachment: bytes | None) -> None:
+        """One rmw_zenoh sample into the unit, recorded for a replay."""
+        from mars_link.px4 import cdr
+
+        self.recorded.append((self.step_index, key, payload, attachment))
+        _, replies = self.vehicle.px4_sample(key, payload, attachment, self.t_s)
+        for reply_key, reply_payload, _ in replies:
+            if "/fmu/out/vehicle_command_ack/" in reply_key:
+                ack = cdr.decode("VehicleCommandAck", reply_payload)
+                self.acks.append((int(ack.command), int(ack.result)))
+
+    def _mavlink_send(self, msgs: list) -> None:
+        from firmware_models.vehicle import LINK_COORDINATOR
+        from mars_link.mavlink import codec
+
+        data = b"".join(codec.encode(m, self._mav) for m in msgs)
+        self.recorded.append((self.step_index, LINK_COORDINATOR, data, None))
+        self._mavlink_receive(self.vehicle.handle(data, self.t_s, link=LINK_COORDINATOR))
+
+    def _mavlink_receive(self, out) -> None:
+        from mars_link.mavlink.wire import new_mav
+
+        parser = new_mav(255)
+        for o in out:
+            for m in parser.parse_buffer(o.data) or []:
+                if m.get_type() == "COMMAND_ACK":
+                    self.acks.append((int(m.command), int(m.result)))
+
+    def keepalive(self) -> None:
+        """PX4: OffboardControlMode(direct_actuator). MAVLink: none of its own (the command is the keep-alive)."""
+        if self.interface == "px4-zenoh":
+            from mars_link.px4.cdr import OffboardControlMode
+
+            self._px4_send(self._rz.OFFBOARD_CONTROL_MODE,
+                           OffboardControlMode(timestamp=int(round(self.t_s * 1e6)), direct_actuator=True))
+            self.last_keepalive_s = self.t_s
+
+    def motors(self, controls) -> None:
+        """The per-rotor command: ActuatorMotors / SET_ACTUATOR_CONTROL_TARGET, controls = thrust / full scale."""
+        if self.interface == "px4-zenoh":
+            from mars_link.px4.cdr import ActuatorMotors
+
+            control = np.full(12, np.nan, dtype=np.float32)
+            control[:4] = controls
+            stamp = int(round(self.t_s * 1e6))
+            self._px4_send(self._rz.ACTUATOR_MOTORS, ActuatorMotors(timestamp=stamp, timestamp_sample=stamp,
+                                                                    control=control))
+        else:
+            from pymavlink.dialects.v20 import common as mavlink
+
+            self._mavlink_send([mavlink.MAVLink_set_actuator_control_target_message(
+                int(round(self.t_s * 1e6)), 0, self.unit_id, 1, [*map(float, controls), 0.0, 0.0, 0.0, 0.0])])
+            self.last_keepalive_s = self.t_s
+
+    def command(self, command: int, param1: float, param2: float = 0.0) -> int | None:
+        """ARM (400) or DO_SET_MODE (176); the result of its ack (None: no ack)."""
+        self.acks.clear()
+        if self.interface == "px4-zenoh":
+            from mars_link.px4.commander import Px4Commander
+
+            msg = Px4Commander(self.unit_id, self.full_scale_n)._command(
+                int(round(self.t_s * 1e6)), command, param1, param2)
+            self._px4_send(self._rz.VEHICLE_COMMAND, msg)
+        else:
+            from pymavlink.dialects.v20 import common as mavlink
+
+            self._mavlink_send([mavlink.MAVLink_command_long_message(self.unit_id, 1, command, 0, param1, param2,
+                                                                     0, 0, 0, 0, 0)])
+        return next((r for c, r in self.acks if c == command), None)
+
+    def take_over(self, controls=CONTROLS) -> bool:
+        """Keep-alive, OFFBOARD, ARM (PX4; the MAVLink persona needs its rotor command before OFFBOARD),
+        and a first command; True if both were accepted."""
+        self.keepalive()
+        if self.interface == "px4-zenoh":
+            mode = self.command(176, 1.0, 6.0)
+            arm = self.command(400, 1.0)
+            self.motors(controls)
+        else:
+            arm = self.command(400, 1.0)
+            self.motors(controls)
+            mode = self.command(176, 1.0, 6.0)
+        return mode == 0 and arm == 0
+
+    def stream(self, controls=CONTROLS) -> Callable[["Bench"], None]:
+        """Per-step actions of a live off-board computer: the keep-alive at 10 Hz and the command."""
+        def act(b: "Bench") -> None:
+            if b.step_index % 10 == 0:
+                b.keepalive()
+            b.motors(controls)
+        return act
+
+    def commanded_n(self, controls=CONTROLS) -> np.ndarray:
+        return np.array(controls, dtype=np.float32).astype(float) * self.full_scale_n
+
+    def follows(self, thrust_n: np.ndarray, controls=CONTROLS) -> bool:
+        return bool(np.allclose(thrust_n, self.commanded_n(controls), rtol=1e-5, atol=1e-6))
+
+    @property
+    def loss_bound_s(self) -> float:
+        p = self.vehicle.params
+        if self.interface == "px4-zenoh":
+            return float(p["COM_OF_LOSS_T"])
+        return float(p["MARS_CMD_MISS"]) / float(p["MARS_CMD_HZ"])
+
+    @property
+    def failed_safe(self) -> bool:
+        """PX4: disarmed. MAVLink persona: disarmed or landing under its own control (MARS_FS_ACT)."""
+        v = self.vehicle
+        return not v.armed or (self.interface == "mavlink" and v.source == "own")
+
+
+# ----------------------------------------------------------------- the checks
+def check_keepalive_loss(interface: str, broken: bool) -> CheckResult:
+    b = Bench(interface, broken)
+    b.step(lambda b: b.take_over())
+    b.run(1.0, b.stream())
+    last_s = b.last_keepalive_s
+    assert last_s is not None
+    limit_s = 3.0 * b.loss_bound_s + 1.0
+    lost_s = None
+    while b.t_s - last_s < limit_s:
+        thrust = b.step()
+        if not b.follows(thrust):
+            lost_s = b.outputs[-1][0] - last_s
+            break
+    bound = b.loss_bound_s
+    expected = f"stops following after {bound:.2f} s (+- one period), fails safe"
+    if lost_s is None:
+        return CheckResult("keep-alive loss", False, f"still following {limit_s:.1f} s after the last command", expected)
+    ok = bound - b.dt_s - 1e-9 <= lost_s <= bound + b.dt_s + 1e-9 and b.failed_safe
+    return CheckResult("keep-alive loss", ok, f"{lost_s:.3f} s; failed safe: {b.failed_safe}", expected)
+
+
+def check_fresh_arm_needed(interface: str, broken: bool) -> CheckResult:
+    b = Bench(interface, broken)
+    b.step(lambda b: b.take_over())
+    b.run(0.5, b.stream())
+    b.run(b.loss_bound_s + 0.5)  # silent: the failsafe
+    b.run(0.5, b.stream())  # the stream comes back without a new take-over
+    resumed = [t for t, thrust in b.outputs[-50:] if b.follows(thrust)]
+    b.step(lambda b: b.take_over())
+    b.run(0.2, b.stream())
+    recovered = b.follows(b.outputs[-1][1])
+    ok = not resumed and recovered
+    return CheckResult("recovery only on a fresh arm", ok,
+                       f"followed {len(resumed)} of 50 steps before re-arming; after: {recovered}",
+                       "0 steps before, following after the take-over")
+
+
+def check_arming_gating(interface: str, broken: bool) -> CheckResult:
+    b = Bench(interface, broken)
+    b.run(0.5, b.stream())  # commands and keep-alive, never armed
+    driven = sum(float(np.abs(thrust).max()) > 0.0 for _, thrust in b.outputs)
+    return CheckResult("arming gating", driven == 0, f"{driven} of {len(b.outputs)} steps drove the motors",
+                       "no motor driven while disarmed")
+
+
+def check_offboard_gating(interface: str, broken: bool) -> CheckResult:
+    b = Bench(interface, broken)
+    b.step(lambda b: (b.keepalive(), b.command(400, 1.0)))  # armed, not in OFFBOARD
+    b.run(0.5, b.stream())
+    followed = sum(b.follows(thrust) for _, thrust in b.outputs)
+    return CheckResult("offboard gating", followed == 0, f"{followed} of {len(b.outputs)} steps followed the command",
+                       "armed outside OFFBOARD: the command drives nothing")
+
+
+def check_nan(interface: str, broken: bool) -> CheckResult:
+    b = Bench(interface, broken)
+    b.step(lambda b: b.take_over())
+    b.run(0.2, b.stream())
+    nan_controls = (CONTROLS[0], math.nan, CONTROLS[2], CONTROLS[3])
+    thrust = b.step(lambda b: b.motors(nan_controls))
+    if interface == "px4-zenoh":
+        ok = thrust[1] == 0.0 and b.follows(np.delete(thrust, 1), np.delete(np.array(CONTROLS), 1))  # type: ignore[arg-type]
+        return CheckResult("NaN control", ok, f"rotor 2 at {thrust[1]:.3f} N, the others follow: {ok}",
+                           "NaN stops that motor (PX4: disarmed value), the others run")
+    dropped = b.vehicle.drop_counts().get("intake.non_finite", 0)
+    ok = dropped == 1 and b.follows(thrust)
+    return CheckResult("NaN control", ok, f"dropped {dropped}, held command kept: {b.follows(thrust)}",
+                       "the frame dropped and counted (non_finite), the held command stays")
+
+
+def check_out_of_range(interface: str, broken: bool) -> CheckResult:
+    b = Bench(interface, broken)
+    b.step(lambda b: b.take_over())
+    b.run(0.2, b.stream())
+    wild = (1.5, -0.5, CONTROLS[2], CONTROLS[3])
+    thrust = b.step(lambda b: b.motors(wild))
+    if interface == "px4-zenoh":
+        limit = float(b.vehicle.motors.setpoint(np.full(4, 2.0 * b.full_scale_n))[0])  # the motor model's ceiling
+        ok = abs(thrust[0] - min(b.full_scale_n, limit)) < 1e-6 and thrust[1] == 0.0
+        return CheckResult("out-of-range control", ok, f"1.5 -> {thrust[0]:.3f} N, -0.5 -> {thrust[1]:.3f} N",
+                           f"clamped to full scale ({b.full_scale_n:.3f} N); a negative one stops a non-reversible motor")
+    dropped = b.vehicle.drop_counts().get("intake.out_of_range", 0)
+    ok = dropped == 1 and b.follows(thrust)
+    return CheckResult("out-of-range control", ok, f"dropped {dropped}, held command kept: {b.follows(thrust)}",
+                       "the frame dropped and counted (out_of_range), the held command stays")
+
+
+def check_stale_reordered(interface: str, broken: bool) -> CheckResult:
+    b = Bench(interface, broken)
+    b.step(lambda b: b.take_over())
+    b.run(0.2, b.stream())
+    if interface == "px4-zenoh":
+        # the sample before the last one again: its sequence number does not advance
+        step, key, payload, attachment = next(r for r in reversed(b.recorded[:-1]) if "actuator_motors" in r[1])
+        thrust = b.step(lambda b: b.send_raw(key, payload, attachment))
+        endpoint = b.vehicle.px4_endpoint
+        counted = 0 if endpoint is None else endpoint.reordered
+        ok = counted == 1 and b.follows(thrust)
+        return CheckResult("stale / reordered sample", ok, f"counted {counted}, motors as commanded: {b.follows(thrust)}",
+                           "counted (endpoint.reordered) and, as PX4, handed on")
+    from pymavlink.dialects.v20 import common as mavlink
+
+    old = mavlink.MAVLink_set_actuator_control_target_message(int(round((b.t_s - 0.05) * 1e6)), 0, 1, 1,
+                                                                [0.9, 0.9, 0.9, 0.9, 0.0, 0.0, 0.0, 0.0])
+    thrust = b.step(lambda b: b._mavlink_send([old]))
+    dropped = b.vehicle.drop_counts().get("intake.out_of_order", 0)
+    ok = dropped == 1 and b.follows(thrust)
+    return CheckResult("stale / reordered sample", ok, f"dropped {dropped}, held command kept: {b.follows(thrust)}",
+                       "an older command dropped and counted (out_of_order)")
+
+
+def _scripted_session(b: Bench) -> None:
+    """Take-over, a varying command, a NaN, a silence into the failsafe, a re-arm."""
+    b.step(lambda b: b.take_over())
+    for k in range(60):
+        c = tuple(0.2 + 0.05 * math.sin(0.1 * k + i) for i in range(4))
+        b.step(b.stream(c))
+    b.step(lambda b: b.motors((0.3, math.nan, 0.3, 0.3)))
+    b.run(b.loss_bound_s + 0.3)
+    b.step(lambda b: b.take_over())
+    b.run(0.3, b.stream())
+
+
+def check_replay(interface: str, broken: bool) -> CheckResult:
+    a = Bench(interface, broken)
+    _scripted_session(a)
+    b = Bench(interface, broken)  # a fresh unit: the recorded bytes again, at the same steps
+    by_step: dict[int, list] = {}
+    for step, key, payload, attachment in a.recorded:
+        by_step.setdefault(step, []).append((key, payload, attachment))
+
+    def replay(bench: Bench) -> None:
+        for key, payload, attachment in by_step.get(bench.step_index, []):
+            if interface == "px4-zenoh":
+                bench.send_raw(key, payload, attachment)
+            else:
+                bench._mavlink_receive(bench.vehicle.handle(payload, bench.t_s, link=key))
+
+    for _ in range(len(a.outputs)):
+        b.step(replay)
+    same = b"".join(o.tobytes() for _, o in a.outputs) == b"".join(o.tobytes() for _, o in b.outputs)
+    return CheckResult("replay of a recorded command stream", same,
+                       f"{len(a.recorded)} messages, {len(a.outputs)} motor outputs, byte-identical: {same}",
+                       "the same motor outputs byte for byte")
+
+
+CHECKS = (check_keepalive_loss, check_fresh_arm_needed, check_arming_gating, check_offboard_gating, check_nan,
+          check_out_of_range, check_stale_reordered, check_replay)
+
+
+def run_checks(interface: str, broken_keepalive: bool = False) -> list[CheckResult]:
+    return [check(interface, broken_keepalive) for check in CHECKS]
+
+
+def table(interface: str, results: list[CheckResult]) -> str:
+    rows = [("check", "result", "measured", "expected")] + [
+        (r.name, "pass" if r.passed else "FAIL", r.measured, r.expected) for r in results]
+    widths = [max(len(row[i]) for row in rows) for i in range(4)]
+    lines = [f"interface {interface}"]
+    for i, row in enumerate(rows):
+        lines.append("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip())
+        if i == 0:
+            lines.append("  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def conformance_command(args) -> int:
+    interfaces = INTERFACES if args.unit_interface == "both" else (args.unit_interface,)
+    failed = []
+    for interface in interfaces:
+        results = run_checks(interface, args.test_broken_keepalive)
+        print(table(interface, results), flush=True)
+        print(flush=True)
+        failed += [f"{interface}: {r.name}" for r in results if not r.passed]
+    if failed:
+        print(f"conformance: {len(failed)} check(s) failed: {'; '.join(failed)}", file=sys.stderr)
+        return 1
+    print("conformance: every check passed")
+    return 0
