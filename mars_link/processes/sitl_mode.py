@@ -233,7 +233,7 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
         raise RuntimeError(f"SITL run failed (exit {code}); process logs in {out}: {logs}")
     held = session.wake_latency.state if session.wake_latency is not None else None
     if pieces:
-        return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime)
+        return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime, plots, plot_format)
     return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held, plot_format)
 
 
@@ -270,7 +270,7 @@ def _summarize_interrupted(scenario, out: Path, seed: int, wall_s: float, sessio
     if not (out / "world_summary.json").exists():
         return
     if scenario.has_pieces:
-        summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link)
+        summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link, plots=False)
     else:
         summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False)
 
@@ -436,7 +436,7 @@ def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
 
 
 def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec,
-                              realtime: bool = False) -> dict:
+                              realtime: bool = False, plots: bool = True, plot_format: str = "png") -> dict:
     """The summary of a flight of pieces in SITL, with the in-process keys (mars_link.flight.reconfig_flight): the
     tracked point's error while the mission flies, from the world's per-unit truth and the coordinator's
     per-step record of the mission (its clock, reference and the units carrying the tracked point)."""
@@ -455,6 +455,7 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
                                          [int(u) for u in tracked_units.split()], int(n_pieces))
     tracked_unit = scenario.tracked_unit()
     metrics = TrackingMetrics()
+    telemetry_rows = []
     with open(out / "telemetry.csv", "w", encoding="utf-8") as tel:
         tel.write("t_s,mission_t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,error_m,pieces\n")
         for row in truth:
@@ -469,7 +470,9 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
             metrics.add_error(err)
             if not err < DIVERGENCE_ERROR_M:
                 metrics.mark_diverged(float(row["t_s"]), err, math.nan, phase="mission")
-            tel.write(",".join(f"{x:.6g}" for x in (float(row["t_s"]), mission_t, *ref, *pos, err, n_pieces)) + "\n")
+            values = (float(row["t_s"]), mission_t, *ref, *pos, err, n_pieces)
+            tel.write(",".join(f"{x:.6g}" for x in values) + "\n")
+            telemetry_rows.append(values)
     faults = [{"t_s": round(f.t_s, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta,
                "text": f.event_text()} for f in scenario.faults]
     deaths = [{"t_s": d["t_s"], "type": "unit_died", "unit": d["unit"], "text": f"Unit {d['unit']} silent: motors off"}
@@ -498,6 +501,17 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
                  "coordinator_dropped": coordinator.get("dropped", {}), "lost_units": coordinator.get("lost_units", [])},
     }
     write_json(out / "summary.json", summary)
+    if plots:  # the in-process flight's figures, from the world's truth of every unit (20 Hz) and the events
+        from types import SimpleNamespace
+
+        from mars_link.flight.reconfig_flight import write_reconfig_plots
+
+        every = max(1, int(round(scenario.sim.control_hz / 20.0)))
+        unit_ids = sorted(int(name[1:-4]) for name in truth.dtype.names if name.startswith("u") and name.endswith("_n_m"))
+        unit_rows = [(float(row["t_s"]), u, row[f"u{u}_n_m"], row[f"u{u}_e_m"], row[f"u{u}_d_m"])
+                     for row in truth[::every] for u in unit_ids]
+        write_reconfig_plots(out, SimpleNamespace(unit_rows=unit_rows, events=events, telemetry_rows=telemetry_rows),
+                             scenario.name, plot_format)
     return summary
 
 

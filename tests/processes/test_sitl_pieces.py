@@ -56,6 +56,7 @@ def test_docking_3x1_in_sitl_equals_inproc_and_the_latches_travel_as_mavlink(tmp
     sitl, inproc = _fly_both("docking_3x1", tmp_path)
     _assert_same_flight(sitl, inproc, tmp_path)
     assert sitl["reconfigured"] and inproc.reconfigured
+    assert {p.stem for p in (tmp_path / "plots").iterdir()} == {"units", "error"}  # the figures of the in-process run
     print_summary(sitl, tmp_path)  # what `mars-link run --mode sitl` prints: every row (a missing key was a traceback)
     printed = capsys.readouterr().out
     assert "rmse / max error" in printed and "max tilt" in printed and "n/a deg" in printed
