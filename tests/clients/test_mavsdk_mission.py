@@ -118,7 +118,8 @@ async def _current_is(mission, index: int, sample) -> bool:
 
 
 @pytest.mark.skipif(not hasattr(mavsdk, "asyncio"), reason="needs MAVSDK 4.x")
-@pytest.mark.parametrize("vehicle", ["unit", pytest.param("assembly", marks=pytest.mark.long)])  # (CI time: -m long)
+@pytest.mark.parametrize("vehicle", [pytest.param(v, marks=pytest.mark.long) for v in ("unit", "assembly")])  # (CI time:
+# -m long; examples/mavsdk_mission.py flies a MAVSDK mission against the truth in the default run)
 def test_mavsdk_mission_flown_against_the_truth(tmp_path: Path, vehicle: str) -> None:
     """`unit`: a lone unit process; `assembly`: `mars-link vehicle` (the 3x2, qp allocation)."""
     api = free_udp_port()
