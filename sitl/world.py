@@ -14,6 +14,7 @@ from dataclasses import KW_ONLY, dataclass, field
 
 import numpy as np
 
+from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import AssemblyModel, layout_of_cells
 from mars_link.core.messages import ActuatorOutput, SensorPacket, f32, wire_state, wire_time
 from mars_link.core.rotations import quat_to_rotmat
@@ -288,8 +289,7 @@ class World:
                 offset = np.mean([body.offsets_frd_m[body.units.index(u)] for u in order], axis=0)
                 parts.append((model, order, offset))
             self.split(body.units, parts)
-            self.latch_events.append({"t_s": round(self.t_s, 6), "type": "released",
-                                      "parts": [sorted(g) for g in groups]})
+            self.latch_events.append(event(self.t_s, EventKind.RELEASED, parts=[sorted(g) for g in groups]))
 
     def _latch_docks(self) -> None:
         """Two bodies dock when a pair of facing units, both latches engaged, sit at their dock pose within
@@ -339,10 +339,10 @@ class World:
         self.latches.add({link: sides for link, sides in neighbour_links(cells).items()
                           if len(link & set(st_cells)) == 1 and engaged(min(link), sides[0])
                           and engaged(max(link), sides[1])})
-        self.latch_events.append({
-            "t_s": round(self.t_s, 6), "type": "dock_latched", "stationary": sorted(st_cells), "mover": sorted(mv_cells),
-            "position_error_m": round(chk.position_error_m, 4), "speed_mps": round(chk.speed_mps, 4),
-            "yaw_deg": round(chk.yaw_deg, 3), "text": f"Dock latched: {chk.position_error_m * 100:.1f} cm"})
+        self.latch_events.append(event(self.t_s, EventKind.DOCK_LATCHED, stationary=sorted(st_cells),
+                                       mover=sorted(mv_cells), position_error_m=round(chk.position_error_m, 4),
+                                       speed_mps=round(chk.speed_mps, 4), yaw_deg=round(chk.yaw_deg, 3),
+                                       text=f"Dock latched: {chk.position_error_m * 100:.1f} cm"))
         return True
 
     # ----------------------------------------------------------------- outputs

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import GRAVITY_MPS2, ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import Controller
 from mars_link.core.errors import UserInputError
@@ -119,9 +120,9 @@ class Coordinator:
         return unit_id if self.unit_names is None else self.unit_names[unit_id - 1]
 
     def _event(self, t_s: float, kind: str, text: str, **fields) -> dict:
-        event = {"t_s": round(t_s, 6), "type": kind, **fields, "text": short_text(text)}
-        self.events.append(event)
-        return event
+        ev = event(t_s, kind, **fields, text=short_text(text))
+        self.events.append(ev)
+        return ev
 
     def set_faults(self, eta: np.ndarray, t_s: float, reason: str) -> None:
         """Switch the allocation to a new believed fault set (told, or detected)."""
@@ -132,10 +133,10 @@ class Coordinator:
             v = self.model.vehicle
             check_controllable(self.model, self.eta_believed, (v.rotor_min_thrust_n, v.rotor_max_thrust_n))
         except UserInputError as exc:  # mid-flight: log it and allocate as well as possible, never stop
-            self._event(t_s, "uncontrollable", "Uncontrollable faults: best effort", reason=str(exc))
+            self._event(t_s, EventKind.UNCONTROLLABLE, "Uncontrollable faults: best effort", reason=str(exc))
         self.controller.set_faults(self.eta_believed)
-        self._event(t_s, "reallocation", "Realloc " + fault_summary(self.model, self.eta_believed, self.unit_names),
-                    reason=reason)
+        self._event(t_s, EventKind.REALLOCATION,
+                    "Realloc " + fault_summary(self.model, self.eta_believed, self.unit_names), reason=reason)
 
     def unit_lost(self, unit_id: int, t_s: float, reason: str = "telemetry lost") -> Detection | None:
         """A unit stopped reporting (its process died, its link broke): it is a failed unit.
@@ -155,7 +156,7 @@ class Coordinator:
             det = Detection(t_s, unit_id, None, 0.0, reason="silent")
         self.detections.append(det)
         name = self.name_of(unit_id)
-        self._event(t_s, "unit_lost", f"Unit {name} lost: {reason}", unit=name, reason=reason)
+        self._event(t_s, EventKind.UNIT_LOST, f"Unit {name} lost: {reason}", unit=name, reason=reason)
         eta = self.eta_believed.copy()
         eta[self.model.unit_slots(unit_id)] = 0.0
         self.set_faults(eta, t_s, f"unit {name} lost ({reason})")
@@ -307,7 +308,7 @@ class Coordinator:
             name = self.name_of(d.unit)
             where = f"Unit {name}" + (f" rotor {d.rotor}" if d.rotor else "")
             what = f"{where} eta {d.eta_estimated:.2f}" if d.rotor else f"{where} failed"
-            self._event(t_s, "fault_detected", f"Fault found: {what}", unit=name, rotor=d.rotor,
+            self._event(t_s, EventKind.FAULT_DETECTED, f"Fault found: {what}", unit=name, rotor=d.rotor,
                         eta_estimated=round(float(d.eta_estimated), 4), t_onset=round(float(d.t_onset), 6))
         what = ", ".join(
             f"unit {self.name_of(d.unit)}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"

@@ -27,6 +27,7 @@ from typing import Callable
 
 import numpy as np
 
+from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel, VehicleParams
 from mars_link.coordination.coordinator import Coordinator, StepRecord
 from mars_link.core.latches import LATCH_ALL, Link, neighbour_links
@@ -211,17 +212,16 @@ class PiecesCoordinator:
         current = {u: (r - r0, c - c0) for u, (r, c) in shape.cells.items()}
         plan, reason = self.planner({u: e.copy() for u, e in self.eta_believed.items()}, current)
         if plan is None:
-            self.events.append({"t_s": round(t_s, 6), "type": "reconfig_refused", "reason": reason,
-                                "text": "Reconfig refused"})
+            self.events.append(event(t_s, EventKind.RECONFIG_REFUSED, reason=reason, text="Reconfig refused"))
             return
-        self.events.append({"t_s": round(t_s, 6), "type": "plan", "feasible": plan.feasible,
-                            "disassembly_layers": plan.disassembly_layers, "assembly_layers": plan.assembly_layers,
-                            "fallback_used": plan.fallback_used, "reason": plan.reason,
-                            "text": f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers"})
+        self.events.append(event(t_s, EventKind.PLAN, feasible=plan.feasible,
+                                 disassembly_layers=plan.disassembly_layers, assembly_layers=plan.assembly_layers,
+                                 fallback_used=plan.fallback_used, reason=plan.reason,
+                                 text=f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers"))
         if not self.executor.replan(plan):
-            self.events.append({"t_s": round(t_s, 6), "type": "reconfig_refused",
-                                "reason": "the structure is no longer the layout the plan starts from",
-                                "text": "Reconfig refused: structure changed"})
+            self.events.append(event(t_s, EventKind.RECONFIG_REFUSED,
+                                     reason="the structure is no longer the layout the plan starts from",
+                                     text="Reconfig refused: structure changed"))
             return
         self.executor.trigger(t_s - self.executor.params.trigger_delay_s)
 
@@ -236,9 +236,9 @@ class PiecesCoordinator:
         ex.hold_until_s = math.inf if redock_s is None else redock_s
         ex.trigger(t_s - ex.params.trigger_delay_s)
         units = plan.splits[0].detached
-        self.events.append({"t_s": round(t_s, 6), "type": "separation", "units": units, "redock_t_s": redock_s,
-                            "text": f"Separation: u{units_text(units)}" + ("" if redock_s is None
-                                                                             else f" until {redock_s:g} s")})
+        until = "" if redock_s is None else f" until {redock_s:g} s"
+        self.events.append(event(t_s, EventKind.SEPARATION, units=units, redock_t_s=redock_s,
+                                 text=f"Separation: u{units_text(units)}" + until))
 
     # ----------------------------------------------------------------- topology
     def _begin_split(self, t_s: float, action: SplitAction) -> None:

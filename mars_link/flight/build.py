@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import AssemblyModel
 from mars_link.control.base import Controller
 from mars_link.core.errors import UserInputError
@@ -375,18 +376,18 @@ def make_executor(scenario: Scenario, model: AssemblyModel, mission, plan_for: T
         return Executor(plan_assembly(model), vehicle, mission, tracked, params, free, defer_take_off), events, False
     if scenario.reconfig.get("enabled", False) and scenario.faults_known:
         plan = make_plan(scenario, model, plan_for or mission)
-        events.append({"t_s": 0.0, "type": "plan", "feasible": plan.feasible,
-                       "disassembly_layers": plan.disassembly_layers, "assembly_layers": plan.assembly_layers,
-                       "fallback_used": plan.fallback_used, "reason": plan.reason,
-                       "text": (f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers"
-                                if plan.feasible else "Reconfig: no feasible plan")})
+        text = (f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers" if plan.feasible
+                else "Reconfig: no feasible plan")
+        events.append(event(0.0, EventKind.PLAN, feasible=plan.feasible, disassembly_layers=plan.disassembly_layers,
+                            assembly_layers=plan.assembly_layers, fallback_used=plan.fallback_used, reason=plan.reason,
+                            text=text))
         if plan.feasible and plan.disassembly_layers:
             refused = unhoverable_pieces(plan, model, eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s),
                                                                 math.inf))
             if not refused:
                 return Executor(plan, vehicle, mission, tracked, params), events, True
-            events.append({"t_s": 0.0, "type": "reconfig_refused", "reason": "; ".join(refused),
-                           "text": "Reconfig refused: a piece cannot hover"})
+            events.append(event(0.0, EventKind.RECONFIG_REFUSED, reason="; ".join(refused),
+                                text="Reconfig refused: a piece cannot hover"))
     stub = ReconfigPlan(model.layout, nominal_cells(model), None, True, 0, 0)  # type: ignore[arg-type]
     return Executor(stub, vehicle, mission, tracked, params), events, False
 

@@ -18,6 +18,7 @@ from typing import Callable
 import numpy as np
 
 from firmware_models.vehicle import MODE_OFFBOARD
+from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import AssemblyModel
 from mars_link.coordination.coordinator import Coordinator
 from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
@@ -236,19 +237,19 @@ class Engine:
             self.on_fault(faults[self._next_fault - 1], t)
         while self._sensor_events and self._sensor_events[0][0] <= t + 1e-9:
             _, kind, sf = self._sensor_events.pop(0)
-            self.events.append({"t_s": round(t, 6), "type": "sensor_fault", "sensor": sf.sensor, "unit": sf.unit,
-                                "failure": kind, "text": sf.text(end=kind == "ok" and sf.kind != "ok")})
+            self.events.append(event(t, EventKind.SENSOR_FAULT, sensor=sf.sensor, unit=sf.unit, failure=kind,
+                                     text=sf.text(end=kind == "ok" and sf.kind != "ok")))
         while self._deaths and self._deaths[0][0] <= t + 1e-9:
             _, u = self._deaths.pop(0)
             f.units.kill(u)
-            self.events.append({"t_s": round(t, 6), "type": "unit_died", "unit": u, "text": f"Unit {u} process died"})
+            self.events.append(event(t, EventKind.UNIT_DIED, unit=u, text=f"Unit {u} process died"))
 
     def _record_fault(self, fault: FaultSpec, t: float) -> None:
         """A scenario fault came due (the unit's motor model applies it): an event; told to the coordinator
         when the scenario says faults are known."""
         f = self.flight
-        self.events.append({"t_s": round(t, 6), "type": "fault", "unit": fault.unit, "rotor": fault.rotor,
-                            "eta": fault.eta, "text": fault.event_text()})
+        self.events.append(event(t, EventKind.FAULT, unit=fault.unit, rotor=fault.rotor, eta=fault.eta,
+                                 text=fault.event_text()))
         if f.scenario.faults_known:
             f.coordinator.set_faults(eta_after(f.model, f.faults[:self._next_fault], t), t,
                                      "fault told to the coordinator")

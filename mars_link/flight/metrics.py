@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mars_link.core.events import EventKind, event
 from mars_link.core.rotations import tilt_deg
 
 #: a run is declared diverged when the tracked point is this far from its reference...
@@ -76,8 +77,7 @@ class TrackingMetrics:
     def mark_diverged(self, t_s: float, err_m: float, tilt_deg_: float, **fields) -> None:
         if not self.diverged:
             self.diverged = True
-            self.divergence = {"t_s": round(t_s, 6), "type": "diverged", "error_m": err_m, "tilt_deg": tilt_deg_,
-                               **fields}
+            self.divergence = event(t_s, EventKind.DIVERGED, error_m=err_m, tilt_deg=tilt_deg_, **fields)
 
     @property
     def mean_error_m(self) -> float:

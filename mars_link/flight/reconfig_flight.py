@@ -27,6 +27,7 @@ from typing import Callable
 
 import numpy as np
 
+from mars_link.core.events import EventKind, event
 from mars_link.flight.build import build_flight
 from mars_link.flight.engine import Engine, Flight, StepView
 from mars_link.flight.metrics import DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, TrackingMetrics, TrialResult
@@ -92,8 +93,8 @@ class ReconfigRecorder:
         pieces = coord.pieces
         if coord.failed and not self.failed:
             self.failed = True
-            engine.events.append({"t_s": round(t, 6), "type": "reconfig_failed", "reason": coord.failed,
-                                  "text": f"Reconfig failed: {coord.failed}"[:50]})
+            engine.events.append(event(t, EventKind.RECONFIG_FAILED, reason=coord.failed,
+                                       text=f"Reconfig failed: {coord.failed}"[:50]))
             return True
         states = {key: world.body_state(p.units[0]) for key, p in pieces.items()}
         for key, p in pieces.items():

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import GRAVITY_MPS2
 from mars_link.core.rotations import quat_to_rotmat
 from mars_link.models.trajectories import Trajectory, TrajectoryPoint
@@ -100,7 +101,7 @@ class PositionFailsafe:
         return estimate_down_m > self.ground_down_m - zone
 
     def _event(self, t_s: float, kind: str, text: str) -> None:
-        self.events.append({"t_s": round(t_s, 6), "type": kind, "text": text})
+        self.events.append(event(t_s, kind, text=text))
 
     def reference(self, t_s: float, estimate, trajectory: Trajectory, lost_since_s: float | None) -> TrajectoryPoint:
         p = self.params
@@ -111,7 +112,7 @@ class PositionFailsafe:
                 here = estimate.position_ned_m + quat_to_rotmat(estimate.quaternion_wxyz) @ self.offset_frd_m
                 self._hold_point = TrajectoryPoint(np.array(here, dtype=float), yaw_rad=ref.yaw_rad)
                 self.state = "hold"
-                self._event(t_s, "failsafe_hold", "Position lost: holding")
+                self._event(t_s, EventKind.FAILSAFE_HOLD, "Position lost: holding")
             else:
                 return trajectory.sample(t_s - self.shift_s)
         # (hold, land and landed are only reached through the hold branch above, which sets the hold's time and point)
@@ -120,12 +121,12 @@ class PositionFailsafe:
             if lost_since_s is None:
                 self.shift_s += t_s - self._hold_since
                 self.state = "normal"
-                self._event(t_s, "failsafe_resume", "Position regained: resuming")
+                self._event(t_s, EventKind.FAILSAFE_RESUME, "Position regained: resuming")
                 return trajectory.sample(t_s - self.shift_s)
             if t_s - lost_since_s >= p.land_after_s - 1e-9:
                 self.state = "land"
                 self._land_since = t_s
-                self._event(t_s, "failsafe_land", "Position lost: landing")
+                self._event(t_s, EventKind.FAILSAFE_LAND, "Position lost: landing")
             else:
                 return self._hold_point
         hold = self._hold_point
@@ -165,4 +166,4 @@ class PositionFailsafe:
     def _landed(self, t_s: float, text: str) -> None:
         self.state = "landed"
         self._landed_point = np.array(self._estimate_point, dtype=float)
-        self._event(t_s, "failsafe_landed", text)
+        self._event(t_s, EventKind.FAILSAFE_LANDED, text)

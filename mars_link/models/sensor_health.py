@@ -44,6 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mars_link.core.events import EventKind, event
 from mars_link.models.estimation import AssemblyEstimator, StackedSamples
 from mars_link.core.rotations import quat_to_rotmat
 from mars_link.core.state import ImuSample, PositionSample, RigidBodyState
@@ -175,7 +176,7 @@ class SensorGuard:
         return new
 
     def _event(self, t_s: float, kind: str, text: str, **fields) -> None:
-        self.events.append({"t_s": round(t_s, 6), "type": kind, **fields, "text": text[:50]})
+        self.events.append(event(t_s, kind, **fields, text=text[:50]))
 
     def _part(self, unit: int, sensor: str) -> _PartHealth:
         part = self._parts.get((unit, sensor))
@@ -190,12 +191,12 @@ class SensorGuard:
         part.good_run = 0 if bad else part.good_run + 1
         if part.failed is None and bad and sum(part.recent) >= (hp.imu_bad_in_window if sensor != "gps" else 1):
             part.failed = why
-            self._event(t_s, "sensor_failed", f"Unit {unit} {sensor} failed: {why}", unit=unit, sensor=sensor,
+            self._event(t_s, EventKind.SENSOR_FAILED, f"Unit {unit} {sensor} failed: {why}", unit=unit, sensor=sensor,
                         reason=why)
             if sensor in ("accel", "gyro"):
                 self.imu_changed = True
         elif part.failed is not None and part.good_run >= recover:
-            self._event(t_s, "sensor_ok", f"Unit {unit} {sensor} ok again", unit=unit, sensor=sensor)
+            self._event(t_s, EventKind.SENSOR_OK, f"Unit {unit} {sensor} ok again", unit=unit, sensor=sensor)
             part.failed = None
         return not bad and part.failed is None
 
@@ -486,7 +487,8 @@ class SensorGuard:
         if rejected and not kept:
             self._rejected_since_s = t_s if self._rejected_since_s is None else self._rejected_since_s
             if t_s - self._rejected_since_s >= hp.position_reject_reset_s:  # the estimate, not the sensors, is off
-                self._event(t_s, "estimator_reset", f"GPS accepted after {t_s - self._rejected_since_s:.0f} s rejected")
+                self._event(t_s, EventKind.ESTIMATOR_RESET,
+                            f"GPS accepted after {t_s - self._rejected_since_s:.0f} s rejected")
                 self._rejected_since_s = None
                 return rejected, None
         elif kept:
@@ -512,7 +514,7 @@ class SensorGuard:
                 lost_s = t_s - self.lost_since_s
                 self.last_drift_m = drift
                 what = f"drift {drift:.2f} m" if drift is not None else "estimator reset"
-                self._event(t_s, "position_regained", f"GPS regained after {lost_s:.1f} s: {what}",
+                self._event(t_s, EventKind.POSITION_REGAINED, f"GPS regained after {lost_s:.1f} s: {what}",
                             lost_s=round(lost_s, 3), drift_m=None if drift is None else round(drift, 4))
                 self.lost_since_s = None
                 self.imu_changed = True  # the estimate jumps by the drift: the detector's history is not of this body
@@ -522,13 +524,14 @@ class SensorGuard:
             if self.lost_since_s is not None and t_s >= self._next_drift_report:
                 self._next_drift_report = t_s + hp.drift_report_s
                 sigma = self.drift_sigma_m()
-                self._event(t_s, "position_drift", f"GPS lost {t_s - self.lost_since_s:.0f} s: drift 1-sigma {sigma:.2f} m",
+                self._event(t_s, EventKind.POSITION_DRIFT,
+                            f"GPS lost {t_s - self.lost_since_s:.0f} s: drift 1-sigma {sigma:.2f} m",
                             drift_sigma_m=round(sigma, 4))
             return
         if t_s - self.last_fused_s > hp.position_timeout_s:
             self.lost_since_s = self.last_fused_s
             self._next_drift_report = self.last_fused_s + hp.drift_report_s
-            self._event(t_s, "position_lost", "GPS lost: dead reckoning on the IMUs",
+            self._event(t_s, EventKind.POSITION_LOST, "GPS lost: dead reckoning on the IMUs",
                         since_s=round(self.last_fused_s, 6))
 
     def _drift(self, mean_innovation: np.ndarray) -> float:

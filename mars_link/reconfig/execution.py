@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import AssemblyModel, VehicleParams, layout_of_cells
 from mars_link.core.errors import UserInputError
 from mars_link.reconfig.flyability import Cell
@@ -409,8 +410,8 @@ class Executor:
             return dropped
         self.docks = []
         if self.phase == "mission":  # (a trigger pending, nothing moved yet)
-            self.events.append({"t_s": round(t_s, 6), "type": "reconfig_abandoned", "lost": sorted(lost),
-                                "pieces": [sorted(k) for k in self.shapes], "text": "Reconfig off: unit lost"})
+            self.events.append(event(t_s, EventKind.RECONFIG_ABANDONED, lost=sorted(lost),
+                                     pieces=[sorted(k) for k in self.shapes], text="Reconfig off: unit lost"))
             return dropped
         self._replan_lost = set(lost)
         self._give_up(t_s)
@@ -422,9 +423,8 @@ class Executor:
         lost = sorted(self._replan_lost or ())
         self._replan_lost = set()
         what = "assembly" if self.assembling else "reconfig"
-        self.events.append({"t_s": round(t_s, 6), "type": f"{what}_abandoned", "lost": lost,
-                            "pieces": [sorted(k) for k in self.shapes],
-                            "text": f"{what.capitalize()} off: u{units_text(lost)} lost"[:50]})
+        self.events.append(event(t_s, f"{what}_abandoned", lost=lost, pieces=[sorted(k) for k in self.shapes],
+                                 text=f"{what.capitalize()} off: u{units_text(lost)} lost"[:50]))
         self.assembling = False
         if self.pause_t is None:
             self.pause_t = t_s - self.shift_s
@@ -444,9 +444,9 @@ class Executor:
         self.phase, self.phase_end_t = "landed", math.inf
         if self.pause_t is not None:  # (the flight ends when the paused mission would have: `shift_s` on)
             self.shift_s = t_s - self.pause_t
-        self.events.append({"t_s": round(t_s, 6), "type": "reconfig_abandoned", "lost": sorted(lost),
-                            "pieces": [sorted(k) for k in self.shapes],
-                            "text": f"Reconfig off: u{units_text(sorted(lost))} lost, landed"[:50]})
+        self.events.append(event(t_s, EventKind.RECONFIG_ABANDONED, lost=sorted(lost),
+                                 pieces=[sorted(k) for k in self.shapes],
+                                 text=f"Reconfig off: u{units_text(sorted(lost))} lost, landed"[:50]))
 
     def _replan_docks(self, t_s: float) -> bool:
         """Between docking layers, after units were lost: dock the pieces there are into the target without
@@ -464,10 +464,9 @@ class Executor:
                                         placement=dataclasses.replace(self.plan.placement, unit_cells=plan.target))
         self.layer = 0
         self.phase_end_t = t_s + self.params.settle_s
-        self.events.append({"t_s": round(t_s, 6), "type": f"{what}_replanned", "lost": sorted(lost),
-                            "assembly_layers": plan.assembly_layers, "pieces": [sorted(k) for k in self.shapes],
-                            "text": f"Re-planned without u{units_text(sorted(lost))}: "
-                                    f"{plan.assembly_layers} layers"[:50]})
+        self.events.append(event(t_s, f"{what}_replanned", lost=sorted(lost), assembly_layers=plan.assembly_layers,
+                                 pieces=[sorted(k) for k in self.shapes],
+                                 text=f"Re-planned without u{units_text(sorted(lost))}: {plan.assembly_layers} layers"[:50]))
         return True
 
     def trigger(self, t_s: float) -> None:
@@ -514,8 +513,8 @@ class Executor:
             ground = ref.sample(t_s).position_ned_m
             end = max(end, ref.move(t_s, [ground[0], ground[1], self._altitude(0)], p.speed_mps, min_s=3.0))
         self.phase, self.layer, self.phase_end_t = "assembly", 0, end + p.settle_s
-        self.events.append({"t_s": round(t_s, 6), "type": "assembly_start", "assembly_layers": self.plan.assembly_layers,
-                            "text": f"Assembly: {len(self.plan.pieces)} pieces, {self.plan.assembly_layers} dock layers"})
+        self.events.append(event(t_s, EventKind.ASSEMBLY_START, assembly_layers=self.plan.assembly_layers,
+                                 text=f"Assembly: {len(self.plan.pieces)} pieces, {self.plan.assembly_layers} dock layers"))
 
     # ----------------------------------------------------------------- main step
     def step(self, t_s: float, states: dict[Key, object]) -> list[SplitAction]:
@@ -556,8 +555,8 @@ class Executor:
             self.phase = "mission"
             self.pause_t = None  # (a later fault may start another manoeuvre)
             self.hold_until_s = -math.inf
-            self.events.append({"t_s": round(t_s, 6), "type": "mission_resumed", "shift_s": round(self.shift_s, 4),
-                                "text": self._resume_text})
+            self.events.append(event(t_s, EventKind.MISSION_RESUMED, shift_s=round(self.shift_s, 4),
+                                     text=self._resume_text))
         return []
 
     def _last_layer_done(self) -> bool:
@@ -595,10 +594,9 @@ class Executor:
         end = ref.move(t_s, stop_at, math.inf, self.params.stop_s, start=start)
         self.hold_down_m = float(stop_at[2])
         self.phase, self.phase_end_t = "stop", end + self.params.settle_s
-        self.events.append({"t_s": round(t_s, 6), "type": "reconfig_start",
-                            "disassembly_layers": self.plan.disassembly_layers,
-                            "assembly_layers": self.plan.assembly_layers,
-                            "text": f"Reconfig: {self.plan.disassembly_layers} split, {self.plan.assembly_layers} dock layers"})
+        self.events.append(event(t_s, EventKind.RECONFIG_START, disassembly_layers=self.plan.disassembly_layers,
+                                 assembly_layers=self.plan.assembly_layers,
+                                 text=f"Reconfig: {self.plan.disassembly_layers} split, {self.plan.assembly_layers} dock layers"))
 
     def _land(self, t_s: float) -> None:
         """A manoeuvre on the ground: the stopped body descends straight down and rests on its feet; the
@@ -610,7 +608,7 @@ class Executor:
         self.hold_down_m = self.ground_down_m + LAND_PRESS_M
         end = ref.move(t_s, [here[0], here[1], self.hold_down_m], self.params.speed_mps, min_s=3.0)
         self.phase, self.phase_end_t = "land", end + self.params.settle_s
-        self.events.append({"t_s": round(t_s, 6), "type": "landing", "text": "Reconfig: landing to rebuild"})
+        self.events.append(event(t_s, EventKind.LANDING, text="Reconfig: landing to rebuild"))
 
     def _next_split_layer(self, t_s: float) -> list[SplitAction]:
         self.layer += 1
@@ -651,9 +649,9 @@ class Executor:
             end = max(end, self.refs[det.key].move(t_s, target, p.speed_mps, start=TrajectoryPoint(
                 hold + rz @ offsets[0], yaw_rad=self.yaw)))
             actions.append(SplitAction(parent.key, [det, rest], offsets))
-            self.events.append({"t_s": round(t_s, 6), "type": "split", "layer": self.layer, "body": sorted(s.body),
-                                "detached": sorted(s.detached), "rest": sorted(s.rest),
-                                "text": f"Split L{self.layer}: u{units_text(s.detached)} off"[:50]})
+            self.events.append(event(t_s, EventKind.SPLIT, layer=self.layer, body=sorted(s.body),
+                                     detached=sorted(s.detached), rest=sorted(s.rest),
+                                     text=f"Split L{self.layer}: u{units_text(s.detached)} off"[:50]))
         self.phase_end_t = end + p.settle_s
         return actions
 
@@ -681,9 +679,9 @@ class Executor:
             end = self.refs[mv.key].move(t_s, transit, p.speed_mps)
             req = DockRequest(st.key, mv.key, offset, merged)
             self.docks.append(_Docking(req, "transit", end + 0.5, direction, t_s))
-            self.events.append({"t_s": round(t_s, 6), "type": "dock_start", "layer": self.layer,
-                                "stationary": sorted(st.key), "mover": sorted(mv.key), "approach": m.approach,
-                                "text": f"Dock L{self.layer}: u{units_text(mv.key)} to u{units_text(st.key)}"[:50]})
+            self.events.append(event(t_s, EventKind.DOCK_START, layer=self.layer, stationary=sorted(st.key),
+                                     mover=sorted(mv.key), approach=m.approach,
+                                     text=f"Dock L{self.layer}: u{units_text(mv.key)} to u{units_text(st.key)}"[:50]))
 
     def _advance_docks(self, t_s: float, states: dict) -> None:
         p = self.params
@@ -741,9 +739,9 @@ class Executor:
             else:  # the final body: motors on, it climbs back to where the structure stopped
                 end = ref.move(t_s, [hold[0], hold[1], self._lift_down_m], self.params.speed_mps, min_s=3.0)
                 self.phase_end_t = max(self.phase_end_t, end)
-        self.events.append({"t_s": round(t_s, 6), "type": "dock", "layer": self.layer,
-                            "stationary": sorted(req.stationary), "mover": sorted(req.mover),
-                            "result": sorted(merged.key), "text": f"Docked L{self.layer}: u{units_text(merged.key)}"[:50]})
+        self.events.append(event(t_s, EventKind.DOCK, layer=self.layer, stationary=sorted(req.stationary),
+                                 mover=sorted(req.mover), result=sorted(merged.key),
+                                 text=f"Docked L{self.layer}: u{units_text(merged.key)}"[:50]))
 
     def _return(self, t_s: float, abandoned: bool = False) -> None:
         key = self.main_key()  # (several pieces only when a manoeuvre was abandoned: the others hold)
@@ -760,5 +758,4 @@ class Executor:
         kind, text = (("assembly_done", "Assembled: flying to the mission start") if self.assembling
                       else ("reconfig_done", "Reconfig done: returning to the mission"))
         self.assembling = False
-        self.events.append({"t_s": round(t_s, 6), "type": kind,
-                            "cells": {str(u): list(c) for u, c in sorted(shape.cells.items())}, "text": text})
+        self.events.append(event(t_s, kind, cells={str(u): list(c) for u, c in sorted(shape.cells.items())}, text=text))

@@ -32,6 +32,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.params import INT32, REAL32, ParamSpec, ParamStore, unit_param_specs
 from firmware_models.unit_controller import UnitAutopilot
 from firmware_models.vehicle import LINK_API, LINK_GCS, LinkPolicy, Outgoing, Vehicle, VehicleConfig
+from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import ControlOutput
 from mars_link.coordination.coordinator import Coordinator
@@ -304,9 +305,9 @@ class EngineSim:
         """A fault in a unit's motor path; told to the coordinator only with `faults_known`."""
         t = self.t_s
         self.units.inject_failure(unit, rotor, eta)
-        event = {"t_s": round(t, 6), "type": "fault", "unit": unit, "rotor": rotor, "eta": eta}
-        self.events.append(event)
-        self.vehicle.report_event(event)
+        ev = event(t, EventKind.FAULT, unit=unit, rotor=rotor, eta=eta)
+        self.events.append(ev)
+        self.vehicle.report_event(ev)
         if self.scenario.faults_known:
             self._tell(unit, rotor, eta, t)
 
@@ -390,9 +391,9 @@ class AssemblySim(EngineSim):
             return units
         for u in units:
             self.units.vehicles[u].sensor_failures.inject(sensor, kind)
-        self.events.append({"t_s": round(self.t_s, 6), "type": "sensor_fault", "sensor": sensor, "failure": kind,
-                            "unit": None if instance == 0 else units[0],
-                            "text": f"Sensor fault: {sensor} {kind}, " + ("all units" if instance == 0 else f"unit {units[0]}")})
+        self.events.append(event(self.t_s, EventKind.SENSOR_FAULT, sensor=sensor, failure=kind,
+                                 unit=None if instance == 0 else units[0],
+                                 text=f"Sensor fault: {sensor} {kind}, " + ("all units" if instance == 0 else f"unit {units[0]}")))
         return mavlink.MAV_RESULT_ACCEPTED
 
     def _commands(self, t: float, packets) -> list[RotorCommand]:
@@ -423,10 +424,10 @@ class AssemblySim(EngineSim):
             self.sensor_watch.update(t)
         if ekf.stats.position_resets > self.estimator_resets:  # e.g. after a touchdown shock
             self.estimator_resets = ekf.stats.position_resets
-            event = {"t_s": round(t, 6), "type": "estimator_reset", "text": "EKF reset on positions",
-                     "reason": f"{ekf.params.position_reset_after_batches} position updates gated"}
-            self.events.append(event)
-            self.vehicle.report_event(event)
+            ev = event(t, EventKind.ESTIMATOR_RESET, text="EKF reset on positions",
+                       reason=f"{ekf.params.position_reset_after_batches} position updates gated")
+            self.events.append(ev)
+            self.vehicle.report_event(ev)
         return est
 
     def eta_believed(self) -> np.ndarray:

@@ -26,6 +26,7 @@ import math
 import numpy as np
 from firmware_models.unit_controller import Phase, UnitAutopilot
 from firmware_models.vehicle import Outgoing
+from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import AssemblyModel
 from mars_link.vehicles.assembly_vehicle import AssemblySim, AssemblyVehicle, EngineSim, SetpointSource, attach_legs, SimConfig, vehicle_scenario
 from mars_link.control.base import ControlOutput
@@ -103,8 +104,8 @@ class PiecesVehicle(AssemblyVehicle):
         units = tuple(sorted(piece.units))
         if units != self.followed:
             if self.followed is not None:
-                self._follow_event = {"t_s": round(t_s, 6), "type": "following", "units": list(units),
-                                      "text": f"Following u{units_text(units)} ({len(units)} units)"}
+                self._follow_event = event(t_s, EventKind.FOLLOWING, units=list(units),
+                                           text=f"Following u{units_text(units)} ({len(units)} units)")
             self.followed = units
         last = piece.coordinator.last
         return None if last is None else last.estimate

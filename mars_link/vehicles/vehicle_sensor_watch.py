@@ -18,6 +18,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle import MODE_HOLD, MODE_LAND
+from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import GRAVITY_MPS2
 from mars_link.models.position_failsafe import PositionFailsafeParams, past_ground
 
@@ -52,8 +53,8 @@ class VehicleSensorWatch:
         vehicle.sensor_health = guard
 
     def _say(self, t_s: float, kind: str, text: str) -> None:
-        event = {"t_s": round(t_s, 6), "type": kind, "text": text}
-        self.record.append(event)
+        ev = event(t_s, kind, text=text)
+        self.record.append(ev)
         self.vehicle._text(text, SEVERITY.get(kind, mavlink.MAV_SEVERITY_INFO))
 
     def update(self, t_s: float) -> None:
@@ -115,4 +116,4 @@ class VehicleSensorWatch:
         self.state = "normal"
         self.vehicle.autopilot.idle()
         self.vehicle._disarm(text)
-        self.record.append({"t_s": round(t_s, 6), "type": "failsafe_landed", "text": text})
+        self.record.append(event(t_s, EventKind.FAILSAFE_LANDED, text=text))
