@@ -51,8 +51,11 @@ def run_trial(
     view = view(flight) if callable(view) else view
     engine = Engine(flight, [recorder] + ([view] if view is not None else []), Pacer(realtime_rate))
     wall0 = time.perf_counter()
+    interrupted: KeyboardInterrupt | None = None
     try:
         engine.run(on_progress)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM (core.errors.Terminated): the part flown is a result
+        interrupted = exc
     finally:
         flight.world.close()
         if ulog_dir is not None:
@@ -67,9 +70,15 @@ def run_trial(
             log.flush()
     wall = time.perf_counter() - wall0
     world, metrics = flight.world, recorder.metrics
-    return TrialResult(
+    end_reason = None
+    if metrics.diverged:
+        end_reason = f"diverged at {world.t_s:.2f} s"
+    elif interrupted is not None:
+        end_reason = f"interrupted by {_signal_name(interrupted)} at {world.t_s:.2f} s"
+    result = TrialResult(
         seed=seed,
-        completed=not metrics.diverged,
+        completed=end_reason is None,
+        end_reason=end_reason,
         diverged=metrics.diverged,
         mean_error_m=metrics.mean_error_m,
         rmse_m=metrics.rmse_m,
@@ -84,6 +93,24 @@ def run_trial(
         control_steps=metrics.n,
         detections=detection_rows(flight.coordinator.detections, flight.faults, unit_deaths),
     )
+    if interrupted is not None:
+        raise FlightInterrupted(result, interrupted)
+    return result
+
+
+class FlightInterrupted(KeyboardInterrupt):
+    """A trial stopped by Ctrl-C or SIGTERM, with the result of the part flown (`run_scenario` writes its
+    summary, completed false, then raises `cause` on)."""
+
+    def __init__(self, result: TrialResult, cause: KeyboardInterrupt) -> None:
+        super().__init__(result.end_reason)
+        self.result, self.cause = result, cause
+
+
+def _signal_name(exc: KeyboardInterrupt) -> str:
+    from mars_link.core.errors import Terminated
+
+    return "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
 
 
 # ----------------------------------------------------------------------------- whole run
@@ -107,13 +134,21 @@ def run_scenario(
     log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ),
                  plot_rows_max=PLOT_ROWS_MAX)  # streamed to the CSVs; memory flat in trials and duration
     results = []
+    interrupted: KeyboardInterrupt | None = None
+    if out_dir is not None:  # first, small: whatever ends this process, a summary.json is there
+        write_json(out_dir / "summary.json", starting_summary(scenario, seed, trials))
     try:
         for i in range(trials):
             log.new_trial()
             cb = None if on_progress is None else (lambda frac, i=i: on_progress(i, frac))
             view = _view_maker(scenario, out_dir if mcap else None, live, "run.mcap" if i == 0 else f"run_trial{i}.mcap")
-            results.append(run_trial(scenario, seed + i, i, log, cb, realtime_rate=realtime_rate, view=view,
-                                     ulog_dir=out_dir if "ulog" in logs and out_dir is not None else None))
+            try:
+                results.append(run_trial(scenario, seed + i, i, log, cb, realtime_rate=realtime_rate, view=view,
+                                         ulog_dir=out_dir if "ulog" in logs and out_dir is not None else None))
+            except FlightInterrupted as exc:
+                results.append(exc.result)
+                interrupted = exc.cause
+                break
             if on_progress is not None:
                 on_progress(i, 1.0)
     finally:
@@ -121,12 +156,41 @@ def run_scenario(
     summary = summarize(scenario, results, seed)
     summary["logging"] = log.status()
     if out_dir is not None:
-        write_json(out_dir / "summary.json", summary)
-        if plots:
+        write_summary(out_dir, summary)
+        if plots and interrupted is None:
             from mars_link.flight.plots import write_run_plots
 
             write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model())
+    if interrupted is not None:
+        raise interrupted
     return summary
+
+
+def starting_summary(scenario: Scenario, seed: int, trials: int) -> dict:
+    """The summary.json written before the flight: small (a nearly full disk takes it), completed false
+    with the reason, replaced by the full one at the end. Whatever ends the process, one is there."""
+    return {"scenario": scenario.name, "source": scenario.source, "seed": seed, "trials": trials,
+            "completed": False, "end_reason": "the run ended before its summary was written (killed?)",
+            "diverged": False}
+
+
+def write_summary(out_dir: Path, summary: dict) -> None:
+    """The full summary.json; on a write error (a full disk) the starting summary stays, with the reason
+    added if the disk takes that much (one line on stderr either way; never a traceback)."""
+    import sys
+
+    try:
+        write_json(out_dir / "summary.json", summary)
+    except OSError as exc:
+        reason = f"summary.json: {exc.strerror or exc} (the full summary could not be written)"
+        print(f"mars-link: {reason}", file=sys.stderr)
+        short = {k: summary.get(k) for k in ("scenario", "seed", "trials", "completed", "end_reason", "diverged",
+                                             "sim_time_s", "mean_error_m", "max_error_m")}
+        short["logging"] = {"stopped_reason": (summary.get("logging") or {}).get("stopped_reason") or reason}
+        try:
+            write_json(out_dir / "summary.json", short)
+        except OSError:
+            pass
 
 
 def _view_maker(scenario: Scenario, out_dir: Path | None, live, name: str):

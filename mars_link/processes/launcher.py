@@ -74,6 +74,7 @@ class ClientPorts:
     gcs_port: int = 14550
     api_ports: list[int] | None = None
     bind_any: bool = False
+    closed: bool = False  # no client links at all (`run --mode sitl` unless --gcs): nothing outside reaches a unit
 
     def api_port(self, index: int) -> int:
         return self.api_ports[index] if self.api_ports else 14540 + index
@@ -198,6 +199,8 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
                     "--api-port", ",".join(ports)]
             if clients.bind_any:
                 argv += ["--gcs-bind", "0", "--api-bind", "0"]
+            if clients.closed:
+                argv.append("--no-clients")
             name = f"unit{group[0]}" if len(group) == 1 else f"units{group[0]}-{group[-1]}"
             run.unit_process.update({u: name for u in group})
             spawn(name, argv + extra.get("unit", []), prefix=list(unit_prefix(group[0])) if unit_prefix else [])

@@ -528,6 +528,7 @@ class UnitPorts:
     api_port: int | None = None  # None: 14540 + index
     gcs_bind: int | None = None  # None: 18570 + index
     api_bind: int | None = None  # None: 14580 + index
+    closed: bool = False  # no client links at all (`run --mode sitl` without --gcs: a batch run nobody can reach)
 
 
 def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, clients: list[UnitPorts],
@@ -593,7 +594,8 @@ class _UnitLoop:
         index = setup.unit_ids.index(unit_id)
         vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
                             wall_time_s=time.time(), require_signing=require_signing)
-        links = client_links(index, client.gcs_port, client.api_port, client.gcs_bind, client.api_bind)
+        links = {} if client.closed else client_links(index, client.gcs_port, client.api_port, client.gcs_bind,
+                                                      client.api_bind)
         links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
         if setup.docked:
             links[LINK_COORDINATOR] = LinkSpec(0, ports.address("coordinator"), False,
@@ -936,6 +938,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--api-port", default=None, help="the unit's API port, or one per unit of --unit a,b,c")
     ap.add_argument("--gcs-bind", type=int, default=None)
     ap.add_argument("--api-bind", type=int, default=None)
+    ap.add_argument("--no-clients", action="store_true", help="unit: no GCS/API client links (a closed batch run)")
     ap.add_argument("--forever", action="store_true", help="docked: run until stopped (ignores --steps)")
     ap.add_argument("--vehicle", action="store_true", help="coordinator: serve the assembly as one MAVLink vehicle")
     ap.add_argument("--sched-realtime", action="store_true",
@@ -1029,8 +1032,8 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
             raise UserInputError(f"--unit {args.unit}: a unit named twice")
         if api_ports and len(api_ports) != len(units):
             raise UserInputError(f"--api-port {args.api_port}: one port per unit of --unit {args.unit}")
-        clients = [UnitPorts(args.gcs_port, api_ports[i] if api_ports else None, args.gcs_bind, args.api_bind)
-                   for i in range(len(units))]
+        clients = [UnitPorts(args.gcs_port, api_ports[i] if api_ports else None, args.gcs_bind, args.api_bind,
+                             args.no_clients) for i in range(len(units))]
         return run_units(setup, units, ports, out, clients, key=key, require_signing=args.require_signing)
     vehicle = None
     if args.vehicle:

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mars_link.core.errors import UserInputError
+from mars_link.core.errors import Terminated, UserInputError
 from mars_link.transport import LinkSpec
 
 
@@ -195,33 +195,46 @@ def _toml(doc: dict) -> str:
 
 def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSpec | None = None,
                       realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
-                      on_progress=None, view: tuple[str, ...] = ("--mcap",), units_per_process: int = 1) -> dict:
-    """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary."""
+                      on_progress=None, view: tuple[str, ...] = ("--mcap",), units_per_process: int = 1,
+                      clients=None) -> dict:
+    """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary.
+    `clients` (launcher.ClientPorts): the units' ground-station ports; None: none at all (a batch run
+    that no client on the machine can reach, arm or steer)."""
+    from mars_link.processes.launcher import ClientPorts
+
     pieces = scenario.has_pieces
     seed = scenario.sim.seed if seed is None else seed
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
         scenario = replace(scenario, faults_known=False)
     out.mkdir(parents=True, exist_ok=True)
+    from mars_link.flight.runner import starting_summary
+    from mars_link.logs.outputs import write_json
+
+    write_json(out / "summary.json", starting_summary(scenario, seed, 1))  # first: there is always one
     copy = write_scenario_copy(_absolute_paths(scenario), out / "scenario.toml")
     wall0 = time.perf_counter()
-    session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view, units_per_process=units_per_process)
+    session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view, units_per_process=units_per_process,
+                         clients=clients or ClientPorts(bind_any=True, closed=True))
     watcher = _ProgressWatcher(out / "world_status.json", scenario, on_progress)
     try:
         with _sigterm_as_interrupt():
             code = session.wait(timeout_s, units_may_die=True)  # a dead unit process is a failed unit
-    except KeyboardInterrupt:  # SIGTERM or Ctrl-C: every child was stopped by SIGTERM and wrote its summary;
-        _summarize_interrupted(scenario, out, seed, time.perf_counter() - wall0, session)  # the part flown
+    except KeyboardInterrupt as exc:  # SIGTERM or Ctrl-C: every child was stopped by SIGTERM and wrote its summary;
+        _summarize_interrupted(scenario, out, seed, time.perf_counter() - wall0, session, exc)  # the part flown
         raise
     finally:
         watcher.stop()
     wall = time.perf_counter() - wall0
-    if code != 0 or not (out / "world_truth.csv").exists():
-        logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
-        raise RuntimeError(f"SITL run failed (exit {code}); process logs in {out}: {logs}")
+    logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
+    if not (out / "world_truth.csv").exists():  # nothing flown: the run could not start
+        from mars_link.core.errors import EnvironmentFailure
+
+        raise EnvironmentFailure(f"SITL run could not start (exit {code}); process logs in {out}: {logs}")
+    failure = None if code == 0 else f"a process of the run died (exit {code}; logs in {out}: {logs})"
     held = session.wake_latency.state if session.wake_latency is not None else None
     if pieces:
-        return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime)
-    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held)
+        return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime, failure=failure)
+    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held, failure=failure)
 
 
 @contextlib.contextmanager
@@ -233,7 +246,7 @@ def _sigterm_as_interrupt():
         return
 
     def interrupt(*_):
-        raise KeyboardInterrupt
+        raise Terminated
 
     previous = signal.signal(signal.SIGTERM, interrupt)
     try:
@@ -242,15 +255,17 @@ def _sigterm_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
-def _summarize_interrupted(scenario, out: Path, seed: int, wall_s: float, session: SitlSession) -> None:
+def _summarize_interrupted(scenario, out: Path, seed: int, wall_s: float, session: SitlSession,
+                           exc: KeyboardInterrupt) -> None:
     """summary.json of an interrupted flight (completed: false; the world says it was stopped) from the
-    logs the children closed; nothing if the world logged nothing yet."""
-    if not (out / "world_summary.json").exists():
+    logs the children closed; the starting summary stays if the world logged nothing yet."""
+    if not (out / "world_summary.json").exists() or not (out / "world_truth.csv").exists():
         return
+    failure = f"interrupted by {'SIGTERM' if isinstance(exc, Terminated) else 'SIGINT'}"
     if scenario.has_pieces:
-        summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link)
+        summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link, failure=failure)
     else:
-        summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False)
+        summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False, failure=failure)
 
 
 def _sets_faults_known(scenario) -> bool:
@@ -319,8 +334,22 @@ def _scheduling_classes(out: Path, world: dict, coordinator: dict) -> dict:
     return {"world": world.get("scheduling"), "coordinator": coordinator.get("scheduling"), "units": sorted(units)}
 
 
+def _end_reason(scenario, trajectory, world: dict, diverged_at: float | None, failure: str | None) -> str | None:
+    """Why a SITL flight ended before its duration (None: flown to the end). Whatever stopped it (a signal,
+    a shutdown command, a dead process), a flight that did not reach its duration is not completed."""
+    from mars_link.flight.metrics import ended_early_reason
+
+    sim_t = float(world.get("sim_time_s", 0.0))
+    if diverged_at is not None:
+        return f"diverged at {diverged_at:.2f} s"
+    duration = scenario.sim.duration_s or trajectory.duration_s
+    why = failure or ("stopped" if world.get("stopped") else "the world ended")
+    early = ended_early_reason(sim_t, duration, scenario.sim.control_hz, why)
+    return early or (f"{failure} at the end" if failure else None)
+
+
 def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True,
-                       realtime: bool = False, cpu_wake_latency: str | None = None) -> dict:
+                       realtime: bool = False, cpu_wake_latency: str | None = None, failure: str | None = None) -> dict:
     """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them."""
     from mars_link.flight.build import make_trajectory, tracked_offset
     from mars_link.flight.metrics import TrackingMetrics, TrialResult, summarize
@@ -360,8 +389,10 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     for death in world.get("deaths", []):
         events.append({"t_s": death["t_s"], "type": "unit_died", "unit": death["unit"],
                        "text": f"Unit {death['unit']} silent: motors off"})
+    end_reason = _end_reason(scenario, trajectory, world, (metrics.divergence or {}).get("t_s") if metrics.diverged
+                             else None, failure)
     result = TrialResult(
-        seed=seed, completed=not metrics.diverged and not world.get("stopped", False), diverged=metrics.diverged,
+        seed=seed, completed=end_reason is None, end_reason=end_reason, diverged=metrics.diverged,
         mean_error_m=math.nan if no_rows else metrics.mean_error_m, rmse_m=math.nan if no_rows else metrics.rmse_m,
         max_error_m=math.nan if no_rows else metrics.max_error_m,
         sim_time_s=float(world.get("sim_time_s", 0.0)), wall_time_s=wall_s,
@@ -389,7 +420,9 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "scheduling": _scheduling_classes(out, world, coordinator),  # (mars_link.runtime.scheduling)
     }
     summary["logging"] = _logging_status(log.status(), world, out, scenario)
-    write_json(out / "summary.json", summary)
+    from mars_link.flight.runner import write_summary
+
+    write_summary(out, summary)
     if plots and log.telemetry_rows:
         from mars_link.flight.plots import write_run_plots
 
@@ -413,7 +446,7 @@ def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
 
 
 def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec,
-                              realtime: bool = False) -> dict:
+                              realtime: bool = False, failure: str | None = None) -> dict:
     """The summary of a flight of pieces in SITL, with the in-process keys (mars_link.flight.reconfig_flight): the
     tracked point's error while the mission flies, from the world's per-unit truth and the coordinator's
     per-step record of the mission (its clock, reference and the units carrying the tracked point)."""
@@ -455,12 +488,16 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
     events = sorted(coordinator.get("events", []) + latched + faults + deaths, key=lambda e: e["t_s"])
     kinds = [e["type"] for e in events]
     sim_t, wall = float(world.get("sim_time_s", 0.0)), wall_s
+    end_reason = (f"diverged at {metrics.divergence['t_s']:.2f} s" if metrics.diverged and metrics.divergence
+                  else "diverged" if metrics.diverged else f"{failure} at {sim_t:.2f} s" if failure
+                  else "the coordinator's mission failed" if coordinator.get("failed")
+                  else f"stopped at {sim_t:.2f} s" if world.get("stopped") else None)
     summary = {
         "scenario": scenario.name, "source": scenario.source, "mode": "sitl-pieces", "layout": list(scenario.layout),
         "preset": scenario.preset, "controller": scenario.controller, "ftc": scenario.ftc, "seed": seed, "trials": 1,
         "noise": scenario.sim.noise, "faults_known": scenario.faults_known,
         "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
-        "completed": not metrics.diverged and not coordinator.get("failed") and not world.get("stopped", False),
+        "completed": end_reason is None, "end_reason": end_reason,
         "diverged": metrics.diverged, "reconfigured": "reconfig_done" in kinds,
         "mean_error_m": metrics.mean_error_m if metrics.n else math.nan, "mean_error_std_m": 0.0,  # (one trial)
         "rmse_m": metrics.rmse_m if metrics.n else math.nan, "max_error_m": metrics.max_error_m if metrics.n else math.nan,
@@ -643,6 +680,7 @@ def sitl_runner(args):
     from mars_link.flight.flight_view import world_view_args
 
     view = world_view_args(args)  # (a busy --foxglove port: refused now, before any process)
+    clients = run_client_ports(args)
 
     def runner(scenario, out, trials=1, seed=None, on_progress=None, mcap=True, live=None):
         if trials != 1:
@@ -650,11 +688,29 @@ def sitl_runner(args):
         cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
         try:
             return run_sitl_scenario(scenario, out, seed, link, realtime=args.realtime, on_progress=cb, view=view,
-                                     units_per_process=args.units_per_process)
+                                     units_per_process=args.units_per_process, clients=clients)
         except RuntimeError as e:
             raise UserInputError(str(e)) from None
 
     return runner
+
+
+def run_client_ports(args):
+    """`run --mode sitl`'s ground-station ports (launcher.ClientPorts), or None: closed unless --gcs,
+    --gcs-port or --api-port asks for them (then PX4's, moved as in `sitl up`)."""
+    gcs_port, api_port = getattr(args, "gcs_port", None), getattr(args, "api_port", None)
+    if not (getattr(args, "gcs", False) or gcs_port is not None or api_port is not None):
+        return None
+    from mars_link.processes.launcher import ClientPorts
+    from mars_link.processes.vehicle_io import GCS_PORT
+
+    n_units = 256  # (more than any layout has units)
+    clients = ClientPorts.consecutive(GCS_PORT if gcs_port is None else gcs_port, 14540 if api_port is None else api_port,
+                                      n_units, bind_any=True)
+    for what, port in (("--gcs-port", clients.gcs_port), ("--api-port", clients.api_port(0))):
+        if not 1 <= port <= 65535:
+            raise UserInputError(f"{what} must be 1..65535, got {port}")
+    return clients
 
 
 def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, clients, vehicle=None,
@@ -669,7 +725,7 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
     previous = signal.getsignal(signal.SIGTERM)
 
     def interrupt(*_):
-        raise KeyboardInterrupt
+        raise Terminated
 
     signal.signal(signal.SIGTERM, interrupt)
     session = None
@@ -699,15 +755,30 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
         print(f"running {'until Ctrl-C' if steps is None else f'{steps / control_hz:.1f} s of sim time'}; "
               f"run directory {out}", flush=True)
         code = session.wait(units_may_die=True)  # a dead unit is a failed unit (FTC flies on)
+        early = _sitl_up_ended_early(out, steps, control_hz) if code == 0 else None
+        if early:
+            print(f"sitl: the flight ended early: {early}", file=sys.stderr)
+            code = 1
         print(f"run directory: {out}")
         return code
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         print("sitl: interrupted, stopping every child", file=sys.stderr)
         if session is not None:
             session.stop()
-        return 130
+        return 143 if isinstance(exc, Terminated) else 130
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def _sitl_up_ended_early(out: Path, steps: int | None, control_hz: float) -> str | None:
+    """Why a `sitl up` flight of `steps` exchanges ended before them (the world's summary), else None."""
+    from mars_link.flight.metrics import ended_early_reason
+
+    if steps is None:  # until stopped, or a flight of pieces the coordinator ends
+        return None
+    world = _read_json(out / "world_summary.json")
+    return ended_early_reason(float(world.get("sim_time_s", 0.0)), steps / control_hz, control_hz,
+                              "stopped" if world.get("stopped") else "the world ended")
 
 
 def _endpoints(session, link: LinkSpec) -> list[str]:

@@ -79,10 +79,10 @@ def test_sigkill_of_the_parent_leaves_no_child(tmp_path, verb) -> None:
     out = tmp_path / "run"
     proc, kids = _start([*verb, "--out", str(out)])
     try:
-        # while it lives, the run directory is its own: a second run, even with --force, is refused (exit 1)
+        # while it lives, the run directory is its own: a second run, even with --force, is refused (exit 3)
         second = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_3x2", "--duration", "0.5",
                                  "--quiet", "--out", str(out), "--force"], capture_output=True, text=True, timeout=120)
-        assert second.returncode == 1 and "another run is using this directory" in second.stderr, second.stderr
+        assert second.returncode == 3 and "another run is using this directory" in second.stderr, second.stderr
         assert len(second.stderr.strip().splitlines()) == 1
         assert (out / "world_truth.csv").exists()  # nothing of the live run was cleared
         proc.send_signal(signal.SIGKILL)
