@@ -233,8 +233,14 @@ def cmd_sitl_up(args) -> int:
                        ("--api-port + units", clients.api_ports[-1])):
         if not 1 <= port <= 65535:
             raise UserInputError(f"{what} must be 1..65535, got {port}")
+    from mars_link.processes.launcher import check_udp_ports_free, unit_bind_ports
     from mars_link.processes.sitl_mode import sitl_up_command
 
+    busy_checks = unit_bind_ports(clients, len(setup.unit_ids))
+    if vehicle is not None:
+        busy_checks += [(vehicle.gcs_bind, "the vehicle's GCS link", "--any-bind"),
+                        (vehicle.api_bind, "the vehicle's API link", "--any-bind")]
+    check_udp_ports_free(busy_checks)  # a busy port: one line naming it, exit 3, before any process
     v.claim_out_dir(out, force=args.force)
     return sitl_up_command(args, path, out, link, clients, vehicle, view, require_signing)
 

@@ -66,6 +66,9 @@ def run_trial(
                 log.add_closed_logs(ulogs)
         if view is not None:
             view.finish(engine)
+            mcap = view.status()
+            if log is not None and mcap is not None and mcap["stopped_reason"]:  # a full disk stopped run.mcap
+                log.add_closed_logs([mcap])
         if log is not None:
             log.flush()
     wall = time.perf_counter() - wall0
@@ -153,14 +156,14 @@ def run_scenario(
                 on_progress(i, 1.0)
     finally:
         log.close()
+    if out_dir is not None and plots and interrupted is None:
+        from mars_link.flight.plots import write_run_plots
+
+        write_plots_safely(log, lambda: write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model()))
     summary = summarize(scenario, results, seed)
     summary["logging"] = log.status()
     if out_dir is not None:
         write_summary(out_dir, summary)
-        if plots and interrupted is None:
-            from mars_link.flight.plots import write_run_plots
-
-            write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model())
     if interrupted is not None:
         raise interrupted
     return summary
@@ -172,6 +175,18 @@ def starting_summary(scenario: Scenario, seed: int, trials: int) -> dict:
     return {"scenario": scenario.name, "source": scenario.source, "seed": seed, "trials": trials,
             "completed": False, "end_reason": "the run ended before its summary was written (killed?)",
             "diverged": False}
+
+
+def write_plots_safely(log: RunLog, write: Callable[[], object]) -> None:
+    """The plots, whose write error (a full disk) is one line and a stopped log in the summary, never a traceback."""
+    import sys
+
+    try:
+        write()
+    except OSError as exc:
+        reason = f"plots: {exc.strerror or exc} (logging stopped)"
+        print(f"mars-link: {reason}", file=sys.stderr)
+        log.add_closed_logs([{"file": "plots", "stopped_reason": reason, "errors": 1, "dropped_writes": 0}])
 
 
 def write_summary(out_dir: Path, summary: dict) -> None:

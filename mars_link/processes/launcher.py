@@ -97,6 +97,32 @@ class ClientPorts:
         return cls(gcs_port, ports, bind_any)
 
 
+def check_udp_ports_free(ports: list[tuple[int, str, str]]) -> None:
+    """Each (port, what binds it, the option that moves it) free on loopback, else one line naming the
+    first busy port and its option (PortUnavailable: exit 3). Checked before any process starts, so a
+    busy port never leaves a half-started run (a unit that cannot bind its port, the rest waiting for it)."""
+    from mars_link.core.errors import PortUnavailable
+
+    for port, what, option in ports:
+        if port == 0:
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind((LOOPBACK, port))
+            except OSError as exc:
+                raise PortUnavailable(f"UDP port {port} ({what}) on {LOOPBACK} is in use ({exc.strerror or exc}): "
+                                      f"move it with {option}") from None
+
+
+def unit_bind_ports(clients: "ClientPorts", n_units: int) -> list[tuple[int, str, str]]:
+    """The UDP ports the units bind for their client links (PX4's 18570+i and 14580+i), unless `bind_any`
+    or `closed`: (port, what, the option that moves it) for `check_udp_ports_free`."""
+    if clients.bind_any or clients.closed:
+        return []
+    return [(base + i, f"unit index {i}'s {link} link", "--any-bind")
+            for i in range(n_units) for base, link in ((18570, "GCS"), (14580, "API"))]
+
+
 @dataclass
 class SitlRun:
     out: Path
