@@ -88,7 +88,7 @@ from mars_link.processes.parent_watch import die_with_parent
 from mars_link.core.errors import EnvironmentFailure, UserInputError
 from mars_link.runtime.machine_load import IdleMeter, LoopMeter
 from mars_link.core.messages import BatterySample, SensorPacket
-from mars_link.logs.outputs import write_json
+from mars_link.logs.outputs import SafeWriter, write_json
 from mars_link.runtime.pacing import Pacer, SilenceDeadline
 from mars_link.runtime.scheduling import OverloadValve, take_realtime_class
 from mars_link.transport import LinkSpec, add_link_args, spec_from_args
@@ -448,16 +448,29 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         if packs is not None:  # the packs' truth at the end (unit id order)
             summary["batteries"] = {"soc": packs.soc.round(6).tolist(), "voltage_v": packs.voltage_v.round(4).tolist(),
                                     "drawn_c": packs.drawn_c.round(4).tolist()}
-        write_json(out / "world_summary.json", summary)
+        _write_world_summary(out, summary)
     finally:
         truth_log.close()
         try:  # run.mcap before the link: a Zenoh session can take seconds to close, and the file must be
             if view is not None:  # whole when `sitl up` ends
                 view.finish(event_lists=[deaths, feed.events])
+                mcap = view.status()
+                if mcap is not None and mcap["stopped_reason"] and (out / "world_summary.json").exists():
+                    _write_world_summary(out, {**json.loads((out / "world_summary.json").read_text()),
+                                               "mcap_stopped_reason": mcap["stopped_reason"]})
         finally:
             world.close()
             link.close()
     return 0
+
+
+def _write_world_summary(out: Path, summary: dict) -> None:
+    """world_summary.json; a full disk is one line (the parent's summary then says the world's figures are
+    missing), never a traceback that would read as a crashed world."""
+    try:
+        write_json(out / "world_summary.json", summary)
+    except OSError as exc:
+        print(f"world: world_summary.json: {exc.strerror or exc} (not written)", file=sys.stderr)
 
 
 def _world_view(setup: SitlSetup, world, out: Path, mcap: bool, live: str | None):
@@ -716,7 +729,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     latches = LatchSensor()
     batteries: dict[int, BatterySample] = {}  # each unit's last BATTERY_STATUS, until its packet comes
     out.mkdir(parents=True, exist_ok=True)
-    pieces_log = open(out / "pieces_steps.csv", "w", encoding="utf-8") if setup.pieces else None
+    pieces_log = SafeWriter.open(out / "pieces_steps.csv") if setup.pieces else None  # (a full disk stops it)
     if pieces_log:
         pieces_log.write("t_s,mission,mission_t_s,ref_n_m,ref_e_m,ref_d_m,tracked_units,pieces\n")
     live = set(model.unit_ids)
@@ -724,7 +737,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     accepted: dict[int, set[int]] = {u: set() for u in model.unit_ids}  # commands each unit acknowledged
     next_fault = 0
     out.mkdir(parents=True, exist_ok=True)
-    timing = open(out / "coordinator_timing.csv", "w", encoding="utf-8") if timing_log else None
+    timing = SafeWriter.open(out / "coordinator_timing.csv") if timing_log else None
     if timing:
         timing.write("t_s,telemetry_first_wall_s,telemetry_all_wall_s,computed_wall_s,sent_wall_s,step_cpu_s,send_cpu_s\n")
     try:

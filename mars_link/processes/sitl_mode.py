@@ -360,7 +360,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     model = scenario.model()
     trajectory = make_trajectory(scenario, model)
     offset = tracked_offset(model, scenario)
-    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, ndmin=1)
+    truth = _read_csv(out / "world_truth.csv")
     world = _read_json(out / "world_summary.json")
     coordinator = _read_json(out / "coordinator_summary.json")
     log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX)
@@ -419,14 +419,14 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "cpu_wake_latency": cpu_wake_latency,  # real time: idle CPUs kept awake (transport.realtime.CpuWakeLatency)
         "scheduling": _scheduling_classes(out, world, coordinator),  # (mars_link.runtime.scheduling)
     }
-    summary["logging"] = _logging_status(log.status(), world, out, scenario)
-    from mars_link.flight.runner import write_summary
+    from mars_link.flight.runner import write_plots_safely, write_summary
 
-    write_summary(out, summary)
     if plots and log.telemetry_rows:
         from mars_link.flight.plots import write_run_plots
 
-        write_run_plots(out, log.telemetry_rows, log.rotor_rows, model)
+        write_plots_safely(log, lambda: write_run_plots(out, log.telemetry_rows, log.rotor_rows, model))
+    summary["logging"] = _logging_status(log.status(), world, out, scenario)
+    write_summary(out, summary)
     return summary
 
 
@@ -438,6 +438,11 @@ def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
     truth = world.get("logging") or {}
     if truth.get("stopped_reason"):
         stopped.append(truth["stopped_reason"] + " (errors and tilt cover the flight up to there)")
+    if world.get("mcap_stopped_reason"):  # the world's run.mcap writer
+        stopped.append(world["mcap_stopped_reason"])
+    for path in sorted(out.glob("command_age_unit*.json")):
+        if _read_json(path).get("logging_stopped"):
+            stopped.append(_read_json(path)["logging_stopped"])
     for unit in scenario.model().unit_ids:
         reason = _read_json(out / f"unit{unit}_status.json").get("logging_stopped")
         if reason:
@@ -455,7 +460,7 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
 
     world = _read_json(out / "world_summary.json")
     coordinator = _read_json(out / "coordinator_summary.json")
-    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, ndmin=1)
+    truth = _read_csv(out / "world_truth.csv")
     steps = {}
     with open(out / "pieces_steps.csv", encoding="utf-8") as f:
         next(f)
@@ -592,7 +597,7 @@ def command_age_summary(out: Path) -> dict:
     for path in sorted(out.glob("command_age_unit*.json")):
         misses += _read_json(path).get("deadline_misses", 0)
     for path in sorted(out.glob("command_age_unit*.csv")):
-        a = np.genfromtxt(path, delimiter=",", names=True, ndmin=1)
+        a = _read_csv(path)
         ages += list(np.atleast_1d(a["age_s"]))
     stats = percentiles_ms(ages)
     stats["deadline_misses"] = misses
@@ -613,14 +618,14 @@ def stage_times(out: Path) -> dict:
     per_step: dict[float, dict[str, float]] = {}
     for path in sorted(out.glob("command_age_unit*.csv")):
         offset = _read_json(path.with_suffix(".json")).get("epoch_s", epoch) - epoch
-        for row in np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, ndmin=1)):
+        for row in np.atleast_1d(_read_csv(path)):
             step = per_step.setdefault(round(float(row["t_s"]), 6), {})
             for stage, column in (("sensors_in", "sensors_in_s"), ("commands_in", "command_in_s"), ("at_motors", "age_s")):
                 value = float(row[column]) + offset
                 if math.isfinite(value):
                     step[stage] = max(step.get(stage, -math.inf), value)
     columns = {"telemetry_in": "telemetry_all_wall_s", "computed": "computed_wall_s", "sent": "sent_wall_s"}
-    for row in np.atleast_1d(np.genfromtxt(coordinator, delimiter=",", names=True, ndmin=1)):
+    for row in np.atleast_1d(_read_csv(coordinator)):
         t = round(float(row["t_s"]), 6)
         step = per_step.setdefault(t, {})
         for stage, column in columns.items():
@@ -628,6 +633,15 @@ def stage_times(out: Path) -> dict:
     return {stage: float(np.median([s[stage] for s in per_step.values() if stage in s])) * 1e3
             for stage in ("sensors_in", "telemetry_in", "computed", "sent", "commands_in", "at_motors")
             if any(stage in s for s in per_step.values())}
+
+
+def _read_csv(path: Path):
+    """A child's CSV log as a structured array; a last row cut by a write error (a full disk) is left out."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (genfromtxt warns of each row it leaves out)
+        return np.genfromtxt(path, delimiter=",", names=True, ndmin=1, invalid_raise=False)
 
 
 def _read_json(path: Path) -> dict:
