@@ -24,6 +24,7 @@ change while armed, whatever the authority.
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -111,15 +112,39 @@ def param_error(msg, index: int, error: int):
                                                name.split("\x00", 1)[0].encode("ascii", "replace")[:16], index, error)
 
 
+#: the reply budget of a unit, all senders and links together, as a multiple of one sender's: room for the
+#: two client links and the coordinator at once, and still a ceiling that no number of senders can raise
+TOTAL_BUDGET_SENDERS = 3
+
+
 class SenderBudgets:
-    """Token buckets for replies, one per sender (link, system, component), so one noisy client cannot
-    use up another's answers; at most `max_senders` are kept (least recently used go first)."""
+    """Token buckets for replies, one per sender, so one noisy client cannot use up another's answers,
+    and one for the total, so many senders cannot multiply the replies. A sender is a signed client's
+    (link, system, component), else its link: a system id anyone can write must never mint a budget
+    (Vehicle.handle picks the key). At most `max_senders` are kept (least recently used go first)."""
 
     def __init__(self, rate_hz: float, burst: int, max_senders: int = 64) -> None:
         self.rate, self.burst, self.max_senders = rate_hz, float(burst), max_senders
         self._state: OrderedDict[tuple, list[float]] = OrderedDict()  # sender -> [tokens, last time]
+        self._total = [self.burst * TOTAL_BUDGET_SENDERS, -math.inf]  # [tokens, last time]
+
+    def _take_total(self, now: float) -> bool:
+        total = self._total
+        cap = self.burst * TOTAL_BUDGET_SENDERS
+        total[0] = cap if total[1] == -math.inf else min(cap, total[0] + max(0.0, now - total[1]) * self.rate
+                                                          * TOTAL_BUDGET_SENDERS)
+        total[1] = now
+        if total[0] >= 1.0:
+            total[0] -= 1.0
+            return True
+        return False
 
     def take(self, sender: tuple, now: float) -> bool:
+        if not self._take_sender(sender, now):
+            return False
+        return self._take_total(now)
+
+    def _take_sender(self, sender: tuple, now: float) -> bool:
         st = self._state.get(sender)
         if st is None:
             st = self._state[sender] = [self.burst, now]

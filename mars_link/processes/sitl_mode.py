@@ -389,6 +389,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     for death in world.get("deaths", []):
         events.append({"t_s": death["t_s"], "type": "unit_died", "unit": death["unit"],
                        "text": f"Unit {death['unit']} silent: motors off"})
+    events += foreign_traffic_events(out, model.unit_ids)
     end_reason = _end_reason(scenario, trajectory, world, (metrics.divergence or {}).get("t_s") if metrics.diverged
                              else None, failure)
     result = TrialResult(
@@ -428,6 +429,17 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     summary["logging"] = _logging_status(log.status(), world, out, scenario)
     write_summary(out, summary)
     return summary
+
+
+def foreign_traffic_events(out: Path, unit_ids) -> list[dict]:
+    """summary.json events: command or mission traffic that reached a unit from anyone but the coordinator
+    (the units' status files, firmware_models.vehicle.FOREIGN_CONTROL_MESSAGES)."""
+    events = []
+    for unit in unit_ids:
+        for f in _read_json(out / f"unit{unit}_status.json").get("foreign_traffic") or []:
+            events.append({"type": "foreign_traffic", "unit": unit, **f,
+                           "text": f"Unit {unit}: {f['message']} x{f['count']} from system {f['sysid']} on {f['link']}"})
+    return events
 
 
 def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
@@ -490,7 +502,8 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
     deaths = [{"t_s": d["t_s"], "type": "unit_died", "unit": d["unit"], "text": f"Unit {d['unit']} silent: motors off"}
               for d in world.get("deaths", [])]
     latched = [e for e in world.get("latch_events", []) if e["type"] == "dock_latched"]
-    events = sorted(coordinator.get("events", []) + latched + faults + deaths, key=lambda e: e["t_s"])
+    events = sorted(coordinator.get("events", []) + latched + faults + deaths
+                    + foreign_traffic_events(out, scenario.model().unit_ids), key=lambda e: e["t_s"])
     kinds = [e["type"] for e in events]
     sim_t, wall = float(world.get("sim_time_s", 0.0)), wall_s
     end_reason = (f"diverged at {metrics.divergence['t_s']:.2f} s" if metrics.diverged and metrics.divergence
