@@ -117,6 +117,22 @@ def param_error(msg, index: int, error: int):
 TOTAL_BUDGET_SENDERS = 3
 
 
+class TokenBucket:
+    """`rate_hz` tokens a second, at most `burst` held; starts full."""
+
+    def __init__(self, rate_hz: float, burst: float) -> None:
+        self.rate, self.burst = rate_hz, float(burst)
+        self.tokens, self.last = self.burst, -math.inf
+
+    def take(self, now: float) -> bool:
+        self.tokens = self.burst if self.last == -math.inf else min(self.burst, self.tokens + max(0.0, now - self.last) * self.rate)
+        self.last = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
 class SenderBudgets:
     """Token buckets for replies, one per sender, so one noisy client cannot use up another's answers,
     and one for the total, so many senders cannot multiply the replies. A sender is a signed client's
@@ -126,23 +142,12 @@ class SenderBudgets:
     def __init__(self, rate_hz: float, burst: int, max_senders: int = 64) -> None:
         self.rate, self.burst, self.max_senders = rate_hz, float(burst), max_senders
         self._state: OrderedDict[tuple, list[float]] = OrderedDict()  # sender -> [tokens, last time]
-        self._total = [self.burst * TOTAL_BUDGET_SENDERS, -math.inf]  # [tokens, last time]
-
-    def _take_total(self, now: float) -> bool:
-        total = self._total
-        cap = self.burst * TOTAL_BUDGET_SENDERS
-        total[0] = cap if total[1] == -math.inf else min(cap, total[0] + max(0.0, now - total[1]) * self.rate
-                                                          * TOTAL_BUDGET_SENDERS)
-        total[1] = now
-        if total[0] >= 1.0:
-            total[0] -= 1.0
-            return True
-        return False
+        self.total = TokenBucket(rate_hz * TOTAL_BUDGET_SENDERS, burst * TOTAL_BUDGET_SENDERS)  # (Vehicle: one for all links)
 
     def take(self, sender: tuple, now: float) -> bool:
         if not self._take_sender(sender, now):
             return False
-        return self._take_total(now)
+        return self.total.take(now)
 
     def _take_sender(self, sender: tuple, now: float) -> bool:
         st = self._state.get(sender)

@@ -169,6 +169,9 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             if (p.require_signing or p.sign_outgoing) and not signed:
                 raise UserInputError(f"link {name!r} requires signing but no signing key is configured")
         self.links = {n: Link(n, p, self.sysid, self.compid, c.signing_key, wall_time_s) for n, p in policies.items()}
+        shared = next((lk.budgets.total for lk in self.links.values()), None)  # one total reply budget, all links
+        for lk in self.links.values():
+            lk.budgets.total = shared or lk.budgets.total
         self._authority = policy.SAFETY  # of the frame being dispatched (control_policy.frame_authority)
         self.on_frame_in = None  # callable(link, frame bytes) for every frame that passed parsing and signing
         self._sender: tuple = ()  # (link, sysid, compid) of that frame: whose reply budget answers pay from

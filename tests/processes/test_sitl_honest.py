@@ -256,3 +256,42 @@ def _free_udp_ports(n: int) -> list[int]:
     finally:
         for s in socks:
             s.close()
+
+
+# ----------------------------------------------------------------------------- reply budgets
+def test_rotating_system_ids_mint_no_reply_budget() -> None:
+    """PARAM_REQUEST_LIST from 40 spoofed system ids at one instant, on the API link and then the GCS link:
+    the replies on each link stop at one sender's burst (per link, not per system id), and the unit's
+    total caps both links together."""
+    import numpy as np
+
+    from firmware_models.control_policy import TOTAL_BUDGET_SENDERS
+    from firmware_models.vehicle import Vehicle, VehicleConfig
+    from firmware_models.vehicle_links import LinkPolicy
+    from mars_link.core.state import RigidBodyState
+
+    t0 = 1_700_000_000.0
+    v = Vehicle(VehicleConfig(unit_id=1), t0)
+    v.set_state(RigidBodyState(0.0, np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3), on_ground=True))
+    burst = LinkPolicy().reply_burst
+
+    def flood(link: str) -> int:
+        replies = 0
+        for sysid in range(100, 140):
+            enc = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=190)
+            out = v.handle(mavlink.MAVLink_param_request_list_message(1, 1).pack(enc), t0, link)
+            replies += sum(_count_param_values(o.data) for o in out)
+        return replies
+
+    api = flood("api")
+    print(f"replies to 40 spoofed senders: api {api}, one burst {burst}")
+    assert burst * 0.9 <= api <= burst  # 40 senders x ~19 parameters each asked; one budget answered
+    gcs = flood("gcs")
+    assert gcs <= burst and api + gcs <= burst * TOTAL_BUDGET_SENDERS
+    assert v.drop_counts().get("reply_rate_limited", 0) > 0
+
+
+def _count_param_values(data: bytes) -> int:
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    return sum(1 for m in (parser.parse_buffer(data) or []) if m.get_type() == "PARAM_VALUE")
