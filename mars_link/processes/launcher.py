@@ -25,6 +25,9 @@ from mars_link.processes.links import LOOPBACK
 from mars_link.processes.lockstep import SitlSetup, _start_pose, load_setup, position_every
 
 
+#: a child's exit code when the machine refused it at start (a busy port: mars_link.processes.lockstep.main), and
+#: `wait`'s then (core.validation.EXIT_ENVIRONMENT)
+COULD_NOT_START = 3
 MCAP_FINISH_S = 30.0  # the most `Run.stop` waits for an orphaned run.mcap writer to finish the file
 
 
@@ -244,7 +247,7 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
          units_may_die: bool = False) -> int:
     """Until the world ends (the scenario's end), a child dies (with `stop_on_child_death`) or the
     timeout; then stop all. 0 = the world finished, 1 = a child died first (one line on stderr names
-    it), 124 = timeout. `units_may_die`: a unit process that dies is a failed unit, not a failed run
+    it), 3 = a child could not start (a busy port, exit 3 of its own: one line names it), 124 = timeout. `units_may_die`: a unit process that dies is a failed unit, not a failed run
     (the world declares it dead, the coordinator reallocates, the flight goes on); only the world or
     coordinator stop it."""
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
@@ -256,6 +259,13 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
             if world == 0:
                 break
             dead = [n for n, p in run.processes.items() if p.poll() not in (None, 0)]  # killed or failed
+            refused = [n for n in dead if run.processes[n].returncode == COULD_NOT_START]
+            if refused:  # a child the machine refused (a port taken since the parent's check): the run cannot start
+                p = run.processes[refused[0]]
+                print(f"sitl: {refused[0]} (pid {p.pid}) could not start: {_last_line(run.out / f'{refused[0]}.log')}; "
+                      "stopping every child", file=sys.stderr)
+                code = COULD_NOT_START
+                break
             if units_may_die:
                 for name in sorted(n for n in dead if n.startswith("unit") and n not in reported):
                     reported.add(name)

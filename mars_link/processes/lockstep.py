@@ -987,9 +987,9 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     try:
         return _run_role(args, setup, ports, out, key)
-    except EnvironmentFailure as e:  # e.g. a port that cannot be bound
+    except EnvironmentFailure as e:  # e.g. a port that cannot be bound: this process could not start (exit 3)
         print(f"error: {e}", file=sys.stderr)
-        return 1
+        return 3
     except UserInputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

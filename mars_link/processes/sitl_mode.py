@@ -226,7 +226,7 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
         watcher.stop()
     wall = time.perf_counter() - wall0
     logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
-    if not (out / "world_truth.csv").exists():  # nothing flown: the run could not start
+    if code == 3 or not (out / "world_truth.csv").exists():  # nothing flown: the run could not start
         from mars_link.core.errors import EnvironmentFailure
 
         raise EnvironmentFailure(f"SITL run could not start (exit {code}); process logs in {out}: {logs}")
@@ -673,6 +673,28 @@ def _endpoint(text: str) -> str:
     return text
 
 
+def _check_listen_free(endpoint: str) -> None:
+    """A Zenoh TCP listen endpoint that something already holds: PortUnavailable naming it and its option."""
+    import errno
+    import socket
+
+    from mars_link.core.errors import PortUnavailable
+
+    proto, _, address = endpoint.partition("/")
+    host, _, port = address.rpartition(":")
+    if proto != "tcp" or not port.isdigit() or int(port) == 0:
+        return
+    host = host.strip("[]")
+    try:
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind((host, int(port)))
+    except OSError as exc:
+        if exc.errno in (errno.EADDRINUSE, errno.EACCES):  # refused; others (an unknown host) are zenoh's to report
+            raise PortUnavailable(f"--zenoh-listen {endpoint}: TCP port {port} is in use ({exc.strerror}): move it "
+                                  f"with --zenoh-listen") from None
+
+
 def link_from_args(args) -> LinkSpec:
     """The links of the SITL processes from the command line (mars_link.apps.cli `--transport` and its options)."""
     kind = getattr(args, "transport", None) or "zenoh"
@@ -690,6 +712,8 @@ def link_from_args(args) -> LinkSpec:
             raise UserInputError("--link-profile applies to the zenoh transport")
     connect = tuple(_endpoint(e) for e in getattr(args, "zenoh_connect", None) or [])
     listen = tuple(_endpoint(e) for e in getattr(args, "zenoh_listen", None) or [])
+    for endpoint in listen:  # a busy one: one line naming it, exit 3, before any process
+        _check_listen_free(endpoint)
     fleet = getattr(args, "fleet", "default")
     import re
 

@@ -150,3 +150,38 @@ def _wait_for(path: Path, proc: subprocess.Popen) -> bool:
     while proc.poll() is None and not path.exists():
         time.sleep(0.1)
     return path.exists()
+
+
+def test_a_unit_that_cannot_bind_its_port_stops_the_start_with_exit_3(tmp_path, capfd) -> None:
+    """The race the parent's check cannot close (the port taken between the check and the unit's bind),
+    met by the launcher itself: the unit exits 3 naming the port, every child is stopped by PID and the
+    wait returns 3 (before, the flight went on without the unit, the world logged tracebacks and the
+    command ran forever)."""
+    from mars_link.processes.launcher import ClientPorts
+    from mars_link.processes.sitl_mode import start_sitl
+    from mars_link.transport import LinkSpec
+
+    holder = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        holder.bind(("127.0.0.1", 18570))  # unit index 0's GCS bind (if someone else holds it: busy either way)
+    except OSError:
+        pass
+    try:
+        session = start_sitl("hover_1x1", tmp_path / "up", LinkSpec("udp"), units=1, speed=1.0,
+                             clients=ClientPorts(bind_any=False))
+        pids = [p.pid for p in session.run.processes.values()]
+        code = session.wait(timeout_s=240, units_may_die=True)  # (a hang guard only)
+    finally:
+        holder.close()
+    err = capfd.readouterr().err
+    assert code == 3, err
+    assert "could not start" in err and "18570" in err, err
+    assert not [pid for pid in pids if Path(f"/proc/{pid}").exists() and _alive(pid)]
+
+
+def _alive(pid: int) -> bool:
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
