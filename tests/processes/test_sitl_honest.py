@@ -295,3 +295,56 @@ def _count_param_values(data: bytes) -> int:
     parser = mavlink.MAVLink(None)
     parser.robust_parsing = True
     return sum(1 for m in (parser.parse_buffer(data) or []) if m.get_type() == "PARAM_VALUE")
+
+
+# ----------------------------------------------------------------------------- early ends
+def test_a_killed_coordinator_is_an_early_end_exit_1_with_the_reason(tmp_path) -> None:
+    """SIGKILL of the coordinator mid-flight (it was exit 2, the bad-input code, with no summary): exit 1,
+    summary.json completed false with the reason, the part flown summarised."""
+    import signal
+
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_3x2", "--mode", "sitl",
+                             "--realtime", "--duration", "30", "--quiet", "--no-mcap", "--out", str(out)],
+                            env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        coordinator = None
+        while proc.poll() is None and coordinator is None:
+            coordinator = _child_with(proc.pid, b"coordinator")
+            time.sleep(0.2)
+        while proc.poll() is None and _sim_time(out) < 2.0:  # flying
+            time.sleep(0.2)
+        assert coordinator is not None and proc.poll() is None
+        os.kill(coordinator, signal.SIGKILL)
+        _, err = proc.communicate(timeout=240)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 1, err
+    assert "Traceback" not in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["completed"] is False and "died" in summary["end_reason"] and "of 30.00 s" in summary["end_reason"]
+    assert 2.0 <= summary["sim_time_s"] < 30.0
+
+
+def _child_with(parent: int, role: bytes) -> int | None:
+    """The PID of `parent`'s child `python -m mars_link.processes.lockstep ROLE`."""
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            args = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if int(stat[1]) == parent and b"mars_link.processes.lockstep" in args and role in args:
+            return int(entry.name)
+    return None
+
+
+def _sim_time(out: Path) -> float:
+    try:
+        return float(json.loads((out / "world_status.json").read_text())["sim_time_s"])
+    except (OSError, ValueError, KeyError):
+        return 0.0
