@@ -298,6 +298,7 @@ def _count_param_values(data: bytes) -> int:
 
 
 # ----------------------------------------------------------------------------- early ends
+@pytest.mark.long
 def test_a_killed_coordinator_is_an_early_end_exit_1_with_the_reason(tmp_path) -> None:
     """SIGKILL of the coordinator mid-flight (it was exit 2, the bad-input code, with no summary): exit 1,
     summary.json completed false with the reason, the part flown summarised."""
