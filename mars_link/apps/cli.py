@@ -76,7 +76,7 @@ def cmd_run(args) -> int:
         check_flight(scenario, model)
     from mars_link.flight.flight_view import live_address
 
-    live = live_address(args)  # a busy --foxglove port: one line, exit 2, before the flight
+    live = live_address(args)  # a busy --foxglove port: one line, exit 3, before the flight
     out = v.claim_out_dir(args.out or _default_out(scenario.name), force=args.force)  # locked while we run
     console = Console(stderr=True)
     with Progress(
@@ -223,7 +223,7 @@ def cmd_sitl_up(args) -> int:
             check_flight(setup.scenario, setup.model)
     from mars_link.flight.flight_view import world_view_args
 
-    view = world_view_args(args)  # a busy --foxglove port: one line, exit 2, before any process
+    view = world_view_args(args)  # a busy --foxglove port: one line, exit 3, before any process
     out = v.check_out_dir(args.out or _default_out(name + "-sitl"), force=args.force)
     from mars_link.mavlink.signing import signing_from_args
 

@@ -870,7 +870,7 @@ def open_view(out_dir: Path | None, model, scenario, control_hz: float, trajecto
 
 # ----------------------------------------------------------------------------- command line
 def live_address(args) -> str | None:
-    """--foxglove HOST:PORT checked now (bad text or a busy port: one line, exit 2, before any flight), or None."""
+    """--foxglove HOST:PORT checked now (bad text: one line, exit 2; a busy port: exit 3; before any flight), or None."""
     address = getattr(args, "foxglove", None)
     if address is None:
         return None
@@ -925,6 +925,6 @@ def pieces_view(flight, out_dir: Path | None, live: str | None = None) -> Flight
 
 
 def world_view_args(args) -> tuple[str, ...]:
-    """The SITL world process's view options from --no-mcap / --foxglove (checked now: one line, exit 2)."""
+    """The SITL world process's view options from --no-mcap / --foxglove (checked now: one line, exit 2, or 3 for a busy port)."""
     live = live_address(args)
     return (() if getattr(args, "no_mcap", False) else ("--mcap",)) + (() if live is None else ("--foxglove", live))
