@@ -234,13 +234,12 @@ def run_reconfig_scenario(
     1 real time)."""
     from mars_link.flight.flight_view import pieces_view
 
-    from mars_link.flight.runner import FlightInterrupted, starting_summary, write_summary
+    from mars_link.flight.runner import FlightInterrupted, write_starting_summary, write_summary
 
     seed = scenario.sim.seed if seed is None else seed
     cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
     if out_dir is not None:  # first, small: whatever ends this process, a summary.json is there
-        out_dir.mkdir(parents=True, exist_ok=True)
-        write_json(out_dir / "summary.json", starting_summary(scenario, seed, 1))
+        write_starting_summary(out_dir, scenario, seed, 1)
     interrupted = None
     try:
         r = run_reconfig_trial(scenario, seed, out_dir, cb, realtime_rate=realtime_rate,

@@ -134,12 +134,12 @@ def run_scenario(
     `mcap`: run.mcap in `out_dir` (trial i > 0: run_trial<i>.mcap); `live`: HOST:PORT of a live Foxglove view (flight_view).
     `logs`: per-unit logs beside the run's own ("ulog": unit<id>.ulg in `out_dir`; mars_link.logs.LOG_KINDS)."""
     seed = scenario.sim.seed if seed is None else seed
+    if out_dir is not None:  # first, small: whatever ends this process, a summary.json is there
+        write_starting_summary(out_dir, scenario, seed, trials)
     log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ),
                  plot_rows_max=PLOT_ROWS_MAX)  # streamed to the CSVs; memory flat in trials and duration
     results = []
     interrupted: KeyboardInterrupt | None = None
-    if out_dir is not None:  # first, small: whatever ends this process, a summary.json is there
-        write_json(out_dir / "summary.json", starting_summary(scenario, seed, trials))
     try:
         for i in range(trials):
             log.new_trial()
@@ -187,6 +187,19 @@ def write_plots_safely(log: RunLog, write: Callable[[], object]) -> None:
         reason = f"plots: {exc.strerror or exc} (logging stopped)"
         print(f"mars-link: {reason}", file=sys.stderr)
         log.add_closed_logs([{"file": "plots", "stopped_reason": reason, "errors": 1, "dropped_writes": 0}])
+
+
+def write_starting_summary(out_dir: Path, scenario: Scenario, seed: int, trials: int) -> None:
+    """`starting_summary` to out_dir/summary.json; a disk that refuses even that: the run cannot start
+    (EnvironmentFailure: one line naming the file, exit 3), before any flight."""
+    from mars_link.core.errors import EnvironmentFailure
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        write_json(out_dir / "summary.json", starting_summary(scenario, seed, trials))
+    except OSError as exc:
+        raise EnvironmentFailure(f"cannot write {out_dir / 'summary.json'}: {exc.strerror or exc} (no disk for the "
+                                 "summary: the run did not start)") from None
 
 
 def write_summary(out_dir: Path, summary: dict) -> None:

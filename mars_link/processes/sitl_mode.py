@@ -207,10 +207,9 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
         scenario = replace(scenario, faults_known=False)
     out.mkdir(parents=True, exist_ok=True)
-    from mars_link.flight.runner import starting_summary
-    from mars_link.logs.outputs import write_json
+    from mars_link.flight.runner import write_starting_summary
 
-    write_json(out / "summary.json", starting_summary(scenario, seed, 1))  # first: there is always one
+    write_starting_summary(out, scenario, seed, 1)  # first: there is always one (no disk for it: exit 3)
     copy = write_scenario_copy(_absolute_paths(scenario), out / "scenario.toml")
     wall0 = time.perf_counter()
     session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view, units_per_process=units_per_process,

@@ -185,3 +185,14 @@ def _alive(pid: int) -> bool:
     except OSError:
         return False
     return state != "Z"
+
+
+def test_no_disk_for_the_summary_is_could_not_start(tmp_path) -> None:
+    """Not even the small first summary fits: one line naming the file, exit 3, no flight, no run directory."""
+    out = tmp_path / "run"
+    proc = cli("run", "hover_1x1", "--duration", "1", "--quiet", "--out", str(out), preexec_fn=file_size_limit(150))
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 3, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "summary.json" in lines[0] and "did not start" in lines[0], err
+    assert not out.exists()
