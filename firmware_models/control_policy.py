@@ -24,6 +24,7 @@ change while armed, whatever the authority.
 
 from __future__ import annotations
 
+import math
 from collections import OrderedDict
 
 from pymavlink.dialects.v20 import common as mavlink
@@ -111,15 +112,44 @@ def param_error(msg, index: int, error: int):
                                                name.split("\x00", 1)[0].encode("ascii", "replace")[:16], index, error)
 
 
+#: the reply budget of a unit, all senders and links together, as a multiple of one sender's: room for the
+#: two client links and the coordinator at once, and still a ceiling that no number of senders can raise
+TOTAL_BUDGET_SENDERS = 3
+
+
+class TokenBucket:
+    """`rate_hz` tokens a second, at most `burst` held; starts full."""
+
+    def __init__(self, rate_hz: float, burst: float) -> None:
+        self.rate, self.burst = rate_hz, float(burst)
+        self.tokens, self.last = self.burst, -math.inf
+
+    def take(self, now: float) -> bool:
+        self.tokens = self.burst if self.last == -math.inf else min(self.burst, self.tokens + max(0.0, now - self.last) * self.rate)
+        self.last = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
+
+
 class SenderBudgets:
-    """Token buckets for replies, one per sender (link, system, component), so one noisy client cannot
-    use up another's answers; at most `max_senders` are kept (least recently used go first)."""
+    """Token buckets for replies, one per sender, so one noisy client cannot use up another's answers,
+    and one for the total, so many senders cannot multiply the replies. A sender is a signed client's
+    (link, system, component), else its link: a system id anyone can write must never mint a budget
+    (Vehicle.handle picks the key). At most `max_senders` are kept (least recently used go first)."""
 
     def __init__(self, rate_hz: float, burst: int, max_senders: int = 64) -> None:
         self.rate, self.burst, self.max_senders = rate_hz, float(burst), max_senders
         self._state: OrderedDict[tuple, list[float]] = OrderedDict()  # sender -> [tokens, last time]
+        self.total = TokenBucket(rate_hz * TOTAL_BUDGET_SENDERS, burst * TOTAL_BUDGET_SENDERS)  # (Vehicle: one for all links)
 
     def take(self, sender: tuple, now: float) -> bool:
+        if not self._take_sender(sender, now):
+            return False
+        return self.total.take(now)
+
+    def _take_sender(self, sender: tuple, now: float) -> bool:
         st = self._state.get(sender)
         if st is None:
             st = self._state[sender] = [self.burst, now]

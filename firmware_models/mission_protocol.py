@@ -73,6 +73,10 @@ class MissionLimits:
     rally_items: int = 32
     retry_s: float = 0.5  # re-request a missing item after this long without it
     max_retries: int = 5  # then cancel the upload
+    #: another client's new upload takes the slot from one that has sent no new item for this long: the
+    #: MAVLink mission protocol's default item timeout (1500 ms, mavlink.io "Mission Protocol", Timeouts
+    #: and Retries), so a client that starts an upload and goes silent (or only restarts it) cannot hold it
+    release_s: float = 1.5
 
     def capacity(self, mission_type: int) -> int:
         return {MISSION: self.mission_items, FENCE: self.fence_items, RALLY: self.rally_items}[mission_type]
@@ -220,6 +224,7 @@ class _Upload:
     retries: int = 0
     first_seq: int = 0  # a partial write replaces items first_seq .. first_seq + count - 1
     partial: bool = False
+    progress_s: float = 0.0  # when the upload last got a new item (or began); a restart keeps it
 
     @property
     def next_seq(self) -> int:
@@ -264,6 +269,18 @@ class MissionProtocol:
         self.plans[mission_type] = items
         self.versions[mission_type] += 1
 
+    def _release_stale(self, msg, link: str, now_s: float) -> list:
+        """Another client asks for the slot: the upload in progress gives it up (cancelled, the stored plan
+        unchanged) if it has made no progress for `release_s`; its client gets OPERATION_CANCELLED."""
+        up = self.upload
+        if up is None or self._is_partner(msg, link) or now_s - up.progress_s < self.limits.release_s:
+            return []
+        self.upload = None
+        self._count("released_stale_upload")
+        self.texts.append((R.MAV_SEVERITY_WARNING,
+                           f"{TYPE_NAMES[up.mission_type]} upload stalled: slot given to a new upload"[:STATUSTEXT_CHARS]))
+        return [self._ack(up.link, up.sysid, up.compid, R.MAV_MISSION_OPERATION_CANCELLED, up.mission_type)]
+
     def _is_partner(self, msg, link: str) -> bool:
         up = self.upload
         return up is not None and (link, msg.get_srcSystem(), msg.get_srcComponent()) == (up.link, up.sysid, up.compid)
@@ -295,6 +312,7 @@ class MissionProtocol:
         kind, n = msg.mission_type, msg.count
         if kind not in self.plans:
             return self._refuse(link, msg, R.MAV_MISSION_UNSUPPORTED, "unsupported_mission_type")
+        released = self._release_stale(msg, link, now_s)
         up = self.upload
         if up is not None and not self._is_partner(msg, link):
             return self._refuse(link, msg, R.MAV_MISSION_DENIED, "busy")  # another client is uploading
@@ -309,15 +327,18 @@ class MissionProtocol:
             self.upload = None
             self._store(kind, ())
             self._count(f"uploaded.{TYPE_NAMES[kind]}")
-            return [self._ack(link, msg.get_srcSystem(), msg.get_srcComponent(), R.MAV_MISSION_ACCEPTED, kind)]
-        self.upload = _Upload(link, msg.get_srcSystem(), msg.get_srcComponent(), kind, n, [], last_s=now_s)
-        return [self._request(self.upload, 0)]
+            return released + [self._ack(link, msg.get_srcSystem(), msg.get_srcComponent(), R.MAV_MISSION_ACCEPTED, kind)]
+        progress_s = up.progress_s if up is not None else now_s  # (a restart does not renew the holder's claim)
+        self.upload = _Upload(link, msg.get_srcSystem(), msg.get_srcComponent(), kind, n, [], last_s=now_s,
+                              progress_s=progress_s)
+        return released + [self._request(self.upload, 0)]
 
     def _on_partial(self, msg, link: str, now_s: float) -> list:
         """MISSION_WRITE_PARTIAL_LIST: replace stored items start..end (MAVProxy's `wp update`)."""
         kind = msg.mission_type
         if kind not in self.plans:
             return self._refuse(link, msg, R.MAV_MISSION_UNSUPPORTED, "unsupported_mission_type")
+        released = self._release_stale(msg, link, now_s)
         if self.upload is not None and not self._is_partner(msg, link):
             return self._refuse(link, msg, R.MAV_MISSION_DENIED, "busy")
         n = len(self.plans[kind])
@@ -327,10 +348,11 @@ class MissionProtocol:
         if not 0 <= start <= end < n:
             self.upload = None
             return self._refuse(link, msg, R.MAV_MISSION_INVALID_SEQUENCE, "partial_out_of_range")
+        progress_s = self.upload.progress_s if self.upload is not None else now_s
         self.upload = _Upload(link, msg.get_srcSystem(), msg.get_srcComponent(), kind, end - start + 1, [],
-                              last_s=now_s, first_seq=start, partial=True)
+                              last_s=now_s, first_seq=start, partial=True, progress_s=progress_s)
         self._count("partial_write")
-        return [self._request(self.upload, start)]
+        return released + [self._request(self.upload, start)]
 
     def _on_item(self, msg, link: str, now_s: float) -> list:
         up = self.upload
@@ -376,7 +398,7 @@ class MissionProtocol:
             self.texts.append((R.MAV_SEVERITY_WARNING, f"{head}{what}{tail}"[:STATUSTEXT_CHARS]))
             return self._refuse(link, msg, result, reason, up.mission_type)
         up.items.append(replace(item, seq=msg.seq))
-        up.last_s, up.retries = now_s, 0
+        up.last_s, up.retries, up.progress_s = now_s, 0, now_s
         if len(up.items) < up.count:
             return [self._request(up, up.next_seq)]
         self.upload = None

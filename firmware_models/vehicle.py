@@ -87,6 +87,15 @@ from mars_link.mavlink.wire import SensorFrameAssembler
 WORLD_SYSID = 200  # the SITL world process (mars_link/processes/lockstep.py)
 
 
+#: messages that command a unit or change its mission: from anyone but the coordinator, each is recorded
+FOREIGN_CONTROL_MESSAGES = frozenset({
+    "COMMAND_LONG", "COMMAND_INT", "SET_MODE", "MISSION_COUNT", "MISSION_ITEM", "MISSION_ITEM_INT",
+    "MISSION_CLEAR_ALL", "MISSION_WRITE_PARTIAL_LIST", "MISSION_SET_CURRENT", "SET_POSITION_TARGET_LOCAL_NED",
+    "SET_POSITION_TARGET_GLOBAL_INT", "SET_ATTITUDE_TARGET", "MANUAL_CONTROL", "PARAM_SET",
+    "SET_ACTUATOR_CONTROL_TARGET"})
+FOREIGN_TRAFFIC_KEYS = 64  # distinct (link, sender, message) kept; beyond, only counted
+
+
 @dataclass
 class VehicleConfig:
     unit_id: int = 1
@@ -161,6 +170,9 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             if (p.require_signing or p.sign_outgoing) and not signed:
                 raise UserInputError(f"link {name!r} requires signing but no signing key is configured")
         self.links = {n: Link(n, p, self.sysid, self.compid, c.signing_key, wall_time_s) for n, p in policies.items()}
+        shared = next((lk.budgets.total for lk in self.links.values()), None)  # one total reply budget, all links
+        for lk in self.links.values():
+            lk.budgets.total = shared or lk.budgets.total
         self._authority = policy.SAFETY  # of the frame being dispatched (control_policy.frame_authority)
         self.on_frame_in = None  # callable(link, frame bytes) for every frame that passed parsing and signing
         self._sender: tuple = ()  # (link, sysid, compid) of that frame: whose reply budget answers pay from
@@ -182,6 +194,9 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self.motor_commands_n = np.zeros(4)
         self.drops: dict[str, int] = {}
         self.stats: dict[str, int] = {}
+        #: command or mission traffic from anyone but the coordinator (a ground station, a stray script):
+        #: (link, system, component, message) -> [first sim time s, count]; the run's summary lists it as events
+        self.foreign_traffic: dict[tuple, list] = {}
         self.events: list[tuple[float, str]] = []  # (sim time, text): STATUSTEXT history
         self._next_heartbeat = wall_time_s
         self._next_control = 0.0
@@ -327,10 +342,10 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
                 self.on_frame_in(link, frame)
             self._authority = policy.frame_authority(
                 lk.verifier is not None and is_signed(frame), lk.policy.require_signing, has_key)
-            # whose reply budget pays: each signed (or, without a key, each) sender its own; unsigned
-            # senders next to a key share one, so spoofed system ids cannot mint fresh budgets
-            self._sender = ((link, msg.get_srcSystem(), msg.get_srcComponent()) if self._authority == policy.SAFETY
-                            else (link, "unsigned"))
+            # whose reply budget pays: each signed sender its own; every other sender of a link shares the
+            # link's, so spoofed (rotating) system ids cannot mint fresh budgets (and all of them a total)
+            self._sender = ((link, msg.get_srcSystem(), msg.get_srcComponent())
+                            if self._authority == policy.SAFETY and has_key else (link, "unsigned"))
             try:
                 self._dispatch(msg, lk, out)
             except (ValueError, TypeError, OverflowError, struct.error):
@@ -523,6 +538,8 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         if handler is None:
             self._drop("unhandled_message")
             return
+        if t in FOREIGN_CONTROL_MESSAGES and not (src == self.config.coordinator_sysid and lk.name == "coordinator"):
+            self._note_foreign(lk.name, src, msg.get_srcComponent(), t)
         if self._authority < policy.required_authority(msg):  # e.g. unsigned control under --require-signing
             self._drop(f"policy.denied_{policy.AUTHORITY_NAMES[self._authority]}")
             for m in policy.refusal(msg):
@@ -531,6 +548,21 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
                 self._tell_refusal(msg.command, mavlink.MAV_RESULT_DENIED, "needs a signed link")
             return
         getattr(self, handler)(msg, lk, out)
+
+    def _note_foreign(self, link: str, sysid: int, compid: int, message: str) -> None:
+        key = (link, sysid, compid, message)
+        seen = self.foreign_traffic.get(key)
+        if seen is not None:
+            seen[1] += 1
+        elif len(self.foreign_traffic) < FOREIGN_TRAFFIC_KEYS:
+            self.foreign_traffic[key] = [self.sim_s, 1]
+        else:
+            self._count("foreign_traffic_unlisted")
+
+    def foreign_traffic_events(self) -> list[dict]:
+        """The command and mission traffic not from the coordinator, one entry per sender and message."""
+        return [{"t_s": round(t, 6), "link": link, "sysid": sysid, "compid": compid, "message": message,
+                 "count": n} for (link, sysid, compid, message), (t, n) in self.foreign_traffic.items()]
 
     # ================================================================= control
     def _limits(self) -> GuidanceLimits:

@@ -7,7 +7,8 @@ modules' own `*_command(args)`) take the parsed arguments. Internal process entr
 not type (`python -m mars_link.processes.lockstep ROLE`, `python -m mars_link.processes.udp_runner`) keep their own parsers.
 
 Every user error is one line on stderr, "mars-link: error: ...", and exit code 2; a refusal from the
-machine (disk, port, permission) one line and exit code 1 (mars_link.core.validation). `--duration` is
+machine (disk, port, permission) one line and exit code 3 (mars_link.core.validation; the table of exit
+codes: `EXIT_CODES_EPILOG`, docs/reference/exit-codes.md). `--duration` is
 simulated seconds wherever it appears; a wall-clock limit is `--wall-time`.
 """
 
@@ -68,6 +69,8 @@ def cmd_run(args) -> int:
     if args.mode not in ("inproc", "sitl"):
         raise UserInputError(f"--mode {args.mode!r}: expected inproc or sitl")
     v.check_link_endpoints(args)
+    if args.mode != "sitl" and (args.gcs or args.gcs_port is not None or args.api_port is not None):
+        raise UserInputError("--gcs, --gcs-port and --api-port apply to --mode sitl (an in-process run has no ports)")
     sitl_run = None
     if args.mode == "sitl":  # the multi-process SITL (mars_link.processes.sitl_mode); options checked before any output
         from mars_link.processes.sitl_mode import sitl_runner
@@ -79,7 +82,7 @@ def cmd_run(args) -> int:
         check_flight(scenario, model)
     from mars_link.flight.flight_view import live_address
 
-    live = live_address(args)  # a busy --foxglove port: one line, exit 2, before the flight
+    live = live_address(args)  # a busy --foxglove port: one line, exit 3, before the flight
     out = v.claim_out_dir(args.out or _default_out(scenario.name), force=args.force)  # locked while we run
     console = Console(stderr=True)
     with Progress(
@@ -207,7 +210,7 @@ def cmd_sitl_up(args) -> int:
             check_flight(setup.scenario, setup.model)
     from mars_link.flight.flight_view import world_view_args
 
-    view = world_view_args(args)  # a busy --foxglove port: one line, exit 2, before any process
+    view = world_view_args(args)  # a busy --foxglove port: one line, exit 3, before any process
     out = v.check_out_dir(args.out or _default_out(name + "-sitl"), force=args.force)
     from mars_link.mavlink.signing import signing_from_args
 
@@ -219,8 +222,14 @@ def cmd_sitl_up(args) -> int:
                        ("--api-port + units", clients.api_ports[-1])):
         if not 1 <= port <= 65535:
             raise UserInputError(f"{what} must be 1..65535, got {port}")
+    from mars_link.processes.launcher import check_udp_ports_free, unit_bind_ports
     from mars_link.processes.sitl_mode import sitl_up_command
 
+    busy_checks = unit_bind_ports(clients, len(setup.unit_ids))
+    if vehicle is not None:
+        busy_checks += [(vehicle.gcs_bind, "the vehicle's GCS link", "--any-bind"),
+                        (vehicle.api_bind, "the vehicle's API link", "--any-bind")]
+    check_udp_ports_free(busy_checks)  # a busy port: one line naming it, exit 3, before any process
     v.claim_out_dir(out, force=args.force)
     return sitl_up_command(args, path, out, link, clients, vehicle, view, require_signing)
 
@@ -339,9 +348,18 @@ class _Parser(v.OneLineParser):
         raise argparse.ArgumentError(None if what == "command" else action, text)
 
 
-def _command(sub, name: str, help: str, description: str, func) -> argparse.ArgumentParser:
+#: the exit codes of `run` and `sitl up`, in their --help (and docs/reference/exit-codes.md)
+EXIT_CODES_EPILOG = (
+    "Exit codes: 0 completed (also when a log stopped on a full disk: the reason is in summary.json); "
+    "1 diverged or ended early, for any reason (summary.json: completed false and end_reason); 2 bad input; "
+    "3 could not start (a busy port, no disk for the summary; one line names it); 130 interrupted by SIGINT "
+    "(Ctrl-C); 143 interrupted by SIGTERM (the summary of the part flown is written)."
+)
+
+
+def _command(sub, name: str, help: str, description: str, func, epilog: str | None = None) -> argparse.ArgumentParser:
     """One subcommand: `help` is its line in the parent's list, `description` the top of its own --help."""
-    p = sub.add_parser(name, help=help, description=description)
+    p = sub.add_parser(name, help=help, description=description, epilog=epilog)
     p.set_defaults(func=func)
     return p
 
@@ -496,8 +514,7 @@ def build_parser() -> argparse.ArgumentParser:
     run = _command(sub, "run", "fly a scenario and write its results (summary.json, telemetry, plots, run.mcap)",
                    "Fly a scenario, in this process (--mode inproc) or as the multi-process MAVLink SITL (--mode "
                    "sitl, lockstep: the same flight for the same seed), and write summary.json, telemetry.csv, "
-                   "rotors.csv, plots/ and run.mcap; print a one-screen table. Exit 0 when the flight completed, "
-                   "1 when not, 2 on bad input.", cmd_run)
+                   "rotors.csv, plots/ and run.mcap; print a one-screen table.", cmd_run, EXIT_CODES_EPILOG)
     _add_scenario(run, DEFAULT_SCENARIO, ", the 3x2 spiral")
     _add_out(run, "runs/<name>-<time>")
     _add_seed(run)
@@ -511,6 +528,13 @@ def build_parser() -> argparse.ArgumentParser:
                      help="inproc: one process, the engine steps everything; sitl: world, one process per unit "
                           "and the coordinator, talking MAVLink over --transport")
     _add_link(run, "the SITL processes (with --mode sitl)")
+    run.add_argument("--gcs", action="store_true",
+                     help="with --mode sitl: open the units' ground-station ports (PX4's: GCS 14550, API 14540+i; "
+                          "default: none, a batch run no client can reach)")
+    run.add_argument("--gcs-port", type=int, default=None,
+                     help="with --mode sitl: the GCS port the units send to (implies --gcs; default 14550)")
+    run.add_argument("--api-port", type=int, default=None,
+                     help="with --mode sitl: API port of unit index 0, unit i uses this + i (implies --gcs; default 14540)")
     _add_sitl_processes(run, "pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
     run.add_argument("--logs", type=_log_kinds, default=frozenset(), metavar="KINDS",
                      help="per-unit logs of an in-process run, comma-separated: ulog (unit<id>.ulg, PX4's topics), "
@@ -536,7 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
                   "Start the world, one MAVLink process per unit (PX4's client ports: unit i sends to GCS port "
                   "14550 and API port 14540+i, like PX4 SITL instance i) and, for a docked assembly, the "
                   "coordinator; print the endpoints; run until the flight ends, Ctrl-C or a child's death. "
-                  "--vehicle adds the whole assembly as one MAVLink vehicle.", cmd_sitl_up)
+                  "--vehicle adds the whole assembly as one MAVLink vehicle.", cmd_sitl_up, EXIT_CODES_EPILOG)
     _add_scenario(up, INTERACTIVE_SCENARIO, ", the realistic plant")
     _add_out(up, "runs/<name>-sitl-<time>")
     _add_seed(up)
@@ -738,10 +762,28 @@ def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentP
     return found
 
 
+def _sigterm_raises_terminated() -> None:
+    """SIGTERM raises core.errors.Terminated in the main thread, as Ctrl-C raises KeyboardInterrupt: the same
+    cleanup (children stopped by PID, the summary of the part flown), exit 143. An ignored SIGTERM stays ignored."""
+    import signal
+    import threading
+
+    from mars_link.core.errors import Terminated
+
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) == signal.SIG_IGN:
+        return
+
+    def terminate(*_) -> None:
+        raise Terminated
+
+    signal.signal(signal.SIGTERM, terminate)
+
+
 def main(argv: list[str] | None = None) -> int:
     from mars_link.processes.parent_watch import hear_stop_signals
 
     hear_stop_signals()  # Ctrl-C stops every command, whatever mask the parent left
+    _sigterm_raises_terminated()
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["plan"]:  # before numpy loads: threaded BLAS is 10x slower for the planner (spec §6.1)
         import os
@@ -757,14 +799,17 @@ def main(argv: list[str] | None = None) -> int:
             parser.print_help()
             return EXIT_USAGE
         return args.func(args)
-    except KeyboardInterrupt:
-        print("mars-link: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (Terminated): the run wrote the summary of the part flown
+        from mars_link.core.errors import Terminated
+
+        terminated = isinstance(exc, Terminated)
+        print(f"mars-link: interrupted by {'SIGTERM' if terminated else 'SIGINT'}", file=sys.stderr)
+        return v.EXIT_SIGTERM if terminated else v.EXIT_SIGINT
     except (UserInputError, v.EnvironmentFailure, OSError) as exc:  # OSError: an unexpected disk/port refusal
         line, code = v.report(exc)
         print(line, file=sys.stderr)
         return code
-    except Exception as exc:  # a Zenoh session that cannot open (port taken): one line, exit 1
+    except Exception as exc:  # a Zenoh session that cannot open (port taken): one line, exit 3
         if type(exc).__module__.split(".")[0] != "zenoh":
             raise
         line, code = v.report(exc)

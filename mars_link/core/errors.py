@@ -18,11 +18,17 @@ class OneLineArgumentParser(argparse.ArgumentParser):
 
 
 class EnvironmentFailure(RuntimeError):
-    """The machine refused (read-only or full disk, permission, port in use): one line, exit code 1."""
+    """The machine refused (read-only or full disk, permission, port in use): the run could not start,
+    one line, exit code 3."""
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like Ctrl-C's KeyboardInterrupt (so every cleanup that Ctrl-C
+    runs runs for it too), told apart by the exit code: 143 (128 + SIGTERM) instead of 130."""
 
 
 class PortUnavailable(EnvironmentFailure, UserInputError):
-    """A port that cannot be bound (in use, not permitted): the machine's refusal, exit 1; still a
+    """A port that cannot be bound (in use, not permitted): the machine's refusal, exit 3; still a
     UserInputError for the processes that catch only those (one line either way)."""
 
 

@@ -4,7 +4,7 @@
 Why: each verb used to check its own arguments, and what nobody checked (a negative seed, `nan`
 seconds, an output path under a file, a 5,000-digit unit id) surfaced as a traceback from deep inside
 numpy, pathlib or zenoh. Here every check either returns the clean value or raises one line:
-`UserInputError` (wrong input, exit 2) or `EnvironmentFailure` (the machine refused, exit 1).
+`UserInputError` (wrong input, exit 2) or `EnvironmentFailure` (the machine refused, exit 3).
 The argparse `type=` functions raise `argparse.ArgumentTypeError`, which `OneLineParser` turns into
 a `UserInputError` naming the option.
 """
@@ -24,8 +24,13 @@ from pathlib import Path
 
 from mars_link.core.errors import EnvironmentFailure, OneLineArgumentParser, UserInputError
 
+# The exit codes of `run` and `sitl up` (docs/reference/exit-codes.md, the CLI's help epilog)
+EXIT_COMPLETED = 0  # flown to the end (also when a log stopped on a full disk: the reason is in summary.json)
+EXIT_FLIGHT_FAILED = 1  # diverged, or ended before its duration for any reason (summary.json says why)
 EXIT_USAGE = 2  # wrong input
-EXIT_ENVIRONMENT = 1  # disk, port, permission
+EXIT_ENVIRONMENT = 3  # could not start: disk, port, permission (one line names it)
+EXIT_SIGINT = 130  # interrupted by Ctrl-C (128 + SIGINT)
+EXIT_SIGTERM = 143  # interrupted by SIGTERM (128 + SIGTERM)
 SEED_MAX = 2**32 - 1  # numpy's SeedSequence takes any non-negative int; 32 bits is plenty and printable
 MAX_ID_DIGITS = 6  # a unit/rotor id longer than this is not an id (and int() of 5,000 digits raises)
 NAME_MAX = 255  # bytes in one path component (Linux)

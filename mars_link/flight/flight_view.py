@@ -96,7 +96,10 @@ def parse_host_port(text: str) -> tuple[str, int]:
 
 
 def check_port_free(host: str, port: int, what: str = "--foxglove") -> None:
-    """A TCP port someone already listens on is bad input (one line, exit 2), found before any flight."""
+    """A TCP port someone already listens on: the run cannot start (one line naming the port and the option that
+    moves it, exit 3), found before any flight."""
+    from mars_link.core.errors import PortUnavailable
+
     import socket
 
     if port == 0:
@@ -106,7 +109,8 @@ def check_port_free(host: str, port: int, what: str = "--foxglove") -> None:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
             s.bind((host, port))
     except OSError as exc:
-        raise UserInputError(f"{what} {host}:{port}: cannot serve there ({exc.strerror or exc})") from None
+        raise PortUnavailable(f"{what} {host}:{port}: cannot serve there ({exc.strerror or exc}); move it with "
+                              f"{what} HOST:PORT") from None
 
 
 class _Channels:
@@ -249,6 +253,14 @@ class FlightView:
         except subprocess.TimeoutExpired:  # (a writer that cannot finish: the file up to its last chunk stays)
             self.process.terminate()
             self.process.wait()
+
+    def status(self) -> dict | None:
+        """run.mcap's log status (as outputs.SafeWriter.status) once closed, None before or without a file."""
+        if not self.closed or self.process.returncode is None:
+            return None
+        stopped = self.process.returncode == MCAP_STOPPED_EXIT
+        return {"file": "run.mcap", "stopped_reason": MCAP_STOPPED_REASON if stopped else None,
+                "errors": int(stopped), "dropped_writes": 0}
 
     # ----------------------------------------------------------------- one step
     def write_step(self, t_s: float, world, point: ViewPoint | None, eta: np.ndarray,
@@ -441,13 +453,23 @@ def _writer_main(read_fd: int) -> None:
                 item = conn.recv()
             except (EOFError, OSError):
                 break
-            writer.take(item)
+            try:
+                writer.take(item)
+            except (RuntimeError, OSError) as exc:  # the SDK's file write failed (a full disk): the file stops
+                writer.stop_file(exc)
     finally:
         try:  # the flight waits for the file now: finish at normal priority (SCHED_IDLE gets no CPU on a busy machine)
             os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
         except (AttributeError, OSError):
             pass
         writer.close()
+        if writer.file_stopped:  # (the flight process reads it: summary.json logging.stopped_reason)
+            os._exit(MCAP_STOPPED_EXIT)
+
+
+#: the writer process's exit code when run.mcap was stopped by a write error (the flight went on)
+MCAP_STOPPED_EXIT = 3
+MCAP_STOPPED_REASON = "run.mcap: a write failed (disk full or file too large; logging stopped)"
 
 
 class _ViewWriter:
@@ -470,6 +492,7 @@ class _ViewWriter:
         self.every_scene = every_n_steps(control_hz, min(r.scene_hz, control_hz))
         self.every_rotors = every_n_steps(control_hz, min(r.rotors_hz, control_hz))
         self.writer = self.file = self.server = self.live = None
+        self.file_stopped = False
         if mcap_path is not None:
             self.file_context = foxglove.Context()  # (kept: a collected context closes its channels)
             # LZ4 chunks: several times cheaper to write than zstd (measured: benchmarks/bench_mcap.py), on one thread
@@ -515,9 +538,26 @@ class _ViewWriter:
             for ev in item[2]:
                 self.event(ev, max(item[1], self.last_ns))
 
+    def stop_file(self, exc: BaseException) -> None:
+        """run.mcap stops (one line on stderr), the live view and the flight go on."""
+        import sys
+
+        if self.writer is None:
+            return
+        print(f"mars-link: {MCAP_STOPPED_REASON} ({str(exc).splitlines()[0][:120]})", file=sys.stderr, flush=True)
+        self.file_stopped = True
+        writer, self.writer, self.file = self.writer, None, None
+        try:
+            writer.close()
+        except (RuntimeError, OSError):
+            pass
+
     def close(self) -> None:
         if self.writer is not None:
-            self.writer.close()
+            try:
+                self.writer.close()
+            except (RuntimeError, OSError) as exc:
+                self.stop_file(exc)
             self.writer = None
         if self.server is not None:
             self.server.stop()
@@ -830,7 +870,7 @@ def open_view(out_dir: Path | None, model, scenario, control_hz: float, trajecto
 
 # ----------------------------------------------------------------------------- command line
 def live_address(args) -> str | None:
-    """--foxglove HOST:PORT checked now (bad text or a busy port: one line, exit 2, before any flight), or None."""
+    """--foxglove HOST:PORT checked now (bad text: one line, exit 2; a busy port: exit 3; before any flight), or None."""
     address = getattr(args, "foxglove", None)
     if address is None:
         return None
@@ -885,6 +925,6 @@ def pieces_view(flight, out_dir: Path | None, live: str | None = None) -> Flight
 
 
 def world_view_args(args) -> tuple[str, ...]:
-    """The SITL world process's view options from --no-mcap / --foxglove (checked now: one line, exit 2)."""
+    """The SITL world process's view options from --no-mcap / --foxglove (checked now: one line, exit 2, or 3 for a busy port)."""
     live = live_address(args)
     return (() if getattr(args, "no_mcap", False) else ("--mcap",)) + (() if live is None else ("--foxglove", live))

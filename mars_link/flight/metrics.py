@@ -40,6 +40,15 @@ class TrialResult:
     physics_steps: int = 0
     control_steps: int = 0
     detections: list[dict] = field(default_factory=list)
+    end_reason: str | None = None  # why the flight ended before its duration (None: flown to the end)
+
+
+def ended_early_reason(sim_time_s: float, duration_s: float, control_hz: float, why: str) -> str | None:
+    """The end reason of a flight that stopped more than one control period before `duration_s`, else None.
+    Why: a flight cut short (a signal, a shutdown, a dead process) must never read as completed."""
+    if sim_time_s + 1.5 / control_hz >= duration_s:
+        return None
+    return f"{why} at {sim_time_s:.2f} s of {duration_s:.2f} s"
 
 
 class TrackingMetrics:
@@ -133,6 +142,7 @@ def summarize(scenario, results: list[TrialResult], seed: int, mode: str = "inpr
         "physics_hz": scenario.sim.physics_hz,
         "control_hz": scenario.sim.control_hz,
         "completed": all(r.completed for r in results),
+        "end_reason": next((r.end_reason for r in results if r.end_reason), None),
         "diverged": any(r.diverged for r in results),
         "mean_error_m": mean("mean_error_m"),
         "mean_error_std_m": float(np.std([r.mean_error_m for r in results])),

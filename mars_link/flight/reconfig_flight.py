@@ -20,6 +20,7 @@ time the manoeuvre took is `reconfig_time_s`.
 from __future__ import annotations
 
 import math
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ from typing import Callable
 import numpy as np
 
 from mars_link.core.events import EventKind, event
+from mars_link.core.errors import UserInputError
 from mars_link.flight.build import build_flight
 from mars_link.flight.engine import Engine, Flight, StepView
 from mars_link.flight.metrics import DIVERGENCE_ERROR_M, DIVERGENCE_TILT_DEG, TrackingMetrics, TrialResult
@@ -45,6 +47,7 @@ class ReconfigResult(TrialResult):
     """A trial's figures plus the manoeuvre: whether it completed, how long it took, the plan."""
 
     reconfigured: bool = False
+    logging: dict | None = None  # the CSVs' status (ReconfigRecorder.logging_status)
     reconfig_time_s: float = 0.0
     plan: dict | None = None
     unit_rows: list[list[float]] = field(default_factory=list)
@@ -77,15 +80,23 @@ class ReconfigRecorder:
         self.tel_f = self.units_f = None
         if out_dir is not None:
             out_dir.mkdir(parents=True, exist_ok=True)
-            self.tel_f = open(out_dir / "telemetry.csv", "w", encoding="utf-8")
+            from mars_link.logs.outputs import SafeWriter  # (a full disk stops a log, never the flight)
+
+            self.tel_f = SafeWriter.open(out_dir / "telemetry.csv")
             self.tel_f.write("t_s,mission_t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,error_m,pieces\n")
-            self.units_f = open(out_dir / "units.csv", "w", encoding="utf-8")
+            self.units_f = SafeWriter.open(out_dir / "units.csv")
             self.units_f.write("t_s,unit,n_m,e_m,d_m,vn_mps,ve_mps,vd_mps,roll_deg,pitch_deg,yaw_deg,piece_units\n")
 
     def close(self) -> None:
         for f in (self.tel_f, self.units_f):
             if f:
                 f.close()
+
+    def logging_status(self) -> dict:
+        """summary.json "logging" (as run_log.RunLog.status): the CSVs whole, or why not."""
+        files = [f.status() for f in (self.tel_f, self.units_f) if f is not None]
+        reason = next((f["stopped_reason"] for f in files if f["stopped_reason"]), None)
+        return {"complete": reason is None, "stopped_reason": reason, "files": files}
 
     def on_step(self, engine: Engine, v: StepView) -> bool:
         world, coord = self.flight.world, self.coordinator
@@ -170,11 +181,14 @@ def run_reconfig_trial(
     view = view(flight) if view is not None else None
     engine = Engine(flight, [recorder] + ([view] if view is not None else []), Pacer(realtime_rate))
     wall0 = time.perf_counter()
+    interrupted: KeyboardInterrupt | None = None
     try:
         step_every = 50
         while engine.step():
             if on_progress is not None and engine.steps % step_every == 0:
                 on_progress(min(1.0, flight.world.t_s / max(flight.duration_s + executor.shift_s, 1e-9)))
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: the part flown is the result (runner.FlightInterrupted)
+        interrupted = exc
     finally:
         flight.world.close()
         recorder.close()
@@ -187,8 +201,13 @@ def run_reconfig_trial(
     begun = [e for e in events if e["type"] == "reconfig_start"]
     reconfigured = bool(done)
     metrics = recorder.metrics
-    return ReconfigResult(
-        seed=seed, completed=not (metrics.diverged or recorder.failed), diverged=metrics.diverged,
+    from mars_link.flight.runner import FlightInterrupted, _signal_name
+
+    end_reason = (f"diverged at {t:.2f} s" if metrics.diverged else f"reconfiguration failed at {t:.2f} s"
+                  if recorder.failed else f"interrupted by {_signal_name(interrupted)} at {t:.2f} s"
+                  if interrupted is not None else None)
+    result = ReconfigResult(
+        seed=seed, completed=end_reason is None, end_reason=end_reason, diverged=metrics.diverged,
         reconfigured=reconfigured, mean_error_m=metrics.mean_error_m, rmse_m=metrics.rmse_m,
         max_error_m=metrics.max_error_m, sim_time_s=t, wall_time_s=time.perf_counter() - wall0,
         force_integral_n2s=flight.world.force_integral_n2s, max_tilt_deg=metrics.max_tilt_deg,
@@ -200,6 +219,10 @@ def run_reconfig_trial(
         detections=[e for e in events if e["type"] == "fault_detected"],
         mission_force_integral_n2s=recorder.mission_force_integral_n2s,
     )
+    result.logging = recorder.logging_status()
+    if interrupted is not None:
+        raise FlightInterrupted(result, interrupted)
+    return result
 
 
 def run_reconfig_scenario(
@@ -212,17 +235,29 @@ def run_reconfig_scenario(
     1 real time)."""
     from mars_link.flight.flight_view import pieces_view
 
+    from mars_link.flight.runner import FlightInterrupted, write_starting_summary, write_summary
+
     seed = scenario.sim.seed if seed is None else seed
     cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
-    r = run_reconfig_trial(scenario, seed, out_dir, cb, realtime_rate=realtime_rate,
-                           view=lambda flight: pieces_view(flight, out_dir if mcap else None, live))
+    if out_dir is not None:  # first, small: whatever ends this process, a summary.json is there
+        write_starting_summary(out_dir, scenario, seed, 1)
+    interrupted = None
+    try:
+        r = run_reconfig_trial(scenario, seed, out_dir, cb, realtime_rate=realtime_rate,
+                               view=lambda flight: pieces_view(flight, out_dir if mcap else None, live))
+    except FlightInterrupted as exc:
+        r, interrupted = exc.result, exc.cause
+    except UserInputError:  # refused before the flight (the pieces' checks): no run directory is left
+        if out_dir is not None:
+            (out_dir / "summary.json").unlink(missing_ok=True)
+        raise
     summary = {
         "scenario": scenario.name, "source": scenario.source, "mode": "inproc-reconfig",
         "layout": list(scenario.layout), "preset": scenario.preset, "controller": scenario.controller,
         "ftc": scenario.ftc, "seed": seed, "trials": 1, "noise": scenario.sim.noise,
         "faults_known": scenario.faults_known,
         "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
-        "completed": r.completed, "diverged": r.diverged, "reconfigured": r.reconfigured,
+        "completed": r.completed, "end_reason": r.end_reason, "diverged": r.diverged, "reconfigured": r.reconfigured,
         "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m, "max_error_m": r.max_error_m,
         "sim_time_s": r.sim_time_s, "wall_time_s": r.wall_time_s,
         "real_time_factor": r.sim_time_s / r.wall_time_s if r.wall_time_s > 0 else float("inf"),
@@ -233,13 +268,19 @@ def run_reconfig_scenario(
         "per_trial": [{"seed": seed, "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m,
                        "max_error_m": r.max_error_m, "diverged": r.diverged}],
     }
+    summary["logging"] = r.logging
     if out_dir is not None:
-        write_json(out_dir / "summary.json", summary)
-        if plots:
-            write_reconfig_plots(out_dir, r, scenario.name, plot_format)
-            from mars_link.flight.replay_gif import write_flight_gif
+        write_summary(out_dir, summary)
+        if plots and interrupted is None:
+            try:
+                write_reconfig_plots(out_dir, r, scenario.name, plot_format)
+                from mars_link.flight.replay_gif import write_flight_gif
 
-            write_flight_gif(out_dir / "plots" / "flight.gif", r.unit_rows, r.events)  # the animated replay
+                write_flight_gif(out_dir / "plots" / "flight.gif", r.unit_rows, r.events)  # the animated replay
+            except OSError as exc:  # (a full disk: one line; the summary is written)
+                print(f"mars-link: plots: {exc.strerror or exc} (logging stopped)", file=sys.stderr)
+    if interrupted is not None:
+        raise interrupted
     return summary
 
 

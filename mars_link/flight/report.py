@@ -41,6 +41,8 @@ def print_summary(summary: dict, out: Path) -> None:
             rows.append(("command age at motor", f"p50 {age['p50_ms']:.2f} / p99 {age['p99_ms']:.2f} ms "
                          f"({age.get('deadline_misses', 0)}/{age['n']} late)"))  # (older than a control period)
         rows.append(("scheduling", describe_classes(sitl.get("scheduling") or {})))
+    if summary.get("end_reason"):  # why it did not complete (diverged, ended early, interrupted)
+        rows.insert(4, ("end reason", str(summary["end_reason"])))
     logging = summary.get("logging") or {}
     if logging.get("stopped_reason"):  # a write error stopped a log; the flight went on
         more = len(logging.get("stopped", [])) - 1

@@ -61,8 +61,11 @@ def run_trial(
         observers.append(tlogs)
     engine = Engine(flight, observers, Pacer(realtime_rate))
     wall0 = time.perf_counter()
+    interrupted: KeyboardInterrupt | None = None
     try:
         engine.run(on_progress)
+    except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM (core.errors.Terminated): the part flown is a result
+        interrupted = exc
     finally:
         flight.world.close()
         if ulog_dir is not None:
@@ -77,22 +80,36 @@ def run_trial(
                 log.add_closed_logs(statuses)
         if view is not None:
             view.finish(engine)
+            mcap = view.status()
+            if log is not None and mcap is not None and mcap["stopped_reason"]:  # a full disk stopped run.mcap
+                log.add_closed_logs([mcap])
         if log is not None:
             log.flush()
-    return trial_result(flight, engine, recorder, seed, time.perf_counter() - wall0, unit_deaths)
+    result = trial_result(flight, engine, recorder, seed, time.perf_counter() - wall0, unit_deaths,
+                          interrupted=interrupted)
+    if interrupted is not None:
+        raise FlightInterrupted(result, interrupted)
+    return result
 
 
 def trial_result(flight, engine: Engine, recorder: FlightRecorder, seed: int, wall_s: float,
-                 unit_deaths: dict[int, float] | None = None, events: list[dict] | None = None) -> TrialResult:
+                 unit_deaths: dict[int, float] | None = None, events: list[dict] | None = None,
+                 interrupted: KeyboardInterrupt | None = None) -> TrialResult:
     """A flown flight's figures, from its recorder's metrics and the world: one function for every way of
     flying (`run`, `vehicle --out`). `events`: the run's event records (default: the engine's and the
-    coordinator's)."""
+    coordinator's); `interrupted`: the signal that ended it early."""
     world, metrics = flight.world, recorder.metrics
     if events is None:
         events = engine.events + flight.coordinator.events
+    end_reason = None
+    if metrics.diverged:
+        end_reason = f"diverged at {world.t_s:.2f} s"
+    elif interrupted is not None:
+        end_reason = f"interrupted by {_signal_name(interrupted)} at {world.t_s:.2f} s"
     return TrialResult(
         seed=seed,
-        completed=not metrics.diverged,
+        completed=end_reason is None,
+        end_reason=end_reason,
         diverged=metrics.diverged,
         mean_error_m=metrics.mean_error_m,
         rmse_m=metrics.rmse_m,
@@ -107,6 +124,21 @@ def trial_result(flight, engine: Engine, recorder: FlightRecorder, seed: int, wa
         control_steps=metrics.n,
         detections=detection_rows(flight.coordinator.detections, flight.faults, unit_deaths),
     )
+
+
+class FlightInterrupted(KeyboardInterrupt):
+    """A trial stopped by Ctrl-C or SIGTERM, with the result of the part flown (`run_scenario` writes its
+    summary, completed false, then raises `cause` on)."""
+
+    def __init__(self, result: TrialResult, cause: KeyboardInterrupt) -> None:
+        super().__init__(result.end_reason)
+        self.result, self.cause = result, cause
+
+
+def _signal_name(exc: KeyboardInterrupt) -> str:
+    from mars_link.core.errors import Terminated
+
+    return "SIGTERM" if isinstance(exc, Terminated) else "SIGINT"
 
 
 # ----------------------------------------------------------------------------- whole run
@@ -127,34 +159,95 @@ def run_scenario(
     `realtime_rate`: 0 = as fast as possible, 1 = real time, x = x times real time.
     `mcap`: run.mcap in `out_dir` (trial i > 0: run_trial<i>.mcap); `live`: HOST:PORT of a live Foxglove view (flight_view).
     `logs`: per-unit logs beside the run's own ("ulog": unit<id>.ulg, "tlog": unit<id>.tlog in `out_dir`;
-    mars_link.logs.LOG_KINDS).
-    `plot_format`: plots/ as png (300 dpi), pdf or svg."""
+    mars_link.logs.LOG_KINDS). `plot_format`: plots/ as png (300 dpi), pdf or svg."""
     seed = scenario.sim.seed if seed is None else seed
+    if out_dir is not None:  # first, small: whatever ends this process, a summary.json is there
+        write_starting_summary(out_dir, scenario, seed, trials)
     log = RunLog(out_dir, scenario.model(), rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ),
                  plot_rows_max=PLOT_ROWS_MAX)  # streamed to the CSVs; memory flat in trials and duration
     results = []
+    interrupted: KeyboardInterrupt | None = None
     try:
         for i in range(trials):
             log.new_trial()
             cb = None if on_progress is None else (lambda frac, i=i: on_progress(i, frac))
             view = _view_maker(scenario, out_dir if mcap else None, live, "run.mcap" if i == 0 else f"run_trial{i}.mcap")
-            results.append(run_trial(scenario, seed + i, i, log, cb, realtime_rate=realtime_rate, view=view,
-                                     ulog_dir=out_dir if "ulog" in logs and out_dir is not None else None,
-                                     tlog_dir=out_dir if "tlog" in logs and out_dir is not None else None))
+            try:
+                results.append(run_trial(scenario, seed + i, i, log, cb, realtime_rate=realtime_rate, view=view,
+                                         ulog_dir=out_dir if "ulog" in logs and out_dir is not None else None,
+                                         tlog_dir=out_dir if "tlog" in logs and out_dir is not None else None))
+            except FlightInterrupted as exc:
+                results.append(exc.result)
+                interrupted = exc.cause
+                break
             if on_progress is not None:
                 on_progress(i, 1.0)
     finally:
         log.close()
     summary = summarize(scenario, results, seed)
+    if out_dir is not None and plots and interrupted is None:
+        from mars_link.flight.plots import write_run_plots
+
+        write_plots_safely(log, lambda: write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model(),
+                                                        scenario.name, summary["events"], plot_format))
     summary["logging"] = log.status()
     if out_dir is not None:
-        write_json(out_dir / "summary.json", summary)
-        if plots:
-            from mars_link.flight.plots import write_run_plots
-
-            write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model(), scenario.name,
-                            summary["events"], plot_format)
+        write_summary(out_dir, summary)
+    if interrupted is not None:
+        raise interrupted
     return summary
+
+
+def starting_summary(scenario: Scenario, seed: int, trials: int) -> dict:
+    """The summary.json written before the flight: small (a nearly full disk takes it), completed false
+    with the reason, replaced by the full one at the end. Whatever ends the process, one is there."""
+    return {"scenario": scenario.name, "source": scenario.source, "seed": seed, "trials": trials,
+            "completed": False, "end_reason": "the run ended before its summary was written (killed?)",
+            "diverged": False}
+
+
+def write_plots_safely(log: RunLog, write: Callable[[], object]) -> None:
+    """The plots, whose write error (a full disk) is one line and a stopped log in the summary, never a traceback."""
+    import sys
+
+    try:
+        write()
+    except OSError as exc:
+        reason = f"plots: {exc.strerror or exc} (logging stopped)"
+        print(f"mars-link: {reason}", file=sys.stderr)
+        log.add_closed_logs([{"file": "plots", "stopped_reason": reason, "errors": 1, "dropped_writes": 0}])
+
+
+def write_starting_summary(out_dir: Path, scenario: Scenario, seed: int, trials: int) -> None:
+    """`starting_summary` to out_dir/summary.json; a disk that refuses even that: the run cannot start
+    (EnvironmentFailure: one line naming the file, exit 3), before any flight."""
+    from mars_link.core.errors import EnvironmentFailure
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    try:
+        write_json(out_dir / "summary.json", starting_summary(scenario, seed, trials))
+    except OSError as exc:
+        raise EnvironmentFailure(f"cannot write {out_dir / 'summary.json'}: {exc.strerror or exc} (no disk for the "
+                                 "summary: the run did not start)") from None
+
+
+def write_summary(out_dir: Path, summary: dict) -> None:
+    """The full summary.json; on a write error (a full disk) the starting summary stays, with the reason
+    added if the disk takes that much (one line on stderr either way; never a traceback)."""
+    import sys
+
+    try:
+        write_json(out_dir / "summary.json", summary)
+    except OSError as exc:
+        reason = f"summary.json: {exc.strerror or exc} (the full summary could not be written)"
+        print(f"mars-link: {reason}", file=sys.stderr)
+        short = {k: summary.get(k) for k in ("scenario", "seed", "trials", "completed", "end_reason", "diverged",
+                                             "sim_time_s", "mean_error_m", "max_error_m")}
+        short["logging"] = {"stopped_reason": (summary.get("logging") or {}).get("stopped_reason") or reason}
+        try:
+            write_json(out_dir / "summary.json", short)
+        except OSError:
+            pass
 
 
 def _view_maker(scenario: Scenario, out_dir: Path | None, live, name: str):

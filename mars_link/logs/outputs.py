@@ -61,8 +61,15 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 2) -> Pat
     path = Path(path)
     text = dumps(obj, indent) + "\n"
     tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    except OSError:  # (a full disk: no half-written .tmp left behind; the caller hears of it)
+        try:
+            tmp.unlink()
+        except OSError:
+            pass
+        raise
     return path
 
 

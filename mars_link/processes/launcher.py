@@ -25,6 +25,9 @@ from mars_link.processes.links import LOOPBACK
 from mars_link.processes.lockstep import SitlSetup, _start_pose, load_setup, position_every
 
 
+#: a child's exit code when the machine refused it at start (a busy port: mars_link.processes.lockstep.main), and
+#: `wait`'s then (core.validation.EXIT_ENVIRONMENT)
+COULD_NOT_START = 3
 MCAP_FINISH_S = 30.0  # the most `Run.stop` waits for an orphaned run.mcap writer to finish the file
 
 
@@ -74,6 +77,7 @@ class ClientPorts:
     gcs_port: int = 14550
     api_ports: list[int] | None = None
     bind_any: bool = False
+    closed: bool = False  # no client links at all (`run --mode sitl` unless --gcs): nothing outside reaches a unit
 
     def api_port(self, index: int) -> int:
         return self.api_ports[index] if self.api_ports else 14540 + index
@@ -94,6 +98,32 @@ class ClientPorts:
                 ports.append(p)
             p += 1
         return cls(gcs_port, ports, bind_any)
+
+
+def check_udp_ports_free(ports: list[tuple[int, str, str]]) -> None:
+    """Each (port, what binds it, the option that moves it) free on loopback, else one line naming the
+    first busy port and its option (PortUnavailable: exit 3). Checked before any process starts, so a
+    busy port never leaves a half-started run (a unit that cannot bind its port, the rest waiting for it)."""
+    from mars_link.core.errors import PortUnavailable
+
+    for port, what, option in ports:
+        if port == 0:
+            continue
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind((LOOPBACK, port))
+            except OSError as exc:
+                raise PortUnavailable(f"UDP port {port} ({what}) on {LOOPBACK} is in use ({exc.strerror or exc}): "
+                                      f"move it with {option}") from None
+
+
+def unit_bind_ports(clients: "ClientPorts", n_units: int) -> list[tuple[int, str, str]]:
+    """The UDP ports the units bind for their client links (PX4's 18570+i and 14580+i), unless `bind_any`
+    or `closed`: (port, what, the option that moves it) for `check_udp_ports_free`."""
+    if clients.bind_any or clients.closed:
+        return []
+    return [(base + i, f"unit index {i}'s {link} link", "--any-bind")
+            for i in range(n_units) for base, link in ((18570, "GCS"), (14580, "API"))]
 
 
 @dataclass
@@ -198,6 +228,8 @@ def start(scenario: str | None, out: Path, units: int | None = None, layout: str
                     "--api-port", ",".join(ports)]
             if clients.bind_any:
                 argv += ["--gcs-bind", "0", "--api-bind", "0"]
+            if clients.closed:
+                argv.append("--no-clients")
             name = f"unit{group[0]}" if len(group) == 1 else f"units{group[0]}-{group[-1]}"
             run.unit_process.update({u: name for u in group})
             spawn(name, argv + extra.get("unit", []), prefix=list(unit_prefix(group[0])) if unit_prefix else [])
@@ -215,7 +247,7 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
          units_may_die: bool = False) -> int:
     """Until the world ends (the scenario's end), a child dies (with `stop_on_child_death`) or the
     timeout; then stop all. 0 = the world finished, 1 = a child died first (one line on stderr names
-    it), 124 = timeout. `units_may_die`: a unit process that dies is a failed unit, not a failed run
+    it), 3 = a child could not start (a busy port, exit 3 of its own: one line names it), 124 = timeout. `units_may_die`: a unit process that dies is a failed unit, not a failed run
     (the world declares it dead, the coordinator reallocates, the flight goes on); only the world or
     coordinator stop it."""
     deadline = None if timeout_s is None else time.monotonic() + timeout_s
@@ -227,6 +259,13 @@ def wait(run: SitlRun, timeout_s: float | None = None, stop_on_child_death: bool
             if world == 0:
                 break
             dead = [n for n, p in run.processes.items() if p.poll() not in (None, 0)]  # killed or failed
+            refused = [n for n in dead if run.processes[n].returncode == COULD_NOT_START]
+            if refused:  # a child the machine refused (a port taken since the parent's check): the run cannot start
+                p = run.processes[refused[0]]
+                print(f"sitl: {refused[0]} (pid {p.pid}) could not start: {_last_line(run.out / f'{refused[0]}.log')}; "
+                      "stopping every child", file=sys.stderr)
+                code = COULD_NOT_START
+                break
             if units_may_die:
                 for name in sorted(n for n in dead if n.startswith("unit") and n not in reported):
                     reported.add(name)

@@ -141,7 +141,9 @@ class Link:
             self.verifier = SignatureVerifier(key)
         self.peers: dict[int, Address] = {}
         self.dropped: dict[str, int] = transport.counters.dropped  # one count per reason: link and transport
-        self._tlog = open(tlog, "ab", buffering=0) if tlog else None
+        from mars_link.logs.outputs import SafeWriter
+
+        self._tlog = SafeWriter.open(tlog, "ab") if tlog else None  # (a full disk stops the log, not the link)
 
     def fileno(self) -> int:
         """Readable while input waits (select on the link next to other sockets)."""

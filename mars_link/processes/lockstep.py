@@ -89,7 +89,7 @@ from mars_link.processes.parent_watch import die_with_parent
 from mars_link.core.errors import EnvironmentFailure, UserInputError
 from mars_link.runtime.machine_load import IdleMeter, LoopMeter
 from mars_link.core.messages import BatterySample, SensorPacket
-from mars_link.logs.outputs import write_json
+from mars_link.logs.outputs import SafeWriter, write_json
 from mars_link.runtime.pacing import Pacer, SilenceDeadline
 from mars_link.runtime.scheduling import OverloadValve, take_realtime_class
 from mars_link.transport import LinkSpec, add_link_args, spec_from_args
@@ -459,16 +459,29 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         if packs is not None:  # the packs' truth at the end (unit id order)
             summary["batteries"] = {"soc": packs.soc.round(6).tolist(), "voltage_v": packs.voltage_v.round(4).tolist(),
                                     "drawn_c": packs.drawn_c.round(4).tolist()}
-        write_json(out / "world_summary.json", summary)
+        _write_world_summary(out, summary)
     finally:
         truth_log.close()
         try:  # run.mcap before the link: a Zenoh session can take seconds to close, and the file must be
             if view is not None:  # whole when `sitl up` ends
                 view.finish(event_lists=[deaths, feed.events])
+                mcap = view.status()
+                if mcap is not None and mcap["stopped_reason"] and (out / "world_summary.json").exists():
+                    _write_world_summary(out, {**json.loads((out / "world_summary.json").read_text()),
+                                               "mcap_stopped_reason": mcap["stopped_reason"]})
         finally:
             world.close()
             link.close()
     return 0
+
+
+def _write_world_summary(out: Path, summary: dict) -> None:
+    """world_summary.json; a full disk is one line (the parent's summary then says the world's figures are
+    missing), never a traceback that would read as a crashed world."""
+    try:
+        write_json(out / "world_summary.json", summary)
+    except OSError as exc:
+        print(f"world: world_summary.json: {exc.strerror or exc} (not written)", file=sys.stderr)
 
 
 def _world_view(setup: SitlSetup, world, out: Path, mcap: bool, live: str | None):
@@ -539,6 +552,7 @@ class UnitPorts:
     api_port: int | None = None  # None: 14540 + index
     gcs_bind: int | None = None  # None: 18570 + index
     api_bind: int | None = None  # None: 14580 + index
+    closed: bool = False  # no client links at all (`run --mode sitl` without --gcs: a batch run nobody can reach)
 
 
 def px4_input_log_name(unit_id: int) -> str:
@@ -619,7 +633,8 @@ class _UnitLoop:
         index = setup.unit_ids.index(unit_id)
         vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
                             wall_time_s=time.time(), require_signing=require_signing)
-        links = client_links(index, client.gcs_port, client.api_port, client.gcs_bind, client.api_bind)
+        links = {} if client.closed else client_links(index, client.gcs_port, client.api_port, client.gcs_bind,
+                                                      client.api_bind)
         links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
         if setup.docked:
             links[LINK_COORDINATOR] = LinkSpec(0, ports.address("coordinator"), False,
@@ -771,7 +786,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     latches = LatchSensor()
     batteries: dict[int, BatterySample] = {}  # each unit's last BATTERY_STATUS, until its packet comes
     out.mkdir(parents=True, exist_ok=True)
-    pieces_log = open(out / "pieces_steps.csv", "w", encoding="utf-8") if setup.pieces else None
+    pieces_log = SafeWriter.open(out / "pieces_steps.csv") if setup.pieces else None  # (a full disk stops it)
     if pieces_log:
         pieces_log.write("t_s,mission,mission_t_s,ref_n_m,ref_e_m,ref_d_m,tracked_units,pieces\n")
     live = set(model.unit_ids)
@@ -779,7 +794,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     accepted: dict[int, set[int]] = {u: set() for u in model.unit_ids}  # commands each unit acknowledged
     next_fault = 0
     out.mkdir(parents=True, exist_ok=True)
-    timing = open(out / "coordinator_timing.csv", "w", encoding="utf-8") if timing_log else None
+    timing = SafeWriter.open(out / "coordinator_timing.csv") if timing_log else None
     if timing:
         timing.write("t_s,telemetry_first_wall_s,telemetry_all_wall_s,computed_wall_s,sent_wall_s,step_cpu_s,send_cpu_s\n")
     px4 = None  # PX4's own interface ([units] interface = "px4-zenoh"): the commands go over rmw_zenoh
@@ -1051,6 +1066,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--api-port", default=None, help="the unit's API port, or one per unit of --unit a,b,c")
     ap.add_argument("--gcs-bind", type=int, default=None)
     ap.add_argument("--api-bind", type=int, default=None)
+    ap.add_argument("--no-clients", action="store_true", help="unit: no GCS/API client links (a closed batch run)")
     ap.add_argument("--forever", action="store_true", help="docked: run until stopped (ignores --steps)")
     ap.add_argument("--vehicle", action="store_true", help="coordinator: serve the assembly as one MAVLink vehicle")
     ap.add_argument("--sched-realtime", action="store_true",
@@ -1093,9 +1109,9 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     try:
         return _run_role(args, setup, ports, out, key)
-    except EnvironmentFailure as e:  # e.g. a port that cannot be bound
+    except EnvironmentFailure as e:  # e.g. a port that cannot be bound: this process could not start (exit 3)
         print(f"error: {e}", file=sys.stderr)
-        return 1
+        return 3
     except UserInputError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -1151,8 +1167,8 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
             raise UserInputError(f"--unit {args.unit}: a unit named twice")
         if api_ports and len(api_ports) != len(units):
             raise UserInputError(f"--api-port {args.api_port}: one port per unit of --unit {args.unit}")
-        clients = [UnitPorts(args.gcs_port, api_ports[i] if api_ports else None, args.gcs_bind, args.api_bind)
-                   for i in range(len(units))]
+        clients = [UnitPorts(args.gcs_port, api_ports[i] if api_ports else None, args.gcs_bind, args.api_bind,
+                             args.no_clients) for i in range(len(units))]
         return run_units(setup, units, ports, out, clients, key=key, require_signing=args.require_signing)
     vehicle = None
     if args.vehicle:

@@ -215,7 +215,7 @@ def vehicle_command(args: argparse.Namespace) -> int:
     validation.check_file_parent(args.tlog, "--tlog")
     from mars_link.flight.flight_view import live_address
 
-    live = live_address(args)  # a busy --foxglove port: one line, exit 2, before the vehicle starts
+    live = live_address(args)  # a busy --foxglove port: one line, exit 3, before the vehicle starts
     out = None
     if args.out is not None:
         out = validation.check_out_dir(args.out)

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mars_link.core.errors import UserInputError
+from mars_link.core.errors import Terminated, UserInputError
 from mars_link.transport import LinkSpec
 
 
@@ -203,9 +203,12 @@ def _toml(doc: dict) -> str:
 def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSpec | None = None,
                       realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
                       on_progress=None, view: tuple[str, ...] = ("--mcap",), units_per_process: int = 1,
-                      plot_format: str = "png") -> dict:
+                      plot_format: str = "png", clients=None) -> dict:
     """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary
-    (`plot_format`: plots/ as png at 300 dpi, pdf or svg)."""
+    (`plot_format`: plots/ as png at 300 dpi, pdf or svg). `clients` (launcher.ClientPorts): the units'
+    ground-station ports; None: none at all (a batch run that no client on the machine can reach, arm or steer)."""
+    from mars_link.processes.launcher import ClientPorts
+
     link = link or LinkSpec("zenoh")
     if link.unit_interface:  # (the command line over the scenario's [units] interface)
         scenario = replace(scenario, unit_interface=link.unit_interface)
@@ -215,26 +218,35 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
         scenario = replace(scenario, faults_known=False)
     out.mkdir(parents=True, exist_ok=True)
+    from mars_link.flight.runner import write_starting_summary
+
+    write_starting_summary(out, scenario, seed, 1)  # first: there is always one (no disk for it: exit 3)
     copy = write_scenario_copy(_absolute_paths(scenario), out / "scenario.toml")
     wall0 = time.perf_counter()
-    session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view, units_per_process=units_per_process)
+    session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view, units_per_process=units_per_process,
+                         clients=clients or ClientPorts(bind_any=True, closed=True))
     watcher = _ProgressWatcher(out / "world_status.json", scenario, on_progress)
     try:
         with _sigterm_as_interrupt():
             code = session.wait(timeout_s, units_may_die=True)  # a dead unit process is a failed unit
-    except KeyboardInterrupt:  # SIGTERM or Ctrl-C: every child was stopped by SIGTERM and wrote its summary;
-        _summarize_interrupted(scenario, out, seed, time.perf_counter() - wall0, session)  # the part flown
+    except KeyboardInterrupt as exc:  # SIGTERM or Ctrl-C: every child was stopped by SIGTERM and wrote its summary;
+        _summarize_interrupted(scenario, out, seed, time.perf_counter() - wall0, session, exc)  # the part flown
         raise
     finally:
         watcher.stop()
     wall = time.perf_counter() - wall0
-    if code != 0 or not (out / "world_truth.csv").exists():
-        logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
-        raise RuntimeError(f"SITL run failed (exit {code}); process logs in {out}: {logs}")
+    logs = ", ".join(sorted(p.name for p in out.glob("*.log")))
+    if code == 3 or not (out / "world_truth.csv").exists():  # nothing flown: the run could not start
+        from mars_link.core.errors import EnvironmentFailure
+
+        raise EnvironmentFailure(f"SITL run could not start (exit {code}); process logs in {out}: {logs}")
+    failure = None if code == 0 else f"a process of the run died (exit {code}; logs in {out}: {logs})"
     held = session.wake_latency.state if session.wake_latency is not None else None
     if pieces:
-        return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime, plots, plot_format)
-    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held, plot_format)
+        return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime, plots, plot_format,
+                                         failure=failure)
+    return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held, plot_format,
+                              failure=failure)
 
 
 def check_unit_interface(scenario, link: LinkSpec) -> None:
@@ -255,7 +267,7 @@ def _sigterm_as_interrupt():
         return
 
     def interrupt(*_):
-        raise KeyboardInterrupt
+        raise Terminated
 
     previous = signal.signal(signal.SIGTERM, interrupt)
     try:
@@ -264,15 +276,17 @@ def _sigterm_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
-def _summarize_interrupted(scenario, out: Path, seed: int, wall_s: float, session: SitlSession) -> None:
+def _summarize_interrupted(scenario, out: Path, seed: int, wall_s: float, session: SitlSession,
+                           exc: KeyboardInterrupt) -> None:
     """summary.json of an interrupted flight (completed: false; the world says it was stopped) from the
-    logs the children closed; nothing if the world logged nothing yet."""
-    if not (out / "world_summary.json").exists():
+    logs the children closed; the starting summary stays if the world logged nothing yet."""
+    if not (out / "world_summary.json").exists() or not (out / "world_truth.csv").exists():
         return
+    failure = f"interrupted by {'SIGTERM' if isinstance(exc, Terminated) else 'SIGINT'}"
     if scenario.has_pieces:
-        summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link, plots=False)
+        summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link, plots=False, failure=failure)
     else:
-        summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False)
+        summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False, failure=failure)
 
 
 def _sets_faults_known(scenario) -> bool:
@@ -341,8 +355,23 @@ def _scheduling_classes(out: Path, world: dict, coordinator: dict) -> dict:
     return {"world": world.get("scheduling"), "coordinator": coordinator.get("scheduling"), "units": sorted(units)}
 
 
+def _end_reason(scenario, trajectory, world: dict, diverged_at: float | None, failure: str | None) -> str | None:
+    """Why a SITL flight ended before its duration (None: flown to the end). Whatever stopped it (a signal,
+    a shutdown command, a dead process), a flight that did not reach its duration is not completed."""
+    from mars_link.flight.metrics import ended_early_reason
+
+    sim_t = float(world.get("sim_time_s", 0.0))
+    if diverged_at is not None:
+        return f"diverged at {diverged_at:.2f} s"
+    duration = scenario.sim.duration_s or trajectory.duration_s
+    why = failure or ("stopped" if world.get("stopped") else "the world ended")
+    early = ended_early_reason(sim_t, duration, scenario.sim.control_hz, why)
+    return early or (f"{failure} at the end" if failure else None)
+
+
 def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True,
-                       realtime: bool = False, cpu_wake_latency: str | None = None, plot_format: str = "png") -> dict:
+                       realtime: bool = False, cpu_wake_latency: str | None = None, plot_format: str = "png",
+                       failure: str | None = None) -> dict:
     """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them."""
     from mars_link.flight.build import make_trajectory, tracked_offset
     from mars_link.flight.metrics import TrackingMetrics, TrialResult, summarize
@@ -353,7 +382,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     model = scenario.model()
     trajectory = make_trajectory(scenario, model)
     offset = tracked_offset(model, scenario)
-    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, ndmin=1)
+    truth = _read_csv(out / "world_truth.csv")
     world = _read_json(out / "world_summary.json")
     coordinator = _read_json(out / "coordinator_summary.json")
     log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX)
@@ -382,8 +411,11 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     for death in world.get("deaths", []):
         events.append({"t_s": death["t_s"], "type": "unit_died", "unit": death["unit"],
                        "text": f"Unit {death['unit']} silent: motors off"})
+    events += foreign_traffic_events(out, model.unit_ids)
+    end_reason = _end_reason(scenario, trajectory, world, (metrics.divergence or {}).get("t_s") if metrics.diverged
+                             else None, failure)
     result = TrialResult(
-        seed=seed, completed=not metrics.diverged and not world.get("stopped", False), diverged=metrics.diverged,
+        seed=seed, completed=end_reason is None, end_reason=end_reason, diverged=metrics.diverged,
         mean_error_m=math.nan if no_rows else metrics.mean_error_m, rmse_m=math.nan if no_rows else metrics.rmse_m,
         max_error_m=math.nan if no_rows else metrics.max_error_m,
         sim_time_s=float(world.get("sim_time_s", 0.0)), wall_time_s=wall_s,
@@ -410,14 +442,27 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "cpu_wake_latency": cpu_wake_latency,  # real time: idle CPUs kept awake (transport.realtime.CpuWakeLatency)
         "scheduling": _scheduling_classes(out, world, coordinator),  # (mars_link.runtime.scheduling)
     }
-    summary["logging"] = _logging_status(log.status(), world, out, scenario)
-    write_json(out / "summary.json", summary)
+    from mars_link.flight.runner import write_plots_safely, write_summary
+
     if plots and log.telemetry_rows:
         from mars_link.flight.plots import write_run_plots
 
-        write_run_plots(out, log.telemetry_rows, log.rotor_rows, model, scenario.name, summary.get("events", ()),
-                        plot_format)
+        write_plots_safely(log, lambda: write_run_plots(out, log.telemetry_rows, log.rotor_rows, model, scenario.name,
+                                                        summary.get("events", ()), plot_format))
+    summary["logging"] = _logging_status(log.status(), world, out, scenario)
+    write_summary(out, summary)
     return summary
+
+
+def foreign_traffic_events(out: Path, unit_ids) -> list[dict]:
+    """summary.json events: command or mission traffic that reached a unit from anyone but the coordinator
+    (the units' status files, firmware_models.vehicle.FOREIGN_CONTROL_MESSAGES)."""
+    events = []
+    for unit in unit_ids:
+        for f in _read_json(out / f"unit{unit}_status.json").get("foreign_traffic") or []:
+            events.append({"type": "foreign_traffic", "unit": unit, **f,
+                           "text": f"Unit {unit}: {f['message']} x{f['count']} from system {f['sysid']} on {f['link']}"})
+    return events
 
 
 def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
@@ -428,6 +473,11 @@ def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
     truth = world.get("logging") or {}
     if truth.get("stopped_reason"):
         stopped.append(truth["stopped_reason"] + " (errors and tilt cover the flight up to there)")
+    if world.get("mcap_stopped_reason"):  # the world's run.mcap writer
+        stopped.append(world["mcap_stopped_reason"])
+    for path in sorted(out.glob("command_age_unit*.json")):
+        if _read_json(path).get("logging_stopped"):
+            stopped.append(_read_json(path)["logging_stopped"])
     for unit in scenario.model().unit_ids:
         reason = _read_json(out / f"unit{unit}_status.json").get("logging_stopped")
         if reason:
@@ -436,7 +486,8 @@ def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
 
 
 def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec,
-                              realtime: bool = False, plots: bool = True, plot_format: str = "png") -> dict:
+                              realtime: bool = False, plots: bool = True, plot_format: str = "png",
+                              failure: str | None = None) -> dict:
     """The summary of a flight of pieces in SITL, with the in-process keys (mars_link.flight.reconfig_flight): the
     tracked point's error while the mission flies, from the world's per-unit truth and the coordinator's
     per-step record of the mission (its clock, reference and the units carrying the tracked point)."""
@@ -445,7 +496,7 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
 
     world = _read_json(out / "world_summary.json")
     coordinator = _read_json(out / "coordinator_summary.json")
-    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True, ndmin=1)
+    truth = _read_csv(out / "world_truth.csv")
     steps = {}
     with open(out / "pieces_steps.csv", encoding="utf-8") as f:
         next(f)
@@ -478,15 +529,20 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
     deaths = [{"t_s": d["t_s"], "type": "unit_died", "unit": d["unit"], "text": f"Unit {d['unit']} silent: motors off"}
               for d in world.get("deaths", [])]
     latched = [e for e in world.get("latch_events", []) if e["type"] == "dock_latched"]
-    events = sorted(coordinator.get("events", []) + latched + faults + deaths, key=lambda e: e["t_s"])
+    events = sorted(coordinator.get("events", []) + latched + faults + deaths
+                    + foreign_traffic_events(out, scenario.model().unit_ids), key=lambda e: e["t_s"])
     kinds = [e["type"] for e in events]
     sim_t, wall = float(world.get("sim_time_s", 0.0)), wall_s
+    end_reason = (f"diverged at {metrics.divergence['t_s']:.2f} s" if metrics.diverged and metrics.divergence
+                  else "diverged" if metrics.diverged else f"{failure} at {sim_t:.2f} s" if failure
+                  else "the coordinator's mission failed" if coordinator.get("failed")
+                  else f"stopped at {sim_t:.2f} s" if world.get("stopped") else None)
     summary = {
         "scenario": scenario.name, "source": scenario.source, "mode": "sitl-pieces", "layout": list(scenario.layout),
         "preset": scenario.preset, "controller": scenario.controller, "ftc": scenario.ftc, "seed": seed, "trials": 1,
         "noise": scenario.sim.noise, "faults_known": scenario.faults_known,
         "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
-        "completed": not metrics.diverged and not coordinator.get("failed") and not world.get("stopped", False),
+        "completed": end_reason is None, "end_reason": end_reason,
         "diverged": metrics.diverged, "reconfigured": "reconfig_done" in kinds,
         "mean_error_m": metrics.mean_error_m if metrics.n else math.nan, "mean_error_std_m": 0.0,  # (one trial)
         "rmse_m": metrics.rmse_m if metrics.n else math.nan, "max_error_m": metrics.max_error_m if metrics.n else math.nan,
@@ -614,7 +670,7 @@ def command_age_summary(out: Path) -> dict:
     for path in sorted(out.glob("command_age_unit*.json")):
         misses += _read_json(path).get("deadline_misses", 0)
     for path in sorted(out.glob("command_age_unit*.csv")):
-        a = np.genfromtxt(path, delimiter=",", names=True, ndmin=1)
+        a = _read_csv(path)
         ages += list(np.atleast_1d(a["age_s"]))
     stats = percentiles_ms(ages)
     stats["deadline_misses"] = misses
@@ -635,14 +691,14 @@ def stage_times(out: Path) -> dict:
     per_step: dict[float, dict[str, float]] = {}
     for path in sorted(out.glob("command_age_unit*.csv")):
         offset = _read_json(path.with_suffix(".json")).get("epoch_s", epoch) - epoch
-        for row in np.atleast_1d(np.genfromtxt(path, delimiter=",", names=True, ndmin=1)):
+        for row in np.atleast_1d(_read_csv(path)):
             step = per_step.setdefault(round(float(row["t_s"]), 6), {})
             for stage, column in (("sensors_in", "sensors_in_s"), ("commands_in", "command_in_s"), ("at_motors", "age_s")):
                 value = float(row[column]) + offset
                 if math.isfinite(value):
                     step[stage] = max(step.get(stage, -math.inf), value)
     columns = {"telemetry_in": "telemetry_all_wall_s", "computed": "computed_wall_s", "sent": "sent_wall_s"}
-    for row in np.atleast_1d(np.genfromtxt(coordinator, delimiter=",", names=True, ndmin=1)):
+    for row in np.atleast_1d(_read_csv(coordinator)):
         t = round(float(row["t_s"]), 6)
         step = per_step.setdefault(t, {})
         for stage, column in columns.items():
@@ -650,6 +706,15 @@ def stage_times(out: Path) -> dict:
     return {stage: float(np.median([s[stage] for s in per_step.values() if stage in s])) * 1e3
             for stage in ("sensors_in", "telemetry_in", "computed", "sent", "commands_in", "at_motors")
             if any(stage in s for s in per_step.values())}
+
+
+def _read_csv(path: Path):
+    """A child's CSV log as a structured array; a last row cut by a write error (a full disk) is left out."""
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (genfromtxt warns of each row it leaves out)
+        return np.genfromtxt(path, delimiter=",", names=True, ndmin=1, invalid_raise=False)
 
 
 def _read_json(path: Path) -> dict:
@@ -666,6 +731,28 @@ def _endpoint(text: str) -> str:
     if not re.match(r"^(tcp|udp|tls|quic)/[^/\s]+:\d{1,5}$", text):
         raise UserInputError(f"zenoh endpoint {text!r}: expected e.g. tcp/127.0.0.1:7447")
     return text
+
+
+def _check_listen_free(endpoint: str) -> None:
+    """A Zenoh TCP listen endpoint that something already holds: PortUnavailable naming it and its option."""
+    import errno
+    import socket
+
+    from mars_link.core.errors import PortUnavailable
+
+    proto, _, address = endpoint.partition("/")
+    host, _, port = address.rpartition(":")
+    if proto != "tcp" or not port.isdigit() or int(port) == 0:
+        return
+    host = host.strip("[]")
+    try:
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind((host, int(port)))
+    except OSError as exc:
+        if exc.errno in (errno.EADDRINUSE, errno.EACCES):  # refused; others (an unknown host) are zenoh's to report
+            raise PortUnavailable(f"--zenoh-listen {endpoint}: TCP port {port} is in use ({exc.strerror}): move it "
+                                  f"with --zenoh-listen") from None
 
 
 def link_from_args(args) -> LinkSpec:
@@ -685,6 +772,8 @@ def link_from_args(args) -> LinkSpec:
             raise UserInputError("--link-profile applies to the zenoh transport")
     connect = tuple(_endpoint(e) for e in getattr(args, "zenoh_connect", None) or [])
     listen = tuple(_endpoint(e) for e in getattr(args, "zenoh_listen", None) or [])
+    for endpoint in listen:  # a busy one: one line naming it, exit 3, before any process
+        _check_listen_free(endpoint)
     fleet = getattr(args, "fleet", "default")
     import re
 
@@ -706,6 +795,7 @@ def sitl_runner(args):
     from mars_link.flight.flight_view import world_view_args
 
     view = world_view_args(args)  # (a busy --foxglove port: refused now, before any process)
+    clients = run_client_ports(args)
 
     def runner(scenario, out, trials=1, seed=None, on_progress=None, mcap=True, live=None, plot_format="png"):
         if trials != 1:
@@ -713,11 +803,30 @@ def sitl_runner(args):
         cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
         try:
             return run_sitl_scenario(scenario, out, seed, link, realtime=args.realtime, on_progress=cb, view=view,
-                                     units_per_process=args.units_per_process, plot_format=plot_format)
+                                     units_per_process=args.units_per_process, plot_format=plot_format,
+                                     clients=clients)
         except RuntimeError as e:
             raise UserInputError(str(e)) from None
 
     return runner
+
+
+def run_client_ports(args):
+    """`run --mode sitl`'s ground-station ports (launcher.ClientPorts), or None: closed unless --gcs,
+    --gcs-port or --api-port asks for them (then PX4's, moved as in `sitl up`)."""
+    gcs_port, api_port = getattr(args, "gcs_port", None), getattr(args, "api_port", None)
+    if not (getattr(args, "gcs", False) or gcs_port is not None or api_port is not None):
+        return None
+    from mars_link.processes.launcher import ClientPorts
+    from mars_link.processes.vehicle_io import GCS_PORT
+
+    n_units = 256  # (more than any layout has units)
+    clients = ClientPorts.consecutive(GCS_PORT if gcs_port is None else gcs_port, 14540 if api_port is None else api_port,
+                                      n_units, bind_any=True)
+    for what, port in (("--gcs-port", clients.gcs_port), ("--api-port", clients.api_port(0))):
+        if not 1 <= port <= 65535:
+            raise UserInputError(f"{what} must be 1..65535, got {port}")
+    return clients
 
 
 def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, clients, vehicle=None,
@@ -732,7 +841,7 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
     previous = signal.getsignal(signal.SIGTERM)
 
     def interrupt(*_):
-        raise KeyboardInterrupt
+        raise Terminated
 
     signal.signal(signal.SIGTERM, interrupt)
     session = None
@@ -767,15 +876,30 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
         print(f"running {'until Ctrl-C' if steps is None else f'{steps / control_hz:.1f} s of sim time'}; "
               f"run directory {out}", flush=True)
         code = session.wait(units_may_die=True)  # a dead unit is a failed unit (FTC flies on)
+        early = _sitl_up_ended_early(out, steps, control_hz) if code == 0 else None
+        if early:
+            print(f"sitl: the flight ended early: {early}", file=sys.stderr)
+            code = 1
         print(f"run directory: {out}")
         return code
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         print("sitl: interrupted, stopping every child", file=sys.stderr)
         if session is not None:
             session.stop()
-        return 130
+        return 143 if isinstance(exc, Terminated) else 130
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def _sitl_up_ended_early(out: Path, steps: int | None, control_hz: float) -> str | None:
+    """Why a `sitl up` flight of `steps` exchanges ended before them (the world's summary), else None."""
+    from mars_link.flight.metrics import ended_early_reason
+
+    if steps is None:  # until stopped, or a flight of pieces the coordinator ends
+        return None
+    world = _read_json(out / "world_summary.json")
+    return ended_early_reason(float(world.get("sim_time_s", 0.0)), steps / control_hz, control_hz,
+                              "stopped" if world.get("stopped") else "the world ended")
 
 
 def _endpoints(session, link: LinkSpec) -> list[str]:

@@ -204,6 +204,7 @@ def vehicle_status(vehicle: Vehicle, truth: RigidBodyState | None, sim_time_s: f
         "mode": list(v.mode), "source": v.source, "phase": v.autopilot.phase.value,
         "motor_eta": [float(x) for x in v.motors.eta], "motor_thrust_n": [float(x) for x in v.motors.thrust_n],
         "drops": v.drop_counts(), "stats": v.stats, "intake_accepted": v.intake.accepted,
+        "foreign_traffic": v.foreign_traffic_events(),
     }
     if truth is not None:
         status.update(

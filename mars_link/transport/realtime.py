@@ -122,12 +122,23 @@ class CommandAgeTap:
         def since(wall: float | None, t: float) -> str:
             return "" if wall is None else f"{wall - (self.offset_s + t):.6f}"
 
-        with open(out / f"command_age_unit{self.unit_id}.csv", "w", encoding="utf-8") as f:
-            f.write("t_s,sensors_in_s,command_in_s,age_s\n")
-            for t, age in self.ages_s():
-                f.write(f"{t:.6f},{since(self.sensors.get(t), t)},{since(self.commands.get(t), t)},{age:.6f}\n")
+        from mars_link.logs.outputs import SafeWriter
+
+        # through the safe writer: a full disk stops this log (its reason in the .json), never the unit's end
+        f = SafeWriter.open(out / f"command_age_unit{self.unit_id}.csv")
+        f.write("t_s,sensors_in_s,command_in_s,age_s\n")
+        for t, age in self.ages_s():
+            if not f.active:
+                break
+            f.write(f"{t:.6f},{since(self.sensors.get(t), t)},{since(self.commands.get(t), t)},{age:.6f}\n")
+        f.close()
         stats = self.summary()
-        write_json(out / f"command_age_unit{self.unit_id}.json", stats)  # strict JSON: NaN -> null
+        if f.stopped_reason:
+            stats["logging_stopped"] = f.stopped_reason
+        try:
+            write_json(out / f"command_age_unit{self.unit_id}.json", stats)  # strict JSON: NaN -> null
+        except OSError:
+            pass  # (the figures are in the unit's status too; the summary says the log stopped)
         return stats
 
 

@@ -137,7 +137,7 @@ def read_only_dir(tmp_path):
 @pytest.mark.parametrize("verb", VERBS)
 def test_out_on_a_read_only_place_is_an_environment_failure(tmp_path, capsys, read_only_dir, verb) -> None:
     code, err = cli(capsys, *verb_args(verb, tmp_path, str(read_only_dir / "out")))
-    assert code == 1 and "cannot write in" in err
+    assert code == 3 and "cannot write in" in err
 
 
 # ----------------------------------------------------------------------------- class 1: endpoints, files, ids
@@ -293,13 +293,13 @@ def test_zenoh_listen_port_in_use_is_an_environment_failure(tmp_path, capsys, bu
     tcp_port, _ = busy_ports
     code, err = cli(capsys, "run", "hover_1x1", "--mode", "sitl", "--quiet", "--zenoh-listen",
                     f"tcp/127.0.0.1:{tcp_port}", "--out", str(tmp_path / "o"))
-    assert code == 1 and "Address already in use" in err
+    assert code == 3 and "Address already in use" in err
 
 
 def test_udp_bind_port_in_use_is_an_environment_failure(capsys, busy_ports) -> None:
     _, udp_port = busy_ports
     code, err = cli(capsys, "vehicle", "--gcs-bind", str(udp_port), "--duration", "1")
-    assert code == 1 and f"cannot bind UDP port {udp_port}" in err
+    assert code == 3 and f"cannot bind UDP port {udp_port}" in err
 
 
 def test_coordinator_checks_its_endpoint_and_out(tmp_path, capsys) -> None:

@@ -214,7 +214,7 @@ def test_unwritable_run_directory_one_line_exit_2(tmp_path):
 
 
 @pytest.mark.parametrize("command", [["run", "--duration", "1"], ["sitl", "up", "--layout", "X"]])
-def test_busy_foxglove_port_one_line_exit_2_before_flight(tmp_path, command):
+def test_busy_foxglove_port_one_line_exit_3_before_flight(tmp_path, command):
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
@@ -223,7 +223,7 @@ def test_busy_foxglove_port_one_line_exit_2_before_flight(tmp_path, command):
         proc = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", *command, "--foxglove", f"127.0.0.1:{port}",
                                "--out", str(out), "--quiet" if command[0] == "run" else "--force"],
                               capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2, proc.stderr
+    assert proc.returncode == 3, proc.stderr  # could not start: a busy port (docs/reference/exit-codes.md)
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "--foxglove" in lines[0] and str(port) in lines[0], proc.stderr
     assert not (out / "summary.json").exists() and not (out / "run.mcap").exists()

@@ -79,10 +79,10 @@ def test_sigkill_of_the_parent_leaves_no_child(tmp_path, verb) -> None:
     out = tmp_path / "run"
     proc, kids = _start([*verb, "--out", str(out)])
     try:
-        # while it lives, the run directory is its own: a second run, even with --force, is refused (exit 1)
+        # while it lives, the run directory is its own: a second run, even with --force, is refused (exit 3)
         second = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_3x2", "--duration", "0.5",
                                  "--quiet", "--out", str(out), "--force"], capture_output=True, text=True, timeout=120)
-        assert second.returncode == 1 and "another run is using this directory" in second.stderr, second.stderr
+        assert second.returncode == 3 and "another run is using this directory" in second.stderr, second.stderr
         assert len(second.stderr.strip().splitlines()) == 1
         assert (out / "world_truth.csv").exists()  # nothing of the live run was cleared
         proc.send_signal(signal.SIGKILL)
@@ -115,8 +115,8 @@ def test_sigterm_of_run_mode_sitl_stops_every_child_and_keeps_the_logs(tmp_path)
         proc.send_signal(signal.SIGTERM)
         t_term = time.monotonic()
         _, stderr = proc.communicate(timeout=30)
-        assert proc.returncode == 130 and "Traceback" not in stderr, stderr
-        assert len(stderr.strip().splitlines()) == 1, stderr  # "mars-link: interrupted"
+        assert proc.returncode == 143 and "Traceback" not in stderr, stderr  # (128 + SIGTERM)
+        assert len(stderr.strip().splitlines()) == 1, stderr  # "mars-link: interrupted by SIGTERM"
         time.sleep(max(0.0, t_term + 2.0 - time.monotonic()))
         assert [k for k in kids if _alive(k)] == []
         world = json.loads((out / "world_summary.json").read_text())
@@ -128,6 +128,7 @@ def test_sigterm_of_run_mode_sitl_stops_every_child_and_keeps_the_logs(tmp_path)
         assert len(rows) > 50 and {len(r.split(",")) for r in rows} == {8}  # whole rows only
         summary = json.loads((out / "summary.json").read_text())  # the part flown, marked incomplete
         assert summary["completed"] is False and summary["sim_time_s"] == pytest.approx(world["sim_time_s"])
+        assert "SIGTERM" in summary["end_reason"]
         assert summary["max_error_m"] < 0.5
         for u in range(1, 7):  # every unit's .tlog reads to its end
             log = mavutil.mavlink_connection(str(out / f"unit{u}.tlog"))

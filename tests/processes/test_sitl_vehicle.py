@@ -263,7 +263,7 @@ def test_mavsdk_flies_the_multiprocess_3x2_as_one_vehicle(transport: str, full: 
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
-    assert proc.returncode == 130
+    assert proc.returncode == 143  # SIGTERM (128 + 15)
     deadline = time.monotonic() + 5.0
     while any(_alive(p) for p in children) and time.monotonic() < deadline:
         time.sleep(0.1)
