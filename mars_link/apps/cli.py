@@ -426,6 +426,17 @@ def _add_link(p, roles: str) -> None:
     p.add_argument("--link-profile", default=None, metavar="PROFILE",
                    help="ideal | lan | wifi | radio57600 [,key=value...]: delays and losses on the coordinator <-> "
                         "unit links (zenoh only; default: none)")
+    p.add_argument("--insecure", action="store_true",
+                   help="an open Zenoh bus: plain TCP, no TLS, no access control (for tools that cannot do TLS; "
+                        "anyone who reaches the ports reads and publishes every key)")
+    p.add_argument("--tls-ca", default=None, metavar="FILE",
+                   help="several hosts: the fleet's CA certificate (PEM); with --tls-cert and --tls-key, instead of "
+                        "the per-run CA (mutual TLS, no per-role access control)")
+    p.add_argument("--tls-cert", default=None, metavar="FILE", help="this host's certificate (PEM), signed by --tls-ca")
+    p.add_argument("--tls-key", default=None, metavar="FILE", help="the private key of --tls-cert (PEM)")
+    p.add_argument("--save-certs", action="store_true",
+                   help="keep a copy of the run's CA, certificates and access-control list in RUN_DIR/certs "
+                        "(default: a private directory removed at exit)")
 
 
 def _add_sitl_processes(p, realtime_help: str) -> None:
