@@ -96,6 +96,7 @@ class VehicleConfig:
     world_sysid: int = WORLD_SYSID
     signing_key: bytes | None = None  # set: the coordinator link requires signed frames
     sign_client_links: bool = False  # --require-signing: gcs/api unsigned clients may only read
+    sign_hil: bool = False  # with a key: the HIL (world) link is signed both ways too (a SITL run's processes)
     control_hz: float = 100.0
     links: dict[str, LinkPolicy] | None = None  # None: default_links(...)
     params: dict[str, float] = field(default_factory=dict)  # start-up parameter values
@@ -155,7 +156,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         overrides = {"MARS_COORD_SYS": c.coordinator_sysid, "MARS_COORD_COMP": c.coordinator_compid,
                      "MARS_SIGN_REQ": int(signed), **c.params}
         self.params = ParamStore(unit_param_specs(c.unit_id, self.vehicle), overrides)
-        policies = c.links if c.links is not None else default_links(signed, c.sign_client_links)
+        policies = c.links if c.links is not None else default_links(signed, c.sign_client_links, c.sign_hil and signed)
         for name, p in policies.items():
             if (p.require_signing or p.sign_outgoing) and not signed:
                 raise UserInputError(f"link {name!r} requires signing but no signing key is configured")

@@ -38,10 +38,13 @@ Two set-ups (`SitlSetup`):
 Every unit also serves PX4's client links: GCS to UDP 14550 (bound 18570+i), API to 14540+i (bound
 14580+i), i = unit index from 0, and logs every frame it sends or receives to unit<id>.tlog.
 
-Signing: with a key (--signing-key-file, else $MARS_LINK_SIGNING_KEY) the coordinator <-> unit links
-are MAVLink-2 signed both ways and verified HMAC-first (mars_link.mavlink.signing); the HIL link to the
-world stays unsigned; client links check signed frames (a signed client has full control) and, with
---require-signing, let unsigned clients only read (firmware_models.control_policy).
+Signing: with a key (--signing-key-file, else $MARS_LINK_SIGNING_KEY; `run --mode sitl` and `sitl up`
+always pass one, the user's or a per-run key) every link between the run's own processes is MAVLink-2
+signed both ways and verified HMAC-first (mars_link.mavlink.signing): the coordinator <-> unit links,
+the HIL links (sensors in, HIL_ACTUATOR_CONTROLS out) and the coordinator -> world frames (the step
+marker, the shutdown); a frame without a genuine signature is dropped and counted (signing.<reason>).
+Client links check signed frames (a signed client has full control) and, with --require-signing, let
+unsigned clients only read (firmware_models.control_policy).
 
 Timeouts (wall time): coordinator 1 s < unit 2 s < world 3 s, so that when a unit process dies the
 coordinator gives up on it first, the other units still get their commands, and only the dead unit is
@@ -100,7 +103,6 @@ from mars_link.mavlink.wire import (
     battery_report_message,
     actuator_output_from_message,
     rotor_command_message,
-    new_mav,
     sensor_packet_messages,
     usec,
 )
@@ -257,20 +259,12 @@ def step_sent_message(t_us: int) -> mavlink.MAVLink_message:
     return mavlink.MAVLink_system_time_message(t_us, t_us // 1000)
 
 
-def step_sent_packer(key: bytes | None):
-    """t_us -> the world's step-sent frame, signed when the run is (the coordinator's link then drops
-    unsigned frames); the world's own link stays unsigned (its HIL traffic is not signed)."""
-    from mars_link.mavlink.signing import advance_outgoing_clock, enable_outgoing_signing
-    from mars_link.mavlink import codec as mavlink_codec
-
-    enc = new_mav(WORLD_SYSID)
-    if key is not None:
-        enable_outgoing_signing(enc, key, 1, time.time())
+def step_sent_packer(link: Link):
+    """t_us -> the world's step-sent frame, through the world link's own encoder: signed when the run is
+    (one signing stream per sender and link id, so its time stamps only grow)."""
 
     def pack(t_us: int) -> bytes:
-        if key is not None:
-            advance_outgoing_clock(enc, time.time())
-        return mavlink_codec.encode(step_sent_message(t_us), enc)
+        return link.pack([step_sent_message(t_us)])
     return pack
 
 
@@ -331,7 +325,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         world = FreeUnitsWorld(setup.free_units, setup.model.vehicle, cfg)
         columns = ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("pos_n_m", "pos_e_m", "pos_d_m", "qw", "qx", "qy", "qz"))
     stop = _Stop()
-    link = Link(ports.open("world"), WORLD_SYSID)
+    link = Link(ports.open("world"), WORLD_SYSID, key=key)  # with a key: HIL both ways and the shutdown signed
     scale = setup.model.vehicle.full_scale_thrust_n
     control_min = 0.0 if setup.model.vehicle.rotor_min_thrust_n is not None else -1.0  # as the units' intake
     live = set(setup.unit_ids)
@@ -353,7 +347,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
         link.prepare_peers(live)  # (the first sends' set-up, paid in the first step, stalled a paced start)
         coordinator_addr = link.peers.get(COORDINATOR_SYSID) if setup.docked else None
-        step_sent = step_sent_packer(key)
+        step_sent = step_sent_packer(link)
         stall = _stall_from_env()
         wall0 = time.perf_counter()
         # sim time on the wall clock at `speed`; behind it, the world catches up (no re-anchoring): the
@@ -592,7 +586,7 @@ class _UnitLoop:
         self.setup, self.unit_id, self.command_timeout_s = setup, unit_id, command_timeout_s
         index = setup.unit_ids.index(unit_id)
         vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
-                            wall_time_s=time.time(), require_signing=require_signing)
+                            wall_time_s=time.time(), require_signing=require_signing, sign_hil=True)
         links = client_links(index, client.gcs_port, client.api_port, client.gcs_bind, client.api_bind)
         links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
         if setup.docked:

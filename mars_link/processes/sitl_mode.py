@@ -38,7 +38,8 @@ class SitlSession:
     router: object | None = None  # zenoh.Session in router mode, or None
     router_endpoint: str | None = None
     wake_latency: object | None = None  # transport.realtime.CpuWakeLatency while a real-time run lasts
-    certificates: object | None = None  # transport.tls.RunCertificates of a closed bus (removed at close)
+    certificates: object | None = None  # transport.tls.RunCertificates: the run's CA and/or key (removed at close)
+    signing_key_file: str | None = None  # the key the run's own links are signed with (the user's or the run's)
 
     def wait(self, timeout_s: float | None = None, units_may_die: bool = False) -> int:
         from mars_link.processes.launcher import wait
@@ -83,6 +84,7 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     certificates (`link.tls_ca`...). `vehicle` (mars_link.processes.vehicle_host.VehiclePorts): the coordinator serves the
     assembly as one MAVLink vehicle (its client links on UDP) and the run goes on, paced to real time
     unless `speed` says otherwise, until stopped."""
+    from mars_link.mavlink.signing import load_key
     from mars_link.processes.launcher import ClientPorts, start
     from mars_link.processes.lockstep import load_setup
 
@@ -90,15 +92,21 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     setup = load_setup(scenario, units, layout)  # bad input: refused before any session opens
     session = SitlSession(None, link)
     try:  # (the run's certificates and router session are closed on any failure to start)
-        if link.kind == "zenoh" and not link.insecure and not link.tls_ca:
+        closed = link.kind == "zenoh" and not link.insecure and not link.tls_ca
+        own_key = signing_key_file is None and load_key() is None  # (no user key: a per-run one)
+        if closed or own_key:
             from mars_link.transport.tls import RunCertificates
 
             ids = list(setup.unit_ids)
             groups = [ids[i:i + max(1, units_per_process)] for i in range(0, len(ids), max(1, units_per_process))]
-            session.certificates = RunCertificates.create(link.fleet, groups)
-            link = session.link = replace(link, tls_dir=str(session.certificates.directory))
+            session.certificates = RunCertificates.create(link.fleet, groups, tls=closed, signing_key=own_key)
+            if closed:
+                link = session.link = replace(link, tls_dir=str(session.certificates.directory))
+            if own_key:
+                signing_key_file = str(session.certificates.signing_key_file)
             if save_certs:
                 session.certificates.save(out)
+        session.signing_key_file = signing_key_file
         role_links = {role: link for role in ("world", "coordinator", "unit")}
         if link.kind == "zenoh" and not link.connect:
             from mars_link.transport.tls import files_for
@@ -728,6 +736,8 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
             attach = f"mars-link coordinator {scenario_path or ''} --out {out}"
             if args.signing_key_file:
                 attach += f" --signing-key-file {Path(args.signing_key_file).resolve()}"
+            elif session.certificates is not None and session.certificates.signing_key_file is not None:
+                attach += f" --signing-key-file {out.resolve() / 'certs' / 'signing.key'}"  # (the run's own, saved)
             attach += (f" --transport zenoh --zenoh-connect {(link.listen or (session.router_endpoint,))[0]}" if link.kind == "zenoh"
                        else f" --transport udp --world-port {session.run.world_port} --coordinator-port {session.run.coordinator_port}")
             if session.link.tls_dir:  # the run's certificates were saved for it (mars_link.transport.tls)

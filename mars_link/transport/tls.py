@@ -9,8 +9,9 @@ Roles and their CN: `world`, `coordinator`, `unit-<id>` (one per unit; a process
 uses the certificate of the unit whose link it opens first, and that CN is granted the keys of every unit
 of the process), `router` (the session `sitl up --topology router` hosts: it forwards everything).
 
-Files of a run directory (`RunCertificates.create`): `ca.crt`, `<role>.crt`, `<role>.key`, `acl.json`;
-the directory is mode 0700, the files 0600, and the directory is removed when the run ends unless saved.
+Files of a run directory (`RunCertificates.create`): `ca.crt`, `<role>.crt`, `<role>.key`, `acl.json`, and
+`signing.key` (the per-run MAVLink signing key, when the user gave none); the directory is mode 0700, the
+files 0600, and the directory is removed when the run ends (a copy is kept only with `--save-certs`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ ROUTER_ROLE = "router"
 CERT_VALIDITY_DAYS = 2  # a run's CA is thrown away at its end; two days cover any one run
 ACL_FILE = "acl.json"
 CA_FILE = "ca.crt"
+SIGNING_KEY_FILE = "signing.key"  # 32 raw bytes: the per-run MAVLink signing key of the run's own links
 
 
 def role_of_node(node: str) -> str:
@@ -135,27 +137,39 @@ def access_control(fleet: str, unit_groups: list[list[int]]) -> dict:
 
 
 class RunCertificates:
-    """The per-run CA, certificates and ACL in a private temporary directory (0700), removed by `close`."""
+    """A run's secrets in a private temporary directory (0700, files 0600), removed by `close`: the per-run
+    CA, certificates and ACL of a closed bus, and/or the per-run MAVLink signing key of its own links."""
 
-    def __init__(self, directory: Path) -> None:
+    def __init__(self, directory: Path, tls: bool = True) -> None:
         self.directory = directory
+        self.tls = tls  # the directory holds the closed bus's CA, certificates and ACL
 
     @classmethod
-    def create(cls, fleet: str, unit_groups: list[list[int]]) -> "RunCertificates":
-        directory = Path(tempfile.mkdtemp(prefix="mars-link-tls-"))  # mkdtemp: mode 0700
+    def create(cls, fleet: str, unit_groups: list[list[int]], tls: bool = True,
+               signing_key: bool = False) -> "RunCertificates":
+        directory = Path(tempfile.mkdtemp(prefix="mars-link-run-"))  # mkdtemp: mode 0700
         try:
-            roles = ["world", "coordinator", ROUTER_ROLE] + [f"unit-{u}" for g in unit_groups for u in g]
-            write_ca_and_certificates(directory, roles)
-            _private_write(directory / ACL_FILE, json.dumps(access_control(fleet, unit_groups)).encode())
+            if tls:
+                roles = ["world", "coordinator", ROUTER_ROLE] + [f"unit-{u}" for g in unit_groups for u in g]
+                write_ca_and_certificates(directory, roles)
+                _private_write(directory / ACL_FILE, json.dumps(access_control(fleet, unit_groups)).encode())
+            if signing_key:
+                _private_write(directory / SIGNING_KEY_FILE, os.urandom(32))  # (mars_link.mavlink.signing.load_key)
         except BaseException:
             shutil.rmtree(directory, ignore_errors=True)
             raise
-        return cls(directory)
+        return cls(directory, tls)
+
+    @property
+    def signing_key_file(self) -> Path | None:
+        path = self.directory / SIGNING_KEY_FILE
+        return path if path.exists() else None
 
     def save(self, destination: Path) -> Path:
         """A copy into the run directory (`--save-certs`), still private: for a process of another host."""
         target = destination / "certs"
         target.mkdir(mode=0o700, parents=True, exist_ok=True)
+        os.chmod(target, 0o700)
         for path in self.directory.iterdir():
             shutil.copy2(path, target / path.name)
             os.chmod(target / path.name, 0o600)
