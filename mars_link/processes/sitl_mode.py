@@ -92,14 +92,16 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     setup = load_setup(scenario, units, layout)  # bad input: refused before any session opens
     session = SitlSession(None, link)
     try:  # (the run's certificates and router session are closed on any failure to start)
-        closed = link.kind == "zenoh" and not link.insecure and not link.tls_ca
+        closed = link.kind == "zenoh" and not link.insecure and not link.tls_ca and not link.tls_dir
         own_key = signing_key_file is None and load_key() is None  # (no user key: a per-run one)
         if closed or own_key:
             from mars_link.transport.tls import RunCertificates
 
             ids = list(setup.unit_ids)
             groups = [ids[i:i + max(1, units_per_process)] for i in range(0, len(ids), max(1, units_per_process))]
-            session.certificates = RunCertificates.create(link.fleet, groups, tls=closed, signing_key=own_key)
+            router = not link.connect and (topology == "router" or bool(link.listen))
+            session.certificates = RunCertificates.create(link.fleet, groups, tls=closed, signing_key=own_key,
+                                                          router=router)
             if closed:
                 link = session.link = replace(link, tls_dir=str(session.certificates.directory))
             if own_key:
@@ -668,9 +670,8 @@ def link_from_args(args) -> LinkSpec:
     problem = check_user_files(tls_ca, tls_cert, tls_key)
     if problem:
         raise UserInputError(problem)
-    if (tls_ca or getattr(args, "save_certs", False)) and (insecure or kind != "zenoh"):
-        raise UserInputError("--tls-ca/--tls-cert/--tls-key/--save-certs need the closed Zenoh bus "
-                             "(--transport zenoh without --insecure)")
+    if tls_ca and (insecure or kind != "zenoh"):
+        raise UserInputError("--tls-ca/--tls-cert/--tls-key need the closed Zenoh bus (--transport zenoh without --insecure)")
     if tls_ca:
         tls_ca, tls_cert, tls_key = (str(Path(f).resolve()) for f in (tls_ca, tls_cert, tls_key))
     return LinkSpec(kind, fleet, "client", connect, listen, profile, insecure=insecure,

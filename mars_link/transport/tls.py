@@ -102,18 +102,22 @@ def write_ca_and_certificates(directory: Path, roles: list[str], ca_name: str = 
                                                                    serialization.NoEncryption()))
 
 
-def access_control(fleet: str, unit_groups: list[list[int]]) -> dict:
+def access_control(fleet: str, unit_groups: list[list[int]], router: bool = False) -> dict:
     """Zenoh's `access_control` section for a run: default deny; each role may publish (`put` ingress at
     the others) only its own keys, receive (`put` egress towards it) and subscribe only to the keys meant
     for it. Subscriptions may be announced to any fleet member (egress `declare_subscriber`): that tells
-    a publisher where to send, and the put rules still decide what it may send there."""
+    a publisher where to send, and the put rules still decide what it may send there. `router`: the run
+    hosts a router session (it forwards everything; only then is its CN named at all)."""
     f = f"mars/{fleet}"
     rules: list[dict] = [{"id": "announce", "messages": ["declare_subscriber"], "flows": ["egress"],
-                          "permission": "allow", "key_exprs": [f"{f}/**"]},
-                         {"id": "router-all", "messages": ["put", "declare_subscriber"], "flows": ["ingress", "egress"],
                           "permission": "allow", "key_exprs": [f"{f}/**"]}]
-    subjects: list[dict] = [{"id": ROUTER_ROLE, "cert_common_names": [ROUTER_ROLE]}]
-    policies: list[dict] = [{"rules": ["router-all"], "subjects": [ROUTER_ROLE]}]
+    subjects: list[dict] = []
+    policies: list[dict] = []
+    if router:
+        rules.append({"id": "router-all", "messages": ["put", "declare_subscriber"], "flows": ["ingress", "egress"],
+                      "permission": "allow", "key_exprs": [f"{f}/**"]})
+        subjects.append({"id": ROUTER_ROLE, "cert_common_names": [ROUTER_ROLE]})
+        policies.append({"rules": ["router-all"], "subjects": [ROUTER_ROLE]})
 
     def role(name: str, cns: list[str], publishes: list[str], receives: list[str]) -> None:
         rules.append({"id": f"{name}-publish", "messages": ["put"], "flows": ["ingress"], "permission": "allow",
@@ -145,14 +149,14 @@ class RunCertificates:
         self.tls = tls  # the directory holds the closed bus's CA, certificates and ACL
 
     @classmethod
-    def create(cls, fleet: str, unit_groups: list[list[int]], tls: bool = True,
-               signing_key: bool = False) -> "RunCertificates":
+    def create(cls, fleet: str, unit_groups: list[list[int]], tls: bool = True, signing_key: bool = False,
+               router: bool = False) -> "RunCertificates":
         directory = Path(tempfile.mkdtemp(prefix="mars-link-run-"))  # mkdtemp: mode 0700
         try:
             if tls:
-                roles = ["world", "coordinator", ROUTER_ROLE] + [f"unit-{u}" for g in unit_groups for u in g]
+                roles = ["world", "coordinator"] + [ROUTER_ROLE] * router + [f"unit-{u}" for g in unit_groups for u in g]
                 write_ca_and_certificates(directory, roles)
-                _private_write(directory / ACL_FILE, json.dumps(access_control(fleet, unit_groups)).encode())
+                _private_write(directory / ACL_FILE, json.dumps(access_control(fleet, unit_groups, router)).encode())
             if signing_key:
                 _private_write(directory / SIGNING_KEY_FILE, os.urandom(32))  # (mars_link.mavlink.signing.load_key)
         except BaseException:
