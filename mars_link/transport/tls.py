@@ -203,8 +203,23 @@ def check_user_files(ca: str | None, cert: str | None, key: str | None) -> str |
     if not all(given):
         return "--tls-ca, --tls-cert and --tls-key go together (the CA of the fleet, this host's certificate and key)"
     for option, path in (("--tls-ca", ca), ("--tls-cert", cert), ("--tls-key", key)):
-        if not Path(path).is_file():
+        if not path or not Path(path).is_file():
             return f"{option} {path}: no such file"
+    from cryptography import x509
+    from cryptography.hazmat.primitives import serialization
+
+    now = datetime.datetime.now(datetime.timezone.utc)
+    for option, path in (("--tls-ca", ca), ("--tls-cert", cert)):
+        try:
+            certificate = x509.load_pem_x509_certificate(Path(str(path)).read_bytes())
+        except (ValueError, OSError):
+            return f"{option} {path}: not a PEM certificate"
+        if certificate.not_valid_after_utc < now:  # (Zenoh would refuse it at connection time, in every child)
+            return f"{option} {path}: expired on {certificate.not_valid_after_utc:%Y-%m-%d %H:%M} UTC"
+    try:
+        serialization.load_pem_private_key(Path(str(key)).read_bytes(), password=None)
+    except (ValueError, TypeError, OSError):
+        return f"--tls-key {key}: not an unencrypted PEM private key"
     return None
 
 

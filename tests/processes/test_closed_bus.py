@@ -190,8 +190,10 @@ def _spies(endpoints: list[str], run_certs: Path, tmp_path: Path) -> list[Spy]:
     return [s.start() for s in spies]
 
 
-def _cli(argv: list[str]) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
+def _cli(argv: list[str], tmp_path: Path) -> subprocess.Popen:
+    """The CLI with its own TMPDIR (where the run's private directory goes)."""
+    (tmp_path / "tmp").mkdir()
+    env = dict(os.environ, PYTHONPATH=str(ROOT), TMPDIR=str(tmp_path / "tmp"))
     return subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", *argv], cwd=ROOT, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
@@ -235,26 +237,17 @@ def _same_as_inproc(sc, out: Path, tmp_path: Path) -> None:
     assert np.linalg.norm(pa - pb, axis=1).max() < 1e-3
 
 
-def _no_run_secrets_left(before: set[str]) -> None:
-    import tempfile
-
-    left = {p.name for p in Path(tempfile.gettempdir()).glob("mars-link-run-*")} - before
-    assert not left, left  # the private directory of the run's CA and key is gone at exit
-
-
-def _run_secrets() -> set[str]:
-    import tempfile
-
-    return {p.name for p in Path(tempfile.gettempdir()).glob("mars-link-run-*")}
+def _no_run_secrets_left(tmp_path: Path) -> None:
+    """The private directory of the run's CA and key (made under the run's TMPDIR) is gone at exit."""
+    assert list((tmp_path / "tmp").iterdir()) == []
 
 
 @pytest.mark.sitl
 def test_run_mode_sitl_closed_bus_gives_foreign_sessions_nothing_and_they_change_nothing(tmp_path: Path) -> None:
     sc, path = _scenario(tmp_path)
     out = tmp_path / "run"
-    before = _run_secrets()
     proc = _cli(["run", path, "--mode", "sitl", "--seed", str(SEED), "--save-certs", "--no-mcap", "--quiet",
-                 "--out", str(out)])
+                 "--out", str(out)], tmp_path)
     spies = _attacked(proc, out, tmp_path, closed=True)
     assert {s.name: s.samples for s in spies} == {s.name: {} for s in spies}
     # TLS kept out the first two; the third was let in (a genuine certificate) and the ACL gave it nothing
@@ -264,7 +257,7 @@ def test_run_mode_sitl_closed_bus_gives_foreign_sessions_nothing_and_they_change
     # nothing forged even reached a process (the access control stopped it before the signatures had to)
     assert summary["sitl"]["world_dropped"] == {} and summary["sitl"]["coordinator_dropped"] == {}
     _same_as_inproc(sc, out, tmp_path)
-    _no_run_secrets_left(before)
+    _no_run_secrets_left(tmp_path)
 
 
 def _sitl_up_flown(out: Path, sc) -> dict:
@@ -284,11 +277,12 @@ def test_sitl_up_insecure_bus_is_read_by_a_foreign_session_and_its_forged_frames
     sc, path = _scenario(tmp_path)
     out = tmp_path / "up"
     proc = _cli(["sitl", "up", path, "--insecure", "--any-bind", "--speed", "1", "--no-mcap", "--seed", str(SEED),
-                 "--out", str(out)])
+                 "--out", str(out)], tmp_path)
     spy, = _attacked(proc, out, tmp_path, closed=False)
     assert sum(spy.samples.values()) > 50 and any("/unit/1/mavlink/down/world" in k for k in spy.samples)
     world = _sitl_up_flown(out, sc)
     assert world["dropped"].get("signing.unsigned", 0) > 50, world["dropped"]
+    _no_run_secrets_left(tmp_path)  # (the per-run signing key's directory)
 
 
 @pytest.mark.sitl
@@ -296,15 +290,14 @@ def test_sitl_up_insecure_bus_is_read_by_a_foreign_session_and_its_forged_frames
 def test_sitl_up_closed_bus_gives_foreign_sessions_nothing_and_they_change_nothing(tmp_path: Path) -> None:
     sc, path = _scenario(tmp_path)
     out = tmp_path / "up"
-    before = _run_secrets()
     proc = _cli(["sitl", "up", path, "--save-certs", "--any-bind", "--speed", "1", "--no-mcap", "--seed", str(SEED),
-                 "--out", str(out)])
+                 "--out", str(out)], tmp_path)
     spies = _attacked(proc, out, tmp_path, closed=True)
     assert {s.name: s.samples for s in spies} == {s.name: {} for s in spies}
     assert [s.peers > 0 for s in spies] == [False, False, True]
     world = _sitl_up_flown(out, sc)
     assert world["dropped"] == {}
-    _no_run_secrets_left(before)
+    _no_run_secrets_left(tmp_path)
 
 
 @pytest.mark.sitl
@@ -313,10 +306,11 @@ def test_run_mode_sitl_insecure_bus_is_read_and_forged_frames_are_dropped_and_co
     sc, path = _scenario(tmp_path)
     out = tmp_path / "run"
     proc = _cli(["run", path, "--mode", "sitl", "--insecure", "--seed", str(SEED), "--no-mcap", "--quiet",
-                 "--out", str(out)])
+                 "--out", str(out)], tmp_path)
     spy, = _attacked(proc, out, tmp_path, closed=False)
     assert sum(spy.samples.values()) > 50
     summary = json.loads((out / "summary.json").read_text())
     assert summary["completed"] and summary["sitl"]["bus"] == "insecure"
     assert summary["sitl"]["world_dropped"].get("signing.unsigned", 0) > 50, summary["sitl"]["world_dropped"]
     _same_as_inproc(sc, out, tmp_path)
+    _no_run_secrets_left(tmp_path)
