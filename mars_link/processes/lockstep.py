@@ -526,7 +526,7 @@ class UnitPorts:
 
 def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, clients: list[UnitPorts],
               command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None,
-              require_signing: bool = False, ulog: bool = True) -> int:
+              require_signing: bool = False, ulog: bool = True, run_key: bool = False) -> int:
     """Several units' firmwares in this process (`--units-per-process K`), each its own MAVLink system
     with its own links, tlog, ULog (unit<id>.ulg, unless `ulog` is False) and status file, served by one
     event loop: one wake-up serves every unit whose datagram came in, and the start-up (imports) is paid
@@ -539,7 +539,7 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
     sel = selectors.DefaultSelector()
     try:
         for u, client in zip(unit_ids, clients):
-            unit = _UnitLoop(setup, u, ports, out, client, command_timeout_s, key, require_signing, ulog)
+            unit = _UnitLoop(setup, u, ports, out, client, command_timeout_s, key, require_signing, ulog, run_key)
             units.append(unit)
             for name, t in unit.io.links.items():
                 sel.register(t, selectors.EVENT_READ, (unit, name))
@@ -577,7 +577,8 @@ class _UnitLoop:
     """One unit's firmware, its links and its wall-clock housekeeping, driven by `run_units`' loop."""
 
     def __init__(self, setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: UnitPorts,
-                 command_timeout_s: float, key: bytes | None, require_signing: bool, ulog: bool = True) -> None:
+                 command_timeout_s: float, key: bytes | None, require_signing: bool, ulog: bool = True,
+                 run_key: bool = False) -> None:
         from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL
         from mars_link.flight.build import make_unit
         from mars_link.processes.vehicle_io import LinkSpec, VehicleSockets, client_links
@@ -586,7 +587,8 @@ class _UnitLoop:
         self.setup, self.unit_id, self.command_timeout_s = setup, unit_id, command_timeout_s
         index = setup.unit_ids.index(unit_id)
         vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
-                            wall_time_s=time.time(), require_signing=require_signing, sign_hil=True)
+                            wall_time_s=time.time(), require_signing=require_signing, sign_hil=True,
+                            client_links_keyed=not run_key)  # (a per-run key: clients keep the keyless rules)
         links = client_links(index, client.gcs_port, client.api_port, client.gcs_bind, client.api_bind)
         links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
         if setup.docked:
@@ -666,7 +668,7 @@ class _UnitLoop:
 # ----------------------------------------------------------------------------- coordinator
 def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S,
                     key: bytes | None = None, vehicle=None, timing_log: bool = False,
-                    require_signing: bool = False, view_feed: bool = False) -> int:
+                    require_signing: bool = False, view_feed: bool = False, run_key: bool = False) -> int:
     """Drive the docked assembly; with a signing `key` its link to the units is signed both ways.
     With `vehicle` (mars_link.processes.vehicle_host.VehiclePorts) the assembly is one MAVLink vehicle on those ports
     and its guidance, not the scenario's trajectory, is the coordinator's reference. `timing_log`:
@@ -692,7 +694,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         detector = None if setup.pieces else make_detector(sc, model, float(_start_pose(setup)[0][2]))
         out.mkdir(parents=True, exist_ok=True)
         try:
-            hosted = HostedVehicle(sc, model, detector, vehicle, out, key, require_signing)
+            hosted = HostedVehicle(sc, model, detector, vehicle, out, None if run_key else key, require_signing)
         except UserInputError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
@@ -926,6 +928,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--speed", type=float, default=None, help="world pacing, x real time (0: as fast as possible)")
     add_signing_args(ap, "the coordinator <-> unit links (neither: unsigned)")
+    ap.add_argument("--run-key", action="store_true",
+                    help="the key is the run's own, for its internal links only: the client links keep the rules "
+                         "of a vehicle without a key")
     ap.add_argument("--gcs-port", type=int, default=14550)
     ap.add_argument("--api-port", default=None, help="the unit's API port, or one per unit of --unit a,b,c")
     ap.add_argument("--gcs-bind", type=int, default=None)
@@ -1025,7 +1030,8 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
             raise UserInputError(f"--api-port {args.api_port}: one port per unit of --unit {args.unit}")
         clients = [UnitPorts(args.gcs_port, api_ports[i] if api_ports else None, args.gcs_bind, args.api_bind)
                    for i in range(len(units))]
-        return run_units(setup, units, ports, out, clients, key=key, require_signing=args.require_signing)
+        return run_units(setup, units, ports, out, clients, key=key, require_signing=args.require_signing,
+                         run_key=args.run_key)
     vehicle = None
     if args.vehicle:
         from mars_link.processes.vehicle_host import VehiclePorts
@@ -1035,7 +1041,7 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
         vehicle = VehiclePorts(**{k: v for k, v in given.items() if v is not None})
         vehicle.check(setup.unit_ids)
     return run_coordinator(setup, ports, out, key=key, vehicle=vehicle, timing_log=args.timing_log,
-                           require_signing=args.require_signing, view_feed=args.view_feed)
+                           require_signing=args.require_signing, view_feed=args.view_feed, run_key=args.run_key)
 
 
 if __name__ == "__main__":

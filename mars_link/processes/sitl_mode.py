@@ -94,6 +94,9 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     try:  # (the run's certificates and router session are closed on any failure to start)
         closed = link.kind == "zenoh" and not link.insecure and not link.tls_ca and not link.tls_dir
         own_key = signing_key_file is None and load_key() is None  # (no user key: a per-run one)
+        if own_key and require_signing:
+            raise UserInputError("--require-signing needs a key the clients share: --signing-key-file or "
+                                 "$MARS_LINK_SIGNING_KEY (the run's own key signs only its internal links)")
         if closed or own_key:
             from mars_link.transport.tls import RunCertificates
 
@@ -140,6 +143,9 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
         if vehicle is not None:
             role_args["coordinator"] += vehicle.argv()
             speed = 1.0 if speed is None else speed
+        if own_key:  # the per-run key signs the internal links only; the client links keep the keyless rules
+            role_args["unit"].append("--run-key")
+            role_args["coordinator"].append("--run-key")
         if require_signing:  # the client links of the units and of the vehicle (firmware_models.control_policy)
             role_args["unit"].append("--require-signing")
             role_args["coordinator"].append("--require-signing")
@@ -732,7 +738,10 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
         if link.kind == "zenoh":
             where = session.router_endpoint or ", ".join(link.connect) or "none (peers: world and coordinator listen on 127.0.0.1)"
             print(f"zenoh: fleet {link.fleet!r}, router {where}" + (f" (+ {', '.join(link.listen)})" if link.listen else "")
-                  + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>", flush=True)
+                  + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>; bus {session.link.bus()}", flush=True)
+        own_key = session.certificates is not None and session.certificates.signing_key_file is not None
+        print(f"internal links: MAVLink-signed with {'a per-run key' if own_key else 'your key'}"
+              + (f" (saved in {out / 'certs'})" if own_key and (out / "certs").exists() else ""), flush=True)
         if args.external_coordinator:
             attach = f"mars-link coordinator {scenario_path or ''} --out {out}"
             if args.signing_key_file:

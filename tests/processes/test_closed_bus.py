@@ -198,9 +198,9 @@ def _cli(argv: list[str], tmp_path: Path) -> subprocess.Popen:
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _attacked(proc: subprocess.Popen, out: Path, tmp_path: Path, closed: bool) -> list[Spy]:
+def _attacked(proc: subprocess.Popen, out: Path, tmp_path: Path, closed: bool) -> tuple[list[Spy], str]:
     """Attack the run of `proc` with the three foreign sessions (closed bus) or the one without
-    credentials (`--insecure`) until it ends; returns the spies."""
+    credentials (`--insecure`) until it ends; returns the spies and what the command printed."""
     spies: list[Spy] = []
     try:
         endpoints = _listen_endpoints(proc)
@@ -213,7 +213,7 @@ def _attacked(proc: subprocess.Popen, out: Path, tmp_path: Path, closed: bool) -
         else:
             spies = [Spy("no credentials", make_config(ZenohParams(node="spy", mode="peer", connect=tuple(endpoints))),
                          forged_frames(1)).start()]
-        _, stderr = proc.communicate(timeout=240)
+        stdout, stderr = proc.communicate(timeout=240)
     finally:
         for s in spies:
             s.stop()
@@ -222,7 +222,7 @@ def _attacked(proc: subprocess.Popen, out: Path, tmp_path: Path, closed: bool) -
             proc.wait()
     assert proc.returncode == 0, stderr[-2000:]
     assert all(s.published > 50 for s in spies), [(s.name, s.published, s.error) for s in spies]
-    return spies
+    return spies, stdout
 
 
 def _same_as_inproc(sc, out: Path, tmp_path: Path) -> None:
@@ -248,7 +248,7 @@ def test_run_mode_sitl_closed_bus_gives_foreign_sessions_nothing_and_they_change
     out = tmp_path / "run"
     proc = _cli(["run", path, "--mode", "sitl", "--seed", str(SEED), "--save-certs", "--no-mcap", "--quiet",
                  "--out", str(out)], tmp_path)
-    spies = _attacked(proc, out, tmp_path, closed=True)
+    spies, _ = _attacked(proc, out, tmp_path, closed=True)
     assert {s.name: s.samples for s in spies} == {s.name: {} for s in spies}
     # TLS kept out the first two; the third was let in (a genuine certificate) and the ACL gave it nothing
     assert [s.peers > 0 for s in spies] == [False, False, True]
@@ -278,7 +278,8 @@ def test_sitl_up_insecure_bus_is_read_by_a_foreign_session_and_its_forged_frames
     out = tmp_path / "up"
     proc = _cli(["sitl", "up", path, "--insecure", "--any-bind", "--speed", "1", "--no-mcap", "--seed", str(SEED),
                  "--out", str(out)], tmp_path)
-    spy, = _attacked(proc, out, tmp_path, closed=False)
+    (spy,), stdout = _attacked(proc, out, tmp_path, closed=False)
+    assert "bus insecure" in stdout and "signed with a per-run key" in stdout, stdout
     assert sum(spy.samples.values()) > 50 and any("/unit/1/mavlink/down/world" in k for k in spy.samples)
     world = _sitl_up_flown(out, sc)
     assert world["dropped"].get("signing.unsigned", 0) > 50, world["dropped"]
@@ -292,7 +293,8 @@ def test_sitl_up_closed_bus_gives_foreign_sessions_nothing_and_they_change_nothi
     out = tmp_path / "up"
     proc = _cli(["sitl", "up", path, "--save-certs", "--any-bind", "--speed", "1", "--no-mcap", "--seed", str(SEED),
                  "--out", str(out)], tmp_path)
-    spies = _attacked(proc, out, tmp_path, closed=True)
+    spies, stdout = _attacked(proc, out, tmp_path, closed=True)
+    assert "bus tls+acl" in stdout and "signed with a per-run key" in stdout, stdout
     assert {s.name: s.samples for s in spies} == {s.name: {} for s in spies}
     assert [s.peers > 0 for s in spies] == [False, False, True]
     world = _sitl_up_flown(out, sc)
@@ -307,7 +309,7 @@ def test_run_mode_sitl_insecure_bus_is_read_and_forged_frames_are_dropped_and_co
     out = tmp_path / "run"
     proc = _cli(["run", path, "--mode", "sitl", "--insecure", "--seed", str(SEED), "--no-mcap", "--quiet",
                  "--out", str(out)], tmp_path)
-    spy, = _attacked(proc, out, tmp_path, closed=False)
+    (spy,), _ = _attacked(proc, out, tmp_path, closed=False)
     assert sum(spy.samples.values()) > 50
     summary = json.loads((out / "summary.json").read_text())
     assert summary["completed"] and summary["sitl"]["bus"] == "insecure"
