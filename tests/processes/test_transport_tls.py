@@ -146,3 +146,14 @@ def test_an_external_coordinator_needs_the_bus_credentials_or_insecure(tmp_path:
     code = main(["coordinator", "hover_1x1", "--zenoh-connect", "tcp/127.0.0.1:9", "--out", str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert code == 2 and "--tls-ca" in err and "--insecure" in err and len(err.strip().splitlines()) == 1
+
+
+def test_require_signing_without_the_users_key_is_one_line_and_exit_2(tmp_path: Path, capsys, monkeypatch) -> None:
+    """The per-run key is nobody else's: clients could not sign with it, so --require-signing wants the user's."""
+    from mars_link.apps.cli import main
+    from mars_link.mavlink.signing import DEFAULT_KEY_ENV
+
+    monkeypatch.delenv(DEFAULT_KEY_ENV, raising=False)
+    assert main(["sitl", "up", "hover_1x1", "--require-signing", "--any-bind", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "--signing-key-file" in err and "Traceback" not in err, err
