@@ -81,7 +81,9 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     process hosts a router session every child joins as a client (two hops; what an external
     coordinator attaches to). Zenoh is a closed bus unless `link.insecure`: mutual TLS with a per-run CA
     and access control (mars_link.transport.tls; `save_certs`: a copy in `out`/certs), or the user's
-    certificates (`link.tls_ca`...). `vehicle` (mars_link.processes.vehicle_host.VehiclePorts): the coordinator serves the
+    certificates (`link.tls_ca`...), or the fleet's in `link.tls_dir`. The run's own links are MAVLink-signed
+    with `signing_key_file` (or $MARS_LINK_SIGNING_KEY), else a per-run key in the run's private directory
+    (`SitlSession.signing_key_file`: what a coordinator started elsewhere is given). `vehicle` (mars_link.processes.vehicle_host.VehiclePorts): the coordinator serves the
     assembly as one MAVLink vehicle (its client links on UDP) and the run goes on, paced to real time
     unless `speed` says otherwise, until stopped."""
     from mars_link.mavlink.signing import load_key
