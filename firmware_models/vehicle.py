@@ -106,6 +106,10 @@ class VehicleConfig:
     world_sysid: int = WORLD_SYSID
     signing_key: bytes | None = None  # set: the coordinator link requires signed frames
     sign_client_links: bool = False  # --require-signing: gcs/api unsigned clients may only read
+    sign_hil: bool = False  # with a key: the HIL (world) link is signed both ways too (a SITL run's processes)
+    # False: the key is a SITL run's own (per-run) key for its internal links (coordinator, HIL) only; the
+    # client links (gcs, api) keep the rules of a vehicle without a key (unsigned clients have full control)
+    client_links_keyed: bool = True
     control_hz: float = 100.0
     links: dict[str, LinkPolicy] | None = None  # None: default_links(...)
     params: dict[str, float] = field(default_factory=dict)  # start-up parameter values
@@ -165,11 +169,14 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         overrides = {"MARS_COORD_SYS": c.coordinator_sysid, "MARS_COORD_COMP": c.coordinator_compid,
                      "MARS_SIGN_REQ": int(signed), **c.params}
         self.params = ParamStore(unit_param_specs(c.unit_id, self.vehicle), overrides)
-        policies = c.links if c.links is not None else default_links(signed, c.sign_client_links)
+        policies = c.links if c.links is not None else default_links(signed, c.sign_client_links, c.sign_hil and signed)
         for name, p in policies.items():
             if (p.require_signing or p.sign_outgoing) and not signed:
                 raise UserInputError(f"link {name!r} requires signing but no signing key is configured")
-        self.links = {n: Link(n, p, self.sysid, self.compid, c.signing_key, wall_time_s) for n, p in policies.items()}
+        self._keyed = {n for n in policies if c.signing_key is not None
+                       and (c.client_links_keyed or n in (LINK_COORDINATOR, LINK_HIL))}  # links the key rules
+        self.links = {n: Link(n, p, self.sysid, self.compid, c.signing_key if n in self._keyed else None, wall_time_s)
+                      for n, p in policies.items()}
         shared = next((lk.budgets.total for lk in self.links.values()), None)  # one total reply budget, all links
         for lk in self.links.values():
             lk.budgets.total = shared or lk.budgets.total
@@ -335,7 +342,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         if self._deferred and not (link == LINK_COORDINATOR and all(
                 m.get_type() == "SET_ACTUATOR_CONTROL_TARGET" for m, _ in frames)):
             self.run_deferred()  # (a rotor command alone does not read the unit's own state)
-        has_key = self.config.signing_key is not None
+        has_key = link in self._keyed
         for msg, frame in frames:
             self._count("rx")
             if self.on_frame_in is not None:

@@ -34,7 +34,9 @@ class LinkPolicy:
     reply_burst: int = 600
 
 
-def default_links(signed_coordinator: bool, sign_clients: bool = False) -> dict[str, LinkPolicy]:
+def default_links(signed_coordinator: bool, sign_clients: bool = False, sign_hil: bool = False) -> dict[str, LinkPolicy]:
+    """`sign_hil`: the world link too is signed both ways (a SITL run's own processes share a key: a forged
+    HIL frame, sensors in or rotor outputs out, is dropped)."""
     client = LinkPolicy(require_signing=sign_clients, sign_outgoing=sign_clients, unsigned_reads=True)
     return {
         LINK_GCS: client,
@@ -43,7 +45,8 @@ def default_links(signed_coordinator: bool, sign_clients: bool = False) -> dict[
             telemetry=False, require_signing=signed_coordinator, sign_outgoing=signed_coordinator,
             signing_link_id=1, rotor_commands=True, forward_sensors=True,
         ),
-        LINK_HIL: LinkPolicy(telemetry=False, hil=True),
+        LINK_HIL: LinkPolicy(telemetry=False, hil=True, require_signing=sign_hil, sign_outgoing=sign_hil,
+                             signing_link_id=2),
     }
 
 

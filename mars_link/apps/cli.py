@@ -444,6 +444,19 @@ def _add_link(p, roles: str) -> None:
                    help="how the units are commanded: mavlink (SET_ACTUATOR_CONTROL_TARGET) or px4-zenoh (PX4 "
                         "v1.17's OffboardControlMode + ActuatorMotors over rmw_zenoh, /px4_<unit id>/fmu/...; needs "
                         "--transport zenoh); default: the scenario's [units] interface")
+    p.add_argument("--insecure", action="store_true",
+                   help="an open Zenoh bus: plain TCP, no TLS, no access control (for tools that cannot do TLS; "
+                        "anyone who reaches the ports reads every key; the run's own links stay MAVLink-signed, "
+                        "see the threat model in the docs)")
+    p.add_argument("--tls-ca", default=None, metavar="FILE",
+                   help="several hosts: the fleet's CA certificate (PEM); with --tls-cert and --tls-key, instead of "
+                        "the per-run CA (mutual TLS, no per-role access control)")
+    p.add_argument("--tls-cert", default=None, metavar="FILE", help="this host's certificate (PEM), signed by --tls-ca")
+    p.add_argument("--tls-key", default=None, metavar="FILE", help="the private key of --tls-cert (PEM)")
+    p.add_argument("--save-certs", action="store_true",
+                   help="keep a copy of the run's secrets in RUN_DIR/certs (mode 0700/0600): its CA, certificates "
+                        "and access-control list, and its per-run MAVLink signing key (default: they live in a "
+                        "private directory removed at exit)")
 
 
 def _add_sitl_processes(p, realtime_help: str) -> None:
@@ -462,12 +475,12 @@ def _add_client_ports(p, api_port: int, api_help: str) -> None:
     p.add_argument("--api-port", type=int, default=api_port, help=api_help)
 
 
-def _add_signing(p, links: str) -> None:
+def _add_signing(p, links: str, otherwise: str = "unsigned") -> None:
     from mars_link.mavlink.signing import DEFAULT_KEY_ENV
 
     p.add_argument("--signing-key-file", default=None, metavar="FILE",
-                   help=f"MAVLink signing key for {links} (default: ${DEFAULT_KEY_ENV}, else unsigned); one key per "
-                        "process, each link signs with its own link id")
+                   help=f"MAVLink signing key for {links} (default: ${DEFAULT_KEY_ENV}, else {otherwise}); one key "
+                        "per process, each link signs with its own link id")
     p.add_argument("--require-signing", "--sign-client-links", dest="require_signing", action="store_true",
                    help="every link requires signing: unsigned GCS/API clients may only read (telemetry, "
                         "parameters, mission download); the coordinator link drops unsigned frames")
@@ -572,7 +585,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="world pacing, x real time (default 1 for --units and --vehicle, 0 = as fast as possible "
                          "otherwise)")
     _add_client_ports(up, 14540, "API port of unit index 0 (MAVSDK); unit i uses this + i (PX4's ports)")
-    _add_signing(up, "the coordinator <-> unit links, signed both ways, and the client links")
+    _add_signing(up, "the run's own links (world, units, coordinator; HIL frames and the shutdown included), "
+                     "signed both ways, and the client links", "a per-run key made at start")
     up.add_argument("--any-bind", action="store_true",
                     help="bind the units' client sockets to free ports instead of PX4's 18570+i / 14580+i")
     up.add_argument("--vehicle", action="store_true",

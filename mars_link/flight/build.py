@@ -291,7 +291,7 @@ def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajec
 
 def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordinator_driven: bool = True,
               signing_key: bytes | None = None, wall_time_s: float = 0.0, require_signing: bool = False,
-              on_wire: bool = True):
+              on_wire: bool = True, sign_hil: bool = False, client_links_keyed: bool = True):
     """One unit's firmware (`firmware_models.vehicle.Vehicle`: rotor intake, motor model, fail-safes), the
     same object in-process and in a unit process. The scenario's faults for this unit are scheduled in
     its motor model: the unit, not the coordinator, knows them. `on_wire=False`: an in-process unit, whose
@@ -303,7 +303,9 @@ def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordin
     params = {} if scenario.battery is None else scenario.battery.unit_params(unit_id)  # its pack, its failsafe
     vehicle = Vehicle(VehicleConfig(unit_id=unit_id, vehicle=model.vehicle, control_hz=scenario.sim.control_hz,
                                     hil_await_coordinator=coordinator_driven, signing_key=signing_key,
-                                    sign_client_links=require_signing, on_wire=on_wire, params=params), wall_time_s)
+                                    sign_client_links=require_signing, sign_hil=sign_hil,
+                                    client_links_keyed=client_links_keyed, on_wire=on_wire,
+                                    params=params), wall_time_s)
     for f in scenario.faults:
         if f.unit == unit_id:
             vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta)

@@ -72,11 +72,13 @@ class Ports:
         return self._tapped(t, node, peer)
 
     def _zenoh(self, node: str, peer: str | None) -> Transport:
+        from mars_link.transport.tls import files_for
         from mars_link.transport.zenoh_link import ZenohParams, ZenohTransport, make_config, open_session
 
         spec = self.link
         params = ZenohParams(node=node, fleet=spec.fleet, mode=spec.zenoh_mode, connect=spec.connect,
                              listen=spec.listen, only_from=peer, first_send_wait_s=FIRST_SEND_WAIT_S,
+                             tls=files_for(spec.tls_dir, spec.tls_ca, spec.tls_cert, spec.tls_key, node),
                              validate_frames=False)  # as on UDP: Link/Vehicle parse and count (no second parse)
         if self._session is None:
             import zenoh

@@ -38,10 +38,13 @@ Two set-ups (`SitlSetup`):
 Every unit also serves PX4's client links: GCS to UDP 14550 (bound 18570+i), API to 14540+i (bound
 14580+i), i = unit index from 0, and logs every frame it sends or receives to unit<id>.tlog.
 
-Signing: with a key (--signing-key-file, else $MARS_LINK_SIGNING_KEY) the coordinator <-> unit links
-are MAVLink-2 signed both ways and verified HMAC-first (mars_link.mavlink.signing); the HIL link to the
-world stays unsigned; client links check signed frames (a signed client has full control) and, with
---require-signing, let unsigned clients only read (firmware_models.control_policy).
+Signing: with a key (--signing-key-file, else $MARS_LINK_SIGNING_KEY; `run --mode sitl` and `sitl up`
+always pass one, the user's or a per-run key) every link between the run's own processes is MAVLink-2
+signed both ways and verified HMAC-first (mars_link.mavlink.signing): the coordinator <-> unit links,
+the HIL links (sensors in, HIL_ACTUATOR_CONTROLS out) and the coordinator -> world frames (the step
+marker, the shutdown); a frame without a genuine signature is dropped and counted (signing.<reason>).
+Client links check signed frames (a signed client has full control) and, with --require-signing, let
+unsigned clients only read (firmware_models.control_policy).
 
 Timeouts (wall time): coordinator 1 s < unit 2 s < world 3 s, so that when a unit process dies the
 coordinator gives up on it first, the other units still get their commands, and only the dead unit is
@@ -101,7 +104,6 @@ from mars_link.mavlink.wire import (
     battery_report_message,
     actuator_output_from_message,
     rotor_command_message,
-    new_mav,
     sensor_packet_messages,
     usec,
 )
@@ -268,20 +270,12 @@ def step_sent_message(t_us: int) -> mavlink.MAVLink_message:
     return mavlink.MAVLink_system_time_message(t_us, t_us // 1000)
 
 
-def step_sent_packer(key: bytes | None):
-    """t_us -> the world's step-sent frame, signed when the run is (the coordinator's link then drops
-    unsigned frames); the world's own link stays unsigned (its HIL traffic is not signed)."""
-    from mars_link.mavlink.signing import advance_outgoing_clock, enable_outgoing_signing
-    from mars_link.mavlink import codec as mavlink_codec
-
-    enc = new_mav(WORLD_SYSID)
-    if key is not None:
-        enable_outgoing_signing(enc, key, 1, time.time())
+def step_sent_packer(link: Link):
+    """t_us -> the world's step-sent frame, through the world link's own encoder: signed when the run is
+    (one signing stream per sender and link id, so its time stamps only grow)."""
 
     def pack(t_us: int) -> bytes:
-        if key is not None:
-            advance_outgoing_clock(enc, time.time())
-        return mavlink_codec.encode(step_sent_message(t_us), enc)
+        return link.pack([step_sent_message(t_us)])
     return pack
 
 
@@ -342,7 +336,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         world = FreeUnitsWorld(setup.free_units, setup.model.vehicle, cfg)
         columns = ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("pos_n_m", "pos_e_m", "pos_d_m", "qw", "qx", "qy", "qz"))
     stop = _Stop()
-    link = Link(ports.open("world"), WORLD_SYSID)
+    link = Link(ports.open("world"), WORLD_SYSID, key=key)  # with a key: HIL both ways and the shutdown signed
     scale = setup.model.vehicle.full_scale_thrust_n
     control_min = 0.0 if setup.model.vehicle.rotor_min_thrust_n is not None else -1.0  # as the units' intake
     live = set(setup.unit_ids)
@@ -364,7 +358,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
         link.prepare_peers(live)  # (the first sends' set-up, paid in the first step, stalled a paced start)
         coordinator_addr = link.peers.get(COORDINATOR_SYSID) if setup.docked else None
-        step_sent = step_sent_packer(key)
+        step_sent = step_sent_packer(link)
         stall = _stall_from_env()
         wall0 = time.perf_counter()
         # sim time on the wall clock at `speed`; behind it, the world catches up (no re-anchoring): the
@@ -564,7 +558,7 @@ def px4_input_log_name(unit_id: int) -> str:
 
 def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, clients: list[UnitPorts],
               command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None,
-              require_signing: bool = False, ulog: bool = True) -> int:
+              require_signing: bool = False, ulog: bool = True, run_key: bool = False) -> int:
     """Several units' firmwares in this process (`--units-per-process K`), each its own MAVLink system
     with its own links, tlog, ULog (unit<id>.ulg, unless `ulog` is False) and status file, served by one
     event loop: one wake-up serves every unit whose datagram came in, and the start-up (imports) is paid
@@ -577,7 +571,7 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
     sel = selectors.DefaultSelector()
     try:
         for u, client in zip(unit_ids, clients):
-            unit = _UnitLoop(setup, u, ports, out, client, command_timeout_s, key, require_signing, ulog)
+            unit = _UnitLoop(setup, u, ports, out, client, command_timeout_s, key, require_signing, ulog, run_key)
             units.append(unit)
             for name, t in unit.io.links.items():
                 sel.register(t, selectors.EVENT_READ, (unit, name))
@@ -623,7 +617,8 @@ class _UnitLoop:
     """One unit's firmware, its links and its wall-clock housekeeping, driven by `run_units`' loop."""
 
     def __init__(self, setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: UnitPorts,
-                 command_timeout_s: float, key: bytes | None, require_signing: bool, ulog: bool = True) -> None:
+                 command_timeout_s: float, key: bytes | None, require_signing: bool, ulog: bool = True,
+                 run_key: bool = False) -> None:
         from firmware_models.vehicle import LINK_COORDINATOR, LINK_HIL
         from mars_link.flight.build import make_unit
         from mars_link.processes.vehicle_io import LinkSpec, VehicleSockets, client_links
@@ -632,7 +627,8 @@ class _UnitLoop:
         self.setup, self.unit_id, self.command_timeout_s = setup, unit_id, command_timeout_s
         index = setup.unit_ids.index(unit_id)
         vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
-                            wall_time_s=time.time(), require_signing=require_signing)
+                            wall_time_s=time.time(), require_signing=require_signing, sign_hil=True,
+                            client_links_keyed=not run_key)  # (a per-run key: clients keep the keyless rules)
         links = {} if client.closed else client_links(index, client.gcs_port, client.api_port, client.gcs_bind,
                                                       client.api_bind)
         links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
@@ -744,7 +740,7 @@ class _UnitLoop:
 # ----------------------------------------------------------------------------- coordinator
 def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S,
                     key: bytes | None = None, vehicle=None, timing_log: bool = False,
-                    require_signing: bool = False, view_feed: bool = False) -> int:
+                    require_signing: bool = False, view_feed: bool = False, run_key: bool = False) -> int:
     """Drive the docked assembly; with a signing `key` its link to the units is signed both ways.
     With `vehicle` (mars_link.processes.vehicle_host.VehiclePorts) the assembly is one MAVLink vehicle on those ports
     and its guidance, not the scenario's trajectory, is the coordinator's reference. `timing_log`:
@@ -770,7 +766,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         detector = None if setup.pieces else make_detector(sc, model, float(_start_pose(setup)[0][2]))
         out.mkdir(parents=True, exist_ok=True)
         try:
-            hosted = HostedVehicle(sc, model, detector, vehicle, out, key, require_signing)
+            hosted = HostedVehicle(sc, model, detector, vehicle, out, None if run_key else key, require_signing)
         except UserInputError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2
@@ -1062,6 +1058,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=None)
     ap.add_argument("--speed", type=float, default=None, help="world pacing, x real time (0: as fast as possible)")
     add_signing_args(ap, "the coordinator <-> unit links (neither: unsigned)")
+    ap.add_argument("--run-key", action="store_true",
+                    help="the key is the run's own, for its internal links only: the client links keep the rules "
+                         "of a vehicle without a key")
     ap.add_argument("--gcs-port", type=int, default=14550)
     ap.add_argument("--api-port", default=None, help="the unit's API port, or one per unit of --unit a,b,c")
     ap.add_argument("--gcs-bind", type=int, default=None)
@@ -1169,7 +1168,8 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
             raise UserInputError(f"--api-port {args.api_port}: one port per unit of --unit {args.unit}")
         clients = [UnitPorts(args.gcs_port, api_ports[i] if api_ports else None, args.gcs_bind, args.api_bind,
                              args.no_clients) for i in range(len(units))]
-        return run_units(setup, units, ports, out, clients, key=key, require_signing=args.require_signing)
+        return run_units(setup, units, ports, out, clients, key=key, require_signing=args.require_signing,
+                         run_key=args.run_key)
     vehicle = None
     if args.vehicle:
         from mars_link.processes.vehicle_host import VehiclePorts
@@ -1179,7 +1179,7 @@ def _run_role(args, setup: SitlSetup, ports: Ports, out: Path, key: bytes | None
         vehicle = VehiclePorts(**{k: v for k, v in given.items() if v is not None})
         vehicle.check(setup.unit_ids)
     return run_coordinator(setup, ports, out, key=key, vehicle=vehicle, timing_log=args.timing_log,
-                           require_signing=args.require_signing, view_feed=args.view_feed)
+                           require_signing=args.require_signing, view_feed=args.view_feed, run_key=args.run_key)
 
 
 if __name__ == "__main__":

@@ -38,6 +38,8 @@ class SitlSession:
     router: object | None = None  # zenoh.Session in router mode, or None
     router_endpoint: str | None = None
     wake_latency: object | None = None  # transport.realtime.CpuWakeLatency while a real-time run lasts
+    certificates: object | None = None  # transport.tls.RunCertificates: the run's CA and/or key (removed at close)
+    signing_key_file: str | None = None  # the key the run's own links are signed with (the user's or the run's)
 
     def wait(self, timeout_s: float | None = None, units_may_die: bool = False) -> int:
         from mars_link.processes.launcher import wait
@@ -59,13 +61,17 @@ class SitlSession:
         if self.router is not None:
             self.router.close()
             self.router = None
+        if self.certificates is not None:
+            self.certificates.close()
+            self.certificates = None
 
 
 def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, seed: int | None = None,
                units: int | None = None, layout: str | None = None, realtime: bool = False,
                clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units"),
                topology: str = "peer", signing_key_file: str | None = None, vehicle=None,
-               require_signing: bool = False, view: tuple[str, ...] = (), units_per_process: int = 1) -> SitlSession:
+               require_signing: bool = False, view: tuple[str, ...] = (), units_per_process: int = 1,
+               save_certs: bool = False) -> SitlSession:
     """Start the SITL processes (mars_link.processes.launcher.start) with their links on `link` (default Zenoh).
     `unit_prefix(u)` -> argv to run unit u under (e.g. `ip netns exec NS`); `roles` may leave out the
     coordinator (one started elsewhere attaches).
@@ -73,9 +79,14 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     Zenoh without connect endpoints: `topology` "peer" (default, one hop): the world and the coordinator
     listen on 127.0.0.1, the coordinator connects to the world, units connect to both; "router": this
     process hosts a router session every child joins as a client (two hops; what an external
-    coordinator attaches to). `vehicle` (mars_link.processes.vehicle_host.VehiclePorts): the coordinator serves the
+    coordinator attaches to). Zenoh is a closed bus unless `link.insecure`: mutual TLS with a per-run CA
+    and access control (mars_link.transport.tls; `save_certs`: a copy in `out`/certs), or the user's
+    certificates (`link.tls_ca`...), or the fleet's in `link.tls_dir`. The run's own links are MAVLink-signed
+    with `signing_key_file` (or $MARS_LINK_SIGNING_KEY), else a per-run key in the run's private directory
+    (`SitlSession.signing_key_file`: what a coordinator started elsewhere is given). `vehicle` (mars_link.processes.vehicle_host.VehiclePorts): the coordinator serves the
     assembly as one MAVLink vehicle (its client links on UDP) and the run goes on, paced to real time
     unless `speed` says otherwise, until stopped."""
+    from mars_link.mavlink.signing import load_key
     from mars_link.processes.launcher import ClientPorts, start
     from mars_link.processes.lockstep import load_setup
 
@@ -87,38 +98,64 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
         raise UserInputError("--unit-interface px4-zenoh carries no docking-latch commands: a flight of pieces "
                              "needs the mavlink interface")
     session = SitlSession(None, link)
-    role_links = {role: link for role in ("world", "coordinator", "unit")}
-    if link.kind == "zenoh" and not link.connect:
-        from mars_link.transport.zenoh_link import free_tcp_port, open_router
+    try:  # (the run's certificates and router session are closed on any failure to start)
+        closed = link.kind == "zenoh" and not link.insecure and not link.tls_ca and not link.tls_dir
+        own_key = signing_key_file is None and load_key() is None  # (no user key: a per-run one)
+        if own_key and require_signing:
+            raise UserInputError("--require-signing needs a key the clients share: --signing-key-file or "
+                                 "$MARS_LINK_SIGNING_KEY (the run's own key signs only its internal links)")
+        if closed or own_key:
+            from mars_link.transport.tls import RunCertificates
 
-        if topology == "router" or link.listen:
-            session.router, session.router_endpoint = open_router(listen=link.listen, fleet=link.fleet)
-            link = replace(link, zenoh_mode="client", connect=(session.router_endpoint,), listen=())
-            role_links = {role: link for role in role_links}
-        elif topology == "peer":
-            w, c = (f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2))
-            role_links = {"world": replace(link, zenoh_mode="peer", listen=(w,)),
-                          "coordinator": replace(link, zenoh_mode="peer", listen=(c,), connect=(w,)),
-                          "unit": replace(link, zenoh_mode="peer", connect=(w, c))}
-        else:
-            raise UserInputError(f"zenoh topology {topology!r}: expected peer or router")
-    role_args = {role: spec.to_args() for role, spec in role_links.items()}
-    if realtime or link.kind != "udp":  # the units log the command age at the motor
-        role_args["unit"].append("--command-age")
-    if realtime:  # the coordinator logs its timing
-        role_args["coordinator"].append("--timing-log")
-        for role in ("world", "coordinator", "unit"):  # (mars_link.runtime.scheduling.take_realtime_class)
-            role_args[role].append("--sched-realtime")
-        from mars_link.transport.realtime import CpuWakeLatency
+            ids = list(setup.unit_ids)
+            groups = [ids[i:i + max(1, units_per_process)] for i in range(0, len(ids), max(1, units_per_process))]
+            router = not link.connect and (topology == "router" or bool(link.listen))
+            session.certificates = RunCertificates.create(link.fleet, groups, tls=closed, signing_key=own_key,
+                                                          router=router)
+            if closed:
+                link = session.link = replace(link, tls_dir=str(session.certificates.directory))
+            if own_key:
+                signing_key_file = str(session.certificates.signing_key_file)
+            if save_certs:
+                session.certificates.save(out)
+        session.signing_key_file = signing_key_file
+        role_links = {role: link for role in ("world", "coordinator", "unit")}
+        if link.kind == "zenoh" and not link.connect:
+            from mars_link.transport.tls import files_for
+            from mars_link.transport.zenoh_link import free_tcp_port, open_router
 
-        session.wake_latency = CpuWakeLatency()
-    if vehicle is not None:
-        role_args["coordinator"] += vehicle.argv()
-        speed = 1.0 if speed is None else speed
-    if require_signing:  # the client links of the units and of the vehicle (firmware_models.control_policy)
-        role_args["unit"].append("--require-signing")
-        role_args["coordinator"].append("--require-signing")
-    try:
+            if topology == "router" or link.listen:
+                session.router, session.router_endpoint = open_router(
+                    listen=link.listen, fleet=link.fleet,
+                    tls=files_for(link.tls_dir, link.tls_ca, link.tls_cert, link.tls_key, "router"))
+                link = replace(link, zenoh_mode="client", connect=(session.router_endpoint,), listen=())
+                role_links = {role: link for role in role_links}
+            elif topology == "peer":
+                w, c = (f"tcp/127.0.0.1:{free_tcp_port()}" for _ in range(2))
+                role_links = {"world": replace(link, zenoh_mode="peer", listen=(w,)),
+                              "coordinator": replace(link, zenoh_mode="peer", listen=(c,), connect=(w,)),
+                              "unit": replace(link, zenoh_mode="peer", connect=(w, c))}
+            else:
+                raise UserInputError(f"zenoh topology {topology!r}: expected peer or router")
+        role_args = {role: spec.to_args() for role, spec in role_links.items()}
+        if realtime or link.kind != "udp":  # the units log the command age at the motor
+            role_args["unit"].append("--command-age")
+        if realtime:  # the coordinator logs its timing
+            role_args["coordinator"].append("--timing-log")
+            for role in ("world", "coordinator", "unit"):  # (mars_link.runtime.scheduling.take_realtime_class)
+                role_args[role].append("--sched-realtime")
+            from mars_link.transport.realtime import CpuWakeLatency
+
+            session.wake_latency = CpuWakeLatency()
+        if vehicle is not None:
+            role_args["coordinator"] += vehicle.argv()
+            speed = 1.0 if speed is None else speed
+        if own_key:  # the per-run key signs the internal links only; the client links keep the keyless rules
+            role_args["unit"].append("--run-key")
+            role_args["coordinator"].append("--run-key")
+        if require_signing:  # the client links of the units and of the vehicle (firmware_models.control_policy)
+            role_args["unit"].append("--require-signing")
+            role_args["coordinator"].append("--require-signing")
         session.run = start(scenario, out, units, layout, seed, 1.0 if realtime else speed,
                             clients or ClientPorts(bind_any=True), signing_key_file, role_args=role_args,
                             unit_prefix=unit_prefix, skip=() if "coordinator" in roles else ("coordinator",),
@@ -203,10 +240,11 @@ def _toml(doc: dict) -> str:
 def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSpec | None = None,
                       realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
                       on_progress=None, view: tuple[str, ...] = ("--mcap",), units_per_process: int = 1,
-                      plot_format: str = "png", clients=None) -> dict:
+                      plot_format: str = "png", clients=None, save_certs: bool = False) -> dict:
     """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary
     (`plot_format`: plots/ as png at 300 dpi, pdf or svg). `clients` (launcher.ClientPorts): the units'
-    ground-station ports; None: none at all (a batch run that no client on the machine can reach, arm or steer)."""
+    ground-station ports; None: none at all (a batch run that no client on the machine can reach, arm or steer).
+    `save_certs`: a copy of the run's secrets in `out`/certs."""
     from mars_link.processes.launcher import ClientPorts
 
     link = link or LinkSpec("zenoh")
@@ -224,7 +262,7 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     copy = write_scenario_copy(_absolute_paths(scenario), out / "scenario.toml")
     wall0 = time.perf_counter()
     session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view, units_per_process=units_per_process,
-                         clients=clients or ClientPorts(bind_any=True, closed=True))
+                         clients=clients or ClientPorts(bind_any=True, closed=True), save_certs=save_certs)
     watcher = _ProgressWatcher(out / "world_status.json", scenario, on_progress)
     try:
         with _sigterm_as_interrupt():
@@ -428,6 +466,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     summary = summarize(scenario, [result], seed, mode="sitl")
     summary["sitl"] = {
         "transport": link.kind,
+        "bus": link.bus(),
         "link_profile": link.profile,
         "world_real_time_factor": world.get("real_time_factor"),
         "world_cores_idle_fraction": world.get("cores_idle_fraction"),
@@ -551,7 +590,7 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
         "start": scenario.start, "assembled": "assembly_done" in kinds,
         "pieces_final": coordinator.get("pieces_final", []), "bodies_final": world.get("bodies", []),
         "plan": coordinator.get("plan"), "events": [dict(e, trial=0) for e in events],
-        "sitl": {"transport": link.kind, "realtime": realtime, "world_real_time_factor": world.get("real_time_factor"),
+        "sitl": {"transport": link.kind, "bus": link.bus(), "realtime": realtime, "world_real_time_factor": world.get("real_time_factor"),
                  "world_cores_idle_fraction": world.get("cores_idle_fraction"),
                  "dead_units": world.get("dead_units", []), "world_dropped": world.get("dropped", {}),
                  "coordinator_dropped": coordinator.get("dropped", {}), "lost_units": coordinator.get("lost_units", [])},
@@ -779,7 +818,19 @@ def link_from_args(args) -> LinkSpec:
 
     if not re.match(r"^[A-Za-z0-9_-]+$", fleet):
         raise UserInputError(f"--fleet {fleet!r}: letters, digits, _ and - only")
-    link = LinkSpec(kind, fleet, "client", connect, listen, profile,
+    from mars_link.transport.tls import check_user_files
+
+    insecure = bool(getattr(args, "insecure", False))
+    tls_ca, tls_cert, tls_key = (getattr(args, name, None) for name in ("tls_ca", "tls_cert", "tls_key"))
+    problem = check_user_files(tls_ca, tls_cert, tls_key)
+    if problem:
+        raise UserInputError(problem)
+    if tls_ca and (insecure or kind != "zenoh"):
+        raise UserInputError("--tls-ca/--tls-cert/--tls-key need the closed Zenoh bus (--transport zenoh without --insecure)")
+    if tls_ca:
+        tls_ca, tls_cert, tls_key = (str(Path(f).resolve()) for f in (tls_ca, tls_cert, tls_key))
+    link = LinkSpec(kind, fleet, "client", connect, listen, profile, insecure=insecure,
+                    tls_ca=tls_ca, tls_cert=tls_cert, tls_key=tls_key,
                     unit_interface=getattr(args, "unit_interface", None))
     if link.unit_interface:
         link.check_unit_interface(link.unit_interface)
@@ -804,7 +855,7 @@ def sitl_runner(args):
         try:
             return run_sitl_scenario(scenario, out, seed, link, realtime=args.realtime, on_progress=cb, view=view,
                                      units_per_process=args.units_per_process, plot_format=plot_format,
-                                     clients=clients)
+                                     clients=clients, save_certs=getattr(args, "save_certs", False))
         except RuntimeError as e:
             raise UserInputError(str(e)) from None
 
@@ -850,7 +901,8 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
                              realtime=args.realtime, clients=clients, speed=args.speed, roles=roles,
                              topology="router" if args.external_coordinator else "peer",
                              signing_key_file=args.signing_key_file, vehicle=vehicle,
-                             require_signing=require_signing, view=view, units_per_process=args.units_per_process)
+                             require_signing=require_signing, view=view, units_per_process=args.units_per_process,
+                             save_certs=getattr(args, "save_certs", False) or bool(args.external_coordinator))
         for line in _endpoints(session, link):
             print(line, flush=True)
         if vehicle is not None:
@@ -858,7 +910,10 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
         if link.kind == "zenoh":
             where = session.router_endpoint or ", ".join(link.connect) or "none (peers: world and coordinator listen on 127.0.0.1)"
             print(f"zenoh: fleet {link.fleet!r}, router {where}" + (f" (+ {', '.join(link.listen)})" if link.listen else "")
-                  + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>", flush=True)
+                  + f"; keys mars/{link.fleet}/unit/<id>/mavlink/up|down/<node>; bus {session.link.bus()}", flush=True)
+        own_key = session.certificates is not None and session.certificates.signing_key_file is not None
+        print(f"internal links: MAVLink-signed with {'a per-run key' if own_key else 'your key'}"
+              + (f" (saved in {out / 'certs'})" if own_key and (out / "certs").exists() else ""), flush=True)
         if (link.unit_interface or session.run.setup.scenario.unit_interface) == "px4-zenoh":
             print("px4: every unit speaks PX4 v1.17's per-rotor interface over rmw_zenoh (domain 0): subscribes "
                   "/px4_<unit id>/fmu/in/{offboard_control_mode,actuator_motors,vehicle_command}, publishes "
@@ -868,8 +923,18 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
             attach = f"mars-link coordinator {scenario_path or ''} --out {out}"
             if args.signing_key_file:
                 attach += f" --signing-key-file {Path(args.signing_key_file).resolve()}"
+            elif session.certificates is not None and session.certificates.signing_key_file is not None:
+                attach += f" --signing-key-file {out.resolve() / 'certs' / 'signing.key'}"  # (the run's own, saved)
             attach += (f" --transport zenoh --zenoh-connect {(link.listen or (session.router_endpoint,))[0]}" if link.kind == "zenoh"
                        else f" --transport udp --world-port {session.run.world_port} --coordinator-port {session.run.coordinator_port}")
+            if session.link.tls_dir:  # the run's certificates were saved for it (mars_link.transport.tls)
+                certs = out.resolve() / "certs"
+                attach += (f" --tls-ca {certs / 'ca.crt'} --tls-cert {certs / 'coordinator.crt'}"
+                           f" --tls-key {certs / 'coordinator.key'}")
+            elif session.link.tls_ca:
+                attach += " --tls-ca CA --tls-cert CERT --tls-key KEY"
+            elif link.kind == "zenoh":
+                attach += " --insecure"
             print(f"waiting for a coordinator: {attach}", flush=True)
         steps = session.run.setup.steps
         control_hz = session.run.setup.scenario.sim.control_hz
@@ -926,6 +991,9 @@ def cmd_coordinator(args) -> int:
     link = link_from_args(args)
     if link.kind == "zenoh" and not link.connect:
         raise UserInputError("coordinator --transport zenoh needs --zenoh-connect ENDPOINT (the router `sitl up` prints)")
+    if link.kind == "zenoh" and not link.insecure and not link.tls_ca:
+        raise UserInputError("coordinator --transport zenoh needs --tls-ca/--tls-cert/--tls-key (the certificates "
+                             "`sitl up` saved in RUN_DIR/certs) or --insecure (an open bus)")
     if link.kind == "udp" and not (0 < args.world_port < 65536 and 0 < args.coordinator_port < 65536):
         raise UserInputError("coordinator --transport udp needs --world-port and --coordinator-port (printed by sitl up)")
     from mars_link.processes.lockstep import main as lockstep_main

@@ -31,6 +31,22 @@ class LinkSpec:
     seed: int = 0                          # link-profile randomness (mixed with each link's name)
     unit_interface: str | None = None      # how the coordinator commands the units: "mavlink" | "px4-zenoh"
     # (PX4's own per-rotor interface over rmw_zenoh, zenoh only); None: the scenario's [units] interface
+    insecure: bool = False                 # zenoh: plain TCP, no access control (`--insecure`)
+    tls_dir: str | None = None             # zenoh: the run's CA, per-role certificates and ACL (transport.tls)
+    tls_ca: str | None = None              # zenoh: the user's CA, certificate and key (several hosts; mTLS, no ACL)
+    tls_cert: str | None = None
+    tls_key: str | None = None
+
+    @property
+    def closed_bus(self) -> bool:
+        """Whether the Zenoh sessions use mutual TLS (a run's CA or the user's certificates)."""
+        return self.kind == "zenoh" and bool(self.tls_dir or self.tls_ca)
+
+    def bus(self) -> str:
+        """What summary.json says of the bus: `tls+acl`, `tls` (the user's certificates), `insecure`, `udp`."""
+        if self.kind != "zenoh":
+            return self.kind
+        return "tls+acl" if self.tls_dir else "tls" if self.tls_ca else "insecure"
 
     def to_args(self) -> list[str]:
         args = ["--transport", self.kind]
@@ -40,6 +56,11 @@ class LinkSpec:
                 args += ["--zenoh-connect", e]
             for e in self.listen:
                 args += ["--zenoh-listen", e]
+            if self.tls_dir:
+                args += ["--tls-dir", self.tls_dir]
+            for option, value in (("--tls-ca", self.tls_ca), ("--tls-cert", self.tls_cert), ("--tls-key", self.tls_key)):
+                if value:
+                    args += [option, value]
         if self.profile:
             args += ["--link-profile", self.profile]
         if self.unit_interface:
@@ -67,12 +88,17 @@ def add_link_args(ap) -> None:
                     help="how the coordinator commands the units: mavlink (SET_ACTUATOR_CONTROL_TARGET) or px4-zenoh "
                          "(PX4 v1.17's OffboardControlMode + ActuatorMotors over rmw_zenoh; needs --transport zenoh); "
                          "default: the scenario's [units] interface")
+    ap.add_argument("--tls-dir", default=None, help="the run's CA, certificates and ACL (mars_link.transport.tls)")
+    ap.add_argument("--tls-ca", default=None)
+    ap.add_argument("--tls-cert", default=None)
+    ap.add_argument("--tls-key", default=None)
 
 
 def spec_from_args(args) -> LinkSpec:
     return LinkSpec(args.transport, args.fleet, args.zenoh_mode, tuple(args.zenoh_connect),
                     tuple(args.zenoh_listen), args.link_profile,
-                    unit_interface=getattr(args, "unit_interface", None))
+                    unit_interface=getattr(args, "unit_interface", None), tls_dir=args.tls_dir, tls_ca=args.tls_ca,
+                    tls_cert=args.tls_cert, tls_key=args.tls_key)
 
 
 __all__ = ["add_link_args", "spec_from_args", "Address", "Counters", "LinkSpec", "Transport", "TRANSPORTS"]

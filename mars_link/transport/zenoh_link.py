@@ -35,6 +35,8 @@ from dataclasses import dataclass
 import zenoh
 
 from mars_link.transport.base import Address, Transport
+from mars_link.transport.tls import TlsFiles, secure_endpoint
+from mars_link.transport import tls as closed_bus
 
 _NAME = re.compile(r"^[A-Za-z0-9_-]+$")
 _UNIT = re.compile(r"^unit/(\d{1,3})$")
@@ -55,6 +57,7 @@ class ZenohParams:
     validate_frames: bool = True         # drop bad MAVLink frames here (counted), pass whole valid ones
     first_send_wait_s: float = 0.0       # first frame to a node: wait up to this long for it to subscribe
     limits: SessionLimits | None = None  # None: SessionLimits() (see there)
+    tls: TlsFiles | None = None          # mutual TLS (+ access control): tcp/ endpoints become tls/ (transport.tls)
 
 
 @dataclass(frozen=True)
@@ -89,8 +92,12 @@ def make_config(p: ZenohParams) -> zenoh.Config:
         cfg.insert_json5(key, json.dumps(value))
 
     put("mode", p.mode)
-    put("listen/endpoints", list(p.listen))
-    put("connect/endpoints", list(p.connect))
+    listen, connect = list(p.listen), list(p.connect)
+    if p.tls is not None:
+        listen, connect = [secure_endpoint(e) for e in listen], [secure_endpoint(e) for e in connect]
+        closed_bus.apply(put, p.tls)
+    put("listen/endpoints", listen)
+    put("connect/endpoints", connect)
     put("scouting/multicast/enabled", bool(p.multicast_scouting))
     put("scouting/gossip/enabled", bool(p.gossip))
     limits = p.limits or SessionLimits()
@@ -300,10 +307,11 @@ class _WakeFd:
                     end.close()
 
 
-def open_router(port: int | None = None, listen: tuple[str, ...] = (), fleet: str = "default") -> tuple[zenoh.Session, str]:
+def open_router(port: int | None = None, listen: tuple[str, ...] = (), fleet: str = "default",
+                tls: TlsFiles | None = None) -> tuple[zenoh.Session, str]:
     """A router-mode session (no zenohd needed) that SITL clients connect to; returns it and its endpoint.
     The caller closes it."""
     port = port or free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    cfg = make_config(ZenohParams(node="router", fleet=fleet, mode="router", listen=(endpoint, *listen)))
+    cfg = make_config(ZenohParams(node="router", fleet=fleet, mode="router", listen=(endpoint, *listen), tls=tls))
     return open_session(cfg), endpoint

@@ -1,7 +1,8 @@
 """Distributed SITL: the six units of a 3x2 run in their own network namespaces, joined to the host by
 veth pairs on a bridge the test creates; Zenoh over TCP between them (the host's router listens on the
 bridge); the coordinator is `mars-link coordinator`, started on its own and attaching to the running
-units. The hover is the same flight as in-process. Then three hosts: world (and router), coordinator,
+units. The bus is closed (mutual TLS with the fleet's CA, the router enforcing the access-control list;
+every internal MAVLink link signed). The hover is the same flight as in-process. Then three hosts: world (and router), coordinator,
 and the units split across two more namespaces. Skipped where namespaces cannot be made (needs
 root and `ip`); everything the test makes is removed afterwards."""
 
@@ -23,6 +24,7 @@ from mars_link.flight.runner import run_scenario
 from mars_link.config.scenario import load_scenario
 from mars_link.processes.sitl_mode import start_sitl, summarize_sitl_run
 from mars_link.transport import LinkSpec
+from mars_link.transport.tls import RunCertificates, files_for
 from mars_link.transport.zenoh_link import free_tcp_port, open_router
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -82,8 +84,11 @@ def _fly(tmp_path: Path, host_ip: str, unit_prefix, coordinator_prefix: list[str
     sc = load_scenario(str(HOVER))
     sc.sim.duration_s = 1.5
     port = free_tcp_port(host_ip)
-    endpoint = f"tcp/{host_ip}:{port}"
-    router, _ = open_router(listen=(endpoint,), fleet="netns")
+    endpoint = f"tcp/{host_ip}:{port}"  # (a closed bus: every process makes it tls/ on the same address)
+    # the fleet's CA and per-role certificates, as a user would make them for several hosts; the router
+    # enforces the access-control list on every host's session
+    certs = RunCertificates.create("netns", [[u] for u in UNITS], router=True)
+    router, _ = open_router(listen=(endpoint,), fleet="netns", tls=files_for(str(certs.directory), None, None, None, "router"))
     out = tmp_path / "sitl"
     coordinator = None
     try:
@@ -91,11 +96,15 @@ def _fly(tmp_path: Path, host_ip: str, unit_prefix, coordinator_prefix: list[str
 
         out.mkdir()
         copy = write_scenario_copy(sc, out / "scenario.toml")
-        link = LinkSpec("zenoh", fleet="netns", connect=(endpoint,))  # every process reaches the router on the bridge
+        link = LinkSpec("zenoh", fleet="netns", connect=(endpoint,),  # every process reaches the router on the bridge
+                        tls_dir=str(certs.directory))
         session = start_sitl(str(copy), out, link, seed=4, unit_prefix=unit_prefix, roles=("world", "units"))
+        tls = [f"--tls-{what}={certs.directory / name}" for what, name in
+               (("ca", "ca.crt"), ("cert", "coordinator.crt"), ("key", "coordinator.key"))]
         with open(out / "coordinator.log", "w") as log:
             coordinator = subprocess.Popen([*coordinator_prefix, sys.executable, "-m", "mars_link.apps.cli", "coordinator",
-                                            str(copy), "--fleet", "netns", "--zenoh-connect", endpoint, "--out", str(out)],
+                                            str(copy), "--fleet", "netns", "--zenoh-connect", endpoint, "--out", str(out),
+                                            *tls, "--signing-key-file", session.signing_key_file],
                                            cwd=ROOT, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL)
         time.sleep(1.0)
         check_namespaces(session, coordinator)
@@ -106,6 +115,7 @@ def _fly(tmp_path: Path, host_ip: str, unit_prefix, coordinator_prefix: list[str
             coordinator.kill()
             coordinator.wait()
         router.close()
+        certs.close()
     assert code == 0, [(out / f"{n}.log").read_text()[-300:] for n in session.run.processes]
     assert json.loads((out / "coordinator_summary.json").read_text())["lost_units"] == []
     sitl = summarize_sitl_run(sc, out, 4, 0.0, link, plots=False)
