@@ -109,8 +109,14 @@ def access_control(fleet: str, unit_groups: list[list[int]], router: bool = Fals
     a publisher where to send, and the put rules still decide what it may send there. `router`: the run
     hosts a router session (it forwards everything; only then is its CN named at all)."""
     f = f"mars/{fleet}"
+    # PX4's per-rotor interface (mars_link.px4, rmw_zenoh keys, domain 0): the coordinator writes each unit's
+    # /px4_<id>/fmu/in/*, a unit its own /fmu/out/*; liveliness tokens (discovery only) are everyone's
+    px4_in, px4_out = "0/px4_{}/fmu/in/**", "0/px4_{}/fmu/out/**"
     rules: list[dict] = [{"id": "announce", "messages": ["declare_subscriber"], "flows": ["egress"],
-                          "permission": "allow", "key_exprs": [f"{f}/**"]}]
+                          "permission": "allow", "key_exprs": [f"{f}/**", "0/px4_$*/fmu/**"]},
+                         {"id": "discovery", "messages": ["liveliness_token", "declare_liveliness_subscriber",
+                                                          "liveliness_query"],
+                          "flows": ["ingress", "egress"], "permission": "allow", "key_exprs": ["@ros2_lv/**"]}]
     subjects: list[dict] = []
     policies: list[dict] = []
     if router:
@@ -127,16 +133,19 @@ def access_control(fleet: str, unit_groups: list[list[int]], router: bool = Fals
         rules.append({"id": f"{name}-subscribe", "messages": ["declare_subscriber"], "flows": ["ingress"],
                       "permission": "allow", "key_exprs": receives})
         subjects.append({"id": name, "cert_common_names": cns})
-        policies.append({"rules": ["announce", f"{name}-publish", f"{name}-receive", f"{name}-subscribe"],
+        policies.append({"rules": ["announce", "discovery", f"{name}-publish", f"{name}-receive", f"{name}-subscribe"],
                          "subjects": [name]})
 
-    for node in ("world", "coordinator"):
-        role(node, [node], [f"{f}/unit/*/mavlink/down/{node}", f"{f}/*/mavlink/down/{node}"],
-             [f"{f}/{node}/mavlink/down/*", f"{f}/unit/*/mavlink/up/{node}"])
+    role("world", ["world"], [f"{f}/unit/*/mavlink/down/world", f"{f}/*/mavlink/down/world"],
+         [f"{f}/world/mavlink/down/*", f"{f}/unit/*/mavlink/up/world"])
+    role("coordinator", ["coordinator"],
+         [f"{f}/unit/*/mavlink/down/coordinator", f"{f}/*/mavlink/down/coordinator", px4_in.format("$*")],
+         [f"{f}/coordinator/mavlink/down/*", f"{f}/unit/*/mavlink/up/coordinator", px4_out.format("$*")])
     for group in unit_groups:
         name = "units-" + "-".join(map(str, group))
-        role(name, [f"unit-{u}" for u in group], [f"{f}/unit/{u}/mavlink/up/*" for u in group],
-             [f"{f}/unit/{u}/mavlink/down/*" for u in group])
+        role(name, [f"unit-{u}" for u in group],
+             [f"{f}/unit/{u}/mavlink/up/*" for u in group] + [px4_out.format(u) for u in group],
+             [f"{f}/unit/{u}/mavlink/down/*" for u in group] + [px4_in.format(u) for u in group])
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 

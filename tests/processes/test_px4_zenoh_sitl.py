@@ -139,7 +139,7 @@ def test_plain_zenoh_client_arms_and_drives_a_sitl_up_unit(tmp_path: Path) -> No
     port = _free_port()
     out = tmp_path / "up"
     proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "--units", "1", "--speed", "1",
-                             "--transport", "zenoh", "--unit-interface", "px4-zenoh",
+                             "--transport", "zenoh", "--insecure", "--unit-interface", "px4-zenoh",
                              "--zenoh-listen", f"tcp/127.0.0.1:{port}", "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     session = client = None
@@ -219,7 +219,7 @@ def test_plain_zenoh_session_sees_a_run_drive_its_units_through_px4(tmp_path: Pa
     port = _free_port()
     out = tmp_path / "run"
     proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_3x2", "--mode", "sitl",
-                             "--duration", "1", "--transport", "zenoh", "--unit-interface", "px4-zenoh",
+                             "--duration", "1", "--transport", "zenoh", "--insecure", "--unit-interface", "px4-zenoh",
                              "--zenoh-listen", f"tcp/127.0.0.1:{port}", "--out", str(out)],
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     session = None
