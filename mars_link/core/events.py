@@ -56,6 +56,8 @@ class EventKind(StrEnum):
     RELEASED = "released"
     MISSION_RESUMED = "mission_resumed"
     FOLLOWING = "following"
+    # the run itself
+    FOREIGN_TRAFFIC = "foreign_traffic"
 
     @property
     def meaning(self) -> str:
@@ -102,12 +104,19 @@ MEANINGS: dict[EventKind, str] = {
     EventKind.RELEASED: "the world split a body (latches open)",
     EventKind.MISSION_RESUMED: "the mission resumes after a manoeuvre: the time shift",
     EventKind.FOLLOWING: "the vehicle follows another piece (its units)",
+    EventKind.FOREIGN_TRAFFIC: "command or mission traffic from a source other than the coordinator reached a unit "
+                               "(sender, message, count); a batch run records it and flies on",
 }
 
 
 def event(t_s: float, kind: str, **fields) -> dict:
     """One event record: {"t_s", "type", **fields} (`text`, when given, is one of the fields)."""
     return {"t_s": round(t_s, 6), "type": str(kind), **fields}
+
+
+def unit_died(t_s: float, unit: int) -> dict:
+    """The `unit_died` record, one text wherever the death is seen (the engine, the SITL world)."""
+    return event(t_s, EventKind.UNIT_DIED, unit=unit, text=f"Unit {unit} died: motors off")
 
 
 def unknown_kinds(records) -> set[str]:

@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 
 from firmware_models.vehicle import MODE_OFFBOARD
-from mars_link.core.events import EventKind, event
+from mars_link.core.events import EventKind, event, unit_died
 from mars_link.core.assembly import AssemblyModel
 from mars_link.coordination.coordinator import Coordinator
 from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
@@ -242,7 +242,7 @@ class Engine:
         while self._deaths and self._deaths[0][0] <= t + 1e-9:
             _, u = self._deaths.pop(0)
             f.units.kill(u)
-            self.events.append(event(t, EventKind.UNIT_DIED, unit=u, text=f"Unit {u} process died"))
+            self.events.append(unit_died(t, u))
 
     def _record_fault(self, fault: FaultSpec, t: float) -> None:
         """A scenario fault came due (the unit's motor model applies it): an event; told to the coordinator

@@ -89,6 +89,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from mars_link.mavlink.signing import add_signing_args, signing_from_args
 from mars_link.processes.parent_watch import die_with_parent
+from mars_link.core.events import unit_died
 from mars_link.core.errors import EnvironmentFailure, UserInputError
 from mars_link.runtime.machine_load import IdleMeter, LoopMeter
 from mars_link.core.messages import BatterySample, SensorPacket
@@ -435,8 +436,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             for unit in sorted(waiting):  # silent units are dead: motors off, the flight goes on
                 world.declare_dead(unit)
                 live.discard(unit)
-                deaths.append({"unit": unit, "t_s": round(t, 6), "type": "unit_died",
-                               "text": f"Unit {unit} silent: motors off"})
+                deaths.append(unit_died(t, unit))
                 print(f"world: unit {unit} silent for {unit_timeout_s:.1f} s at t={t:.2f}: declared dead", file=sys.stderr)
             world.advance()
             k += 1

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mars_link.core.events import EventKind, event, unit_died
 from mars_link.core.errors import Terminated, UserInputError
 from mars_link.transport import LinkSpec
 
@@ -447,8 +448,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     no_rows = metrics.n == 0  # (the world logged nothing: NaN figures, never a clean 0 m)
     coord_events = coordinator.get("events", [])
     for death in world.get("deaths", []):
-        events.append({"t_s": death["t_s"], "type": "unit_died", "unit": death["unit"],
-                       "text": f"Unit {death['unit']} silent: motors off"})
+        events.append(unit_died(death["t_s"], death["unit"]))
     events += foreign_traffic_events(out, model.unit_ids)
     end_reason = _end_reason(scenario, trajectory, world, (metrics.divergence or {}).get("t_s") if metrics.diverged
                              else None, failure)
@@ -499,7 +499,7 @@ def foreign_traffic_events(out: Path, unit_ids) -> list[dict]:
     events = []
     for unit in unit_ids:
         for f in _read_json(out / f"unit{unit}_status.json").get("foreign_traffic") or []:
-            events.append({"type": "foreign_traffic", "unit": unit, **f,
+            events.append({"type": EventKind.FOREIGN_TRAFFIC.value, "unit": unit, **f,  # (a count over the run: no t_s)
                            "text": f"Unit {unit}: {f['message']} x{f['count']} from system {f['sysid']} on {f['link']}"})
     return events
 
@@ -563,10 +563,9 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
             values = (float(row["t_s"]), mission_t, *ref, *pos, err, n_pieces)
             tel.write(",".join(f"{x:.6g}" for x in values) + "\n")
             telemetry_rows.append(values)
-    faults = [{"t_s": round(f.t_s, 6), "type": "fault", "unit": f.unit, "rotor": f.rotor, "eta": f.eta,
-               "text": f.event_text()} for f in scenario.faults]
-    deaths = [{"t_s": d["t_s"], "type": "unit_died", "unit": d["unit"], "text": f"Unit {d['unit']} silent: motors off"}
-              for d in world.get("deaths", [])]
+    faults = [event(f.t_s, EventKind.FAULT, unit=f.unit, rotor=f.rotor, eta=f.eta, text=f.event_text())
+              for f in scenario.faults]
+    deaths = [unit_died(d["t_s"], d["unit"]) for d in world.get("deaths", [])]
     latched = [e for e in world.get("latch_events", []) if e["type"] == "dock_latched"]
     events = sorted(coordinator.get("events", []) + latched + faults + deaths
                     + foreign_traffic_events(out, scenario.model().unit_ids), key=lambda e: e["t_s"])

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mars_link.core.events import EventKind, event
 from mars_link.core.errors import UserInputError
 from mars_link.models.estimation_outdoor import estimate_settled, step_estimator
 from mars_link.core.messages import RotorCommand, SensorPacket
@@ -198,7 +199,7 @@ class HostedVehicle:
         self._unit_commands.setdefault(unit, []).append(mavlink.MAVLink_command_long_message(
             unit, 1, mavlink.MAV_CMD_INJECT_FAILURE, 0, FAILURE_UNIT_SYSTEM_MOTOR, kind, rotor or 0, 0, 0, 0, 0))
         t = self.vehicle.sim_s
-        self.vehicle.report_event({"t_s": round(t, 6), "type": "fault", "unit": unit, "rotor": rotor, "eta": eta})
+        self.vehicle.report_event(event(t, EventKind.FAULT, unit=unit, rotor=rotor, eta=eta))
         if self.scenario.faults_known and self.flight is not None:
             self.flight.tell_fault(unit, rotor, eta, t)
         elif self.scenario.faults_known:
@@ -242,7 +243,7 @@ class HostedVehicle:
             self.sensor_watch.update(t_s)
         if ekf.stats.position_resets > self.estimator_resets:
             self.estimator_resets = ekf.stats.position_resets
-            self.vehicle.report_event({"t_s": round(t_s, 6), "type": "estimator_reset", "text": "EKF reset on positions"})
+            self.vehicle.report_event(event(t_s, EventKind.ESTIMATOR_RESET, text="EKF reset on positions"))
         return est
 
     def write_status(self) -> None:
