@@ -601,6 +601,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="with --vehicle: its ground-station port (default: --gcs-port, 14550)")
     _add_map(up, "with --vehicle")
     _add_view(up, " (served by the world process)")
+    _add_plot_format(up)
     _add_link(up, "the world, the units and the coordinator (the clients' links are UDP either way)")
     _add_sitl_processes(up, "pace the world to the wall clock")
     up.add_argument("--external-coordinator", action="store_true",

@@ -895,6 +895,7 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
 
     signal.signal(signal.SIGTERM, interrupt)
     session = None
+    wall0 = time.perf_counter()
     try:
         session = start_sitl(scenario_path, out, link, args.seed, units=args.units, layout=args.layout,
                              realtime=args.realtime, clients=clients, speed=args.speed, roles=roles,
@@ -944,15 +945,44 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
         if early:
             print(f"sitl: the flight ended early: {early}", file=sys.stderr)
             code = 1
+        _finish_sitl_up(session, args, out, time.perf_counter() - wall0, None if code == 0 else early or
+                        f"a process of the run died (exit {code})", vehicle is not None)
         print(f"run directory: {out}")
         return code
     except KeyboardInterrupt as exc:
         print("sitl: interrupted, stopping every child", file=sys.stderr)
         if session is not None:
             session.stop()
+            _finish_sitl_up(session, args, out, time.perf_counter() - wall0,
+                            f"interrupted by {'SIGTERM' if isinstance(exc, Terminated) else 'SIGINT'}", vehicle is not None)
         return 143 if isinstance(exc, Terminated) else 130
     finally:
         signal.signal(signal.SIGTERM, previous)
+
+
+def _finish_sitl_up(session: SitlSession, args, out: Path, wall_s: float, failure: str | None,
+                    vehicle: bool) -> None:
+    """`sitl up` ends as `run` does: summary.json, telemetry.csv, rotors.csv, plots/ (beside the run.mcap and
+    the processes' logs) and the one-screen table, from what the processes logged. Never a traceback:
+    a run whose world logged nothing yet, or an unexpected gap in the logs, is one line. With `--vehicle`
+    the clients' commands are the reference, not the scenario's trajectory: no tracking figures then."""
+    if vehicle or not (out / "world_truth.csv").exists() or not (out / "world_summary.json").exists():
+        return
+    scenario = session.run.setup.scenario
+    seed = scenario.sim.seed if args.seed is None else args.seed
+    try:
+        if scenario.has_pieces:
+            summary = summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link, args.realtime,
+                                                plot_format=getattr(args, "plot_format", "png"), failure=failure)
+        else:
+            summary = summarize_sitl_run(scenario, out, seed, wall_s, session.link, True, args.realtime,
+                                         plot_format=getattr(args, "plot_format", "png"), failure=failure)
+    except Exception as exc:  # (after the flight: what the logs cannot give is one line, never a traceback)
+        print(f"sitl: no summary of this run ({type(exc).__name__}: {exc})", file=sys.stderr)
+        return
+    from mars_link.flight.report import print_summary
+
+    print_summary(summary, out)
 
 
 def _sitl_up_ended_early(out: Path, steps: int | None, control_hz: float) -> str | None:
