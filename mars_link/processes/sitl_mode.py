@@ -410,14 +410,19 @@ def _end_reason(scenario, trajectory, world: dict, diverged_at: float | None, fa
 
 def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True,
                        realtime: bool = False, cpu_wake_latency: str | None = None, plot_format: str = "png",
-                       failure: str | None = None) -> dict:
-    """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them."""
+                       failure: str | None = None, tracked: bool = True) -> dict:
+    """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them.
+    `tracked` False (`sitl up --vehicle`: the clients' commands are the reference, not the scenario's
+    trajectory): no tracking error (null figures, NaN reference columns), and stopping it is its end."""
     from mars_link.flight.build import make_trajectory, tracked_offset
     from mars_link.flight.metrics import TrackingMetrics, TrialResult, summarize
     from mars_link.core.rotations import quat_to_euler, quat_to_rotmat
     from mars_link.logs.outputs import write_json
     from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
 
+    from mars_link.core.rotations import tilt_deg
+
+    tracking = tracked
     model = scenario.model()
     trajectory = make_trajectory(scenario, model)
     offset = tracked_offset(model, scenario)
@@ -434,9 +439,14 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
             pos = np.array([row["pos_n_m"], row["pos_e_m"], row["pos_d_m"]])
             q = np.array([row["qw"], row["qx"], row["qy"], row["qz"]])
             tracked = pos + quat_to_rotmat(q) @ offset
-            ref = trajectory.sample(t).position_ned_m
-            err, _ = metrics.add(t, tracked, ref, q)
             roll, pitch, yaw = quat_to_euler(q)
+            if tracking:
+                ref = trajectory.sample(t).position_ned_m
+                err, _ = metrics.add(t, tracked, ref, q)
+            else:
+                ref, err = nan3, math.nan
+                metrics.n += 1
+                metrics.max_tilt_deg = max(metrics.max_tilt_deg, tilt_deg(q))
             log.telemetry([0, t, *ref, *tracked, math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
                            *nan3, *nan3, *pos])
             if metrics.diverged:
@@ -451,7 +461,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         events.append(unit_died(death["t_s"], death["unit"]))
     events += foreign_traffic_events(out, model.unit_ids)
     end_reason = _end_reason(scenario, trajectory, world, (metrics.divergence or {}).get("t_s") if metrics.diverged
-                             else None, failure)
+                             else None, failure) if tracking else failure
     result = TrialResult(
         seed=seed, completed=end_reason is None, end_reason=end_reason, diverged=metrics.diverged,
         mean_error_m=math.nan if no_rows else metrics.mean_error_m, rmse_m=math.nan if no_rows else metrics.rmse_m,
@@ -464,6 +474,8 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         detections=_detections(scenario, coordinator, world),
     )
     summary = summarize(scenario, [result], seed, mode="sitl")
+    if not tracking:
+        summary.update(mode="sitl-vehicle", mean_error_m=None, mean_error_std_m=None, rmse_m=None, max_error_m=None)
     summary["sitl"] = {
         "transport": link.kind,
         "bus": link.bus(),
@@ -953,8 +965,9 @@ def sitl_up_command(args, scenario_path: str | None, out: Path, link: LinkSpec, 
         print("sitl: interrupted, stopping every child", file=sys.stderr)
         if session is not None:
             session.stop()
-            _finish_sitl_up(session, args, out, time.perf_counter() - wall0,
-                            f"interrupted by {'SIGTERM' if isinstance(exc, Terminated) else 'SIGINT'}", vehicle is not None)
+            stopped_by = f"interrupted by {'SIGTERM' if isinstance(exc, Terminated) else 'SIGINT'}"
+            _finish_sitl_up(session, args, out, time.perf_counter() - wall0, None if vehicle is not None else stopped_by,
+                            vehicle is not None)
         return 143 if isinstance(exc, Terminated) else 130
     finally:
         signal.signal(signal.SIGTERM, previous)
@@ -965,8 +978,9 @@ def _finish_sitl_up(session: SitlSession, args, out: Path, wall_s: float, failur
     """`sitl up` ends as `run` does: summary.json, telemetry.csv, rotors.csv, plots/ (beside the run.mcap and
     the processes' logs) and the one-screen table, from what the processes logged. Never a traceback:
     a run whose world logged nothing yet, or an unexpected gap in the logs, is one line. With `--vehicle`
-    the clients' commands are the reference, not the scenario's trajectory: no tracking figures then."""
-    if vehicle or not (out / "world_truth.csv").exists() or not (out / "world_summary.json").exists():
+    the clients' commands are the reference, not the scenario's trajectory: no tracking figures then, and
+    Ctrl-C is how it ends (completed)."""
+    if not (out / "world_truth.csv").exists() or not (out / "world_summary.json").exists():
         return
     scenario = session.run.setup.scenario
     seed = scenario.sim.seed if args.seed is None else args.seed
@@ -976,7 +990,8 @@ def _finish_sitl_up(session: SitlSession, args, out: Path, wall_s: float, failur
                                                 plot_format=getattr(args, "plot_format", "png"), failure=failure)
         else:
             summary = summarize_sitl_run(scenario, out, seed, wall_s, session.link, True, args.realtime,
-                                         plot_format=getattr(args, "plot_format", "png"), failure=failure)
+                                         plot_format=getattr(args, "plot_format", "png"), failure=failure,
+                                         tracked=not vehicle)
     except Exception as exc:  # (after the flight: what the logs cannot give is one line, never a traceback)
         print(f"sitl: no summary of this run ({type(exc).__name__}: {exc})", file=sys.stderr)
         return
