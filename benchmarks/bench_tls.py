@@ -5,7 +5,7 @@ TCP), alternated within one invocation, on the SITL's two clocks:
   (sensor sample -> unit -> coordinator -> unit -> motors; mars_link.processes.sitl_mode's command_age);
 - lockstep (as fast as the processes go): the world's real-time factor (simulated s per wall s).
 
-    python benchmarks/bench_tls.py [--runs 2] [--scenario hover_3x2] [--realtime-s 10] [--lockstep-s 4]
+    python benchmarks/bench_tls.py [--runs 2] [--scenario hover_3x2] [--realtime-s 10] [--lockstep-s 4] [--quick] [--json]
 
 Both sides sign every internal MAVLink link with the run's key (the default either way): the difference
 is the bus alone. The machine is shared: compare the two columns of one invocation (their ratio), not
@@ -23,11 +23,13 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from mars_link.config.scenario import load_scenario  # noqa: E402
 from mars_link.core.errors import UserInputError  # noqa: E402
 from mars_link.processes.sitl_mode import run_sitl_scenario  # noqa: E402
 from mars_link.transport import LinkSpec  # noqa: E402
+from record import Recorder, add_json_option, apply_quick  # noqa: E402
 
 BUSES = {"tls+acl": LinkSpec("zenoh"), "insecure": LinkSpec("zenoh", insecure=True)}
 
@@ -38,7 +40,10 @@ def main() -> int:
     ap.add_argument("--scenario", default="hover_3x2")
     ap.add_argument("--realtime-s", type=float, default=10.0, help="simulated (= wall) seconds per real-time run")
     ap.add_argument("--lockstep-s", type=float, default=4.0, help="simulated seconds per lockstep run")
+    ap.add_argument("--quick", action="store_true", help="one round of 4 s real time and 2 s lockstep")
+    add_json_option(ap)
     a = ap.parse_args()
+    apply_quick(ap, a, runs=1, realtime_s=4.0, lockstep_s=2.0)
     if a.runs < 1 or not (a.realtime_s > 0 and a.lockstep_s > 0):
         ap.error("--runs must be >= 1, durations > 0")
     try:
@@ -49,6 +54,7 @@ def main() -> int:
     def scenario(duration_s: float):
         return dataclasses.replace(base, sim=dataclasses.replace(base.sim, duration_s=duration_s))
 
+    rec = Recorder.start("bench_tls", a)
     figures: dict[str, dict[str, list[float]]] = {b: {"p50_ms": [], "p99_ms": [], "rtf": []} for b in BUSES}
     print(f"{a.runs} rounds of {a.scenario}: real time {a.realtime_s:.0f} s, lockstep {a.lockstep_s:.0f} s; "
           f"{' and '.join(BUSES)} alternating", flush=True)
@@ -73,6 +79,17 @@ def main() -> int:
     t, o = med["tls+acl"], med["insecure"]
     print(f"tls+acl / insecure: age p50 x{t['p50_ms'] / o['p50_ms']:.2f}, p99 x{t['p99_ms'] / o['p99_ms']:.2f}, "
           f"lockstep RTF x{t['rtf'] / o['rtf']:.2f}")
+    for bus, m in med.items():
+        rec.figure(f"command_age_p50_{bus}_ms", m["p50_ms"], "ms", f"real time, {a.scenario}, median of {a.runs}")
+        rec.figure(f"command_age_p99_{bus}_ms", m["p99_ms"], "ms", f"real time, {a.scenario}, median of {a.runs}")
+        rec.figure(f"lockstep_rtf_{bus}", m["rtf"], "x", f"lockstep, {a.scenario}, median of {a.runs}")
+    rec.headline("command_age_p50_tls_vs_insecure", t["p50_ms"] / o["p50_ms"], "ratio",
+                 "command age p50, closed bus / --insecure (same run)")
+    rec.figure("command_age_p99_tls_vs_insecure", t["p99_ms"] / o["p99_ms"], "ratio",
+               "command age p99, closed bus / --insecure (same run)")
+    rec.figure("lockstep_rtf_tls_vs_insecure", t["rtf"] / o["rtf"], "ratio",
+               "lockstep real-time factor, closed bus / --insecure (same run)")
+    rec.finish()
     return 0
 
 

@@ -325,7 +325,13 @@ class _VehicleRecord:
         return summary
 
 
-def _attach_record(sim: AssemblySim, out: Path) -> _VehicleRecord:
+def _attach_record(sim: AssemblySim, out: Path) -> _VehicleRecord | None:
+    """The docked vehicle's record; a vehicle of pieces writes run.mcap, its ULog and .tlog only (its
+    recorder, ReconfigRecorder, follows the executor's mission, which a client-flown vehicle does not run)."""
+    if sim.scenario.has_pieces:
+        print("vehicle: a scenario of pieces writes run.mcap, vehicle.ulg and the .tlog; no telemetry.csv "
+              "or summary.json yet", flush=True)
+        return None
     return _VehicleRecord(sim, out)
 
 
