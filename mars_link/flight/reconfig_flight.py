@@ -194,6 +194,23 @@ def run_reconfig_trial(
         recorder.close()
         if view is not None:
             view.finish(engine)
+    from mars_link.flight.runner import FlightInterrupted, _signal_name
+
+    t = flight.world.t_s
+    end_reason = (f"diverged at {t:.2f} s" if recorder.metrics.diverged else f"reconfiguration failed at {t:.2f} s"
+                  if recorder.failed else f"interrupted by {_signal_name(interrupted)} at {t:.2f} s"
+                  if interrupted is not None else None)
+    result = reconfig_result(flight, engine, recorder, seed, time.perf_counter() - wall0, end_reason)
+    if interrupted is not None:
+        raise FlightInterrupted(result, interrupted)
+    return result
+
+
+def reconfig_result(flight: Flight, engine: Engine, recorder: ReconfigRecorder, seed: int, wall_s: float,
+                    end_reason: str | None) -> ReconfigResult:
+    """The flight of pieces' result, from its engine and recorder (`end_reason` None: completed)."""
+    coord: PiecesCoordinator = flight.coordinator
+    executor = coord.executor
     t = flight.world.t_s
     latched = [e for e in flight.world.latch_events if e["type"] == "dock_latched"]
     events = sorted(engine.events + coord.events + executor.events + latched, key=lambda e: e["t_s"])
@@ -201,15 +218,10 @@ def run_reconfig_trial(
     begun = [e for e in events if e["type"] == "reconfig_start"]
     reconfigured = bool(done)
     metrics = recorder.metrics
-    from mars_link.flight.runner import FlightInterrupted, _signal_name
-
-    end_reason = (f"diverged at {t:.2f} s" if metrics.diverged else f"reconfiguration failed at {t:.2f} s"
-                  if recorder.failed else f"interrupted by {_signal_name(interrupted)} at {t:.2f} s"
-                  if interrupted is not None else None)
     result = ReconfigResult(
         seed=seed, completed=end_reason is None, end_reason=end_reason, diverged=metrics.diverged,
         reconfigured=reconfigured, mean_error_m=metrics.mean_error_m, rmse_m=metrics.rmse_m,
-        max_error_m=metrics.max_error_m, sim_time_s=t, wall_time_s=time.perf_counter() - wall0,
+        max_error_m=metrics.max_error_m, sim_time_s=t, wall_time_s=wall_s,
         force_integral_n2s=flight.world.force_integral_n2s, max_tilt_deg=metrics.max_tilt_deg,
         reconfig_time_s=executor.shift_s if reconfigured else (t - begun[0]["t_s"] if begun else 0.0),
         plan=executor.plan.to_json() if executor.plan.disassembly_layers or executor.plan.assembly_layers else None,
@@ -220,9 +232,30 @@ def run_reconfig_trial(
         mission_force_integral_n2s=recorder.mission_force_integral_n2s,
     )
     result.logging = recorder.logging_status()
-    if interrupted is not None:
-        raise FlightInterrupted(result, interrupted)
     return result
+
+
+def reconfig_summary(scenario: Scenario, r: ReconfigResult, seed: int, mode: str = "inproc-reconfig") -> dict:
+    """summary.json of one flight of pieces."""
+    summary = {
+        "scenario": scenario.name, "source": scenario.source, "mode": mode,
+        "layout": list(scenario.layout), "preset": scenario.preset, "controller": scenario.controller,
+        "ftc": scenario.ftc, "seed": seed, "trials": 1, "noise": scenario.sim.noise,
+        "faults_known": scenario.faults_known,
+        "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
+        "completed": r.completed, "end_reason": r.end_reason, "diverged": r.diverged, "reconfigured": r.reconfigured,
+        "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m, "max_error_m": r.max_error_m,
+        "sim_time_s": r.sim_time_s, "wall_time_s": r.wall_time_s,
+        "real_time_factor": r.sim_time_s / r.wall_time_s if r.wall_time_s > 0 else float("inf"),
+        "force_integral_n2s": r.force_integral_n2s, "mission_force_integral_n2s": r.mission_force_integral_n2s,
+        "max_tilt_deg": r.max_tilt_deg, "reconfig_time_s": r.reconfig_time_s, "plan": r.plan, "start": scenario.start, "assembled": r.assembled,
+        "min_clearance_m": r.min_clearance_m, "pieces_final": r.pieces_final,
+        "events": [dict(e, trial=0) for e in r.events],
+        "per_trial": [{"seed": seed, "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m,
+                       "max_error_m": r.max_error_m, "diverged": r.diverged}],
+    }
+    summary["logging"] = r.logging
+    return summary
 
 
 def run_reconfig_scenario(
@@ -251,24 +284,7 @@ def run_reconfig_scenario(
         if out_dir is not None:
             (out_dir / "summary.json").unlink(missing_ok=True)
         raise
-    summary = {
-        "scenario": scenario.name, "source": scenario.source, "mode": "inproc-reconfig",
-        "layout": list(scenario.layout), "preset": scenario.preset, "controller": scenario.controller,
-        "ftc": scenario.ftc, "seed": seed, "trials": 1, "noise": scenario.sim.noise,
-        "faults_known": scenario.faults_known,
-        "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
-        "completed": r.completed, "end_reason": r.end_reason, "diverged": r.diverged, "reconfigured": r.reconfigured,
-        "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m, "max_error_m": r.max_error_m,
-        "sim_time_s": r.sim_time_s, "wall_time_s": r.wall_time_s,
-        "real_time_factor": r.sim_time_s / r.wall_time_s if r.wall_time_s > 0 else float("inf"),
-        "force_integral_n2s": r.force_integral_n2s, "mission_force_integral_n2s": r.mission_force_integral_n2s,
-        "max_tilt_deg": r.max_tilt_deg, "reconfig_time_s": r.reconfig_time_s, "plan": r.plan, "start": scenario.start, "assembled": r.assembled,
-        "min_clearance_m": r.min_clearance_m, "pieces_final": r.pieces_final,
-        "events": [dict(e, trial=0) for e in r.events],
-        "per_trial": [{"seed": seed, "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m,
-                       "max_error_m": r.max_error_m, "diverged": r.diverged}],
-    }
-    summary["logging"] = r.logging
+    summary = reconfig_summary(scenario, r, seed)
     if out_dir is not None:
         write_summary(out_dir, summary)
         if plots and interrupted is None:

@@ -325,14 +325,44 @@ class _VehicleRecord:
         return summary
 
 
-def _attach_record(sim: AssemblySim, out: Path) -> _VehicleRecord | None:
-    """The docked vehicle's record; a vehicle of pieces writes run.mcap, its ULog and .tlog only (its
-    recorder, ReconfigRecorder, follows the executor's mission, which a client-flown vehicle does not run)."""
-    if sim.scenario.has_pieces:
-        print("vehicle: a scenario of pieces writes run.mcap, vehicle.ulg and the .tlog; no telemetry.csv "
-              "or summary.json yet", flush=True)
-        return None
-    return _VehicleRecord(sim, out)
+class _PiecesVehicleRecord:
+    """`vehicle --out` of a scenario of pieces: what `run` writes for one (summary.json, telemetry.csv,
+    units.csv, plots/), from the same recorder observing the vehicle's engine. A divergence is reported
+    and ends the record, not the vehicle a client flies."""
+
+    def __init__(self, sim, out: Path) -> None:
+        from mars_link.flight.reconfig_flight import ReconfigRecorder
+
+        self.recorder = ReconfigRecorder(sim.engine.flight, out)
+        self.out = out
+        self.ended = False
+        sim.engine.observers.append(self)
+
+    def on_step(self, engine, view) -> bool:
+        if not self.ended:
+            self.ended = self.recorder.on_step(engine, view)
+        return False
+
+    def finish(self, sim, wall_s: float, plot_format: str) -> dict:
+        from mars_link.flight.reconfig_flight import reconfig_result, reconfig_summary, write_reconfig_plots
+        from mars_link.logs.outputs import write_json
+
+        self.recorder.close()
+        r = reconfig_result(sim.engine.flight, sim.engine, self.recorder, sim.scenario.sim.seed, wall_s,
+                            f"diverged at {self.recorder.metrics.divergence['t_s']:.2f} s"
+                            if self.recorder.metrics.diverged else None)
+        r.events = sorted(r.events + sim.events, key=lambda e: e["t_s"])  # (+ faults, scenario and MAVLink)
+        summary = reconfig_summary(sim.scenario, r, sim.scenario.sim.seed, mode="vehicle")
+        write_json(self.out / "summary.json", summary)
+        try:
+            write_reconfig_plots(self.out, r, sim.scenario.name, plot_format)
+        except OSError as exc:  # (a full disk: one line; the summary is written)
+            print(f"mars-link: plots: {exc.strerror or exc} (logging stopped)", file=sys.stderr)
+        return summary
+
+
+def _attach_record(sim: AssemblySim, out: Path) -> _VehicleRecord | _PiecesVehicleRecord:
+    return _PiecesVehicleRecord(sim, out) if sim.scenario.has_pieces else _VehicleRecord(sim, out)
 
 
 def _attach_view(sim: AssemblySim, out: Path | None, live: str | None):

@@ -8,6 +8,7 @@ multi-process SITL with MAVSDK (`sitl up --vehicle`)."""
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 import re
 import signal
@@ -208,6 +209,12 @@ def test_vehicle_of_pieces_writes_its_run_mcap(tmp_path: Path) -> None:
         summary = make_reader(f).get_summary()
     counts = {c.topic: summary.statistics.channel_message_counts.get(cid, 0) for cid, c in summary.channels.items()}
     assert counts.get("/tf", 0) > 20 and counts.get("/truth", 0) > 20 and counts.get("/scene", 0) > 5, counts
+    # it ends as `run` does: the summary, the units' paths (six resting units on the ground) and the plot
+    done = json.loads((out / "summary.json").read_text())
+    assert done["mode"] == "vehicle" and done["completed"] and done["sim_time_s"] == pytest.approx(3.0, abs=0.05)
+    units = np.loadtxt(out / "units.csv", delimiter=",", skiprows=1)
+    assert set(units[:, 1].astype(int)) == set(range(1, 7)) and np.all(units[:, 4] > -0.5)  # (NED: on the ground)
+    assert (out / "plots" / "units.png").exists()
 
 
 # ----------------------------------------------------------------------------- SITL + MAVSDK
