@@ -97,6 +97,7 @@ class Console:
 
 
 @pytest.mark.skipif(shutil.which("mavproxy.py") is None, reason="MAVProxy not installed")
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_mavproxy_wp_fence_rally_load_and_fly(tmp_path: Path) -> None:
     _wpl(tmp_path / "mission.txt")
     _fence(tmp_path / "fence.txt")

@@ -175,7 +175,7 @@ async def _disarmed(telemetry) -> bool:
 
 
 @pytest.mark.skipif(not hasattr(mavsdk, "asyncio"), reason="needs MAVSDK 4.x")
-@pytest.mark.parametrize("vehicle", ["unit", pytest.param("assembly", marks=pytest.mark.long)])  # (CI time: -m long)
+@pytest.mark.parametrize("vehicle", [pytest.param("unit", marks=pytest.mark.long), pytest.param("assembly", marks=pytest.mark.long)])  # (CI time: -m long; MAVSDK on a unit: test_mavsdk_unit)
 def test_mavsdk_goto_orbit_fence_manual_rally_attitude_land_and_logs(tmp_path: Path, vehicle: str) -> None:
     api = free_udp_port()
     status, tlog = tmp_path / "status.json", tmp_path / "run.tlog"

@@ -78,7 +78,7 @@ async def _fence_and_goto(api_port: int, status: Path) -> dict:
 
 
 @pytest.mark.skipif(not hasattr(mavsdk, "asyncio"), reason="needs MAVSDK 4.x")
-@pytest.mark.parametrize("vehicle", ["unit", "assembly"])
+@pytest.mark.parametrize("vehicle", [pytest.param("unit", marks=pytest.mark.long), "assembly"])  # (CI time: -m long)
 def test_mavsdk_geofence_example_fence_is_stored_and_enforced(tmp_path: Path, vehicle: str) -> None:
     api = free_udp_port()
     status = tmp_path / "status.json"

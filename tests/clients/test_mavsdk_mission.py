@@ -238,6 +238,7 @@ def _raw_fields(item) -> tuple:
 
 
 @pytest.mark.skipif(not hasattr(mavsdk, "asyncio"), reason="needs MAVSDK 4.x")
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_mavsdk_mission_raw_imports_a_qgc_plan_with_fence_and_rally(tmp_path: Path) -> None:
     import json
 

@@ -122,6 +122,7 @@ async def _fly(api_port: int, out: Path) -> dict:
     return r
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_mavsdk_flies_one_lockstep_sitl_unit(tmp_path: Path) -> None:
     api = free_udp_port()
     out = tmp_path / "run"

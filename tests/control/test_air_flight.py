@@ -7,6 +7,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from mars_link.flight.metrics import gust_response
 from mars_link.flight.runner import run_scenario
@@ -42,6 +43,7 @@ def test_gust_response_figures() -> None:
     assert gust_response(t, np.where(t >= 4, 0.3, 0.0), 3.0)["recovery_s"] == math.inf
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_detector_takes_no_vertical_gust_for_a_rotor_fault() -> None:
     """Seed 8 of the fault-free spiral in 5 m/s wind and moderate turbulence (faults not told) alarmed 9
     times before partial losses had to be confirmed by the moments: a change of lift without a moment is

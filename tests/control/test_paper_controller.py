@@ -490,6 +490,7 @@ def test_table_one_rotor_degradation(rotor_eta):
 
 
 @pytest.mark.slow
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_formula_gains_and_other_rates_still_fly_the_spiral():
     # no published table: eq. (1) k_f + formula E_i, tracked unit itself failed
     assert fly_spiral("unit", (1,)) < 1.3 * PAPER_NOMINAL_M

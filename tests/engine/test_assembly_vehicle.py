@@ -179,6 +179,7 @@ async def _has(texts: list[str], prefix: str) -> bool:
     return any(t.startswith(prefix) for t in texts)
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_mavsdk_flies_the_3x2_assembly_as_one_vehicle(tmp_path: Path) -> None:
     api = free_udp_port()
     status, out = tmp_path / "status.json", tmp_path / "run"

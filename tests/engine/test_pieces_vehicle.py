@@ -86,6 +86,7 @@ def first_text(texts: list[str], start: str) -> int:
     """Where the first STATUSTEXT beginning with `start` came (a finding's text ends with its estimate)."""
     return next(i for i, x in enumerate(texts) if x.startswith(start))
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_free_units_assemble_when_the_vehicle_takes_off_and_land_as_one() -> None:
     """assemble_3x2: six units rest apart until the ground station arms and takes off; then they dock
     in 3 layers (5 docks), the structure climbs to the takeoff setpoint above where the followed unit
@@ -152,6 +153,7 @@ def test_a_fault_found_in_flight_reconfigures_under_the_vehicle() -> None:
         sim.close()
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_six_faults_injected_the_vehicle_rebuilds_itself_on_the_ground_and_holds_again() -> None:
     """reconfig_plus_ground's plus (faults found, not told): the ground station injects unit 1's four
     motors and unit 2's rotors 1 and 4 OFF in a hover. No move helps in the air, so the structure lands

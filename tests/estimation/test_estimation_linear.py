@@ -8,6 +8,7 @@ import copy
 import tracemalloc
 
 import numpy as np
+import pytest
 
 from mars_link.core.assembly import AssemblyModel
 from mars_link.models.estimation import AssemblyEstimator
@@ -27,6 +28,7 @@ def _joint_update(ekf):
     return update
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_spiral_3x2_estimate_equals_the_joint_update_over_the_whole_flight(monkeypatch):
     """The default scenario (3x2 spiral, noise on) through the runner; every tick's samples are replayed
     into the information-form filter and into the same filter with the joint update: position, velocity,

@@ -304,7 +304,8 @@ def test_runner_fault_free_spiral_raises_no_alarm(seed):
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    "case_name", ["T1 u2 r2=0.5", "T1 u2 r1=r2=0.5", "F3 units {3}", "F3 units {2,5}"],
+    "case_name", ["T1 u2 r2=0.5", pytest.param("T1 u2 r1=r2=0.5", marks=pytest.mark.long),  # (CI time: -m long)
+                  pytest.param("F3 units {3}", marks=pytest.mark.long), "F3 units {2,5}"],
 )
 def test_runner_3x2_spiral_faults_at_10s_are_found_and_flown_like_told(case_name):
     """Issue 5 acceptance on the real in-process loop, faults injected at 10 s in the units' motor

@@ -68,6 +68,7 @@ def still_air(sc):
     return sc
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_gps_lost_10_s_mid_spiral_in_wind_on_the_gps_profile() -> None:
     """Every unit's GNSS receiver off from 20 to 30 s of the 3x2 spiral, 5 m/s wind and moderate
     turbulence, faults not told (the detector runs). The gate declares the position lost 1 s after the

@@ -295,6 +295,7 @@ def _ready_ports(log, timeout_s: float = 60.0) -> dict:
     raise AssertionError(f"no ready line in {log}")
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_sitl_up_require_signing_reaches_the_unit_processes(tmp_path) -> None:
     """`sitl up --require-signing`: the coordinator (signed) arms and flies the 3x2; on unit 1's API
     link an unsigned client cannot change MARS_FS_ACT or force-disarm it, the key holder can reach it."""

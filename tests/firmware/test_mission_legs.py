@@ -31,6 +31,7 @@ def test_minimum_snap_leg_starts_and_ends_at_rest_within_its_limits() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_damaged_3x2_flies_five_waypoints_through_the_walls_on_planned_legs() -> None:
     planned = walls_mission_flight(True, 0.0)
     straight = walls_mission_flight(False, 0.0)

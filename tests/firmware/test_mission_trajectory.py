@@ -82,6 +82,7 @@ def test_the_3x2_flies_a_wpl_mission_in_process(tmp_path: Path) -> None:
     check_flown(tmp_path / "out", RAW_ALT_M)
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_a_qgc_plan_flies_under_mode_sitl(tmp_path: Path) -> None:
     plan = tmp_path / "x.plan"
     plan.write_text(json.dumps(qgc_plan_json()))

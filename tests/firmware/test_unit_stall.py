@@ -106,6 +106,7 @@ def _until(predicate, timeout_s: float, what: str, then=None) -> None:
         time.sleep(0.2)
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_a_host_wide_stall_is_not_the_offboard_clients_silence(tmp_path: Path) -> None:
     status = tmp_path / "status.json"
     api = free_udp_port()

@@ -74,7 +74,7 @@ def _start(argv: list[str]) -> tuple[subprocess.Popen, list[int]]:
 
 
 @pytest.mark.parametrize("verb", [["sitl", "up", "hover_3x2", "--transport", "udp", "--any-bind", "--speed", "1"],
-                                  ["run", "hover_3x2", "--mode", "sitl", "--quiet"]])
+                                  pytest.param(["run", "hover_3x2", "--mode", "sitl", "--quiet"], marks=pytest.mark.long)])
 def test_sigkill_of_the_parent_leaves_no_child(tmp_path, verb) -> None:
     out = tmp_path / "run"
     proc, kids = _start([*verb, "--out", str(out)])

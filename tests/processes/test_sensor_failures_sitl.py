@@ -128,6 +128,7 @@ def test_gps_lost_10_s_mid_spiral_through_mavsdk_on_sitl_up(tmp_path: Path) -> N
     assert math.isfinite(back["drift_m"])
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_scheduled_sensor_faults_fly_the_same_in_sitl_and_in_process(tmp_path: Path) -> None:
     """[[sensor_faults]] are scheduled in the unit firmware, so `sitl up` (six unit processes, the failed
     sensors in what they forward over MAVLink) flies the in-process flight: every unit's GPS off 4-6 s and

@@ -87,6 +87,7 @@ print(tries["raw"], tries["sdk_arm"])
 """
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_a_stray_mavsdk_client_leaves_a_batch_run_as_a_clean_one(tmp_path) -> None:
     args = ("hover_3x2", "--mode", "sitl", "--duration", "3", "--seed", "7", "--quiet", "--no-mcap")
     clean = run_cli("run", *args, "--out", str(tmp_path / "clean"))
@@ -145,6 +146,7 @@ while time.monotonic() < stop_at:
 """
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_full_disk_sitl_flight_completes_with_the_reason(tmp_path) -> None:
     def limit() -> None:
         resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))

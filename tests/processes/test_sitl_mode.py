@@ -69,6 +69,7 @@ def test_bad_sitl_options_are_one_line_and_exit_2(tmp_path: Path, capsys) -> Non
 
 
 @pytest.mark.sitl
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_a_killed_unit_process_is_a_failed_unit_and_the_flight_goes_on(tmp_path: Path) -> None:
     """SIGKILL of unit 3's process mid-flight (`run --mode sitl`, UDP, qp): the run is not aborted;
     the world declares the unit dead, the coordinator finds it silent, reallocates and completes."""

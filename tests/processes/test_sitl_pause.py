@@ -107,6 +107,7 @@ def _fly_with_a_pause(argv: list[str], out: Path) -> None:
     _check_the_flight(out)
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_sitl_up_survives_a_paused_unit(tmp_path: Path) -> None:
     _fly_with_a_pause(["sitl", "up", _scenario(tmp_path), "--transport", "udp", "--any-bind", "--speed", "1"], tmp_path / "up")
 

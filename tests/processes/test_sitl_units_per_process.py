@@ -37,6 +37,7 @@ def _heartbeat_sources(sock: socket.socket) -> set[int]:
         ids |= {m.get_srcSystem() for m in mav.parse_buffer(data) or [] if m.get_type() == "HEARTBEAT"}
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_three_units_per_process_fly_the_inproc_hover(tmp_path: Path) -> None:
     api = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(6)]
     try:

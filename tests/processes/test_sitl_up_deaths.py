@@ -117,6 +117,7 @@ def test_a_killed_unit_is_a_failed_unit_and_a_killed_world_ends_the_run(tmp_path
         _end(proc, pids)
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_a_killed_coordinator_ends_the_run_with_one_line(tmp_path: Path) -> None:
     out = tmp_path / "up"
     proc, pids = _sitl_up(_scenario(tmp_path, 8.0), out)

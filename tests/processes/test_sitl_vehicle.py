@@ -223,7 +223,7 @@ def vehicle_endpoint_lines(proc: subprocess.Popen) -> list[str]:
 
 
 @pytest.mark.exclusive  # (asserts the eight processes keep real time)
-@pytest.mark.parametrize("transport,full", [("udp", True), ("zenoh", False)])
+@pytest.mark.parametrize("transport,full", [pytest.param("udp", True, marks=pytest.mark.long), ("zenoh", False)])  # (CI time: -m long)
 def test_mavsdk_flies_the_multiprocess_3x2_as_one_vehicle(transport: str, full: bool, tmp_path: Path) -> None:
     """UDP: the whole flight; Zenoh (units <-> coordinator/world on Zenoh, the vehicle's client links
     on UDP): telemetry against the truth, arm, disarm (the flight is the same code, left out for time)."""

@@ -136,6 +136,7 @@ def _netns(pid: int) -> str:
 
 
 @pytest.mark.sitl
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_units_in_their_own_namespaces_fly_the_hover_over_zenoh_tcp(namespaces, tmp_path: Path) -> None:
     ns_of, host_ip = namespaces
 

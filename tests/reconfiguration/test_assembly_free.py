@@ -128,6 +128,7 @@ def test_free_start_with_told_faults_is_refused_in_both_modes(tmp_path) -> None:
         assert "faults_known = false" in p.stderr
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_assemble_then_a_fault_found_in_flight_reconfigures_and_the_spiral_resumes_where_it_paused() -> None:
     """assemble_fault_reconfig: six free units assemble into the 3x2 and fly the spiral; unit 1 loses three
     rotors at t = 70 s and nobody tells the coordinator. Its detector finds them, it plans from what it

@@ -91,6 +91,7 @@ def test_paper000_docking_with_noise_and_the_fault_found_keeps_the_faulty_unit_w
 
 
 @pytest.mark.slow
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_a_second_fault_set_is_planned_from_the_structure_the_first_manoeuvre_left():
     """The donut: unit 1 loses 3 rotors at 5 s (found, reconfigured: unit 1 moves), then unit 12 loses 3 at
     45 s. The second plan starts from the structure the first one left (not the layout's numbering), and

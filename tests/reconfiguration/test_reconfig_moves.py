@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
 
@@ -123,6 +124,7 @@ def test_plus5_six_faults_a_rebuild_on_the_ground_saves_a_fifth_of_the_hover_for
     assert [s.detached for s in plan.splits] == [sorted(units) for units, _ in found.lifts]
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_plus5_six_faults_found_in_flight_the_structure_lands_rebuilds_and_flies_on_better():
     """Faults hit at 5 s, found (not told), noise on: no move exists in the air, so the structure lands,
     units 1-3 (which cannot hover without the others) rest on the ground with their motors off while two
@@ -145,6 +147,7 @@ def test_plus5_six_faults_found_in_flight_the_structure_lands_rebuilds_and_flies
     assert r.mission_force_integral_n2s < 0.9 * nr.mission_force_integral_n2s
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_a_unit_lost_while_the_structure_rebuilds_on_the_ground_it_stays_landed():
     """reconfig_plus_ground, unit 4's firmware dies at 22 s (lifted, at its altitude level) while unit 5
     comes down to its slot: unit 5 still docks, unit 4 falls, and what rests stays on the ground with its

@@ -84,6 +84,7 @@ def test_lap_is_optimal_for_every_layout_up_to_5_and_every_single_rotor_fault():
 
 
 @pytest.mark.slow
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_lap_is_optimal_for_every_6_unit_layout_and_every_single_rotor_fault():
     assert check_layouts([6], [SnapWeights(), SnapWeights(0.3, 0.7)]) == 2 * 24 * 216
 

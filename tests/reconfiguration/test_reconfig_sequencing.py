@@ -270,7 +270,7 @@ def test_every_layout_up_to_4_and_every_single_rotor_fault_is_feasible_and_minim
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("n,layouts", [(5, 63), pytest.param(6, 216, marks=pytest.mark.long)])  # (CI time: -m long)
+@pytest.mark.parametrize("n,layouts", [pytest.param(5, 63, marks=pytest.mark.long), pytest.param(6, 216, marks=pytest.mark.long)])  # (CI time: -m long)
 def test_every_5_and_6_unit_layout_and_every_single_rotor_fault_is_feasible_and_minimal(n, layouts):
     stats = sweep([n])
     assert stats["cases"] == 4 * n * layouts
