@@ -18,6 +18,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.mission_protocol import FENCE, MISSION, RALLY, TYPE_NAMES, MissionItem, check_item
 from mars_link.core.errors import UserInputError
+from mars_link.core.validation import MAX_MISSION_PLAN_BYTES, check_regular_file
 
 R = mavlink
 
@@ -88,12 +89,15 @@ def _rally_items(doc: dict, src: str) -> list[MissionItem]:
 def load_plan(path: str | Path) -> dict[int, tuple[MissionItem, ...]]:
     """{mission type: items} of a .plan; every problem is one UserInputError line."""
     src = str(path)
+    check_regular_file(path, "mission plan", MAX_MISSION_PLAN_BYTES)  # not /dev/zero, not a FIFO, not 1 GB
     try:
         doc = json.loads(Path(path).read_text())
     except OSError as exc:
         raise UserInputError(f"{src}: cannot be read: {exc.strerror}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise UserInputError(f"{src}: not a QGroundControl .plan (JSON): {exc}") from None
+    except RecursionError:  # (JSON nested deeper than Python's parser goes: no plan is)
+        raise UserInputError(f"{src}: not a QGroundControl .plan (JSON nested too deep)") from None
     if not isinstance(doc, dict) or doc.get("fileType") != "Plan":
         raise UserInputError(f"{src}: not a QGroundControl .plan (fileType must be \"Plan\")")
     try:

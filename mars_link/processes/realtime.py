@@ -353,6 +353,10 @@ class _PiecesVehicleRecord:
                             if self.recorder.metrics.diverged else None)
         r.events = sorted(r.events + sim.events, key=lambda e: e["t_s"])  # (+ faults, scenario and MAVLink)
         summary = reconfig_summary(sim.scenario, r, sim.scenario.sim.seed, mode="vehicle")
+        if self.recorder.metrics.n == 0:  # (no mission of the executor flew: no tracking figures, as docked)
+            for key in ("mean_error_m", "mean_error_std_m", "rmse_m", "max_error_m"):
+                summary[key] = None
+            summary["per_trial"][0].update(mean_error_m=None, mean_error_std_m=None, rmse_m=None, max_error_m=None)
         write_json(self.out / "summary.json", summary)
         try:
             write_reconfig_plots(self.out, r, sim.scenario.name, plot_format)

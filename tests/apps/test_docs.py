@@ -242,3 +242,42 @@ def test_a_misspelled_scenario_name_gets_did_you_mean_on_stderr():
                          capture_output=True, text=True, timeout=120)
     assert res.returncode == 2
     assert "did you mean 'spiral_3x2'" in res.stderr and "Traceback" not in res.stderr
+
+
+def _shortened(argv: list[str]) -> list[str]:
+    """A README command as this test runs it: a flight cut to 1 simulated s, or to just after its last fault
+    (of the scenario or a `--fault` option) so the fault is flown; `reproduce` as its dry run (the count and
+    the time estimate); the interactive `vehicle` as its help."""
+    if argv[:2] == ["mars-link", "vehicle"]:
+        return [*argv, "--help"]
+    if argv[:2] == ["mars-link", "reproduce"]:
+        return [*argv, "--dry-run"]
+    if argv[:2] != ["mars-link", "run"]:
+        return argv
+    from mars_link.config.scenario import DEFAULT_SCENARIO, load_scenario
+
+    args = build_parser().parse_args(argv[1:])
+    fault_times = [f.t_s for f in load_scenario(args.scenario or DEFAULT_SCENARIO).faults]
+    fault_times += [float(spec.rsplit("@", 1)[1]) for spec in (args.fault or []) if "@" in spec]
+    short_s = max([1.0] + [t + 0.5 for t in fault_times])
+    if "--duration" in argv:
+        i = argv.index("--duration")
+        short_s = min(short_s, float(argv[i + 1]))
+        argv = argv[:i] + argv[i + 2:]
+    return [*argv, "--duration", f"{short_s:g}"]
+
+
+def test_readme_mars_link_commands_run(tmp_path):
+    """Every `mars-link` command of the README runs as written (but for _shortened's two) from a scratch
+    directory and exits 0; a flight leaves its summary where the command says."""
+    ran = []
+    for command in readme_commands():
+        argv = shlex.split(command)
+        if argv[0] != "mars-link":
+            continue
+        res = subprocess.run([sys.executable, "-m", "mars_link.apps.cli", *_shortened(argv)[1:]], cwd=tmp_path,
+                             capture_output=True, text=True, timeout=300)
+        assert res.returncode == 0, (command, res.stdout[-1500:], res.stderr[-1500:])
+        ran.append(command)
+    assert len(ran) >= 8, ran
+    assert (tmp_path / "runs" / "hover" / "summary.json").is_file()

@@ -77,6 +77,7 @@ def _bad(doc_change) -> dict:
     (_bad(lambda d: d["mission"]["items"][1]["params"].__setitem__(4, _latlon(40.0, 0.0)[0])),
      "outside the inclusion fence"),
     (_bad(lambda d: d["rallyPoints"]["points"].append([1.0, 2.0])), "rally point 3"),
+    ("[" * 100_000 + "]" * 100_000, "nested too deep"),  # (past Python's JSON recursion)
 ])
 def test_a_bad_plan_is_one_line_and_exit_2(doc, needle, tmp_path, capsys) -> None:
     from mars_link.apps.cli import main
