@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from mars_link.core import validation as v
@@ -777,28 +778,31 @@ def subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentP
     return found
 
 
-def _sigterm_raises_terminated() -> None:
+def _sigterm_raises_terminated() -> Callable[[], None]:
     """SIGTERM raises core.errors.Terminated in the main thread, as Ctrl-C raises KeyboardInterrupt: the same
-    cleanup (children stopped by PID, the summary of the part flown), exit 143. An ignored SIGTERM stays ignored."""
+    cleanup (children stopped by PID, the summary of the part flown), exit 143. An ignored SIGTERM stays ignored.
+    Returns what puts the caller's handler back (main() called from Python leaves the process as it found it)."""
     import signal
     import threading
 
     from mars_link.core.errors import Terminated
 
-    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGTERM) == signal.SIG_IGN:
-        return
+    previous = signal.getsignal(signal.SIGTERM)
+    if threading.current_thread() is not threading.main_thread() or previous == signal.SIG_IGN:
+        return lambda: None
 
     def terminate(*_) -> None:
         raise Terminated
 
     signal.signal(signal.SIGTERM, terminate)
+    return lambda: signal.signal(signal.SIGTERM, previous)
 
 
 def main(argv: list[str] | None = None) -> int:
     from mars_link.processes.parent_watch import hear_stop_signals
 
     hear_stop_signals()  # Ctrl-C stops every command, whatever mask the parent left
-    _sigterm_raises_terminated()
+    restore_sigterm = _sigterm_raises_terminated()
     argv = sys.argv[1:] if argv is None else list(argv)
     if argv[:1] == ["plan"]:  # before numpy loads: threaded BLAS is 10x slower for the planner (spec §6.1)
         import os
@@ -832,6 +836,7 @@ def main(argv: list[str] | None = None) -> int:
         return code
     finally:
         v.release_out_dirs()
+        restore_sigterm()
 
 
 if __name__ == "__main__":
