@@ -150,6 +150,13 @@ class SitlSetup:
     steps: int | None  # exchanges to run; None = until stopped (or, with pieces, until the coordinator ends it)
     position_every: int | None = None  # filled in by `position_every()`
     pieces: bool = False  # a flight of several bodies (free start, reconfiguration): its coordinator ends it
+    external_offboard: bool = False  # docked, no coordinator: an off-board computer outside the run drives the
+    # units (`run --mode sitl --external-offboard`); each unit answers its step at once with what it drives
+
+    @property
+    def coordinated(self) -> bool:
+        """A coordinator process drives the units (in lockstep with it)."""
+        return self.docked and not self.external_offboard
 
     @property
     def docked(self) -> bool:
@@ -356,9 +363,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     view, feed, reference, eta_at = _world_view(setup, world, out, mcap, foxglove)
     writer_pid = view.process.pid if view is not None and mcap else None
     try:
-        _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
+        _await_peers(link, live | ({COORDINATOR_SYSID} if setup.coordinated else set()), 60.0, stop)
         link.prepare_peers(live)  # (the first sends' set-up, paid in the first step, stalled a paced start)
-        coordinator_addr = link.peers.get(COORDINATOR_SYSID) if setup.docked else None
+        coordinator_addr = link.peers.get(COORDINATOR_SYSID) if setup.coordinated else None
         step_sent = step_sent_packer(link)
         stall = _stall_from_env()
         wall0 = time.perf_counter()
@@ -626,13 +633,13 @@ class _UnitLoop:
         sc = setup.scenario
         self.setup, self.unit_id, self.command_timeout_s = setup, unit_id, command_timeout_s
         index = setup.unit_ids.index(unit_id)
-        vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
+        vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.coordinated, signing_key=key,
                             wall_time_s=time.time(), require_signing=require_signing, sign_hil=True,
                             client_links_keyed=not run_key)  # (a per-run key: clients keep the keyless rules)
         links = {} if client.closed else client_links(index, client.gcs_port, client.api_port, client.gcs_bind,
                                                       client.api_bind)
         links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
-        if setup.docked:
+        if setup.coordinated:
             links[LINK_COORDINATOR] = LinkSpec(0, ports.address("coordinator"), False,
                                                ports.open(f"unit/{unit_id}", "coordinator"))
         self.vehicle = vehicle
@@ -642,11 +649,11 @@ class _UnitLoop:
             from firmware_models.vehicle_ulog import UlogConfig
 
             vehicle.start_ulog(UlogConfig(out / f"unit{unit_id}.ulg", background=True))
-        self.hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.docked else [])
+        self.hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.coordinated else [])
         self.status_path = out / f"unit{unit_id}_status.json"
         self.next_hello = self.next_tick = self.next_status = 0.0
         self.command_deadline: SilenceDeadline | None = None  # (while a HIL step waits for its command)
-        vehicle.defer_own_state = setup.docked  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
+        vehicle.defer_own_state = setup.coordinated  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
         self.px4_link = None  # PX4's own interface over rmw_zenoh, beside the MAVLink persona (vehicle_px4)
         self.px4_log = None  # every rmw_zenoh sample it received, as received (px4_input_log_name)
         self.next_px4_telemetry = 0.0
@@ -1067,6 +1074,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--api-bind", type=int, default=None)
     ap.add_argument("--no-clients", action="store_true", help="unit: no GCS/API client links (a closed batch run)")
     ap.add_argument("--forever", action="store_true", help="docked: run until stopped (ignores --steps)")
+    ap.add_argument("--external-offboard", action="store_true",
+                    help="world, unit: no coordinator in this run; an off-board computer outside it drives the units "
+                         "(the units answer each step with what they drive; run --mode sitl --external-offboard)")
     ap.add_argument("--vehicle", action="store_true", help="coordinator: serve the assembly as one MAVLink vehicle")
     ap.add_argument("--sched-realtime", action="store_true",
                     help="real time: SCHED_FIFO when permitted; else world/unit SCHED_BATCH (mars_link.runtime.scheduling)")
@@ -1096,6 +1106,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.forever:
         setup.steps = None
+    setup.external_offboard = args.external_offboard
     if link.unit_interface:  # (the command line over the scenario's [units] interface)
         setup.scenario.unit_interface = link.unit_interface
     try:
