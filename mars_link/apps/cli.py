@@ -759,8 +759,16 @@ def build_parser() -> argparse.ArgumentParser:
     conf.add_argument("--unit-interface", choices=("both", "px4-zenoh", "mavlink"), default="both",
                       help="the interface to check: px4-zenoh (PX4 v1.17's OffboardControlMode, VehicleCommand, "
                            "ActuatorMotors as rmw_zenoh samples), mavlink (SET_ACTUATOR_CONTROL_TARGET), or both")
+    conf.add_argument("--target", choices=("inproc", "process"), default="inproc",
+                      help="inproc: the unit firmware object in this process (fast); process: a unit process as sitl "
+                           "up starts it, reached over the network (PX4's interface over Zenoh, MAVLink over UDP), "
+                           "its world and off-board computer played by the harness, still in simulated time")
+    conf.add_argument("--check", action="append", default=None, metavar="NAME",
+                      help="run only this check (repeatable): keepalive-loss, fresh-arm, arming-gating, "
+                           "offboard-gating, nan, out-of-range, stale, replay (default: all)")
     conf.add_argument("--test-broken-keepalive", action="store_true",
-                      help="test switch: a unit whose PX4 keep-alive never times out (the checks must fail)")
+                      help="test switch: a unit whose PX4 keep-alive never times out (the checks must fail; "
+                           "with --target process the unit process is started with it)")
     return parser
 
 

@@ -153,9 +153,10 @@ class SitlSetup:
     external_offboard: bool = False  # docked, no coordinator: an off-board computer outside the run drives the
     # units (`run --mode sitl --external-offboard`); each unit answers its step at once with what it drives
 
+
     @property
     def coordinated(self) -> bool:
-        """A coordinator process drives the units (in lockstep with it)."""
+        """A coordinator drives the units in lockstep (the run's, or a harness playing one: mars-link conformance)."""
         return self.docked and not self.external_offboard
 
     @property
@@ -321,7 +322,6 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory. `mcap`: run.mcap in
     `out`; `foxglove`: HOST:PORT of the live Foxglove view (mars_link.processes.view_feed says why the world hosts them)."""
     world_start = start
-    from sitl.hil import hil_state_message
     from mars_link.flight.build import make_world, outdoor_profile, sensor_params
     from sitl.world import FreeUnitsWorld, WorldConfig
 
@@ -390,15 +390,12 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                 truth_log.flush()
             datagrams = []  # sampled and encoded before the pacing wait: at t they only go out
             for p in world.sense():
-                if p.unit_id in live:  # ground truth for the unit's own telemetry at the mocap rate
-                    msgs = [] if p.truth is not None or (p.position is None and p.gps is None) else [
-                        hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
+                if p.unit_id in live:
+                    latch = []
                     if setup.pieces and latch_sent.get(p.unit_id) != p.latches:  # the latch sensor, on change
                         latch_sent[p.unit_id] = p.latches
-                        msgs.append(latch_message(p.t_s, p.latches))
-                    if p.battery is not None:  # the power module's sample, at the battery rate
-                        msgs.append(battery_report_message(p.battery))
-                    datagrams.append((link.pack(msgs + sensor_packet_messages(p)), link.peers[p.unit_id]))
+                        latch = [latch_message(p.t_s, p.latches)]
+                    datagrams.append((link.pack(unit_sensor_messages(world, p, latch)), link.peers[p.unit_id]))
             pacer.wait(t)
             if valve.armed and valve.check(behind_s := -pacer.wait_s(t), t):
                 print(f"world: {behind_s:.1f} s behind the wall clock at t={t:.2f}: leaving SCHED_FIFO, so that the "
@@ -474,6 +471,20 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             world.close()
             link.close()
     return 0
+
+
+def unit_sensor_messages(world, p: SensorPacket, extra: list | None = None) -> list:
+    """One unit's HIL datagram of a step, as the world sends it: ground truth for the unit's own telemetry
+    at the mocap rate (when the sensor packet carries none), `extra` (the latch sensor), the power module's
+    sample at the battery rate, the sensors."""
+    from sitl.hil import hil_state_message
+
+    msgs = [] if p.truth is not None or (p.position is None and p.gps is None) else [
+        hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
+    msgs += extra or []
+    if p.battery is not None:
+        msgs.append(battery_report_message(p.battery))
+    return msgs + sensor_packet_messages(p)
 
 
 def _write_world_summary(out: Path, summary: dict) -> None:
