@@ -105,6 +105,10 @@ class UnitProcessBench(Bench):
 
                 self.px4_acks = Px4CoordinatorLink(self.ports.zenoh_session(), [self.unit_id])
                 self.px4_acks.prepare(self.unit_id)  # (waits until the unit's subscribers match)
+                from mars_link.px4.rmw_zenoh import data_key, vehicle_namespace
+
+                for topic in (self._rz.OFFBOARD_CONTROL_MODE, self._rz.VEHICLE_COMMAND, self._rz.ACTUATOR_MOTORS):
+                    self._publisher(data_key(topic, vehicle_namespace(self.unit_id)))
             for _ in range(WARM_UP_STEPS):
                 self.step()
         except SystemExit as exc:  # (_await_peers: the unit never said hello)
@@ -184,6 +188,12 @@ class UnitProcessBench(Bench):
             except ValueError:
                 pass
         self.recorded.append((self.step_index, key, payload, attachment))
+        self._publisher(key).put(payload, attachment=attachment)  # type: ignore[attr-defined]
+
+    def _publisher(self, key: str):
+        """The harness's publisher on `key`, declared once and matched by the unit's subscriber (the unit's
+        three inputs are declared before the first step: a step never waits on it, so the unit's own
+        command timeout never runs out while the harness holds a step)."""
         pub = self._pubs.get(key)
         if pub is None:
             import zenoh
@@ -194,7 +204,7 @@ class UnitProcessBench(Bench):
             deadline = time.monotonic() + UNIT_START_S
             while not pub.matching_status.matching and time.monotonic() < deadline:  # type: ignore[attr-defined]
                 time.sleep(0.005)
-        pub.put(payload, attachment=attachment)  # type: ignore[attr-defined]
+        return pub
 
     def _mavlink_send(self, msgs: list) -> None:
         from firmware_models.vehicle import LINK_COORDINATOR
