@@ -225,6 +225,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self.defer_own_state = False  # set by the lockstep unit runner: see run_deferred
         self._deferred: list = []
         self._last_rotor_usec: int | None = None  # time of the last accepted coordinator command
+        self._step_skipped_usec: int | None = None  # the last step the coordinator said it sends no command for
         self.latch_setpoint = LATCH_ALL  # the docking latches: engaged until the coordinator opens some
         self.latches = 0  # the latch sensor: the sides that hold a docked neighbour (from the world)
         self._await_coordinator = c.hil_await_coordinator
@@ -358,9 +359,9 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             except (ValueError, TypeError, OverflowError, struct.error):
                 self._drop("malformed_fields")  # a decoded frame whose fields we cannot use
         pending = self._hil_pending
-        if pending is not None and self._last_rotor_usec == pending[0]:
+        if pending is not None and pending[0] in (self._last_rotor_usec, self._step_skipped_usec):
             self._answer_hil(out)  # the coordinator's command for the pending step (and any arm/mode
-            # command in the same datagram) is in: run the step
+            # command in the same datagram) is in, or it said it sends none: run the step
         return out
 
     @property
@@ -712,6 +713,6 @@ _HANDLERS: dict[str, str] = {
     "FILE_TRANSFER_PROTOCOL": "_on_ftp",
     "HEARTBEAT": "_on_ignored",
     "REQUEST_DATA_STREAM": "_on_ignored",
-    "SYSTEM_TIME": "_on_ignored",
+    "SYSTEM_TIME": "_on_step_skip",
     "RADIO_STATUS": "_on_ignored",
 }

@@ -88,8 +88,9 @@ class HilMixin:
         self.sim_s = t_s
         self._next_control = t_s + self.control_dt_s
         self._hil_pending = (int(msg.time_usec), lk.name)
-        if self._await_coordinator:
-            return  # answered when the coordinator's command for this step arrives (or on release)
+        if self._await_coordinator and int(msg.time_usec) not in (self._last_rotor_usec, self._step_skipped_usec):
+            return  # answered when the coordinator's command for this step arrives (or on release); one that
+            # came before its sensors (another link, read first) answers it now
         self._answer_hil(out)
 
     def _apply_hil_state(self, msg) -> None:
@@ -112,6 +113,8 @@ class HilMixin:
     def _answer_hil(self, out: list[Outgoing]) -> None:
         time_usec, name = self._hil_pending
         self._hil_pending = None
+        if self.config.hil_await_coordinator:  # (lockstep: the watchdogs judged at each step in sim time too,
+            self._watchdogs()  # not only on the wall-clock tick: a step's outcome never hangs on when it ticked)
         lk = self.links[name]
         sp = self._motor_setpoint_n() / self.full_scale_n
         mode = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | (mavlink.MAV_MODE_FLAG_SAFETY_ARMED if self.armed else 0)

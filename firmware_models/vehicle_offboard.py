@@ -95,6 +95,17 @@ class OffboardMixin:
             self.autopilot.velocity(self.state, vec, yaw, yaw_rate)
 
     # ----------------------------------------------------------------- rotor commands
+    def _on_step_skip(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        """SYSTEM_TIME from the coordinator on its link: it sends no rotor command for the step of that time
+        (`time_unix_usec`), so a unit waiting for one runs that step with what it holds, before or after its
+        sensors arrive, and keeps waiting for the coordinator's next steps (the conformance harness's silent
+        steps; a coordinator that leaves a unit alone). Elsewhere SYSTEM_TIME means nothing to the unit."""
+        if not lk.policy.rotor_commands or msg.get_srcSystem() != self.intake.params.coordinator_sysid:
+            self._count(f"ignored.{msg.get_type()}")
+            return
+        self._count("step_skips")
+        self._step_skipped_usec = int(msg.time_unix_usec)  # (handle() answers a pending step of that time)
+
     def _on_rotor_command(self, msg, lk: Link, out: list[Outgoing]) -> None:
         if not lk.policy.rotor_commands:
             self._drop("rotor_command_wrong_link")

@@ -101,6 +101,8 @@ class Px4Mixin:
         except ValueError:
             self._drop("px4.bad_sample")
             return [], []
+        if endpoint.reordered:  # (in the status file too: a harness that reaches the unit over a network reads it)
+            self.stats["px4.reordered"] = endpoint.reordered
         replies = self.px4_take(got.topic, got.message)
         out: list[Outgoing] = []
         pending = self._hil_pending

@@ -72,11 +72,16 @@ def cmd_run(args) -> int:
     v.check_link_endpoints(args)
     if args.mode != "sitl" and (args.gcs or args.gcs_port is not None or args.api_port is not None):
         raise UserInputError("--gcs, --gcs-port and --api-port apply to --mode sitl (an in-process run has no ports)")
+    if args.mode != "sitl" and args.external_offboard:
+        raise UserInputError("--external-offboard applies to --mode sitl (in process no off-board computer can reach "
+                             "the units)")
     sitl_run = None
     if args.mode == "sitl":  # the multi-process SITL (mars_link.processes.sitl_mode); options checked before any output
-        from mars_link.processes.sitl_mode import sitl_runner
+        from mars_link.processes.sitl_mode import external_offboard_units, sitl_runner
 
         sitl_run = sitl_runner(args)
+        if args.external_offboard:
+            external_offboard_units(args.external_offboard, scenario)
     model = scenario.model()
     check_faults_controllable(scenario, model)
     if not scenario.reconfig.get("enabled"):
@@ -549,6 +554,11 @@ def build_parser() -> argparse.ArgumentParser:
                      help="with --mode sitl: the GCS port the units send to (implies --gcs; default 14550)")
     run.add_argument("--api-port", type=int, default=None,
                      help="with --mode sitl: API port of unit index 0, unit i uses this + i (implies --gcs; default 14540)")
+    run.add_argument("--external-offboard", default=None, metavar="UNITS",
+                     help="with --mode sitl and --unit-interface px4-zenoh: start no coordinator; the units (all, or "
+                          "their ids: a docked assembly is one body, so every one) wait for your own off-board "
+                          "computer on the run's Zenoh bus (PX4's /px4_<id>/fmu topics), the world runs in real time "
+                          "for the run's duration, and summary.json says who flew them (no tracking figures)")
     _add_sitl_processes(run, "pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
     run.add_argument("--logs", type=_log_kinds, default=frozenset(), metavar="KINDS",
                      help="per-unit logs of an in-process run, comma-separated: ulog (unit<id>.ulg, PX4's topics), "
@@ -750,8 +760,16 @@ def build_parser() -> argparse.ArgumentParser:
     conf.add_argument("--unit-interface", choices=("both", "px4-zenoh", "mavlink"), default="both",
                       help="the interface to check: px4-zenoh (PX4 v1.17's OffboardControlMode, VehicleCommand, "
                            "ActuatorMotors as rmw_zenoh samples), mavlink (SET_ACTUATOR_CONTROL_TARGET), or both")
+    conf.add_argument("--target", choices=("inproc", "process"), default="inproc",
+                      help="inproc: the unit firmware object in this process (fast); process: a unit process as sitl "
+                           "up starts it, reached over the network (PX4's interface over Zenoh, MAVLink over UDP), "
+                           "its world and off-board computer played by the harness, still in simulated time")
+    conf.add_argument("--check", action="append", default=None, metavar="NAME",
+                      help="run only this check (repeatable): keepalive-loss, fresh-arm, arming-gating, "
+                           "offboard-gating, nan, out-of-range, stale, replay (default: all)")
     conf.add_argument("--test-broken-keepalive", action="store_true",
-                      help="test switch: a unit whose PX4 keep-alive never times out (the checks must fail)")
+                      help="test switch: a unit whose PX4 keep-alive never times out (the checks must fail; "
+                           "with --target process the unit process is started with it)")
     return parser
 
 

@@ -15,8 +15,12 @@ COM_OF_LOSS_T (keep-alive: OffboardControlMode), the MAVLink persona's MARS_CMD_
 MARS_CMD_HZ (the rotor command is its own keep-alive). A table per check with the measured figure; the
 exit code is 1 when a check fails.
 
-Not covered here: a unit behind a network link (the checks drive the firmware object in process, so the
-harness needs no world of its own); command-age jitter in real time (benchmarks/bench_realtime.py).
+`--target process` runs the same checks against a unit process (`python -m mars_link.processes.lockstep
+unit`, as `sitl up` and `run --mode sitl` start it) reached over the network: the harness plays its world
+(the same in-process world, the sensors as HIL datagrams) and its off-board computer, PX4's interface over
+Zenoh and the MAVLink persona over UDP (mars_link.apps.conformance_process).
+
+Not covered here: command-age jitter in real time (benchmarks/bench_realtime.py).
 """
 
 from __future__ import annotations
@@ -29,6 +33,8 @@ from typing import Callable
 
 import numpy as np
 
+NETWORK_PATH = {"px4-zenoh": "Zenoh (rmw_zenoh samples; its HIL link on Zenoh too)",
+                "mavlink": "UDP (MAVLink frames on its coordinator link; HIL on UDP)"}
 CONTROL_HZ = 100.0
 CONTROLS = (0.20, 0.25, 0.30, 0.35)  # below hover: the unit stays on the ground with its rotors spinning
 INTERFACES = ("px4-zenoh", "mavlink")
@@ -53,6 +59,7 @@ class Bench:
         sc = Scenario(name="conformance", layout=("X",), source="<conformance>")
         sc.sim.control_hz = CONTROL_HZ
         sc.sim.duration_s = 600.0
+        self.scenario = sc
         self.flight = build_flight(sc, 0)
         self.world = self.flight.world
         self.unit_id = 1
@@ -218,10 +225,37 @@ class Bench:
         v = self.vehicle
         return not v.armed or (self.interface == "mavlink" and v.source == "own")
 
+    # ----------------------------------------------------------------- what the unit says of itself
+    def drops(self, reason: str) -> int:
+        """How many inputs the unit dropped for `reason` (its drop counters, e.g. intake.non_finite)."""
+        return int(self.vehicle.drop_counts().get(reason, 0))
+
+    def reordered(self) -> int:
+        """PX4 samples the unit counted as stale or reordered (its endpoint; as PX4, handed on)."""
+        endpoint = self.vehicle.px4_endpoint
+        return 0 if endpoint is None else int(endpoint.reordered)
+
+    def motor_ceiling_n(self) -> float:
+        """The most thrust the unit's motor model gives a rotor (what an over-range control is clamped to)."""
+        return float(self.vehicle.motors.setpoint(np.full(4, 2.0 * self.full_scale_n))[0])
+
+    def replay(self, key: str, payload: bytes, attachment: bytes | None) -> None:
+        """One recorded message again, as it was sent (PX4: the sample; MAVLink: the frames on `key`'s link)."""
+        if self.interface == "px4-zenoh":
+            self.send_raw(key, payload, attachment)
+        else:
+            self._mavlink_receive(self.vehicle.handle(payload, self.t_s, link=key))
+
+    def close(self) -> None:
+        """Nothing to end in process (a unit process ends here: conformance_process)."""
+
+
+NewBench = Callable[[], Bench]  # a fresh unit and world for a check
+
 
 # ----------------------------------------------------------------- the checks
-def check_keepalive_loss(interface: str, broken: bool) -> CheckResult:
-    b = Bench(interface, broken)
+def check_keepalive_loss(new: NewBench) -> CheckResult:
+    b = new()
     b.step(lambda b: b.take_over())
     b.run(1.0, b.stream())
     last_s = b.last_keepalive_s
@@ -241,8 +275,8 @@ def check_keepalive_loss(interface: str, broken: bool) -> CheckResult:
     return CheckResult("keep-alive loss", ok, f"{lost_s:.3f} s; failed safe: {b.failed_safe}", expected)
 
 
-def check_fresh_arm_needed(interface: str, broken: bool) -> CheckResult:
-    b = Bench(interface, broken)
+def check_fresh_arm_needed(new: NewBench) -> CheckResult:
+    b = new()
     b.step(lambda b: b.take_over())
     b.run(0.5, b.stream())
     b.run(b.loss_bound_s + 0.5)  # silent: the failsafe
@@ -257,16 +291,16 @@ def check_fresh_arm_needed(interface: str, broken: bool) -> CheckResult:
                        "0 steps before, following after the take-over")
 
 
-def check_arming_gating(interface: str, broken: bool) -> CheckResult:
-    b = Bench(interface, broken)
+def check_arming_gating(new: NewBench) -> CheckResult:
+    b = new()
     b.run(0.5, b.stream())  # commands and keep-alive, never armed
     driven = sum(float(np.abs(thrust).max()) > 0.0 for _, thrust in b.outputs)
     return CheckResult("arming gating", driven == 0, f"{driven} of {len(b.outputs)} steps drove the motors",
                        "no motor driven while disarmed")
 
 
-def check_offboard_gating(interface: str, broken: bool) -> CheckResult:
-    b = Bench(interface, broken)
+def check_offboard_gating(new: NewBench) -> CheckResult:
+    b = new()
     b.step(lambda b: (b.keepalive(), b.command(400, 1.0)))  # armed, not in OFFBOARD
     b.run(0.5, b.stream())
     followed = sum(b.follows(thrust) for _, thrust in b.outputs)
@@ -274,8 +308,9 @@ def check_offboard_gating(interface: str, broken: bool) -> CheckResult:
                        "armed outside OFFBOARD: the command drives nothing")
 
 
-def check_nan(interface: str, broken: bool) -> CheckResult:
-    b = Bench(interface, broken)
+def check_nan(new: NewBench) -> CheckResult:
+    b = new()
+    interface = b.interface
     b.step(lambda b: b.take_over())
     b.run(0.2, b.stream())
     nan_controls = (CONTROLS[0], math.nan, CONTROLS[2], CONTROLS[3])
@@ -284,39 +319,40 @@ def check_nan(interface: str, broken: bool) -> CheckResult:
         ok = thrust[1] == 0.0 and b.follows(np.delete(thrust, 1), np.delete(np.array(CONTROLS), 1))  # type: ignore[arg-type]
         return CheckResult("NaN control", ok, f"rotor 2 at {thrust[1]:.3f} N, the others follow: {ok}",
                            "NaN stops that motor (PX4: disarmed value), the others run")
-    dropped = b.vehicle.drop_counts().get("intake.non_finite", 0)
+    dropped = b.drops("intake.non_finite")
     ok = dropped == 1 and b.follows(thrust)
     return CheckResult("NaN control", ok, f"dropped {dropped}, held command kept: {b.follows(thrust)}",
                        "the frame dropped and counted (non_finite), the held command stays")
 
 
-def check_out_of_range(interface: str, broken: bool) -> CheckResult:
-    b = Bench(interface, broken)
+def check_out_of_range(new: NewBench) -> CheckResult:
+    b = new()
+    interface = b.interface
     b.step(lambda b: b.take_over())
     b.run(0.2, b.stream())
     wild = (1.5, -0.5, CONTROLS[2], CONTROLS[3])
     thrust = b.step(lambda b: b.motors(wild))
     if interface == "px4-zenoh":
-        limit = float(b.vehicle.motors.setpoint(np.full(4, 2.0 * b.full_scale_n))[0])  # the motor model's ceiling
+        limit = b.motor_ceiling_n()
         ok = abs(thrust[0] - min(b.full_scale_n, limit)) < 1e-6 and thrust[1] == 0.0
         return CheckResult("out-of-range control", ok, f"1.5 -> {thrust[0]:.3f} N, -0.5 -> {thrust[1]:.3f} N",
                            f"clamped to full scale ({b.full_scale_n:.3f} N); a negative one stops a non-reversible motor")
-    dropped = b.vehicle.drop_counts().get("intake.out_of_range", 0)
+    dropped = b.drops("intake.out_of_range")
     ok = dropped == 1 and b.follows(thrust)
     return CheckResult("out-of-range control", ok, f"dropped {dropped}, held command kept: {b.follows(thrust)}",
                        "the frame dropped and counted (out_of_range), the held command stays")
 
 
-def check_stale_reordered(interface: str, broken: bool) -> CheckResult:
-    b = Bench(interface, broken)
+def check_stale_reordered(new: NewBench) -> CheckResult:
+    b = new()
+    interface = b.interface
     b.step(lambda b: b.take_over())
     b.run(0.2, b.stream())
     if interface == "px4-zenoh":
         # the sample before the last one again: its sequence number does not advance
         step, key, payload, attachment = next(r for r in reversed(b.recorded[:-1]) if "actuator_motors" in r[1])
         thrust = b.step(lambda b: b.send_raw(key, payload, attachment))
-        endpoint = b.vehicle.px4_endpoint
-        counted = 0 if endpoint is None else endpoint.reordered
+        counted = b.reordered()
         ok = counted == 1 and b.follows(thrust)
         return CheckResult("stale / reordered sample", ok, f"counted {counted}, motors as commanded: {b.follows(thrust)}",
                            "counted (endpoint.reordered) and, as PX4, handed on")
@@ -325,7 +361,7 @@ def check_stale_reordered(interface: str, broken: bool) -> CheckResult:
     old = mavlink.MAVLink_set_actuator_control_target_message(int(round((b.t_s - 0.05) * 1e6)), 0, 1, 1,
                                                                 [0.9, 0.9, 0.9, 0.9, 0.0, 0.0, 0.0, 0.0])
     thrust = b.step(lambda b: b._mavlink_send([old]))
-    dropped = b.vehicle.drop_counts().get("intake.out_of_order", 0)
+    dropped = b.drops("intake.out_of_order")
     ok = dropped == 1 and b.follows(thrust)
     return CheckResult("stale / reordered sample", ok, f"dropped {dropped}, held command kept: {b.follows(thrust)}",
                        "an older command dropped and counted (out_of_order)")
@@ -343,20 +379,17 @@ def _scripted_session(b: Bench) -> None:
     b.run(0.3, b.stream())
 
 
-def check_replay(interface: str, broken: bool) -> CheckResult:
-    a = Bench(interface, broken)
+def check_replay(new: NewBench) -> CheckResult:
+    a = new()
     _scripted_session(a)
-    b = Bench(interface, broken)  # a fresh unit: the recorded bytes again, at the same steps
+    b = new()  # a fresh unit: the recorded bytes again, at the same steps
     by_step: dict[int, list] = {}
     for step, key, payload, attachment in a.recorded:
         by_step.setdefault(step, []).append((key, payload, attachment))
 
     def replay(bench: Bench) -> None:
         for key, payload, attachment in by_step.get(bench.step_index, []):
-            if interface == "px4-zenoh":
-                bench.send_raw(key, payload, attachment)
-            else:
-                bench._mavlink_receive(bench.vehicle.handle(payload, bench.t_s, link=key))
+            bench.replay(key, payload, attachment)
 
     for _ in range(len(a.outputs)):
         b.step(replay)
@@ -370,15 +403,49 @@ CHECKS = (check_keepalive_loss, check_fresh_arm_needed, check_arming_gating, che
           check_out_of_range, check_stale_reordered, check_replay)
 
 
-def run_checks(interface: str, broken_keepalive: bool = False) -> list[CheckResult]:
-    return [check(interface, broken_keepalive) for check in CHECKS]
+#: `--check` names -> the checks
+CHECK_NAMES = {"keepalive-loss": check_keepalive_loss, "fresh-arm": check_fresh_arm_needed,
+               "arming-gating": check_arming_gating, "offboard-gating": check_offboard_gating, "nan": check_nan,
+               "out-of-range": check_out_of_range, "stale": check_stale_reordered, "replay": check_replay}
+TARGETS = ("inproc", "process")
 
 
-def table(interface: str, results: list[CheckResult]) -> str:
+def run_checks(interface: str, broken_keepalive: bool = False, target: str = "inproc",
+               names: tuple[str, ...] = ()) -> list[CheckResult]:
+    """The checks (`names`: those of CHECK_NAMES, default all) against fresh units: the firmware object in
+    process, or a unit process reached over the network (mars_link.apps.conformance_process)."""
+    checks = [CHECK_NAMES[n] for n in names] if names else list(CHECKS)
+    benches: list[Bench] = []
+
+    def new() -> Bench:
+        if target == "process":
+            from mars_link.apps.conformance_process import UnitProcessBench
+
+            bench: Bench = UnitProcessBench(interface, broken_keepalive)
+        else:
+            bench = Bench(interface, broken_keepalive)
+        benches.append(bench)
+        return bench
+
+    results = []
+    try:
+        for check in checks:
+            try:
+                results.append(check(new))
+            finally:  # (a unit process ends with its check)
+                while benches:
+                    benches.pop().close()
+    finally:
+        while benches:
+            benches.pop().close()
+    return results
+
+
+def table(interface: str, results: list[CheckResult], where: str = "in process") -> str:
     rows = [("check", "result", "measured", "expected")] + [
         (r.name, "pass" if r.passed else "FAIL", r.measured, r.expected) for r in results]
     widths = [max(len(row[i]) for row in rows) for i in range(4)]
-    lines = [f"interface {interface}"]
+    lines = [f"interface {interface}", f"unit: {where}"]
     for i, row in enumerate(rows):
         lines.append("  ".join(cell.ljust(w) for cell, w in zip(row, widths)).rstrip())
         if i == 0:
@@ -387,11 +454,18 @@ def table(interface: str, results: list[CheckResult]) -> str:
 
 
 def conformance_command(args) -> int:
+    from mars_link.core.errors import UserInputError
+
     interfaces = INTERFACES if args.unit_interface == "both" else (args.unit_interface,)
+    names = tuple(args.check or ())
+    for name in names:
+        if name not in CHECK_NAMES:
+            raise UserInputError(f"--check {name!r}: unknown check (known: {', '.join(CHECK_NAMES)})")
     failed = []
     for interface in interfaces:
-        results = run_checks(interface, args.test_broken_keepalive)
-        print(table(interface, results), flush=True)
+        results = run_checks(interface, args.test_broken_keepalive, args.target, names)
+        where = {"inproc": "in process", "process": f"a unit process over {NETWORK_PATH[interface]}"}[args.target]
+        print(table(interface, results, where), flush=True)
         print(flush=True)
         failed += [f"{interface}: {r.name}" for r in results if not r.passed]
     if failed:

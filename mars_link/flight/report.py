@@ -33,6 +33,9 @@ def print_summary(summary: dict, out: Path) -> None:
         ("run directory", str(out)),
     ]
     sitl = summary.get("sitl") or {}
+    external = sitl.get("external_offboard")
+    if external:  # nobody in the run flew these units: say so before any figure
+        rows.insert(4, ("flown by", f"an off-board computer outside the run (units {','.join(map(str, external['units']))})"))
     if sitl.get("realtime"):  # paced to the wall clock: how late the commands reached the motors, and why
         from mars_link.runtime.scheduling import describe_classes
 

@@ -150,6 +150,14 @@ class SitlSetup:
     steps: int | None  # exchanges to run; None = until stopped (or, with pieces, until the coordinator ends it)
     position_every: int | None = None  # filled in by `position_every()`
     pieces: bool = False  # a flight of several bodies (free start, reconfiguration): its coordinator ends it
+    external_offboard: bool = False  # docked, no coordinator: an off-board computer outside the run drives the
+    # units (`run --mode sitl --external-offboard`); each unit answers its step at once with what it drives
+
+
+    @property
+    def coordinated(self) -> bool:
+        """A coordinator drives the units in lockstep (the run's, or a harness playing one: mars-link conformance)."""
+        return self.docked and not self.external_offboard
 
     @property
     def docked(self) -> bool:
@@ -314,7 +322,6 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory. `mcap`: run.mcap in
     `out`; `foxglove`: HOST:PORT of the live Foxglove view (mars_link.processes.view_feed says why the world hosts them)."""
     world_start = start
-    from sitl.hil import hil_state_message
     from mars_link.flight.build import make_world, outdoor_profile, sensor_params
     from sitl.world import FreeUnitsWorld, WorldConfig
 
@@ -356,9 +363,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     view, feed, reference, eta_at = _world_view(setup, world, out, mcap, foxglove)
     writer_pid = view.process.pid if view is not None and mcap else None
     try:
-        _await_peers(link, live | ({COORDINATOR_SYSID} if setup.docked else set()), 60.0, stop)
+        _await_peers(link, live | ({COORDINATOR_SYSID} if setup.coordinated else set()), 60.0, stop)
         link.prepare_peers(live)  # (the first sends' set-up, paid in the first step, stalled a paced start)
-        coordinator_addr = link.peers.get(COORDINATOR_SYSID) if setup.docked else None
+        coordinator_addr = link.peers.get(COORDINATOR_SYSID) if setup.coordinated else None
         step_sent = step_sent_packer(link)
         stall = _stall_from_env()
         wall0 = time.perf_counter()
@@ -383,15 +390,12 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                 truth_log.flush()
             datagrams = []  # sampled and encoded before the pacing wait: at t they only go out
             for p in world.sense():
-                if p.unit_id in live:  # ground truth for the unit's own telemetry at the mocap rate
-                    msgs = [] if p.truth is not None or (p.position is None and p.gps is None) else [
-                        hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
+                if p.unit_id in live:
+                    latch = []
                     if setup.pieces and latch_sent.get(p.unit_id) != p.latches:  # the latch sensor, on change
                         latch_sent[p.unit_id] = p.latches
-                        msgs.append(latch_message(p.t_s, p.latches))
-                    if p.battery is not None:  # the power module's sample, at the battery rate
-                        msgs.append(battery_report_message(p.battery))
-                    datagrams.append((link.pack(msgs + sensor_packet_messages(p)), link.peers[p.unit_id]))
+                        latch = [latch_message(p.t_s, p.latches)]
+                    datagrams.append((link.pack(unit_sensor_messages(world, p, latch)), link.peers[p.unit_id]))
             pacer.wait(t)
             if valve.armed and valve.check(behind_s := -pacer.wait_s(t), t):
                 print(f"world: {behind_s:.1f} s behind the wall clock at t={t:.2f}: leaving SCHED_FIFO, so that the "
@@ -467,6 +471,20 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             world.close()
             link.close()
     return 0
+
+
+def unit_sensor_messages(world, p: SensorPacket, extra: list | None = None) -> list:
+    """One unit's HIL datagram of a step, as the world sends it: ground truth for the unit's own telemetry
+    at the mocap rate (when the sensor packet carries none), `extra` (the latch sensor), the power module's
+    sample at the battery rate, the sensors."""
+    from sitl.hil import hil_state_message
+
+    msgs = [] if p.truth is not None or (p.position is None and p.gps is None) else [
+        hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
+    msgs += extra or []
+    if p.battery is not None:
+        msgs.append(battery_report_message(p.battery))
+    return msgs + sensor_packet_messages(p)
 
 
 def _write_world_summary(out: Path, summary: dict) -> None:
@@ -626,13 +644,13 @@ class _UnitLoop:
         sc = setup.scenario
         self.setup, self.unit_id, self.command_timeout_s = setup, unit_id, command_timeout_s
         index = setup.unit_ids.index(unit_id)
-        vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.docked, signing_key=key,
+        vehicle = make_unit(sc, setup.model, unit_id, coordinator_driven=setup.coordinated, signing_key=key,
                             wall_time_s=time.time(), require_signing=require_signing, sign_hil=True,
                             client_links_keyed=not run_key)  # (a per-run key: clients keep the keyless rules)
         links = {} if client.closed else client_links(index, client.gcs_port, client.api_port, client.gcs_bind,
                                                       client.api_bind)
         links[LINK_HIL] = LinkSpec(0, ports.address("world"), False, ports.open(f"unit/{unit_id}", "world"))
-        if setup.docked:
+        if setup.coordinated:
             links[LINK_COORDINATOR] = LinkSpec(0, ports.address("coordinator"), False,
                                                ports.open(f"unit/{unit_id}", "coordinator"))
         self.vehicle = vehicle
@@ -642,11 +660,11 @@ class _UnitLoop:
             from firmware_models.vehicle_ulog import UlogConfig
 
             vehicle.start_ulog(UlogConfig(out / f"unit{unit_id}.ulg", background=True))
-        self.hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.docked else [])
+        self.hello_links = [LINK_HIL] + ([LINK_COORDINATOR] if setup.coordinated else [])
         self.status_path = out / f"unit{unit_id}_status.json"
         self.next_hello = self.next_tick = self.next_status = 0.0
         self.command_deadline: SilenceDeadline | None = None  # (while a HIL step waits for its command)
-        vehicle.defer_own_state = setup.docked  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
+        vehicle.defer_own_state = setup.coordinated  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
         self.px4_link = None  # PX4's own interface over rmw_zenoh, beside the MAVLink persona (vehicle_px4)
         self.px4_log = None  # every rmw_zenoh sample it received, as received (px4_input_log_name)
         self.next_px4_telemetry = 0.0
@@ -1067,6 +1085,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--api-bind", type=int, default=None)
     ap.add_argument("--no-clients", action="store_true", help="unit: no GCS/API client links (a closed batch run)")
     ap.add_argument("--forever", action="store_true", help="docked: run until stopped (ignores --steps)")
+    ap.add_argument("--external-offboard", action="store_true",
+                    help="world, unit: no coordinator in this run; an off-board computer outside it drives the units "
+                         "(the units answer each step with what they drive; run --mode sitl --external-offboard)")
     ap.add_argument("--vehicle", action="store_true", help="coordinator: serve the assembly as one MAVLink vehicle")
     ap.add_argument("--sched-realtime", action="store_true",
                     help="real time: SCHED_FIFO when permitted; else world/unit SCHED_BATCH (mars_link.runtime.scheduling)")
@@ -1096,6 +1117,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.forever:
         setup.steps = None
+    setup.external_offboard = args.external_offboard
     if link.unit_interface:  # (the command line over the scenario's [units] interface)
         setup.scenario.unit_interface = link.unit_interface
     try:

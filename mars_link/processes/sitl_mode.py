@@ -72,7 +72,7 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
                clients=None, speed: float | None = None, unit_prefix=None, roles: tuple[str, ...] = ("coordinator", "world", "units"),
                topology: str = "peer", signing_key_file: str | None = None, vehicle=None,
                require_signing: bool = False, view: tuple[str, ...] = (), units_per_process: int = 1,
-               save_certs: bool = False) -> SitlSession:
+               save_certs: bool = False, external_offboard: bool = False) -> SitlSession:
     """Start the SITL processes (mars_link.processes.launcher.start) with their links on `link` (default Zenoh).
     `unit_prefix(u)` -> argv to run unit u under (e.g. `ip netns exec NS`); `roles` may leave out the
     coordinator (one started elsewhere attaches).
@@ -86,7 +86,8 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
     with `signing_key_file` (or $MARS_LINK_SIGNING_KEY), else a per-run key in the run's private directory
     (`SitlSession.signing_key_file`: what a coordinator started elsewhere is given). `vehicle` (mars_link.processes.vehicle_host.VehiclePorts): the coordinator serves the
     assembly as one MAVLink vehicle (its client links on UDP) and the run goes on, paced to real time
-    unless `speed` says otherwise, until stopped."""
+    unless `speed` says otherwise, until stopped. `external_offboard`: no coordinator, the world and units
+    run as for an off-board computer outside the run (`run --mode sitl --external-offboard`)."""
     from mars_link.mavlink.signing import load_key
     from mars_link.processes.launcher import ClientPorts, start
     from mars_link.processes.lockstep import load_setup
@@ -151,6 +152,9 @@ def start_sitl(scenario: str | None, out: Path, link: LinkSpec | None = None, se
         if vehicle is not None:
             role_args["coordinator"] += vehicle.argv()
             speed = 1.0 if speed is None else speed
+        if external_offboard:  # (lockstep: no coordinator to wait for; each unit answers its step at once)
+            role_args["world"].append("--external-offboard")
+            role_args["unit"].append("--external-offboard")
         if own_key:  # the per-run key signs the internal links only; the client links keep the keyless rules
             role_args["unit"].append("--run-key")
             role_args["coordinator"].append("--run-key")
@@ -241,17 +245,22 @@ def _toml(doc: dict) -> str:
 def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSpec | None = None,
                       realtime: bool = False, timeout_s: float | None = None, plots: bool = True,
                       on_progress=None, view: tuple[str, ...] = ("--mcap",), units_per_process: int = 1,
-                      plot_format: str = "png", clients=None, save_certs: bool = False) -> dict:
+                      plot_format: str = "png", clients=None, save_certs: bool = False,
+                      external_offboard: tuple[int, ...] = ()) -> dict:
     """Fly `scenario` through the multi-process SITL; write and return the inproc-style summary
     (`plot_format`: plots/ as png at 300 dpi, pdf or svg). `clients` (launcher.ClientPorts): the units'
     ground-station ports; None: none at all (a batch run that no client on the machine can reach, arm or steer).
-    `save_certs`: a copy of the run's secrets in `out`/certs."""
+    `save_certs`: a copy of the run's secrets in `out`/certs. `external_offboard` (unit ids,
+    `external_offboard_units`): no coordinator; those units wait for an off-board computer outside the
+    run, the world paced to the wall clock for the run's duration, and the summary says who flew them."""
     from mars_link.processes.launcher import ClientPorts
 
     link = link or LinkSpec("zenoh")
     if link.unit_interface:  # (the command line over the scenario's [units] interface)
         scenario = replace(scenario, unit_interface=link.unit_interface)
     check_unit_interface(scenario, link)
+    if external_offboard:
+        external_offboard_units(",".join(map(str, external_offboard)), scenario)  # (what it cannot carry: refused)
     pieces = scenario.has_pieces
     seed = scenario.sim.seed if seed is None else seed
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
@@ -262,14 +271,22 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     write_starting_summary(out, scenario, seed, 1)  # first: there is always one (no disk for it: exit 3)
     copy = write_scenario_copy(_absolute_paths(scenario), out / "scenario.toml")
     wall0 = time.perf_counter()
+    external = bool(external_offboard)
     session = start_sitl(str(copy), out, link, seed, realtime=realtime, view=view, units_per_process=units_per_process,
-                         clients=clients or ClientPorts(bind_any=True, closed=True), save_certs=save_certs)
+                         clients=clients or ClientPorts(bind_any=True, closed=True),
+                         save_certs=save_certs or (external and not link.insecure and not link.tls_ca),
+                         roles=("world", "units") if external else ("coordinator", "world", "units"),
+                         topology="router" if external else "peer", speed=1.0 if external else None,
+                         external_offboard=external)
+    if external:
+        print(external_offboard_text(session, out, external_offboard), file=sys.stderr, flush=True)
     watcher = _ProgressWatcher(out / "world_status.json", scenario, on_progress)
     try:
         with _sigterm_as_interrupt():
             code = session.wait(timeout_s, units_may_die=True)  # a dead unit process is a failed unit
     except KeyboardInterrupt as exc:  # SIGTERM or Ctrl-C: every child was stopped by SIGTERM and wrote its summary;
-        _summarize_interrupted(scenario, out, seed, time.perf_counter() - wall0, session, exc)  # the part flown
+        _summarize_interrupted(scenario, out, seed, time.perf_counter() - wall0, session, exc,  # the part flown
+                               external_offboard)
         raise
     finally:
         watcher.stop()
@@ -285,7 +302,51 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
         return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime, plots, plot_format,
                                          failure=failure)
     return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held, plot_format,
-                              failure=failure)
+                              failure=failure, tracked=not external, external_offboard=external_offboard)
+
+
+def external_offboard_units(text: str, scenario) -> tuple[int, ...]:
+    """`--external-offboard all|IDS` -> the unit ids left to an off-board computer outside the run; what it
+    cannot be, one UserInputError line. A docked assembly is one rigid body: one off-board computer flies
+    all of it or none (a coordinator flying some of its units while another computer drives the others
+    would each see the other's thrust as a disturbance), so IDS must name every unit; a flight of pieces
+    needs the coordinator (it ends the flight, and PX4's interface carries no latch commands)."""
+    if scenario.has_pieces:
+        raise UserInputError("--external-offboard: a flight of pieces is run by its coordinator (docking, latches): "
+                             "give a docked assembly")
+    if scenario.unit_interface != "px4-zenoh":
+        raise UserInputError("--external-offboard needs --unit-interface px4-zenoh (the MAVLink persona takes per-rotor "
+                             "commands from the run's own coordinator link only)")
+    ids = tuple(scenario.model().unit_ids)
+    if text.strip() == "all":
+        return ids
+    try:
+        given = tuple(sorted({int(x) for x in text.split(",")}))
+    except ValueError:
+        raise UserInputError(f"--external-offboard {text!r}: expected all or unit ids separated by commas") from None
+    unknown = [u for u in given if u not in ids]
+    if unknown:
+        raise UserInputError(f"--external-offboard: unit {unknown[0]} is not in this assembly (units {list(ids)})")
+    if given != ids:
+        raise UserInputError(f"--external-offboard {text}: a docked assembly is one rigid body, flown by one off-board "
+                             f"computer: name all its units ({','.join(map(str, ids))}) or use all")
+    return ids
+
+
+def external_offboard_text(session: SitlSession, out: Path, units: tuple[int, ...]) -> str:
+    """Where an off-board computer outside the run connects, and what it finds there (one paragraph)."""
+    link = session.link
+    where = ", ".join(link.listen) or session.router_endpoint
+    names = ", ".join(f"/px4_{u}/fmu" for u in units)
+    if link.insecure:
+        access = "open bus (--insecure)"
+    elif link.tls_ca:
+        access = "your TLS certificates: the off-board computer's needs the coordinator's rights"
+    else:
+        access = f"closed bus: connect with TLS as the coordinator ({out / 'certs'}: ca.crt, coordinator.crt, coordinator.key)"
+    return (f"external off-board: the coordinator flies none of units {','.join(map(str, units))}; an off-board computer "
+            f"drives them over PX4's interface (rmw_zenoh domain 0: {names}/in/..., /fmu/out/...) on zenoh {where}; "
+            f"{access}; the world runs in real time until the run's end")
 
 
 def check_unit_interface(scenario, link: LinkSpec) -> None:
@@ -316,7 +377,7 @@ def _sigterm_as_interrupt():
 
 
 def _summarize_interrupted(scenario, out: Path, seed: int, wall_s: float, session: SitlSession,
-                           exc: KeyboardInterrupt) -> None:
+                           exc: KeyboardInterrupt, external_offboard: tuple[int, ...] = ()) -> None:
     """summary.json of an interrupted flight (completed: false; the world says it was stopped) from the
     logs the children closed; the starting summary stays if the world logged nothing yet."""
     if not (out / "world_summary.json").exists() or not (out / "world_truth.csv").exists():
@@ -325,7 +386,8 @@ def _summarize_interrupted(scenario, out: Path, seed: int, wall_s: float, sessio
     if scenario.has_pieces:
         summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link, plots=False, failure=failure)
     else:
-        summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False, failure=failure)
+        summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False, failure=failure,
+                           tracked=not external_offboard, external_offboard=external_offboard)
 
 
 def _sets_faults_known(scenario) -> bool:
@@ -410,10 +472,13 @@ def _end_reason(scenario, trajectory, world: dict, diverged_at: float | None, fa
 
 def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True,
                        realtime: bool = False, cpu_wake_latency: str | None = None, plot_format: str = "png",
-                       failure: str | None = None, tracked: bool = True) -> dict:
+                       failure: str | None = None, tracked: bool = True,
+                       external_offboard: tuple[int, ...] = ()) -> dict:
     """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them.
     `tracked` False (`sitl up --vehicle`: the clients' commands are the reference, not the scenario's
-    trajectory): no tracking error (null figures, NaN reference columns), and stopping it is its end."""
+    trajectory): no tracking error (null figures, NaN reference columns), and stopping it is its end.
+    `external_offboard`: the units an off-board computer outside the run drove (not tracked either: the
+    coordinator flew none of them); the flight still ends at the run's duration."""
     from mars_link.flight.build import make_trajectory, tracked_offset
     from mars_link.flight.metrics import TrackingMetrics, TrialResult, summarize
     from mars_link.core.rotations import quat_to_euler, quat_to_rotmat
@@ -461,7 +526,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         events.append(unit_died(death["t_s"], death["unit"]))
     events += foreign_traffic_events(out, model.unit_ids)
     end_reason = _end_reason(scenario, trajectory, world, (metrics.divergence or {}).get("t_s") if metrics.diverged
-                             else None, failure) if tracking else failure
+                             else None, failure) if tracking or external_offboard else failure
     result = TrialResult(
         seed=seed, completed=end_reason is None, end_reason=end_reason, diverged=metrics.diverged,
         mean_error_m=math.nan if no_rows else metrics.mean_error_m, rmse_m=math.nan if no_rows else metrics.rmse_m,
@@ -475,7 +540,8 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     )
     summary = summarize(scenario, [result], seed, mode="sitl")
     if not tracking:
-        summary.update(mode="sitl-vehicle", mean_error_m=None, mean_error_std_m=None, rmse_m=None, max_error_m=None)
+        summary.update(mode="sitl-external-offboard" if external_offboard else "sitl-vehicle", mean_error_m=None,
+                       mean_error_std_m=None, rmse_m=None, max_error_m=None)
     summary["sitl"] = {
         "transport": link.kind,
         "bus": link.bus(),
@@ -493,6 +559,11 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "cpu_wake_latency": cpu_wake_latency,  # real time: idle CPUs kept awake (transport.realtime.CpuWakeLatency)
         "scheduling": _scheduling_classes(out, world, coordinator),  # (mars_link.runtime.scheduling)
     }
+    if external_offboard:  # who flew: not the coordinator (none ran), so no tracking figures
+        summary["sitl"]["external_offboard"] = {
+            "units": list(external_offboard), "coordinator": None, "paced": "real time",
+            "note": "these units were driven by an off-board computer outside the run, not by the mars-link "
+                    "coordinator: rotors.csv and world_truth.csv are the world's truth of what they drove; no tracking error"}
     from mars_link.flight.runner import write_plots_safely, write_summary
 
     if plots and log.telemetry_rows:
@@ -863,10 +934,13 @@ def sitl_runner(args):
         if trials != 1:
             raise UserInputError("--mode sitl runs one trial (vary --seed instead)")
         cb = None if on_progress is None else (lambda frac: on_progress(0, frac))
+        external = getattr(args, "external_offboard", None)
+        units = external_offboard_units(external, scenario) if external else ()
         try:
             return run_sitl_scenario(scenario, out, seed, link, realtime=args.realtime, on_progress=cb, view=view,
                                      units_per_process=args.units_per_process, plot_format=plot_format,
-                                     clients=clients, save_certs=getattr(args, "save_certs", False))
+                                     clients=clients, save_certs=getattr(args, "save_certs", False),
+                                     external_offboard=units)
         except RuntimeError as e:
             raise UserInputError(str(e)) from None
 

@@ -4,6 +4,8 @@ was broken on purpose (the test switch)."""
 
 from __future__ import annotations
 
+import pytest
+
 from mars_link.apps.cli import main as cli_main
 
 CHECKS = ("keep-alive loss", "recovery only on a fresh arm", "arming gating", "offboard gating", "NaN control",
@@ -32,3 +34,47 @@ def test_conformance_red_on_a_broken_keepalive(capsys) -> None:
     assert rows["keep-alive loss"] == "FAIL" and rows["recovery only on a fresh arm"] == "FAIL"
     assert rows["arming gating"] == "pass"
     assert "px4-zenoh: keep-alive loss" in captured.err
+
+
+@pytest.mark.slow
+@pytest.mark.sitl
+def test_conformance_over_the_network_green_and_red_on_a_broken_keepalive_unit(capsys) -> None:
+    """`--target process`: unit processes as `sitl up` starts them, reached over the network (PX4's interface
+    over Zenoh, the MAVLink persona over UDP), the harness their world and coordinator. The keep-alive check
+    passes on both with the in-process figures (sim time), and fails, named, against a unit process started
+    with the broken-keep-alive switch."""
+    assert cli_main(["conformance", "--target", "process", "--check", "keepalive-loss"]) == 0
+    out = capsys.readouterr().out
+    assert "unit: a unit process over Zenoh" in out and "unit: a unit process over UDP" in out
+    for interface in ("px4-zenoh", "mavlink"):
+        assert _rows(out, interface) == {"keep-alive loss": "pass"}, interface
+    assert "1.000 s; failed safe: True" in out and "0.040 s; failed safe: True" in out  # as in process
+
+    assert cli_main(["conformance", "--target", "process", "--unit-interface", "px4-zenoh", "--test-broken-keepalive",
+                     "--check", "keepalive-loss"]) == 1
+    captured = capsys.readouterr()
+    assert _rows(captured.out, "px4-zenoh") == {"keep-alive loss": "FAIL"}
+    assert "px4-zenoh: keep-alive loss" in captured.err
+
+
+@pytest.mark.long
+@pytest.mark.sitl
+def test_every_check_over_the_network_green_and_red(capsys) -> None:
+    """Every check against unit processes over the network (about a minute): green on both interfaces,
+    the keep-alive and recovery checks red (and only they) on a unit process with the broken keep-alive."""
+    assert cli_main(["conformance", "--target", "process"]) == 0
+    out = capsys.readouterr().out
+    for interface in ("px4-zenoh", "mavlink"):
+        assert _rows(out, interface) == {name: "pass" for name in CHECKS}, interface
+    assert cli_main(["conformance", "--target", "process", "--unit-interface", "px4-zenoh",
+                     "--test-broken-keepalive"]) == 1
+    captured = capsys.readouterr()
+    rows = _rows(captured.out, "px4-zenoh")
+    assert {name for name, r in rows.items() if r == "FAIL"} == {"keep-alive loss", "recovery only on a fresh arm"}
+    assert "px4-zenoh: keep-alive loss" in captured.err
+
+
+def test_conformance_refuses_an_unknown_check(capsys) -> None:
+    assert cli_main(["conformance", "--check", "keepalive"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "unknown check" in err

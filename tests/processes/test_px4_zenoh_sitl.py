@@ -133,6 +133,59 @@ def _world_unit(out: Path, unit: int) -> dict:
         return {}
 
 
+def _open_session(port: int, proc: subprocess.Popen) -> zenoh.Session:
+    """A client session on the run's router, once it listens (it does once the run has started)."""
+    end = time.monotonic() + HANG_S
+    while True:
+        try:
+            return zenoh.open(_client_config(f"tcp/127.0.0.1:{port}"))
+        except zenoh.ZError:
+            if time.monotonic() > end or proc.poll() is not None:
+                raise
+            time.sleep(0.2)
+
+
+def _take_over(client: OffboardComputer) -> None:
+    """As an off-board computer takes a PX4 v1.17 vehicle: wait for its status, keep-alive first (PX4 refuses
+    OFFBOARD without), OFFBOARD until accepted, then ARM."""
+    end = time.monotonic() + HANG_S
+    while client.latest_status() is None and time.monotonic() < end:  # the unit is up: it publishes its status
+        time.sleep(0.05)
+    assert client.latest_status() is not None, f"no /px4_{client.unit_id}/fmu/out/vehicle_status"
+    assert client.latest_status().arming_state == ARMING_STATE_DISARMED
+    client.keepalive_on.set()
+    end = time.monotonic() + HANG_S
+    while client.command(VEHICLE_CMD_DO_SET_MODE, 1.0, 6.0) != RESULT_ACCEPTED and time.monotonic() < end:
+        time.sleep(0.1)
+    assert client.command(VEHICLE_CMD_COMPONENT_ARM_DISARM, 1.0) == RESULT_ACCEPTED
+
+
+def _stream(client: OffboardComputer, seconds: float) -> None:
+    """ActuatorMotors at about 50 Hz of wall time (the keep-alive goes on in its thread)."""
+    streamed_until = time.monotonic() + seconds
+    while time.monotonic() < streamed_until:
+        client.motors(CONTROLS)
+        time.sleep(0.02)
+
+
+def _stop_and_await_failsafe(client: OffboardComputer):
+    """Stop the keep-alive (the motors' stream is stopped already); the first status that reports the unit
+    disarmed after the last keep-alive, and that keep-alive's stamp (the unit's clock as last heard)."""
+    client.keepalive_on.clear()
+    time.sleep(0.15)  # (the keep-alive thread's last put is done)
+    last_keepalive_us = client.last_keepalive_unit_us
+    end = time.monotonic() + HANG_S
+    disarmed = None
+    while disarmed is None and time.monotonic() < end:
+        with client.lock:
+            disarmed = next((s for s in client.statuses if s.timestamp > last_keepalive_us
+                             and s.arming_state == ARMING_STATE_DISARMED), None)
+        time.sleep(0.05)
+    assert disarmed is not None, "the unit did not fail safe after the stream stopped"
+    assert disarmed.failsafe
+    return disarmed, last_keepalive_us
+
+
 @pytest.mark.slow
 @pytest.mark.sitl
 def test_plain_zenoh_client_arms_and_drives_a_sitl_up_unit(tmp_path: Path) -> None:
@@ -144,33 +197,12 @@ def test_plain_zenoh_client_arms_and_drives_a_sitl_up_unit(tmp_path: Path) -> No
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     session = client = None
     try:
-        end = time.monotonic() + HANG_S
-        while session is None:  # (sitl up's router listens once it has started)
-            try:
-                session = zenoh.open(_client_config(f"tcp/127.0.0.1:{port}"))
-            except zenoh.ZError:
-                if time.monotonic() > end or proc.poll() is not None:
-                    raise
-                time.sleep(0.2)
+        session = _open_session(port, proc)
         client = OffboardComputer(session, 1)
-        end = time.monotonic() + HANG_S
-        while client.latest_status() is None and time.monotonic() < end:  # the unit is up: it publishes its status
-            time.sleep(0.05)
-        assert client.latest_status() is not None, "no /px4_1/fmu/out/vehicle_status"
-        assert client.latest_status().arming_state == ARMING_STATE_DISARMED
-
-        # OFFBOARD needs the keep-alive first (PX4 refuses it without); then arm in OFFBOARD
-        client.keepalive_on.set()
-        end = time.monotonic() + HANG_S
-        while client.command(VEHICLE_CMD_DO_SET_MODE, 1.0, 6.0) != RESULT_ACCEPTED and time.monotonic() < end:
-            time.sleep(0.1)
-        assert client.command(VEHICLE_CMD_COMPONENT_ARM_DISARM, 1.0) == RESULT_ACCEPTED
+        _take_over(client)
 
         # stream ActuatorMotors; the world's truth follows (the motor model's lag settles in well under 1 s)
-        streamed_until = time.monotonic() + 2.0
-        while time.monotonic() < streamed_until:
-            client.motors(CONTROLS)
-            time.sleep(0.02)
+        _stream(client, 2.0)
         status = client.latest_status()
         assert status.arming_state == ARMING_STATE_ARMED and status.nav_state == NAVIGATION_STATE_OFFBOARD
         thrust_n = np.array(_world_unit(out, 1)["rotor_thrust_n"])
@@ -178,18 +210,7 @@ def test_plain_zenoh_client_arms_and_drives_a_sitl_up_unit(tmp_path: Path) -> No
         np.testing.assert_allclose(thrust_n / thrust_n[0], np.array(CONTROLS) / CONTROLS[0], rtol=0.02)
 
         # stop everything: the unit disarms on its own clock no earlier than COM_OF_LOSS_T after the last keep-alive
-        client.keepalive_on.clear()
-        time.sleep(0.15)  # (the keep-alive thread's last put is done)
-        last_keepalive_us = client.last_keepalive_unit_us
-        end = time.monotonic() + HANG_S
-        disarmed = None
-        while disarmed is None and time.monotonic() < end:
-            with client.lock:
-                disarmed = next((s for s in client.statuses if s.timestamp > last_keepalive_us
-                                 and s.arming_state == ARMING_STATE_DISARMED), None)
-            time.sleep(0.05)
-        assert disarmed is not None, "the unit did not fail safe after the stream stopped"
-        assert disarmed.failsafe
+        disarmed, last_keepalive_us = _stop_and_await_failsafe(client)
         # the client stamped the keep-alive with the unit's clock as last heard, at most one status period
         # behind the unit's own reception time: the loss can only look later than it was, never earlier
         assert (disarmed.timestamp - last_keepalive_us) / 1e6 >= COM_OF_LOSS_T_S
@@ -288,18 +309,86 @@ def test_plain_zenoh_session_sees_a_run_drive_its_units_through_px4(tmp_path: Pa
     assert np.ptp(ratios) / np.mean(ratios) < 1e-4  # thrust = control x the unit's one full scale (rotors.csv: 5 decimals)
 
 
+@pytest.mark.slow
+@pytest.mark.sitl
+def test_plain_zenoh_client_flies_a_run_with_external_offboard(tmp_path: Path) -> None:
+    """`run --mode sitl --external-offboard all`: no coordinator; the one unit of hover_1x1 waits for an
+    off-board computer, the same plain client as for `sitl up` takes it over and streams ActuatorMotors,
+    and the run, paced to the wall clock for its duration, writes the world's truth: rotors.csv (what the
+    unit drove the world's motors with, each logged step) shows the commanded thrusts, and the rotors stop
+    COM_OF_LOSS_T after the last keep-alive the unit received (its input log, sim time)."""
+    port = _free_port()
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_1x1", "--mode", "sitl",
+                             "--duration", "8", "--transport", "zenoh", "--insecure", "--unit-interface", "px4-zenoh",
+                             "--external-offboard", "all", "--zenoh-listen", f"tcp/127.0.0.1:{port}",
+                             "--out", str(out), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    session = client = None
+    try:
+        session = _open_session(port, proc)
+        client = OffboardComputer(session, 1)
+        _take_over(client)
+        _stream(client, 2.0)
+        status = client.latest_status()
+        assert status.arming_state == ARMING_STATE_ARMED and status.nav_state == NAVIGATION_STATE_OFFBOARD
+        disarmed, last_keepalive_us = _stop_and_await_failsafe(client)
+        assert (disarmed.timestamp - last_keepalive_us) / 1e6 >= COM_OF_LOSS_T_S
+    finally:
+        if client is not None:
+            client.close()
+        if session is not None:
+            session.close()
+        text = proc.communicate(timeout=HANG_S)[0]  # the run ends at its duration on its own
+    assert proc.returncode == 0, text[-2000:]
+    assert "external off-board: the coordinator flies none of units 1" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["mode"] == "sitl-external-offboard" and summary["completed"]
+    assert summary["sitl"]["external_offboard"]["units"] == [1]
+    assert summary["sitl"]["external_offboard"]["coordinator"] is None and summary["mean_error_m"] is None
+    assert summary["sim_time_s"] == pytest.approx(8.0)
+
+    # what the unit received (its input log: key, sim time on arrival) and what it drove the world with
+    keepalives_s = [r["sim_s"] for r in map(json.loads, (out / "unit1_px4_in.jsonl").read_text().splitlines())
+                    if "/fmu/in/offboard_control_mode/" in r["key"]]
+    rotors = np.genfromtxt(out / "rotors.csv", delimiter=",", names=True)
+    thrust = np.column_stack([rotors[f"thrust_u1r{r}"] for r in range(1, 5)])
+    command = np.column_stack([rotors[f"cmd_u1r{r}"] for r in range(1, 5)])
+    driven = thrust.min(axis=1) > 0.0
+    assert driven.sum() >= 50  # 2 s of streaming at the rotor log's rate, and the hold until the failsafe
+    ratios = thrust[driven] / thrust[driven][:, :1]
+    np.testing.assert_allclose(ratios, np.tile(np.array(CONTROLS) / CONTROLS[0], (len(ratios), 1)), rtol=1e-4)
+    stamped = driven & np.isfinite(command).all(axis=1)  # steps whose ActuatorMotors carried that step's time
+    np.testing.assert_allclose(thrust[stamped], command[stamped], rtol=1e-4)  # flown as commanded
+    # the rotors stop COM_OF_LOSS_T after the last keep-alive, on the unit's clock (within one rotors.csv period)
+    last_keepalive_s = max(keepalives_s)
+    stopped_s = rotors["t_s"][(rotors["t_s"] > last_keepalive_s) & ~driven].min()
+    delay_s = stopped_s - last_keepalive_s
+    print(f"external off-board: {int(driven.sum())} rows driven, {int(stamped.sum())} with their command; rotors "
+          f"stopped {delay_s:.3f} s after the last keep-alive (COM_OF_LOSS_T {COM_OF_LOSS_T_S} s)")
+    assert COM_OF_LOSS_T_S - 0.011 <= delay_s <= COM_OF_LOSS_T_S + 0.05
+
+
 PIECES_SCENARIO = "assemble_3x2"  # a free start: a flight of pieces
 
 
 def test_px4_interface_refusals_are_one_line(tmp_path: Path, capsys) -> None:
-    """PX4's interface rides on Zenoh and carries no latch commands; a bad [units] interface is named. One
-    line on stderr, exit 2, before any process starts."""
+    """PX4's interface rides on Zenoh and carries no latch commands; a bad [units] interface is named;
+    --external-offboard names a whole docked assembly over PX4's interface in a SITL run. One line on
+    stderr, exit 2, before any process starts."""
     from mars_link.apps.cli import main as cli_main
 
     cases = ((["sitl", "up", "--units", "1", "--transport", "udp", "--unit-interface", "px4-zenoh"], "needs --transport zenoh"),
              (["run", "hover_3x2", "--mode", "sitl", "--transport", "udp", "--unit-interface", "px4-zenoh"],
               "needs --transport zenoh"),
-             (["run", PIECES_SCENARIO, "--unit-interface", "px4-zenoh"], "needs the mavlink interface"))
+             (["run", PIECES_SCENARIO, "--unit-interface", "px4-zenoh"], "needs the mavlink interface"),
+             (["run", "hover_3x2", "--mode", "sitl", "--transport", "zenoh", "--insecure", "--unit-interface",
+               "px4-zenoh", "--external-offboard", "1,2"], "a docked assembly is one rigid body"),
+             (["run", "hover_1x1", "--mode", "sitl", "--transport", "zenoh", "--insecure", "--external-offboard", "1"],
+              "needs --unit-interface px4-zenoh"),
+             (["run", "hover_1x1", "--mode", "sitl", "--transport", "zenoh", "--insecure", "--unit-interface",
+               "px4-zenoh", "--external-offboard", "one"], "expected all or unit ids"),
+             (["run", "hover_1x1", "--unit-interface", "px4-zenoh", "--external-offboard", "all"], "applies to --mode sitl"))
     for argv, needle in cases:
         code = cli_main([*argv, "--out", str(tmp_path / "out")])
         err = capsys.readouterr().err.strip()

@@ -108,3 +108,19 @@ def test_coordinator_refuses_non_finite_telemetry() -> None:
     bad_imu = ImuSample(0.0, 1, np.array([np.nan, 0, 0]), np.zeros(3))
     assert not telemetry_ok(SensorPacket(0.0, 1, bad_imu, None, None))
     assert not telemetry_ok(SensorPacket(0.0, 1, imu, PositionSample(0.0, 1, np.array([0, np.inf, 0]), None), None))
+
+
+def test_a_step_skip_runs_the_step_and_the_unit_keeps_waiting() -> None:
+    """The coordinator's SYSTEM_TIME on its link: no command for that step (the conformance harness's silent
+    steps). The step runs with the held command, whether the skip comes before or after the sensors, and
+    the unit keeps waiting for the coordinator (not released); a SYSTEM_TIME from anyone else means nothing."""
+    v, _ = _taken_over("mars-ftcc", [0.4] * 4)
+    skip = lambda t_s, mav=COORD: mavlink.MAVLink_system_time_message(usec(t_s), usec(t_s) // 1000).pack(mav)  # noqa: E731
+    assert not _hil_answers(v.handle(_sensors(0.01), 0.1, LINK_HIL), v)
+    (answer,) = _hil_answers(v.handle(skip(0.01), 0.1, LINK_COORDINATOR), v)
+    assert answer.time_usec == 10_000 and answer.controls[0] == pytest.approx(0.4)
+    v.handle(skip(0.02), 0.2, LINK_COORDINATOR)  # before its sensors: they run the step at once
+    (answer,) = _hil_answers(v.handle(_sensors(0.02), 0.2, LINK_HIL), v)
+    assert answer.time_usec == 20_000 and v.stats["step_skips"] == 2 and "hil_released" not in v.stats
+    assert not _hil_answers(v.handle(_sensors(0.03), 0.3, LINK_HIL), v)  # still waiting for the coordinator
+    assert not _hil_answers(v.handle(skip(0.03, new_mav(7)), 0.3, LINK_COORDINATOR), v)  # not the coordinator
