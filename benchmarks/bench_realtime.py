@@ -3,7 +3,7 @@
 loopback UDP), run after run, with where the time goes.
 
     python benchmarks/bench_realtime.py [--runs 3] [--duration 30] [--transport udp|zenoh|px4-zenoh|zenoh,px4-zenoh]
-        [--png PATH] [--quick] [--json]
+        [--control-hz 100,250] [--png PATH] [--quick] [--json]
 
 Command age at the motor = when a unit drives its motors with the coordinator's command for a step (its
 HIL_ACTUATOR_CONTROLS leaves for the simulator) - that step's sensor sample time (PX4's timestamp_sample
@@ -14,7 +14,9 @@ motors driven (the units' command_age_unit<i>.csv and coordinator_timing.csv of 
 `px4-zenoh`: the units commanded through PX4's own per-rotor interface over rmw_zenoh (ActuatorMotors,
 with OffboardControlMode at 10 Hz) instead of SET_ACTUATOR_CONTROL_TARGET; the sensors still reach the
 coordinator as MAVLink over Zenoh, so zenoh vs px4-zenoh isolates the command interface.
-The machine is shared: compare runs of one invocation, not figures across days.
+`--control-hz 100,250`: the same at each control rate (the scenario's physics rate kept); the jitter
+figure is p99 - p50 of the command age. The machine is shared: compare runs of one invocation, not figures
+across days.
 """
 
 from __future__ import annotations
@@ -52,6 +54,8 @@ def main() -> int:
     ap.add_argument("--transport", default="udp",
                     help="udp, zenoh, px4-zenoh, or several (zenoh,udp: runs alternate, medians and their ratio printed)")
     ap.add_argument("--scenario", default="hover_3x2")
+    ap.add_argument("--control-hz", default=None, metavar="HZ[,HZ]",
+                    help="control rates to fly, comma-separated (default: the scenario's); each run of each rate alternates")
     ap.add_argument("--png", default=None, help="write the command-age distribution of every run here")
     ap.add_argument("--quick", action="store_true", help="one run of 8 s per transport")
     add_json_option(ap)
@@ -65,43 +69,57 @@ def main() -> int:
     except UserInputError as e:
         ap.error(str(e))
     sc = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, duration_s=a.duration))
+    try:
+        rates = [float(x) for x in a.control_hz.split(",")] if a.control_hz else [sc.sim.control_hz]
+    except ValueError:
+        ap.error(f"--control-hz {a.control_hz!r}: expected rates in Hz separated by commas")
+    if any(not 0 < hz <= sc.sim.physics_hz for hz in rates):
+        ap.error(f"--control-hz: each rate in (0, {sc.sim.physics_hz:g}] (the scenario's physics rate)")
+    cases = [(t, hz) for hz in rates for t in transports]
+    label = {c: c[0] if a.control_hz is None else f"{c[0]}@{c[1]:g}Hz" for c in cases}
     rec = Recorder.start("bench_realtime", a)
-    rows: dict[str, list] = {t: [] for t in transports}
+    rows: dict[str, list] = {label[c]: [] for c in cases}
     ages_by_run = []
-    print(f"{a.runs} runs of {a.scenario}, {a.duration:.0f} s each, {' and '.join(transports)} (alternating), real time",
-          flush=True)
-    header = (f"{'link':>9} {'run':>3} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'misses':>10} {'p99 t>=1s':>9}   "
+    print(f"{a.runs} runs of {a.scenario}, {a.duration:.0f} s each, {' and '.join(label.values())} (alternating), "
+          "real time", flush=True)
+    header = (f"{'link':>15} {'run':>3} {'p50 ms':>7} {'p99 ms':>7} {'max ms':>7} {'misses':>10} {'p99 t>=1s':>9}   "
               + " ".join(f"{s:>12}" for s in STAGES))
     print(header)
     with tempfile.TemporaryDirectory() as tmp:
         for i in range(a.runs):
-            for transport in transports:
-                out = Path(tmp) / f"{transport}{i}"
-                s = run_sitl_scenario(sc, out, link=LINKS[transport], realtime=True, plots=False)
+            for transport, hz in cases:
+                name = label[(transport, hz)]
+                out = Path(tmp) / f"{transport}-{hz:g}-{i}"
+                flown = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, control_hz=hz))
+                s = run_sitl_scenario(flown, out, link=LINKS[transport], realtime=True, plots=False)
                 age = s["sitl"]["command_age"]
                 stages = stage_times(out)
-                rows[transport].append(age)
+                rows[name].append(age)
                 ages_by_run.append(_ages(out))
                 settled = _ages(out, after_s=1.0)  # the start-up (arming, the first exchanges) left out
                 p99_settled = float(np.percentile(settled, 99)) if settled.size else float("nan")
-                print(f"{transport:>9} {i + 1:>3} {age['p50_ms']:>7.2f} {age['p99_ms']:>7.2f} {age['max_ms']:>7.1f} "
+                print(f"{name:>15} {i + 1:>3} {age['p50_ms']:>7.2f} {age['p99_ms']:>7.2f} {age['max_ms']:>7.1f} "
                       f"{age['deadline_misses']:>4}/{age['n']:<5} {p99_settled:>9.2f}   "
                       + " ".join(f"{stages.get(k, float('nan')):>12.2f}" for k in STAGES), flush=True)
         wake = s["sitl"].get("cpu_wake_latency")
         scheduling = describe_classes(s["sitl"].get("scheduling") or {})  # (the last run's: SCHED_FIFO or not)
     medians = {}
-    for transport, ages in rows.items():
+    for name, ages in rows.items():
         p50 = statistics.median(r["p50_ms"] for r in ages)
         p99 = statistics.median(r["p99_ms"] for r in ages)
-        medians[transport] = (p50, p99)
-        print(f"{transport}: median of runs p50 {p50:.2f} ms, p99 {p99:.2f} ms (target p99 < 5 ms)")
-        what = f"real-time SITL {a.scenario}, {transport}, {a.duration:g} s, median of {a.runs}"
-        rec.figure(f"command_age_p50_{transport}_ms", p50, "ms", what + ": command age at the motor, p50")
-        (rec.headline if transport == transports[0] else rec.figure)(
-            f"command_age_p99_{transport}_ms", p99, "ms", what + ": command age at the motor, p99 (target < 5 ms)")
-        rec.figure(f"deadline_misses_{transport}", sum(r["deadline_misses"] for r in ages), "commands",
-                   f"of {sum(r['n'] for r in ages)} over the 10 ms deadline")
-    for a_name, b_name in (("zenoh", "udp"), ("px4-zenoh", "zenoh")):
+        medians[name] = (p50, p99)
+        print(f"{name}: median of runs p50 {p50:.2f} ms, p99 {p99:.2f} ms, jitter (p99 - p50) {p99 - p50:.2f} ms "
+              "(target p99 < 5 ms)")
+        what = f"real-time SITL {a.scenario}, {name}, {a.duration:g} s, median of {a.runs}"
+        rec.figure(f"command_age_p50_{name}_ms", p50, "ms", what + ": command age at the motor, p50")
+        (rec.headline if name == label[cases[0]] else rec.figure)(
+            f"command_age_p99_{name}_ms", p99, "ms", what + ": command age at the motor, p99 (target < 5 ms)")
+        rec.figure(f"command_age_jitter_{name}_ms", p99 - p50, "ms", what + ": command age p99 - p50")
+        rec.figure(f"deadline_misses_{name}", sum(r["deadline_misses"] for r in ages), "commands",
+                   f"of {sum(r['n'] for r in ages)} over the control period's deadline")
+    pairs = [(label[(x, hz)], label[(y, hz)]) for hz in rates for x, y in (("zenoh", "udp"), ("px4-zenoh", "zenoh"))
+             if (x, hz) in label and (y, hz) in label]
+    for a_name, b_name in pairs:
         if a_name in medians and b_name in medians:
             (a50, a99), (b50, b99) = medians[a_name], medians[b_name]
             print(f"{a_name} / {b_name} (same minutes): p50 {a50 / b50:.2f}x, p99 {a99 / b99:.2f}x")

@@ -245,7 +245,7 @@ def test_a_misspelled_scenario_name_gets_did_you_mean_on_stderr():
 
 
 def _shortened(argv: list[str]) -> list[str]:
-    """A README command as this test runs it: a flight cut to 1 simulated s, or to just after its last fault
+    """A README command as this test runs it: a flight cut to 0.5 simulated s, or to just after its last fault
     (of the scenario or a `--fault` option) so the fault is flown; `reproduce` as its dry run (the count and
     the time estimate); the interactive `vehicle` as its help."""
     if argv[:2] == ["mars-link", "vehicle"]:
@@ -259,7 +259,7 @@ def _shortened(argv: list[str]) -> list[str]:
     args = build_parser().parse_args(argv[1:])
     fault_times = [f.t_s for f in load_scenario(args.scenario or DEFAULT_SCENARIO).faults]
     fault_times += [float(spec.rsplit("@", 1)[1]) for spec in (args.fault or []) if "@" in spec]
-    short_s = max([1.0] + [t + 0.5 for t in fault_times])
+    short_s = max([0.5] + [t + 0.5 for t in fault_times])
     if "--duration" in argv:
         i = argv.index("--duration")
         short_s = min(short_s, float(argv[i + 1]))

@@ -410,6 +410,7 @@ def test_sitl_units_write_ulogs_by_default(tmp_path) -> None:
 @pytest.mark.sitl
 @pytest.mark.slow
 @pytest.mark.timeout(300)
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_sitl_assembly_vehicle_writes_its_estimate_to_vehicle_ulg(tmp_path) -> None:
     """`sitl up --vehicle`: armed and taken off by COMMAND_LONG; vehicle.ulg holds the assembly's estimate
     (within the position sensor's noise of the world's truth of the CoM), its modes and its STATUSTEXTs."""

@@ -180,6 +180,7 @@ def _replay_rms(scenario, ticks, truth, compensate: bool) -> float:
     return float(np.sqrt((np.array(errs) ** 2).sum(axis=1).mean()))
 
 
+@pytest.mark.long  # (CI time: the default run keeps a representative of this feature)
 def test_delayed_gps_fused_at_its_time_tracks_better_than_as_if_current(tmp_path: Path) -> None:
     """The same recorded sensor stream (3x2 spiral, 25 s) into two EKFs: one fuses each GNSS batch at the
     tick it measures (history + re-propagation), the other as if it measured the present. Measured
