@@ -38,6 +38,8 @@ NETWORK_PATH = {"px4-zenoh": "Zenoh (rmw_zenoh samples; its HIL link on Zenoh to
 CONTROL_HZ = 100.0
 CONTROLS = (0.20, 0.25, 0.30, 0.35)  # below hover: the unit stays on the ground with its rotors spinning
 INTERFACES = ("px4-zenoh", "mavlink")
+TEMPORARILY_REJECTED = 1  # MAV_RESULT / VehicleCommandAck result: refused for now, may be sent again
+MODE_RETRIES = 5  # DO_SET_MODE sent again (with a fresh keep-alive) while the unit refuses it for now
 
 
 @dataclass
@@ -190,6 +192,13 @@ class Bench:
         self.keepalive()
         if self.interface == "px4-zenoh":
             mode = self.command(176, 1.0, 6.0)
+            for _ in range(MODE_RETRIES):  # (over a network only: samples on different keys may overtake each
+                # other, as over DDS; a DO_SET_MODE that arrived before its keep-alive is refused for now, and an
+                # off-board computer sends both again, as the coordinator does. Simulated time stands still.)
+                if mode != TEMPORARILY_REJECTED:
+                    break
+                self.keepalive()
+                mode = self.command(176, 1.0, 6.0)
             arm = self.command(400, 1.0)
             self.motors(controls)
         else:
@@ -256,11 +265,16 @@ NewBench = Callable[[], Bench]  # a fresh unit and world for a check
 # ----------------------------------------------------------------- the checks
 def check_keepalive_loss(new: NewBench) -> CheckResult:
     b = new()
-    b.step(lambda b: b.take_over())
+    taken: list[bool] = []
+    b.step(lambda b: taken.append(b.take_over()))
     b.run(1.0, b.stream())
     last_s = b.last_keepalive_s
     assert last_s is not None
     limit_s = 3.0 * b.loss_bound_s + 1.0
+    expected = f"stops following after {b.loss_bound_s:.2f} s (+- one period), fails safe"
+    if not (taken[0] and b.follows(b.outputs[-1][1])):  # (a loss measured from a stream never followed means nothing)
+        return CheckResult("keep-alive loss", False, f"take-over accepted: {taken[0]}; never followed the stream",
+                           expected)
     lost_s = None
     while b.t_s - last_s < limit_s:
         thrust = b.step()
@@ -268,7 +282,6 @@ def check_keepalive_loss(new: NewBench) -> CheckResult:
             lost_s = b.outputs[-1][0] - last_s
             break
     bound = b.loss_bound_s
-    expected = f"stops following after {bound:.2f} s (+- one period), fails safe"
     if lost_s is None:
         return CheckResult("keep-alive loss", False, f"still following {limit_s:.1f} s after the last command", expected)
     ok = bound - b.dt_s - 1e-9 <= lost_s <= bound + b.dt_s + 1e-9 and b.failed_safe
