@@ -9,6 +9,9 @@ from typing import Callable
 
 import numpy as np
 
+from mars_link.mavlink.codec import decode_frames
+from mars_link.mavlink.wire import new_mav
+
 CONTROL_HZ = 100.0
 CONTROLS = (0.20, 0.25, 0.30, 0.35)  # below hover: the unit stays on the ground with its rotors spinning
 
@@ -43,8 +46,6 @@ class Bench:
             self._seq: dict[str, object] = {}
             self.vehicle.px4_interface()
         else:
-            from mars_link.mavlink.wire import new_mav
-
             self._mav = new_mav(201)
         self.step_index = 0
         self.last_keepalive_s: float | None = None  # when the unit last heard its keep-alive
@@ -99,11 +100,9 @@ class Bench:
         self._mavlink_receive(self.vehicle.handle(data, self.t_s, link=LINK_COORDINATOR))
 
     def _mavlink_receive(self, out) -> None:
-        from mars_link.mavlink.wire import new_mav
-
         parser = new_mav(255)
         for o in out:
-            for m in parser.parse_buffer(o.data) or []:
+            for m in decode_frames(o.data, parser):
                 if m.get_type() == "COMMAND_ACK":
                     self.acks.append((int(m.command), int(m.result)))
 
