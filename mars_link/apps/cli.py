@@ -26,7 +26,8 @@ from mars_link.core import validation as v
 from mars_link.core.errors import UserInputError, did_you_mean
 from mars_link.processes.cli_options import (
     add_client_ports, add_duration, add_fault, add_flight_overrides, add_layout, add_link, add_map, add_out, add_params,
-    add_plot_format, add_pool, add_quiet, add_scenario, add_seed, add_signing, add_sitl_processes, add_view,
+    add_plot_format, add_pool, add_quiet, add_run_ports, add_scenario, add_seed, add_signing, add_sitl_processes,
+    add_view,
 )
 
 EXIT_USAGE = v.EXIT_USAGE
@@ -496,9 +497,7 @@ def build_parser() -> argparse.ArgumentParser:
                      "--external-coordinator` started (it prints this command); Ctrl-C ends it.", cmd_coordinator)
     add_scenario(coord, INTERACTIVE_SCENARIO, ", as sitl up")
     coord.add_argument("--out", default=".", metavar="DIR", help="where coordinator_summary.json goes")
-    coord.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port (printed by sitl up)")
-    coord.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to "
-                       "(printed by sitl up)")
+    add_run_ports(coord, " (printed by sitl up)")
     coord.add_argument("--signing-key-file", default=None, metavar="FILE",
                        help="sign the unit links (default: $MARS_LINK_SIGNING_KEY, else unsigned)")
     add_link(coord, "the coordinator and the units (as the `sitl up` it attaches to)")

@@ -147,6 +147,13 @@ def add_pool(p) -> None:
                    help="fly on the Dask cluster of this scheduler (tcp://HOST:PORT) instead (default: local)")
 
 
+def add_run_ports(p, where: str = "") -> None:
+    """The UDP ports of a running SITL's world (HIL) and coordinator (telemetry): what its processes are handed,
+    and what a coordinator attaching to a running `sitl up` is told."""
+    p.add_argument("--world-port", type=int, default=0, help=f"udp: the world's HIL port{where}")
+    p.add_argument("--coordinator-port", type=int, default=0, help=f"udp: the port units send telemetry to{where}")
+
+
 def add_params(p) -> None:
     p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
 
@@ -167,8 +174,7 @@ def add_lockstep_options(p) -> None:
     p.add_argument("--steps", type=int, default=None, help="exchanges of a docked run (else from the scenario)")
     p.add_argument("--start-pose", default=None, help="world: N,E,D,YAW of the assembly's CoM (else from the scenario)")
     p.add_argument("--position-every", type=int, default=None, help="world: mocap samples every n-th exchange")
-    p.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port")
-    p.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to")
+    add_run_ports(p)
     p.add_argument("--world-fd", type=int, default=None, help="inherited bound socket of the world")
     p.add_argument("--coordinator-fd", type=int, default=None, help="inherited bound socket of the coordinator")
     p.add_argument("--out", required=True)
