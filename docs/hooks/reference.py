@@ -344,62 +344,27 @@ def walk_parsers(parser: argparse.ArgumentParser, prefix: str = "mars-link"):
                     yield path, p, h if path != f"{prefix} {name}" else (helps.get(name) or sub.description or "")
 
 
-def own_parsers() -> dict[str, argparse.ArgumentParser]:
-    """Subcommands that parse their own arguments (mars_link.apps.cli.main hands them argv): their parsers."""
-    found = {}
-    try:
-        from mars_link.apps.plan_cli import build_parser as plan_parser
-
-        found["mars-link plan"] = plan_parser()
-    except Exception:
-        pass
-    try:
-        from mars_link.apps.reconfig_cli import _parser as reconfig_parser
-
-        found["mars-link reconfig plan"] = reconfig_parser()
-    except Exception:
-        pass
-    return found
-
-
 def cli_page() -> str:
     from mars_link.apps.cli import build_parser
 
     out = ["# Command line\n",
            "Generated at every build by walking `mars_link.apps.cli.build_parser()`. Exit codes: 0 done, 1 a flight "
            "diverged or the machine refused (disk, port), 2 bad input (one line on stderr).\n"]
-    seen = set()
     for path, parser, help_text in walk_parsers(build_parser()):
-        seen.add(path)
         rows = _option_rows(parser)
-        if path in own_parsers() and len(rows) <= 1:
-            continue  # documented from its own parser below
         out.append(f"## `{path}`\n\n{help_text}\n")
         out.append(f"```text\n{parser.format_usage().strip()}\n```\n")
         if rows:
             out.append(table(["option", "type", "default", "choices", "help"], rows))
-    for path, parser in own_parsers().items():
-        if path in seen and len(_option_rows(dict(walk_parsers_map()).get(path, parser))) > 1:
-            continue
-        out.append(f"## `{path}`\n\n{parser.description or ''}\n")
-        out.append(f"```text\n{parser.format_usage().strip()}\n```\n")
-        out.append(table(["option", "type", "default", "choices", "help"], _option_rows(parser)))
     return "\n".join(out)
 
 
-def walk_parsers_map():
-    from mars_link.apps.cli import build_parser
-
-    return [(path, p) for path, p, _ in walk_parsers(build_parser())]
-
-
 def cli_options() -> set[str]:
-    """Every option string and positional of build_parser() and the own parsers (tests/apps/test_docs.py)."""
+    """Every option string and positional of build_parser() (tests/apps/test_docs.py)."""
     from mars_link.apps.cli import build_parser
 
     names = set()
-    parsers = [p for _, p, _ in walk_parsers(build_parser())] + list(own_parsers().values())
-    for p in parsers:
+    for _, p, _ in walk_parsers(build_parser()):
         for a in p._actions:
             if isinstance(a, (argparse._HelpAction, argparse._SubParsersAction)):
                 continue

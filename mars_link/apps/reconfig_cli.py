@@ -7,7 +7,6 @@ line on stderr).
 from __future__ import annotations
 
 import math
-import sys
 
 from mars_link.core.errors import UserInputError
 from mars_link.logs.outputs import dumps
@@ -123,14 +122,3 @@ def reconfig_plan_args(args) -> int:
     else:
         _print_text(model, faults, weights, plan)
     return EXIT_OK if plan.feasible else EXIT_INFEASIBLE
-
-
-def reconfig_plan_command(argv: list[str]) -> int:
-    """`mars-link reconfig plan ARGV...` (scripts and tests): the main command line's parsing and error lines."""
-    from mars_link.apps.cli import main
-
-    return main(["reconfig", "plan", *argv])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(reconfig_plan_command(sys.argv[1:]))

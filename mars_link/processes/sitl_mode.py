@@ -29,6 +29,9 @@ import numpy as np
 
 from mars_link.core.events import EventKind, event, unit_died
 from mars_link.core.errors import Terminated, UserInputError
+from mars_link.mavlink.codec import decode_frames, frame_message_id
+from mars_link.mavlink.tlog import tlog_frames
+from mars_link.mavlink.wire import new_mav
 from mars_link.transport import LinkSpec
 
 
@@ -692,30 +695,10 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
     return summary
 
 
-def tlog_frames(path: Path):
-    """(wall time s, frame bytes) of a .tlog whose records may hold several frames (batched datagrams)."""
-    data = path.read_bytes()
-    i, n = 0, len(data)
-    while i + 8 <= n:
-        t = int.from_bytes(data[i:i + 8], "big") / 1e6
-        i += 8
-        while i < n and data[i] in (0xFD, 0xFE):
-            if data[i] == 0xFD:
-                if i + 10 > n:
-                    return
-                total = 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
-            else:
-                total = 8 + data[i + 1]
-            yield t, data[i:i + total]
-            i += total
-
-
 def _write_rotor_log(log, scenario, model, out: Path) -> float:
     """rotors.csv from the units' .tlogs: the coordinator's command (SET_ACTUATOR_CONTROL_TARGET in) and
     what each unit drove its motors with (HIL_ACTUATOR_CONTROLS out, faults included); returns the force
     integral Σ rotors ∫ thrust² dt over the control steps."""
-    from pymavlink.dialects.v20 import common as mavlink
-
     from mars_link.config.scenario import eta_after
 
     scale = model.vehicle.full_scale_thrust_n
@@ -725,20 +708,17 @@ def _write_rotor_log(log, scenario, model, out: Path) -> float:
         path = out / f"unit{u}.tlog"
         if not path.exists():
             continue
-        parser = mavlink.MAVLink(None, 255, 0)
+        parser = new_mav(255, 0)
         cmd[u], drv[u] = {}, {}
         for _, frame in tlog_frames(path):
-            msgid = frame[7] | (frame[8] << 8) | (frame[9] << 16) if frame[0] == 0xFD else frame[5]
+            msgid = frame_message_id(frame)
             if msgid not in (139, 93):  # SET_ACTUATOR_CONTROL_TARGET, HIL_ACTUATOR_CONTROLS
                 continue
-            try:
-                m = parser.decode(bytearray(frame))
-            except Exception:  # a frame the unit itself dropped as malformed
-                continue
-            if msgid == 139 and m.get_srcSystem() != u:
-                cmd[u][m.time_usec] = np.array(m.controls[:4]) * scale
-            elif msgid == 93 and m.get_srcSystem() == u:
-                drv[u][m.time_usec] = np.array(m.controls[:4]) * scale
+            for m in decode_frames(frame, parser):  # (none: a frame the unit itself dropped as malformed)
+                if msgid == 139 and m.get_srcSystem() != u:
+                    cmd[u][m.time_usec] = np.array(m.controls[:4]) * scale
+                elif msgid == 93 and m.get_srcSystem() == u:
+                    drv[u][m.time_usec] = np.array(m.controls[:4]) * scale
         if not cmd[u]:  # PX4's interface ([units] interface = "px4-zenoh"): the ActuatorMotors it received
             cmd[u] = _px4_commands(out, u, scale)
     steps = sorted(set().union(*[set(d) for d in drv.values()])) if drv else []

@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 
 from mars_link.apps.cli import main as cli_main
-from mars_link.apps.conformance import TEMPORARILY_REJECTED, Bench
+from mars_link.apps.conformance_bench import TEMPORARILY_REJECTED, Bench
 
 CHECKS = ("keep-alive loss", "recovery only on a fresh arm", "arming gating", "offboard gating", "NaN control",
           "out-of-range control", "stale / reordered sample", "replay of a recorded command stream")
