@@ -45,7 +45,8 @@ def test_rows_do_not_depend_on_the_workers_or_the_cluster(tmp_path):
     assert code3 == 0
     assert result_columns(dask) == result_columns(one)
     md = (tmp_path / "dask" / "sweep.md").read_text()
-    assert md.count("| control.ftc=none |") == 1 + 3 and md.count("| control.ftc=qp |") == 1 + 3  # group + flights
+    # per combination: its row in the groups' table, in the fault isolation table, and its 3 flights
+    assert md.count("| control.ftc=none |") == 2 + 3 and md.count("| control.ftc=qp |") == 2 + 3
     assert "| control.ftc=none | 3 | 0 | 3 | 0 |" in md  # 3 flights, none completed, 3 diverged, none raised
 
 
