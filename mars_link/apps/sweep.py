@@ -297,11 +297,12 @@ def draw_faults(faults: RandomFaults, sweep_seed: int, seed_index: int, model, d
     fracs = rng.uniform(FAULT_T_MIN_FRAC, FAULT_T_MAX_FRAC, size=1 if faults.simultaneous else count)
     fracs = np.repeat(fracs, count) if faults.simultaneous else fracs
     etas = [faults.etas[0]] * count if len(faults.etas) == 1 else [float(e) for e in rng.choice(faults.etas, size=count)]
+    with_kind: dict[str, Any] = {"kind": faults.kind} if faults.kind else {}  # (FaultSpec.kind, once it exists)
     out = []
     for (unit, rotor), frac, eta in sorted(zip(picks, fracs, etas), key=lambda p: (p[1], p[0][0], p[0][1] or 0)):
         t = math.floor(duration_s * float(frac) * control_hz) / control_hz  # on a control step
         fault = FaultSpec(unit, rotor, eta, round(t, 6))
-        out.append(dataclasses.replace(fault, kind=faults.kind) if faults.kind else fault)
+        out.append(dataclasses.replace(fault, **with_kind))
     return tuple(out)
 
 

@@ -248,7 +248,7 @@ def plot_isolation_delays(rows: Sequence[dict], plots_dir: Path, title: str) -> 
     every = [v for vals in series.values() for v in vals]
     fig, ax = plt.subplots(figsize=(6.4, 3.8))
     hi = max(every + [2 * ISOLATION_DEADLINE_S])
-    bins = np.linspace(0.0, hi, min(40, max(8, len(every) // 3)) + 1)
+    bins = np.linspace(0.0, hi, min(40, max(8, len(every) // 3)) + 1).tolist()
     for name, vals in series.items():
         s = isolation(groups[name])
         pct = {k: "—" if s[k] is None else f"{100 * s[k]:.0f} %" for k in

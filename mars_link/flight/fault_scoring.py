@@ -100,12 +100,13 @@ class _Belief:
 
 def injected_faults(events: list[dict]) -> list[tuple[int, int | None, float, float]]:
     """The truth a flight recorded: (unit, rotor or None, eta, t_s) of each `fault` and `unit_died` (eta 0)."""
-    out = []
+    out: list[tuple[int, int | None, float, float]] = []
     for e in events:
-        if e.get("type") == EventKind.FAULT and _is_unit(e.get("unit")):
-            out.append((int(e["unit"]), _rotor(e.get("rotor")), float(e.get("eta", 0.0)), float(e["t_s"])))
-        elif e.get("type") == EventKind.UNIT_DIED and _is_unit(e.get("unit")):
-            out.append((int(e["unit"]), None, 0.0, float(e["t_s"])))
+        unit = _index(e.get("unit"))
+        if e.get("type") == EventKind.FAULT and unit is not None:
+            out.append((unit, _index(e.get("rotor")), float(e.get("eta", 0.0)), float(e["t_s"])))
+        elif e.get("type") == EventKind.UNIT_DIED and unit is not None:
+            out.append((unit, None, 0.0, float(e["t_s"])))
     return out
 
 
@@ -113,15 +114,15 @@ def beliefs(events: list[dict]) -> list[_Belief]:
     """The coordinator's beliefs in time order: detections, lost units (eta 0) and retractions."""
     out = []
     for e in events:
-        kind, unit = e.get("type"), e.get("unit")
-        if not _is_unit(unit):
+        kind, unit = e.get("type"), _index(e.get("unit"))
+        if unit is None:
             continue
         if kind == EventKind.FAULT_DETECTED:
-            out.append(_Belief(float(e["t_s"]), int(unit), _rotor(e.get("rotor")), float(e.get("eta_estimated", 0.0))))
+            out.append(_Belief(float(e["t_s"]), unit, _index(e.get("rotor")), float(e.get("eta_estimated", 0.0))))
         elif kind == EventKind.UNIT_LOST:
-            out.append(_Belief(float(e["t_s"]), int(unit), None, 0.0))
+            out.append(_Belief(float(e["t_s"]), unit, None, 0.0))
         elif kind == "fault_retracted":  # (the multi-fault detector's withdrawal of a belief, issue 41)
-            out.append(_Belief(float(e["t_s"]), int(unit), _rotor(e.get("rotor")), None))
+            out.append(_Belief(float(e["t_s"]), unit, _index(e.get("rotor")), None))
     return sorted(out, key=lambda b: b.t_s)
 
 
@@ -170,9 +171,6 @@ def _false_beliefs(truth, held: list[_Belief], end_t_s: float, rotors_per_unit: 
     return tuple(out)
 
 
-def _is_unit(value) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= 1
-
-
-def _rotor(value) -> int | None:
-    return int(value) if _is_unit(value) else None
+def _index(value) -> int | None:
+    """A unit or rotor number as records carry it (1-based int), else None (a whole unit; untrusted input)."""
+    return value if isinstance(value, int) and not isinstance(value, bool) and value >= 1 else None

@@ -77,3 +77,19 @@ def test_untrusted_records_are_ignored():
               {"t_s": 1.2, "type": "fault_detected", "unit": True, "rotor": 1}, found(1.3, 0, 1, 0.0)]
     s = score_flight(events, 5.0, diverged=False)
     assert not s.faults[0].found and s.false_beliefs == ()
+
+
+def test_a_flight_summary_scores_its_trial():
+    """summary.json's `fault_isolation` of a real flight: paper 000's 3x2 spiral, noise on, unit 2 failing at 10 s
+    untold (spiral_3x2_fdi cut to 12 s, before its second fault): found whole, within the deadline, nothing else."""
+    from mars_link.config.scenario import load_scenario
+    from mars_link.flight.metrics import summarize
+    from mars_link.flight.runner import run_trial
+
+    sc = load_scenario("spiral_3x2_fdi")
+    sc.sim.duration_s = 12.0
+    (score,) = summarize(sc, [run_trial(sc, 1)], 1)["fault_isolation"]
+    assert score["faults_injected"] == 1 and score["faults_isolated_in_time"] == 1 and score["false_beliefs"] == 0
+    (f,) = score["faults"]
+    assert (f["unit"], f["rotor"], f["eta"], f["t_s"]) == (2, None, 0.0, 10.0)
+    assert 0.0 < f["delay_s"] <= ISOLATION_DEADLINE_S and f["eta_error"] <= 0.1
