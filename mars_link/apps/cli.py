@@ -609,8 +609,11 @@ def build_parser() -> argparse.ArgumentParser:
     add_scenario(swp, DEFAULT_SCENARIO)
     swp.add_argument("--seeds", type=v.bounded_int(1, 100_000), default=10, help="flights per parameter combination")
     add_seed(swp, "the sweep seed (default: the scenario's); seed slot j flies seed SEED + j")
-    swp.add_argument("--faults", default=None, metavar="random:K[,units|rotors]",
-                     help="K random rotor (or unit) failures per flight, eta 0, drawn from the sweep seed and the slot")
+    swp.add_argument("--faults", default=None, metavar="random:K|A-B[,rotors|units|whole-units][,eta=E1/E2][,kind=KIND]",
+                     help="random faults per flight, drawn from the sweep seed and the slot: K (or A to B) distinct "
+                          "rotors (eta 0, each at its own time), units (one rotor each, all at one time, etas 0 and "
+                          "0.3 mixed) or whole units (eta 0); eta=E1/E2 sets the etas drawn from; scored against the "
+                          "coordinator's beliefs in faults.csv")
     swp.add_argument("--param", action="append", default=[], metavar="KEY=V1,V2,...",
                      help="scenario TABLE.KEY (or ftc, controller, noise, ...) values to sweep; repeat for a grid")
     add_pool(swp)
