@@ -28,7 +28,7 @@ from test_px4_zenoh_codec import _IndependentHost, _defaults  # (the test's own 
 COM_OF_LOSS_T_S = 1.0  # PX4 v1.17 commander default
 CONTROLS = (0.20, 0.25, 0.30, 0.35)  # below hover for every preset: the unit stays on the ground, rotors spinning
 VEHICLE_CMD_DO_SET_MODE, VEHICLE_CMD_COMPONENT_ARM_DISARM = 176, 400
-RESULT_ACCEPTED, ARMING_STATE_ARMED, ARMING_STATE_DISARMED = 0, 2, 1
+RESULT_ACCEPTED, RESULT_TEMPORARILY_REJECTED, ARMING_STATE_ARMED, ARMING_STATE_DISARMED = 0, 1, 2, 1
 NAVIGATION_STATE_OFFBOARD = 14
 HANG_S = 60.0  # deadlines below only stop a hung test; they assert nothing about speed
 
@@ -186,6 +186,9 @@ def _take_over(client: OffboardComputer) -> None:
     while client.command(VEHICLE_CMD_DO_SET_MODE, 1.0, 6.0) != RESULT_ACCEPTED and time.monotonic() < end:
         time.sleep(0.1)
     arm = client.command(VEHICLE_CMD_COMPONENT_ARM_DISARM, 1.0)
+    while arm == RESULT_TEMPORARILY_REJECTED and time.monotonic() < end:  # (its pre-arm checks want a state: the
+        time.sleep(0.1)  # unit publishes its status before the world's first step gives it one; ask again)
+        arm = client.command(VEHICLE_CMD_COMPONENT_ARM_DISARM, 1.0)
     assert arm == RESULT_ACCEPTED, f"ARM answered {arm}; the unit's status: {client.latest_status()}"
 
 
