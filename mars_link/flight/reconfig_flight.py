@@ -42,6 +42,8 @@ from mars_link.config.scenario import Scenario
 UNIT_LOG_HZ = 20.0
 #: a lost unit that reaches the ground slower than this landed; faster, it fell (the world's truth)
 LANDED_SPEED_MPS = 1.0
+#: (a world that writes positions only) a unit's centre this close to its resting height touches the ground
+GROUND_TOUCH_M = 0.02
 
 
 @dataclass
@@ -80,6 +82,8 @@ class ReconfigRecorder:
         self._next_unit_log = 0.0
         self._offsets: dict[int, tuple] = {}  # id(piece model) -> (model, its unit offsets)
         self.units_lost: dict[int, dict] = {}  # unit -> when it was lost and, from the truth, how it came down
+        self._lost_prev: dict[int, tuple] = {}  # unit -> (t, its centre) the step before
+        self._ground_down_m = -flight.model.vehicle.gear_depth_m
         self._flush_every = max(1, int(flight.scenario.sim.control_hz))
         self.tel_f = self.units_f = None
         if out_dir is not None:
@@ -150,8 +154,8 @@ class ReconfigRecorder:
         return False
 
     def _watch_lost(self, t: float, coord: PiecesCoordinator) -> None:
-        """The truth of every lost unit until it touches the ground: landed (slower than LANDED_SPEED_MPS)
-        or fell, where, how fast; one that stays up (in a body that flies on) is "airborne"."""
+        """The truth of every lost unit until it touches the ground (`touchdown`, the same test as SITL's
+        world_truth.csv gets); one that stays up (in a body that flies on) is "airborne"."""
         for u in coord.lost:
             rec = self.units_lost.get(u)
             if rec is None:
@@ -160,12 +164,11 @@ class ReconfigRecorder:
                 rec = self.units_lost[u] = {"unit": u, "t_lost_s": round(t, 6), "reason": why, "fate": "airborne"}
             if rec["fate"] != "airborne":
                 continue
-            s = self.flight.world.body_state(u)
-            if s.on_ground:
-                speed = float(np.linalg.norm(s.velocity_ned_mps))
-                rec.update(fate="landed" if speed <= LANDED_SPEED_MPS else "fell", t_ground_s=round(t, 6),
-                           impact_speed_mps=round(speed, 4), tilt_at_ground_deg=round(tilt_deg(s.quaternion_wxyz), 2),
-                           ground_ned_m=[round(float(x), 4) for x in s.position_ned_m])
+            pos = self.flight.world.unit_truth(u).position_ned_m.copy()
+            prev = self._lost_prev.get(u)
+            self._lost_prev[u] = (t, pos)
+            if prev is not None and t > rec["t_lost_s"]:
+                rec.update(touchdown(prev, (t, pos), self._ground_down_m))
 
     def _unit_offsets(self, piece) -> np.ndarray:
         """The piece's unit centres from its CoM, FRD, in its order (one array per piece model, kept)."""
@@ -189,6 +192,37 @@ class ReconfigRecorder:
                 self.unit_rows.append(row)
                 if self.units_f:
                     self.units_f.write(",".join(f"{x:.6g}" for x in row) + "\n")
+
+
+def touchdown(before: tuple, now: tuple, ground_down_m: float) -> dict:
+    """A lost unit's fate from two samples of its centre's truth, (t, NED position) one control period apart:
+    once its centre is within GROUND_TOUCH_M of its resting height it touched the ground, landed (slower
+    than LANDED_SPEED_MPS) or fell; {} before that."""
+    (t0, p0), (t1, p1) = before, now
+    if p1[2] < ground_down_m - GROUND_TOUCH_M:
+        return {}
+    speed = float(np.linalg.norm((np.asarray(p1) - np.asarray(p0)) / (t1 - t0)))
+    return {"fate": "landed" if speed <= LANDED_SPEED_MPS else "fell", "t_ground_s": round(float(t1), 6),
+            "impact_speed_mps": round(speed, 4), "ground_ned_m": [round(float(x), 4) for x in p1]}
+
+
+def units_lost_from_truth(events: list[dict], truth, ground_down_m: float) -> list[dict]:
+    """`units_lost` of a run whose world wrote each unit's truth as columns (SITL's world_truth.csv: t_s,
+    u<id>_n_m, _e_m, _d_m, one row per control period): each `unit_lost` event's unit and its `touchdown`."""
+    out = []
+    for e in (e for e in events if e["type"] == "unit_lost"):
+        u = e["unit"]
+        rec = {"unit": u, "t_lost_s": e["t_s"], "reason": e.get("reason"), "fate": "airborne"}
+        if f"u{u}_d_m" in truth.dtype.names:
+            t = truth["t_s"]
+            pos = np.column_stack([truth[f"u{u}_n_m"], truth[f"u{u}_e_m"], truth[f"u{u}_d_m"]])
+            for k in np.flatnonzero(t > e["t_s"] + 1e-9):
+                found = touchdown((t[k - 1], pos[k - 1]), (t[k], pos[k]), ground_down_m)
+                if found:
+                    rec.update(found)
+                    break
+        out.append(rec)
+    return out
 
 
 def run_reconfig_trial(

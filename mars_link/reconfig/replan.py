@@ -19,6 +19,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from mars_link.core.assembly import AssemblyModel, VehicleParams, layout_of_cells
+from mars_link.core.errors import UserInputError
 from mars_link.reconfig.flyability import Cell
 from mars_link.reconfig.margin import worst_stage_margin
 from mars_link.reconfig.placement import SnapWeights, placement_costs
@@ -46,8 +47,10 @@ def replan_assembly(vehicle: VehicleParams, target: dict[int, Cell], pieces: lis
     best, best_key = None, None
     for empty in ranked:
         free = [c for c in open_cells if c not in empty]
-        cells = dict(fixed)
-        cells.update(_place_lone(vehicle, fixed, lone, free, target, eta_of, weights))
+        try:
+            cells = {**fixed, **_place_lone(vehicle, fixed, lone, free, target, eta_of, weights)}
+        except UserInputError:  # (these cells are not one connected structure)
+            continue
         plan = plan_assembly_of_pieces(vehicle, cells, pieces)
         if not plan.feasible:
             continue
