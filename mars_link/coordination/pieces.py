@@ -318,16 +318,16 @@ class PiecesCoordinator:
         return det
 
     def _on_its_own(self, piece: Piece) -> bool:
-        """Whether `piece` flies apart from the rest (assembling, reconfiguring): one that cannot fly is lost
-        then; the structure flying the mission as one body flies on with the best allocation it has."""
-        return len(self.pieces) > 1 or self.executor.phase != "mission"
+        """Whether `piece` flies apart from other bodies (assembling, reconfiguring; not parked on the ground):
+        one that cannot fly is lost then. A structure that is the only body flies on with the best
+        allocation it has (or lands to be rebuilt)."""
+        return len(self.pieces) > 1 and piece.shape.key not in self.executor.parked
 
     def _watch_control(self, piece: Piece) -> None:
         """A piece on its own whose estimate tilts past LOST_TILT_DEG is out of control (whatever the
         detector found): lost."""
         last = piece.coordinator.last
-        if (last is not None and self._on_its_own(piece) and piece.shape.key not in self.executor.parked
-                and tilt_deg(last.estimate.quaternion_wxyz) > LOST_TILT_DEG):
+        if last is not None and self._on_its_own(piece) and tilt_deg(last.estimate.quaternion_wxyz) > LOST_TILT_DEG:
             self._cannot_fly.setdefault(piece.shape.key, f"out of control (tilt over {LOST_TILT_DEG:g} deg)")
 
     def _lose_pieces_that_cannot_fly(self, t_s: float) -> None:

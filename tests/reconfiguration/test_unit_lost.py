@@ -4,6 +4,7 @@ placement on the target's cells), the others assemble and the mission flies. Jud
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -60,4 +61,20 @@ def test_plus5_unit_1_lost_before_it_docks_the_four_others_fly_the_whole_helix()
     measured, seed 1)."""
     scenario, r = _fly(None)
     _check_unit_1_lost_and_the_four_assembled(scenario, r)
+    assert r.mean_error_m < 0.015 and r.max_error_m < 0.04, (r.mean_error_m, r.max_error_m)
+
+
+@pytest.mark.long
+def test_three_rotor_faults_at_40_s_mid_assembly_two_free_units_lost_the_docked_three_fly_on() -> None:
+    """Issue 41's case: one rotor out on units 1, 3 and 5 at 40 s, unit 1 waiting alone, unit 5 approaching
+    the docked 2-4, unit 3 in it. The free units 1 and 5 cannot fly and are lost (the run was 'Diverged
+    (assembly)'); the 1x3 of 2-4 flies the helix with unit 3's rotor out (mean 5.1 mm measured, seed 1)."""
+    scenario = load_scenario("assemble_plus5_unit_lost")
+    base = scenario.faults[0]
+    scenario.faults = [dataclasses.replace(base, t_s=40.0, unit=u, rotor=r) for u, r in ((1, 2), (3, 1), (5, 3))]
+    r = run_reconfig_trial(scenario, 1)
+    assert r.completed and not r.diverged and r.assembled
+    assert sorted(e["unit"] for e in r.units_lost) == [1, 5]
+    assert all(e["fate"] in ("fell", "landed") for e in r.units_lost)
+    assert r.pieces_final == [{"layout": ["XXX"], "units": [2, 3, 4]}]
     assert r.mean_error_m < 0.015 and r.max_error_m < 0.04, (r.mean_error_m, r.max_error_m)
