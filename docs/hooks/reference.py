@@ -199,6 +199,8 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
     rrows = [row("enabled", False, "`true`, `false`"), row("moves", True, "`true`, `false`",
              "no plan found: fly the best single move"), row("ground", True, "`true`, `false`",
              "no move either: land and rebuild on the ground"),
+             row("objective", "force", "`force`, `margin`", "what the target maximises: paper 001's force objective "
+                 "or the worst-stage controllability margin (MARS-Reconfig); plans report both", typ="string"),
              row("target", None, "each unit id once, row-major", "plan to this allocation", typ="array")]
     for key in sorted(S._RECONFIG_NUMBERS):
         rrows.append(row(key, rdefaults.get(key), ">= 0" if key in ("at_s", "trigger_delay_s", "altitude_step_m")
@@ -281,7 +283,7 @@ def scenario_keys_accepted() -> set[str]:
     from mars_link.models.sensor_profiles import PROFILES
 
     keys = set(S._TOP_KEYS) | S._VEHICLE_KEYS | S._AERO_KEYS | S._ASSEMBLY_KEYS | S._CONTROL_KEYS | S._FAULT_KEYS
-    keys |= S._SIM_KEYS | S._UNITS_KEYS | S._RECONFIG_NUMBERS | {"enabled", "target", "moves", "ground"} | set(S.DOCKING_RANGES)
+    keys |= S._SIM_KEYS | S._UNITS_KEYS | S._RECONFIG_NUMBERS | {"enabled", "target", "moves", "ground", "objective"} | set(S.DOCKING_RANGES)
     keys |= S._SEPARATION_KEYS | E._ENV_KEYS | E._GUST_KEYS | {"profile"} | battery._PACK_KEYS
     keys |= set(battery._FAILSAFE_KEYS) | {"units", "unit", "map", "kind"} | SF.KEYS
     keys |= {k for p in PROFILES.values() for k in p.figures}

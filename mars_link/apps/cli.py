@@ -576,6 +576,9 @@ def build_parser() -> argparse.ArgumentParser:
     rplan.add_argument("--target", default=None, metavar="IDS",
                        help="plan to this allocation instead of the optimal one: unit ids for the layout's cells in "
                             "row-major order, e.g. 3,2,1")
+    rplan.add_argument("--objective", choices=("force", "margin"), default="force",
+                       help="what the target maximises: force (paper 001's placement) or margin (MARS-Reconfig: the "
+                            "worst-stage controllability margin); both are printed (default: force)")
     rplan.add_argument("--snap-weights", default=None, metavar="BX,BY",
                        help="snap integrals along north and east (default: from the scenario's trajectory, else equal)")
     rplan.add_argument("--json", action="store_true", help="print one JSON object")

@@ -70,7 +70,8 @@ MEANINGS: dict[EventKind, str] = {
     EventKind.SENSOR_FAULT: "a sensor failure injected (scenario or MAVLink): sensor, failure kind, unit",
     EventKind.UNIT_DIED: "a unit's process died or its motors went silent: the world stops its rotors",
     EventKind.FAULT_DETECTED: "the coordinator's detector believes a fault: unit, rotor, estimated eta",
-    EventKind.UNIT_LOST: "the coordinator declared a unit lost (silent, dead): its rotors count as failed",
+    EventKind.UNIT_LOST: "the coordinator declared a unit lost (silent, dead, or in a piece flying on its own that "
+                         "cannot fly: reason): its rotors count as failed, a manoeuvre re-plans without it",
     EventKind.REALLOCATION: "the allocation changed to the efficiencies believed now",
     EventKind.UNCONTROLLABLE: "the believed faults leave no exact allocation: best effort",
     EventKind.DIVERGED: "the tracked point left the divergence bounds (error or tilt): the flight ends",

@@ -617,6 +617,7 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
     tracked point's error while the mission flies, from the world's per-unit truth and the coordinator's
     per-step record of the mission (its clock, reference and the units carrying the tracked point)."""
     from mars_link.flight.metrics import DIVERGENCE_ERROR_M, TrackingMetrics
+    from mars_link.flight.reconfig_flight import plan_records, units_lost_from_truth
     from mars_link.logs.outputs import write_json
 
     world = _read_json(out / "world_summary.json")
@@ -674,6 +675,8 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
         "force_integral_n2s": float(world.get("force_integral_n2s", math.nan)),
         "start": scenario.start, "assembled": "assembly_done" in kinds,
         "pieces_final": coordinator.get("pieces_final", []), "bodies_final": world.get("bodies", []),
+        "units_lost": units_lost_from_truth(events, truth, -scenario.model().vehicle.gear_depth_m),
+        "plans": plan_records(events),
         "plan": coordinator.get("plan"), "events": [dict(e, trial=0) for e in events],
         "sitl": {"transport": link.kind, "bus": link.bus(), "realtime": realtime, "world_real_time_factor": world.get("real_time_factor"),
                  "world_cores_idle_fraction": world.get("cores_idle_fraction"),
