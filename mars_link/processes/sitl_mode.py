@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from mars_link.core.events import EventKind, event, unit_died
+from mars_link.config.scenario_sensor_faults import sensor_fault_events
 from mars_link.core.errors import Terminated, UserInputError
 from mars_link.mavlink.codec import decode_frames, frame_message_id
 from mars_link.mavlink.tlog import tlog_frames
@@ -202,6 +203,12 @@ def write_scenario_copy(scenario, path: Path) -> Path:
         doc["separations"] = [{"t": s.t_s, "units": list(s.units), **({} if s.redock_t_s is None else
                                                                         {"redock_t": s.redock_t_s})}
                               for s in scenario.separations]
+    if scenario.sensor_faults:  # (the units apply them: a copy without them flew SITL on healthy sensors)
+        doc["sensor_faults"] = [{k: v for k, v in (("t", f.t_s), ("sensor", f.sensor), ("type", f.kind),
+                                                   ("unit", f.unit), ("duration_s", f.duration_s)) if v is not None}
+                                for f in scenario.sensor_faults]
+    if scenario.mission:
+        doc["mission"] = dict(scenario.mission)
     if scenario.sensors != type(scenario.sensors)():
         doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.written()}
     if scenario.battery is not None or scenario.preset in BATTERY_BY_DEFAULT:
@@ -528,6 +535,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     for death in world.get("deaths", []):
         events.append(unit_died(death["t_s"], death["unit"]))
     events += foreign_traffic_events(out, model.unit_ids)
+    events += sensor_fault_events(scenario.sensor_faults, scenario.sim.control_hz, float(truth["t_s"][-1]) if len(truth) else -1.0)
     end_reason = _end_reason(scenario, trajectory, world, (metrics.divergence or {}).get("t_s") if metrics.diverged
                              else None, failure) if tracking or external_offboard else failure
     result = TrialResult(
@@ -653,6 +661,8 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
     faults = [event(f.t_s, EventKind.FAULT, unit=f.unit, rotor=f.rotor, eta=f.eta, text=f.event_text())
               for f in scenario.faults]
     deaths = [unit_died(d["t_s"], d["unit"]) for d in world.get("deaths", [])]
+    deaths += sensor_fault_events(scenario.sensor_faults, scenario.sim.control_hz,
+                                  float(truth["t_s"][-1]) if len(truth) else -1.0)
     latched = [e for e in world.get("latch_events", []) if e["type"] == "dock_latched"]
     events = sorted(coordinator.get("events", []) + latched + faults + deaths
                     + foreign_traffic_events(out, scenario.model().unit_ids), key=lambda e: e["t_s"])
