@@ -13,7 +13,7 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Callable, Protocol
 
 import numpy as np
 
@@ -164,6 +164,27 @@ class InProcessUnits:
         return np.concatenate([self.vehicles[u].motors.eta for u in unit_ids])
 
 
+# ----------------------------------------------------------------------------- the parts
+class WorldPart(Protocol):
+    """What the engine asks of the world each step. In process: `sitl.world.World`; in a process that does
+    not host the world, a proxy over its links (mars_link.processes.lockstep.LinkedUnits: the step's time is
+    known once the step's telemetry is in, so reading `t_s` may wait for it)."""
+
+    @property
+    def t_s(self) -> float: ...
+    def sense(self) -> list[SensorPacket]: ...
+    def truth(self) -> RigidBodyState | None: ...
+    def advance(self) -> None: ...
+
+
+class UnitsPart(Protocol):
+    """What the engine asks of the units each step: `InProcessUnits`, or a proxy over their links."""
+
+    def take_sensors(self, packets: list[SensorPacket]) -> list[SensorPacket]: ...
+    def drive(self, commands: list[RotorCommand]) -> None: ...
+    def kill(self, unit_id: int) -> None: ...
+
+
 # ----------------------------------------------------------------------------- the loop
 @dataclass
 class Flight:
@@ -173,8 +194,8 @@ class Flight:
     model: AssemblyModel
     seed: int
     trajectory: Trajectory
-    world: object  # sitl.world.World
-    units: InProcessUnits
+    world: WorldPart  # sitl.world.World, or the world seen over the links of another process
+    units: UnitsPart  # InProcessUnits, or the units seen over the links of another process
     coordinator: Coordinator | None  # None: the units fly themselves (a lone unit under a ground station)
     faults: list[FaultSpec]  # sorted by time: they act in the units' motor models (scheduled there)
     deaths: list[tuple[float, int]] = field(default_factory=list)  # (time, unit): the unit's process dies
@@ -197,7 +218,7 @@ class StepView:
     index: int
     t_s: float
     record: object  # coordinator.StepRecord of this step (None if the coordinator did not run)
-    truth: RigidBodyState
+    truth: RigidBodyState | None  # None: the world is in another process
     telemetry: list = field(default_factory=list)  # the units' SensorPackets to the coordinator
     commands: list = field(default_factory=list)  # the coordinator's RotorCommands to the units
 

@@ -71,7 +71,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import itertools
 import json
 import math
 import os
@@ -756,22 +755,270 @@ class _UnitLoop:
 
 
 # ----------------------------------------------------------------------------- coordinator
+class LinksEnded(Exception):
+    """The coordinator's links ended the flight before its end: stopped (SIGTERM), or the world went silent."""
+
+
+class LinkedUnits:
+    """The world and the units as the coordinator process sees them, behind its link: the engine's world and
+    units parts (mars_link.flight.engine.WorldPart, UnitsPart) in a process that hosts neither.
+
+    The units forward the world's samples as their telemetry, so the step's sensing is receiving that
+    telemetry, and the step's time is its time: reading `t_s` waits for it. A unit that stays silent for
+    `unit_timeout_s` once the first telemetry of the step came in and the world said it had sent every unit
+    the step (step_sent_message; a world that sends no such marker: from the first telemetry) is lost, told
+    to the coordinator at sensing (`Coordinator.unit_lost`); before that, the world may be waiting for a
+    dead unit (it drives the clock), or be stopped between two units' sensors. Driving is sending each live
+    unit its rotor command (with the take-over until the unit acknowledged it, or over PX4's interface);
+    advancing is the world's. `finish_step` (the coordinator's fault detection) runs COORDINATOR_QUIET_S
+    after the commands went out, while the next step's telemetry is awaited: the units need the CPUs first."""
+
+    def __init__(self, link: Link, unit_ids: list[int], scale_n: float, stop: _Stop, on_lost,
+                 unit_timeout_s: float = COORDINATOR_TIMEOUT_S, finish_step=None, hosted=None, px4=None,
+                 commanders: dict | None = None) -> None:
+        self.link, self.scale_n, self.stop, self.on_lost = link, scale_n, stop, on_lost
+        self.unit_timeout_s, self.finish_step, self.hosted = unit_timeout_s, finish_step, hosted
+        self.px4, self.commanders = px4, commanders
+        self.live = set(unit_ids)
+        self.lost: list[dict] = []
+        self.accepted: dict[int, set[int]] = {u: set() for u in unit_ids}  # commands each unit acknowledged
+        self.assembler, self.latches = SensorPacketAssembler(), LatchSensor()
+        self.batteries: dict[int, BatterySample] = {}  # each unit's last BATTERY_STATUS, until its packet comes
+        self.world = link.peers[WORLD_SYSID]
+        self.steps = 0
+        self.next_hello = time.monotonic() + 0.2
+        self.finish_at: float | None = None  # when the last period's fault detection runs
+        self.t_last = -math.inf  # the last step's time: a packet not newer is a backlog (a paused unit resumed)
+        self.world_marks, self.world_sent_us = False, -1  # the world's step-sent markers: seen any, the latest step
+        self._t: float | None = None  # this step's time, once its telemetry is in
+        self._packets: dict[int, SensorPacket] = {}
+        # wall-clock times of the step (coordinator_timing.csv): first and last telemetry in, commands
+        # computed and sent; CPU time of the step and of the sends
+        self.first_wall = self.all_wall = self.computed_wall = self.sent_wall = 0.0
+        self.step_cpu = self.send_cpu = self._cpu_mark = 0.0
+
+    # -- the world part
+    @property
+    def t_s(self) -> float:
+        if self._t is None:
+            self._t = self._receive_step()
+        return self._t
+
+    def sense(self) -> list[SensorPacket]:
+        """The step's telemetry, unit by unit; the units silent past their deadline lost."""
+        t, packets = self.t_s, self._packets
+        for unit in sorted(self.live - set(packets)):
+            self.live.discard(unit)
+            self.lost.append({"t_s": round(t, 6), "unit": unit})
+            print(f"coordinator: unit {unit} silent for {self.unit_timeout_s:.1f} s at t={t:.2f}: lost", file=sys.stderr)
+            self.on_lost(unit, t)
+        return [packets[u] for u in sorted(packets)]
+
+    def truth(self) -> None:
+        return None  # (the world's, in its process)
+
+    def advance(self) -> None:
+        self._t = None
+        self.steps += 1
+
+    # -- the units part
+    def take_sensors(self, packets: list[SensorPacket]) -> list[SensorPacket]:
+        return packets  # (the units took the world's samples in their processes: this is their telemetry)
+
+    def kill(self, unit_id: int) -> None:
+        """(A unit process dies for real here: `sense` finds it silent.)"""
+
+    def drive(self, commands) -> None:
+        """Every live unit's command, all encoded first, then sent back to back (a woken unit may take the CPU)."""
+        link, t, live, px4, hosted = self.link, self._t, self.live, self.px4, self.hosted
+        self.computed_wall, send_cpu = time.time(), time.thread_time()
+        self.step_cpu = send_cpu - self._cpu_mark
+        datagrams, samples = [], []  # (PX4's interface: rmw_zenoh samples)
+        if px4 is not None:
+            _px4_take_over(px4, self.commanders, [c.unit_id for c in commands if c.unit_id in live], t, self.accepted)
+        for cmd in commands:
+            if cmd.unit_id not in live:
+                continue
+            if px4 is not None:
+                samples += px4.encode(cmd.unit_id, self.commanders[cmd.unit_id].step(t, cmd.thrusts_n), t)
+                msgs = []
+            else:
+                msgs = _with_takeover(cmd.unit_id, self.accepted[cmd.unit_id], rotor_command_message(cmd, self.scale_n))
+            if hosted is not None:  # e.g. a failure injected on the vehicle, for this unit's motors
+                msgs += hosted.unit_commands(cmd.unit_id)
+            if msgs:
+                datagrams.append((link.pack(msgs), link.peers[cmd.unit_id]))
+        if samples:
+            px4.send(samples)
+        for data, addr in datagrams:
+            link.send_bytes(data, addr)
+        self.sent_wall, self.send_cpu = time.time(), time.thread_time() - send_cpu
+        if self.finish_step is not None:
+            self.finish_at = time.monotonic() + COORDINATOR_QUIET_S
+
+    def finish(self) -> None:
+        """The last period's fault detection, if it has not run yet."""
+        if self.finish_at is not None:
+            self.finish_at = None
+            self.finish_step()
+
+    # -- the link's I/O
+    def _receive_step(self) -> float:
+        """Telemetry until every live unit's packet of the step is in, or the silent ones' deadline passed."""
+        link, live, stop = self.link, self.live, self.stop
+        packets: dict[int, SensorPacket] = {}
+        idle_deadline = time.monotonic() + WORLD_IDLE_TIMEOUT_S
+        deadline = None
+        t_expected = None
+        final = False  # past the deadline: read what is already queued, then stop waiting (after this
+        while set(packets) < live and not stop.requested:  # process was stopped, the telemetry waits in its socket)
+            now = time.monotonic()
+            left = None if deadline is None else deadline.left_s()
+            final = final or left == 0.0 or now >= idle_deadline
+            if self.steps == 0 and not packets and now >= self.next_hello:  # hello until the world starts
+                link.heartbeat(self.world)
+                self.next_hello = now + 0.2
+            if self.finish_at is not None and now >= self.finish_at:
+                self.finish()
+            wait_s = 0.0 if final else min(0.2, idle_deadline - now if left is None else left,
+                                           math.inf if self.finish_at is None else self.finish_at - now)
+            if deadline is not None:
+                deadline.before_wait(wait_s)
+            if self.hosted is not None:  # client links and wall-clock heartbeats while the lockstep waits
+                wait_s = self.hosted.wait(link, wait_s)
+            msgs = link.receive(wait_s)
+            if final and not msgs:
+                break
+            for m in msgs:
+                p = self._take(m)
+                if p is None:
+                    continue
+                if p.unit_id not in live or p.t_s <= self.t_last:  # a lost unit stays lost; a stale packet
+                    link.drop("stale_telemetry")  # never sets the step's time (it would make every
+                    continue  # live unit's packet look stale and lose them all)
+                if t_expected is None:
+                    t_expected = p.t_s
+                    self.first_wall = time.time()
+                if p.t_s == t_expected:
+                    packets[p.unit_id] = p
+                else:
+                    link.drop("stale_telemetry")
+            if deadline is None and t_expected is not None and (not self.world_marks
+                                                                or self.world_sent_us >= usec(t_expected)):
+                deadline = SilenceDeadline(self.unit_timeout_s)  # (time this process did not run: not the units')
+        if stop.requested:  # stopped mid-step: the units stop too; none of them is lost
+            raise LinksEnded
+        if t_expected is None:  # no telemetry at all for WORLD_IDLE_TIMEOUT_S: the world is gone
+            print(f"coordinator: no telemetry for {WORLD_IDLE_TIMEOUT_S:.0f} s: ending", file=sys.stderr)
+            raise LinksEnded
+        self.finish()  # (the last period's fault detection, if not done in the slack yet)
+        self._packets = packets
+        self.t_last = t_expected
+        self.all_wall, self._cpu_mark = time.time(), time.thread_time()
+        return t_expected
+
+    def _take(self, m) -> SensorPacket | None:
+        """One received frame: a unit's whole sensor packet once complete and finite; the rest noted or dropped."""
+        link = self.link
+        sent_us = _step_sent_us(m)
+        if sent_us is not None:
+            self.world_marks, self.world_sent_us = True, max(self.world_sent_us, sent_us)
+            return None
+        kind = m.get_type()
+        if kind == "COMMAND_ACK":
+            if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in self.accepted:
+                self.accepted[m.get_srcSystem()].add(m.command)
+            return None
+        if kind == "NAMED_VALUE_INT":
+            if not self.latches.feed(m):
+                link.drop("bad_named_value")
+            return None
+        if kind == "BATTERY_STATUS":  # the unit's pack, for its next sensor packet
+            sample = battery_from_message(m)
+            if sample is None:
+                link.drop("bad_battery")
+            else:
+                self.batteries[m.get_srcSystem()] = sample
+            return None
+        p = self.assembler.feed(m)
+        if p is None:
+            return None
+        p.latches = self.latches.mask.get(p.unit_id, 0)
+        if self.batteries:
+            p.battery = self.batteries.pop(p.unit_id, None)
+        if not telemetry_ok(p):
+            link.drop("bad_telemetry")  # non-finite: never into the estimator
+            return None
+        return p
+
+
+class _PiecesStepLog:
+    """Observer: what the summary of a flight of pieces needs each step (pieces_steps.csv): whether the
+    mission flies, its clock and reference, and which units carry the tracked point (the truth comes from
+    the world's log)."""
+
+    def __init__(self, log, coordinator) -> None:
+        self.log, self.coordinator = log, coordinator
+
+    def on_step(self, engine, v) -> bool:
+        executor = self.coordinator.executor
+        t = v.t_s
+        active = executor.mission_active(t)
+        mt = executor.mission_time(t)
+        ref = executor.mission.sample(mt).position_ned_m if active else (math.nan,) * 3
+        piece = self.coordinator.tracked_piece()
+        self.log.write(f"{t:.6f},{int(active)},{mt:.6f},{ref[0]:.9f},{ref[1]:.9f},{ref[2]:.9f},"
+                       f"{' '.join(str(u) for u in piece.units)},{len(self.coordinator.pieces)}\n")
+        return False
+
+
+class _ViewFeedSender:
+    """Observer: after the commands, the world's view gets the coordinator's estimate, reference and new
+    events (mars_link.processes.view_feed)."""
+
+    def __init__(self, link: Link, world, coordinator) -> None:
+        self.link, self.world, self.coordinator = link, world, coordinator
+        self.fed = 0
+
+    def on_step(self, engine, v) -> bool:
+        from mars_link.processes.view_feed import feed_messages
+
+        c = self.coordinator
+        if c.last is not None:
+            self.link.send_bytes(self.link.pack(feed_messages(c.last, c.events[self.fed:])), self.world)
+            self.fed = len(c.events)
+        return False
+
+
+class _TimingLog:
+    """Observer: each step's wall-clock times (coordinator_timing.csv, LinkedUnits says which)."""
+
+    def __init__(self, log, linked: LinkedUnits) -> None:
+        self.log, self.linked = log, linked
+        log.write("t_s,telemetry_first_wall_s,telemetry_all_wall_s,computed_wall_s,sent_wall_s,step_cpu_s,send_cpu_s\n")
+
+    def on_step(self, engine, v) -> bool:
+        x = self.linked
+        self.log.write(f"{v.t_s:.6f},{x.first_wall:.6f},{x.all_wall:.6f},{x.computed_wall:.6f},{x.sent_wall:.6f},"
+                       f"{x.step_cpu:.6f},{x.send_cpu:.6f}\n")
+        return False
+
+
 def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S,
                     key: bytes | None = None, vehicle=None, timing_log: bool = False,
                     require_signing: bool = False, view_feed: bool = False, run_key: bool = False) -> int:
-    """Drive the docked assembly; with a signing `key` its link to the units is signed both ways.
+    """Drive the docked assembly: the flight's engine (mars_link.flight.engine.Engine) with the world and the
+    units behind this process's link (`LinkedUnits`); with a signing `key` that link is signed both ways.
     With `vehicle` (mars_link.processes.vehicle_host.VehiclePorts) the assembly is one MAVLink vehicle on those ports
     and its guidance, not the scenario's trajectory, is the coordinator's reference. `timing_log`:
-    coordinator_timing.csv gets each step's wall-clock times (first and last telemetry in, commands
-    computed, sent; CPU time of the step and of the sends): with the units' command_age logs, where a
-    real-time step's time goes (wall time above CPU time = the coordinator waited for a CPU)."""
+    coordinator_timing.csv gets each step's wall-clock times (`_TimingLog`): with the units' command_age logs,
+    where a real-time step's time goes (wall time above CPU time = the coordinator waited for a CPU)."""
     from mars_link.flight.build import make_coordinator, make_detector, make_estimator
-    from mars_link.config.scenario import eta_after
+    from mars_link.flight.engine import Engine, Flight
 
     sc = setup.scenario
     model = setup.model
     trajectory = _trajectory(sc, model)
-    faults = sorted(sc.faults, key=lambda f: f.t_s)
     hosted = None
     end_s = None  # a flight of pieces: when it ends (the coordinator says so to the world)
     if setup.pieces and vehicle is None:
@@ -796,22 +1043,12 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     stop = _Stop()
     link = Link(ports.open("coordinator"), COORDINATOR_SYSID, key=key)
     scale = model.vehicle.full_scale_thrust_n
-    assembler = SensorPacketAssembler()
-    latches = LatchSensor()
-    batteries: dict[int, BatterySample] = {}  # each unit's last BATTERY_STATUS, until its packet comes
     out.mkdir(parents=True, exist_ok=True)
     pieces_log = SafeWriter.open(out / "pieces_steps.csv") if setup.pieces else None  # (a full disk stops it)
     if pieces_log:
         pieces_log.write("t_s,mission,mission_t_s,ref_n_m,ref_e_m,ref_d_m,tracked_units,pieces\n")
-    live = set(model.unit_ids)
-    lost: list[dict] = []
-    accepted: dict[int, set[int]] = {u: set() for u in model.unit_ids}  # commands each unit acknowledged
-    next_fault = 0
-    out.mkdir(parents=True, exist_ok=True)
     timing = SafeWriter.open(out / "coordinator_timing.csv") if timing_log else None
-    if timing:
-        timing.write("t_s,telemetry_first_wall_s,telemetry_all_wall_s,computed_wall_s,sent_wall_s,step_cpu_s,send_cpu_s\n")
-    px4 = None  # PX4's own interface ([units] interface = "px4-zenoh"): the commands go over rmw_zenoh
+    px4 = commanders = None  # PX4's own interface ([units] interface = "px4-zenoh"): the commands go over rmw_zenoh
     if sc.unit_interface == "px4-zenoh":
         from mars_link.processes.px4_link import Px4CoordinatorLink
         from mars_link.px4.commander import Px4Commander
@@ -820,170 +1057,45 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         keepalive_every = max(1, int(sc.sim.control_hz // PX4_KEEPALIVE_HZ))
         commanders = {u: Px4Commander(u, scale, model.vehicle.rotor_min_thrust_n is None, keepalive_every)
                       for u in model.unit_ids}
+    linked = None
     try:
-        _await_peers(link, live, 60.0, stop)
-        link.prepare_peers(live)
+        _await_peers(link, set(model.unit_ids), 60.0, stop)
+        link.prepare_peers(set(model.unit_ids))
         if px4 is not None:
-            for u in live:
+            for u in model.unit_ids:
                 px4.prepare(u)
         loop = LoopMeter()
-        world = ports.address("world")
-        link.peers.setdefault(WORLD_SYSID, world)  # (its step-sent markers come from there)
-        events_fed = 0
-        finish_at = None  # when the last period's fault detection runs (Coordinator.finish_step)
-        link.heartbeat(world)
-        next_hello = time.monotonic() + 0.2
-        t_last = -math.inf  # the last step's time: a packet not newer is a backlog (a paused unit resumed)
-        world_marks, world_sent_us = False, -1  # the world's step-sent markers: seen any, the latest step
-        for k in (range(setup.steps) if setup.steps is not None else itertools.count()):
-            if stop.requested:
-                break
-            packets: dict[int, SensorPacket] = {}
-            # a unit is lost when it stays silent for unit_timeout_s after the first telemetry of the
-            # step came in and the world said it had sent every unit the step (step_sent_message; a world
-            # that sends no such marker: from the first telemetry); before that, the world may be waiting
-            # for a dead unit (it drives the clock), or be stopped between two units' sensors
-            idle_deadline = time.monotonic() + WORLD_IDLE_TIMEOUT_S
-            deadline = None
-            t_expected = None
-            final = False  # past the deadline: read what is already queued, then stop waiting (after this
-            while set(packets) < live and not stop.requested:  # process was stopped, the telemetry waits in its socket)
-                now = time.monotonic()
-                left = None if deadline is None else deadline.left_s()
-                final = final or left == 0.0 or now >= idle_deadline
-                if k == 0 and not packets and now >= next_hello:  # hello until the world starts
-                    link.heartbeat(world)
-                    next_hello = now + 0.2
-                if finish_at is not None and now >= finish_at:
-                    coordinator.finish_step()
-                    finish_at = None
-                wait_s = 0.0 if final else min(0.2, idle_deadline - now if left is None else left,
-                                               math.inf if finish_at is None else finish_at - now)
-                if deadline is not None:
-                    deadline.before_wait(wait_s)
-                if hosted is not None:  # client links and wall-clock heartbeats while the lockstep waits
-                    wait_s = hosted.wait(link, wait_s)
-                msgs = link.receive(wait_s)
-                if final and not msgs:
-                    break
-                for m in msgs:
-                    sent_us = _step_sent_us(m)
-                    if sent_us is not None:
-                        world_marks, world_sent_us = True, max(world_sent_us, sent_us)
-                        continue
-                    if m.get_type() == "COMMAND_ACK":
-                        if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in accepted:
-                            accepted[m.get_srcSystem()].add(m.command)
-                        continue
-                    if m.get_type() == "NAMED_VALUE_INT":
-                        if not latches.feed(m):
-                            link.drop("bad_named_value")
-                        continue
-                    if m.get_type() == "BATTERY_STATUS":  # the unit's pack, for its next sensor packet
-                        sample = battery_from_message(m)
-                        if sample is None:
-                            link.drop("bad_battery")
-                        else:
-                            batteries[m.get_srcSystem()] = sample
-                        continue
-                    p = assembler.feed(m)
-                    if p is None:
-                        continue
-                    p.latches = latches.mask.get(p.unit_id, 0)
-                    if batteries:
-                        p.battery = batteries.pop(p.unit_id, None)
-                    if not telemetry_ok(p):
-                        link.drop("bad_telemetry")  # non-finite: never into the estimator
-                        continue
-                    if p.unit_id not in live or p.t_s <= t_last:  # a lost unit stays lost; a stale packet
-                        link.drop("stale_telemetry")  # never sets the step's time (it would make every
-                        continue  # live unit's packet look stale and lose them all)
-                    if t_expected is None:
-                        t_expected = p.t_s
-                        first_wall = time.time()
-                    if p.t_s == t_expected and p.unit_id in live:
-                        packets[p.unit_id] = p
-                    else:
-                        link.drop("stale_telemetry")
-                if deadline is None and t_expected is not None and (not world_marks or world_sent_us >= usec(t_expected)):
-                    deadline = SilenceDeadline(unit_timeout_s)  # (time this process did not run: not the units')
-            if stop.requested:  # stopped mid-step: the units stop too; none of them is lost
-                break
-            if not packets:  # no telemetry at all for WORLD_IDLE_TIMEOUT_S: the world is gone
-                if not stop.requested:
-                    print(f"coordinator: no telemetry for {WORLD_IDLE_TIMEOUT_S:.0f} s: ending", file=sys.stderr)
-                break
-            t = t_last = t_expected
-            if end_s is not None and (t >= end_s() - 1e-9 or coordinator.failed is not None):
-                link.send_bytes(link.pack([shutdown_message()]), world)  # the flight of pieces is over
-                break
-            for unit in sorted(live - set(packets)):  # telemetry stopped: the unit is lost
-                live.discard(unit)
-                lost.append({"t_s": round(t, 6), "unit": unit})
-                print(f"coordinator: unit {unit} silent for {unit_timeout_s:.1f} s at t={t:.2f}: lost", file=sys.stderr)
-                if hasattr(coordinator, "unit_lost"):  # issue 5's hook (estimation / fault handling)
-                    coordinator.unit_lost(unit, t)
-                else:
-                    eta = np.asarray(coordinator.eta_believed, dtype=float).copy()
-                    eta[model.unit_slots(unit)] = 0.0
-                    coordinator.set_faults(eta, t, f"unit {unit} lost")
-            if sc.faults_known:
-                while next_fault < len(faults) and faults[next_fault].t_s <= t + 1e-9:
-                    next_fault += 1
-                    coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
-            all_wall, step_cpu = time.time(), time.thread_time()
-            ordered = [packets[u] for u in sorted(packets)]
-            if finish_at is not None:  # the last period's fault detection, if not done in the slack yet
-                coordinator.finish_step()
-                finish_at = None
-            commands = coordinator.commands(t, ordered) if hosted is None else hosted.step(t, ordered, live)
-            computed_wall, send_cpu = time.time(), time.thread_time()
-            step_cpu = send_cpu - step_cpu
-            datagrams = []  # all encoded first, then sent back to back (a woken unit may take the CPU)
-            if pieces_log is not None:
-                _log_pieces_step(pieces_log, coordinator, t)
-            samples = []  # (PX4's interface: the same, as rmw_zenoh samples)
-            if px4 is not None:
-                _px4_take_over(px4, commanders, [c.unit_id for c in commands if c.unit_id in live], t, accepted)
-            for cmd in commands:
-                if cmd.unit_id in live:
-                    if px4 is not None:
-                        samples += px4.encode(cmd.unit_id, commanders[cmd.unit_id].step(t, cmd.thrusts_n), t)
-                        msgs = []
-                    else:
-                        msgs = _with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale))
-                    if hosted is not None:  # e.g. a failure injected on the vehicle, for this unit's motors
-                        msgs += hosted.unit_commands(cmd.unit_id)
-                    if msgs:
-                        datagrams.append((link.pack(msgs), link.peers[cmd.unit_id]))
-            if samples:
-                px4.send(samples)
-            for data, addr in datagrams:
-                link.send_bytes(data, addr)
-            sent_wall, send_cpu = time.time(), time.thread_time() - send_cpu
-            if view_feed and coordinator.last is not None:  # after the commands: the world's view (mars_link.processes.view_feed)
-                from mars_link.processes.view_feed import feed_messages
-
-                link.send_bytes(link.pack(feed_messages(coordinator.last, coordinator.events[events_fed:])), world)
-                events_fed = len(coordinator.events)
-            if hosted is None:  # fault detection (Coordinator.finish_step: it changes the allocation from the
-                # next period on) once the units have read their commands: they need the CPUs first
-                finish_at = time.monotonic() + COORDINATOR_QUIET_S
-            if timing:
-                timing.write(f"{t:.6f},{first_wall:.6f},{all_wall:.6f},{computed_wall:.6f},{sent_wall:.6f},"
-                             f"{step_cpu:.6f},{send_cpu:.6f}\n")
-        if finish_at is not None:
-            coordinator.finish_step()
+        link.peers.setdefault(WORLD_SYSID, ports.address("world"))  # (its step-sent markers come from there)
+        link.heartbeat(link.peers[WORLD_SYSID])
+        linked = LinkedUnits(link, list(model.unit_ids), scale, stop, coordinator.unit_lost, unit_timeout_s,
+                             None if hosted is not None else coordinator.finish_step, hosted, px4, commanders)
+        observers: list = [] if pieces_log is None else [_PiecesStepLog(pieces_log, coordinator)]
+        if view_feed:
+            observers.append(_ViewFeedSender(link, linked.world, coordinator))
+        if timing:
+            observers.append(_TimingLog(timing, linked))
+        flight = Flight(sc, model, sc.sim.seed, trajectory, linked, linked, coordinator, sorted(sc.faults, key=lambda f: f.t_s),
+                        duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz,
+                        end_s=None if end_s is None else lambda: -math.inf if coordinator.failed is not None else end_s())
+        commands = coordinator.commands if hosted is None else lambda t, packets: hosted.step(t, packets, linked.live)
+        engine = Engine(flight, observers, command_source=commands)
+        try:
+            engine.run()
+            if end_s is not None:  # the flight of pieces is over: instead of the first step not to be flown
+                link.send_bytes(link.pack([shutdown_message()]), linked.world)
+        except LinksEnded:
+            pass
+        linked.finish()
         pieces = {} if not setup.pieces else {"pieces_final": coordinator.pieces_final(), "failed": coordinator.failed,
                                               "plan": coordinator.executor.plan.to_json()}
         write_json(out / "coordinator_summary.json",
             {"events": coordinator.all_events() if setup.pieces else coordinator.events, **pieces,
-             "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
+             "lost_units": linked.lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,
                              "eta_estimated": round(float(d.eta_estimated), 4), "reason": d.reason}
                             for d in coordinator.detections],
              **loop.figures(),
-             "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}})
+             "acknowledged": {str(u): sorted(c) for u, c in linked.accepted.items()}})
     finally:
         if px4 is not None:
             px4.close()
@@ -995,18 +1107,6 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         if hosted is not None:
             hosted.close()
     return 0
-
-
-def _log_pieces_step(log, coordinator, t: float) -> None:
-    """What the summary needs of a flight of pieces each step: whether the mission flies, its clock and
-    reference, and which units carry the tracked point (the truth comes from the world's log)."""
-    executor = coordinator.executor
-    active = executor.mission_active(t)
-    mt = executor.mission_time(t)
-    ref = executor.mission.sample(mt).position_ned_m if active else (math.nan,) * 3
-    piece = coordinator.tracked_piece()
-    log.write(f"{t:.6f},{int(active)},{mt:.6f},{ref[0]:.9f},{ref[1]:.9f},{ref[2]:.9f},"
-              f"{' '.join(str(u) for u in piece.units)},{len(coordinator.pieces)}\n")
 
 
 def _px4_take_over(px4, commanders: dict, units: list[int], t: float, accepted: dict[int, set[int]]) -> None:
