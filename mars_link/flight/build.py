@@ -354,6 +354,26 @@ def make_pieces_world(scenario: Scenario, model: AssemblyModel, seed: int, execu
     return make_world(scenario, model, seed, bodies=bodies, config=config)
 
 
+#: `sitl up --units N`: unit u stands this far east of unit u-1 on the ground
+FREE_UNIT_SPACING_M = 2.0
+
+
+def make_free_units_world(scenario: Scenario, vehicle, n_units: int, seed: int, config=None):
+    """N lone units (`sitl up --units N`), one 1x1 body each, side by side on the ground: a world of
+    several bodies whose model is the row of N units (unit ids 1..N, slots in that order). Each unit flies
+    itself on its truth: the sensor packets carry it (no sensor noise), as a lone unit's runner does."""
+    import dataclasses
+
+    from sitl.physics import JsbsimBody
+
+    config = dataclasses.replace(config or world_config(scenario, seed), noise=False)
+    one = AssemblyModel.from_layout(["X"], vehicle)
+    bodies = [(one, (u,), JsbsimBody(one, physics_hz=config.physics_hz,
+                                     position_ned_m=(0.0, (u - 1) * FREE_UNIT_SPACING_M, 0.0), yaw_rad=0.0))
+              for u in range(1, n_units + 1)]
+    return make_world(scenario, AssemblyModel.from_layout(["X" * n_units], vehicle), seed, bodies=bodies, config=config)
+
+
 def make_executor(scenario: Scenario, model: AssemblyModel, mission, plan_for: Trajectory | None = None,
                   defer_take_off: bool = False) -> tuple[object, list[dict], bool]:
     """The executor a flight starts with, the events of its planning, and whether it will reconfigure on

@@ -13,14 +13,13 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 
 from firmware_models.vehicle import MODE_OFFBOARD
 from mars_link.core.events import EventKind, event, unit_died
 from mars_link.core.assembly import AssemblyModel
-from mars_link.coordination.coordinator import Coordinator
 from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
 from mars_link.flight.metrics import STAGES, TrackingMetrics
 from mars_link.runtime.pacing import Pacer
@@ -29,6 +28,9 @@ from mars_link.flight.run_log import RunLog
 from mars_link.config.scenario import FaultSpec, Scenario, eta_after
 from mars_link.core.state import RigidBodyState
 from mars_link.models.trajectories import Trajectory
+
+if TYPE_CHECKING:  # (a world process steps the engine without the coordinator's stack)
+    from mars_link.coordination.coordinator import Coordinator
 
 
 class InProcessUnits:
@@ -271,7 +273,7 @@ class Engine:
         f = self.flight
         self.events.append(event(t, EventKind.FAULT, unit=fault.unit, rotor=fault.rotor, eta=fault.eta,
                                  text=fault.event_text()))
-        if f.scenario.faults_known:
+        if f.scenario.faults_known and f.coordinator is not None:  # (None: the coordinator is another process's)
             f.coordinator.set_faults(eta_after(f.model, f.faults[:self._next_fault], t), t,
                                      "fault told to the coordinator")
 

@@ -314,6 +314,128 @@ def _is_shutdown(m) -> bool:
 
 
 # ----------------------------------------------------------------------------- world
+class LinksEnded(Exception):
+    """A process's links end the flight before its end: stopped (SIGTERM), the coordinator's shutdown of a
+    flight of pieces (the world), or the world gone silent (the coordinator)."""
+
+
+class HilUnits:
+    """The units as the world process sees them, behind its HIL link: the engine's units part
+    (mars_link.flight.engine.UnitsPart) in the process that hosts the world.
+
+    Taking the world's sensors is sending each live unit its HIL datagram (with the latch sensor on change
+    in a flight of pieces), sampled and encoded before the pacing wait so that at t they only go out, then
+    telling the coordinator every unit has the step (step_sent_message). The units' telemetry goes to the
+    coordinator's process, not back here. Driving is receiving every live unit's HIL_ACTUATOR_CONTROLS for the
+    step into the world (from mid-period on when paced, so the world is not woken once per unit while the units
+    and the coordinator work on the step); a unit silent for `unit_timeout_s` is dead (`kill`: motors off, the
+    flight goes on). A stop (SIGTERM) or the coordinator's shutdown ends the flight mid-step: LinksEnded."""
+
+    def __init__(self, world, link: Link, unit_ids: list[int], stop: _Stop, pacer: Pacer, scale_n: float,
+                 control_min: float, coordinated: bool, latch_sensor: bool, feed=None,
+                 unit_timeout_s: float = WORLD_UNIT_TIMEOUT_S) -> None:
+        self.world, self.link, self.stop, self.pacer = world, link, stop, pacer
+        self.scale_n, self.control_min, self.latch_sensor, self.feed = scale_n, control_min, latch_sensor, feed
+        self.unit_timeout_s = unit_timeout_s
+        self.live = set(unit_ids)
+        self.deaths: list[dict] = []
+        self.dead: set[int] = set()
+        self.latch_sent: dict[int, int] = {}  # the latch mask each unit last heard
+        self.coordinator_addr = link.peers.get(COORDINATOR_SYSID) if coordinated else None
+        self.step_sent = step_sent_packer(link)
+        self.stall = _stall_from_env()
+        self.valve = OverloadValve()  # (armed in SCHED_FIFO only)
+        self.answer_after_s = ANSWER_READ_PHASE / world.config.exchange_hz
+
+    def take_sensors(self, packets: list[SensorPacket]) -> list[SensorPacket]:
+        link, world, pacer = self.link, self.world, self.pacer
+        t = world.t_s
+        datagrams = []
+        for p in packets:
+            if p.unit_id in self.live:
+                latch = []
+                if self.latch_sensor and self.latch_sent.get(p.unit_id) != p.latches:  # the latch sensor, on change
+                    self.latch_sent[p.unit_id] = p.latches
+                    latch = [latch_message(p.t_s, p.latches)]
+                datagrams.append((link.pack(unit_sensor_messages(world, p, latch)), link.peers[p.unit_id]))
+        pacer.wait(t)
+        if self.valve.armed and self.valve.check(behind_s := -pacer.wait_s(t), t):
+            print(f"world: {behind_s:.1f} s behind the wall clock at t={t:.2f}: leaving SCHED_FIFO, so that the "
+                  "flight shares the machine", file=sys.stderr)
+        for i, (data, addr) in enumerate(datagrams):
+            link.send_bytes(data, addr)
+            if i == 0 and self.stall is not None and t >= self.stall[0]:  # (test hook: stopped between two units)
+                time.sleep(self.stall[1])
+                self.stall = None
+        if self.coordinator_addr is not None:  # every unit has its step: the coordinator may now time them
+            link.send_bytes(self.step_sent(usec(t)), self.coordinator_addr)
+        return []
+
+    def drive(self, commands) -> None:
+        """(`commands` is empty: the coordinator's go to the units directly.)"""
+        link, world, stop = self.link, self.world, self.stop
+        t = world.t_s
+        if self.pacer.paced:
+            time.sleep(max(0.0, self.pacer.wait_s(t + self.answer_after_s)))
+        waiting = set(self.live)
+        deadline = SilenceDeadline(self.unit_timeout_s)  # (time this process did not run is nobody's silence)
+        t_us = usec(t)
+        while waiting and not (stop.requested or stop.ended):
+            left = deadline.left_s()
+            deadline.before_wait(min(left, STOP_POLL_S))
+            msgs = link.receive(min(left, STOP_POLL_S))  # (a SIGTERM is seen within STOP_POLL_S)
+            if not msgs and left == 0.0:  # (past the deadline, what was already queued is read first:
+                break  # after this process itself was stopped, the answers wait in its socket)
+            for m in msgs:
+                if _is_shutdown(m):
+                    stop.ended = True
+                    break
+                if m.get_type() != "HIL_ACTUATOR_CONTROLS":
+                    if self.feed is not None and m.get_srcSystem() == COORDINATOR_SYSID:
+                        self.feed.take(m)
+                    continue
+                if m.time_usec != t_us or m.get_srcSystem() not in waiting:
+                    link.drop("stale_actuator")
+                    continue
+                if not actuator_controls_ok(m.controls, self.control_min):
+                    link.drop("bad_actuator")  # NaN/inf/out of range: never into the physics
+                    continue
+                world.actuate(actuator_output_from_message(m, self.scale_n))
+                waiting.discard(m.get_srcSystem())
+        if stop.requested or stop.ended:
+            raise LinksEnded
+        for unit in sorted(waiting):  # silent units are dead: motors off, the flight goes on
+            self.kill(unit)
+            self.deaths.append(unit_died(t, unit))
+            print(f"world: unit {unit} silent for {self.unit_timeout_s:.1f} s at t={t:.2f}: declared dead", file=sys.stderr)
+
+    def kill(self, unit_id: int) -> None:
+        self.world.declare_dead(unit_id)
+        self.live.discard(unit_id)
+        self.dead.add(unit_id)
+
+
+class _WorldLogs:
+    """Observer: the world's truth each step (world_truth.csv), its status file every STATUS_PERIOD_S of
+    wall time, and the flight view (run.mcap, the live view) when asked for."""
+
+    def __init__(self, world, truth_log, truth_row, write_status, write_view=None) -> None:
+        self.world, self.truth_log, self.truth_row, self.write_status = world, truth_log, truth_row, write_status
+        self.write_view = write_view
+        self.next_status = 0.0
+
+    def on_step(self, engine, v) -> bool:
+        t = self.world.t_s
+        self.truth_log.write("%.6f," % t + ",".join("%.9f" % x for x in self.truth_row()) + "\n")
+        if self.write_view is not None:
+            self.write_view(t)
+        if time.monotonic() >= self.next_status:
+            self.next_status = time.monotonic() + STATUS_PERIOD_S
+            self.write_status(t)
+            self.truth_log.flush()
+        return False
+
+
 def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout_s: float = WORLD_UNIT_TIMEOUT_S,
               speed: float = 0.0, start: tuple[np.ndarray, float] | None = None, mcap: bool = False,
               foxglove: str | None = None, key: bytes | None = None) -> int:
@@ -321,8 +443,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory. `mcap`: run.mcap in
     `out`; `foxglove`: HOST:PORT of the live Foxglove view (mars_link.processes.view_feed says why the world hosts them)."""
     world_start = start
-    from mars_link.flight.build import make_world, outdoor_profile, sensor_params
-    from sitl.world import FreeUnitsWorld, WorldConfig
+    from mars_link.flight.build import make_free_units_world, make_world, outdoor_profile, sensor_params
+    from mars_link.flight.engine import Engine, Flight
+    from sitl.world import WorldConfig
 
     sc = setup.scenario
     cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise, position_every(setup),
@@ -340,119 +463,59 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         world = make_world(sc, setup.model, seed, com, yaw, config=cfg)
         columns = "pos_n_m,pos_e_m,pos_d_m,qw,qx,qy,qz"
     else:
-        world = FreeUnitsWorld(setup.free_units, setup.model.vehicle, cfg)
+        world = make_free_units_world(sc, setup.model.vehicle, setup.free_units, seed, config=cfg)
         columns = ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("pos_n_m", "pos_e_m", "pos_d_m", "qw", "qx", "qy", "qz"))
     stop = _Stop()
     link = Link(ports.open("world"), WORLD_SYSID, key=key)  # with a key: HIL both ways and the shutdown signed
-    scale = setup.model.vehicle.full_scale_thrust_n
-    control_min = 0.0 if setup.model.vehicle.rotor_min_thrust_n is not None else -1.0  # as the units' intake
-    live = set(setup.unit_ids)
     out.mkdir(parents=True, exist_ok=True)
     status_path = out / "world_status.json"
-    from mars_link.logs.outputs import SafeWriter
-
     # a write error stops the log, never the world; its own thread writes it, so a slow disk never paces the world
     truth_log = SafeWriter.open(out / "world_truth.csv", background=True)
     truth_log.write("t_s," + columns + "\n")
     wall0 = time.perf_counter()
-    next_status = 0.0
-    deaths: list[dict] = []
-    latch_sent: dict[int, int] = {}  # the latch mask each unit last heard
-    truth_row = world.units_row if setup.pieces else world.truth_row
+    units = None
+    truth_row = world.units_row if setup.pieces else world.truth_row if setup.docked else lambda: _poses_row(world)
     view, feed, reference, eta_at = _world_view(setup, world, out, mcap, foxglove)
     writer_pid = view.process.pid if view is not None and mcap else None
     try:
+        live = set(setup.unit_ids)
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.coordinated else set()), 60.0, stop)
         link.prepare_peers(live)  # (the first sends' set-up, paid in the first step, stalled a paced start)
-        coordinator_addr = link.peers.get(COORDINATOR_SYSID) if setup.coordinated else None
-        step_sent = step_sent_packer(link)
-        stall = _stall_from_env()
         wall0 = time.perf_counter()
         # sim time on the wall clock at `speed`; behind it, the world catches up (no re-anchoring): the
         # lockstep's real-time factor stays the one asked for
-        # (anchored at the first step's wait, once its datagrams are ready: the first sensing and logging,
-        # slow the first time, then belong to start-up as in every later step they precede the wait)
+        # (anchored at the first step's wait, once its datagrams are ready: the first sensing, slow the
+        # first time, then belongs to start-up as in every later step it precedes the wait)
         pacer = Pacer(speed, reanchor_s=math.inf, clock=time.perf_counter)
+        vehicle = setup.model.vehicle
+        units = HilUnits(world, link, setup.unit_ids, stop, pacer, vehicle.full_scale_thrust_n,
+                         0.0 if vehicle.rotor_min_thrust_n is not None else -1.0,  # (as the units' intake)
+                         setup.coordinated, setup.pieces, feed, unit_timeout_s)
+        write_view = None if view is None else lambda t: view.write_step(
+            t, world, feed.point(None if reference is None else reference.sample(t)), eta_at(t), [units.deaths, feed.events])
+        logs = _WorldLogs(world, truth_log, truth_row, lambda t: _write_world_status(
+            status_path, world, setup, units.live, t, time.perf_counter() - wall0, writer_pid), write_view)
+        flight = Flight(sc, setup.model, seed, None, world, units, None, sorted(sc.faults, key=lambda f: f.t_s),
+                        duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz)
+        # (the coordinator is another process: its commands go to the units, the units' answers come here)
+        engine = Engine(flight, [logs], command_source=lambda t, telemetry: [])
         loop = LoopMeter()  # the stepping loop alone (start-up excluded)
         idle = IdleMeter()  # the machine's idle cores over the loop: behind the wall clock, starved or at fault?
-        valve = OverloadValve()  # (armed in SCHED_FIFO only)
-        k = 0
-        while (setup.steps is None or k < setup.steps) and not stop.requested:
-            t = world.t_s
-            truth_log.write("%.6f," % t + ",".join("%.9f" % x for x in truth_row()) + "\n")
-            if view is not None:
-                view.write_step(t, world, feed.point(None if reference is None else reference.sample(t)),
-                                eta_at(t), [deaths, feed.events])
-            if time.monotonic() >= next_status:
-                next_status = time.monotonic() + STATUS_PERIOD_S
-                _write_world_status(status_path, world, setup, live, t, time.perf_counter() - wall0, writer_pid)
-                truth_log.flush()
-            datagrams = []  # sampled and encoded before the pacing wait: at t they only go out
-            for p in world.sense():
-                if p.unit_id in live:
-                    latch = []
-                    if setup.pieces and latch_sent.get(p.unit_id) != p.latches:  # the latch sensor, on change
-                        latch_sent[p.unit_id] = p.latches
-                        latch = [latch_message(p.t_s, p.latches)]
-                    datagrams.append((link.pack(unit_sensor_messages(world, p, latch)), link.peers[p.unit_id]))
-            pacer.wait(t)
-            if valve.armed and valve.check(behind_s := -pacer.wait_s(t), t):
-                print(f"world: {behind_s:.1f} s behind the wall clock at t={t:.2f}: leaving SCHED_FIFO, so that the "
-                      "flight shares the machine", file=sys.stderr)
-            for i, (data, addr) in enumerate(datagrams):
-                link.send_bytes(data, addr)
-                if i == 0 and stall is not None and t >= stall[0]:  # (test hook: stopped between two units)
-                    time.sleep(stall[1])
-                    stall = None
-            if coordinator_addr is not None:  # every unit has its step: the coordinator may now time them
-                link.send_bytes(step_sent(usec(t)), coordinator_addr)
-            if pacer.paced:  # the answers are read in one go from mid-period on, so the world is not
-                # woken once per unit while the units and the coordinator work on the step (2-core machines)
-                time.sleep(max(0.0, pacer.wait_s(t + ANSWER_READ_PHASE / cfg.exchange_hz)))
-            waiting = set(live)
-            deadline = SilenceDeadline(unit_timeout_s)  # (time this process did not run is nobody's silence)
-            t_us = usec(t)
-            while waiting and not (stop.requested or stop.ended):
-                left = deadline.left_s()
-                deadline.before_wait(min(left, STOP_POLL_S))
-                msgs = link.receive(min(left, STOP_POLL_S))  # (a SIGTERM is seen within STOP_POLL_S)
-                if not msgs and left == 0.0:  # (past the deadline, what was already queued is read first:
-                    break  # after this process itself was stopped, the answers wait in its socket)
-                for m in msgs:
-                    if _is_shutdown(m):
-                        stop.ended = True
-                        break
-                    if m.get_type() != "HIL_ACTUATOR_CONTROLS":
-                        if feed is not None and m.get_srcSystem() == COORDINATOR_SYSID:
-                            feed.take(m)
-                        continue
-                    if m.time_usec != t_us or m.get_srcSystem() not in waiting:
-                        link.drop("stale_actuator")
-                        continue
-                    if not actuator_controls_ok(m.controls, control_min):
-                        link.drop("bad_actuator")  # NaN/inf/out of range: never into the physics
-                        continue
-                    world.actuate(actuator_output_from_message(m, scale))
-                    waiting.discard(m.get_srcSystem())
-            if stop.requested or stop.ended:
-                break
-            for unit in sorted(waiting):  # silent units are dead: motors off, the flight goes on
-                world.declare_dead(unit)
-                live.discard(unit)
-                deaths.append(unit_died(t, unit))
-                print(f"world: unit {unit} silent for {unit_timeout_s:.1f} s at t={t:.2f}: declared dead", file=sys.stderr)
-            world.advance()
-            k += 1
+        try:
+            while not stop.requested and engine.step():
+                pass
+        except LinksEnded:
+            pass
         wall = time.perf_counter() - wall0
-        _write_world_status(status_path, world, setup, live, world.t_s, wall, writer_pid)
+        _write_world_status(status_path, world, setup, units.live, world.t_s, wall, writer_pid)
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
-                   "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
-                   "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time(),
-                   **loop.figures(), "realtime_class_left_at_s": valve.left_at_s, "cores_idle_fraction": idle.fraction(),
-                   "force_integral_n2s": getattr(world, "force_integral_n2s", None),  # (free units: none)
-                   "latch_events": getattr(world, "latch_events", []),
-                   "bodies": [list(b.units) for b in getattr(world, "bodies", [])], "logging": truth_log.status()}
-        packs = getattr(world, "packs", None)
+                   "steps": engine.steps, "units": setup.unit_ids, "dead_units": sorted(units.dead),
+                   "deaths": units.deaths, "dropped": link.dropped, "stopped": stop.requested,
+                   "cpu_s": time.process_time(), **loop.figures(), "realtime_class_left_at_s": units.valve.left_at_s,
+                   "cores_idle_fraction": idle.fraction(), "force_integral_n2s": world.force_integral_n2s,
+                   "latch_events": world.latch_events, "bodies": [list(b.units) for b in world.bodies],
+                   "logging": truth_log.status()}
+        packs = world.packs
         if packs is not None:  # the packs' truth at the end (unit id order)
             summary["batteries"] = {"soc": packs.soc.round(6).tolist(), "voltage_v": packs.voltage_v.round(4).tolist(),
                                     "drawn_c": packs.drawn_c.round(4).tolist()}
@@ -461,7 +524,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         truth_log.close()
         try:  # run.mcap before the link: a Zenoh session can take seconds to close, and the file must be
             if view is not None:  # whole when `sitl up` ends
-                view.finish(event_lists=[deaths, feed.events])
+                view.finish(event_lists=[[] if units is None else units.deaths, feed.events])
                 mcap = view.status()
                 if mcap is not None and mcap["stopped_reason"] and (out / "world_summary.json").exists():
                     _write_world_summary(out, {**json.loads((out / "world_summary.json").read_text()),
@@ -470,6 +533,15 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             world.close()
             link.close()
     return 0
+
+
+def _poses_row(world) -> list[float]:
+    """Every unit's centre (NED) and attitude, in unit id order: the truth log of free units."""
+    row: list[float] = []
+    for u in world.model.unit_ids:
+        s = world.unit_truth(u)
+        row += [*s.position_ned_m, *s.quaternion_wxyz]
+    return row
 
 
 def unit_sensor_messages(world, p: SensorPacket, extra: list | None = None) -> list:
@@ -508,7 +580,7 @@ def _world_view(setup: SitlSetup, world, out: Path, mcap: bool, live: str | None
 
     sc, model = setup.scenario, setup.model
     if not setup.docked:
-        model = world.view_model
+        model = world.model
         duration = setup.steps / sc.sim.control_hz if setup.steps is not None else math.inf
         view = open_view(out, model, sc, sc.sim.control_hz, None, duration, live, None, mcap)
         healthy = np.ones(model.n_rotors)
@@ -755,10 +827,6 @@ class _UnitLoop:
 
 
 # ----------------------------------------------------------------------------- coordinator
-class LinksEnded(Exception):
-    """The coordinator's links ended the flight before its end: stopped (SIGTERM), or the world went silent."""
-
-
 class LinkedUnits:
     """The world and the units as the coordinator process sees them, behind its link: the engine's world and
     units parts (mars_link.flight.engine.WorldPart, UnitsPart) in a process that hosts neither.
