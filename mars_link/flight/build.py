@@ -274,7 +274,7 @@ def initial_eta(scenario: Scenario, model: AssemblyModel) -> np.ndarray:
 def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajectory, estimator, detector,
                      eta: np.ndarray | None = None, telemetry_timeout_s: float | None = None) -> Coordinator:
     """The coordinator: `reference` is the scenario's trajectory or a vehicle's setpoint source; `estimator`
-    and `detector` come from `make_estimator` / `make_detector` (or a vehicle's own estimate holder)."""
+    and `detector` come from `make_estimator` / `make_detector`."""
     from mars_link.coordination.coordinator import Coordinator
 
     eta = initial_eta(scenario, model) if eta is None else eta
