@@ -169,7 +169,7 @@ class InProcessUnits:
 # ----------------------------------------------------------------------------- the parts
 class WorldPart(Protocol):
     """What the engine asks of the world each step. In process: `sitl.world.World`; in a process that does
-    not host the world, a proxy over its links (mars_link.processes.lockstep.LinkedUnits: the step's time is
+    not host the world, a proxy over its links (mars_link.processes.engine_links.LinkedUnits: the step's time is
     known once the step's telemetry is in, so reading `t_s` may wait for it)."""
 
     @property
