@@ -44,7 +44,7 @@ from mars_link.mavlink.wire import (
     sensor_packet_messages,
 )
 from sitl.hil import hil_state_message
-from mars_link.processes.lockstep import _with_takeover
+from mars_link.processes.engine_links import _with_takeover
 
 FULL_SCALE_N = 10.0
 

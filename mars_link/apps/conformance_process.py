@@ -49,9 +49,8 @@ class UnitProcessBench(Bench):
     def __init__(self, interface: str, broken_keepalive: bool = False) -> None:
         super().__init__(interface, broken_keepalive)
         from mars_link.processes.links import LOOPBACK, Link, Ports
-        from mars_link.processes.lockstep import (
-            BROKEN_KEEPALIVE_ENV, COORDINATOR_SYSID, WORLD_SYSID, _await_peers,
-        )
+        from mars_link.processes.engine_links import COORDINATOR_SYSID, WORLD_SYSID
+        from mars_link.processes.lockstep import BROKEN_KEEPALIVE_ENV, _await_peers
         from mars_link.processes.parent_watch import child_env
         from mars_link.processes.sitl_mode import write_scenario_copy
         from mars_link.transport import LinkSpec
@@ -126,7 +125,7 @@ class UnitProcessBench(Bench):
         """One control period: the harness's messages, then the sensors; the unit's answer drives the world."""
         from mars_link.core.messages import wire_time
         from mars_link.mavlink.wire import actuator_output_from_message, usec
-        from mars_link.processes.lockstep import unit_sensor_messages
+        from mars_link.processes.engine_links import unit_sensor_messages
 
         world = self.world
         self.t_s = wire_time(world.t_s)

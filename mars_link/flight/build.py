@@ -274,7 +274,7 @@ def initial_eta(scenario: Scenario, model: AssemblyModel) -> np.ndarray:
 def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajectory, estimator, detector,
                      eta: np.ndarray | None = None, telemetry_timeout_s: float | None = None) -> Coordinator:
     """The coordinator: `reference` is the scenario's trajectory or a vehicle's setpoint source; `estimator`
-    and `detector` come from `make_estimator` / `make_detector` (or a vehicle's own estimate holder)."""
+    and `detector` come from `make_estimator` / `make_detector`."""
     from mars_link.coordination.coordinator import Coordinator
 
     eta = initial_eta(scenario, model) if eta is None else eta
@@ -352,6 +352,26 @@ def make_pieces_world(scenario: Scenario, model: AssemblyModel, seed: int, execu
             position_ned_m=(float(start.position_ned_m[0]), float(start.position_ned_m[1]), 0.0),
             yaw_rad=start.yaw_rad)))
     return make_world(scenario, model, seed, bodies=bodies, config=config)
+
+
+#: `sitl up --units N`: unit u stands this far east of unit u-1 on the ground
+FREE_UNIT_SPACING_M = 2.0
+
+
+def make_free_units_world(scenario: Scenario, vehicle, n_units: int, seed: int, config=None):
+    """N lone units (`sitl up --units N`), one 1x1 body each, side by side on the ground: a world of
+    several bodies whose model is the row of N units (unit ids 1..N, slots in that order). Each unit flies
+    itself on its truth: the sensor packets carry it (no sensor noise), as a lone unit's runner does."""
+    import dataclasses
+
+    from sitl.physics import JsbsimBody
+
+    config = dataclasses.replace(config or world_config(scenario, seed), noise=False)
+    one = AssemblyModel.from_layout(["X"], vehicle)
+    bodies = [(one, (u,), JsbsimBody(one, physics_hz=config.physics_hz,
+                                     position_ned_m=(0.0, (u - 1) * FREE_UNIT_SPACING_M, 0.0), yaw_rad=0.0))
+              for u in range(1, n_units + 1)]
+    return make_world(scenario, AssemblyModel.from_layout(["X" * n_units], vehicle), seed, bodies=bodies, config=config)
 
 
 def make_executor(scenario: Scenario, model: AssemblyModel, mission, plan_for: Trajectory | None = None,

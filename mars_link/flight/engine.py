@@ -13,14 +13,13 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 
 from firmware_models.vehicle import MODE_OFFBOARD
 from mars_link.core.events import EventKind, event, unit_died
 from mars_link.core.assembly import AssemblyModel
-from mars_link.coordination.coordinator import Coordinator
 from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
 from mars_link.flight.metrics import STAGES, TrackingMetrics
 from mars_link.runtime.pacing import Pacer
@@ -30,6 +29,9 @@ from mars_link.config.scenario import FaultSpec, Scenario, eta_after
 from mars_link.config.scenario_sensor_faults import sensor_fault_events
 from mars_link.core.state import RigidBodyState
 from mars_link.models.trajectories import Trajectory
+
+if TYPE_CHECKING:  # (a world process steps the engine without the coordinator's stack)
+    from mars_link.coordination.coordinator import Coordinator
 
 
 class InProcessUnits:
@@ -165,6 +167,27 @@ class InProcessUnits:
         return np.concatenate([self.vehicles[u].motors.eta for u in unit_ids])
 
 
+# ----------------------------------------------------------------------------- the parts
+class WorldPart(Protocol):
+    """What the engine asks of the world each step. In process: `sitl.world.World`; in a process that does
+    not host the world, a proxy over its links (mars_link.processes.engine_links.LinkedUnits: the step's time is
+    known once the step's telemetry is in, so reading `t_s` may wait for it)."""
+
+    @property
+    def t_s(self) -> float: ...
+    def sense(self) -> list[SensorPacket]: ...
+    def truth(self) -> RigidBodyState | None: ...
+    def advance(self) -> None: ...
+
+
+class UnitsPart(Protocol):
+    """What the engine asks of the units each step: `InProcessUnits`, or a proxy over their links."""
+
+    def take_sensors(self, packets: list[SensorPacket]) -> list[SensorPacket]: ...
+    def drive(self, commands: list[RotorCommand]) -> None: ...
+    def kill(self, unit_id: int) -> None: ...
+
+
 # ----------------------------------------------------------------------------- the loop
 @dataclass
 class Flight:
@@ -174,8 +197,8 @@ class Flight:
     model: AssemblyModel
     seed: int
     trajectory: Trajectory
-    world: object  # sitl.world.World
-    units: InProcessUnits
+    world: WorldPart  # sitl.world.World, or the world seen over the links of another process
+    units: UnitsPart  # InProcessUnits, or the units seen over the links of another process
     coordinator: Coordinator | None  # None: the units fly themselves (a lone unit under a ground station)
     faults: list[FaultSpec]  # sorted by time: they act in the units' motor models (scheduled there)
     deaths: list[tuple[float, int]] = field(default_factory=list)  # (time, unit): the unit's process dies
@@ -198,7 +221,7 @@ class StepView:
     index: int
     t_s: float
     record: object  # coordinator.StepRecord of this step (None if the coordinator did not run)
-    truth: RigidBodyState
+    truth: RigidBodyState | None  # None: the world is in another process
     telemetry: list = field(default_factory=list)  # the units' SensorPackets to the coordinator
     commands: list = field(default_factory=list)  # the coordinator's RotorCommands to the units
 
@@ -248,7 +271,7 @@ class Engine:
         f = self.flight
         self.events.append(event(t, EventKind.FAULT, unit=fault.unit, rotor=fault.rotor, eta=fault.eta,
                                  text=fault.event_text()))
-        if f.scenario.faults_known:
+        if f.scenario.faults_known and f.coordinator is not None:  # (None: the coordinator is another process's)
             f.coordinator.set_faults(eta_after(f.model, f.faults[:self._next_fault], t), t,
                                      "fault told to the coordinator")
 
