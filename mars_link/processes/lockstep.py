@@ -105,6 +105,7 @@ from mars_link.processes.engine_links import (
     WORLD_SYSID,
     WORLD_UNIT_TIMEOUT_S,
     HilUnits,
+    HostedFirmware,
     LinkedUnits,
     LinksEnded,
     shutdown_message,
@@ -461,6 +462,7 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
     with its own links, tlog, ULog (unit<id>.ulg, unless `ulog` is False) and status file, served by one
     event loop: one wake-up serves every unit whose datagram came in, and the start-up (imports) is paid
     once. One unit is the default."""
+    from mars_link.flight.engine import Engine, Flight
     from mars_link.processes.vehicle_io import write_json_atomic
 
     out.mkdir(parents=True, exist_ok=True)
@@ -478,11 +480,13 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
         for unit in units:
             print(json.dumps({"ready": True, "unit": unit.unit_id, "ports": unit.io.ports()}), flush=True)
         loop = LoopMeter()
-        active = list(units)
-        while active and not stop.requested:
+
+        def serve(until_s: float) -> None:
+            """One wait of this process's I/O, at most until `until_s` (monotonic): every frame received into
+            its firmware, every unit's housekeeping when due."""
             now = time.monotonic()
-            wake = min(unit.housekeeping(now) for unit in active)
-            for unit in active:  # (a stall of this process is not the coordinator's silence)
+            wake = min(until_s, *(unit.housekeeping(now) for unit in units))
+            for unit in units:  # (a stall of this process is not the coordinator's silence)
                 if unit.command_deadline is not None:
                     unit.command_deadline.before_wait(max(0.0, wake - now))
             for key_, _ in sel.select(max(0.0, wake - now)):
@@ -491,12 +495,18 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
                     unit.drain_px4()
                 else:
                     unit.io.drain(name, key_.fileobj)
-            for unit in active:
-                unit.check_command_timeout()
-            for unit in [u for u in active if u.done]:
-                active.remove(unit)
-                unit.finish(loop.figures() if len(units) == 1 else None)
-        for unit in active:
+
+        hosted = HostedFirmware(units, serve, stop)
+        sc = setup.scenario
+        flight = Flight(sc, setup.model, sc.sim.seed, None, hosted, hosted, None, [],
+                        duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz)
+        engine = Engine(flight, command_source=hosted.commands)
+        try:
+            while not stop.requested and engine.step():
+                pass
+        except LinksEnded:
+            pass
+        for unit in units:
             unit.finish(loop.figures() if len(units) == 1 else None)
         if len(units) > 1:  # the process's CPU, once (each unit's status has its own counters only)
             write_json_atomic(out / f"unit_host{unit_ids[0]}_status.json",
@@ -545,6 +555,7 @@ class _UnitLoop:
         self.next_hello = self.next_tick = self.next_status = 0.0
         self.command_deadline: SilenceDeadline | None = None  # (while a HIL step waits for its command)
         vehicle.defer_own_state = setup.coordinated  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
+        vehicle.hil_stepped_by_host = True  # the process's engine takes each HIL step (HostedFirmware)
         self.px4_link = None  # PX4's own interface over rmw_zenoh, beside the MAVLink persona (vehicle_px4)
         self.px4_log = None  # every rmw_zenoh sample it received, as received (px4_input_log_name)
         self.next_px4_telemetry = 0.0
@@ -574,10 +585,6 @@ class _UnitLoop:
             if samples:
                 link.publish(samples)
 
-    @property
-    def done(self) -> bool:
-        return self.setup.steps is not None and self.vehicle.stats.get("hil_steps", 0) >= self.setup.steps
-
     def housekeeping(self, now: float) -> float:
         """The unit's own state, heartbeats, streams and status file when due; returns when to wake next.
         Housekeeping waits while a step is in flight, at most HOUSEKEEPING_DEFER_S past its time, and
@@ -587,8 +594,6 @@ class _UnitLoop:
 
         vehicle, io = self.vehicle, self.io
         steps = vehicle.stats.get("hil_steps", 0)
-        if vehicle.hil_pending:
-            self.command_deadline = self.command_deadline or SilenceDeadline(self.command_timeout_s)
         due = min(self.next_hello, self.next_tick, self.next_status)
         in_flight = self.command_deadline is not None
         start_at = math.inf if in_flight else (now if vehicle.has_deferred else due)
@@ -612,15 +617,6 @@ class _UnitLoop:
         if self.command_deadline is not None:
             wake = min(wake, self.command_deadline.at_s)
         return wake
-
-    def check_command_timeout(self) -> None:
-        vehicle = self.vehicle
-        if vehicle.hil_pending and self.command_deadline is not None and self.command_deadline.left_s() == 0.0:
-            print(f"unit {self.unit_id}: no coordinator command for {self.command_timeout_s:.1f} s at "
-                  f"t={vehicle.sim_s:.2f}: answering with the held command / fail-safe", file=sys.stderr)
-            self.io.send(vehicle.release_hil(time.time()))
-        if not vehicle.hil_pending:
-            self.command_deadline = None
 
     def finish(self, loop: dict[str, float | str] | None) -> None:
         """The last deferred work and the final status (`loop`: this process's stepping loop's CPU and
