@@ -61,11 +61,13 @@ the world and units are SCHED_BATCH so that only the coordinator's wake-ups pree
 (mars_link.runtime.scheduling). The path sensor -> unit -> coordinator -> unit -> motors is then
 mostly Python work shared by 8 processes; --timing-log and the units' command-age logs show where it goes.
 
-Loops: the world and the coordinator processes step the flight's engine (mars_link.flight.engine.Engine),
-the order the in-process flight steps; what a process does not host is a proxy over its links
-(mars_link.processes.engine_links: `HilUnits` in the world, `LinkedUnits` in the coordinator). What keeps a
-loop of its own: the receive waits inside those proxies, the pacer, and the unit processes' event loop
-(`run_units`), in which each unit's firmware answers its HIL step in its own frame handlers, as PX4's does.
+Loops: every process steps the flight's engine (mars_link.flight.engine.Engine), the order the in-process
+flight steps; what a process does not host is a proxy over its links (mars_link.processes.engine_links:
+`HilUnits` in the world, `LinkedUnits` in the coordinator, `HostedFirmware` in a unit process: the world
+its HIL link, the coordinator its coordinator link or PX4's interface, the units its firmwares, whose frame
+handlers then only receive). What keeps a loop of its own: the receive waits inside those proxies (in a
+unit process, `run_units`' `serve`: frames into the firmwares, heartbeats, client links, status files)
+and the pacer.
 
 Links: every process builds its links once at start from `--transport udp|zenoh` (`mars_link.processes.links.Ports`)
 and hands each to its I/O as a `mars_link.transport.Transport`: the world's and the coordinator's `Link`
@@ -459,9 +461,9 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
               command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None,
               require_signing: bool = False, ulog: bool = True, run_key: bool = False) -> int:
     """Several units' firmwares in this process (`--units-per-process K`), each its own MAVLink system
-    with its own links, tlog, ULog (unit<id>.ulg, unless `ulog` is False) and status file, served by one
-    event loop: one wake-up serves every unit whose datagram came in, and the start-up (imports) is paid
-    once. One unit is the default."""
+    with its own links, tlog, ULog (unit<id>.ulg, unless `ulog` is False) and status file, stepped by one
+    engine (`HostedFirmware`) whose waits serve every link: one wake-up serves every unit whose datagram
+    came in, and the start-up (imports) is paid once. One unit is the default."""
     from mars_link.flight.engine import Engine, Flight
     from mars_link.processes.vehicle_io import write_json_atomic
 
@@ -522,7 +524,8 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
 
 
 class _UnitLoop:
-    """One unit's firmware, its links and its wall-clock housekeeping, driven by `run_units`' loop."""
+    """One unit's firmware, its links and its wall-clock housekeeping: stepped by `run_units`' engine,
+    served by its waits."""
 
     def __init__(self, setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: UnitPorts,
                  command_timeout_s: float, key: bytes | None, require_signing: bool, ulog: bool = True,
