@@ -483,20 +483,28 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
             print(json.dumps({"ready": True, "unit": unit.unit_id, "ports": unit.io.ports()}), flush=True)
         loop = LoopMeter()
 
+        held: dict[tuple, object] = {}  # (unit, link) -> transport: input left waiting while its unit's step runs
+
         def serve(until_s: float) -> None:
             """One wait of this process's I/O, at most until `until_s` (monotonic): every frame received into
-            its firmware, every unit's housekeeping when due."""
+            its firmware, every unit's housekeeping when due. A unit whose step may run (its command is in)
+            takes no more input until the engine ran it: what follows the command is for the steps after."""
             now = time.monotonic()
             wake = min(until_s, *(unit.housekeeping(now) for unit in units))
             for unit in units:  # (a stall of this process is not the coordinator's silence)
                 if unit.command_deadline is not None:
                     unit.command_deadline.before_wait(max(0.0, wake - now))
-            for key_, _ in sel.select(max(0.0, wake - now)):
-                unit, name = key_.data
+            due = [k for k in held if not k[0].step_runs]
+            ready = {k: held.pop(k) for k in due}
+            for key_, _ in sel.select(0.0 if due else max(0.0, wake - now)):
+                ready[key_.data] = key_.fileobj
+            for (unit, name), fileobj in ready.items():
                 if name == PX4_LINK:
                     unit.drain_px4()
                 else:
-                    unit.io.drain(name, key_.fileobj)
+                    unit.io.drain(name, fileobj, lambda unit=unit: unit.step_runs)
+                if unit.step_runs:
+                    held[(unit, name)] = fileobj
 
         hosted = HostedFirmware(units, serve, stop)
         sc = setup.scenario
@@ -561,6 +569,7 @@ class _UnitLoop:
         vehicle.hil_stepped_by_host = True  # the process's engine takes each HIL step (HostedFirmware)
         self.px4_link = None  # PX4's own interface over rmw_zenoh, beside the MAVLink persona (vehicle_px4)
         self.px4_log = None  # every rmw_zenoh sample it received, as received (px4_input_log_name)
+        self.px4_backlog: list = []  # samples received after the one that let a step run, for the steps after
         self.next_px4_telemetry = 0.0
         self.command_age = ports.taps.get(unit_id)
         if sc.unit_interface == "px4-zenoh":
@@ -571,12 +580,19 @@ class _UnitLoop:
             self.px4_link = Px4UnitLink(ports.zenoh_session(), vehicle.px4_endpoint)
             self.px4_log = open(out / px4_input_log_name(unit_id), "w", encoding="utf-8")  # (replayable)
 
+    @property
+    def step_runs(self) -> bool:
+        """The unit's HIL step may run now: taken, and its command is in (or it waits for none)."""
+        return self.vehicle.hil_pending and self.vehicle.hil_command_in
+
     def drain_px4(self) -> None:
-        """Every rmw_zenoh sample received: into the firmware; its answers out (a HIL step it completes,
-        command acks and status)."""
+        """Every rmw_zenoh sample received, up to the one that lets the unit's step run (`step_runs`; the
+        rest wait for the next drain): into the firmware; its answers out (command acks and status)."""
         vehicle, link, tap = self.vehicle, self.px4_link, self.command_age
         log = self.px4_log
-        for key, payload, attachment in link.take():
+        self.px4_backlog += link.take()
+        while self.px4_backlog and not self.step_runs:
+            key, payload, attachment = self.px4_backlog.pop(0)
             now = time.time()
             log.write(json.dumps({"sim_s": vehicle.sim_s, "wall_s": now, "key": key, "payload": payload.hex(),
                                   "attachment": None if attachment is None else attachment.hex()}) + "\n")
