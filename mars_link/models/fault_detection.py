@@ -71,6 +71,10 @@ class FaultDetectorParams:
     # ... where that part explains at least this share of what the unit's loss explains (a dead unit's
     # large residual leaves model error that a small extra loss would otherwise fit)
     combined_min_share: float = 0.02
+    max_spread_rotors: int = 4  # losses spread over several units: up to this many rotors at once (0: none)
+    spread_beam: int = 6  # ... searched by a beam this wide
+    spread_penalty: float = 8.0  # ... each unit beyond the first costs this much score
+    spread_swap_rounds: int = 4  # ... and refined by this many rounds of one-rotor swaps
     # the residuals' own spread before the change (unmodelled air: gusts, rotor drag's yaw) floors their noise
     # model, row by row: a row this noisy weighs less in the isolation fit. Floors at these fractions of the
     # measured spread (in still air the models stay above them: the figures there do not move)
@@ -519,24 +523,25 @@ class FaultDetector:
         margin = p.decide_margin if margin is None else margin
         lo_all, hi_all = self.eta - 1.0, self.eta.copy()  # 0 <= eta_new <= 1
         ridge = 1e-9 * (np.trace(A) / self.n + 1e-12)
-        groups: list[tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray | None, bool]] = []  # (.., combined)
+        # (slots, fitted deltas, improvements, free parameters, whole units or None, extra score cost)
+        groups: list[tuple[np.ndarray, np.ndarray, np.ndarray, int, np.ndarray | None, float | np.ndarray]] = []
         for size, idx in self.library.free.items():
             a_sub = A[idx[:, :, None], idx[:, None, :]] + ridge * np.eye(size)
             g_sub = g[idx]
             d = _box_qp(a_sub, g_sub, lo_all[idx], hi_all[idx])
             imp = 2 * np.einsum("hi,hi->h", d, g_sub) - np.einsum("hi,hij,hj->h", d, a_sub, d)
-            groups.append((idx, d, imp, size, None, False))
+            groups.append((idx, d, imp, size, None, 0.0))
         for units, idx in self.library.fixed.values():
             d = self.eta[idx]  # the whole units drop to eta 0
             imp = 2 * np.einsum("hi,hi->h", d, g[idx]) - np.einsum("hi,hij,hj->h", d, A[idx[:, :, None], idx[:, None, :]], d)
             imp[~d.any(axis=1)] = -np.inf  # already dead: nothing to explain
-            groups.append((idx, d, imp, 0, units, False))
+            groups.append((idx, d, imp, 0, units, 0.0))
         groups += self._unit_and_rotor_fits(A, g, groups, lo_all, hi_all, ridge)
+        groups += self._spread_fits(A, g, lo_all, hi_all, ridge)
         imps = np.concatenate([grp[2] for grp in groups])
         scale = max(1.0, (c - float(imps.max())) / max(dof - ROTORS_PER_UNIT, 1))
         self.last_misfit = scale
-        penalties = np.concatenate([np.full(len(grp[2]), p.param_penalty * grp[3] + (p.detect_score if grp[5] else 0.0))
-                                    for grp in groups])
+        penalties = np.concatenate([p.param_penalty * grp[3] + np.broadcast_to(grp[5], grp[2].shape) for grp in groups])
         scores = imps / scale - penalties
         where = [(k, h) for k, grp in enumerate(groups) for h in range(len(grp[2]))]
         fits: list[_Fit] = []
@@ -579,7 +584,63 @@ class FaultDetector:
                 imp_f[imp_f < self.params.combined_min_share * imp_u] = -np.inf  # the unit's own misfit
                 h = len(idx_f)
                 out.append((np.hstack([np.broadcast_to(idx_u, (h, len(idx_u))), idx_f]),
-                            np.hstack([np.broadcast_to(d_u, (h, len(d_u))), d_f]), imp_u + imp_f, size, None, True))
+                            np.hstack([np.broadcast_to(d_u, (h, len(d_u))), d_f]), imp_u + imp_f, size, None,
+                            self.params.detect_score))
+        return out
+
+    def _spread_fits(self, A: np.ndarray, g: np.ndarray, lo_all: np.ndarray, hi_all: np.ndarray,
+                     ridge: float) -> list:
+        """Rotor losses spread over several units at once (a 3x3 losing a rotor on units 1, 6 and 8): too many
+        subsets to list, so a beam search grows them a rotor at a time from the best-explaining ones, and every
+        support so found is also tried with each of its rotors swapped for every other rotor (its look-alikes:
+        the rivals the decision margin and the null-space probe are about). Supports within one unit are the
+        library's; these pay `spread_penalty` per unit beyond the first (many more places to fit the noise)."""
+        p = self.params
+        if p.max_spread_rotors < 2 or self.model.n_units < 2:
+            return []
+        candidates = np.flatnonzero(self.eta > p.dead_eta)  # (a rotor believed dead can only come back: a gain)
+        if len(candidates) < 2:
+            return []
+        beam = [np.array([], dtype=int)]
+        found: dict[int, list[np.ndarray]] = {}
+        for size in range(1, min(p.max_spread_rotors, len(candidates)) + 1):
+            grown = {tuple(sorted(set(b.tolist()) | {int(c)})) for b in beam for c in candidates if c not in b}
+            idx = np.array(sorted(grown), dtype=int)
+            _, imp = _support_fit(A, g, idx, lo_all, hi_all, ridge)
+            order = np.argsort(-imp)[:p.spread_beam]
+            beam = [idx[i] for i in order]
+            if size >= 2:
+                found[size] = beam
+        out = []
+        larger: list[np.ndarray] = []
+        for size in sorted(found, reverse=True):  # the best larger supports less one rotor seed the smaller (the
+            # forward path can lock in a look-alike early: u2r3 and u3r1 of a 3x3 in place of u1r2 and u6r4)
+            supports = list({tuple(s.tolist()): s for s in found[size]
+                             + [np.delete(sup, i) for sup in larger for i in range(size + 1)]}.values())
+            _, imp = _support_fit(A, g, np.array(supports), lo_all, hi_all, ridge)
+            tried: dict[tuple, float] = {tuple(sup.tolist()): v for sup, v in zip(supports, imp.tolist())}
+            supports = [np.array(b) for b in sorted(tried, key=tried.__getitem__, reverse=True)[:p.spread_beam]]
+            for _ in range(p.spread_swap_rounds):  # local search: swap one rotor at a time while that helps
+                new = {tuple(sorted(np.delete(sup, i).tolist() + [int(c)]))
+                       for sup in supports for i in range(size) for c in candidates if c not in sup}
+                new = [s for s in new if s not in tried]
+                if not new:
+                    break
+                idx = np.array(new, dtype=int)
+                _, imp = _support_fit(A, g, idx, lo_all, hi_all, ridge)
+                tried.update(zip(new, imp.tolist()))
+                best = sorted(tried, key=tried.__getitem__, reverse=True)[:p.spread_beam]
+                if best == [tuple(sup.tolist()) for sup in supports]:
+                    break
+                supports = [np.array(b) for b in best]
+            larger = supports[:p.spread_beam]
+            idx = np.array(sorted(tried), dtype=int)
+            n_units = np.array([len(set((row // ROTORS_PER_UNIT).tolist())) for row in idx])
+            idx, n_units = idx[n_units > 1], n_units[n_units > 1]  # (one unit's subsets are the library's)
+            if not len(idx):
+                continue
+            d, imp = _support_fit(A, g, idx, lo_all, hi_all, ridge)
+            out.append((idx, d, imp, size, None, p.spread_penalty * (n_units - 1)))
         return out
 
     def _fit(
@@ -732,6 +793,14 @@ class FaultDetector:
         self._baseline_n, self._baseline_count = 0.0, 0
         self._clean_from_s = onset  # (the air's level is measured again on residuals of the new belief)
         return out
+
+
+def _support_fit(A: np.ndarray, g: np.ndarray, idx: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                 ridge: float) -> tuple[np.ndarray, np.ndarray]:
+    """Bounded fits of many supports (rows of slot indices) at once: the losses and their improvements."""
+    a_sub = A[idx[:, :, None], idx[:, None, :]] + ridge * np.eye(idx.shape[1])
+    d = _box_qp(a_sub, g[idx], lo[idx], hi[idx])
+    return d, 2 * np.einsum("hi,hi->h", d, g[idx]) - np.einsum("hi,hij,hj->h", d, a_sub, d)
 
 
 def _box_qp(a: np.ndarray, g: np.ndarray, lo: np.ndarray, hi: np.ndarray, passes: int = 4) -> np.ndarray:
