@@ -307,11 +307,16 @@ class Coordinator:
         for d in found:
             name = self.name_of(d.unit)
             where = f"Unit {name}" + (f" rotor {d.rotor}" if d.rotor else "")
-            what = f"{where} eta {d.eta_estimated:.2f}" if d.rotor else f"{where} failed"
-            self._event(t_s, EventKind.FAULT_DETECTED, f"Fault found: {what}", unit=name, rotor=d.rotor,
+            if d.retracted:  # a belief later evidence contradicts: withdrawn, the allocation uses it again
+                kind, text = EventKind.FAULT_RETRACTED, f"Fault withdrawn: {where} eta {d.eta_estimated:.2f}"
+            else:
+                what = f"{where} eta {d.eta_estimated:.2f}" if d.rotor else f"{where} failed"
+                kind, text = EventKind.FAULT_DETECTED, f"Fault found: {what}"
+            self._event(t_s, kind, text, unit=name, rotor=d.rotor,
                         eta_estimated=round(float(d.eta_estimated), 4), t_onset=round(float(d.t_onset), 6))
         what = ", ".join(
-            f"unit {self.name_of(d.unit)}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
+            ("withdrawn " if d.retracted else "")
+            + f"unit {self.name_of(d.unit)}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
             for d in found
         )
         self.set_faults(np.clip(self.detector.eta_estimate, 0.0, 1.0), t_s, f"detected: {what}")

@@ -75,6 +75,8 @@ class FaultDetectorParams:
     spread_beam: int = 6  # ... searched by a beam this wide
     spread_penalty: float = 8.0  # ... each unit beyond the first costs this much score
     spread_swap_rounds: int = 4  # ... and refined by this many rounds of one-rotor swaps
+    spread_max_misfit: float = 2.0  # ... leaving residuals at most this many times the noise model (a gust: 5-6)
+    spread_min_share: float = 0.02  # ... and explaining this share more than the one-unit hypotheses
     # the residuals' own spread before the change (unmodelled air: gusts, rotor drag's yaw) floors their noise
     # model, row by row: a row this noisy weighs less in the isolation fit. Floors at these fractions of the
     # measured spread (in still air the models stay above them: the figures there do not move)
@@ -99,6 +101,12 @@ class FaultDetectorParams:
     probe_thrust_fraction: float = 0.1  # null-space probe amplitude per rotor, share of hover thrust
     probe_period_s: float = 0.2
     buffer_s: float = 1.5
+    # after a decision the fit of the whole change (from its onset, against the belief before it) is redone on
+    # the data that follow, for this long after the onset: the reallocation moves every rotor's thrust, which
+    # separates explanations that a hover's wrench alone cannot (three rotors spread over a 3x3). A different
+    # explanation that leads the believed one by decide_margin replaces it: beliefs it drops are retracted
+    verify_s: float = 1.5
+    verify_every_s: float = 0.05
 
     def __post_init__(self) -> None:
         for name, value in vars(self).items():
@@ -120,7 +128,12 @@ class Detection:
     eta_estimated: float
     t_onset: float = float("nan")  # when the residual started (nan for silent units)
     ambiguous_with: tuple[str, ...] = ()  # other explanations that fitted nearly as well
-    reason: str = "residual"  # "residual" or "silent"
+    reason: str = "residual"  # "residual", "silent" or "retracted"
+
+    @property
+    def retracted(self) -> bool:
+        """A belief withdrawn: later evidence contradicts it (`eta_estimated`: the efficiency believed again)."""
+        return self.reason == "retracted"
 
 
 @dataclass
@@ -142,12 +155,25 @@ class _Fit:
     key: frozenset  # slots with a reportable change
     n_free: int  # free loss parameters of the hypothesis
     units: tuple[int, ...] | None  # whole units failed (fixed hypothesis), else None
+    penalty: float = 0.0  # its score cost (parameters, units spanned)
 
     def label(self, eta_before: np.ndarray) -> str:
         """Human-readable explanation, e.g. 'units 2+5 failed' or 'u2r2 eta 0.50'."""
         if self.units:
             return "unit" + ("s " if len(self.units) > 1 else " ") + "+".join(map(str, self.units)) + " failed"
         return ", ".join(f"u{s // 4 + 1}r{s % 4 + 1} eta {eta_before[s] - self.delta[s]:.2f}" for s in sorted(self.key))
+
+
+@dataclass
+class _Episode:
+    """A declared change still being checked: the belief before it, the explanation believed now (its losses
+    relative to that belief), and until when later data may revise it."""
+
+    onset_s: float
+    eta_before: np.ndarray
+    fit: _Fit
+    until_s: float
+    next_check_s: float
 
 
 @dataclass
@@ -230,6 +256,7 @@ class FaultDetector:
         self._baseline_n = 0.0
         self._baseline_count = 0
         self._onset: float | None = None
+        self._episode: _Episode | None = None
         self._probe = np.zeros(self.n)
         self.last_fits: list[_Fit] = []
         self.last_misfit = 1.0  # best fit's residual variance / noise model (1 = as expected)
@@ -311,14 +338,23 @@ class FaultDetector:
         )
         self._dt_s = dt
         self._ticks.append(tick)
-        while self._ticks[0].t_s < t_s - self.params.buffer_s:
+        keep_from = t_s - self.params.buffer_s
+        if self._episode is not None:  # (its whole change is refitted: the ticks from before its onset stay)
+            keep_from = min(keep_from, self._episode.onset_s - self.params.pre_onset_s)
+        while self._ticks[0].t_s < keep_from:
             self._ticks.popleft()
         if self._onset is None:
             self._remember_noise(t_s)
             self._watch(tick)  # (from the first tick aloft: a unit dead before take-off is a change then; partial
             # losses wait for the air's level, `_isolate`)
-        if self._onset is not None and t_s - self._onset >= self.params.min_isolation_s:
-            return self._isolate(t_s)
+        if self._onset is not None:
+            # a new change while the last is checked: its belief is kept, the new one is isolated against it
+            self._episode = None
+            if t_s - self._onset >= self.params.min_isolation_s:
+                return self._isolate(t_s)
+            return []
+        if self._episode is not None:
+            return self._verify(t_s, self._episode)
         return []
 
     def excitation_n(self, t_s: float) -> np.ndarray:
@@ -537,7 +573,7 @@ class FaultDetector:
             imp[~d.any(axis=1)] = -np.inf  # already dead: nothing to explain
             groups.append((idx, d, imp, 0, units, 0.0))
         groups += self._unit_and_rotor_fits(A, g, groups, lo_all, hi_all, ridge)
-        groups += self._spread_fits(A, g, lo_all, hi_all, ridge)
+        groups += self._spread_fits(A, g, c, dof, max(float(grp[2].max()) for grp in groups), lo_all, hi_all, ridge)
         imps = np.concatenate([grp[2] for grp in groups])
         scale = max(1.0, (c - float(imps.max())) / max(dof - ROTORS_PER_UNIT, 1))
         self.last_misfit = scale
@@ -551,6 +587,7 @@ class FaultDetector:
             k, h = where[i]
             idx, d, imp, n_free, units, _ = groups[k]
             fit = self._fit(idx[h], d[h], float(imp[h]), float(scores[i]), n_free, None if units is None else units[h])
+            fit.penalty = float(penalties[i])
             if not fit.key:
                 continue
             fits.append(fit)
@@ -588,13 +625,18 @@ class FaultDetector:
                             self.params.detect_score))
         return out
 
-    def _spread_fits(self, A: np.ndarray, g: np.ndarray, lo_all: np.ndarray, hi_all: np.ndarray,
-                     ridge: float) -> list:
+    def _spread_fits(self, A: np.ndarray, g: np.ndarray, c: float, dof: int, library_best: float,
+                     lo_all: np.ndarray, hi_all: np.ndarray, ridge: float) -> list:
         """Rotor losses spread over several units at once (a 3x3 losing a rotor on units 1, 6 and 8): too many
         subsets to list, so a beam search grows them a rotor at a time from the best-explaining ones, and every
         support so found is also tried with each of its rotors swapped for every other rotor (its look-alikes:
         the rivals the decision margin and the null-space probe are about). Supports within one unit are the
-        library's; these pay `spread_penalty` per unit beyond the first (many more places to fit the noise)."""
+        library's; these pay `spread_penalty` per unit beyond the first (many more places to fit the noise).
+
+        Four free losses spread over the assembly can fit almost any wrench: a gust's too. A fault is a step that
+        leaves white residuals, a gust is not: these fits must leave the residuals at most `spread_max_misfit`
+        times the noise model, and explain `spread_min_share` of the change more than the library's best (a dead
+        unit's large residual leaves model error that scattered small losses would otherwise fit)."""
         p = self.params
         if p.max_spread_rotors < 2 or self.model.n_units < 2:
             return []
@@ -640,6 +682,8 @@ class FaultDetector:
             if not len(idx):
                 continue
             d, imp = _support_fit(A, g, idx, lo_all, hi_all, ridge)
+            imp[(c - imp) / max(dof - size, 1) > p.spread_max_misfit] = -np.inf
+            imp[imp - library_best < p.spread_min_share * imp] = -np.inf
             out.append((idx, d, imp, size, None, p.spread_penalty * (n_units - 1)))
         return out
 
@@ -771,7 +815,89 @@ class FaultDetector:
         direction = null @ vz[0]
         return amp * direction / max(np.max(np.abs(direction)), 1e-12)
 
+    def _verify(self, t_s: float, ep: _Episode) -> list[Detection]:
+        """Refit the episode's whole change on all its data so far, against the belief before it; a different
+        explanation leading the believed one (refitted on its own rotors) by decide_margin replaces it."""
+        p = self.params
+        if t_s > ep.until_s:
+            self._episode = None
+            return []
+        if t_s < ep.next_check_s:
+            return []
+        ep.next_check_s = t_s + p.verify_every_s
+        believed = self.eta
+        self.eta = ep.eta_before  # (the regression and the fits read the belief they refer to)
+        try:
+            A, g, c, dof = self._regression(ep.onset_s)
+            noisy = self._noise_ratio(ep.onset_s) ** 2
+            fits = [f for f in self._fits(A, g, c, dof) if self._moment_confirmed(f, noisy)]
+            old = self._refit(A, g, ep.fit)
+        finally:
+            self.eta = believed
+        if not fits:
+            return []
+        # (the believed explanation competes as a fit of its own: a look-alike that only adds a small loss to it is
+        # the same explanation with model error fitted, as in `_parsimonious`)
+        best, _ = self._parsimonious(sorted(fits + [old], key=lambda f: -f.score))
+        if best.key == ep.fit.key or best.score - old.score < p.decide_margin * noisy:
+            return []
+        close = tuple(f.label(ep.eta_before) for f in fits[1:4] if f.key != best.key
+                      and best.score - f.score < p.decide_margin * noisy)
+        return self._revise(t_s, ep, best, close)
+
+    def _refit(self, A: np.ndarray, g: np.ndarray, fit: _Fit) -> _Fit:
+        """The believed explanation's best fit on the data now: its whole units fixed dead, its rotors free."""
+        ridge = 1e-9 * (np.trace(A) / self.n + 1e-12)
+        dead = [s for u in (fit.units or ()) for s in range(*self.model.unit_slots(u).indices(self.n))]
+        free = np.array(sorted(set(fit.key) - set(dead)), dtype=int)
+        delta = np.zeros(self.n)
+        delta[dead] = self.eta[dead]
+        rest = g - A[:, dead] @ delta[dead] if dead else g
+        if len(free):
+            d, _ = _support_fit(A, rest, free[None, :], self.eta - 1.0, self.eta.copy(), ridge)
+            delta[free] = d[0]
+        imp = 2.0 * float(delta @ g) - float(delta @ A @ delta)
+        penalty = fit.penalty
+        if fit.units is None:  # (its free losses only: a declared fit may carry a rotor fitted to no change)
+            spread = len({int(s) // ROTORS_PER_UNIT for s in free}) - 1
+            penalty = self.params.param_penalty * len(free) + self.params.spread_penalty * spread
+        refit = self._fit(np.arange(self.n), delta, imp, imp / max(self.last_misfit, 1.0) - penalty,
+                          len(free), None if fit.units is None else np.array(fit.units))
+        refit.penalty = penalty
+        return refit
+
+    def _revise(self, t_s: float, ep: _Episode, best: _Fit, close: tuple[str, ...]) -> list[Detection]:
+        """Replace the episode's belief by `best`: what it no longer names is retracted (a `Detection` with
+        reason "retracted" and the efficiency believed again), what it adds or resizes is declared."""
+        old_eta, old_key = self.eta, ep.fit.key
+        new_eta = np.clip(ep.eta_before - best.delta, 0.0, 1.0)
+        self.eta = new_eta
+        ep.fit = best
+        out: list[Detection] = []
+        for uid in sorted({s // ROTORS_PER_UNIT + 1 for s in old_key | best.key}):
+            sl = self.model.unit_slots(uid)
+            was_dead = bool(np.all(old_eta[sl] <= self.params.dead_eta)) and not np.all(ep.eta_before[sl] <= self.params.dead_eta)
+            is_dead = bool(np.all(new_eta[sl] <= self.params.dead_eta))
+            if was_dead and is_dead:
+                continue
+            if is_dead:
+                out.append(Detection(t_s, uid, None, float(np.mean(new_eta[sl])), ep.onset_s, close))
+                continue
+            if was_dead:
+                out.append(Detection(t_s, uid, None, float(np.mean(new_eta[sl])), ep.onset_s, close, "retracted"))
+            for s in range(*sl.indices(self.n)):
+                rotor = s % ROTORS_PER_UNIT + 1
+                if s in best.key and (was_dead or s not in old_key
+                                      or abs(new_eta[s] - old_eta[s]) >= self.params.min_change):
+                    out.append(Detection(t_s, uid, rotor, float(new_eta[s]), ep.onset_s, close))
+                elif s in old_key and s not in best.key and not was_dead:
+                    out.append(Detection(t_s, uid, rotor, float(new_eta[s]), ep.onset_s, close, "retracted"))
+        self.detections.extend(out)
+        self._restart_watch()
+        return out
+
     def _declare(self, t_s: float, onset: float, fit: _Fit, close: tuple[str, ...]) -> list[Detection]:
+        eta_before = self.eta
         new_eta = np.clip(self.eta - fit.delta, 0.0, 1.0)
         changed = sorted(fit.key)
         self.eta = new_eta
@@ -785,14 +911,20 @@ class FaultDetector:
                 if s // ROTORS_PER_UNIT + 1 == uid:
                     out.append(Detection(t_s, uid, s % ROTORS_PER_UNIT + 1, float(new_eta[s]), onset, close))
         self.detections.extend(out)
-        # residuals now refer to the new belief: restart the change detector on fresh data
         self._onset = None
+        self._restart_watch()
+        self._clean_from_s = onset  # (the air's level is measured again on residuals of the new belief)
+        if self.params.verify_s > 0:
+            self._episode = _Episode(onset, eta_before, fit, onset + self.params.verify_s,
+                                     t_s + self.params.verify_every_s)
+        return out
+
+    def _restart_watch(self) -> None:
+        """Residuals now refer to the new belief: restart the change detector on fresh data."""
         self._probe = np.zeros(self.n)
         self._cusum_loss = self._cusum_gain = 0.0
         self._cusum_start = None
         self._baseline_n, self._baseline_count = 0.0, 0
-        self._clean_from_s = onset  # (the air's level is measured again on residuals of the new belief)
-        return out
 
 
 def _support_fit(A: np.ndarray, g: np.ndarray, idx: np.ndarray, lo: np.ndarray, hi: np.ndarray,
