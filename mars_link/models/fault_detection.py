@@ -573,7 +573,10 @@ class FaultDetector:
             imp[~d.any(axis=1)] = -np.inf  # already dead: nothing to explain
             groups.append((idx, d, imp, 0, units, 0.0))
         groups += self._unit_and_rotor_fits(A, g, groups, lo_all, hi_all, ridge)
-        groups += self._spread_fits(A, g, c, dof, max(float(grp[2].max()) for grp in groups), lo_all, hi_all, ridge)
+        best_k, best_h = max(((k, int(np.argmax(grp[2]))) for k, grp in enumerate(groups)),
+                             key=lambda kh: groups[kh[0]][2][kh[1]])
+        library_best = (groups[best_k][0][best_h], float(groups[best_k][2][best_h]), groups[best_k][4] is not None)
+        groups += self._spread_fits(A, g, c, dof, library_best, lo_all, hi_all, ridge)
         imps = np.concatenate([grp[2] for grp in groups])
         scale = max(1.0, (c - float(imps.max())) / max(dof - ROTORS_PER_UNIT, 1))
         self.last_misfit = scale
@@ -625,7 +628,7 @@ class FaultDetector:
                             self.params.detect_score))
         return out
 
-    def _spread_fits(self, A: np.ndarray, g: np.ndarray, c: float, dof: int, library_best: float,
+    def _spread_fits(self, A: np.ndarray, g: np.ndarray, c: float, dof: int, library_best: tuple[np.ndarray, float, bool],
                      lo_all: np.ndarray, hi_all: np.ndarray, ridge: float) -> list:
         """Rotor losses spread over several units at once (a 3x3 losing a rotor on units 1, 6 and 8): too many
         subsets to list, so a beam search grows them a rotor at a time from the best-explaining ones, and every
@@ -635,8 +638,10 @@ class FaultDetector:
 
         Four free losses spread over the assembly can fit almost any wrench: a gust's too. A fault is a step that
         leaves white residuals, a gust is not: these fits must leave the residuals at most `spread_max_misfit`
-        times the noise model, and explain `spread_min_share` of the change more than the library's best (a dead
-        unit's large residual leaves model error that scattered small losses would otherwise fit)."""
+        times the noise model; when the library's best fit is whole units lost (`library_best`: its slots, its
+        improvement, whether units), one that shares a unit with it must also explain `spread_min_share` of the
+        change more (a dead unit's large residual leaves model error that its own rotors plus a small loss
+        elsewhere would otherwise fit)."""
         p = self.params
         if p.max_spread_rotors < 2 or self.model.n_units < 2:
             return []
@@ -683,7 +688,9 @@ class FaultDetector:
                 continue
             d, imp = _support_fit(A, g, idx, lo_all, hi_all, ridge)
             imp[(c - imp) / max(dof - size, 1) > p.spread_max_misfit] = -np.inf
-            imp[imp - library_best < p.spread_min_share * imp] = -np.inf
+            best_units = np.unique(library_best[0] // ROTORS_PER_UNIT)
+            overlaps = np.isin(idx // ROTORS_PER_UNIT, best_units).any(axis=1) & library_best[2]
+            imp[overlaps & (imp - library_best[1] < p.spread_min_share * imp)] = -np.inf
             out.append((idx, d, imp, size, None, p.spread_penalty * (n_units - 1)))
         return out
 
