@@ -312,8 +312,9 @@ class Coordinator:
             else:
                 what = f"{where} eta {d.eta_estimated:.2f}" if d.rotor else f"{where} failed"
                 kind, text = EventKind.FAULT_DETECTED, f"Fault found: {what}"
+            extra = {"ambiguous_with": list(d.ambiguous_with)} if d.ambiguous_with else {}  # (look-alikes: reported)
             self._event(t_s, kind, text, unit=name, rotor=d.rotor,
-                        eta_estimated=round(float(d.eta_estimated), 4), t_onset=round(float(d.t_onset), 6))
+                        eta_estimated=round(float(d.eta_estimated), 4), t_onset=round(float(d.t_onset), 6), **extra)
         what = ", ".join(
             ("withdrawn " if d.retracted else "")
             + f"unit {self.name_of(d.unit)}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
