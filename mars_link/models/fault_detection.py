@@ -649,7 +649,9 @@ class FaultDetector:
         change more (a dead unit's large residual leaves model error that its own rotors plus a small loss
         elsewhere would otherwise fit)."""
         p = self.params
-        if p.max_spread_rotors < 2 or self.model.n_units < 2:
+        # (not before the air's level is measured, the first noise_window_s aloft: a take-off gust in light air
+        # fitted as u1r3 0.79 + u6r1 0.80 on a 3x2. A whole unit dead at take-off is still found then)
+        if p.max_spread_rotors < 2 or self.model.n_units < 2 or self._noise_var is None:
             return []
         candidates = np.flatnonzero(self.eta > p.dead_eta)  # (a rotor believed dead can only come back: a gain)
         if len(candidates) < 2:
@@ -674,9 +676,9 @@ class FaultDetector:
             tried: dict[tuple, float] = {tuple(sup.tolist()): v for sup, v in zip(supports, imp.tolist())}
             supports = [np.array(b) for b in sorted(tried, key=tried.__getitem__, reverse=True)[:p.spread_beam]]
             for _ in range(p.spread_swap_rounds):  # local search: swap one rotor at a time while that helps
-                new = {tuple(sorted(np.delete(sup, i).tolist() + [int(c)]))
-                       for sup in supports for i in range(size) for c in candidates if c not in sup}
-                new = [s for s in new if s not in tried]
+                swapped = {tuple(sorted(np.delete(sup, i).tolist() + [int(c)]))
+                           for sup in supports for i in range(size) for c in candidates if c not in sup}
+                new = sorted(s for s in swapped if s not in tried)  # (sorted: the same search on every run)
                 if not new:
                     break
                 idx = np.array(new, dtype=int)
