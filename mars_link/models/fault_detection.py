@@ -75,6 +75,8 @@ class FaultDetectorParams:
     spread_beam: int = 6  # ... searched by a beam this wide
     spread_penalty: float = 8.0  # ... each unit beyond the first costs this much score
     spread_swap_rounds: int = 4  # ... and refined by this many rounds of one-rotor swaps
+    spread_search_every_s: float = 0.03  # ... searched anew this often (in between: its best sets refitted ...)
+    spread_keep: int = 64  # ... this many of each size
     spread_max_misfit: float = 2.0  # ... leaving residuals at most this many times the noise model (a gust: 5-6)
     spread_min_share: float = 0.02  # ... and explaining this share more than the one-unit hypotheses
     # the residuals' own spread before the change (unmodelled air: gusts, rotor drag's yaw) floors their noise
@@ -262,6 +264,7 @@ class FaultDetector:
         self._baseline_count = 0
         self._onset: float | None = None
         self._episode: _Episode | None = None
+        self._spread_cache: tuple[float, np.ndarray, dict[int, np.ndarray]] | None = None
         self._probe = np.zeros(self.n)
         self.last_fits: list[_Fit] = []
         self.last_misfit = 1.0  # best fit's residual variance / noise model (1 = as expected)
@@ -588,14 +591,16 @@ class FaultDetector:
         self.last_misfit = scale
         penalties = np.concatenate([p.param_penalty * grp[3] + np.broadcast_to(grp[5], grp[2].shape) for grp in groups])
         scores = imps / scale - penalties
-        where = [(k, h) for k, grp in enumerate(groups) for h in range(len(grp[2]))]
+        starts = np.cumsum([0] + [len(grp[2]) for grp in groups])
         fits: list[_Fit] = []
         for i in np.argsort(-scores):
             if not math.isfinite(scores[i]):
                 break
-            k, h = where[i]
-            idx, d, imp, n_free, units, _ = groups[k]
-            fit = self._fit(idx[h], d[h], float(imp[h]), float(scores[i]), n_free, None if units is None else units[h])
+            k = int(np.searchsorted(starts, i, side="right")) - 1
+            h = int(i - starts[k])
+            slots_k, d_k, imp_k, n_free, units_k, _ = groups[k]
+            fit = self._fit(slots_k[h], d_k[h], float(imp_k[h]), float(scores[i]), n_free,
+                            None if units_k is None else units_k[h])
             fit.penalty, fit.spread = float(penalties[i]), k >= n_library
             if not fit.key:
                 continue
@@ -656,42 +661,17 @@ class FaultDetector:
         candidates = np.flatnonzero(self.eta > p.dead_eta)  # (a rotor believed dead can only come back: a gain)
         if len(candidates) < 2:
             return []
-        beam = [np.array([], dtype=int)]
-        found: dict[int, list[np.ndarray]] = {}
-        for size in range(1, min(p.max_spread_rotors, len(candidates)) + 1):
-            grown = {tuple(sorted(set(b.tolist()) | {int(c)})) for b in beam for c in candidates if c not in b}
-            idx = np.array(sorted(grown), dtype=int)
-            _, imp = _support_fit(A, g, idx, lo_all, hi_all, ridge)
-            order = np.argsort(-imp)[:p.spread_beam]
-            beam = [idx[i] for i in order]
-            if size >= 2:
-                found[size] = beam
+        t_s = self._ticks[-1].t_s if self._ticks else 0.0
+        cache = self._spread_cache
+        if cache is not None and t_s - cache[0] < p.spread_search_every_s and np.array_equal(cache[1], self.eta):
+            searched = cache[2]  # (the last search's best rotor sets, refitted on the data now: a search costs 10x)
+        else:
+            searched = self._spread_search(A, g, candidates, lo_all, hi_all, ridge)
+            self._spread_cache = (t_s, self.eta.copy(), {k: v[:p.spread_keep] for k, v in searched.items()})
         out = []
-        larger: list[np.ndarray] = []
-        for size in sorted(found, reverse=True):  # the best larger supports less one rotor seed the smaller (the
-            # forward path can lock in a look-alike early: u2r3 and u3r1 of a 3x3 in place of u1r2 and u6r4)
-            supports = list({tuple(s.tolist()): s for s in found[size]
-                             + [np.delete(sup, i) for sup in larger for i in range(size + 1)]}.values())
-            _, imp = _support_fit(A, g, np.array(supports), lo_all, hi_all, ridge)
-            tried: dict[tuple, float] = {tuple(sup.tolist()): v for sup, v in zip(supports, imp.tolist())}
-            supports = [np.array(b) for b in sorted(tried, key=tried.__getitem__, reverse=True)[:p.spread_beam]]
-            for _ in range(p.spread_swap_rounds):  # local search: swap one rotor at a time while that helps
-                swapped = {tuple(sorted(np.delete(sup, i).tolist() + [int(c)]))
-                           for sup in supports for i in range(size) for c in candidates if c not in sup}
-                new = sorted(s for s in swapped if s not in tried)  # (sorted: the same search on every run)
-                if not new:
-                    break
-                idx = np.array(new, dtype=int)
-                _, imp = _support_fit(A, g, idx, lo_all, hi_all, ridge)
-                tried.update(zip(new, imp.tolist()))
-                best = sorted(tried, key=tried.__getitem__, reverse=True)[:p.spread_beam]
-                if best == [tuple(sup.tolist()) for sup in supports]:
-                    break
-                supports = [np.array(b) for b in best]
-            larger = supports[:p.spread_beam]
-            idx = np.array(sorted(tried), dtype=int)
-            n_units = np.array([len(set((row // ROTORS_PER_UNIT).tolist())) for row in idx])
-            idx, n_units = idx[n_units > 1], n_units[n_units > 1]  # (one unit's subsets are the library's)
+        for size, tried in searched.items():
+            n_units = 1 + np.count_nonzero(np.diff(tried // ROTORS_PER_UNIT, axis=1), axis=1)  # (rows sorted)
+            idx, n_units = tried[n_units > 1], n_units[n_units > 1]  # (one unit's subsets are the library's)
             if not len(idx):
                 continue
             d, imp = _support_fit(A, g, idx, lo_all, hi_all, ridge)
@@ -701,6 +681,44 @@ class FaultDetector:
             imp[overlaps & (imp - library_best[1] < p.spread_min_share * imp)] = -np.inf
             out.append((idx, d, imp, size, None, p.spread_penalty * (n_units - 1)))
         return out
+
+    def _spread_search(self, A: np.ndarray, g: np.ndarray, candidates: np.ndarray, lo_all: np.ndarray,
+                       hi_all: np.ndarray, ridge: float) -> dict[int, np.ndarray]:
+        """The rotor sets worth fitting, by size (rows of sorted slots): beam, backward seeds, swaps."""
+        p = self.params
+        beam = np.zeros((1, 0), dtype=int)
+        found: dict[int, np.ndarray] = {}
+        for size in range(1, min(p.max_spread_rotors, len(candidates)) + 1):
+            idx = _distinct_rows(np.hstack([np.repeat(beam, len(candidates), axis=0),
+                                            np.tile(candidates, len(beam))[:, None]]), self.n)
+            _, imp = _support_fit(A, g, idx, lo_all, hi_all, ridge)
+            beam = idx[np.argsort(-imp, kind="stable")[:p.spread_beam]]
+            if size >= 2:
+                found[size] = beam
+        searched: dict[int, np.ndarray] = {}
+        larger = np.zeros((0, 0), dtype=int)
+        for size in sorted(found, reverse=True):  # the best larger supports less one rotor seed the smaller (the
+            # forward path can lock in a look-alike early: u2r3 and u3r1 of a 3x3 in place of u1r2 and u6r4)
+            tried = _distinct_rows(np.vstack([found[size]] + [np.delete(larger, i, axis=1) for i in range(size + 1)
+                                                              if larger.size]), self.n)
+            _, tried_imp = _support_fit(A, g, tried, lo_all, hi_all, ridge)
+            supports = tried[np.argsort(-tried_imp, kind="stable")[:p.spread_beam]]
+            for _ in range(p.spread_swap_rounds):  # local search: swap one rotor at a time while that helps
+                swapped = np.repeat(supports, len(candidates), axis=0)
+                swapped = _distinct_rows(np.vstack([np.where(np.arange(size) == i, np.tile(candidates, len(supports))[:, None],
+                                                             swapped) for i in range(size)]), self.n)
+                new = swapped[~np.isin(_row_keys(swapped, self.n), _row_keys(tried, self.n))]
+                if not len(new):
+                    break
+                _, imp = _support_fit(A, g, new, lo_all, hi_all, ridge)
+                tried, tried_imp = np.vstack([tried, new]), np.concatenate([tried_imp, imp])
+                best = tried[np.argsort(-tried_imp, kind="stable")[:p.spread_beam]]
+                if np.array_equal(best, supports):
+                    break
+                supports = best
+            larger = supports
+            searched[size] = tried[np.argsort(-tried_imp, kind="stable")]  # (best first)
+        return searched
 
     def _fit(
         self, slots: np.ndarray, dh: np.ndarray, imp: float, score: float, n_free: int, units: np.ndarray | None
@@ -955,6 +973,19 @@ class FaultDetector:
         self._cusum_loss = self._cusum_gain = 0.0
         self._cusum_start = None
         self._baseline_n, self._baseline_count = 0.0, 0
+
+
+def _distinct_rows(rows: np.ndarray, n: int) -> np.ndarray:
+    """Rotor sets (slots below `n`) as sorted rows, each once, without those naming a rotor twice."""
+    rows = np.sort(rows, axis=1)
+    rows = rows[~np.any(np.diff(rows, axis=1) == 0, axis=1)]
+    _, first = np.unique(_row_keys(rows, n), return_index=True)
+    return rows[first]
+
+
+def _row_keys(rows: np.ndarray, n: int) -> np.ndarray:
+    """One integer per sorted row of slot indices below `n` (a 10x10's four rotors: below 400**4)."""
+    return rows @ (n ** np.arange(rows.shape[1], dtype=np.int64))
 
 
 def _support_fit(A: np.ndarray, g: np.ndarray, idx: np.ndarray, lo: np.ndarray, hi: np.ndarray,
