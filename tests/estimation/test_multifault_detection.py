@@ -152,7 +152,7 @@ THREE_FAULTS = {
 def test_three_simultaneous_faults_are_identified_from_motion_within_two_seconds(case, seed):
     """Both reproductions are identifiable from motion alone (no two rotor sets in them give the same wrench
     within the efficiencies' bounds once the reallocation moves the thrusts): every fault named for good within
-    2 s (measured 0.13-0.31 s), no healthy rotor believed failed longer than 0.3 s (measured at most 0.06 s)."""
+    2 s (measured 0.15-0.31 s), no healthy rotor believed failed longer than 0.3 s (measured: none)."""
     name, faults = THREE_FAULTS[case]
     s, _ = fly(name, faults, seed, after_s=2.5)
     model = load_scenario(name).model()
