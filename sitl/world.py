@@ -7,7 +7,6 @@ link in lockstep (a step happens only when every live unit has answered for the 
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 import math
 from dataclasses import KW_ONLY, dataclass, field
@@ -451,81 +450,3 @@ def point_state(s: RigidBodyState, offset_frd_m: np.ndarray) -> RigidBodyState:
         s.t_s, s.position_ned_m + r @ o, s.velocity_ned_mps + r @ w_x_o,
         s.quaternion_wxyz, w, s.acceleration_ned_mps2, s.on_ground,
     )
-
-
-class FreeUnitsWorld:
-    """N free units side by side on the ground, each its own 1x1 JSBSim body, on one clock.
-
-    Same surface as `World` (actuate, declare_dead, advance, sense, t_s), unit ids 1..N; unit i
-    stands `spacing_m` east of unit i-1. Sensor packets carry the unit's truth (wire precision): a
-    lone unit flies itself on it, as the lone-unit UDP runner does.
-    """
-
-    def __init__(self, n_units: int, vehicle, config: WorldConfig, spacing_m: float = 2.0) -> None:
-        self.model = AssemblyModel.from_layout(["X"], vehicle)
-        self.unit_ids = list(range(1, n_units + 1))
-        self.worlds = {
-            u: World(self.model, WorldConfig(config.physics_hz, config.exchange_hz, config.seed + u - 1, False,
-                                             config.position_every, environment=config.environment,
-                                             battery=None if config.battery is None else  # (unit u's own pack)
-                                             dataclasses.replace(config.battery, pack=config.battery.pack_of(u),
-                                                                 overrides={})),
-                     np.array([0.0, (u - 1) * spacing_m, 0.0]))
-            for u in self.unit_ids
-        }
-        self.dead_units: set[int] = set()
-        # the flight view's surface (mars_link.flight.flight_view): all units in one model (slot order = unit order), one
-        # body per unit, world ids
-        self.view_model = AssemblyModel.from_layout(["X" * n_units], vehicle)
-        self.bodies = [Body.of(self.model, (u,), w.body, self.view_model) for u, w in self.worlds.items()]
-
-    @property
-    def t_s(self) -> float:
-        return next(iter(self.worlds.values())).t_s
-
-    @property
-    def rotor_thrust_n(self) -> np.ndarray:
-        """Every unit's rotor thrusts, in unit order (the view's rotor slots)."""
-        return np.concatenate([w.rotor_thrust_n for w in self.worlds.values()])
-
-    def actuate(self, output: ActuatorOutput) -> None:
-        w = self.worlds.get(output.unit_id)
-        if w is not None:
-            w.actuate(ActuatorOutput(output.t_s, 1, output.thrusts_n))
-
-    def declare_dead(self, unit_id: int) -> None:
-        self.dead_units.add(unit_id)
-        self.worlds[unit_id].declare_dead(1)
-
-    def advance(self) -> None:
-        for w in self.worlds.values():
-            w.advance()
-
-    def sense(self) -> list[SensorPacket]:
-        out = []
-        for u, w in self.worlds.items():
-            if u in self.dead_units:
-                continue
-            for p in w.sense():
-                out.append(SensorPacket(p.t_s, u, ImuSample(p.t_s, u, p.imu.gyro_frd_radps, p.imu.accel_frd_mps2),
-                                        None if p.position is None else PositionSample(
-                                            p.t_s, u, p.position.position_ned_m, p.position.velocity_ned_mps),
-                                        p.truth, battery=p.battery))
-        return out
-
-    def unit_truth(self, unit_id: int) -> RigidBodyState:
-        return self.worlds[unit_id].body.state()
-
-    def unit_rotor_thrust_n(self, unit_id: int) -> np.ndarray:
-        return self.worlds[unit_id].rotor_thrust_n
-
-    def truth_row(self) -> list[float]:
-        row: list[float] = []
-        for w in self.worlds.values():
-            s = w.body.state()
-            row += [*s.position_ned_m, *s.quaternion_wxyz]
-        return row
-
-    def close(self) -> None:
-        for w in self.worlds.values():
-            w.close()

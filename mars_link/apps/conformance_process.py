@@ -4,7 +4,7 @@ The unit is the process `sitl up` and `run --mode sitl` start (`python -m mars_l
 unit`, a 1x1 docked set-up, `--conformance-harness`), with its own firmware, links, logs and status
 file. The harness plays the two parties it talks to, so the checks stay judged in simulated time:
 
-  its world            the in-process world of `conformance.Bench`; each step's sensors go out as the
+  its world            the in-process world of `conformance_bench.Bench`; each step's sensors go out as the
                        world process sends them (HIL datagram) and the step waits for the unit's
                        HIL_ACTUATOR_CONTROLS answer, which drives the world's motors and is the check's output
   its off-board computer  PX4's interface as rmw_zenoh samples on a Zenoh session (the unit's HIL link on the
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mars_link.apps.conformance import Bench
+from mars_link.apps.conformance_bench import Bench
 from mars_link.core.errors import EnvironmentFailure
 
 UNIT_START_S = 60.0  # the longest a unit process may take to say hello (imports on a loaded machine)
@@ -49,9 +49,8 @@ class UnitProcessBench(Bench):
     def __init__(self, interface: str, broken_keepalive: bool = False) -> None:
         super().__init__(interface, broken_keepalive)
         from mars_link.processes.links import LOOPBACK, Link, Ports
-        from mars_link.processes.lockstep import (
-            BROKEN_KEEPALIVE_ENV, COORDINATOR_SYSID, WORLD_SYSID, _await_peers,
-        )
+        from mars_link.processes.engine_links import COORDINATOR_SYSID, WORLD_SYSID
+        from mars_link.processes.lockstep import BROKEN_KEEPALIVE_ENV, _await_peers
         from mars_link.processes.parent_watch import child_env
         from mars_link.processes.sitl_mode import write_scenario_copy
         from mars_link.transport import LinkSpec
@@ -126,7 +125,7 @@ class UnitProcessBench(Bench):
         """One control period: the harness's messages, then the sensors; the unit's answer drives the world."""
         from mars_link.core.messages import wire_time
         from mars_link.mavlink.wire import actuator_output_from_message, usec
-        from mars_link.processes.lockstep import unit_sensor_messages
+        from mars_link.processes.engine_links import unit_sensor_messages
 
         world = self.world
         self.t_s = wire_time(world.t_s)

@@ -108,6 +108,7 @@ class Coordinator:
         self.rejected: dict[str, int] = {}  # reason -> packets dropped here
         self._last_seen_s: dict[int, float] = {}
         self._to_detect: tuple | None = None  # (t, thrusts, estimate, IMU samples) for finish_step
+        self._estimated: tuple[float, RigidBodyState | None] | None = None  # (t, this period's estimate)
         #: resting on the ground with the motors off (a piece parked during a manoeuvre on the ground): zero
         #: commands, and no fault detection (no thrust, nothing to learn about the rotors)
         self.motors_off = False
@@ -181,6 +182,19 @@ class Coordinator:
         self.last.timings_s["control"] += time.perf_counter() - c
         return commands
 
+    def estimate(self, t_s: float, packets: list[SensorPacket]) -> RigidBodyState | None:
+        """This period's estimate of the body from its units' telemetry: the estimator's, else the truth the
+        packets carry (None: neither). Once a period: `commands` at the same `t_s` takes it, so that a vehicle
+        in front of the coordinator reads it every period, also while the coordinator does not fly."""
+        if self.lost_units:
+            packets = [p for p in packets if p.unit_id not in self.lost_units]
+        if self.estimator is None:
+            estimate = next((p.truth for p in packets if p.truth is not None), None)
+        else:
+            estimate = step_estimator(self.estimator, t_s, packets)
+        self._estimated = (t_s, estimate)
+        return estimate
+
     def commands(self, t_s: float, packets: list[SensorPacket]) -> list[RotorCommand]:
         """Estimate, control and allocation: this period's rotor commands. Fault detection is left to
         `finish_step`, which a real-time runner calls once the commands are out: what it finds changes
@@ -193,13 +207,10 @@ class Coordinator:
             if len(kept) != len(packets):
                 self.rejected["lost_unit"] = self.rejected.get("lost_unit", 0) + len(packets) - len(kept)
             packets = kept
-        if self.estimator is None:
-            truth = next((p.truth for p in packets if p.truth is not None), None)
-            if truth is None:
-                raise ValueError("no estimator and no ground truth in the sensor packets")
-            estimate = truth
-        else:
-            estimate = step_estimator(self.estimator, t_s, packets)
+        estimated = self._estimated
+        estimate = estimated[1] if estimated is not None and estimated[0] == t_s else self.estimate(t_s, packets)
+        if estimate is None:
+            raise ValueError("no estimator and no ground truth in the sensor packets")
         if self.battery_cells is not None:
             self._watch_batteries(packets)
         c1 = time.perf_counter()

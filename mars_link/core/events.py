@@ -73,7 +73,8 @@ MEANINGS: dict[EventKind, str] = {
     EventKind.FAULT_DETECTED: "the coordinator's detector believes a fault: unit, rotor, estimated eta",
     EventKind.FAULT_RETRACTED: "later evidence contradicts a believed fault: withdrawn (unit, rotor as believed; the "
                                "eta now believed), the allocation uses the rotor again",
-    EventKind.UNIT_LOST: "the coordinator declared a unit lost (silent, dead): its rotors count as failed",
+    EventKind.UNIT_LOST: "the coordinator declared a unit lost (silent, dead, or in a piece flying on its own that "
+                         "cannot fly: reason): its rotors count as failed, a manoeuvre re-plans without it",
     EventKind.REALLOCATION: "the allocation changed to the efficiencies believed now",
     EventKind.UNCONTROLLABLE: "the believed faults leave no exact allocation: best effort",
     EventKind.DIVERGED: "the tracked point left the divergence bounds (error or tilt): the flight ends",

@@ -274,7 +274,7 @@ def initial_eta(scenario: Scenario, model: AssemblyModel) -> np.ndarray:
 def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajectory, estimator, detector,
                      eta: np.ndarray | None = None, telemetry_timeout_s: float | None = None) -> Coordinator:
     """The coordinator: `reference` is the scenario's trajectory or a vehicle's setpoint source; `estimator`
-    and `detector` come from `make_estimator` / `make_detector` (or a vehicle's own estimate holder)."""
+    and `detector` come from `make_estimator` / `make_detector`."""
     from mars_link.coordination.coordinator import Coordinator
 
     eta = initial_eta(scenario, model) if eta is None else eta
@@ -354,6 +354,26 @@ def make_pieces_world(scenario: Scenario, model: AssemblyModel, seed: int, execu
     return make_world(scenario, model, seed, bodies=bodies, config=config)
 
 
+#: `sitl up --units N`: unit u stands this far east of unit u-1 on the ground
+FREE_UNIT_SPACING_M = 2.0
+
+
+def make_free_units_world(scenario: Scenario, vehicle, n_units: int, seed: int, config=None):
+    """N lone units (`sitl up --units N`), one 1x1 body each, side by side on the ground: a world of
+    several bodies whose model is the row of N units (unit ids 1..N, slots in that order). Each unit flies
+    itself on its truth: the sensor packets carry it (no sensor noise), as a lone unit's runner does."""
+    import dataclasses
+
+    from sitl.physics import JsbsimBody
+
+    config = dataclasses.replace(config or world_config(scenario, seed), noise=False)
+    one = AssemblyModel.from_layout(["X"], vehicle)
+    bodies = [(one, (u,), JsbsimBody(one, physics_hz=config.physics_hz,
+                                     position_ned_m=(0.0, (u - 1) * FREE_UNIT_SPACING_M, 0.0), yaw_rad=0.0))
+              for u in range(1, n_units + 1)]
+    return make_world(scenario, AssemblyModel.from_layout(["X" * n_units], vehicle), seed, bodies=bodies, config=config)
+
+
 def make_executor(scenario: Scenario, model: AssemblyModel, mission, plan_for: Trajectory | None = None,
                   defer_take_off: bool = False) -> tuple[object, list[dict], bool]:
     """The executor a flight starts with, the events of its planning, and whether it will reconfigure on
@@ -366,7 +386,8 @@ def make_executor(scenario: Scenario, model: AssemblyModel, mission, plan_for: T
     vehicle's mission is its setpoints, which have no duration)."""
     from mars_link.reconfig.execution import Executor, FreeStart
     from mars_link.reconfig.placement import nominal_cells
-    from mars_link.reconfig.plans import execution_params, free_ground_positions, make_plan, unhoverable_pieces
+    from mars_link.reconfig.plans import (execution_params, free_ground_positions, make_plan, plan_event,
+                                          unhoverable_pieces)
     from mars_link.reconfig.sequencing import ReconfigPlan, plan_assembly
 
     vehicle = model.vehicle
@@ -378,14 +399,10 @@ def make_executor(scenario: Scenario, model: AssemblyModel, mission, plan_for: T
         return Executor(plan_assembly(model), vehicle, mission, tracked, params, free, defer_take_off), events, False
     if scenario.reconfig.get("enabled", False) and scenario.faults_known:
         plan = make_plan(scenario, model, plan_for or mission)
-        text = (f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers" if plan.feasible
-                else "Reconfig: no feasible plan")
-        events.append(event(0.0, EventKind.PLAN, feasible=plan.feasible, disassembly_layers=plan.disassembly_layers,
-                            assembly_layers=plan.assembly_layers, fallback_used=plan.fallback_used, reason=plan.reason,
-                            text=text))
+        eta = eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s), math.inf)
+        events.append(plan_event(0.0, plan, vehicle, {u: eta[model.unit_slots(u)] for u in model.unit_ids}))
         if plan.feasible and plan.disassembly_layers:
-            refused = unhoverable_pieces(plan, model, eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s),
-                                                                math.inf))
+            refused = unhoverable_pieces(plan, model, eta)
             if not refused:
                 return Executor(plan, vehicle, mission, tracked, params), events, True
             events.append(event(0.0, EventKind.RECONFIG_REFUSED, reason="; ".join(refused),

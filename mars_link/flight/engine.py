@@ -13,22 +13,25 @@ import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
 
 from firmware_models.vehicle import MODE_OFFBOARD
 from mars_link.core.events import EventKind, event, unit_died
 from mars_link.core.assembly import AssemblyModel
-from mars_link.coordination.coordinator import Coordinator
 from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
 from mars_link.flight.metrics import STAGES, TrackingMetrics
 from mars_link.runtime.pacing import Pacer
 from mars_link.core.rotations import quat_to_euler
 from mars_link.flight.run_log import RunLog
 from mars_link.config.scenario import FaultSpec, Scenario, eta_after
+from mars_link.config.scenario_sensor_faults import sensor_fault_events
 from mars_link.core.state import RigidBodyState
 from mars_link.models.trajectories import Trajectory
+
+if TYPE_CHECKING:  # (a world process steps the engine without the coordinator's stack)
+    from mars_link.coordination.coordinator import Coordinator
 
 
 class InProcessUnits:
@@ -164,6 +167,27 @@ class InProcessUnits:
         return np.concatenate([self.vehicles[u].motors.eta for u in unit_ids])
 
 
+# ----------------------------------------------------------------------------- the parts
+class WorldPart(Protocol):
+    """What the engine asks of the world each step. In process: `sitl.world.World`; in a process that does
+    not host the world, a proxy over its links (mars_link.processes.engine_links.LinkedUnits: the step's time is
+    known once the step's telemetry is in, so reading `t_s` may wait for it)."""
+
+    @property
+    def t_s(self) -> float: ...
+    def sense(self) -> list[SensorPacket]: ...
+    def truth(self) -> RigidBodyState | None: ...
+    def advance(self) -> None: ...
+
+
+class UnitsPart(Protocol):
+    """What the engine asks of the units each step: `InProcessUnits`, or a proxy over their links."""
+
+    def take_sensors(self, packets: list[SensorPacket]) -> list[SensorPacket]: ...
+    def drive(self, commands: list[RotorCommand]) -> None: ...
+    def kill(self, unit_id: int) -> None: ...
+
+
 # ----------------------------------------------------------------------------- the loop
 @dataclass
 class Flight:
@@ -173,8 +197,8 @@ class Flight:
     model: AssemblyModel
     seed: int
     trajectory: Trajectory
-    world: object  # sitl.world.World
-    units: InProcessUnits
+    world: WorldPart  # sitl.world.World, or the world seen over the links of another process
+    units: UnitsPart  # InProcessUnits, or the units seen over the links of another process
     coordinator: Coordinator | None  # None: the units fly themselves (a lone unit under a ground station)
     faults: list[FaultSpec]  # sorted by time: they act in the units' motor models (scheduled there)
     deaths: list[tuple[float, int]] = field(default_factory=list)  # (time, unit): the unit's process dies
@@ -197,7 +221,7 @@ class StepView:
     index: int
     t_s: float
     record: object  # coordinator.StepRecord of this step (None if the coordinator did not run)
-    truth: RigidBodyState
+    truth: RigidBodyState | None  # None: the world is in another process
     telemetry: list = field(default_factory=list)  # the units' SensorPackets to the coordinator
     commands: list = field(default_factory=list)  # the coordinator's RotorCommands to the units
 
@@ -226,8 +250,7 @@ class Engine:
         self._next_fault = 0
         self._deaths = list(flight.deaths)
         # [[sensor_faults]] act in the units' sensor paths (scheduled there); their start and end are events here
-        self._sensor_events = sorted(
-            [(t, kind, sf) for sf in flight.scenario.sensor_faults for t, _, kind in sf.schedule()], key=lambda e: e[0])
+        self._sensor_events = sensor_fault_events(flight.scenario.sensor_faults, flight.scenario.sim.control_hz, math.inf)
 
     def _faults_due(self, t: float) -> None:
         f = self.flight
@@ -235,10 +258,8 @@ class Engine:
         while self._next_fault < len(faults) and faults[self._next_fault].t_s <= t + 1e-9:
             self._next_fault += 1
             self.on_fault(faults[self._next_fault - 1], t)
-        while self._sensor_events and self._sensor_events[0][0] <= t + 1e-9:
-            _, kind, sf = self._sensor_events.pop(0)
-            self.events.append(event(t, EventKind.SENSOR_FAULT, sensor=sf.sensor, unit=sf.unit, failure=kind,
-                                     text=sf.text(end=kind == "ok" and sf.kind != "ok")))
+        while self._sensor_events and self._sensor_events[0]["t_s"] <= t + 1e-9:
+            self.events.append(self._sensor_events.pop(0))
         while self._deaths and self._deaths[0][0] <= t + 1e-9:
             _, u = self._deaths.pop(0)
             f.units.kill(u)
@@ -250,7 +271,7 @@ class Engine:
         f = self.flight
         self.events.append(event(t, EventKind.FAULT, unit=fault.unit, rotor=fault.rotor, eta=fault.eta,
                                  text=fault.event_text()))
-        if f.scenario.faults_known:
+        if f.scenario.faults_known and f.coordinator is not None:  # (None: the coordinator is another process's)
             f.coordinator.set_faults(eta_after(f.model, f.faults[:self._next_fault], t), t,
                                      "fault told to the coordinator")
 

@@ -61,6 +61,12 @@ the world and units are SCHED_BATCH so that only the coordinator's wake-ups pree
 (mars_link.runtime.scheduling). The path sensor -> unit -> coordinator -> unit -> motors is then
 mostly Python work shared by 8 processes; --timing-log and the units' command-age logs show where it goes.
 
+Loops: the world and the coordinator processes step the flight's engine (mars_link.flight.engine.Engine),
+the order the in-process flight steps; what a process does not host is a proxy over its links
+(mars_link.processes.engine_links: `HilUnits` in the world, `LinkedUnits` in the coordinator). What keeps a
+loop of its own: the receive waits inside those proxies, the pacer, and the unit processes' event loop
+(`run_units`), in which each unit's firmware answers its HIL step in its own frame handlers, as PX4's does.
+
 Links: every process builds its links once at start from `--transport udp|zenoh` (`mars_link.processes.links.Ports`)
 and hands each to its I/O as a `mars_link.transport.Transport`: the world's and the coordinator's `Link`
 (MAVLink parser, peer table, counters), a unit's HIL and coordinator links in
@@ -71,11 +77,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import itertools
 import json
 import math
 import os
-import select
 import selectors
 import signal
 import sys
@@ -85,28 +89,25 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.mavlink.signing import add_signing_args, signing_from_args
+from mars_link.mavlink.signing import signing_from_args
+from mars_link.processes.cli_options import add_lockstep_options
 from mars_link.processes.parent_watch import die_with_parent
-from mars_link.core.events import unit_died
 from mars_link.core.errors import EnvironmentFailure, UserInputError
 from mars_link.runtime.machine_load import IdleMeter, LoopMeter
-from mars_link.core.messages import BatterySample, SensorPacket
 from mars_link.logs.outputs import SafeWriter, write_json
 from mars_link.runtime.pacing import Pacer, SilenceDeadline
-from mars_link.runtime.scheduling import OverloadValve, take_realtime_class
-from mars_link.transport import LinkSpec, add_link_args, spec_from_args
-from mars_link.mavlink.wire import (
-    LatchSensor,
-    SensorPacketAssembler,
-    latch_message,
-    battery_from_message,
-    battery_report_message,
-    actuator_output_from_message,
-    rotor_command_message,
-    sensor_packet_messages,
-    usec,
+from mars_link.runtime.scheduling import take_realtime_class
+from mars_link.transport import LinkSpec, spec_from_args
+from mars_link.processes.engine_links import (
+    COORDINATOR_SYSID,
+    COORDINATOR_TIMEOUT_S,
+    WORLD_SYSID,
+    WORLD_UNIT_TIMEOUT_S,
+    HilUnits,
+    LinkedUnits,
+    LinksEnded,
+    shutdown_message,
 )
 from mars_link.processes.links import Link, Ports
 
@@ -114,22 +115,13 @@ if TYPE_CHECKING:
     from mars_link.core.assembly import AssemblyModel
     from mars_link.config.scenario import Scenario
 
-WORLD_SYSID = 200
-COORDINATOR_SYSID = 201
 MAX_FREE_UNITS = 10  # API ports 14540..14549 (14550 is the GCS port)
-COORDINATOR_TIMEOUT_S = 1.0
 UNIT_COMMAND_TIMEOUT_S = 2.0
-WORLD_UNIT_TIMEOUT_S = 3.0
-WORLD_IDLE_TIMEOUT_S = 30.0  # coordinator: no telemetry from any unit for this long = the world is gone
 STATUS_PERIOD_S = 0.2  # world status (truth) file
-ANSWER_READ_PHASE = 0.5  # paced world: first read of the units' answers, as a fraction of the period
 UNIT_STATUS_PERIOD_S = 1.0  # unit status files (a file replace costs milliseconds here)
 TICK_PERIOD_S = 0.02  # unit: heartbeats and streams (<= 20 Hz) served on this wall-clock grid
 HOUSEKEEPING_DEFER_S = 0.02  # unit: housekeeping waits at most this long past its time for a step in flight
-COORDINATOR_QUIET_S = 0.002  # coordinator: fault detection this long after the commands went out
 PX4_KEEPALIVE_HZ = 10.0  # coordinator: OffboardControlMode rate on PX4's interface (PX4 wants >= 2 Hz)
-PX4_TAKEOVER_WAIT_S = 2.0  # coordinator: longest wait for a unit's acks to arm and enter OFFBOARD
-PX4_TAKEOVER_ROUND_S = 0.5  # coordinator: longest wait for one round of those acks
 PX4_TELEMETRY_PERIOD_S = 0.1  # unit: /fmu/out telemetry at 10 Hz of wall time (vehicle_status also answers
 # every command); what PX4's dds_topics.yaml allows is more, but it is CPU the lockstep shares
 PX4_LINK = "px4"  # a unit's rmw_zenoh endpoint in the unit loop's selector (mars_link.processes.px4_link)
@@ -137,8 +129,6 @@ ACTUATOR_MOTORS_TOPIC = "/fmu/in/actuator_motors/"  # (in a unit's data key: a p
 #: set (to anything) in a unit process's environment: its PX4 keep-alive never times out. A test switch for the
 #: conformance harness's red run, never for flight (mars_link.px4.unit_interface keepalive_timeout_enabled)
 BROKEN_KEEPALIVE_ENV = "MARS_LINK_TEST_BROKEN_PX4_KEEPALIVE"
-STOP_POLL_S = 0.2  # world: longest wait before it looks at its stop flag again (a SIGTERM ends it in time to
-# write its summary within the launcher's 3 s grace, also while it waits for units that were stopped with it)
 
 
 # ----------------------------------------------------------------------------- set-up
@@ -262,59 +252,30 @@ def _await_peers(link: Link, wanted: set[int], timeout_s: float, stop: _Stop | N
         raise SystemExit(f"timed out waiting for {sorted(missing)} to say hello")
 
 
-def shutdown_message() -> mavlink.MAVLink_message:
-    """The coordinator ends a flight of pieces: MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN (param1 2 = shut down, as
-    PX4's SITL ends) to the world, sent instead of the first step not to be flown: the world, waiting for
-    that step's answers (which the units give only once the coordinator's commands are in), ends without
-    stepping, whatever the transport's ordering."""
-    return mavlink.MAVLink_command_long_message(WORLD_SYSID, 1, mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, 0,
-                                                2, 0, 0, 0, 0, 0, 0)
-
-
-def step_sent_message(t_us: int) -> mavlink.MAVLink_message:
-    """The world to the coordinator, after it has sent every live unit its sensors for step `t_us`:
-    SYSTEM_TIME stamped with the step's simulation time. The coordinator starts a step's silence deadline
-    only once this is in, so a world stopped or descheduled between two units' sensor datagrams (the
-    units it had not reached yet are silent through no fault of theirs) loses nobody."""
-    return mavlink.MAVLink_system_time_message(t_us, t_us // 1000)
-
-
-def step_sent_packer(link: Link):
-    """t_us -> the world's step-sent frame, through the world link's own encoder: signed when the run is
-    (one signing stream per sender and link id, so its time stamps only grow)."""
-
-    def pack(t_us: int) -> bytes:
-        return link.pack([step_sent_message(t_us)])
-    return pack
-
-
-#: test hook "T_S:SECONDS": the world sleeps SECONDS after sending the first unit its sensors of the first
-#: step at or after T_S (a world stopped or descheduled between two units' datagrams; tests/processes/test_sitl_pause.py)
-STALL_ENV = "MARS_LINK_TEST_WORLD_STALL"
-
-
-def _stall_from_env() -> tuple[float, float] | None:
-    at, _, seconds = os.environ.get(STALL_ENV, "").partition(":")
-    try:
-        return float(at), float(seconds)
-    except ValueError:
-        return None
-
-
-def _step_sent_us(m) -> int | None:
-    """The step a world's step-sent marker names (None: not one)."""
-    if m.get_type() == "SYSTEM_TIME" and m.get_srcSystem() == WORLD_SYSID:
-        return int(m.time_unix_usec)
-    return None
-
-
-def _is_shutdown(m) -> bool:
-    return (m.get_type() == "COMMAND_LONG" and m.get_srcSystem() == COORDINATOR_SYSID
-            and m.target_system == WORLD_SYSID and m.command == mavlink.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN
-            and m.param1 == 2)
-
-
 # ----------------------------------------------------------------------------- world
+
+
+class _WorldLogs:
+    """Observer: the world's truth each step (world_truth.csv), its status file every STATUS_PERIOD_S of
+    wall time, and the flight view (run.mcap, the live view) when asked for."""
+
+    def __init__(self, world, truth_log, truth_row, write_status, write_view=None) -> None:
+        self.world, self.truth_log, self.truth_row, self.write_status = world, truth_log, truth_row, write_status
+        self.write_view = write_view
+        self.next_status = 0.0
+
+    def on_step(self, engine, v) -> bool:
+        t = self.world.t_s
+        self.truth_log.write("%.6f," % t + ",".join("%.9f" % x for x in self.truth_row()) + "\n")
+        if self.write_view is not None:
+            self.write_view(t)
+        if time.monotonic() >= self.next_status:
+            self.next_status = time.monotonic() + STATUS_PERIOD_S
+            self.write_status(t)
+            self.truth_log.flush()
+        return False
+
+
 def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout_s: float = WORLD_UNIT_TIMEOUT_S,
               speed: float = 0.0, start: tuple[np.ndarray, float] | None = None, mcap: bool = False,
               foxglove: str | None = None, key: bytes | None = None) -> int:
@@ -322,8 +283,9 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory. `mcap`: run.mcap in
     `out`; `foxglove`: HOST:PORT of the live Foxglove view (mars_link.processes.view_feed says why the world hosts them)."""
     world_start = start
-    from mars_link.flight.build import make_world, outdoor_profile, sensor_params
-    from sitl.world import FreeUnitsWorld, WorldConfig
+    from mars_link.flight.build import make_free_units_world, make_world, outdoor_profile, sensor_params
+    from mars_link.flight.engine import Engine, Flight
+    from sitl.world import WorldConfig
 
     sc = setup.scenario
     cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise, position_every(setup),
@@ -341,119 +303,59 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         world = make_world(sc, setup.model, seed, com, yaw, config=cfg)
         columns = "pos_n_m,pos_e_m,pos_d_m,qw,qx,qy,qz"
     else:
-        world = FreeUnitsWorld(setup.free_units, setup.model.vehicle, cfg)
+        world = make_free_units_world(sc, setup.model.vehicle, setup.free_units, seed, config=cfg)
         columns = ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("pos_n_m", "pos_e_m", "pos_d_m", "qw", "qx", "qy", "qz"))
     stop = _Stop()
     link = Link(ports.open("world"), WORLD_SYSID, key=key)  # with a key: HIL both ways and the shutdown signed
-    scale = setup.model.vehicle.full_scale_thrust_n
-    control_min = 0.0 if setup.model.vehicle.rotor_min_thrust_n is not None else -1.0  # as the units' intake
-    live = set(setup.unit_ids)
     out.mkdir(parents=True, exist_ok=True)
     status_path = out / "world_status.json"
-    from mars_link.logs.outputs import SafeWriter
-
     # a write error stops the log, never the world; its own thread writes it, so a slow disk never paces the world
     truth_log = SafeWriter.open(out / "world_truth.csv", background=True)
     truth_log.write("t_s," + columns + "\n")
     wall0 = time.perf_counter()
-    next_status = 0.0
-    deaths: list[dict] = []
-    latch_sent: dict[int, int] = {}  # the latch mask each unit last heard
-    truth_row = world.units_row if setup.pieces else world.truth_row
+    units = None
+    truth_row = world.units_row if setup.pieces else world.truth_row if setup.docked else lambda: _poses_row(world)
     view, feed, reference, eta_at = _world_view(setup, world, out, mcap, foxglove)
     writer_pid = view.process.pid if view is not None and mcap else None
     try:
+        live = set(setup.unit_ids)
         _await_peers(link, live | ({COORDINATOR_SYSID} if setup.coordinated else set()), 60.0, stop)
         link.prepare_peers(live)  # (the first sends' set-up, paid in the first step, stalled a paced start)
-        coordinator_addr = link.peers.get(COORDINATOR_SYSID) if setup.coordinated else None
-        step_sent = step_sent_packer(link)
-        stall = _stall_from_env()
         wall0 = time.perf_counter()
         # sim time on the wall clock at `speed`; behind it, the world catches up (no re-anchoring): the
         # lockstep's real-time factor stays the one asked for
-        # (anchored at the first step's wait, once its datagrams are ready: the first sensing and logging,
-        # slow the first time, then belong to start-up as in every later step they precede the wait)
+        # (anchored at the first step's wait, once its datagrams are ready: the first sensing, slow the
+        # first time, then belongs to start-up as in every later step it precedes the wait)
         pacer = Pacer(speed, reanchor_s=math.inf, clock=time.perf_counter)
+        vehicle = setup.model.vehicle
+        units = HilUnits(world, link, setup.unit_ids, stop, pacer, vehicle.full_scale_thrust_n,
+                         0.0 if vehicle.rotor_min_thrust_n is not None else -1.0,  # (as the units' intake)
+                         setup.coordinated, setup.pieces, feed, unit_timeout_s)
+        write_view = None if view is None else lambda t: view.write_step(
+            t, world, feed.point(None if reference is None else reference.sample(t)), eta_at(t), [units.deaths, feed.events])
+        logs = _WorldLogs(world, truth_log, truth_row, lambda t: _write_world_status(
+            status_path, world, setup, units.live, t, time.perf_counter() - wall0, writer_pid), write_view)
+        flight = Flight(sc, setup.model, seed, None, world, units, None, sorted(sc.faults, key=lambda f: f.t_s),
+                        duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz)
+        # (the coordinator is another process: its commands go to the units, the units' answers come here)
+        engine = Engine(flight, [logs], command_source=lambda t, telemetry: [])
         loop = LoopMeter()  # the stepping loop alone (start-up excluded)
         idle = IdleMeter()  # the machine's idle cores over the loop: behind the wall clock, starved or at fault?
-        valve = OverloadValve()  # (armed in SCHED_FIFO only)
-        k = 0
-        while (setup.steps is None or k < setup.steps) and not stop.requested:
-            t = world.t_s
-            truth_log.write("%.6f," % t + ",".join("%.9f" % x for x in truth_row()) + "\n")
-            if view is not None:
-                view.write_step(t, world, feed.point(None if reference is None else reference.sample(t)),
-                                eta_at(t), [deaths, feed.events])
-            if time.monotonic() >= next_status:
-                next_status = time.monotonic() + STATUS_PERIOD_S
-                _write_world_status(status_path, world, setup, live, t, time.perf_counter() - wall0, writer_pid)
-                truth_log.flush()
-            datagrams = []  # sampled and encoded before the pacing wait: at t they only go out
-            for p in world.sense():
-                if p.unit_id in live:
-                    latch = []
-                    if setup.pieces and latch_sent.get(p.unit_id) != p.latches:  # the latch sensor, on change
-                        latch_sent[p.unit_id] = p.latches
-                        latch = [latch_message(p.t_s, p.latches)]
-                    datagrams.append((link.pack(unit_sensor_messages(world, p, latch)), link.peers[p.unit_id]))
-            pacer.wait(t)
-            if valve.armed and valve.check(behind_s := -pacer.wait_s(t), t):
-                print(f"world: {behind_s:.1f} s behind the wall clock at t={t:.2f}: leaving SCHED_FIFO, so that the "
-                      "flight shares the machine", file=sys.stderr)
-            for i, (data, addr) in enumerate(datagrams):
-                link.send_bytes(data, addr)
-                if i == 0 and stall is not None and t >= stall[0]:  # (test hook: stopped between two units)
-                    time.sleep(stall[1])
-                    stall = None
-            if coordinator_addr is not None:  # every unit has its step: the coordinator may now time them
-                link.send_bytes(step_sent(usec(t)), coordinator_addr)
-            if pacer.paced:  # the answers are read in one go from mid-period on, so the world is not
-                # woken once per unit while the units and the coordinator work on the step (2-core machines)
-                time.sleep(max(0.0, pacer.wait_s(t + ANSWER_READ_PHASE / cfg.exchange_hz)))
-            waiting = set(live)
-            deadline = SilenceDeadline(unit_timeout_s)  # (time this process did not run is nobody's silence)
-            t_us = usec(t)
-            while waiting and not (stop.requested or stop.ended):
-                left = deadline.left_s()
-                deadline.before_wait(min(left, STOP_POLL_S))
-                msgs = link.receive(min(left, STOP_POLL_S))  # (a SIGTERM is seen within STOP_POLL_S)
-                if not msgs and left == 0.0:  # (past the deadline, what was already queued is read first:
-                    break  # after this process itself was stopped, the answers wait in its socket)
-                for m in msgs:
-                    if _is_shutdown(m):
-                        stop.ended = True
-                        break
-                    if m.get_type() != "HIL_ACTUATOR_CONTROLS":
-                        if feed is not None and m.get_srcSystem() == COORDINATOR_SYSID:
-                            feed.take(m)
-                        continue
-                    if m.time_usec != t_us or m.get_srcSystem() not in waiting:
-                        link.drop("stale_actuator")
-                        continue
-                    if not actuator_controls_ok(m.controls, control_min):
-                        link.drop("bad_actuator")  # NaN/inf/out of range: never into the physics
-                        continue
-                    world.actuate(actuator_output_from_message(m, scale))
-                    waiting.discard(m.get_srcSystem())
-            if stop.requested or stop.ended:
-                break
-            for unit in sorted(waiting):  # silent units are dead: motors off, the flight goes on
-                world.declare_dead(unit)
-                live.discard(unit)
-                deaths.append(unit_died(t, unit))
-                print(f"world: unit {unit} silent for {unit_timeout_s:.1f} s at t={t:.2f}: declared dead", file=sys.stderr)
-            world.advance()
-            k += 1
+        try:
+            while not stop.requested and engine.step():
+                pass
+        except LinksEnded:
+            pass
         wall = time.perf_counter() - wall0
-        _write_world_status(status_path, world, setup, live, world.t_s, wall, writer_pid)
+        _write_world_status(status_path, world, setup, units.live, world.t_s, wall, writer_pid)
         summary = {"sim_time_s": world.t_s, "wall_time_s": wall, "real_time_factor": world.t_s / max(wall, 1e-9),
-                   "steps": k, "units": setup.unit_ids, "dead_units": sorted(set(setup.unit_ids) - live),
-                   "deaths": deaths, "dropped": link.dropped, "stopped": stop.requested, "cpu_s": time.process_time(),
-                   **loop.figures(), "realtime_class_left_at_s": valve.left_at_s, "cores_idle_fraction": idle.fraction(),
-                   "force_integral_n2s": getattr(world, "force_integral_n2s", None),  # (free units: none)
-                   "latch_events": getattr(world, "latch_events", []),
-                   "bodies": [list(b.units) for b in getattr(world, "bodies", [])], "logging": truth_log.status()}
-        packs = getattr(world, "packs", None)
+                   "steps": engine.steps, "units": setup.unit_ids, "dead_units": sorted(units.dead),
+                   "deaths": units.deaths, "dropped": link.dropped, "stopped": stop.requested,
+                   "cpu_s": time.process_time(), **loop.figures(), "realtime_class_left_at_s": units.valve.left_at_s,
+                   "cores_idle_fraction": idle.fraction(), "force_integral_n2s": world.force_integral_n2s,
+                   "latch_events": world.latch_events, "bodies": [list(b.units) for b in world.bodies],
+                   "logging": truth_log.status()}
+        packs = world.packs
         if packs is not None:  # the packs' truth at the end (unit id order)
             summary["batteries"] = {"soc": packs.soc.round(6).tolist(), "voltage_v": packs.voltage_v.round(4).tolist(),
                                     "drawn_c": packs.drawn_c.round(4).tolist()}
@@ -462,7 +364,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         truth_log.close()
         try:  # run.mcap before the link: a Zenoh session can take seconds to close, and the file must be
             if view is not None:  # whole when `sitl up` ends
-                view.finish(event_lists=[deaths, feed.events])
+                view.finish(event_lists=[[] if units is None else units.deaths, feed.events])
                 mcap = view.status()
                 if mcap is not None and mcap["stopped_reason"] and (out / "world_summary.json").exists():
                     _write_world_summary(out, {**json.loads((out / "world_summary.json").read_text()),
@@ -473,18 +375,13 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     return 0
 
 
-def unit_sensor_messages(world, p: SensorPacket, extra: list | None = None) -> list:
-    """One unit's HIL datagram of a step, as the world sends it: ground truth for the unit's own telemetry
-    at the mocap rate (when the sensor packet carries none), `extra` (the latch sensor), the power module's
-    sample at the battery rate, the sensors."""
-    from sitl.hil import hil_state_message
-
-    msgs = [] if p.truth is not None or (p.position is None and p.gps is None) else [
-        hil_state_message(world.unit_truth(p.unit_id), usec(p.t_s))]
-    msgs += extra or []
-    if p.battery is not None:
-        msgs.append(battery_report_message(p.battery))
-    return msgs + sensor_packet_messages(p)
+def _poses_row(world) -> list[float]:
+    """Every unit's centre (NED) and attitude, in unit id order: the truth log of free units."""
+    row: list[float] = []
+    for u in world.model.unit_ids:
+        s = world.unit_truth(u)
+        row += [*s.position_ned_m, *s.quaternion_wxyz]
+    return row
 
 
 def _write_world_summary(out: Path, summary: dict) -> None:
@@ -509,7 +406,7 @@ def _world_view(setup: SitlSetup, world, out: Path, mcap: bool, live: str | None
 
     sc, model = setup.scenario, setup.model
     if not setup.docked:
-        model = world.view_model
+        model = world.model
         duration = setup.steps / sc.sim.control_hz if setup.steps is not None else math.inf
         view = open_view(out, model, sc, sc.sim.control_hz, None, duration, live, None, mcap)
         healthy = np.ones(model.n_rotors)
@@ -519,23 +416,6 @@ def _world_view(setup: SitlSetup, world, out: Path, mcap: bool, live: str | None
     view = open_view(out, model, sc, sc.sim.control_hz, reference, duration, live, sc.tracked_unit(), mcap)
     faults = sorted(sc.faults, key=lambda f: f.t_s)
     return view, ViewFeed(tracked_offset(model, sc)), reference, lambda t: eta_after(model, faults, t)  # (as rotors.csv)
-
-
-def telemetry_ok(p: SensorPacket) -> bool:
-    """A unit's forwarded sensor packet is finite where it matters (IMU, position, truth)."""
-    arrays = [p.imu.gyro_frd_radps, p.imu.accel_frd_mps2]
-    if p.position is not None:
-        arrays.append(p.position.position_ned_m)
-    if p.truth is not None:
-        arrays += [p.truth.position_ned_m, p.truth.quaternion_wxyz]
-    return math.isfinite(p.t_s) and all(bool(np.isfinite(a).all()) for a in arrays)
-
-
-def actuator_controls_ok(controls, control_min: float = 0.0) -> bool:
-    """A unit's HIL_ACTUATOR_CONTROLS rotor outputs (controls[0..3]) are finite and within
-    control_min..1 of full scale (the world never integrates a broken unit's NaN)."""
-    c = controls[:4]
-    return len(c) == 4 and all(math.isfinite(x) and control_min <= x <= 1.0 for x in c)
 
 
 def _write_world_status(path: Path, world, setup: SitlSetup, live: set[int], t_s: float, wall_s: float,
@@ -756,22 +636,75 @@ class _UnitLoop:
 
 
 # ----------------------------------------------------------------------------- coordinator
+
+
+class _PiecesStepLog:
+    """Observer: what the summary of a flight of pieces needs each step (pieces_steps.csv): whether the
+    mission flies, its clock and reference, and which units carry the tracked point (the truth comes from
+    the world's log)."""
+
+    def __init__(self, log, coordinator) -> None:
+        self.log, self.coordinator = log, coordinator
+
+    def on_step(self, engine, v) -> bool:
+        executor = self.coordinator.executor
+        t = v.t_s
+        active = executor.mission_active(t)
+        mt = executor.mission_time(t)
+        ref = executor.mission.sample(mt).position_ned_m if active else (math.nan,) * 3
+        piece = self.coordinator.tracked_piece()
+        self.log.write(f"{t:.6f},{int(active)},{mt:.6f},{ref[0]:.9f},{ref[1]:.9f},{ref[2]:.9f},"
+                       f"{' '.join(str(u) for u in piece.units)},{len(self.coordinator.pieces)}\n")
+        return False
+
+
+class _ViewFeedSender:
+    """Observer: after the commands, the world's view gets the coordinator's estimate, reference and new
+    events (mars_link.processes.view_feed)."""
+
+    def __init__(self, link: Link, world, coordinator) -> None:
+        self.link, self.world, self.coordinator = link, world, coordinator
+        self.fed = 0
+
+    def on_step(self, engine, v) -> bool:
+        from mars_link.processes.view_feed import feed_messages
+
+        c = self.coordinator
+        if c.last is not None:
+            self.link.send_bytes(self.link.pack(feed_messages(c.last, c.events[self.fed:])), self.world)
+            self.fed = len(c.events)
+        return False
+
+
+class _TimingLog:
+    """Observer: each step's wall-clock times (coordinator_timing.csv, LinkedUnits says which)."""
+
+    def __init__(self, log, linked: LinkedUnits) -> None:
+        self.log, self.linked = log, linked
+        log.write("t_s,telemetry_first_wall_s,telemetry_all_wall_s,computed_wall_s,sent_wall_s,step_cpu_s,send_cpu_s\n")
+
+    def on_step(self, engine, v) -> bool:
+        x = self.linked
+        self.log.write(f"{v.t_s:.6f},{x.first_wall:.6f},{x.all_wall:.6f},{x.computed_wall:.6f},{x.sent_wall:.6f},"
+                       f"{x.step_cpu:.6f},{x.send_cpu:.6f}\n")
+        return False
+
+
 def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: float = COORDINATOR_TIMEOUT_S,
                     key: bytes | None = None, vehicle=None, timing_log: bool = False,
                     require_signing: bool = False, view_feed: bool = False, run_key: bool = False) -> int:
-    """Drive the docked assembly; with a signing `key` its link to the units is signed both ways.
+    """Drive the docked assembly: the flight's engine (mars_link.flight.engine.Engine) with the world and the
+    units behind this process's link (`LinkedUnits`); with a signing `key` that link is signed both ways.
     With `vehicle` (mars_link.processes.vehicle_host.VehiclePorts) the assembly is one MAVLink vehicle on those ports
     and its guidance, not the scenario's trajectory, is the coordinator's reference. `timing_log`:
-    coordinator_timing.csv gets each step's wall-clock times (first and last telemetry in, commands
-    computed, sent; CPU time of the step and of the sends): with the units' command_age logs, where a
-    real-time step's time goes (wall time above CPU time = the coordinator waited for a CPU)."""
+    coordinator_timing.csv gets each step's wall-clock times (`_TimingLog`): with the units' command_age logs,
+    where a real-time step's time goes (wall time above CPU time = the coordinator waited for a CPU)."""
     from mars_link.flight.build import make_coordinator, make_detector, make_estimator
-    from mars_link.config.scenario import eta_after
+    from mars_link.flight.engine import Engine, Flight
 
     sc = setup.scenario
     model = setup.model
     trajectory = _trajectory(sc, model)
-    faults = sorted(sc.faults, key=lambda f: f.t_s)
     hosted = None
     end_s = None  # a flight of pieces: when it ends (the coordinator says so to the world)
     if setup.pieces and vehicle is None:
@@ -796,22 +729,12 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     stop = _Stop()
     link = Link(ports.open("coordinator"), COORDINATOR_SYSID, key=key)
     scale = model.vehicle.full_scale_thrust_n
-    assembler = SensorPacketAssembler()
-    latches = LatchSensor()
-    batteries: dict[int, BatterySample] = {}  # each unit's last BATTERY_STATUS, until its packet comes
     out.mkdir(parents=True, exist_ok=True)
     pieces_log = SafeWriter.open(out / "pieces_steps.csv") if setup.pieces else None  # (a full disk stops it)
     if pieces_log:
         pieces_log.write("t_s,mission,mission_t_s,ref_n_m,ref_e_m,ref_d_m,tracked_units,pieces\n")
-    live = set(model.unit_ids)
-    lost: list[dict] = []
-    accepted: dict[int, set[int]] = {u: set() for u in model.unit_ids}  # commands each unit acknowledged
-    next_fault = 0
-    out.mkdir(parents=True, exist_ok=True)
     timing = SafeWriter.open(out / "coordinator_timing.csv") if timing_log else None
-    if timing:
-        timing.write("t_s,telemetry_first_wall_s,telemetry_all_wall_s,computed_wall_s,sent_wall_s,step_cpu_s,send_cpu_s\n")
-    px4 = None  # PX4's own interface ([units] interface = "px4-zenoh"): the commands go over rmw_zenoh
+    px4 = commanders = None  # PX4's own interface ([units] interface = "px4-zenoh"): the commands go over rmw_zenoh
     if sc.unit_interface == "px4-zenoh":
         from mars_link.processes.px4_link import Px4CoordinatorLink
         from mars_link.px4.commander import Px4Commander
@@ -820,170 +743,45 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         keepalive_every = max(1, int(sc.sim.control_hz // PX4_KEEPALIVE_HZ))
         commanders = {u: Px4Commander(u, scale, model.vehicle.rotor_min_thrust_n is None, keepalive_every)
                       for u in model.unit_ids}
+    linked = None
     try:
-        _await_peers(link, live, 60.0, stop)
-        link.prepare_peers(live)
+        _await_peers(link, set(model.unit_ids), 60.0, stop)
+        link.prepare_peers(set(model.unit_ids))
         if px4 is not None:
-            for u in live:
+            for u in model.unit_ids:
                 px4.prepare(u)
         loop = LoopMeter()
-        world = ports.address("world")
-        link.peers.setdefault(WORLD_SYSID, world)  # (its step-sent markers come from there)
-        events_fed = 0
-        finish_at = None  # when the last period's fault detection runs (Coordinator.finish_step)
-        link.heartbeat(world)
-        next_hello = time.monotonic() + 0.2
-        t_last = -math.inf  # the last step's time: a packet not newer is a backlog (a paused unit resumed)
-        world_marks, world_sent_us = False, -1  # the world's step-sent markers: seen any, the latest step
-        for k in (range(setup.steps) if setup.steps is not None else itertools.count()):
-            if stop.requested:
-                break
-            packets: dict[int, SensorPacket] = {}
-            # a unit is lost when it stays silent for unit_timeout_s after the first telemetry of the
-            # step came in and the world said it had sent every unit the step (step_sent_message; a world
-            # that sends no such marker: from the first telemetry); before that, the world may be waiting
-            # for a dead unit (it drives the clock), or be stopped between two units' sensors
-            idle_deadline = time.monotonic() + WORLD_IDLE_TIMEOUT_S
-            deadline = None
-            t_expected = None
-            final = False  # past the deadline: read what is already queued, then stop waiting (after this
-            while set(packets) < live and not stop.requested:  # process was stopped, the telemetry waits in its socket)
-                now = time.monotonic()
-                left = None if deadline is None else deadline.left_s()
-                final = final or left == 0.0 or now >= idle_deadline
-                if k == 0 and not packets and now >= next_hello:  # hello until the world starts
-                    link.heartbeat(world)
-                    next_hello = now + 0.2
-                if finish_at is not None and now >= finish_at:
-                    coordinator.finish_step()
-                    finish_at = None
-                wait_s = 0.0 if final else min(0.2, idle_deadline - now if left is None else left,
-                                               math.inf if finish_at is None else finish_at - now)
-                if deadline is not None:
-                    deadline.before_wait(wait_s)
-                if hosted is not None:  # client links and wall-clock heartbeats while the lockstep waits
-                    wait_s = hosted.wait(link, wait_s)
-                msgs = link.receive(wait_s)
-                if final and not msgs:
-                    break
-                for m in msgs:
-                    sent_us = _step_sent_us(m)
-                    if sent_us is not None:
-                        world_marks, world_sent_us = True, max(world_sent_us, sent_us)
-                        continue
-                    if m.get_type() == "COMMAND_ACK":
-                        if m.result == mavlink.MAV_RESULT_ACCEPTED and m.get_srcSystem() in accepted:
-                            accepted[m.get_srcSystem()].add(m.command)
-                        continue
-                    if m.get_type() == "NAMED_VALUE_INT":
-                        if not latches.feed(m):
-                            link.drop("bad_named_value")
-                        continue
-                    if m.get_type() == "BATTERY_STATUS":  # the unit's pack, for its next sensor packet
-                        sample = battery_from_message(m)
-                        if sample is None:
-                            link.drop("bad_battery")
-                        else:
-                            batteries[m.get_srcSystem()] = sample
-                        continue
-                    p = assembler.feed(m)
-                    if p is None:
-                        continue
-                    p.latches = latches.mask.get(p.unit_id, 0)
-                    if batteries:
-                        p.battery = batteries.pop(p.unit_id, None)
-                    if not telemetry_ok(p):
-                        link.drop("bad_telemetry")  # non-finite: never into the estimator
-                        continue
-                    if p.unit_id not in live or p.t_s <= t_last:  # a lost unit stays lost; a stale packet
-                        link.drop("stale_telemetry")  # never sets the step's time (it would make every
-                        continue  # live unit's packet look stale and lose them all)
-                    if t_expected is None:
-                        t_expected = p.t_s
-                        first_wall = time.time()
-                    if p.t_s == t_expected and p.unit_id in live:
-                        packets[p.unit_id] = p
-                    else:
-                        link.drop("stale_telemetry")
-                if deadline is None and t_expected is not None and (not world_marks or world_sent_us >= usec(t_expected)):
-                    deadline = SilenceDeadline(unit_timeout_s)  # (time this process did not run: not the units')
-            if stop.requested:  # stopped mid-step: the units stop too; none of them is lost
-                break
-            if not packets:  # no telemetry at all for WORLD_IDLE_TIMEOUT_S: the world is gone
-                if not stop.requested:
-                    print(f"coordinator: no telemetry for {WORLD_IDLE_TIMEOUT_S:.0f} s: ending", file=sys.stderr)
-                break
-            t = t_last = t_expected
-            if end_s is not None and (t >= end_s() - 1e-9 or coordinator.failed is not None):
-                link.send_bytes(link.pack([shutdown_message()]), world)  # the flight of pieces is over
-                break
-            for unit in sorted(live - set(packets)):  # telemetry stopped: the unit is lost
-                live.discard(unit)
-                lost.append({"t_s": round(t, 6), "unit": unit})
-                print(f"coordinator: unit {unit} silent for {unit_timeout_s:.1f} s at t={t:.2f}: lost", file=sys.stderr)
-                if hasattr(coordinator, "unit_lost"):  # issue 5's hook (estimation / fault handling)
-                    coordinator.unit_lost(unit, t)
-                else:
-                    eta = np.asarray(coordinator.eta_believed, dtype=float).copy()
-                    eta[model.unit_slots(unit)] = 0.0
-                    coordinator.set_faults(eta, t, f"unit {unit} lost")
-            if sc.faults_known:
-                while next_fault < len(faults) and faults[next_fault].t_s <= t + 1e-9:
-                    next_fault += 1
-                    coordinator.set_faults(eta_after(model, faults[:next_fault], t), t, "fault told to the coordinator")
-            all_wall, step_cpu = time.time(), time.thread_time()
-            ordered = [packets[u] for u in sorted(packets)]
-            if finish_at is not None:  # the last period's fault detection, if not done in the slack yet
-                coordinator.finish_step()
-                finish_at = None
-            commands = coordinator.commands(t, ordered) if hosted is None else hosted.step(t, ordered, live)
-            computed_wall, send_cpu = time.time(), time.thread_time()
-            step_cpu = send_cpu - step_cpu
-            datagrams = []  # all encoded first, then sent back to back (a woken unit may take the CPU)
-            if pieces_log is not None:
-                _log_pieces_step(pieces_log, coordinator, t)
-            samples = []  # (PX4's interface: the same, as rmw_zenoh samples)
-            if px4 is not None:
-                _px4_take_over(px4, commanders, [c.unit_id for c in commands if c.unit_id in live], t, accepted)
-            for cmd in commands:
-                if cmd.unit_id in live:
-                    if px4 is not None:
-                        samples += px4.encode(cmd.unit_id, commanders[cmd.unit_id].step(t, cmd.thrusts_n), t)
-                        msgs = []
-                    else:
-                        msgs = _with_takeover(cmd.unit_id, accepted[cmd.unit_id], rotor_command_message(cmd, scale))
-                    if hosted is not None:  # e.g. a failure injected on the vehicle, for this unit's motors
-                        msgs += hosted.unit_commands(cmd.unit_id)
-                    if msgs:
-                        datagrams.append((link.pack(msgs), link.peers[cmd.unit_id]))
-            if samples:
-                px4.send(samples)
-            for data, addr in datagrams:
-                link.send_bytes(data, addr)
-            sent_wall, send_cpu = time.time(), time.thread_time() - send_cpu
-            if view_feed and coordinator.last is not None:  # after the commands: the world's view (mars_link.processes.view_feed)
-                from mars_link.processes.view_feed import feed_messages
-
-                link.send_bytes(link.pack(feed_messages(coordinator.last, coordinator.events[events_fed:])), world)
-                events_fed = len(coordinator.events)
-            if hosted is None:  # fault detection (Coordinator.finish_step: it changes the allocation from the
-                # next period on) once the units have read their commands: they need the CPUs first
-                finish_at = time.monotonic() + COORDINATOR_QUIET_S
-            if timing:
-                timing.write(f"{t:.6f},{first_wall:.6f},{all_wall:.6f},{computed_wall:.6f},{sent_wall:.6f},"
-                             f"{step_cpu:.6f},{send_cpu:.6f}\n")
-        if finish_at is not None:
-            coordinator.finish_step()
+        link.peers.setdefault(WORLD_SYSID, ports.address("world"))  # (its step-sent markers come from there)
+        link.heartbeat(link.peers[WORLD_SYSID])
+        linked = LinkedUnits(link, list(model.unit_ids), scale, stop, coordinator.unit_lost, unit_timeout_s,
+                             None if hosted is not None else coordinator.finish_step, hosted, px4, commanders)
+        observers: list = [] if pieces_log is None else [_PiecesStepLog(pieces_log, coordinator)]
+        if view_feed:
+            observers.append(_ViewFeedSender(link, linked.world, coordinator))
+        if timing:
+            observers.append(_TimingLog(timing, linked))
+        flight = Flight(sc, model, sc.sim.seed, trajectory, linked, linked, coordinator, sorted(sc.faults, key=lambda f: f.t_s),
+                        duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz,
+                        end_s=None if end_s is None else lambda: -math.inf if coordinator.failed is not None else end_s())
+        commands = coordinator.commands if hosted is None else lambda t, packets: hosted.step(t, packets, linked.live)
+        engine = Engine(flight, observers, command_source=commands)
+        try:
+            engine.run()
+            if end_s is not None:  # the flight of pieces is over: instead of the first step not to be flown
+                link.send_bytes(link.pack([shutdown_message()]), linked.world)
+        except LinksEnded:
+            pass
+        linked.finish()
         pieces = {} if not setup.pieces else {"pieces_final": coordinator.pieces_final(), "failed": coordinator.failed,
                                               "plan": coordinator.executor.plan.to_json()}
         write_json(out / "coordinator_summary.json",
             {"events": coordinator.all_events() if setup.pieces else coordinator.events, **pieces,
-             "lost_units": lost, "dropped": link.dropped, "cpu_s": time.process_time(),
+             "lost_units": linked.lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,
                              "eta_estimated": round(float(d.eta_estimated), 4), "reason": d.reason}
                             for d in coordinator.detections],
              **loop.figures(),
-             "acknowledged": {str(u): sorted(c) for u, c in accepted.items()}})
+             "acknowledged": {str(u): sorted(c) for u, c in linked.accepted.items()}})
     finally:
         if px4 is not None:
             px4.close()
@@ -997,114 +795,11 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     return 0
 
 
-def _log_pieces_step(log, coordinator, t: float) -> None:
-    """What the summary needs of a flight of pieces each step: whether the mission flies, its clock and
-    reference, and which units carry the tracked point (the truth comes from the world's log)."""
-    executor = coordinator.executor
-    active = executor.mission_active(t)
-    mt = executor.mission_time(t)
-    ref = executor.mission.sample(mt).position_ned_m if active else (math.nan,) * 3
-    piece = coordinator.tracked_piece()
-    log.write(f"{t:.6f},{int(active)},{mt:.6f},{ref[0]:.9f},{ref[1]:.9f},{ref[2]:.9f},"
-              f"{' '.join(str(u) for u in piece.units)},{len(coordinator.pieces)}\n")
-
-
-def _px4_take_over(px4, commanders: dict, units: list[int], t: float, accepted: dict[int, set[int]]) -> None:
-    """PX4's interface: the acks received so far; then every unit not yet armed in OFFBOARD gets the
-    keep-alive, DO_SET_MODE and ARM, and the coordinator waits (at most PX4_TAKEOVER_WAIT_S) for their
-    acks before the step's ActuatorMotors go out. Samples on different keys may overtake each other: a
-    DO_SET_MODE that arrived before its keep-alive is refused (TEMPORARILY_REJECTED) and sent again with
-    a fresh keep-alive once every unit of the round has answered. The unit then runs its first commanded
-    step armed and in OFFBOARD, as the in-process flight does."""
-    from mars_link.px4.rmw_zenoh import VEHICLE_COMMAND
-
-    answered: dict[int, int] = {}
-
-    def take_acks() -> None:
-        for u, ack in px4.acks():
-            if u in commanders:
-                answered[u] = answered.get(u, 0) + 1
-                if commanders[u].take_ack(ack):
-                    accepted[u].add(int(ack.command))
-
-    take_acks()
-    deadline = time.monotonic() + PX4_TAKEOVER_WAIT_S
-    while time.monotonic() < deadline:
-        waiting = [u for u in units if not commanders[u].taken_over]
-        if not waiting:
-            return
-        answered.clear()
-        rounds = {u: commanders[u].take_over(t) for u in waiting}
-        px4.send([s for u, msgs in rounds.items() for s in px4.encode(u, msgs, t)])
-        expected = {u: sum(topic is VEHICLE_COMMAND for topic, _ in msgs) for u, msgs in rounds.items()}
-        round_end = min(deadline, time.monotonic() + PX4_TAKEOVER_ROUND_S)
-        while any(answered.get(u, 0) < n for u, n in expected.items()) and time.monotonic() < round_end:
-            select.select([px4], [], [], max(0.0, min(0.05, round_end - time.monotonic())))
-            take_acks()
-
-
-def _with_takeover(unit: int, accepted: set[int], rotor_cmd) -> list:
-    """Until the unit acknowledged them: ARM before the rotor command, OFFBOARD after it (PX4 refuses
-    OFFBOARD without a live setpoint stream); one datagram, so the unit runs the step with all three."""
-    R = mavlink
-    before, after = [], []
-    if R.MAV_CMD_COMPONENT_ARM_DISARM not in accepted:
-        before.append(R.MAVLink_command_long_message(unit, 1, R.MAV_CMD_COMPONENT_ARM_DISARM, 0, 1, 0, 0, 0, 0, 0, 0))
-    if R.MAV_CMD_DO_SET_MODE not in accepted:
-        after.append(R.MAVLink_command_long_message(unit, 1, R.MAV_CMD_DO_SET_MODE, 0,
-                                                    R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 6, 0, 0, 0, 0, 0))
-    return before + [rotor_cmd] + after
-
-
 # ----------------------------------------------------------------------------- entry point
 def main(argv: list[str] | None = None) -> int:
     die_with_parent()  # started by the launcher: never outlive it (mars_link.processes.parent_watch)
     ap = argparse.ArgumentParser(prog="python -m mars_link.processes.lockstep")
-    ap.add_argument("role", choices=("world", "unit", "coordinator"))
-    ap.add_argument("scenario", help="scenario file or bundled name; - for built-in defaults")
-    ap.add_argument("--units", type=int, default=None)
-    ap.add_argument("--layout", default=None)
-    ap.add_argument("--unit", default="1", help="unit id, or ids a,b,c: several units in this process")
-    ap.add_argument("--steps", type=int, default=None, help="exchanges of a docked run (else from the scenario)")
-    ap.add_argument("--start-pose", default=None, help="world: N,E,D,YAW of the assembly's CoM (else from the scenario)")
-    ap.add_argument("--position-every", type=int, default=None, help="world: mocap samples every n-th exchange")
-    ap.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port")
-    ap.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to")
-    ap.add_argument("--world-fd", type=int, default=None, help="inherited bound socket of the world")
-    ap.add_argument("--coordinator-fd", type=int, default=None, help="inherited bound socket of the coordinator")
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--seed", type=int, default=None)
-    ap.add_argument("--speed", type=float, default=None, help="world pacing, x real time (0: as fast as possible)")
-    add_signing_args(ap, "the coordinator <-> unit links (neither: unsigned)")
-    ap.add_argument("--run-key", action="store_true",
-                    help="the key is the run's own, for its internal links only: the client links keep the rules "
-                         "of a vehicle without a key")
-    ap.add_argument("--gcs-port", type=int, default=14550)
-    ap.add_argument("--api-port", default=None, help="the unit's API port, or one per unit of --unit a,b,c")
-    ap.add_argument("--gcs-bind", type=int, default=None)
-    ap.add_argument("--api-bind", type=int, default=None)
-    ap.add_argument("--no-clients", action="store_true", help="unit: no GCS/API client links (a closed batch run)")
-    ap.add_argument("--forever", action="store_true", help="docked: run until stopped (ignores --steps)")
-    ap.add_argument("--external-offboard", action="store_true",
-                    help="world, unit: no coordinator in this run; an off-board computer outside it drives the units "
-                         "(the units answer each step with what they drive; run --mode sitl --external-offboard)")
-    ap.add_argument("--vehicle", action="store_true", help="coordinator: serve the assembly as one MAVLink vehicle")
-    ap.add_argument("--sched-realtime", action="store_true",
-                    help="real time: SCHED_FIFO when permitted; else world/unit SCHED_BATCH (mars_link.runtime.scheduling)")
-    ap.add_argument("--timing-log", action="store_true", help="coordinator: each step's wall-clock times (coordinator_timing.csv)")
-    ap.add_argument("--mcap", action="store_true", help="world: run.mcap in --out (mars_link.flight.flight_view)")
-    ap.add_argument("--foxglove", default=None, metavar="HOST:PORT", help="world: the live Foxglove view there")
-    ap.add_argument("--view-feed", action="store_true",
-                    help="coordinator: send the world its estimate, reference and events for the view (mars_link.processes.view_feed)")
-    ap.add_argument("--vehicle-sysid", type=int, default=None)
-    ap.add_argument("--vehicle-gcs-port", type=int, default=None)
-    ap.add_argument("--vehicle-map", default=None, help="coordinator --vehicle: obstacle map for the mission legs")
-    ap.add_argument("--vehicle-api-port", type=int, default=None)
-    ap.add_argument("--vehicle-gcs-bind", type=int, default=None)
-    ap.add_argument("--vehicle-api-bind", type=int, default=None)
-    add_link_args(ap)
-    ap.add_argument("--command-age", action="store_true",
-                    help="unit: log the command age at the motor (command_age_unit<id>.csv/.json; real-time runs)")
+    add_lockstep_options(ap)
     args = ap.parse_args(argv)
     if args.sched_realtime:  # (before the links open: Zenoh's threads take the same class)
         take_realtime_class(fallback_batch=args.role != "coordinator")

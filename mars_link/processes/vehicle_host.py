@@ -28,7 +28,7 @@ import numpy as np
 
 from mars_link.core.events import EventKind, event
 from mars_link.core.errors import UserInputError
-from mars_link.models.estimation_outdoor import estimate_settled, step_estimator
+from mars_link.models.estimation_outdoor import estimate_settled
 from mars_link.core.messages import RotorCommand, SensorPacket
 from mars_link.core.state import RigidBodyState
 
@@ -79,9 +79,7 @@ class HostedVehicle:
         """`ulog`: the vehicle writes vehicle.ulg in `out` (mars_link.logs), by default as PX4 SITL logs."""
         from firmware_models.vehicle import LINK_API, LINK_GCS
         from mars_link.processes.vehicle_io import LOOPBACK, LinkSpec, VehicleSockets
-        from mars_link.vehicles.assembly_vehicle import AssemblyVehicle, SetpointSource, _KnownEstimate, vehicle_scenario
-        from mars_link.flight.build import make_coordinator, make_estimator
-        from mars_link.models.trajectories import TrajectoryPoint
+        from mars_link.vehicles.assembly_vehicle import AssemblyVehicle, vehicle_coordinator, vehicle_scenario
 
         self.scenario = sc = vehicle_scenario(scenario)  # setpoints are for the CoM
         if sc.controller != "cascaded":
@@ -98,10 +96,8 @@ class HostedVehicle:
                                                             require_signing=require_signing), time.time())
             self.coordinator, self.vehicle = self.flight.pieces, self.flight.vehicle
         else:
-            self.estimator = make_estimator(sc, model)
-            self._known = _KnownEstimate()
-            self.coordinator = make_coordinator(sc, model, SetpointSource(TrajectoryPoint(np.zeros(3))), self._known,
-                                                detector)
+            self.coordinator = vehicle_coordinator(sc, model, detector)
+            self.estimator = self.coordinator.estimator  # (the coordinator's; None: it flies on the truth)
             self.vehicle = AssemblyVehicle(self.coordinator, ports.sysid, sc.sim.control_hz, sc.ftc, None, time.time(),
                                            signing_key, require_signing)
         self.vehicle.on_failure = self._inject
@@ -112,7 +108,6 @@ class HostedVehicle:
             from mars_link.vehicles.vehicle_sensor_watch import VehicleSensorWatch
 
             self.vehicle.on_sensor_failure = self._inject_sensor
-            self.coordinator.guard, self.coordinator.guard_events = self.estimator, False
             self.sensor_watch = VehicleSensorWatch(self.vehicle, self.estimator, self.sensor_events)
         from mars_link.vehicles.assembly_vehicle import attach_legs
 
@@ -178,7 +173,6 @@ class HostedVehicle:
         self.vehicle.core.drive.packets = packets
         self.vehicle.take_unit_batteries(t_s, packets)
         est = self._estimate(t_s, packets)
-        self._known.estimate = est
         if est is not None:
             self.estimate = est
             self.vehicle.set_state(est)
@@ -231,10 +225,10 @@ class HostedVehicle:
         return self._unit_commands.pop(unit, [])
 
     def _estimate(self, t_s: float, packets: list[SensorPacket]) -> RigidBodyState | None:
-        if self.estimator is None:
-            return next((p.truth for p in packets if p.truth is not None), None)
+        est = self.coordinator.estimate(t_s, packets)
         ekf = self.estimator
-        est = step_estimator(ekf, t_s, packets)
+        if ekf is None:
+            return est
         if not ekf.initialised or not (self.estimate_ready or estimate_settled(ekf)):
             return None
         self.estimate_ready = True  # (once: a failsafe's dead reckoning later grows the sigma again)

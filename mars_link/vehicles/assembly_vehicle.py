@@ -37,7 +37,7 @@ from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import ControlOutput
 from mars_link.coordination.coordinator import Coordinator
 from mars_link.core.errors import UserInputError
-from mars_link.models.estimation_outdoor import estimate_settled, step_estimator
+from mars_link.models.estimation_outdoor import estimate_settled
 from mars_link.core.messages import RotorCommand, wire_thrust, wire_time
 from mars_link.config.scenario import Scenario
 from mars_link.core.state import RigidBodyState
@@ -108,15 +108,17 @@ class AssemblyFlightCore(UnitAutopilot):
         self.zero = np.zeros(self.model.n_rotors)
 
 
-class _KnownEstimate:
-    """Given to the Coordinator as its estimator: the estimate AssemblySim already computed for this
-    step (the EKF runs once per step, also while the vehicle is disarmed and the coordinator idle)."""
+def vehicle_coordinator(scenario: Scenario, model: AssemblyModel, detector, eta: np.ndarray | None = None):
+    """The coordinator behind an assembly vehicle: it owns the estimator (`Coordinator.estimate`, read by
+    the vehicle every period, also while it does not fly); its reference is the vehicle's setpoint
+    (SetpointSource); the vehicle flies the position-loss failsafe itself (VehicleSensorWatch)."""
+    from mars_link.flight.build import make_coordinator, make_estimator
 
-    def __init__(self) -> None:
-        self.estimate: RigidBodyState | None = None
-
-    def step(self, t_s, imu_samples, position_samples) -> RigidBodyState:
-        return self.estimate
+    coordinator = make_coordinator(scenario, model, SetpointSource(TrajectoryPoint(np.zeros(3))),
+                                   make_estimator(scenario, model), detector, eta=eta)
+    coordinator.failsafe = None
+    coordinator.guard_events = False  # (the vehicle reports the guard's findings)
+    return coordinator
 
 
 def assembly_param_specs(sysid: int, model: AssemblyModel, ftc: str) -> list[ParamSpec]:
@@ -338,7 +340,7 @@ class AssemblySim(EngineSim):
     the frames to send; `t_s` is simulation time (scenario faults fire at their `t` from the start)."""
 
     def __init__(self, scenario: Scenario, config: SimConfig | None = None, wall_time_s: float = 0.0) -> None:
-        from mars_link.flight.build import make_coordinator, make_detector, make_estimator, make_unit, make_world
+        from mars_link.flight.build import make_detector, make_unit, make_world
         from mars_link.flight.engine import Engine, Flight, InProcessUnits
 
         cfg = config or SimConfig()
@@ -347,14 +349,12 @@ class AssemblySim(EngineSim):
         hz = s.sim.control_hz
         self.control_dt_s = 1.0 / hz
         self.eta_told = model.nominal_eta()
-        self.estimator = make_estimator(s, model)
         yaw = math.radians(cfg.start_yaw_deg)
         self.world = make_world(s, model, s.sim.seed, np.array([cfg.start_north_m, cfg.start_east_m, 0.0]), yaw)
         # the vehicle starts landed: ground contact at take-off is not a rotor fault
         detector = make_detector(s, model, float(self.world.truth().position_ned_m[2]))
-        self._known = _KnownEstimate()
-        start = TrajectoryPoint(np.zeros(3))
-        self.coordinator = make_coordinator(s, model, SetpointSource(start), self._known, detector, eta=self.eta_told)
+        self.coordinator = vehicle_coordinator(s, model, detector, self.eta_told)
+        self.estimator = self.coordinator.estimator  # (the coordinator's; None: it flies on the truth)
         self.units = InProcessUnits({u: make_unit(s, model, u) for u in model.unit_ids}, self.world)
         params = {**(s.battery.failsafe if s.battery is not None else {}), **(cfg.params or {})}
         self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, params, wall_time_s,
@@ -370,7 +370,6 @@ class AssemblySim(EngineSim):
         self.sensor_watch = None
         self.estimate_ready = False  # the estimate has settled once (estimation_outdoor.estimate_settled)
         if self.estimator is not None:  # the coordinator's detector reads the guard's usable IMUs; the vehicle reports
-            self.coordinator.guard, self.coordinator.guard_events = self.estimator, False
             self.sensor_watch = VehicleSensorWatch(self.vehicle, self.estimator, self.events)
         # the engine's loop; the vehicle's flight modes stand in front of the coordinator, and it flies until stopped
         flight = Flight(s, model, s.sim.seed, self.coordinator.trajectory, self.world, self.units, self.coordinator,
@@ -403,7 +402,6 @@ class AssemblySim(EngineSim):
         self.vehicle.core.drive.packets = packets
         self.vehicle.take_unit_batteries(t, packets)
         est = self._estimate(t, packets)
-        self._known.estimate = est
         if est is not None:
             self.estimate = est
             self.vehicle.set_state(est)
@@ -413,10 +411,10 @@ class AssemblySim(EngineSim):
         return [RotorCommand(tw, u, wired[self.model.unit_slots(u)]) for u in self.model.unit_ids]
 
     def _estimate(self, t: float, packets) -> RigidBodyState | None:
-        if self.estimator is None:
-            return next((p.truth for p in packets if p.truth is not None), None)
+        est = self.coordinator.estimate(t, packets)  # (the gps profile's fixes, barometers and magnetometers too)
         ekf = self.estimator
-        est = step_estimator(ekf, t, packets)  # (the gps profile's fixes, barometers and magnetometers too)
+        if ekf is None:
+            return est
         if not ekf.initialised or not (self.estimate_ready or estimate_settled(ekf)):
             return None
         self.estimate_ready = True  # (once: a failsafe's dead reckoning later grows the sigma again)

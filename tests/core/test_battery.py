@@ -175,13 +175,13 @@ def test_a_lone_unit_flying_itself_lands_on_its_own_critical_battery() -> None:
     level, says so, lands and disarms (on the world's truth)."""
     import dataclasses
 
-    from mars_link.flight.build import make_unit
-    from sitl.world import FreeUnitsWorld, WorldConfig
+    from mars_link.flight.build import make_free_units_world, make_unit
+    from sitl.world import WorldConfig
 
     sc = scenario_from_dict({"name": "lone", "assembly": {"layout": ["X"], "tracked": "com"},
                              "trajectory": {"kind": "hover"}, "sim": {"noise": False},
                              "battery": {"capacity_ah": 0.1, "initial_soc": 0.12, "com_low_bat_act": 2}})
-    world = FreeUnitsWorld(1, sc.model().vehicle, WorldConfig(500.0, 100.0, 1, False, battery=sc.battery))
+    world = make_free_units_world(sc, sc.model().vehicle, 1, 1, WorldConfig(500.0, 100.0, 1, False, battery=sc.battery))
     v = make_unit(sc, sc.model(), 1, coordinator_driven=False)
     assert v.params["COM_LOW_BAT_ACT"] == 2 and v.params["BAT1_CAPACITY"] == pytest.approx(100.0)
     try:
@@ -201,7 +201,7 @@ def test_a_lone_unit_flying_itself_lands_on_its_own_critical_battery() -> None:
         assert took_off and any(t.startswith("Low battery") for t in texts)
         assert any(t.startswith("Critical battery") and t.endswith(": landing") for t in texts)
         assert not v.armed and -world.unit_truth(1).position_ned_m[2] < 0.15  # landed, disarmed
-        assert world.worlds[1].packs.soc[0] < 0.07
+        assert world.packs.soc[0] < 0.07
     finally:
         world.close()
 

@@ -110,7 +110,7 @@ def test_a_real_time_sitl_run_prints_its_command_age_and_scheduling(tmp_path: Pa
 def test_a_world_that_falls_a_second_behind_leaves_sched_fifo(tmp_path: Path, monkeypatch) -> None:
     """A real-time flight this far behind cannot keep real time here, and catching up flat out in SCHED_FIFO
     would leave the rest of the machine 5 % of it: the world (here stopped 1.5 s mid-step) leaves the class."""
-    from mars_link.processes.lockstep import STALL_ENV
+    from mars_link.processes.engine_links import STALL_ENV
 
     monkeypatch.setenv(STALL_ENV, "0.5:1.5")
     sc = load_scenario("hover_3x2")

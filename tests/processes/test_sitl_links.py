@@ -20,7 +20,7 @@ from mars_link.transport.zenoh_link import free_tcp_port
 from mars_link.mavlink.wire import sensor_packet_messages
 from mars_link.processes.launcher import free_udp_port
 from mars_link.processes.links import Link, Ports
-from mars_link.processes.lockstep import COORDINATOR_SYSID, WORLD_SYSID
+from mars_link.processes.engine_links import COORDINATOR_SYSID, WORLD_SYSID
 
 
 def _sensors(t_s: float, unit: int = 1) -> list:

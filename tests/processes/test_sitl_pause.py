@@ -158,9 +158,9 @@ def test_a_paused_world_resumes_and_a_paused_coordinator_lands_the_units(tmp_pat
 def test_a_world_stalled_between_two_units_sensors_loses_nobody(tmp_path: Path) -> None:
     """The world stops for 2.5 s after sending unit 1 its sensors and before the others (a SIGSTOP that lands
     mid-send did this once): the coordinator, holding unit 1's telemetry, starts the step's 1 s silence
-    deadline only once the world says every unit has its step (mars_link.processes.lockstep.step_sent_message), so no unit
+    deadline only once the world says every unit has its step (mars_link.processes.engine_links.step_sent_message), so no unit
     is lost and the hover flies to its end."""
-    from mars_link.processes.lockstep import STALL_ENV
+    from mars_link.processes.engine_links import STALL_ENV
 
     out = tmp_path / "run"
     env = {**os.environ, STALL_ENV: "1.0:2.5"}

@@ -14,7 +14,7 @@ from mars_link.core.messages import ImuSample, PositionSample, RotorCommand, Sen
 from mars_link.core.state import RigidBodyState
 from mars_link.mavlink.wire import new_mav, rotor_command_message, sensor_packet_messages, usec
 from sitl.hil import hil_state_message
-from mars_link.processes.lockstep import _with_takeover
+from mars_link.processes.engine_links import _with_takeover
 
 WORLD, COORD = new_mav(200), new_mav(201)
 
@@ -92,7 +92,7 @@ def test_silent_coordinator_releases_the_step_then_the_unit_stops_waiting() -> N
 
 
 def test_world_refuses_broken_actuator_outputs() -> None:
-    from mars_link.processes.lockstep import actuator_controls_ok
+    from mars_link.processes.engine_links import actuator_controls_ok
 
     assert actuator_controls_ok([0.2, 0.3, 0.4, 1.0] + [0.0] * 12)
     assert actuator_controls_ok([-0.5, 0.3, 0.4, 0.5], control_min=-1.0)  # paper plant: reversed thrust
@@ -101,7 +101,7 @@ def test_world_refuses_broken_actuator_outputs() -> None:
 
 
 def test_coordinator_refuses_non_finite_telemetry() -> None:
-    from mars_link.processes.lockstep import telemetry_ok
+    from mars_link.processes.engine_links import telemetry_ok
 
     imu = ImuSample(0.0, 1, np.zeros(3), np.array([0.0, 0.0, -9.81]))
     assert telemetry_ok(SensorPacket(0.0, 1, imu, PositionSample(0.0, 1, np.zeros(3), None), None))
