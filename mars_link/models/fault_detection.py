@@ -77,6 +77,7 @@ class FaultDetectorParams:
     spread_swap_rounds: int = 4  # ... and refined by this many rounds of one-rotor swaps
     spread_search_every_s: float = 0.03  # ... searched anew this often (in between: its best sets refitted ...)
     spread_keep: int = 64  # ... this many of each size
+    spread_candidates: int = 48  # ... among this many rotors, those that explain most alone (a 3x3 has 36)
     spread_max_misfit: float = 2.0  # ... leaving residuals at most this many times the noise model (a gust: 5-6)
     spread_min_share: float = 0.02  # ... and explaining this share more than the one-unit hypotheses
     # the residuals' own spread before the change (unmodelled air: gusts, rotor drag's yaw) floors their noise
@@ -686,6 +687,9 @@ class FaultDetector:
                        hi_all: np.ndarray, ridge: float) -> dict[int, np.ndarray]:
         """The rotor sets worth fitting, by size (rows of sorted slots): beam, backward seeds, swaps."""
         p = self.params
+        if len(candidates) > p.spread_candidates:  # (a large assembly: the rotors that explain most on their own)
+            _, imp = _support_fit(A, g, candidates[:, None], lo_all, hi_all, ridge)
+            candidates = np.sort(candidates[np.argsort(-imp, kind="stable")[:p.spread_candidates]])
         beam = np.zeros((1, 0), dtype=int)
         found: dict[int, np.ndarray] = {}
         for size in range(1, min(p.max_spread_rotors, len(candidates)) + 1):
