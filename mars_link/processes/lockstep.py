@@ -92,7 +92,8 @@ from mars_link.processes.parent_watch import die_with_parent
 from mars_link.core.events import unit_died
 from mars_link.core.errors import EnvironmentFailure, UserInputError
 from mars_link.runtime.machine_load import IdleMeter, LoopMeter
-from mars_link.core.messages import BatterySample, SensorPacket
+from mars_link.core.messages import BatterySample, EscSample, SensorPacket
+from mars_link.mavlink.esc_status import esc_from_message
 from mars_link.logs.outputs import SafeWriter, write_json
 from mars_link.runtime.pacing import Pacer, SilenceDeadline
 from mars_link.runtime.scheduling import OverloadValve, take_realtime_class
@@ -799,6 +800,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     assembler = SensorPacketAssembler()
     latches = LatchSensor()
     batteries: dict[int, BatterySample] = {}  # each unit's last BATTERY_STATUS, until its packet comes
+    escs: dict[int, EscSample] = {}  # ... and ESC_STATUS
     out.mkdir(parents=True, exist_ok=True)
     pieces_log = SafeWriter.open(out / "pieces_steps.csv") if setup.pieces else None  # (a full disk stops it)
     if pieces_log:
@@ -886,12 +888,21 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
                         else:
                             batteries[m.get_srcSystem()] = sample
                         continue
+                    if m.get_type() == "ESC_STATUS":  # the unit's ESC telemetry, for its next sensor packet
+                        esc = esc_from_message(m)
+                        if esc is None:
+                            link.drop("bad_esc_status")
+                        else:
+                            escs[m.get_srcSystem()] = esc
+                        continue
                     p = assembler.feed(m)
                     if p is None:
                         continue
                     p.latches = latches.mask.get(p.unit_id, 0)
                     if batteries:
                         p.battery = batteries.pop(p.unit_id, None)
+                    if escs:
+                        p.esc = escs.pop(p.unit_id, None)
                     if not telemetry_ok(p):
                         link.drop("bad_telemetry")  # non-finite: never into the estimator
                         continue
