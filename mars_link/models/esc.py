@@ -12,7 +12,8 @@ yaw_moment_per_thrust_m), motor current I = Q / K_t + I_0, K_t = 60 / (2 pi KV) 
 the command through the vehicle's first-order motor lag (the world's thrust lag, the same discretisation).
 What the ESC sees for each fault kind (mars_link.config.scenario FAULT_KINDS; eta = the remaining thrust):
 
-* "eta" (default: a damaged propeller): the speed as commanded, the load current eta times a healthy one's.
+* "eta" (default: a damaged propeller): the speed as commanded, the load current eta times a healthy one's;
+  eta 0 is a motor off (firmware_models.motor's meaning of it, a dead unit's four rotors): seen as motor-stop.
 * "prop-loss" (a propeller lost or broken): the motor, unloaded, spins faster than commanded (by
   `overspeed_unloaded` times the share of the load lost) and draws only the remaining load's current.
 * "motor-stop" (the motor or its ESC stopped): the rotor coasts down through the motor lag, current 0.
@@ -73,12 +74,12 @@ class MotorConstants:
                    60.0 / (2.0 * math.pi * p.kv_rpm_per_v), p.no_load_current_a, vehicle.motor_time_constant_s,
                    vehicle.rotor_min_thrust_n, vehicle.rotor_max_thrust_n)
 
-    def rpm(self, thrust_n: np.ndarray) -> np.ndarray:
-        """Speed (rpm, negative = reversed) of a healthy rotor making `thrust_n`."""
+    def rpm(self, thrust_n) -> np.ndarray:
+        """Speed (rpm, negative = reversed) of a healthy rotor making `thrust_n` (a number or an array)."""
         t = np.asarray(thrust_n, dtype=float)
         return np.sign(t) * self.rpm_at_full_scale * np.sqrt(np.abs(t) / self.full_scale_n)
 
-    def load_current_a(self, thrust_n: np.ndarray) -> np.ndarray:
+    def load_current_a(self, thrust_n) -> np.ndarray:
         """The current a healthy rotor's aerodynamic torque draws at `thrust_n` (without the no-load current)."""
         return self.torque_per_thrust_m * np.abs(np.asarray(thrust_n, dtype=float)) / self.torque_constant_nm_per_a
 
@@ -127,7 +128,8 @@ class EscSensor:
         c = self.constants
         dt = 0.0 if self._t_last is None else max(t_s - self._t_last, 0.0)
         self._t_last = t_s
-        stopped = np.array([k == "motor-stop" for k in self.kind])
+        # eta 0 of the default kind is a motor off (firmware_models.motor): the ESC sees it stopped
+        stopped = np.array([k == "motor-stop" or (k == "eta" and e <= 0.0) for k, e in zip(self.kind, eta)])
         setpoint = np.where(stopped, 0.0, c.clamp(np.asarray(commands_n, dtype=float)))
         self.speed_n = c.lag(self.speed_n, setpoint, dt)
         if t_s < self._next_s - 1e-9 or self.failure == "off":

@@ -49,6 +49,8 @@ class EscMonitorParams:
     spread_sigmas: float = 4.0
     spread_margin: float = 0.05
     stale_s: float = 0.1
+    dead_eta: float = 0.1  # a unit whose four rotors are all believed below this is reported as failed
+    unit_wait_s: float = 0.12  # a dead rotor's report waits this long for its unit's other rotors to follow
     stuck_samples: int = 3  # identical samples in a row: the telemetry is stuck (0: not judged, noise off)
 
 
@@ -59,6 +61,7 @@ class _Rotor:
     runs: int = 0  # consecutive samples with the speed above the stop ratio
     belief: float | None = None  # believed eta (None: healthy)
     kind: str = ""
+    last_load: float = 1.0
 
 
 class EscMonitor:
@@ -77,6 +80,7 @@ class EscMonitor:
         self._repeats: dict[int, int] = {}
         self._seen_s: dict[int, float] = {}
         self._found: list[Detection] = []
+        self._held: dict[int, list[Detection]] = {}  # unit -> dead rotors' reports waiting for the rest of it
         self._retracted: list[tuple[int, int]] = []
 
     # ----------------------------------------------------------------- inputs
@@ -110,6 +114,7 @@ class EscMonitor:
                 speed = s.rpm[r] / float(c.rpm(thrust))
                 load = (s.current_a[r] - c.no_load_current_a) / float(c.load_current_a(thrust))
                 self._judge(t_s, uid, r + 1, self.rotors[slot], speed, load, thrust)
+        self._release(t_s)
 
     def covered(self, t_s: float) -> np.ndarray:
         """Per rotor: its unit's ESC telemetry is live (fresh and not stuck)."""
@@ -141,6 +146,7 @@ class EscMonitor:
     def _judge(self, t_s: float, unit: int, rotor: int, st: _Rotor, speed: float, load: float,
                thrust_n: float) -> None:
         p = self.params
+        st.last_load = 0.0 if speed < p.stop_speed_ratio else load
         # a running motor draws at least its no-load current: a dead ESC reports (next to) none
         stopped = speed < p.stop_speed_ratio or load * float(self.constants.load_current_a(thrust_n)) < \
             -0.5 * self.constants.no_load_current_a
@@ -174,4 +180,26 @@ class EscMonitor:
     def _believe(self, t_s: float, unit: int, rotor: int, st: _Rotor, eta: float, kind: str) -> None:
         st.belief, st.kind = float(np.clip(eta, 0.0, 1.0)), kind
         st.loads.clear()
-        self._found.append(Detection(t_s, unit, rotor, st.belief, t_onset=t_s, reason=f"esc {kind}"))
+        det = Detection(t_s, unit, rotor, st.belief, t_onset=t_s, reason=f"esc {kind}")
+        if st.belief <= self.params.dead_eta:  # (maybe the whole unit: `_release` decides)
+            self._held.setdefault(unit, []).append(det)
+        else:
+            self._found.append(det)
+
+    def _release(self, t_s: float) -> None:
+        """Dead rotors' reports: one whole-unit failure once all four rotors of the unit are dead; each rotor
+        alone once the wait is over, or when no other rotor of the unit is losing its load."""
+        p = self.params
+        for unit in list(self._held):
+            held = self._held[unit]
+            slots = range((unit - 1) * ROTORS_PER_UNIT, unit * ROTORS_PER_UNIT)
+            states = [self.rotors[j] for j in slots]
+            if all(r.belief is not None and r.belief <= p.dead_eta for r in states):
+                self._found.append(Detection(held[-1].t_detected, unit, None, 0.0, t_onset=held[0].t_onset,
+                                             reason="esc unit"))
+            elif t_s - held[0].t_detected < p.unit_wait_s - 1e-9 and any(
+                    r.belief is None and r.last_load < 0.5 for r in states):
+                continue
+            else:
+                self._found += held
+            del self._held[unit]
