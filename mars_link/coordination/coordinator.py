@@ -89,6 +89,7 @@ class Coordinator:
         #: the ESC telemetry's monitor (mars_link.models.esc_monitor), beside `detector`: its beliefs take
         #: precedence on the rotors its telemetry covers (`_esc_step`); None: no ESC telemetry is used
         self.esc_monitor = None
+        self._detector_untold = False  # the ESCs' beliefs changed since the motion detector was last told
         self.detections: list = []  # fault_detection.Detection, from residuals and lost units
         self.eta_believed = model.nominal_eta()
         self.events: list[dict] = []  # every event has "t_s", "type" and "text" (<= 50 chars, STATUSTEXT)
@@ -308,8 +309,15 @@ class Coordinator:
             self._to_detect = None
             motion = self.detector.update(t_s, thrusts, estimate, imus)
             found += [d for d in motion if not self._esc_overrules(d, t_s)] if self.esc_monitor else motion
-            if len(motion) > len(found) and not gone and all(d.reason.startswith("esc") for d in found):
-                self._believed_eta(t_s)  # (all overruled: the motion detector is told what the ESCs see)
+            self._detector_untold |= bool(motion) and self.esc_monitor is not None
+        self._detector_untold |= bool(found or gone) and self.esc_monitor is not None
+        if self._detector_untold and self.detector is not None and not self.detector.isolating:
+            # the motion detector judges its residuals against what the ESCs see; told between its alarms
+            # (telling restarts it: an alarm in progress would be lost)
+            self._detector_untold = False
+            believed = self._believed_eta(self.last.t_s)
+            if not np.array_equal(believed, np.clip(self.detector.eta_estimate, 0.0, 1.0)):
+                self.detector.set_model(self.model, believed)
         if not found and not gone:
             return
         t_s = self.last.t_s
@@ -332,11 +340,11 @@ class Coordinator:
         self.set_faults(self._believed_eta(t_s), t_s, f"detected: {what}")
 
     def _esc_overrules(self, d, t_s: float) -> bool:
-        """A motion detection on rotors whose live ESC telemetry says they are healthy: not believed."""
+        """A motion detection on rotors the ESC telemetry covers (or has a belief on): the ESCs' word stands."""
         slots = np.arange(self.model.n_rotors)[self.model.unit_slots(d.unit)] if d.rotor is None \
             else [self.model.rotor_slot(d.unit, d.rotor)]
         covered, beliefs = self.esc_monitor.covered(t_s), self.esc_monitor.beliefs()
-        return all(covered[j] and j not in beliefs for j in slots)
+        return all(covered[j] or j in beliefs for j in slots)
 
     def _esc_changes(self) -> tuple[list, list]:
         """The ESC monitor's new and withdrawn beliefs since the last step."""
@@ -346,8 +354,7 @@ class Coordinator:
 
     def _believed_eta(self, t_s: float) -> np.ndarray:
         """Every rotor's believed efficiency: the motion detector's, but where the ESC telemetry covers a rotor
-        or believes it faulty, the ESC monitor's. The motion detector is told the result (it judges its
-        residuals against it)."""
+        or believes it faulty, the ESC monitor's."""
         eta = self.eta_believed.copy() if self.detector is None else np.clip(self.detector.eta_estimate, 0.0, 1.0)
         if self.esc_monitor is None:
             return eta
@@ -356,6 +363,4 @@ class Coordinator:
             esc[slot] = belief
         for uid in self.lost_units:  # (a lost unit stays failed whatever its last telemetry said)
             esc[self.model.unit_slots(uid)] = 0.0
-        if self.detector is not None and not np.array_equal(esc, eta):
-            self.detector.set_model(self.model, esc)
         return esc

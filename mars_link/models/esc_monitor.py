@@ -19,7 +19,8 @@ healthy one's aerodynamic load: its eta, whatever the speed). Judged only while 
   near 1), or replaced when its eta moved by more than `min_change`.
 
 A unit whose samples stop (older than `stale_s`) or repeat exactly (a stuck ESC: real readings carry noise)
-is not covered: its rotors are left to the motion detector, and its beliefs are kept as they were.
+is not covered, nor is a rotor commanded too little thrust to judge: those are left to the motion detector,
+and the ESCs' beliefs on them are kept as they were.
 """
 
 from __future__ import annotations
@@ -50,7 +51,9 @@ class EscMonitorParams:
     spread_margin: float = 0.05
     stale_s: float = 0.1
     dead_eta: float = 0.1  # a unit whose four rotors are all believed below this is reported as failed
-    unit_wait_s: float = 0.12  # a dead rotor's report waits this long for its unit's other rotors to follow
+    # a dead rotor's report waits up to this long while its unit's other rotors lose their load or are not judged
+    # (too little thrust commanded): a dead corner unit in gusty air had two rotors unjudged for 0.16 s
+    unit_wait_s: float = 0.2
     stuck_samples: int = 3  # identical samples in a row: the telemetry is stuck (0: not judged, noise off)
 
 
@@ -61,7 +64,8 @@ class _Rotor:
     runs: int = 0  # consecutive samples with the speed above the stop ratio
     belief: float | None = None  # believed eta (None: healthy)
     kind: str = ""
-    last_load: float = 1.0
+    last_load: float = 1.0  # the last sample's load ratio (nan: not judged at the last sample)
+    judged_s: float = -math.inf  # when its reading was last judged (enough thrust commanded)
 
 
 class EscMonitor:
@@ -109,19 +113,24 @@ class EscMonitor:
             for r in range(ROTORS_PER_UNIT):
                 slot = base + r
                 thrust = float(self.predicted_n[slot])
-                if thrust < judged_n:
+                if abs(thrust) < judged_n:  # (a reversible plant's rotors are judged both ways)
+                    self.rotors[slot].last_load = math.nan  # (not judged now: unknown)
                     continue
                 speed = s.rpm[r] / float(c.rpm(thrust))
                 load = (s.current_a[r] - c.no_load_current_a) / float(c.load_current_a(thrust))
-                self._judge(t_s, uid, r + 1, self.rotors[slot], speed, load, thrust)
+                self.rotors[slot].judged_s = t_s
+                self._judge(t_s, uid, r + 1, self.rotors[slot], speed, load, abs(thrust))
         self._release(t_s)
 
     def covered(self, t_s: float) -> np.ndarray:
-        """Per rotor: its unit's ESC telemetry is live (fresh and not stuck)."""
+        """Per rotor: its unit's ESC telemetry is live (fresh and not stuck) and the rotor was judged lately
+        (commanded enough thrust to tell a fault)."""
         out = np.zeros(self.n, dtype=bool)
+        stale = self.params.stale_s + 1e-9
         for uid, seen in self._seen_s.items():
-            if t_s - seen <= self.params.stale_s + 1e-9 and not self._stuck(uid):
-                out[self.model.unit_slots(uid)] = True
+            if t_s - seen <= stale and not self._stuck(uid):
+                for j in range((uid - 1) * ROTORS_PER_UNIT, uid * ROTORS_PER_UNIT):
+                    out[j] = t_s - self.rotors[j].judged_s <= stale
         return out
 
     def _stuck(self, uid: int) -> bool:
@@ -198,7 +207,7 @@ class EscMonitor:
                 self._found.append(Detection(held[-1].t_detected, unit, None, 0.0, t_onset=held[0].t_onset,
                                              reason="esc unit"))
             elif t_s - held[0].t_detected < p.unit_wait_s - 1e-9 and any(
-                    r.belief is None and r.last_load < 0.5 for r in states):
+                    r.belief is None and not r.last_load >= 0.5 for r in states):  # (losing its load, or unknown)
                 continue
             else:
                 self._found += held

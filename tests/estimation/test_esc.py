@@ -214,3 +214,21 @@ def test_monitor_withdraws_a_belief_that_later_readings_contradict() -> None:
     t = _monitor_feed(monitor, c, t, 20, 1.0, rng, stuck=held)
     assert not monitor.covered(t).any() and monitor.take_changes() == ([], [])
     assert math.isfinite(t)
+
+
+def test_failed_esc_telemetry_makes_no_belief_and_its_unit_is_left_to_the_motion_detector() -> None:
+    """Unit 2's ESC telemetry sticks and unit 4's stops at 2 s; at 3 s unit 6 loses rotor 1's propeller (its
+    ESC sees it). Neither failed telemetry makes a belief, and their units are no longer covered (the motion
+    detector's alone)."""
+    doc = _doc([{"t": FAULT_T_S, "unit": 6, "rotor": 1, "kind": "prop-loss"}], duration_s=5.0)
+    doc["sensor_faults"] = [{"t": 2.0, "sensor": "esc", "type": "stuck", "unit": 2},
+                            {"t": 2.0, "sensor": "esc", "type": "off", "unit": 4}]
+    flight, recorder, watch, engine = _fly(doc)
+    assert all(4 not in escs for t, escs, _, _ in watch.rows if t > 2.01)
+    truth, found, false = _isolation(_beliefs(flight, engine), FAULT_T_S)
+    assert false == [] and set(found) == set(truth), found
+    assert found[(6, 1)][0] <= 0.5 and abs(found[(6, 1)][1]) <= 0.1
+    monitor = next(iter(flight.coordinator.pieces.values())).coordinator.esc_monitor
+    covered = monitor.covered(flight.world.t_s - 0.01).reshape(-1, ROTORS_PER_UNIT).all(axis=1)
+    assert covered.tolist() == [True, False, True, False, True, True]
+    assert not recorder.metrics.diverged
