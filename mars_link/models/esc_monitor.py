@@ -26,8 +26,7 @@ and the ESCs' beliefs on them are kept as they were.
 from __future__ import annotations
 
 import math
-from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -57,29 +56,27 @@ class EscMonitorParams:
     stuck_samples: int = 3  # identical samples in a row: the telemetry is stuck (0: not judged, noise off)
 
 
-@dataclass
-class _Rotor:
-    loads: deque = field(default_factory=deque)
-    stops: int = 0
-    runs: int = 0  # consecutive samples with the speed above the stop ratio
-    belief: float | None = None  # believed eta (None: healthy)
-    kind: str = ""
-    last_load: float = 1.0  # the last sample's load ratio (nan: not judged at the last sample)
-    judged_s: float = -math.inf  # when its reading was last judged (enough thrust commanded)
-
-
 class EscMonitor:
+    """Per-rotor state in arrays (slot order of the model): a sample of every unit is judged in a few numpy
+    operations, and only the rotors whose state may change (a stop, a full window away from its belief) in Python."""
+
     def __init__(self, model: AssemblyModel, esc: EscParams | None = None,
                  params: EscMonitorParams | None = None) -> None:
         self.model = model
         self.esc = esc or EscParams()
         self.params = params or EscMonitorParams()
         self.constants = MotorConstants.for_vehicle(model.vehicle, self.esc)
-        self.n = model.n_rotors
-        self.predicted_n = np.zeros(self.n)  # each rotor's thrust as the commands predict it, now
-        self._command_n = np.zeros(self.n)  # the last period's command (held until the next)
+        n = self.n = model.n_rotors
+        self.predicted_n = np.zeros(n)  # each rotor's thrust as the commands predict it, now
+        self._command_n = np.zeros(n)  # the last period's command (held until the next)
         self._t_command: float | None = None
-        self.rotors = [_Rotor(deque(maxlen=self.params.window)) for _ in range(self.n)]
+        self._loads = np.zeros((n, self.params.window))  # the last load ratios, newest last
+        self._count = np.zeros(n, dtype=int)  # valid samples in the window (since the last change)
+        self._stops = np.zeros(n, dtype=int)  # consecutive stopped samples
+        self.last_load = np.ones(n)  # the last sample's load ratio (nan: not judged at the last sample)
+        self._judged_s = np.full(n, -math.inf)  # when each reading was last judged (enough thrust commanded)
+        self.belief = np.full(n, math.nan)  # believed eta (nan: healthy)
+        self.kind = [""] * n  # the belief's kind: "motor-stop" or "load"
         self._last: dict[int, EscSample] = {}
         self._repeats: dict[int, int] = {}
         self._seen_s: dict[int, float] = {}
@@ -98,9 +95,11 @@ class EscMonitor:
         """The units' ESC samples taken at `t_s` (unit id -> sample)."""
         self._advance(t_s)
         c, p = self.constants, self.params
-        judged_n = p.min_judged_thrust_fraction * c.full_scale_n
+        slots: list[int] = []
+        rpm: list[int] = []
+        current: list[float] = []
         for uid, s in samples.items():
-            if uid not in self.model.unit_cells or len(s.rpm) != ROTORS_PER_UNIT:
+            if uid not in self.model.unit_cells or len(s.rpm) != ROTORS_PER_UNIT or len(s.current_a) != ROTORS_PER_UNIT:
                 continue
             last = self._last.get(uid)
             same = last is not None and last.rpm == s.rpm and last.current_a == s.current_a and any(s.rpm)
@@ -110,35 +109,29 @@ class EscMonitor:
             if self._stuck(uid):
                 continue  # a stuck ESC: nothing learnt from it
             base = (uid - 1) * ROTORS_PER_UNIT
-            for r in range(ROTORS_PER_UNIT):
-                slot = base + r
-                thrust = float(self.predicted_n[slot])
-                if abs(thrust) < judged_n:  # (a reversible plant's rotors are judged both ways)
-                    self.rotors[slot].last_load = math.nan  # (not judged now: unknown)
-                    continue
-                speed = s.rpm[r] / float(c.rpm(thrust))
-                load = (s.current_a[r] - c.no_load_current_a) / float(c.load_current_a(thrust))
-                self.rotors[slot].judged_s = t_s
-                self._judge(t_s, uid, r + 1, self.rotors[slot], speed, load, abs(thrust))
+            slots += range(base, base + ROTORS_PER_UNIT)
+            rpm += s.rpm
+            current += s.current_a
+        if slots:
+            self._judge(t_s, np.array(slots), np.array(rpm, dtype=float), np.array(current))
         self._release(t_s)
 
     def covered(self, t_s: float) -> np.ndarray:
         """Per rotor: its unit's ESC telemetry is live (fresh and not stuck) and the rotor was judged lately
         (commanded enough thrust to tell a fault)."""
-        out = np.zeros(self.n, dtype=bool)
+        live = np.zeros(self.n, dtype=bool)
         stale = self.params.stale_s + 1e-9
         for uid, seen in self._seen_s.items():
             if t_s - seen <= stale and not self._stuck(uid):
-                for j in range((uid - 1) * ROTORS_PER_UNIT, uid * ROTORS_PER_UNIT):
-                    out[j] = t_s - self.rotors[j].judged_s <= stale
-        return out
+                live[self.model.unit_slots(uid)] = True
+        return live & (t_s - self._judged_s <= stale)
 
     def _stuck(self, uid: int) -> bool:
         return bool(self.params.stuck_samples) and self._repeats.get(uid, 0) >= self.params.stuck_samples - 1
 
     def beliefs(self) -> dict[int, float]:
         """Slot -> believed eta, for every rotor the ESCs believe faulty."""
-        return {j: r.belief for j, r in enumerate(self.rotors) if r.belief is not None}
+        return {int(j): float(self.belief[j]) for j in np.flatnonzero(~np.isnan(self.belief))}
 
     def take_changes(self) -> tuple[list[Detection], list[tuple[int, int]]]:
         """New beliefs and withdrawn ones ((unit, rotor)) since the last call."""
@@ -152,45 +145,58 @@ class EscMonitor:
             self.predicted_n = self.constants.lag(self.predicted_n, self._command_n, t_s - self._t_command)
             self._t_command = t_s
 
-    def _judge(self, t_s: float, unit: int, rotor: int, st: _Rotor, speed: float, load: float,
-               thrust_n: float) -> None:
-        p = self.params
-        st.last_load = 0.0 if speed < p.stop_speed_ratio else load
+    def _judge(self, t_s: float, slots: np.ndarray, rpm: np.ndarray, current: np.ndarray) -> None:
+        """One sample of these rotors: the stop test, the load window, and the beliefs they change."""
+        c, p = self.constants, self.params
+        thrust = self.predicted_n[slots]
+        judged = np.abs(thrust) >= p.min_judged_thrust_fraction * c.full_scale_n  # (reversible plants: both ways)
+        self.last_load[slots[~judged]] = math.nan  # (not judged now: unknown)
+        slots, rpm, current, thrust = slots[judged], rpm[judged], current[judged], thrust[judged]
+        if not slots.size:
+            return
+        self._judged_s[slots] = t_s
+        load_a = c.load_current_a(thrust)
+        speed = rpm / c.rpm(thrust)
+        load = (current - c.no_load_current_a) / load_a
+        slow = speed < p.stop_speed_ratio
         # a running motor draws at least its no-load current: a dead ESC reports (next to) none
-        stopped = speed < p.stop_speed_ratio or load * float(self.constants.load_current_a(thrust_n)) < \
-            -0.5 * self.constants.no_load_current_a
-        st.stops = st.stops + 1 if stopped else 0
-        st.runs = 0 if stopped else st.runs + 1
-        if stopped:
-            st.loads.clear()
-            if st.stops >= p.stop_samples and st.kind != "motor-stop":
-                self._believe(t_s, unit, rotor, st, 0.0, "motor-stop")
-            return
-        st.loads.append(load)
-        if len(st.loads) < p.window:
-            return
-        mean = float(np.mean(st.loads))
-        sample_sigma = self.esc.current_noise_a / float(self.constants.load_current_a(thrust_n))
-        if max(abs(x - mean) for x in st.loads) > p.spread_sigmas * sample_sigma + p.spread_margin:
-            return  # samples from both sides of a change: wait until the window holds one side only
-        margin = max(p.min_change, p.z_threshold * sample_sigma / math.sqrt(p.window))
-        if st.belief is None:
-            if 1.0 - mean > margin:
-                self._believe(t_s, unit, rotor, st, mean, "load")
-            return
-        if st.kind == "motor-stop" or abs(mean - st.belief) > margin:
-            if 1.0 - mean <= margin:  # the rotor runs as a healthy one: the belief is withdrawn
-                st.belief, st.kind = None, ""
-                st.loads.clear()
-                self._retracted.append((unit, rotor))
+        stopped = slow | (current < 0.5 * c.no_load_current_a)
+        self.last_load[slots] = np.where(slow, 0.0, load)
+        self._stops[slots] = np.where(stopped, self._stops[slots] + 1, 0)
+        self._count[slots[stopped]] = 0
+        run, run_load, run_a = slots[~stopped], load[~stopped], load_a[~stopped]
+        self._loads[run, :-1] = self._loads[run, 1:]
+        self._loads[run, -1] = run_load
+        self._count[run] = np.minimum(self._count[run] + 1, p.window)
+        full = self._count[run] >= p.window
+        window, sample_sigma = self._loads[run[full]], self.esc.current_noise_a / run_a[full]
+        mean = window.mean(axis=1)
+        steady = np.abs(window - mean[:, None]).max(axis=1) <= p.spread_sigmas * sample_sigma + p.spread_margin
+        margin = np.maximum(p.min_change, p.z_threshold * sample_sigma / math.sqrt(p.window))
+        belief = self.belief[run[full]]
+        healthy = np.isnan(belief)
+        # (a window that straddles a change is not judged: its mean would be a blend of both sides)
+        moved = steady & np.where(healthy, 1.0 - mean > margin, np.abs(mean - belief) > margin)
+        for j in slots[stopped & (self._stops[slots] >= p.stop_samples)]:
+            if self.kind[j] != "motor-stop":
+                self._believe(t_s, int(j), 0.0, "motor-stop")
+        for j, m, lim in zip(run[full][moved], mean[moved], margin[moved]):
+            if not np.isnan(self.belief[j]) and 1.0 - m <= lim:  # the rotor runs as a healthy one: withdrawn
+                self.belief[j], self.kind[j] = math.nan, ""
+                self._count[j] = 0
+                self._retracted.append((int(j) // ROTORS_PER_UNIT + 1, int(j) % ROTORS_PER_UNIT + 1))
             else:
-                self._believe(t_s, unit, rotor, st, mean, "load")
+                self._believe(t_s, int(j), float(m), "load")
+        for j in run[full][steady & ~healthy & ~moved]:
+            if self.kind[j] == "motor-stop":  # (running again, its load where it was believed: now a load belief)
+                self.kind[j] = "load"
 
-    def _believe(self, t_s: float, unit: int, rotor: int, st: _Rotor, eta: float, kind: str) -> None:
-        st.belief, st.kind = float(np.clip(eta, 0.0, 1.0)), kind
-        st.loads.clear()
-        det = Detection(t_s, unit, rotor, st.belief, t_onset=t_s, reason=f"esc {kind}")
-        if st.belief <= self.params.dead_eta:  # (maybe the whole unit: `_release` decides)
+    def _believe(self, t_s: float, slot: int, eta: float, kind: str) -> None:
+        self.belief[slot], self.kind[slot] = float(np.clip(eta, 0.0, 1.0)), kind
+        self._count[slot] = 0
+        unit, rotor = slot // ROTORS_PER_UNIT + 1, slot % ROTORS_PER_UNIT + 1
+        det = Detection(t_s, unit, rotor, float(self.belief[slot]), t_onset=t_s, reason=f"esc {kind}")
+        if self.belief[slot] <= self.params.dead_eta:  # (maybe the whole unit: `_release` decides)
             self._held.setdefault(unit, []).append(det)
         else:
             self._found.append(det)
@@ -201,14 +207,13 @@ class EscMonitor:
         p = self.params
         for unit in list(self._held):
             held = self._held[unit]
-            slots = range((unit - 1) * ROTORS_PER_UNIT, unit * ROTORS_PER_UNIT)
-            states = [self.rotors[j] for j in slots]
-            if all(r.belief is not None and r.belief <= p.dead_eta for r in states):
+            sl = self.model.unit_slots(unit)
+            belief, last = self.belief[sl], self.last_load[sl]
+            if np.all(belief <= p.dead_eta):  # (nan compares false: a healthy rotor)
                 self._found.append(Detection(held[-1].t_detected, unit, None, 0.0, t_onset=held[0].t_onset,
                                              reason="esc unit"))
-            elif t_s - held[0].t_detected < p.unit_wait_s - 1e-9 and any(
-                    r.belief is None and not r.last_load >= 0.5 for r in states):  # (losing its load, or unknown)
-                continue
+            elif t_s - held[0].t_detected < p.unit_wait_s - 1e-9 and np.any(np.isnan(belief) & ~(last >= 0.5)):
+                continue  # (another rotor losing its load, or unknown: wait for it)
             else:
                 self._found += held
             del self._held[unit]
