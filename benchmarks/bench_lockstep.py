@@ -46,7 +46,6 @@ from mars_link.mavlink.wire import (
 from sitl.hil import hil_state_message
 from mars_link.processes.lockstep import _with_takeover
 
-ROOT = Path(__file__).resolve().parent.parent
 FULL_SCALE_N = 10.0
 
 
@@ -155,7 +154,7 @@ def _sensor_datagram(mav, state, packet, t_s: float) -> bytes:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=3, help="lockstep runs per configuration (RTF: best and median)")
-    ap.add_argument("--scenario", default=str(ROOT / "mars_link" / "scenarios" / "hover_3x2.toml"))
+    ap.add_argument("--scenario", default="hover_3x2", help="a bundled scenario's name or a path")
     ap.add_argument("--layout", default=None, help="e.g. XXXXX,XXXXX,XXXXX,XXXXX,XXXXX (5x5, 25 unit processes)")
     ap.add_argument("--transport", default="udp", help="udp, zenoh, or both: udp,zenoh")
     ap.add_argument("--units-per-process", default="1", help="K unit firmwares per process; several: 1,5")

@@ -20,8 +20,9 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from record import Recorder, add_json_option, apply_quick
 from firmware_models.motor import MotorModel, MotorParams
+from mars_link.mavlink.codec import split_frames
 from mars_link.mavlink.signing import SignatureVerifier, enable_outgoing_signing
-from firmware_models.vehicle import LINK_API, LINK_COORDINATOR, Vehicle, VehicleConfig, split_frames
+from firmware_models.vehicle import LINK_API, LINK_COORDINATOR, Vehicle, VehicleConfig
 from mars_link.core.state import RigidBodyState
 
 KEY = hashlib.sha256(b"bench").digest()

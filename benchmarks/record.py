@@ -36,6 +36,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from mars_link.config.scenario import SCENARIO_DIR
+
 BENCH_DIR = Path(__file__).resolve().parent
 ROOT = BENCH_DIR.parent
 RESULTS_ENV = "MARS_LINK_BENCH_RESULTS"
@@ -65,6 +67,34 @@ def apply_quick(parser: argparse.ArgumentParser, args: argparse.Namespace, **qui
     for name, value in quick.items():
         if getattr(args, name) == parser.get_default(name):
             setattr(args, name, value)
+
+
+def portable(value: Any) -> Any:
+    """An option value as a results file keeps it: a bundled scenario by its name, a path inside the repository
+    relative to it, any other path by its file name alone. Results are committed and compared across machines,
+    so no path of the machine that ran the benchmark lands in them. Lists and comma-separated lists item by item."""
+    if isinstance(value, list):
+        return [portable(v) for v in value]
+    if not isinstance(value, str) or "/" not in value and os.sep not in value:
+        return value  # (a word, a number: not a path)
+    if "," in value:
+        return ",".join(portable(part) for part in value.split(","))
+    path = Path(value).expanduser()
+    resolved = (path if path.is_absolute() else Path.cwd() / path).resolve()
+    if resolved.suffix == ".toml" and resolved.parent == SCENARIO_DIR.resolve():
+        return resolved.stem
+    if resolved.is_relative_to(ROOT):
+        return resolved.relative_to(ROOT).as_posix()
+    return resolved.name
+
+
+def portable_argv(argv: list[str]) -> list[str]:
+    """The command line as a results file keeps it: every argument (and the value of `--option=value`) portable."""
+    out = []
+    for arg in argv:
+        name, eq, value = arg.partition("=")
+        out.append(f"{name}={portable(value)}" if arg.startswith("--") and eq else portable(arg))
+    return out
 
 
 @dataclasses.dataclass
@@ -166,9 +196,10 @@ class Recorder:
             "commit": commit,
             "dirty": dirty,
             "version": package_version(),
-            "command": " ".join(["python", f"benchmarks/{self.bench}.py", *sys.argv[1:]]),
+            "command": " ".join(["python", f"benchmarks/{self.bench}.py", *portable_argv(sys.argv[1:])]),
             "quick": self.quick,
-            "options": {k: v for k, v in self.options.items() if isinstance(v, (str, int, float, bool, list, type(None)))},
+            "options": {k: portable(v) for k, v in self.options.items()
+                        if isinstance(v, (str, int, float, bool, list, type(None)))},
             "wall_s": round(time.perf_counter() - self._t0, 3),
             "machine": {
                 "cores": os.cpu_count(),

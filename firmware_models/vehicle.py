@@ -60,7 +60,7 @@ from firmware_models.vehicle_hil import HilMixin
 from firmware_models.vehicle_logs import LogsMixin
 from firmware_models.vehicle_manual import ManualMixin
 from firmware_models.vehicle_links import (  # noqa: F401 (re-exported)
-    LINK_API, LINK_COORDINATOR, LINK_GCS, LINK_HIL, Link, LinkPolicy, Outgoing, default_links, split_frames,
+    LINK_API, LINK_COORDINATOR, LINK_GCS, LINK_HIL, Link, LinkPolicy, Outgoing, default_links,
 )
 from firmware_models.vehicle_links import finite as _finite  # noqa: F401 (re-exported)
 from firmware_models.vehicle_missions import MissionsMixin
@@ -347,7 +347,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
                 unsigned_ok = not lk.policy.require_signing or lk.policy.unsigned_reads
                 check = lambda raw: verifier.verify(raw, wall_time_s) in (  # noqa: E731
                     (ACCEPTED, UNSIGNED) if unsigned_ok else (ACCEPTED,))
-            frames = split_frames(data, lk.decoder, self._drop, check)
+            frames = mavlink_codec.split_frames(data, lk.decoder, self._drop, check)
         else:
             msg = data
             raw = msg.get_msgbuf() if hasattr(msg, "get_msgbuf") else b""

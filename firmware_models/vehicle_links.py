@@ -1,4 +1,5 @@
-"""Named MAVLink links of a unit (policy, codec, signing, reply budgets) and the datagram splitter."""
+"""Named MAVLink links of a unit (policy, codec, signing, reply budgets); their datagrams are split into
+messages by mars_link.mavlink.codec.split_frames."""
 
 from __future__ import annotations
 
@@ -10,7 +11,6 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.control_policy import SenderBudgets
 from mars_link.mavlink.signing import SignatureVerifier, enable_outgoing_signing
-from mars_link.mavlink import codec as mavlink_codec
 
 LINK_GCS, LINK_API, LINK_COORDINATOR, LINK_HIL = "gcs", "api", "coordinator", "hil"
 
@@ -64,63 +64,6 @@ class Link:
         # with a key every non-HIL link checks signatures: a signed frame earns SAFETY authority
         self.verifier = SignatureVerifier(key) if policy.require_signing or (key and not policy.hil) else None
         self.budgets = SenderBudgets(policy.reply_rate_hz, policy.reply_burst)
-
-
-def split_frames(data: bytes | bytearray, decoder: mavlink.MAVLink, drop, pre_check=None) -> list[tuple[mavlink.MAVLink_message, bytearray]]:
-    """Decode every complete, CRC-valid frame of one datagram; count the rest via `drop(reason)`.
-
-    Resynchronises one byte after a bad frame (a random 0xFD in junk must not hide a good frame).
-    `pre_check(frame) -> bool` runs on the raw bytes before decoding (signature verification: an
-    unsigned or forged frame costs a flag test or one SHA-256, never a decode).
-    """
-    out = []
-    n = len(data)
-    i = 0
-    junk = False
-    while i < n:
-        b = data[i]
-        if b == 0xFD:
-            if n - i < 12:
-                drop("parse.truncated")
-                break
-            flags = data[i + 2]
-            if flags & ~0x01:
-                drop("parse.unknown_flags")
-                i += 1
-                continue
-            flen = 12 + data[i + 1] + (13 if flags & 0x01 else 0)
-        elif b == 0xFE:
-            if n - i < 8:
-                drop("parse.truncated")
-                break
-            flen = 8 + data[i + 1]
-        else:
-            nxt = min((j for j in (data.find(b"\xfd", i), data.find(b"\xfe", i)) if j >= 0), default=n)
-            junk = True
-            i = nxt
-            continue
-        if i + flen > n:
-            drop("parse.truncated")
-            i += 1
-            continue
-        frame = bytearray(data[i:i + flen])
-        if pre_check is not None and not pre_check(frame):
-            i += flen
-            continue
-        try:
-            msg = mavlink_codec.decode(frame, decoder)
-        except Exception as e:  # pymavlink raises MAVError and, on odd payloads, others
-            drop("parse.bad_crc" if "CRC" in str(e) else "parse.malformed")
-            i += 1
-            continue
-        if isinstance(msg, mavlink.MAVLink_unknown) or msg.get_type() == "BAD_DATA":
-            drop("parse.unknown_message")
-        else:
-            out.append((msg, frame))
-        i += flen
-    if junk:
-        drop("parse.junk")
-    return out
 
 
 def finite(*values) -> bool:

@@ -26,8 +26,9 @@ sys.path.insert(0, str(ROOT))
 from mars_link.logs.outputs import write_json  # noqa: E402
 from mars_link.flight.reconfig_flight import run_reconfig_trial  # noqa: E402
 from mars_link.config.scenario import load_scenario  # noqa: E402
-from mars_link.apps.sweep_pool import add_pool_arguments, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
+from mars_link.apps.sweep_pool import map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
 
+from mars_link.processes.cli_options import add_pool  # noqa: E402
 FAULTY_UNIT = 3
 AFTER_DOCK_S = 3.0
 
@@ -102,7 +103,7 @@ def main(argv=None) -> int:
     ap.add_argument("--scenario", default="docking_3x1")
     ap.add_argument("--noise", action="store_true", help="sensor noise on (each piece on its EKF)")
     ap.add_argument("--detected", action="store_true", help="faults found by the detector, not told")
-    add_pool_arguments(ap)  # --workers / --scheduler: the two flights go through the sweep's executor
+    add_pool(ap)  # --workers / --scheduler: the two flights go through the sweep's executor
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

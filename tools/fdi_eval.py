@@ -43,8 +43,9 @@ from mars_link.apps.reproduce import (  # noqa: E402
     CASES, FDI_MAX_DELAY_S, FDI_MAX_ETA_ERROR, FDI_MAX_ERROR_RATIO, FdiTrial, fdi_false_alarm_flight, fdi_lost_trial,
     fdi_trial,
 )
-from mars_link.apps.sweep_pool import add_pool_arguments, call, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
+from mars_link.apps.sweep_pool import call, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
 
+from mars_link.processes.cli_options import add_pool  # noqa: E402
 FTC_CHOICES = ("qp", "paper", "unit", "partial", "full", "hybrid")
 CONTROLLERS = ("cascaded", "mars-ftcc-paper")
 
@@ -63,7 +64,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--turbulence", default="none", help="none | light | moderate | severe, or W20 in m/s")
     ap.add_argument("--wind", default="0,0,0", help="steady wind N,E,D in m/s (the air's velocity)")
     ap.add_argument("--sensors", default="mocap", help="[sensors] profile: mocap | rtk | gps")
-    add_pool_arguments(ap)  # --workers / --scheduler: the flights go through the sweep's executor
+    add_pool(ap)  # --workers / --scheduler: the flights go through the sweep's executor
     args = ap.parse_args(argv)
     args.environment = air_table(args.turbulence, args.wind)
     from mars_link.models.sensor_profiles import PROFILES

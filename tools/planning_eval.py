@@ -37,8 +37,9 @@ from mars_link.planning.maps import ForestParams  # noqa: E402
 from mars_link.planning.pipeline import Planner, PlanParams  # noqa: E402
 from mars_link.planning.plots import plot_plan  # noqa: E402
 from mars_link.apps.sweep_pool import (  # noqa: E402
-    PoolSpec, add_pool_arguments, map_flights, pool_from_args, print_progress, values_or_raise,
+    PoolSpec, map_flights, pool_from_args, print_progress, values_or_raise,
 )
+from mars_link.processes.cli_options import add_pool  # noqa: E402
 
 CONTROLLERS = (("cascaded", True), ("mars-ftcc-paper", False))  # (controller, sensor noise)
 #: walls plans are also flown noise-free with cascaded: with sensor noise its error is the estimator's
@@ -215,7 +216,7 @@ def main() -> int:
     ap.add_argument("--published", metavar="DIR", default=None,
                     help="folder of the published planner CSVs for --what replay (not shipped; default: "
                          "$MARS_LINK_PUBLISHED_PLANS). Where to get them: mars_link.apps.planning_eval.PUBLISHED_SOURCE")
-    add_pool_arguments(ap)  # --workers / --scheduler: the walls and replay flights go through the sweep's executor
+    add_pool(ap)  # --workers / --scheduler: the walls and replay flights go through the sweep's executor
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -27,7 +27,8 @@ sys.path.insert(0, str(ROOT / "tools"))
 
 from mars_link.logs.outputs import write_json  # noqa: E402
 from mars_link.config.scenario import FaultSpec  # noqa: E402
-from mars_link.apps.sweep_pool import add_pool_arguments, map_flights, pool_from_args, values_or_raise  # noqa: E402
+from mars_link.apps.sweep_pool import map_flights, pool_from_args, values_or_raise  # noqa: E402
+from mars_link.processes.cli_options import add_pool  # noqa: E402
 from reconfig_eval import CASES, DIVERGED_MAX_ERROR_M, paper_faults, scenario  # noqa: E402
 
 FAULT_T_S = 5.0
@@ -83,7 +84,7 @@ def cell(res: dict) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", default="runs/reconfig_detect_eval")
-    add_pool_arguments(ap)  # --workers (--jobs) / --scheduler: the flights go through the sweep's executor
+    add_pool(ap)  # --workers (--jobs) / --scheduler: the flights go through the sweep's executor
     ap.add_argument("--cases", default=",".join(str(i) for i in range(len(CASES))),
                     help="indices into the case list (0..4)")
     args = ap.parse_args(argv)

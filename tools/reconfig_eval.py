@@ -46,8 +46,9 @@ from mars_link.config.scenario import eta_after  # noqa: E402
 from mars_link.flight.run_log import RunLog  # noqa: E402
 from mars_link.flight.runner import run_trial  # noqa: E402
 from mars_link.config.scenario import FaultSpec, scenario_from_dict  # noqa: E402
-from mars_link.apps.sweep_pool import add_pool_arguments, call, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
+from mars_link.apps.sweep_pool import call, map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
 
+from mars_link.processes.cli_options import add_pool  # noqa: E402
 CASES = [
     ("plus-5", [".X.", "XXX", ".X."], 3),
     ("plus-5", [".X.", "XXX", ".X."], 4),
@@ -177,7 +178,7 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="runs/reconfig_eval")
     ap.add_argument("--ftc", default="none,qp", help="allocation modes to compare (comma separated)")
     ap.add_argument("--no-inflight", action="store_true", help="skip the donut flight with the manoeuvre executed")
-    add_pool_arguments(ap)  # --workers / --scheduler: the flights go through the sweep's executor
+    add_pool(ap)  # --workers / --scheduler: the flights go through the sweep's executor
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -202,6 +202,8 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
     rrows = [row("enabled", False, "`true`, `false`"), row("moves", True, "`true`, `false`",
              "no plan found: fly the best single move"), row("ground", True, "`true`, `false`",
              "no move either: land and rebuild on the ground"),
+             row("objective", "force", "`force`, `margin`", "what the target maximises: paper 001's force objective "
+                 "or the worst-stage controllability margin (MARS-Reconfig); plans report both", typ="string"),
              row("target", None, "each unit id once, row-major", "plan to this allocation", typ="array")]
     for key in sorted(S._RECONFIG_NUMBERS):
         rrows.append(row(key, rdefaults.get(key), ">= 0" if key in ("at_s", "trigger_delay_s", "altitude_step_m")
@@ -286,7 +288,7 @@ def scenario_keys_accepted() -> set[str]:
     from mars_link.models.sensor_profiles import PROFILES
 
     keys = set(S._TOP_KEYS) | S._VEHICLE_KEYS | S._AERO_KEYS | S._ASSEMBLY_KEYS | S._CONTROL_KEYS | S._FAULT_KEYS
-    keys |= S._SIM_KEYS | S._UNITS_KEYS | S._RECONFIG_NUMBERS | {"enabled", "target", "moves", "ground"} | set(S.DOCKING_RANGES)
+    keys |= S._SIM_KEYS | S._UNITS_KEYS | S._RECONFIG_NUMBERS | {"enabled", "target", "moves", "ground", "objective"} | set(S.DOCKING_RANGES)
     keys |= S._SEPARATION_KEYS | E._ENV_KEYS | E._GUST_KEYS | {"profile"} | battery._PACK_KEYS
     keys |= set(battery._FAILSAFE_KEYS) | {"units", "unit", "map", "kind"} | SF.KEYS
     keys |= {k for p in PROFILES.values() for k in p.figures} | {"esc_telemetry"}
@@ -349,62 +351,27 @@ def walk_parsers(parser: argparse.ArgumentParser, prefix: str = "mars-link"):
                     yield path, p, h if path != f"{prefix} {name}" else (helps.get(name) or sub.description or "")
 
 
-def own_parsers() -> dict[str, argparse.ArgumentParser]:
-    """Subcommands that parse their own arguments (mars_link.apps.cli.main hands them argv): their parsers."""
-    found = {}
-    try:
-        from mars_link.apps.plan_cli import build_parser as plan_parser
-
-        found["mars-link plan"] = plan_parser()
-    except Exception:
-        pass
-    try:
-        from mars_link.apps.reconfig_cli import _parser as reconfig_parser
-
-        found["mars-link reconfig plan"] = reconfig_parser()
-    except Exception:
-        pass
-    return found
-
-
 def cli_page() -> str:
     from mars_link.apps.cli import build_parser
 
     out = ["# Command line\n",
            "Generated at every build by walking `mars_link.apps.cli.build_parser()`. Exit codes: 0 done, 1 a flight "
            "diverged or the machine refused (disk, port), 2 bad input (one line on stderr).\n"]
-    seen = set()
     for path, parser, help_text in walk_parsers(build_parser()):
-        seen.add(path)
         rows = _option_rows(parser)
-        if path in own_parsers() and len(rows) <= 1:
-            continue  # documented from its own parser below
         out.append(f"## `{path}`\n\n{help_text}\n")
         out.append(f"```text\n{parser.format_usage().strip()}\n```\n")
         if rows:
             out.append(table(["option", "type", "default", "choices", "help"], rows))
-    for path, parser in own_parsers().items():
-        if path in seen and len(_option_rows(dict(walk_parsers_map()).get(path, parser))) > 1:
-            continue
-        out.append(f"## `{path}`\n\n{parser.description or ''}\n")
-        out.append(f"```text\n{parser.format_usage().strip()}\n```\n")
-        out.append(table(["option", "type", "default", "choices", "help"], _option_rows(parser)))
     return "\n".join(out)
 
 
-def walk_parsers_map():
-    from mars_link.apps.cli import build_parser
-
-    return [(path, p) for path, p, _ in walk_parsers(build_parser())]
-
-
 def cli_options() -> set[str]:
-    """Every option string and positional of build_parser() and the own parsers (tests/apps/test_docs.py)."""
+    """Every option string and positional of build_parser() (tests/apps/test_docs.py)."""
     from mars_link.apps.cli import build_parser
 
     names = set()
-    parsers = [p for _, p, _ in walk_parsers(build_parser())] + list(own_parsers().values())
-    for p in parsers:
+    for _, p, _ in walk_parsers(build_parser()):
         for a in p._actions:
             if isinstance(a, (argparse._HelpAction, argparse._SubParsersAction)):
                 continue

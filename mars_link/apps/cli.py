@@ -1,10 +1,12 @@
-"""`mars-link` command line: the one place where the product's subcommands and options are defined.
+"""`mars-link` command line: the one tree of the product's subcommands and their options.
 
-Every subcommand and option is added here with `add_argument`; subcommands that share an option share
-its definition (one `_add_*` helper per group: `--out`/`--force`, `--seed`, the transport and its
-endpoints, client ports, `--duration`, `--quiet` ...). The command functions (`cmd_*`, or the
-modules' own `*_command(args)`) take the parsed arguments. Internal process entry points that users do
-not type (`python -m mars_link.processes.lockstep ROLE`, `python -m mars_link.processes.udp_runner`) keep their own parsers.
+Every subcommand is added here; an option that several subcommands (or the internal entry points) share
+is defined once in mars_link.processes.cli_options (one `add_*` per group: `--out`/`--force`, `--seed`,
+the transport and its endpoints, client ports, `--duration`, `--quiet` ...), an option of one subcommand
+alone beside it here. The command functions (`cmd_*`, or the modules' own `*_command(args)`) take the
+parsed arguments. Internal process entry points that users do not type (`python -m
+mars_link.processes.lockstep ROLE`, `python -m mars_link.processes.udp_runner`) keep their own parsers,
+built from cli_options too.
 
 Every user error is one line on stderr, "mars-link: error: ...", and exit code 2; a refusal from the
 machine (disk, port, permission) one line and exit code 3 (mars_link.core.validation; the table of exit
@@ -22,6 +24,11 @@ from pathlib import Path
 
 from mars_link.core import validation as v
 from mars_link.core.errors import UserInputError, did_you_mean
+from mars_link.processes.cli_options import (
+    add_client_ports, add_duration, add_fault, add_flight_overrides, add_layout, add_link, add_map, add_out, add_params,
+    add_plot_format, add_pool, add_quiet, add_run_ports, add_scenario, add_seed, add_signing, add_sitl_processes,
+    add_view,
+)
 
 EXIT_USAGE = v.EXIT_USAGE
 
@@ -370,141 +377,6 @@ def _command(sub, name: str, help: str, description: str, func, epilog: str | No
     return p
 
 
-# Shared option groups: one definition each, used by every subcommand that has the option.
-def _add_scenario(p, default: str, why: str = "") -> None:
-    p.add_argument("scenario", nargs="?", help=f"scenario TOML file or bundled name (default {default}{why})")
-
-
-def _add_out(p, default_text: str, force: bool = True) -> None:
-    p.add_argument("--out", default=None, metavar="DIR",
-                   help=f"run directory (default {default_text})" + ("; must be empty unless --force" if force else ""))
-    if force:
-        p.add_argument("--force", action="store_true", help="clear a non-empty --out first")
-
-
-def _add_seed(p, what: str = "the flight's random seed (default: the scenario's [sim] seed)") -> None:
-    p.add_argument("--seed", type=v.seed, default=None, help=f"{what}; 0..{v.SEED_MAX}")
-
-
-def _add_duration(p, what: str) -> None:
-    p.add_argument("--duration", type=v.positive_float, default=None, metavar="SECONDS",
-                   help=f"{what} [simulated s]")
-
-
-def _add_plot_format(p) -> None:
-    from mars_link.flight.plots import PLOT_FORMATS, PNG_DPI
-
-    p.add_argument("--plot-format", choices=PLOT_FORMATS, default="png",
-                   help=f"plots/ as PNG ({PNG_DPI} dpi) or vector PDF/SVG for a paper (default png)")
-
-
-def _add_quiet(p) -> None:
-    p.add_argument("--quiet", action="store_true", help="no progress bar or progress lines")
-
-
-def _add_layout(p, what: str, required: bool = False) -> None:
-    p.add_argument("--layout", default=None, required=required, metavar="ROWS",
-                   help=f"layout rows separated by commas, e.g. XXX,XXX ({what})")
-
-
-def _add_fault(p, when: str = "T: simulated seconds after the start") -> None:
-    p.add_argument("--fault", action="append", default=[], metavar="UNIT[:ROTOR]=ETA[@T]",
-                   help=f"add a rotor (or whole-unit) failure: ETA is the remaining effectiveness 0..1, rotors 1..4 = "
-                        f"FR, FL, RL, RR; {when}; repeatable")
-
-
-def _add_flight_overrides(p) -> None:
-    """What `run` and `vehicle` may override in the scenario."""
-    p.add_argument("--ftc", default=None, help="allocation mode: none, unit, partial, full, hybrid, qp "
-                   "(default: the scenario's [control] ftc)")
-    _add_fault(p)
-    p.add_argument("--no-noise", action="store_true", help="perfect sensors (the estimator gets the truth state)")
-
-
-def _add_view(p, where: str = "") -> None:
-    """--no-mcap, --foxglove [HOST:PORT] (mars_link.flight.flight_view)."""
-    from mars_link.flight.flight_view import DEFAULT_LIVE
-
-    p.add_argument("--no-mcap", action="store_true", help="write no run.mcap")
-    p.add_argument("--foxglove", nargs="?", const=DEFAULT_LIVE, default=None, metavar="HOST:PORT",
-                   help=f"live Foxglove view{where}: Foxglove's WebSocket server (without a value {DEFAULT_LIVE}); "
-                        "open it in Foxglove with 'Open connection' -> Foxglove WebSocket")
-
-
-def _add_link(p, roles: str) -> None:
-    """The transport of the SITL processes' links and its endpoints. One default everywhere: Zenoh, the
-    product's bus (`--transport udp`: plain loopback sockets, no Zenoh)."""
-    from mars_link.transport import TRANSPORTS
-
-    p.add_argument("--transport", choices=TRANSPORTS, default="zenoh",
-                   help=f"the links between {roles}: zenoh (the product's bus) or udp (loopback sockets)")
-    p.add_argument("--fleet", default="default", help="Zenoh key prefix mars/<fleet>/...")
-    p.add_argument("--zenoh-connect", action="append", default=None, metavar="ENDPOINT",
-                   help="Zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable; default: peers on 127.0.0.1)")
-    p.add_argument("--zenoh-listen", action="append", default=None, metavar="ENDPOINT",
-                   help="extra Zenoh router endpoint to listen on (repeatable)")
-    p.add_argument("--link-profile", default=None, metavar="PROFILE",
-                   help="ideal | lan | wifi | radio57600 [,key=value...]: delays and losses on the coordinator <-> "
-                        "unit links (zenoh only; default: none)")
-    p.add_argument("--unit-interface", choices=("mavlink", "px4-zenoh"), default=None,
-                   help="how the units are commanded: mavlink (SET_ACTUATOR_CONTROL_TARGET) or px4-zenoh (PX4 "
-                        "v1.17's OffboardControlMode + ActuatorMotors over rmw_zenoh, /px4_<unit id>/fmu/...; needs "
-                        "--transport zenoh); default: the scenario's [units] interface")
-    p.add_argument("--insecure", action="store_true",
-                   help="an open Zenoh bus: plain TCP, no TLS, no access control (for tools that cannot do TLS; "
-                        "anyone who reaches the ports reads every key; the run's own links stay MAVLink-signed, "
-                        "see the threat model in the docs)")
-    p.add_argument("--tls-ca", default=None, metavar="FILE",
-                   help="several hosts: the fleet's CA certificate (PEM); with --tls-cert and --tls-key, instead of "
-                        "the per-run CA (mutual TLS, no per-role access control)")
-    p.add_argument("--tls-cert", default=None, metavar="FILE", help="this host's certificate (PEM), signed by --tls-ca")
-    p.add_argument("--tls-key", default=None, metavar="FILE", help="the private key of --tls-cert (PEM)")
-    p.add_argument("--save-certs", action="store_true",
-                   help="keep a copy of the run's secrets in RUN_DIR/certs (mode 0700/0600): its CA, certificates "
-                        "and access-control list, and its per-run MAVLink signing key (default: they live in a "
-                        "private directory removed at exit)")
-
-
-def _add_sitl_processes(p, realtime_help: str) -> None:
-    """How the SITL processes run: units per process and wall-clock pacing."""
-    p.add_argument("--units-per-process", type=v.bounded_int(1, 199), default=1, metavar="K",
-                   help="host up to K unit firmwares per process (each its own MAVLink system and links)")
-    p.add_argument("--realtime", action="store_true", help=realtime_help)
-
-
-def _add_client_ports(p, api_port: int, api_help: str) -> None:
-    """The UDP ports the MAVLink clients listen on (PX4's SITL conventions)."""
-    from mars_link.processes.ports import GCS_PORT
-
-    p.add_argument("--gcs-port", type=int, default=GCS_PORT,
-                   help="UDP port ground stations listen on (QGroundControl, MAVProxy `udpin`)")
-    p.add_argument("--api-port", type=int, default=api_port, help=api_help)
-
-
-def _add_signing(p, links: str, otherwise: str = "unsigned") -> None:
-    from mars_link.mavlink.signing import DEFAULT_KEY_ENV
-
-    p.add_argument("--signing-key-file", default=None, metavar="FILE",
-                   help=f"MAVLink signing key for {links} (default: ${DEFAULT_KEY_ENV}, else {otherwise}); one key "
-                        "per process, each link signs with its own link id")
-    p.add_argument("--require-signing", "--sign-client-links", dest="require_signing", action="store_true",
-                   help="every link requires signing: unsigned GCS/API clients may only read (telemetry, "
-                        "parameters, mission download); the coordinator link drops unsigned frames")
-
-
-def _add_pool(p) -> None:
-    """--workers / --scheduler: flights go through the sweep's executor (mars_link.apps.sweep_pool)."""
-    p.add_argument("--workers", "--jobs", type=v.bounded_int(1, 4096), default=None,
-                   help="local worker processes flying at once (default: every core)")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="fly on the Dask cluster of this scheduler (tcp://HOST:PORT) instead (default: local)")
-
-
-def _add_map(p, what: str) -> None:
-    p.add_argument("--map", default=None, metavar="FILE",
-                   help=f"obstacle map (boxes .csv or .pcd): mission legs planned around it ({what})")
-
-
 # The assembly as one MAVLink vehicle: `vehicle` and `sitl up --vehicle` give it the same system id and
 # ports, so a client set up for one works with the other. Why not PX4's instance-0 ports (14540, system
 # 1): `sitl up` gives those to its units (unit i: system i, API port 14540 + i), and the vehicle beside them.
@@ -534,19 +406,19 @@ def build_parser() -> argparse.ArgumentParser:
                    "Fly a scenario, in this process (--mode inproc) or as the multi-process MAVLink SITL (--mode "
                    "sitl, lockstep: the same flight for the same seed), and write summary.json, telemetry.csv, "
                    "rotors.csv, plots/ and run.mcap; print a one-screen table.", cmd_run, EXIT_CODES_EPILOG)
-    _add_scenario(run, DEFAULT_SCENARIO, ", the 3x2 spiral")
-    _add_out(run, "runs/<name>-<time>")
-    _add_seed(run)
+    add_scenario(run, DEFAULT_SCENARIO, ", the 3x2 spiral")
+    add_out(run, "runs/<name>-<time>")
+    add_seed(run)
     run.add_argument("--trials", type=v.bounded_int(1, 100_000), default=1,
                      help="flights with seeds SEED, SEED+1, ... (in-process only)")
-    _add_flight_overrides(run)
+    add_flight_overrides(run)
     run.add_argument("--controller", choices=("cascaded", "mars-ftcc-paper"), default=None,
                      help="position/attitude controller (default: the scenario's [control] controller)")
-    _add_duration(run, "override the scenario's flight length")
+    add_duration(run, "override the scenario's flight length")
     run.add_argument("--mode", choices=("inproc", "sitl"), default="inproc",
                      help="inproc: one process, the engine steps everything; sitl: world, one process per unit "
                           "and the coordinator, talking MAVLink over --transport")
-    _add_link(run, "the SITL processes (with --mode sitl)")
+    add_link(run, "the SITL processes (with --mode sitl)")
     run.add_argument("--gcs", action="store_true",
                      help="with --mode sitl: open the units' ground-station ports (PX4's: GCS 14550, API 14540+i; "
                           "default: none, a batch run no client can reach)")
@@ -559,14 +431,14 @@ def build_parser() -> argparse.ArgumentParser:
                           "their ids: a docked assembly is one body, so every one) wait for your own off-board "
                           "computer on the run's Zenoh bus (PX4's /px4_<id>/fmu topics), the world runs in real time "
                           "for the run's duration, and summary.json says who flew them (no tracking figures)")
-    _add_sitl_processes(run, "pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
+    add_sitl_processes(run, "pace the flight to the wall clock (in-process: the engine; with --mode sitl: the world)")
     run.add_argument("--logs", type=_log_kinds, default=frozenset(), metavar="KINDS",
                      help="per-unit logs of an in-process run, comma-separated: ulog (unit<id>.ulg, PX4's topics), "
                           "tlog (unit<id>.tlog: the unit's MAVLink exchange with the coordinator, sim-time "
                           "stamps); --mode sitl always writes both")
-    _add_view(run)
-    _add_plot_format(run)
-    _add_quiet(run)
+    add_view(run)
+    add_plot_format(run)
+    add_quiet(run)
 
     # -- scenarios
     scen = _command(sub, "scenarios", "list the bundled scenarios (name and one-line description)",
@@ -585,18 +457,18 @@ def build_parser() -> argparse.ArgumentParser:
                   "14550 and API port 14540+i, like PX4 SITL instance i) and, for a docked assembly, the "
                   "coordinator; print the endpoints; run until the flight ends, Ctrl-C or a child's death. "
                   "--vehicle adds the whole assembly as one MAVLink vehicle.", cmd_sitl_up, EXIT_CODES_EPILOG)
-    _add_scenario(up, INTERACTIVE_SCENARIO, ", the realistic plant")
-    _add_out(up, "runs/<name>-sitl-<time>")
-    _add_seed(up)
+    add_scenario(up, INTERACTIVE_SCENARIO, ", the realistic plant")
+    add_out(up, "runs/<name>-sitl-<time>")
+    add_seed(up)
     up.add_argument("--units", type=int, default=None,
                     help="N free units side by side on the ground, each flying itself (no coordinator; default: "
                          "the scenario's assembly)")
-    _add_layout(up, "a docked assembly, with coordinator; overrides the scenario")
+    add_layout(up, "a docked assembly, with coordinator; overrides the scenario")
     up.add_argument("--speed", type=float, default=None, metavar="X",
                     help="world pacing, x real time (default 1 for --units and --vehicle, 0 = as fast as possible "
                          "otherwise)")
-    _add_client_ports(up, 14540, "API port of unit index 0 (MAVSDK); unit i uses this + i (PX4's ports)")
-    _add_signing(up, "the run's own links (world, units, coordinator; HIL frames and the shutdown included), "
+    add_client_ports(up, 14540, "API port of unit index 0 (MAVSDK); unit i uses this + i (PX4's ports)")
+    add_signing(up, "the run's own links (world, units, coordinator; HIL frames and the shutdown included), "
                      "signed both ways, and the client links", "a per-run key made at start")
     up.add_argument("--any-bind", action="store_true",
                     help="bind the units' client sockets to free ports instead of PX4's 18570+i / 14580+i")
@@ -610,11 +482,11 @@ def build_parser() -> argparse.ArgumentParser:
                          f"{vehicle_api_port})")
     up.add_argument("--vehicle-gcs-port", type=int, default=None,
                     help="with --vehicle: its ground-station port (default: --gcs-port, 14550)")
-    _add_map(up, "with --vehicle")
-    _add_view(up, " (served by the world process)")
-    _add_plot_format(up)
-    _add_link(up, "the world, the units and the coordinator (the clients' links are UDP either way)")
-    _add_sitl_processes(up, "pace the world to the wall clock")
+    add_map(up, "with --vehicle")
+    add_view(up, " (served by the world process)")
+    add_plot_format(up)
+    add_link(up, "the world, the units and the coordinator (the clients' links are UDP either way)")
+    add_sitl_processes(up, "pace the world to the wall clock")
     up.add_argument("--external-coordinator", action="store_true",
                     help="start no coordinator: attach one with `mars-link coordinator` (printed)")
 
@@ -623,14 +495,12 @@ def build_parser() -> argparse.ArgumentParser:
                      "`sitl up --external-coordinator`",
                      "Run the coordinator in this process, attached to the world and units that `mars-link sitl up "
                      "--external-coordinator` started (it prints this command); Ctrl-C ends it.", cmd_coordinator)
-    _add_scenario(coord, INTERACTIVE_SCENARIO, ", as sitl up")
+    add_scenario(coord, INTERACTIVE_SCENARIO, ", as sitl up")
     coord.add_argument("--out", default=".", metavar="DIR", help="where coordinator_summary.json goes")
-    coord.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port (printed by sitl up)")
-    coord.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to "
-                       "(printed by sitl up)")
+    add_run_ports(coord, " (printed by sitl up)")
     coord.add_argument("--signing-key-file", default=None, metavar="FILE",
                        help="sign the unit links (default: $MARS_LINK_SIGNING_KEY, else unsigned)")
-    _add_link(coord, "the coordinator and the units (as the `sitl up` it attaches to)")
+    add_link(coord, "the coordinator and the units (as the `sitl up` it attaches to)")
 
     # -- vehicle
     from mars_link.processes.ports import VEHICLE_API_BIND as API_BIND, VEHICLE_GCS_BIND as GCS_BIND
@@ -640,35 +510,35 @@ def build_parser() -> argparse.ArgumentParser:
                    "real time: arm, take off, fly missions, offboard and land from a ground station or MAVSDK. "
                    "The scenario's vehicle, layout, control and faults are used, not its trajectory. Runs until "
                    "Ctrl-C, --duration (simulated) or --wall-time.", cmd_vehicle)
-    _add_scenario(veh, INTERACTIVE_SCENARIO, ", the realistic plant")
-    _add_layout(veh, "overrides the scenario")
+    add_scenario(veh, INTERACTIVE_SCENARIO, ", the realistic plant")
+    add_layout(veh, "overrides the scenario")
     veh.add_argument("--sysid", type=int, default=vehicle_sysid,
                      help=f"MAVLink system id ({_VEHICLE_WHY}; default {vehicle_sysid})")
-    _add_client_ports(veh, vehicle_api_port, f"MAVSDK listens here, udpin://127.0.0.1:PORT ({_VEHICLE_WHY}; "
+    add_client_ports(veh, vehicle_api_port, f"MAVSDK listens here, udpin://127.0.0.1:PORT ({_VEHICLE_WHY}; "
                       f"default {vehicle_api_port})")
     veh.add_argument("--gcs-bind", type=int, default=GCS_BIND,
                      help=f"local port of the gcs link (0: any; default {GCS_BIND}, below the units' 18570+i)")
     veh.add_argument("--api-bind", type=int, default=API_BIND,
                      help=f"local port of the api link (0: any; default {API_BIND}, below the units' 14580+i)")
-    _add_seed(veh)
-    _add_flight_overrides(veh)
-    veh.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
+    add_seed(veh)
+    add_flight_overrides(veh)
+    add_params(veh)
     veh.add_argument("--mission", default=None, metavar="FILE.plan",
                      help="QGroundControl .plan preloaded (mission, geofence, rally), as if a client had uploaded it")
-    _add_map(veh, "default: the scenario's [mission] map")
+    add_map(veh, "default: the scenario's [mission] map")
     veh.add_argument("--speed", type=float, default=1.0, metavar="X",
                      help="simulation speed, x real time (0.05..20)")
     veh.add_argument("--status-file", default=None, metavar="FILE",
                      help="JSON snapshot (truth, mode, counters) a few times a second")
     veh.add_argument("--tlog", default=None, metavar="FILE",
                      help="MAVLink log of both links (pymavlink .tlog), appended and flushed as it goes")
-    _add_duration(veh, "stop after this much simulated time (it once meant wall seconds: that is --wall-time now)")
+    add_duration(veh, "stop after this much simulated time (it once meant wall seconds: that is --wall-time now)")
     veh.add_argument("--wall-time", type=v.positive_float, default=None, metavar="SECONDS",
                      help="stop after this many wall-clock seconds [wall s]")
-    _add_signing(veh, "the gcs and api links")
-    _add_out(veh, "none: nothing written; with DIR: run.mcap, vehicle.ulg, summary.json, telemetry, plots", force=False)
-    _add_view(veh)
-    _add_plot_format(veh)
+    add_signing(veh, "the gcs and api links")
+    add_out(veh, "none: nothing written; with DIR: run.mcap, vehicle.ulg, summary.json, telemetry, plots", force=False)
+    add_view(veh)
+    add_plot_format(veh)
 
     # -- plan
     plan = _command(sub, "plan", "a collision-free trajectory for an assembly on a map (trajectory.csv, plan.json, "
@@ -678,8 +548,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "1 = none found (reason on stderr and in plan.json), 2 = bad input.", cmd_plan)
     plan.add_argument("map", help="boxes .csv (columns cx,cy,length_m,thickness_m,height_m,yaw_deg; z-up scene frame) "
                       "or ASCII .pcd")
-    _add_layout(plan, "the assembly to plan for", required=True)
-    _add_fault(plan, "counted as in effect for the whole plan")
+    add_layout(plan, "the assembly to plan for", required=True)
+    add_fault(plan, "counted as in effect for the whole plan")
     plan.add_argument("--start", required=True, metavar="N,E,D", help="start position [m, NED]")
     plan.add_argument("--goal", required=True, metavar="N,E,D", help="goal position [m, NED] (same D: planning is planar)")
     plan.add_argument("--start-yaw", type=float, default=0.0, metavar="DEG", help="start yaw [deg, NED]")
@@ -688,7 +558,7 @@ def build_parser() -> argparse.ArgumentParser:
     plan.add_argument("--margin", type=float, default=None, metavar="M", help="footprint inflation [m] (default 0.1)")
     plan.add_argument("--out", required=True, metavar="DIR", help="output directory (must be empty unless --force)")
     plan.add_argument("--force", action="store_true", help="clear a non-empty --out first")
-    _add_quiet(plan)
+    add_quiet(plan)
 
     # -- reconfig plan
     reconfig = sub.add_parser("reconfig", help="self-reconfiguration (paper 001): `reconfig plan`",
@@ -700,12 +570,15 @@ def build_parser() -> argparse.ArgumentParser:
                      "(the JSON still says why), 2 = bad input.", cmd_reconfig_plan)
     rplan.add_argument("scenario", nargs="?", default=None,
                        help="scenario TOML file or bundled name (default: none; then --layout is needed)")
-    _add_fault(rplan, "T is ignored: every fault counts")
-    _add_layout(rplan, "overrides the scenario")
+    add_fault(rplan, "T is ignored: every fault counts")
+    add_layout(rplan, "overrides the scenario")
     rplan.add_argument("--preset", default=None, help="vehicle preset (overrides the scenario; default modquad-cf2)")
     rplan.add_argument("--target", default=None, metavar="IDS",
                        help="plan to this allocation instead of the optimal one: unit ids for the layout's cells in "
                             "row-major order, e.g. 3,2,1")
+    rplan.add_argument("--objective", choices=("force", "margin"), default="force",
+                       help="what the target maximises: force (paper 001's placement) or margin (MARS-Reconfig: the "
+                            "worst-stage controllability margin); both are printed (default: force)")
     rplan.add_argument("--snap-weights", default=None, metavar="BX,BY",
                        help="snap integrals along north and east (default: from the scenario's trajectory, else equal)")
     rplan.add_argument("--json", action="store_true", help="print one JSON object")
@@ -721,13 +594,13 @@ def build_parser() -> argparse.ArgumentParser:
     rep.add_argument("--seeds", type=v.bounded_int(1, 10_000), default=10, help="flights per controller and mode")
     rep.add_argument("--controllers", default="mars-ftcc-paper,cascaded", help="comma-separated")
     rep.add_argument("--modes", default=None, help="cascaded FTC modes, comma-separated (default: all)")
-    _add_duration(rep, "shorten every flight (a quick look; default: the paper's)")
+    add_duration(rep, "shorten every flight (a quick look; default: the paper's)")
     rep.add_argument("--out", default="runs/table1", metavar="DIR", help="where the results go (replaced on a re-run)")
     rep.add_argument("--dry-run", action="store_true",
                      help="print the number of flights and the time estimate, fly nothing")
-    _add_plot_format(rep)
-    _add_quiet(rep)
-    _add_pool(rep)
+    add_plot_format(rep)
+    add_quiet(rep)
+    add_pool(rep)
 
     # -- sweep
     swp = _command(sub, "sweep", "many flights of a scenario over seeds, random faults and parameters, on local "
@@ -736,18 +609,21 @@ def build_parser() -> argparse.ArgumentParser:
                    "Dask cluster; write sweep.csv (rows appended to sweep.partial.csv as flights finish), sweep.md, "
                    "sweep.json and plots/. Exit 0 when every flight flew (diverged or not), 1 when one raised.",
                    cmd_sweep)
-    _add_scenario(swp, DEFAULT_SCENARIO)
+    add_scenario(swp, DEFAULT_SCENARIO)
     swp.add_argument("--seeds", type=v.bounded_int(1, 100_000), default=10, help="flights per parameter combination")
-    _add_seed(swp, "the sweep seed (default: the scenario's); seed slot j flies seed SEED + j")
-    swp.add_argument("--faults", default=None, metavar="random:K[,units|rotors]",
-                     help="K random rotor (or unit) failures per flight, eta 0, drawn from the sweep seed and the slot")
+    add_seed(swp, "the sweep seed (default: the scenario's); seed slot j flies seed SEED + j")
+    swp.add_argument("--faults", default=None, metavar="random:K|A-B[,rotors|units|whole-units][,eta=E1/E2][,kind=KIND]",
+                     help="random faults per flight, drawn from the sweep seed and the slot: K (or A to B) distinct "
+                          "rotors (eta 0, each at its own time), units (one rotor each, all at one time, etas 0 and "
+                          "0.3 mixed) or whole units (eta 0); eta=E1/E2 sets the etas drawn from; scored against the "
+                          "coordinator's beliefs in faults.csv")
     swp.add_argument("--param", action="append", default=[], metavar="KEY=V1,V2,...",
                      help="scenario TABLE.KEY (or ftc, controller, noise, ...) values to sweep; repeat for a grid")
-    _add_pool(swp)
-    _add_out(swp, "runs/<name>-sweep-<time>")
+    add_pool(swp)
+    add_out(swp, "runs/<name>-sweep-<time>")
     swp.add_argument("--mcap", action="store_true", help="each flight writes flights/<i>/run.mcap")
     swp.add_argument("--no-plots", action="store_true", help="write no plots/")
-    _add_quiet(swp)
+    add_quiet(swp)
 
     # -- conformance
     conf = _command(sub, "conformance", "the unit command pipeline's conformance checks, in simulated time",

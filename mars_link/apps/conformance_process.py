@@ -4,7 +4,7 @@ The unit is the process `sitl up` and `run --mode sitl` start (`python -m mars_l
 unit`, a 1x1 docked set-up, `--conformance-harness`), with its own firmware, links, logs and status
 file. The harness plays the two parties it talks to, so the checks stay judged in simulated time:
 
-  its world            the in-process world of `conformance.Bench`; each step's sensors go out as the
+  its world            the in-process world of `conformance_bench.Bench`; each step's sensors go out as the
                        world process sends them (HIL datagram) and the step waits for the unit's
                        HIL_ACTUATOR_CONTROLS answer, which drives the world's motors and is the check's output
   its off-board computer  PX4's interface as rmw_zenoh samples on a Zenoh session (the unit's HIL link on the
@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mars_link.apps.conformance import Bench
+from mars_link.apps.conformance_bench import Bench
 from mars_link.core.errors import EnvironmentFailure
 
 UNIT_START_S = 60.0  # the longest a unit process may take to say hello (imports on a loaded machine)

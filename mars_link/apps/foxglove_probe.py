@@ -15,6 +15,8 @@ import json
 import struct
 import sys
 
+from mars_link.processes.cli_options import add_foxglove_probe_options
+
 SUBPROTOCOL = "foxglove.sdk.v1"
 
 
@@ -70,9 +72,7 @@ def rates(got: dict[str, list[tuple[float, int]]]) -> dict[str, dict]:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m mars_link.apps.foxglove_probe", description=__doc__.splitlines()[0])
-    ap.add_argument("url", nargs="?", default="ws://127.0.0.1:8765")
-    ap.add_argument("--seconds", type=float, default=5.0)
-    ap.add_argument("--topics", default=None, help="comma-separated (default: all advertised)")
+    add_foxglove_probe_options(ap)
     a = ap.parse_args(argv)
     topics = tuple(a.topics.split(",")) if a.topics else None
     try:

@@ -101,14 +101,3 @@ def plan_command_args(args: argparse.Namespace) -> int:
     print(f"plan ok: {result.length_m:.2f} m, {result.duration_s:.2f} s, min clearance {result.min_clearance_m:.3f} m, "
           f"total yaw {math.degrees(result.total_yaw_rad):.0f} deg -> {out}")
     return 0
-
-
-def plan_command(argv: list[str]) -> int:
-    """`mars-link plan ARGV...` (scripts and tests): the main command line's parsing and error lines."""
-    from mars_link.apps.cli import main
-
-    return main(["plan", *argv])
-
-
-if __name__ == "__main__":
-    sys.exit(plan_command(sys.argv[1:]))

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mars_link.mavlink.codec import decode_frames
 from mars_link.planning.footprint import Footprint, footprint_clearance
 from mars_link.planning.maps import ObstacleMap, load_boxes_csv
 from mars_link.planning.pipeline import resolve_data_path
@@ -195,7 +196,7 @@ def walls_mission_flight(use_map: bool, fault_t_s: float, on_step=None, paced: b
     def feed(out) -> None:
         for o in out:
             if o.link == "api":
-                got.extend(dec.parse_buffer(o.data) or [])
+                got.extend(decode_frames(o.data, dec))
 
     def send(msg) -> list:
         k = len(got)

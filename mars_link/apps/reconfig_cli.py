@@ -7,7 +7,6 @@ line on stderr).
 from __future__ import annotations
 
 import math
-import sys
 
 from mars_link.core.errors import UserInputError
 from mars_link.logs.outputs import dumps
@@ -107,13 +106,20 @@ def _print_text(model, faults, weights, plan) -> None:
 
 def reconfig_plan_args(args) -> int:
     """The verb, its options parsed by mars_link.apps.cli; a bad input raises (one line there, exit 2)."""
+    from mars_link.reconfig.margin import plan_figures
+    from mars_link.reconfig.plans import plan_for_margin
     from mars_link.reconfig.sequencing import plan_reconfiguration
 
     model, faults, health, weights = _setup(args)
     target = _parse_target(args.target, model) if args.target else None
-    plan = plan_reconfiguration(model, health, weights, target=target)
+    if args.objective == "margin" and target is None:
+        plan = plan_for_margin(model, health.ravel(), weights)
+    else:
+        plan = plan_reconfiguration(model, health, weights, target=target)
+    figures = plan_figures(plan, model.vehicle, {u: health[u - 1] for u in model.unit_ids}) if plan.feasible else {}
     if args.json:
         out = plan.to_json()
+        out.update(figures)
         out.update({
             "preset": model.vehicle.name,
             "faults": [{"unit": f.unit, "rotor": f.rotor, "eta": f.eta, "t": f.t_s} for f in faults],
@@ -122,15 +128,7 @@ def reconfig_plan_args(args) -> int:
         print(dumps(out, indent=None))  # strict JSON (NaN/inf -> null)
     else:
         _print_text(model, faults, weights, plan)
+        if figures:
+            print(f"chosen by {plan.objective}: force objective {figures['force_objective']:.4f}, controllability "
+                  f"margin worst stage {figures['worst_stage_margin']:.3f}, final {figures['final_margin']:.3f}")
     return EXIT_OK if plan.feasible else EXIT_INFEASIBLE
-
-
-def reconfig_plan_command(argv: list[str]) -> int:
-    """`mars-link reconfig plan ARGV...` (scripts and tests): the main command line's parsing and error lines."""
-    from mars_link.apps.cli import main
-
-    return main(["reconfig", "plan", *argv])
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(reconfig_plan_command(sys.argv[1:]))

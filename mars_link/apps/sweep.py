@@ -11,6 +11,7 @@ sweep can be flown again alone. The flights run on `mars_link.apps.sweep_pool` (
 from __future__ import annotations
 
 import copy
+import dataclasses
 import itertools
 import math
 import re
@@ -18,10 +19,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from mars_link.config import scenario as scenario_module
+from mars_link.core.assembly import ROTORS_PER_UNIT
 from mars_link.core.errors import UserInputError
 from mars_link.config.scenario import (FaultSpec, Scenario, parse_toml, read_toml_file, resolve_scenario_path,
                                 scenario_from_dict, SCENARIO_DIR)
 from mars_link.core.validation import MAX_SWEEP_FLIGHTS, SEED_MAX
+from mars_link.flight.fault_scoring import FaultScore, score_flight
 
 #: random faults act between these fractions of the flight (after take-off, with time left to see it)
 FAULT_T_MIN_FRAC = 0.1
@@ -33,15 +37,38 @@ PARAM_ALIASES = {
     "duration_s": "sim.duration_s", "preset": "vehicle.preset",
 }
 PARAM_TABLES = ("vehicle", "assembly", "trajectory", "control", "sim", "reconfig", "docking", "environment", "sensors")
-_FAULTS_RE = re.compile(r"random:(?P<k>\d{1,4})(?:,(?P<kind>units|rotors))?")
+#: `--faults`: the grammar, shown whole in every refusal
+FAULTS_GRAMMAR = "random:K or random:A-B[,rotors|units|whole-units][,eta=E1/E2/...][,kind=KIND]"
+_COUNT_RE = re.compile(r"random:(?P<lo>\d{1,4})(?:-(?P<hi>\d{1,4}))?")
+#: where random faults fall, and what each placement draws unless told (etas, one time for all or one each)
+PLACEMENTS = {
+    "rotors": "distinct rotors anywhere, eta 0, each at its own time",
+    "units": "one rotor on each of distinct units, all at one time, etas 0 and 0.3 mixed (issue 41's simultaneous "
+             "faults)",
+    "whole-units": "distinct whole units, eta 0, each at its own time",
+}
+DEFAULT_ETAS = {"rotors": (0.0,), "units": (0.0, 0.3), "whole-units": (0.0,)}
 
 
 @dataclass(frozen=True)
 class RandomFaults:
-    """`--faults random:K[,units|rotors]`: K distinct rotors (or whole units) fail (eta 0) per flight."""
+    """`--faults random:K` or `random:A-B`: per flight, a count uniform in [A, B] of faults placed as `placement`
+    says (PLACEMENTS), each eta uniform among `etas`; `kind`: the scenario's fault kind (None: its default)."""
 
-    count: int
-    kind: str = "rotors"
+    count_min: int
+    count_max: int
+    placement: str = "rotors"
+    etas: tuple[float, ...] = (0.0,)
+    kind: str | None = None
+
+    @property
+    def simultaneous(self) -> bool:
+        return self.placement == "units"
+
+    def text(self) -> str:
+        count = f"{self.count_min}" if self.count_min == self.count_max else f"{self.count_min}-{self.count_max}"
+        etas = "" if self.etas == DEFAULT_ETAS[self.placement] else ",eta=" + "/".join(f"{e:g}" for e in self.etas)
+        return f"random:{count},{self.placement}{etas}" + (f",kind={self.kind}" if self.kind else "")
 
 
 @dataclass(frozen=True)
@@ -82,12 +109,51 @@ class SweepPlan:
 
 # ----------------------------------------------------------------------------- parsing
 def parse_faults(text: str | None) -> RandomFaults | None:
+    """`--faults`: FAULTS_GRAMMAR (None or "none": no random faults); a bad spec is one line naming the part."""
     if text is None or text == "none":
         return None
-    m = _FAULTS_RE.fullmatch(text.strip())
-    if not m or int(m["k"]) < 1:
-        raise UserInputError(f"--faults {text[:60]!r}: expected random:K[,units|rotors] with K >= 1, e.g. random:1")
-    return RandomFaults(int(m["k"]), m["kind"] or "rotors")
+    shown = f"--faults {text[:60]!r}"
+    head, *parts = [p.strip() for p in text.strip().split(",")]
+    m = _COUNT_RE.fullmatch(head)
+    if not m:
+        raise UserInputError(f"{shown}: expected {FAULTS_GRAMMAR}, e.g. random:1 or random:1-3,units")
+    lo, hi = int(m["lo"]), int(m["hi"] or m["lo"])
+    if not 1 <= lo <= hi:
+        raise UserInputError(f"{shown}: expected random:K with K >= 1, or random:A-B with 1 <= A <= B")
+    placement, etas, kind = None, None, None
+    for part in parts:
+        key, sep, value = part.partition("=")
+        if not sep and part in PLACEMENTS and placement is None:
+            placement = part
+        elif key == "eta" and etas is None:
+            etas = _parse_etas(value, shown)
+        elif key == "kind" and kind is None and re.fullmatch(r"[a-z][a-z0-9-]{0,31}", value):
+            kind = _check_kind(value, shown)
+        else:
+            raise UserInputError(f"{shown}: unknown or repeated part {part[:30]!r}; expected {FAULTS_GRAMMAR}")
+    placement = placement or "rotors"
+    return RandomFaults(lo, hi, placement, etas or DEFAULT_ETAS[placement], kind)
+
+
+def _parse_etas(text: str, shown: str) -> tuple[float, ...]:
+    try:
+        etas = tuple(float(v) for v in text.split("/"))
+    except ValueError:
+        etas = ()
+    if not etas or not all(0.0 <= e < 1.0 for e in etas) or len(set(etas)) != len(etas):
+        raise UserInputError(f"{shown}: eta={text[:20]} must be distinct efficiencies in [0, 1) separated by /, "
+                             "e.g. eta=0/0.3")
+    return etas
+
+
+def _check_kind(kind: str, shown: str) -> str:
+    """A fault kind is the scenario's `[[faults]] kind`: refused while FaultSpec has none (or not this one)."""
+    known = getattr(scenario_module, "FAULT_KINDS", None)
+    if "kind" not in {f.name for f in dataclasses.fields(FaultSpec)} or not known:
+        raise UserInputError(f"{shown}: fault kind {kind!r}: this version's faults have no kinds yet (eta only)")
+    if kind not in known:
+        raise UserInputError(f"{shown}: unknown fault kind {kind!r} (one of {', '.join(known)})")
+    return kind
 
 
 def parse_param(text: str) -> Param:
@@ -209,31 +275,46 @@ def plan_sweep(doc: dict, src: str, seeds: int, sweep_seed: int | None = None,
 
 def draw_faults(faults: RandomFaults, sweep_seed: int, seed_index: int, model, duration_s: float,
                 control_hz: float) -> tuple[FaultSpec, ...]:
-    """Seed slot `seed_index`'s faults: K distinct rotors (or units), eta 0, each at a time uniform in
-    [FAULT_T_MIN_FRAC, FAULT_T_MAX_FRAC] of the flight, on a control step. Drawn from (sweep seed, slot) only."""
+    """Seed slot `seed_index`'s faults, drawn from (sweep seed, slot) only: the count (a range only), the places,
+    each rotor of `units`, the time(s) uniform in [FAULT_T_MIN_FRAC, FAULT_T_MAX_FRAC] of the flight on a control
+    step, then the etas (several only). Why in this order: a fixed count with one eta draws exactly what sweeps
+    drew before ranges and etas existed, so their flights fly again the same."""
     import numpy as np
 
-    if faults.kind == "units":
-        pool: list[tuple[int, int | None]] = [(u, None) for u in model.unit_ids]
+    if faults.placement == "rotors":
+        pool: list[tuple[int, int | None]] = [(u, r) for u in model.unit_ids for r in range(1, ROTORS_PER_UNIT + 1)]
     else:
-        pool = [(u, r) for u in model.unit_ids for r in range(1, 5)]
-    if faults.count > len(pool):
-        raise UserInputError(f"--faults random:{faults.count},{faults.kind}: the assembly has only {len(pool)} "
-                             f"{faults.kind}")
+        pool = [(u, None) for u in model.unit_ids]
+    noun = "rotors" if faults.placement == "rotors" else "units"
+    if faults.count_max > len(pool):
+        raise UserInputError(f"--faults {faults.text()}: the assembly has only {len(pool)} {noun}")
     rng = np.random.default_rng([sweep_seed, seed_index])
-    picks = rng.choice(len(pool), size=faults.count, replace=False)
-    fracs = rng.uniform(FAULT_T_MIN_FRAC, FAULT_T_MAX_FRAC, size=faults.count)
+    count = faults.count_min if faults.count_min == faults.count_max else int(
+        rng.integers(faults.count_min, faults.count_max + 1))
+    picks = [pool[int(k)] for k in rng.choice(len(pool), size=count, replace=False)]
+    if faults.placement == "units":
+        picks = [(u, int(r)) for (u, _), r in zip(picks, rng.integers(1, ROTORS_PER_UNIT + 1, size=count))]
+    fracs = rng.uniform(FAULT_T_MIN_FRAC, FAULT_T_MAX_FRAC, size=1 if faults.simultaneous else count)
+    fracs = np.repeat(fracs, count) if faults.simultaneous else fracs
+    etas = [faults.etas[0]] * count if len(faults.etas) == 1 else [float(e) for e in rng.choice(faults.etas, size=count)]
+    with_kind: dict[str, Any] = {"kind": faults.kind} if faults.kind else {}  # (FaultSpec.kind, once it exists)
     out = []
-    for k, frac in sorted(zip(picks, fracs), key=lambda p: p[1]):
-        unit, rotor = pool[int(k)]
+    for (unit, rotor), frac, eta in sorted(zip(picks, fracs, etas), key=lambda p: (p[1], p[0][0], p[0][1] or 0)):
         t = math.floor(duration_s * float(frac) * control_hz) / control_hz  # on a control step
-        out.append(FaultSpec(unit, rotor, 0.0, round(t, 6)))
+        fault = FaultSpec(unit, rotor, eta, round(t, 6))
+        out.append(dataclasses.replace(fault, **with_kind))
     return tuple(out)
 
 
 # ----------------------------------------------------------------------------- one flight (in a worker)
+#: the isolation figures of each flight (mars_link.flight.fault_scoring: FlightFaultScore.row)
+SCORE_FIELDS = ("faults_injected", "faults_isolated", "faults_isolated_in_time", "faults_never_found",
+                "isolation_delay_max_s", "eta_error_max", "false_beliefs", "false_belief_max_s")
 ROW_FIELDS = ("flight", "seed", "faults", "params", "completed", "diverged", "mean_error_m", "rmse_m", "max_error_m",
-              "force_integral_n2s", "detection_time_s", "sim_time_s", "wall_time_s", "error")
+              "force_integral_n2s", "detection_time_s", *SCORE_FIELDS, "sim_time_s", "wall_time_s", "error")
+#: faults.csv: one row per injected fault of every flight (its FaultScore)
+FAULT_FIELDS = ("flight", "seed", "params", "unit", "rotor", "eta", "t_s", "found", "isolated", "isolated_in_time",
+                "delay_s", "eta_estimated", "eta_error")
 #: what must be equal between two sweeps of the same flights (all but the wall time)
 RESULT_FIELDS = tuple(f for f in ROW_FIELDS if f != "wall_time_s")
 
@@ -273,10 +354,12 @@ def _one_body_view(sc: Scenario, out: Path):
 
 
 def row_of(spec: FlightSpec, r, detected_t_s: list[float], wall_s: float) -> dict:
-    """A flight's row: its figures as the flight gave them (floats kept whole, so equal flights give equal rows)."""
+    """A flight's row: its figures as the flight gave them (floats kept whole, so equal flights give equal rows),
+    with its fault isolation scored from its events; `fault_scores` (not a CSV column): faults.csv's rows."""
     t_fault = min((f.t_s for f in spec.faults), default=None)
     after = sorted(t for t in detected_t_s if t_fault is not None and t >= t_fault - 1e-9)
-    return {
+    score = score_flight(r.events, float(r.sim_time_s), bool(r.diverged))
+    return {**score.row(), "fault_scores": [fault_row(spec, f) for f in score.faults],
         "flight": spec.index, "seed": spec.seed, "faults": spec.faults_text(), "params": spec.params_text(),
         "completed": bool(r.completed), "diverged": bool(r.diverged), "mean_error_m": float(r.mean_error_m),
         "rmse_m": float(r.rmse_m), "max_error_m": float(r.max_error_m),
@@ -284,6 +367,14 @@ def row_of(spec: FlightSpec, r, detected_t_s: list[float], wall_s: float) -> dic
         "detection_time_s": (after[0] - t_fault) if after else None,
         "sim_time_s": float(r.sim_time_s), "wall_time_s": wall_s, "error": None,
     }
+
+
+def fault_row(spec: FlightSpec, f: FaultScore) -> dict:
+    """One injected fault's row of faults.csv."""
+    return {"flight": spec.index, "seed": spec.seed, "params": spec.params_text(), "unit": f.unit, "rotor": f.rotor,
+            "eta": f.eta, "t_s": f.t_s, "found": f.found, "isolated": f.isolated,
+            "isolated_in_time": f.isolated_in_time, "delay_s": f.delay_s, "eta_estimated": f.eta_estimated,
+            "eta_error": f.eta_error}
 
 
 def error_row(spec: FlightSpec, error: str, wall_s: float) -> dict:

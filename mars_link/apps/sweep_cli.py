@@ -1,4 +1,4 @@
-"""`mars-link sweep SCENARIO [--seeds N] [--faults random:K[,units|rotors]] [--param KEY=V1,V2,...]
+"""`mars-link sweep SCENARIO [--seeds N] [--faults random:A-B[,units|rotors|whole-units][,eta=..]] [--param KEY=V1,V2,...]
 [--workers W] [--scheduler ADDRESS] [--out DIR] [--mcap]`: the verb (its options: mars_link.apps.cli), and
 `run_sweep` for scripts.
 
@@ -17,6 +17,7 @@ from typing import Callable
 from mars_link.apps.sweep import FlightSpec, SweepPlan, error_row, fly_flight
 from mars_link.apps.sweep_pool import Outcome, PoolSpec, open_pool, run_all
 from mars_link.apps.sweep_report import ROW_FIELDS, cell, csv_header
+from mars_link.flight.fault_scoring import ISOLATION_DEADLINE_S
 
 
 def run_sweep(plan: SweepPlan, pool: PoolSpec, out_dir: Path | None = None, mcap: bool = False,
@@ -66,7 +67,8 @@ def sweep_command(args: argparse.Namespace, default_out: Callable[[str], Path]) 
     from mars_link.logs.outputs import write_json
     from mars_link.apps.sweep import parse_faults, parse_param, plan_sweep, read_scenario_doc
     from mars_link.apps.sweep_pool import check_workers, connect
-    from mars_link.apps.sweep_report import markdown, plot_distributions, totals, write_csv
+    from mars_link.apps.sweep_report import (isolation, markdown, plot_distributions, plot_isolation_delays, totals,
+                                             write_csv, write_faults_csv)
 
     check_workers(args.workers)
     faults = parse_faults(args.faults)
@@ -92,18 +94,28 @@ def sweep_command(args: argparse.Namespace, default_out: Callable[[str], Path]) 
         rows = run_sweep(plan, pool, out, args.mcap, on_done)
     wall = time.perf_counter() - t0
     write_csv(out / "sweep.csv", rows)
+    if faults is not None:
+        write_faults_csv(out / "faults.csv", rows)
     (out / "sweep.partial.csv").unlink(missing_ok=True)
     title = f"sweep {plan.name}: {len(rows)} flights, sweep seed {plan.sweep_seed}" + (
         f", faults {args.faults}" if args.faults else "")
     (out / "sweep.md").write_text(markdown(rows, title), encoding="utf-8")
     summary = {"scenario": plan.name, "source": plan.src, "sweep_seed": plan.sweep_seed, "seeds": args.seeds,
                "faults": args.faults, "params": args.param, "pool": pool.describe(), "wall_time_s": wall,
-               **totals(rows)}
+               **totals(rows), **({"isolation": isolation(rows)} if faults is not None else {})}
     write_json(out / "sweep.json", summary)
     if not args.no_plots:
         plot_distributions(rows, out / "plots", title)
+        if faults is not None:
+            plot_isolation_delays(rows, out / "plots", title)
     print(f"{summary['flights']} flights in {wall:.1f} s: {summary['completed']} completed, {summary['diverged']} "
           f"diverged, {summary['raised']} raised" + ("" if summary["median_mean_error_m"] is None else
                                                        f"; median mean error {summary['median_mean_error_m']:.4f} m"))
-    print(f"results: {out / 'sweep.csv'}, {out / 'sweep.md'}")
+    if faults is not None:
+        iso = summary["isolation"]
+        print(f"{iso['faults']} faults: " + ", ".join(
+            f"{label} {'—' if iso[key] is None else f'{100 * iso[key]:.0f} %'}" for key, label in (
+                ("isolated_in_time_fraction", f"isolated correctly within {ISOLATION_DEADLINE_S:g} s"),
+                ("false_belief_rate", "flights with a false belief"), ("divergence_rate", "diverged"))))
+    print(f"results: {out / 'sweep.csv'}, {out / 'sweep.md'}" + (f", {out / 'faults.csv'}" if faults else ""))
     return 0 if summary["raised"] == 0 else 1

@@ -225,18 +225,8 @@ def values_or_raise(outcomes: Sequence[Outcome], what: str = "flight") -> list[A
 
 
 # ----------------------------------------------------------------------------- scripts' options
-def add_pool_arguments(ap) -> None:
-    """--workers W / --scheduler ADDRESS for a script whose flights go through `map_flights`."""
-    from mars_link.core.validation import bounded_int
-
-    ap.add_argument("--workers", "--jobs", type=bounded_int(1, 4096), default=None,
-                    help="local worker processes flying at once (default: every core)")
-    ap.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                    help="fly on the Dask cluster of this scheduler (tcp://HOST:PORT) instead")
-
-
 def pool_from_args(args) -> PoolSpec:
-    """The scripts' --workers / --scheduler. A scheduler address that is malformed or does not answer is one
+    """The scripts' --workers / --scheduler (mars_link.processes.cli_options.add_pool). A scheduler address that is malformed or does not answer is one
     line and exit 2 here, before any flight (as the sweep verb), not a traceback from inside the pool."""
     spec = PoolSpec(getattr(args, "workers", None), getattr(args, "scheduler", None))
     if spec.scheduler is not None:

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import csv
 import math
+import textwrap
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-from mars_link.apps.sweep import RESULT_FIELDS, ROW_FIELDS
+from mars_link.apps.sweep import FAULT_FIELDS, RESULT_FIELDS, ROW_FIELDS
+from mars_link.flight.fault_scoring import ETA_TOLERANCE, ISOLATION_DEADLINE_S
 
 #: the figures plotted, (column, label)
 PLOTTED = (("mean_error_m", "mean tracking error [m]"), ("max_error_m", "max tracking error [m]"),
@@ -44,6 +46,19 @@ def write_csv(path: Path, rows: Iterable[dict]) -> Path:
     return path
 
 
+def write_faults_csv(path: Path, rows: Iterable[dict]) -> Path:
+    """faults.csv: one row per injected fault of every flight that flew (FAULT_FIELDS)."""
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="", encoding="utf-8") as f:
+        w = csv.writer(f)
+        w.writerow(FAULT_FIELDS)
+        for row in rows:
+            for fault in row.get("fault_scores") or ():
+                w.writerow([cell(fault.get(k)) for k in FAULT_FIELDS])
+    tmp.replace(path)
+    return path
+
+
 def read_csv(path: Path) -> list[dict[str, str]]:
     with path.open(newline="", encoding="utf-8") as f:
         return list(csv.DictReader(f))
@@ -68,9 +83,7 @@ def group_table(rows: Sequence[dict]) -> list[str]:
     """Per parameter combination: flights, completed, diverged, raised, medians over the completed flights."""
     import numpy as np
 
-    groups: dict[str, list[dict]] = {}
-    for r in rows:
-        groups.setdefault(r["params"] or "all flights", []).append(r)
+    groups = _groups(rows)
     lines = ["| params | flights | completed | diverged | raised | median mean / max error [m] (completed) | "
              "median force integral [N²s] | median detection [s] |", "|---|---|---|---|---|---|---|---|"]
 
@@ -87,17 +100,83 @@ def group_table(rows: Sequence[dict]) -> list[str]:
     return lines
 
 
+def isolation(rows: Sequence[dict]) -> dict:
+    """Fault isolation over the flights that flew: the fraction of injected faults isolated correctly (unit,
+    rotor, eta within ETA_TOLERANCE) within ISOLATION_DEADLINE_S and at all, faults never found, the delays'
+    median and max, the false-belief rate (flights where a healthy rotor was ever believed failed), healthy
+    rotors believed failed per flight and the longest such belief, and the divergence rate."""
+    import numpy as np
+
+    flown = [r for r in rows if r.get("error") is None]
+    faults = [f for r in flown for f in r.get("fault_scores") or ()]
+    delays = [f["delay_s"] for f in faults if f["isolated"]]
+    longest = [r["false_belief_max_s"] for r in flown if r.get("false_belief_max_s") is not None]
+
+    def frac(n: int, d: int) -> float | None:
+        return n / d if d else None
+
+    return {
+        "flights": len(flown), "faults": len(faults),
+        "isolated_in_time_fraction": frac(sum(bool(f["isolated_in_time"]) for f in faults), len(faults)),
+        "isolated_fraction": frac(sum(bool(f["isolated"]) for f in faults), len(faults)),
+        "never_found": sum(not f["found"] for f in faults),
+        "delay_median_s": float(np.median(delays)) if delays else None,
+        "delay_max_s": max(delays) if delays else None,
+        "false_belief_rate": frac(sum(bool(r["false_beliefs"]) for r in flown), len(flown)),
+        "false_beliefs_per_flight": frac(sum(int(r["false_beliefs"]) for r in flown), len(flown)),
+        "false_belief_max_s": max(longest) if longest else None,
+        "divergence_rate": frac(sum(bool(r["diverged"]) for r in flown), len(flown)),
+    }
+
+
+def isolation_table(rows: Sequence[dict]) -> list[str]:
+    """Per parameter combination: the figures of `isolation`, as markdown lines."""
+    lines = [f"| params | flights | faults | isolated within {ISOLATION_DEADLINE_S:g} s | isolated | never found | "
+             "delay median / max [s] | false-belief rate | healthy rotors believed failed per flight (longest [s]) | "
+             "diverged |", "|---|---|---|---|---|---|---|---|---|---|"]
+
+    def pct(v: float | None) -> str:
+        return "—" if v is None else f"{100 * v:.0f} %"
+
+    for name, rs in _groups(rows).items():
+        s = isolation(rs)
+        lines.append(f"| {name} | {s['flights']} | {s['faults']} | {pct(s['isolated_in_time_fraction'])} | "
+                     f"{pct(s['isolated_fraction'])} | {s['never_found']} | {_fmt(s['delay_median_s'], 3)} / "
+                     f"{_fmt(s['delay_max_s'], 3)} | {pct(s['false_belief_rate'])} | "
+                     f"{_fmt(s['false_beliefs_per_flight'], 2)} ({_fmt(s['false_belief_max_s'], 2)}) | "
+                     f"{pct(s['divergence_rate'])} |")
+    return lines
+
+
+def _groups(rows: Sequence[dict]) -> dict[str, list[dict]]:
+    groups: dict[str, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(r["params"] or "all flights", []).append(r)
+    return groups
+
+
 def markdown(rows: Sequence[dict], title: str) -> str:
-    lines = [f"### {title}", "", *group_table(rows), "",
-             "| flight | seed | faults | params | completed | diverged | mean / rms / max error [m] | "
-             "force integral [N²s] | detection [s] | wall [s] | error |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    scored = any(r.get("faults_injected") for r in rows)
+    lines = [f"### {title}", "", *group_table(rows), ""]
+    if scored:
+        lines += [f"Fault isolation: a fault is isolated when a belief names its unit and rotor with the eta within "
+                  f"±{ETA_TOLERANCE:g} (delay: from the fault to that belief); a false belief is a healthy rotor "
+                  "believed failed (fault_detected or unit_lost, until fault_retracted or the end).", "",
+                  *isolation_table(rows), ""]
+    lines += ["| flight | seed | faults | params | completed | diverged | mean / rms / max error [m] | "
+              "force integral [N²s] | detection [s] | isolated in time / injected (never found) | "
+              "false beliefs (longest [s]) | wall [s] | error |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         errs = " / ".join(_fmt(r.get(k), 4) for k in ("mean_error_m", "rmse_m", "max_error_m"))
+        found = "—" if r.get("faults_injected") is None else (
+            f"{r['faults_isolated_in_time']} / {r['faults_injected']} ({r['faults_never_found']})")
+        false = "—" if r.get("false_beliefs") is None else (
+            f"{r['false_beliefs']} ({_fmt(r.get('false_belief_max_s'), 2)})")
         lines.append(f"| {r['flight']} | {r['seed']} | {r['faults'] or '—'} | {r['params'] or '—'} | "
                      f"{_fmt(r['completed'], 0)} | {_fmt(r['diverged'], 0)} | {errs} | "
-                     f"{_fmt(r.get('force_integral_n2s'), 2)} | {_fmt(r.get('detection_time_s'), 3)} | "
-                     f"{_fmt(r.get('wall_time_s'), 2)} | {(r.get('error') or '').replace('|', '/')} |")
+                     f"{_fmt(r.get('force_integral_n2s'), 2)} | {_fmt(r.get('detection_time_s'), 3)} | {found} | "
+                     f"{false} | {_fmt(r.get('wall_time_s'), 2)} | {(r.get('error') or '').replace('|', '/')} |")
     return "\n".join(lines) + "\n"
 
 
@@ -124,9 +203,7 @@ def plot_distributions(rows: Sequence[dict], plots_dir: Path, title: str) -> lis
     import numpy as np
 
     plots_dir.mkdir(parents=True, exist_ok=True)
-    groups: dict[str, list[dict]] = {}
-    for r in rows:
-        groups.setdefault(r["params"] or "all flights", []).append(r)
+    groups = _groups(rows)
     paths = []
     for key, label in PLOTTED:
         fig, ax = plt.subplots(figsize=(6.4, 3.8))
@@ -153,3 +230,41 @@ def plot_distributions(rows: Sequence[dict], plots_dir: Path, title: str) -> lis
         plt.close(fig)
         paths.append(path)
     return paths
+
+
+def plot_isolation_delays(rows: Sequence[dict], plots_dir: Path, title: str) -> Path:
+    """isolation_delay_s.png: the histogram of the delays of the faults isolated correctly, a colour per
+    parameter combination, the deadline marked, each legend with its isolated-in-time fraction, false-belief
+    rate and divergence rate."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    plots_dir.mkdir(parents=True, exist_ok=True)
+    groups = _groups(rows)
+    series = {name: [f["delay_s"] for r in rs if r.get("error") is None for f in r.get("fault_scores") or ()
+                     if f["isolated"]] for name, rs in groups.items()}
+    every = [v for vals in series.values() for v in vals]
+    fig, ax = plt.subplots(figsize=(6.4, 3.8))
+    hi = max(every + [2 * ISOLATION_DEADLINE_S])
+    bins = np.linspace(0.0, hi, 51).tolist()  # (0.02 s wide up to a 1 s delay: the deadline on a bin edge)
+    for name, vals in series.items():
+        s = isolation(groups[name])
+        pct = {k: "—" if s[k] is None else f"{100 * s[k]:.0f} %" for k in
+               ("isolated_in_time_fraction", "false_belief_rate", "divergence_rate")}
+        ax.hist(vals, bins=bins, alpha=0.55,
+                label=f"{textwrap.shorten(name, 70)}\n{s['faults']} faults, {pct['isolated_in_time_fraction']} "
+                      f"isolated within {ISOLATION_DEADLINE_S:g} s; false beliefs in {pct['false_belief_rate']} "
+                      f"of flights; {pct['divergence_rate']} diverged")
+    ax.axvline(ISOLATION_DEADLINE_S, color="k", linestyle="--", linewidth=1)
+    ax.legend(fontsize=6)
+    ax.set_xlabel("isolation delay [s] (faults isolated correctly)")
+    ax.set_ylabel("faults")
+    ax.set_title(title, fontsize=9)
+    fig.tight_layout()
+    path = plots_dir / "isolation_delay_s.png"
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

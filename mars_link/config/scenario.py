@@ -381,6 +381,10 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
     return sc
 
 
+#: what a reconfiguration plan maximises ([reconfig] objective): paper 001's force objective, or the worst-stage
+#: controllability margin (mars_link.reconfig.margin)
+RECONFIG_OBJECTIVES = ("force", "margin")
+
 _RECONFIG_NUMBERS = {"at_s", "trigger_delay_s", "speed_mps", "approach_speed_mps", "stop_s", "settle_s",
                      "altitude_step_m", "separation_m", "predock_m", "dock_timeout_s"}
 
@@ -388,7 +392,7 @@ _RECONFIG_NUMBERS = {"at_s", "trigger_delay_s", "speed_mps", "approach_speed_mps
 def _reconfig_table(table: dict, src: str) -> dict:
     """[reconfig]: enabled (bool), target (unit ids per cell, row-major), moves and ground (bools, default true), and the
     executor's timing and distances (mars_link.reconfig.execution.ExecutionParams); checked against the layout later."""
-    _check_keys(table, {"enabled", "target", "moves", "ground"} | _RECONFIG_NUMBERS, "[reconfig]", src)
+    _check_keys(table, {"enabled", "target", "moves", "ground", "objective"} | _RECONFIG_NUMBERS, "[reconfig]", src)
     out: dict[str, Any] = {"enabled": table.get("enabled", False)}
     # moves: where paper 001 finds no plan, fly the best single move; ground: where no move either, land
     # and rebuild on the ground
@@ -398,6 +402,13 @@ def _reconfig_table(table: dict, src: str) -> dict:
     for key in ("moves", "ground"):
         if key in table:
             out[key] = table[key]
+    # objective: where the units go, "force" (paper 001's placement) or "margin" (MARS-Reconfig: the largest
+    # controllability margin of the weakest piece along the whole sequence)
+    if "objective" in table:
+        if table["objective"] not in RECONFIG_OBJECTIVES:
+            raise UserInputError(f"{src}: [reconfig] objective must be one of {', '.join(RECONFIG_OBJECTIVES)}, "
+                                 f"got {table['objective']!r}")
+        out["objective"] = table["objective"]
     if "target" in table:
         target = table["target"]
         if not isinstance(target, list) or not all(isinstance(u, int) and not isinstance(u, bool) for u in target):

@@ -13,11 +13,13 @@ in-process and in SITL (firmware_models.sensor_failures). Bad input is one line 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from firmware_models.sensor_failures import BASE_SENSORS, CARRIED_TYPES, FAILURE_TYPES, SENSOR_UNITS
 from mars_link.core.assembly import AssemblyModel
 from mars_link.core.errors import UserInputError
+from mars_link.core.events import EventKind, event
 from mars_link.core.table_checks import check_keys, integer, number
 from mars_link.models.esc import ESC_FAILURES
 
@@ -48,6 +50,20 @@ class SensorFaultSpec:
 
     def applies_to(self, unit_id: int) -> bool:
         return self.unit is None or self.unit == unit_id
+
+
+def sensor_fault_events(faults: list[SensorFaultSpec], control_hz: float, last_step_s: float) -> list[dict]:
+    """The `sensor_fault` events of a flight whose last control step was at `last_step_s`: each start and end
+    of the schedule, dated at the first control step at or after it (when the units apply it). The engine and
+    the SITL summaries both tell them from here, so they agree to the step."""
+    steps = sorted(((t, kind, sf) for sf in faults for t, _, kind in sf.schedule()), key=lambda e: e[0])
+    out = []
+    for t, kind, sf in steps:
+        step_s = math.ceil(t * control_hz - 1e-6) / control_hz
+        if step_s <= last_step_s + 1e-9:
+            out.append(event(step_s, EventKind.SENSOR_FAULT, sensor=sf.sensor, unit=sf.unit, failure=kind,
+                             text=sf.text(end=kind == "ok" and sf.kind != "ok")))
+    return out
 
 
 def flight_sensors(profile_name: str) -> tuple[str, ...]:

@@ -33,11 +33,18 @@ from mars_link.coordination.coordinator import Coordinator, StepRecord
 from mars_link.core.latches import LATCH_ALL, Link, neighbour_links
 from mars_link.core.messages import RotorCommand, SensorPacket
 from mars_link.reconfig.execution import Executor, Key, PieceShape, SplitAction, TrackedPointReference, local_eta, units_text
+from mars_link.reconfig.margin import controllability_margin
+from mars_link.reconfig.plans import plan_event
 from mars_link.reconfig.sequencing import ReconfigPlan
+from mars_link.core.rotations import tilt_deg
 from mars_link.core.state import ImuSample, PositionSample
 
 #: a commanded split whose latches do not report open within this time fails the manoeuvre
 SPLIT_CONFIRM_S = 1.0
+#: a piece flying on its own (assembling, reconfiguring) whose estimate tilts past this is out of control: lost
+LOST_TILT_DEG = 60.0
+#: ... or whose controllability margin with the faults found is below this share of its healthy margin
+LOST_MARGIN_SHARE = 0.1
 
 
 @dataclass
@@ -66,6 +73,13 @@ PieceCoordinatorFactory = Callable[[PieceShape, AssemblyModel, TrackedPointRefer
 #: (believed eta per unit, the structure's cells: unit -> cell of the layout) -> (a plan to execute, or None
 #: and the reason there is none)
 Planner = Callable[[dict[int, np.ndarray], dict], tuple[ReconfigPlan | None, str]]
+
+
+def piece_can_fly(model: AssemblyModel, eta: np.ndarray) -> bool:
+    """Whether a piece with these believed efficiencies keeps at least LOST_MARGIN_SHARE of its healthy
+    controllability margin (mars_link.reconfig.margin): a rotor found at eta 0.003 is as dead as one at 0,
+    which a rank test would not say."""
+    return controllability_margin(model, eta) >= LOST_MARGIN_SHARE * controllability_margin(model)
 
 
 def local_packet(packet: SensorPacket, local_id: int) -> SensorPacket:
@@ -100,6 +114,7 @@ class PiecesCoordinator:
         self.told = 0
         self.at_s = at_s
         self.eta_believed: dict[int, np.ndarray] = {u: np.ones(ROTORS_PER_UNIT) for u in unit_ids}
+        executor.unit_eta = self.eta_believed  # (shared: a re-plan without lost units places by what is believed)
         self.latch_setpoint: dict[int, int] = {u: LATCH_ALL for u in unit_ids}
         self.pieces: dict[Key, Piece] = {}
         self.pending_splits: list[_PendingSplit] = []
@@ -111,6 +126,8 @@ class PiecesCoordinator:
         self._at_done = False
         self.separations = list(separations)
         self.lost: set[int] = set()
+        #: pieces found unable to fly this step (key -> why): their units are declared lost once the step is done
+        self._cannot_fly: dict[Key, str] = {}
         self.telemetry_timeout_s = telemetry_timeout_s
         self._last_seen: dict[int, float] = {}
         #: False holds back what would start a manoeuvre (a separation, a plan from found faults, `at_s`)
@@ -205,6 +222,8 @@ class PiecesCoordinator:
             self.eta_believed[u] = c.eta_believed[k * ROTORS_PER_UNIT:(k + 1) * ROTORS_PER_UNIT].copy()
         for d in new:  # (the piece's coordinator recorded each finding as an event)
             self.detections.append(dataclasses.replace(d, unit=piece.units[d.unit - 1]))
+        if self._on_its_own(piece) and not piece_can_fly(piece.model, c.eta_believed):
+            self._cannot_fly.setdefault(piece.shape.key, "cannot fly with the faults found")
         if self.planner is not None and self.at_s is None:  # (planned once the mission flies as one body)
             self._plan_at_s = min(self._plan_at_s, t_s + self.executor.params.trigger_delay_s)
 
@@ -219,10 +238,7 @@ class PiecesCoordinator:
         if plan is None:
             self.events.append(event(t_s, EventKind.RECONFIG_REFUSED, reason=reason, text="Reconfig refused"))
             return
-        self.events.append(event(t_s, EventKind.PLAN, feasible=plan.feasible,
-                                 disassembly_layers=plan.disassembly_layers, assembly_layers=plan.assembly_layers,
-                                 fallback_used=plan.fallback_used, reason=plan.reason,
-                                 text=f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers"))
+        self.events.append(plan_event(t_s, plan, self.vehicle, self.eta_believed))
         if not self.executor.replan(plan):
             self.events.append(event(t_s, EventKind.RECONFIG_REFUSED,
                                      reason="the structure is no longer the layout the plan starts from",
@@ -306,6 +322,28 @@ class PiecesCoordinator:
             self.failed = self.executor.failed
         return det
 
+    def _on_its_own(self, piece: Piece) -> bool:
+        """Whether `piece` flies apart from other bodies (assembling, reconfiguring; not parked on the ground):
+        one that cannot fly is lost then. A structure that is the only body flies on with the best
+        allocation it has (or lands to be rebuilt)."""
+        return len(self.pieces) > 1 and piece.shape.key not in self.executor.parked
+
+    def _watch_control(self, piece: Piece) -> None:
+        """A piece on its own whose estimate tilts past LOST_TILT_DEG is out of control (whatever the
+        detector found): lost."""
+        last = piece.coordinator.last
+        if last is not None and self._on_its_own(piece) and tilt_deg(last.estimate.quaternion_wxyz) > LOST_TILT_DEG:
+            self._cannot_fly.setdefault(piece.shape.key, f"out of control (tilt over {LOST_TILT_DEG:g} deg)")
+
+    def _lose_pieces_that_cannot_fly(self, t_s: float) -> None:
+        """The pieces found unable to fly: every unit lost (it lands or falls as its own fail-safe can), the
+        manoeuvre re-planned from the units left (`unit_lost`)."""
+        found, self._cannot_fly = self._cannot_fly, {}
+        for key, why in found.items():
+            for u in sorted(key):
+                if u not in self.lost and key in self.pieces:
+                    self.unit_lost(u, t_s, why)
+
     def _watch_telemetry(self, t_s: float, seen) -> None:
         for u in seen:
             self._last_seen[u] = t_s
@@ -379,6 +417,9 @@ class PiecesCoordinator:
                     u = units[c.unit_id - 1]
                     commands.append(RotorCommand(c.t_s, u, c.thrusts_n, latches[u]))
             self._take_events(p, t_s)
+            self._watch_control(p)
+        if self._cannot_fly:
+            self._lose_pieces_that_cannot_fly(t_s)
         self.last = self.tracked_piece().coordinator.last
         if self.executor.failed and self.failed is None:
             self.failed = self.executor.failed

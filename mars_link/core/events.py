@@ -73,7 +73,8 @@ MEANINGS: dict[EventKind, str] = {
     EventKind.FAULT_DETECTED: "the coordinator's detector believes a fault: unit, rotor, estimated eta",
     EventKind.FAULT_RETRACTED: "a belief of the coordinator's detectors that later evidence contradicts is withdrawn: "
                                "unit, rotor (none: the whole unit)",
-    EventKind.UNIT_LOST: "the coordinator declared a unit lost (silent, dead): its rotors count as failed",
+    EventKind.UNIT_LOST: "the coordinator declared a unit lost (silent, dead, or in a piece flying on its own that "
+                         "cannot fly: reason): its rotors count as failed, a manoeuvre re-plans without it",
     EventKind.REALLOCATION: "the allocation changed to the efficiencies believed now",
     EventKind.UNCONTROLLABLE: "the believed faults leave no exact allocation: best effort",
     EventKind.DIVERGED: "the tracked point left the divergence bounds (error or tilt): the flight ends",

@@ -383,7 +383,8 @@ def make_executor(scenario: Scenario, model: AssemblyModel, mission, plan_for: T
     vehicle's mission is its setpoints, which have no duration)."""
     from mars_link.reconfig.execution import Executor, FreeStart
     from mars_link.reconfig.placement import nominal_cells
-    from mars_link.reconfig.plans import execution_params, free_ground_positions, make_plan, unhoverable_pieces
+    from mars_link.reconfig.plans import (execution_params, free_ground_positions, make_plan, plan_event,
+                                          unhoverable_pieces)
     from mars_link.reconfig.sequencing import ReconfigPlan, plan_assembly
 
     vehicle = model.vehicle
@@ -395,14 +396,10 @@ def make_executor(scenario: Scenario, model: AssemblyModel, mission, plan_for: T
         return Executor(plan_assembly(model), vehicle, mission, tracked, params, free, defer_take_off), events, False
     if scenario.reconfig.get("enabled", False) and scenario.faults_known:
         plan = make_plan(scenario, model, plan_for or mission)
-        text = (f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers" if plan.feasible
-                else "Reconfig: no feasible plan")
-        events.append(event(0.0, EventKind.PLAN, feasible=plan.feasible, disassembly_layers=plan.disassembly_layers,
-                            assembly_layers=plan.assembly_layers, fallback_used=plan.fallback_used, reason=plan.reason,
-                            text=text))
+        eta = eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s), math.inf)
+        events.append(plan_event(0.0, plan, vehicle, {u: eta[model.unit_slots(u)] for u in model.unit_ids}))
         if plan.feasible and plan.disassembly_layers:
-            refused = unhoverable_pieces(plan, model, eta_after(model, sorted(scenario.faults, key=lambda f: f.t_s),
-                                                                math.inf))
+            refused = unhoverable_pieces(plan, model, eta)
             if not refused:
                 return Executor(plan, vehicle, mission, tracked, params), events, True
             events.append(event(0.0, EventKind.RECONFIG_REFUSED, reason="; ".join(refused),

@@ -27,6 +27,7 @@ from mars_link.runtime.pacing import Pacer
 from mars_link.core.rotations import quat_to_euler
 from mars_link.flight.run_log import RunLog
 from mars_link.config.scenario import FaultSpec, Scenario, eta_after
+from mars_link.config.scenario_sensor_faults import sensor_fault_events
 from mars_link.core.state import RigidBodyState
 from mars_link.models.trajectories import Trajectory
 
@@ -226,8 +227,7 @@ class Engine:
         self._next_fault = 0
         self._deaths = list(flight.deaths)
         # [[sensor_faults]] act in the units' sensor paths (scheduled there); their start and end are events here
-        self._sensor_events = sorted(
-            [(t, kind, sf) for sf in flight.scenario.sensor_faults for t, _, kind in sf.schedule()], key=lambda e: e[0])
+        self._sensor_events = sensor_fault_events(flight.scenario.sensor_faults, flight.scenario.sim.control_hz, math.inf)
 
     def _faults_due(self, t: float) -> None:
         f = self.flight
@@ -235,10 +235,8 @@ class Engine:
         while self._next_fault < len(faults) and faults[self._next_fault].t_s <= t + 1e-9:
             self._next_fault += 1
             self.on_fault(faults[self._next_fault - 1], t)
-        while self._sensor_events and self._sensor_events[0][0] <= t + 1e-9:
-            _, kind, sf = self._sensor_events.pop(0)
-            self.events.append(event(t, EventKind.SENSOR_FAULT, sensor=sf.sensor, unit=sf.unit, failure=kind,
-                                     text=sf.text(end=kind == "ok" and sf.kind != "ok")))
+        while self._sensor_events and self._sensor_events[0]["t_s"] <= t + 1e-9:
+            self.events.append(self._sensor_events.pop(0))
         while self._deaths and self._deaths[0][0] <= t + 1e-9:
             _, u = self._deaths.pop(0)
             f.units.kill(u)

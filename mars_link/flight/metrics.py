@@ -15,6 +15,7 @@ import numpy as np
 
 from mars_link.core.events import EventKind, event
 from mars_link.core.rotations import tilt_deg
+from mars_link.flight.fault_scoring import score_flight
 
 #: a run is declared diverged when the tracked point is this far from its reference...
 DIVERGENCE_ERROR_M = 5.0
@@ -156,6 +157,8 @@ def summarize(scenario, results: list[TrialResult], seed: int, mode: str = "inpr
         "stage_time_s": stage,
         "events": [dict(e, trial=i) for i, r in enumerate(results) for e in r.events],
         "detections": [dict(d, trial=i) for i, r in enumerate(results) for d in r.detections],
+        # each trial's beliefs scored against its injected faults (mars_link.flight.fault_scoring)
+        "fault_isolation": [score_flight(r.events, r.sim_time_s, r.diverged).as_dict() for r in results],
         "per_trial": [
             {"seed": r.seed, "mean_error_m": r.mean_error_m, "rmse_m": r.rmse_m,
              "max_error_m": r.max_error_m, "diverged": r.diverged}

@@ -40,6 +40,10 @@ from mars_link.core.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
 from mars_link.config.scenario import Scenario
 
 UNIT_LOG_HZ = 20.0
+#: a lost unit that reaches the ground slower than this landed; faster, it fell (the world's truth)
+LANDED_SPEED_MPS = 1.0
+#: (a world that writes positions only) a unit's centre this close to its resting height touches the ground
+GROUND_TOUCH_M = 0.02
 
 
 @dataclass
@@ -57,6 +61,7 @@ class ReconfigResult(TrialResult):
     pieces_final: list[dict] = field(default_factory=list)  # each piece at the end: layout rows, unit ids
     detections: list[dict] = field(default_factory=list)  # the faults the pieces' detectors found (events)
     mission_force_integral_n2s: float = 0.0  # the force integral while the mission flies (manoeuvre excluded)
+    units_lost: list[dict] = field(default_factory=list)  # each unit the coordinator lost, and its fate (truth)
 
 
 class ReconfigRecorder:
@@ -76,6 +81,9 @@ class ReconfigRecorder:
         self._force_seen = 0.0
         self._next_unit_log = 0.0
         self._offsets: dict[int, tuple] = {}  # id(piece model) -> (model, its unit offsets)
+        self.units_lost: dict[int, dict] = {}  # unit -> when it was lost and, from the truth, how it came down
+        self._lost_prev: dict[int, tuple] = {}  # unit -> (t, its centre) the step before
+        self._ground_down_m = -flight.model.vehicle.gear_depth_m
         self._flush_every = max(1, int(flight.scenario.sim.control_hz))
         self.tel_f = self.units_f = None
         if out_dir is not None:
@@ -107,6 +115,8 @@ class ReconfigRecorder:
             engine.events.append(event(t, EventKind.RECONFIG_FAILED, reason=coord.failed,
                                        text=f"Reconfig failed: {coord.failed}"[:50]))
             return True
+        if coord.lost:
+            self._watch_lost(t, coord)
         states = {key: world.body_state(p.units[0]) for key, p in pieces.items()}
         for key, p in pieces.items():
             state = states[key]
@@ -143,6 +153,23 @@ class ReconfigRecorder:
             return True
         return False
 
+    def _watch_lost(self, t: float, coord: PiecesCoordinator) -> None:
+        """The truth of every lost unit until it touches the ground (`touchdown`, the same test as SITL's
+        world_truth.csv gets); one that stays up (in a body that flies on) is "airborne"."""
+        for u in coord.lost:
+            rec = self.units_lost.get(u)
+            if rec is None:
+                why = next((e.get("reason") for e in reversed(coord.events)
+                            if e["type"] == "unit_lost" and e.get("unit") == u), None)
+                rec = self.units_lost[u] = {"unit": u, "t_lost_s": round(t, 6), "reason": why, "fate": "airborne"}
+            if rec["fate"] != "airborne":
+                continue
+            pos = self.flight.world.unit_truth(u).position_ned_m.copy()
+            prev = self._lost_prev.get(u)
+            self._lost_prev[u] = (t, pos)
+            if prev is not None and t > rec["t_lost_s"]:
+                rec.update(touchdown(prev, (t, pos), self._ground_down_m))
+
     def _unit_offsets(self, piece) -> np.ndarray:
         """The piece's unit centres from its CoM, FRD, in its order (one array per piece model, kept)."""
         offsets = self._offsets.get(id(piece.model))
@@ -165,6 +192,37 @@ class ReconfigRecorder:
                 self.unit_rows.append(row)
                 if self.units_f:
                     self.units_f.write(",".join(f"{x:.6g}" for x in row) + "\n")
+
+
+def touchdown(before: tuple, now: tuple, ground_down_m: float) -> dict:
+    """A lost unit's fate from two samples of its centre's truth, (t, NED position) one control period apart:
+    once its centre is within GROUND_TOUCH_M of its resting height it touched the ground, landed (slower
+    than LANDED_SPEED_MPS) or fell; {} before that."""
+    (t0, p0), (t1, p1) = before, now
+    if p1[2] < ground_down_m - GROUND_TOUCH_M:
+        return {}
+    speed = float(np.linalg.norm((np.asarray(p1) - np.asarray(p0)) / (t1 - t0)))
+    return {"fate": "landed" if speed <= LANDED_SPEED_MPS else "fell", "t_ground_s": round(float(t1), 6),
+            "impact_speed_mps": round(speed, 4), "ground_ned_m": [round(float(x), 4) for x in p1]}
+
+
+def units_lost_from_truth(events: list[dict], truth, ground_down_m: float) -> list[dict]:
+    """`units_lost` of a run whose world wrote each unit's truth as columns (SITL's world_truth.csv: t_s,
+    u<id>_n_m, _e_m, _d_m, one row per control period): each `unit_lost` event's unit and its `touchdown`."""
+    out = []
+    for e in (e for e in events if e["type"] == "unit_lost"):
+        u = e["unit"]
+        rec = {"unit": u, "t_lost_s": e["t_s"], "reason": e.get("reason"), "fate": "airborne"}
+        if f"u{u}_d_m" in truth.dtype.names:
+            t = truth["t_s"]
+            pos = np.column_stack([truth[f"u{u}_n_m"], truth[f"u{u}_e_m"], truth[f"u{u}_d_m"]])
+            for k in np.flatnonzero(t > e["t_s"] + 1e-9):
+                found = touchdown((t[k - 1], pos[k - 1]), (t[k], pos[k]), ground_down_m)
+                if found:
+                    rec.update(found)
+                    break
+        out.append(rec)
+    return out
 
 
 def run_reconfig_trial(
@@ -230,6 +288,7 @@ def reconfig_result(flight: Flight, engine: Engine, recorder: ReconfigRecorder, 
         pieces_final=[{"layout": list(p.shape.layout()), "units": list(p.units)} for p in coord.pieces.values()],
         detections=[e for e in events if e["type"] == "fault_detected"],
         mission_force_integral_n2s=recorder.mission_force_integral_n2s,
+        units_lost=[recorder.units_lost[u] for u in sorted(recorder.units_lost)],
     )
     result.logging = recorder.logging_status()
     return result
@@ -249,13 +308,22 @@ def reconfig_summary(scenario: Scenario, r: ReconfigResult, seed: int, mode: str
         "real_time_factor": r.sim_time_s / r.wall_time_s if r.wall_time_s > 0 else float("inf"),
         "force_integral_n2s": r.force_integral_n2s, "mission_force_integral_n2s": r.mission_force_integral_n2s,
         "max_tilt_deg": r.max_tilt_deg, "reconfig_time_s": r.reconfig_time_s, "plan": r.plan, "start": scenario.start, "assembled": r.assembled,
-        "min_clearance_m": r.min_clearance_m, "pieces_final": r.pieces_final,
+        "min_clearance_m": r.min_clearance_m, "pieces_final": r.pieces_final, "units_lost": r.units_lost,
+        "plans": plan_records(r.events),
         "events": [dict(e, trial=0) for e in r.events],
         "per_trial": [{"seed": seed, "mean_error_m": r.mean_error_m, "mean_error_std_m": 0.0, "rmse_m": r.rmse_m,
                        "max_error_m": r.max_error_m, "diverged": r.diverged}],
     }
     summary["logging"] = r.logging
     return summary
+
+
+def plan_records(events: list[dict]) -> list[dict]:
+    """summary.json "plans": each plan of the flight with both objectives (whatever chose it): paper 001's
+    force objective and the worst-stage controllability margin (mars_link.reconfig.margin)."""
+    keys = ("t_s", "feasible", "chosen_by", "force_objective", "worst_stage_margin", "final_margin",
+            "disassembly_layers", "assembly_layers")
+    return [{k: e.get(k) for k in keys} for e in events if e["type"] == "plan"]
 
 
 def run_reconfig_scenario(

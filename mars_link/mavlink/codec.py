@@ -1,4 +1,10 @@
-"""MAVLink 2 frame encode/decode with the per-message-type work done once: what pymavlink's
+"""Bytes to MAVLink messages and back, in one place. Every reader of MAVLink bytes (the unit firmware's
+links, the SITL processes' links, the serial framer, the .tlog writer and reader, the command-age tap, the
+harnesses) finds and decodes frames here: `split_frames` / `decode_frames` (a datagram or a log record to
+messages, what is dropped counted or skipped), `frame_length`, `header_length` and `frame_message_id` (a
+frame's size and id from its header), and each frame's `decode` / `encode`.
+
+Encode/decode are done with the per-message-type work done once: what pymavlink's
 `MAVLink.decode` and `MAVLink_message.pack` do, byte for byte and field for field, at a third of the
 cost (tests/core/test_mavlink_codec.py checks every message of the dialect against pymavlink).
 
@@ -26,7 +32,9 @@ from fastcrc.crc16 import mcrf4xx
 from pymavlink.dialects.v20 import common as mavlink
 
 MAGIC_V2 = 0xFD
+MAGIC_V1 = 0xFE
 HEADER_LEN_V2 = 10
+HEADER_LEN_V1 = 6
 SIGNATURE_LEN = 13
 _HEADER_V2 = struct.Struct("<BBBBBBBHB")
 #: a generated pymavlink message class (its class attributes describe the wire layout)
@@ -176,6 +184,100 @@ def encode(msg: mavlink.MAVLink_message, mav: mavlink.MAVLink) -> bytes:
     msg._msgbuf = bytearray(frame)
     msg._crc = crc
     return frame
+
+
+# ----------------------------------------------------------------------------- frames of a byte string
+Bytes = bytes | bytearray
+
+
+def frame_length(data: Bytes, i: int) -> int | None:
+    """The length of the frame starting at data[i], as its header says (MAVLink 2 signed or not, MAVLink 1);
+    None when data[i] starts no frame or its header is cut short."""
+    start = data[i]
+    if start == MAGIC_V2 and len(data) - i >= HEADER_LEN_V2:
+        return HEADER_LEN_V2 + data[i + 1] + 2 + (SIGNATURE_LEN if data[i + 2] & mavlink.MAVLINK_IFLAG_SIGNED else 0)
+    if start == MAGIC_V1 and len(data) - i >= HEADER_LEN_V1:
+        return HEADER_LEN_V1 + data[i + 1] + 2
+    return None
+
+
+def frame_message_id(data: Bytes, i: int = 0) -> int:
+    """The message id in the header of the frame starting at data[i] (to skip a frame without decoding it)."""
+    return data[i + 7] | (data[i + 8] << 8) | (data[i + 9] << 16) if data[i] == MAGIC_V2 else data[i + 5]
+
+
+def header_length(data: Bytes, i: int = 0) -> int:
+    """The header length of the frame starting at data[i] (its payload follows)."""
+    return HEADER_LEN_V2 if data[i] == MAGIC_V2 else HEADER_LEN_V1
+
+
+def split_frames(data: Bytes, decoder: mavlink.MAVLink, drop: Callable[[str], None],
+                 pre_check: Callable[[bytearray], bool] | None = None,
+                 ) -> list[tuple[mavlink.MAVLink_message, bytearray]]:
+    """Decode every complete, CRC-valid frame of one datagram; count the rest via `drop(reason)`.
+
+    Resynchronises one byte after a bad frame (a random 0xFD in junk must not hide a good frame).
+    `pre_check(frame) -> bool` runs on the raw bytes before decoding (signature verification: an
+    unsigned or forged frame costs a flag test or one SHA-256, never a decode).
+    """
+    out = []
+    n = len(data)
+    i = 0
+    junk = False
+    while i < n:
+        b = data[i]
+        if b == MAGIC_V2:
+            if n - i < HEADER_LEN_V2 + 2:
+                drop("parse.truncated")
+                break
+            flags = data[i + 2]
+            if flags & ~mavlink.MAVLINK_IFLAG_SIGNED:
+                drop("parse.unknown_flags")
+                i += 1
+                continue
+        elif b == MAGIC_V1:
+            if n - i < HEADER_LEN_V1 + 2:
+                drop("parse.truncated")
+                break
+        else:
+            nxt = min((j for j in (data.find(b"\xfd", i), data.find(b"\xfe", i)) if j >= 0), default=n)
+            junk = True
+            i = nxt
+            continue
+        flen = frame_length(data, i)
+        assert flen is not None  # (a whole header is there)
+        if i + flen > n:
+            drop("parse.truncated")
+            i += 1
+            continue
+        frame = bytearray(data[i:i + flen])
+        if pre_check is not None and not pre_check(frame):
+            i += flen
+            continue
+        try:
+            msg = decode(frame, decoder)
+        except Exception as e:  # pymavlink raises MAVError and, on odd payloads, others
+            drop("parse.bad_crc" if "CRC" in str(e) else "parse.malformed")
+            i += 1
+            continue
+        if isinstance(msg, mavlink.MAVLink_unknown) or msg.get_type() == "BAD_DATA":
+            drop("parse.unknown_message")
+        else:
+            out.append((msg, frame))
+        i += flen
+    if junk:
+        drop("parse.junk")
+    return out
+
+
+def decode_frames(data: Bytes, decoder: mavlink.MAVLink) -> list[mavlink.MAVLink_message]:
+    """The messages of bytes holding whole frames (a datagram a unit sent, one .tlog frame); what does not
+    decode is skipped (a reader that counts it uses split_frames)."""
+    return [m for m, _ in split_frames(data, decoder, _ignore)]
+
+
+def _ignore(reason: str) -> None:
+    """(a drop not counted)"""
 
 
 # ----------------------------------------------------------------------------- wire ranges

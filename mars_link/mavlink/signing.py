@@ -156,18 +156,9 @@ def advance_outgoing_clock(mav, now_unix_s: float) -> None:
         mav.signing.timestamp = ts
 
 
-def add_signing_args(p, links: str = "the coordinator link") -> None:
-    """`--signing-key-file` and `--require-signing`, the same on every process that opens MAVLink links."""
-    p.add_argument("--signing-key-file", default=None,
-                   help=f"MAVLink signing key for {links} (else ${DEFAULT_KEY_ENV}); one key per process, "
-                        "each link signs with its own link id")
-    p.add_argument("--require-signing", "--sign-client-links", dest="require_signing", action="store_true",
-                   help="every link requires signing: unsigned GCS/API clients may only read (telemetry, "
-                        "parameters, mission download); the coordinator link drops unsigned frames")
-
-
 def signing_from_args(args) -> tuple[bytes | None, bool]:
-    """(key, require_signing) from those options; --require-signing without a key is a UserInputError."""
+    """(key, require_signing) from `--signing-key-file` and `--require-signing` (defined by
+    mars_link.processes.cli_options.add_signing); --require-signing without a key is a UserInputError."""
     key = load_key(getattr(args, "signing_key_file", None))
     require = bool(getattr(args, "require_signing", False))
     if require and key is None:

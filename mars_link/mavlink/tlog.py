@@ -1,10 +1,14 @@
-"""pymavlink's .tlog format, written in one place: each MAVLink frame preceded by its 8-byte big-endian
+"""pymavlink's .tlog format, written and read in one place: each MAVLink frame preceded by its 8-byte big-endian
 microsecond time stamp. The SITL processes stamp wall time (as MAVProxy and QGroundControl do); an
 in-process run stamps simulated time (mars_link.flight.unit_tlogs)."""
 
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from pathlib import Path
+
+from mars_link.mavlink.codec import frame_length
 
 
 def tlog_records(data: bytes, t_s: float | None = None) -> bytes:
@@ -14,12 +18,19 @@ def tlog_records(data: bytes, t_s: float | None = None) -> bytes:
     parts = []
     i, n = 0, len(data)
     while i < n:
-        if data[i] == 0xFD and i + 3 <= n:
-            size = 12 + data[i + 1] + (13 if data[i + 2] & 0x01 else 0)
-        elif data[i] == 0xFE and i + 2 <= n:
-            size = 8 + data[i + 1]
-        else:
-            size = n - i
+        size = frame_length(data, i) or n - i
         parts.append(stamp + data[i:i + size])
         i += size
     return b"".join(parts)
+
+
+def tlog_frames(path: Path) -> Iterator[tuple[float, bytes]]:
+    """(time stamp s, frame bytes) of a .tlog whose records may hold several frames (batched datagrams)."""
+    data = path.read_bytes()
+    i, n = 0, len(data)
+    while i + 8 <= n:
+        t = int.from_bytes(data[i:i + 8], "big") / 1e6
+        i += 8
+        while i < n and (size := frame_length(data, i)) is not None:
+            yield t, data[i:i + size]
+            i += size

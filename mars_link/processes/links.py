@@ -17,7 +17,6 @@ from pathlib import Path
 
 from pymavlink.dialects.v20 import common as mavlink
 
-from firmware_models.vehicle import split_frames
 from mars_link.mavlink import codec as mavlink_codec
 from mars_link.core.errors import PortUnavailable, UserInputError
 from mars_link.transport import LinkSpec
@@ -208,7 +207,7 @@ class Link:
             check = genuine
 
         out = []
-        for m, _ in split_frames(data, self.mav, self.drop, check):  # junk, bad CRC, forged: counted
+        for m, _ in mavlink_codec.split_frames(data, self.mav, self.drop, check):  # junk, bad CRC, forged: counted
             src = m.get_srcSystem()
             known = self.peers.get(src)
             if m.get_type() == "HEARTBEAT" and known is None:

@@ -87,7 +87,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.mavlink.signing import add_signing_args, signing_from_args
+from mars_link.mavlink.signing import signing_from_args
+from mars_link.processes.cli_options import add_lockstep_options
 from mars_link.processes.parent_watch import die_with_parent
 from mars_link.core.events import unit_died
 from mars_link.core.errors import EnvironmentFailure, UserInputError
@@ -97,7 +98,7 @@ from mars_link.mavlink.esc_status import esc_from_message
 from mars_link.logs.outputs import SafeWriter, write_json
 from mars_link.runtime.pacing import Pacer, SilenceDeadline
 from mars_link.runtime.scheduling import OverloadValve, take_realtime_class
-from mars_link.transport import LinkSpec, add_link_args, spec_from_args
+from mars_link.transport import LinkSpec, spec_from_args
 from mars_link.mavlink.wire import (
     LatchSensor,
     SensorPacketAssembler,
@@ -1071,51 +1072,7 @@ def _with_takeover(unit: int, accepted: set[int], rotor_cmd) -> list:
 def main(argv: list[str] | None = None) -> int:
     die_with_parent()  # started by the launcher: never outlive it (mars_link.processes.parent_watch)
     ap = argparse.ArgumentParser(prog="python -m mars_link.processes.lockstep")
-    ap.add_argument("role", choices=("world", "unit", "coordinator"))
-    ap.add_argument("scenario", help="scenario file or bundled name; - for built-in defaults")
-    ap.add_argument("--units", type=int, default=None)
-    ap.add_argument("--layout", default=None)
-    ap.add_argument("--unit", default="1", help="unit id, or ids a,b,c: several units in this process")
-    ap.add_argument("--steps", type=int, default=None, help="exchanges of a docked run (else from the scenario)")
-    ap.add_argument("--start-pose", default=None, help="world: N,E,D,YAW of the assembly's CoM (else from the scenario)")
-    ap.add_argument("--position-every", type=int, default=None, help="world: mocap samples every n-th exchange")
-    ap.add_argument("--world-port", type=int, default=0, help="udp: the world's HIL port")
-    ap.add_argument("--coordinator-port", type=int, default=0, help="udp: the port units send telemetry to")
-    ap.add_argument("--world-fd", type=int, default=None, help="inherited bound socket of the world")
-    ap.add_argument("--coordinator-fd", type=int, default=None, help="inherited bound socket of the coordinator")
-    ap.add_argument("--out", required=True)
-    ap.add_argument("--seed", type=int, default=None)
-    ap.add_argument("--speed", type=float, default=None, help="world pacing, x real time (0: as fast as possible)")
-    add_signing_args(ap, "the coordinator <-> unit links (neither: unsigned)")
-    ap.add_argument("--run-key", action="store_true",
-                    help="the key is the run's own, for its internal links only: the client links keep the rules "
-                         "of a vehicle without a key")
-    ap.add_argument("--gcs-port", type=int, default=14550)
-    ap.add_argument("--api-port", default=None, help="the unit's API port, or one per unit of --unit a,b,c")
-    ap.add_argument("--gcs-bind", type=int, default=None)
-    ap.add_argument("--api-bind", type=int, default=None)
-    ap.add_argument("--no-clients", action="store_true", help="unit: no GCS/API client links (a closed batch run)")
-    ap.add_argument("--forever", action="store_true", help="docked: run until stopped (ignores --steps)")
-    ap.add_argument("--external-offboard", action="store_true",
-                    help="world, unit: no coordinator in this run; an off-board computer outside it drives the units "
-                         "(the units answer each step with what they drive; run --mode sitl --external-offboard)")
-    ap.add_argument("--vehicle", action="store_true", help="coordinator: serve the assembly as one MAVLink vehicle")
-    ap.add_argument("--sched-realtime", action="store_true",
-                    help="real time: SCHED_FIFO when permitted; else world/unit SCHED_BATCH (mars_link.runtime.scheduling)")
-    ap.add_argument("--timing-log", action="store_true", help="coordinator: each step's wall-clock times (coordinator_timing.csv)")
-    ap.add_argument("--mcap", action="store_true", help="world: run.mcap in --out (mars_link.flight.flight_view)")
-    ap.add_argument("--foxglove", default=None, metavar="HOST:PORT", help="world: the live Foxglove view there")
-    ap.add_argument("--view-feed", action="store_true",
-                    help="coordinator: send the world its estimate, reference and events for the view (mars_link.processes.view_feed)")
-    ap.add_argument("--vehicle-sysid", type=int, default=None)
-    ap.add_argument("--vehicle-gcs-port", type=int, default=None)
-    ap.add_argument("--vehicle-map", default=None, help="coordinator --vehicle: obstacle map for the mission legs")
-    ap.add_argument("--vehicle-api-port", type=int, default=None)
-    ap.add_argument("--vehicle-gcs-bind", type=int, default=None)
-    ap.add_argument("--vehicle-api-bind", type=int, default=None)
-    add_link_args(ap)
-    ap.add_argument("--command-age", action="store_true",
-                    help="unit: log the command age at the motor (command_age_unit<id>.csv/.json; real-time runs)")
+    add_lockstep_options(ap)
     args = ap.parse_args(argv)
     if args.sched_realtime:  # (before the links open: Zenoh's threads take the same class)
         take_realtime_class(fallback_batch=args.role != "coordinator")

@@ -28,7 +28,11 @@ from pathlib import Path
 import numpy as np
 
 from mars_link.core.events import EventKind, event, unit_died
+from mars_link.config.scenario_sensor_faults import sensor_fault_events
 from mars_link.core.errors import Terminated, UserInputError
+from mars_link.mavlink.codec import decode_frames, frame_message_id
+from mars_link.mavlink.tlog import tlog_frames
+from mars_link.mavlink.wire import new_mav
 from mars_link.transport import LinkSpec
 
 
@@ -200,6 +204,12 @@ def write_scenario_copy(scenario, path: Path) -> Path:
         doc["separations"] = [{"t": s.t_s, "units": list(s.units), **({} if s.redock_t_s is None else
                                                                         {"redock_t": s.redock_t_s})}
                               for s in scenario.separations]
+    if scenario.sensor_faults:  # (the units apply them: a copy without them flew SITL on healthy sensors)
+        doc["sensor_faults"] = [{k: v for k, v in (("t", f.t_s), ("sensor", f.sensor), ("type", f.kind),
+                                                   ("unit", f.unit), ("duration_s", f.duration_s)) if v is not None}
+                                for f in scenario.sensor_faults]
+    if scenario.mission:
+        doc["mission"] = dict(scenario.mission)
     if scenario.sensors != type(scenario.sensors)():
         doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.written()}
     if not scenario.esc_telemetry:
@@ -528,6 +538,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     for death in world.get("deaths", []):
         events.append(unit_died(death["t_s"], death["unit"]))
     events += foreign_traffic_events(out, model.unit_ids)
+    events += sensor_fault_events(scenario.sensor_faults, scenario.sim.control_hz, float(truth["t_s"][-1]) if len(truth) else -1.0)
     end_reason = _end_reason(scenario, trajectory, world, (metrics.divergence or {}).get("t_s") if metrics.diverged
                              else None, failure) if tracking or external_offboard else failure
     result = TrialResult(
@@ -617,6 +628,7 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
     tracked point's error while the mission flies, from the world's per-unit truth and the coordinator's
     per-step record of the mission (its clock, reference and the units carrying the tracked point)."""
     from mars_link.flight.metrics import DIVERGENCE_ERROR_M, TrackingMetrics
+    from mars_link.flight.reconfig_flight import plan_records, units_lost_from_truth
     from mars_link.logs.outputs import write_json
 
     world = _read_json(out / "world_summary.json")
@@ -652,6 +664,8 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
     faults = [event(f.t_s, EventKind.FAULT, unit=f.unit, rotor=f.rotor, eta=f.eta, text=f.event_text())
               for f in scenario.faults]
     deaths = [unit_died(d["t_s"], d["unit"]) for d in world.get("deaths", [])]
+    deaths += sensor_fault_events(scenario.sensor_faults, scenario.sim.control_hz,
+                                  float(truth["t_s"][-1]) if len(truth) else -1.0)
     latched = [e for e in world.get("latch_events", []) if e["type"] == "dock_latched"]
     events = sorted(coordinator.get("events", []) + latched + faults + deaths
                     + foreign_traffic_events(out, scenario.model().unit_ids), key=lambda e: e["t_s"])
@@ -674,6 +688,8 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
         "force_integral_n2s": float(world.get("force_integral_n2s", math.nan)),
         "start": scenario.start, "assembled": "assembly_done" in kinds,
         "pieces_final": coordinator.get("pieces_final", []), "bodies_final": world.get("bodies", []),
+        "units_lost": units_lost_from_truth(events, truth, -scenario.model().vehicle.gear_depth_m),
+        "plans": plan_records(events),
         "plan": coordinator.get("plan"), "events": [dict(e, trial=0) for e in events],
         "sitl": {"transport": link.kind, "bus": link.bus(), "realtime": realtime, "world_real_time_factor": world.get("real_time_factor"),
                  "world_cores_idle_fraction": world.get("cores_idle_fraction"),
@@ -695,30 +711,10 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
     return summary
 
 
-def tlog_frames(path: Path):
-    """(wall time s, frame bytes) of a .tlog whose records may hold several frames (batched datagrams)."""
-    data = path.read_bytes()
-    i, n = 0, len(data)
-    while i + 8 <= n:
-        t = int.from_bytes(data[i:i + 8], "big") / 1e6
-        i += 8
-        while i < n and data[i] in (0xFD, 0xFE):
-            if data[i] == 0xFD:
-                if i + 10 > n:
-                    return
-                total = 12 + data[i + 1] + (13 if data[i + 2] & 1 else 0)
-            else:
-                total = 8 + data[i + 1]
-            yield t, data[i:i + total]
-            i += total
-
-
 def _write_rotor_log(log, scenario, model, out: Path) -> float:
     """rotors.csv from the units' .tlogs: the coordinator's command (SET_ACTUATOR_CONTROL_TARGET in) and
     what each unit drove its motors with (HIL_ACTUATOR_CONTROLS out, faults included); returns the force
     integral Σ rotors ∫ thrust² dt over the control steps."""
-    from pymavlink.dialects.v20 import common as mavlink
-
     from mars_link.config.scenario import eta_after
 
     scale = model.vehicle.full_scale_thrust_n
@@ -728,20 +724,17 @@ def _write_rotor_log(log, scenario, model, out: Path) -> float:
         path = out / f"unit{u}.tlog"
         if not path.exists():
             continue
-        parser = mavlink.MAVLink(None, 255, 0)
+        parser = new_mav(255, 0)
         cmd[u], drv[u] = {}, {}
         for _, frame in tlog_frames(path):
-            msgid = frame[7] | (frame[8] << 8) | (frame[9] << 16) if frame[0] == 0xFD else frame[5]
+            msgid = frame_message_id(frame)
             if msgid not in (139, 93):  # SET_ACTUATOR_CONTROL_TARGET, HIL_ACTUATOR_CONTROLS
                 continue
-            try:
-                m = parser.decode(bytearray(frame))
-            except Exception:  # a frame the unit itself dropped as malformed
-                continue
-            if msgid == 139 and m.get_srcSystem() != u:
-                cmd[u][m.time_usec] = np.array(m.controls[:4]) * scale
-            elif msgid == 93 and m.get_srcSystem() == u:
-                drv[u][m.time_usec] = np.array(m.controls[:4]) * scale
+            for m in decode_frames(frame, parser):  # (none: a frame the unit itself dropped as malformed)
+                if msgid == 139 and m.get_srcSystem() != u:
+                    cmd[u][m.time_usec] = np.array(m.controls[:4]) * scale
+                elif msgid == 93 and m.get_srcSystem() == u:
+                    drv[u][m.time_usec] = np.array(m.controls[:4]) * scale
         if not cmd[u]:  # PX4's interface ([units] interface = "px4-zenoh"): the ActuatorMotors it received
             cmd[u] = _px4_commands(out, u, scale)
     steps = sorted(set().union(*[set(d) for d in drv.values()])) if drv else []

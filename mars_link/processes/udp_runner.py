@@ -38,7 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mars_link.mavlink.signing import add_signing_args, signing_from_args
+from mars_link.mavlink.signing import signing_from_args
+from mars_link.processes.cli_options import add_unit_runner_options
 from firmware_models.vehicle import LINK_COORDINATOR, Vehicle, VehicleConfig
 from firmware_models.vehicle_logs import LogStore
 from mars_link.processes.vehicle_io import (
@@ -51,6 +52,7 @@ from mars_link.processes.vehicle_io import (
     write_json_atomic,
 )
 from mars_link.core.assembly import AssemblyModel
+from mars_link.core import validation as v
 from mars_link.core.errors import UserInputError
 from mars_link.runtime.pacing import Pacer, StallMeter
 
@@ -59,29 +61,8 @@ WORLD_UNIT = 1  # the world's name for its one unit (the vehicle keeps its own s
 
 
 def _parser() -> argparse.ArgumentParser:
-    from mars_link.core import validation as v  # the verbs' one validation layer (one-line errors, exit 2)
-
     p = v.OneLineParser(prog="python -m mars_link.processes.udp_runner", description=__doc__.split("\n")[0])
-    p.add_argument("--unit", type=v.bounded_int(1, 250), default=1, help="unit id = MAVLink system id (1..250)")
-    p.add_argument("--preset", default="mars-ftcc", help="vehicle preset (mars-ftcc, modquad-cf2)")
-    p.add_argument("--gcs-port", type=v.port, default=14550)
-    p.add_argument("--gcs-bind", type=v.port_or_zero, default=None, help="default 18570 + unit - 1")
-    p.add_argument("--api-port", type=v.port, default=None, help="default 14540 + unit - 1")
-    p.add_argument("--api-bind", type=v.port_or_zero, default=None, help="default 14580 + unit - 1")
-    p.add_argument("--coord-bind", type=v.port_or_zero, default=None, help="default 14600 + unit - 1")
-    p.add_argument("--coordinator-sysid", type=v.bounded_int(1, 255), default=201)
-    p.add_argument("--coordinator-compid", type=v.bounded_int(0, 255), default=1)
-    add_signing_args(p, "the coordinator link (with a key it requires signing) and gcs/api")
-    p.add_argument("--physics-hz", type=v.positive_float, default=500.0)
-    p.add_argument("--control-hz", type=v.positive_float, default=100.0)
-    p.add_argument("--speed", type=v.positive_float, default=1.0, help="simulation speed, x real time")
-    p.add_argument("--north", type=v.finite_float, default=0.0, help="start position, m north of the origin")
-    p.add_argument("--east", type=v.finite_float, default=0.0)
-    p.add_argument("--yaw-deg", type=v.finite_float, default=0.0)
-    p.add_argument("--param", action="append", default=[], metavar="NAME=VALUE", help="start-up parameter value")
-    p.add_argument("--status-file", default=None)
-    p.add_argument("--duration", type=v.positive_float, default=None, help="stop after this many wall seconds")
-    p.add_argument("--tlog", default=None, help="MAVLink log of the client links (.tlog), served by LOG_* download")
+    add_unit_runner_options(p)
     return p
 
 

@@ -33,6 +33,7 @@ from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import AssemblyModel, VehicleParams, layout_of_cells
 from mars_link.core.errors import UserInputError
 from mars_link.reconfig.flyability import Cell
+from mars_link.reconfig.placement import SnapWeights
 from mars_link.reconfig.sequencing import ReconfigPlan
 from mars_link.core.rotations import quat_to_euler
 from mars_link.models.trajectories import Trajectory, TrajectoryPoint, smoothstep
@@ -242,6 +243,8 @@ class ExecutionParams:
     separation_m: float | None = None  # default 3 pitch
     predock_m: float | None = None  # default 2 pitch
     dock_timeout_s: float = 30.0
+    #: what a re-plan without lost units maximises: "force" (paper 001) or "margin" (worst-stage margin)
+    objective: str = "force"
 
     def resolved(self, pitch_m: float) -> "ExecutionParams":
         return ExecutionParams(
@@ -249,7 +252,7 @@ class ExecutionParams:
             max(0.3, 2 * pitch_m) if self.altitude_step_m is None else self.altitude_step_m,
             3 * pitch_m if self.separation_m is None else self.separation_m,
             2 * pitch_m if self.predock_m is None else self.predock_m,
-            self.dock_timeout_s,
+            self.dock_timeout_s, self.objective,
         )
 
 
@@ -335,6 +338,7 @@ class Executor:
         self.events: list[dict] = []
         self.failed: str | None = None
         self.refs[whole.key] = self._mission_reference(whole, 0.0)
+        self._snap: SnapWeights | None = None  # the mission's snap weights (paper 001), once a re-plan needs them
         self._replan_lost: set[int] = set()  # units lost during the docking layers: re-plan before the next one
         self.hold_until_s = -math.inf  # a commanded separation: the pieces fly apart until then (inf: for good)
         self._steady_since: float | None = None  # the final body has held its point since (the return waits)
@@ -342,6 +346,8 @@ class Executor:
         self.parked: set[Key] = set()
         self.ground_down_m = -vehicle.gear_depth_m  # the CoM's down coordinate at rest on the ground (NED 0)
         self._lift_down_m = 0.0  # where the final body of a manoeuvre on the ground climbs back to
+        #: each unit's believed rotor efficiencies (the coordinator's, shared): what a re-plan places by
+        self.unit_eta: dict[int, np.ndarray] = {}
         self.free_start = free_start
         self.assembling = free_start is not None  # the first manoeuvre builds the structure from free units
         if free_start is not None:
@@ -449,23 +455,31 @@ class Executor:
                                  text=f"Reconfig off: u{units_text(sorted(lost))} lost, landed"[:50]))
 
     def _replan_docks(self, t_s: float) -> bool:
-        """Between docking layers, after units were lost: dock the pieces there are into the target without
-        the dropped ones (Algorithm 3 again, `plan_assembly_of_pieces`); False if no docking sequence builds it."""
-        from mars_link.reconfig.sequencing import plan_assembly_of_pieces
+        """Between docking layers, after units were lost: the best structure the pieces there are can build on
+        the target's cells (paper 001's placement with the lost units' cells to spare, `replan_assembly`) and
+        its docks (Algorithm 3 again); False if no docking sequence builds one."""
+        from mars_link.reconfig.replan import replan_assembly  # (replan imports this module: a cycle)
 
         lost, what = self._replan_lost, ("assembly" if self.assembling else "reconfig")
         self._replan_lost = set()
-        keep = {u for key in self.shapes for u in key}
-        target = {u: c for u, c in self.plan.target.items() if u in keep}
-        plan = plan_assembly_of_pieces(self.vehicle, target, [sorted(k) for k in self.shapes])
+        eta_of = {u: self.unit_eta.get(u, np.ones(4)) for u in self.plan.target}
+        if self._snap is None:
+            try:
+                self._snap = SnapWeights.from_trajectory(self.mission)
+            except UserInputError:  # (a mission of setpoints, no duration: no preference)
+                self._snap = SnapWeights()
+        plan = replan_assembly(self.vehicle, dict(self.plan.target), [sorted(k) for k in self.shapes], eta_of,
+                               self._snap, self.params.objective)
         if not plan.feasible:
             return False
         self.plan = dataclasses.replace(self.plan, merges=plan.merges, assembly_layers=plan.assembly_layers,
-                                        placement=dataclasses.replace(self.plan.placement, unit_cells=plan.target))
+                                        placement=plan.placement, objective=plan.objective)
         self.layer = 0
         self.phase_end_t = t_s + self.params.settle_s
         self.events.append(event(t_s, f"{what}_replanned", lost=sorted(lost), assembly_layers=plan.assembly_layers,
                                  pieces=[sorted(k) for k in self.shapes],
+                                 cells={str(u): list(c) for u, c in sorted(plan.target.items())},
+                                 chosen_by=plan.objective, force_objective=round(plan.placement.objective, 6),
                                  text=f"Re-planned without u{units_text(sorted(lost))}: {plan.assembly_layers} layers"[:50]))
         return True
 

@@ -5,11 +5,15 @@ together (`make_executor`, `build_flight`); `mars_link.flight.reconfig_flight` w
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import math
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 
 from mars_link.core.assembly import AssemblyModel
+from mars_link.core.events import EventKind, event
 from mars_link.core.errors import UserInputError
 from mars_link.reconfig.execution import ExecutionParams, PieceShape, local_eta
 from mars_link.reconfig.flyability import FlyabilityRule
@@ -90,10 +94,84 @@ def make_plan(scenario: Scenario, model: AssemblyModel, mission, eta: np.ndarray
     v = model.vehicle  # pieces must hover within the real thrust limits, not only pass the quadrant rule
     rule = FlyabilityRule(hover_thrust_limits_n=(v.rotor_min_thrust_n, v.rotor_max_thrust_n))
     try:
+        if cells is None and scenario.reconfig.get("objective", "force") == "margin":
+            return plan_for_margin(model, eta, weights, current, rule)
         return plan_reconfiguration(model, health_from_eta(model, eta), weights, current=current, target=cells,
                                     rule=rule)
     except UserInputError as exc:
         raise UserInputError(f"{scenario.source}: [reconfig] {exc}") from None
+
+
+#: the margin objective plans the sequences of this many targets (those whose final structure has the largest
+#: margin, and paper 001's) and keeps the one whose weakest stage has the largest margin
+MARGIN_TARGETS_PLANNED = 4
+#: ... among this many, best final margin first (most are unreachable: no flyable split sequence gets there)
+MARGIN_TARGETS_TRIED = 60
+#: at most this many placements of the faulty units are weighed by their final margin (more: a fixed sample)
+MARGIN_CANDIDATES = 2_000
+
+
+def plan_for_margin(model: AssemblyModel, eta: np.ndarray, weights: SnapWeights, current: dict | None = None,
+                    rule: FlyabilityRule = FlyabilityRule()) -> ReconfigPlan:
+    """MARS-Reconfig's objective (arXiv 2503.09376): the plan whose weakest piece, at any stage of the
+    sequence, has the largest controllability margin (`margin.worst_stage_margin`). Every placement of
+    the faulty units is weighed by its final structure's margin (the healthy ones fill the other cells,
+    moving as little as possible); the sequences of the best few and of paper 001's placement are planned
+    and compared stage by stage. Ties (the weakest stage is often a lone unit, the same for every plan that
+    flies one): the final structure's margin, then fewer layers, then paper 001's force objective."""
+    from mars_link.reconfig.margin import margins, piece_margin, worst_stage_margin
+
+    cur = dict(current) if current is not None else nominal_cells(model)
+    health = health_from_eta(model, eta)
+    eta_of = {u: health[u - 1] for u in model.unit_ids}
+    faulty = [u for u in model.unit_ids if np.any(health[u - 1] < 1.0)]
+    healthy = [u for u in model.unit_ids if u not in faulty]
+    cells = [model.unit_cells[u] for u in model.unit_ids]  # (row-major: the model's slot order)
+    targets = []
+    every = math.perm(len(cells), len(faulty))
+    if every <= MARGIN_CANDIDATES:
+        placements = list(itertools.permutations(range(len(cells)), len(faulty)))
+    else:  # (deterministic: the same faults give the same plan)
+        rng = np.random.default_rng(0)
+        placements = [tuple(rng.choice(len(cells), len(faulty), replace=False)) for _ in range(MARGIN_CANDIDATES)]
+    for spots in placements:
+        target = {u: cells[k] for u, k in zip(faulty, spots)}
+        free = [c for k, c in enumerate(cells) if k not in spots]
+        dist = np.array([[abs(c[0] - cur[u][0]) + abs(c[1] - cur[u][1]) for c in free] for u in healthy])
+        rows, cols = linear_sum_assignment(dist) if healthy else ((), ())
+        target.update({healthy[r]: free[c] for r, c in zip(rows, cols)})
+        targets.append(target)
+    at = [{c: u for u, c in t.items()} for t in targets]
+    final = margins(model, np.array([np.concatenate([eta_of[a[c]] for c in cells]) for a in at]))
+    plans = [plan_reconfiguration(model, health, weights, current=cur, rule=rule)]
+    reached = 0
+    for k in np.argsort(-final, kind="stable")[:MARGIN_TARGETS_TRIED]:
+        try:
+            plans.append(plan_reconfiguration(model, health, weights, current=cur, target=targets[k], rule=rule))
+        except UserInputError:  # (this target cannot be reached: the next)
+            continue
+        reached += 1
+        if reached == MARGIN_TARGETS_PLANNED:
+            break
+    feasible = [dataclasses.replace(p, objective="margin") for p in plans if p.feasible]
+    if not feasible:
+        return dataclasses.replace(plans[0], objective="margin")
+    return max(feasible, key=lambda p: (round(worst_stage_margin(p, model.vehicle, eta_of), 9),
+                                        round(piece_margin(model.vehicle, p.target, eta_of), 9),
+                                        -(p.disassembly_layers + p.assembly_layers), p.placement.objective))
+
+
+def plan_event(t_s: float, plan: ReconfigPlan, vehicle, eta_of: dict[int, np.ndarray]) -> dict:
+    """The `plan` event: feasible, layers, why not, what chose it and both objectives (paper 001's force
+    objective and the worst-stage controllability margin, `margin.plan_figures`), whatever chose it."""
+    from mars_link.reconfig.margin import plan_figures
+
+    figures = plan_figures(plan, vehicle, eta_of) if plan.feasible else {}
+    text = (f"Reconfig plan: {plan.disassembly_layers}+{plan.assembly_layers} layers" if plan.feasible
+            else "Reconfig: no feasible plan")
+    return event(t_s, EventKind.PLAN, feasible=plan.feasible, disassembly_layers=plan.disassembly_layers,
+                 assembly_layers=plan.assembly_layers, fallback_used=plan.fallback_used, reason=plan.reason,
+                 chosen_by=plan.objective, **figures, text=text)
 
 
 def unhoverable_pieces(plan: ReconfigPlan, model: AssemblyModel, eta: np.ndarray) -> list[str]:

@@ -123,6 +123,8 @@ class ReconfigPlan:
     #: the manoeuvre happens on the ground: the body lands, the pieces that fly leave it and come down
     #: into their slots from above (approach "down"), the rest waits on the ground with its motors off
     on_ground: bool = False
+    #: what chose the target: "force" (paper 001's placement) or "margin" (reconfig.plans.plan_for_margin)
+    objective: str = "force"
 
     @property
     def target(self) -> dict[int, Cell]:
@@ -149,6 +151,7 @@ class ReconfigPlan:
             "placement": [{"unit": u, "row": r, "col": c} for u, (r, c) in sorted(self.target.items())],
             "placement_solver": self.placement.solver,
             "objective": self.placement.objective,
+            "chosen_by": self.objective,
             "feasible": self.feasible,
             "cost_layers": self.disassembly_layers,
             "assembly_layers": self.assembly_layers,

@@ -75,30 +75,12 @@ class LinkSpec:
             raise UserInputError(f"--unit-interface px4-zenoh needs --transport zenoh (got --transport {self.kind})")
 
 
-def add_link_args(ap) -> None:
-    """The command-line options every SITL process (`python -m mars_link.processes.lockstep`) takes to build its links
-    (see LinkSpec.to_args)."""
-    ap.add_argument("--transport", choices=TRANSPORTS, default="udp")
-    ap.add_argument("--fleet", default="default")
-    ap.add_argument("--zenoh-mode", choices=("peer", "client", "router"), default="client")
-    ap.add_argument("--zenoh-connect", action="append", default=[])
-    ap.add_argument("--zenoh-listen", action="append", default=[])
-    ap.add_argument("--link-profile", default=None, help="a profiles.PRESETS name (+ overrides), zenoh only")
-    ap.add_argument("--unit-interface", choices=UNIT_INTERFACES, default=None,
-                    help="how the coordinator commands the units: mavlink (SET_ACTUATOR_CONTROL_TARGET) or px4-zenoh "
-                         "(PX4 v1.17's OffboardControlMode + ActuatorMotors over rmw_zenoh; needs --transport zenoh); "
-                         "default: the scenario's [units] interface")
-    ap.add_argument("--tls-dir", default=None, help="the run's CA, certificates and ACL (mars_link.transport.tls)")
-    ap.add_argument("--tls-ca", default=None)
-    ap.add_argument("--tls-cert", default=None)
-    ap.add_argument("--tls-key", default=None)
-
-
 def spec_from_args(args) -> LinkSpec:
+    """The links of a SITL process from its command line (options: mars_link.processes.cli_options.add_link)."""
     return LinkSpec(args.transport, args.fleet, args.zenoh_mode, tuple(args.zenoh_connect),
                     tuple(args.zenoh_listen), args.link_profile,
                     unit_interface=getattr(args, "unit_interface", None), tls_dir=args.tls_dir, tls_ca=args.tls_ca,
                     tls_cert=args.tls_cert, tls_key=args.tls_key)
 
 
-__all__ = ["add_link_args", "spec_from_args", "Address", "Counters", "LinkSpec", "Transport", "TRANSPORTS"]
+__all__ = ["spec_from_args", "Address", "Counters", "LinkSpec", "Transport", "TRANSPORTS"]

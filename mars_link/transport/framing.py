@@ -11,10 +11,7 @@ from dataclasses import dataclass, field
 from pymavlink.dialects.v20 import common as mavlink
 from pymavlink.generator.mavcrc import x25crc
 
-MAGIC_V1 = 0xFE
-MAGIC_V2 = 0xFD
-SIGNED_FLAG = 0x01
-SIGNATURE_LEN = 13
+from mars_link.mavlink.codec import MAGIC_V1, MAGIC_V2, frame_length, frame_message_id, header_length
 
 
 @dataclass
@@ -57,18 +54,11 @@ class MavlinkFramer:
             if start:
                 self.counters.garbage_bytes += start
                 del buf[:start]
-            if buf[0] == MAGIC_V2:
-                if len(buf) < 10:
-                    return None
-                header = 10
-                msgid = buf[7] | (buf[8] << 8) | (buf[9] << 16)
-                total = header + buf[1] + 2 + (SIGNATURE_LEN if buf[2] & SIGNED_FLAG else 0)
-            else:
-                if len(buf) < 6:
-                    return None
-                header = 6
-                msgid = buf[5]
-                total = header + buf[1] + 2
+            total = frame_length(buf, 0)
+            if total is None:  # (its header is not all there yet)
+                return None
+            header = header_length(buf)
+            msgid = frame_message_id(buf)
             if len(buf) < total:
                 return None
             plen = buf[1]

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from mars_link.logs.outputs import write_json
+from mars_link.mavlink.codec import frame_length, frame_message_id, header_length
 from mars_link.transport.base import TappedTransport, Transport
 
 CPU_DMA_LATENCY = "/dev/cpu_dma_latency"
@@ -42,17 +43,12 @@ def frame_times_usec(data: bytes, msgid: int) -> list[int]:
     out = []
     i, n = 0, len(data)
     while i + 8 <= n:
-        magic = data[i]
-        if magic == 0xFD and i + 10 <= n:
-            plen, signed = data[i + 1], data[i + 2] & 1
-            mid = data[i + 7] | (data[i + 8] << 8) | (data[i + 9] << 16)
-            start, total = i + 10, 12 + plen + (13 if signed else 0)
-        elif magic == 0xFE and i + 6 <= n:
-            plen, mid, start, total = data[i + 1], data[i + 5], i + 6, 8 + plen
-        else:
+        total = frame_length(data, i)
+        if total is None:
             i += 1
             continue
-        if mid == msgid and i + total <= n:
+        if frame_message_id(data, i) == msgid and i + total <= n:
+            start, plen = i + header_length(data, i), data[i + 1]
             payload = data[start:start + plen] + bytes(max(0, 8 - plen))  # MAVLink 2 trims trailing zeros
             out.append(_U64.unpack_from(payload)[0])
         i += total

@@ -114,3 +114,31 @@ def test_the_committed_results_are_readable_and_name_a_benchmark():
         assert doc["machine"]["bare_jsbsim"]["steps_per_s"] > 0 and doc["figures"], doc["file"]
     page = hook.render("# Benchmarks\n\n" + hook.MARKER + "\n", docs)
     assert all(f"## {name}" in page for name in record.latest(docs))
+
+
+def test_a_results_file_names_scenarios_and_paths_without_the_machine(tmp_path, monkeypatch):
+    """Options and the command line as they are committed: a bundled scenario by its name, a file in the
+    repository relative to it, a file elsewhere by its name alone; words and numbers as given."""
+    import argparse
+
+    from mars_link.config.scenario import SCENARIO_DIR
+
+    record = _hook()._record()
+    bundled, walls, mine = str(SCENARIO_DIR / "hover_3x2.toml"), str(ROOT / "benchmarks" / "README.md"), str(tmp_path / "mine.toml")
+    args = argparse.Namespace(scenario=bundled, map=walls, extra=[mine, "udp"], both=f"{bundled},{mine}",
+                              transport="udp", runs=2, layout=None, json=False)
+    monkeypatch.setattr(sys, "argv", ["bench_x.py", "--scenario", bundled, f"--map={walls}", "--runs", "2"])
+    doc = record.Recorder("bench_x", False, args).document()
+    assert doc["options"] == {"scenario": "hover_3x2", "map": "benchmarks/README.md", "extra": ["mine.toml", "udp"],
+                              "both": "hover_3x2,mine.toml", "transport": "udp", "runs": 2, "layout": None}
+    assert doc["command"] == "python benchmarks/bench_x.py --scenario hover_3x2 --map=benchmarks/README.md --runs 2"
+
+
+def test_the_committed_results_hold_no_path_of_the_machine_that_ran_them():
+    for path in sorted((BENCH / "results").glob("bench_*.json")):
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        values = [*doc["command"].split(), *(v for value in doc["options"].values()
+                                            for v in (value if isinstance(value, list) else [value]))]
+        absolute = [v for v in values if isinstance(v, str) and (Path(v.partition("=")[2] or v).is_absolute()
+                                                                   or v.startswith("~"))]
+        assert not absolute, (path.name, absolute)

@@ -1,5 +1,6 @@
-"""One CLI tree: every `mars-link` subcommand and option is defined in mars_link/apps/cli.py, each with help;
-no other product module builds a parser; `--version`; "did you mean" for a misspelled name; one error
+"""One CLI tree: every `mars-link` subcommand is defined in mars_link/apps/cli.py, each option there or, when
+shared (by subcommands or with the internal entry points), once in mars_link/processes/cli_options.py, each
+with help; no other product module builds a parser or defines an option; `--version`; "did you mean" for a misspelled name; one error
 prefix; one default transport; and the spellings and meanings that changed still work, with one line
 saying so."""
 
@@ -19,8 +20,8 @@ PACKAGES = ("mars_link", "sitl", "firmware_models")
 #: entry points users do not type as `mars-link ...`, which keep a small parser of their own: the SITL
 #: process roles the launcher starts, the unit runner, and a diagnostic probe of the Foxglove server
 OWN_PARSER = {"mars_link/processes/lockstep.py", "mars_link/processes/udp_runner.py", "mars_link/apps/foxglove_probe.py"}
-#: option groups defined outside cli.py for those internal parsers (and for tools/ and benchmarks/)
-OPTION_HELPERS = {"mars_link/mavlink/signing.py", "mars_link/transport/__init__.py", "mars_link/apps/sweep_pool.py"}
+#: where options are defined: the tree, and the definitions it shares with those parsers (and tools/, benchmarks/)
+OPTION_MODULES = {"mars_link/apps/cli.py", "mars_link/processes/cli_options.py"}
 PARSER_CALL = re.compile(r"\b(ArgumentParser|OneLineParser|OneLineArgumentParser)\(|\.add_subparsers\(|\.add_parser\(")
 
 EXPECTED = {"run", "sitl", "sitl up", "coordinator", "vehicle", "plan", "reconfig", "reconfig plan", "reproduce",
@@ -75,7 +76,7 @@ def test_no_other_product_module_builds_a_parser() -> None:
             code = line.split("#")[0]
             if PARSER_CALL.search(code) and not code.lstrip().startswith("class ") and rel not in OWN_PARSER:
                 builders.append(f"{rel}: {line.strip()}")
-            if ".add_argument(" in code and rel not in OWN_PARSER | OPTION_HELPERS:
+            if ".add_argument(" in code and rel not in OPTION_MODULES:
                 options.append(f"{rel}: {line.strip()}")
     assert builders == [], builders
     assert options == [], options
@@ -208,3 +209,27 @@ def test_every_earlier_option_is_still_accepted() -> None:
         assert set(options.split()) <= known, (name, set(options.split()) - known)
     required = {a.dest for a in tree["plan"]._actions if a.required}
     assert required == {"map", "layout", "start", "goal", "out"}
+
+
+def test_internal_parsers_take_what_their_launchers_hand_them() -> None:
+    """The SITL process roles and the unit runner parse with the shared definitions: a LinkSpec's command line
+    reads back as the same spec, and the old spellings (--sign-client-links, --jobs) still parse."""
+    from mars_link.core.validation import OneLineParser
+    from mars_link.processes.cli_options import add_lockstep_options, add_pool, add_unit_runner_options
+    from mars_link.transport import LinkSpec, spec_from_args
+
+    lockstep = argparse.ArgumentParser(prog="lockstep")
+    add_lockstep_options(lockstep)
+    for spec in (LinkSpec(), LinkSpec("zenoh", "f1", "router", ("tcp/127.0.0.1:7447",), ("tcp/127.0.0.1:7448",),
+                                      "wifi", unit_interface="px4-zenoh", tls_dir="certs"),
+                 LinkSpec("zenoh", zenoh_mode="peer", tls_ca="ca.pem", tls_cert="c.pem", tls_key="k.pem")):
+        args = lockstep.parse_args(["unit", "hover_1x1", "--out", "o", "--sign-client-links", *spec.to_args()])
+        assert spec_from_args(args) == spec and args.require_signing
+    assert lockstep.parse_args(["world", "-", "--out", "o"]).transport == "udp"  # (a process on its own: UDP)
+    runner = OneLineParser(prog="udp_runner")
+    add_unit_runner_options(runner)
+    args = runner.parse_args(["--unit", "3", "--sign-client-links", "--param", "MPC_XY_VEL_MAX=2"])
+    assert (args.unit, args.require_signing, args.param, args.gcs_port) == (3, True, ["MPC_XY_VEL_MAX=2"], 14550)
+    pool = argparse.ArgumentParser()
+    add_pool(pool)
+    assert pool.parse_args(["--jobs", "2"]).workers == 2

@@ -170,12 +170,6 @@ def test_readme_commands_parse_against_the_real_parsers():
     for command in commands:
         argv = shlex.split(command)
         if argv[0] == "mars-link":
-            if argv[1] == "plan" or argv[1:3] == ["reconfig", "plan"]:
-                from mars_link.apps.plan_cli import build_parser as plan_parser
-                from mars_link.apps.reconfig_cli import _parser as reconfig_parser
-
-                (plan_parser() if argv[1] == "plan" else reconfig_parser()).parse_args(argv[2 if argv[1] == "plan" else 3:])
-                continue
             args = parser.parse_args(argv[1:])
             assert getattr(args, "func", None), command
             if getattr(args, "scenario", None):

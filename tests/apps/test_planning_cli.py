@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mars_link.apps.plan_cli import plan_command
+from mars_link.apps.cli import main
 from mars_link.models.trajectories import build_trajectory
 
 HEADER = "cx,cy,length_m,thickness_m,height_m,yaw_deg\n"
@@ -48,7 +48,7 @@ def test_plan_writes_a_replayable_trajectory_json_and_png(tmp_path, walls):
 
 
 def run(argv, capsys) -> tuple[int, str]:
-    code = plan_command(argv)
+    code = main(["plan", *argv])
     return code, capsys.readouterr().err
 
 

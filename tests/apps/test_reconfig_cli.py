@@ -6,11 +6,11 @@ import json
 
 import pytest
 
-from mars_link.apps.reconfig_cli import reconfig_plan_command
+from mars_link.apps.cli import main
 
 
 def run(argv, capsys):
-    code = reconfig_plan_command(argv)
+    code = main(["reconfig", "plan", *argv])
     out, err = capsys.readouterr()
     return code, out, err
 

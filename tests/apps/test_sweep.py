@@ -45,7 +45,8 @@ def test_rows_do_not_depend_on_the_workers_or_the_cluster(tmp_path):
     assert code3 == 0
     assert result_columns(dask) == result_columns(one)
     md = (tmp_path / "dask" / "sweep.md").read_text()
-    assert md.count("| control.ftc=none |") == 1 + 3 and md.count("| control.ftc=qp |") == 1 + 3  # group + flights
+    # per combination: its row in the groups' table, in the fault isolation table, and its 3 flights
+    assert md.count("| control.ftc=none |") == 2 + 3 and md.count("| control.ftc=qp |") == 2 + 3
     assert "| control.ftc=none | 3 | 0 | 3 | 0 |" in md  # 3 flights, none completed, 3 diverged, none raised
 
 
@@ -119,6 +120,12 @@ SCHEDULER_DEAD = "tcp://127.0.0.1:9"  # the discard port: nothing listens on loo
     (["--faults", "random:2,wings"], "expected random:K"),
     (["--faults", "random:5"], "has only 4 rotors"),
     (["--faults", "random:2,units"], "has only 1 units"),
+    (["--faults", "random:1-3,whole-units"], "has only 1 units"),
+    (["--faults", "random:3-1,units"], "1 <= A <= B"),
+    (["--faults", "random:1-2,units,units"], "unknown or repeated part 'units'"),
+    (["--faults", "random:1,eta=1"], "in [0, 1)"),
+    (["--faults", "random:1,eta=0/x"], "in [0, 1)"),
+    (["--faults", "random:1,kind=warp"], "fault kind 'warp'"),
     (["--param", "ftc"], "expected KEY=V1,V2"),
     (["--param", "ftc="], "expected KEY=V1,V2"),
     (["--param", "colour=red"], "unknown key 'colour'"),

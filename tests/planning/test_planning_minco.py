@@ -198,13 +198,13 @@ def test_ours_turns_less_than_svsdf_on_the_walls(walls_3x2):
 
 
 def test_plan_command_reports_the_minco_back_end(tmp_path):
-    from mars_link.apps.plan_cli import plan_command
+    from mars_link.apps.cli import main
 
     walls = tmp_path / "walls.csv"
     walls.write_text("cx,cy,length_m,thickness_m,height_m,yaw_deg\n-3.8,5,6,0.15,2.4,90\n3.8,5,6,0.15,2.4,90\n")
     out = tmp_path / "out"
-    code = plan_command([str(walls), "--layout", "XXX,XXX", "--fault", "2=0", "--start", "0,0,-2", "--goal", "10,0,-2",
-                         "--out", str(out), "--quiet"])
+    code = main(["plan", str(walls), "--layout", "XXX,XXX", "--fault", "2=0", "--start", "0,0,-2", "--goal", "10,0,-2",
+                 "--out", str(out), "--quiet"])
     assert code == 0
     summary = json.loads((out / "plan.json").read_text())
     assert summary["success"] and summary["back_end"] == "minco"

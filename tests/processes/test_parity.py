@@ -51,15 +51,8 @@ FEATURES = {
 LINKS = {"zenoh": LinkSpec("zenoh"), "udp": LinkSpec("udp"), "px4-zenoh": LinkSpec("zenoh", unit_interface="px4-zenoh")}
 #: the cases of the default run: one per link
 DEFAULT = {("spiral", "zenoh"), ("battery", "udp")}  # (one case per transport; the rest, px4-zenoh included: -m long)
-#: known gaps, until every process steps the engine (issue 38): a sensor failure moves the SITL flight off the
-#: in-process one 4 steps after it starts (3 mm on mocap), and the SITL summary carries none of its events
-GAPS = {"sensor_failure": pytest.mark.xfail(strict=True, reason="SITL applies and reports sensor failures apart "
-                                                                "from the engine")}
-
-
 def _marks(feature: str, transport: str) -> list:
-    marks = [] if (feature, transport) in DEFAULT else [pytest.mark.long]
-    return marks + ([GAPS[feature]] if feature in GAPS else [])
+    return [] if (feature, transport) in DEFAULT else [pytest.mark.long]
 
 
 CASES = [pytest.param(f, t, marks=_marks(f, t), id=f"{f}-{t}") for f in FEATURES for t in LINKS]

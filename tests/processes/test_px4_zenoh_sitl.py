@@ -15,6 +15,8 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +28,7 @@ from test_px4_zenoh_codec import _IndependentHost, _defaults  # (the test's own 
 COM_OF_LOSS_T_S = 1.0  # PX4 v1.17 commander default
 CONTROLS = (0.20, 0.25, 0.30, 0.35)  # below hover for every preset: the unit stays on the ground, rotors spinning
 VEHICLE_CMD_DO_SET_MODE, VEHICLE_CMD_COMPONENT_ARM_DISARM = 176, 400
-RESULT_ACCEPTED, ARMING_STATE_ARMED, ARMING_STATE_DISARMED = 0, 2, 1
+RESULT_ACCEPTED, RESULT_TEMPORARILY_REJECTED, ARMING_STATE_ARMED, ARMING_STATE_DISARMED = 0, 1, 2, 1
 NAVIGATION_STATE_OFFBOARD = 14
 HANG_S = 60.0  # deadlines below only stop a hung test; they assert nothing about speed
 
@@ -142,7 +144,33 @@ def _open_session(port: int, proc: subprocess.Popen) -> zenoh.Session:
         except zenoh.ZError:
             if time.monotonic() > end or proc.poll() is not None:
                 raise
-            time.sleep(0.2)
+            time.sleep(0.1)
+
+
+def _start_on_px4_zenoh(argv: list[str], out: Path) -> tuple[subprocess.Popen, int]:
+    """`mars-link ARGV` with its units on PX4's interface over a closed-off Zenoh bus whose router listens on a
+    free loopback port (returned), where the test's plain client connects."""
+    port = _free_port()
+    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", *argv, "--transport", "zenoh", "--insecure",
+                             "--unit-interface", "px4-zenoh", "--zenoh-listen", f"tcp/127.0.0.1:{port}",
+                             "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    return proc, port
+
+
+@contextmanager
+def _offboard_computer(proc: subprocess.Popen, port: int) -> Iterator[OffboardComputer]:
+    """The plain client on the run's bus, once it has taken unit 1 over (keep-alive, OFFBOARD, ARM); its
+    keep-alive thread and session closed on the way out."""
+    session = _open_session(port, proc)
+    try:
+        client = OffboardComputer(session, 1)
+        try:
+            _take_over(client)
+            yield client
+        finally:
+            client.close()
+    finally:
+        session.close()
 
 
 def _take_over(client: OffboardComputer) -> None:
@@ -157,7 +185,11 @@ def _take_over(client: OffboardComputer) -> None:
     end = time.monotonic() + HANG_S
     while client.command(VEHICLE_CMD_DO_SET_MODE, 1.0, 6.0) != RESULT_ACCEPTED and time.monotonic() < end:
         time.sleep(0.1)
-    assert client.command(VEHICLE_CMD_COMPONENT_ARM_DISARM, 1.0) == RESULT_ACCEPTED
+    arm = client.command(VEHICLE_CMD_COMPONENT_ARM_DISARM, 1.0)
+    while arm == RESULT_TEMPORARILY_REJECTED and time.monotonic() < end:  # (its pre-arm checks want a state: the
+        time.sleep(0.1)  # unit publishes its status before the world's first step gives it one; ask again)
+        arm = client.command(VEHICLE_CMD_COMPONENT_ARM_DISARM, 1.0)
+    assert arm == RESULT_ACCEPTED, f"ARM answered {arm}; the unit's status: {client.latest_status()}"
 
 
 def _stream(client: OffboardComputer, seconds: float) -> None:
@@ -189,40 +221,29 @@ def _stop_and_await_failsafe(client: OffboardComputer):
 @pytest.mark.slow
 @pytest.mark.sitl
 def test_plain_zenoh_client_arms_and_drives_a_sitl_up_unit(tmp_path: Path) -> None:
-    port = _free_port()
     out = tmp_path / "up"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "sitl", "up", "--units", "1", "--speed", "1",
-                             "--transport", "zenoh", "--insecure", "--unit-interface", "px4-zenoh",
-                             "--zenoh-listen", f"tcp/127.0.0.1:{port}", "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    session = client = None
+    proc, port = _start_on_px4_zenoh(["sitl", "up", "--units", "1", "--speed", "1"], out)
     try:
-        session = _open_session(port, proc)
-        client = OffboardComputer(session, 1)
-        _take_over(client)
+        with _offboard_computer(proc, port) as client:
+            # stream ActuatorMotors; the world's truth follows (the motor model's lag settles in well under 1 s)
+            _stream(client, 2.0)
+            status = client.latest_status()
+            assert status.arming_state == ARMING_STATE_ARMED and status.nav_state == NAVIGATION_STATE_OFFBOARD
+            thrust_n = np.array(_world_unit(out, 1)["rotor_thrust_n"])
+            assert thrust_n.min() > 0.0
+            np.testing.assert_allclose(thrust_n / thrust_n[0], np.array(CONTROLS) / CONTROLS[0], rtol=0.02)
 
-        # stream ActuatorMotors; the world's truth follows (the motor model's lag settles in well under 1 s)
-        _stream(client, 2.0)
-        status = client.latest_status()
-        assert status.arming_state == ARMING_STATE_ARMED and status.nav_state == NAVIGATION_STATE_OFFBOARD
-        thrust_n = np.array(_world_unit(out, 1)["rotor_thrust_n"])
-        assert thrust_n.min() > 0.0
-        np.testing.assert_allclose(thrust_n / thrust_n[0], np.array(CONTROLS) / CONTROLS[0], rtol=0.02)
-
-        # stop everything: the unit disarms on its own clock no earlier than COM_OF_LOSS_T after the last keep-alive
-        disarmed, last_keepalive_us = _stop_and_await_failsafe(client)
-        # the client stamped the keep-alive with the unit's clock as last heard, at most one status period
-        # behind the unit's own reception time: the loss can only look later than it was, never earlier
-        assert (disarmed.timestamp - last_keepalive_us) / 1e6 >= COM_OF_LOSS_T_S
-        end = time.monotonic() + HANG_S
-        while np.max(_world_unit(out, 1).get("rotor_thrust_n", [1.0])) > 1e-3 and time.monotonic() < end:
-            time.sleep(0.1)
-        assert np.max(_world_unit(out, 1)["rotor_thrust_n"]) <= 1e-3  # the rotors stopped in the world
+            # stop everything: the unit disarms on its own clock no earlier than COM_OF_LOSS_T after the last
+            # keep-alive
+            disarmed, last_keepalive_us = _stop_and_await_failsafe(client)
+            # the client stamped the keep-alive with the unit's clock as last heard, at most one status period
+            # behind the unit's own reception time: the loss can only look later than it was, never earlier
+            assert (disarmed.timestamp - last_keepalive_us) / 1e6 >= COM_OF_LOSS_T_S
+            end = time.monotonic() + HANG_S
+            while np.max(_world_unit(out, 1).get("rotor_thrust_n", [1.0])) > 1e-3 and time.monotonic() < end:
+                time.sleep(0.1)
+            assert np.max(_world_unit(out, 1)["rotor_thrust_n"]) <= 1e-3  # the rotors stopped in the world
     finally:
-        if client is not None:
-            client.close()
-        if session is not None:
-            session.close()
         proc.send_signal(signal.SIGINT)  # sitl up stops every child it started
         text = proc.communicate(timeout=60)[0]
     assert proc.returncode in (0, 130), text[-2000:]
@@ -237,24 +258,14 @@ def test_plain_zenoh_session_sees_a_run_drive_its_units_through_px4(tmp_path: Pa
     report itself armed in OFFBOARD, decodes the coordinator's ARM and OFFBOARD commands and the units' acks,
     and its ActuatorMotors; the thrusts the units drove (rotors.csv, from their HIL answers) are the decoded
     controls times one full scale."""
-    port = _free_port()
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_3x2", "--mode", "sitl",
-                             "--duration", "1", "--transport", "zenoh", "--insecure", "--unit-interface", "px4-zenoh",
-                             "--zenoh-listen", f"tcp/127.0.0.1:{port}", "--out", str(out)],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    proc, port = _start_on_px4_zenoh(["run", "hover_3x2", "--mode", "sitl", "--duration", "1"], out)
     session = None
     seen: dict[str, list] = {"motors": [], "commands": [], "acks": [], "status": []}
     lock = threading.Lock()
     try:
+        session = _open_session(port, proc)
         end = time.monotonic() + HANG_S
-        while session is None:
-            try:
-                session = zenoh.open(_client_config(f"tcp/127.0.0.1:{port}"))
-            except zenoh.ZError:
-                if time.monotonic() > end or proc.poll() is not None:
-                    raise
-                time.sleep(0.1)
         host = _IndependentHost(session, "*")  # any vehicle: 0/*/fmu/...
 
         def keep(kind: str, type_name: str):
@@ -317,28 +328,17 @@ def test_plain_zenoh_client_flies_a_run_with_external_offboard(tmp_path: Path) -
     and the run, paced to the wall clock for its duration, writes the world's truth: rotors.csv (what the
     unit drove the world's motors with, each logged step) shows the commanded thrusts, and the rotors stop
     COM_OF_LOSS_T after the last keep-alive the unit received (its input log, sim time)."""
-    port = _free_port()
     out = tmp_path / "run"
-    proc = subprocess.Popen([sys.executable, "-m", "mars_link.apps.cli", "run", "hover_1x1", "--mode", "sitl",
-                             "--duration", "8", "--transport", "zenoh", "--insecure", "--unit-interface", "px4-zenoh",
-                             "--external-offboard", "all", "--zenoh-listen", f"tcp/127.0.0.1:{port}",
-                             "--out", str(out), "--quiet"],
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    session = client = None
+    proc, port = _start_on_px4_zenoh(["run", "hover_1x1", "--mode", "sitl", "--duration", "8", "--external-offboard",
+                                      "all", "--quiet"], out)
     try:
-        session = _open_session(port, proc)
-        client = OffboardComputer(session, 1)
-        _take_over(client)
-        _stream(client, 2.0)
-        status = client.latest_status()
-        assert status.arming_state == ARMING_STATE_ARMED and status.nav_state == NAVIGATION_STATE_OFFBOARD
-        disarmed, last_keepalive_us = _stop_and_await_failsafe(client)
-        assert (disarmed.timestamp - last_keepalive_us) / 1e6 >= COM_OF_LOSS_T_S
+        with _offboard_computer(proc, port) as client:
+            _stream(client, 2.0)
+            status = client.latest_status()
+            assert status.arming_state == ARMING_STATE_ARMED and status.nav_state == NAVIGATION_STATE_OFFBOARD
+            disarmed, last_keepalive_us = _stop_and_await_failsafe(client)
+            assert (disarmed.timestamp - last_keepalive_us) / 1e6 >= COM_OF_LOSS_T_S
     finally:
-        if client is not None:
-            client.close()
-        if session is not None:
-            session.close()
         text = proc.communicate(timeout=HANG_S)[0]  # the run ends at its duration on its own
     assert proc.returncode == 0, text[-2000:]
     assert "external off-board: the coordinator flies none of units 1" in text

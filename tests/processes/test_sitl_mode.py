@@ -5,6 +5,7 @@ as `--mode inproc` for the same seed. The 3x2 spiral is cut to its first 2 s to 
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -12,8 +13,8 @@ import numpy as np
 import pytest
 
 from mars_link.flight.runner import run_scenario
-from mars_link.config.scenario import load_scenario
-from mars_link.processes.sitl_mode import run_sitl_scenario
+from mars_link.config.scenario import bundled_scenario_names, load_scenario
+from mars_link.processes.sitl_mode import run_sitl_scenario, write_scenario_copy
 from mars_link.transport import LinkSpec
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -112,3 +113,13 @@ def test_a_killed_unit_process_is_a_failed_unit_and_the_flight_goes_on(tmp_path:
     assert det["unit"] == 3 and det["rotor"] is None and det["eta_estimated"] == 0.0 and det["reason"] == "silent"
     assert 1.0 <= det["t_fault"] <= det["t_detected"] < det["t_fault"] + 0.5
     assert {"unit_died", "unit_lost", "reallocation"} <= {e["type"] for e in summary["events"]}
+
+
+@pytest.mark.parametrize("name", bundled_scenario_names())
+def test_the_scenario_copy_the_processes_load_is_the_scenario(tmp_path: Path, name: str) -> None:
+    """Every process of `run --mode sitl` loads the scenario from the copy `write_scenario_copy` writes: it
+    must hold everything (it once left out [[sensor_faults]], so SITL flew on healthy sensors)."""
+    sc = load_scenario(name)
+    back = load_scenario(str(write_scenario_copy(sc, tmp_path / "scenario.toml")))
+    differ = [f.name for f in dataclasses.fields(sc) if f.name != "source" and getattr(sc, f.name) != getattr(back, f.name)]
+    assert differ == []

@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 import pytest
+from pymavlink.dialects.v10 import common as mavlink_v1
 from pymavlink.dialects.v20 import common as mavlink
 
 from mars_link.transport.profiles import PRESETS, LinkModel, LinkProfile, ProfiledTransport, profile_from_name
@@ -79,6 +80,9 @@ def test_wrapper_delays_real_udp_datagrams() -> None:
         assert 0.029 < min(delays) and np.median(delays) < 0.045, delays
 
 
+V1_HEARTBEAT = bytes(mavlink_v1.MAVLink_heartbeat_message(2, 3, 0, 0, 4, 3).pack(mavlink_v1.MAVLink(None, 9, 1)))
+
+
 def test_command_age_from_raw_frames() -> None:
     """Age at the motor = the unit's motor output for step t (HIL_ACTUATOR_CONTROLS leaving for the
     simulator) - (epoch + t); steps driven without a coordinator command (fail-safe) do not count."""
@@ -93,6 +97,8 @@ def test_command_age_from_raw_frames() -> None:
         tap.on_hil(sensor, epoch + t_us / 1e6 + 0.0001 * (k + 1))  # first sensor 0.1 ms after its time
         cmd = mavlink.MAVLink_set_actuator_control_target_message(t_us, 0, 3, 1, [0.0] * 8).pack(coord)
         assert frame_times_usec(b"\x00" + sensor + cmd, 139) == [t_us]
+        assert frame_times_usec(V1_HEARTBEAT + cmd + V1_HEARTBEAT + cmd, 139) == [t_us, t_us]  # (MAVLink 1 sized by
+        # its own header: it once raised UnboundLocalError, or took the length of the frame before it)
         if k < 5:
             tap.on_coordinator(cmd, epoch + t_us / 1e6 + (0.002 if k < 4 else 0.015))
         motors = mavlink.MAVLink_hil_actuator_controls_message(t_us, [0.0] * 16, 0, 1).pack(unit)
