@@ -46,6 +46,8 @@ from firmware_models.motor import MotorModel, MotorParams
 from firmware_models.params import ParamStore, unit_param_specs
 from firmware_models.rotor_intake import IntakeParams, RotorIntake
 from firmware_models.sensor_failures import SensorFailures
+from mars_link.core.messages import EscSample
+from mars_link.models.esc import EscSensor
 from mars_link.mavlink.signing import ACCEPTED, UNSIGNED, advance_outgoing_clock, is_signed
 from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
 from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
@@ -231,8 +233,9 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self.latch_setpoint = LATCH_ALL  # the docking latches: engaged until the coordinator opens some
         self.latches = 0  # the latch sensor: the sides that hold a docked neighbour (from the world)
         self._await_coordinator = c.hil_await_coordinator
-        self._scheduled_failures: list[tuple[float, int, float]] = []  # (sim time, rotor, eta), sorted
+        self._scheduled_failures: list[tuple[float, int, float, str]] = []  # (sim time, rotor, eta, kind), sorted
         self.sensor_failures = SensorFailures(c.unit_id)  # the sensor path's injected failures
+        self.esc: EscSensor | None = None  # the ESCs' telemetry (mars_link.models.esc), set by the composition root
         self._scheduled_sensor_failures: list[tuple[float, str, str]] = []  # (sim time, sensor, type), sorted
         self.mission = MissionProtocol(self.origin)
         self.runner = MissionRunner(self.autopilot, self.origin)
@@ -294,14 +297,16 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             self.home_ned = np.array(state.position_ned_m, dtype=float)
             self.autopilot.idle(float(state.position_ned_m[2]))
 
-    def inject_failure(self, rotor: int, eta: float) -> None:
-        """Local fault injection (rotor 1..4, 0 = all): the motor model only."""
+    def inject_failure(self, rotor: int, eta: float, kind: str = "eta") -> None:
+        """Local fault injection (rotor 1..4, 0 = all): the motor model, and what its ESC sees (`kind`)."""
         self.motors.set_rotor_eta(0, rotor, eta)
+        if self.esc is not None:
+            self.esc.set_kind(rotor, kind)
 
-    def schedule_failure(self, t_s: float, rotor: int, eta: float) -> None:
+    def schedule_failure(self, t_s: float, rotor: int, eta: float, kind: str = "eta") -> None:
         """A scenario fault (rotor 1..4, 0 = all) that enters the motor model at the first HIL step at
         or after sim time t_s, before that step's motor outputs are computed."""
-        self._scheduled_failures.append((t_s, rotor, eta))
+        self._scheduled_failures.append((t_s, rotor, eta, kind))
         self._scheduled_failures.sort()
 
     def schedule_sensor_failure(self, t_s: float, sensor: str, kind: str) -> None:
@@ -313,7 +318,17 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
     def _sensor_failures_due(self, t_s: float) -> None:
         while self._scheduled_sensor_failures and self._scheduled_sensor_failures[0][0] <= t_s + 1e-9:
             _, sensor, kind = self._scheduled_sensor_failures.pop(0)
-            self.sensor_failures.inject(sensor, kind)
+            if sensor == "esc":
+                if self.esc is not None:
+                    self.esc.fail(kind)
+            else:
+                self.sensor_failures.inject(sensor, kind)
+
+    def _esc_sample(self, t_s: float) -> EscSample | None:
+        """The ESCs' telemetry at a HIL step, before its command: what the motors did over the last period."""
+        if self.esc is None:
+            return None
+        return self.esc.sample(t_s, self.motor_commands_n if self.armed else np.zeros(4), self.motors.eta)
 
     def step_motors(self, dt_s: float) -> np.ndarray:
         """Produced rotor thrusts (N) after one physics step of dt_s (limits, eta, lag)."""

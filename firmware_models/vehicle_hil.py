@@ -14,6 +14,7 @@ from mars_link.core.geo import WIRE_ORIGIN
 from firmware_models.vehicle_modes import MODE_OFFBOARD
 from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
 from mars_link.core.state import ImuSample, RigidBodyState
+from mars_link.mavlink.esc_status import esc_status_message
 from mars_link.mavlink.wire import (BARO_FIELDS, MAG_FIELDS, SensorFrames, battery_from_message, battery_report_message,
                             latch_from_message, latch_message, latches_open, sensor_packet_messages)
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
@@ -74,6 +75,7 @@ class HilMixin:
         if self._scheduled_sensor_failures:
             self._sensor_failures_due(frames.imu.time_usec / 1e6)
         forward = [name for name, other in self.links.items() if other.policy.forward_sensors]
+        esc = self._esc_sample(frames.imu.time_usec / 1e6)  # (every step: its noise draws as in-process)
         report = None
         if self._battery_pending is not None:
             report = self._measure_battery(self._battery_pending, frames.imu.time_usec / 1e6)
@@ -88,6 +90,8 @@ class HilMixin:
                 upstream = frames.upstream_messages()
             if report is not None:  # before the IMU frame: the coordinator attaches it to this packet
                 upstream.insert(0, battery_report_message(report))
+            if esc is not None:  # (likewise)
+                upstream.insert(0, esc_status_message(esc))
             for name in forward:
                 other = self.links[name]
                 out.extend(Outgoing(name, self._pack(other, m)) for m in upstream)
@@ -172,8 +176,8 @@ class HilMixin:
         """One HIL step's motor outputs (N): due scenario faults enter the motor model, the control step
         runs, and the motors are driven to the clamped, eta-scaled command."""
         while self._failure_due():
-            _, rotor, eta = self._scheduled_failures.pop(0)
-            self.inject_failure(rotor, eta)
+            _, rotor, eta, kind = self._scheduled_failures.pop(0)
+            self.inject_failure(rotor, eta, kind)
         stats = self.stats  # (_count, inlined: every step)
         stats["hil_steps"] = stats.get("hil_steps", 0) + 1
         self._control_step()
@@ -207,9 +211,10 @@ class HilMixin:
             self.set_state(packet.truth)
         self.sim_s = packet.t_s
         self._next_control = packet.t_s + self.control_dt_s
+        esc = self._esc_sample(packet.t_s)
         if packet.battery is not None:  # forwarded with the unit's remaining-charge estimate
-            return dataclasses.replace(packet, battery=self._measure_battery(packet.battery, packet.t_s))
-        return packet
+            return dataclasses.replace(packet, battery=self._measure_battery(packet.battery, packet.t_s), esc=esc)
+        return packet if esc is None else dataclasses.replace(packet, esc=esc)
 
     def take_rotor_command(self, cmd: RotorCommand) -> bool:
         """A coordinator command (SET_ACTUATOR_CONTROL_TARGET's values); True if it is now held."""

@@ -154,10 +154,13 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
     sections.append(("[[faults]]", "Rotor faults: eta scales a rotor's thrust and torque.", [
         row("unit", None, "a unit id of the layout", "required", typ="int"),
         row("rotor", None, "1..4 (FR, FL, RL, RR)", "absent: all four rotors", typ="int"),
-        row("eta", None, "0..1", "required; 0 = dead", typ="float"),
+        row("eta", None, "0..1", "required for kind eta (else default 0); 0 = dead", typ="float"),
         row("t", 0.0, ">= 0", "when (simulated time)"),
+        row("kind", "eta", ", ".join(f"`{k}`" for k in S.FAULT_KINDS),
+            "what the ESC telemetry sees (mars_link.models.esc): eta a damaged propeller (RPM as commanded, "
+            "current x eta), prop-loss (the motor runs unloaded, faster), motor-stop (RPM and current fall; eta 0)"),
     ]))
-    assert S._FAULT_KEYS == {"t", "unit", "rotor", "eta"}
+    assert S._FAULT_KEYS == {"t", "unit", "rotor", "eta", "kind"}
     sections.append(("[sim]", "Rates, duration, seed, noise.", [
         row("duration_s", sim.duration_s, f"> 0, <= {S.MAX_DURATION_S:g}", "absent: the trajectory's duration",
             typ="float"),
@@ -250,7 +253,9 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
             srows.append(row(key, default, ">= 0" if key != "mag_declination_deg" else "-180..180",
                              ("gps profile only; " if gps_only else "") + "default: the profile's (shown: "
                              + ("gps" if gps_only else "mocap") + ")"))
-    sections.append(("[sensors]", "The position sensor profile and its figures.", srows))
+    srows.append(row("esc_telemetry", True, "`true`, `false`",
+                     "the units' ESCs report RPM and current (ESC_STATUS, 50 Hz); false: fly without it"))
+    sections.append(("[sensors]", "The position sensor profile and its figures, and the ESC telemetry.", srows))
 
     pack = battery.PackParams()
     brows = [row("enabled", None, "`true`, `false`", "default: on for the realistic plant or when the table has keys",
@@ -266,8 +271,8 @@ def scenario_sections() -> list[tuple[str, str, list[tuple[str, str, str, str, s
         row("map", None, "a boxes `.csv` or `.pcd` file, or a bundled map", "legs planned around it", typ="string")]))
     sections.append(("[[sensor_faults]]", "Sensor failures on a schedule, in the units' firmware.", [
         row("t", None, ">= 0", "required", typ="float"),
-        row("sensor", None, ", ".join(f"`{s}`" for s in (*BASE_SENSORS, "baro", "mag")), "required", typ="string"),
-        row("type", None, ", ".join(f"`{t}`" for t in FAILURE_TYPES), "required", typ="string"),
+        row("sensor", None, ", ".join(f"`{s}`" for s in (*BASE_SENSORS, "baro", "mag", "esc")), "required", typ="string"),
+        row("type", None, ", ".join(f"`{t}`" for t in FAILURE_TYPES), "required (esc: ok, off, stuck)", typ="string"),
         row("unit", None, "a unit id", "absent: every unit", typ="int"),
         row("duration_s", None, "> 0", "absent: for good", typ="float"),
     ]))
@@ -286,7 +291,7 @@ def scenario_keys_accepted() -> set[str]:
     keys |= S._SIM_KEYS | S._UNITS_KEYS | S._RECONFIG_NUMBERS | {"enabled", "target", "moves", "ground", "objective"} | set(S.DOCKING_RANGES)
     keys |= S._SEPARATION_KEYS | E._ENV_KEYS | E._GUST_KEYS | {"profile"} | battery._PACK_KEYS
     keys |= set(battery._FAILSAFE_KEYS) | {"units", "unit", "map", "kind"} | SF.KEYS
-    keys |= {k for p in PROFILES.values() for k in p.figures}
+    keys |= {k for p in PROFILES.values() for k in p.figures} | {"esc_telemetry"}
     keys |= {k for _, schema, _ in T._KINDS.values() for k in schema}
     return keys
 

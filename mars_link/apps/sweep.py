@@ -206,8 +206,9 @@ def _value_text(v: Any) -> str:
 
 
 def fault_arg(f: FaultSpec) -> str:
-    """A fault in `mars-link run --fault` form: UNIT[:ROTOR]=ETA@T."""
-    return f"{f.unit}{f':{f.rotor}' if f.rotor else ''}={f.eta:g}@{f.t_s:g}"
+    """A fault in `mars-link run --fault` form: UNIT[:ROTOR]=ETA@T[/KIND] (the kind when not the default)."""
+    kind = "" if f.kind == "eta" else f"/{f.kind}"
+    return f"{f.unit}{f':{f.rotor}' if f.rotor else ''}={f.eta:g}@{f.t_s:g}{kind}"
 
 
 def with_params(doc: dict, params: tuple[tuple[str, Any], ...]) -> dict:
@@ -301,7 +302,7 @@ def draw_faults(faults: RandomFaults, sweep_seed: int, seed_index: int, model, d
     out = []
     for (unit, rotor), frac, eta in sorted(zip(picks, fracs, etas), key=lambda p: (p[1], p[0][0], p[0][1] or 0)):
         t = math.floor(duration_s * float(frac) * control_hz) / control_hz  # on a control step
-        fault = FaultSpec(unit, rotor, eta, round(t, 6))
+        fault = FaultSpec(unit, rotor, 0.0 if faults.kind == "motor-stop" else eta, round(t, 6))  # (a stop: eta 0)
         out.append(dataclasses.replace(fault, **with_kind))
     return tuple(out)
 

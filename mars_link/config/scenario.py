@@ -18,6 +18,7 @@ from typing import Any
 
 from mars_link.core.assembly import AssemblyModel, PRESETS, parse_layout, vehicle_preset
 from mars_link.models.battery import BatterySpec, battery_table
+from mars_link.models.esc import FAULT_KINDS
 from mars_link.models.environment import EnvironmentParams
 from mars_link.models.sensor_profiles import SensorProfile
 from mars_link.core.errors import UserInputError
@@ -39,20 +40,28 @@ DEFAULT_PRESET = "mars-real"
 
 @dataclass
 class FaultSpec:
-    """Rotor efficiency change: `rotor` None = the whole unit (all four rotors)."""
+    """Rotor efficiency change: `rotor` None = the whole unit (all four rotors). `kind` (FAULT_KINDS) is what
+    the ESC sees (mars_link.models.esc): "eta" a damaged propeller, "prop-loss" a lost one (the motor runs on,
+    unloaded), "motor-stop" a stopped motor (eta 0); the thrust lost is `eta`'s in every kind."""
 
     unit: int
     rotor: int | None
     eta: float
     t_s: float = 0.0
+    kind: str = "eta"
 
     def describe(self) -> str:
-        return f"{self._where()} eta={self.eta:g} at t={self.t_s:g}s"
+        return f"{self._where()} {self._kind_text()}eta={self.eta:g} at t={self.t_s:g}s"
 
     def event_text(self) -> str:
         """The fault event's STATUSTEXT line, e.g. 'Fault: unit 2 rotor 2 eta 0.5'."""
         what = "failed" if self.rotor is None and self.eta == 0 else f"eta {self.eta:g}"
-        return f"Fault: {self._where()} {what}"
+        if self.kind == "motor-stop":
+            what = "motor stop"
+        return f"Fault: {self._where()} {self._kind_text() if self.kind == 'prop-loss' else ''}{what}"
+
+    def _kind_text(self) -> str:
+        return "" if self.kind == "eta" else f"{self.kind} "
 
     def _where(self) -> str:
         return f"unit {self.unit}" + (f" rotor {self.rotor}" if self.rotor else "")
@@ -112,6 +121,7 @@ class Scenario:
     battery: BatterySpec | None = None  # [battery]: the units' packs (mars_link.models.battery); None = an ideal supply
     sensor_faults: list = field(default_factory=list)  # [[sensor_faults]] (scenario_sensor_faults.SensorFaultSpec)
     unit_interface: str = "mavlink"  # [units] interface: "mavlink" | "px4-zenoh" (UNIT_INTERFACES)
+    esc_telemetry: bool = True  # [sensors] esc_telemetry: the units' ESCs report RPM and current (models.esc)
 
     @property
     def starts_free(self) -> bool:
@@ -147,7 +157,7 @@ _VEHICLE_KEYS = {
 _AERO_KEYS = {"drag", "drag_area_frd_m2"}  # + rotor_drag_coeff (a number, above)
 _ASSEMBLY_KEYS = {"layout", "tracked", "start", "free_spacing_m"}
 _CONTROL_KEYS = {"controller", "ftc", "faults_known"}
-_FAULT_KEYS = {"t", "unit", "rotor", "eta"}
+_FAULT_KEYS = {"t", "unit", "rotor", "eta", "kind"}
 _SIM_KEYS = {"duration_s", "physics_hz", "control_hz", "seed", "noise"}
 _UNITS_KEYS = {"interface"}
 #: [units] interface: how the coordinator commands the units: the MAVLink persona (SET_ACTUATOR_CONTROL_TARGET)
@@ -156,6 +166,10 @@ UNIT_INTERFACES = ("mavlink", "px4-zenoh")
 
 
 def validate_fault(fault: FaultSpec, model: AssemblyModel, src: str = "fault") -> None:
+    if fault.kind not in FAULT_KINDS:
+        raise UserInputError(f"{src}: unknown fault kind {fault.kind!r} (known: {', '.join(FAULT_KINDS)})")
+    if fault.kind == "motor-stop" and fault.eta != 0.0:
+        raise UserInputError(f"{src}: a motor-stop fault makes no thrust: eta must be 0 (or left out), got {fault.eta!r}")
     if not 0.0 <= fault.eta <= 1.0 or not math.isfinite(fault.eta):
         raise UserInputError(f"{src}: eta must be in [0, 1], got {fault.eta!r}")
     if fault.t_s < 0 or not math.isfinite(fault.t_s):
@@ -167,18 +181,22 @@ def validate_fault(fault: FaultSpec, model: AssemblyModel, src: str = "fault") -
 
 
 _FAULT_RE = re.compile(
-    r"^\s*(?P<unit>\d+)(?::(?P<rotor>\d+))?\s*=\s*(?P<eta>[-+0-9.eE]+)(?:\s*@\s*(?P<t>[-+0-9.eE]+))?\s*$"
+    r"^\s*(?P<unit>\d+)(?::(?P<rotor>\d+))?\s*=\s*(?P<eta>[-+0-9.eE]+)(?:\s*@\s*(?P<t>[-+0-9.eE]+))?"
+    r"(?:\s*/\s*(?P<kind>[a-z-]+))?\s*$"
 )
 
 
 def parse_fault_arg(text: str) -> FaultSpec:
-    """`UNIT[:ROTOR]=ETA[@T]`, e.g. `2:2=0.5`, `3=0@10`."""
+    """`UNIT[:ROTOR]=ETA[@T][/KIND]`, e.g. `2:2=0.5`, `3=0@10`, `1:2=0@5/prop-loss` (KIND: FAULT_KINDS)."""
     m = _FAULT_RE.match(text)
     if not m:
         shown = text if len(text) <= 60 else text[:40] + "..."
         raise UserInputError(
-            f"--fault {shown!r}: expected UNIT[:ROTOR]=ETA[@T], e.g. 2:2=0.5 or 3=0@10"
+            f"--fault {shown!r}: expected UNIT[:ROTOR]=ETA[@T][/KIND], e.g. 2:2=0.5, 3=0@10 or 1:2=0@5/motor-stop"
         )
+    kind = m["kind"] or "eta"
+    if kind not in FAULT_KINDS:
+        raise UserInputError(f"--fault {text[:60]!r}: unknown fault kind {kind!r} (known: {', '.join(FAULT_KINDS)})")
     try:
         eta = float(m["eta"])
         t = float(m["t"]) if m["t"] else 0.0
@@ -186,7 +204,7 @@ def parse_fault_arg(text: str) -> FaultSpec:
         raise UserInputError(f"--fault {text[:60]!r}: ETA and T must be numbers") from None
     unit = check_id_digits(m["unit"], f"--fault {text[:40]!r} unit")
     rotor = check_id_digits(m["rotor"], f"--fault {text[:40]!r} rotor") if m["rotor"] else None
-    return FaultSpec(unit, rotor, eta, t)
+    return FaultSpec(unit, rotor, eta, t, kind)
 
 
 def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
@@ -207,7 +225,11 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
 
     sc.battery = battery_table(_table(doc, "battery", src), sc.preset, src)
     sc.environment = environment_table(_table(doc, "environment", src), src)
-    sc.sensors = sensors_table(_table(doc, "sensors", src), src)
+    sensors = dict(_table(doc, "sensors", src))
+    sc.esc_telemetry = sensors.pop("esc_telemetry", True)
+    if not isinstance(sc.esc_telemetry, bool):
+        raise UserInputError(f"{src}: [sensors] esc_telemetry must be true or false")
+    sc.sensors = sensors_table(sensors, src)
     sc.vehicle_options.update(aero_options(vehicle, sc.preset, sc.environment, src))
     for key in _VEHICLE_KEYS - {"preset"}:
         if key in vehicle:
@@ -271,7 +293,10 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
         if not isinstance(f, dict):
             raise UserInputError(f"{src}: {where} must be a table")
         _check_keys(f, _FAULT_KEYS, where, src)
-        for key in ("unit", "eta"):
+        kind = f.get("kind", "eta")
+        if kind not in FAULT_KINDS:
+            raise UserInputError(f"{src}: {where} unknown kind {kind!r} (known: {', '.join(map(repr, FAULT_KINDS))})")
+        for key in ("unit",) if kind != "eta" else ("unit", "eta"):  # (a lost prop or stopped motor: eta 0)
             if key not in f:
                 raise UserInputError(f"{src}: {where} needs {key!r}")
         rotor = f.get("rotor")
@@ -279,8 +304,9 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
             FaultSpec(
                 unit=_integer(f["unit"], f"{where} unit", src),
                 rotor=None if rotor is None else _integer(rotor, f"{where} rotor", src),
-                eta=_number(f["eta"], f"{where} eta", src),
+                eta=_number(f.get("eta", 0.0), f"{where} eta", src),
                 t_s=_number(f.get("t", 0.0), f"{where} t", src),
+                kind=kind,
             )
         )
 
@@ -346,6 +372,8 @@ def scenario_from_dict(doc: dict, src: str = "<scenario>") -> Scenario:
     from mars_link.config.scenario_sensor_faults import parse_sensor_faults
 
     sc.sensor_faults = parse_sensor_faults(doc.get("sensor_faults", []), src, model, sc.sensors.name, sc.sim.noise)
+    if not sc.esc_telemetry and any(sf.sensor == "esc" for sf in sc.sensor_faults):
+        raise UserInputError(f"{src}: [[sensor_faults]] sensor \"esc\" needs [sensors] esc_telemetry = true")
     target = sc.reconfig.get("target")
     if target is not None and sorted(target) != model.unit_ids:
         raise UserInputError(

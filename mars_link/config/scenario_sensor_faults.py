@@ -2,8 +2,8 @@
 
     [[sensor_faults]]
     t = 20.0              # sim time the failure starts (s)
-    sensor = "gps"        # gps | accel | gyro | baro | mag (baro and mag: a flight whose sensors have them)
-    type = "off"          # ok | off | stuck | garbage | wrong | slow | delayed | intermittent
+    sensor = "gps"        # gps | accel | gyro | baro | mag (baro and mag: a flight whose sensors have them) | esc
+    type = "off"          # ok | off | stuck | garbage | wrong | slow | delayed | intermittent (esc: ok | off | stuck)
     unit = 2              # optional: one unit (default: every unit)
     duration_s = 10.0     # optional: the sensor is back (type "ok") after this long (default: for good)
 
@@ -21,6 +21,7 @@ from mars_link.core.assembly import AssemblyModel
 from mars_link.core.errors import UserInputError
 from mars_link.core.events import EventKind, event
 from mars_link.core.table_checks import check_keys, integer, number
+from mars_link.models.esc import ESC_FAILURES
 
 KEYS = {"t", "sensor", "type", "unit", "duration_s"}
 #: sensors a flight has beyond BASE_SENSORS, by [sensors] profile (the gps profile's barometer and magnetometer)
@@ -82,14 +83,17 @@ def parse_sensor_faults(items, src: str, model: AssemblyModel, profile_name: str
             if key not in item:
                 raise UserInputError(f"{src}: {where} needs {key!r}")
         sensor, kind = item["sensor"], item["type"]
-        if sensor not in SENSOR_UNITS:
+        if sensor == "esc":  # the unit's ESC telemetry (mars_link.models.esc): no MAVLink failure unit of its own
+            if kind not in ESC_FAILURES:
+                raise UserInputError(f"{src}: {where} esc supports the types {', '.join(ESC_FAILURES)}, not {kind!r}")
+        elif sensor not in SENSOR_UNITS:
             raise UserInputError(f"{src}: {where} unknown sensor {sensor!r} (one of: {', '.join(SENSOR_UNITS)})")
         if kind not in FAILURE_TYPES:
             raise UserInputError(f"{src}: {where} unknown type {kind!r} (one of: {', '.join(FAILURE_TYPES)})")
-        if sensor not in have:
+        if sensor not in have and sensor != "esc":
             raise UserInputError(f"{src}: {where} this flight has no {sensor} (sensor profile {profile_name!r} "
                                  f"gives {', '.join(have)})")
-        if sensor not in BASE_SENSORS and kind not in CARRIED_TYPES:
+        if sensor not in BASE_SENSORS and sensor != "esc" and kind not in CARRIED_TYPES:
             raise UserInputError(f"{src}: {where} {sensor} supports the types {', '.join(CARRIED_TYPES)}, not {kind!r}")
         t = number(item["t"], f"{where} t", src, nonneg=True)
         unit = None

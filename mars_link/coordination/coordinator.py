@@ -86,6 +86,10 @@ class Coordinator:
         self.controller = controller
         self.estimator = estimator
         self.detector = detector  # None: faults are told (set_faults), not detected
+        #: the ESC telemetry's monitor (mars_link.models.esc_monitor), beside `detector`: its beliefs take
+        #: precedence on the rotors its telemetry covers (`_esc_step`); None: no ESC telemetry is used
+        self.esc_monitor = None
+        self._detector_untold = False  # the ESCs' beliefs changed since the motion detector was last told
         self.detections: list = []  # fault_detection.Detection, from residuals and lost units
         self.eta_believed = model.nominal_eta()
         self.events: list[dict] = []  # every event has "t_s", "type" and "text" (<= 50 chars, STATUSTEXT)
@@ -243,6 +247,9 @@ class Coordinator:
         if self.detector is not None and not self.motors_off and not self._landing_near_ground():
             imus = [p.imu for p in packets if p.imu is not None] if guard is None else guard.usable_imus
             self._to_detect = (t_s, thrusts.copy(), estimate, imus)
+        if self.esc_monitor is not None:
+            self.esc_monitor.observe(t_s, {p.unit_id: p.esc for p in packets if p.esc is not None})
+            self.esc_monitor.command(t_s, thrusts)
         c2 = time.perf_counter()
         alloc = out.timings_s.get("allocation", 0.0)
         scale = self.model.vehicle.full_scale_thrust_n
@@ -305,24 +312,73 @@ class Coordinator:
             self.detector.restart()
 
     def finish_step(self) -> None:
-        """Fault detection on the last period's commanded thrusts and IMU samples; a finding is an
-        event, a detection record and a reallocation (for the periods to come)."""
-        if self._to_detect is None:
+        """Fault detection on the last period's commanded thrusts and IMU samples (and ESC telemetry); a
+        finding is an event, a detection record and a reallocation (for the periods to come)."""
+        found, gone = self._esc_changes()
+        if self._to_detect is not None:
+            t_s, thrusts, estimate, imus = self._to_detect
+            self._to_detect = None
+            motion = self.detector.update(t_s, thrusts, estimate, imus)
+            found += [d for d in motion if not self._esc_overrules(d, t_s)] if self.esc_monitor else motion
+            self._detector_untold |= bool(motion) and self.esc_monitor is not None
+        self._detector_untold |= bool(found or gone) and self.esc_monitor is not None
+        if self._detector_untold and self.detector is not None and not self.detector.isolating:
+            # the motion detector judges its residuals against what the ESCs see; told between its alarms
+            # (telling restarts it: an alarm in progress would be lost)
+            self._detector_untold = False
+            believed = self._believed_eta(self.last.t_s)
+            if not np.array_equal(believed, np.clip(self.detector.eta_estimate, 0.0, 1.0)):
+                self.detector.set_model(self.model, believed)
+        if not found and not gone:
             return
-        t_s, thrusts, estimate, imus = self._to_detect
-        self._to_detect = None
-        found = self.detector.update(t_s, thrusts, estimate, imus)
-        if not found:
-            return
+        t_s = self.last.t_s
         self.detections.extend(found)
         for d in found:
             name = self.name_of(d.unit)
             where = f"Unit {name}" + (f" rotor {d.rotor}" if d.rotor else "")
-            what = f"{where} eta {d.eta_estimated:.2f}" if d.rotor else f"{where} failed"
-            self._event(t_s, EventKind.FAULT_DETECTED, f"Fault found: {what}", unit=name, rotor=d.rotor,
-                        eta_estimated=round(float(d.eta_estimated), 4), t_onset=round(float(d.t_onset), 6))
+            if d.retracted:  # a belief later evidence contradicts: withdrawn, the allocation uses it again
+                kind, text = EventKind.FAULT_RETRACTED, f"Fault withdrawn: {where} eta {d.eta_estimated:.2f}"
+            else:
+                what = f"{where} eta {d.eta_estimated:.2f}" if d.rotor else f"{where} failed"
+                kind, text = EventKind.FAULT_DETECTED, f"Fault found: {what}"
+            extra = {"ambiguous_with": list(d.ambiguous_with)} if d.ambiguous_with else {}  # (look-alikes: reported)
+            if d.reason.startswith("esc"):
+                extra["source"] = "esc"
+            self._event(t_s, kind, text, unit=name, rotor=d.rotor,
+                        eta_estimated=round(float(d.eta_estimated), 4), t_onset=round(float(d.t_onset), 6), **extra)
+        for unit, rotor in gone:
+            name = self.name_of(unit)
+            self._event(t_s, EventKind.FAULT_RETRACTED, f"Fault withdrawn: unit {name} rotor {rotor}", unit=name,
+                        rotor=rotor, source="esc")
         what = ", ".join(
-            f"unit {self.name_of(d.unit)}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
+            ("withdrawn " if d.retracted else "")
+            + f"unit {self.name_of(d.unit)}" + (f" rotor {d.rotor}" if d.rotor else "") + f" eta {d.eta_estimated:.2f}"
             for d in found
-        )
-        self.set_faults(np.clip(self.detector.eta_estimate, 0.0, 1.0), t_s, f"detected: {what}")
+        ) or "withdrawn " + ", ".join(f"unit {self.name_of(u)} rotor {r}" for u, r in gone)
+        self.set_faults(self._believed_eta(t_s), t_s, f"detected: {what}")
+
+    def _esc_overrules(self, d, t_s: float) -> bool:
+        """A motion detection on rotors the ESC telemetry covers (or has a belief on): the ESCs' word stands."""
+        slots = np.arange(self.model.n_rotors)[self.model.unit_slots(d.unit)] if d.rotor is None \
+            else [self.model.rotor_slot(d.unit, d.rotor)]
+        covered, beliefs = self.esc_monitor.covered(t_s), self.esc_monitor.beliefs()
+        return all(covered[j] or j in beliefs for j in slots)
+
+    def _esc_changes(self) -> tuple[list, list]:
+        """The ESC monitor's new and withdrawn beliefs since the last step."""
+        if self.esc_monitor is None:
+            return [], []
+        return self.esc_monitor.take_changes()
+
+    def _believed_eta(self, t_s: float) -> np.ndarray:
+        """Every rotor's believed efficiency: the motion detector's, but where the ESC telemetry covers a rotor
+        or believes it faulty, the ESC monitor's."""
+        eta = self.eta_believed.copy() if self.detector is None else np.clip(self.detector.eta_estimate, 0.0, 1.0)
+        if self.esc_monitor is None:
+            return eta
+        esc = np.where(self.esc_monitor.covered(t_s), 1.0, eta)
+        for slot, belief in self.esc_monitor.beliefs().items():
+            esc[slot] = belief
+        for uid in self.lost_units:  # (a lost unit stays failed whatever its last telemetry said)
+            esc[self.model.unit_slots(uid)] = 0.0
+        return esc

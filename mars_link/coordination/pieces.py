@@ -91,7 +91,7 @@ def local_packet(packet: SensorPacket, local_id: int) -> SensorPacket:
                                            imu.accel_ok, imu.gyro_ok),
         None if pos is None else PositionSample(pos.t_s, local_id, pos.position_ned_m, pos.velocity_ned_mps),
         packet.truth, packet.latches, *(None if s is None else dataclasses.replace(s, unit_id=local_id)
-                                        for s in (packet.gps, packet.baro, packet.mag)), packet.battery)
+                                        for s in (packet.gps, packet.baro, packet.mag)), packet.battery, packet.esc)
 
 
 class PiecesCoordinator:
@@ -157,11 +157,16 @@ class PiecesCoordinator:
         """The piece coordinator's events (they name the structure's units) into the record, and its new
         detections, in the structure's unit ids."""
         c = piece.coordinator
+        withdrawn = False
         if c.events:
+            withdrawn = any(e["type"] == EventKind.FAULT_RETRACTED for e in c.events)
             self.events += c.events
             c.events.clear()
         if len(c.detections) > piece.detections_seen:
             self._collect_detections(piece, t_s)
+        elif withdrawn:  # (a belief withdrawn: the structure's beliefs follow the piece's)
+            for k, u in enumerate(piece.units):
+                self.eta_believed[u] = c.eta_believed[k * ROTORS_PER_UNIT:(k + 1) * ROTORS_PER_UNIT].copy()
 
     @staticmethod
     def _moved_estimate(piece: Piece, model: AssemblyModel, shift_frd_m: np.ndarray):

@@ -20,6 +20,7 @@ class EventKind(StrEnum):
     SENSOR_FAULT = "sensor_fault"
     UNIT_DIED = "unit_died"
     FAULT_DETECTED = "fault_detected"
+    FAULT_RETRACTED = "fault_retracted"
     UNIT_LOST = "unit_lost"
     REALLOCATION = "reallocation"
     UNCONTROLLABLE = "uncontrollable"
@@ -70,6 +71,9 @@ MEANINGS: dict[EventKind, str] = {
     EventKind.SENSOR_FAULT: "a sensor failure injected (scenario or MAVLink): sensor, failure kind, unit",
     EventKind.UNIT_DIED: "a unit's process died or its motors went silent: the world stops its rotors",
     EventKind.FAULT_DETECTED: "the coordinator's detector believes a fault: unit, rotor, estimated eta",
+    EventKind.FAULT_RETRACTED: "a belief of the coordinator's detectors (motion, ESC) that later evidence contradicts "
+                               "is withdrawn: unit, rotor (none: the whole unit) as believed, the eta now believed; "
+                               "the allocation uses the rotor again",
     EventKind.UNIT_LOST: "the coordinator declared a unit lost (silent, dead, or in a piece flying on its own that "
                          "cannot fly: reason): its rotors count as failed, a manoeuvre re-plans without it",
     EventKind.REALLOCATION: "the allocation changed to the efficiencies believed now",

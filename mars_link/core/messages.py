@@ -72,6 +72,26 @@ def wire_battery(voltage_v: float, current_a: float, remaining: float = -1.0) ->
     return BatterySample(mv / 1000.0, ca / 100.0, -1.0 if pct < 0 else pct / 100.0)
 
 
+#: ESC_STATUS carries int32 rpm
+_INT32_MAX = 2**31 - 1
+
+
+@dataclass(frozen=True)
+class EscSample:
+    """One unit's four ESCs as their telemetry reports them (unit -> coordinator), at ESC_STATUS precision:
+    whole rpm (int32, negative = reversed) and current in A (float32). Made by `wire_esc` in both modes."""
+
+    t_s: float
+    rpm: tuple[int, ...]
+    current_a: tuple[float, ...]
+
+
+def wire_esc(t_s: float, rpm, current_a) -> EscSample:
+    """An EscSample at ESC_STATUS precision: rpm rounded to int32, current to float32, time to microseconds."""
+    whole = tuple(min(max(int(round(float(x))), -_INT32_MAX - 1), _INT32_MAX) for x in rpm)
+    return EscSample(wire_time(t_s), whole, tuple(float(x) for x in f32(current_a)))
+
+
 @dataclass
 class SensorPacket:
     """World -> unit (HIL link) and, forwarded, unit -> coordinator (telemetry)."""
@@ -86,6 +106,7 @@ class SensorPacket:
     baro: BaroSample | None = None  # ... HIL_SENSOR's pressure fields
     mag: MagSample | None = None  # ... HIL_SENSOR's magnetometer fields
     battery: BatterySample | None = None  # the pack's measurement, at the battery rate (None between)
+    esc: EscSample | None = None  # the unit's ESC telemetry (ESC_STATUS), at its rate (None between)
 
     def as_wire(self) -> "SensorPacket":
         t = wire_time(self.t_s)
@@ -101,7 +122,7 @@ class SensorPacket:
         baro = None if self.baro is None else BaroSample(t, self.unit_id, float(f32(self.baro.pressure_hpa)),
                                                           float(f32(self.baro.altitude_amsl_m)))
         mag = None if self.mag is None else MagSample(t, self.unit_id, f32(self.mag.field_frd_gauss))
-        return SensorPacket(t, self.unit_id, imu, pos, truth, self.latches, self.gps, baro, mag, self.battery)
+        return SensorPacket(t, self.unit_id, imu, pos, truth, self.latches, self.gps, baro, mag, self.battery, self.esc)
 
 
 @dataclass

@@ -221,6 +221,16 @@ def make_detector(scenario: Scenario, model: AssemblyModel, ground_down_m: float
     return FaultDetector(model, params, ground_down_m=ground_down_m)
 
 
+def make_esc_monitor(scenario: Scenario, model: AssemblyModel):
+    """The ESC telemetry's fault monitor beside the motion detector when faults are not told and the units'
+    ESCs report (`[sensors] esc_telemetry`, on by default); None otherwise."""
+    if scenario.faults_known or not scenario.esc_telemetry:
+        return None
+    from mars_link.models.esc_monitor import EscMonitor, EscMonitorParams
+
+    return EscMonitor(model, params=EscMonitorParams(stuck_samples=3 if scenario.sim.noise else 0))
+
+
 def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: Trajectory, eta: np.ndarray,
                            t_s: float, estimator=None, detector=None, *, tracked_unit: int | None = None,
                            unit_names: tuple[int, ...] | None = None, ground_down_m: float | None = None,
@@ -242,6 +252,7 @@ def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: 
                               estimator, detector, telemetry_timeout_s=telemetry_timeout_s)
     coordinator.unit_names = unit_names
     coordinator.eta_believed = np.asarray(eta, dtype=float).copy()
+    coordinator.esc_monitor = make_esc_monitor(scenario, piece) if detector is not None else None
     if t_s > 0.0 and np.any(np.asarray(eta) < 1.0):  # a piece made in flight with faults (told or found): say so
         coordinator.set_faults(eta, t_s, "piece created")
     _follow_packs(scenario, piece, coordinator, unit_names)
@@ -280,6 +291,7 @@ def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajec
     eta = initial_eta(scenario, model) if eta is None else eta
     coordinator = Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
                               telemetry_timeout_s=telemetry_timeout_s)
+    coordinator.esc_monitor = make_esc_monitor(scenario, model)
     _follow_packs(scenario, model, coordinator)
     if coordinator.guard is not None:  # a trajectory flight: position lost -> hold, then land
         from mars_link.models.position_failsafe import PositionFailsafe
@@ -306,9 +318,14 @@ def make_unit(scenario: Scenario, model: AssemblyModel, unit_id: int, *, coordin
                                     sign_client_links=require_signing, sign_hil=sign_hil,
                                     client_links_keyed=client_links_keyed, on_wire=on_wire,
                                     params=params), wall_time_s)
+    if scenario.esc_telemetry:  # the unit's ESCs report RPM and current (mars_link.models.esc)
+        from mars_link.models.esc import EscSensor, MotorConstants
+
+        vehicle.esc = EscSensor(MotorConstants.for_vehicle(model.vehicle), seed=scenario.sim.seed, unit_id=unit_id,
+                                noise=scenario.sim.noise)
     for f in scenario.faults:
         if f.unit == unit_id:
-            vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta)
+            vehicle.schedule_failure(f.t_s, f.rotor or 0, f.eta, f.kind)
     from firmware_models.sensor_failures import SensorFailures
 
     vehicle.sensor_failures = SensorFailures(unit_id, scenario.sim.seed)  # (seeded: garbage, intermittent)

@@ -60,9 +60,9 @@ class InProcessUnits:
         self.dead.add(unit_id)
         self.world.declare_dead(unit_id)
 
-    def inject_failure(self, unit_id: int, rotor: int | None, eta: float) -> None:
+    def inject_failure(self, unit_id: int, rotor: int | None, eta: float, kind: str = "eta") -> None:
         """A fault in the unit's motor model (rotor 1..4, None = all four): only the unit knows it."""
-        self.vehicles[unit_id].inject_failure(rotor or 0, eta)
+        self.vehicles[unit_id].inject_failure(rotor or 0, eta, kind)
 
     def take_sensors(self, packets: list[SensorPacket]) -> list[SensorPacket]:
         """The world's sensor packets into each unit; the units' telemetry to the coordinator."""

@@ -21,7 +21,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from mars_link.core.events import unit_died
-from mars_link.core.messages import BatterySample, SensorPacket
+from mars_link.core.messages import BatterySample, EscSample, SensorPacket
 from mars_link.mavlink.wire import (
     LatchSensor,
     SensorPacketAssembler,
@@ -33,6 +33,7 @@ from mars_link.mavlink.wire import (
     sensor_packet_messages,
     usec,
 )
+from mars_link.mavlink.esc_status import esc_from_message
 from mars_link.processes.links import Link
 from mars_link.runtime.pacing import Pacer, SilenceDeadline
 from mars_link.runtime.scheduling import OverloadValve
@@ -259,6 +260,7 @@ class LinkedUnits:
         self.accepted: dict[int, set[int]] = {u: set() for u in unit_ids}  # commands each unit acknowledged
         self.assembler, self.latches = SensorPacketAssembler(), LatchSensor()
         self.batteries: dict[int, BatterySample] = {}  # each unit's last BATTERY_STATUS, until its packet comes
+        self.escs: dict[int, EscSample] = {}  # ... and ESC_STATUS
         self.world = link.peers[WORLD_SYSID]
         self.steps = 0
         self.next_hello = time.monotonic() + 0.2
@@ -415,12 +417,21 @@ class LinkedUnits:
             else:
                 self.batteries[m.get_srcSystem()] = sample
             return None
+        if kind == "ESC_STATUS":  # the unit's ESC telemetry, for its next sensor packet
+            esc = esc_from_message(m)
+            if esc is None:
+                link.drop("bad_esc_status")
+            else:
+                self.escs[m.get_srcSystem()] = esc
+            return None
         p = self.assembler.feed(m)
         if p is None:
             return None
         p.latches = self.latches.mask.get(p.unit_id, 0)
         if self.batteries:
             p.battery = self.batteries.pop(p.unit_id, None)
+        if self.escs:
+            p.esc = self.escs.pop(p.unit_id, None)
         if not telemetry_ok(p):
             link.drop("bad_telemetry")  # non-finite: never into the estimator
             return None

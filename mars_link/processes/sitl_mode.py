@@ -188,7 +188,8 @@ def write_scenario_copy(scenario, path: Path) -> Path:
         "trajectory": dict(scenario.trajectory),
         "control": {"controller": scenario.controller, "ftc": scenario.ftc, "faults_known": scenario.faults_known},
         "sim": {k: v for k, v in vars(scenario.sim).items() if v is not None},
-        "faults": [{k: v for k, v in (("t", f.t_s), ("unit", f.unit), ("rotor", f.rotor), ("eta", f.eta)) if v is not None}
+        "faults": [{k: v for k, v in (("t", f.t_s), ("unit", f.unit), ("rotor", f.rotor), ("eta", f.eta),
+                                      ("kind", None if f.kind == "eta" else f.kind)) if v is not None}
                    for f in scenario.faults],
     }
     if not doc["faults"]:
@@ -211,6 +212,8 @@ def write_scenario_copy(scenario, path: Path) -> Path:
         doc["mission"] = dict(scenario.mission)
     if scenario.sensors != type(scenario.sensors)():
         doc["sensors"] = {"profile": scenario.sensors.name, **scenario.sensors.written()}
+    if not scenario.esc_telemetry:
+        doc.setdefault("sensors", {})["esc_telemetry"] = False
     if scenario.battery is not None or scenario.preset in BATTERY_BY_DEFAULT:
         doc["battery"] = battery_doc(scenario.battery)
     if scenario.environment.moves_air:

@@ -52,6 +52,7 @@ EVENT_SEVERITY = {
     "uncontrollable": mavlink.MAV_SEVERITY_CRITICAL,
     "reallocation": mavlink.MAV_SEVERITY_NOTICE,
     "fault_detected": mavlink.MAV_SEVERITY_WARNING,
+    "fault_retracted": mavlink.MAV_SEVERITY_NOTICE,
     "unit_lost": mavlink.MAV_SEVERITY_CRITICAL,
     "unit_died": mavlink.MAV_SEVERITY_CRITICAL,
     "reconfig_failed": mavlink.MAV_SEVERITY_ERROR,

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from mars_link.flight.runner import run_scenario
-from mars_link.config.scenario import bundled_scenario_names, load_scenario
+from mars_link.config.scenario import FaultSpec, bundled_scenario_names, load_scenario
 from mars_link.processes.sitl_mode import run_sitl_scenario, write_scenario_copy
 from mars_link.transport import LinkSpec
 
@@ -123,3 +123,11 @@ def test_the_scenario_copy_the_processes_load_is_the_scenario(tmp_path: Path, na
     back = load_scenario(str(write_scenario_copy(sc, tmp_path / "scenario.toml")))
     differ = [f.name for f in dataclasses.fields(sc) if f.name != "source" and getattr(sc, f.name) != getattr(back, f.name)]
     assert differ == []
+
+
+def test_the_scenario_copy_keeps_fault_kinds_and_a_flight_without_esc_telemetry(tmp_path: Path) -> None:
+    sc = load_scenario("spiral_3x2")
+    sc = dataclasses.replace(sc, esc_telemetry=False, faults=[FaultSpec(2, 3, 0.0, 4.0, kind="prop-loss"),
+                                                              FaultSpec(5, None, 0.0, 6.0, kind="motor-stop")])
+    back = load_scenario(str(write_scenario_copy(sc, tmp_path / "scenario.toml")))
+    assert back.faults == sc.faults and back.esc_telemetry is False

@@ -1,0 +1,148 @@
+"""ESC telemetry: what a unit's four ESCs report of their rotors (RPM and current), and what they should.
+
+Why: a real unit's ESCs report each motor's speed and current (bidirectional DShot eRPM, the ESC's
+telemetry wire; PX4 publishes them as esc_status, MAVLink carries them as ESC_STATUS), and that telemetry
+tells a stopped motor or a damaged propeller apart within a few samples, which the rigid body's motion
+alone often cannot (mirrored rotor sets look alike). This module is sans-IO: the unit's firmware
+(firmware_models.vehicle) owns an `EscSensor`, the coordinator's `EscMonitor` (mars_link.models.esc_monitor)
+uses the same `MotorConstants` to predict what a healthy rotor reports.
+
+Motor model (per rotor): thrust T = k_T w^2, aerodynamic torque Q = k_Q w^2 = (k_Q/k_T) T (the vehicle's
+yaw_moment_per_thrust_m), motor current I = Q / K_t + I_0, K_t = 60 / (2 pi KV) N m/A. The speed follows
+the command through the vehicle's first-order motor lag (the world's thrust lag, the same discretisation).
+What the ESC sees for each fault kind (mars_link.config.scenario FAULT_KINDS; eta = the remaining thrust):
+
+* "eta" (default: a damaged propeller): the speed as commanded, the load current eta times a healthy one's;
+  eta 0 is a motor off (firmware_models.motor's meaning of it, a dead unit's four rotors): seen as motor-stop.
+* "prop-loss" (a propeller lost or broken): the motor, unloaded, spins faster than commanded (by
+  `overspeed_unloaded` times the share of the load lost) and draws only the remaining load's current.
+* "motor-stop" (the motor or its ESC stopped): the rotor coasts down through the motor lag, current 0.
+
+The constants are stated, not measured on a unit: a 3-inch propeller on a 2600 KV motor reaching 26,000 rpm
+at the preset's full-scale thrust (3.83 N on mars-real) draws about 3 A per rotor in a 0.52 kg unit's hover
+and 9 A at full thrust, in the range such motors are sold for. The sample rate is 50 Hz (bidirectional DShot
+returns eRPM with every frame, at the loop rate; current comes over the slower telemetry wire); noise 50 rpm
+and 0.1 A (1 sigma), quantised to ESC_STATUS's whole rpm and float32 amperes in both modes (`wire_esc`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from mars_link.core.assembly import ROTORS_PER_UNIT, VehicleParams
+from mars_link.core.messages import EscSample, wire_esc
+
+#: rotor fault kinds ([[faults]] kind)
+FAULT_KINDS = ("eta", "motor-stop", "prop-loss")
+#: ESC telemetry failures ([[sensor_faults]] sensor = "esc"): no more samples, or the last one repeated
+ESC_FAILURES = ("ok", "off", "stuck")
+
+
+@dataclass(frozen=True)
+class EscParams:
+    """The motor's constants and the telemetry's rate and noise (see the module docstring)."""
+
+    rpm_at_full_scale: float = 26000.0
+    kv_rpm_per_v: float = 2600.0
+    no_load_current_a: float = 0.5
+    overspeed_unloaded: float = 0.15  # prop-loss: speed gained per unit of load lost, share of the commanded
+    rate_hz: float = 50.0
+    rpm_noise: float = 50.0  # 1 sigma, rpm
+    current_noise_a: float = 0.1  # 1 sigma
+
+
+@dataclass(frozen=True)
+class MotorConstants:
+    """One rotor's thrust -> speed and load current, for a vehicle preset."""
+
+    full_scale_n: float
+    rpm_at_full_scale: float
+    torque_per_thrust_m: float  # k_Q / k_T
+    torque_constant_nm_per_a: float  # K_t
+    no_load_current_a: float
+    time_constant_s: float
+    min_thrust_n: float | None
+    max_thrust_n: float | None
+
+    @classmethod
+    def for_vehicle(cls, vehicle: VehicleParams, params: EscParams | None = None) -> "MotorConstants":
+        p = params or EscParams()
+        return cls(vehicle.full_scale_thrust_n, p.rpm_at_full_scale, vehicle.yaw_moment_per_thrust_m,
+                   60.0 / (2.0 * math.pi * p.kv_rpm_per_v), p.no_load_current_a, vehicle.motor_time_constant_s,
+                   vehicle.rotor_min_thrust_n, vehicle.rotor_max_thrust_n)
+
+    def rpm(self, thrust_n) -> np.ndarray:
+        """Speed (rpm, negative = reversed) of a healthy rotor making `thrust_n` (a number or an array)."""
+        t = np.asarray(thrust_n, dtype=float)
+        return np.sign(t) * self.rpm_at_full_scale * np.sqrt(np.abs(t) / self.full_scale_n)
+
+    def load_current_a(self, thrust_n) -> np.ndarray:
+        """The current a healthy rotor's aerodynamic torque draws at `thrust_n` (without the no-load current)."""
+        return self.torque_per_thrust_m * np.abs(np.asarray(thrust_n, dtype=float)) / self.torque_constant_nm_per_a
+
+    def clamp(self, commands_n: np.ndarray) -> np.ndarray:
+        """What the motor is driven towards: non-finite -> 0, within the rotor's thrust limits."""
+        c = np.where(np.isfinite(commands_n), commands_n, 0.0)
+        lo = -math.inf if self.min_thrust_n is None else self.min_thrust_n
+        hi = math.inf if self.max_thrust_n is None else self.max_thrust_n
+        return np.clip(c, lo, hi)
+
+    def lag(self, state_n: np.ndarray, setpoint_n: np.ndarray, dt_s: float) -> np.ndarray:
+        """The first-order lag over dt_s (exact for a setpoint held over it, as the world's motors)."""
+        if self.time_constant_s <= 0.0:
+            return np.array(setpoint_n, dtype=float)
+        alpha = 1.0 - math.exp(-dt_s / self.time_constant_s)
+        return state_n + alpha * (setpoint_n - state_n)
+
+
+class EscSensor:
+    """A unit's four ESCs: `sample(t_s, commands_n, eta)` once per control step, before the step's command
+    (what the motors did over the last period); returns an EscSample when one is due (at `rate_hz`), else None.
+    `set_kind` records a fault's kind per rotor; `fail` the telemetry's own failure ("off", "stuck", "ok")."""
+
+    def __init__(self, constants: MotorConstants, params: EscParams | None = None, seed: int = 0,
+                 unit_id: int = 1, noise: bool = True) -> None:
+        self.constants = constants
+        self.params = params or EscParams()
+        self.rng = np.random.default_rng([int(seed), int(unit_id), 0xE5C])
+        self.noise = noise
+        self.kind = ["eta"] * ROTORS_PER_UNIT
+        self.speed_n = np.zeros(ROTORS_PER_UNIT)  # each motor's speed, as the thrust a whole prop makes at it
+        self.failure = "ok"
+        self._held: EscSample | None = None
+        self._t_last: float | None = None
+        self._next_s = -math.inf
+
+    def set_kind(self, rotor: int, kind: str) -> None:
+        """A fault's kind on rotor 1..4 (0 = all four)."""
+        for r in range(ROTORS_PER_UNIT) if rotor == 0 else [rotor - 1]:
+            self.kind[r] = kind
+
+    def fail(self, kind: str) -> None:
+        self.failure = kind
+
+    def sample(self, t_s: float, commands_n: np.ndarray, eta: np.ndarray) -> EscSample | None:
+        c = self.constants
+        dt = 0.0 if self._t_last is None else max(t_s - self._t_last, 0.0)
+        self._t_last = t_s
+        # eta 0 of the default kind is a motor off (firmware_models.motor): the ESC sees it stopped
+        stopped = np.array([k == "motor-stop" or (k == "eta" and e <= 0.0) for k, e in zip(self.kind, eta)])
+        setpoint = np.where(stopped, 0.0, c.clamp(np.asarray(commands_n, dtype=float)))
+        self.speed_n = c.lag(self.speed_n, setpoint, dt)
+        if t_s < self._next_s - 1e-9 or self.failure == "off":
+            return None
+        self._next_s = max(self._next_s + 1.0 / self.params.rate_hz, t_s)
+        if self.failure == "stuck" and self._held is not None:
+            return EscSample(t_s, self._held.rpm, self._held.current_a)
+        lost = 1.0 - np.clip(eta, 0.0, 1.0)
+        overspeed = np.array([self.params.overspeed_unloaded if k == "prop-loss" else 0.0 for k in self.kind])
+        rpm = c.rpm(self.speed_n) * (1.0 + overspeed * lost)
+        current = np.where(stopped, 0.0, c.no_load_current_a + (1.0 - lost) * c.load_current_a(self.speed_n))
+        if self.noise:
+            rpm = rpm + self.rng.normal(0.0, self.params.rpm_noise, ROTORS_PER_UNIT) * (rpm != 0.0)
+            current = current + self.rng.normal(0.0, self.params.current_noise_a, ROTORS_PER_UNIT) * (current != 0.0)
+        self._held = wire_esc(t_s, rpm, np.maximum(current, 0.0))
+        return self._held
