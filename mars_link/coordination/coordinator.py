@@ -116,6 +116,9 @@ class Coordinator:
         #: resting on the ground with the motors off (a piece parked during a manoeuvre on the ground): zero
         #: commands, and no fault detection (no thrust, nothing to learn about the rotors)
         self.motors_off = False
+        #: False while the host sends the units zeros instead of these commands (a vehicle on the ground or
+        #: disarmed): the ESCs then read what was sent, not what was computed, and the ESC monitor judges nothing
+        self.rotors_driven = True
         #: the structure's id of each of the model's units (k + 1 -> id), as events and texts name them: a
         #: piece of a reconfiguring structure numbers its units 1..n; None: the model's ids are the structure's
         self.unit_names: tuple[int, ...] | None = None
@@ -249,7 +252,7 @@ class Coordinator:
             self._to_detect = (t_s, thrusts.copy(), estimate, imus)
         if self.esc_monitor is not None:
             self.esc_monitor.observe(t_s, {p.unit_id: p.esc for p in packets if p.esc is not None})
-            self.esc_monitor.command(t_s, thrusts)
+            self.esc_monitor.command(t_s, thrusts if self.rotors_driven else np.zeros_like(thrusts))
         c2 = time.perf_counter()
         alloc = out.timings_s.get("allocation", 0.0)
         scale = self.model.vehicle.full_scale_thrust_n

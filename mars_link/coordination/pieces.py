@@ -133,6 +133,7 @@ class PiecesCoordinator:
         #: False holds back what would start a manoeuvre (a separation, a plan from found faults, `at_s`)
         #: until it is True again: the assembly vehicle sets it while it is not flying
         self.manoeuvres_allowed = True
+        self.rotors_driven = True  # False while the host holds every unit's rotors at zero (Coordinator.rotors_driven)
         self._told_trigger_s: float | None = None
         self._identity = {len(unit_ids): tuple(sorted(unit_ids))} if tuple(sorted(unit_ids)) == tuple(
             range(1, len(unit_ids) + 1)) else {}  # unit count -> (1..n): a piece whose local ids are the structure's
@@ -403,6 +404,7 @@ class PiecesCoordinator:
         latches = self.latch_setpoint
         for key, p in self.pieces.items():
             p.coordinator.motors_off = key in parked
+            p.coordinator.rotors_driven = self.rotors_driven
             units = p.units
             if units == self._identity.get(len(units)):  # (the whole structure in its own order: ids kept)
                 cmds = p.coordinator.step(t_s, packets if len(by_unit) == len(packets)

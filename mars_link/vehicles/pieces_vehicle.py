@@ -166,6 +166,7 @@ class PiecesFlight:
         v = self.vehicle
         flying = v.flying()
         self.pieces.manoeuvres_allowed = flying
+        self.pieces.rotors_driven = flying  # (the units get zeros otherwise, below)
         if v.armed and v.autopilot.phase == Phase.TAKEOFF and self.executor.phase == "grounded":
             self.executor.begin_take_off(t_s)  # free units: they take off when the vehicle does
         commands = self.pieces.step(t_s, packets)

@@ -86,6 +86,7 @@ def fly(name: str, faults: list[tuple[int, int | None, float]], seed: int, after
     sc = load_scenario(name)
     sc.faults = [FaultSpec(u, r, e, T_FAULT_S) for u, r, e in faults]
     sc.faults_known = False
+    sc.esc_telemetry = False  # (motion alone: the ESC monitor would find these first, tests/estimation/test_esc.py)
     sc.sim.duration_s = T_FAULT_S + after_s
     model = sc.model()
     truth = {s: e for u, r, e in faults for s in _slots(u, r)}
