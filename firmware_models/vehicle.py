@@ -225,6 +225,8 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self._battery_checked: tuple[float, int] | None = None  # (remaining, params.version) last checked
         self._hil_pending: tuple[int, str] | None = None  # (time_usec, link) of an unanswered HIL step
         self.defer_own_state = False  # set by the lockstep unit runner: see run_deferred
+        self.hil_stepped_by_host = False  # set by the unit process: its engine takes each HIL step (take_hil_step)
+        self._hil_received: tuple | None = None  # (SensorFrames, time_usec, link) of a HIL step not taken yet
         self._deferred: list = []
         self._last_rotor_usec: int | None = None  # time of the last accepted coordinator command
         self._step_skipped_usec: int | None = None  # the last step the coordinator said it sends no command for
@@ -374,7 +376,8 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             except (ValueError, TypeError, OverflowError, struct.error):
                 self._drop("malformed_fields")  # a decoded frame whose fields we cannot use
         pending = self._hil_pending
-        if pending is not None and pending[0] in (self._last_rotor_usec, self._step_skipped_usec):
+        if pending is not None and pending[0] in (self._last_rotor_usec, self._step_skipped_usec) \
+                and not self.hil_stepped_by_host:
             self._answer_hil(out)  # the coordinator's command for the pending step (and any arm/mode
             # command in the same datagram) is in, or it said it sends none: run the step
         return out
@@ -407,7 +410,8 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         if self._hil_pending is not None:
             self._count("hil_released")
             self._await_coordinator = False
-            self._answer_hil(out)
+            if not self.hil_stepped_by_host:  # (else the host's engine answers it: answer_hil_step)
+                self._answer_hil(out)
         return out
 
     def start_ulog(self, config):

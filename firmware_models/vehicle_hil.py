@@ -60,6 +60,18 @@ class HilMixin:
         frames = self.assembler.feed_frames(msg)
         if frames is None:
             return
+        if self.hil_stepped_by_host:  # the host's engine takes the step (take_hil_step), in its order
+            self._hil_received = (frames, int(msg.time_usec), lk.name)
+            return
+        self._take_hil_frames(frames, int(msg.time_usec), lk.name, out)
+        if self._await_coordinator and int(msg.time_usec) not in (self._last_rotor_usec, self._step_skipped_usec):
+            return  # answered when the coordinator's command for this step arrives (or on release); one that
+            # came before its sensors (another link, read first) answers it now
+        self._answer_hil(out)
+
+    def _take_hil_frames(self, frames: SensorFrames, time_usec: int, link: str, out: list[Outgoing]) -> None:
+        """A HIL step's sensors into the unit: due sensor failures, the battery measured, the sensors
+        forwarded to the coordinator, the unit's own state (now or deferred); the step is then pending."""
         if self._scheduled_sensor_failures:
             self._sensor_failures_due(frames.imu.time_usec / 1e6)
         forward = [name for name, other in self.links.items() if other.policy.forward_sensors]
@@ -91,11 +103,40 @@ class HilMixin:
         t_s = frames.imu.time_usec / 1e6
         self.sim_s = t_s
         self._next_control = t_s + self.control_dt_s
-        self._hil_pending = (int(msg.time_usec), lk.name)
-        if self._await_coordinator and int(msg.time_usec) not in (self._last_rotor_usec, self._step_skipped_usec):
-            return  # answered when the coordinator's command for this step arrives (or on release); one that
-            # came before its sensors (another link, read first) answers it now
-        self._answer_hil(out)
+        self._hil_pending = (time_usec, link)
+
+    # ----------------------------------------------------------------- HIL steps taken by a host's engine
+    # With `hil_stepped_by_host` the frame handlers only receive: a HIL step's sensors wait in
+    # `hil_received`, the coordinator's command (or its step skip) in the intake, and the host's engine
+    # (mars_link.processes.engine_links.HostedFirmware) runs the stages in the engine's order.
+    @property
+    def hil_received(self) -> SensorFrames | None:
+        """The sensor frames of a HIL step received and not taken yet."""
+        return None if self._hil_received is None else self._hil_received[0]
+
+    def take_hil_step(self) -> list[Outgoing]:
+        """The sensors stage of the received HIL step; returns the telemetry to send (to the coordinator)."""
+        out: list[Outgoing] = []
+        if self._hil_received is not None:
+            frames, time_usec, link = self._hil_received
+            self._hil_received = None
+            self._take_hil_frames(frames, time_usec, link, out)
+        return out
+
+    @property
+    def hil_command_in(self) -> bool:
+        """The pending HIL step may be answered: the unit does not wait for the coordinator, or its command
+        for the step (or its step skip) is in."""
+        pending = self._hil_pending
+        return pending is not None and (not self._await_coordinator
+                                        or pending[0] in (self._last_rotor_usec, self._step_skipped_usec))
+
+    def answer_hil_step(self) -> list[Outgoing]:
+        """The motors stage: the pending HIL step's motor outputs (HIL_ACTUATOR_CONTROLS)."""
+        out: list[Outgoing] = []
+        if self._hil_pending is not None:
+            self._answer_hil(out)
+        return out
 
     def _apply_hil_state(self, msg) -> None:
         """HIL_STATE_QUATERNION: the unit centre's ground truth, for its own telemetry and checks."""

@@ -106,7 +106,7 @@ class Px4Mixin:
         replies = self.px4_take(got.topic, got.message)
         out: list[Outgoing] = []
         pending = self._hil_pending
-        if pending is not None and self._last_rotor_usec == pending[0]:
+        if pending is not None and self._last_rotor_usec == pending[0] and not self.hil_stepped_by_host:
             self._answer_hil(out)
         return out, [endpoint.encode(topic, msg, self.sim_s) for topic, msg in replies]
 

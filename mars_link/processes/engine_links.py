@@ -438,6 +438,103 @@ class LinkedUnits:
         return p
 
 
+class HostedFirmware:
+    """The flight as a unit process sees it: the engine's world, units and coordinator parts
+    (mars_link.flight.engine.WorldPart, UnitsPart, its command source) in the process that hosts K units'
+    firmwares (`units`: objects with unit_id, vehicle, io, command_timeout_s, command_deadline; the
+    firmwares set `hil_stepped_by_host`, so their frame handlers only receive).
+
+    The world is the HIL link: the step's time is that of the HIL sensor frames received, so reading `t_s`
+    waits for them (every unit's, or for `step_grace_s` after the first: a unit the world no longer steps
+    is not waited for again until it is stepped); sensing is those frames. The units are the firmwares
+    here: taking the sensors is each firmware's HIL step (its telemetry to the coordinator); driving is each
+    one's HIL_ACTUATOR_CONTROLS answer, which is the world's actuation and advance. The coordinator is its
+    link: its stage is waiting until each unit's command for the step (or its step skip) is in, over MAVLink
+    or PX4's interface, into the firmware's intake (its checks, its signing); a unit without one for
+    `command_timeout_s` is released (it answers with what it holds: MARS_CMD_MISS periods, then its
+    fail-safe). Every wait is `serve(until_s)`: one wait of the process's I/O (each frame into its
+    firmware; heartbeats, client links, status files), never a stage of the step. A stop: LinksEnded."""
+
+    def __init__(self, units: list, serve, stop, step_grace_s: float = WORLD_UNIT_TIMEOUT_S) -> None:
+        self.units = {u.unit_id: u for u in units}
+        self.serve, self.stop, self.step_grace_s = serve, stop, step_grace_s
+        self.awaited = set(self.units)  # the units whose next step is waited for
+        self.stepping: list[int] = []  # the units in this step
+        self._t: float | None = None
+
+    # -- the world part: the HIL link
+    @property
+    def t_s(self) -> float:
+        if self._t is None:
+            self._t = self._receive_step()
+        return self._t
+
+    def sense(self) -> list:
+        """The step's HIL sensor frames, (unit, SensorFrames) unit by unit."""
+        return [(u, self.units[u].vehicle.hil_received) for u in self.stepping]
+
+    def truth(self) -> None:
+        return None  # (the world's, in its process)
+
+    def advance(self) -> None:
+        """(The world advances on the units' answers, sent when they drove their motors.)"""
+        self._t = None
+        self.stepping = []
+
+    # -- the units part: the firmwares here
+    def take_sensors(self, frames: list) -> list:
+        """Each unit's HIL step; its telemetry goes to the coordinator over its own link."""
+        for u, _ in frames:
+            unit = self.units[u]
+            unit.io.send(unit.vehicle.take_hil_step())
+        return []
+
+    def drive(self, commands) -> None:
+        """(`commands` is empty: each command went into its unit's intake over the unit's link.)"""
+        for u in self.stepping:
+            unit = self.units[u]
+            unit.command_deadline = None
+            unit.io.send(unit.vehicle.answer_hil_step())
+
+    def kill(self, unit_id: int) -> None:
+        """(A unit process dies for real.)"""
+
+    # -- the coordinator part: its link
+    def commands(self, t: float, telemetry) -> list:
+        """Wait until every unit of the step may answer it: its command is in, it does not wait for one,
+        or its command timeout released it."""
+        units, stop = self.units, self.stop
+        while True:
+            waiting = [units[u] for u in self.stepping if not units[u].vehicle.hil_command_in]
+            for unit in waiting:
+                if unit.command_deadline is None:
+                    unit.command_deadline = SilenceDeadline(unit.command_timeout_s)
+                elif unit.command_deadline.left_s() == 0.0:
+                    print(f"unit {unit.unit_id}: no coordinator command for {unit.command_timeout_s:.1f} s at "
+                          f"t={unit.vehicle.sim_s:.2f}: answering with the held command / fail-safe", file=sys.stderr)
+                    unit.vehicle.release_hil(time.time())
+            waiting = [unit for unit in waiting if not unit.vehicle.hil_command_in]
+            if not waiting:
+                return []
+            if stop.requested:
+                raise LinksEnded
+            self.serve(min(unit.command_deadline.at_s for unit in waiting))
+
+    def _receive_step(self) -> float:
+        stop, units = self.stop, self.units
+        first_at = None
+        while not stop.requested:
+            ready = {u for u, unit in units.items() if unit.vehicle.hil_received is not None}
+            if ready and first_at is None:
+                first_at = time.monotonic()
+            if ready and (ready >= self.awaited or time.monotonic() >= first_at + self.step_grace_s):
+                self.awaited = ready
+                self.stepping = sorted(ready)
+                return min(units[u].vehicle.hil_received.imu.time_usec for u in ready) / 1e6
+            self.serve(math.inf if first_at is None else first_at + self.step_grace_s)
+        raise LinksEnded
+
+
 def _px4_take_over(px4, commanders: dict, units: list[int], t: float, accepted: dict[int, set[int]]) -> None:
     """PX4's interface: the acks received so far; then every unit not yet armed in OFFBOARD gets the
     keep-alive, DO_SET_MODE and ARM, and the coordinator waits (at most PX4_TAKEOVER_WAIT_S) for their

@@ -61,11 +61,13 @@ the world and units are SCHED_BATCH so that only the coordinator's wake-ups pree
 (mars_link.runtime.scheduling). The path sensor -> unit -> coordinator -> unit -> motors is then
 mostly Python work shared by 8 processes; --timing-log and the units' command-age logs show where it goes.
 
-Loops: the world and the coordinator processes step the flight's engine (mars_link.flight.engine.Engine),
-the order the in-process flight steps; what a process does not host is a proxy over its links
-(mars_link.processes.engine_links: `HilUnits` in the world, `LinkedUnits` in the coordinator). What keeps a
-loop of its own: the receive waits inside those proxies, the pacer, and the unit processes' event loop
-(`run_units`), in which each unit's firmware answers its HIL step in its own frame handlers, as PX4's does.
+Loops: every process steps the flight's engine (mars_link.flight.engine.Engine), the order the in-process
+flight steps; what a process does not host is a proxy over its links (mars_link.processes.engine_links:
+`HilUnits` in the world, `LinkedUnits` in the coordinator, `HostedFirmware` in a unit process: the world
+its HIL link, the coordinator its coordinator link or PX4's interface, the units its firmwares, whose frame
+handlers then only receive). What keeps a loop of its own: the receive waits inside those proxies (in a
+unit process, `run_units`' `serve`: frames into the firmwares, heartbeats, client links, status files)
+and the pacer.
 
 Links: every process builds its links once at start from `--transport udp|zenoh` (`mars_link.processes.links.Ports`)
 and hands each to its I/O as a `mars_link.transport.Transport`: the world's and the coordinator's `Link`
@@ -105,6 +107,7 @@ from mars_link.processes.engine_links import (
     WORLD_SYSID,
     WORLD_UNIT_TIMEOUT_S,
     HilUnits,
+    HostedFirmware,
     LinkedUnits,
     LinksEnded,
     shutdown_message,
@@ -458,9 +461,10 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
               command_timeout_s: float = UNIT_COMMAND_TIMEOUT_S, key: bytes | None = None,
               require_signing: bool = False, ulog: bool = True, run_key: bool = False) -> int:
     """Several units' firmwares in this process (`--units-per-process K`), each its own MAVLink system
-    with its own links, tlog, ULog (unit<id>.ulg, unless `ulog` is False) and status file, served by one
-    event loop: one wake-up serves every unit whose datagram came in, and the start-up (imports) is paid
-    once. One unit is the default."""
+    with its own links, tlog, ULog (unit<id>.ulg, unless `ulog` is False) and status file, stepped by one
+    engine (`HostedFirmware`) whose waits serve every link: one wake-up serves every unit whose datagram
+    came in, and the start-up (imports) is paid once. One unit is the default."""
+    from mars_link.flight.engine import Engine, Flight
     from mars_link.processes.vehicle_io import write_json_atomic
 
     out.mkdir(parents=True, exist_ok=True)
@@ -478,25 +482,41 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
         for unit in units:
             print(json.dumps({"ready": True, "unit": unit.unit_id, "ports": unit.io.ports()}), flush=True)
         loop = LoopMeter()
-        active = list(units)
-        while active and not stop.requested:
+
+        held: dict[tuple, object] = {}  # (unit, link) -> transport: input left waiting while its unit's step runs
+
+        def serve(until_s: float) -> None:
+            """One wait of this process's I/O, at most until `until_s` (monotonic): every frame received into
+            its firmware, every unit's housekeeping when due. A unit whose step may run (its command is in)
+            takes no more input until the engine ran it: what follows the command is for the steps after."""
             now = time.monotonic()
-            wake = min(unit.housekeeping(now) for unit in active)
-            for unit in active:  # (a stall of this process is not the coordinator's silence)
+            wake = min(until_s, *(unit.housekeeping(now) for unit in units))
+            for unit in units:  # (a stall of this process is not the coordinator's silence)
                 if unit.command_deadline is not None:
                     unit.command_deadline.before_wait(max(0.0, wake - now))
-            for key_, _ in sel.select(max(0.0, wake - now)):
-                unit, name = key_.data
+            due = [k for k in held if not k[0].step_runs]
+            ready = {k: held.pop(k) for k in due}
+            for key_, _ in sel.select(0.0 if due else max(0.0, wake - now)):
+                ready[key_.data] = key_.fileobj
+            for (unit, name), fileobj in ready.items():
                 if name == PX4_LINK:
                     unit.drain_px4()
                 else:
-                    unit.io.drain(name, key_.fileobj)
-            for unit in active:
-                unit.check_command_timeout()
-            for unit in [u for u in active if u.done]:
-                active.remove(unit)
-                unit.finish(loop.figures() if len(units) == 1 else None)
-        for unit in active:
+                    unit.io.drain(name, fileobj, lambda unit=unit: unit.step_runs)
+                if unit.step_runs:
+                    held[(unit, name)] = fileobj
+
+        hosted = HostedFirmware(units, serve, stop)
+        sc = setup.scenario
+        flight = Flight(sc, setup.model, sc.sim.seed, None, hosted, hosted, None, [],
+                        duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz)
+        engine = Engine(flight, command_source=hosted.commands)
+        try:
+            while not stop.requested and engine.step():
+                pass
+        except LinksEnded:
+            pass
+        for unit in units:
             unit.finish(loop.figures() if len(units) == 1 else None)
         if len(units) > 1:  # the process's CPU, once (each unit's status has its own counters only)
             write_json_atomic(out / f"unit_host{unit_ids[0]}_status.json",
@@ -512,7 +532,8 @@ def run_units(setup: SitlSetup, unit_ids: list[int], ports: Ports, out: Path, cl
 
 
 class _UnitLoop:
-    """One unit's firmware, its links and its wall-clock housekeeping, driven by `run_units`' loop."""
+    """One unit's firmware, its links and its wall-clock housekeeping: stepped by `run_units`' engine,
+    served by its waits."""
 
     def __init__(self, setup: SitlSetup, unit_id: int, ports: Ports, out: Path, client: UnitPorts,
                  command_timeout_s: float, key: bytes | None, require_signing: bool, ulog: bool = True,
@@ -545,8 +566,10 @@ class _UnitLoop:
         self.next_hello = self.next_tick = self.next_status = 0.0
         self.command_deadline: SilenceDeadline | None = None  # (while a HIL step waits for its command)
         vehicle.defer_own_state = setup.coordinated  # (Vehicle.run_deferred: state bookkeeping in the step's slack)
+        vehicle.hil_stepped_by_host = True  # the process's engine takes each HIL step (HostedFirmware)
         self.px4_link = None  # PX4's own interface over rmw_zenoh, beside the MAVLink persona (vehicle_px4)
         self.px4_log = None  # every rmw_zenoh sample it received, as received (px4_input_log_name)
+        self.px4_backlog: list = []  # samples received after the one that let a step run, for the steps after
         self.next_px4_telemetry = 0.0
         self.command_age = ports.taps.get(unit_id)
         if sc.unit_interface == "px4-zenoh":
@@ -557,12 +580,19 @@ class _UnitLoop:
             self.px4_link = Px4UnitLink(ports.zenoh_session(), vehicle.px4_endpoint)
             self.px4_log = open(out / px4_input_log_name(unit_id), "w", encoding="utf-8")  # (replayable)
 
+    @property
+    def step_runs(self) -> bool:
+        """The unit's HIL step may run now: taken, and its command is in (or it waits for none)."""
+        return self.vehicle.hil_pending and self.vehicle.hil_command_in
+
     def drain_px4(self) -> None:
-        """Every rmw_zenoh sample received: into the firmware; its answers out (a HIL step it completes,
-        command acks and status)."""
+        """Every rmw_zenoh sample received, up to the one that lets the unit's step run (`step_runs`; the
+        rest wait for the next drain): into the firmware; its answers out (command acks and status)."""
         vehicle, link, tap = self.vehicle, self.px4_link, self.command_age
         log = self.px4_log
-        for key, payload, attachment in link.take():
+        self.px4_backlog += link.take()
+        while self.px4_backlog and not self.step_runs:
+            key, payload, attachment = self.px4_backlog.pop(0)
             now = time.time()
             log.write(json.dumps({"sim_s": vehicle.sim_s, "wall_s": now, "key": key, "payload": payload.hex(),
                                   "attachment": None if attachment is None else attachment.hex()}) + "\n")
@@ -574,10 +604,6 @@ class _UnitLoop:
             if samples:
                 link.publish(samples)
 
-    @property
-    def done(self) -> bool:
-        return self.setup.steps is not None and self.vehicle.stats.get("hil_steps", 0) >= self.setup.steps
-
     def housekeeping(self, now: float) -> float:
         """The unit's own state, heartbeats, streams and status file when due; returns when to wake next.
         Housekeeping waits while a step is in flight, at most HOUSEKEEPING_DEFER_S past its time, and
@@ -587,8 +613,6 @@ class _UnitLoop:
 
         vehicle, io = self.vehicle, self.io
         steps = vehicle.stats.get("hil_steps", 0)
-        if vehicle.hil_pending:
-            self.command_deadline = self.command_deadline or SilenceDeadline(self.command_timeout_s)
         due = min(self.next_hello, self.next_tick, self.next_status)
         in_flight = self.command_deadline is not None
         start_at = math.inf if in_flight else (now if vehicle.has_deferred else due)
@@ -612,15 +636,6 @@ class _UnitLoop:
         if self.command_deadline is not None:
             wake = min(wake, self.command_deadline.at_s)
         return wake
-
-    def check_command_timeout(self) -> None:
-        vehicle = self.vehicle
-        if vehicle.hil_pending and self.command_deadline is not None and self.command_deadline.left_s() == 0.0:
-            print(f"unit {self.unit_id}: no coordinator command for {self.command_timeout_s:.1f} s at "
-                  f"t={vehicle.sim_s:.2f}: answering with the held command / fail-safe", file=sys.stderr)
-            self.io.send(vehicle.release_hil(time.time()))
-        if not vehicle.hil_pending:
-            self.command_deadline = None
 
     def finish(self, loop: dict[str, float | str] | None) -> None:
         """The last deferred work and the final status (`loop`: this process's stepping loop's CPU and

@@ -16,6 +16,7 @@ import selectors
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 from firmware_models.vehicle import LINK_COORDINATOR, Outgoing, Vehicle
 from mars_link.core.errors import PortUnavailable, UserInputError
@@ -149,11 +150,14 @@ class VehicleSockets:
             n += self.drain(key.data, key.fileobj)
         return n
 
-    def drain(self, link: str, transport: Transport) -> int:
-        """Every datagram waiting on `link` (senders off loopback: dropped and counted by the transport)."""
+    def drain(self, link: str, transport: Transport, until: Callable[[], bool] | None = None) -> int:
+        """Every datagram waiting on `link` (senders off loopback: dropped and counted by the transport), or
+        those up to the one after which `until()` holds (the rest wait in the transport)."""
         v = self.vehicle
         n = 0
         for _ in range(MAX_DATAGRAMS_PER_WAKE):
+            if until is not None and until():
+                break
             got = transport.recv(0.0)
             if got is None:
                 break

@@ -124,3 +124,52 @@ def test_a_step_skip_runs_the_step_and_the_unit_keeps_waiting() -> None:
     assert answer.time_usec == 20_000 and v.stats["step_skips"] == 2 and "hil_released" not in v.stats
     assert not _hil_answers(v.handle(_sensors(0.03), 0.3, LINK_HIL), v)  # still waiting for the coordinator
     assert not _hil_answers(v.handle(skip(0.03, new_mav(7)), 0.3, LINK_COORDINATOR), v)  # not the coordinator
+
+
+class _HostedUnit:
+    """One unit as a unit process hosts it (lockstep._UnitLoop's fields that HostedFirmware reads), its sends
+    kept in order; `serve` hands it the next scripted datagram, as the process's I/O wait would."""
+
+    def __init__(self, vehicle: Vehicle, script: list[tuple[bytes, str]], command_timeout_s: float) -> None:
+        self.unit_id, self.vehicle, self.io = 1, vehicle, self
+        self.command_timeout_s, self.command_deadline = command_timeout_s, None
+        self.script, self.sent = script, []
+
+    def send(self, out) -> None:
+        self.sent += out
+
+    def serve(self, until_s: float) -> None:
+        if self.script:
+            data, link = self.script.pop(0)
+            out = self.vehicle.handle(data, 0.0, link)
+            assert not out or link != LINK_HIL  # the HIL handler only receives: no telemetry, no answer
+            self.send(out)
+
+
+def test_the_unit_process_engine_takes_each_hil_step_in_the_engines_order() -> None:
+    """Stepped by its host, the firmware's handlers only receive; the engine takes the sensors (telemetry out),
+    waits for the coordinator's command, then answers the step; a silent coordinator releases it."""
+    from mars_link.config.scenario import DEFAULT_PRESET, Scenario
+    from mars_link.flight.engine import Engine, Flight
+    from mars_link.processes.engine_links import HostedFirmware
+
+    v = Vehicle(VehicleConfig(unit_id=1, vehicle="mars-ftcc", hil_await_coordinator=True), 0.0)
+    v.hil_stepped_by_host = True
+    first = _with_takeover(1, set(), _command(0.0, [0.3, 0.31, 0.32, 0.33], v))
+    unit = _HostedUnit(v, [(_sensors(0.0), LINK_HIL), (b"".join(m.pack(COORD) for m in first), LINK_COORDINATOR),
+                           (_sensors(0.01), LINK_HIL)], command_timeout_s=0.0)
+    hosted = HostedFirmware([unit], unit.serve, type("Stop", (), {"requested": False})())
+    sc = Scenario(name="unit", preset=DEFAULT_PRESET)
+    engine = Engine(Flight(sc, None, 0, None, hosted, hosted, None, [], duration_s=0.02),
+                    command_source=hosted.commands)
+    assert engine.step()
+    links = [o.link for o in unit.sent]
+    (answer,) = _hil_answers(unit.sent, v)
+    assert links.index(LINK_COORDINATOR) < links.index(LINK_HIL)  # telemetry before the step's answer
+    np.testing.assert_array_equal(answer.controls[:4], np.float32([0.3, 0.31, 0.32, 0.33]))
+    assert answer.time_usec == 0 and v.armed and not v.hil_pending
+    unit.sent = []
+    assert engine.step() and v.stats["hil_released"] == 1  # no command for 0.01: released, the held command
+    (answer,) = _hil_answers(unit.sent, v)
+    assert answer.time_usec == 10_000 and answer.controls[0] == pytest.approx(0.3)
+    assert not engine.step() and engine.steps == 2
