@@ -73,7 +73,7 @@ class Px4UnitLink:
     def __init__(self, session: zenoh.Session, endpoint: Px4UnitEndpoint) -> None:
         self.session = session
         self.inbox = _Inbox()
-        self._subs = [session.declare_subscriber(key, self.inbox.put) for key in endpoint.subscribe_keys()]
+        self._subs = [session.declare_subscriber(endpoint.subscribe_pattern(), self.inbox.put)]  # (one: in order)
         self._pubs = {key: session.declare_publisher(key, express=True) for key in endpoint.publish_keys()}
         self._tokens = [session.liveliness().declare_token(t) for t in endpoint.liveliness_tokens(str(session.zid()))]
         self.sent = 0
