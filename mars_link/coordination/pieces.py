@@ -32,7 +32,8 @@ from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel, VehicleParam
 from mars_link.coordination.coordinator import Coordinator, StepRecord
 from mars_link.core.latches import LATCH_ALL, Link, neighbour_links
 from mars_link.core.messages import RotorCommand, SensorPacket
-from mars_link.reconfig.execution import Executor, Key, PieceShape, SplitAction, TrackedPointReference, local_eta, units_text
+from mars_link.reconfig.execution import Executor, SplitAction, TrackedPointReference, units_text
+from mars_link.reconfig.piece_shape import Key, PieceShape, local_eta
 from mars_link.reconfig.margin import controllability_margin
 from mars_link.reconfig.plans import plan_event
 from mars_link.reconfig.sequencing import ReconfigPlan

@@ -30,50 +30,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from mars_link.core.events import EventKind, event
-from mars_link.core.assembly import AssemblyModel, VehicleParams, layout_of_cells
+from mars_link.core.assembly import VehicleParams
 from mars_link.core.errors import UserInputError
-from mars_link.reconfig.flyability import Cell
 from mars_link.reconfig.placement import SnapWeights
+from mars_link.reconfig.piece_shape import Key, PieceShape
+from mars_link.reconfig.replan import replan_assembly
 from mars_link.reconfig.sequencing import ReconfigPlan
 from mars_link.core.rotations import quat_to_euler
 from mars_link.models.trajectories import Trajectory, TrajectoryPoint, smoothstep
-
-Key = frozenset
-
-
-# ----------------------------------------------------------------------------- geometry of a piece
-@dataclass
-class PieceShape:
-    """Which unit sits in which cell of a piece (cells in any frame: only differences matter)."""
-
-    cells: dict[int, Cell]
-
-    @property
-    def key(self) -> Key:
-        return frozenset(self.cells)
-
-    def units_local_order(self) -> list[int]:
-        """Global unit ids in the piece model's row-major order (= local ids 1..k)."""
-        return sorted(self.cells, key=lambda u: self.cells[u])
-
-    def layout(self) -> tuple[str, ...]:
-        return layout_of_cells(self.cells.values())
-
-    def model(self, vehicle: VehicleParams) -> AssemblyModel:
-        return AssemblyModel.from_layout(self.layout(), vehicle)
-
-    def com_frd(self, pitch_m: float) -> np.ndarray:
-        """CoM in the cells' frame, FRD (row -> -x, column -> +y), identical units."""
-        cells = np.array(list(self.cells.values()), dtype=float)
-        return np.array([-cells[:, 0].mean() * pitch_m, cells[:, 1].mean() * pitch_m, 0.0])
-
-    def subset(self, units) -> "PieceShape":
-        return PieceShape({u: self.cells[u] for u in units})
-
-
-def local_eta(shape: PieceShape, eta_global: dict[int, np.ndarray]) -> np.ndarray:
-    """Per-rotor efficiencies in the piece model's slot order."""
-    return np.concatenate([eta_global[u] for u in shape.units_local_order()])
 
 
 def units_text(units) -> str:
@@ -458,7 +422,6 @@ class Executor:
         """Between docking layers, after units were lost: the best structure the pieces there are can build on
         the target's cells (paper 001's placement with the lost units' cells to spare, `replan_assembly`) and
         its docks (Algorithm 3 again); False if no docking sequence builds one."""
-        from mars_link.reconfig.replan import replan_assembly  # (replan imports this module: a cycle)
 
         lost, what = self._replan_lost, ("assembly" if self.assembling else "reconfig")
         self._replan_lost = set()

@@ -23,7 +23,7 @@ import math
 import numpy as np
 
 from mars_link.core.assembly import GRAVITY_MPS2, AssemblyModel, VehicleParams
-from mars_link.reconfig.execution import PieceShape, local_eta
+from mars_link.reconfig.piece_shape import PieceShape, local_eta
 from mars_link.reconfig.sequencing import ReconfigPlan
 
 def controllability_margin(model: AssemblyModel, eta: np.ndarray | None = None, scaled: bool = True) -> float:

@@ -20,7 +20,7 @@ import numpy as np
 
 from mars_link.core.assembly import GRAVITY_MPS2, VehicleParams
 from mars_link.core.latches import components, neighbour_links
-from mars_link.reconfig.execution import PieceShape, local_eta
+from mars_link.reconfig.piece_shape import PieceShape, local_eta
 from mars_link.reconfig.flyability import Cell
 
 Arrangement = frozenset  # of (unit, cell): a rigid body up to translation (normalised: min row, col = 0)

@@ -15,7 +15,8 @@ from scipy.optimize import linear_sum_assignment
 from mars_link.core.assembly import AssemblyModel
 from mars_link.core.events import EventKind, event
 from mars_link.core.errors import UserInputError
-from mars_link.reconfig.execution import ExecutionParams, PieceShape, local_eta
+from mars_link.reconfig.execution import ExecutionParams
+from mars_link.reconfig.piece_shape import PieceShape, local_eta
 from mars_link.reconfig.flyability import FlyabilityRule
 from mars_link.reconfig.placement import SnapWeights, health_from_eta, nominal_cells
 from mars_link.reconfig.sequencing import ReconfigPlan, plan_reconfiguration

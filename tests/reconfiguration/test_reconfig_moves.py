@@ -17,7 +17,7 @@ from reconfig_detect_eval import detected_scenario  # noqa: E402
 from reconfig_eval import paper_faults, scenario  # noqa: E402
 
 from mars_link.allocation import hover_thrust_share  # noqa: E402
-from mars_link.reconfig.execution import PieceShape, local_eta  # noqa: E402
+from mars_link.reconfig.piece_shape import PieceShape, local_eta  # noqa: E402
 from mars_link.flight.reconfig_flight import run_reconfig_trial  # noqa: E402
 from mars_link.reconfig.moves import (  # noqa: E402
     HoverCosts, best_ground_moves, best_moves, docks, ground_plan, moves, slots, splits)
