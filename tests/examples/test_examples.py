@@ -58,8 +58,19 @@ def run_sampling(vehicle: Vehicle, args: list[str], timeout_s: float, cwd: Path)
         if proc.poll() is None:
             proc.kill()  # (this example only, by its handle)
         out, err = proc.communicate(timeout=10)
-    samples.append(vehicle.status())
+    samples.append(fresh_status(vehicle, after_wall_s=time.time()))
     return subprocess.CompletedProcess(proc.args, proc.returncode, out, err), samples
+
+
+def fresh_status(vehicle: Vehicle, after_wall_s: float, timeout_s: float = 10.0) -> dict:
+    """The first status the vehicle wrote after `after_wall_s`: what the client saw last (a disarm, a
+    landing) is in the vehicle's state by then, while the file on disk may be one status period older."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        status = vehicle.status()
+        if status["wall_time_s"] > after_wall_s or time.monotonic() > deadline:
+            return status
+        time.sleep(0.05)
 
 
 def run_example(args: list[str], cwd: Path, timeout_s: float = 120.0) -> subprocess.CompletedProcess:
