@@ -27,7 +27,8 @@ from record import Recorder, add_json_option, apply_quick  # noqa: E402
 
 from mars_link.models.battery import battery_table  # noqa: E402
 from mars_link.flight.build import build_flight  # noqa: E402
-from mars_link.flight.engine import Engine, FlightRecorder  # noqa: E402
+from mars_link.flight.engine import Engine
+from mars_link.flight.recorder import FlightRecorder  # noqa: E402
 from mars_link.config.scenario import load_scenario  # noqa: E402
 
 

@@ -24,7 +24,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from mars_link.logs.outputs import write_json  # noqa: E402
-from mars_link.flight.reconfig_flight import run_reconfig_trial  # noqa: E402
+from mars_link.flight.run_log import ROTOR_LOG_HZ, RunLog  # noqa: E402
+from mars_link.flight.runner import run_trial  # noqa: E402
 from mars_link.config.scenario import load_scenario  # noqa: E402
 from mars_link.apps.sweep_pool import map_flights, pool_from_args, print_progress, values_or_raise  # noqa: E402
 
@@ -62,7 +63,7 @@ def fly(scenario_name: str, ftc: str, out: Path, noise: bool | None = None, dete
         sc.sim.noise = noise
     if detected:  # the fault is found by the detector, not told
         sc.faults_known = False
-    return run_reconfig_trial(sc, sc.sim.seed, out)
+    return run_trial(sc, sc.sim.seed, log=RunLog(out, sc.model(), ROTOR_LOG_HZ))
 
 
 def plot(figs: dict, out: Path) -> Path:

@@ -41,11 +41,11 @@ def detected_scenario(layout, n_faults: int, reconfigure: bool):
 
 
 def fly(idx: int, which: str) -> dict:
-    from mars_link.flight.reconfig_flight import run_reconfig_trial
+    from mars_link.flight.runner import run_trial
 
     shape, layout, n = CASES[idx]
     t0 = time.perf_counter()
-    r = run_reconfig_trial(detected_scenario(layout, n, which == "R"), 1)
+    r = run_trial(detected_scenario(layout, n, which == "R"), 1)
     found = [e for e in r.events if e["type"] == "fault_detected" and e["t_s"] >= FAULT_T_S - 1e-9]
     return {
         "case": idx, "shape": shape, "faults": n, "which": which,

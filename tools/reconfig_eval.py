@@ -116,11 +116,12 @@ def fly_row(layout, faults: list[FaultSpec], mode: str) -> dict:
 
 
 def fly_inflight(layout, faults: list[FaultSpec], out: Path) -> dict:
-    from mars_link.flight.reconfig_flight import run_reconfig_trial
+    from mars_link.flight.run_log import ROTOR_LOG_HZ, RunLog
+    from mars_link.flight.runner import run_trial
 
     late = [FaultSpec(f.unit, f.rotor, f.eta, 5.0) for f in faults]
     sc = scenario(layout, late, "qp", {"enabled": True})
-    r = run_reconfig_trial(sc, 1, out)
+    r = run_trial(sc, 1, log=RunLog(out, sc.model(), ROTOR_LOG_HZ))
     tel = np.array(r.telemetry_rows)
     err = tel[:, 5:8] - tel[:, 2:5]
     return {"rmse_axes_m": float(np.mean(np.sqrt(np.mean(err**2, axis=0)))), "rmse_3d_m": r.rmse_m,

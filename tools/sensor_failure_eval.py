@@ -29,7 +29,8 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from mars_link.flight.build import build_flight  # noqa: E402
-from mars_link.flight.engine import Engine, FlightRecorder  # noqa: E402
+from mars_link.flight.engine import Engine
+from mars_link.flight.recorder import FlightRecorder  # noqa: E402
 from mars_link.core.errors import UserInputError  # noqa: E402
 from mars_link.config.scenario import load_scenario  # noqa: E402
 from mars_link.config.scenario_sensor_faults import SensorFaultSpec  # noqa: E402

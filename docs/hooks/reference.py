@@ -451,6 +451,12 @@ SUMMARY_NOTES = {
     "detections": "faults the detector found, with the time of the fault each names",
     "provenance": "package version, git commit (null outside a checkout), the scenario as resolved",
     "logging": "whether every time series was written whole, and why not", "stage_time_s": "wall time per stage",
+    "reconfigured": "a reconfiguration was done", "reconfig_time_s": "how long the manoeuvre took",
+    "plan": "the executor's plan (null without moves)", "plans": "every plan of the flight with both objectives",
+    "assembled": "a free start became the whole structure",
+    "min_clearance_m": "smallest gap between units of different bodies (inf: one body all along)",
+    "pieces_final": "each piece at the end: layout rows and unit ids", "units_lost": "each unit lost, and its fate",
+    "mission_force_integral_n2s": "the force integral while the mission flies (the manoeuvre excluded)",
 }
 
 
@@ -494,7 +500,7 @@ def outputs_page() -> str:
         out.append("## summary.json\n")
         out.append(table(["field", "type", "what"], [[f"`{k}`", type_of(v), SUMMARY_NOTES.get(k, "")]
                                                      for k, v in summary.items()]))
-        for name in ("telemetry.csv", "rotors.csv"):
+        for name in ("telemetry.csv", "rotors.csv", "units.csv"):
             path = run_dir / name
             if path.exists():
                 header = path.read_text(encoding="utf-8").splitlines()[0].split(",")

@@ -106,13 +106,8 @@ def cmd_run(args) -> int:
         runner, options = run_scenario, {}
         if args.realtime and sitl_run is None:  # in-process: the engine paced to the wall clock
             options["realtime_rate"] = 1.0
-        if args.logs and sitl_run is None and not scenario.has_pieces:  # (SITL units always write theirs)
+        if args.logs and sitl_run is None:  # (SITL units always write theirs)
             options["logs"] = args.logs
-        if scenario.has_pieces:  # several bodies (mars_link.flight.reconfig_flight)
-            from mars_link.flight.reconfig_flight import run_reconfig_scenario as runner
-
-            if args.trials != 1:
-                raise UserInputError("--trials: a [reconfig] flight runs one trial (vary --seed instead)")
         if sitl_run is not None:
             runner = sitl_run
         summary = runner(

@@ -330,28 +330,11 @@ def fly_flight(doc: dict, src: str, spec: FlightSpec, mcap_dir: str | None = Non
     out = None if mcap_dir is None else Path(mcap_dir)
     if out is not None:  # (run.mcap's writer is a subprocess: a daemonic Dask worker may start it)
         out.mkdir(parents=True, exist_ok=True)
-    if sc.has_pieces:
-        from mars_link.flight.flight_view import pieces_view
-        from mars_link.flight.reconfig_flight import run_reconfig_trial
+    from mars_link.flight.flight_view import flight_view
+    from mars_link.flight.runner import run_trial
 
-        r = run_reconfig_trial(sc, spec.seed, None, view=None if out is None else (lambda f: pieces_view(f, out)))
-        detected = [e["t_s"] for e in r.detections]
-    else:
-        from mars_link.flight.runner import run_trial
-
-        r = run_trial(sc, spec.seed, view=None if out is None else _one_body_view(sc, out))
-        detected = [d["t_detected"] for d in r.detections]
-    return row_of(spec, r, detected, time.perf_counter() - t0)
-
-
-def _one_body_view(sc: Scenario, out: Path):
-    def make(flight):
-        from mars_link.flight.flight_view import open_view
-
-        return open_view(out, flight.model, sc, sc.sim.control_hz, flight.trajectory, flight.duration_s, None,
-                         sc.tracked_unit())
-
-    return make
+    r = run_trial(sc, spec.seed, view=None if out is None else (lambda flight: flight_view(flight, out)))
+    return row_of(spec, r, [d["t_detected"] for d in r.detections], time.perf_counter() - t0)
 
 
 def row_of(spec: FlightSpec, r, detected_t_s: list[float], wall_s: float) -> dict:

@@ -21,10 +21,8 @@ from firmware_models.vehicle import MODE_OFFBOARD
 from mars_link.core.events import EventKind, event, unit_died
 from mars_link.core.assembly import AssemblyModel
 from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
-from mars_link.flight.metrics import STAGES, TrackingMetrics
+from mars_link.flight.metrics import STAGES
 from mars_link.runtime.pacing import Pacer
-from mars_link.core.rotations import quat_to_euler
-from mars_link.flight.run_log import RunLog
 from mars_link.config.scenario import FaultSpec, Scenario, eta_after
 from mars_link.config.scenario_sensor_faults import sensor_fault_events
 from mars_link.core.state import RigidBodyState
@@ -316,52 +314,14 @@ class Engine:
         return True
 
     def run(self, on_progress: Callable[[float], None] | None = None) -> None:
-        n = self.flight.n_steps
-        every = max(1, n // 200)
+        """Step until the flight is over; `on_progress(share flown)` about 200 times (a flight whose end
+        moves: the share of its end as it stands, never going back)."""
+        f = self.flight
+        n = f.n_steps
+        every = max(1, int(n // 200)) if math.isfinite(n) else 50
+        shown = 0.0
         while self.step():
             if on_progress is not None and self.steps % every == 1:
-                on_progress((self.steps - 1) / max(n, 1))
-
-
-class FlightRecorder:
-    """Observer: the tracked point's error on the world's truth (metrics.TrackingMetrics) and the run's
-    time series (run_log.RunLog); ends the flight when it diverges."""
-
-    def __init__(self, flight: Flight, log: RunLog | None = None, trial_index: int = 0,
-                 ends_on_divergence: bool = True) -> None:
-        self.flight = flight
-        self.ends_on_divergence = ends_on_divergence  # (a vehicle a client flies reports it, flies on)
-        self._divergence_told = False
-        self.log = log
-        self.trial_index = trial_index
-        self.metrics = TrackingMetrics()
-        self._flush_every = max(1, int(flight.scenario.sim.control_hz))
-
-    def on_step(self, engine: Engine, v: StepView) -> bool:
-        f = self.flight
-        truth, rec = v.truth, v.record
-        if rec is None:  # (the assembly vehicle on the ground: no reference to track)
-            return False
-        tracked = f.world.tracked_point(f.tracked_offset_frd_m, truth)
-        failsafe = getattr(f.coordinator, "failsafe", None)
-        err, _ = self.metrics.add(v.t_s, tracked, rec.reference.position_ned_m, truth.quaternion_wxyz,
-                                  position_lost=failsafe is not None and failsafe.state != "normal")
-        log = self.log
-        if log is not None:
-            roll, pitch, yaw = quat_to_euler(truth.quaternion_wxyz)
-            er, ep, ey = quat_to_euler(rec.estimate.quaternion_wxyz)
-            log.telemetry(
-                [self.trial_index, v.t_s, *rec.reference.position_ned_m, *tracked,
-                 math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
-                 *rec.estimate.position_ned_m, math.degrees(er), math.degrees(ep), math.degrees(ey),
-                 *truth.position_ned_m]
-            )
-            if log.rotor_due(v.t_s):
-                log.rotors(self.trial_index, v.t_s, rec.thrusts_n, f.world.rotor_thrust_n, f.units.eta(f.model.unit_ids))
-            if v.index % self._flush_every == 0:
-                log.flush()
-        if self.metrics.diverged and not self._divergence_told:
-            engine.events.append(self.metrics.divergence)
-            self._divergence_told = True
-            return self.ends_on_divergence
-        return False
+                end_s = f.end_s() if f.end_s is not None else f.duration_s
+                shown = max(shown, min(1.0, f.world.t_s / end_s) if 0 < end_s < math.inf else 0.0)
+                on_progress(shown)

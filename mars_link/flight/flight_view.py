@@ -910,12 +910,16 @@ def pieces_point(engine, view) -> ViewPoint | None:
     return ViewPoint(ref.position_ned_m, ref.yaw_rad, est_p, est_q, cmd)
 
 
-def pieces_view(flight, out_dir: Path | None, live: str | None = None) -> FlightView | None:
-    """The view of a flight of pieces (build.build_flight): its points (`pieces_point`) and the events
-    of its summary (engine, coordinator, executor, the world's latched docks)."""
+def flight_view(flight, out_dir: Path | None, live: str | None = None, name: str = "run.mcap") -> FlightView | None:
+    """The view of an in-process flight (build.build_flight): run.mcap in `out_dir` and/or `live`, None if
+    neither. A flight that may become several bodies shows its mission's points (`pieces_point`) and the
+    events of its summary (engine, coordinator, executor, the world's latched docks)."""
     sc = flight.scenario
+    if not sc.has_pieces:
+        return open_view(out_dir, flight.model, sc, sc.sim.control_hz, flight.trajectory, flight.duration_s, live,
+                         sc.tracked_unit(), name=name)
     view = open_view(out_dir, flight.model, sc, sc.sim.control_hz, flight.coordinator.executor.mission,
-                     sc.sim.duration_s or flight.duration_s, live, sc.tracked_unit())
+                     sc.sim.duration_s or flight.duration_s, live, sc.tracked_unit(), name=name)
     if view is not None:
         coord, world = flight.coordinator, flight.world
         view.point_of = pieces_point

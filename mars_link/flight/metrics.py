@@ -42,6 +42,18 @@ class TrialResult:
     control_steps: int = 0
     detections: list[dict] = field(default_factory=list)
     end_reason: str | None = None  # why the flight ended before its duration (None: flown to the end)
+    # what the flight did with its pieces (a docked flight that stayed one piece: the defaults and one piece)
+    reconfigured: bool = False  # a reconfiguration was done
+    reconfig_time_s: float = 0.0  # how long the manoeuvre took
+    plan: dict | None = None  # the executor's plan, when it had moves
+    assembled: bool = False  # a free start became the whole structure
+    min_clearance_m: float = math.inf  # smallest gap between units of different bodies over the flight
+    pieces_final: list[dict] = field(default_factory=list)  # each piece at the end: layout rows, unit ids
+    mission_force_integral_n2s: float = 0.0  # the force integral while the mission flies (manoeuvre excluded)
+    units_lost: list[dict] = field(default_factory=list)  # each unit the coordinator lost, and its fate (truth)
+    unit_rows: list[list[float]] = field(default_factory=list)  # units.csv's rows (run_log.UNIT_COLUMNS)
+    telemetry_rows: list[list[float]] = field(default_factory=list)  # telemetry.csv's (run_log.TELEMETRY_COLUMNS)
+    logging: dict | None = None  # the time series' status (run_log.RunLog.status)
 
 
 def ended_early_reason(sim_time_s: float, duration_s: float, control_hz: float, why: str) -> str | None:
@@ -127,6 +139,7 @@ def summarize(scenario, results: list[TrialResult], seed: int, mode: str = "inpr
     sim_time = sum(r.sim_time_s for r in results)
     wall_time = sum(r.wall_time_s for r in results)
     stage = {k: sum(r.stage_time_s.get(k, 0.0) for r in results) for k in STAGES}
+    first = results[0]
     from mars_link.provenance import provenance
 
     return {
@@ -165,7 +178,27 @@ def summarize(scenario, results: list[TrialResult], seed: int, mode: str = "inpr
             for r in results
         ],
         "provenance": provenance(scenario),  # version, commit, the scenario as resolved
+        # the pieces (trial 0's: a flight of several bodies is flown once)
+        "faults_known": scenario.faults_known,
+        "start": scenario.start,
+        "reconfigured": first.reconfigured,
+        "reconfig_time_s": first.reconfig_time_s,
+        "plan": first.plan,
+        "plans": plan_records(first.events),
+        "assembled": first.assembled,
+        "min_clearance_m": first.min_clearance_m,
+        "pieces_final": first.pieces_final,
+        "units_lost": first.units_lost,
+        "mission_force_integral_n2s": first.mission_force_integral_n2s,
     }
+
+
+def plan_records(events: list[dict]) -> list[dict]:
+    """summary.json "plans": each plan of the flight with both objectives (whatever chose it): paper 001's
+    force objective and the worst-stage controllability margin (mars_link.reconfig.margin)."""
+    keys = ("t_s", "feasible", "chosen_by", "force_objective", "worst_stage_margin", "final_margin",
+            "disassembly_layers", "assembly_layers")
+    return [{k: e.get(k) for k in keys} for e in events if e["type"] == "plan"]
 
 
 def gust_response(t_s, error_m, onset_s: float, tolerance_m: float = 0.05) -> dict:

@@ -182,3 +182,62 @@ def write_run_plots(
     plots.mkdir(parents=True, exist_ok=True)
     return [save_figure(fig, plots, stem, plot_format)
             for stem, fig in run_figures(telemetry_rows, rotor_rows, model, name, events).items()]
+
+
+def write_pieces_plots(out_dir: Path, unit_rows: Sequence[Sequence[float]], telemetry_rows: Sequence[Sequence[float]],
+                       events: Sequence[dict], name: str = "", plot_format: str = "png") -> list[Path]:
+    """A flight of several bodies: plots/units (every unit's path from above, and its altitude, with the
+    flight's events) and plots/error (the tracked point against the mission, paused while reconfiguring).
+    `unit_rows`: units.csv's rows (t, unit, n, e, d, ...); `telemetry_rows`: telemetry.csv's (run_log)."""
+    from mars_link.flight.run_log import TELEMETRY_COLUMNS
+
+    check_plot_format(plot_format)
+    plt = pyplot()
+    plots = out_dir / "plots"
+    plots.mkdir(parents=True, exist_ok=True)
+    written = []
+    rows = np.array([r[:5] for r in unit_rows], dtype=float) if len(unit_rows) else np.zeros((0, 5))
+    fig, (ax, az) = plt.subplots(1, 2, figsize=(12, 5))
+    for u in sorted(set(rows[:, 1].astype(int))) if len(rows) else []:
+        m = rows[:, 1] == u
+        ax.plot(rows[m, 3], rows[m, 2], lw=1, label=f"unit {u}")
+        az.plot(rows[m, 0], -rows[m, 4], lw=1, label=f"unit {u}")
+    mark_events(az, events)
+    ax.set_xlabel("east [m]")
+    ax.set_ylabel("north [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(_title(name, "units, top view"))
+    az.set_xlabel("time [s]")
+    az.set_ylabel("up [m]")
+    az.set_title(_title(name, "altitude"))
+    ax.legend(fontsize=7)
+    az.legend(fontsize=7)
+    fig.tight_layout()
+    written.append(save_figure(fig, plots, "units", plot_format))
+    if len(telemetry_rows):
+        tel = np.array(telemetry_rows, dtype=float)
+        t, err = tel[:, TELEMETRY_COLUMNS.index("t_s")], tel[:, TELEMETRY_COLUMNS.index("error_m")]
+        fig, ax = plt.subplots(figsize=(8, 3.5))
+        ax.plot(t, err, lw=1, label="mission error")
+        mark_events(ax, events)
+        ax.set_xlabel("time [s]")
+        ax.set_ylabel("mission error [m]")
+        ax.set_title(_title(name, "tracked point vs mission reference (paused while reconfiguring)"))
+        ax.legend(fontsize=7)
+        fig.tight_layout()
+        written.append(save_figure(fig, plots, "error", plot_format))
+    return written
+
+
+def write_flight_plots(out_dir: Path, log, scenario, events: Sequence[dict], plot_format: str = "png") -> list[Path]:
+    """The run's figures from its time series (`log`: run_log.RunLog): a flight of one body its path, error
+    and rotor thrust (`run_figures`); a flight that may become several bodies every unit's path and the
+    mission error (`write_pieces_plots`) and the animated replay, plots/flight.gif."""
+    if scenario.has_pieces:
+        from mars_link.flight.replay_gif import write_flight_gif
+
+        written = write_pieces_plots(out_dir, log.unit_rows, log.telemetry_rows, events, scenario.name, plot_format)
+        write_flight_gif(out_dir / "plots" / "flight.gif", log.unit_rows, list(events))
+        return written
+    return write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model(), scenario.name, events,
+                           plot_format)

@@ -1,6 +1,8 @@
 """The run's time series, written as the flight goes (flushed), so a crash loses nothing flown:
-telemetry.csv (every control step: reference, tracked point, attitude, error, estimate, CoM) and
-rotors.csv (per rotor: command, thrust, eta). Every mode writes these two files through this class.
+telemetry.csv (every control step the mission flies: reference, tracked point, attitude, error, estimate,
+CoM of the tracked piece, the mission's clock, the number of pieces), rotors.csv (per rotor: command,
+thrust, eta) and units.csv (every unit's centre, velocity and attitude at 20 Hz). One format for every
+flight, one body or several, and every mode writes these files through this class.
 Logging is never flight-critical: a write error (a full disk) stops that file, and `status()` says so.
 """
 
@@ -15,6 +17,18 @@ from mars_link.logs.outputs import SafeWriter
 
 #: rotors.csv rows per second (telemetry.csv has every control step)
 ROTOR_LOG_HZ = 20.0
+#: units.csv samples per second (every unit's row at each)
+UNIT_LOG_HZ = 20.0
+#: telemetry.csv's columns (a row of `telemetry_rows` holds them in this order)
+TELEMETRY_COLUMNS = (
+    "trial", "t_s", "ref_n_m", "ref_e_m", "ref_d_m", "pos_n_m", "pos_e_m", "pos_d_m", "roll_deg", "pitch_deg",
+    "yaw_deg", "error_m", "est_n_m", "est_e_m", "est_d_m", "est_roll_deg", "est_pitch_deg", "est_yaw_deg",
+    "com_n_m", "com_e_m", "com_d_m", "mission_t_s", "pieces")
+#: units.csv's columns (a row of `unit_rows`)
+UNIT_COLUMNS = ("t_s", "unit", "n_m", "e_m", "d_m", "vn_mps", "ve_mps", "vd_mps", "roll_deg", "pitch_deg", "yaw_deg",
+                "piece_units")
+#: unit rows kept in memory (all of them up to this; beyond, every other sample is dropped, as _PlotRows does)
+UNIT_ROWS_MAX = 200_000
 #: rows kept in memory for the plots (first trial only) when bounded: beyond, every other row is dropped
 #: and the keeping stride doubles, so memory stays flat however many trials or seconds are flown
 PLOT_ROWS_MAX = 4_000  # (a plot 880 px wide needs no more)
@@ -51,21 +65,22 @@ class RunLog:
         self.model = model
         self.rotor_log_period_s = 1.0 / rotor_log_hz
         self._next_rotor_t = 0.0
-        self._tel = self._rot = None
+        self._tel = self._rot = self._units = None
         self._closed: list[dict] = []  # status of the files already closed
         self.telemetry_rows: list[list[float]] = []
         self.rotor_rows: list[np.ndarray] = []
+        self._unit_samples: list[list[list[float]]] = []  # (trial 0) every unit's row of one sample, per sample
+        self._unit_stride, self._unit_seen, self._unit_cap = 1, 0, UNIT_ROWS_MAX
         self._bounded = None if plot_rows_max is None else (
             _PlotRows(self.telemetry_rows, plot_rows_max), _PlotRows(self.rotor_rows, plot_rows_max))
         if out_dir is None:
             return
         out_dir.mkdir(parents=True, exist_ok=True)
         self._tel = _safe_open(out_dir / "telemetry.csv")
-        self._tel.write(
-            "trial,t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,roll_deg,pitch_deg,yaw_deg,"
-            "error_m,est_n_m,est_e_m,est_d_m,est_roll_deg,est_pitch_deg,est_yaw_deg,com_n_m,com_e_m,com_d_m\n"
-        )
-        self._tel_format = ",".join(["%.6g"] * 18 + ["%.9f"] * 3) + "\n"
+        self._tel.write(",".join(TELEMETRY_COLUMNS) + "\n")
+        self._tel_format = ",".join(["%.6g"] * 18 + ["%.9f"] * 3 + ["%.6g", "%d"]) + "\n"
+        self._units = _safe_open(out_dir / "units.csv")
+        self._units.write(",".join(UNIT_COLUMNS) + "\n")
         self._rot = _safe_open(out_dir / "rotors.csv")
         cols = []
         for kind in ("cmd", "thrust", "eta"):
@@ -97,20 +112,46 @@ class RunLog:
         if self._rot:
             self._rot.write(self._rot_format % tuple(row.tolist()))
 
+    def units(self, trial: int, rows: list[list[float]]) -> None:
+        """One sample of every unit (UNIT_COLUMNS rows, one time): to units.csv, and trial 0's kept in memory
+        (bounded: beyond UNIT_ROWS_MAX rows every other sample is dropped and the keeping stride doubles)."""
+        if trial == 0:
+            if self._unit_seen % self._unit_stride == 0:
+                self._unit_samples.append(rows)
+                if len(self._unit_samples) * len(rows) >= self._unit_cap:
+                    del self._unit_samples[1::2]
+                    self._unit_stride *= 2
+            self._unit_seen += 1
+        if self._units:
+            self._units.write("".join(",".join(f"{x:.6g}" for x in row) + "\n" for row in rows))
+
+    @property
+    def unit_rows(self) -> list[list[float]]:
+        """Trial 0's units.csv rows kept in memory (every sample unless UNIT_ROWS_MAX was passed)."""
+        return [row for sample in self._unit_samples for row in sample]
+
     def new_trial(self) -> None:
         self._next_rotor_t = 0.0
 
     def flush(self) -> None:
-        for f in (self._tel, self._rot):
+        for f in (self._tel, self._rot, self._units):
             if f:
                 f.flush()
 
     def close(self) -> None:
-        for f in (self._tel, self._rot):
+        for f in (self._tel, self._rot, self._units):
             if f:
                 f.close()
                 self._closed.append(f.status())
-        self._tel = self._rot = None
+        self._tel = self._rot = self._units = None
+
+    def discard(self) -> None:
+        """Close and remove the files (a run refused before it flew leaves no run directory)."""
+        self.close()
+        self._closed.clear()
+        if self.out_dir is not None:
+            for name in ("telemetry.csv", "rotors.csv", "units.csv"):
+                (self.out_dir / name).unlink(missing_ok=True)
 
     def add_closed_logs(self, statuses: list[dict]) -> None:
         """Other logs of the run, closed (e.g. the units' .ulg: mars_link.logs): `status()` accounts for them."""
@@ -118,7 +159,7 @@ class RunLog:
 
     def status(self) -> dict:
         """summary.json "logging": whether the time series were written whole, and why not."""
-        files = [f.status() for f in (self._tel, self._rot) if f is not None] + list(self._closed)
+        files = [f.status() for f in (self._tel, self._rot, self._units) if f is not None] + list(self._closed)
         reason = next((f["stopped_reason"] for f in files if f["stopped_reason"]), None)
         return {"complete": reason is None, "stopped_reason": reason, "files": files}
 

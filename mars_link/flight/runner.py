@@ -12,9 +12,11 @@ from pathlib import Path
 from typing import Callable
 
 
+from mars_link.core.errors import UserInputError
 from mars_link.flight.build import build_flight
-from mars_link.flight.engine import Engine, FlightRecorder
+from mars_link.flight.engine import Engine, Flight
 from mars_link.flight.metrics import TrialResult, detection_rows, summarize
+from mars_link.flight.recorder import FlightRecorder
 from mars_link.logs.outputs import write_json
 from mars_link.runtime.pacing import Pacer
 from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
@@ -34,7 +36,8 @@ def run_trial(
     ulog_dir: Path | None = None,
     tlog_dir: Path | None = None,
 ) -> TrialResult:
-    """One flight through the engine (mars_link.flight.engine): world, units and coordinator by direct calls.
+    """One flight through the engine (mars_link.flight.engine): world, units and coordinator by direct calls;
+    one body or several (a free start, a reconfiguration), the same way.
 
     `unit_deaths` (unit -> time): that unit's process dies then (no more telemetry, motors stop); the
     coordinator, not told, declares it lost after `UNIT_TIMEOUT_PERIODS` silent control periods.
@@ -42,8 +45,12 @@ def run_trial(
     `view` (flight_view.FlightView, or a callable flight -> one): run.mcap and/or the live Foxglove view.
     `ulog_dir`: each unit writes unit<id>.ulg there (trial i > 0: unit<id>_trial<i>.ulg; mars_link.logs).
     `tlog_dir`: each unit's MAVLink exchange with the coordinator as unit<id>.tlog (mars_link.flight.unit_tlogs).
+    `log` None: no files; the time series kept in memory for the result (bounded, as run_log.PLOT_ROWS_MAX).
     """
     flight = build_flight(scenario, seed, unit_deaths)
+    if log is None:
+        log = RunLog(None, flight.model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ),
+                     plot_rows_max=PLOT_ROWS_MAX)
     if ulog_dir is not None:
         from firmware_models.vehicle_ulog import attach_ulogs
 
@@ -72,19 +79,16 @@ def run_trial(
             from firmware_models.vehicle_ulog import close_ulogs
 
             ulogs = close_ulogs(flight.units.vehicles)
-            if log is not None:
-                log.add_closed_logs(ulogs)
+            log.add_closed_logs(ulogs)
         if tlogs is not None:
             statuses = tlogs.close()
-            if log is not None:
-                log.add_closed_logs(statuses)
+            log.add_closed_logs(statuses)
         if view is not None:
             view.finish(engine)
             mcap = view.status()
-            if log is not None and mcap is not None and mcap["stopped_reason"]:  # a full disk stopped run.mcap
+            if mcap is not None and mcap["stopped_reason"]:  # a full disk stopped run.mcap
                 log.add_closed_logs([mcap])
-        if log is not None:
-            log.flush()
+        log.flush()
     result = trial_result(flight, engine, recorder, seed, time.perf_counter() - wall0, unit_deaths,
                           interrupted=interrupted)
     if interrupted is not None:
@@ -92,20 +96,32 @@ def run_trial(
     return result
 
 
-def trial_result(flight, engine: Engine, recorder: FlightRecorder, seed: int, wall_s: float,
+def trial_result(flight: Flight, engine: Engine, recorder: FlightRecorder, seed: int, wall_s: float,
                  unit_deaths: dict[int, float] | None = None, events: list[dict] | None = None,
                  interrupted: KeyboardInterrupt | None = None) -> TrialResult:
-    """A flown flight's figures, from its recorder's metrics and the world: one function for every way of
-    flying (`run`, `vehicle --out`). `events`: the run's event records (default: the engine's and the
-    coordinator's); `interrupted`: the signal that ended it early."""
-    world, metrics = flight.world, recorder.metrics
+    """A flown flight's figures, from its recorder and the world: one function for every way of flying
+    (`run`, `vehicle --out`, sweeps), one body or several. `events`: the run's event records (default: the
+    engine's, the coordinator's, its executor's and the world's latched docks); `interrupted`: the signal
+    that ended it early."""
+    world, metrics, coord = flight.world, recorder.metrics, recorder.coordinator
+    executor = coord.executor
     if events is None:
-        events = engine.events + flight.coordinator.events
+        events = (engine.events + coord.events + executor.events
+                  + [e for e in world.latch_events if e["type"] == "dock_latched"])
+    events = sorted(events, key=lambda e: e["t_s"])
+    t = world.t_s
     end_reason = None
     if metrics.diverged:
-        end_reason = f"diverged at {world.t_s:.2f} s"
+        end_reason = f"diverged at {t:.2f} s"
+    elif recorder.failed:
+        end_reason = f"reconfiguration failed at {t:.2f} s"
     elif interrupted is not None:
-        end_reason = f"interrupted by {_signal_name(interrupted)} at {world.t_s:.2f} s"
+        end_reason = f"interrupted by {_signal_name(interrupted)} at {t:.2f} s"
+    kinds = [e["type"] for e in events]
+    reconfigured = "reconfig_done" in kinds
+    begun = next((e["t_s"] for e in events if e["type"] == "reconfig_start"), None)
+    plan = executor.plan
+    log = recorder.log
     return TrialResult(
         seed=seed,
         completed=end_reason is None,
@@ -114,15 +130,26 @@ def trial_result(flight, engine: Engine, recorder: FlightRecorder, seed: int, wa
         mean_error_m=metrics.mean_error_m,
         rmse_m=metrics.rmse_m,
         max_error_m=metrics.max_error_m,
-        sim_time_s=world.t_s,
+        sim_time_s=t,
         wall_time_s=wall_s,
         force_integral_n2s=world.force_integral_n2s,
         max_tilt_deg=metrics.max_tilt_deg,
-        events=sorted(events, key=lambda e: e["t_s"]),
+        events=events,
         stage_time_s=engine.stage_time_s,
         physics_steps=world.exchange_index * world.substeps,
         control_steps=metrics.n,
-        detections=detection_rows(flight.coordinator.detections, flight.faults, unit_deaths),
+        detections=detection_rows(coord.detections, flight.faults, unit_deaths),
+        reconfigured=reconfigured,
+        reconfig_time_s=executor.shift_s if reconfigured else (t - begun if begun is not None else 0.0),
+        plan=plan.to_json() if plan.disassembly_layers or plan.assembly_layers else None,
+        assembled="assembly_done" in kinds,
+        min_clearance_m=recorder.min_clearance_m,
+        pieces_final=coord.pieces_final(),
+        mission_force_integral_n2s=recorder.mission_force_integral_n2s,
+        units_lost=[recorder.units_lost[u] for u in sorted(recorder.units_lost)],
+        unit_rows=log.unit_rows if log is not None and recorder.trial_index == 0 else [],  # (the log keeps trial 0's)
+        telemetry_rows=log.telemetry_rows if log is not None and recorder.trial_index == 0 else [],
+        logging=None if log is None else log.status(),
     )
 
 
@@ -180,16 +207,20 @@ def run_scenario(
                 results.append(exc.result)
                 interrupted = exc.cause
                 break
+            except UserInputError:  # refused before the flight (e.g. a flight of pieces' checks): no run directory
+                if out_dir is not None and not results:
+                    log.discard()
+                    (out_dir / "summary.json").unlink(missing_ok=True)
+                raise
             if on_progress is not None:
                 on_progress(i, 1.0)
     finally:
         log.close()
     summary = summarize(scenario, results, seed)
     if out_dir is not None and plots and interrupted is None:
-        from mars_link.flight.plots import write_run_plots
+        from mars_link.flight.plots import write_flight_plots
 
-        write_plots_safely(log, lambda: write_run_plots(out_dir, log.telemetry_rows, log.rotor_rows, scenario.model(),
-                                                        scenario.name, summary["events"], plot_format))
+        write_plots_safely(log, lambda: write_flight_plots(out_dir, log, scenario, summary["events"], plot_format))
     summary["logging"] = log.status()
     if out_dir is not None:
         write_summary(out_dir, summary)
@@ -256,9 +287,8 @@ def _view_maker(scenario: Scenario, out_dir: Path | None, live, name: str):
         return None
 
     def make(flight):
-        from mars_link.flight.flight_view import open_view
+        from mars_link.flight.flight_view import flight_view
 
-        return open_view(out_dir, flight.model, scenario, scenario.sim.control_hz, flight.trajectory,
-                         flight.duration_s, live, scenario.tracked_unit(), name=name)
+        return flight_view(flight, out_dir, live, name)
 
     return make

@@ -288,13 +288,13 @@ def vehicle_command(args: argparse.Namespace) -> int:
 
 
 class _VehicleRecord:
-    """`vehicle --out`: what `run` writes (telemetry.csv, rotors.csv, summary.json, plots/), from the same
-    recorder observing the vehicle's engine. The error is the tracked point's against the vehicle's own
-    setpoints; steps on the ground (the coordinator idle) are not recorded; a divergence is reported,
-    it does not stop a vehicle a client flies."""
+    """`vehicle --out`: what `run` writes (telemetry.csv, rotors.csv, units.csv, summary.json, plots/), from
+    the same recorder observing the vehicle's engine, one body or several. The error is the tracked point's
+    against the reference its coordinator flies (the vehicle's own setpoints); steps on the ground (the
+    coordinator idle) are not recorded; a divergence is reported, it does not stop a vehicle a client flies."""
 
     def __init__(self, sim: AssemblySim, out: Path) -> None:
-        from mars_link.flight.engine import FlightRecorder
+        from mars_link.flight.recorder import FlightRecorder
         from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
 
         s = sim.scenario
@@ -306,67 +306,31 @@ class _VehicleRecord:
 
     def finish(self, sim: AssemblySim, wall_s: float, plot_format: str) -> dict:
         from mars_link.flight.metrics import summarize
-        from mars_link.flight.runner import trial_result
+        from mars_link.flight.runner import trial_result, write_plots_safely
         from mars_link.logs.outputs import write_json
 
         self.log.close()
-        events = [e for events in sim.event_lists() for e in events]
-        result = trial_result(sim.engine.flight, sim.engine, self.recorder, sim.scenario.sim.seed, wall_s,
-                              events=events + sim.engine.events)
+        flight, engine = sim.engine.flight, sim.engine
+        latched = [e for e in flight.world.latch_events if e["type"] == "dock_latched"]
+        events = [e for events in sim.event_lists() for e in events] + engine.events + latched
+        result = trial_result(flight, engine, self.recorder, sim.scenario.sim.seed, wall_s, events=events)
         summary = summarize(sim.scenario, [result], sim.scenario.sim.seed, mode="vehicle")
         summary["completed"] = not result.diverged  # (a vehicle flies until stopped: stopping is its end)
-        summary["logging"] = self.log.status()
-        write_json(self.out / "summary.json", summary)
-        if self.log.telemetry_rows:
-            from mars_link.flight.plots import write_run_plots
-
-            write_run_plots(self.out, self.log.telemetry_rows, self.log.rotor_rows, sim.model, sim.scenario.name,
-                            summary["events"], plot_format)
-        return summary
-
-
-class _PiecesVehicleRecord:
-    """`vehicle --out` of a scenario of pieces: what `run` writes for one (summary.json, telemetry.csv,
-    units.csv, plots/), from the same recorder observing the vehicle's engine. A divergence is reported
-    and ends the record, not the vehicle a client flies."""
-
-    def __init__(self, sim, out: Path) -> None:
-        from mars_link.flight.reconfig_flight import ReconfigRecorder
-
-        self.recorder = ReconfigRecorder(sim.engine.flight, out)
-        self.out = out
-        self.ended = False
-        sim.engine.observers.append(self)
-
-    def on_step(self, engine, view) -> bool:
-        if not self.ended:
-            self.ended = self.recorder.on_step(engine, view)
-        return False
-
-    def finish(self, sim, wall_s: float, plot_format: str) -> dict:
-        from mars_link.flight.reconfig_flight import reconfig_result, reconfig_summary, write_reconfig_plots
-        from mars_link.logs.outputs import write_json
-
-        self.recorder.close()
-        r = reconfig_result(sim.engine.flight, sim.engine, self.recorder, sim.scenario.sim.seed, wall_s,
-                            f"diverged at {self.recorder.metrics.divergence['t_s']:.2f} s"
-                            if self.recorder.metrics.diverged else None)
-        r.events = sorted(r.events + sim.events, key=lambda e: e["t_s"])  # (+ faults, scenario and MAVLink)
-        summary = reconfig_summary(sim.scenario, r, sim.scenario.sim.seed, mode="vehicle")
-        if self.recorder.metrics.n == 0:  # (no mission of the executor flew: no tracking figures, as docked)
+        if self.recorder.metrics.n == 0:  # (it never flew a mission step: no tracking figures, never a clean 0 m)
             for key in ("mean_error_m", "mean_error_std_m", "rmse_m", "max_error_m"):
                 summary[key] = None
-            summary["per_trial"][0].update(mean_error_m=None, mean_error_std_m=None, rmse_m=None, max_error_m=None)
+            summary["per_trial"][0].update(mean_error_m=None, rmse_m=None, max_error_m=None)
+        summary["logging"] = self.log.status()
         write_json(self.out / "summary.json", summary)
-        try:
-            write_reconfig_plots(self.out, r, sim.scenario.name, plot_format)
-        except OSError as exc:  # (a full disk: one line; the summary is written)
-            print(f"mars-link: plots: {exc.strerror or exc} (logging stopped)", file=sys.stderr)
+        from mars_link.flight.plots import write_flight_plots
+
+        write_plots_safely(self.log, lambda: write_flight_plots(self.out, self.log, sim.scenario, summary["events"],
+                                                                plot_format))
         return summary
 
 
-def _attach_record(sim: AssemblySim, out: Path) -> _VehicleRecord | _PiecesVehicleRecord:
-    return _PiecesVehicleRecord(sim, out) if sim.scenario.has_pieces else _VehicleRecord(sim, out)
+def _attach_record(sim: AssemblySim, out: Path) -> _VehicleRecord:
+    return _VehicleRecord(sim, out)
 
 
 def _attach_view(sim: AssemblySim, out: Path | None, live: str | None):

@@ -495,8 +495,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     from mars_link.flight.build import make_trajectory, tracked_offset
     from mars_link.flight.metrics import TrackingMetrics, TrialResult, summarize
     from mars_link.core.rotations import quat_to_euler, quat_to_rotmat
-    from mars_link.logs.outputs import write_json
-    from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
+    from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, UNIT_LOG_HZ, RunLog
 
     from mars_link.core.rotations import tilt_deg
 
@@ -510,7 +509,9 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX)
     metrics = TrackingMetrics()
     events = []
-    nan3 = [math.nan] * 3
+    nan3 = [math.nan] * 3  # (the world's truth log has the body's pose only: no estimate, no unit velocities)
+    unit_offsets = np.array([model.unit_position(u) for u in model.unit_ids])
+    next_unit_t = 0.0
     try:
         for row in truth:
             t = float(row["t_s"])
@@ -526,7 +527,13 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
                 metrics.n += 1
                 metrics.max_tilt_deg = max(metrics.max_tilt_deg, tilt_deg(q))
             log.telemetry([0, t, *ref, *tracked, math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
-                           *nan3, *nan3, *pos])
+                           *nan3, *nan3, *pos, t, 1])
+            if t + 1e-9 >= next_unit_t:  # units.csv: every unit's centre on the one body, at 20 Hz
+                next_unit_t = t + 1.0 / UNIT_LOG_HZ
+                centres = (pos + unit_offsets @ quat_to_rotmat(q).T).tolist()
+                attitude = [math.degrees(roll), math.degrees(pitch), math.degrees(yaw)]
+                log.units(0, [[t, u, *centres[k], *nan3, *attitude, len(unit_offsets)]
+                              for k, u in enumerate(model.unit_ids)])
             if metrics.diverged:
                 events.append(metrics.divergence)
                 break
@@ -624,11 +631,12 @@ def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
 def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec,
                               realtime: bool = False, plots: bool = True, plot_format: str = "png",
                               failure: str | None = None) -> dict:
-    """The summary of a flight of pieces in SITL, with the in-process keys (mars_link.flight.reconfig_flight): the
+    """The summary of a flight of pieces in SITL, with the in-process keys (mars_link.flight.metrics.summarize): the
     tracked point's error while the mission flies, from the world's per-unit truth and the coordinator's
     per-step record of the mission (its clock, reference and the units carrying the tracked point)."""
-    from mars_link.flight.metrics import DIVERGENCE_ERROR_M, TrackingMetrics
-    from mars_link.flight.reconfig_flight import plan_records, units_lost_from_truth
+    from mars_link.flight.metrics import DIVERGENCE_ERROR_M, TrackingMetrics, plan_records
+    from mars_link.flight.run_log import ROTOR_LOG_HZ, UNIT_LOG_HZ, RunLog
+    from mars_link.flight.recorder import units_lost_from_truth
     from mars_link.logs.outputs import write_json
 
     world = _read_json(out / "world_summary.json")
@@ -643,9 +651,9 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
                                          [int(u) for u in tracked_units.split()], int(n_pieces))
     tracked_unit = scenario.tracked_unit()
     metrics = TrackingMetrics()
-    telemetry_rows = []
-    with open(out / "telemetry.csv", "w", encoding="utf-8") as tel:
-        tel.write("t_s,mission_t_s,ref_n_m,ref_e_m,ref_d_m,pos_n_m,pos_e_m,pos_d_m,error_m,pieces\n")
+    log = RunLog(out, scenario.model(), rotor_log_hz=ROTOR_LOG_HZ)  # (telemetry.csv as in process; units.csv below)
+    nan3 = [math.nan] * 3
+    try:
         for row in truth:
             step = steps.get(round(float(row["t_s"]), 6))
             if step is None or not step[0]:
@@ -658,9 +666,14 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
             metrics.add_error(err)
             if not err < DIVERGENCE_ERROR_M:
                 metrics.mark_diverged(float(row["t_s"]), err, math.nan, phase="mission")
-            values = (float(row["t_s"]), mission_t, *ref, *pos, err, n_pieces)
-            tel.write(",".join(f"{x:.6g}" for x in values) + "\n")
-            telemetry_rows.append(values)
+            log.telemetry([0, float(row["t_s"]), *ref, *pos, *nan3, err, *nan3, *nan3, *nan3, mission_t, n_pieces])
+        every = max(1, int(round(scenario.sim.control_hz / UNIT_LOG_HZ)))
+        unit_ids = sorted(int(name[1:-4]) for name in truth.dtype.names if name.startswith("u") and name.endswith("_n_m"))
+        for row in truth[::every]:  # (the world logs positions: velocity and attitude are not in units.csv here)
+            log.units(0, [[float(row["t_s"]), u, row[f"u{u}_n_m"], row[f"u{u}_e_m"], row[f"u{u}_d_m"], *nan3, *nan3,
+                           math.nan] for u in unit_ids])
+    finally:
+        log.close()
     faults = [event(f.t_s, EventKind.FAULT, unit=f.unit, rotor=f.rotor, eta=f.eta, text=f.event_text())
               for f in scenario.faults]
     deaths = [unit_died(d["t_s"], d["unit"]) for d in world.get("deaths", [])]
@@ -698,16 +711,9 @@ def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, lin
     }
     write_json(out / "summary.json", summary)
     if plots:  # the in-process flight's figures, from the world's truth of every unit (20 Hz) and the events
-        from types import SimpleNamespace
+        from mars_link.flight.plots import write_pieces_plots
 
-        from mars_link.flight.reconfig_flight import write_reconfig_plots
-
-        every = max(1, int(round(scenario.sim.control_hz / 20.0)))
-        unit_ids = sorted(int(name[1:-4]) for name in truth.dtype.names if name.startswith("u") and name.endswith("_n_m"))
-        unit_rows = [(float(row["t_s"]), u, row[f"u{u}_n_m"], row[f"u{u}_e_m"], row[f"u{u}_d_m"])
-                     for row in truth[::every] for u in unit_ids]
-        write_reconfig_plots(out, SimpleNamespace(unit_rows=unit_rows, events=events, telemetry_rows=telemetry_rows),
-                             scenario.name, plot_format)
+        write_pieces_plots(out, log.unit_rows, log.telemetry_rows, events, scenario.name, plot_format)
     return summary
 
 

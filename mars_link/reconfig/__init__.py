@@ -4,7 +4,7 @@ Pipeline: `solve_placement` (which unit goes where, given rotor health and traje
 -> `plan_reconfiguration` (fewest disassembly layers that keep every piece flyable, then the
 docking layers; infinite-cost fallback with bound blocks) -> `build_configuration_tree` (plans
 precomputed per fault sequence). In flight: `execution.Executor` turns a plan into timed per-piece
-references and split/dock requests; `flight.run_reconfig_scenario` flies it with one JSBSim body,
+references and split/dock requests; `flight.runner.run_scenario` flies it with one JSBSim body,
 controller and coordinator per piece (splits and docks by sitl/docking.py, momentum kept).
 
 Rotor numbers are mars-link's everywhere (1..4 = FR, FL, RL, RR). Paper 001 numbers rotors

@@ -1,6 +1,6 @@
 """What a flight of pieces plans: the reconfiguration for its faults, a commanded separation, where free
 units rest, and the checks made before flight. `mars_link.flight.build` puts the executor and the flight
-together (`make_executor`, `build_flight`); `mars_link.flight.reconfig_flight` writes its outputs.
+together (`make_executor`, `build_flight`); `mars_link.flight.runner` flies it and `mars_link.flight.recorder` records it.
 """
 
 from __future__ import annotations

@@ -57,11 +57,6 @@ def test_flights_record_only_known_kinds(tmp_path: Path, name: str, duration_s: 
     sc = load_scenario(name)
     if duration_s is not None:
         sc.sim.duration_s = duration_s
-    if sc.has_pieces:
-        from mars_link.flight.reconfig_flight import run_reconfig_scenario
-
-        summary = run_reconfig_scenario(sc, tmp_path, plots=False, mcap=False)
-    else:
-        summary = run_scenario(sc, tmp_path, plots=False, mcap=False)
+    summary = run_scenario(sc, tmp_path, plots=False, mcap=False)
     assert summary["events"] and not unknown_kinds(summary["events"])
     assert all({"t_s", "type"} <= set(e) for e in summary["events"])

@@ -8,7 +8,8 @@ import pytest
 
 from firmware_models.vehicle import MODE_OFFBOARD
 from mars_link.flight.build import build_flight
-from mars_link.flight.engine import Engine, FlightRecorder
+from mars_link.flight.engine import Engine
+from mars_link.flight.recorder import FlightRecorder
 from mars_link.core.messages import RotorCommand
 from mars_link.runtime.pacing import Pacer
 from mars_link.flight.runner import run_trial

@@ -11,9 +11,9 @@ import pytest
 
 import sitl.world
 from mars_link.flight.build import build_flight
-from mars_link.flight.engine import Engine, FlightRecorder, InProcessUnits
+from mars_link.flight.engine import Engine, InProcessUnits
+from mars_link.flight.recorder import FlightRecorder
 from mars_link.core.messages import RotorCommand
-from mars_link.flight.reconfig_flight import run_reconfig_trial
 from mars_link.flight.runner import run_trial
 from mars_link.config.scenario import FaultSpec, load_scenario
 
@@ -86,7 +86,7 @@ def test_batched_units_fly_a_separation_and_redock_exactly_as_one_by_one(monkeyp
     sc.trajectory["duration_s"] = 16.0
 
     def fly():
-        return run_reconfig_trial(sc, 2)
+        return run_trial(sc, 2)
 
     (a, ra), (b, rb) = _both_ways(monkeypatch, fly)
     _assert_same_setpoints(a, b)

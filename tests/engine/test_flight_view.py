@@ -136,11 +136,11 @@ def test_default_scenario_run_mcap(tmp_path):
 
 def test_reconfiguration_flight_mcap(tmp_path):
     """A reconfiguration flight (paper 000's docking scenario, shortened): bodies split and dock in /tf."""
-    from mars_link.flight.reconfig_flight import run_reconfig_scenario
+    from mars_link.flight.runner import run_scenario
     from test_reconfig_flight import docking
 
     out = tmp_path / "reconfig"
-    summary = run_reconfig_scenario(docking("qp"), out)
+    summary = run_scenario(docking("qp"), out)
     assert summary["reconfigured"]
     topics = read_mcap(out / "run.mcap")
     assert set(topics) == set(SCHEMAS)

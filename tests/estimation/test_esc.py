@@ -15,7 +15,8 @@ from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel, vehicle_pres
 from mars_link.core.errors import UserInputError
 from mars_link.core.messages import EscSample
 from mars_link.flight.build import build_flight
-from mars_link.flight.engine import Engine, FlightRecorder
+from mars_link.flight.engine import Engine
+from mars_link.flight.recorder import FlightRecorder
 from mars_link.mavlink import codec
 from mars_link.mavlink.esc_status import esc_from_message, esc_status_message
 from mars_link.models.esc import EscParams, EscSensor, MotorConstants

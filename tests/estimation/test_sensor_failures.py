@@ -19,7 +19,8 @@ from firmware_models.vehicle import LINK_API, LINK_COORDINATOR, LINK_HIL, Vehicl
 from firmware_models.vehicle_streams import SENSOR_BITS
 from mars_link.vehicles.assembly_vehicle import AssemblySim
 from mars_link.flight.build import build_flight
-from mars_link.flight.engine import Engine, FlightRecorder
+from mars_link.flight.engine import Engine
+from mars_link.flight.recorder import FlightRecorder
 from mars_link.core.messages import SensorPacket
 from mars_link.config.scenario import load_scenario
 from mars_link.config.scenario_sensor_faults import SensorFaultSpec

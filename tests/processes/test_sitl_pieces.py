@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from mars_link.flight.report import print_summary
-from mars_link.flight.reconfig_flight import run_reconfig_trial
+from mars_link.flight.runner import run_trial
 from mars_link.config.scenario import load_scenario
 from mars_link.processes.sitl_mode import run_sitl_scenario
 from mars_link.transport import LinkSpec
@@ -29,7 +29,7 @@ def _fly_both(name: str, out: Path) -> tuple[dict, object]:
     if sc.faults:  # --mode sitl finds faults unless the file says they are told: the same in-process
         sc = dataclasses.replace(sc, faults_known=False)
     sitl = run_sitl_scenario(sc, out, link=LinkSpec("zenoh"), timeout_s=900)
-    return sitl, run_reconfig_trial(sc, sc.sim.seed)
+    return sitl, run_trial(sc, sc.sim.seed)
 
 
 def _assert_same_flight(sitl: dict, inproc, out: Path, lost_bodies: tuple = ()) -> None:
@@ -106,7 +106,7 @@ def test_a_unit_lost_during_a_dock_approach_inproc_the_structure_replans_without
     pieces there are (paper 001's placement on the 3x2's cells with one to spare: unit 2, alone, takes unit
     3's corner and leaves the middle of the front row empty, the larger lever arm), the five units assemble
     and fly the spiral."""
-    r = run_reconfig_trial(load_scenario("assemble_3x2"), 1, unit_deaths={3: 12.0})
+    r = run_trial(load_scenario("assemble_3x2"), 1, unit_deaths={3: 12.0})
     assert r.completed and not r.diverged and r.assembled
     kinds = [e["type"] for e in r.events]
     assert kinds.index("unit_lost") < kinds.index("assembly_replanned") < kinds.index("assembly_done")

@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 
 from mars_link.core.assembly import AssemblyModel
-from mars_link.flight.reconfig_flight import run_reconfig_trial
+from mars_link.flight.run_log import TELEMETRY_COLUMNS
+from mars_link.flight.runner import run_trial
 from mars_link.reconfig.sequencing import plan_assembly
 from mars_link.core.rotations import euler_to_quat
-from mars_link.flight.runner import run_trial
 from mars_link.config.scenario import load_scenario
 from mars_link.core.state import RigidBodyState
 from sitl.docking import momentum
@@ -79,7 +79,7 @@ def test_six_free_units_assemble_into_the_3x2_and_fly_the_spiral() -> None:
     error is within 1.2x of the docked 3x2's on the same spiral. Sensor noise on: every piece flies on
     its own EKF; a dock hands the stationary piece's estimate, moved to the new CoM, to the new piece."""
     scenario = load_scenario("assemble_3x2")
-    r = run_reconfig_trial(scenario, 1)
+    r = run_trial(scenario, 1)
     assert r.completed and not r.diverged and r.assembled
     assert r.pieces_final == [{"layout": ["XXX", "XXX"], "units": [1, 2, 3, 4, 5, 6]}]
     docks = [e for e in r.events if e["type"] == "dock"]
@@ -133,7 +133,7 @@ def test_assemble_then_a_fault_found_in_flight_reconfigures_and_the_spiral_resum
     """assemble_fault_reconfig: six free units assemble into the 3x2 and fly the spiral; unit 1 loses three
     rotors at t = 70 s and nobody tells the coordinator. Its detector finds them, it plans from what it
     found, splits, moves the pieces, docks, and the spiral resumes at the mission time where it paused."""
-    r = run_reconfig_trial(load_scenario("assemble_fault_reconfig"), 1)
+    r = run_trial(load_scenario("assemble_fault_reconfig"), 1)
     assert r.completed and not r.diverged and r.assembled and r.reconfigured
     found = [e for e in r.events if e["type"] == "fault_detected"]
     assert sorted((e["unit"], e["rotor"]) for e in found) == [(1, 1), (1, 3), (1, 4)]
@@ -145,9 +145,9 @@ def test_assemble_then_a_fault_found_in_flight_reconfigures_and_the_spiral_resum
     (final,) = r.pieces_final
     assert final["layout"] == ["XXX", "XXX"] and sorted(final["units"]) == [1, 2, 3, 4, 5, 6]
     assert final["units"] != [1, 2, 3, 4, 5, 6]  # the faulty unit moved
-    tel = np.array(r.telemetry_rows)  # t, mission t, ...: the mission clock stands still over the manoeuvre
+    tel = np.array(r.telemetry_rows)  # the mission clock stands still over the manoeuvre
+    t, mission_t = tel[:, TELEMETRY_COLUMNS.index("t_s")], tel[:, TELEMETRY_COLUMNS.index("mission_t_s")]
     start = next(e["t_s"] for e in r.events if e["type"] == "reconfig_start")
-    before = tel[tel[:, 0] <= start + 1e-9][-1]
-    after = tel[tel[:, 0] > start][0]
-    assert after[1] - before[1] < 0.05 and after[0] - before[0] > 10.0
+    before, after = np.flatnonzero(t <= start + 1e-9)[-1], np.flatnonzero(t > start)[0]
+    assert mission_t[after] - mission_t[before] < 0.05 and t[after] - t[before] > 10.0
     assert r.mean_error_m < 0.02 and math.isfinite(r.min_clearance_m)

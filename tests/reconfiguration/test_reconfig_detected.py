@@ -13,7 +13,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tools"))
 
 from reconfig_detect_eval import FAULT_T_S, detected_scenario, fly  # noqa: E402
 
-from mars_link.flight.reconfig_flight import run_reconfig_trial  # noqa: E402
+from mars_link.flight.runner import run_trial  # noqa: E402
 
 PLUS = [".X.", "XXX", ".X."]
 
@@ -36,7 +36,7 @@ def test_plus5_six_faults_found_and_the_rebuild_on_the_ground_turned_off_the_coo
     with the rebuild on the ground turned off (`[reconfig] ground = false`) the coordinator says so (an
     event) and flies on with FTC."""
     sc = detected_scenario(PLUS, 6, True)
-    r = run_reconfig_trial(dataclasses.replace(sc, reconfig={**sc.reconfig, "ground": False}), 1)
+    r = run_trial(dataclasses.replace(sc, reconfig={**sc.reconfig, "ground": False}), 1)
     assert r.completed and not r.reconfigured and not r.diverged
     found = [e for e in r.events if e["type"] == "fault_detected"]
     assert found and found[0]["t_s"] - FAULT_T_S < 0.5
@@ -100,7 +100,7 @@ def test_a_second_fault_set_is_planned_from_the_structure_the_first_manoeuvre_le
 
     from reconfig_eval import CASES, paper_faults, scenario
 
-    from mars_link.flight.reconfig_flight import run_reconfig_trial
+    from mars_link.flight.runner import run_trial
     from mars_link.config.scenario import FaultSpec
 
     _, layout, _ = CASES[3]
@@ -108,7 +108,7 @@ def test_a_second_fault_set_is_planned_from_the_structure_the_first_manoeuvre_le
     faults += [FaultSpec(12, r, 0.0, 45.0) for r in (1, 3, 4)]
     sc = scenario(layout, faults, "qp", {"enabled": True})
     sc = dataclasses.replace(sc, faults_known=False, sim=dataclasses.replace(sc.sim, noise=True))
-    r = run_reconfig_trial(sc, 1)
+    r = run_trial(sc, 1)
     assert r.completed and not r.diverged
     kinds = [e["type"] for e in r.events]
     assert kinds.count("reconfig_done") == 2 and kinds.count("plan") == 2

@@ -1,4 +1,4 @@
-"""Reconfiguration executed in flight (mars_link/flight/reconfig_flight.py): several JSBSim bodies, split and
+"""Reconfiguration executed in flight (mars_link/flight/recorder.py): several JSBSim bodies, split and
 docked, FTC on every piece; paper 000's docking scenario; `mars-link run` dispatch and bad input."""
 
 from __future__ import annotations
@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from mars_link.flight.build import make_trajectory
-from mars_link.flight.reconfig_flight import run_reconfig_trial
+from mars_link.flight.run_log import TELEMETRY_COLUMNS
+from mars_link.flight.runner import run_trial
 from mars_link.reconfig.plans import make_plan, unhoverable_pieces
 from mars_link.config.scenario import eta_after
 from mars_link.config.scenario import load_scenario, scenario_from_dict
@@ -41,8 +42,8 @@ def yaw_deviation_deg(result, unit: int = 3) -> float:
 
 
 def test_docking_scenario_faulty_unit_yaw_ours_vs_baseline():
-    ours = run_reconfig_trial(docking("qp"), 1)
-    base = run_reconfig_trial(docking("none"), 1)
+    ours = run_trial(docking("qp"), 1)
+    base = run_trial(docking("none"), 1)
     for r in (ours, base):
         kinds = [e["type"] for e in r.events]
         assert r.completed and r.reconfigured, r.events
@@ -59,12 +60,12 @@ def test_docking_scenario_faulty_unit_yaw_ours_vs_baseline():
     assert yaw_deviation_deg(ours) <= 1.0
     assert yaw_deviation_deg(base) > 1.0 > yaw_deviation_deg(ours)
     # back on the mission after the manoeuvre: the whole 3x1 holds the hover point again
-    assert ours.telemetry_rows[-1][8] < 0.05
+    assert ours.telemetry_rows[-1][TELEMETRY_COLUMNS.index("error_m")] < 0.05
 
 
 def test_unit_one_really_flew_round():
     """Unit 1 leaves its row, flies at its own altitude to the far side and comes back down."""
-    r = run_reconfig_trial(docking("qp"), 1)
+    r = run_trial(docking("qp"), 1)
     u1 = np.array([row for row in r.unit_rows if int(row[1]) == 1])
     u3 = np.array([row for row in r.unit_rows if int(row[1]) == 3])
     assert u1[:, 3].min() < u3[0, 3] - 0.7 and u1[-1, 3] > u3[-1, 3] + 0.3  # east: from the left to the right
@@ -161,8 +162,8 @@ def test_unit_sets_are_written_as_ranges():
 def test_a_flight_of_pieces_paced_by_the_engine_flies_the_same_in_the_wall_clock_it_asks_for():
     """Pacing is a parameter of the one engine: docking_3x1 at 5x real time takes sim time / 5 of wall time
     and gives the flight it gives unpaced (same events, same error)."""
-    fast = run_reconfig_trial(docking("qp"), 1)
-    paced = run_reconfig_trial(docking("qp"), 1, realtime_rate=5.0)
+    fast = run_trial(docking("qp"), 1)
+    paced = run_trial(docking("qp"), 1, realtime_rate=5.0)
     assert [(e["t_s"], e["type"]) for e in paced.events] == [(e["t_s"], e["type"]) for e in fast.events]
     assert paced.mean_error_m == fast.mean_error_m
     assert paced.wall_time_s >= 0.97 * paced.sim_time_s / 5.0

@@ -18,7 +18,7 @@ from reconfig_eval import paper_faults, scenario  # noqa: E402
 
 from mars_link.allocation import hover_thrust_share  # noqa: E402
 from mars_link.reconfig.piece_shape import PieceShape, local_eta  # noqa: E402
-from mars_link.flight.reconfig_flight import run_reconfig_trial  # noqa: E402
+from mars_link.flight.runner import run_trial  # noqa: E402
 from mars_link.reconfig.moves import (  # noqa: E402
     HoverCosts, best_ground_moves, best_moves, docks, ground_plan, moves, slots, splits)
 from mars_link.reconfig.placement import nominal_cells  # noqa: E402
@@ -81,7 +81,7 @@ def test_plus5_six_faults_no_piece_can_move():
 def test_plus5_three_faults_found_in_flight_the_coordinator_flies_one_move_and_saves_force():
     """Faults hit at 5 s, found by the detector (not told), noise on: paper 001's plan has nothing to fly,
     so the coordinator moves one healthy unit; the mission after it needs less force and tracks no worse."""
-    runs = {which: run_reconfig_trial(detected_scenario(PLUS, 3, which == "R"), 1) for which in ("NR", "R")}
+    runs = {which: run_trial(detected_scenario(PLUS, 3, which == "R"), 1) for which in ("NR", "R")}
     nr, r = runs["NR"], runs["R"]
     assert not nr.reconfigured and r.reconfigured
     assert not (nr.diverged or r.diverged) and r.completed
@@ -129,7 +129,7 @@ def test_plus5_six_faults_found_in_flight_the_structure_lands_rebuilds_and_flies
     """Faults hit at 5 s, found (not told), noise on: no move exists in the air, so the structure lands,
     units 1-3 (which cannot hover without the others) rest on the ground with their motors off while two
     healthy units move, and the rebuilt body takes off and resumes the mission with less force."""
-    runs = {which: run_reconfig_trial(detected_scenario(PLUS, 6, which == "R"), 1) for which in ("NR", "R")}
+    runs = {which: run_trial(detected_scenario(PLUS, 6, which == "R"), 1) for which in ("NR", "R")}
     nr, r = runs["NR"], runs["R"]
     assert not nr.reconfigured and r.reconfigured
     assert not (nr.diverged or r.diverged) and r.completed
@@ -152,7 +152,7 @@ def test_a_unit_lost_while_the_structure_rebuilds_on_the_ground_it_stays_landed(
     """reconfig_plus_ground, unit 4's firmware dies at 22 s (lifted, at its altitude level) while unit 5
     comes down to its slot: unit 5 still docks, unit 4 falls, and what rests stays on the ground with its
     motors off (units 1-3 cannot hover alone, and 1-3 + 5 is not the body the plan would take up)."""
-    r = run_reconfig_trial(load_scenario("reconfig_plus_ground"), 1, unit_deaths={4: 22.0})
+    r = run_trial(load_scenario("reconfig_plus_ground"), 1, unit_deaths={4: 22.0})
     assert r.completed and not r.diverged
     kinds = [e["type"] for e in r.events]
     assert "reconfig_abandoned" in kinds and "mission_resumed" not in kinds

@@ -9,12 +9,12 @@ import sys
 
 import pytest
 
-from mars_link.flight.reconfig_flight import run_reconfig_trial
+from mars_link.flight.runner import run_trial
 from mars_link.config.scenario import load_scenario
 
 
 def test_a_column_of_the_3x2_separates_flies_apart_and_redocks_on_command():
-    r = run_reconfig_trial(load_scenario("separate_3x2"), 1)
+    r = run_trial(load_scenario("separate_3x2"), 1)
     assert r.completed and r.reconfigured and not r.diverged
     ev = {e["type"]: e for e in r.events}
     assert ev["separation"]["t_s"] == 10.0 and ev["separation"]["units"] == [3, 6]

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from mars_link.config.scenario import load_scenario
-from mars_link.flight.reconfig_flight import plan_records, reconfig_summary, run_reconfig_trial
+from mars_link.flight.metrics import plan_records, summarize
+from mars_link.flight.runner import run_trial
 
 #: the T the four units left make, unit centres apart by the pitch (row, column of each unit)
 T_CELLS = {2: (0, 0), 3: (0, 1), 4: (0, 2), 5: (1, 1)}
@@ -21,7 +22,7 @@ def _fly(duration_s: float | None):
     scenario = load_scenario("assemble_plus5_unit_lost")
     if duration_s is not None:
         scenario.sim.duration_s = duration_s  # (the mission's clock starts once assembled)
-    return scenario, run_reconfig_trial(scenario, 1)
+    return scenario, run_trial(scenario, 1)
 
 
 def _check_unit_1_lost_and_the_four_assembled(scenario, r) -> None:
@@ -43,7 +44,7 @@ def _check_unit_1_lost_and_the_four_assembled(scenario, r) -> None:
         (ra, ca), (rb, cb) = T_CELLS[a], T_CELLS[b]
         assert np.linalg.norm(last[a] - last[b]) == pytest.approx(pitch * np.hypot(ra - rb, ca - cb), abs=0.01)
     assert not np.any(rows[:, 1] == 1) or rows[rows[:, 1] == 1][-1, 0] < lost["t_lost_s"] + 1e-6
-    summary = reconfig_summary(scenario, r, 1)
+    summary = summarize(scenario, [r], 1)
     assert summary["units_lost"] == r.units_lost and not summary["diverged"]
     assert summary["pieces_final"] == r.pieces_final and summary["plans"] == plan_records(r.events)
 
@@ -72,7 +73,7 @@ def test_three_rotor_faults_at_40_s_mid_assembly_two_free_units_lost_the_docked_
     scenario = load_scenario("assemble_plus5_unit_lost")
     base = scenario.faults[0]
     scenario.faults = [dataclasses.replace(base, t_s=40.0, unit=u, rotor=r) for u, r in ((1, 2), (3, 1), (5, 3))]
-    r = run_reconfig_trial(scenario, 1)
+    r = run_trial(scenario, 1)
     assert r.completed and not r.diverged and r.assembled
     assert sorted(e["unit"] for e in r.units_lost) == [1, 5]
     assert all(e["fate"] in ("fell", "landed") for e in r.units_lost)
