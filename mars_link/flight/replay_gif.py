@@ -26,7 +26,8 @@ def write_flight_gif(path: Path, unit_rows: list[list[float]], events: list[dict
     rows = np.asarray(unit_rows, dtype=float)
     times = np.unique(rows[:, 0])
     step = max(frame_dt_s, (times[-1] - times[0]) / max_frames)
-    frames = times[np.searchsorted(times, np.arange(times[0], times[-1] + 1e-9, step))]
+    # (np.arange's last frame time may pass the last sample by round-off: the index is kept to the samples)
+    frames = times[np.minimum(np.searchsorted(times, np.arange(times[0], times[-1] + 1e-9, step)), len(times) - 1)]
     frames = np.unique(frames)
     pad = 0.5
     n, e, h = rows[:, 2], rows[:, 3], -rows[:, 4]

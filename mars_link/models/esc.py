@@ -110,11 +110,21 @@ class EscSensor:
         self.rng = np.random.default_rng([int(seed), int(unit_id), 0xE5C])
         self.noise = noise
         self.kind = ["eta"] * ROTORS_PER_UNIT
-        self.speed_n = np.zeros(ROTORS_PER_UNIT)  # each motor's speed, as the thrust a whole prop makes at it
+        self._speed = [0.0] * ROTORS_PER_UNIT  # each motor's speed, as the thrust a whole prop makes at it
         self.failure = "ok"
         self._held: EscSample | None = None
         self._t_last: float | None = None
         self._next_s = -math.inf
+        # (every control step runs the motors' lag on four plain floats: numpy's per-call cost on arrays of
+        # four was most of a flight's sensors stage; the same IEEE operations, so the same numbers)
+        self._lo = -math.inf if constants.min_thrust_n is None else constants.min_thrust_n
+        self._hi = math.inf if constants.max_thrust_n is None else constants.max_thrust_n
+        self._alpha_of: tuple[float, float] = (math.nan, 1.0)  # (dt, the lag's alpha over it)
+
+    @property
+    def speed_n(self) -> np.ndarray:
+        """Each motor's speed, as the thrust a whole propeller makes at it (N)."""
+        return np.array(self._speed)
 
     def set_kind(self, rotor: int, kind: str) -> None:
         """A fault's kind on rotor 1..4 (0 = all four)."""
@@ -124,25 +134,47 @@ class EscSensor:
     def fail(self, kind: str) -> None:
         self.failure = kind
 
+    def _alpha(self, dt_s: float) -> float:
+        """MotorConstants.lag's alpha over dt_s (kept for the last dt: the control period repeats)."""
+        if dt_s != self._alpha_of[0]:
+            tau = self.constants.time_constant_s
+            self._alpha_of = (dt_s, 1.0 if tau <= 0.0 else 1.0 - math.exp(-dt_s / tau))
+        return self._alpha_of[1]
+
     def sample(self, t_s: float, commands_n: np.ndarray, eta: np.ndarray) -> EscSample | None:
         c = self.constants
         dt = 0.0 if self._t_last is None else max(t_s - self._t_last, 0.0)
         self._t_last = t_s
+        etas = eta.tolist() if isinstance(eta, np.ndarray) else [float(e) for e in eta]
+        commands = commands_n.tolist() if isinstance(commands_n, np.ndarray) else [float(x) for x in commands_n]
         # eta 0 of the default kind is a motor off (firmware_models.motor): the ESC sees it stopped
-        stopped = np.array([k == "motor-stop" or (k == "eta" and e <= 0.0) for k, e in zip(self.kind, eta)])
-        setpoint = np.where(stopped, 0.0, c.clamp(np.asarray(commands_n, dtype=float)))
-        self.speed_n = c.lag(self.speed_n, setpoint, dt)
+        stopped = [k == "motor-stop" or (k == "eta" and e <= 0.0) for k, e in zip(self.kind, etas)]
+        alpha, lo, hi, speed = self._alpha(dt), self._lo, self._hi, self._speed
+        lagged = c.time_constant_s > 0.0
+        for i in range(ROTORS_PER_UNIT):  # MotorConstants.clamp, then .lag, on each motor
+            x = commands[i]
+            setpoint = 0.0 if stopped[i] else min(max(x if math.isfinite(x) else 0.0, lo), hi)
+            speed[i] = speed[i] + alpha * (setpoint - speed[i]) if lagged else setpoint
         if t_s < self._next_s - 1e-9 or self.failure == "off":
             return None
         self._next_s = max(self._next_s + 1.0 / self.params.rate_hz, t_s)
         if self.failure == "stuck" and self._held is not None:
             return EscSample(t_s, self._held.rpm, self._held.current_a)
-        lost = 1.0 - np.clip(eta, 0.0, 1.0)
-        overspeed = np.array([self.params.overspeed_unloaded if k == "prop-loss" else 0.0 for k in self.kind])
-        rpm = c.rpm(self.speed_n) * (1.0 + overspeed * lost)
-        current = np.where(stopped, 0.0, c.no_load_current_a + (1.0 - lost) * c.load_current_a(self.speed_n))
+        # (MotorConstants.rpm and .load_current_a, on four floats; the noise drawn as four at a time, as ever)
+        p = self.params
+        rpm_fs, fs, per_a = c.rpm_at_full_scale, c.full_scale_n, c.torque_per_thrust_m
+        rpm, current = [], []
+        for i in range(ROTORS_PER_UNIT):
+            x = speed[i]
+            lost = 1.0 - min(max(etas[i], 0.0), 1.0)
+            sign = (x > 0.0) - (x < 0.0)
+            over = p.overspeed_unloaded if self.kind[i] == "prop-loss" else 0.0
+            rpm.append(sign * rpm_fs * math.sqrt(abs(x) / fs) * (1.0 + over * lost))
+            current.append(0.0 if stopped[i] else c.no_load_current_a + (1.0 - lost) * (per_a * abs(x) / c.torque_constant_nm_per_a))
         if self.noise:
-            rpm = rpm + self.rng.normal(0.0, self.params.rpm_noise, ROTORS_PER_UNIT) * (rpm != 0.0)
-            current = current + self.rng.normal(0.0, self.params.current_noise_a, ROTORS_PER_UNIT) * (current != 0.0)
-        self._held = wire_esc(t_s, rpm, np.maximum(current, 0.0))
+            d_rpm = self.rng.normal(0.0, p.rpm_noise, ROTORS_PER_UNIT).tolist()
+            d_cur = self.rng.normal(0.0, p.current_noise_a, ROTORS_PER_UNIT).tolist()
+            rpm = [r + d * (1.0 if r != 0.0 else 0.0) for r, d in zip(rpm, d_rpm)]
+            current = [a + d * (1.0 if a != 0.0 else 0.0) for a, d in zip(current, d_cur)]
+        self._held = wire_esc(t_s, rpm, [max(a, 0.0) for a in current])
         return self._held
