@@ -10,13 +10,13 @@ import dataclasses
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.core.geo import WIRE_ORIGIN
 from firmware_models.vehicle_modes import MODE_OFFBOARD
 from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
 from mars_link.core.state import ImuSample, RigidBodyState
 from mars_link.mavlink.esc_status import esc_status_message
 from mars_link.mavlink.wire import (BARO_FIELDS, MAG_FIELDS, SensorFrames, battery_from_message, battery_report_message,
-                            latch_from_message, latch_message, latches_open, sensor_packet_messages)
+                            hil_state_from_fields, latch_from_message, latch_message, latches_open,
+                            sensor_packet_messages)
 from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
 
 
@@ -145,9 +145,8 @@ class HilMixin:
         if not _finite(*values) or not 0.5 < np.linalg.norm(q) < 1.5:
             self._drop("hil_non_finite")
             return
-        pos = WIRE_ORIGIN.to_ned(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3)  # sitl.hil's encoding
-        self.set_state(RigidBodyState(msg.time_usec * 1e-6, pos, np.array([msg.vx, msg.vy, msg.vz]) * 0.01,
-                                      q / np.linalg.norm(q), np.array([msg.rollspeed, msg.pitchspeed, msg.yawspeed])))
+        self.set_state(hil_state_from_fields(msg.time_usec, q, values[4:], msg.lat, msg.lon, msg.alt, msg.vx, msg.vy,
+                                             msg.vz))
 
     def _apply_sensors(self, frames: SensorFrames) -> None:
         packet = frames.packet()

@@ -17,7 +17,7 @@ from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import AssemblyModel, layout_of_cells
 from mars_link.core.messages import ActuatorOutput, SensorPacket, f32, wire_state, wire_time
 from mars_link.core.rotations import quat_to_rotmat
-from mars_link.core.state import ImuSample, PositionSample, RigidBodyState
+from mars_link.core.state import ImuSample, PositionSample, RigidBodyState, point_state
 from sitl.docking import DockTolerance, dock_check
 from mars_link.core.latches import SIDE_STEPS, LatchBoard, components, neighbour_links, opposite
 from mars_link.models.environment import EnvironmentParams
@@ -407,6 +407,13 @@ class World:
         b = self._body_of[unit_id]
         return point_state(truth or b.jsbsim.state(), b.offsets_frd_m[b.units.index(unit_id)])
 
+    def unit_truth_parts(self, unit_id: int) -> tuple[RigidBodyState, np.ndarray]:
+        """(the state of the body carrying the unit, now; the unit's centre from that body's CoM, FRD):
+        `point_state` of them is `unit_truth(unit_id)`, for a caller that may need it later (the body's
+        state object of a step is never changed, a step makes a new one)."""
+        b = self._body_of[unit_id]
+        return b.jsbsim.state(), b.offsets_frd_m[b.units.index(unit_id)]
+
     def min_clearance_m(self) -> float:
         """Smallest gap between units of different bodies (centre distance less one unit pitch: each
         unit counted as a disc of its pitch); inf with one body. Negative means two bodies overlap."""
@@ -439,14 +446,3 @@ class World:
     def unit_rotor_thrust_n(self, unit_id: int) -> np.ndarray:
         """What the unit's four rotors produce now (N)."""
         return self.rotor_thrust_n[self.model.unit_slots(unit_id)]
-
-
-def point_state(s: RigidBodyState, offset_frd_m: np.ndarray) -> RigidBodyState:
-    """The state of a point fixed in the body at `offset_frd_m` from the CoM (v + R (w x r))."""
-    r = quat_to_rotmat(s.quaternion_wxyz)
-    w, o = s.angular_velocity_frd_radps, offset_frd_m
-    w_x_o = np.array([w[1] * o[2] - w[2] * o[1], w[2] * o[0] - w[0] * o[2], w[0] * o[1] - w[1] * o[0]])
-    return RigidBodyState(
-        s.t_s, s.position_ned_m + r @ o, s.velocity_ned_mps + r @ w_x_o,
-        s.quaternion_wxyz, w, s.acceleration_ned_mps2, s.on_ground,
-    )

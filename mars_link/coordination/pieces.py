@@ -232,6 +232,11 @@ class PiecesCoordinator:
     def _plan_from_belief(self, t_s: float) -> None:
         """The believed faults settled (the trigger delay after a detection): plan and start, or say why not."""
         self._plan_at_s = math.inf
+        if len(self.executor.shapes) != 1:  # apart for good (a manoeuvre abandoned when a unit was lost): the
+            self.events.append(event(t_s, EventKind.RECONFIG_REFUSED,  # planner plans from one structure
+                                     reason=f"the structure is {len(self.executor.shapes)} pieces apart for good",
+                                     text="Reconfig refused: in pieces"))
+            return
         (shape,) = self.executor.shapes.values()  # the structure it has (after a manoeuvre: not the layout's order)
         r0 = min(r for r, _ in shape.cells.values())
         c0 = min(c for _, c in shape.cells.values())

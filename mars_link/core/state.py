@@ -6,6 +6,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from mars_link.core.rotations import quat_to_rotmat
+
 
 @dataclass
 class RigidBodyState:
@@ -77,3 +79,14 @@ class MagSample:
     t_s: float
     unit_id: int
     field_frd_gauss: np.ndarray
+
+
+def point_state(s: RigidBodyState, offset_frd_m: np.ndarray) -> RigidBodyState:
+    """The state of a point fixed in the body at `offset_frd_m` from the CoM (v + R (w x r))."""
+    r = quat_to_rotmat(s.quaternion_wxyz)
+    w, o = s.angular_velocity_frd_radps, offset_frd_m
+    w_x_o = np.array([w[1] * o[2] - w[2] * o[1], w[2] * o[0] - w[0] * o[2], w[0] * o[1] - w[1] * o[0]])
+    return RigidBodyState(
+        s.t_s, s.position_ned_m + r @ o, s.velocity_ned_mps + r @ w_x_o,
+        s.quaternion_wxyz, w, s.acceleration_ned_mps2, s.on_ground,
+    )

@@ -33,8 +33,9 @@ from dataclasses import dataclass
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from mars_link.core.geo import WIRE_ORIGIN
 from mars_link.core.gnss import course_cdeg, ground_speed_cmps
-from mars_link.core.messages import LATCH_ALL, ActuatorOutput, BatterySample, RotorCommand, SensorPacket
+from mars_link.core.messages import LATCH_ALL, ActuatorOutput, BatterySample, RotorCommand, SensorPacket, f32
 from mars_link.core.state import BaroSample, GpsSample, ImuSample, MagSample, PositionSample, RigidBodyState
 
 FLAG_HAS_POSITION = 1 << 14
@@ -311,3 +312,34 @@ def battery_from_message(msg) -> BatterySample | None:
     if v == 65535 or i < 0:
         return None
     return BatterySample(v / 1000.0, i / 100.0, -1.0 if msg.battery_remaining < 0 else msg.battery_remaining / 100.0)
+
+
+# ----------------------------------------------------------------------------- HIL_STATE_QUATERNION
+def _int16(x: float) -> int:
+    return int(max(-32767, min(32767, round(x))))
+
+
+def hil_state_fields(s: RigidBodyState) -> tuple:
+    """A unit centre's truth as HIL_STATE_QUATERNION's fields carry it: (quaternion, body rates, lat degE7,
+    lon degE7, alt mm, vx, vy, vz cm/s, speed cm/s). Position on the spherical Earth the firmware assumes
+    (`WIRE_ORIGIN`): 1e-7 deg is about 1.1 cm."""
+    lat, lon, alt_mm = WIRE_ORIGIN.to_global_int(s.position_ned_m)
+    v = s.velocity_ned_mps
+    speed_cms = min(65535, int(round(float(np.linalg.norm(v)) * 100)))
+    return ([float(x) for x in s.quaternion_wxyz], [float(x) for x in s.angular_velocity_frd_radps], lat, lon, alt_mm,
+            _int16(v[0] * 100), _int16(v[1] * 100), _int16(v[2] * 100), speed_cms)
+
+
+def hil_state_from_fields(time_usec: int, q, rates, lat: int, lon: int, alt_mm: int, vx: int, vy: int,
+                          vz: int) -> RigidBodyState:
+    """The state a unit's firmware takes from HIL_STATE_QUATERNION's fields (q finite, of norm near 1)."""
+    quat = np.array(q, dtype=float)
+    return RigidBodyState(time_usec * 1e-6, WIRE_ORIGIN.to_ned(lat * 1e-7, lon * 1e-7, alt_mm * 1e-3),
+                          np.array([vx, vy, vz]) * 0.01, quat / np.linalg.norm(quat), np.array(rates, dtype=float))
+
+
+def hil_state_received(s: RigidBodyState, time_usec: int) -> RigidBodyState:
+    """What a unit's firmware holds after the world sent it `s` in HIL_STATE_QUATERNION (its float fields
+    float32 on the wire): an in-process unit is given this, the numbers a SITL unit flies its own fail-safe on."""
+    q, rates, lat, lon, alt_mm, vx, vy, vz, _ = hil_state_fields(s)
+    return hil_state_from_fields(time_usec, f32(q), f32(rates), lat, lon, alt_mm, vx, vy, vz)

@@ -1,102 +1,18 @@
-"""The modular life cycle on the real path: flights of several bodies in the multi-process SITL (a world
-process carrying the bodies, one process per unit firmware, a coordinator process running the
-PiecesCoordinator, MAVLink over Zenoh in lockstep) equal the same flights in-process, with every split
-and dock at the same step; the coordinator learns them from the units' latch reports (NAMED_VALUE_INT
-LATCH) and commands the latches in its rotor commands."""
+"""A unit lost during a dock approach, in-process and in the multi-process SITL (its process SIGKILLed):
+the structure re-plans without it and the run finishes. That flights of pieces in SITL equal their
+in-process flights (assembling, reconfiguring, docking, rebuilding on the ground, a free unit lost) is
+tests/processes/test_parity.py's, one parametrized comparison."""
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from mars_link.flight.report import print_summary
 from mars_link.flight.runner import run_trial
 from mars_link.config.scenario import load_scenario
-from mars_link.processes.sitl_mode import run_sitl_scenario
 from mars_link.transport import LinkSpec
-from pymavlink import mavutil
-
-LIFE_CYCLE = ("split", "dock_start", "dock", "dock_latched", "fault_detected", "plan", "reconfig_start",
-              "reconfig_done", "assembly_done", "mission_resumed")
-
-
-def _fly_both(name: str, out: Path) -> tuple[dict, object]:
-    sc = load_scenario(name)
-    if sc.faults:  # --mode sitl finds faults unless the file says they are told: the same in-process
-        sc = dataclasses.replace(sc, faults_known=False)
-    sitl = run_sitl_scenario(sc, out, link=LinkSpec("zenoh"), timeout_s=900)
-    return sitl, run_trial(sc, sc.sim.seed)
-
-
-def _assert_same_flight(sitl: dict, inproc, out: Path, lost_bodies: tuple = ()) -> None:
-    """`lost_bodies`: the world's bodies of lost units (on the ground, no piece of the coordinator's)."""
-    assert sitl["completed"] and inproc.completed
-    assert sitl["pieces_final"] == inproc.pieces_final
-    assert sitl["bodies_final"] == sorted([p["units"] for p in inproc.pieces_final] + list(lost_bodies))
-    ev_sitl = [(e["t_s"], e["type"]) for e in sitl["events"] if e["type"] in LIFE_CYCLE]
-    ev_inproc = [(e["t_s"], e["type"]) for e in inproc.events if e["type"] in LIFE_CYCLE]
-    assert ev_sitl == ev_inproc and any(k == "dock_latched" for _, k in ev_sitl)
-    truth = np.genfromtxt(out / "world_truth.csv", delimiter=",", names=True)
-    row_of = {round(float(t), 6): i for i, t in enumerate(truth["t_s"])}
-    diffs = []
-    for t, unit, n, e, d, *_ in inproc.unit_rows:  # every unit at 20 Hz over the whole flight
-        i = row_of[round(t, 6)]
-        u = int(unit)
-        diffs.append(np.linalg.norm([truth[f"u{u}_n_m"][i] - n, truth[f"u{u}_e_m"][i] - e, truth[f"u{u}_d_m"][i] - d]))
-    assert len(diffs) > 1000 and max(diffs) < 1e-3, max(diffs)
-    assert sitl["sim_time_s"] == pytest.approx(inproc.sim_time_s, abs=1e-6)
-    assert sitl["mean_error_m"] == pytest.approx(inproc.mean_error_m, abs=1e-6)
-
-
-@pytest.mark.sitl
-@pytest.mark.long  # (CI time: the parity test flies one multi-process case per transport by default)
-def test_docking_3x1_in_sitl_equals_inproc_and_the_latches_travel_as_mavlink(tmp_path: Path, capsys) -> None:
-    sitl, inproc = _fly_both("docking_3x1", tmp_path)
-    _assert_same_flight(sitl, inproc, tmp_path)
-    assert sitl["reconfigured"] and inproc.reconfigured
-    assert {p.stem for p in (tmp_path / "plots").iterdir()} == {"units", "error"}  # the figures of the in-process run
-    print_summary(sitl, tmp_path)  # what `mars-link run --mode sitl` prints: every row (a missing key was a traceback)
-    printed = capsys.readouterr().out
-    assert "rmse / max error" in printed and "max tilt" in printed and "n/a deg" in printed
-    # the latch sensor and setpoint on the wire: unit 1 reported its latches open after the split and
-    # latched again after the dock; its commands opened its right latch (controls[4] = the latches to open)
-    log = mavutil.mavlink_connection(str(tmp_path / "unit1.tlog"))
-    reports, opened = [], set()
-    while (m := log.recv_match(type=["NAMED_VALUE_INT", "SET_ACTUATOR_CONTROL_TARGET"])) is not None:
-        if m.get_type() == "NAMED_VALUE_INT":
-            reports.append(m.value)
-        else:
-            opened.add(int(m.controls[4]))
-    assert reports[0] == 0b0010 and 0 in reports and reports[-1] != 0  # right side latched, open, latched (left)
-    assert opened >= {0, 0b0010}
-
-
-@pytest.mark.slow
-@pytest.mark.long
-@pytest.mark.sitl
-@pytest.mark.parametrize("name", ["assemble_3x2", "assemble_fault_reconfig"])
-def test_life_cycle_in_sitl_over_zenoh_equals_inproc(tmp_path: Path, name: str) -> None:
-    sitl, inproc = _fly_both(name, tmp_path)
-    _assert_same_flight(sitl, inproc, tmp_path)
-    assert sitl["assembled"] and inproc.assembled
-    summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["mode"] == "sitl-pieces" and summary["sitl"]["transport"] == "zenoh"
-
-
-@pytest.mark.slow
-@pytest.mark.long
-@pytest.mark.sitl
-def test_rebuild_on_the_ground_in_sitl_over_zenoh_equals_inproc(tmp_path: Path) -> None:
-    """paper 001's plus with 6 faults found: it lands, units 4 and 5 move while units 1-3 rest with their
-    motors off (zero commands on the wire), and it resumes the helix; the same flight in both modes."""
-    sitl, inproc = _fly_both("reconfig_plus_ground", tmp_path)
-    _assert_same_flight(sitl, inproc, tmp_path)
-    assert sitl["reconfigured"] and inproc.reconfigured
-    assert [e["type"] for e in sitl["events"]].count("dock") == 2
 
 
 @pytest.mark.long  # (CI time: test_reconfig_moves.py loses a unit while the structure rebuilds in the default run)
@@ -153,21 +69,3 @@ def test_a_unit_process_sigkilled_during_a_dock_approach_is_lost_and_the_run_fin
     assert summary["completed"] and not summary["diverged"]
     world = json.loads((out / "world_summary.json").read_text())
     assert world["dead_units"] == [3]
-
-
-@pytest.mark.slow
-@pytest.mark.long
-@pytest.mark.sitl
-def test_a_free_unit_that_loses_a_rotor_is_lost_in_sitl_as_inproc(tmp_path: Path) -> None:
-    """assemble_plus5_unit_lost in the multi-process SITL over Zenoh: unit 1's process lives on but its
-    piece cannot fly (rotor 2 out at 20 s, before it docks); the coordinator process declares it lost, the
-    four others assemble the T and fly the helix, the same flight as in-process (each unit's truth within
-    1 mm at every 20 Hz sample; measured: mean error 4.43 mm both, equal to 1e-11). Its fall is in the
-    world's truth (units_lost)."""
-    sitl, inproc = _fly_both("assemble_plus5_unit_lost", tmp_path)
-    _assert_same_flight(sitl, inproc, tmp_path, lost_bodies=([1],))
-    assert sitl["assembled"] and not sitl["diverged"] and [e["unit"] for e in sitl["events"]
-                                                           if e["type"] == "unit_lost"] == [1]
-    (lost,) = sitl["units_lost"]
-    assert lost["unit"] == 1 and lost["fate"] == inproc.units_lost[0]["fate"] == "fell"
-    assert lost["t_ground_s"] == pytest.approx(inproc.units_lost[0]["t_ground_s"], abs=0.011)

@@ -173,3 +173,22 @@ def test_the_unit_process_engine_takes_each_hil_step_in_the_engines_order() -> N
     (answer,) = _hil_answers(unit.sent, v)
     assert answer.time_usec == 10_000 and answer.controls[0] == pytest.approx(0.3)
     assert not engine.step() and engine.steps == 2
+
+
+def test_an_inproc_unit_is_given_its_own_state_as_a_sitl_unit_decodes_it_from_the_bytes() -> None:
+    """mars_link.mavlink.wire.hil_state_received (what the in-process engine gives a unit) equals what a unit's
+    firmware holds after the world's HIL_STATE_QUATERNION bytes, for states across the position, velocity and
+    rate ranges (int16 cm/s clamped); the exact truth differs from both (the wire's 1.1 cm, mm, cm/s)."""
+    from mars_link.mavlink.wire import hil_state_received
+
+    rng = np.random.default_rng(3)
+    for k in range(50):
+        q = rng.normal(size=4)
+        s = RigidBodyState(0.01 * k, rng.uniform(-300, 300, 3), rng.uniform(-400, 400, 3), q / np.linalg.norm(q),
+                           rng.uniform(-20, 20, 3))
+        v = Vehicle(VehicleConfig(unit_id=1, vehicle="mars-ftcc"), 0.0)
+        v.handle(hil_state_message(s, usec(s.t_s)).pack(WORLD), 0.0, LINK_HIL)
+        got = hil_state_received(s, usec(s.t_s))
+        for name in ("t_s", "position_ned_m", "velocity_ned_mps", "quaternion_wxyz", "angular_velocity_frd_radps"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(v.state, name), err_msg=name)
+        assert not np.array_equal(got.position_ned_m, s.position_ned_m)

@@ -3,6 +3,7 @@ assemble in the air (paper 001's Algorithm 3 order) before they fly the mission 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -11,6 +12,8 @@ import numpy as np
 import pytest
 
 from mars_link.core.assembly import AssemblyModel
+from mars_link.flight.build import build_flight
+from mars_link.flight.engine import Engine
 from mars_link.flight.run_log import TELEMETRY_COLUMNS
 from mars_link.flight.runner import run_trial
 from mars_link.reconfig.sequencing import plan_assembly
@@ -151,3 +154,25 @@ def test_assemble_then_a_fault_found_in_flight_reconfigures_and_the_spiral_resum
     before, after = np.flatnonzero(t <= start + 1e-9)[-1], np.flatnonzero(t > start)[0]
     assert mission_t[after] - mission_t[before] < 0.05 and t[after] - t[before] > 10.0
     assert r.mean_error_m < 0.02 and math.isfinite(r.min_clearance_m)
+
+
+@pytest.mark.long  # (CI time: a whole life cycle in process, about 30 s)
+def test_a_unit_lost_while_reconfiguring_after_a_fault_found_leaves_the_pieces_apart_and_the_flight_ends() -> None:
+    """assemble_fault_reconfig, seed 5, unit 5's process dies at 76.94 s, after the split of the manoeuvre
+    the found fault started: the manoeuvre is abandoned and the mission resumes on the pieces there are. The
+    detection the loss makes then asks for a plan, which cannot be made from two pieces: refused, said once,
+    and the flight flies to its end (the coordinator raised ValueError there, in SITL a dead coordinator
+    process, met when a loaded machine made the coordinator lose a unit over UDP)."""
+    sc = dataclasses.replace(load_scenario("assemble_fault_reconfig"), faults_known=False)
+    flight = build_flight(sc, 5, {5: 76.94})
+    engine = Engine(flight)
+    try:
+        while engine.step():
+            pass
+    finally:
+        flight.world.close()
+    coord = flight.coordinator
+    kinds = [e["type"] for e in sorted(coord.events + coord.executor.events, key=lambda e: e["t_s"])]
+    assert kinds.index("split") < kinds.index("unit_lost") < kinds.index("reconfig_abandoned")
+    assert kinds.count("reconfig_refused") == 1 and "reconfig_done" not in kinds and coord.failed is None
+    assert len(coord.pieces) == 2 and flight.world.t_s >= flight.end_s() - 1e-9
