@@ -57,7 +57,7 @@ from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
 from firmware_models.vehicle_follow import FollowMixin
 from firmware_models.vehicle_geofence import GeofenceMixin
 from firmware_models.vehicle_hil import HilMixin
-from firmware_models.vehicle_logs import LogsMixin
+from firmware_models.vehicle_logs import LogService
 from firmware_models.vehicle_manual import ManualMixin
 from firmware_models.vehicle_links import (  # noqa: F401 (re-exported)
     LINK_API, LINK_COORDINATOR, LINK_GCS, LINK_HIL, Link, LinkPolicy, Outgoing, default_links,
@@ -71,10 +71,10 @@ from firmware_models.vehicle_modes import (  # noqa: F401 (re-exported)
     SUB_RTL, SUB_TAKEOFF,
 )
 from firmware_models.vehicle_offboard import MAX_POSITION_M, MAX_SPEED_MPS, OffboardMixin  # noqa: F401
-from firmware_models.vehicle_params import ParamsMixin
+from firmware_models.vehicle_params import ParamService
 from firmware_models.vehicle_px4 import Px4Mixin
-from firmware_models.vehicle_services import ServicesMixin
-from firmware_models.vehicle_shell import ShellMixin
+from firmware_models.vehicle_services import SmallService
+from firmware_models.vehicle_shell import ShellService
 from firmware_models.vehicle_streams import (  # noqa: F401 (re-exported)
     CAPABILITIES, DEFAULT_STREAM_HZ, MIN_STREAM_INTERVAL_S, REFUSED_MESSAGES, SENSORS, StreamsMixin,
 )
@@ -150,8 +150,8 @@ class VehicleConfig:
 
 
 
-class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixin, MissionsMixin, GeofenceMixin,
-              LogsMixin, ServicesMixin, ShellMixin, HilMixin, StreamsMixin, Px4Mixin):
+class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, MissionsMixin, GeofenceMixin,
+              HilMixin, StreamsMixin, Px4Mixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -245,11 +245,16 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         self._init_geofence()
         self._init_manual()
         self._init_follow()
-        self._init_shell()
-        self._init_logs()
+        self.param_service = ParamService(self)
+        self.log_service = LogService(self)
+        self.shell_service = ShellService(self)
+        self.small_service = SmallService(self)
         self._init_px4()
         self.legs = None  # mission legs between the runner and the core (mars_link.planning.mission_legs)
         self.speed_override_mps: float | None = None  # MAV_CMD_DO_CHANGE_SPEED (else MPC_XY_CRUISE)
+        # message type -> the handler, bound once (a service's method)
+        self._handlers = {t: getattr(getattr(self, member) if member else self, name)
+                          for t, (member, name) in _HANDLERS.items()}
         if c.ulog_path:
             self.start_ulog(c.ulog_path)
 
@@ -483,8 +488,8 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         for name, msg in self.mission.tick(self.wall_s):
             self._reply(self.links[name], msg, out)
         self._flush_mission_texts()
-        self._shell_tick(out)
-        self._log_tick(out)
+        self.shell_service.tick(out)
+        self.log_service.tick(out)
         while self._mission_msgs:
             self._broadcast(self._mission_msgs.pop(0), out)
         while self._pending_text:
@@ -561,7 +566,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
         if t in ("HIL_SENSOR", "HIL_STATE_QUATERNION", "HIL_GPS", "ODOMETRY"):
             self._drop("hil_wrong_link")  # state input is trusted only from the physics link
             return
-        handler = _HANDLERS.get(t)
+        handler = self._handlers.get(t)
         if handler is None:
             self._drop("unhandled_message")
             return
@@ -574,7 +579,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
             if t in ("COMMAND_LONG", "COMMAND_INT"):
                 self._tell_refusal(msg.command, mavlink.MAV_RESULT_DENIED, "needs a signed link")
             return
-        getattr(self, handler)(msg, lk, out)
+        handler(msg, lk, out)
 
     def _note_foreign(self, link: str, sysid: int, compid: int, message: str) -> None:
         key = (link, sysid, compid, message)
@@ -697,41 +702,33 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, ParamsMixi
 
 
 
-#: message type -> handler method name (a subclass may override the method)
-_HANDLERS: dict[str, str] = {
-    "COMMAND_LONG": "_on_command",
-    "COMMAND_INT": "_on_command",
-    "SET_MODE": "_on_set_mode",
-    "SET_POSITION_TARGET_LOCAL_NED": "_on_position_target",
-    "SET_POSITION_TARGET_GLOBAL_INT": "_on_position_target",
-    "SET_ATTITUDE_TARGET": "_on_attitude_target",
-    "MANUAL_CONTROL": "_on_manual_control",
-    "FOLLOW_TARGET": "_on_follow_target",
-    "SERIAL_CONTROL": "_on_serial_control",
-    "LOG_REQUEST_LIST": "_on_log_request_list",
-    "LOG_REQUEST_DATA": "_on_log_request_data",
-    "LOG_REQUEST_END": "_on_log_request_end",
-    "LOG_ERASE": "_on_log_erase",
-    "SET_ACTUATOR_CONTROL_TARGET": "_on_rotor_command",
-    "PARAM_REQUEST_LIST": "_on_param_list",
-    "PARAM_REQUEST_READ": "_on_param_read",
-    "PARAM_SET": "_on_param_set",
-    "MISSION_REQUEST_LIST": "_on_mission",
-    "MISSION_COUNT": "_on_mission",
-    "MISSION_CLEAR_ALL": "_on_mission",
-    "MISSION_REQUEST_INT": "_on_mission",
-    "MISSION_REQUEST": "_on_mission",
-    "MISSION_ITEM_INT": "_on_mission",
-    "MISSION_ITEM": "_on_mission",
-    "MISSION_ACK": "_on_mission",
-    "MISSION_WRITE_PARTIAL_LIST": "_on_mission",
-    "MISSION_SET_CURRENT": "_on_mission_set_current",
-    "PING": "_on_ping",
-    "STATUSTEXT": "_on_statustext",
-    "TIMESYNC": "_on_timesync",
-    "FILE_TRANSFER_PROTOCOL": "_on_ftp",
-    "HEARTBEAT": "_on_ignored",
-    "REQUEST_DATA_STREAM": "_on_ignored",
-    "SYSTEM_TIME": "_on_step_skip",
-    "RADIO_STATUS": "_on_ignored",
+#: message type -> (the member that serves it, its method); "": the vehicle's own
+_HANDLERS: dict[str, tuple[str, str]] = {
+    "COMMAND_LONG": ("", "_on_command"),
+    "COMMAND_INT": ("", "_on_command"),
+    "SET_MODE": ("", "_on_set_mode"),
+    "SET_POSITION_TARGET_LOCAL_NED": ("", "_on_position_target"),
+    "SET_POSITION_TARGET_GLOBAL_INT": ("", "_on_position_target"),
+    "SET_ATTITUDE_TARGET": ("", "_on_attitude_target"),
+    "MANUAL_CONTROL": ("", "_on_manual_control"),
+    "FOLLOW_TARGET": ("", "_on_follow_target"),
+    "SERIAL_CONTROL": ("shell_service", "on_serial_control"),
+    "LOG_REQUEST_LIST": ("log_service", "on_request_list"),
+    "LOG_REQUEST_DATA": ("log_service", "on_request_data"),
+    "LOG_REQUEST_END": ("log_service", "on_request_end"),
+    "LOG_ERASE": ("log_service", "on_erase"),
+    "SET_ACTUATOR_CONTROL_TARGET": ("", "_on_rotor_command"),
+    "PARAM_REQUEST_LIST": ("param_service", "on_param_list"),
+    "PARAM_REQUEST_READ": ("param_service", "on_param_read"),
+    "PARAM_SET": ("param_service", "on_param_set"),
+    **dict.fromkeys(("MISSION_REQUEST_LIST", "MISSION_COUNT", "MISSION_CLEAR_ALL", "MISSION_REQUEST_INT",
+                     "MISSION_REQUEST", "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_ACK",
+                     "MISSION_WRITE_PARTIAL_LIST"), ("", "_on_mission")),
+    "MISSION_SET_CURRENT": ("", "_on_mission_set_current"),
+    "PING": ("small_service", "on_ping"),
+    "STATUSTEXT": ("small_service", "on_statustext"),
+    "TIMESYNC": ("small_service", "on_timesync"),
+    "FILE_TRANSFER_PROTOCOL": ("small_service", "on_ftp"),
+    **dict.fromkeys(("HEARTBEAT", "REQUEST_DATA_STREAM", "RADIO_STATUS"), ("small_service", "on_ignored")),
+    "SYSTEM_TIME": ("", "_on_step_skip"),
 }

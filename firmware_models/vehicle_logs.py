@@ -5,9 +5,7 @@ LOG_ERASE is answered with a STATUSTEXT saying they are kept; LOG_REQUEST_LIST l
 0, sizes as they are at that moment: a .tlog still grows), LOG_REQUEST_DATA streams LOG_DATA chunks
 of 90 bytes from the requested offset (count 0 at the end of the file), up to LOG_CHUNKS_PER_TICK per
 tick, one transfer at a time; LOG_REQUEST_END stops it. The runner hands the paths over
-(`vehicle.logs = LogStore([...])`); the vehicle itself never opens a file otherwise.
-
-A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing.
+(`vehicle.log_service.store = LogStore([...])`); the vehicle itself never opens a file otherwise.
 """
 
 from __future__ import annotations
@@ -15,10 +13,14 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle_links import Link, Outgoing
+
+if TYPE_CHECKING:
+    from firmware_models.vehicle import Vehicle
 
 R = mavlink
 CHUNK_BYTES = 90
@@ -62,68 +64,72 @@ class _Transfer:
     end: int
 
 
-class LogsMixin:
-    def _init_logs(self) -> None:
-        self.logs: LogStore | None = None
-        self._log_xfer: _Transfer | None = None
+class LogService:
+    """LOG_* requests. Owns the log files handed over (`store`) and the transfer in progress. Asks of the
+    vehicle: its links, the current sender, `_for_me`, `_reply`, `_send`, `_text`, `_count`, `_drop`."""
 
-    def _on_log_request_list(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
-            self._drop("wrong_target")
+    def __init__(self, vehicle: Vehicle) -> None:
+        self.v = vehicle
+        self.store: LogStore | None = None
+        self.xfer: _Transfer | None = None
+
+    def on_request_list(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
+            self.v._drop("wrong_target")
             return
-        entries = self.logs.entries() if self.logs is not None else []
-        self._count("log.list")
+        entries = self.store.entries() if self.store is not None else []
+        self.v._count("log.list")
         if not entries:  # PX4: one LOG_ENTRY with num_logs 0
-            self._reply(lk, R.MAVLink_log_entry_message(0, 0, 0, 0, 0), out)
+            self.v._reply(lk, R.MAVLink_log_entry_message(0, 0, 0, 0, 0), out)
             return
         last = entries[-1][0]
         for log_id, size, t_utc in entries:
             if msg.start <= log_id <= msg.end:
-                if not self._reply(lk, R.MAVLink_log_entry_message(log_id, len(entries), last, t_utc, size), out):
+                if not self.v._reply(lk, R.MAVLink_log_entry_message(log_id, len(entries), last, t_utc, size), out):
                     break
 
-    def _on_log_request_data(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self._drop("wrong_target")
+    def on_request_data(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            self.v._drop("wrong_target")
             return
-        sizes = {i: size for i, size, _ in (self.logs.entries() if self.logs is not None else [])}
+        sizes = {i: size for i, size, _ in (self.store.entries() if self.store is not None else [])}
         if msg.id not in sizes:
-            self._drop("log.unknown_id")
-            self._reply(lk, R.MAVLink_log_data_message(msg.id, msg.ofs, 0, [0] * CHUNK_BYTES), out)
+            self.v._drop("log.unknown_id")
+            self.v._reply(lk, R.MAVLink_log_data_message(msg.id, msg.ofs, 0, [0] * CHUNK_BYTES), out)
             return
         end = sizes[msg.id] if msg.count == ALL_BYTES else min(sizes[msg.id], msg.ofs + msg.count)
-        self._log_xfer = _Transfer(lk.name, self._sender, msg.id, msg.ofs, max(end, msg.ofs))
-        self._count("log.request_data")
-        self._log_tick(out)
+        self.xfer = _Transfer(lk.name, self.v._sender, msg.id, msg.ofs, max(end, msg.ofs))
+        self.v._count("log.request_data")
+        self.tick(out)
 
-    def _on_log_request_end(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        self._log_xfer = None
-        self._count("log.request_end")
+    def on_request_end(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        self.xfer = None
+        self.v._count("log.request_end")
 
-    def _on_log_erase(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self._drop("wrong_target")
+    def on_erase(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            self.v._drop("wrong_target")
             return
-        self._count("log.erase_refused")
-        self._text("Logs kept: the run's own logs are not erased", R.MAV_SEVERITY_NOTICE)
+        self.v._count("log.erase_refused")
+        self.v._text("Logs kept: the run's own logs are not erased", R.MAV_SEVERITY_NOTICE)
 
-    def _log_tick(self, out: list[Outgoing]) -> None:
+    def tick(self, out: list[Outgoing]) -> None:
         """Stream the transfer in progress (from tick and right after the request)."""
-        x = self._log_xfer
+        x = self.xfer
         if x is None:
             return
-        lk = self.links[x.link]
+        lk = self.v.links[x.link]
         for _ in range(LOG_CHUNKS_PER_TICK):
             n = min(CHUNK_BYTES, x.end - x.offset)
-            data = self.logs.read(x.log_id, x.offset, n) if n > 0 else b""
+            data = self.store.read(x.log_id, x.offset, n) if n > 0 else b""
             if data is None:
-                self._drop("log.read_error")
-                self._log_xfer = None
+                self.v._drop("log.read_error")
+                self.xfer = None
                 return
-            self._send(lk, R.MAVLink_log_data_message(x.log_id, x.offset, len(data),
-                                                      list(data) + [0] * (CHUNK_BYTES - len(data))), out)
-            self._count("log.data")
+            self.v._send(lk, R.MAVLink_log_data_message(x.log_id, x.offset, len(data),
+                                                        list(data) + [0] * (CHUNK_BYTES - len(data))), out)
+            self.v._count("log.data")
             x.offset += len(data)
             if not data or x.offset >= x.end:
-                self._log_xfer = None
+                self.xfer = None
                 return

@@ -1,12 +1,15 @@
-"""PARAM_* microservice of the unit firmware (values, PX4 names: params.py).
-
-A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing (_reply, _text, ...).
-"""
+"""PARAM_* microservice of the unit firmware (values, PX4 names: params.py)."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 from firmware_models import control_policy as policy
 from firmware_models.vehicle_links import Link, Outgoing
+
+if TYPE_CHECKING:
+    from firmware_models.vehicle import Vehicle
+
 
 def _param_name(raw) -> str:
     if isinstance(raw, bytes):
@@ -14,42 +17,48 @@ def _param_name(raw) -> str:
     return str(raw).split("\x00", 1)[0]
 
 
-class ParamsMixin:
-    # ----------------------------------------------------------------- parameters
-    def _on_param_list(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
-            self._drop("wrong_target")
+class ParamService:
+    """PARAM_REQUEST_LIST/READ and PARAM_SET over the vehicle's `params` (the store is the vehicle's: every
+    service reads it). Asks of the vehicle: `params`, `armed`, the frame's authority, `_for_me`, `_reply`,
+    `_drop`, and the rotor intake's parameters (`intake`, `_intake_params`)."""
+
+    def __init__(self, vehicle: Vehicle) -> None:
+        self.v = vehicle
+
+    def on_param_list(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
+            self.v._drop("wrong_target")
             return
-        for i in range(self.params.count):
-            if not self._reply(lk, self.params.value_message(i), out):
+        for i in range(self.v.params.count):
+            if not self.v._reply(lk, self.v.params.value_message(i), out):
                 break  # this sender's budget is spent: the client re-requests what it misses
 
-    def _on_param_read(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
-            self._drop("wrong_target")
+    def on_param_read(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
+            self.v._drop("wrong_target")
             return
-        i = msg.param_index if msg.param_index >= 0 else self.params.index(_param_name(msg.param_id))
-        if i is None or not 0 <= i < self.params.count:
-            self._drop("param_unknown")  # PX4 stays silent; clients time out (e.g. QGC's _HASH_CHECK)
+        i = msg.param_index if msg.param_index >= 0 else self.v.params.index(_param_name(msg.param_id))
+        if i is None or not 0 <= i < self.v.params.count:
+            self.v._drop("param_unknown")  # PX4 stays silent; clients time out (e.g. QGC's _HASH_CHECK)
             return
-        self._reply(lk, self.params.value_message(i), out)
+        self.v._reply(lk, self.v.params.value_message(i), out)
 
-    def _on_param_set(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self._drop("wrong_target")
+    def on_param_set(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            self.v._drop("wrong_target")
             return
         name = _param_name(msg.param_id)
-        i = self.params.index(name)
+        i = self.v.params.index(name)
         if i is None:
-            self._drop("param_unknown")
+            self.v._drop("param_unknown")
             return
-        error = policy.param_set_error(self.params.specs[i], msg.param_type, self.armed, self._authority)
+        error = policy.param_set_error(self.v.params.specs[i], msg.param_type, self.v.armed, self.v._authority)
         if error is not None:  # PARAM_ERROR, then (for clients that do not know it) the value in force
-            self._drop("param_rejected")
-            self._reply(lk, policy.param_error(msg, i, error), out)
-        elif not self.params.set_from_wire(name, msg.param_value, msg.param_type):
-            self._drop("param_rejected")
+            self.v._drop("param_rejected")
+            self.v._reply(lk, policy.param_error(msg, i, error), out)
+        elif not self.v.params.set_from_wire(name, msg.param_value, msg.param_type):
+            self.v._drop("param_rejected")
         elif name in ("MARS_CMD_HZ", "MARS_CMD_MISS"):
-            self.intake.params = self._intake_params()
-        self._reply(lk, self.params.value_message(i), out)  # the value in force, changed or not
+            self.v.intake.params = self.v._intake_params()
+        self.v._reply(lk, self.v.params.value_message(i), out)  # the value in force, changed or not
 

@@ -23,6 +23,7 @@ import fnmatch
 import math
 import platform
 import shlex
+from typing import TYPE_CHECKING
 
 from pymavlink.dialects.v20 import common as mavlink
 
@@ -30,6 +31,9 @@ from firmware_models import control_policy as policy
 from firmware_models.params import INT32, encode_value
 from firmware_models.vehicle_links import Link, Outgoing
 from firmware_models.vehicle_modes import MODE_HOLD, MODE_LAND, MODE_RTL
+
+if TYPE_CHECKING:
+    from firmware_models.vehicle import Vehicle
 
 R = mavlink
 CHUNK = 70  # SERIAL_CONTROL data bytes
@@ -42,84 +46,89 @@ RESULT_NAMES = {R.MAV_RESULT_ACCEPTED: "ok", R.MAV_RESULT_DENIED: "denied",
                 R.MAV_RESULT_FAILED: "failed"}
 
 
-class ShellMixin:
-    def _init_shell(self) -> None:
-        self._shell_in: dict[tuple, bytes] = {}  # sender -> bytes of an unfinished line
-        self._shell_out: dict[tuple, tuple[str, bytes]] = {}  # sender -> (link, output not yet sent)
-        self._shell_lock: tuple | None = None  # (sender, wall time of its last input)
-        self.shell_history: list[str] = []  # the lines run (last 100)
+class ShellService:
+    """SERIAL_CONTROL's shell. Owns each sender's input and output, the EXCLUSIVE lock and the history. Asks
+    of the vehicle: its links, wall time, `_send`, `_count`, `_drop`, and for the commands the state they
+    report or change (params, mode machine, telemetry queue)."""
+
+    def __init__(self, vehicle: Vehicle) -> None:
+        self.v = vehicle
+        self.pending_in: dict[tuple, bytes] = {}  # sender -> bytes of an unfinished line
+        self.pending_out: dict[tuple, tuple[str, bytes]] = {}  # sender -> (link, output not yet sent)
+        self.lock: tuple | None = None  # (sender, wall time of its last input)
+        self.history: list[str] = []  # the lines run (last 100)
 
     # ----------------------------------------------------------------- SERIAL_CONTROL
-    def _on_serial_control(self, msg, lk: Link, out: list[Outgoing]) -> None:
+    def on_serial_control(self, msg, lk: Link, out: list[Outgoing]) -> None:
         if msg.device != R.SERIAL_CONTROL_DEV_SHELL:
-            self._drop("serial_control_device")
+            self.v._drop("serial_control_device")
             return
         if msg.flags & R.SERIAL_CONTROL_FLAG_REPLY:
-            self._drop("serial_control_reply")  # a reply sent to us: not a request
+            self.v._drop("serial_control_reply")  # a reply sent to us: not a request
             return
         sender = (lk.name, msg.get_srcSystem(), msg.get_srcComponent())
-        lock = self._shell_lock
-        if lock is not None and lock[0] != sender and self.wall_s - lock[1] < SHELL_LOCK_S:
-            self._drop("serial_control_busy")
+        lock = self.lock
+        if lock is not None and lock[0] != sender and self.v.wall_s - lock[1] < SHELL_LOCK_S:
+            self.v._drop("serial_control_busy")
             return
         if msg.flags & R.SERIAL_CONTROL_FLAG_EXCLUSIVE:
-            self._shell_lock = (sender, self.wall_s)
+            self.lock = (sender, self.v.wall_s)
         elif lock is not None and lock[0] == sender:
-            self._shell_lock = None  # the holder without EXCLUSIVE lets go (MAVProxy's `nsh stop`)
+            self.lock = None  # the holder without EXCLUSIVE lets go (MAVProxy's `nsh stop`)
         count = min(int(msg.count), CHUNK)
         data = bytes(msg.data[:count]) if not isinstance(msg.data, str) else msg.data[:count].encode("latin-1")
-        buf = (self._shell_in.get(sender, b"") + data).replace(b"\r\n", b"\n").replace(b"\r", b"\n")
+        buf = (self.pending_in.get(sender, b"") + data).replace(b"\r\n", b"\n").replace(b"\r", b"\n")
         while b"\n" in buf:
             line, buf = buf.split(b"\n", 1)
             text = line.decode("ascii", "replace").strip()
-            output = (self._run_shell(text) if text else "") + PROMPT
+            output = (self.run(text) if text else "") + PROMPT
             if msg.flags & R.SERIAL_CONTROL_FLAG_RESPOND:  # (no reply wanted: the line runs, its output is not sent)
-                self._queue_shell(sender, lk.name, output)
+                self._queue(sender, lk.name, output)
         if len(buf) > MAX_LINE:
-            self._drop("serial_control_line_too_long")
+            self.v._drop("serial_control_line_too_long")
             buf = buf[-MAX_LINE:]
-        self._shell_in[sender] = buf
-        if len(self._shell_in) > 16:
-            self._shell_in.pop(next(iter(self._shell_in)))
+        self.pending_in[sender] = buf
+        if len(self.pending_in) > 16:
+            self.pending_in.pop(next(iter(self.pending_in)))
         if msg.flags & R.SERIAL_CONTROL_FLAG_RESPOND:
-            self._send_shell(sender, out, all_now=bool(msg.flags & R.SERIAL_CONTROL_FLAG_MULTI), reply_anyway=True)
+            self._send_pending(sender, out, all_now=bool(msg.flags & R.SERIAL_CONTROL_FLAG_MULTI), reply_anyway=True)
 
-    def _queue_shell(self, sender: tuple, link: str, text: str) -> None:
-        _, pending = self._shell_out.get(sender, (link, b""))
+    def _queue(self, sender: tuple, link: str, text: str) -> None:
+        _, pending = self.pending_out.get(sender, (link, b""))
         pending = (pending + text.encode("ascii", "replace"))[-MAX_PENDING:]
-        self._shell_out[sender] = (link, pending)
+        self.pending_out[sender] = (link, pending)
 
-    def _send_shell(self, sender: tuple, out: list[Outgoing], all_now: bool, reply_anyway: bool = False) -> None:
-        link, pending = self._shell_out.get(sender, (sender[0], b""))
-        lk = self.links.get(link)
+    def _send_pending(self, sender: tuple, out: list[Outgoing], all_now: bool, reply_anyway: bool = False) -> None:
+        link, pending = self.pending_out.get(sender, (sender[0], b""))
+        lk = self.v.links.get(link)
         if lk is None:
             return
         sent = False
         while pending and (all_now or not sent):
             chunk, pending = pending[:CHUNK], pending[CHUNK:]
-            self._send(lk, self._shell_frame(chunk), out)
+            self.v._send(lk, self._frame(chunk), out)
             sent = True
         if not sent and reply_anyway:
-            self._send(lk, self._shell_frame(b""), out)  # nothing pending: an empty REPLY answers the poll
+            self.v._send(lk, self._frame(b""), out)  # nothing pending: an empty REPLY answers the poll
         if pending:
-            self._shell_out[sender] = (link, pending)
+            self.pending_out[sender] = (link, pending)
         else:
-            self._shell_out.pop(sender, None)
+            self.pending_out.pop(sender, None)
 
     @staticmethod
-    def _shell_frame(chunk: bytes):
+    def _frame(chunk: bytes):
         return R.MAVLink_serial_control_message(R.SERIAL_CONTROL_DEV_SHELL, R.SERIAL_CONTROL_FLAG_REPLY, 0, 0,
                                                 len(chunk), list(chunk.ljust(CHUNK, b"\0")))
 
-    def _shell_tick(self, out: list[Outgoing]) -> None:
+    def tick(self, out: list[Outgoing]) -> None:
         """Stream pending output, one chunk per sender per tick (PX4's shell pushes its output)."""
-        for sender in list(self._shell_out):
-            self._send_shell(sender, out, all_now=False)
+        for sender in list(self.pending_out):
+            self._send_pending(sender, out, all_now=False)
 
     # ----------------------------------------------------------------- commands
-    def _run_shell(self, line: str) -> str:
-        self._count("shell_command")
-        self.shell_history = (self.shell_history + [line])[-100:]
+    def run(self, line: str) -> str:
+        self.v._count("shell_command")
+        self.history = (self.history + [line])[-100:]
         try:
             words = shlex.split(line)
         except ValueError:
@@ -138,13 +147,13 @@ class ShellMixin:
 
     def _sh_ver(self, args: list[str]) -> str:
         lines = ["HW arch: MARS_LINK_SITL", "FW version: 0.1.0 (mars-link unit firmware)",
-                 f"OS: Python {platform.python_version()} on {platform.system()}", f"MAV_SYS_ID: {self.sysid}"]
+                 f"OS: Python {platform.python_version()} on {platform.system()}", f"MAV_SYS_ID: {self.v.sysid}"]
         if args[:1] != ["all"]:
             lines = lines[:2]
         return "\n".join(lines) + "\n"
 
     def _sh_param(self, args: list[str]) -> str:
-        p = self.params
+        p = self.v.params
         if not args or args[0] not in ("show", "get", "set"):
             return "usage: param show [PATTERN] | param get NAME | param set NAME VALUE\n"
         if args[0] == "show":
@@ -164,37 +173,37 @@ class ShellMixin:
             value = float(args[2])
         except ValueError:
             return f"param: {args[2]!r} is not a number\n"
-        error = policy.param_set_error(spec, spec.kind, self.armed, self._authority)
+        error = policy.param_set_error(spec, spec.kind, self.v.armed, self.v._authority)
         if error is not None:
-            self._drop("param_rejected")
+            self.v._drop("param_rejected")
             return f"param: {spec.name}: refused ({'read only' if spec.read_only else 'permission denied'})\n"
         if not math.isfinite(value) or not p.set_from_wire(spec.name, encode_value(value, spec.kind), spec.kind):
-            self._drop("param_rejected")
+            self.v._drop("param_rejected")
             return f"param: {spec.name}: {args[2]} is outside {spec.min_value:g}..{spec.max_value:g}\n"
         if spec.name in ("MARS_CMD_HZ", "MARS_CMD_MISS"):
-            self.intake.params = self._intake_params()
-        self._mission_msgs.append(p.value_message(i))  # ground stations learn the change (as PARAM_SET's echo)
+            self.v.intake.params = self.v._intake_params()
+        self.v._mission_msgs.append(p.value_message(i))  # ground stations learn the change (as PARAM_SET's echo)
         return f"{spec.name}: {_fmt(p[spec.name], spec.kind)}\n"
 
     def _sh_commander(self, args: list[str]) -> str:
-        actions = {"arm": lambda: self._arm_disarm(1.0, 0.0), "disarm": lambda: self._arm_disarm(0.0, 0.0),
-                   "takeoff": lambda: self._takeoff(math.nan), "land": lambda: self._set_mode(MODE_LAND),
-                   "hold": lambda: self._set_mode(MODE_HOLD), "rtl": lambda: self._set_mode(MODE_RTL)}
+        actions = {"arm": lambda: self.v._arm_disarm(1.0, 0.0), "disarm": lambda: self.v._arm_disarm(0.0, 0.0),
+                   "takeoff": lambda: self.v._takeoff(math.nan), "land": lambda: self.v._set_mode(MODE_LAND),
+                   "hold": lambda: self.v._set_mode(MODE_HOLD), "rtl": lambda: self.v._set_mode(MODE_RTL)}
         act = actions.get(args[0]) if args else None
         if act is None:
             return "usage: commander arm|disarm|takeoff|land|hold|rtl\n"
-        self._refusal_why = None
+        self.v._refusal_why = None
         result = act()
-        why, self._refusal_why = self._refusal_why, None  # (the reason a refusal gives: vehicle_commands)
+        why, self.v._refusal_why = self.v._refusal_why, None  # (the reason a refusal gives: vehicle_commands)
         return f"commander {args[0]}: {RESULT_NAMES.get(result, str(result))}" + (f" ({why})" if why else "") + "\n"
 
     def _sh_listener(self, args: list[str]) -> str:
         topic = args[0] if args else ""
-        s = self.state
+        s = self.v.state
         if topic == "vehicle_status":
-            return (f"TOPIC: vehicle_status\n    timestamp: {int(self.sim_s * 1e6)}\n    arming_state: "
-                    f"{'ARMED' if self.armed else 'STANDBY'}\n    nav_state: {self._mode_name()}\n    landed: "
-                    f"{self.landed}\n    source: {self.source}\n")
+            return (f"TOPIC: vehicle_status\n    timestamp: {int(self.v.sim_s * 1e6)}\n    arming_state: "
+                    f"{'ARMED' if self.v.armed else 'STANDBY'}\n    nav_state: {self._mode_name()}\n    landed: "
+                    f"{self.v.landed}\n    source: {self.v.source}\n")
         if topic in ("vehicle_local_position", "vehicle_global_position"):
             if s is None:
                 return f"never published: {topic}\n"
@@ -202,21 +211,21 @@ class ShellMixin:
                 p, v = s.position_ned_m, s.velocity_ned_mps
                 return (f"TOPIC: vehicle_local_position\n    x: {p[0]:.4f}\n    y: {p[1]:.4f}\n    z: {p[2]:.4f}\n"
                         f"    vx: {v[0]:.4f}\n    vy: {v[1]:.4f}\n    vz: {v[2]:.4f}\n")
-            lat, lon, alt = self.origin.to_global(s.position_ned_m)
+            lat, lon, alt = self.v.origin.to_global(s.position_ned_m)
             return f"TOPIC: vehicle_global_position\n    lat: {lat:.7f}\n    lon: {lon:.7f}\n    alt: {alt:.3f}\n"
         return "usage: listener vehicle_status|vehicle_local_position|vehicle_global_position\n"
 
     def _sh_top(self, args: list[str]) -> str:
-        drops = sum(self.drop_counts().values())
-        return (f"Processes: 1 total (mars-link unit firmware, system {self.sysid})\n"
-                f"sim time {self.sim_s:.2f} s, control {1.0 / self.control_dt_s:.0f} Hz, mode {self._mode_name()}, "
-                f"{'armed' if self.armed else 'disarmed'}\nframes received {self.stats.get('rx', 0)}, dropped {drops}\n")
+        drops = sum(self.v.drop_counts().values())
+        return (f"Processes: 1 total (mars-link unit firmware, system {self.v.sysid})\n"
+                f"sim time {self.v.sim_s:.2f} s, control {1.0 / self.v.control_dt_s:.0f} Hz, mode {self._mode_name()}, "
+                f"{'armed' if self.v.armed else 'disarmed'}\nframes received {self.v.stats.get('rx', 0)}, dropped {drops}\n")
 
     def _mode_name(self) -> str:
         from firmware_models import vehicle_modes as m
 
         names = {v: k.removeprefix("MODE_") for k, v in vars(m).items() if k.startswith("MODE_")}
-        return names.get(tuple(self.mode), str(self.mode))
+        return names.get(tuple(self.v.mode), str(self.v.mode))
 
 
 def _fmt(value: float, kind: int) -> str:

@@ -241,7 +241,7 @@ def vehicle_command(args: argparse.Namespace) -> int:
         sim.vehicle.start_ulog(UlogConfig(out / "vehicle.ulg", background=True))
     from firmware_models.vehicle_logs import LogStore
 
-    sim.vehicle.logs = LogStore([args.tlog, out / "run.mcap" if out is not None else None,  # LOG_* download
+    sim.vehicle.log_service.store = LogStore([args.tlog, out / "run.mcap" if out is not None else None,  # LOG_* download
                                  out / "vehicle.ulg" if out is not None else None])
     ep = runner.endpoints()
     s = sim.scenario

@@ -104,7 +104,7 @@ class UnitRunner:
         links = client_links(i, args.gcs_port, args.api_port, args.gcs_bind, args.api_bind)
         links[LINK_COORDINATOR] = LinkSpec(pick(args.coord_bind, COORD_BIND_BASE + i), None, learn_clients=False)
         self.io = VehicleSockets(self.vehicle, links, Path(args.tlog) if args.tlog else None)
-        self.vehicle.logs = LogStore([args.tlog])  # (LOG_* download of the run's own .tlog)
+        self.vehicle.log_service.store = LogStore([args.tlog])  # (LOG_* download of the run's own .tlog)
         self.status_path = Path(args.status_file) if args.status_file else None
         self.duration_s = args.duration
         self.running = True

@@ -20,7 +20,7 @@ def test_log_list_data_end_and_erase(tmp_path: Path) -> None:
     assert entry.num_logs == 0  # no logs given: PX4's empty answer
     blob = bytes(range(256)) * 40 + b"tail"  # 10,244 bytes
     (tmp_path / "run.tlog").write_bytes(blob)
-    v.logs = LogStore([tmp_path / "run.tlog", tmp_path / "missing.mcap"])
+    v.log_service.store = LogStore([tmp_path / "run.tlog", tmp_path / "missing.mcap"])
     entries = [m for m in api.send(R.MAVLink_log_request_list_message(1, 1, 0, 0xFFFF)) if m.get_type() == "LOG_ENTRY"]
     assert [(e.id, e.num_logs, e.size) for e in entries] == [(0, 1, len(blob))]  # a missing file is not listed
     got: dict[int, bytes] = {}
