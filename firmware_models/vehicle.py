@@ -39,6 +39,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models import control_policy as policy
 from mars_link.core.geo import EARTH_RADIUS_M  # noqa: F401 (re-exported)
 from firmware_models.battery_monitor import BatteryMonitor
+from firmware_models.geofence import Geofence
 from mars_link.core.geo import GeoOrigin, origin_from_env
 from firmware_models.mission_protocol import MissionProtocol
 from firmware_models.mission_runner import MissionRunner
@@ -54,11 +55,11 @@ from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
     ACTION_COMMANDS, COMMAND_DEDUP_S, FAILURE_TYPE_ETA, FAILURE_UNIT_SYSTEM_MOTOR, SETPOINT_PROOF_OF_LIFE_S,
     CommandsMixin,
 )
-from firmware_models.vehicle_follow import FollowMixin
-from firmware_models.vehicle_geofence import GeofenceMixin
+from firmware_models.vehicle_follow import FollowService
+from firmware_models.vehicle_geofence import GeofenceService
 from firmware_models.vehicle_hil import HilMixin
 from firmware_models.vehicle_logs import LogService
-from firmware_models.vehicle_manual import ManualMixin
+from firmware_models.vehicle_manual import ManualService
 from firmware_models.vehicle_links import (  # noqa: F401 (re-exported)
     LINK_API, LINK_COORDINATOR, LINK_GCS, LINK_HIL, Link, LinkPolicy, Outgoing, default_links,
 )
@@ -150,8 +151,7 @@ class VehicleConfig:
 
 
 
-class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, MissionsMixin, GeofenceMixin,
-              HilMixin, StreamsMixin, Px4Mixin):
+class Vehicle(CommandsMixin, OffboardMixin, MissionsMixin, HilMixin, StreamsMixin, Px4Mixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -242,9 +242,9 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, MissionsMi
         self._mission_version = 0
         self._mission_msgs: list = []  # MISSION_CURRENT / MISSION_ITEM_REACHED to broadcast
         self.mission_reached: list[dict] = []  # (seq, sim time, position) of every MISSION_ITEM_REACHED
-        self._init_geofence()
-        self._init_manual()
-        self._init_follow()
+        self.geofence_service = GeofenceService(self)
+        self.manual_service = ManualService(self)
+        self.follow_service = FollowService(self)
         self.param_service = ParamService(self)
         self.log_service = LogService(self)
         self.shell_service = ShellService(self)
@@ -277,6 +277,10 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, MissionsMi
     def landed(self) -> bool:
         return self.autopilot.landed if self.source == "own" else bool(
             self.state is not None and self.autopilot.touching(self.state))
+
+    def geofence(self) -> Geofence:
+        """The stored fence as geometry (the planners read it: mars_link.planning.mission_legs)."""
+        return self.geofence_service.geofence()
 
     def drop_counts(self) -> dict[str, int]:
         """Every dropped input, by reason (parse.*, signing.<link>.*, intake.*, and the rest)."""
@@ -648,7 +652,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, MissionsMi
             self.motor_commands_n = np.zeros(4)
             return
         self._battery_step()
-        override = self._guidance_step(t)  # orbit, sticks, attitude target (vehicle_manual)
+        override = self.manual_service.guidance_step(t)  # orbit, sticks, attitude target (vehicle_manual)
         if override is not None:
             thrusts, event = override, None
         else:
@@ -665,6 +669,10 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, MissionsMi
             self._landed_since = t
             self._text("Landed")
 
+    def _land_detect(self, t: float) -> str | None:
+        """The land detector (manual_service); a subclass may hold it off (mars_link.vehicles.pieces_vehicle)."""
+        return self.manual_service.land_detect(t)
+
     def _drive_from_coordinator(self, held_n: np.ndarray) -> None:
         """A control step under the coordinator: its held command drives the motors."""
         self.motor_commands_n = held_n  # (the intake's own array: a new one per accepted command)
@@ -678,7 +686,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, MissionsMi
         `wall_time_s` (now): a client heard from since is not credited twice."""
         if self._setpoint_wall is not None:
             self._setpoint_wall = min(wall_time_s, self._setpoint_wall + stalled_s)
-        self._sticks_wall = min(wall_time_s, self._sticks_wall + stalled_s)
+        self.manual_service.sticks_wall = min(wall_time_s, self.manual_service.sticks_wall + stalled_s)
 
     def _watchdogs(self) -> None:
         p = self.params
@@ -698,7 +706,7 @@ class Vehicle(CommandsMixin, OffboardMixin, ManualMixin, FollowMixin, MissionsMi
             elif not self._took_off and self._armed_at is not None and p["COM_DISARM_PRFLT"] >= 0:
                 if self.sim_s - self._armed_at >= p["COM_DISARM_PRFLT"]:
                     self._disarm("Disarmed: no takeoff")
-        self._geofence_step()
+        self.geofence_service.step()
 
 
 
@@ -709,9 +717,9 @@ _HANDLERS: dict[str, tuple[str, str]] = {
     "SET_MODE": ("", "_on_set_mode"),
     "SET_POSITION_TARGET_LOCAL_NED": ("", "_on_position_target"),
     "SET_POSITION_TARGET_GLOBAL_INT": ("", "_on_position_target"),
-    "SET_ATTITUDE_TARGET": ("", "_on_attitude_target"),
-    "MANUAL_CONTROL": ("", "_on_manual_control"),
-    "FOLLOW_TARGET": ("", "_on_follow_target"),
+    "SET_ATTITUDE_TARGET": ("manual_service", "on_attitude_target"),
+    "MANUAL_CONTROL": ("manual_service", "on_manual_control"),
+    "FOLLOW_TARGET": ("follow_service", "on_follow_target"),
     "SERIAL_CONTROL": ("shell_service", "on_serial_control"),
     "LOG_REQUEST_LIST": ("log_service", "on_request_list"),
     "LOG_REQUEST_DATA": ("log_service", "on_request_data"),

@@ -177,7 +177,7 @@ class CommandsMixin:
         if cmd == R.MAV_CMD_DO_REPOSITION:
             return self._reposition(p, is_int), []
         if cmd == R.MAV_CMD_DO_ORBIT:
-            return self._do_orbit(p, is_int), []
+            return self.manual_service.do_orbit(p, is_int), []
         if cmd == R.MAV_CMD_DO_CHANGE_SPEED:
             return self._change_speed(p[0], p[1]), []
         if cmd == R.MAV_CMD_MISSION_START:
@@ -264,7 +264,7 @@ class CommandsMixin:
             if target > lowest + 0.1:  # (PX4 says nothing for less than 10 cm)
                 self._text(f"Using minimum takeoff altitude: {ground - lowest:.2f} m", R.MAV_SEVERITY_CRITICAL)
             target = min(target, lowest)
-        why = self.fence_violation(np.array([self.state.position_ned_m[0], self.state.position_ned_m[1], target]))
+        why = self.geofence_service.violation(np.array([self.state.position_ned_m[0], self.state.position_ned_m[1], target]))
         if why is not None:
             return self._refuse(R.MAV_RESULT_DENIED, why)
         self.source = "own"
@@ -282,11 +282,11 @@ class CommandsMixin:
             return self._enter_mission()
         if mode == MODE_FOLLOW:
             self.runner.pause()
-            self._orbit = None
-            return self._enter_follow()
+            self.manual_service.orbit = None
+            return self.follow_service.enter()
         s = self.state
         self.runner.pause()  # (a no-op unless leaving AUTO.MISSION: it resumes at its current item)
-        self._orbit = None
+        self.manual_service.orbit = None
         if mode in (MODE_HOLD, MODE_POSCTL):
             if s is not None and self.source == "own":
                 self.autopilot.hold(s)
@@ -304,7 +304,7 @@ class CommandsMixin:
                 return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet (arm first)")
             if self.source != "own":
                 self._hand_back(s)
-            self.autopilot.rtl(s, self.return_point_ned(), self.params["RTL_RETURN_ALT"])
+            self.autopilot.rtl(s, self.geofence_service.return_point_ned(), self.params["RTL_RETURN_ALT"])
         elif mode == MODE_TAKEOFF:
             return self._takeoff(math.nan)
         elif mode == MODE_OFFBOARD:
@@ -340,7 +340,7 @@ class CommandsMixin:
         target = self._global_to_ned(lat, lon, p[6])
         if np.linalg.norm(target[:2] - self.state.position_ned_m[:2]) > MAX_POSITION_M:
             return self._refuse(R.MAV_RESULT_DENIED, f"farther than {MAX_POSITION_M:g} m")
-        why = self.fence_violation(target)
+        why = self.geofence_service.violation(target)
         if why is not None:
             return self._refuse(R.MAV_RESULT_DENIED, why)
         yaw = math.radians(p[3]) if math.isfinite(p[3]) else None

@@ -14,13 +14,12 @@ else estimated from consecutive fixes); its course is that velocity's direction,
 stands still. The vehicle flies a velocity target (the target's velocity plus a correction towards
 the follow point, on the reference, so the lag vanishes on a steady course) facing the target. No fix
 for FOLLOW_LOST_S: it holds where it is and says so; a follow point outside the geofence: it holds.
-
-A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing.
 """
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
@@ -28,6 +27,9 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.vehicle_links import Link, Outgoing
 from firmware_models.vehicle_links import finite as _finite
 from firmware_models.vehicle_modes import MODE_FOLLOW
+
+if TYPE_CHECKING:
+    from firmware_models.vehicle import Vehicle
 
 R = mavlink
 FOLLOW_LOST_S = 2.5  # MAVSDK sends a fix every second: more than two missed is a lost target
@@ -38,25 +40,30 @@ FOLLOW_YAW_GAIN_PER_S = 1.0
 EST_POS, EST_VEL = 1 << 0, 1 << 1  # FOLLOW_TARGET est_capabilities bits
 
 
-class FollowMixin:
-    def _init_follow(self) -> None:
-        self._target: dict | None = None  # {"p": ned, "v": ned, "t": sim time of the fix, "course": rad}
-        self._follow_holding = False
+class FollowService:
+    """AUTO.FOLLOW_TARGET. Owns the target's track and whether the mode holds for want of it. Asks of the
+    vehicle: state, home, sim time, `params`, the flight core, the mode machine, the geofence service,
+    `_text`, `_count`, `_drop`."""
+
+    def __init__(self, vehicle: Vehicle) -> None:
+        self.v = vehicle
+        self.target: dict | None = None  # {"p": ned, "v": ned, "t": sim time of the fix, "course": rad}
+        self.holding = False
 
     # ----------------------------------------------------------------- FOLLOW_TARGET
-    def _on_follow_target(self, msg, lk: Link, out: list[Outgoing]) -> None:
+    def on_follow_target(self, msg, lk: Link, out: list[Outgoing]) -> None:
         lat, lon, alt = msg.lat * 1e-7, msg.lon * 1e-7, msg.alt
         if not (_finite(alt) and -90 <= lat <= 90 and -180 <= lon <= 180) or (lat == 0 and lon == 0):
-            self._drop("follow_target_invalid")
+            self.v._drop("follow_target_invalid")
             return
-        p = self._global_to_ned(lat, lon, alt)
+        p = self.v._global_to_ned(lat, lon, alt)
         if np.linalg.norm(p[:2]) > 10_000.0:
-            self._drop("follow_target_too_far")
+            self.v._drop("follow_target_too_far")
             return
         vel = np.array(msg.vel, dtype=float)
         given = np.all(np.isfinite(vel)) and (msg.est_capabilities & EST_VEL or np.any(vel != 0.0))
-        old = self._target
-        t = self.sim_s
+        old = self.target
+        t = self.v.sim_s
         if given:
             v = vel
         elif old is not None and t - old["t"] > 0.05:
@@ -64,65 +71,65 @@ class FollowMixin:
         else:
             v = np.zeros(3)
         if old is not None and not given:
-            rs = min(max(self.params["FLW_TGT_RS"], 0.0), 1.0)
+            rs = min(max(self.v.params["FLW_TGT_RS"], 0.0), 1.0)
             v = rs * old["v"] + (1.0 - rs) * v
         course = old["course"] if old is not None else None
         if math.hypot(v[0], v[1]) >= MOVING_MPS:
             course = math.atan2(v[1], v[0])
-        self._target = {"p": p, "v": v, "t": t, "course": course}
-        self._count("follow_target")
+        self.target = {"p": p, "v": v, "t": t, "course": course}
+        self.v._count("follow_target")
 
     # ----------------------------------------------------------------- the mode
-    def _enter_follow(self) -> int:
-        s = self.state
-        if s is None or not self.armed or self.landed:
-            return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")  # as PX4
-        if self.source != "own":
-            self._hand_back(s)
-        self.autopilot.hold(s)
-        self.mode = MODE_FOLLOW
-        self._follow_holding = self._target is None
-        self._text("Follow target")
+    def enter(self) -> int:
+        s = self.v.state
+        if s is None or not self.v.armed or self.v.landed:
+            return self.v._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")  # as PX4
+        if self.v.source != "own":
+            self.v._hand_back(s)
+        self.v.autopilot.hold(s)
+        self.v.mode = MODE_FOLLOW
+        self.holding = self.target is None
+        self.v._text("Follow target")
         return R.MAV_RESULT_ACCEPTED
 
-    def follow_point_ned(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    def point_ned(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(follow point, target position, target velocity) now, or None without a live target."""
-        tg = self._target
-        if tg is None or self.sim_s - tg["t"] > FOLLOW_LOST_S or self.state is None:
+        tg = self.target
+        if tg is None or self.v.sim_s - tg["t"] > FOLLOW_LOST_S or self.v.state is None:
             return None
-        p_t = tg["p"] + tg["v"] * (self.sim_s - tg["t"])
+        p_t = tg["p"] + tg["v"] * (self.v.sim_s - tg["t"])
         course = tg["course"]
         if course is None:  # never seen moving: keep the side the vehicle is on
-            d = self.state.position_ned_m[:2] - p_t[:2]
+            d = self.v.state.position_ned_m[:2] - p_t[:2]
             course = math.atan2(-d[1], -d[0]) if np.hypot(*d) > 1e-3 else 0.0
             tg["course"] = course
-        side = course + math.radians(self.params["FLW_TGT_FA"])
-        dist = self.params["FLW_TGT_DST"]
+        side = course + math.radians(self.v.params["FLW_TGT_FA"])
+        dist = self.v.params["FLW_TGT_DST"]
         point = np.array([p_t[0] + dist * math.cos(side), p_t[1] + dist * math.sin(side), 0.0])
-        if int(self.params["FLW_TGT_ALT_M"]) == 2:
-            point[2] = p_t[2] - self.params["FLW_TGT_HT"]
+        if int(self.v.params["FLW_TGT_ALT_M"]) == 2:
+            point[2] = p_t[2] - self.v.params["FLW_TGT_HT"]
         else:
-            point[2] = self.home_ned[2] - self.params["FLW_TGT_HT"]
+            point[2] = self.v.home_ned[2] - self.v.params["FLW_TGT_HT"]
         return point, p_t, tg["v"]
 
-    def _follow_step(self) -> None:
+    def step(self) -> None:
         """Each control step in AUTO.FOLLOW_TARGET: a velocity target onto the follow point."""
-        ap, s = self.autopilot, self.state
-        got = self.follow_point_ned()
-        if got is None or self._setpoint_outside_fence(got[0]):
-            if not self._follow_holding:
-                self._follow_holding = True
+        ap, s = self.v.autopilot, self.v.state
+        got = self.point_ned()
+        if got is None or self.v.geofence_service.setpoint_outside(got[0]):
+            if not self.holding:
+                self.holding = True
                 ap.hold(s)
-                self._text("Follow: target lost, holding" if got is None else "Follow: point outside the fence",
+                self.v._text("Follow: target lost, holding" if got is None else "Follow: point outside the fence",
                            R.MAV_SEVERITY_WARNING)
             return
-        self._follow_holding = False
+        self.holding = False
         point, p_t, v_t = got
         ref = ap.shaper.p
         v = v_t.copy()
         v[:2] = v[:2] + FOLLOW_GAIN_PER_S * (point[:2] - ref[:2])
-        v[2] = FOLLOW_GAIN_PER_S * (point[2] - ref[2]) + (v_t[2] if int(self.params["FLW_TGT_ALT_M"]) == 2 else 0.0)
-        cap = min(self.params["FLW_TGT_MAX_VEL"], self.params["MPC_XY_VEL_MAX"])
+        v[2] = FOLLOW_GAIN_PER_S * (point[2] - ref[2]) + (v_t[2] if int(self.v.params["FLW_TGT_ALT_M"]) == 2 else 0.0)
+        cap = min(self.v.params["FLW_TGT_MAX_VEL"], self.v.params["MPC_XY_VEL_MAX"])
         sxy = math.hypot(v[0], v[1])
         if sxy > cap:
             v[:2] *= cap / sxy

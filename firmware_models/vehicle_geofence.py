@@ -7,11 +7,11 @@ What clients ask for is checked before it is flown: mission uploads (whole plan,
 naming the item), the mission start, goto (MAV_RESULT_DENIED) and offboard position setpoints
 (dropped, counted as setpoint_outside_fence). Return (RTL) goes to the rally point nearest to the
 vehicle when rally points are stored, else home (PX4's RTL_TYPE 0 among rally points).
-
-A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing.
 """
 
 from __future__ import annotations
+
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
@@ -22,51 +22,59 @@ from firmware_models.geofence import (
 from firmware_models.mission_protocol import FENCE, HERE_OK, MISSION, NAV_POSITION, RALLY, MissionItem
 from firmware_models.vehicle_modes import MODE_HOLD, MODE_LAND, MODE_RTL
 
+if TYPE_CHECKING:
+    from firmware_models.vehicle import Vehicle
+
 R = mavlink
 
 
-class GeofenceMixin:
-    def _init_geofence(self) -> None:
-        self._fence_cache: tuple | None = None  # (fence version, home) -> Geofence
-        self._fence_breached = False
-        self.fence_breaches: list[dict] = []  # {sim_time_s, position_ned_m, why, action} per breach
-        self._fence_text_wall = -1e9
-        self.mission.plan_check = self._plan_check
+class GeofenceService:
+    """The fence and rally points at work. Owns the fence's geometry (cached per fence version and home),
+    the breach state and record (`breaches`). Asks of the vehicle: the stored lists (`mission`, `runner`),
+    home and state, `params`, the mode machine for GF_ACTION, `_text`, `_count`, `_drop`."""
+
+    def __init__(self, vehicle: Vehicle) -> None:
+        self.v = vehicle
+        self.cache: tuple | None = None  # (fence version, home) -> Geofence
+        self.breached = False
+        self.breaches: list[dict] = []  # {sim_time_s, position_ned_m, why, action} per breach
+        self.text_wall = -1e9
+        vehicle.mission.plan_check = self.plan_check
 
     # ----------------------------------------------------------------- geometry
     def geofence(self) -> Geofence:
         """The stored fence as geometry (rebuilt when the fence list or home changes)."""
-        home = None if self.home_ned is None else tuple(np.round(self.home_ned, 6))
-        key = (self.mission.versions[FENCE], home)
-        if self._fence_cache is None or self._fence_cache[0] != key:
-            self._fence_cache = (key, Geofence.from_items(self.mission.plans[FENCE], self.origin, self.home_ned))
-        return self._fence_cache[1]
+        home = None if self.v.home_ned is None else tuple(np.round(self.v.home_ned, 6))
+        key = (self.v.mission.versions[FENCE], home)
+        if self.cache is None or self.cache[0] != key:
+            self.cache = (key, Geofence.from_items(self.v.mission.plans[FENCE], self.v.origin, self.v.home_ned))
+        return self.cache[1]
 
-    def fence_limits(self) -> FenceLimits:
-        return FenceLimits(self.params["GF_MAX_HOR_DIST"], self.params["GF_MAX_VER_DIST"])
+    def limits(self) -> FenceLimits:
+        return FenceLimits(self.v.params["GF_MAX_HOR_DIST"], self.v.params["GF_MAX_VER_DIST"])
 
-    def fence_violation(self, p_ned: np.ndarray) -> str | None:
+    def violation(self, p_ned: np.ndarray) -> str | None:
         """Why p_ned is not allowed (zones, then GF_* limits around home), or None."""
-        return self.geofence().violation(np.asarray(p_ned, dtype=float), self.home_ned, self.fence_limits())
+        return self.geofence().violation(np.asarray(p_ned, dtype=float), self.v.home_ned, self.limits())
 
-    def _mission_item_ned(self, item: MissionItem) -> np.ndarray | None:
+    def _item_ned(self, item: MissionItem) -> np.ndarray | None:
         """Where a positional mission item sends the vehicle (None: no position or "where it is")."""
         if item.command not in NAV_POSITION or (item.command in HERE_OK and item.x == 0 and item.y == 0):
             return None
-        home = self.home_ned if self.home_ned is not None else (
-            self.state.position_ned_m if self.state is not None else np.zeros(3))
-        return self.runner.target_ned(item, self.state, np.asarray(home, dtype=float))
+        home = self.v.home_ned if self.v.home_ned is not None else (
+            self.v.state.position_ned_m if self.v.state is not None else np.zeros(3))
+        return self.v.runner.target_ned(item, self.v.state, np.asarray(home, dtype=float))
 
     def _first_outside(self, items: tuple[MissionItem, ...]) -> tuple[int, str] | None:
         for it in items:
-            p = self._mission_item_ned(it)
-            why = None if p is None else self.fence_violation(p)
+            p = self._item_ned(it)
+            why = None if p is None else self.violation(p)
             if why is not None:
                 return it.seq, why
         return None
 
     # ----------------------------------------------------------------- uploads and commands
-    def _plan_check(self, mission_type: int, items: tuple[MissionItem, ...]) -> tuple[int, int, str, str] | None:
+    def plan_check(self, mission_type: int, items: tuple[MissionItem, ...]) -> tuple[int, int, str, str] | None:
         """MissionProtocol.plan_check: a fence's polygons whole; a mission's waypoints inside the fence."""
         if mission_type == FENCE:
             bad = fence_shape_error(items)
@@ -77,66 +85,66 @@ class GeofenceMixin:
                 return R.MAV_MISSION_ERROR, bad[0], "outside_fence", bad[1]
         return None
 
-    def _mission_fence_refusal(self) -> str | None:
+    def mission_refusal(self) -> str | None:
         """A stored mission that the (later uploaded) fence forbids is not started (PX4's feasibility check)."""
-        bad = self._first_outside(self.runner.items)
+        bad = self._first_outside(self.v.runner.items)
         return None if bad is None else f"Mission item {bad[0]} {bad[1]}"
 
-    def _setpoint_outside_fence(self, p_ned: np.ndarray) -> bool:
-        why = self.fence_violation(p_ned)
+    def setpoint_outside(self, p_ned: np.ndarray) -> bool:
+        why = self.violation(p_ned)
         if why is None:
             return False
-        self._drop("setpoint_outside_fence")
-        if self.wall_s - self._fence_text_wall >= 1.0:  # one STATUSTEXT a second for a stream of them
-            self._fence_text_wall = self.wall_s
-            self._text(f"Setpoint refused: {why}", R.MAV_SEVERITY_WARNING)
+        self.v._drop("setpoint_outside_fence")
+        if self.v.wall_s - self.text_wall >= 1.0:  # one STATUSTEXT a second for a stream of them
+            self.text_wall = self.v.wall_s
+            self.v._text(f"Setpoint refused: {why}", R.MAV_SEVERITY_WARNING)
         return True
 
     def return_point_ned(self) -> np.ndarray | None:
         """Where RTL goes: the nearest rally point (at home's ground height), else home."""
-        if self.home_ned is None:
+        if self.v.home_ned is None:
             return None
-        rally = self.mission.plans[RALLY]
-        if not rally or self.state is None:
-            return self.home_ned
-        here = self.state.position_ned_m
-        points = [self.runner.target_ned(it, self.state, self.home_ned) for it in rally]
+        rally = self.v.mission.plans[RALLY]
+        if not rally or self.v.state is None:
+            return self.v.home_ned
+        here = self.v.state.position_ned_m
+        points = [self.v.runner.target_ned(it, self.v.state, self.v.home_ned) for it in rally]
         best = min(points, key=lambda p: float(np.hypot(*(p[:2] - here[:2]))))
-        return np.array([best[0], best[1], self.home_ned[2]])
+        return np.array([best[0], best[1], self.v.home_ned[2]])
 
     # ----------------------------------------------------------------- in flight
-    def _geofence_step(self) -> None:
+    def step(self) -> None:
         """Once per tick: a breach by the vehicle's position triggers GF_ACTION once."""
-        s = self.state
-        if s is None or not self.armed or self.landed:
-            self._fence_breached = False
+        s = self.v.state
+        if s is None or not self.v.armed or self.v.landed:
+            self.breached = False
             return
-        why = self.fence_violation(s.position_ned_m)
+        why = self.violation(s.position_ned_m)
         if why is None:
-            self._fence_breached = False
+            self.breached = False
             return
-        if self._fence_breached:
+        if self.breached:
             return
-        self._fence_breached = True
-        action = int(self.params["GF_ACTION"])
-        self._count("geofence_breach")
-        self.fence_breaches.append({"sim_time_s": self.sim_s, "position_ned_m": [float(x) for x in s.position_ned_m],
+        self.breached = True
+        action = int(self.v.params["GF_ACTION"])
+        self.v._count("geofence_breach")
+        self.breaches.append({"sim_time_s": self.v.sim_s, "position_ned_m": [float(x) for x in s.position_ned_m],
                                     "why": why, "action": GF_ACTION_NAMES.get(action, str(action))})
-        del self.fence_breaches[:-100]
+        del self.breaches[:-100]
         if action == GF_NONE:
             return
         severity = R.MAV_SEVERITY_WARNING if action == 1 else R.MAV_SEVERITY_CRITICAL
-        self._text(f"Geofence breached: {why}"[:50], severity)
+        self.v._text(f"Geofence breached: {why}"[:50], severity)
         if action == GF_HOLD:
-            if self.source != "own":
-                self._hand_back(s)
-            self.runner.pause()
-            self.autopilot.hold(s)
-            self.mode = MODE_HOLD
-            self._text("Geofence: holding", severity)
-        elif action == GF_RTL and self.mode != MODE_RTL:
-            self._set_mode(MODE_RTL)
-        elif action == GF_LAND and self.mode != MODE_LAND:
-            self._set_mode(MODE_LAND)
+            if self.v.source != "own":
+                self.v._hand_back(s)
+            self.v.runner.pause()
+            self.v.autopilot.hold(s)
+            self.v.mode = MODE_HOLD
+            self.v._text("Geofence: holding", severity)
+        elif action == GF_RTL and self.v.mode != MODE_RTL:
+            self.v._set_mode(MODE_RTL)
+        elif action == GF_LAND and self.v.mode != MODE_LAND:
+            self.v._set_mode(MODE_LAND)
         elif action == GF_TERMINATE:
-            self._disarm("Geofence: flight terminated")
+            self.v._disarm("Geofence: flight terminated")

@@ -20,7 +20,7 @@ class MissionsMixin:
             return self._refuse(R.MAV_RESULT_DENIED, "no mission stored")
         if self.state is None or self.home_ned is None:
             return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet (arm first)")
-        refusal = self._mission_fence_refusal()
+        refusal = self.geofence_service.mission_refusal()
         if refusal is not None:
             return self._refuse(R.MAV_RESULT_DENIED, refusal)
         if self.source != "own":

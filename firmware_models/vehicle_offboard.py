@@ -72,7 +72,7 @@ class OffboardMixin:
         ) > 10.0 or (yaw is not None and abs(yaw) > 10.0):
             self._drop("setpoint_out_of_range")
             return
-        if use_pos and self._setpoint_outside_fence(pos):
+        if use_pos and self.geofence_service.setpoint_outside(pos):
             return
         if use_pos:
             self._setpoint = ("position", pos, yaw, 0.0)
@@ -87,7 +87,7 @@ class OffboardMixin:
         if self._setpoint is None or self.state is None or not self.armed:
             return
         kind, vec, yaw, yaw_rate = self._setpoint
-        if kind == "attitude" or (self.autopilot.phase == Phase.IDLE and not self._setpoint_lifts(kind, vec)):
+        if kind == "attitude" or (self.autopilot.phase == Phase.IDLE and not self.manual_service.setpoint_lifts(kind, vec)):
             return  # (the control step flies an attitude target; a landed vehicle stays down)
         if kind == "position":
             self.autopilot.goto(self.state, vec, yaw)

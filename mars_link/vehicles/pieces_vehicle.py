@@ -114,7 +114,7 @@ class PiecesVehicle(AssemblyVehicle):
         """No landing while the coordinator manoeuvres: a rebuild on the ground sets the structure down on
         purpose, and it takes off again by itself (PX4 would disarm the vehicle on the ground)."""
         if self.pieces.executor.phase != "mission":
-            self._touch_since_s = None
+            self.manual_service.touch_since_s = None
             return None
         return super()._land_detect(t)
 

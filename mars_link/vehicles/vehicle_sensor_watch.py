@@ -79,7 +79,7 @@ class VehicleSensorWatch:
         if self.state == "normal" and t_s - lost >= p.delay_s - 1e-9:
             self.state = "hold"
             v.runner.pause()
-            v._orbit = None
+            v.manual_service.orbit = None
             if v.source != "own":
                 v._hand_back(v.state)
             v.autopilot.hold(v.state)

@@ -120,7 +120,7 @@ def test_polygon_breach_holds_within_half_a_second_of_the_truth_crossing() -> No
     assert v.mode == (4, 3) and v.stats["geofence_breach"] == 1  # AUTO.LOITER (Hold)
     assert np.linalg.norm(f.body.state().velocity_ned_mps) < 0.1  # stopped, the stream notwithstanding
     assert 6.0 < f.pos[0] < 8.0  # just past the fence, not carried on at 2 m/s
-    assert v.fence_breaches[0]["action"] == "hold"
+    assert v.geofence_service.breaches[0]["action"] == "hold"
 
 
 def test_warn_only_keeps_flying_and_land_lands_outside_and_disarms() -> None:
