@@ -126,4 +126,4 @@ def preload(vehicle, plans: dict[int, tuple[MissionItem, ...]], src: str) -> Non
             raise UserInputError(f"{src}: {TYPE_NAMES[kind]} item {refusal[1] + 1}: {refusal[3]}")
         proto._store(kind, items)
     vehicle.runner.load(proto.plans[MISSION])
-    vehicle._mission_version = proto.versions[MISSION]
+    vehicle.mission_service.version = proto.versions[MISSION]

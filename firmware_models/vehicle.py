@@ -64,14 +64,14 @@ from firmware_models.vehicle_links import (  # noqa: F401 (re-exported)
     LINK_API, LINK_COORDINATOR, LINK_GCS, LINK_HIL, Link, LinkPolicy, Outgoing, default_links,
 )
 from firmware_models.vehicle_links import finite as _finite  # noqa: F401 (re-exported)
-from firmware_models.vehicle_missions import MissionsMixin
+from firmware_models.vehicle_missions import MissionService
 from firmware_models.vehicle_modes import (  # noqa: F401 (re-exported)
     MODE_ORBIT, SUB_POSCTL_ORBIT,
     MAIN_ACRO, MAIN_ALTCTL, MAIN_AUTO, MAIN_MANUAL, MAIN_OFFBOARD, MAIN_POSCTL, MAIN_STABILIZED, MODE_HOLD, MODE_LAND,
     MODE_MISSION, MODE_OFFBOARD, MODE_POSCTL, MODE_RTL, MODE_TAKEOFF, SUB_LAND, SUB_LOITER, SUB_MISSION, SUB_READY,
     SUB_RTL, SUB_TAKEOFF,
 )
-from firmware_models.vehicle_offboard import MAX_POSITION_M, MAX_SPEED_MPS, OffboardMixin  # noqa: F401
+from firmware_models.vehicle_offboard import MAX_POSITION_M, MAX_SPEED_MPS, OffboardService  # noqa: F401
 from firmware_models.vehicle_params import ParamService
 from firmware_models.vehicle_px4 import Px4Mixin
 from firmware_models.vehicle_services import SmallService
@@ -151,7 +151,7 @@ class VehicleConfig:
 
 
 
-class Vehicle(CommandsMixin, OffboardMixin, MissionsMixin, HilMixin, StreamsMixin, Px4Mixin):
+class Vehicle(CommandsMixin, HilMixin, StreamsMixin, Px4Mixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -212,8 +212,6 @@ class Vehicle(CommandsMixin, OffboardMixin, MissionsMixin, HilMixin, StreamsMixi
         rates = DEFAULT_STREAM_HZ if c.stream_hz is None else c.stream_hz
         self.stream_interval_s = {mid: 1.0 / hz for mid, hz in rates.items() if hz > 0}
         self._next_stream = {mid: wall_time_s for mid in self.stream_interval_s}
-        self._setpoint: tuple | None = None  # (kind, vector, yaw, yaw_rate)
-        self._setpoint_wall: float | None = None
         self._landed_since: float | None = None
         self._armed_at: float | None = None
         self._took_off = False
@@ -239,9 +237,9 @@ class Vehicle(CommandsMixin, OffboardMixin, MissionsMixin, HilMixin, StreamsMixi
         self._scheduled_sensor_failures: list[tuple[float, str, str]] = []  # (sim time, sensor, type), sorted
         self.mission = MissionProtocol(self.origin)
         self.runner = MissionRunner(self.autopilot, self.origin)
-        self._mission_version = 0
         self._mission_msgs: list = []  # MISSION_CURRENT / MISSION_ITEM_REACHED to broadcast
-        self.mission_reached: list[dict] = []  # (seq, sim time, position) of every MISSION_ITEM_REACHED
+        self.mission_service = MissionService(self)
+        self.offboard_service = OffboardService(self)
         self.geofence_service = GeofenceService(self)
         self.manual_service = ManualService(self)
         self.follow_service = FollowService(self)
@@ -491,7 +489,7 @@ class Vehicle(CommandsMixin, OffboardMixin, MissionsMixin, HilMixin, StreamsMixi
                     self._broadcast(msg, out)
         for name, msg in self.mission.tick(self.wall_s):
             self._reply(self.links[name], msg, out)
-        self._flush_mission_texts()
+        self.mission_service.flush_texts()
         self.shell_service.tick(out)
         self.log_service.tick(out)
         while self._mission_msgs:
@@ -661,7 +659,7 @@ class Vehicle(CommandsMixin, OffboardMixin, MissionsMixin, HilMixin, StreamsMixi
             event = self._land_detect(t)
         self.motor_commands_n = np.array(thrusts, dtype=float)
         if self.mode == MODE_MISSION:
-            self._mission_step(t, event)
+            self.mission_service.step(t, event)
         if event == "takeoff_done" and self.mode == MODE_TAKEOFF:
             self.mode = MODE_HOLD
             self._text("Takeoff complete: holding")
@@ -684,14 +682,16 @@ class Vehicle(CommandsMixin, OffboardMixin, MissionsMixin, HilMixin, StreamsMixi
         mars_link.runtime.pacing.StallMeter). Its clients most likely did not run either, so the watchdogs
         on their silence (offboard setpoints, manual sticks) do not count that time. Never past
         `wall_time_s` (now): a client heard from since is not credited twice."""
-        if self._setpoint_wall is not None:
-            self._setpoint_wall = min(wall_time_s, self._setpoint_wall + stalled_s)
+        offboard = self.offboard_service
+        if offboard.setpoint_wall is not None:
+            offboard.setpoint_wall = min(wall_time_s, offboard.setpoint_wall + stalled_s)
         self.manual_service.sticks_wall = min(wall_time_s, self.manual_service.sticks_wall + stalled_s)
 
     def _watchdogs(self) -> None:
         p = self.params
         if self.mode == MODE_OFFBOARD and self.source == "own":
-            stale = self._setpoint_wall is None or self.wall_s - self._setpoint_wall > p["COM_OF_LOSS_T"]
+            sp_wall = self.offboard_service.setpoint_wall
+            stale = sp_wall is None or self.wall_s - sp_wall > p["COM_OF_LOSS_T"]
             if stale and not self.intake.is_live(self.sim_s):
                 self._count("offboard_loss")
                 if self.state is not None:
@@ -715,8 +715,8 @@ _HANDLERS: dict[str, tuple[str, str]] = {
     "COMMAND_LONG": ("", "_on_command"),
     "COMMAND_INT": ("", "_on_command"),
     "SET_MODE": ("", "_on_set_mode"),
-    "SET_POSITION_TARGET_LOCAL_NED": ("", "_on_position_target"),
-    "SET_POSITION_TARGET_GLOBAL_INT": ("", "_on_position_target"),
+    "SET_POSITION_TARGET_LOCAL_NED": ("offboard_service", "on_position_target"),
+    "SET_POSITION_TARGET_GLOBAL_INT": ("offboard_service", "on_position_target"),
     "SET_ATTITUDE_TARGET": ("manual_service", "on_attitude_target"),
     "MANUAL_CONTROL": ("manual_service", "on_manual_control"),
     "FOLLOW_TARGET": ("follow_service", "on_follow_target"),
@@ -725,18 +725,18 @@ _HANDLERS: dict[str, tuple[str, str]] = {
     "LOG_REQUEST_DATA": ("log_service", "on_request_data"),
     "LOG_REQUEST_END": ("log_service", "on_request_end"),
     "LOG_ERASE": ("log_service", "on_erase"),
-    "SET_ACTUATOR_CONTROL_TARGET": ("", "_on_rotor_command"),
+    "SET_ACTUATOR_CONTROL_TARGET": ("offboard_service", "on_rotor_command"),
     "PARAM_REQUEST_LIST": ("param_service", "on_param_list"),
     "PARAM_REQUEST_READ": ("param_service", "on_param_read"),
     "PARAM_SET": ("param_service", "on_param_set"),
     **dict.fromkeys(("MISSION_REQUEST_LIST", "MISSION_COUNT", "MISSION_CLEAR_ALL", "MISSION_REQUEST_INT",
                      "MISSION_REQUEST", "MISSION_ITEM_INT", "MISSION_ITEM", "MISSION_ACK",
-                     "MISSION_WRITE_PARTIAL_LIST"), ("", "_on_mission")),
-    "MISSION_SET_CURRENT": ("", "_on_mission_set_current"),
+                     "MISSION_WRITE_PARTIAL_LIST"), ("mission_service", "on_mission")),
+    "MISSION_SET_CURRENT": ("mission_service", "on_set_current"),
     "PING": ("small_service", "on_ping"),
     "STATUSTEXT": ("small_service", "on_statustext"),
     "TIMESYNC": ("small_service", "on_timesync"),
     "FILE_TRANSFER_PROTOCOL": ("small_service", "on_ftp"),
     **dict.fromkeys(("HEARTBEAT", "REQUEST_DATA_STREAM", "RADIO_STATUS"), ("small_service", "on_ignored")),
-    "SYSTEM_TIME": ("", "_on_step_skip"),
+    "SYSTEM_TIME": ("offboard_service", "on_step_skip"),
 }

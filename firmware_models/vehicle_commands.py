@@ -186,7 +186,7 @@ class CommandsMixin:
                 return self._refuse(R.MAV_RESULT_DENIED, f"no mission item {first}"), []
             return self._set_mode(MODE_MISSION), []
         if cmd == R.MAV_CMD_DO_SET_MISSION_CURRENT:
-            return self._set_mission_current(p[0], p[1] == 1), []
+            return self.mission_service.set_current(p[0], p[1] == 1), []
         if cmd == R.MAV_CMD_INJECT_FAILURE:
             return self._inject(p), []
         if cmd == R.MAV_CMD_REQUEST_MESSAGE:
@@ -279,7 +279,7 @@ class CommandsMixin:
         if mode == self.mode:
             return R.MAV_RESULT_ACCEPTED
         if mode == MODE_MISSION:
-            return self._enter_mission()
+            return self.mission_service.enter()
         if mode == MODE_FOLLOW:
             self.runner.pause()
             self.manual_service.orbit = None
@@ -308,12 +308,12 @@ class CommandsMixin:
         elif mode == MODE_TAKEOFF:
             return self._takeoff(math.nan)
         elif mode == MODE_OFFBOARD:
-            live_sp = self._setpoint_wall is not None and self.wall_s - self._setpoint_wall <= SETPOINT_PROOF_OF_LIFE_S
+            live_sp = self.offboard_service.setpoint_wall is not None and self.wall_s - self.offboard_service.setpoint_wall <= SETPOINT_PROOF_OF_LIFE_S
             if not (live_sp or self.intake.is_live(self.sim_s)):
                 return self._refuse(R.MAV_RESULT_DENIED, "no setpoint stream (send setpoints first)")  # as PX4
             self.mode = mode
             if live_sp:
-                self._apply_setpoint()
+                self.offboard_service.apply_setpoint()
             self._text("Offboard")
             return R.MAV_RESULT_ACCEPTED
         else:

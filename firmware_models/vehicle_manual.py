@@ -197,8 +197,8 @@ class ManualService:
                 self.v._drop("setpoint_no_state")
                 return
         self.attitude_sp = (q / np.linalg.norm(q), float(thrust), rates, rates_only)
-        self.v._setpoint = ("attitude", None, None, 0.0)
-        self.v._setpoint_wall = self.v.wall_s
+        self.v.offboard_service.setpoint = ("attitude", None, None, 0.0)
+        self.v.offboard_service.setpoint_wall = self.v.wall_s
         self.v._count("setpoints")
 
     def _attitude_thrusts(self, t: float) -> np.ndarray:
@@ -240,7 +240,7 @@ class ManualService:
             self._sticks_step()
         elif self.v.mode == MODE_FOLLOW:
             self.v.follow_service.step()
-        elif self.v.mode == MODE_OFFBOARD and self.v._setpoint is not None and self.v._setpoint[0] == "attitude":
+        elif self.v.mode == MODE_OFFBOARD and self.v.offboard_service.setpoint is not None and self.v.offboard_service.setpoint[0] == "attitude":
             ap = self.v.autopilot
             hover = ap.model.mass_kg * GRAVITY_MPS2 / (ap.model.n_rotors * self.v.full_scale_n)
             if ap.phase == Phase.IDLE and self.attitude_sp[1] <= hover:

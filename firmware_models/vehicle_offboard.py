@@ -1,11 +1,9 @@
-"""Offboard setpoints (SET_POSITION_TARGET_*) and the coordinator's rotor commands.
-
-A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing (_reply, _text, ...).
-"""
+"""Offboard setpoints (SET_POSITION_TARGET_*) and the coordinator's rotor commands."""
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
@@ -16,35 +14,48 @@ from firmware_models.vehicle_links import Link, Outgoing, finite as _finite
 from firmware_models.unit_controller import Phase
 from firmware_models.vehicle_modes import MODE_OFFBOARD
 
+if TYPE_CHECKING:
+    from firmware_models.vehicle import Vehicle
+
 MAX_POSITION_M = 10_000.0
 MAX_SPEED_MPS = 20.0
 
 
-class OffboardMixin:
+class OffboardService:
+    """Offboard setpoints, and the coordinator's rotor commands and step skips on their link. Owns the last
+    setpoint and when it came (the offboard watchdog's stamp). The rotor commands go into the vehicle's
+    intake and lockstep state. Asks of the vehicle: state, home, mode, the flight core, the intake, the
+    geofence service, `_for_me`, `_count`, `_drop`."""
+
+    def __init__(self, vehicle: Vehicle) -> None:
+        self.v = vehicle
+        self.setpoint: tuple | None = None  # (kind, vector, yaw, yaw_rate)
+        self.setpoint_wall: float | None = None  # wall time of the last setpoint
+
     # ----------------------------------------------------------------- offboard setpoints
-    def _on_position_target(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self._drop("wrong_target")
+    def on_position_target(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            self.v._drop("wrong_target")
             return
-        if self.state is None:
-            self._drop("setpoint_no_state")
+        if self.v.state is None:
+            self.v._drop("setpoint_no_state")
             return
         mask = msg.type_mask
         use_pos = not mask & 0x7
         use_vel = not mask & 0x38
         if (mask & 0x7 not in (0, 0x7)) or (mask & 0x38 not in (0, 0x38)) or not (use_pos or use_vel):
-            self._drop("setpoint_unsupported")
+            self.v._drop("setpoint_unsupported")
             return
         yaw = None if mask & 0x400 else msg.yaw
         yaw_rate = 0.0 if mask & 0x800 else msg.yaw_rate
         vel = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
-        cur_yaw = quat_to_euler(self.state.quaternion_wxyz)[2]
+        cur_yaw = quat_to_euler(self.v.state.quaternion_wxyz)[2]
         if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
             frame = msg.coordinate_frame
             pos = np.array([msg.x, msg.y, msg.z], dtype=float)
             if frame not in (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED,
                              mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED):
-                self._drop("setpoint_unsupported")
+                self.v._drop("setpoint_unsupported")
                 return
             body = frame in (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED)
             if body:  # body-frame vectors turn with the heading (PX4 semantics)
@@ -54,70 +65,70 @@ class OffboardMixin:
         else:  # SET_POSITION_TARGET_GLOBAL_INT
             frame = msg.coordinate_frame
             if frame not in (mavlink.MAV_FRAME_GLOBAL_INT, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT):
-                self._drop("setpoint_unsupported")
+                self.v._drop("setpoint_unsupported")
                 return
             alt = msg.alt
-            if frame == mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT and self.home_ned is not None:
-                alt = alt + self.origin.amsl_m - float(self.home_ned[2])
-            pos = self._global_to_ned(msg.lat_int * 1e-7, msg.lon_int * 1e-7, alt) if use_pos else np.zeros(3)
+            if frame == mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT and self.v.home_ned is not None:
+                alt = alt + self.v.origin.amsl_m - float(self.v.home_ned[2])
+            pos = self.v._global_to_ned(msg.lat_int * 1e-7, msg.lon_int * 1e-7, alt) if use_pos else np.zeros(3)
             body = False
         values = [*(pos if use_pos else ()), *(vel if use_vel else ()), *(() if yaw is None else (yaw,)), yaw_rate]
         if not _finite(*values):
-            self._drop("setpoint_non_finite")
+            self.v._drop("setpoint_non_finite")
             return
         if frame in (mavlink.MAV_FRAME_LOCAL_OFFSET_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED):
-            pos = pos + self.state.position_ned_m
+            pos = pos + self.v.state.position_ned_m
         if (use_pos and np.abs(pos).max() > MAX_POSITION_M) or (use_vel and np.abs(vel).max() > MAX_SPEED_MPS) or abs(
             yaw_rate
         ) > 10.0 or (yaw is not None and abs(yaw) > 10.0):
-            self._drop("setpoint_out_of_range")
+            self.v._drop("setpoint_out_of_range")
             return
-        if use_pos and self.geofence_service.setpoint_outside(pos):
+        if use_pos and self.v.geofence_service.setpoint_outside(pos):
             return
         if use_pos:
-            self._setpoint = ("position", pos, yaw, 0.0)
+            self.setpoint = ("position", pos, yaw, 0.0)
         else:
-            self._setpoint = ("velocity", vel, yaw, yaw_rate)
-        self._setpoint_wall = self.wall_s
-        self._count("setpoints")
-        if self.mode == MODE_OFFBOARD and self.source == "own":
-            self._apply_setpoint()
+            self.setpoint = ("velocity", vel, yaw, yaw_rate)
+        self.setpoint_wall = self.v.wall_s
+        self.v._count("setpoints")
+        if self.v.mode == MODE_OFFBOARD and self.v.source == "own":
+            self.apply_setpoint()
 
-    def _apply_setpoint(self) -> None:
-        if self._setpoint is None or self.state is None or not self.armed:
+    def apply_setpoint(self) -> None:
+        if self.setpoint is None or self.v.state is None or not self.v.armed:
             return
-        kind, vec, yaw, yaw_rate = self._setpoint
-        if kind == "attitude" or (self.autopilot.phase == Phase.IDLE and not self.manual_service.setpoint_lifts(kind, vec)):
+        kind, vec, yaw, yaw_rate = self.setpoint
+        if kind == "attitude" or (self.v.autopilot.phase == Phase.IDLE and not self.v.manual_service.setpoint_lifts(kind, vec)):
             return  # (the control step flies an attitude target; a landed vehicle stays down)
         if kind == "position":
-            self.autopilot.goto(self.state, vec, yaw)
+            self.v.autopilot.goto(self.v.state, vec, yaw)
         else:
-            self.autopilot.velocity(self.state, vec, yaw, yaw_rate)
+            self.v.autopilot.velocity(self.v.state, vec, yaw, yaw_rate)
 
     # ----------------------------------------------------------------- rotor commands
-    def _on_step_skip(self, msg, lk: Link, out: list[Outgoing]) -> None:
+    def on_step_skip(self, msg, lk: Link, out: list[Outgoing]) -> None:
         """SYSTEM_TIME from the coordinator on its link: it sends no rotor command for the step of that time
         (`time_unix_usec`), so a unit waiting for one runs that step with what it holds, before or after its
         sensors arrive, and keeps waiting for the coordinator's next steps (the conformance harness's silent
         steps; a coordinator that leaves a unit alone). Elsewhere SYSTEM_TIME means nothing to the unit."""
-        if not lk.policy.rotor_commands or msg.get_srcSystem() != self.intake.params.coordinator_sysid:
-            self._count(f"ignored.{msg.get_type()}")
+        if not lk.policy.rotor_commands or msg.get_srcSystem() != self.v.intake.params.coordinator_sysid:
+            self.v._count(f"ignored.{msg.get_type()}")
             return
-        self._count("step_skips")
-        self._step_skipped_usec = int(msg.time_unix_usec)  # (handle() answers a pending step of that time)
+        self.v._count("step_skips")
+        self.v._step_skipped_usec = int(msg.time_unix_usec)  # (handle() answers a pending step of that time)
 
-    def _on_rotor_command(self, msg, lk: Link, out: list[Outgoing]) -> None:
+    def on_rotor_command(self, msg, lk: Link, out: list[Outgoing]) -> None:
         if not lk.policy.rotor_commands:
-            self._drop("rotor_command_wrong_link")
+            self.v._drop("rotor_command_wrong_link")
             return
-        if self.intake.offer(msg, self.sim_s):
-            self._count("rotor_commands")
-            self._last_rotor_usec = int(msg.time_usec)
+        if self.v.intake.offer(msg, self.v.sim_s):
+            self.v._count("rotor_commands")
+            self.v._last_rotor_usec = int(msg.time_usec)
             latch = latch_setpoint_of(msg.controls[4])
             if latch is None:
-                self._drop("latch_setpoint_invalid")  # (the rotors are taken; the latches keep their setpoint)
+                self.v._drop("latch_setpoint_invalid")  # (the rotors are taken; the latches keep their setpoint)
             else:
-                self.latch_setpoint = latch
-            if self.config.hil_await_coordinator:
-                self._await_coordinator = True  # the coordinator is back: lockstep with it again
+                self.v.latch_setpoint = latch
+            if self.v.config.hil_await_coordinator:
+                self.v._await_coordinator = True  # the coordinator is back: lockstep with it again
 

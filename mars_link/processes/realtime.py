@@ -92,7 +92,7 @@ class AssemblyRunner:
             **self.io.counters(), "overruns": self.overruns, "steps": self.steps, "late_steps": self.late_steps,
             "step_p50_ms": float(np.percentile(steps, 50) * 1e3), "step_p99_ms": float(np.percentile(steps, 99) * 1e3),
             "endpoints": self.endpoints(),
-            "mission_reached": v.mission_reached, "mission_counts": v.mission.counts,
+            "mission_reached": v.mission_service.reached, "mission_counts": v.mission.counts,
         }
         write_json_atomic(self.status_path, status)
 

@@ -121,7 +121,7 @@ class UnitRunner:
         write_json_atomic(self.status_path, vehicle_status(
             self.vehicle, self.world.unit_truth(WORLD_UNIT), self.sim_s, overruns=self.pacer.overruns, ports=self.ports(),
             motor_thrust_n=[float(x) for x in self.world.unit_rotor_thrust_n(WORLD_UNIT)],  # (what the rotors make)
-            mission_reached=self.vehicle.mission_reached, mission_counts=self.vehicle.mission.counts,
+            mission_reached=self.vehicle.mission_service.reached, mission_counts=self.vehicle.mission.counts,
             **self.io.counters()))
 
     def run(self) -> int:

@@ -52,12 +52,12 @@ def test_stall_meter_counts_only_time_neither_running_nor_waiting() -> None:
 
 def test_a_discounted_stall_never_credits_a_client_past_now() -> None:
     v = Vehicle()  # (only its two watchdog stamps matter here)
-    v._setpoint_wall, v.manual_service.sticks_wall = 100.0, -1e9
+    v.offboard_service.setpoint_wall, v.manual_service.sticks_wall = 100.0, -1e9
     v.discount_stall(1.7, 101.8)
-    assert v._setpoint_wall == pytest.approx(101.7)  # as stale as before the stall: 0.1 s
-    v._setpoint_wall = 101.8  # a setpoint read after the stall: fresh, and not moved into the future
+    assert v.offboard_service.setpoint_wall == pytest.approx(101.7)  # as stale as before the stall: 0.1 s
+    v.offboard_service.setpoint_wall = 101.8  # a setpoint read after the stall: fresh, and not moved into the future
     v.discount_stall(1.7, 101.8)
-    assert v._setpoint_wall == 101.8
+    assert v.offboard_service.setpoint_wall == 101.8
 
 
 class _Client(threading.Thread):
