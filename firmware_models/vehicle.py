@@ -53,7 +53,7 @@ from mars_link.mavlink.signing import ACCEPTED, UNSIGNED, advance_outgoing_clock
 from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
 from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
     ACTION_COMMANDS, COMMAND_DEDUP_S, FAILURE_TYPE_ETA, FAILURE_UNIT_SYSTEM_MOTOR, SETPOINT_PROOF_OF_LIFE_S,
-    CommandsMixin,
+    CommandService,
 )
 from firmware_models.vehicle_follow import FollowService
 from firmware_models.vehicle_geofence import GeofenceService
@@ -151,7 +151,7 @@ class VehicleConfig:
 
 
 
-class Vehicle(CommandsMixin, HilMixin, StreamsMixin, Px4Mixin):
+class Vehicle(HilMixin, StreamsMixin, Px4Mixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -215,9 +215,7 @@ class Vehicle(CommandsMixin, HilMixin, StreamsMixin, Px4Mixin):
         self._landed_since: float | None = None
         self._armed_at: float | None = None
         self._took_off = False
-        self._last_cmd: dict[tuple, tuple] = {}
         self._pending_text: list[tuple[int, str]] = []
-        self._refusals_told: dict[str, float] = {}  # refusal STATUSTEXT -> wall time told (vehicle_commands)
         self._battery_pending = None  # a BATTERY_STATUS from the world, measured with the next IMU frame
         self.battery = BatteryMonitor()  # the pack as measured (world's samples over HIL); thresholds, action
         self._battery_checked: tuple[float, int] | None = None  # (remaining, params.version) last checked
@@ -238,6 +236,7 @@ class Vehicle(CommandsMixin, HilMixin, StreamsMixin, Px4Mixin):
         self.mission = MissionProtocol(self.origin)
         self.runner = MissionRunner(self.autopilot, self.origin)
         self._mission_msgs: list = []  # MISSION_CURRENT / MISSION_ITEM_REACHED to broadcast
+        self.command_service = CommandService(self)
         self.mission_service = MissionService(self)
         self.offboard_service = OffboardService(self)
         self.geofence_service = GeofenceService(self)
@@ -249,7 +248,6 @@ class Vehicle(CommandsMixin, HilMixin, StreamsMixin, Px4Mixin):
         self.small_service = SmallService(self)
         self._init_px4()
         self.legs = None  # mission legs between the runner and the core (mars_link.planning.mission_legs)
-        self.speed_override_mps: float | None = None  # MAV_CMD_DO_CHANGE_SPEED (else MPC_XY_CRUISE)
         # message type -> the handler, bound once (a service's method)
         self._handlers = {t: getattr(getattr(self, member) if member else self, name)
                           for t, (member, name) in _HANDLERS.items()}
@@ -309,6 +307,17 @@ class Vehicle(CommandsMixin, HilMixin, StreamsMixin, Px4Mixin):
         self.motors.set_rotor_eta(0, rotor, eta)
         if self.esc is not None:
             self.esc.set_kind(rotor, kind)
+
+    def inject_sensor_failure(self, sensor: str, kind: str, instance: int) -> int:
+        """A failure of this unit's own sensor (one of each: instance 0 or 1) in its sensor path."""
+        R = mavlink
+        if instance > 1:
+            return self.command_service.refuse(R.MAV_RESULT_DENIED, f"one {sensor} (instance 0 or 1)")
+        if not self.sensor_failures.supports(sensor, kind):  # e.g. a barometer this flight's sensors lack
+            return self.command_service.refuse(R.MAV_RESULT_UNSUPPORTED, f"no {sensor} {kind} in this flight")
+        self.sensor_failures.inject(sensor, kind)
+        self._text(f"Failure injected: {sensor} {kind}", mavlink.MAV_SEVERITY_WARNING)
+        return R.MAV_RESULT_ACCEPTED
 
     def schedule_failure(self, t_s: float, rotor: int, eta: float, kind: str = "eta") -> None:
         """A scenario fault (rotor 1..4, 0 = all) that enters the motor model at the first HIL step at
@@ -579,7 +588,7 @@ class Vehicle(CommandsMixin, HilMixin, StreamsMixin, Px4Mixin):
             for m in policy.refusal(msg):
                 self._reply(lk, m, out)
             if t in ("COMMAND_LONG", "COMMAND_INT"):
-                self._tell_refusal(msg.command, mavlink.MAV_RESULT_DENIED, "needs a signed link")
+                self.command_service.tell_refusal(msg.command, mavlink.MAV_RESULT_DENIED, "needs a signed link")
             return
         handler(msg, lk, out)
 
@@ -604,7 +613,8 @@ class Vehicle(CommandsMixin, HilMixin, StreamsMixin, Px4Mixin):
         command or mission item instead), velocity targets up to MPC_XY_VEL_MAX, which bounds both."""
         p = self.params
         vmax = p["MPC_XY_VEL_MAX"]
-        xy = p["MPC_XY_CRUISE"] if self.speed_override_mps is None else self.speed_override_mps
+        override = self.command_service.speed_override_mps
+        xy = p["MPC_XY_CRUISE"] if override is None else override
         if self.mode == MODE_MISSION and self.runner.speed_mps is not None:
             xy = self.runner.speed_mps  # DO_CHANGE_SPEED
         return GuidanceLimits(min(xy, vmax), p["MPC_Z_VEL_MAX_UP"], p["MPC_Z_VEL_MAX_DN"], p["MPC_TKO_SPEED"],
@@ -640,9 +650,9 @@ class Vehicle(CommandsMixin, HilMixin, StreamsMixin, Px4Mixin):
         if self.source == "coordinator":  # the stream was lost: fail-safe (MARS_FS_ACT)
             self._count("coordinator_failsafe")
             if int(self.params["MARS_FS_ACT"]) == 1 or self.state is None:
-                self._disarm("Coordinator lost: motors off")
+                self.command_service.disarm("Coordinator lost: motors off")
                 return
-            self._hand_back(self.state)
+            self.command_service.hand_back(self.state)
             self.autopilot.land(self.state)
             self.mode = MODE_LAND
             self._text("Coordinator lost: landing", mavlink.MAV_SEVERITY_CRITICAL)
@@ -702,19 +712,19 @@ class Vehicle(CommandsMixin, HilMixin, StreamsMixin, Px4Mixin):
             if self._landed_since is not None and p["COM_DISARM_LAND"] >= 0:
                 if self.sim_s - self._landed_since >= p["COM_DISARM_LAND"]:
                     self._landed_since = None
-                    self._disarm("Disarmed after landing")
+                    self.command_service.disarm("Disarmed after landing")
             elif not self._took_off and self._armed_at is not None and p["COM_DISARM_PRFLT"] >= 0:
                 if self.sim_s - self._armed_at >= p["COM_DISARM_PRFLT"]:
-                    self._disarm("Disarmed: no takeoff")
+                    self.command_service.disarm("Disarmed: no takeoff")
         self.geofence_service.step()
 
 
 
 #: message type -> (the member that serves it, its method); "": the vehicle's own
 _HANDLERS: dict[str, tuple[str, str]] = {
-    "COMMAND_LONG": ("", "_on_command"),
-    "COMMAND_INT": ("", "_on_command"),
-    "SET_MODE": ("", "_on_set_mode"),
+    "COMMAND_LONG": ("command_service", "on_command"),
+    "COMMAND_INT": ("command_service", "on_command"),
+    "SET_MODE": ("command_service", "on_set_mode"),
     "SET_POSITION_TARGET_LOCAL_NED": ("offboard_service", "on_position_target"),
     "SET_POSITION_TARGET_GLOBAL_INT": ("offboard_service", "on_position_target"),
     "SET_ATTITUDE_TARGET": ("manual_service", "on_attitude_target"),

@@ -2,14 +2,13 @@
 
 Every refused command (COMMAND_ACK DENIED, TEMPORARILY_REJECTED, UNSUPPORTED, FAILED) is followed by one
 STATUSTEXT saying why, so a ground station's user is not left with a bare "denied". A handler states its
-reason with `_refuse(result, why)`; `_on_command` turns it into the text, in one place for every command.
-
-A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing (_reply, _text, ...).
+reason with `refuse(result, why)`; `on_command` turns it into the text, in one place for every command.
 """
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
@@ -31,6 +30,9 @@ from firmware_models.vehicle_modes import (
 from firmware_models.sensor_failures import TYPE_NAMES, UNIT_SENSORS
 from firmware_models.vehicle_streams import DEFAULT_STREAM_HZ
 from firmware_models.vehicle_offboard import MAX_POSITION_M, MAX_SPEED_MPS
+
+if TYPE_CHECKING:
+    from firmware_models.vehicle import Vehicle
 
 FAILURE_TYPE_ETA = {0: 1.0, 1: 0.0, 5: 0.5}  # FAILURE_TYPE OK / OFF / SLOW (degraded) -> rotor efficiency
 FAILURE_UNIT_SYSTEM_MOTOR = 101
@@ -81,35 +83,47 @@ def refusal_text(cmd: int, result: int, why: str | None) -> str:
     return f"{command_name(cmd)} refused: {why or RESULT_WORDS.get(result, f'result {result}')}"
 
 
-class CommandsMixin:
-    _refusal_why: str | None = None  # set by _refuse while a command runs
+class CommandService:
+    """COMMAND_LONG/INT and SET_MODE, and the mode machine they drive (arm, disarm, takeoff, modes, hand
+    back from the coordinator), which the other services and the watchdogs use too. Owns what the command
+    protocol remembers: each sender's last action (identical resends answered from it), the refusal texts
+    told lately, the reason of the refusal being made, and the speed DO_CHANGE_SPEED set. The flight state
+    it changes (armed, mode, source, home) is the vehicle's. Asks of the vehicle: that state, the flight
+    core, `params`, the intake, the other services a command reaches, `_for_me`, `_reply`, `_text`,
+    `_count`, `_drop`."""
 
-    # ----------------------------------------------------------------- commands
-    def _refuse(self, result: int, why: str) -> int:
+    def __init__(self, vehicle: Vehicle) -> None:
+        self.v = vehicle
+        self.last_cmd: dict[tuple, tuple] = {}  # sender -> (command key, wall time, result) of its last action
+        self.refusals_told: dict[str, float] = {}  # refusal STATUSTEXT -> wall time told
+        self.refusal_why: str | None = None  # set by refuse while a command runs
+        self.speed_override_mps: float | None = None  # MAV_CMD_DO_CHANGE_SPEED (else MPC_XY_CRUISE)
+
+    def refuse(self, result: int, why: str) -> int:
         """A command handler's refusal with its reason (told once by _on_command as a STATUSTEXT)."""
-        if self._refusal_why is None:
-            self._refusal_why = why
+        if self.refusal_why is None:
+            self.refusal_why = why
         return result
 
-    def _tell_refusal(self, cmd: int, result: int, why: str | None) -> None:
+    def tell_refusal(self, cmd: int, result: int, why: str | None) -> None:
         """The one place a refused command becomes a STATUSTEXT (a client's identical retry within
         REFUSAL_REPEAT_S is not told twice)."""
         text = refusal_text(cmd, result, why)
-        said = self._refusals_told
-        if self.wall_s - said.get(text, -1e9) < REFUSAL_REPEAT_S:
+        said = self.refusals_told
+        if self.v.wall_s - said.get(text, -1e9) < REFUSAL_REPEAT_S:
             return
-        said[text] = self.wall_s
+        said[text] = self.v.wall_s
         if len(said) > 64:
             said.pop(next(iter(said)))
-        self._count("command_refusal_told")
+        self.v._count("command_refusal_told")
         if cmd in QUERY_COMMANDS:  # a client's protocol probes: told, but not a flight event
-            self._pending_text.append((mavlink.MAV_SEVERITY_INFO, text))
+            self.v._pending_text.append((mavlink.MAV_SEVERITY_INFO, text))
         else:
-            self._text(text, mavlink.MAV_SEVERITY_WARNING)
+            self.v._text(text, mavlink.MAV_SEVERITY_WARNING)
 
-    def _on_command(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self._drop("wrong_target")
+    def on_command(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            self.v._drop("wrong_target")
             return
         cmd = msg.command
         is_int = msg.get_type() == "COMMAND_INT"
@@ -120,27 +134,27 @@ class CommandsMixin:
         src = (lk.name, msg.get_srcSystem(), msg.get_srcComponent())
         key = (cmd, is_int, tuple("nan" if isinstance(v, float) and v != v else v for v in p))
         if cmd in ACTION_COMMANDS:
-            last = self._last_cmd.get(src)
-            if last is not None and last[0] == key and self.wall_s - last[1] <= COMMAND_DEDUP_S:
-                self._count("command_duplicate")
+            last = self.last_cmd.get(src)
+            if last is not None and last[0] == key and self.v.wall_s - last[1] <= COMMAND_DEDUP_S:
+                self.v._count("command_duplicate")
                 self._ack(lk, msg, cmd, last[2], out)
                 return
-        self._refusal_why = None
+        self.refusal_why = None
         result, followups = self._execute(cmd, p, is_int, msg)
         if result in RESULT_WORDS:
-            self._tell_refusal(cmd, result, self._refusal_why)
-        self._refusal_why = None
+            self.tell_refusal(cmd, result, self.refusal_why)
+        self.refusal_why = None
         if cmd in ACTION_COMMANDS:  # only a success is replayed: a refused command may succeed now
-            self._last_cmd[src] = (key, self.wall_s, result) if result == mavlink.MAV_RESULT_ACCEPTED else (None, 0.0, 0)
-            if len(self._last_cmd) > 64:
-                self._last_cmd.pop(next(iter(self._last_cmd)))
+            self.last_cmd[src] = (key, self.v.wall_s, result) if result == mavlink.MAV_RESULT_ACCEPTED else (None, 0.0, 0)
+            if len(self.last_cmd) > 64:
+                self.last_cmd.pop(next(iter(self.last_cmd)))
         self._ack(lk, msg, cmd, result, out)
         for m in followups:
-            self._reply(lk, m, out)
+            self.v._reply(lk, m, out)
 
     def _ack(self, lk: Link, msg, cmd: int, result: int, out: list[Outgoing]) -> None:
-        self._count(f"ack.{result}")
-        self._reply(lk, mavlink.MAVLink_command_ack_message(
+        self.v._count(f"ack.{result}")
+        self.v._reply(lk, mavlink.MAVLink_command_ack_message(
             cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), out)
 
     def _change_speed(self, speed_type: float, speed_mps: float) -> int:
@@ -148,11 +162,11 @@ class CommandsMixin:
         targets (goto, return, missions) from now on, within MPC_XY_VEL_MAX; -2 back to MPC_XY_CRUISE,
         -1 unchanged. Climb/descent speed types (2, 3) are refused: MPC_Z_VEL_MAX_* set those."""
         if not (math.isnan(speed_type) or speed_type in (0, 1)):
-            return self._refuse(mavlink.MAV_RESULT_DENIED, "only ground/air speed (MPC_Z_VEL_MAX_* climb)")
+            return self.refuse(mavlink.MAV_RESULT_DENIED, "only ground/air speed (MPC_Z_VEL_MAX_* climb)")
         if speed_mps == -2.0:
             self.speed_override_mps = None
         elif not (math.isfinite(speed_mps) and (speed_mps == -1.0 or 0.0 < speed_mps <= MAX_SPEED_MPS)):
-            return self._refuse(mavlink.MAV_RESULT_DENIED, f"speed not in 0..{MAX_SPEED_MPS:g} m/s")
+            return self.refuse(mavlink.MAV_RESULT_DENIED, f"speed not in 0..{MAX_SPEED_MPS:g} m/s")
         elif speed_mps > 0:
             self.speed_override_mps = float(speed_mps)
         return mavlink.MAV_RESULT_ACCEPTED
@@ -160,241 +174,230 @@ class CommandsMixin:
     def _execute(self, cmd: int, p: list, is_int: bool, msg) -> tuple[int, list]:
         R = mavlink
         if cmd == R.MAV_CMD_COMPONENT_ARM_DISARM:
-            return self._arm_disarm(p[0], p[1]), []
+            return self.arm_disarm(p[0], p[1]), []
         if cmd == R.MAV_CMD_NAV_TAKEOFF:
-            return self._takeoff(p[6]), []
+            return self.takeoff(p[6]), []
         if cmd == R.MAV_CMD_NAV_LAND:
-            return self._set_mode(MODE_LAND), []
+            return self.set_mode(MODE_LAND), []
         if cmd == R.MAV_CMD_NAV_RETURN_TO_LAUNCH:
-            return self._set_mode(MODE_RTL), []
+            return self.set_mode(MODE_RTL), []
         if cmd == R.MAV_CMD_DO_SET_MODE:
             if not _finite(p[0], p[1]) or not (int(p[0]) & R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED):
-                return self._refuse(R.MAV_RESULT_DENIED, "only PX4 custom modes"), []
+                return self.refuse(R.MAV_RESULT_DENIED, "only PX4 custom modes"), []
             sub = int(p[2]) if math.isfinite(p[2]) else 0
             if not (0 <= p[1] <= 255 and 0 <= sub <= 255):
-                return self._refuse(R.MAV_RESULT_DENIED, "no such mode"), []
-            return self._set_mode((int(p[1]), sub)), []
+                return self.refuse(R.MAV_RESULT_DENIED, "no such mode"), []
+            return self.set_mode((int(p[1]), sub)), []
         if cmd == R.MAV_CMD_DO_REPOSITION:
             return self._reposition(p, is_int), []
         if cmd == R.MAV_CMD_DO_ORBIT:
-            return self.manual_service.do_orbit(p, is_int), []
+            return self.v.manual_service.do_orbit(p, is_int), []
         if cmd == R.MAV_CMD_DO_CHANGE_SPEED:
             return self._change_speed(p[0], p[1]), []
         if cmd == R.MAV_CMD_MISSION_START:
             first = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else None  # PX4: start at p1 if given
-            if first is not None and not self.runner.set_current(first, reset_jumps=True):
-                return self._refuse(R.MAV_RESULT_DENIED, f"no mission item {first}"), []
-            return self._set_mode(MODE_MISSION), []
+            if first is not None and not self.v.runner.set_current(first, reset_jumps=True):
+                return self.refuse(R.MAV_RESULT_DENIED, f"no mission item {first}"), []
+            return self.set_mode(MODE_MISSION), []
         if cmd == R.MAV_CMD_DO_SET_MISSION_CURRENT:
-            return self.mission_service.set_current(p[0], p[1] == 1), []
+            return self.v.mission_service.set_current(p[0], p[1] == 1), []
         if cmd == R.MAV_CMD_INJECT_FAILURE:
             return self._inject(p), []
         if cmd == R.MAV_CMD_REQUEST_MESSAGE:
-            return self._request_message(p[0], p[1])
+            return self.v._request_message(p[0], p[1])
         if cmd == R.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             if p[0] != 1:
-                return self._refuse(R.MAV_RESULT_DENIED, "param1 must be 1"), []
-            return R.MAV_RESULT_ACCEPTED, [self._autopilot_version()]
+                return self.refuse(R.MAV_RESULT_DENIED, "param1 must be 1"), []
+            return R.MAV_RESULT_ACCEPTED, [self.v._autopilot_version()]
         if cmd == R.MAV_CMD_GET_HOME_POSITION:
-            home = self._home_position()
+            home = self.v._home_position()
             if not home:
-                return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet"), []
+                return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet"), []
             return R.MAV_RESULT_ACCEPTED, [home]
         if cmd == R.MAV_CMD_SET_MESSAGE_INTERVAL:
-            return self._set_interval(p[0], p[1]), []
+            return self.v._set_interval(p[0], p[1]), []
         if cmd == R.MAV_CMD_GET_MESSAGE_INTERVAL:
             if not math.isfinite(p[0]) or int(p[0]) not in DEFAULT_STREAM_HZ:
-                return self._refuse(R.MAV_RESULT_DENIED, f"message {p[0]:g} is not streamed"), []
-            iv = self.stream_interval_s.get(int(p[0]))
+                return self.refuse(R.MAV_RESULT_DENIED, f"message {p[0]:g} is not streamed"), []
+            iv = self.v.stream_interval_s.get(int(p[0]))
             return R.MAV_RESULT_ACCEPTED, [R.MAVLink_message_interval_message(
                 int(p[0]), -1 if iv is None else int(round(iv * 1e6)))]
         return R.MAV_RESULT_UNSUPPORTED, []  # includes REQUEST_PROTOCOL_VERSION (519): MAVLink 2 only
         # (the default reason, "not supported", is the STATUSTEXT)
 
-    def _arm_disarm(self, arm: float, force: float) -> int:
+    def arm_disarm(self, arm: float, force: float) -> int:
         R = mavlink
         if arm == 1.0:
-            if self.armed:
+            if self.v.armed:
                 return R.MAV_RESULT_ACCEPTED
-            if self.state is None:
-                return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
-            if not self.autopilot.touching(self.state):
-                return self._refuse(R.MAV_RESULT_DENIED, "not on the ground")  # never arm in the air
-            self.armed = True
-            self.home_ned = np.array(self.state.position_ned_m, dtype=float)
-            self.autopilot.idle(float(self.state.position_ned_m[2]))
-            self._armed_at = self.sim_s
-            self._took_off = False
-            self._text("Armed")
+            if self.v.state is None:
+                return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
+            if not self.v.autopilot.touching(self.v.state):
+                return self.refuse(R.MAV_RESULT_DENIED, "not on the ground")  # never arm in the air
+            self.v.armed = True
+            self.v.home_ned = np.array(self.v.state.position_ned_m, dtype=float)
+            self.v.autopilot.idle(float(self.v.state.position_ned_m[2]))
+            self.v._armed_at = self.v.sim_s
+            self.v._took_off = False
+            self.v._text("Armed")
             return R.MAV_RESULT_ACCEPTED
         if arm == 0.0:
-            if not self.armed:
+            if not self.v.armed:
                 return R.MAV_RESULT_ACCEPTED
-            if not self.landed and force != FORCE_DISARM_MAGIC:
-                return self._refuse(R.MAV_RESULT_DENIED, "flying: land first (or force)")
-            self._disarm("Disarmed" if force != FORCE_DISARM_MAGIC else "Killed: motors off")
+            if not self.v.landed and force != FORCE_DISARM_MAGIC:
+                return self.refuse(R.MAV_RESULT_DENIED, "flying: land first (or force)")
+            self.disarm("Disarmed" if force != FORCE_DISARM_MAGIC else "Killed: motors off")
             return R.MAV_RESULT_ACCEPTED
-        return self._refuse(R.MAV_RESULT_DENIED, "param1 must be 0 or 1")
+        return self.refuse(R.MAV_RESULT_DENIED, "param1 must be 0 or 1")
 
-    def _disarm(self, why: str) -> None:
-        self.armed = False
-        self._px4_disarmed()  # (the unit's other persona: PX4's interface, vehicle_px4)
-        self.source = "own"
-        self.autopilot.idle()
-        self.motor_commands_n = np.zeros(4)
-        if self.mode not in (MODE_HOLD, MODE_POSCTL):
-            self.mode = MODE_HOLD
-        self._text(why)
+    def disarm(self, why: str) -> None:
+        self.v.armed = False
+        self.v._px4_disarmed()  # (the unit's other persona: PX4's interface, vehicle_px4)
+        self.v.source = "own"
+        self.v.autopilot.idle()
+        self.v.motor_commands_n = np.zeros(4)
+        if self.v.mode not in (MODE_HOLD, MODE_POSCTL):
+            self.v.mode = MODE_HOLD
+        self.v._text(why)
 
-    def _takeoff(self, altitude_amsl_m: float) -> int:
+    def takeoff(self, altitude_amsl_m: float) -> int:
         R = mavlink
-        if self.state is None:
-            return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
-        if not self.armed:
-            return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not armed")
-        if self.mode == MODE_TAKEOFF or not self.landed:
+        if self.v.state is None:
+            return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
+        if not self.v.armed:
+            return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not armed")
+        if self.v.mode == MODE_TAKEOFF or not self.v.landed:
             return R.MAV_RESULT_ACCEPTED  # already on its way / flying: nothing to restart
-        ground = float(self.home_ned[2])
-        lowest = ground - self.params["MIS_TAKEOFF_ALT"]
+        ground = float(self.v.home_ned[2])
+        lowest = ground - self.v.params["MIS_TAKEOFF_ALT"]
         target = lowest
         if math.isfinite(altitude_amsl_m):
             # PX4 (navigator/takeoff.cpp): an altitude (AMSL) below home + MIS_TAKEOFF_ALT is raised to it
             # and said; MAVProxy's `takeoff 10` is 10 m AMSL to PX4
-            target = -(altitude_amsl_m - self.origin.amsl_m)
+            target = -(altitude_amsl_m - self.v.origin.amsl_m)
             if target > lowest + 0.1:  # (PX4 says nothing for less than 10 cm)
-                self._text(f"Using minimum takeoff altitude: {ground - lowest:.2f} m", R.MAV_SEVERITY_CRITICAL)
+                self.v._text(f"Using minimum takeoff altitude: {ground - lowest:.2f} m", R.MAV_SEVERITY_CRITICAL)
             target = min(target, lowest)
-        why = self.geofence_service.violation(np.array([self.state.position_ned_m[0], self.state.position_ned_m[1], target]))
+        why = self.v.geofence_service.violation(np.array([self.v.state.position_ned_m[0], self.v.state.position_ned_m[1], target]))
         if why is not None:
-            return self._refuse(R.MAV_RESULT_DENIED, why)
-        self.source = "own"
-        self.autopilot.takeoff(self.state, target)
-        self.mode = MODE_TAKEOFF
-        self._took_off = True
-        self._text(f"Takeoff to {ground - target:.1f} m")
+            return self.refuse(R.MAV_RESULT_DENIED, why)
+        self.v.source = "own"
+        self.v.autopilot.takeoff(self.v.state, target)
+        self.v.mode = MODE_TAKEOFF
+        self.v._took_off = True
+        self.v._text(f"Takeoff to {ground - target:.1f} m")
         return R.MAV_RESULT_ACCEPTED
 
-    def _set_mode(self, mode: tuple[int, int]) -> int:
+    def set_mode(self, mode: tuple[int, int]) -> int:
         R = mavlink
-        if mode == self.mode:
+        if mode == self.v.mode:
             return R.MAV_RESULT_ACCEPTED
         if mode == MODE_MISSION:
-            return self.mission_service.enter()
+            return self.v.mission_service.enter()
         if mode == MODE_FOLLOW:
-            self.runner.pause()
-            self.manual_service.orbit = None
-            return self.follow_service.enter()
-        s = self.state
-        self.runner.pause()  # (a no-op unless leaving AUTO.MISSION: it resumes at its current item)
-        self.manual_service.orbit = None
+            self.v.runner.pause()
+            self.v.manual_service.orbit = None
+            return self.v.follow_service.enter()
+        s = self.v.state
+        self.v.runner.pause()  # (a no-op unless leaving AUTO.MISSION: it resumes at its current item)
+        self.v.manual_service.orbit = None
         if mode in (MODE_HOLD, MODE_POSCTL):
-            if s is not None and self.source == "own":
-                self.autopilot.hold(s)
+            if s is not None and self.v.source == "own":
+                self.v.autopilot.hold(s)
             elif s is not None:
-                self._hand_back(s)
-                self.autopilot.hold(s)
+                self.hand_back(s)
+                self.v.autopilot.hold(s)
         elif mode == MODE_LAND:
             if s is None:
-                return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
-            if self.source != "own":
-                self._hand_back(s)
-            self.autopilot.land(s)
+                return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
+            if self.v.source != "own":
+                self.hand_back(s)
+            self.v.autopilot.land(s)
         elif mode == MODE_RTL:
-            if s is None or self.home_ned is None:
-                return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet (arm first)")
-            if self.source != "own":
-                self._hand_back(s)
-            self.autopilot.rtl(s, self.geofence_service.return_point_ned(), self.params["RTL_RETURN_ALT"])
+            if s is None or self.v.home_ned is None:
+                return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet (arm first)")
+            if self.v.source != "own":
+                self.hand_back(s)
+            self.v.autopilot.rtl(s, self.v.geofence_service.return_point_ned(), self.v.params["RTL_RETURN_ALT"])
         elif mode == MODE_TAKEOFF:
-            return self._takeoff(math.nan)
+            return self.takeoff(math.nan)
         elif mode == MODE_OFFBOARD:
-            live_sp = self.offboard_service.setpoint_wall is not None and self.wall_s - self.offboard_service.setpoint_wall <= SETPOINT_PROOF_OF_LIFE_S
-            if not (live_sp or self.intake.is_live(self.sim_s)):
-                return self._refuse(R.MAV_RESULT_DENIED, "no setpoint stream (send setpoints first)")  # as PX4
-            self.mode = mode
+            live_sp = self.v.offboard_service.setpoint_wall is not None and self.v.wall_s - self.v.offboard_service.setpoint_wall <= SETPOINT_PROOF_OF_LIFE_S
+            if not (live_sp or self.v.intake.is_live(self.v.sim_s)):
+                return self.refuse(R.MAV_RESULT_DENIED, "no setpoint stream (send setpoints first)")  # as PX4
+            self.v.mode = mode
             if live_sp:
-                self.offboard_service.apply_setpoint()
-            self._text("Offboard")
+                self.v.offboard_service.apply_setpoint()
+            self.v._text("Offboard")
             return R.MAV_RESULT_ACCEPTED
         else:
-            return self._refuse(R.MAV_RESULT_UNSUPPORTED, "mode needs RC sticks (manual/stabilized/acro)")
-        self.mode = mode
-        self._text({MODE_HOLD: "Hold", MODE_POSCTL: "Position", MODE_LAND: "Land", MODE_RTL: "Return"}[mode])
+            return self.refuse(R.MAV_RESULT_UNSUPPORTED, "mode needs RC sticks (manual/stabilized/acro)")
+        self.v.mode = mode
+        self.v._text({MODE_HOLD: "Hold", MODE_POSCTL: "Position", MODE_LAND: "Land", MODE_RTL: "Return"}[mode])
         return R.MAV_RESULT_ACCEPTED
 
-    def _hand_back(self, s: RigidBodyState) -> None:
+    def hand_back(self, s: RigidBodyState) -> None:
         """The coordinator drove the motors; the own controller takes over from the current state."""
-        self.source = "own"
-        self.autopilot.handover(s)
-        self.autopilot.landed = self.autopilot.touching(s)
-        self.autopilot.phase = Phase.HOLD if not self.autopilot.landed else Phase.IDLE
+        self.v.source = "own"
+        self.v.autopilot.handover(s)
+        self.v.autopilot.landed = self.v.autopilot.touching(s)
+        self.v.autopilot.phase = Phase.HOLD if not self.v.autopilot.landed else Phase.IDLE
 
     def _reposition(self, p: list, is_int: bool) -> int:
         R = mavlink
-        if self.state is None or not self.armed or self.landed:
-            return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")
+        if self.v.state is None or not self.v.armed or self.v.landed:
+            return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")
         lat = p[4] * 1e-7 if is_int else p[4]
         lon = p[5] * 1e-7 if is_int else p[5]
         if not _finite(lat, lon, p[6]) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
-            return self._refuse(R.MAV_RESULT_DENIED, "no valid latitude, longitude and altitude")
-        target = self._global_to_ned(lat, lon, p[6])
-        if np.linalg.norm(target[:2] - self.state.position_ned_m[:2]) > MAX_POSITION_M:
-            return self._refuse(R.MAV_RESULT_DENIED, f"farther than {MAX_POSITION_M:g} m")
-        why = self.geofence_service.violation(target)
+            return self.refuse(R.MAV_RESULT_DENIED, "no valid latitude, longitude and altitude")
+        target = self.v._global_to_ned(lat, lon, p[6])
+        if np.linalg.norm(target[:2] - self.v.state.position_ned_m[:2]) > MAX_POSITION_M:
+            return self.refuse(R.MAV_RESULT_DENIED, f"farther than {MAX_POSITION_M:g} m")
+        why = self.v.geofence_service.violation(target)
         if why is not None:
-            return self._refuse(R.MAV_RESULT_DENIED, why)
+            return self.refuse(R.MAV_RESULT_DENIED, why)
         yaw = math.radians(p[3]) if math.isfinite(p[3]) else None
-        if self.source != "own":
-            self._hand_back(self.state)
-        self.autopilot.goto(self.state, target, yaw)
-        self.mode = MODE_HOLD
+        if self.v.source != "own":
+            self.hand_back(self.v.state)
+        self.v.autopilot.goto(self.v.state, target, yaw)
+        self.v.mode = MODE_HOLD
         return R.MAV_RESULT_ACCEPTED
 
     def _inject(self, p: list) -> int:
         R = mavlink
-        if int(self.params["SYS_FAILURE_EN"]) != 1:
-            return self._refuse(R.MAV_RESULT_DENIED, "SYS_FAILURE_EN is 0")
+        if int(self.v.params["SYS_FAILURE_EN"]) != 1:
+            return self.refuse(R.MAV_RESULT_DENIED, "SYS_FAILURE_EN is 0")
         if _finite(p[0], p[1], p[2]) and int(p[0]) in UNIT_SENSORS:  # a sensor: its path (sensor_failures)
             kind = TYPE_NAMES.get(int(p[1]))
             instance = int(p[2])
             if kind is None:
-                return self._refuse(R.MAV_RESULT_UNSUPPORTED, f"failure type {p[1]:g} not simulated")
+                return self.refuse(R.MAV_RESULT_UNSUPPORTED, f"failure type {p[1]:g} not simulated")
             if instance != p[2] or instance < 0:
-                return self._refuse(R.MAV_RESULT_DENIED, "no such sensor instance")
-            result = self.inject_sensor_failure(UNIT_SENSORS[int(p[0])], kind, instance)
+                return self.refuse(R.MAV_RESULT_DENIED, "no such sensor instance")
+            result = self.v.inject_sensor_failure(UNIT_SENSORS[int(p[0])], kind, instance)
             if result == R.MAV_RESULT_ACCEPTED:
-                self._count("failures_injected")
+                self.v._count("failures_injected")
             return result
         if not _finite(p[0], p[1], p[2]) or int(p[0]) != FAILURE_UNIT_SYSTEM_MOTOR:
-            return self._refuse(R.MAV_RESULT_UNSUPPORTED, "failure unit not simulated")
+            return self.refuse(R.MAV_RESULT_UNSUPPORTED, "failure unit not simulated")
         eta = FAILURE_TYPE_ETA.get(int(p[1]))
         if eta is None:
-            return self._refuse(R.MAV_RESULT_UNSUPPORTED, "only motor ok/off/slow")
+            return self.refuse(R.MAV_RESULT_UNSUPPORTED, "only motor ok/off/slow")
         instance = int(p[2])
-        if instance != p[2] or not 0 <= instance <= self.motor_count:
-            return self._refuse(R.MAV_RESULT_DENIED, f"no motor {p[2]:g} (1..{self.motor_count}, 0 all)")
-        self.inject_failure(instance, eta)
-        self._count("failures_injected")
-        self._text(f"Failure injected: motor {instance or 'all'} eta {eta:g}", mavlink.MAV_SEVERITY_WARNING)
+        if instance != p[2] or not 0 <= instance <= self.v.motor_count:
+            return self.refuse(R.MAV_RESULT_DENIED, f"no motor {p[2]:g} (1..{self.v.motor_count}, 0 all)")
+        self.v.inject_failure(instance, eta)
+        self.v._count("failures_injected")
+        self.v._text(f"Failure injected: motor {instance or 'all'} eta {eta:g}", mavlink.MAV_SEVERITY_WARNING)
         return R.MAV_RESULT_ACCEPTED
 
-    def inject_sensor_failure(self, sensor: str, kind: str, instance: int) -> int:
-        """A failure of this unit's own sensor (one of each: instance 0 or 1) in its sensor path."""
-        R = mavlink
-        if instance > 1:
-            return self._refuse(R.MAV_RESULT_DENIED, f"one {sensor} (instance 0 or 1)")
-        if not self.sensor_failures.supports(sensor, kind):  # e.g. a barometer this flight's sensors lack
-            return self._refuse(R.MAV_RESULT_UNSUPPORTED, f"no {sensor} {kind} in this flight")
-        self.sensor_failures.inject(sensor, kind)
-        self._text(f"Failure injected: {sensor} {kind}", mavlink.MAV_SEVERITY_WARNING)
-        return R.MAV_RESULT_ACCEPTED
-
-    def _on_set_mode(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self._for_me(msg.target_system, 0, allow_broadcast=False):
-            self._drop("wrong_target")
+    def on_set_mode(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        if not self.v._for_me(msg.target_system, 0, allow_broadcast=False):
+            self.v._drop("wrong_target")
             return
         if not msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            self._drop("set_mode_not_custom")
+            self.v._drop("set_mode_not_custom")
             return
-        self._set_mode(((msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF))
+        self.set_mode(((msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF))
 

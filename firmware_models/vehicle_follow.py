@@ -83,9 +83,9 @@ class FollowService:
     def enter(self) -> int:
         s = self.v.state
         if s is None or not self.v.armed or self.v.landed:
-            return self.v._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")  # as PX4
+            return self.v.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")  # as PX4
         if self.v.source != "own":
-            self.v._hand_back(s)
+            self.v.command_service.hand_back(s)
         self.v.autopilot.hold(s)
         self.v.mode = MODE_FOLLOW
         self.holding = self.target is None

@@ -137,14 +137,14 @@ class GeofenceService:
         self.v._text(f"Geofence breached: {why}"[:50], severity)
         if action == GF_HOLD:
             if self.v.source != "own":
-                self.v._hand_back(s)
+                self.v.command_service.hand_back(s)
             self.v.runner.pause()
             self.v.autopilot.hold(s)
             self.v.mode = MODE_HOLD
             self.v._text("Geofence: holding", severity)
         elif action == GF_RTL and self.v.mode != MODE_RTL:
-            self.v._set_mode(MODE_RTL)
+            self.v.command_service.set_mode(MODE_RTL)
         elif action == GF_LAND and self.v.mode != MODE_LAND:
-            self.v._set_mode(MODE_LAND)
+            self.v.command_service.set_mode(MODE_LAND)
         elif action == GF_TERMINATE:
-            self.v._disarm("Geofence: flight terminated")
+            self.v.command_service.disarm("Geofence: flight terminated")

@@ -271,9 +271,9 @@ class HilMixin:
 
     def arm(self) -> int:
         """MAV_CMD_COMPONENT_ARM_DISARM (arm) as the coordinator sends it; returns the MAV_RESULT."""
-        return self._arm_disarm(1.0, 0.0)
+        return self.command_service.arm_disarm(1.0, 0.0)
 
     def set_mode(self, mode: tuple[int, int]) -> int:
         """MAV_CMD_DO_SET_MODE to a PX4 (main, sub) mode; returns the MAV_RESULT."""
-        return self._set_mode(mode)
+        return self.command_service.set_mode(mode)
 

@@ -70,10 +70,10 @@ class ManualService:
     def do_orbit(self, p: list, is_int: bool) -> int:
         s = self.v.state
         if s is None or not self.v.armed or self.v.landed:
-            return self.v._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")
+            return self.v.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")
         radius = p[0]
         if not math.isfinite(radius) or not ORBIT_MIN_RADIUS_M <= abs(radius) <= ORBIT_MAX_RADIUS_M:
-            return self.v._refuse(R.MAV_RESULT_DENIED, f"radius not in {ORBIT_MIN_RADIUS_M:g}..{ORBIT_MAX_RADIUS_M:g} m")
+            return self.v.command_service.refuse(R.MAV_RESULT_DENIED, f"radius not in {ORBIT_MIN_RADIUS_M:g}..{ORBIT_MAX_RADIUS_M:g} m")
         speed = ORBIT_DEFAULT_SPEED_MPS if not math.isfinite(p[1]) else abs(p[1])
         direction = 1.0 if radius > 0 else -1.0  # positive: clockwise seen from above
         if math.isfinite(p[1]) and p[1] < 0:
@@ -85,18 +85,18 @@ class ManualService:
         else:
             lat, lon = (p[4] * 1e-7, p[5] * 1e-7) if is_int else (p[4], p[5])
             if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-                return self.v._refuse(R.MAV_RESULT_DENIED, "centre: no valid latitude/longitude")
+                return self.v.command_service.refuse(R.MAV_RESULT_DENIED, "centre: no valid latitude/longitude")
             center = self.v._global_to_ned(lat, lon, self.v.origin.amsl_m)[:2]
         z = -(p[6] - self.v.origin.amsl_m) if math.isfinite(p[6]) else float(s.position_ned_m[2])
         for a in np.linspace(0.0, 2 * math.pi, 24, endpoint=False):  # the whole circle inside the fence
             ring = np.array([center[0] + abs(radius) * math.cos(a), center[1] + abs(radius) * math.sin(a), z])
             why = self.v.geofence_service.violation(ring)
             if why is not None:
-                return self.v._refuse(R.MAV_RESULT_DENIED, f"circle {why}")
+                return self.v.command_service.refuse(R.MAV_RESULT_DENIED, f"circle {why}")
         orbits = p[3] if math.isfinite(p[3]) and p[3] > 0 else math.inf
         yaw_mode = int(p[2]) if math.isfinite(p[2]) else 0
         if self.v.source != "own":
-            self.v._hand_back(s)
+            self.v.command_service.hand_back(s)
         self.v.runner.pause()
         ref = self.v.autopilot.shaper.p
         self.orbit = {"center": center, "radius": abs(radius), "speed": speed, "dir": direction, "z": z,

@@ -28,14 +28,14 @@ class MissionService:
     def enter(self) -> int:
         R = mavlink
         if not self.v.runner.items:
-            return self.v._refuse(R.MAV_RESULT_DENIED, "no mission stored")
+            return self.v.command_service.refuse(R.MAV_RESULT_DENIED, "no mission stored")
         if self.v.state is None or self.v.home_ned is None:
-            return self.v._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet (arm first)")
+            return self.v.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet (arm first)")
         refusal = self.v.geofence_service.mission_refusal()
         if refusal is not None:
-            return self.v._refuse(R.MAV_RESULT_DENIED, refusal)
+            return self.v.command_service.refuse(R.MAV_RESULT_DENIED, refusal)
         if self.v.source != "own":
-            self.v._hand_back(self.v.state)
+            self.v.command_service.hand_back(self.v.state)
         if self.v.runner.complete:
             self.v.runner.set_current(0, reset_jumps=True)  # PX4 restarts a finished mission
         self.v.runner.pause()
@@ -46,7 +46,7 @@ class MissionService:
 
     def set_current(self, seq: float, reset_jumps: bool) -> int:
         if not math.isfinite(seq) or seq != int(seq) or not self.v.runner.set_current(int(seq), reset_jumps):
-            return self.v._refuse(mavlink.MAV_RESULT_DENIED, f"no mission item {seq:g}")
+            return self.v.command_service.refuse(mavlink.MAV_RESULT_DENIED, f"no mission item {seq:g}")
         self.v.mission.current_seq = self.v.runner.current
         self.v._mission_msgs.append(self.v.runner.current_message(self.v.mode == MODE_MISSION))
         return mavlink.MAV_RESULT_ACCEPTED
@@ -89,7 +89,7 @@ class MissionService:
             self.v.runner.load(self.v.mission.plans[0])
             self.v.mission.current_seq = self.v.runner.current
             if self.v.mode == MODE_MISSION and not self.v.runner.items and self.v.state is not None:
-                self.v._set_mode(MODE_HOLD)
+                self.v.command_service.set_mode(MODE_HOLD)
             self.v._mission_msgs.append(self.v.runner.current_message(self.v.mode == MODE_MISSION))
 
     def on_set_current(self, msg, lk: Link, out: list[Outgoing]) -> None:

@@ -141,18 +141,18 @@ class Px4Mixin:
         if armed != self._px4_armed:
             self._px4_armed = armed
             if armed and not self.armed:
-                self._arm_disarm(1.0, 0.0)
+                self.command_service.arm_disarm(1.0, 0.0)
                 if not self.armed:  # (refused after all: the interface follows the firmware)
                     self._px4_armed = False
                     unit.disarm(self.sim_s)
             elif not armed and self.armed:
-                self._disarm("PX4 interface: disarmed")
+                self.command_service.disarm("PX4 interface: disarmed")
         nav = unit.nav_state
         if nav != self._px4_nav:
             self._px4_nav = nav
             if (nav != VehicleStatus.NAVIGATION_STATE_OFFBOARD and self.armed and self.source == "coordinator"
                     and not self.intake.is_live(self.sim_s)):
-                self._set_mode(MODE_POSCTL)  # the unit's own controller holds where it is
+                self.command_service.set_mode(MODE_POSCTL)  # the unit's own controller holds where it is
 
     def _px4_disarmed(self) -> None:
         """The firmware disarmed (any reason): so is the interface."""

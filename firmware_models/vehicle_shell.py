@@ -186,15 +186,15 @@ class ShellService:
         return f"{spec.name}: {_fmt(p[spec.name], spec.kind)}\n"
 
     def _sh_commander(self, args: list[str]) -> str:
-        actions = {"arm": lambda: self.v._arm_disarm(1.0, 0.0), "disarm": lambda: self.v._arm_disarm(0.0, 0.0),
-                   "takeoff": lambda: self.v._takeoff(math.nan), "land": lambda: self.v._set_mode(MODE_LAND),
-                   "hold": lambda: self.v._set_mode(MODE_HOLD), "rtl": lambda: self.v._set_mode(MODE_RTL)}
+        actions = {"arm": lambda: self.v.command_service.arm_disarm(1.0, 0.0), "disarm": lambda: self.v.command_service.arm_disarm(0.0, 0.0),
+                   "takeoff": lambda: self.v.command_service.takeoff(math.nan), "land": lambda: self.v.command_service.set_mode(MODE_LAND),
+                   "hold": lambda: self.v.command_service.set_mode(MODE_HOLD), "rtl": lambda: self.v.command_service.set_mode(MODE_RTL)}
         act = actions.get(args[0]) if args else None
         if act is None:
             return "usage: commander arm|disarm|takeoff|land|hold|rtl\n"
-        self.v._refusal_why = None
+        self.v.command_service.refusal_why = None
         result = act()
-        why, self.v._refusal_why = self.v._refusal_why, None  # (the reason a refusal gives: vehicle_commands)
+        why, self.v.command_service.refusal_why = self.v.command_service.refusal_why, None  # (the reason a refusal gives: vehicle_commands)
         return f"commander {args[0]}: {RESULT_NAMES.get(result, str(result))}" + (f" ({why})" if why else "") + "\n"
 
     def _sh_listener(self, args: list[str]) -> str:

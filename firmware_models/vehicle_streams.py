@@ -89,7 +89,7 @@ class StreamsMixin:
     def _request_message(self, msgid: float, p2: float) -> tuple[int, list]:
         R = mavlink
         if not math.isfinite(msgid) or msgid != int(msgid):
-            return self._refuse(R.MAV_RESULT_DENIED, "param1 is no message id"), []
+            return self.command_service.refuse(R.MAV_RESULT_DENIED, "param1 is no message id"), []
         mid = int(msgid)
         if mid == R.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return R.MAV_RESULT_ACCEPTED, [self._autopilot_version()]
@@ -98,11 +98,11 @@ class StreamsMixin:
         if mid in DEFAULT_STREAM_HZ:
             msg = self._stream_message(mid)
             if msg is None:
-                return self._refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, f"no {R.mavlink_map[mid].msgname} yet"), []
+                return self.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, f"no {R.mavlink_map[mid].msgname} yet"), []
             return R.MAV_RESULT_ACCEPTED, [msg]
         # (incl. REFUSED_MESSAGES: PROTOCOL_VERSION, AVAILABLE_MODES, ...)
         name = R.mavlink_map[mid].msgname if mid in R.mavlink_map else f"message {mid}"
-        return self._refuse(R.MAV_RESULT_UNSUPPORTED, f"{name} not sent"), []
+        return self.command_service.refuse(R.MAV_RESULT_UNSUPPORTED, f"{name} not sent"), []
 
     @property
     def stream_cap_hz(self) -> float:
@@ -115,7 +115,7 @@ class StreamsMixin:
         MESSAGE_INTERVAL then reports the interval in force)."""
         R = mavlink
         if not _finite(msgid, interval_us) or int(msgid) not in DEFAULT_STREAM_HZ:
-            return self._refuse(R.MAV_RESULT_DENIED, "not a streamed message")
+            return self.command_service.refuse(R.MAV_RESULT_DENIED, "not a streamed message")
         mid = int(msgid)
         if interval_us < 0:
             self.stream_interval_s.pop(mid, None)
@@ -262,8 +262,8 @@ class StreamsMixin:
             from firmware_models.vehicle_modes import MODE_LAND, MODE_RTL
 
             target = MODE_LAND if change.action == "land" else MODE_RTL
-            if self.mode != target and self._set_mode(target) != mavlink.MAV_RESULT_ACCEPTED and target == MODE_RTL:
-                self._set_mode(MODE_LAND)  # no home to return to: land where it is
+            if self.mode != target and self.command_service.set_mode(target) != mavlink.MAV_RESULT_ACCEPTED and target == MODE_RTL:
+                self.command_service.set_mode(MODE_LAND)  # no home to return to: land where it is
 
     def _measure_battery(self, sample: BatterySample, t_s: float) -> BatterySample:
         """The power module's sample: counted, and the unit's report for the coordinator (with remaining)."""

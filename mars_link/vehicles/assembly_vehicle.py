@@ -193,15 +193,15 @@ class AssemblyVehicle(Vehicle):
     def inject_sensor_failure(self, sensor: str, kind: str, instance: int) -> int:
         """MAV_CMD_INJECT_FAILURE of a sensor: every unit's (instance 0) or the i-th unit's sensor path."""
         if self.on_sensor_failure is None:
-            return self._refuse(mavlink.MAV_RESULT_UNSUPPORTED, "no sensor failures in this run")
+            return self.command_service.refuse(mavlink.MAV_RESULT_UNSUPPORTED, "no sensor failures in this run")
         result = self.on_sensor_failure(sensor, kind, instance)
         if result == mavlink.MAV_RESULT_ACCEPTED:
             where = "all units" if instance == 0 else f"unit {self.model.unit_ids[instance - 1]}"
             self._text(f"Failure injected: {sensor} {kind}, {where}", mavlink.MAV_SEVERITY_WARNING)
         elif result == mavlink.MAV_RESULT_DENIED:
-            return self._refuse(result, f"no unit {instance} (1..{len(self.model.unit_ids)}, 0 all)")
+            return self.command_service.refuse(result, f"no unit {instance} (1..{len(self.model.unit_ids)}, 0 all)")
         elif result == mavlink.MAV_RESULT_UNSUPPORTED:
-            return self._refuse(result, f"a unit has no {sensor} {kind}")
+            return self.command_service.refuse(result, f"a unit has no {sensor} {kind}")
         return result
 
     def _unhealthy_sensors(self) -> int:

@@ -81,13 +81,13 @@ class VehicleSensorWatch:
             v.runner.pause()
             v.manual_service.orbit = None
             if v.source != "own":
-                v._hand_back(v.state)
+                v.command_service.hand_back(v.state)
             v.autopilot.hold(v.state)
             v.mode = MODE_HOLD
             self._say(t_s, "failsafe_hold", "Position lost: holding")
         elif self.state == "hold" and t_s - lost >= p.land_after_s - 1e-9:
             self.state = "land"
-            v._set_mode(MODE_LAND)
+            v.command_service.set_mode(MODE_LAND)
             self._say(t_s, "failsafe_land", "Position lost: landing")
         elif self.state == "land":
             self._land_detect(t_s)
@@ -115,5 +115,5 @@ class VehicleSensorWatch:
     def _landed(self, t_s: float, text: str) -> None:
         self.state = "normal"
         self.vehicle.autopilot.idle()
-        self.vehicle._disarm(text)
+        self.vehicle.command_service.disarm(text)
         self.record.append(event(t_s, EventKind.FAILSAFE_LANDED, text=text))
