@@ -47,7 +47,7 @@ from firmware_models.motor import MotorModel, MotorParams
 from firmware_models.params import ParamStore, unit_param_specs
 from firmware_models.rotor_intake import IntakeParams, RotorIntake
 from firmware_models.sensor_failures import SensorFailures
-from mars_link.core.messages import EscSample
+from mars_link.core.messages import BatterySample, EscSample, wire_battery
 from mars_link.models.esc import EscSensor
 from mars_link.mavlink.signing import ACCEPTED, UNSIGNED, advance_outgoing_clock, is_signed
 from firmware_models.unit_controller import GuidanceLimits, Phase, UnitAutopilot
@@ -77,9 +77,8 @@ from firmware_models.vehicle_px4 import Px4Mixin
 from firmware_models.vehicle_services import SmallService
 from firmware_models.vehicle_shell import ShellService
 from firmware_models.vehicle_streams import (  # noqa: F401 (re-exported)
-    CAPABILITIES, DEFAULT_STREAM_HZ, MIN_STREAM_INTERVAL_S, REFUSED_MESSAGES, SENSORS, StreamsMixin,
+    CAPABILITIES, DEFAULT_STREAM_HZ, MIN_STREAM_INTERVAL_S, REFUSED_MESSAGES, SENSOR_BITS, SENSORS, StreamService,
 )
-from firmware_models.vehicle_streams import next_stream_due
 from mars_link.mavlink import codec as mavlink_codec
 from mars_link.core.assembly import VehicleParams, vehicle_preset
 from mars_link.core.errors import UserInputError
@@ -151,7 +150,7 @@ class VehicleConfig:
 
 
 
-class Vehicle(HilMixin, StreamsMixin, Px4Mixin):
+class Vehicle(HilMixin, Px4Mixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -209,9 +208,6 @@ class Vehicle(HilMixin, StreamsMixin, Px4Mixin):
         self.events: list[tuple[float, str]] = []  # (sim time, text): STATUSTEXT history
         self._next_heartbeat = wall_time_s
         self._next_control = 0.0
-        rates = DEFAULT_STREAM_HZ if c.stream_hz is None else c.stream_hz
-        self.stream_interval_s = {mid: 1.0 / hz for mid, hz in rates.items() if hz > 0}
-        self._next_stream = {mid: wall_time_s for mid in self.stream_interval_s}
         self._landed_since: float | None = None
         self._armed_at: float | None = None
         self._took_off = False
@@ -236,6 +232,7 @@ class Vehicle(HilMixin, StreamsMixin, Px4Mixin):
         self.mission = MissionProtocol(self.origin)
         self.runner = MissionRunner(self.autopilot, self.origin)
         self._mission_msgs: list = []  # MISSION_CURRENT / MISSION_ITEM_REACHED to broadcast
+        self.stream_service = StreamService(self, wall_time_s)
         self.command_service = CommandService(self)
         self.mission_service = MissionService(self)
         self.offboard_service = OffboardService(self)
@@ -466,7 +463,7 @@ class Vehicle(HilMixin, StreamsMixin, Px4Mixin):
     def hello(self, link: str) -> Outgoing:
         """A HEARTBEAT on a non-telemetry link (HIL, coordinator): peers learn the unit's address."""
         lk = self.links[link]
-        return Outgoing(link, self._pack(lk, self._heartbeat()))
+        return Outgoing(link, self._pack(lk, self.stream_service.heartbeat()))
 
     def tick(self, wall_time_s: float, sim_time_s: float) -> list[Outgoing]:
         """Advance both clocks: heartbeats and streams on wall time, control on sim time."""
@@ -484,18 +481,8 @@ class Vehicle(HilMixin, StreamsMixin, Px4Mixin):
         self._watchdogs()
         if wall_time_s >= self._next_heartbeat:
             self._next_heartbeat = max(self._next_heartbeat + 1.0, wall_time_s + 0.5)
-            self._broadcast(self._heartbeat(), out)
-        for mid, interval in self.stream_interval_s.items():
-            due = self._next_stream.get(mid, wall_time_s)
-            if wall_time_s + 1e-6 >= due:  # (a tick exactly on the interval counts despite float rounding)
-                self._next_stream[mid] = next_stream_due(due, interval, wall_time_s)
-                try:
-                    msg = self._stream_message(mid)
-                except (*mavlink_codec.ENCODE_ERRORS, FloatingPointError):  # e.g. int() of a NaN state
-                    self._count("telemetry.encode_error")
-                    msg = None
-                if msg is not None:
-                    self._broadcast(msg, out)
+            self._broadcast(self.stream_service.heartbeat(), out)
+        self.stream_service.tick(wall_time_s, out)
         for name, msg in self.mission.tick(self.wall_s):
             self._reply(self.links[name], msg, out)
         self.mission_service.flush_texts()
@@ -680,6 +667,43 @@ class Vehicle(HilMixin, StreamsMixin, Px4Mixin):
     def _land_detect(self, t: float) -> str | None:
         """The land detector (manual_service); a subclass may hold it off (mars_link.vehicles.pieces_vehicle)."""
         return self.manual_service.land_detect(t)
+
+    def _unhealthy_sensors(self) -> int:
+        """SYS_STATUS bits to clear from onboard_control_sensors_health: the unit's failed sensors."""
+        failures = self.sensor_failures
+        return sum(bit for name, bit in SENSOR_BITS.items() if not failures.healthy(name))
+
+    def _global_to_ned(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> np.ndarray:
+        return self.origin.to_ned(lat_deg, lon_deg, alt_amsl_m)
+
+    def _battery_step(self) -> None:
+        """A low-battery level crossed: STATUSTEXT, and the action COM_LOW_BAT_ACT asks for when this
+        vehicle flies itself (a unit under the coordinator only reports: the assembly decides)."""
+        p = self.params
+        checked = (self.battery.remaining, p.version)  # a level changes only when one of them moves
+        if checked == self._battery_checked:
+            return
+        self._battery_checked = checked
+        change = self.battery.level_change(p["BAT_LOW_THR"], p["BAT_CRIT_THR"], p["BAT_EMERGEN_THR"],
+                                           int(p["COM_LOW_BAT_ACT"]))
+        if change is None:
+            return
+        severity = {"low": mavlink.MAV_SEVERITY_WARNING, "critical": mavlink.MAV_SEVERITY_CRITICAL}.get(
+            change.level, mavlink.MAV_SEVERITY_EMERGENCY)
+        act = change.action is not None and self.source == "own" and self.armed and not self.landed
+        self._text(change.text if act or change.action is None else change.text.split(":")[0], severity)
+        if act:
+            target = MODE_LAND if change.action == "land" else MODE_RTL
+            if self.mode != target and self.command_service.set_mode(target) != mavlink.MAV_RESULT_ACCEPTED and target == MODE_RTL:
+                self.command_service.set_mode(MODE_LAND)  # no home to return to: land where it is
+
+    def _measure_battery(self, sample: BatterySample, t_s: float) -> BatterySample:
+        """The power module's sample: counted, and the unit's report for the coordinator (with remaining)."""
+        p = self.params
+        b = self.battery
+        b.measure(t_s, sample.voltage_v, sample.current_a, p["BAT1_CAPACITY"], int(p["BAT1_N_CELLS"]),
+                  p["BAT1_R_INTERNAL"])
+        return wire_battery(b.voltage_v, b.current_a, b.remaining)
 
     def _drive_from_coordinator(self, held_n: np.ndarray) -> None:
         """A control step under the coordinator: its held command drives the motors."""

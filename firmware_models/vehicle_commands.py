@@ -204,22 +204,22 @@ class CommandService:
         if cmd == R.MAV_CMD_INJECT_FAILURE:
             return self._inject(p), []
         if cmd == R.MAV_CMD_REQUEST_MESSAGE:
-            return self.v._request_message(p[0], p[1])
+            return self.v.stream_service.request_message(p[0], p[1])
         if cmd == R.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             if p[0] != 1:
                 return self.refuse(R.MAV_RESULT_DENIED, "param1 must be 1"), []
-            return R.MAV_RESULT_ACCEPTED, [self.v._autopilot_version()]
+            return R.MAV_RESULT_ACCEPTED, [self.v.stream_service.autopilot_version()]
         if cmd == R.MAV_CMD_GET_HOME_POSITION:
-            home = self.v._home_position()
+            home = self.v.stream_service.home_position()
             if not home:
                 return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet"), []
             return R.MAV_RESULT_ACCEPTED, [home]
         if cmd == R.MAV_CMD_SET_MESSAGE_INTERVAL:
-            return self.v._set_interval(p[0], p[1]), []
+            return self.v.stream_service.set_interval(p[0], p[1]), []
         if cmd == R.MAV_CMD_GET_MESSAGE_INTERVAL:
             if not math.isfinite(p[0]) or int(p[0]) not in DEFAULT_STREAM_HZ:
                 return self.refuse(R.MAV_RESULT_DENIED, f"message {p[0]:g} is not streamed"), []
-            iv = self.v.stream_interval_s.get(int(p[0]))
+            iv = self.v.stream_service.interval_s.get(int(p[0]))
             return R.MAV_RESULT_ACCEPTED, [R.MAVLink_message_interval_message(
                 int(p[0]), -1 if iv is None else int(round(iv * 1e6)))]
         return R.MAV_RESULT_UNSUPPORTED, []  # includes REQUEST_PROTOCOL_VERSION (519): MAVLink 2 only

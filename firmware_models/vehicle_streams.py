@@ -1,11 +1,9 @@
-"""Telemetry of the unit firmware: heartbeat, default streams, message requests and intervals.
-
-A mixin of `firmware_models.vehicle.Vehicle`: it uses the Vehicle's state and plumbing (_reply, _text, ...).
-"""
+"""Telemetry of the unit firmware: heartbeat, default streams, message requests and intervals."""
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
@@ -15,9 +13,12 @@ from mars_link.core.assembly import GRAVITY_MPS2
 from mars_link.core.rotations import quat_to_euler, quat_to_rotmat
 from firmware_models.vehicle_links import finite as _finite
 from firmware_models.vehicle_modes import MAIN_AUTO, MAIN_OFFBOARD, MODE_MISSION
-from mars_link.core.messages import BatterySample, wire_battery
 from mars_link.runtime.pacing import REANCHOR_S
 from mars_link.mavlink.wire import battery_status
+from mars_link.mavlink import codec as mavlink_codec
+
+if TYPE_CHECKING:
+    from firmware_models.vehicle import Outgoing, Vehicle
 
 MIN_STREAM_INTERVAL_S = 0.001  # 1 kHz: the protocol's floor; the vehicle's own is one message per tick
 #: (its control rate: streams go out when the runner ticks it, once per control step; `stream_cap_hz`)
@@ -80,95 +81,114 @@ def next_stream_due(due_s: float, interval_s: float, now_s: float) -> float:
     return now_s + 0.5 * interval_s
 
 
-class StreamsMixin:
-    def _unhealthy_sensors(self) -> int:
-        """SYS_STATUS bits to clear from onboard_control_sensors_health: the unit's failed sensors."""
-        failures = self.sensor_failures
-        return sum(bit for name, bit in SENSOR_BITS.items() if not failures.healthy(name))
+class StreamService:
+    """The telemetry streams and what clients ask of them. Owns each stream's interval and when it is due
+    next. Asks of the vehicle: its state, mode, home, battery, the mission runner, `_unhealthy_sensors`
+    (a subclass's own health), `_broadcast`, `_count`, and `command_service.refuse` for a request refused."""
 
-    def _request_message(self, msgid: float, p2: float) -> tuple[int, list]:
+    def __init__(self, vehicle: Vehicle, wall_time_s: float) -> None:
+        self.v = vehicle
+        c = vehicle.config
+        rates = DEFAULT_STREAM_HZ if c.stream_hz is None else c.stream_hz
+        self.interval_s = {mid: 1.0 / hz for mid, hz in rates.items() if hz > 0}  # msg id -> interval (wall)
+        self.next_due = {mid: wall_time_s for mid in self.interval_s}  # msg id -> wall time it is due
+
+    def tick(self, wall_time_s: float, out: list[Outgoing]) -> None:
+        """Every stream that is due (wall clock) to every telemetry link."""
+        v = self.v
+        next_due = self.next_due
+        for mid, interval in self.interval_s.items():
+            due = next_due.get(mid, wall_time_s)
+            if wall_time_s + 1e-6 >= due:  # (a tick exactly on the interval counts despite float rounding)
+                next_due[mid] = next_stream_due(due, interval, wall_time_s)
+                try:
+                    msg = self.message(mid)
+                except (*mavlink_codec.ENCODE_ERRORS, FloatingPointError):  # e.g. int() of a NaN state
+                    v._count("telemetry.encode_error")
+                    msg = None
+                if msg is not None:
+                    v._broadcast(msg, out)
+
+    def request_message(self, msgid: float, p2: float) -> tuple[int, list]:
         R = mavlink
         if not math.isfinite(msgid) or msgid != int(msgid):
-            return self.command_service.refuse(R.MAV_RESULT_DENIED, "param1 is no message id"), []
+            return self.v.command_service.refuse(R.MAV_RESULT_DENIED, "param1 is no message id"), []
         mid = int(msgid)
         if mid == R.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
-            return R.MAV_RESULT_ACCEPTED, [self._autopilot_version()]
+            return R.MAV_RESULT_ACCEPTED, [self.autopilot_version()]
         if mid == R.MAVLINK_MSG_ID_HEARTBEAT:
-            return R.MAV_RESULT_ACCEPTED, [self._heartbeat()]
+            return R.MAV_RESULT_ACCEPTED, [self.heartbeat()]
         if mid in DEFAULT_STREAM_HZ:
-            msg = self._stream_message(mid)
+            msg = self.message(mid)
             if msg is None:
-                return self.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, f"no {R.mavlink_map[mid].msgname} yet"), []
+                return self.v.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, f"no {R.mavlink_map[mid].msgname} yet"), []
             return R.MAV_RESULT_ACCEPTED, [msg]
         # (incl. REFUSED_MESSAGES: PROTOCOL_VERSION, AVAILABLE_MODES, ...)
         name = R.mavlink_map[mid].msgname if mid in R.mavlink_map else f"message {mid}"
-        return self.command_service.refuse(R.MAV_RESULT_UNSUPPORTED, f"{name} not sent"), []
+        return self.v.command_service.refuse(R.MAV_RESULT_UNSUPPORTED, f"{name} not sent"), []
 
     @property
-    def stream_cap_hz(self) -> float:
+    def cap_hz(self) -> float:
         """The fastest a stream goes: one message per tick, and the runners tick once per control step
         (100 Hz by default; a unit at --control-hz 250 streams HIGHRES_IMU at 250 Hz)."""
-        return 1.0 / max(MIN_STREAM_INTERVAL_S, self.control_dt_s)
+        return 1.0 / max(MIN_STREAM_INTERVAL_S, self.v.control_dt_s)
 
-    def _set_interval(self, msgid: float, interval_us: float) -> int:
+    def set_interval(self, msgid: float, interval_us: float) -> int:
         """SET_MESSAGE_INTERVAL: faster than `stream_cap_hz` is accepted and runs at the cap (its
         MESSAGE_INTERVAL then reports the interval in force)."""
         R = mavlink
         if not _finite(msgid, interval_us) or int(msgid) not in DEFAULT_STREAM_HZ:
-            return self.command_service.refuse(R.MAV_RESULT_DENIED, "not a streamed message")
+            return self.v.command_service.refuse(R.MAV_RESULT_DENIED, "not a streamed message")
         mid = int(msgid)
         if interval_us < 0:
-            self.stream_interval_s.pop(mid, None)
+            self.interval_s.pop(mid, None)
         else:
-            iv = 1.0 / DEFAULT_STREAM_HZ[mid] if interval_us == 0 else max(1.0 / self.stream_cap_hz, interval_us * 1e-6)
-            self.stream_interval_s[mid] = iv
-            self._next_stream[mid] = self.wall_s
+            iv = 1.0 / DEFAULT_STREAM_HZ[mid] if interval_us == 0 else max(1.0 / self.cap_hz, interval_us * 1e-6)
+            self.interval_s[mid] = iv
+            self.next_due[mid] = self.v.wall_s
         return R.MAV_RESULT_ACCEPTED
 
 
-    def _global_to_ned(self, lat_deg: float, lon_deg: float, alt_amsl_m: float) -> np.ndarray:
-        return self.origin.to_ned(lat_deg, lon_deg, alt_amsl_m)
-
     def _ned_to_global(self, p: np.ndarray) -> tuple[int, int, int]:
         """(lat degE7, lon degE7, alt AMSL mm)."""
-        return self.origin.to_global_int(p)
+        return self.v.origin.to_global_int(p)
 
     def _time_boot_ms(self) -> int:
-        return int(self.sim_s * 1000) & 0xFFFFFFFF
+        return int(self.v.sim_s * 1000) & 0xFFFFFFFF
 
-    def _heartbeat(self):
+    def heartbeat(self):
         R = mavlink
         base = R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | R.MAV_MODE_FLAG_STABILIZE_ENABLED
-        if self.mode[0] in (MAIN_AUTO, MAIN_OFFBOARD):
-            base |= R.MAV_MODE_FLAG_GUIDED_ENABLED | (R.MAV_MODE_FLAG_AUTO_ENABLED if self.mode[0] == MAIN_AUTO else 0)
-        if self.armed:
+        if self.v.mode[0] in (MAIN_AUTO, MAIN_OFFBOARD):
+            base |= R.MAV_MODE_FLAG_GUIDED_ENABLED | (R.MAV_MODE_FLAG_AUTO_ENABLED if self.v.mode[0] == MAIN_AUTO else 0)
+        if self.v.armed:
             base |= R.MAV_MODE_FLAG_SAFETY_ARMED
-        status = R.MAV_STATE_ACTIVE if self.armed else R.MAV_STATE_STANDBY
-        return R.MAVLink_heartbeat_message(R.MAV_TYPE_QUADROTOR, R.MAV_AUTOPILOT_PX4, base, self.custom_mode, status, 3)
+        status = R.MAV_STATE_ACTIVE if self.v.armed else R.MAV_STATE_STANDBY
+        return R.MAVLink_heartbeat_message(R.MAV_TYPE_QUADROTOR, R.MAV_AUTOPILOT_PX4, base, self.v.custom_mode, status, 3)
 
-    def _autopilot_version(self):
-        uid = (0x4D415253 << 32) | self.sysid  # "MARS" + unit id
+    def autopilot_version(self):
+        uid = (0x4D415253 << 32) | self.v.sysid  # "MARS" + unit id
         sw = (0 << 24) | (1 << 16) | (0 << 8) | 255  # mars-link 0.1.0, release
         return mavlink.MAVLink_autopilot_version_message(
             CAPABILITIES, sw, sw, 0, 0, list(b"marslink"), [0] * 8, [0] * 8, 0, 0, uid, [0] * 18)
 
-    def _home_position(self):
-        if self.home_ned is None:
+    def home_position(self):
+        if self.v.home_ned is None:
             return None
-        lat, lon, alt = self._ned_to_global(self.home_ned)
-        h = self.home_ned
+        lat, lon, alt = self._ned_to_global(self.v.home_ned)
+        h = self.v.home_ned
         return mavlink.MAVLink_home_position_message(
             lat, lon, alt, float(h[0]), float(h[1]), float(h[2]), [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
-            int(self.sim_s * 1e6))
+            int(self.v.sim_s * 1e6))
 
     def _landed_state(self) -> int:
         R = mavlink
-        ph = self.autopilot.phase
-        if self.landed:
+        ph = self.v.autopilot.phase
+        if self.v.landed:
             return R.MAV_LANDED_STATE_ON_GROUND
-        if self.source == "own" and ph == Phase.TAKEOFF:
+        if self.v.source == "own" and ph == Phase.TAKEOFF:
             return R.MAV_LANDED_STATE_TAKEOFF
-        if self.source == "own" and ph == Phase.LAND:
+        if self.v.source == "own" and ph == Phase.LAND:
             return R.MAV_LANDED_STATE_LANDING
         return R.MAV_LANDED_STATE_IN_AIR
 
@@ -176,7 +196,7 @@ class StreamsMixin:
         """(voltage mV, current cA, remaining %) as measured (firmware_models.battery_monitor); clamped to
         the wire fields (uint16 mV, int16 cA, int8 %). Nothing measured (no simulated pack: the papers'
         plants) or not a number -> MAVLink's "not sent" values (UINT16_MAX, -1, -1)."""
-        b = self.battery
+        b = self.v.battery
 
         def wire(x: float, lo: int, hi: int, unknown: int) -> int:
             return unknown if not math.isfinite(x) else int(min(max(x, lo), hi))
@@ -184,27 +204,27 @@ class StreamsMixin:
         return (wire(b.voltage_v * 1000, 0, 65534, 65535), wire(b.current_a * 100, 0, 32767, -1),
                 wire(round(b.remaining * 100) if math.isfinite(b.remaining) else b.remaining, 0, 100, -1))
 
-    def _stream_message(self, mid: int):
+    def message(self, mid: int):
         R = mavlink
-        s = self.state
+        s = self.v.state
         tb = self._time_boot_ms()
         if mid == R.MAVLINK_MSG_ID_SYS_STATUS:
             mv, ca, pct = self._battery()
-            return R.MAVLink_sys_status_message(SENSORS, SENSORS, SENSORS & ~self._unhealthy_sensors(), 200, mv, ca, pct,
+            return R.MAVLink_sys_status_message(SENSORS, SENSORS, SENSORS & ~self.v._unhealthy_sensors(), 200, mv, ca, pct,
                                                 0, 0, 0, 0, 0, 0)
         if mid == R.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             return R.MAVLink_extended_sys_state_message(R.MAV_VTOL_STATE_UNDEFINED, self._landed_state())
         if mid == R.MAVLINK_MSG_ID_BATTERY_STATUS:
             mv, ca, pct = self._battery()
-            return battery_status_message(mv, ca, self.battery.used_c, pct, self.battery.level)
+            return battery_status_message(mv, ca, self.v.battery.used_c, pct, self.v.battery.level)
         if mid == R.MAVLINK_MSG_ID_HOME_POSITION:
-            return self._home_position()
+            return self.home_position()
         if mid == R.MAVLINK_MSG_ID_MISSION_CURRENT:
-            return self.runner.current_message(self.mode == MODE_MISSION)
+            return self.v.runner.current_message(self.v.mode == MODE_MISSION)
         if mid == R.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS:
             # what the ESCs are told (normalised, limits applied); injected faults are not visible here
-            cmd = np.clip(self.motor_commands_n / self.full_scale_n, 0.0, 1.0) if self.armed else np.zeros(4)
-            return R.MAVLink_actuator_output_status_message(int(self.sim_s * 1e6), 0xF, [float(x) for x in cmd] + [0.0] * 28)
+            cmd = np.clip(self.v.motor_commands_n / self.v.full_scale_n, 0.0, 1.0) if self.v.armed else np.zeros(4)
+            return R.MAVLink_actuator_output_status_message(int(self.v.sim_s * 1e6), 0xF, [float(x) for x in cmd] + [0.0] * 28)
         if s is None:
             return None
         q = s.quaternion_wxyz
@@ -219,60 +239,28 @@ class StreamsMixin:
             return R.MAVLink_local_position_ned_message(tb, *map(float, p), *map(float, v))
         lat, lon, alt = self._ned_to_global(p)
         if mid == R.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
-            rel = int(round((float(self.home_ned[2]) - p[2]) * 1000)) if self.home_ned is not None else 0
+            rel = int(round((float(self.v.home_ned[2]) - p[2]) * 1000)) if self.v.home_ned is not None else 0
             hdg = int(round(math.degrees(quat_to_euler(q)[2]) * 100)) % 36000
             vel = [int(max(-32767, min(32767, round(x * 100)))) for x in v]
             return R.MAVLink_global_position_int_message(tb, lat, lon, alt, rel, *vel, hdg)
         if mid == R.MAVLINK_MSG_ID_GPS_RAW_INT:
             speed = math.hypot(v[0], v[1])
             cog = int(round(math.degrees(math.atan2(v[1], v[0])) * 100)) % 36000 if speed > 0.2 else 65535
-            fix = R.GPS_FIX_TYPE_NO_FIX if self._unhealthy_sensors() & SENSOR_BITS["gps"] else R.GPS_FIX_TYPE_3D_FIX
-            return R.MAVLink_gps_raw_int_message(int(self.sim_s * 1e6), fix, lat, lon, alt, 80, 120,
+            fix = R.GPS_FIX_TYPE_NO_FIX if self.v._unhealthy_sensors() & SENSOR_BITS["gps"] else R.GPS_FIX_TYPE_3D_FIX
+            return R.MAVLink_gps_raw_int_message(int(self.v.sim_s * 1e6), fix, lat, lon, alt, 80, 120,
                                                  int(min(speed * 100, 65534)), cog, 12 if fix else 0, alt, 300, 500,
                                                  200, 0, 0)
         if mid == R.MAVLINK_MSG_ID_HIGHRES_IMU:
-            if self.imu is not None:
-                acc, gyro = self.imu.accel_frd_mps2, self.imu.gyro_frd_radps
+            if self.v.imu is not None:
+                acc, gyro = self.v.imu.accel_frd_mps2, self.v.imu.gyro_frd_radps
             else:  # specific force from the state: R^T (a - g)
                 acc = quat_to_rotmat(q).T @ (s.acceleration_ned_mps2 - np.array([0.0, 0.0, GRAVITY_MPS2]))
                 gyro = w
-            alt_m = self.origin.amsl_m - p[2]
+            alt_m = self.v.origin.amsl_m - p[2]
             pressure_hpa = 1013.25 * (1 - 2.25577e-5 * alt_m) ** 5.25588
-            return R.MAVLink_highres_imu_message(int(self.sim_s * 1e6), *map(float, acc), *map(float, gyro),
+            return R.MAVLink_highres_imu_message(int(self.v.sim_s * 1e6), *map(float, acc), *map(float, gyro),
                                                  0.21, 0.0, 0.42, pressure_hpa, 0.0, alt_m, 20.0, 0x1A3F, 0)
         return None
-
-    def _battery_step(self) -> None:
-        """A low-battery level crossed: STATUSTEXT, and the action COM_LOW_BAT_ACT asks for when this
-        vehicle flies itself (a unit under the coordinator only reports: the assembly decides)."""
-        p = self.params
-        checked = (self.battery.remaining, p.version)  # a level changes only when one of them moves
-        if checked == self._battery_checked:
-            return
-        self._battery_checked = checked
-        change = self.battery.level_change(p["BAT_LOW_THR"], p["BAT_CRIT_THR"], p["BAT_EMERGEN_THR"],
-                                           int(p["COM_LOW_BAT_ACT"]))
-        if change is None:
-            return
-        severity = {"low": mavlink.MAV_SEVERITY_WARNING, "critical": mavlink.MAV_SEVERITY_CRITICAL}.get(
-            change.level, mavlink.MAV_SEVERITY_EMERGENCY)
-        act = change.action is not None and self.source == "own" and self.armed and not self.landed
-        self._text(change.text if act or change.action is None else change.text.split(":")[0], severity)
-        if act:
-            from firmware_models.vehicle_modes import MODE_LAND, MODE_RTL
-
-            target = MODE_LAND if change.action == "land" else MODE_RTL
-            if self.mode != target and self.command_service.set_mode(target) != mavlink.MAV_RESULT_ACCEPTED and target == MODE_RTL:
-                self.command_service.set_mode(MODE_LAND)  # no home to return to: land where it is
-
-    def _measure_battery(self, sample: BatterySample, t_s: float) -> BatterySample:
-        """The power module's sample: counted, and the unit's report for the coordinator (with remaining)."""
-        p = self.params
-        b = self.battery
-        b.measure(t_s, sample.voltage_v, sample.current_a, p["BAT1_CAPACITY"], int(p["BAT1_N_CELLS"]),
-                  p["BAT1_R_INTERNAL"])
-        return wire_battery(b.voltage_v, b.current_a, b.remaining)
-
 
 def battery_status_message(mv: int, ca: int, used_c: float, pct: int, level: int = 0):
     """The vehicle's BATTERY_STATUS stream: its measured pack, with the charge state of its low-battery level."""

@@ -32,6 +32,7 @@ from pymavlink.dialects.v20 import common as mavlink
 from firmware_models.params import INT32, REAL32, ParamSpec, ParamStore, unit_param_specs
 from firmware_models.unit_controller import UnitAutopilot
 from firmware_models.vehicle import LINK_API, LINK_GCS, LinkPolicy, Outgoing, Vehicle, VehicleConfig
+from firmware_models.vehicle_streams import SENSOR_BITS, StreamService
 from mars_link.core.events import EventKind, event
 from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel
 from mars_link.control.base import ControlOutput
@@ -168,6 +169,7 @@ class AssemblyVehicle(Vehicle):
         self._events_seen = 0
         self._unit_batteries: dict = {}  # unit -> its last BatterySample report
         self._battery_t: float | None = None
+        self.stream_service = AssemblyStreamService(self, wall_time_s)
 
     @property
     def core(self) -> AssemblyFlightCore:
@@ -205,8 +207,6 @@ class AssemblyVehicle(Vehicle):
         return result
 
     def _unhealthy_sensors(self) -> int:
-        from firmware_models.vehicle_streams import SENSOR_BITS
-
         bad = set() if self.sensor_health is None else self.sensor_health.unhealthy_sensors()
         return sum(SENSOR_BITS[s] for s in bad if s in SENSOR_BITS)
 
@@ -252,13 +252,20 @@ class AssemblyVehicle(Vehicle):
         self._events_seen = len(events)
         return new
 
-    def _stream_message(self, mid: int):
+
+class AssemblyStreamService(StreamService):
+    """The assembly's telemetry: ACTUATOR_OUTPUT_STATUS carries its 4N rotors (up to MAVLink's 32)."""
+
+    v: AssemblyVehicle
+
+    def message(self, mid: int):
         if mid == mavlink.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS:
-            n = min(32, self.model.n_rotors)
-            cmd = np.clip(self.rotor_thrusts_n() / self.full_scale_n, 0.0, 1.0)[:n]
+            v = self.v
+            n = min(32, v.model.n_rotors)
+            cmd = np.clip(v.rotor_thrusts_n() / v.full_scale_n, 0.0, 1.0)[:n]
             return mavlink.MAVLink_actuator_output_status_message(
-                int(self.sim_s * 1e6), (1 << n) - 1, [float(x) for x in cmd] + [0.0] * (32 - n))
-        return super()._stream_message(mid)
+                int(v.sim_s * 1e6), (1 << n) - 1, [float(x) for x in cmd] + [0.0] * (32 - n))
+        return super().message(mid)
 
 
 # ----------------------------------------------------------------------------- in-process wiring

@@ -133,7 +133,7 @@ def test_property_every_outgoing_message_packs_from_extreme_states(signed) -> No
         out = v.tick(10.0 + i, max(0.0, v.sim_s) + 1e-3)  # wall time: every stream due
         out.append(v.hello(LINK_GCS))
         for lk in v.links.values():
-            out.append(type(out[0])(lk.name, v._pack(lk, v._autopilot_version())))
+            out.append(type(out[0])(lk.name, v._pack(lk, v.stream_service.autopilot_version())))
         msgs = decode_all([o for o in out if not signed]) if not signed else []
         seen.update(m.get_type() for m in msgs)
         assert len(out) > 0

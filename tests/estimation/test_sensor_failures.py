@@ -197,8 +197,8 @@ def test_unit_inject_failure_over_mavlink_in_the_sensor_path() -> None:
                 for m in dec.parse_buffer(o.data) or [] if m.get_type() == "COMMAND_ACK"]
 
     def health(wall: float) -> int:
-        v.stream_interval_s[mavlink.MAVLINK_MSG_ID_SYS_STATUS] = 1.0
-        v._next_stream[mavlink.MAVLINK_MSG_ID_SYS_STATUS] = 0.0
+        v.stream_service.interval_s[mavlink.MAVLINK_MSG_ID_SYS_STATUS] = 1.0
+        v.stream_service.next_due[mavlink.MAVLINK_MSG_ID_SYS_STATUS] = 0.0
         msgs = [m for o in v.tick(wall, v.sim_s) if o.link == LINK_API for m in dec.parse_buffer(o.data) or []]
         return [m for m in msgs if m.get_type() == "SYS_STATUS"][0].onboard_control_sensors_health
 

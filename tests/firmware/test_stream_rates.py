@@ -1,5 +1,5 @@
 """Message rates above 100 Hz: MAV_CMD_SET_MESSAGE_INTERVAL is honoured up to the vehicle's tick rate (its
-control rate; `Vehicle.stream_cap_hz`), counted per second of simulation time on the messages' own
+control rate; `StreamService.cap_hz`), counted per second of simulation time on the messages' own
 timestamps: HIGHRES_IMU at 250 Hz from a unit at --control-hz 250 (in lockstep, and through MAVSDK's
 telemetry.set_rate_imu against a unit process); faster requests run at the cap and MESSAGE_INTERVAL says so."""
 
@@ -64,7 +64,7 @@ def test_highres_imu_rate_up_to_the_control_rate(control_hz, asked_hz, expected_
     rate, n = _rate(got)
     print(f"control {control_hz:g} Hz, asked {asked_hz:g} Hz: HIGHRES_IMU {rate:.1f} Hz ({n} in the last second)")
     assert rate == pytest.approx(expected_hz, rel=0.01)
-    assert v.stream_cap_hz == control_hz
+    assert v.stream_service.cap_hz == control_hz
 
 
 @pytest.mark.parametrize("late_ms, every", [(3.0, 7), (30.0, 50), (150.0, 100)])
