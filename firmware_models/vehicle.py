@@ -57,7 +57,7 @@ from firmware_models.vehicle_commands import (  # noqa: F401 (re-exported)
 )
 from firmware_models.vehicle_follow import FollowService
 from firmware_models.vehicle_geofence import GeofenceService
-from firmware_models.vehicle_hil import HilMixin
+from firmware_models.vehicle_hil import HilService
 from firmware_models.vehicle_logs import LogService
 from firmware_models.vehicle_manual import ManualService
 from firmware_models.vehicle_links import (  # noqa: F401 (re-exported)
@@ -84,7 +84,6 @@ from mars_link.core.assembly import VehicleParams, vehicle_preset
 from mars_link.core.errors import UserInputError
 from mars_link.core.messages import LATCH_ALL
 from mars_link.core.state import ImuSample, RigidBodyState
-from mars_link.mavlink.wire import SensorFrameAssembler
 
 WORLD_SYSID = 200  # the SITL world process (mars_link/processes/lockstep.py)
 
@@ -150,7 +149,7 @@ class VehicleConfig:
 
 
 
-class Vehicle(HilMixin, Px4Mixin):
+class Vehicle(Px4Mixin):
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -189,7 +188,6 @@ class Vehicle(HilMixin, Px4Mixin):
         self.intake = RotorIntake(self._intake_params())
         self.autopilot = UnitAutopilot(self.vehicle, c.control_hz) if flight_core is None else flight_core
         self.control_dt_s = 1.0 / c.control_hz
-        self.assembler = SensorFrameAssembler()
         # state
         self.armed = False
         self.mode = MODE_HOLD
@@ -212,19 +210,13 @@ class Vehicle(HilMixin, Px4Mixin):
         self._armed_at: float | None = None
         self._took_off = False
         self._pending_text: list[tuple[int, str]] = []
-        self._battery_pending = None  # a BATTERY_STATUS from the world, measured with the next IMU frame
         self.battery = BatteryMonitor()  # the pack as measured (world's samples over HIL); thresholds, action
         self._battery_checked: tuple[float, int] | None = None  # (remaining, params.version) last checked
-        self._hil_pending: tuple[int, str] | None = None  # (time_usec, link) of an unanswered HIL step
         self.defer_own_state = False  # set by the lockstep unit runner: see run_deferred
-        self.hil_stepped_by_host = False  # set by the unit process: its engine takes each HIL step (take_hil_step)
-        self._hil_received: tuple | None = None  # (SensorFrames, time_usec, link) of a HIL step not taken yet
+        self.hil_stepped_by_host = False  # set by the unit process: its engine takes each HIL step (hil_service.take_step)
         self._deferred: list = []
-        self._last_rotor_usec: int | None = None  # time of the last accepted coordinator command
-        self._step_skipped_usec: int | None = None  # the last step the coordinator said it sends no command for
         self.latch_setpoint = LATCH_ALL  # the docking latches: engaged until the coordinator opens some
         self.latches = 0  # the latch sensor: the sides that hold a docked neighbour (from the world)
-        self._await_coordinator = c.hil_await_coordinator
         self._scheduled_failures: list[tuple[float, int, float, str]] = []  # (sim time, rotor, eta, kind), sorted
         self.sensor_failures = SensorFailures(c.unit_id)  # the sensor path's injected failures
         self.esc: EscSensor | None = None  # the ESCs' telemetry (mars_link.models.esc), set by the composition root
@@ -232,6 +224,7 @@ class Vehicle(HilMixin, Px4Mixin):
         self.mission = MissionProtocol(self.origin)
         self.runner = MissionRunner(self.autopilot, self.origin)
         self._mission_msgs: list = []  # MISSION_CURRENT / MISSION_ITEM_REACHED to broadcast
+        self.hil_service = HilService(self)
         self.stream_service = StreamService(self, wall_time_s)
         self.command_service = CommandService(self)
         self.mission_service = MissionService(self)
@@ -388,10 +381,11 @@ class Vehicle(HilMixin, Px4Mixin):
                 self._dispatch(msg, lk, out)
             except (ValueError, TypeError, OverflowError, struct.error):
                 self._drop("malformed_fields")  # a decoded frame whose fields we cannot use
-        pending = self._hil_pending
-        if pending is not None and pending[0] in (self._last_rotor_usec, self._step_skipped_usec) \
+        hil = self.hil_service
+        pending = hil.pending
+        if pending is not None and pending[0] in (hil.last_rotor_usec, hil.step_skipped_usec) \
                 and not self.hil_stepped_by_host:
-            self._answer_hil(out)  # the coordinator's command for the pending step (and any arm/mode
+            hil.answer(out)  # the coordinator's command for the pending step (and any arm/mode
             # command in the same datagram) is in, or it said it sends none: run the step
         return out
 
@@ -411,7 +405,7 @@ class Vehicle(HilMixin, Px4Mixin):
     @property
     def hil_pending(self) -> bool:
         """A HIL step waits for the coordinator's command (`hil_await_coordinator`)."""
-        return self._hil_pending is not None
+        return self.hil_service.pending is not None
 
     def release_hil(self, wall_time_s: float) -> list[Outgoing]:
         """The runner gave up waiting for the coordinator: answer the pending step with what the unit
@@ -420,12 +414,21 @@ class Vehicle(HilMixin, Px4Mixin):
         self.wall_s = max(self.wall_s, wall_time_s)
         self.run_deferred()
         out: list[Outgoing] = []
-        if self._hil_pending is not None:
+        hil = self.hil_service
+        if hil.pending is not None:
             self._count("hil_released")
-            self._await_coordinator = False
-            if not self.hil_stepped_by_host:  # (else the host's engine answers it: answer_hil_step)
-                self._answer_hil(out)
+            hil.await_coordinator = False
+            if not self.hil_stepped_by_host:  # (else the host's engine answers it: hil_service.answer_step)
+                hil.answer(out)
         return out
+
+    def arm(self) -> int:
+        """MAV_CMD_COMPONENT_ARM_DISARM (arm) as the coordinator sends it; returns the MAV_RESULT."""
+        return self.command_service.arm_disarm(1.0, 0.0)
+
+    def set_mode(self, mode: tuple[int, int]) -> int:
+        """MAV_CMD_DO_SET_MODE to a PX4 (main, sub) mode; returns the MAV_RESULT."""
+        return self.command_service.set_mode(mode)
 
     def start_ulog(self, config):
         """Write a ULog (.ulg) from now on: `config` a path or a `mars_link.logs.UlogConfig`. Returns the
@@ -559,7 +562,7 @@ class Vehicle(HilMixin, Px4Mixin):
             if src != self.config.world_sysid:
                 self._drop("hil_wrong_source")
                 return
-            self._on_hil(msg, t, lk, out)
+            self.hil_service.on_hil(msg, t, lk, out)
             return
         if t in ("HIL_SENSOR", "HIL_STATE_QUATERNION", "HIL_GPS", "ODOMETRY"):
             self._drop("hil_wrong_link")  # state input is trusted only from the physics link

@@ -115,7 +115,7 @@ class OffboardService:
             self.v._count(f"ignored.{msg.get_type()}")
             return
         self.v._count("step_skips")
-        self.v._step_skipped_usec = int(msg.time_unix_usec)  # (handle() answers a pending step of that time)
+        self.v.hil_service.step_skipped_usec = int(msg.time_unix_usec)  # (handle() answers a pending step of that time)
 
     def on_rotor_command(self, msg, lk: Link, out: list[Outgoing]) -> None:
         if not lk.policy.rotor_commands:
@@ -123,12 +123,12 @@ class OffboardService:
             return
         if self.v.intake.offer(msg, self.v.sim_s):
             self.v._count("rotor_commands")
-            self.v._last_rotor_usec = int(msg.time_usec)
+            self.v.hil_service.last_rotor_usec = int(msg.time_usec)
             latch = latch_setpoint_of(msg.controls[4])
             if latch is None:
                 self.v._drop("latch_setpoint_invalid")  # (the rotors are taken; the latches keep their setpoint)
             else:
                 self.v.latch_setpoint = latch
             if self.v.config.hil_await_coordinator:
-                self.v._await_coordinator = True  # the coordinator is back: lockstep with it again
+                self.v.hil_service.await_coordinator = True  # the coordinator is back: lockstep with it again
 

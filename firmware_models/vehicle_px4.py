@@ -65,9 +65,9 @@ class Px4Mixin:
             unit.on_actuator_motors(message, t)
             stats = self.stats
             stats["px4.actuator_motors"] = stats.get("px4.actuator_motors", 0) + 1
-            self._last_rotor_usec = int(message.timestamp)  # (lockstep: answers the HIL step of that time)
+            self.hil_service.last_rotor_usec = int(message.timestamp)  # (lockstep: answers the HIL step of that time)
             if self.config.hil_await_coordinator:
-                self._await_coordinator = True
+                self.hil_service.await_coordinator = True
         elif topic is rz.OFFBOARD_CONTROL_MODE:
             unit.on_offboard_control_mode(message, t)
             self._count("px4.offboard_control_mode")
@@ -105,9 +105,9 @@ class Px4Mixin:
             self.stats["px4.reordered"] = endpoint.reordered
         replies = self.px4_take(got.topic, got.message)
         out: list[Outgoing] = []
-        pending = self._hil_pending
-        if pending is not None and self._last_rotor_usec == pending[0] and not self.hil_stepped_by_host:
-            self._answer_hil(out)
+        pending = self.hil_service.pending
+        if pending is not None and self.hil_service.last_rotor_usec == pending[0] and not self.hil_stepped_by_host:
+            self.hil_service.answer(out)
         return out, [endpoint.encode(topic, msg, self.sim_s) for topic, msg in replies]
 
     def _px4_prearm_refusal(self, cmd: Any) -> VehicleCommandAck | None:

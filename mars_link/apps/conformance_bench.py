@@ -62,7 +62,7 @@ class Bench:
         self.flight.units.take_sensors(world.sense())
         if actions is not None:
             actions(self)
-        out = self.vehicle.drive_motors()
+        out = self.vehicle.hil_service.drive_motors()
         world.actuate(dataclasses.replace(out, unit_id=self.unit_id))
         world.advance()
         self.outputs.append((self.t_s, np.array(out.thrusts_n, dtype=float)))

@@ -82,12 +82,13 @@ class InProcessUnits:
             # lapse), or logs it now (.ulg): decoded only then, the last sample's (as a SITL unit holds it)
             own = (v.source != "coordinator" or not v.intake.is_live(p.t_s + v.control_dt_s)
                    or v.ulog is not None and v.ulog.due(p.t_s))
+            hil = v.hil_service
             sample = sampled.pop(u, None) if own else None
             if sample is None:
-                out.append(v.take_sensors(p))
+                out.append(hil.take_sensors(p))
             else:
                 (body, offset), t_usec = sample
-                out.append(v.take_sensors(p, hil_state_received(point_state(body, offset), t_usec)))
+                out.append(hil.take_sensors(p, hil_state_received(point_state(body, offset), t_usec)))
         return out
 
     def drive(self, commands: list[RotorCommand]) -> None:
@@ -102,15 +103,15 @@ class InProcessUnits:
                 continue
             if u in taken_over:  # (`command` without the take-over)
                 v = vehicles[u]
-                v.take_rotor_command(cmd)
-                actuate(v.drive_motors())
+                v.hil_service.take_rotor_command(cmd)
+                actuate(v.hil_service.drive_motors())
             else:
                 actuate(self.command(cmd))
         if len(commands) < len(self.vehicles):
             commanded = {c.unit_id for c in commands}
             for u, v in self.vehicles.items():
                 if u not in commanded and u not in done:
-                    out = v.drive_motors()
+                    out = v.hil_service.drive_motors()
                     if out.unit_id != u:  # (a lone unit keeps its own system id; the world calls it u)
                         out = dataclasses.replace(out, unit_id=u)
                     self.world.actuate(out)
@@ -118,7 +119,7 @@ class InProcessUnits:
     def _drive_steady(self, commands: list[RotorCommand]) -> list[RotorCommand]:
         """Every unit in the steady state under the coordinator in one pass: the commands' values are
         bounded as one array, each unit takes the same checks and state changes as `take_rotor_command`
-        then `drive_motors` (Vehicle.drive_steady), and the world takes their thrusts in one copy. Returns
+        then `drive_motors` (HilService.drive_steady), and the world takes their thrusts in one copy. Returns
         the commands left to the general path (the others, or all of them when any value is not finite:
         the general path counts it)."""
         t_s = commands[0].t_s
@@ -139,14 +140,14 @@ class InProcessUnits:
                 rest.append(c)
                 continue
             s = v.full_scale_n
-            driven = v.drive_steady(rows[i], least_n / s, greatest_n / s, t_usec, c.latch_setpoint)
+            driven = v.hil_service.drive_steady(rows[i], least_n / s, greatest_n / s, t_usec, c.latch_setpoint)
             if driven:
                 ids.append(u)
                 held.append(rows[i])
             elif driven is None:  # not in the steady state
                 rest.append(c)
             else:  # dropped by the intake (counted): the unit answers as after any dropped command
-                self.world.actuate(v.drive_motors())
+                self.world.actuate(v.hil_service.drive_motors())
         if ids:
             self.world.actuate_rows(ids, held)
         return rest
@@ -157,12 +158,12 @@ class InProcessUnits:
             return self._command_px4(v, cmd)
         if cmd.unit_id not in self._taken_over:  # ARM before the first command, OFFBOARD after it
             v.arm()
-            v.take_rotor_command(cmd)
+            v.hil_service.take_rotor_command(cmd)
             v.set_mode(MODE_OFFBOARD)
             self._taken_over.add(cmd.unit_id)
         else:
-            v.take_rotor_command(cmd)
-        return v.drive_motors()
+            v.hil_service.take_rotor_command(cmd)
+        return v.hil_service.drive_motors()
 
     def _command_px4(self, v, cmd: RotorCommand) -> ActuatorOutput:
         from mars_link.px4.rmw_zenoh import VEHICLE_COMMAND_ACK
@@ -173,7 +174,7 @@ class InProcessUnits:
             for reply_topic, reply in v.px4_take(topic, message):
                 if reply_topic is VEHICLE_COMMAND_ACK:
                     commander.take_ack(reply)
-        return v.drive_motors()
+        return v.hil_service.drive_motors()
 
     def eta(self, unit_ids) -> np.ndarray:
         """Every rotor's true efficiency (the units' motor models), in `unit_ids` order."""

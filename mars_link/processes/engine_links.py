@@ -471,7 +471,7 @@ class HostedFirmware:
 
     def sense(self) -> list:
         """The step's HIL sensor frames, (unit, SensorFrames) unit by unit."""
-        return [(u, self.units[u].vehicle.hil_received) for u in self.stepping]
+        return [(u, self.units[u].vehicle.hil_service.received) for u in self.stepping]
 
     def truth(self) -> None:
         return None  # (the world's, in its process)
@@ -486,7 +486,7 @@ class HostedFirmware:
         """Each unit's HIL step; its telemetry goes to the coordinator over its own link."""
         for u, _ in frames:
             unit = self.units[u]
-            unit.io.send(unit.vehicle.take_hil_step())
+            unit.io.send(unit.vehicle.hil_service.take_step())
         return []
 
     def drive(self, commands) -> None:
@@ -494,7 +494,7 @@ class HostedFirmware:
         for u in self.stepping:
             unit = self.units[u]
             unit.command_deadline = None
-            unit.io.send(unit.vehicle.answer_hil_step())
+            unit.io.send(unit.vehicle.hil_service.answer_step())
 
     def kill(self, unit_id: int) -> None:
         """(A unit process dies for real.)"""
@@ -505,7 +505,7 @@ class HostedFirmware:
         or its command timeout released it."""
         units, stop = self.units, self.stop
         while True:
-            waiting = [units[u] for u in self.stepping if not units[u].vehicle.hil_command_in]
+            waiting = [units[u] for u in self.stepping if not units[u].vehicle.hil_service.command_in]
             for unit in waiting:
                 if unit.command_deadline is None:
                     unit.command_deadline = SilenceDeadline(unit.command_timeout_s)
@@ -513,7 +513,7 @@ class HostedFirmware:
                     print(f"unit {unit.unit_id}: no coordinator command for {unit.command_timeout_s:.1f} s at "
                           f"t={unit.vehicle.sim_s:.2f}: answering with the held command / fail-safe", file=sys.stderr)
                     unit.vehicle.release_hil(time.time())
-            waiting = [unit for unit in waiting if not unit.vehicle.hil_command_in]
+            waiting = [unit for unit in waiting if not unit.vehicle.hil_service.command_in]
             if not waiting:
                 return []
             if stop.requested:
@@ -524,13 +524,13 @@ class HostedFirmware:
         stop, units = self.stop, self.units
         first_at = None
         while not stop.requested:
-            ready = {u for u, unit in units.items() if unit.vehicle.hil_received is not None}
+            ready = {u for u, unit in units.items() if unit.vehicle.hil_service.received is not None}
             if ready and first_at is None:
                 first_at = time.monotonic()
             if ready and (ready >= self.awaited or time.monotonic() >= first_at + self.step_grace_s):
                 self.awaited = ready
                 self.stepping = sorted(ready)
-                return min(units[u].vehicle.hil_received.imu.time_usec for u in ready) / 1e6
+                return min(units[u].vehicle.hil_service.received.imu.time_usec for u in ready) / 1e6
             self.serve(math.inf if first_at is None else first_at + self.step_grace_s)
         raise LinksEnded
 

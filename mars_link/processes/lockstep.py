@@ -583,7 +583,7 @@ class _UnitLoop:
     @property
     def step_runs(self) -> bool:
         """The unit's HIL step may run now: taken, and its command is in (or it waits for none)."""
-        return self.vehicle.hil_pending and self.vehicle.hil_command_in
+        return self.vehicle.hil_pending and self.vehicle.hil_service.command_in
 
     def drain_px4(self) -> None:
         """Every rmw_zenoh sample received, up to the one that lets the unit's step run (`step_runs`; the
@@ -597,8 +597,8 @@ class _UnitLoop:
             log.write(json.dumps({"sim_s": vehicle.sim_s, "wall_s": now, "key": key, "payload": payload.hex(),
                                   "attachment": None if attachment is None else attachment.hex()}) + "\n")
             out, samples = vehicle.px4_sample(key, payload, attachment, now)
-            if tap is not None and ACTUATOR_MOTORS_TOPIC in key and vehicle._last_rotor_usec is not None:
-                tap.on_command(vehicle._last_rotor_usec / 1e6, now)
+            if tap is not None and ACTUATOR_MOTORS_TOPIC in key and vehicle.hil_service.last_rotor_usec is not None:
+                tap.on_command(vehicle.hil_service.last_rotor_usec / 1e6, now)
             if out:
                 self.io.send(out)
             if samples:

@@ -188,10 +188,10 @@ def test_a_lone_unit_flying_itself_lands_on_its_own_critical_battery() -> None:
         took_off = False
         for k in range(2500):
             for p in world.sense():
-                v.take_sensors(p, world.unit_truth(1))
+                v.hil_service.take_sensors(p, world.unit_truth(1))
             if k == 20:
                 assert v.arm() == mavlink.MAV_RESULT_ACCEPTED and v.command_service.takeoff(math.nan) == mavlink.MAV_RESULT_ACCEPTED
-            world.actuate(dataclasses.replace(v.drive_motors(), unit_id=1))
+            world.actuate(dataclasses.replace(v.hil_service.drive_motors(), unit_id=1))
             v.tick(world.t_s, world.t_s)  # heartbeats, streams and watchdogs (auto-disarm after landing)
             world.advance()
             took_off = took_off or -world.unit_truth(1).position_ned_m[2] > 1.5

@@ -64,7 +64,7 @@ def test_inprocess_units_are_their_firmware_and_take_every_command() -> None:
     v = flight.units.vehicles[1]
     held = v.intake.command_n(v.sim_s).copy()
     too_much = RotorCommand(v.sim_s + 0.01, 1, np.full(4, 2 * v.full_scale_n))
-    assert not v.take_rotor_command(too_much)
+    assert not v.hil_service.take_rotor_command(too_much)
     assert v.drop_counts() == {"intake.out_of_range": 1} and np.array_equal(v.intake.command_n(v.sim_s), held)
 
 

@@ -1,4 +1,4 @@
-"""The in-process units' batched steady state (InProcessUnits._drive_steady, Vehicle.drive_steady) flies
+"""The in-process units' batched steady state (InProcessUnits._drive_steady, HilService.drive_steady) flies
 exactly as the units taken one by one: the same motor setpoints into the world at every step, the same
 counts and drops in every unit, across faults, a unit's death, a separation and bad commands."""
 

@@ -212,16 +212,16 @@ def test_unit_inject_failure_over_mavlink_in_the_sensor_path() -> None:
                 for m in up.parse_buffer(o.data) or []]
 
     assert [m.get_type() for m in hil(0.01)] == ["ODOMETRY", "HIGHRES_IMU"]
-    assert v.take_sensors(_packet(0.02)).position is not None
+    assert v.hil_service.take_sensors(_packet(0.02)).position is not None
     assert health(2.0) & SENSOR_BITS["gps"]
     assert command(mavlink.FAILURE_UNIT_SENSOR_GPS, mavlink.FAILURE_TYPE_OFF, 0, wall=3.0)[0].result == 0
-    assert v.take_sensors(_packet(0.03)).position is None
+    assert v.hil_service.take_sensors(_packet(0.03)).position is None
     assert [m.get_type() for m in hil(0.04)] == ["HIGHRES_IMU"]
     assert not health(4.0) & SENSOR_BITS["gps"]
     assert command(mavlink.FAILURE_UNIT_SENSOR_ACCEL, mavlink.FAILURE_TYPE_OFF, 1, wall=5.0)[0].result == 0
     imu = [m for m in hil(0.05) if m.get_type() == "HIGHRES_IMU"][0]
     assert imu.fields_updated & 0x3F == 0x38  # gyro fields only
-    assert not v.take_sensors(_packet(0.06)).imu.accel_ok
+    assert not v.hil_service.take_sensors(_packet(0.06)).imu.accel_ok
     assert command(mavlink.FAILURE_UNIT_SENSOR_GPS, mavlink.FAILURE_TYPE_OK, 0, wall=6.0)[0].result == 0
     assert command(mavlink.FAILURE_UNIT_SENSOR_ACCEL, mavlink.FAILURE_TYPE_OK, 0, wall=6.5)[0].result == 0
     assert [m.get_type() for m in hil(0.07)] == ["ODOMETRY", "HIGHRES_IMU"]
