@@ -16,10 +16,16 @@ parameters, mission/fence/rally lists (mission_protocol) flown in AUTO.MISSION (
 offboard setpoints with a watchdog, fault injection (MAV_CMD_INJECT_FAILURE into the motor model
 only), MAVFTP NAK. Geographic positions are around PX4 SITL's home (geo.py).
 
-The microservices live in their own modules, mixed into `Vehicle` (as PX4's mavlink module splits
-them): vehicle_links (links, frame splitting), vehicle_modes, vehicle_commands, vehicle_offboard, vehicle_manual (orbit, sticks, attitude, land detector), vehicle_follow (follow-me), vehicle_shell (SERIAL_CONTROL shell),
-vehicle_params, vehicle_missions, vehicle_geofence (fence and rally), vehicle_logs (log download), vehicle_services, vehicle_streams (telemetry), vehicle_hil. This
-module keeps the state, the dispatch, the control step and the watchdogs.
+The microservices are members of the `Vehicle`, as PX4's mavlink module holds its mission, parameter
+and FTP managers: each a class in its own module that owns its state and holds a reference back to the
+vehicle for what it shares (plumbing: `_reply`, `_send`, `_text`, `_count`, `_drop`, `_for_me`; the flight
+state; `params`). command_service (vehicle_commands: commands and the mode machine), offboard_service,
+manual_service (orbit, sticks, attitude, land detector), follow_service, param_service, mission_service,
+geofence_service (fence and rally), log_service (log download), small_service (vehicle_services: ping,
+timesync, FTP, STATUSTEXT relay), shell_service (SERIAL_CONTROL shell), hil_service (the HIL link and its
+in-process twin), stream_service (telemetry), px4_service (PX4's own interface); vehicle_links (links,
+frame splitting) and vehicle_modes are shared definitions. This module keeps the flight state, the
+plumbing, the dispatch (message type -> a service's handler), the control step and the watchdogs.
 
 Untrusted input: every datagram is split into frames here (no bytes carried over to the next
 datagram, so a truncated frame cannot swallow the next good one); anything malformed, unsigned where
@@ -73,7 +79,7 @@ from firmware_models.vehicle_modes import (  # noqa: F401 (re-exported)
 )
 from firmware_models.vehicle_offboard import MAX_POSITION_M, MAX_SPEED_MPS, OffboardService  # noqa: F401
 from firmware_models.vehicle_params import ParamService
-from firmware_models.vehicle_px4 import Px4Mixin
+from firmware_models.vehicle_px4 import Px4Service
 from firmware_models.vehicle_services import SmallService
 from firmware_models.vehicle_shell import ShellService
 from firmware_models.vehicle_streams import (  # noqa: F401 (re-exported)
@@ -149,7 +155,7 @@ class VehicleConfig:
 
 
 
-class Vehicle(Px4Mixin):
+class Vehicle:
     """The unit firmware state machine. Not thread-safe: one runner drives it.
 
     `flight_core`: what the mode machine flies with (default: the lone unit's `UnitAutopilot`); any
@@ -236,7 +242,7 @@ class Vehicle(Px4Mixin):
         self.log_service = LogService(self)
         self.shell_service = ShellService(self)
         self.small_service = SmallService(self)
-        self._init_px4()
+        self.px4_service = Px4Service(self)
         self.legs = None  # mission legs between the runner and the core (mars_link.planning.mission_legs)
         # message type -> the handler, bound once (a service's method)
         self._handlers = {t: getattr(getattr(self, member) if member else self, name)
@@ -615,8 +621,9 @@ class Vehicle(Px4Mixin):
         if not self.armed:
             self.motor_commands_n = np.zeros(4)
             return
-        if self.px4 is not None:  # PX4's own interface (vehicle_px4) drives the rotors while it lets them run
-            px4_n = self._px4_command_n(t)
+        px4 = self.px4_service
+        if px4.interface is not None:  # PX4's own interface (vehicle_px4) drives the rotors while it lets them run
+            px4_n = px4.command_n(t)
             if not self.armed:  # (its failsafe disarmed the unit)
                 self.motor_commands_n = np.zeros(4)
                 return

@@ -252,7 +252,7 @@ class CommandService:
 
     def disarm(self, why: str) -> None:
         self.v.armed = False
-        self.v._px4_disarmed()  # (the unit's other persona: PX4's interface, vehicle_px4)
+        self.v.px4_service.disarmed()  # (the unit's other persona: PX4's interface, vehicle_px4)
         self.v.source = "own"
         self.v.autopilot.idle()
         self.v.motor_commands_n = np.zeros(4)

@@ -21,7 +21,7 @@ if TYPE_CHECKING:
     from firmware_models.vehicle import Outgoing, Vehicle
 
 MIN_STREAM_INTERVAL_S = 0.001  # 1 kHz: the protocol's floor; the vehicle's own is one message per tick
-#: (its control rate: streams go out when the runner ticks it, once per control step; `stream_cap_hz`)
+#: (its control rate: streams go out when the runner ticks it, once per control step; `cap_hz`)
 #: msg id -> default rate (Hz, wall clock), specs/mavlink.md §6
 DEFAULT_STREAM_HZ: dict[int, float] = {
     mavlink.MAVLINK_MSG_ID_SYS_STATUS: 1.0,
@@ -134,7 +134,7 @@ class StreamService:
         return 1.0 / max(MIN_STREAM_INTERVAL_S, self.v.control_dt_s)
 
     def set_interval(self, msgid: float, interval_us: float) -> int:
-        """SET_MESSAGE_INTERVAL: faster than `stream_cap_hz` is accepted and runs at the cap (its
+        """SET_MESSAGE_INTERVAL: faster than `cap_hz` is accepted and runs at the cap (its
         MESSAGE_INTERVAL then reports the interval in force)."""
         R = mavlink
         if not _finite(msgid, interval_us) or int(msgid) not in DEFAULT_STREAM_HZ:

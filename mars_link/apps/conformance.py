@@ -5,7 +5,7 @@ in the in-process world (JSBSim, lockstep), and the harness plays the off-board 
 command interfaces, with wire bytes:
 
   px4-zenoh  rmw_zenoh samples (key, CDR payload, attachment) of PX4's OffboardControlMode, VehicleCommand,
-             ActuatorMotors into `Vehicle.px4_sample`; VehicleCommandAck samples back
+             ActuatorMotors into `Px4Service.sample`; VehicleCommandAck samples back
   mavlink    MAVLink 2 frames (COMMAND_LONG, SET_ACTUATOR_CONTROL_TARGET) on the unit's coordinator link
              into `Vehicle.handle`; COMMAND_ACK frames back
 

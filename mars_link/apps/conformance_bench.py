@@ -34,7 +34,7 @@ class Bench:
         self.world = self.flight.world
         self.unit_id = 1
         self.vehicle = self.flight.units.vehicles[self.unit_id]
-        self.vehicle.px4_keepalive_timeout = not broken_keepalive
+        self.vehicle.px4_service.keepalive_timeout = not broken_keepalive
         self.full_scale_n = self.vehicle.full_scale_n
         self.dt_s = 1.0 / CONTROL_HZ
         self.t_s = 0.0
@@ -46,7 +46,7 @@ class Bench:
 
             self._rz = rz
             self._seq: dict[str, object] = {}
-            self.vehicle.px4_interface()
+            self.vehicle.px4_service.ensure_interface()
         else:
             self._mav = new_mav(201)
         self.step_index = 0
@@ -87,7 +87,7 @@ class Bench:
         from mars_link.px4 import cdr
 
         self.recorded.append((self.step_index, key, payload, attachment))
-        _, replies = self.vehicle.px4_sample(key, payload, attachment, self.t_s)
+        _, replies = self.vehicle.px4_service.sample(key, payload, attachment, self.t_s)
         for reply_key, reply_payload, _ in replies:
             if "/fmu/out/vehicle_command_ack/" in reply_key:
                 ack = cdr.decode("VehicleCommandAck", reply_payload)
@@ -205,7 +205,7 @@ class Bench:
 
     def reordered(self) -> int:
         """PX4 samples the unit counted as stale or reordered (its endpoint; as PX4, handed on)."""
-        endpoint = self.vehicle.px4_endpoint
+        endpoint = self.vehicle.px4_service.endpoint
         return 0 if endpoint is None else int(endpoint.reordered)
 
     def motor_ceiling_n(self) -> float:

@@ -171,7 +171,7 @@ class InProcessUnits:
         assert self.px4 is not None
         commander = self.px4[cmd.unit_id]
         for topic, message in commander.step(cmd.t_s, cmd.thrusts_n):
-            for reply_topic, reply in v.px4_take(topic, message):
+            for reply_topic, reply in v.px4_service.take(topic, message):
                 if reply_topic is VEHICLE_COMMAND_ACK:
                     commander.take_ack(reply)
         return v.hil_service.drive_motors()

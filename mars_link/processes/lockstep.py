@@ -575,9 +575,9 @@ class _UnitLoop:
         if sc.unit_interface == "px4-zenoh":
             from mars_link.processes.px4_link import Px4UnitLink
 
-            vehicle.px4_keepalive_timeout = not os.environ.get(BROKEN_KEEPALIVE_ENV)  # (conformance: a test switch)
-            vehicle.px4_interface()
-            self.px4_link = Px4UnitLink(ports.zenoh_session(), vehicle.px4_endpoint)
+            vehicle.px4_service.keepalive_timeout = not os.environ.get(BROKEN_KEEPALIVE_ENV)  # (conformance: a test switch)
+            vehicle.px4_service.ensure_interface()
+            self.px4_link = Px4UnitLink(ports.zenoh_session(), vehicle.px4_service.endpoint)
             self.px4_log = open(out / px4_input_log_name(unit_id), "w", encoding="utf-8")  # (replayable)
 
     @property
@@ -596,7 +596,7 @@ class _UnitLoop:
             now = time.time()
             log.write(json.dumps({"sim_s": vehicle.sim_s, "wall_s": now, "key": key, "payload": payload.hex(),
                                   "attachment": None if attachment is None else attachment.hex()}) + "\n")
-            out, samples = vehicle.px4_sample(key, payload, attachment, now)
+            out, samples = vehicle.px4_service.sample(key, payload, attachment, now)
             if tap is not None and ACTUATOR_MOTORS_TOPIC in key and vehicle.hil_service.last_rotor_usec is not None:
                 tap.on_command(vehicle.hil_service.last_rotor_usec / 1e6, now)
             if out:
@@ -624,7 +624,7 @@ class _UnitLoop:
             if now >= self.next_tick:  # heartbeats and streams on wall time, even while the lockstep waits
                 io.send(vehicle.tick(time.time(), vehicle.sim_s))
                 if self.px4_link is not None and now >= self.next_px4_telemetry:  # /fmu/out
-                    self.px4_link.publish(vehicle.px4_telemetry_samples())
+                    self.px4_link.publish(vehicle.px4_service.telemetry_samples())
                     self.next_px4_telemetry = now + PX4_TELEMETRY_PERIOD_S
                 self.next_tick = now + TICK_PERIOD_S
             if now >= self.next_status:
