@@ -219,7 +219,7 @@ class Vehicle:
         self.battery = BatteryMonitor()  # the pack as measured (world's samples over HIL); thresholds, action
         self._battery_checked: tuple[float, int] | None = None  # (remaining, params.version) last checked
         self.defer_own_state = False  # set by the lockstep unit runner: see run_deferred
-        self.hil_stepped_by_host = False  # set by the unit process: its engine takes each HIL step (hil_service.take_step)
+        self.hil_stepped_by_host = False  # set by the unit process: its engine takes each HIL step (hil_service)
         self._deferred: list = []
         self.latch_setpoint = LATCH_ALL  # the docking latches: engaged until the coordinator opens some
         self.latches = 0  # the latch sensor: the sides that hold a docked neighbour (from the world)
@@ -704,8 +704,9 @@ class Vehicle:
         self._text(change.text if act or change.action is None else change.text.split(":")[0], severity)
         if act:
             target = MODE_LAND if change.action == "land" else MODE_RTL
-            if self.mode != target and self.command_service.set_mode(target) != mavlink.MAV_RESULT_ACCEPTED and target == MODE_RTL:
-                self.command_service.set_mode(MODE_LAND)  # no home to return to: land where it is
+            set_mode = self.command_service.set_mode
+            if self.mode != target and set_mode(target) != mavlink.MAV_RESULT_ACCEPTED and target == MODE_RTL:
+                set_mode(MODE_LAND)  # no home to return to: land where it is
 
     def _measure_battery(self, sample: BatterySample, t_s: float) -> BatterySample:
         """The power module's sample: counted, and the unit's report for the coordinator (with remaining)."""

@@ -108,18 +108,19 @@ class CommandService:
     def tell_refusal(self, cmd: int, result: int, why: str | None) -> None:
         """The one place a refused command becomes a STATUSTEXT (a client's identical retry within
         REFUSAL_REPEAT_S is not told twice)."""
+        v = self.v
         text = refusal_text(cmd, result, why)
         said = self.refusals_told
-        if self.v.wall_s - said.get(text, -1e9) < REFUSAL_REPEAT_S:
+        if v.wall_s - said.get(text, -1e9) < REFUSAL_REPEAT_S:
             return
-        said[text] = self.v.wall_s
+        said[text] = v.wall_s
         if len(said) > 64:
             said.pop(next(iter(said)))
-        self.v._count("command_refusal_told")
+        v._count("command_refusal_told")
         if cmd in QUERY_COMMANDS:  # a client's protocol probes: told, but not a flight event
-            self.v._pending_text.append((mavlink.MAV_SEVERITY_INFO, text))
+            v._pending_text.append((mavlink.MAV_SEVERITY_INFO, text))
         else:
-            self.v._text(text, mavlink.MAV_SEVERITY_WARNING)
+            v._text(text, mavlink.MAV_SEVERITY_WARNING)
 
     def on_command(self, msg, lk: Link, out: list[Outgoing]) -> None:
         if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
@@ -145,7 +146,8 @@ class CommandService:
             self.tell_refusal(cmd, result, self.refusal_why)
         self.refusal_why = None
         if cmd in ACTION_COMMANDS:  # only a success is replayed: a refused command may succeed now
-            self.last_cmd[src] = (key, self.v.wall_s, result) if result == mavlink.MAV_RESULT_ACCEPTED else (None, 0.0, 0)
+            accepted = result == mavlink.MAV_RESULT_ACCEPTED
+            self.last_cmd[src] = (key, self.v.wall_s, result) if accepted else (None, 0.0, 0)
             if len(self.last_cmd) > 64:
                 self.last_cmd.pop(next(iter(self.last_cmd)))
         self._ack(lk, msg, cmd, result, out)
@@ -153,8 +155,9 @@ class CommandService:
             self.v._reply(lk, m, out)
 
     def _ack(self, lk: Link, msg, cmd: int, result: int, out: list[Outgoing]) -> None:
-        self.v._count(f"ack.{result}")
-        self.v._reply(lk, mavlink.MAVLink_command_ack_message(
+        v = self.v
+        v._count(f"ack.{result}")
+        v._reply(lk, mavlink.MAVLink_command_ack_message(
             cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), out)
 
     def _change_speed(self, speed_type: float, speed_mps: float) -> int:
@@ -172,6 +175,7 @@ class CommandService:
         return mavlink.MAV_RESULT_ACCEPTED
 
     def _execute(self, cmd: int, p: list, is_int: bool, msg) -> tuple[int, list]:
+        v = self.v
         R = mavlink
         if cmd == R.MAV_CMD_COMPONENT_ARM_DISARM:
             return self.arm_disarm(p[0], p[1]), []
@@ -191,182 +195,190 @@ class CommandService:
         if cmd == R.MAV_CMD_DO_REPOSITION:
             return self._reposition(p, is_int), []
         if cmd == R.MAV_CMD_DO_ORBIT:
-            return self.v.manual_service.do_orbit(p, is_int), []
+            return v.manual_service.do_orbit(p, is_int), []
         if cmd == R.MAV_CMD_DO_CHANGE_SPEED:
             return self._change_speed(p[0], p[1]), []
         if cmd == R.MAV_CMD_MISSION_START:
             first = int(p[0]) if math.isfinite(p[0]) and p[0] >= 0 else None  # PX4: start at p1 if given
-            if first is not None and not self.v.runner.set_current(first, reset_jumps=True):
+            if first is not None and not v.runner.set_current(first, reset_jumps=True):
                 return self.refuse(R.MAV_RESULT_DENIED, f"no mission item {first}"), []
             return self.set_mode(MODE_MISSION), []
         if cmd == R.MAV_CMD_DO_SET_MISSION_CURRENT:
-            return self.v.mission_service.set_current(p[0], p[1] == 1), []
+            return v.mission_service.set_current(p[0], p[1] == 1), []
         if cmd == R.MAV_CMD_INJECT_FAILURE:
             return self._inject(p), []
         if cmd == R.MAV_CMD_REQUEST_MESSAGE:
-            return self.v.stream_service.request_message(p[0], p[1])
+            return v.stream_service.request_message(p[0], p[1])
         if cmd == R.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             if p[0] != 1:
                 return self.refuse(R.MAV_RESULT_DENIED, "param1 must be 1"), []
-            return R.MAV_RESULT_ACCEPTED, [self.v.stream_service.autopilot_version()]
+            return R.MAV_RESULT_ACCEPTED, [v.stream_service.autopilot_version()]
         if cmd == R.MAV_CMD_GET_HOME_POSITION:
-            home = self.v.stream_service.home_position()
+            home = v.stream_service.home_position()
             if not home:
                 return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet"), []
             return R.MAV_RESULT_ACCEPTED, [home]
         if cmd == R.MAV_CMD_SET_MESSAGE_INTERVAL:
-            return self.v.stream_service.set_interval(p[0], p[1]), []
+            return v.stream_service.set_interval(p[0], p[1]), []
         if cmd == R.MAV_CMD_GET_MESSAGE_INTERVAL:
             if not math.isfinite(p[0]) or int(p[0]) not in DEFAULT_STREAM_HZ:
                 return self.refuse(R.MAV_RESULT_DENIED, f"message {p[0]:g} is not streamed"), []
-            iv = self.v.stream_service.interval_s.get(int(p[0]))
+            iv = v.stream_service.interval_s.get(int(p[0]))
             return R.MAV_RESULT_ACCEPTED, [R.MAVLink_message_interval_message(
                 int(p[0]), -1 if iv is None else int(round(iv * 1e6)))]
         return R.MAV_RESULT_UNSUPPORTED, []  # includes REQUEST_PROTOCOL_VERSION (519): MAVLink 2 only
         # (the default reason, "not supported", is the STATUSTEXT)
 
     def arm_disarm(self, arm: float, force: float) -> int:
+        v = self.v
         R = mavlink
         if arm == 1.0:
-            if self.v.armed:
+            if v.armed:
                 return R.MAV_RESULT_ACCEPTED
-            if self.v.state is None:
+            if v.state is None:
                 return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
-            if not self.v.autopilot.touching(self.v.state):
+            if not v.autopilot.touching(v.state):
                 return self.refuse(R.MAV_RESULT_DENIED, "not on the ground")  # never arm in the air
-            self.v.armed = True
-            self.v.home_ned = np.array(self.v.state.position_ned_m, dtype=float)
-            self.v.autopilot.idle(float(self.v.state.position_ned_m[2]))
-            self.v._armed_at = self.v.sim_s
-            self.v._took_off = False
-            self.v._text("Armed")
+            v.armed = True
+            v.home_ned = np.array(v.state.position_ned_m, dtype=float)
+            v.autopilot.idle(float(v.state.position_ned_m[2]))
+            v._armed_at = v.sim_s
+            v._took_off = False
+            v._text("Armed")
             return R.MAV_RESULT_ACCEPTED
         if arm == 0.0:
-            if not self.v.armed:
+            if not v.armed:
                 return R.MAV_RESULT_ACCEPTED
-            if not self.v.landed and force != FORCE_DISARM_MAGIC:
+            if not v.landed and force != FORCE_DISARM_MAGIC:
                 return self.refuse(R.MAV_RESULT_DENIED, "flying: land first (or force)")
             self.disarm("Disarmed" if force != FORCE_DISARM_MAGIC else "Killed: motors off")
             return R.MAV_RESULT_ACCEPTED
         return self.refuse(R.MAV_RESULT_DENIED, "param1 must be 0 or 1")
 
     def disarm(self, why: str) -> None:
-        self.v.armed = False
-        self.v.px4_service.disarmed()  # (the unit's other persona: PX4's interface, vehicle_px4)
-        self.v.source = "own"
-        self.v.autopilot.idle()
-        self.v.motor_commands_n = np.zeros(4)
-        if self.v.mode not in (MODE_HOLD, MODE_POSCTL):
-            self.v.mode = MODE_HOLD
-        self.v._text(why)
+        v = self.v
+        v.armed = False
+        v.px4_service.disarmed()  # (the unit's other persona: PX4's interface, vehicle_px4)
+        v.source = "own"
+        v.autopilot.idle()
+        v.motor_commands_n = np.zeros(4)
+        if v.mode not in (MODE_HOLD, MODE_POSCTL):
+            v.mode = MODE_HOLD
+        v._text(why)
 
     def takeoff(self, altitude_amsl_m: float) -> int:
+        v = self.v
         R = mavlink
-        if self.v.state is None:
+        if v.state is None:
             return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
-        if not self.v.armed:
+        if not v.armed:
             return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not armed")
-        if self.v.mode == MODE_TAKEOFF or not self.v.landed:
+        if v.mode == MODE_TAKEOFF or not v.landed:
             return R.MAV_RESULT_ACCEPTED  # already on its way / flying: nothing to restart
-        ground = float(self.v.home_ned[2])
-        lowest = ground - self.v.params["MIS_TAKEOFF_ALT"]
+        ground = float(v.home_ned[2])
+        lowest = ground - v.params["MIS_TAKEOFF_ALT"]
         target = lowest
         if math.isfinite(altitude_amsl_m):
             # PX4 (navigator/takeoff.cpp): an altitude (AMSL) below home + MIS_TAKEOFF_ALT is raised to it
             # and said; MAVProxy's `takeoff 10` is 10 m AMSL to PX4
-            target = -(altitude_amsl_m - self.v.origin.amsl_m)
+            target = -(altitude_amsl_m - v.origin.amsl_m)
             if target > lowest + 0.1:  # (PX4 says nothing for less than 10 cm)
-                self.v._text(f"Using minimum takeoff altitude: {ground - lowest:.2f} m", R.MAV_SEVERITY_CRITICAL)
+                v._text(f"Using minimum takeoff altitude: {ground - lowest:.2f} m", R.MAV_SEVERITY_CRITICAL)
             target = min(target, lowest)
-        why = self.v.geofence_service.violation(np.array([self.v.state.position_ned_m[0], self.v.state.position_ned_m[1], target]))
+        why = v.geofence_service.violation(np.array([v.state.position_ned_m[0], v.state.position_ned_m[1], target]))
         if why is not None:
             return self.refuse(R.MAV_RESULT_DENIED, why)
-        self.v.source = "own"
-        self.v.autopilot.takeoff(self.v.state, target)
-        self.v.mode = MODE_TAKEOFF
-        self.v._took_off = True
-        self.v._text(f"Takeoff to {ground - target:.1f} m")
+        v.source = "own"
+        v.autopilot.takeoff(v.state, target)
+        v.mode = MODE_TAKEOFF
+        v._took_off = True
+        v._text(f"Takeoff to {ground - target:.1f} m")
         return R.MAV_RESULT_ACCEPTED
 
     def set_mode(self, mode: tuple[int, int]) -> int:
+        v = self.v
         R = mavlink
-        if mode == self.v.mode:
+        if mode == v.mode:
             return R.MAV_RESULT_ACCEPTED
         if mode == MODE_MISSION:
-            return self.v.mission_service.enter()
+            return v.mission_service.enter()
         if mode == MODE_FOLLOW:
-            self.v.runner.pause()
-            self.v.manual_service.orbit = None
-            return self.v.follow_service.enter()
-        s = self.v.state
-        self.v.runner.pause()  # (a no-op unless leaving AUTO.MISSION: it resumes at its current item)
-        self.v.manual_service.orbit = None
+            v.runner.pause()
+            v.manual_service.orbit = None
+            return v.follow_service.enter()
+        s = v.state
+        v.runner.pause()  # (a no-op unless leaving AUTO.MISSION: it resumes at its current item)
+        v.manual_service.orbit = None
         if mode in (MODE_HOLD, MODE_POSCTL):
-            if s is not None and self.v.source == "own":
-                self.v.autopilot.hold(s)
+            if s is not None and v.source == "own":
+                v.autopilot.hold(s)
             elif s is not None:
                 self.hand_back(s)
-                self.v.autopilot.hold(s)
+                v.autopilot.hold(s)
         elif mode == MODE_LAND:
             if s is None:
                 return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
-            if self.v.source != "own":
+            if v.source != "own":
                 self.hand_back(s)
-            self.v.autopilot.land(s)
+            v.autopilot.land(s)
         elif mode == MODE_RTL:
-            if s is None or self.v.home_ned is None:
+            if s is None or v.home_ned is None:
                 return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no home yet (arm first)")
-            if self.v.source != "own":
+            if v.source != "own":
                 self.hand_back(s)
-            self.v.autopilot.rtl(s, self.v.geofence_service.return_point_ned(), self.v.params["RTL_RETURN_ALT"])
+            v.autopilot.rtl(s, v.geofence_service.return_point_ned(), v.params["RTL_RETURN_ALT"])
         elif mode == MODE_TAKEOFF:
             return self.takeoff(math.nan)
         elif mode == MODE_OFFBOARD:
-            live_sp = self.v.offboard_service.setpoint_wall is not None and self.v.wall_s - self.v.offboard_service.setpoint_wall <= SETPOINT_PROOF_OF_LIFE_S
-            if not (live_sp or self.v.intake.is_live(self.v.sim_s)):
+            sp_wall = v.offboard_service.setpoint_wall
+            live_sp = sp_wall is not None and v.wall_s - sp_wall <= SETPOINT_PROOF_OF_LIFE_S
+            if not (live_sp or v.intake.is_live(v.sim_s)):
                 return self.refuse(R.MAV_RESULT_DENIED, "no setpoint stream (send setpoints first)")  # as PX4
-            self.v.mode = mode
+            v.mode = mode
             if live_sp:
-                self.v.offboard_service.apply_setpoint()
-            self.v._text("Offboard")
+                v.offboard_service.apply_setpoint()
+            v._text("Offboard")
             return R.MAV_RESULT_ACCEPTED
         else:
             return self.refuse(R.MAV_RESULT_UNSUPPORTED, "mode needs RC sticks (manual/stabilized/acro)")
-        self.v.mode = mode
-        self.v._text({MODE_HOLD: "Hold", MODE_POSCTL: "Position", MODE_LAND: "Land", MODE_RTL: "Return"}[mode])
+        v.mode = mode
+        v._text({MODE_HOLD: "Hold", MODE_POSCTL: "Position", MODE_LAND: "Land", MODE_RTL: "Return"}[mode])
         return R.MAV_RESULT_ACCEPTED
 
     def hand_back(self, s: RigidBodyState) -> None:
         """The coordinator drove the motors; the own controller takes over from the current state."""
-        self.v.source = "own"
-        self.v.autopilot.handover(s)
-        self.v.autopilot.landed = self.v.autopilot.touching(s)
-        self.v.autopilot.phase = Phase.HOLD if not self.v.autopilot.landed else Phase.IDLE
+        v = self.v
+        v.source = "own"
+        v.autopilot.handover(s)
+        v.autopilot.landed = v.autopilot.touching(s)
+        v.autopilot.phase = Phase.HOLD if not v.autopilot.landed else Phase.IDLE
 
     def _reposition(self, p: list, is_int: bool) -> int:
+        v = self.v
         R = mavlink
-        if self.v.state is None or not self.v.armed or self.v.landed:
+        if v.state is None or not v.armed or v.landed:
             return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")
         lat = p[4] * 1e-7 if is_int else p[4]
         lon = p[5] * 1e-7 if is_int else p[5]
         if not _finite(lat, lon, p[6]) or not (-90 <= lat <= 90 and -180 <= lon <= 180):
             return self.refuse(R.MAV_RESULT_DENIED, "no valid latitude, longitude and altitude")
-        target = self.v._global_to_ned(lat, lon, p[6])
-        if np.linalg.norm(target[:2] - self.v.state.position_ned_m[:2]) > MAX_POSITION_M:
+        target = v._global_to_ned(lat, lon, p[6])
+        if np.linalg.norm(target[:2] - v.state.position_ned_m[:2]) > MAX_POSITION_M:
             return self.refuse(R.MAV_RESULT_DENIED, f"farther than {MAX_POSITION_M:g} m")
-        why = self.v.geofence_service.violation(target)
+        why = v.geofence_service.violation(target)
         if why is not None:
             return self.refuse(R.MAV_RESULT_DENIED, why)
         yaw = math.radians(p[3]) if math.isfinite(p[3]) else None
-        if self.v.source != "own":
-            self.hand_back(self.v.state)
-        self.v.autopilot.goto(self.v.state, target, yaw)
-        self.v.mode = MODE_HOLD
+        if v.source != "own":
+            self.hand_back(v.state)
+        v.autopilot.goto(v.state, target, yaw)
+        v.mode = MODE_HOLD
         return R.MAV_RESULT_ACCEPTED
 
     def _inject(self, p: list) -> int:
+        v = self.v
         R = mavlink
-        if int(self.v.params["SYS_FAILURE_EN"]) != 1:
+        if int(v.params["SYS_FAILURE_EN"]) != 1:
             return self.refuse(R.MAV_RESULT_DENIED, "SYS_FAILURE_EN is 0")
         if _finite(p[0], p[1], p[2]) and int(p[0]) in UNIT_SENSORS:  # a sensor: its path (sensor_failures)
             kind = TYPE_NAMES.get(int(p[1]))
@@ -375,9 +387,9 @@ class CommandService:
                 return self.refuse(R.MAV_RESULT_UNSUPPORTED, f"failure type {p[1]:g} not simulated")
             if instance != p[2] or instance < 0:
                 return self.refuse(R.MAV_RESULT_DENIED, "no such sensor instance")
-            result = self.v.inject_sensor_failure(UNIT_SENSORS[int(p[0])], kind, instance)
+            result = v.inject_sensor_failure(UNIT_SENSORS[int(p[0])], kind, instance)
             if result == R.MAV_RESULT_ACCEPTED:
-                self.v._count("failures_injected")
+                v._count("failures_injected")
             return result
         if not _finite(p[0], p[1], p[2]) or int(p[0]) != FAILURE_UNIT_SYSTEM_MOTOR:
             return self.refuse(R.MAV_RESULT_UNSUPPORTED, "failure unit not simulated")
@@ -385,19 +397,20 @@ class CommandService:
         if eta is None:
             return self.refuse(R.MAV_RESULT_UNSUPPORTED, "only motor ok/off/slow")
         instance = int(p[2])
-        if instance != p[2] or not 0 <= instance <= self.v.motor_count:
-            return self.refuse(R.MAV_RESULT_DENIED, f"no motor {p[2]:g} (1..{self.v.motor_count}, 0 all)")
-        self.v.inject_failure(instance, eta)
-        self.v._count("failures_injected")
-        self.v._text(f"Failure injected: motor {instance or 'all'} eta {eta:g}", mavlink.MAV_SEVERITY_WARNING)
+        if instance != p[2] or not 0 <= instance <= v.motor_count:
+            return self.refuse(R.MAV_RESULT_DENIED, f"no motor {p[2]:g} (1..{v.motor_count}, 0 all)")
+        v.inject_failure(instance, eta)
+        v._count("failures_injected")
+        v._text(f"Failure injected: motor {instance or 'all'} eta {eta:g}", mavlink.MAV_SEVERITY_WARNING)
         return R.MAV_RESULT_ACCEPTED
 
     def on_set_mode(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self.v._for_me(msg.target_system, 0, allow_broadcast=False):
-            self.v._drop("wrong_target")
+        v = self.v
+        if not v._for_me(msg.target_system, 0, allow_broadcast=False):
+            v._drop("wrong_target")
             return
         if not msg.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED:
-            self.v._drop("set_mode_not_custom")
+            v._drop("set_mode_not_custom")
             return
         self.set_mode(((msg.custom_mode >> 16) & 0xFF, (msg.custom_mode >> 24) & 0xFF))
 

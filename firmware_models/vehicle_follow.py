@@ -81,35 +81,37 @@ class FollowService:
 
     # ----------------------------------------------------------------- the mode
     def enter(self) -> int:
-        s = self.v.state
-        if s is None or not self.v.armed or self.v.landed:
-            return self.v.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")  # as PX4
-        if self.v.source != "own":
-            self.v.command_service.hand_back(s)
-        self.v.autopilot.hold(s)
-        self.v.mode = MODE_FOLLOW
+        v = self.v
+        s = v.state
+        if s is None or not v.armed or v.landed:
+            return v.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")  # as PX4
+        if v.source != "own":
+            v.command_service.hand_back(s)
+        v.autopilot.hold(s)
+        v.mode = MODE_FOLLOW
         self.holding = self.target is None
-        self.v._text("Follow target")
+        v._text("Follow target")
         return R.MAV_RESULT_ACCEPTED
 
     def point_ned(self) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """(follow point, target position, target velocity) now, or None without a live target."""
+        v = self.v
         tg = self.target
-        if tg is None or self.v.sim_s - tg["t"] > FOLLOW_LOST_S or self.v.state is None:
+        if tg is None or v.sim_s - tg["t"] > FOLLOW_LOST_S or v.state is None:
             return None
-        p_t = tg["p"] + tg["v"] * (self.v.sim_s - tg["t"])
+        p_t = tg["p"] + tg["v"] * (v.sim_s - tg["t"])
         course = tg["course"]
         if course is None:  # never seen moving: keep the side the vehicle is on
-            d = self.v.state.position_ned_m[:2] - p_t[:2]
+            d = v.state.position_ned_m[:2] - p_t[:2]
             course = math.atan2(-d[1], -d[0]) if np.hypot(*d) > 1e-3 else 0.0
             tg["course"] = course
-        side = course + math.radians(self.v.params["FLW_TGT_FA"])
-        dist = self.v.params["FLW_TGT_DST"]
+        side = course + math.radians(v.params["FLW_TGT_FA"])
+        dist = v.params["FLW_TGT_DST"]
         point = np.array([p_t[0] + dist * math.cos(side), p_t[1] + dist * math.sin(side), 0.0])
-        if int(self.v.params["FLW_TGT_ALT_M"]) == 2:
-            point[2] = p_t[2] - self.v.params["FLW_TGT_HT"]
+        if int(v.params["FLW_TGT_ALT_M"]) == 2:
+            point[2] = p_t[2] - v.params["FLW_TGT_HT"]
         else:
-            point[2] = self.v.home_ned[2] - self.v.params["FLW_TGT_HT"]
+            point[2] = v.home_ned[2] - v.params["FLW_TGT_HT"]
         return point, p_t, tg["v"]
 
     def step(self) -> None:
@@ -121,7 +123,7 @@ class FollowService:
                 self.holding = True
                 ap.hold(s)
                 self.v._text("Follow: target lost, holding" if got is None else "Follow: point outside the fence",
-                           R.MAV_SEVERITY_WARNING)
+                             R.MAV_SEVERITY_WARNING)
             return
         self.holding = False
         point, p_t, v_t = got

@@ -44,14 +44,16 @@ class GeofenceService:
     # ----------------------------------------------------------------- geometry
     def geofence(self) -> Geofence:
         """The stored fence as geometry (rebuilt when the fence list or home changes)."""
-        home = None if self.v.home_ned is None else tuple(np.round(self.v.home_ned, 6))
-        key = (self.v.mission.versions[FENCE], home)
+        v = self.v
+        home = None if v.home_ned is None else tuple(np.round(v.home_ned, 6))
+        key = (v.mission.versions[FENCE], home)
         if self.cache is None or self.cache[0] != key:
-            self.cache = (key, Geofence.from_items(self.v.mission.plans[FENCE], self.v.origin, self.v.home_ned))
+            self.cache = (key, Geofence.from_items(v.mission.plans[FENCE], v.origin, v.home_ned))
         return self.cache[1]
 
     def limits(self) -> FenceLimits:
-        return FenceLimits(self.v.params["GF_MAX_HOR_DIST"], self.v.params["GF_MAX_VER_DIST"])
+        v = self.v
+        return FenceLimits(v.params["GF_MAX_HOR_DIST"], v.params["GF_MAX_VER_DIST"])
 
     def violation(self, p_ned: np.ndarray) -> str | None:
         """Why p_ned is not allowed (zones, then GF_* limits around home), or None."""
@@ -59,11 +61,12 @@ class GeofenceService:
 
     def _item_ned(self, item: MissionItem) -> np.ndarray | None:
         """Where a positional mission item sends the vehicle (None: no position or "where it is")."""
+        v = self.v
         if item.command not in NAV_POSITION or (item.command in HERE_OK and item.x == 0 and item.y == 0):
             return None
-        home = self.v.home_ned if self.v.home_ned is not None else (
-            self.v.state.position_ned_m if self.v.state is not None else np.zeros(3))
-        return self.v.runner.target_ned(item, self.v.state, np.asarray(home, dtype=float))
+        home = v.home_ned if v.home_ned is not None else (
+            v.state.position_ned_m if v.state is not None else np.zeros(3))
+        return v.runner.target_ned(item, v.state, np.asarray(home, dtype=float))
 
     def _first_outside(self, items: tuple[MissionItem, ...]) -> tuple[int, str] | None:
         for it in items:
@@ -91,32 +94,35 @@ class GeofenceService:
         return None if bad is None else f"Mission item {bad[0]} {bad[1]}"
 
     def setpoint_outside(self, p_ned: np.ndarray) -> bool:
+        v = self.v
         why = self.violation(p_ned)
         if why is None:
             return False
-        self.v._drop("setpoint_outside_fence")
-        if self.v.wall_s - self.text_wall >= 1.0:  # one STATUSTEXT a second for a stream of them
-            self.text_wall = self.v.wall_s
-            self.v._text(f"Setpoint refused: {why}", R.MAV_SEVERITY_WARNING)
+        v._drop("setpoint_outside_fence")
+        if v.wall_s - self.text_wall >= 1.0:  # one STATUSTEXT a second for a stream of them
+            self.text_wall = v.wall_s
+            v._text(f"Setpoint refused: {why}", R.MAV_SEVERITY_WARNING)
         return True
 
     def return_point_ned(self) -> np.ndarray | None:
         """Where RTL goes: the nearest rally point (at home's ground height), else home."""
-        if self.v.home_ned is None:
+        v = self.v
+        if v.home_ned is None:
             return None
-        rally = self.v.mission.plans[RALLY]
-        if not rally or self.v.state is None:
-            return self.v.home_ned
-        here = self.v.state.position_ned_m
-        points = [self.v.runner.target_ned(it, self.v.state, self.v.home_ned) for it in rally]
+        rally = v.mission.plans[RALLY]
+        if not rally or v.state is None:
+            return v.home_ned
+        here = v.state.position_ned_m
+        points = [v.runner.target_ned(it, v.state, v.home_ned) for it in rally]
         best = min(points, key=lambda p: float(np.hypot(*(p[:2] - here[:2]))))
-        return np.array([best[0], best[1], self.v.home_ned[2]])
+        return np.array([best[0], best[1], v.home_ned[2]])
 
     # ----------------------------------------------------------------- in flight
     def step(self) -> None:
         """Once per tick: a breach by the vehicle's position triggers GF_ACTION once."""
-        s = self.v.state
-        if s is None or not self.v.armed or self.v.landed:
+        v = self.v
+        s = v.state
+        if s is None or not v.armed or v.landed:
             self.breached = False
             return
         why = self.violation(s.position_ned_m)
@@ -126,25 +132,25 @@ class GeofenceService:
         if self.breached:
             return
         self.breached = True
-        action = int(self.v.params["GF_ACTION"])
-        self.v._count("geofence_breach")
-        self.breaches.append({"sim_time_s": self.v.sim_s, "position_ned_m": [float(x) for x in s.position_ned_m],
+        action = int(v.params["GF_ACTION"])
+        v._count("geofence_breach")
+        self.breaches.append({"sim_time_s": v.sim_s, "position_ned_m": [float(x) for x in s.position_ned_m],
                                     "why": why, "action": GF_ACTION_NAMES.get(action, str(action))})
         del self.breaches[:-100]
         if action == GF_NONE:
             return
         severity = R.MAV_SEVERITY_WARNING if action == 1 else R.MAV_SEVERITY_CRITICAL
-        self.v._text(f"Geofence breached: {why}"[:50], severity)
+        v._text(f"Geofence breached: {why}"[:50], severity)
         if action == GF_HOLD:
-            if self.v.source != "own":
-                self.v.command_service.hand_back(s)
-            self.v.runner.pause()
-            self.v.autopilot.hold(s)
-            self.v.mode = MODE_HOLD
-            self.v._text("Geofence: holding", severity)
-        elif action == GF_RTL and self.v.mode != MODE_RTL:
-            self.v.command_service.set_mode(MODE_RTL)
-        elif action == GF_LAND and self.v.mode != MODE_LAND:
-            self.v.command_service.set_mode(MODE_LAND)
+            if v.source != "own":
+                v.command_service.hand_back(s)
+            v.runner.pause()
+            v.autopilot.hold(s)
+            v.mode = MODE_HOLD
+            v._text("Geofence: holding", severity)
+        elif action == GF_RTL and v.mode != MODE_RTL:
+            v.command_service.set_mode(MODE_RTL)
+        elif action == GF_LAND and v.mode != MODE_LAND:
+            v.command_service.set_mode(MODE_LAND)
         elif action == GF_TERMINATE:
-            self.v.command_service.disarm("Geofence: flight terminated")
+            v.command_service.disarm("Geofence: flight terminated")

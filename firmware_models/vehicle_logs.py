@@ -74,32 +74,34 @@ class LogService:
         self.xfer: _Transfer | None = None
 
     def on_request_list(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
-            self.v._drop("wrong_target")
+        v = self.v
+        if not v._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
+            v._drop("wrong_target")
             return
         entries = self.store.entries() if self.store is not None else []
-        self.v._count("log.list")
+        v._count("log.list")
         if not entries:  # PX4: one LOG_ENTRY with num_logs 0
-            self.v._reply(lk, R.MAVLink_log_entry_message(0, 0, 0, 0, 0), out)
+            v._reply(lk, R.MAVLink_log_entry_message(0, 0, 0, 0, 0), out)
             return
         last = entries[-1][0]
         for log_id, size, t_utc in entries:
             if msg.start <= log_id <= msg.end:
-                if not self.v._reply(lk, R.MAVLink_log_entry_message(log_id, len(entries), last, t_utc, size), out):
+                if not v._reply(lk, R.MAVLink_log_entry_message(log_id, len(entries), last, t_utc, size), out):
                     break
 
     def on_request_data(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self.v._drop("wrong_target")
+        v = self.v
+        if not v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            v._drop("wrong_target")
             return
         sizes = {i: size for i, size, _ in (self.store.entries() if self.store is not None else [])}
         if msg.id not in sizes:
-            self.v._drop("log.unknown_id")
-            self.v._reply(lk, R.MAVLink_log_data_message(msg.id, msg.ofs, 0, [0] * CHUNK_BYTES), out)
+            v._drop("log.unknown_id")
+            v._reply(lk, R.MAVLink_log_data_message(msg.id, msg.ofs, 0, [0] * CHUNK_BYTES), out)
             return
         end = sizes[msg.id] if msg.count == ALL_BYTES else min(sizes[msg.id], msg.ofs + msg.count)
-        self.xfer = _Transfer(lk.name, self.v._sender, msg.id, msg.ofs, max(end, msg.ofs))
-        self.v._count("log.request_data")
+        self.xfer = _Transfer(lk.name, v._sender, msg.id, msg.ofs, max(end, msg.ofs))
+        v._count("log.request_data")
         self.tick(out)
 
     def on_request_end(self, msg, lk: Link, out: list[Outgoing]) -> None:
@@ -107,28 +109,30 @@ class LogService:
         self.v._count("log.request_end")
 
     def on_erase(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self.v._drop("wrong_target")
+        v = self.v
+        if not v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            v._drop("wrong_target")
             return
-        self.v._count("log.erase_refused")
-        self.v._text("Logs kept: the run's own logs are not erased", R.MAV_SEVERITY_NOTICE)
+        v._count("log.erase_refused")
+        v._text("Logs kept: the run's own logs are not erased", R.MAV_SEVERITY_NOTICE)
 
     def tick(self, out: list[Outgoing]) -> None:
         """Stream the transfer in progress (from tick and right after the request)."""
+        v = self.v
         x = self.xfer
         if x is None:
             return
-        lk = self.v.links[x.link]
+        lk = v.links[x.link]
         for _ in range(LOG_CHUNKS_PER_TICK):
             n = min(CHUNK_BYTES, x.end - x.offset)
             data = self.store.read(x.log_id, x.offset, n) if n > 0 else b""
             if data is None:
-                self.v._drop("log.read_error")
+                v._drop("log.read_error")
                 self.xfer = None
                 return
-            self.v._send(lk, R.MAVLink_log_data_message(x.log_id, x.offset, len(data),
-                                                        list(data) + [0] * (CHUNK_BYTES - len(data))), out)
-            self.v._count("log.data")
+            v._send(lk, R.MAVLink_log_data_message(x.log_id, x.offset, len(data),
+                                                   list(data) + [0] * (CHUNK_BYTES - len(data))), out)
+            v._count("log.data")
             x.offset += len(data)
             if not data or x.offset >= x.end:
                 self.xfer = None

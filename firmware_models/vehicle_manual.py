@@ -68,48 +68,51 @@ class ManualService:
 
     # ----------------------------------------------------------------- orbit (MAV_CMD_DO_ORBIT)
     def do_orbit(self, p: list, is_int: bool) -> int:
-        s = self.v.state
-        if s is None or not self.v.armed or self.v.landed:
-            return self.v.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")
+        v = self.v
+        s = v.state
+        if s is None or not v.armed or v.landed:
+            return v.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "not flying (take off first)")
         radius = p[0]
         if not math.isfinite(radius) or not ORBIT_MIN_RADIUS_M <= abs(radius) <= ORBIT_MAX_RADIUS_M:
-            return self.v.command_service.refuse(R.MAV_RESULT_DENIED, f"radius not in {ORBIT_MIN_RADIUS_M:g}..{ORBIT_MAX_RADIUS_M:g} m")
+            why = f"radius not in {ORBIT_MIN_RADIUS_M:g}..{ORBIT_MAX_RADIUS_M:g} m"
+            return v.command_service.refuse(R.MAV_RESULT_DENIED, why)
         speed = ORBIT_DEFAULT_SPEED_MPS if not math.isfinite(p[1]) else abs(p[1])
         direction = 1.0 if radius > 0 else -1.0  # positive: clockwise seen from above
         if math.isfinite(p[1]) and p[1] < 0:
             direction = -direction
-        speed = min(speed, self.v.params["MPC_XY_VEL_MAX"], math.sqrt(CENTRIPETAL_MAX_MPS2 * abs(radius)))
+        speed = min(speed, v.params["MPC_XY_VEL_MAX"], math.sqrt(CENTRIPETAL_MAX_MPS2 * abs(radius)))
         unset = (p[4] == INT32_MAX or p[5] == INT32_MAX) if is_int else not finite(p[4], p[5])
         if unset or (p[4] == 0 and p[5] == 0):
             center = np.array(s.position_ned_m[:2], dtype=float)
         else:
             lat, lon = (p[4] * 1e-7, p[5] * 1e-7) if is_int else (p[4], p[5])
             if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-                return self.v.command_service.refuse(R.MAV_RESULT_DENIED, "centre: no valid latitude/longitude")
-            center = self.v._global_to_ned(lat, lon, self.v.origin.amsl_m)[:2]
-        z = -(p[6] - self.v.origin.amsl_m) if math.isfinite(p[6]) else float(s.position_ned_m[2])
+                return v.command_service.refuse(R.MAV_RESULT_DENIED, "centre: no valid latitude/longitude")
+            center = v._global_to_ned(lat, lon, v.origin.amsl_m)[:2]
+        z = -(p[6] - v.origin.amsl_m) if math.isfinite(p[6]) else float(s.position_ned_m[2])
         for a in np.linspace(0.0, 2 * math.pi, 24, endpoint=False):  # the whole circle inside the fence
             ring = np.array([center[0] + abs(radius) * math.cos(a), center[1] + abs(radius) * math.sin(a), z])
-            why = self.v.geofence_service.violation(ring)
+            why = v.geofence_service.violation(ring)
             if why is not None:
-                return self.v.command_service.refuse(R.MAV_RESULT_DENIED, f"circle {why}")
+                return v.command_service.refuse(R.MAV_RESULT_DENIED, f"circle {why}")
         orbits = p[3] if math.isfinite(p[3]) and p[3] > 0 else math.inf
         yaw_mode = int(p[2]) if math.isfinite(p[2]) else 0
-        if self.v.source != "own":
-            self.v.command_service.hand_back(s)
-        self.v.runner.pause()
-        ref = self.v.autopilot.shaper.p
+        if v.source != "own":
+            v.command_service.hand_back(s)
+        v.runner.pause()
+        ref = v.autopilot.shaper.p
         self.orbit = {"center": center, "radius": abs(radius), "speed": speed, "dir": direction, "z": z,
                        "yaw_mode": yaw_mode, "yaw0": quat_to_euler(s.quaternion_wxyz)[2],
                        "angle": math.atan2(ref[1] - center[1], ref[0] - center[0]), "turned": 0.0,
                        "limit": 2 * math.pi * orbits}
-        self.v.mode = MODE_ORBIT
-        self.v._text(f"Orbit: radius {abs(radius):.1f} m at {speed:.1f} m/s")
+        v.mode = MODE_ORBIT
+        v._text(f"Orbit: radius {abs(radius):.1f} m at {speed:.1f} m/s")
         return R.MAV_RESULT_ACCEPTED
 
     def _orbit_step(self) -> None:
+        v = self.v
         o = self.orbit
-        ap = self.v.autopilot
+        ap = v.autopilot
         ref = ap.shaper.p
         d = ref[:2] - o["center"]
         r = float(np.hypot(*d))
@@ -126,24 +129,25 @@ class ManualService:
         yaw = {0: math.atan2(-d[1], -d[0]), 3: math.atan2(t_hat[1], t_hat[0])}.get(o["yaw_mode"], o["yaw0"])
         if o["turned"] >= o["limit"]:
             self.orbit = None
-            ap.hold(self.v.state)
-            self.v.mode = MODE_HOLD
-            self.v._text("Orbit complete: holding")
+            ap.hold(v.state)
+            v.mode = MODE_HOLD
+            v._text("Orbit complete: holding")
             return
-        ap.velocity(self.v.state, np.array([v_xy[0], v_xy[1], v_z]), yaw, 0.0)
+        ap.velocity(v.state, np.array([v_xy[0], v_xy[1], v_z]), yaw, 0.0)
 
     # ----------------------------------------------------------------- MANUAL_CONTROL (position mode)
     def on_manual_control(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if msg.target != self.v.sysid:
-            self.v._drop("wrong_target")
+        v = self.v
+        if msg.target != v.sysid:
+            v._drop("wrong_target")
             return
         x, y, z, r = msg.x / 1000.0, msg.y / 1000.0, msg.z / 1000.0, msg.r / 1000.0
         if not (abs(x) <= 1 and abs(y) <= 1 and -1 <= z <= 1 and abs(r) <= 1):
-            self.v._drop("manual_control_out_of_range")
+            v._drop("manual_control_out_of_range")
             return
         self.sticks = (x, y, z, r)
-        self.sticks_wall = self.v.wall_s
-        self.v._count("manual_control")
+        self.sticks_wall = v.wall_s
+        v._count("manual_control")
 
     def _sticks_step(self) -> None:
         s = self.v.state
@@ -171,53 +175,55 @@ class ManualService:
 
     # ----------------------------------------------------------------- SET_ATTITUDE_TARGET (offboard)
     def on_attitude_target(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self.v._drop("wrong_target")
+        v = self.v
+        if not v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            v._drop("wrong_target")
             return
         mask = msg.type_mask
         q = np.array(msg.q, dtype=float)
         rates = np.array([msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate], dtype=float)
         thrust = msg.thrust
         if mask & ATT_IGNORE_THRUST or not finite(thrust) or not 0.0 <= thrust <= 1.0:
-            self.v._drop("attitude_target_invalid")
+            v._drop("attitude_target_invalid")
             return
         rates_only = bool(mask & ATT_IGNORE_ATTITUDE)
         if rates_only:
             rates = np.where([mask & 1, mask & 2, mask & 4], 0.0, rates)
             if not finite(*rates) or np.abs(rates).max() > 10.0:
-                self.v._drop("attitude_target_invalid")
+                v._drop("attitude_target_invalid")
                 return
         elif not finite(*q) or not 0.5 < np.linalg.norm(q) < 1.5:
-            self.v._drop("attitude_target_invalid")
+            v._drop("attitude_target_invalid")
             return
         prev = self.attitude_sp
         if rates_only:  # integrate from the previous target (or the current attitude)
-            q = prev[0] if prev is not None else (self.v.state.quaternion_wxyz if self.v.state is not None else None)
+            q = prev[0] if prev is not None else (v.state.quaternion_wxyz if v.state is not None else None)
             if q is None:
-                self.v._drop("setpoint_no_state")
+                v._drop("setpoint_no_state")
                 return
         self.attitude_sp = (q / np.linalg.norm(q), float(thrust), rates, rates_only)
-        self.v.offboard_service.setpoint = ("attitude", None, None, 0.0)
-        self.v.offboard_service.setpoint_wall = self.v.wall_s
-        self.v._count("setpoints")
+        v.offboard_service.setpoint = ("attitude", None, None, 0.0)
+        v.offboard_service.setpoint_wall = v.wall_s
+        v._count("setpoints")
 
     def _attitude_thrusts(self, t: float) -> np.ndarray:
         """One control step towards the offboard attitude and thrust target."""
+        v = self.v
         q, thrust, rates, rates_only = self.attitude_sp
         if rates_only:  # q <- q * exp(rates dt / 2)
-            dq = np.array([1.0, *(0.5 * rates * self.v.control_dt_s)])
+            dq = np.array([1.0, *(0.5 * rates * v.control_dt_s)])
             q = quat_multiply(q, dq / np.linalg.norm(dq))
             self.attitude_sp = (q, thrust, rates, True)
-        s = self.v.state
-        ap = self.v.autopilot
+        s = v.state
+        ap = v.autopilot
         model = ap.model
-        max_total_n = model.n_rotors * self.v.full_scale_n
+        max_total_n = model.n_rotors * v.full_scale_n
         specific = -quat_to_rotmat(q)[:, 2] * thrust * max_total_n / model.mass_kg
         acc = specific + np.array([0.0, 0.0, GRAVITY_MPS2])
         # the heading turns at most MANUAL_YAW_RATE_RADPS (a 180 deg step is no attitude error for the
         # geometric controller); the tilt comes from the acceleration, whatever the heading
         step = (quat_to_euler(q)[2] - ap.shaper.yaw + math.pi) % (2 * math.pi) - math.pi
-        limit = MANUAL_YAW_RATE_RADPS * self.v.control_dt_s
+        limit = MANUAL_YAW_RATE_RADPS * v.control_dt_s
         yaw = ap.shaper.yaw + max(-limit, min(limit, step))
         ap.shaper.reset(s.position_ned_m, yaw, s.velocity_ned_mps)  # leaving: continue from here
         ap.phase, ap.landed = Phase.VELOCITY, False
@@ -225,24 +231,25 @@ class ManualService:
         ref = TrajectoryPoint(np.array(s.position_ned_m, dtype=float), np.array(s.velocity_ned_mps, dtype=float),
                               acc, np.zeros(3), yaw, float(rates[2]) if rates_only else 0.0)
         ap.reference = ref
-        self.v._took_off = True
+        v._took_off = True
         return np.asarray(ap.controller.update(t, s, ref).rotor_thrusts_n, dtype=float)
 
     # ----------------------------------------------------------------- the control step's hooks
     def guidance_step(self, t: float) -> np.ndarray | None:
         """Before the flight core's update: steer it (orbit, sticks), or fly the attitude target
         (returns the rotor thrusts then)."""
-        if self.v.mode == MODE_MISSION and self.v.legs is not None:
-            return self.v.legs.step(t, self.v.state)
-        if self.v.mode == MODE_ORBIT and self.orbit is not None:
+        v = self.v
+        if v.mode == MODE_MISSION and v.legs is not None:
+            return v.legs.step(t, v.state)
+        if v.mode == MODE_ORBIT and self.orbit is not None:
             self._orbit_step()
-        elif self.v.mode == MODE_POSCTL:
+        elif v.mode == MODE_POSCTL:
             self._sticks_step()
-        elif self.v.mode == MODE_FOLLOW:
-            self.v.follow_service.step()
-        elif self.v.mode == MODE_OFFBOARD and self.v.offboard_service.setpoint is not None and self.v.offboard_service.setpoint[0] == "attitude":
-            ap = self.v.autopilot
-            hover = ap.model.mass_kg * GRAVITY_MPS2 / (ap.model.n_rotors * self.v.full_scale_n)
+        elif v.mode == MODE_FOLLOW:
+            v.follow_service.step()
+        elif v.mode == MODE_OFFBOARD and (sp := v.offboard_service.setpoint) is not None and sp[0] == "attitude":
+            ap = v.autopilot
+            hover = ap.model.mass_kg * GRAVITY_MPS2 / (ap.model.n_rotors * v.full_scale_n)
             if ap.phase == Phase.IDLE and self.attitude_sp[1] <= hover:
                 return ap.zero  # landed (or not yet off): thrust below hover does not lift it
             return self._attitude_thrusts(t)
@@ -250,8 +257,9 @@ class ManualService:
 
     def land_detect(self, t: float) -> str | None:
         """Landed after a descent to the ground in any mode; the core's own LAND phase reports itself."""
-        ap, s = self.v.autopilot, self.v.state
-        if ap.phase in (Phase.IDLE, Phase.LAND, Phase.TAKEOFF) or self.v.source != "own":
+        v = self.v
+        ap, s = v.autopilot, v.state
+        if ap.phase in (Phase.IDLE, Phase.LAND, Phase.TAKEOFF) or v.source != "own":
             self.touch_since_s = None
             return None
         if not ap.touching(s):

@@ -34,28 +34,29 @@ class OffboardService:
 
     # ----------------------------------------------------------------- offboard setpoints
     def on_position_target(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self.v._drop("wrong_target")
+        v = self.v
+        if not v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            v._drop("wrong_target")
             return
-        if self.v.state is None:
-            self.v._drop("setpoint_no_state")
+        if v.state is None:
+            v._drop("setpoint_no_state")
             return
         mask = msg.type_mask
         use_pos = not mask & 0x7
         use_vel = not mask & 0x38
         if (mask & 0x7 not in (0, 0x7)) or (mask & 0x38 not in (0, 0x38)) or not (use_pos or use_vel):
-            self.v._drop("setpoint_unsupported")
+            v._drop("setpoint_unsupported")
             return
         yaw = None if mask & 0x400 else msg.yaw
         yaw_rate = 0.0 if mask & 0x800 else msg.yaw_rate
         vel = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
-        cur_yaw = quat_to_euler(self.v.state.quaternion_wxyz)[2]
+        cur_yaw = quat_to_euler(v.state.quaternion_wxyz)[2]
         if msg.get_type() == "SET_POSITION_TARGET_LOCAL_NED":
             frame = msg.coordinate_frame
             pos = np.array([msg.x, msg.y, msg.z], dtype=float)
             if frame not in (mavlink.MAV_FRAME_LOCAL_NED, mavlink.MAV_FRAME_LOCAL_OFFSET_NED,
                              mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED):
-                self.v._drop("setpoint_unsupported")
+                v._drop("setpoint_unsupported")
                 return
             body = frame in (mavlink.MAV_FRAME_BODY_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED)
             if body:  # body-frame vectors turn with the heading (PX4 semantics)
@@ -65,45 +66,46 @@ class OffboardService:
         else:  # SET_POSITION_TARGET_GLOBAL_INT
             frame = msg.coordinate_frame
             if frame not in (mavlink.MAV_FRAME_GLOBAL_INT, mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT):
-                self.v._drop("setpoint_unsupported")
+                v._drop("setpoint_unsupported")
                 return
             alt = msg.alt
-            if frame == mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT and self.v.home_ned is not None:
-                alt = alt + self.v.origin.amsl_m - float(self.v.home_ned[2])
-            pos = self.v._global_to_ned(msg.lat_int * 1e-7, msg.lon_int * 1e-7, alt) if use_pos else np.zeros(3)
+            if frame == mavlink.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT and v.home_ned is not None:
+                alt = alt + v.origin.amsl_m - float(v.home_ned[2])
+            pos = v._global_to_ned(msg.lat_int * 1e-7, msg.lon_int * 1e-7, alt) if use_pos else np.zeros(3)
             body = False
         values = [*(pos if use_pos else ()), *(vel if use_vel else ()), *(() if yaw is None else (yaw,)), yaw_rate]
         if not _finite(*values):
-            self.v._drop("setpoint_non_finite")
+            v._drop("setpoint_non_finite")
             return
         if frame in (mavlink.MAV_FRAME_LOCAL_OFFSET_NED, mavlink.MAV_FRAME_BODY_OFFSET_NED):
-            pos = pos + self.v.state.position_ned_m
+            pos = pos + v.state.position_ned_m
         if (use_pos and np.abs(pos).max() > MAX_POSITION_M) or (use_vel and np.abs(vel).max() > MAX_SPEED_MPS) or abs(
             yaw_rate
         ) > 10.0 or (yaw is not None and abs(yaw) > 10.0):
-            self.v._drop("setpoint_out_of_range")
+            v._drop("setpoint_out_of_range")
             return
-        if use_pos and self.v.geofence_service.setpoint_outside(pos):
+        if use_pos and v.geofence_service.setpoint_outside(pos):
             return
         if use_pos:
             self.setpoint = ("position", pos, yaw, 0.0)
         else:
             self.setpoint = ("velocity", vel, yaw, yaw_rate)
-        self.setpoint_wall = self.v.wall_s
-        self.v._count("setpoints")
-        if self.v.mode == MODE_OFFBOARD and self.v.source == "own":
+        self.setpoint_wall = v.wall_s
+        v._count("setpoints")
+        if v.mode == MODE_OFFBOARD and v.source == "own":
             self.apply_setpoint()
 
     def apply_setpoint(self) -> None:
-        if self.setpoint is None or self.v.state is None or not self.v.armed:
+        v = self.v
+        if self.setpoint is None or v.state is None or not v.armed:
             return
         kind, vec, yaw, yaw_rate = self.setpoint
-        if kind == "attitude" or (self.v.autopilot.phase == Phase.IDLE and not self.v.manual_service.setpoint_lifts(kind, vec)):
+        if kind == "attitude" or (v.autopilot.phase == Phase.IDLE and not v.manual_service.setpoint_lifts(kind, vec)):
             return  # (the control step flies an attitude target; a landed vehicle stays down)
         if kind == "position":
-            self.v.autopilot.goto(self.v.state, vec, yaw)
+            v.autopilot.goto(v.state, vec, yaw)
         else:
-            self.v.autopilot.velocity(self.v.state, vec, yaw, yaw_rate)
+            v.autopilot.velocity(v.state, vec, yaw, yaw_rate)
 
     # ----------------------------------------------------------------- rotor commands
     def on_step_skip(self, msg, lk: Link, out: list[Outgoing]) -> None:
@@ -111,24 +113,26 @@ class OffboardService:
         (`time_unix_usec`), so a unit waiting for one runs that step with what it holds, before or after its
         sensors arrive, and keeps waiting for the coordinator's next steps (the conformance harness's silent
         steps; a coordinator that leaves a unit alone). Elsewhere SYSTEM_TIME means nothing to the unit."""
-        if not lk.policy.rotor_commands or msg.get_srcSystem() != self.v.intake.params.coordinator_sysid:
-            self.v._count(f"ignored.{msg.get_type()}")
+        v = self.v
+        if not lk.policy.rotor_commands or msg.get_srcSystem() != v.intake.params.coordinator_sysid:
+            v._count(f"ignored.{msg.get_type()}")
             return
-        self.v._count("step_skips")
-        self.v.hil_service.step_skipped_usec = int(msg.time_unix_usec)  # (handle() answers a pending step of that time)
+        v._count("step_skips")
+        v.hil_service.step_skipped_usec = int(msg.time_unix_usec)  # (handle() answers a pending step of that time)
 
     def on_rotor_command(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        v = self.v
         if not lk.policy.rotor_commands:
-            self.v._drop("rotor_command_wrong_link")
+            v._drop("rotor_command_wrong_link")
             return
-        if self.v.intake.offer(msg, self.v.sim_s):
-            self.v._count("rotor_commands")
-            self.v.hil_service.last_rotor_usec = int(msg.time_usec)
+        if v.intake.offer(msg, v.sim_s):
+            v._count("rotor_commands")
+            v.hil_service.last_rotor_usec = int(msg.time_usec)
             latch = latch_setpoint_of(msg.controls[4])
             if latch is None:
-                self.v._drop("latch_setpoint_invalid")  # (the rotors are taken; the latches keep their setpoint)
+                v._drop("latch_setpoint_invalid")  # (the rotors are taken; the latches keep their setpoint)
             else:
-                self.v.latch_setpoint = latch
-            if self.v.config.hil_await_coordinator:
-                self.v.hil_service.await_coordinator = True  # the coordinator is back: lockstep with it again
+                v.latch_setpoint = latch
+            if v.config.hil_await_coordinator:
+                v.hil_service.await_coordinator = True  # the coordinator is back: lockstep with it again
 

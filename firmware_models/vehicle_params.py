@@ -26,39 +26,42 @@ class ParamService:
         self.v = vehicle
 
     def on_param_list(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
-            self.v._drop("wrong_target")
+        v = self.v
+        if not v._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
+            v._drop("wrong_target")
             return
-        for i in range(self.v.params.count):
-            if not self.v._reply(lk, self.v.params.value_message(i), out):
+        for i in range(v.params.count):
+            if not v._reply(lk, v.params.value_message(i), out):
                 break  # this sender's budget is spent: the client re-requests what it misses
 
     def on_param_read(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
-            self.v._drop("wrong_target")
+        v = self.v
+        if not v._for_me(msg.target_system, msg.target_component, allow_broadcast=True):
+            v._drop("wrong_target")
             return
-        i = msg.param_index if msg.param_index >= 0 else self.v.params.index(_param_name(msg.param_id))
-        if i is None or not 0 <= i < self.v.params.count:
-            self.v._drop("param_unknown")  # PX4 stays silent; clients time out (e.g. QGC's _HASH_CHECK)
+        i = msg.param_index if msg.param_index >= 0 else v.params.index(_param_name(msg.param_id))
+        if i is None or not 0 <= i < v.params.count:
+            v._drop("param_unknown")  # PX4 stays silent; clients time out (e.g. QGC's _HASH_CHECK)
             return
-        self.v._reply(lk, self.v.params.value_message(i), out)
+        v._reply(lk, v.params.value_message(i), out)
 
     def on_param_set(self, msg, lk: Link, out: list[Outgoing]) -> None:
-        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self.v._drop("wrong_target")
+        v = self.v
+        if not v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            v._drop("wrong_target")
             return
         name = _param_name(msg.param_id)
-        i = self.v.params.index(name)
+        i = v.params.index(name)
         if i is None:
-            self.v._drop("param_unknown")
+            v._drop("param_unknown")
             return
-        error = policy.param_set_error(self.v.params.specs[i], msg.param_type, self.v.armed, self.v._authority)
+        error = policy.param_set_error(v.params.specs[i], msg.param_type, v.armed, v._authority)
         if error is not None:  # PARAM_ERROR, then (for clients that do not know it) the value in force
-            self.v._drop("param_rejected")
-            self.v._reply(lk, policy.param_error(msg, i, error), out)
-        elif not self.v.params.set_from_wire(name, msg.param_value, msg.param_type):
-            self.v._drop("param_rejected")
+            v._drop("param_rejected")
+            v._reply(lk, policy.param_error(msg, i, error), out)
+        elif not v.params.set_from_wire(name, msg.param_value, msg.param_type):
+            v._drop("param_rejected")
         elif name in ("MARS_CMD_HZ", "MARS_CMD_MISS"):
-            self.v.intake.params = self.v._intake_params()
-        self.v._reply(lk, self.v.params.value_message(i), out)  # the value in force, changed or not
+            v.intake.params = v._intake_params()
+        v._reply(lk, v.params.value_message(i), out)  # the value in force, changed or not
 

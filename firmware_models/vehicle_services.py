@@ -33,22 +33,25 @@ class SmallService:
     def on_statustext(self, msg, lk: Link, out: list[Outgoing]) -> None:
         """A client's STATUSTEXT goes on to the other ground-station links (as PX4's mavlink forwarding
         does), from the sender's reply budget, so one client cannot flood the others through us."""
+        v = self.v
         relay = mavlink.MAVLink_statustext_message(msg.severity, msg.text.encode()[:50] if isinstance(msg.text, str)
                                                    else bytes(msg.text)[:50], msg.id, msg.chunk_seq)
-        for other in self.v.links.values():
+        for other in v.links.values():
             if other is not lk and other.policy.telemetry:
-                if not self.v._reply(other, relay, out):
+                if not v._reply(other, relay, out):
                     return
-                self.v._count("statustext_relayed")
+                v._count("statustext_relayed")
 
     def on_timesync(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        v = self.v
         if msg.tc1 == 0:
-            self.v._reply(lk, mavlink.MAVLink_timesync_message(int(self.v.wall_s * 1e9), msg.ts1), out)
+            v._reply(lk, mavlink.MAVLink_timesync_message(int(v.wall_s * 1e9), msg.ts1), out)
 
     def on_ftp(self, msg, lk: Link, out: list[Outgoing]) -> None:
         """MAVFTP: no file system. A quick NAK saves MAVProxy a 10 s timeout before the param list."""
-        if not self.v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
-            self.v._drop("wrong_target")
+        v = self.v
+        if not v._for_me(msg.target_system, msg.target_component, allow_broadcast=False):
+            v._drop("wrong_target")
             return
         payload = bytes(msg.payload)
         seq = payload[0] | payload[1] << 8
@@ -61,7 +64,7 @@ class SmallService:
                    else FTP_ERR_INVALID_SESSION if opcode in FTP_SESSION_OPCODES else FTP_ERR_UNKNOWN_COMMAND)
         body = struct.pack("<HBBBBBBI", (seq + 1) & 0xFFFF, session, reply_op, size, opcode, 0, 0, 0)
         data = body + bytes([err]) + bytes(251 - len(body) - 1)
-        self.v._reply(lk, mavlink.MAVLink_file_transfer_protocol_message(
+        v._reply(lk, mavlink.MAVLink_file_transfer_protocol_message(
             0, msg.get_srcSystem(), msg.get_srcComponent(), list(data)), out)
 
     def on_ignored(self, msg, lk: Link, out: list[Outgoing]) -> None:

@@ -60,19 +60,20 @@ class ShellService:
 
     # ----------------------------------------------------------------- SERIAL_CONTROL
     def on_serial_control(self, msg, lk: Link, out: list[Outgoing]) -> None:
+        v = self.v
         if msg.device != R.SERIAL_CONTROL_DEV_SHELL:
-            self.v._drop("serial_control_device")
+            v._drop("serial_control_device")
             return
         if msg.flags & R.SERIAL_CONTROL_FLAG_REPLY:
-            self.v._drop("serial_control_reply")  # a reply sent to us: not a request
+            v._drop("serial_control_reply")  # a reply sent to us: not a request
             return
         sender = (lk.name, msg.get_srcSystem(), msg.get_srcComponent())
         lock = self.lock
-        if lock is not None and lock[0] != sender and self.v.wall_s - lock[1] < SHELL_LOCK_S:
-            self.v._drop("serial_control_busy")
+        if lock is not None and lock[0] != sender and v.wall_s - lock[1] < SHELL_LOCK_S:
+            v._drop("serial_control_busy")
             return
         if msg.flags & R.SERIAL_CONTROL_FLAG_EXCLUSIVE:
-            self.lock = (sender, self.v.wall_s)
+            self.lock = (sender, v.wall_s)
         elif lock is not None and lock[0] == sender:
             self.lock = None  # the holder without EXCLUSIVE lets go (MAVProxy's `nsh stop`)
         count = min(int(msg.count), CHUNK)
@@ -85,7 +86,7 @@ class ShellService:
             if msg.flags & R.SERIAL_CONTROL_FLAG_RESPOND:  # (no reply wanted: the line runs, its output is not sent)
                 self._queue(sender, lk.name, output)
         if len(buf) > MAX_LINE:
-            self.v._drop("serial_control_line_too_long")
+            v._drop("serial_control_line_too_long")
             buf = buf[-MAX_LINE:]
         self.pending_in[sender] = buf
         if len(self.pending_in) > 16:
@@ -99,17 +100,18 @@ class ShellService:
         self.pending_out[sender] = (link, pending)
 
     def _send_pending(self, sender: tuple, out: list[Outgoing], all_now: bool, reply_anyway: bool = False) -> None:
+        v = self.v
         link, pending = self.pending_out.get(sender, (sender[0], b""))
-        lk = self.v.links.get(link)
+        lk = v.links.get(link)
         if lk is None:
             return
         sent = False
         while pending and (all_now or not sent):
             chunk, pending = pending[:CHUNK], pending[CHUNK:]
-            self.v._send(lk, self._frame(chunk), out)
+            v._send(lk, self._frame(chunk), out)
             sent = True
         if not sent and reply_anyway:
-            self.v._send(lk, self._frame(b""), out)  # nothing pending: an empty REPLY answers the poll
+            v._send(lk, self._frame(b""), out)  # nothing pending: an empty REPLY answers the poll
         if pending:
             self.pending_out[sender] = (link, pending)
         else:
@@ -153,7 +155,8 @@ class ShellService:
         return "\n".join(lines) + "\n"
 
     def _sh_param(self, args: list[str]) -> str:
-        p = self.v.params
+        v = self.v
+        p = v.params
         if not args or args[0] not in ("show", "get", "set"):
             return "usage: param show [PATTERN] | param get NAME | param set NAME VALUE\n"
         if args[0] == "show":
@@ -173,28 +176,29 @@ class ShellService:
             value = float(args[2])
         except ValueError:
             return f"param: {args[2]!r} is not a number\n"
-        error = policy.param_set_error(spec, spec.kind, self.v.armed, self.v._authority)
+        error = policy.param_set_error(spec, spec.kind, v.armed, v._authority)
         if error is not None:
-            self.v._drop("param_rejected")
+            v._drop("param_rejected")
             return f"param: {spec.name}: refused ({'read only' if spec.read_only else 'permission denied'})\n"
         if not math.isfinite(value) or not p.set_from_wire(spec.name, encode_value(value, spec.kind), spec.kind):
-            self.v._drop("param_rejected")
+            v._drop("param_rejected")
             return f"param: {spec.name}: {args[2]} is outside {spec.min_value:g}..{spec.max_value:g}\n"
         if spec.name in ("MARS_CMD_HZ", "MARS_CMD_MISS"):
-            self.v.intake.params = self.v._intake_params()
-        self.v._mission_msgs.append(p.value_message(i))  # ground stations learn the change (as PARAM_SET's echo)
+            v.intake.params = v._intake_params()
+        v._mission_msgs.append(p.value_message(i))  # ground stations learn the change (as PARAM_SET's echo)
         return f"{spec.name}: {_fmt(p[spec.name], spec.kind)}\n"
 
     def _sh_commander(self, args: list[str]) -> str:
-        actions = {"arm": lambda: self.v.command_service.arm_disarm(1.0, 0.0), "disarm": lambda: self.v.command_service.arm_disarm(0.0, 0.0),
-                   "takeoff": lambda: self.v.command_service.takeoff(math.nan), "land": lambda: self.v.command_service.set_mode(MODE_LAND),
-                   "hold": lambda: self.v.command_service.set_mode(MODE_HOLD), "rtl": lambda: self.v.command_service.set_mode(MODE_RTL)}
+        c = self.v.command_service
+        actions = {"arm": lambda: c.arm_disarm(1.0, 0.0), "disarm": lambda: c.arm_disarm(0.0, 0.0),
+                   "takeoff": lambda: c.takeoff(math.nan), "land": lambda: c.set_mode(MODE_LAND),
+                   "hold": lambda: c.set_mode(MODE_HOLD), "rtl": lambda: c.set_mode(MODE_RTL)}
         act = actions.get(args[0]) if args else None
         if act is None:
             return "usage: commander arm|disarm|takeoff|land|hold|rtl\n"
-        self.v.command_service.refusal_why = None
+        c.refusal_why = None
         result = act()
-        why, self.v.command_service.refusal_why = self.v.command_service.refusal_why, None  # (the reason a refusal gives: vehicle_commands)
+        why, c.refusal_why = c.refusal_why, None  # (the reason a refusal gives: vehicle_commands)
         return f"commander {args[0]}: {RESULT_NAMES.get(result, str(result))}" + (f" ({why})" if why else "") + "\n"
 
     def _sh_listener(self, args: list[str]) -> str:
@@ -216,16 +220,18 @@ class ShellService:
         return "usage: listener vehicle_status|vehicle_local_position|vehicle_global_position\n"
 
     def _sh_top(self, args: list[str]) -> str:
-        drops = sum(self.v.drop_counts().values())
-        return (f"Processes: 1 total (mars-link unit firmware, system {self.v.sysid})\n"
-                f"sim time {self.v.sim_s:.2f} s, control {1.0 / self.v.control_dt_s:.0f} Hz, mode {self._mode_name()}, "
-                f"{'armed' if self.v.armed else 'disarmed'}\nframes received {self.v.stats.get('rx', 0)}, dropped {drops}\n")
+        v = self.v
+        drops = sum(v.drop_counts().values())
+        return (f"Processes: 1 total (mars-link unit firmware, system {v.sysid})\n"
+                f"sim time {v.sim_s:.2f} s, control {1.0 / v.control_dt_s:.0f} Hz, mode {self._mode_name()}, "
+                f"{'armed' if v.armed else 'disarmed'}\nframes received {v.stats.get('rx', 0)}, dropped {drops}\n")
 
     def _mode_name(self) -> str:
+        v = self.v
         from firmware_models import vehicle_modes as m
 
         names = {v: k.removeprefix("MODE_") for k, v in vars(m).items() if k.startswith("MODE_")}
-        return names.get(tuple(self.v.mode), str(self.v.mode))
+        return names.get(tuple(v.mode), str(v.mode))
 
 
 def _fmt(value: float, kind: int) -> str:

@@ -110,9 +110,10 @@ class StreamService:
                     v._broadcast(msg, out)
 
     def request_message(self, msgid: float, p2: float) -> tuple[int, list]:
+        v = self.v
         R = mavlink
         if not math.isfinite(msgid) or msgid != int(msgid):
-            return self.v.command_service.refuse(R.MAV_RESULT_DENIED, "param1 is no message id"), []
+            return v.command_service.refuse(R.MAV_RESULT_DENIED, "param1 is no message id"), []
         mid = int(msgid)
         if mid == R.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             return R.MAV_RESULT_ACCEPTED, [self.autopilot_version()]
@@ -121,11 +122,12 @@ class StreamService:
         if mid in DEFAULT_STREAM_HZ:
             msg = self.message(mid)
             if msg is None:
-                return self.v.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, f"no {R.mavlink_map[mid].msgname} yet"), []
+                why = f"no {R.mavlink_map[mid].msgname} yet"
+                return v.command_service.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, why), []
             return R.MAV_RESULT_ACCEPTED, [msg]
         # (incl. REFUSED_MESSAGES: PROTOCOL_VERSION, AVAILABLE_MODES, ...)
         name = R.mavlink_map[mid].msgname if mid in R.mavlink_map else f"message {mid}"
-        return self.v.command_service.refuse(R.MAV_RESULT_UNSUPPORTED, f"{name} not sent"), []
+        return v.command_service.refuse(R.MAV_RESULT_UNSUPPORTED, f"{name} not sent"), []
 
     @property
     def cap_hz(self) -> float:
@@ -136,16 +138,17 @@ class StreamService:
     def set_interval(self, msgid: float, interval_us: float) -> int:
         """SET_MESSAGE_INTERVAL: faster than `cap_hz` is accepted and runs at the cap (its
         MESSAGE_INTERVAL then reports the interval in force)."""
+        v = self.v
         R = mavlink
         if not _finite(msgid, interval_us) or int(msgid) not in DEFAULT_STREAM_HZ:
-            return self.v.command_service.refuse(R.MAV_RESULT_DENIED, "not a streamed message")
+            return v.command_service.refuse(R.MAV_RESULT_DENIED, "not a streamed message")
         mid = int(msgid)
         if interval_us < 0:
             self.interval_s.pop(mid, None)
         else:
             iv = 1.0 / DEFAULT_STREAM_HZ[mid] if interval_us == 0 else max(1.0 / self.cap_hz, interval_us * 1e-6)
             self.interval_s[mid] = iv
-            self.next_due[mid] = self.v.wall_s
+            self.next_due[mid] = v.wall_s
         return R.MAV_RESULT_ACCEPTED
 
 
@@ -157,14 +160,15 @@ class StreamService:
         return int(self.v.sim_s * 1000) & 0xFFFFFFFF
 
     def heartbeat(self):
+        v = self.v
         R = mavlink
         base = R.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | R.MAV_MODE_FLAG_STABILIZE_ENABLED
-        if self.v.mode[0] in (MAIN_AUTO, MAIN_OFFBOARD):
-            base |= R.MAV_MODE_FLAG_GUIDED_ENABLED | (R.MAV_MODE_FLAG_AUTO_ENABLED if self.v.mode[0] == MAIN_AUTO else 0)
-        if self.v.armed:
+        if v.mode[0] in (MAIN_AUTO, MAIN_OFFBOARD):
+            base |= R.MAV_MODE_FLAG_GUIDED_ENABLED | (R.MAV_MODE_FLAG_AUTO_ENABLED if v.mode[0] == MAIN_AUTO else 0)
+        if v.armed:
             base |= R.MAV_MODE_FLAG_SAFETY_ARMED
-        status = R.MAV_STATE_ACTIVE if self.v.armed else R.MAV_STATE_STANDBY
-        return R.MAVLink_heartbeat_message(R.MAV_TYPE_QUADROTOR, R.MAV_AUTOPILOT_PX4, base, self.v.custom_mode, status, 3)
+        status = R.MAV_STATE_ACTIVE if v.armed else R.MAV_STATE_STANDBY
+        return R.MAVLink_heartbeat_message(R.MAV_TYPE_QUADROTOR, R.MAV_AUTOPILOT_PX4, base, v.custom_mode, status, 3)
 
     def autopilot_version(self):
         uid = (0x4D415253 << 32) | self.v.sysid  # "MARS" + unit id
@@ -173,22 +177,24 @@ class StreamService:
             CAPABILITIES, sw, sw, 0, 0, list(b"marslink"), [0] * 8, [0] * 8, 0, 0, uid, [0] * 18)
 
     def home_position(self):
-        if self.v.home_ned is None:
+        v = self.v
+        if v.home_ned is None:
             return None
-        lat, lon, alt = self._ned_to_global(self.v.home_ned)
-        h = self.v.home_ned
+        lat, lon, alt = self._ned_to_global(v.home_ned)
+        h = v.home_ned
         return mavlink.MAVLink_home_position_message(
             lat, lon, alt, float(h[0]), float(h[1]), float(h[2]), [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0,
-            int(self.v.sim_s * 1e6))
+            int(v.sim_s * 1e6))
 
     def _landed_state(self) -> int:
+        v = self.v
         R = mavlink
-        ph = self.v.autopilot.phase
-        if self.v.landed:
+        ph = v.autopilot.phase
+        if v.landed:
             return R.MAV_LANDED_STATE_ON_GROUND
-        if self.v.source == "own" and ph == Phase.TAKEOFF:
+        if v.source == "own" and ph == Phase.TAKEOFF:
             return R.MAV_LANDED_STATE_TAKEOFF
-        if self.v.source == "own" and ph == Phase.LAND:
+        if v.source == "own" and ph == Phase.LAND:
             return R.MAV_LANDED_STATE_LANDING
         return R.MAV_LANDED_STATE_IN_AIR
 
@@ -210,8 +216,8 @@ class StreamService:
         tb = self._time_boot_ms()
         if mid == R.MAVLINK_MSG_ID_SYS_STATUS:
             mv, ca, pct = self._battery()
-            return R.MAVLink_sys_status_message(SENSORS, SENSORS, SENSORS & ~self.v._unhealthy_sensors(), 200, mv, ca, pct,
-                                                0, 0, 0, 0, 0, 0)
+            healthy = SENSORS & ~self.v._unhealthy_sensors()
+            return R.MAVLink_sys_status_message(SENSORS, SENSORS, healthy, 200, mv, ca, pct, 0, 0, 0, 0, 0, 0)
         if mid == R.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             return R.MAVLink_extended_sys_state_message(R.MAV_VTOL_STATE_UNDEFINED, self._landed_state())
         if mid == R.MAVLINK_MSG_ID_BATTERY_STATUS:
@@ -224,7 +230,8 @@ class StreamService:
         if mid == R.MAVLINK_MSG_ID_ACTUATOR_OUTPUT_STATUS:
             # what the ESCs are told (normalised, limits applied); injected faults are not visible here
             cmd = np.clip(self.v.motor_commands_n / self.v.full_scale_n, 0.0, 1.0) if self.v.armed else np.zeros(4)
-            return R.MAVLink_actuator_output_status_message(int(self.v.sim_s * 1e6), 0xF, [float(x) for x in cmd] + [0.0] * 28)
+            return R.MAVLink_actuator_output_status_message(int(self.v.sim_s * 1e6), 0xF,
+                                                            [float(x) for x in cmd] + [0.0] * 28)
         if s is None:
             return None
         q = s.quaternion_wxyz

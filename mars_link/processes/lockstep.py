@@ -575,9 +575,10 @@ class _UnitLoop:
         if sc.unit_interface == "px4-zenoh":
             from mars_link.processes.px4_link import Px4UnitLink
 
-            vehicle.px4_service.keepalive_timeout = not os.environ.get(BROKEN_KEEPALIVE_ENV)  # (conformance: a test switch)
-            vehicle.px4_service.ensure_interface()
-            self.px4_link = Px4UnitLink(ports.zenoh_session(), vehicle.px4_service.endpoint)
+            px4 = vehicle.px4_service
+            px4.keepalive_timeout = not os.environ.get(BROKEN_KEEPALIVE_ENV)  # (conformance: a test switch)
+            px4.ensure_interface()
+            self.px4_link = Px4UnitLink(ports.zenoh_session(), px4.endpoint)
             self.px4_log = open(out / px4_input_log_name(unit_id), "w", encoding="utf-8")  # (replayable)
 
     @property

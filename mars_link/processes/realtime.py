@@ -241,8 +241,8 @@ def vehicle_command(args: argparse.Namespace) -> int:
         sim.vehicle.start_ulog(UlogConfig(out / "vehicle.ulg", background=True))
     from firmware_models.vehicle_logs import LogStore
 
-    sim.vehicle.log_service.store = LogStore([args.tlog, out / "run.mcap" if out is not None else None,  # LOG_* download
-                                 out / "vehicle.ulg" if out is not None else None])
+    sim.vehicle.log_service.store = LogStore([args.tlog, out / "run.mcap" if out is not None else None,  # LOG_*
+                                              out / "vehicle.ulg" if out is not None else None])
     ep = runner.endpoints()
     s = sim.scenario
     print(f"mars-link vehicle: {s.name}, layout {','.join(s.layout)} ({sim.model.n_units} units, "

@@ -190,7 +190,8 @@ def test_a_lone_unit_flying_itself_lands_on_its_own_critical_battery() -> None:
             for p in world.sense():
                 v.hil_service.take_sensors(p, world.unit_truth(1))
             if k == 20:
-                assert v.arm() == mavlink.MAV_RESULT_ACCEPTED and v.command_service.takeoff(math.nan) == mavlink.MAV_RESULT_ACCEPTED
+                assert v.arm() == mavlink.MAV_RESULT_ACCEPTED
+                assert v.command_service.takeoff(math.nan) == mavlink.MAV_RESULT_ACCEPTED
             world.actuate(dataclasses.replace(v.hil_service.drive_motors(), unit_id=1))
             v.tick(world.t_s, world.t_s)  # heartbeats, streams and watchdogs (auto-disarm after landing)
             world.advance()
