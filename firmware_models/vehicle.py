@@ -245,8 +245,7 @@ class Vehicle:
         self.px4_service = Px4Service(self)
         self.legs = None  # mission legs between the runner and the core (mars_link.planning.mission_legs)
         # message type -> the handler, bound once (a service's method)
-        self._handlers = {t: getattr(getattr(self, member) if member else self, name)
-                          for t, (member, name) in _HANDLERS.items()}
+        self._handlers = {t: getattr(getattr(self, member), name) for t, (member, name) in _HANDLERS.items()}
         if c.ulog_path:
             self.start_ulog(c.ulog_path)
 
@@ -755,7 +754,7 @@ class Vehicle:
 
 
 
-#: message type -> (the member that serves it, its method); "": the vehicle's own
+#: message type -> (the service that serves it, its method)
 _HANDLERS: dict[str, tuple[str, str]] = {
     "COMMAND_LONG": ("command_service", "on_command"),
     "COMMAND_INT": ("command_service", "on_command"),

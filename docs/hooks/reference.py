@@ -412,8 +412,7 @@ def mavlink_page() -> str:
            "(MAV_AUTOPILOT_PX4, PX4's custom modes and parameter names) so stock clients work unchanged.\n"]
     handlers = getattr(vehicle, "_HANDLERS", {})
     out.append("## Messages received\n")
-    out.append(table(["message", "handled by"], [[f"`{m}`", f"`{'.'.join(p for p in h if p)}`"]
-                                                 for m, h in handlers.items()]))
+    out.append(table(["message", "handled by"], [[f"`{m}`", f"`{'.'.join(h)}`"] for m, h in handlers.items()]))
     cmds = _commands_in(command_files())
     out.append("## Commands (COMMAND_LONG, COMMAND_INT)\n")
     out.append(table(["command", "id"], [[f"`{c}`", getattr(R, c, "")] for c in cmds]))
