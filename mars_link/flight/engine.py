@@ -21,12 +21,11 @@ from firmware_models.vehicle import MODE_OFFBOARD
 from mars_link.core.events import EventKind, event, unit_died
 from mars_link.core.assembly import AssemblyModel
 from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
-from mars_link.mavlink.wire import hil_state_received, usec
 from mars_link.flight.metrics import STAGES
 from mars_link.runtime.pacing import Pacer
 from mars_link.config.scenario import FaultSpec, Scenario, eta_after
 from mars_link.config.scenario_sensor_faults import sensor_fault_events
-from mars_link.core.state import RigidBodyState, point_state
+from mars_link.core.state import RigidBodyState
 from mars_link.models.trajectories import Trajectory
 
 if TYPE_CHECKING:  # (a world process steps the engine without the coordinator's stack)
@@ -45,7 +44,6 @@ class InProcessUnits:
         self.dead: set[int] = set()  # units whose process died: they neither sense nor drive
         self._taken_over: set[int] = set()
         self.px4: dict | None = None  # unit id -> mars_link.px4.commander.Px4Commander: PX4's interface instead
-        self._own_state: dict[int, tuple] = {}  # unit -> its last HIL_STATE_QUATERNION not given yet: (body state, offset), usec
 
     def use_px4_interface(self, full_scale_thrust_n: float, reversible: bool) -> None:
         """Drive every unit through PX4's per-rotor interface ([units] interface = "px4-zenoh"): the same
@@ -66,29 +64,19 @@ class InProcessUnits:
 
     def take_sensors(self, packets: list[SensorPacket]) -> list[SensorPacket]:
         """The world's sensor packets into each unit; the units' telemetry to the coordinator."""
-        vehicles, world, sampled = self.vehicles, self.world, self._own_state
+        vehicles, unit_truth = self.vehicles, self.world.unit_truth
         out = []
         for p in packets:
-            u = p.unit_id
-            v = vehicles[u]
-            # the unit's own state as SITL's world sends it (processes.engine_links.unit_sensor_messages): its
-            # centre's truth in HIL_STATE_QUATERNION, at that message's precision, with each position or GPS
-            # sample of a packet that carries no truth (noise off: the packet's truth, as on the wire). A unit
-            # flying its own fail-safe flies on these numbers (given the exact truth at every step instead, a
-            # lost unit's fall differed from SITL's by 2 mm in the air and 5 cm where it came to rest)
-            if p.truth is None and (p.position is not None or p.gps is not None):
-                sampled[u] = (world.unit_truth_parts(u), usec(p.t_s))  # (the body's state object: kept, cheap)
-            # it matters only while the unit flies itself or may have to (arming, a command stream about to
-            # lapse), or logs it now (.ulg): decoded only then, the last sample's (as a SITL unit holds it)
+            v = vehicles[p.unit_id]
+            # the unit's own state (HIL_STATE_QUATERNION in SITL) matters only while it flies itself or may
+            # have to (arming, a command stream about to lapse), or logs it now (.ulg): the world computes it only
+            # then. (Given as SITL's world sends it, at the wire's precision with each position sample, paper 000's
+            # 20 Hz 3x2 lost control at 11.9 s: the exact truth until that is understood; see the parity test's
+            # unit_lost case, where a lost unit's fall differs from SITL's by 2 mm in the air, 5 cm on the ground.)
             own = (v.source != "coordinator" or not v.intake.is_live(p.t_s + v.control_dt_s)
                    or v.ulog is not None and v.ulog.due(p.t_s))
             hil = v.hil_service
-            sample = sampled.pop(u, None) if own else None
-            if sample is None:
-                out.append(hil.take_sensors(p))
-            else:
-                (body, offset), t_usec = sample
-                out.append(hil.take_sensors(p, hil_state_received(point_state(body, offset), t_usec)))
+            out.append(hil.take_sensors(p, unit_truth(p.unit_id)) if own else hil.take_sensors(p))
         return out
 
     def drive(self, commands: list[RotorCommand]) -> None:
