@@ -715,7 +715,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     and its guidance, not the scenario's trajectory, is the coordinator's reference. `timing_log`:
     coordinator_timing.csv gets each step's wall-clock times (`_TimingLog`): with the units' command_age logs,
     where a real-time step's time goes (wall time above CPU time = the coordinator waited for a CPU)."""
-    from mars_link.flight.build import make_coordinator, make_detector, make_estimator
+    from mars_link.flight.build import make_detector
     from mars_link.flight.engine import Engine, Flight
 
     sc = setup.scenario
@@ -723,11 +723,12 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     trajectory = _trajectory(sc, model)
     hosted = None
     end_s = None  # a flight of pieces: when it ends (the coordinator says so to the world)
-    if setup.pieces and vehicle is None:
+    if vehicle is None:  # a docked assembly is a flight of one piece: the one coordinator of every flight
         from mars_link.flight.build import make_pieces_coordinator
 
-        coordinator, end_s = make_pieces_coordinator(sc, model, trajectory)
-    elif vehicle is not None:  # (one body or pieces: the vehicle flies until stopped)
+        coordinator, pieces_end_s = make_pieces_coordinator(sc, model, trajectory)
+        end_s = pieces_end_s if setup.pieces else None
+    else:  # (one body or pieces: the vehicle flies until stopped)
         from mars_link.processes.vehicle_host import HostedVehicle
 
         detector = None if setup.pieces else make_detector(sc, model, float(_start_pose(setup)[0][2]))
@@ -739,9 +740,6 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
             return 2
         coordinator = hosted.coordinator
         print(json.dumps({"vehicle": hosted.endpoints()}), flush=True)
-    else:
-        coordinator = make_coordinator(sc, model, trajectory, make_estimator(sc, model),
-                                       make_detector(sc, model, float(_start_pose(setup)[0][2])))
     stop = _Stop()
     link = Link(ports.open("coordinator"), COORDINATOR_SYSID, key=key)
     scale = model.vehicle.full_scale_thrust_n
@@ -791,7 +789,7 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         pieces = {} if not setup.pieces else {"pieces_final": coordinator.pieces_final(), "failed": coordinator.failed,
                                               "plan": coordinator.executor.plan.to_json()}
         write_json(out / "coordinator_summary.json",
-            {"events": coordinator.all_events() if setup.pieces else coordinator.events, **pieces,
+            {"events": coordinator.all_events() if hosted is None else coordinator.events, **pieces,
              "lost_units": linked.lost, "dropped": link.dropped, "cpu_s": time.process_time(),
              "detections": [{"t_detected": round(d.t_detected, 6), "unit": d.unit, "rotor": d.rotor,
                              "eta_estimated": round(float(d.eta_estimated), 4), "reason": d.reason}
