@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 
@@ -15,7 +16,8 @@ def print_summary(summary: dict, out: Path) -> None:
     def fig(key: str, form: str) -> str:
         """A summary figure, or "n/a" where this mode does not measure it (the SITL pieces: no body tilt)."""
         value = summary.get(key)
-        return "n/a" if value is None else format(value, form)
+        unknown = value is None or (isinstance(value, float) and math.isnan(value))  # (NaN: null in summary.json)
+        return "n/a" if unknown else format(value, form)
 
     rows = [
         ("layout / preset", f"{','.join(summary['layout'])} / {summary['preset']}"),

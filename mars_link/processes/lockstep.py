@@ -744,7 +744,8 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     link = Link(ports.open("coordinator"), COORDINATOR_SYSID, key=key)
     scale = model.vehicle.full_scale_thrust_n
     out.mkdir(parents=True, exist_ok=True)
-    pieces_log = SafeWriter.open(out / "pieces_steps.csv") if setup.pieces else None  # (a full disk stops it)
+    # the coordinator's step record for the summary (its reference and mission clock; a full disk stops it)
+    pieces_log = SafeWriter.open(out / "pieces_steps.csv") if vehicle is None else None
     if pieces_log:
         pieces_log.write("t_s,mission,mission_t_s,ref_n_m,ref_e_m,ref_d_m,tracked_units,pieces\n")
     timing = SafeWriter.open(out / "coordinator_timing.csv") if timing_log else None
@@ -786,8 +787,12 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         except LinksEnded:
             pass
         linked.finish()
-        pieces = {} if not setup.pieces else {"pieces_final": coordinator.pieces_final(), "failed": coordinator.failed,
-                                              "plan": coordinator.executor.plan.to_json()}
+        pieces = {}
+        if hosted is None:  # (what the in-process result says of the pieces: runner.trial_result)
+            plan = coordinator.executor.plan
+            pieces = {"pieces_final": coordinator.pieces_final(), "failed": coordinator.failed,
+                      "shift_s": coordinator.executor.shift_s,
+                      "plan": plan.to_json() if plan.disassembly_layers or plan.assembly_layers else None}
         write_json(out / "coordinator_summary.json",
             {"events": coordinator.all_events() if hosted is None else coordinator.events, **pieces,
              "lost_units": linked.lost, "dropped": link.dropped, "cpu_s": time.process_time(),

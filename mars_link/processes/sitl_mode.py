@@ -274,7 +274,6 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
     check_unit_interface(scenario, link)
     if external_offboard:
         external_offboard_units(",".join(map(str, external_offboard)), scenario)  # (what it cannot carry: refused)
-    pieces = scenario.has_pieces
     seed = scenario.sim.seed if seed is None else seed
     if not _sets_faults_known(scenario):  # SITL: the coordinator learns faults from what it observes
         scenario = replace(scenario, faults_known=False)
@@ -311,9 +310,6 @@ def run_sitl_scenario(scenario, out: Path, seed: int | None = None, link: LinkSp
         raise EnvironmentFailure(f"SITL run could not start (exit {code}); process logs in {out}: {logs}")
     failure = None if code == 0 else f"a process of the run died (exit {code}; logs in {out}: {logs})"
     held = session.wake_latency.state if session.wake_latency is not None else None
-    if pieces:
-        return summarize_sitl_pieces_run(scenario, out, seed, wall, session.link, realtime, plots, plot_format,
-                                         failure=failure)
     return summarize_sitl_run(scenario, out, seed, wall, session.link, plots, realtime, held, plot_format,
                               failure=failure, tracked=not external, external_offboard=external_offboard)
 
@@ -396,11 +392,8 @@ def _summarize_interrupted(scenario, out: Path, seed: int, wall_s: float, sessio
     if not (out / "world_summary.json").exists() or not (out / "world_truth.csv").exists():
         return
     failure = f"interrupted by {'SIGTERM' if isinstance(exc, Terminated) else 'SIGINT'}"
-    if scenario.has_pieces:
-        summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link, plots=False, failure=failure)
-    else:
-        summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False, failure=failure,
-                           tracked=not external_offboard, external_offboard=external_offboard)
+    summarize_sitl_run(scenario, out, seed, wall_s, session.link, plots=False, failure=failure,
+                       tracked=not external_offboard, external_offboard=external_offboard)
 
 
 def _sets_faults_known(scenario) -> bool:
@@ -469,14 +462,25 @@ def _scheduling_classes(out: Path, world: dict, coordinator: dict) -> dict:
     return {"world": world.get("scheduling"), "coordinator": coordinator.get("scheduling"), "units": sorted(units)}
 
 
-def _end_reason(scenario, trajectory, world: dict, diverged_at: float | None, failure: str | None) -> str | None:
-    """Why a SITL flight ended before its duration (None: flown to the end). Whatever stopped it (a signal,
-    a shutdown command, a dead process), a flight that did not reach its duration is not completed."""
+def _end_reason(scenario, trajectory, world: dict, metrics, coordinator_failed: str | None, failure: str | None,
+                judge_duration: bool) -> str | None:
+    """Why a SITL flight ended before its end (None: flown to the end). Whatever stopped it (a signal, a
+    shutdown command, a dead process), a flight that did not reach its duration is not completed;
+    `judge_duration` False: the flight has no fixed duration to judge by (its coordinator ends a flight of
+    pieces; clients fly `sitl up --vehicle` until stopped)."""
     from mars_link.flight.metrics import ended_early_reason
 
     sim_t = float(world.get("sim_time_s", 0.0))
-    if diverged_at is not None:
-        return f"diverged at {diverged_at:.2f} s"
+    if metrics.diverged:
+        at = (metrics.divergence or {}).get("t_s")
+        return "diverged" if at is None else f"diverged at {at:.2f} s"
+    if coordinator_failed:
+        return "the coordinator's mission failed"
+    if not judge_duration:
+        if not scenario.has_pieces:
+            return failure
+        why = failure or ("stopped" if world.get("stopped") else None)
+        return None if why is None else f"{why} at {sim_t:.2f} s"
     duration = scenario.sim.duration_s or trajectory.duration_s
     why = failure or ("stopped" if world.get("stopped") else "the world ended")
     early = ended_early_reason(sim_t, duration, scenario.sim.control_hz, why)
@@ -487,82 +491,69 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
                        realtime: bool = False, cpu_wake_latency: str | None = None, plot_format: str = "png",
                        failure: str | None = None, tracked: bool = True,
                        external_offboard: tuple[int, ...] = ()) -> dict:
-    """Errors, tilt and the run files from the world's truth log, as the in-process runner reports them.
-    `tracked` False (`sitl up --vehicle`: the clients' commands are the reference, not the scenario's
-    trajectory): no tracking error (null figures, NaN reference columns), and stopping it is its end.
-    `external_offboard`: the units an off-board computer outside the run drove (not tracked either: the
-    coordinator flew none of them); the flight still ends at the run's duration."""
-    from mars_link.flight.build import make_trajectory, tracked_offset
-    from mars_link.flight.metrics import TrackingMetrics, TrialResult, summarize
-    from mars_link.core.rotations import quat_to_euler, quat_to_rotmat
-    from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, UNIT_LOG_HZ, RunLog
+    """summary.json of a SITL run, one body or several, with the in-process keys: the processes' figures become
+    a `TrialResult` and go through the in-process `summarize` (mars_link.flight.metrics). The tracked point's
+    error and the tilt come from the world's truth log (the world's process owns the truth), the reference and
+    the mission's clock from the coordinator's step log (pieces_steps.csv; a docked flight without one, flown
+    by clients or an off-board computer, flies the scenario's trajectory from the start).
+    `tracked` False (`sitl up --vehicle`: the clients' commands are the reference): no tracking error (null
+    figures, NaN reference columns), and stopping it is its end. `external_offboard`: the units an off-board
+    computer outside the run drove (not tracked either); the flight still ends at the run's duration."""
+    from mars_link.flight.build import make_trajectory
+    from mars_link.flight.metrics import TrialResult, summarize
+    from mars_link.flight.recorder import units_lost_from_truth
+    from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
 
-    from mars_link.core.rotations import tilt_deg
-
-    tracking = tracked
     model = scenario.model()
     trajectory = make_trajectory(scenario, model)
-    offset = tracked_offset(model, scenario)
     truth = _read_csv(out / "world_truth.csv")
     world = _read_json(out / "world_summary.json")
     coordinator = _read_json(out / "coordinator_summary.json")
+    steps = _read_steps(out / "pieces_steps.csv")
     log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX)
-    metrics = TrackingMetrics()
-    events = []
-    nan3 = [math.nan] * 3  # (the world's truth log has the body's pose only: no estimate, no unit velocities)
-    unit_offsets = np.array([model.unit_position(u) for u in model.unit_ids])
-    next_unit_t = 0.0
     try:
-        for row in truth:
-            t = float(row["t_s"])
-            pos = np.array([row["pos_n_m"], row["pos_e_m"], row["pos_d_m"]])
-            q = np.array([row["qw"], row["qx"], row["qy"], row["qz"]])
-            tracked = pos + quat_to_rotmat(q) @ offset
-            roll, pitch, yaw = quat_to_euler(q)
-            if tracking:
-                ref = trajectory.sample(t).position_ned_m
-                err, _ = metrics.add(t, tracked, ref, q)
-            else:
-                ref, err = nan3, math.nan
-                metrics.n += 1
-                metrics.max_tilt_deg = max(metrics.max_tilt_deg, tilt_deg(q))
-            log.telemetry([0, t, *ref, *tracked, math.degrees(roll), math.degrees(pitch), math.degrees(yaw), err,
-                           *nan3, *nan3, *pos, t, 1])
-            if t + 1e-9 >= next_unit_t:  # units.csv: every unit's centre on the one body, at 20 Hz
-                next_unit_t = t + 1.0 / UNIT_LOG_HZ
-                centres = (pos + unit_offsets @ quat_to_rotmat(q).T).tolist()
-                attitude = [math.degrees(roll), math.degrees(pitch), math.degrees(yaw)]
-                log.units(0, [[t, u, *centres[k], *nan3, *attitude, len(unit_offsets)]
-                              for k, u in enumerate(model.unit_ids)])
-            if metrics.diverged:
-                events.append(metrics.divergence)
-                break
+        track = _TruthOfBodies if any(n.endswith("_n_m") and n.startswith("u") for n in truth.dtype.names) else _TruthOfOne
+        unit_truth, metrics = track(scenario, model, truth, log).replay(steps, trajectory if tracked else None)
         force_integral = _write_rotor_log(log, scenario, model, out)
     finally:
         log.close()
-    no_rows = metrics.n == 0  # (the world logged nothing: NaN figures, never a clean 0 m)
-    coord_events = coordinator.get("events", [])
-    for death in world.get("deaths", []):
-        events.append(unit_died(death["t_s"], death["unit"]))
+    sim_t = float(world.get("sim_time_s", 0.0))
+    last_t = float(truth["t_s"][-1]) if len(truth) else -1.0
+    events = [event(f.t_s, EventKind.FAULT, unit=f.unit, rotor=f.rotor, eta=f.eta, text=f.event_text())
+              for f in scenario.faults if f.t_s <= last_t + 1e-9]  # (the world applies them as they come due)
+    events += [unit_died(d["t_s"], d["unit"]) for d in world.get("deaths", [])]
+    events += [e for e in world.get("latch_events", []) if e["type"] == "dock_latched"]
     events += foreign_traffic_events(out, model.unit_ids)
-    events += sensor_fault_events(scenario.sensor_faults, scenario.sim.control_hz, float(truth["t_s"][-1]) if len(truth) else -1.0)
-    end_reason = _end_reason(scenario, trajectory, world, (metrics.divergence or {}).get("t_s") if metrics.diverged
-                             else None, failure) if tracking or external_offboard else failure
+    events += sensor_fault_events(scenario.sensor_faults, scenario.sim.control_hz, last_t)
+    events += coordinator.get("events", [])
+    if metrics.diverged and metrics.divergence:
+        events.append(metrics.divergence)
+    events.sort(key=lambda e: e.get("t_s", 0.0))
+    kinds = [e["type"] for e in events]
+    no_rows = metrics.n == 0  # (nothing tracked: NaN figures, never a clean 0 m)
+    end_reason = _end_reason(scenario, trajectory, world, metrics, coordinator.get("failed"), failure,
+                             judge_duration=(tracked or bool(external_offboard)) and not scenario.has_pieces)
+    begun = next((e["t_s"] for e in events if e["type"] == "reconfig_start"), None)
+    reconfigured = "reconfig_done" in kinds
     result = TrialResult(
         seed=seed, completed=end_reason is None, end_reason=end_reason, diverged=metrics.diverged,
         mean_error_m=math.nan if no_rows else metrics.mean_error_m, rmse_m=math.nan if no_rows else metrics.rmse_m,
-        max_error_m=math.nan if no_rows else metrics.max_error_m,
-        sim_time_s=float(world.get("sim_time_s", 0.0)), wall_time_s=wall_s,
+        max_error_m=math.nan if no_rows else metrics.max_error_m, sim_time_s=sim_t, wall_time_s=wall_s,
         force_integral_n2s=float(world.get("force_integral_n2s", force_integral)),
-        max_tilt_deg=math.nan if no_rows else metrics.max_tilt_deg,
-        events=sorted(events + list(coord_events), key=lambda e: e.get("t_s", 0.0)),
-        control_steps=metrics.n,
-        detections=_detections(scenario, coordinator, world),
-    )
-    summary = summarize(scenario, [result], seed, mode="sitl")
-    if not tracking:
+        max_tilt_deg=math.nan if no_rows or not track.has_attitude else metrics.max_tilt_deg,
+        events=events, control_steps=metrics.n, detections=_detections(scenario, coordinator, world),
+        reconfigured=reconfigured,
+        reconfig_time_s=float(coordinator.get("shift_s", 0.0)) if reconfigured else (sim_t - begun if begun is not None else 0.0),
+        plan=coordinator.get("plan"), assembled="assembly_done" in kinds,
+        min_clearance_m=math.nan,  # (the bodies' shapes are the world's: not in its truth log)
+        pieces_final=coordinator.get("pieces_final", []), mission_force_integral_n2s=math.nan,
+        units_lost=units_lost_from_truth(events, unit_truth, -model.vehicle.gear_depth_m),
+        unit_rows=log.unit_rows, telemetry_rows=log.telemetry_rows)
+    summary = summarize(scenario, [result], seed, mode="sitl-pieces" if scenario.has_pieces else "sitl")
+    if not tracked:
         summary.update(mode="sitl-external-offboard" if external_offboard else "sitl-vehicle", mean_error_m=None,
                        mean_error_std_m=None, rmse_m=None, max_error_m=None)
+    summary["bodies_final"] = world.get("bodies", [])
     summary["sitl"] = {
         "transport": link.kind,
         "bus": link.bus(),
@@ -572,6 +563,7 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
         "dead_units": world.get("dead_units", []),
         "world_dropped": world.get("dropped", {}),
         "coordinator_dropped": coordinator.get("dropped", {}),
+        "lost_units": coordinator.get("lost_units", []),
         "realtime": realtime,
         "rotor_bounds_n": [model.vehicle.rotor_min_thrust_n, model.vehicle.rotor_max_thrust_n],
         "faults_known": scenario.faults_known,
@@ -588,13 +580,129 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     from mars_link.flight.runner import write_plots_safely, write_summary
 
     if plots and log.telemetry_rows:
-        from mars_link.flight.plots import write_run_plots
+        from mars_link.flight.plots import write_flight_plots
 
-        write_plots_safely(log, lambda: write_run_plots(out, log.telemetry_rows, log.rotor_rows, model, scenario.name,
-                                                        summary.get("events", ()), plot_format))
+        write_plots_safely(log, lambda: write_flight_plots(out, log, scenario, summary.get("events", ()), plot_format))
     summary["logging"] = _logging_status(log.status(), world, out, scenario)
     write_summary(out, summary)
     return summary
+
+
+def _read_steps(path: Path) -> dict[float, tuple]:
+    """The coordinator's step log (pieces_steps.csv): t -> (mission flies, its clock, the reference, the units
+    carrying the tracked point, the number of pieces); {} without one (no coordinator ran)."""
+    steps: dict[float, tuple] = {}
+    if not path.exists():
+        return steps
+    with open(path, encoding="utf-8") as f:
+        next(f, None)
+        for line in f:
+            fields = line.rstrip("\n").split(",")
+            if len(fields) != 8:  # (a torn last line)
+                continue
+            t, mission, mission_t, rn, re, rd, tracked_units, n_pieces = fields
+            steps[round(float(t), 6)] = (mission == "1", float(mission_t), np.array([float(rn), float(re), float(rd)]),
+                                         [int(u) for u in tracked_units.split()], int(n_pieces))
+    return steps
+
+
+class _TruthOfOne:
+    """The world's truth log of one rigid body (t_s, pos_n_m.., qw..): the tracked point and the tilt at every
+    step, each unit's centre on the body (units.csv at UNIT_LOG_HZ, and the units' truth for `units_lost`)."""
+
+    has_attitude = True
+
+    def __init__(self, scenario, model, truth, log) -> None:
+        from mars_link.flight.build import tracked_offset
+
+        self.scenario, self.model, self.truth, self.log = scenario, model, truth, log
+        self.offset = tracked_offset(model, scenario)
+        self.unit_offsets = np.array([model.unit_position(u) for u in model.unit_ids])
+
+    def replay(self, steps: dict, trajectory):
+        from mars_link.core.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
+        from mars_link.flight.metrics import TrackingMetrics
+        from mars_link.flight.run_log import UNIT_LOG_HZ
+
+        metrics = TrackingMetrics()
+        nan3 = [math.nan] * 3
+        centres_by_step = []
+        next_unit_t = 0.0
+        for row in self.truth:
+            t = float(row["t_s"])
+            pos = np.array([row["pos_n_m"], row["pos_e_m"], row["pos_d_m"]])
+            q = np.array([row["qw"], row["qx"], row["qy"], row["qz"]])
+            r = quat_to_rotmat(q)
+            tracked = pos + r @ self.offset
+            centres = pos + self.unit_offsets @ r.T
+            centres_by_step.append(centres)
+            roll, pitch, yaw = (math.degrees(a) for a in quat_to_euler(q))
+            step = steps.get(round(t, 6))
+            if trajectory is not None and (step is None or step[0]):  # the mission flies (or no coordinator said)
+                ref = trajectory.sample(t).position_ned_m if step is None else step[2]
+                err, _ = metrics.add(t, tracked, ref, q)
+            else:  # (clients fly it: no reference, the tilt still counts)
+                ref, err = nan3, math.nan
+                metrics.n += 1
+                metrics.max_tilt_deg = max(metrics.max_tilt_deg, tilt_deg(q))
+            mission_t = t if step is None else step[1]
+            self.log.telemetry([0, t, *ref, *tracked, roll, pitch, yaw, err, *nan3, *nan3, *pos, mission_t, 1])
+            if t + 1e-9 >= next_unit_t:  # units.csv: every unit's centre on the one body
+                next_unit_t = t + 1.0 / UNIT_LOG_HZ
+                self.log.units(0, [[t, u, *centres[k], *nan3, roll, pitch, yaw, len(self.unit_offsets)]
+                                   for k, u in enumerate(self.model.unit_ids)])
+            if metrics.diverged:
+                break
+        return _unit_columns(self.truth["t_s"][:len(centres_by_step)], self.model.unit_ids, centres_by_step), metrics
+
+
+class _TruthOfBodies:
+    """The world's truth log of several bodies (t_s, u<id>_n_m, _e_m, _d_m: each unit's centre): the tracked
+    point while the mission flies (the tracked unit's centre, else the mean of the units carrying it), and
+    units.csv. The log has no attitude: no tilt (NaN)."""
+
+    has_attitude = False
+
+    def __init__(self, scenario, model, truth, log) -> None:
+        self.scenario, self.model, self.truth, self.log = scenario, model, truth, log
+
+    def replay(self, steps: dict, trajectory):
+        from mars_link.flight.metrics import DIVERGENCE_ERROR_M, TrackingMetrics
+        from mars_link.flight.run_log import UNIT_LOG_HZ
+
+        metrics = TrackingMetrics()
+        nan3 = [math.nan] * 3
+        tracked_unit = self.scenario.tracked_unit()
+        for row in self.truth:
+            step = steps.get(round(float(row["t_s"]), 6))
+            if step is None or not step[0]:
+                continue
+            _, mission_t, ref, units, n_pieces = step
+            centres = [np.array([row[f"u{u}_n_m"], row[f"u{u}_e_m"], row[f"u{u}_d_m"]])
+                       for u in ([tracked_unit] if tracked_unit is not None else units)]
+            pos = np.mean(centres, axis=0)
+            err = float(np.linalg.norm(pos - ref))
+            metrics.add_error(err)
+            if not err < DIVERGENCE_ERROR_M and not metrics.diverged:
+                metrics.mark_diverged(float(row["t_s"]), err, math.nan, phase="mission")
+            self.log.telemetry([0, float(row["t_s"]), *ref, *pos, *nan3, err, *nan3, *nan3, *nan3, mission_t, n_pieces])
+        every = max(1, int(round(self.scenario.sim.control_hz / UNIT_LOG_HZ)))
+        unit_ids = sorted(int(n[1:-4]) for n in self.truth.dtype.names if n.startswith("u") and n.endswith("_n_m"))
+        for row in self.truth[::every]:  # (the world logs positions: velocity and attitude are not in units.csv here)
+            self.log.units(0, [[float(row["t_s"]), u, row[f"u{u}_n_m"], row[f"u{u}_e_m"], row[f"u{u}_d_m"], *nan3,
+                                *nan3, math.nan] for u in unit_ids])
+        return self.truth, metrics
+
+
+def _unit_columns(t_s, unit_ids, centres_by_step: list[np.ndarray]):
+    """Each unit's centre as the truth log of several bodies has it (t_s, u<id>_n_m, ...): for `units_lost`."""
+    names = ["t_s"] + [f"u{u}_{c}" for u in unit_ids for c in ("n_m", "e_m", "d_m")]
+    table = np.zeros(len(centres_by_step), dtype=[(n, float) for n in names])
+    table["t_s"] = t_s
+    for k, u in enumerate(unit_ids):
+        for j, c in enumerate(("n_m", "e_m", "d_m")):
+            table[f"u{u}_{c}"] = [centres[k][j] for centres in centres_by_step]
+    return table
 
 
 def foreign_traffic_events(out: Path, unit_ids) -> list[dict]:
@@ -626,95 +734,6 @@ def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
         if reason:
             stopped.append(reason)
     return {**own, "complete": not stopped, "stopped_reason": stopped[0] if stopped else None, "stopped": stopped}
-
-
-def summarize_sitl_pieces_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec,
-                              realtime: bool = False, plots: bool = True, plot_format: str = "png",
-                              failure: str | None = None) -> dict:
-    """The summary of a flight of pieces in SITL, with the in-process keys (mars_link.flight.metrics.summarize): the
-    tracked point's error while the mission flies, from the world's per-unit truth and the coordinator's
-    per-step record of the mission (its clock, reference and the units carrying the tracked point)."""
-    from mars_link.flight.metrics import DIVERGENCE_ERROR_M, TrackingMetrics, plan_records
-    from mars_link.flight.run_log import ROTOR_LOG_HZ, UNIT_LOG_HZ, RunLog
-    from mars_link.flight.recorder import units_lost_from_truth
-    from mars_link.logs.outputs import write_json
-
-    world = _read_json(out / "world_summary.json")
-    coordinator = _read_json(out / "coordinator_summary.json")
-    truth = _read_csv(out / "world_truth.csv")
-    steps = {}
-    with open(out / "pieces_steps.csv", encoding="utf-8") as f:
-        next(f)
-        for line in f:
-            t, mission, mission_t, rn, re, rd, tracked_units, n_pieces = line.rstrip("\n").split(",")
-            steps[round(float(t), 6)] = (mission == "1", float(mission_t), np.array([float(rn), float(re), float(rd)]),
-                                         [int(u) for u in tracked_units.split()], int(n_pieces))
-    tracked_unit = scenario.tracked_unit()
-    metrics = TrackingMetrics()
-    log = RunLog(out, scenario.model(), rotor_log_hz=ROTOR_LOG_HZ)  # (telemetry.csv as in process; units.csv below)
-    nan3 = [math.nan] * 3
-    try:
-        for row in truth:
-            step = steps.get(round(float(row["t_s"]), 6))
-            if step is None or not step[0]:
-                continue
-            _, mission_t, ref, units, n_pieces = step
-            centres = [np.array([row[f"u{u}_n_m"], row[f"u{u}_e_m"], row[f"u{u}_d_m"]])
-                       for u in ([tracked_unit] if tracked_unit is not None else units)]
-            pos = np.mean(centres, axis=0)
-            err = float(np.linalg.norm(pos - ref))
-            metrics.add_error(err)
-            if not err < DIVERGENCE_ERROR_M:
-                metrics.mark_diverged(float(row["t_s"]), err, math.nan, phase="mission")
-            log.telemetry([0, float(row["t_s"]), *ref, *pos, *nan3, err, *nan3, *nan3, *nan3, mission_t, n_pieces])
-        every = max(1, int(round(scenario.sim.control_hz / UNIT_LOG_HZ)))
-        unit_ids = sorted(int(name[1:-4]) for name in truth.dtype.names if name.startswith("u") and name.endswith("_n_m"))
-        for row in truth[::every]:  # (the world logs positions: velocity and attitude are not in units.csv here)
-            log.units(0, [[float(row["t_s"]), u, row[f"u{u}_n_m"], row[f"u{u}_e_m"], row[f"u{u}_d_m"], *nan3, *nan3,
-                           math.nan] for u in unit_ids])
-    finally:
-        log.close()
-    faults = [event(f.t_s, EventKind.FAULT, unit=f.unit, rotor=f.rotor, eta=f.eta, text=f.event_text())
-              for f in scenario.faults]
-    deaths = [unit_died(d["t_s"], d["unit"]) for d in world.get("deaths", [])]
-    deaths += sensor_fault_events(scenario.sensor_faults, scenario.sim.control_hz,
-                                  float(truth["t_s"][-1]) if len(truth) else -1.0)
-    latched = [e for e in world.get("latch_events", []) if e["type"] == "dock_latched"]
-    events = sorted(coordinator.get("events", []) + latched + faults + deaths
-                    + foreign_traffic_events(out, scenario.model().unit_ids), key=lambda e: e["t_s"])
-    kinds = [e["type"] for e in events]
-    sim_t, wall = float(world.get("sim_time_s", 0.0)), wall_s
-    end_reason = (f"diverged at {metrics.divergence['t_s']:.2f} s" if metrics.diverged and metrics.divergence
-                  else "diverged" if metrics.diverged else f"{failure} at {sim_t:.2f} s" if failure
-                  else "the coordinator's mission failed" if coordinator.get("failed")
-                  else f"stopped at {sim_t:.2f} s" if world.get("stopped") else None)
-    summary = {
-        "scenario": scenario.name, "source": scenario.source, "mode": "sitl-pieces", "layout": list(scenario.layout),
-        "preset": scenario.preset, "controller": scenario.controller, "ftc": scenario.ftc, "seed": seed, "trials": 1,
-        "noise": scenario.sim.noise, "faults_known": scenario.faults_known,
-        "physics_hz": scenario.sim.physics_hz, "control_hz": scenario.sim.control_hz,
-        "completed": end_reason is None, "end_reason": end_reason,
-        "diverged": metrics.diverged, "reconfigured": "reconfig_done" in kinds,
-        "mean_error_m": metrics.mean_error_m if metrics.n else math.nan, "mean_error_std_m": 0.0,  # (one trial)
-        "rmse_m": metrics.rmse_m if metrics.n else math.nan, "max_error_m": metrics.max_error_m if metrics.n else math.nan,
-        "sim_time_s": sim_t, "wall_time_s": wall, "real_time_factor": sim_t / wall if wall > 0 else math.inf,
-        "force_integral_n2s": float(world.get("force_integral_n2s", math.nan)),
-        "start": scenario.start, "assembled": "assembly_done" in kinds,
-        "pieces_final": coordinator.get("pieces_final", []), "bodies_final": world.get("bodies", []),
-        "units_lost": units_lost_from_truth(events, truth, -scenario.model().vehicle.gear_depth_m),
-        "plans": plan_records(events),
-        "plan": coordinator.get("plan"), "events": [dict(e, trial=0) for e in events],
-        "sitl": {"transport": link.kind, "bus": link.bus(), "realtime": realtime, "world_real_time_factor": world.get("real_time_factor"),
-                 "world_cores_idle_fraction": world.get("cores_idle_fraction"),
-                 "dead_units": world.get("dead_units", []), "world_dropped": world.get("dropped", {}),
-                 "coordinator_dropped": coordinator.get("dropped", {}), "lost_units": coordinator.get("lost_units", [])},
-    }
-    write_json(out / "summary.json", summary)
-    if plots:  # the in-process flight's figures, from the world's truth of every unit (20 Hz) and the events
-        from mars_link.flight.plots import write_pieces_plots
-
-        write_pieces_plots(out, log.unit_rows, log.telemetry_rows, events, scenario.name, plot_format)
-    return summary
 
 
 def _write_rotor_log(log, scenario, model, out: Path) -> float:
@@ -1061,13 +1080,9 @@ def _finish_sitl_up(session: SitlSession, args, out: Path, wall_s: float, failur
     scenario = session.run.setup.scenario
     seed = scenario.sim.seed if args.seed is None else args.seed
     try:
-        if scenario.has_pieces:
-            summary = summarize_sitl_pieces_run(scenario, out, seed, wall_s, session.link, args.realtime,
-                                                plot_format=getattr(args, "plot_format", "png"), failure=failure)
-        else:
-            summary = summarize_sitl_run(scenario, out, seed, wall_s, session.link, True, args.realtime,
-                                         plot_format=getattr(args, "plot_format", "png"), failure=failure,
-                                         tracked=not vehicle)
+        summary = summarize_sitl_run(scenario, out, seed, wall_s, session.link, True, args.realtime,
+                                     plot_format=getattr(args, "plot_format", "png"), failure=failure,
+                                     tracked=not vehicle)
     except Exception as exc:  # (after the flight: what the logs cannot give is one line, never a traceback)
         print(f"sitl: no summary of this run ({type(exc).__name__}: {exc})", file=sys.stderr)
         return

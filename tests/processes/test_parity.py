@@ -217,7 +217,7 @@ def _assert_the_latches_travel_as_mavlink(sitl: dict, out: Path, capsys) -> None
     """docking_3x1 on the wire: unit 1 reported its latches open after the split and latched again after the
     dock; its commands opened its right latch (controls[4] = the latches to open). And the run's figures and
     what `mars-link run --mode sitl` prints of a flight of pieces (a missing key was a traceback)."""
-    assert {p.stem for p in (out / "plots").iterdir()} == {"units", "error"}
+    assert {p.stem for p in (out / "plots").iterdir()} == {"units", "error", "flight"}  # (the in-process figures and replay)
     print_summary(sitl, out)
     printed = capsys.readouterr().out
     assert "rmse / max error" in printed and "max tilt" in printed and "n/a deg" in printed

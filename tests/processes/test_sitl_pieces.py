@@ -42,7 +42,7 @@ def test_a_unit_process_sigkilled_during_a_dock_approach_is_lost_and_the_run_fin
     import time
 
     from mars_link.processes.udp_runner import read_status
-    from mars_link.processes.sitl_mode import start_sitl, summarize_sitl_pieces_run, write_scenario_copy
+    from mars_link.processes.sitl_mode import start_sitl, summarize_sitl_run, write_scenario_copy
 
     sc = load_scenario("assemble_3x2")
     out = tmp_path / "run"
@@ -62,7 +62,7 @@ def test_a_unit_process_sigkilled_during_a_dock_approach_is_lost_and_the_run_fin
     t0 = time.monotonic()
     code = session.wait(timeout_s=600, units_may_die=True)
     assert code == 0
-    summary = summarize_sitl_pieces_run(sc, out, 1, time.monotonic() - t0, LinkSpec("zenoh"))
+    summary = summarize_sitl_run(sc, out, 1, time.monotonic() - t0, LinkSpec("zenoh"))
     kinds = [e["type"] for e in summary["events"]]
     assert "unit_lost" in kinds and "unit_died" in kinds
     assert "assembly_replanned" in kinds or "assembly_abandoned" in kinds
