@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -240,8 +239,8 @@ class HilService:
         v._next_control = packet.t_s + v.control_dt_s
         esc = v._esc_sample(packet.t_s)
         if packet.battery is not None:  # forwarded with the unit's remaining-charge estimate
-            return dataclasses.replace(packet, battery=v._measure_battery(packet.battery, packet.t_s), esc=esc)
-        return packet if esc is None else dataclasses.replace(packet, esc=esc)
+            return packet.replaced(battery=v._measure_battery(packet.battery, packet.t_s), esc=esc)
+        return packet if esc is None else packet.replaced(esc=esc)
 
     def take_rotor_command(self, cmd: RotorCommand) -> bool:
         """A coordinator command (SET_ACTUATOR_CONTROL_TARGET's values); True if it is now held."""

@@ -59,6 +59,17 @@ class Body:
     jsbsim: JsbsimBody
     offsets_frd_m: np.ndarray  # (n, 3) unit centres from the body's CoM
     slots: np.ndarray  # the world's rotor slots of the body's rotors, in its local order
+    _centres: tuple | None = field(default=None, init=False, repr=False)  # (state, `centres_ned_m` of it)
+
+    def centres_ned_m(self, state: RigidBodyState) -> np.ndarray:
+        """The units' centres (NED, in the body's order) at `state`, the body's state of a step (kept for it:
+        the dock check after a step and the clearance the recorder reads before the next use the same)."""
+        kept = self._centres
+        if kept is not None and kept[0] is state:
+            return kept[1]
+        centres = state.position_ned_m + (quat_to_rotmat(state.quaternion_wxyz) @ self.offsets_frd_m.T).T
+        self._centres = (state, centres)
+        return centres
 
     @property
     def cells(self) -> dict[int, tuple[int, int]]:
@@ -158,6 +169,8 @@ class World:
 
     def _index_bodies(self) -> None:
         self._body_of = {u: b for b in self.bodies for u in b.units}
+        owner = np.array([i for i, b in enumerate(self.bodies) for _ in b.units])
+        self._same_body = owner[:, None] == owner[None, :]  # (unit pairs of one body: `min_clearance_m`)
         self._single = len(self.bodies) == 1 and self.bodies[0].units == tuple(self.model.unit_ids)
         self.air.attach(b.jsbsim for b in self.bodies)
 
@@ -297,12 +310,14 @@ class World:
         pitch = self.model.vehicle.pitch_m
         bodies = self.bodies
         states = [b.jsbsim.state() for b in bodies]
-        centres = [s.position_ned_m + (quat_to_rotmat(s.quaternion_wxyz) @ b.offsets_frd_m.T).T
-                   for s, b in zip(states, bodies)]
+        centres = [b.centres_ned_m(s) for s, b in zip(states, bodies)]
+        # (the bodies' CoMs and reach as floats: most pairs are far apart, and numpy's norm of a 3-vector
+        # costs ~3 us a pair; a pair within reach is judged on the unit centres, as ever)
+        coms = [s.position_ned_m.tolist() for s in states]
+        reach = [b.radius_m for b in bodies]
         for i in range(len(bodies)):
             for j in range(i + 1, len(bodies)):
-                gap = np.linalg.norm(states[i].position_ned_m - states[j].position_ned_m)
-                if gap > bodies[i].radius_m + bodies[j].radius_m + pitch + 0.1:
+                if math.dist(coms[i], coms[j]) > reach[i] + reach[j] + pitch + 0.1:  # (a margin of 0.1 m)
                     continue
                 d = np.linalg.norm(centres[i][:, None, :] - centres[j][None, :, :], axis=2)
                 for a_k, b_k in zip(*np.nonzero(np.abs(d - pitch) < 2 * tol.position_m + 0.05)):
@@ -419,15 +434,9 @@ class World:
         unit counted as a disc of its pitch); inf with one body. Negative means two bodies overlap."""
         if len(self.bodies) < 2:
             return math.inf
-        centres, owner = [], []
-        for i, b in enumerate(self.bodies):
-            s = b.jsbsim.state()
-            centres.append(s.position_ned_m + (quat_to_rotmat(s.quaternion_wxyz) @ b.offsets_frd_m.T).T)
-            owner += [i] * len(b.units)
-        p = np.concatenate(centres)
-        owner = np.array(owner)
+        p = np.concatenate([b.centres_ned_m(b.jsbsim.state()) for b in self.bodies])
         d = np.linalg.norm(p[:, None, :] - p[None, :, :], axis=2)
-        d[owner[:, None] == owner[None, :]] = np.inf
+        d[self._same_body] = np.inf
         return float(d.min()) - self.model.vehicle.pitch_m
 
     def truth_row(self) -> list[float]:

@@ -88,7 +88,17 @@ class EscSample:
 
 def wire_esc(t_s: float, rpm, current_a) -> EscSample:
     """An EscSample at ESC_STATUS precision: rpm rounded to int32, current to float32, time to microseconds."""
-    whole = tuple(min(max(int(round(float(x))), -_INT32_MAX - 1), _INT32_MAX) for x in rpm)
+    rpm = rpm.tolist() if isinstance(rpm, np.ndarray) else rpm
+    whole = tuple([round(float(x)) for x in rpm])
+    if whole and (min(whole) < -_INT32_MAX - 1 or max(whole) > _INT32_MAX):  # (clamped only when needed)
+        whole = tuple([min(max(x, -_INT32_MAX - 1), _INT32_MAX) for x in whole])
+    amps = current_a.tolist() if isinstance(current_a, np.ndarray) and current_a.ndim == 1 else current_a
+    packer = _F32_PACKERS.get(len(amps)) if isinstance(amps, (list, tuple)) else None
+    if packer is not None:  # every unit's ESC sample: struct's float32 rounding, 4x cheaper than numpy's casts
+        try:
+            return EscSample(wire_time(t_s), whole, packer.unpack(packer.pack(*amps)))
+        except (OverflowError, struct.error):  # beyond float32's range (numpy's cast gives inf), or not numbers
+            pass
     return EscSample(wire_time(t_s), whole, tuple(float(x) for x in f32(current_a)))
 
 
@@ -123,6 +133,18 @@ class SensorPacket:
                                                           float(f32(self.baro.altitude_amsl_m)))
         mag = None if self.mag is None else MagSample(t, self.unit_id, f32(self.mag.field_frd_gauss))
         return SensorPacket(t, self.unit_id, imu, pos, truth, self.latches, self.gps, baro, mag, self.battery, self.esc)
+
+    def replaced(self, **changes) -> "SensorPacket":
+        """`dataclasses.replace(self, **changes)` for the hot path (a unit's packet with its ESC sample, every
+        other step): a copy of the fields, without replace's per-call look-up of them (2.1 us -> 0.6 us)."""
+        new = object.__new__(type(self))
+        fields = new.__dict__
+        fields.update(self.__dict__)
+        for name in changes:
+            if name not in fields:
+                raise TypeError(f"SensorPacket has no field {name!r}")
+        fields.update(changes)
+        return new
 
 
 @dataclass

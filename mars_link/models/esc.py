@@ -147,34 +147,57 @@ class EscSensor:
         self._t_last = t_s
         etas = eta.tolist() if isinstance(eta, np.ndarray) else [float(e) for e in eta]
         commands = commands_n.tolist() if isinstance(commands_n, np.ndarray) else [float(x) for x in commands_n]
+        kind = self.kind
         # eta 0 of the default kind is a motor off (firmware_models.motor): the ESC sees it stopped
-        stopped = [k == "motor-stop" or (k == "eta" and e <= 0.0) for k, e in zip(self.kind, etas)]
+        # (the usual step: every rotor of the default kind and eta > 0, none stopped: judged at once)
+        if kind == _ALL_ETA and min(etas) > 0.0:
+            stopped = _NONE_STOPPED
+        else:
+            stopped = [k == "motor-stop" or (k == "eta" and e <= 0.0) for k, e in zip(kind, etas)]
         alpha, lo, hi, speed = self._alpha(dt), self._lo, self._hi, self._speed
-        lagged = c.time_constant_s > 0.0
-        for i in range(ROTORS_PER_UNIT):  # MotorConstants.clamp, then .lag, on each motor
-            x = commands[i]
-            setpoint = 0.0 if stopped[i] else min(max(x if math.isfinite(x) else 0.0, lo), hi)
-            speed[i] = speed[i] + alpha * (setpoint - speed[i]) if lagged else setpoint
+        if c.time_constant_s > 0.0 and stopped is _NONE_STOPPED and math.isfinite(sum(commands)):
+            # MotorConstants.clamp, then .lag, on four finite commands (the same operations as below)
+            s0, s1, s2, s3 = speed
+            x0, x1, x2, x3 = commands
+            speed[0] = s0 + alpha * (min(max(x0, lo), hi) - s0)
+            speed[1] = s1 + alpha * (min(max(x1, lo), hi) - s1)
+            speed[2] = s2 + alpha * (min(max(x2, lo), hi) - s2)
+            speed[3] = s3 + alpha * (min(max(x3, lo), hi) - s3)
+        else:
+            lagged = c.time_constant_s > 0.0
+            for i in range(ROTORS_PER_UNIT):  # MotorConstants.clamp, then .lag, on each motor
+                x = commands[i]
+                setpoint = 0.0 if stopped[i] else min(max(x if math.isfinite(x) else 0.0, lo), hi)
+                speed[i] = speed[i] + alpha * (setpoint - speed[i]) if lagged else setpoint
         if t_s < self._next_s - 1e-9 or self.failure == "off":
             return None
         self._next_s = max(self._next_s + 1.0 / self.params.rate_hz, t_s)
         if self.failure == "stuck" and self._held is not None:
             return EscSample(t_s, self._held.rpm, self._held.current_a)
-        # (MotorConstants.rpm and .load_current_a, on four floats; the noise drawn as four at a time, as ever)
+        # (MotorConstants.rpm and .load_current_a, on four floats; the noise of all eight values drawn at once:
+        # `normal(0, sigma, 4)` twice is sigma times the same eight standard normals, the same numbers)
         p = self.params
-        rpm_fs, fs, per_a = c.rpm_at_full_scale, c.full_scale_n, c.torque_per_thrust_m
+        rpm_fs, fs, per_a, kt = c.rpm_at_full_scale, c.full_scale_n, c.torque_per_thrust_m, c.torque_constant_nm_per_a
+        i0, sqrt, over_p = c.no_load_current_a, math.sqrt, p.overspeed_unloaded
+        z = self.rng.standard_normal(2 * ROTORS_PER_UNIT).tolist() if self.noise else None
+        rpm_sigma, amp_sigma = p.rpm_noise, p.current_noise_a
         rpm, current = [], []
         for i in range(ROTORS_PER_UNIT):
             x = speed[i]
             lost = 1.0 - min(max(etas[i], 0.0), 1.0)
             sign = (x > 0.0) - (x < 0.0)
-            over = p.overspeed_unloaded if self.kind[i] == "prop-loss" else 0.0
-            rpm.append(sign * rpm_fs * math.sqrt(abs(x) / fs) * (1.0 + over * lost))
-            current.append(0.0 if stopped[i] else c.no_load_current_a + (1.0 - lost) * (per_a * abs(x) / c.torque_constant_nm_per_a))
-        if self.noise:
-            d_rpm = self.rng.normal(0.0, p.rpm_noise, ROTORS_PER_UNIT).tolist()
-            d_cur = self.rng.normal(0.0, p.current_noise_a, ROTORS_PER_UNIT).tolist()
-            rpm = [r + d * (1.0 if r != 0.0 else 0.0) for r, d in zip(rpm, d_rpm)]
-            current = [a + d * (1.0 if a != 0.0 else 0.0) for a, d in zip(current, d_cur)]
-        self._held = wire_esc(t_s, rpm, [max(a, 0.0) for a in current])
+            over = over_p if kind[i] == "prop-loss" else 0.0
+            r = sign * rpm_fs * sqrt(abs(x) / fs) * (1.0 + over * lost)
+            a = 0.0 if stopped[i] else i0 + (1.0 - lost) * (per_a * abs(x) / kt)
+            if z is not None:  # (a stopped motor reports no noise)
+                r = r + rpm_sigma * z[i] * (1.0 if r != 0.0 else 0.0)
+                a = a + amp_sigma * z[ROTORS_PER_UNIT + i] * (1.0 if a != 0.0 else 0.0)
+            rpm.append(r)
+            current.append(0.0 if 0.0 > a else a)  # (max(a, 0.0))
+        self._held = wire_esc(t_s, rpm, current)
         return self._held
+
+
+#: `EscSensor.sample`'s usual step: every rotor of the default fault kind, none stopped
+_ALL_ETA = ["eta"] * ROTORS_PER_UNIT
+_NONE_STOPPED = [False] * ROTORS_PER_UNIT
