@@ -22,6 +22,7 @@ pymavlink unchanged. Errors raise pymavlink's MAVError with pymavlink's reasons.
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 import struct
 from dataclasses import dataclass
@@ -40,6 +41,7 @@ _HEADER_V2 = struct.Struct("<BBBBBBBHB")
 #: a generated pymavlink message class (its class attributes describe the wire layout)
 MessageClass = type[mavlink.MAVLink_message]
 _CRC = struct.Struct("<H")
+_SIGNATURE_HEAD = struct.Struct("<BQ")  # link id and timestamp; the timestamp is sent as its 6 low bytes
 
 
 @dataclass(frozen=True)
@@ -164,26 +166,39 @@ def decode(frame: bytearray, fallback: mavlink.MAVLink) -> mavlink.MAVLink_messa
 
 
 def encode(msg: mavlink.MAVLink_message, mav: mavlink.MAVLink) -> bytes:
-    """The bytes `msg.pack(mav)` returns (and the same attributes set on `msg`); a signing `mav` is
-    left to pymavlink."""
-    if mav.signing.sign_outgoing:
-        return msg.pack(mav)
+    """The bytes `msg.pack(mav)` returns (and the same attributes set on `msg`), signed when `mav` signs
+    (its signing timestamp advanced by one per frame, as pymavlink does)."""
     msg_id = msg._header.msgId
     plan = _plan_for(msg_id)
     if plan is None or type(msg) is not plan.cls:
         return msg.pack(mav)
+    signing = mav.signing
+    flags = mavlink.MAVLINK_IFLAG_SIGNED if signing.sign_outgoing else 0
     payload = plan.cls.unpacker.pack(*plan.to_wire(msg))
     trimmed = payload.rstrip(b"\x00") or payload[:1]  # MAVLink 2 trailing-zero truncation (>= 1 byte)
-    header = _HEADER_V2.pack(MAGIC_V2, len(trimmed), 0, 0, mav.seq, mav.srcSystem, mav.srcComponent,
+    header = _HEADER_V2.pack(MAGIC_V2, len(trimmed), flags, 0, mav.seq, mav.srcSystem, mav.srcComponent,
                              msg_id & 0xFFFF, msg_id >> 16)
     body = header + trimmed
     crc = mcrf4xx(plan.crc_extra_byte, mcrf4xx(body[1:], 0xFFFF))
     frame = body + _CRC.pack(crc)
+    if flags:
+        frame += _SIGNATURE_HEAD.pack(signing.link_id, signing.timestamp)[:7]  # link id, 48-bit timestamp
+        keyed = _keyed_sha256(bytes(signing.secret_key)).copy()
+        keyed.update(frame)
+        frame += keyed.digest()[:6]
+        signing.timestamp += 1
     msg._payload = trimmed
-    msg._header = mavlink.MAVLink_header(msg_id, 0, 0, len(trimmed), mav.seq, mav.srcSystem, mav.srcComponent)
+    msg._header = mavlink.MAVLink_header(msg_id, flags, 0, len(trimmed), mav.seq, mav.srcSystem, mav.srcComponent)
     msg._msgbuf = bytearray(frame)
     msg._crc = crc
     return frame
+
+
+@functools.lru_cache(maxsize=8)
+def _keyed_sha256(key: bytes) -> "hashlib._Hash":
+    """SHA-256 that has taken the signing key (copied per frame: the key is hashed once per link, not per
+    frame)."""
+    return hashlib.sha256(key)
 
 
 # ----------------------------------------------------------------------------- frames of a byte string

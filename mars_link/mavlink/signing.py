@@ -103,6 +103,7 @@ class SignatureVerifier:
 
     def __init__(self, key: bytes) -> None:
         self.key = _check_key(key)
+        self._keyed = hashlib.sha256(self.key)  # (copied per frame: the key is hashed once)
         self.local_timestamp = 0  # advanced by the wall clock and by genuine frames
         self.streams: dict[tuple[int, int, int], int] = {}
         self.counters: dict[str, int] = {}
@@ -118,7 +119,9 @@ class SignatureVerifier:
             return self._count(UNSIGNED)
         if len(frame) < 10 + 2 + SIGNATURE_BLOCK_LEN or frame[1] + 10 + 2 + SIGNATURE_BLOCK_LEN != len(frame):
             return self._count(MALFORMED)
-        digest = hashlib.sha256(self.key + bytes(frame[:-6])).digest()[:6]
+        keyed = self._keyed.copy()
+        keyed.update(memoryview(frame)[:-6])
+        digest = keyed.digest()[:6]
         if not hmac.compare_digest(digest, bytes(frame[-6:])):
             return self._count(BAD_SIGNATURE)  # no state touched: a forger cannot poison a stream
         link_id = frame[-13]
