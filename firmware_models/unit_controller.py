@@ -215,6 +215,13 @@ class UnitAutopilot:
             and abs(state.velocity_ned_mps[2]) < TOUCH_SPEED_MPS
         )
 
+    def may_arm(self, state: RigidBodyState) -> bool:
+        """On its ground, as far as arming goes: within TOUCH_HEIGHT_M of it, whatever the vertical speed. A
+        unit's state message (HIL_STATE_QUATERNION) carries no contact flag, and a body that settles on its
+        gear when the world starts (at 200 Hz physics, up to 0.56 m/s at the outer units of a 3x2) is on the
+        ground, not in the air."""
+        return state.on_ground or state.position_ned_m[2] > self.ground_z_m - TOUCH_HEIGHT_M
+
     def update(self, t_s: float, state: RigidBodyState, lim: GuidanceLimits, land_speed_mps: float) -> tuple[np.ndarray, str | None]:
         """Rotor thrusts for this control step, and an event name when a phase finished
         ("takeoff_done", "landed", "rtl_home")."""

@@ -237,7 +237,7 @@ class CommandService:
                 return R.MAV_RESULT_ACCEPTED
             if v.state is None:
                 return self.refuse(R.MAV_RESULT_TEMPORARILY_REJECTED, "no position estimate yet")
-            if not v.autopilot.touching(v.state):
+            if not v.autopilot.may_arm(v.state):
                 return self.refuse(R.MAV_RESULT_DENIED, "not on the ground")  # never arm in the air
             v.armed = True
             v.home_ned = np.array(v.state.position_ned_m, dtype=float)

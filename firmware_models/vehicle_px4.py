@@ -133,7 +133,7 @@ class Px4Service:
             return None
         if self.v.state is None:
             result = VehicleCommandAck.VEHICLE_CMD_RESULT_TEMPORARILY_REJECTED
-        elif not self.v.autopilot.touching(self.v.state):
+        elif not self.v.autopilot.may_arm(self.v.state):
             result = VehicleCommandAck.VEHICLE_CMD_RESULT_DENIED
         else:
             return None

@@ -16,16 +16,18 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Callable, Protocol
 
 import numpy as np
+from pymavlink.dialects.v20.common import MAV_RESULT_ACCEPTED
 
 from firmware_models.vehicle import MODE_OFFBOARD
 from mars_link.core.events import EventKind, event, unit_died
 from mars_link.core.assembly import AssemblyModel
 from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
+from mars_link.mavlink.wire import hil_state_received, usec
 from mars_link.flight.metrics import STAGES
 from mars_link.runtime.pacing import Pacer
 from mars_link.config.scenario import FaultSpec, Scenario, eta_after
 from mars_link.config.scenario_sensor_faults import sensor_fault_events
-from mars_link.core.state import RigidBodyState
+from mars_link.core.state import RigidBodyState, point_state
 from mars_link.models.trajectories import Trajectory
 
 if TYPE_CHECKING:  # (a world process steps the engine without the coordinator's stack)
@@ -42,8 +44,10 @@ class InProcessUnits:
         self.vehicles = vehicles  # unit id -> firmware_models.vehicle.Vehicle
         self.world = world
         self.dead: set[int] = set()  # units whose process died: they neither sense nor drive
-        self._taken_over: set[int] = set()
+        self._taken_over: set[int] = set()  # units armed and in OFFBOARD under the coordinator
+        self._accepted: dict[int, set[str]] = {}  # unit -> what of the take-over it accepted so far
         self.px4: dict | None = None  # unit id -> mars_link.px4.commander.Px4Commander: PX4's interface instead
+        self._own_state: dict[int, tuple] = {}  # unit -> its last HIL_STATE_QUATERNION not given yet: (body state, offset), usec
 
     def use_px4_interface(self, full_scale_thrust_n: float, reversible: bool) -> None:
         """Drive every unit through PX4's per-rotor interface ([units] interface = "px4-zenoh"): the same
@@ -64,19 +68,29 @@ class InProcessUnits:
 
     def take_sensors(self, packets: list[SensorPacket]) -> list[SensorPacket]:
         """The world's sensor packets into each unit; the units' telemetry to the coordinator."""
-        vehicles, unit_truth = self.vehicles, self.world.unit_truth
+        vehicles, world, sampled = self.vehicles, self.world, self._own_state
         out = []
         for p in packets:
-            v = vehicles[p.unit_id]
-            # the unit's own state (HIL_STATE_QUATERNION in SITL) matters only while it flies itself or may
-            # have to (arming, a command stream about to lapse), or logs it now (.ulg): the world computes it only
-            # then. (Given as SITL's world sends it, at the wire's precision with each position sample, paper 000's
-            # 20 Hz 3x2 lost control at 11.9 s: the exact truth until that is understood; see the parity test's
-            # unit_lost case, where a lost unit's fall differs from SITL's by 2 mm in the air, 5 cm on the ground.)
+            u = p.unit_id
+            v = vehicles[u]
+            # the unit's own state as SITL's world sends it (processes.engine_links.unit_sensor_messages): its
+            # centre's truth in HIL_STATE_QUATERNION, at that message's precision, with each position or GPS
+            # sample of a packet that carries no truth (noise off: the packet's truth, as on the wire). A unit
+            # flying its own fail-safe flies on these numbers (given the exact truth at every step instead, a
+            # lost unit's fall differed from SITL's by 2 mm in the air and 5 cm where it came to rest)
+            if p.truth is None and (p.position is not None or p.gps is not None):
+                sampled[u] = (world.unit_truth_parts(u), usec(p.t_s))  # (the body's state object: kept, cheap)
+            # it matters only while the unit flies itself or may have to (arming, a command stream about to
+            # lapse), or logs it now (.ulg): decoded only then, the last sample's (as a SITL unit holds it)
             own = (v.source != "coordinator" or not v.intake.is_live(p.t_s + v.control_dt_s)
                    or v.ulog is not None and v.ulog.due(p.t_s))
             hil = v.hil_service
-            out.append(hil.take_sensors(p, unit_truth(p.unit_id)) if own else hil.take_sensors(p))
+            sample = sampled.pop(u, None) if own else None
+            if sample is None:
+                out.append(hil.take_sensors(p))
+            else:
+                (body, offset), t_usec = sample
+                out.append(hil.take_sensors(p, hil_state_received(point_state(body, offset), t_usec)))
         return out
 
     def drive(self, commands: list[RotorCommand]) -> None:
@@ -144,14 +158,24 @@ class InProcessUnits:
         v = self.vehicles[cmd.unit_id]
         if self.px4 is not None:
             return self._command_px4(v, cmd)
-        if cmd.unit_id not in self._taken_over:  # ARM before the first command, OFFBOARD after it
-            v.arm()
-            v.hil_service.take_rotor_command(cmd)
-            v.set_mode(MODE_OFFBOARD)
-            self._taken_over.add(cmd.unit_id)
+        u = cmd.unit_id
+        if u not in self._taken_over:  # the take-over: as SITL's coordinator sends it with every command
+            self._take_over(v, cmd, self._accepted.setdefault(u, set()))
         else:
             v.hil_service.take_rotor_command(cmd)
         return v.hil_service.drive_motors()
+
+    def _take_over(self, v, cmd: RotorCommand, accepted: set[str]) -> None:
+        """ARM before the command, OFFBOARD after it, each again with every command until the unit accepted
+        it (as processes.engine_links._with_takeover): a unit without a state yet refuses to arm for now
+        (TEMPORARILY_REJECTED, PX4's pre-arm check) and is asked again at the next step."""
+        if "arm" not in accepted and v.arm() == MAV_RESULT_ACCEPTED:
+            accepted.add("arm")
+        v.hil_service.take_rotor_command(cmd)
+        if "offboard" not in accepted and v.set_mode(MODE_OFFBOARD) == MAV_RESULT_ACCEPTED:
+            accepted.add("offboard")
+        if len(accepted) == 2:
+            self._taken_over.add(cmd.unit_id)
 
     def _command_px4(self, v, cmd: RotorCommand) -> ActuatorOutput:
         from mars_link.px4.rmw_zenoh import VEHICLE_COMMAND_ACK

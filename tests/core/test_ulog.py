@@ -37,6 +37,7 @@ from pyulog import ULog  # noqa: E402
 from firmware_models.vehicle_ulog import attach_ulogs, close_ulogs  # noqa: E402
 from firmware_models import px4_topics as T  # noqa: E402
 from mars_link.logs.ulog import Field, Topic, UlogWriter  # noqa: E402
+from mars_link.mavlink.wire import hil_state_received  # noqa: E402
 
 #: per topic: the fields (name -> ULog type) every .ulg of a unit must hold, as PX4 names and types them
 UNIT_FIELDS = {
@@ -177,7 +178,8 @@ def test_inprocess_units_write_ulogs_of_their_truth_and_fault(tmp_path) -> None:
                 continue
             matched += 1
             pos = np.array([lp["x"][i], lp["y"][i], lp["z"][i]])
-            assert np.linalg.norm(pos - s.position_ned_m) < 1e-3  # (float32 of the truth itself)
+            # the unit's own state as a SITL unit holds it: the truth through HIL_STATE_QUATERNION (1e-7 deg, mm)
+            assert np.linalg.norm(pos - hil_state_received(s, int(t)).position_ned_m) < 1e-6
             q = np.array([att[f"q[{k}]"][i] for k in range(4)])
             assert abs(abs(float(q @ s.quaternion_wxyz)) - 1.0) < 1e-6  # the same rotation
         assert matched >= len(lp["timestamp"]) - 2

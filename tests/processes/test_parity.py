@@ -84,9 +84,7 @@ LINKS = {"zenoh": LinkSpec("zenoh"), "udp": LinkSpec("udp"), "px4-zenoh": LinkSp
 #: the cases of the default run: one per link
 DEFAULT = {("spiral", "zenoh"), ("battery", "udp")}  # (one case per transport; the rest, px4-zenoh included: -m long)
 #: known differences, each a bug to find (strict: a case that starts to pass says so)
-KNOWN = {"unit_lost": "a lost unit's own fail-safe flies on the exact truth in process, on HIL_STATE_QUATERNION's "
-                      "numbers in SITL: its fall differs by about 2 mm in the air, 5 cm on the ground (giving in-process "
-                      "units the wire's numbers made paper 000's 20 Hz 3x2 cascaded spiral lose control: not understood yet)"}
+KNOWN: dict[str, str] = {}
 
 
 def _marks(feature: str, transport: str) -> list:
