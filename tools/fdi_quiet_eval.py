@@ -10,8 +10,9 @@ on the `--sensors` [sensors] profile, with the units' ESC telemetry on and/or of
 esc_telemetry`). Each layout flies the trajectory of its bundled multi-fault scenario, with the faults
 taken out: 3x3 and 3x2 on paper 000's spiral, plus5 on the spiral, donut (4x4 ring of paper 001) on its
 helix. Every detection of such a flight is a false one. Prints a progress line per flight, then a
-markdown table of detections per layout x ESC (and the seeds that had any); writes quiet.md and
-quiet.json to --out. Exit 0 when no flight detected anything, 1 otherwise, 2 for bad arguments.
+markdown table of `fault_detected` events (and `fault_retracted`, their later withdrawals) per layout x
+ESC, with the seeds that had any; writes quiet.md and quiet.json to --out. Exit 0 when no flight
+detected anything, 1 otherwise, 2 for bad arguments.
 """
 
 from __future__ import annotations
@@ -62,7 +63,9 @@ def quiet_flight(layout: str, esc: bool, seed: int, duration_s: float, environme
 
     t0 = time.perf_counter()
     r = run_trial(quiet_scenario(layout, esc, duration_s, environment, sensors), seed)
+    kinds = [e.get("type") for e in r.events]
     return {"layout": layout, "esc": esc, "seed": seed, "completed": bool(r.completed),
+            "fault_detected": kinds.count("fault_detected"), "fault_retracted": kinds.count("fault_retracted"),
             "detections": [dict(d) for d in r.detections], "wall_s": time.perf_counter() - t0}
 
 
@@ -127,14 +130,15 @@ def describe(d: dict) -> str:
 def markdown(rows: list[dict], args: argparse.Namespace) -> str:
     lines = [f"Fault-free flights of {args.duration:g} s, wind {args.wind} m/s NED, turbulence {args.turbulence}, "
              f"sensors {args.sensors}, seeds {args.seeds}.", "",
-             "| layout | ESC telemetry | flights | completed | detections | seeds with detections |",
-             "|---|---|---|---|---|---|"]
+             "| layout | ESC telemetry | flights | completed | fault_detected | fault_retracted | seeds with detections |",
+             "|---|---|---|---|---|---|---|"]
     for layout in args.layout_list:
         for esc in args.esc_list:
             rs = [r for r in rows if r["layout"] == layout and r["esc"] == esc]
-            bad = [f"{r['seed']} ({len(r['detections'])})" for r in rs if r["detections"]]
+            bad = [f"{r['seed']} ({r['fault_detected']})" for r in rs if r["fault_detected"]]
             lines.append(f"| {layout} | {'on' if esc else 'off'} | {len(rs)} | {sum(r['completed'] for r in rs)} "
-                         f"| {sum(len(r['detections']) for r in rs)} | {', '.join(bad) or '-'} |")
+                         f"| {sum(r['fault_detected'] for r in rs)} | {sum(r['fault_retracted'] for r in rs)} "
+                         f"| {', '.join(bad) or '-'} |")
     return "\n".join(lines) + "\n"
 
 
@@ -161,7 +165,8 @@ def main(argv: list[str] | None = None) -> int:
             return
         r = outcome.value
         found = ", ".join(describe(d) for d in r["detections"]) or "none"
-        print(f"{head}: {len(r['detections'])} detection(s) {found}; completed {r['completed']}, "
+        print(f"{head}: {r['fault_detected']} fault_detected, {r['fault_retracted']} fault_retracted ({found}); "
+              f"completed {r['completed']}, "
               f"{r['wall_s']:.0f} s wall", file=sys.stderr, flush=True)
 
     rows = values_or_raise(map_flights(call, tasks, pool_from_args(args), on_done), "quiet flight")
@@ -174,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     (out / "quiet.json").write_text(json.dumps({"args": {k: v for k, v in vars(args).items()
                                                          if isinstance(v, (str, int, float, list, dict, type(None)))},
                                                 "flights": rows}, indent=1, default=str), encoding="utf-8")
-    return 0 if all(not r["detections"] for r in rows) else 1
+    return 0 if all(not r["fault_detected"] and not r["detections"] for r in rows) else 1
 
 
 if __name__ == "__main__":

@@ -57,7 +57,8 @@ def test_fdi_quiet_eval_table_and_bad_arguments(capsys) -> None:
     assert "--layouts" in capsys.readouterr().err
     assert tool.parse_seeds("1-3,7") == [1, 2, 3, 7]
     args = tool.parse(["--seeds", "2,3", "--layouts", "3x3", "--esc", "off"])
-    rows = [{"layout": "3x3", "esc": False, "seed": 2, "completed": True, "detections": []},
-            {"layout": "3x3", "esc": False, "seed": 3, "completed": True,
+    rows = [{"layout": "3x3", "esc": False, "seed": 2, "completed": True, "detections": [], "fault_detected": 0,
+             "fault_retracted": 0},
+            {"layout": "3x3", "esc": False, "seed": 3, "completed": True, "fault_detected": 1, "fault_retracted": 0,
              "detections": [{"unit": 5, "rotor": None, "eta_estimated": 0.0, "t_detected": 26.33}]}]
-    assert "| 3x3 | off | 2 | 2 | 1 | 3 (1) |" in tool.markdown(rows, args)
+    assert "| 3x3 | off | 2 | 2 | 1 | 0 | 3 (1) |" in tool.markdown(rows, args)
