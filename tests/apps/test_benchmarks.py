@@ -5,12 +5,13 @@ figures, and the benchmarks page is generated from those files (docs/hooks/bench
 from __future__ import annotations
 
 import datetime
-import importlib.util
 import json
 import os
 import subprocess
 import sys
 from pathlib import Path
+
+from repo_files import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 BENCH = ROOT / "benchmarks"
@@ -41,10 +42,7 @@ def _env(**extra: str) -> dict:
 
 
 def _hook():
-    spec = importlib.util.spec_from_file_location("docs_benchmarks_hook", ROOT / "docs" / "hooks" / "benchmarks.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("docs/hooks/benchmarks.py")
 
 
 def test_every_benchmark_takes_json_and_the_long_ones_quick():

@@ -17,16 +17,14 @@ import pytest
 from mars_link.apps.cli import build_parser
 from mars_link.core.errors import UserInputError
 from mars_link.config.scenario import resolve_scenario_path, scenario_from_dict
+from repo_files import load_script
 
 ROOT = Path(__file__).resolve().parents[2]
 README = ROOT / "README.md"
 
 
 def reference_module():
-    spec = importlib.util.spec_from_file_location("docs_reference_hook", ROOT / "docs" / "hooks" / "reference.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("docs/hooks/reference.py")
 
 
 def parsers_of(parser: argparse.ArgumentParser):

@@ -286,12 +286,10 @@ def test_live_foxglove_view_of_sitl_up(tmp_path):
 
 def test_layout_file_is_the_generated_one_and_names_our_topics():
     """tools/mars_link_foxglove_layout.json = what tools/foxglove_layout.py builds (foxglove.layouts), on our topics."""
-    import importlib.util
+    from repo_files import load_script
 
     root = Path(__file__).resolve().parents[2]
-    spec = importlib.util.spec_from_file_location("foxglove_layout", root / "tools" / "foxglove_layout.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_script("tools/foxglove_layout.py")
     text = (root / "tools" / "mars_link_foxglove_layout.json").read_text()
     assert json.loads(text) == json.loads(mod.layout(6).to_json())
     for topic in ("/scene", "/error.error_m", "/rotors.thrust_n[23]", "/events"):

@@ -458,14 +458,9 @@ def test_runner_unit_process_death_mid_spiral_is_survived():
 
 
 def _fdi_tool():
-    import importlib.util
-    from pathlib import Path
+    from repo_files import load_script
 
-    path = Path(__file__).resolve().parents[2] / "tools" / "fdi_eval.py"
-    spec = importlib.util.spec_from_file_location("fdi_eval", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("tools/fdi_eval.py")
 
 
 @pytest.mark.parametrize(

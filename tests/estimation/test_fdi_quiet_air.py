@@ -7,12 +7,10 @@ its centre unit at 10.36 s (seed 3) and 12.61 s (seed 6)."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import pytest
 
 from mars_link.flight.runner import run_trial
+from repo_files import load_script
 
 pytestmark = pytest.mark.slow
 
@@ -20,11 +18,7 @@ AIR = {"wind_ned_mps": [5.0, 0.0, 0.0], "turbulence": "moderate"}
 
 
 def _tool():
-    path = Path(__file__).resolve().parents[2] / "tools" / "fdi_quiet_eval.py"
-    spec = importlib.util.spec_from_file_location("fdi_quiet_eval", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("tools/fdi_quiet_eval.py")
 
 
 def _detections(layout: str, seed: int, duration_s: float, esc: bool = False) -> list[dict]:

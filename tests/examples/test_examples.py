@@ -224,11 +224,9 @@ def test_fault_and_plot_writes_the_figure_and_flies_on(tmp_path: Path) -> None:
 # ----------------------------------------------------------------------------- the listing
 def test_every_example_is_listed_documented_and_run_here() -> None:
     """A new script in examples/ is named in its README (so in the docs page made from it) and run above."""
-    import importlib.util
+    from repo_files import load_script
 
-    spec = importlib.util.spec_from_file_location("docs_examples_hook", EXAMPLES.parent / "docs" / "hooks" / "examples.py")
-    hook = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(hook)
+    hook = load_script("docs/hooks/examples.py")
     page = hook.examples_page()
     readme = (EXAMPLES / "README.md").read_text(encoding="utf-8")
     this_file = Path(__file__).read_text(encoding="utf-8")
