@@ -17,6 +17,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.params import decode_value, encode_value
+from machine import CpuWindow
 from mars_link.mavlink.signing import advance_outgoing_clock, enable_outgoing_signing
 from mars_link.processes.udp_runner import read_status, spawn_unit, stop_unit
 
@@ -242,6 +243,56 @@ print(sent, time.monotonic() - start)
 """
 
 
+def test_a_flood_from_a_second_sender_leaves_the_signed_client_its_acks_in_its_own_clock() -> None:
+    """The unit's logic of the test below, sans-IO on the unit's own wall clock (no machine's speed in it):
+    4 s of 5,000 PARAM_REQUEST_LIST/s from system 77 and a signed client's command every 50 ms on the API
+    link. Every command is ACKed at once; the flood's replies stop at its sender's budget (burst, then
+    the rate); a heartbeat goes out every second."""
+    import numpy as np
+
+    from firmware_models.vehicle import Vehicle, VehicleConfig
+    from firmware_models.vehicle_links import LinkPolicy
+    from mars_link.core.state import RigidBodyState
+
+    t0 = 1_700_000_000.0
+    v = Vehicle(VehicleConfig(unit_id=UNIT, signing_key=KEY, sign_client_links=True), t0)
+    v.set_state(RigidBodyState(0.0, np.zeros(3), np.zeros(3), np.array([1.0, 0, 0, 0]), np.zeros(3), on_ground=True))
+    client = mavlink.MAVLink(None, srcSystem=245, srcComponent=190)
+    enable_outgoing_signing(client, KEY, 3, t0)
+    flood = bytes(mavlink.MAVLink_param_request_list_message(UNIT, 1).pack(mavlink.MAVLink(None, 77, 190)))
+    policy, seconds, tick_s = LinkPolicy(), 4.0, 0.01
+    sent = acked = flood_replies = 0
+    beats: list[float] = []
+    for k in range(int(seconds / tick_s)):
+        now = t0 + k * tick_s
+        out = []
+        for _ in range(int(FLOOD_HZ * tick_s)):
+            out += v.handle(flood, now, "api")
+        flood_replies += sum(_count(o.data, "PARAM_VALUE") for o in out)
+        if k % 5 == 0:  # (every 50 ms)
+            advance_outgoing_clock(client, now)
+            cmd = mavlink.MAVLink_command_long_message(UNIT, 1, mavlink.MAV_CMD_REQUEST_MESSAGE, 0,
+                                                       mavlink.MAVLINK_MSG_ID_HEARTBEAT, 0, 0, 0, 0, 0, 0)
+            sent += 1
+            acked += sum(_count(o.data, "COMMAND_ACK") for o in v.handle(cmd.pack(client), now, "api"))
+        for o in v.tick(now, k * tick_s):
+            if o.link == "api" and _count(o.data, "HEARTBEAT"):
+                beats.append(now - t0)
+    asked = int(FLOOD_HZ * seconds)
+    print(f"flood {asked} requests: {flood_replies} PARAM_VALUE replies; client {acked}/{sent} ACKs; "
+          f"{len(beats)} heartbeats")
+    assert sent == 80 and acked == sent
+    assert flood_replies <= policy.reply_burst + policy.reply_rate_hz * seconds  # its own budget, no more
+    assert v.drop_counts().get("reply_rate_limited", 0) > 0
+    assert len(beats) >= seconds - 1 and max(b - a for a, b in zip(beats, beats[1:])) <= 1.0 + 1e-6
+
+
+def _count(data: bytes, kind: str) -> int:
+    parser = mavlink.MAVLink(None)
+    parser.robust_parsing = True
+    return sum(1 for m in (parser.parse_buffer(data) or []) if m.get_type() == kind)
+
+
 def test_a_flood_from_a_second_sender_leaves_the_signed_client_its_acks(unit) -> None:
     """5,000 PARAM_REQUEST_LIST/s (19 replies each) from another system id on the same link; the signed
     client's commands (20/s) keep >= 95 % of their ACKs and its heartbeats keep coming (each sender has
@@ -253,15 +304,17 @@ def test_a_flood_from_a_second_sender_leaves_the_signed_client_its_acks(unit) ->
     try:
         time.sleep(1.0)
         sent = acked = 0
-        t_end = time.monotonic() + 4.0
-        while time.monotonic() < t_end:
-            cmd_since = time.monotonic()
-            signed.send(R.MAVLink_command_long_message(UNIT, 1, R.MAV_CMD_REQUEST_MESSAGE, 0,
-                                                       R.MAVLINK_MSG_ID_HEARTBEAT, 0, 0, 0, 0, 0, 0))
-            sent += 1
-            if signed.wait_for(lambda m: m.get_type() == "COMMAND_ACK" and m.target_system == 245, 0.5, cmd_since):
-                acked += 1
-            time.sleep(max(0.0, 0.05 - (time.monotonic() - cmd_since)))
+        with CpuWindow() as cpu:
+            t_end = time.monotonic() + 4.0
+            while time.monotonic() < t_end:
+                cmd_since = time.monotonic()
+                signed.send(R.MAVLink_command_long_message(UNIT, 1, R.MAV_CMD_REQUEST_MESSAGE, 0,
+                                                           R.MAVLINK_MSG_ID_HEARTBEAT, 0, 0, 0, 0, 0, 0))
+                sent += 1
+                if signed.wait_for(lambda m: m.get_type() == "COMMAND_ACK" and m.target_system == 245, 0.5,
+                                   cmd_since):
+                    acked += 1
+                time.sleep(max(0.0, 0.05 - (time.monotonic() - cmd_since)))
         out, _ = flood.communicate(timeout=20)
         n, seconds = out.split()
         rate = int(n) / float(seconds)
@@ -271,9 +324,12 @@ def test_a_flood_from_a_second_sender_leaves_the_signed_client_its_acks(unit) ->
         s = read_status(status)
         print(f"flood {rate:.0f} req/s; signed client: {acked}/{sent} ACKs ({100 * acked / sent:.1f} %), "
               f"max heartbeat gap {max(gaps):.2f} s; unit drops {s['drops'].get('reply_rate_limited', 0)} replies")
-        assert rate > 0.9 * FLOOD_HZ
-        assert acked >= 0.95 * sent and sent >= 60
-        assert max(gaps) < 1.6
+        assert s["drops"].get("reply_rate_limited", 0) > 0  # the flood met its sender's budget
+        # (wall-clock figures: judged unless the machine's cores were saturated meanwhile; the unit's logic of
+        # them is asserted on its own clock by the test above)
+        cpu.judge(rate > 0.9 * FLOOD_HZ, f"the flooder sent {rate:.0f} requests/s")
+        cpu.judge(acked >= 0.95 * sent and sent >= 60, f"the signed client got {acked} of {sent} ACKs")
+        cpu.judge(max(gaps) < 1.6, f"a heartbeat gap of {max(gaps):.2f} s")
     finally:
         if flood.poll() is None:
             flood.kill()
