@@ -105,10 +105,7 @@ class FaultDetectorParams:
     # take-off is found then); the outdoor sensor profiles set 0.5 s (mars_link.flight.build). Fault-free 3x3 and
     # plus-5 gps spirals in 5 m/s wind with moderate turbulence read that air as the centre unit's loss, whole or a
     # diagonal pair, 0.1-0.4 s after lift-off: their fits flipped from one pair to the other within 0.25 s, or held
-    # 0.8 s (plus-5, seed 3), and the force spread before the onset was only 1.2-1.9x the model in three of four.
-    # Tried and dropped: the report score scaled by the fit's misfit there (a unit dead before take-off misfits 10^4
-    # while the assembly tips: never reported); the residuals' spread over those few ticks as noise floors (more
-    # false beliefs at once)
+    # 0.8 s (plus-5, seed 3), and the force spread before the onset was only 1.2-1.9x the model in three of four
     early_aloft_s: float = 0.0
     # a whole unit's loss whose evidence is lift only (its fit improves the momentum rows by less than
     # moment_confirm_score x noise ratio², as the centre unit of a 3x3 or a plus: its rotors' moments cancel) is the
