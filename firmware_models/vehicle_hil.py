@@ -8,7 +8,7 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle_modes import MODE_OFFBOARD
-from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_thrust
+from mars_link.core.messages import ActuatorOutput, EscSample, RotorCommand, SensorPacket, wire_thrust
 from mars_link.core.state import ImuSample, RigidBodyState
 from mars_link.mavlink.esc_status import esc_status_message
 from mars_link.mavlink.wire import (BARO_FIELDS, MAG_FIELDS, SensorFrames, battery_from_message, battery_report_message,
@@ -217,10 +217,12 @@ class HilService:
     # The same steps as the HIL and coordinator links, with the messages as objects instead of MAVLink
     # bytes: what the in-process engine calls. The values are already at wire precision (float32,
     # microseconds), so a unit driven this way moves its motors exactly as over MAVLink.
-    def take_sensors(self, packet: SensorPacket, unit_truth: RigidBodyState | None = None) -> SensorPacket:
+    def take_sensors(self, packet: SensorPacket, unit_truth: RigidBodyState | None = None,
+                     esc_sampled: bool = False, esc: EscSample | None = None) -> SensorPacket:
         """A HIL step: the unit's sensors (HIL_SENSOR/ODOMETRY) and, when given, its centre's truth
         (HIL_STATE_QUATERNION). Returns the telemetry it forwards to the coordinator (HIGHRES_IMU and
-        ODOMETRY carry exactly these fields)."""
+        ODOMETRY carry exactly these fields). `esc_sampled`: the step's ESC sample is `esc`, already taken
+        with every unit's at once (mars_link.models.esc.sample_steady)."""
         v = self.v
         if unit_truth is not None:
             v.set_state(unit_truth)
@@ -237,7 +239,8 @@ class HilService:
             v.set_state(packet.truth)
         v.sim_s = packet.t_s
         v._next_control = packet.t_s + v.control_dt_s
-        esc = v._esc_sample(packet.t_s)
+        if not esc_sampled:
+            esc = v._esc_sample(packet.t_s)
         if packet.battery is not None:  # forwarded with the unit's remaining-charge estimate
             return packet.replaced(battery=v._measure_battery(packet.battery, packet.t_s), esc=esc)
         return packet if esc is None else packet.replaced(esc=esc)

@@ -24,6 +24,7 @@ from mars_link.core.assembly import AssemblyModel
 from mars_link.core.messages import ActuatorOutput, RotorCommand, SensorPacket, wire_time
 from mars_link.mavlink.wire import hil_state_received, usec
 from mars_link.flight.metrics import STAGES
+from mars_link.models.esc import sample_steady
 from mars_link.runtime.pacing import Pacer
 from mars_link.config.scenario import FaultSpec, Scenario, eta_after
 from mars_link.config.scenario_sensor_faults import sensor_fault_events
@@ -32,6 +33,9 @@ from mars_link.models.trajectories import Trajectory
 
 if TYPE_CHECKING:  # (a world process steps the engine without the coordinator's stack)
     from mars_link.coordination.coordinator import Coordinator
+
+#: a disarmed unit's motor commands, as its ESCs see them (firmware_models.vehicle.Vehicle._esc_sample)
+_ZERO_COMMANDS = np.zeros(4)
 
 
 class InProcessUnits:
@@ -69,8 +73,9 @@ class InProcessUnits:
     def take_sensors(self, packets: list[SensorPacket]) -> list[SensorPacket]:
         """The world's sensor packets into each unit; the units' telemetry to the coordinator."""
         vehicles, world, sampled = self.vehicles, self.world, self._own_state
+        escs = self._esc_steady(packets) if self.batched and len(packets) > 1 else None
         out = []
-        for p in packets:
+        for i, p in enumerate(packets):
             u = p.unit_id
             v = vehicles[u]
             # the unit's own state as SITL's world sends it (processes.engine_links.unit_sensor_messages): its
@@ -86,12 +91,32 @@ class InProcessUnits:
                    or v.ulog is not None and v.ulog.due(p.t_s))
             hil = v.hil_service
             sample = sampled.pop(u, None) if own else None
-            if sample is None:
-                out.append(hil.take_sensors(p))
-            else:
+            truth = None
+            if sample is not None:
                 (body, offset), t_usec = sample
-                out.append(hil.take_sensors(p, hil_state_received(point_state(body, offset), t_usec)))
+                truth = hil_state_received(point_state(body, offset), t_usec)
+            if escs is None:
+                out.append(hil.take_sensors(p, truth))
+            else:
+                out.append(hil.take_sensors(p, truth, esc_sampled=True, esc=escs[i]))
         return out
+
+    def _esc_steady(self, packets: list[SensorPacket]) -> list | None:
+        """Every unit's ESC sample of the step in one pass (mars_link.models.esc.sample_steady: the same
+        samples as unit by unit), when every packet's unit has ESCs and no sensor failure of theirs comes
+        due now; None: the units sample their own."""
+        t = packets[0].t_s
+        sensors, commands, etas = [], [], []
+        zeros = _ZERO_COMMANDS
+        for p in packets:
+            v = self.vehicles[p.unit_id]
+            due = v._scheduled_sensor_failures
+            if v.esc is None or (due and due[0][0] <= t + 1e-9) or p.t_s != t:
+                return None
+            sensors.append(v.esc)
+            commands.append(v.motor_commands_n if v.armed else zeros)
+            etas.append(v.motors.eta)
+        return sample_steady(sensors, t, np.array(commands), np.array(etas))
 
     def drive(self, commands: list[RotorCommand]) -> None:
         """The coordinator's commands into the units; their motor outputs into the world. A live unit

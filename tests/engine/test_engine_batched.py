@@ -146,3 +146,48 @@ def test_batched_helix_summary_equals_one_by_one(monkeypatch, layout) -> None:
     (a, ra), (b, rb) = _both_ways(monkeypatch, fly)
     _assert_same_setpoints(a, b)
     assert ra.mean_error_m == rb.mean_error_m and ra.max_error_m == rb.max_error_m
+
+
+def test_batched_esc_samples_equal_one_by_one(monkeypatch) -> None:
+    """Every unit's ESC sample taken for all units at once (mars_link.models.esc.sample_steady) equals the
+    units' own (EscSensor.sample), bit for bit: through a motor lag (mars-real), sensor noise, a damaged
+    propeller, a lost one, a stopped motor and one unit's telemetry stuck (those steps sample unit by unit)."""
+    from mars_link.config.scenario import scenario_from_dict
+    from tests.estimation.test_esc import _doc
+
+    doc = _doc([{"t": 0.8, "unit": 2, "rotor": 3, "eta": 0.5}, {"t": 1.3, "unit": 3, "rotor": 1, "kind": "prop-loss", "eta": 0.3},
+                {"t": 1.9, "unit": 5, "rotor": 2, "kind": "motor-stop"}], duration_s=3.0, seed=4)
+    doc["vehicle"] = {"preset": "mars-real"}
+    doc["sensor_faults"] = [{"t": 2.2, "sensor": "esc", "type": "stuck", "unit": 6}]
+    samples: dict[bool, list] = {}
+
+    def fly():
+        flight = build_flight(scenario_from_dict(doc, "test"), 4)
+        seen = samples.setdefault(InProcessUnits.batched, [])
+
+        class Watch:
+            def on_step(self, engine, view) -> bool:
+                seen.append([(p.unit_id, p.esc) for p in view.telemetry])
+                return False
+
+        Engine(flight, [Watch()]).run()
+        flight.world.close()
+        return flight
+
+    import mars_link.flight.engine as engine_module
+
+    passes: list[bool] = []  # per step of the batched flight: whether the one pass sampled every unit
+    one_pass = engine_module.sample_steady
+
+    def counted(*args):
+        out = one_pass(*args)
+        passes.append(out is not None)
+        return out
+
+    monkeypatch.setattr(engine_module, "sample_steady", counted)
+    (a, _), (b, _) = _both_ways(monkeypatch, fly)
+    _assert_same_setpoints(a, b)
+    assert samples[False] == samples[True]
+    assert passes.count(True) > 100 and passes.count(False) > 100  # (after the faults: unit by unit)
+    taken = [s for step in samples[True] for _, s in step if s is not None]
+    assert len(taken) > 6 * 100 and len({s.rpm for s in taken}) > 100  # (noisy samples, every other step)
