@@ -1,16 +1,24 @@
 """The conformance harness's bench: one unit's firmware on the ground in the in-process world, commanded
 with wire bytes (the checks: mars_link.apps.conformance; the same bench with the unit in its own process:
-mars_link.apps.conformance_process)."""
+mars_link.apps.conformance_process).
+
+The flight's one loop steps it (mars_link.flight.engine.Engine): the harness's messages of a step are the
+engine's command source, which returns no rotor command (the unit takes its commands from the harness's
+wire bytes, and the units part drives it on what it holds), and the bench, an observer, records what the
+unit drove its motors to."""
 
 from __future__ import annotations
 
-import dataclasses
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from mars_link.mavlink.codec import decode_frames
 from mars_link.mavlink.wire import new_mav
+
+if TYPE_CHECKING:
+    from mars_link.core.messages import RotorCommand, SensorPacket
+    from mars_link.flight.engine import Engine, Flight, StepView
 
 CONTROL_HZ = 100.0
 CONTROLS = (0.20, 0.25, 0.30, 0.35)  # below hover: the unit stays on the ground with its rotors spinning
@@ -51,23 +59,43 @@ class Bench:
             self._mav = new_mav(201)
         self.step_index = 0
         self.last_keepalive_s: float | None = None  # when the unit last heard its keep-alive
+        self._rotor_slots = self.flight.model.unit_slots(self.unit_id)  # the unit's rotors in the world
+        self._actions: Callable[["Bench"], None] | None = None  # the harness's messages of the step under way
+        self.engine = self._engine(self.flight)
 
     # ----------------------------------------------------------------- the loop
-    def step(self, actions: Callable[["Bench"], None] | None = None) -> np.ndarray:
-        """One control period: sensors into the unit, the harness's messages, the motors, physics."""
-        from mars_link.core.messages import wire_time
+    def _engine(self, flight: "Flight") -> "Engine":
+        """The flight's one loop over `flight`'s world and units: the harness's messages its command source,
+        the bench its observer."""
+        from mars_link.flight.engine import Engine
 
-        world = self.world
-        self.t_s = wire_time(world.t_s)
-        self.flight.units.take_sensors(world.sense())
-        if actions is not None:
-            actions(self)
-        out = self.vehicle.hil_service.drive_motors()
-        world.actuate(dataclasses.replace(out, unit_id=self.unit_id))
-        world.advance()
-        self.outputs.append((self.t_s, np.array(out.thrusts_n, dtype=float)))
+        return Engine(flight, [self], command_source=self._command_source)
+
+    def step(self, actions: Callable[["Bench"], None] | None = None) -> np.ndarray:
+        """One control period of the engine: sensors into the unit, the harness's messages (`actions`), the
+        unit's motors, physics; what the unit drove its motors to."""
+        self._actions = actions
+        try:
+            if not self.engine.step():
+                raise RuntimeError(f"conformance: the bench's flight is over at t={self.t_s:.2f} s")
+        finally:
+            self._actions = None
         self.step_index += 1
         return self.outputs[-1][1]
+
+    def _command_source(self, t_s: float, telemetry: "list[SensorPacket]") -> "list[RotorCommand]":
+        """The engine's command stage: the harness's messages of the step, as wire bytes into the unit. No
+        rotor command: the units part drives the unit on what it took (as every unit answers every step)."""
+        self.t_s = t_s
+        if self._actions is not None:
+            self._actions(self)
+        return []
+
+    def on_step(self, engine: "Engine", view: "StepView") -> bool:
+        """Observer: the step's output, what the unit drove its motors to (the world's setpoints of its
+        rotors, as its answer set them)."""
+        self.outputs.append((view.t_s, self.world.rotor_setpoint_n[self._rotor_slots].copy()))
+        return False
 
     def run(self, seconds: float, actions: Callable[["Bench"], None] | None = None) -> None:
         for _ in range(int(round(seconds * CONTROL_HZ))):

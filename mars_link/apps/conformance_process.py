@@ -4,23 +4,25 @@ The unit is the process `sitl up` and `run --mode sitl` start (`python -m mars_l
 unit`, a 1x1 docked set-up, `--conformance-harness`), with its own firmware, links, logs and status
 file. The harness plays the two parties it talks to, so the checks stay judged in simulated time:
 
-  its world            the in-process world of `conformance_bench.Bench`; each step's sensors go out as the
-                       world process sends them (HIL datagram) and the step waits for the unit's
-                       HIL_ACTUATOR_CONTROLS answer, which drives the world's motors and is the check's output
+  its world            the in-process world of `conformance_bench.Bench`, stepped by the engine with the unit
+                       seen over its HIL link as the world process sees its units (engine_links.HilUnits):
+                       each step's sensors go out as HIL datagrams, and the unit's HIL_ACTUATOR_CONTROLS
+                       answer drives the world's motors and is the check's output
   its off-board computer  PX4's interface as rmw_zenoh samples on a Zenoh session (the unit's HIL link on the
                        same bus), or the MAVLink persona's frames on its coordinator link over UDP
 
-In each step the harness's messages go out before the sensors, and the unit (not waiting for a
-coordinator) answers on the sensors: a message is thus taken before the step it is meant for, dated by the
-unit with its clock of the step before (as a real unit dates what arrives between two sensor samples), so
-a time measured against it may read one control period shorter than in process. What the unit says of
-itself (armed, its drop counters) comes from its status file, written once a second of wall time: the
+In each step the sensors go out first; as a coordinator, the harness (the engine's command source) waits
+until the unit forwards that step's IMU sample before it sends its messages, and closes a step it sent no
+rotor command for with the coordinator's step skip: the unit dates every message with the step's clock
+and answers once the step's messages are in, so the figures equal the in-process ones. What the unit says
+of itself (armed, its drop counters) comes from its status file, written once a second of wall time: the
 harness waits for a fresh one. The documented bounds (COM_OF_LOSS_T, MARS_CMD_MISS) are the firmware's
 parameters as built for the same scenario.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 import socket
@@ -34,6 +36,8 @@ import numpy as np
 
 from mars_link.apps.conformance_bench import Bench
 from mars_link.core.errors import EnvironmentFailure
+from mars_link.mavlink.wire import usec
+from mars_link.processes.engine_links import HilUnits, LinksEnded
 
 UNIT_START_S = 60.0  # the longest a unit process may take to say hello (imports on a loaded machine)
 ANSWER_WAIT_S = 10.0  # the longest a step waits for the unit's answer before the harness gives up
@@ -41,6 +45,20 @@ ACK_WAIT_S = 2.0  # the longest a command waits for its ack (None after it, as i
 WARM_UP_STEPS = 10  # steps before a check: the unit has a state (its pre-arm checks need one)
 STATUS_WAIT_S = 5.0  # the longest a fresh status file may take (the unit writes one a second)
 SIGNING_KEY_ENV = "MARS_LINK_SIGNING_KEY"  # (not handed down: the harness's links are unsigned)
+
+
+@dataclasses.dataclass
+class UnitProcessStop:
+    """The stop flag `HilUnits` watches while it waits for the unit's answer: requested once the unit
+    process has ended (the step then ends at once, not after ANSWER_WAIT_S); `ended` is set by a
+    coordinator's shutdown, which nobody sends here."""
+
+    proc: subprocess.Popen
+    ended: bool = False
+
+    @property
+    def requested(self) -> bool:
+        return self.proc.poll() is not None
 
 
 class UnitProcessBench(Bench):
@@ -108,6 +126,8 @@ class UnitProcessBench(Bench):
 
                 for topic in (self._rz.OFFBOARD_CONTROL_MODE, self._rz.VEHICLE_COMMAND, self._rz.ACTUATOR_MOTORS):
                     self._publisher(data_key(topic, vehicle_namespace(self.unit_id)))
+            self.hil_units = self._hil_units(self.proc)
+            self.engine = self._engine(dataclasses.replace(self.flight, units=self.hil_units, coordinator=None))
             for _ in range(WARM_UP_STEPS):
                 self.step()
         except SystemExit as exc:  # (_await_peers: the unit never said hello)
@@ -121,44 +141,46 @@ class UnitProcessBench(Bench):
         self.step_index = 0
 
     # ----------------------------------------------------------------- the loop
-    def step(self, actions=None) -> np.ndarray:
-        """One control period: the harness's messages, then the sensors; the unit's answer drives the world."""
-        from mars_link.core.messages import wire_time
-        from mars_link.mavlink.wire import actuator_output_from_message, usec
-        from mars_link.processes.engine_links import unit_sensor_messages
+    def _hil_units(self, proc: subprocess.Popen) -> HilUnits:
+        """The engine's units part: the unit behind the world link, as the world process sees its units
+        (lockstep.run_world), unpaced; silent for ANSWER_WAIT_S, it is declared dead and the check ends."""
+        from mars_link.runtime.pacing import Pacer
 
-        world = self.world
-        self.t_s = wire_time(world.t_s)
-        t_us = usec(self.t_s)
-        link = self.world_link
-        for p in world.sense():  # (the unit waits for its coordinator's word on the step: the harness's)
-            if p.unit_id == self.unit_id:
-                link.send_bytes(link.pack(unit_sensor_messages(world, p)), link.peers[self.unit_id])
-        self._await_telemetry(t_us)  # as a coordinator: the unit has taken the step's sensors before any command
+        vehicle = self.flight.model.vehicle
+        return HilUnits(self.world, self.world_link, [self.unit_id], UnitProcessStop(proc), Pacer(0.0),
+                        self.full_scale_n, 0.0 if vehicle.rotor_min_thrust_n is not None else -1.0,  # (as run_world)
+                        coordinated=False, latch_sensor=False, unit_timeout_s=ANSWER_WAIT_S)
+
+    def step(self, actions=None) -> np.ndarray:
+        """One control period of the engine: the sensors out (HIL), the harness's messages, the unit's
+        answer into the world's motors, physics."""
+        try:
+            return super().step(actions)
+        except LinksEnded:  # (the unit process ended while the step waited for it)
+            raise EnvironmentFailure(f"conformance: the unit process ended at t={self.t_s:.2f} s; "
+                                     f"{self._log_tail()}") from None
+
+    def _command_source(self, t_s: float, telemetry: list) -> list:
+        """As a coordinator: once the unit has the step's sensors, the harness's messages, then the word
+        that the step has no rotor command if none of them ran it; a step's MAVLink frames in one datagram."""
+        t_us = usec(t_s)
+        self._await_telemetry(t_us)  # the unit has taken the step's sensors before any command
         self._rotor_stamped = False
-        if actions is not None:
-            actions(self)
+        super()._command_source(t_s, telemetry)
         if not self._rotor_stamped or self.interface == "mavlink":  # (a MAVLink command may be dropped: say
             # it anyway, in the same datagram after it; a command that ran the step leaves nothing to skip)
             self._skip_step(t_us)
         self._flush_mavlink()
-        deadline = time.monotonic() + ANSWER_WAIT_S
-        answer = None
-        while answer is None:
-            left = deadline - time.monotonic()
-            if left <= 0.0 or (self.proc is not None and self.proc.poll() is not None):
-                raise EnvironmentFailure(f"conformance: no answer from the unit process for t={self.t_s:.2f} s; "
-                                         f"{self._log_tail()}")
-            for m in link.receive(min(left, 0.5)):
-                if m.get_type() == "HIL_ACTUATOR_CONTROLS" and m.time_usec == t_us:
-                    answer = m
+        return []
+
+    def on_step(self, engine, view) -> bool:
+        """Observer: what came with the unit's answer (telemetry, acks), then the step's output. A unit the
+        world declared dead (silent for ANSWER_WAIT_S) ends the check."""
+        if self.unit_id in self.hil_units.dead:
+            raise EnvironmentFailure(f"conformance: no answer from the unit process for t={view.t_s:.2f} s; "
+                                     f"{self._log_tail()}")
         self._drain_coordinator(0.0)
-        out = actuator_output_from_message(answer, self.full_scale_n)
-        world.actuate(out)
-        world.advance()
-        self.outputs.append((self.t_s, np.array(out.thrusts_n, dtype=float)))
-        self.step_index += 1
-        return self.outputs[-1][1]
+        return super().on_step(engine, view)
 
     # ----------------------------------------------------------------- messages over the network
     def _skip_step(self, t_us: int) -> None:
