@@ -1,4 +1,5 @@
-"""The docked assembly as ONE MAVLink vehicle inside the lockstep coordinator process (`sitl up --vehicle`).
+"""The assembly (docked, or a flight of pieces) as ONE MAVLink vehicle inside the lockstep coordinator
+process (`sitl up --vehicle`).
 
 The coordinator keeps its lockstep job (unit telemetry in, per-rotor commands out); what changes is
 where its reference comes from: the vehicle's flight (mars_link.vehicles.assembly_vehicle.VehicleFlight, the
@@ -23,7 +24,6 @@ import select
 import time
 from dataclasses import dataclass
 from pathlib import Path
-
 
 from mars_link.core.events import EventKind, event
 from mars_link.core.errors import UserInputError

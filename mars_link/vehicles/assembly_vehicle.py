@@ -304,6 +304,10 @@ class AssemblyVehicle(Vehicle):
         phase = self.autopilot.phase
         return self.armed and phase not in (Phase.IDLE, Phase.LAND) and not self.autopilot.landed
 
+    def drives_rotors(self) -> bool:
+        """Armed under a guidance phase: the pieces' thrusts go to the units (also taking off and landing)."""
+        return self.armed and self.autopilot.phase != Phase.IDLE
+
 
 class AssemblyStreamService(StreamService):
     """The assembly's telemetry: ACTUATOR_OUTPUT_STATUS carries its 4N rotors (up to MAVLink's 32)."""
@@ -437,13 +441,12 @@ class VehicleFlight:
              live: set[int] | None = None) -> tuple[list[RotorCommand], list[Outgoing]]:
         """The coordinator of pieces (always: every piece's EKF and detector run, also on the ground), the
         followed piece's estimate into the vehicle, the vehicle's tick (its guidance sets the mission for
-        the next period); the units' commands: the pieces' thrusts while the vehicle flies, else zero, and
-        every unit's latch setpoint (`live`: only for these units)."""
+        the next period); the units' commands: the pieces' thrusts while the vehicle's guidance drives the
+        rotors, else zero, and every unit's latch setpoint (`live`: only for these units)."""
         v = self.vehicle
         v.take_unit_batteries(t_s, packets)
-        flying = v.flying()
-        self.pieces.manoeuvres_allowed = flying
-        self.pieces.rotors_driven = flying  # (the units get zeros otherwise, below)
+        self.pieces.manoeuvres_allowed = v.flying()
+        self.pieces.rotors_driven = v.drives_rotors()  # (the units get zeros otherwise: rotor_thrusts_n)
         if v.armed and v.autopilot.phase == Phase.TAKEOFF and self.executor.phase == "grounded":
             self.executor.begin_take_off(t_s)  # free units: they take off when the vehicle does
         commands = self.pieces.step(t_s, packets)
