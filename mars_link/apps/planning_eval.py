@@ -185,7 +185,7 @@ def walls_mission_flight(use_map: bool, fault_t_s: float, on_step=None, paced: b
     sc.ftc, sc.faults_known = "hybrid", False
     sc.faults.append(FaultSpec(unit=2, rotor=None, eta=0.0, t_s=fault_t_s))
     sim = VehicleSim(sc, SimConfig(start_north_m=0.175, start_east_m=0.35, params={"MPC_XY_VEL_MAX": 0.8},
-                                    map_path=WALLS_CSV if use_map else None))
+                                   map_path=WALLS_CSV if use_map else None))
     sim.legs.wait_for_plans = not paced
     wall0 = time.monotonic()
     wps = [np.array(ne) for ne in MISSION_WAYPOINTS_NE]
