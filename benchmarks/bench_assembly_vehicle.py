@@ -1,4 +1,4 @@
-"""Cost of one control period of the assembly vehicle (`AssemblySim.step`: sensing, EKF, vehicle
+"""Cost of one control period of the assembly vehicle (`VehicleSim.step`: sensing, EKF, vehicle
 tick with telemetry streams, coordinator control + allocation when flying, unit motor paths, 5 JSBSim
 substeps) against the 10 ms real-time deadline of `mars-link vehicle`, and of one client datagram
 (`handle`: a MAVSDK-like offboard setpoint, a command with its ACK).
@@ -20,7 +20,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from record import Recorder, add_json_option, apply_quick
 from mars_link.core.assembly import parse_layout
-from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.vehicles.vehicle_sim import VehicleSim
 from mars_link.config.scenario import load_scenario
 
 
@@ -37,7 +37,7 @@ def main() -> None:
     scenario = load_scenario("hover_3x2")
     scenario.layout = parse_layout(a.layout)
     scenario.ftc = a.ftc
-    sim = AssemblySim(scenario)
+    sim = VehicleSim(scenario)
     gcs = mavlink.MAVLink(None, 245, 190)
     sysid = sim.vehicle.sysid
 

@@ -1,5 +1,5 @@
 """Leg planning against the control deadline: the damaged 3x2 (unit 2 failed, found by the detector) flies
-the five-waypoint walls mission as `mars-link vehicle` does (AssemblySim in process, paced to real time), its legs
+the five-waypoint walls mission as `mars-link vehicle` does (VehicleSim in process, paced to real time), its legs
 planned around paper 000's walls (the bundled paper000_walls.csv) in the worker process (mars_link.planning.mission_legs). Every
 control period's compute time (sensing, EKF, vehicle tick, coordinator, motors, physics) is split by
 whether a leg was being planned meanwhile, against the 10 ms deadline of 100 Hz; the planning times

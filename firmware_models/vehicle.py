@@ -674,7 +674,7 @@ class Vehicle:
             self._text("Landed")
 
     def _land_detect(self, t: float) -> str | None:
-        """The land detector (manual_service); a subclass may hold it off (mars_link.vehicles.pieces_vehicle)."""
+        """The land detector (manual_service); a subclass may hold it off (mars_link.vehicles.assembly_vehicle.AssemblyVehicle)."""
         return self.manual_service.land_detect(t)
 
     def _unhealthy_sensors(self) -> int:

@@ -121,7 +121,7 @@ class VehicleUlog:
             return
         self._sink = SafeWriter(f, str(self.path), max_bytes=config.max_bytes, background=config.background,
                                 on_stop=self._notify)
-        self.role = role or ("assembly" if hasattr(vehicle, "coordinator") else "unit")
+        self.role = role or ("assembly" if hasattr(vehicle, "believed_eta") else "unit")
         self._guarded(self._write_definitions)
 
     # ------------------------------------------------------------------ public
@@ -229,14 +229,11 @@ class VehicleUlog:
         return np.asarray(cmd, dtype=float)
 
     def _failed_eta(self) -> np.ndarray:
-        """Each rotor's efficiency as this vehicle knows it: the assembly's coordinator's belief, a unit's
-        motor model (the faults injected into it)."""
+        """Each rotor's efficiency as this vehicle knows it: the assembly's coordinator's belief
+        (`believed_eta`), a unit's motor model (the faults injected into it)."""
         v = self.vehicle
-        coordinator = getattr(v, "coordinator", None)
-        eta = getattr(coordinator, "eta_believed", None)
-        if eta is None:
-            eta = v.motors.eta
-        return np.asarray(eta, dtype=float)
+        believed = getattr(v, "believed_eta", None)
+        return np.asarray(v.motors.eta if believed is None else believed(), dtype=float)
 
     def _sample(self, t_us: int) -> None:
         w, v, ids = self.writer, self.vehicle, self._id
@@ -270,7 +267,7 @@ class VehicleUlog:
             w.data(ids["vehicle_local_position_setpoint"], {
                 "timestamp": t_us, "x": rp[0], "y": rp[1], "z": rp[2], "vx": rv[0], "vy": rv[1], "vz": rv[2],
                 "acceleration": ref.acceleration_ned_mps2, "yaw": ref.yaw_rad, "yawspeed": ref.yaw_rate_radps})
-        imu = v.imu or _assembly_imu(v)
+        imu = v.imu
         if imu is not None:
             dt_us = self._period_us
             w.data(ids["sensor_combined"], {
@@ -347,13 +344,6 @@ class VehicleUlog:
         params = getattr(v, "params", None)
         if params is not None and params.version != self._params_version:
             self._write_parameters()
-
-
-def _assembly_imu(v):
-    """The assembly vehicle has no IMU of its own: its first unit's IMU sample of this step (the units are
-    rigidly docked, so every unit's gyro reads the assembly's rates)."""
-    packets = getattr(getattr(getattr(v, "autopilot", None), "drive", None), "packets", None)
-    return packets[0].imu if packets else None
 
 
 def _heading(q: np.ndarray) -> float:

@@ -168,14 +168,14 @@ def forest_sweep(seeds, layout: str = "XXX,XXX", failed_unit: int | None = 2, pa
 
 # ----------------------------------------------------------------------------- missions on planned legs
 def walls_mission_flight(use_map: bool, fault_t_s: float, on_step=None, paced: bool = False) -> dict:
-    """The 3x2 as `mars-link vehicle` flies it (AssemblySim, in process, unpaced), unit 2 failing at
+    """The 3x2 as `mars-link vehicle` flies it (VehicleSim, in process, unpaced), unit 2 failing at
     fault_t_s and found by the detector (not told), flying a five-waypoint mission at 2.3 m through the
     walls (MISSION_ITEM_INT bytes): legs planned around the walls map (`use_map`) or minimum-snap. The
     true footprint's wall contacts, the MISSION_ITEM_REACHED positions, STATUSTEXTs and the leg log;
     `on_step(sim, seconds)` gets each control period's compute time. Unpaced, the simulation waits for
     each leg's plan (sim time independent of this machine's speed); `paced`: real time, as `mars-link
     vehicle` runs, the vehicle holding while a leg is planned."""
-    from mars_link.vehicles.assembly_vehicle import AssemblySim, SimConfig
+    from mars_link.vehicles.vehicle_sim import SimConfig, VehicleSim
     from pymavlink.dialects.v20 import common as R
 
     from mars_link.core.rotations import quat_to_euler
@@ -184,8 +184,8 @@ def walls_mission_flight(use_map: bool, fault_t_s: float, on_step=None, paced: b
     sc = load_scenario("hover_3x2")
     sc.ftc, sc.faults_known = "hybrid", False
     sc.faults.append(FaultSpec(unit=2, rotor=None, eta=0.0, t_s=fault_t_s))
-    sim = AssemblySim(sc, SimConfig(start_north_m=0.175, start_east_m=0.35, params={"MPC_XY_VEL_MAX": 0.8},
-                                    map_path=WALLS_CSV if use_map else None))
+    sim = VehicleSim(sc, SimConfig(start_north_m=0.175, start_east_m=0.35, params={"MPC_XY_VEL_MAX": 0.8},
+                                   map_path=WALLS_CSV if use_map else None))
     sim.legs.wait_for_plans = not paced
     wall0 = time.monotonic()
     wps = [np.array(ne) for ne in MISSION_WAYPOINTS_NE]

@@ -439,7 +439,7 @@ def make_pieces_coordinator(scenario: Scenario, model: AssemblyModel, mission: T
     """The coordinator of a flight of pieces (`PiecesCoordinator`: one EKF, detector, controller and
     allocator per piece, the executor inside) and when its flight ends (a function of no argument
     giving the end's sim time: a manoeuvre moves it). `plan_for`: see `make_executor`. `vehicle`: flown by a
-    ground station (mars_link.vehicles.pieces_vehicle): free units wait for its take-off, and faults may come from it."""
+    ground station (mars_link.vehicles.assembly_vehicle): free units wait for its take-off, and faults may come from it."""
     from mars_link.coordination.pieces import PiecesCoordinator
     from mars_link.reconfig.plans import check_reconfig_scenario, plan_or_reason, plan_separation
 

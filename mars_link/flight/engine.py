@@ -271,7 +271,7 @@ class StepView:
 
     index: int
     t_s: float
-    record: object  # coordinator.StepRecord of this step (None if the coordinator did not run)
+    record: object  # coordinator.StepRecord of this step (None: no coordinator ran, or its thrusts were not sent)
     truth: RigidBodyState | None  # None: the world is in another process
     telemetry: list = field(default_factory=list)  # the units' SensorPackets to the coordinator
     commands: list = field(default_factory=list)  # the coordinator's RotorCommands to the units
@@ -340,18 +340,17 @@ class Engine:
         telemetry = f.units.take_sensors(world.sense())  # the sensors stage: the world's samples into the units
         c1 = clock()
         coordinator = f.coordinator
-        before = None if coordinator is None else coordinator.last
         commands = self.command_source(t, telemetry)
         c2 = clock()
         f.units.drive(commands)
         c3 = clock()
         rec = None if coordinator is None else coordinator.last
-        if rec is before:  # (the assembly vehicle on the ground: its coordinator did not run)
-            rec = None
         stage["sensors"] += c1 - c0
         if rec is not None:
             for name in ("estimation", "control", "allocation"):
                 stage[name] += rec.timings_s[name]
+            if not coordinator.rotors_driven:  # (a vehicle on the ground: its units got zeros, not these thrusts)
+                rec = None
         stage["motors"] += c3 - c2
         view = StepView(self.steps, t, rec, world.truth(), telemetry, commands)
         for obs in self.observers:

@@ -715,7 +715,6 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     and its guidance, not the scenario's trajectory, is the coordinator's reference. `timing_log`:
     coordinator_timing.csv gets each step's wall-clock times (`_TimingLog`): with the units' command_age logs,
     where a real-time step's time goes (wall time above CPU time = the coordinator waited for a CPU)."""
-    from mars_link.flight.build import make_detector
     from mars_link.flight.engine import Engine, Flight
 
     sc = setup.scenario
@@ -731,10 +730,9 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     else:  # (one body or pieces: the vehicle flies until stopped)
         from mars_link.processes.vehicle_host import HostedVehicle
 
-        detector = None if setup.pieces else make_detector(sc, model, float(_start_pose(setup)[0][2]))
         out.mkdir(parents=True, exist_ok=True)
         try:
-            hosted = HostedVehicle(sc, model, detector, vehicle, out, None if run_key else key, require_signing)
+            hosted = HostedVehicle(sc, model, vehicle, out, None if run_key else key, require_signing)
         except UserInputError as e:
             print(f"error: {e}", file=sys.stderr)
             return 2

@@ -2,7 +2,7 @@
 
     mars-link vehicle [SCENARIO.toml] [--layout ROWS] [--gcs-port P] [--api-port P] [--sysid N]
 
-`AssemblySim` (mars_link.vehicles.assembly_vehicle) is stepped once per control period, paced to wall time
+`VehicleSim` (mars_link.vehicles.vehicle_sim) is stepped once per control period, paced to wall time
 (scaled by --speed); between steps the UDP sockets are drained into the vehicle. Links, all on
 127.0.0.1 (PX4's SITL conventions, specs/mavlink.md §1.1):
   gcs  the vehicle sends to --gcs-port (default 14550: QGroundControl, MAVProxy `udpin`) from
@@ -32,7 +32,7 @@ import numpy as np
 
 from firmware_models.vehicle import LINK_API, LINK_GCS
 from mars_link.processes.vehicle_io import API_PORT_BASE, LOOPBACK, LinkSpec, VehicleSockets, write_json_atomic
-from mars_link.vehicles.assembly_vehicle import AssemblySim, SimConfig
+from mars_link.vehicles.vehicle_sim import SimConfig, VehicleSim
 from mars_link.core import validation
 from mars_link.core.errors import UserInputError
 from mars_link.runtime.pacing import Pacer
@@ -46,9 +46,9 @@ GCS_BIND, API_BIND = VEHICLE_GCS_BIND, VEHICLE_API_BIND  # below the units' 1857
 
 class AssemblyRunner:
     """Sockets (mars_link.processes.vehicle_io.VehicleSockets, as every Vehicle runner) and clocks for an
-    AssemblySim."""
+    VehicleSim."""
 
-    def __init__(self, sim: AssemblySim, ports: dict[str, int], speed: float = 1.0,
+    def __init__(self, sim: VehicleSim, ports: dict[str, int], speed: float = 1.0,
                  status_file: str | None = None, duration_s: float | None = None, tlog: str | None = None,
                  wall_time_s: float | None = None) -> None:
         self.sim = sim
@@ -144,8 +144,8 @@ def _check_port(name: str, value: int, allow_zero: bool) -> int:
     return value
 
 
-def build_sim(args: argparse.Namespace) -> AssemblySim:
-    """Scenario + command-line overrides -> AssemblySim; every problem is a UserInputError."""
+def build_sim(args: argparse.Namespace) -> VehicleSim:
+    """Scenario + command-line overrides -> VehicleSim; every problem is a UserInputError."""
     from mars_link.core.assembly import parse_layout
     from mars_link.config.scenario import FTC_MODES, load_scenario, parse_fault_arg, validate_fault
 
@@ -184,10 +184,8 @@ def build_sim(args: argparse.Namespace) -> AssemblySim:
     map_path = args.map or scenario.mission.get("map")
     if map_path is not None:
         check_map(map_path, "--map" if args.map else f"{scenario.source}: [mission] map")
-    from mars_link.vehicles.pieces_vehicle import make_sim
-
-    return make_sim(scenario, SimConfig(sysid=args.sysid, params=_params(args.param), signing_key=key,
-                                        require_signing=require, map_path=map_path), time.time())
+    return VehicleSim(scenario, SimConfig(sysid=args.sysid, params=_params(args.param), signing_key=key,
+                                          require_signing=require, map_path=map_path), time.time())
 
 
 def check_map(path: str, what: str) -> None:
@@ -293,7 +291,7 @@ class _VehicleRecord:
     against the reference its coordinator flies (the vehicle's own setpoints); steps on the ground (the
     coordinator idle) are not recorded; a divergence is reported, it does not stop a vehicle a client flies."""
 
-    def __init__(self, sim: AssemblySim, out: Path) -> None:
+    def __init__(self, sim: VehicleSim, out: Path) -> None:
         from mars_link.flight.recorder import FlightRecorder
         from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
 
@@ -304,7 +302,7 @@ class _VehicleRecord:
         self.out = out
         sim.engine.observers.append(self.recorder)
 
-    def finish(self, sim: AssemblySim, wall_s: float, plot_format: str) -> dict:
+    def finish(self, sim: VehicleSim, wall_s: float, plot_format: str) -> dict:
         from mars_link.flight.metrics import summarize
         from mars_link.flight.runner import trial_result, write_plots_safely
         from mars_link.logs.outputs import write_json
@@ -329,11 +327,11 @@ class _VehicleRecord:
         return summary
 
 
-def _attach_record(sim: AssemblySim, out: Path) -> _VehicleRecord:
+def _attach_record(sim: VehicleSim, out: Path) -> _VehicleRecord:
     return _VehicleRecord(sim, out)
 
 
-def _attach_view(sim: AssemblySim, out: Path | None, live: str | None):
+def _attach_view(sim: VehicleSim, out: Path | None, live: str | None):
     """run.mcap in `out` and/or the live Foxglove view, as an observer of the vehicle's engine (or None)."""
     from mars_link.flight.flight_view import open_view
 

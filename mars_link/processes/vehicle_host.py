@@ -1,17 +1,18 @@
-"""The docked assembly as ONE MAVLink vehicle inside the lockstep coordinator process (`sitl up --vehicle`).
+"""The assembly (docked, or a flight of pieces) as ONE MAVLink vehicle inside the lockstep coordinator
+process (`sitl up --vehicle`).
 
 The coordinator keeps its lockstep job (unit telemetry in, per-rotor commands out); what changes is
-where its trajectory comes from (for a flight of pieces, the mission of its coordinator of pieces:
-mars_link.vehicles.pieces_vehicle): an `AssemblyVehicle` (mars_link.vehicles.assembly_vehicle) whose guidance
-(takeoff, hold, offboard, land) sets the coordinator's `SetpointSource`. Ground stations see the
+where its reference comes from: the vehicle's flight (mars_link.vehicles.assembly_vehicle.VehicleFlight, the
+coordinator of pieces: a docked assembly is one piece) takes the mission of the structure from the
+`AssemblyVehicle`'s guidance (takeoff, hold, offboard, land). Ground stations see the
 assembly on its own system id (default 202, above the units' range, ARCHITECTURE.md) and ports:
 
   gcs  the vehicle sends to --vehicle-gcs-port (default 14550) from bind 18560
   api  the vehicle sends to --vehicle-api-port (default 14539, next to the units' 14540+i) from bind 14560
 
 Both sockets are non-blocking and served from the coordinator's wait loop, so heartbeats and streams
-go out on wall time even while the lockstep waits for the units. The estimate is computed every step
-(also while disarmed, for telemetry) and handed to the coordinator, which then runs no EKF of its own.
+go out on wall time even while the lockstep waits for the units. Every piece's EKF runs every step
+(also while disarmed, for telemetry).
 MAV_CMD_INJECT_FAILURE on the vehicle (motor 4(u-1)+r) is forwarded to unit u's firmware as its own
 MAV_CMD_INJECT_FAILURE (rotor r) on the coordinator link; the coordinator is told only with
 `faults_known`, otherwise it has to detect it.
@@ -24,11 +25,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from mars_link.core.events import EventKind, event
 from mars_link.core.errors import UserInputError
-from mars_link.models.estimation_outdoor import estimate_settled
 from mars_link.core.messages import RotorCommand, SensorPacket
 from mars_link.core.state import RigidBodyState
 
@@ -72,47 +70,26 @@ class VehiclePorts:
 
 
 class HostedVehicle:
-    """AssemblyVehicle + its client sockets, stepped by the lockstep coordinator."""
+    """The vehicle's flight (VehicleFlight) + its client sockets, stepped by the lockstep coordinator."""
 
-    def __init__(self, scenario, model, detector, ports: VehiclePorts, out: Path, signing_key: bytes | None = None,
+    def __init__(self, scenario, model, ports: VehiclePorts, out: Path, signing_key: bytes | None = None,
                  require_signing: bool = False, ulog: bool = True) -> None:
         """`ulog`: the vehicle writes vehicle.ulg in `out` (mars_link.logs), by default as PX4 SITL logs."""
         from firmware_models.vehicle import LINK_API, LINK_GCS
         from mars_link.processes.vehicle_io import LOOPBACK, LinkSpec, VehicleSockets
-        from mars_link.vehicles.assembly_vehicle import AssemblyVehicle, vehicle_coordinator, vehicle_scenario
+        from mars_link.vehicles.assembly_vehicle import SimConfig, VehicleFlight, attach_legs, vehicle_scenario
 
         self.scenario = sc = vehicle_scenario(scenario)  # setpoints are for the CoM
         if sc.controller != "cascaded":
             raise UserInputError(f"controller {sc.controller!r}: the vehicle flies setpoints with 'cascaded' only")
         self.model = model
-        self.estimator_resets = 0
-        self.flight = None  # a flight of pieces (mars_link.vehicles.pieces_vehicle): its coordinator runs the EKFs
-        if sc.has_pieces:
-            from mars_link.vehicles.assembly_vehicle import SimConfig
-            from mars_link.vehicles.pieces_vehicle import PiecesFlight
-
-            self.estimator = None
-            self.flight = PiecesFlight(sc, model, SimConfig(sysid=ports.sysid, signing_key=signing_key,
-                                                            require_signing=require_signing), time.time())
-            self.coordinator, self.vehicle = self.flight.pieces, self.flight.vehicle
-        else:
-            self.coordinator = vehicle_coordinator(sc, model, detector)
-            self.estimator = self.coordinator.estimator  # (the coordinator's; None: it flies on the truth)
-            self.vehicle = AssemblyVehicle(self.coordinator, ports.sysid, sc.sim.control_hz, sc.ftc, None, time.time(),
-                                           signing_key, require_signing)
+        self.flight = VehicleFlight(sc, model, SimConfig(sysid=ports.sysid, signing_key=signing_key,
+                                                         require_signing=require_signing), time.time())
+        self.coordinator, self.vehicle = self.flight.pieces, self.flight.vehicle
         self.vehicle.on_failure = self._inject
-        self.sensor_events: list[dict] = []  # the estimator's sensor findings and the failsafe (vehicle_sensor_watch)
-        self.sensor_watch = None
-        self.estimate_ready = False  # the estimate has settled once (estimation_outdoor.estimate_settled)
-        if self.estimator is not None:
-            from mars_link.vehicles.vehicle_sensor_watch import VehicleSensorWatch
-
+        if sc.sim.noise:  # (without noise the pieces fly on the reported truth: no sensor paths to fail)
             self.vehicle.on_sensor_failure = self._inject_sensor
-            self.sensor_watch = VehicleSensorWatch(self.vehicle, self.estimator, self.sensor_events)
-        from mars_link.vehicles.assembly_vehicle import attach_legs
-
-        self.legs = attach_legs(self.vehicle, sc, ports.map_path, lambda: (
-            self.coordinator.eta_believed if self.flight is None else self.flight.eta_believed()))
+        self.legs = attach_legs(self.vehicle, sc, ports.map_path, self.flight.eta_believed)
         self._unit_commands: dict[int, list] = {}
         self.io = VehicleSockets(self.vehicle, {
             LINK_GCS: LinkSpec(ports.gcs_bind, (LOOPBACK, ports.gcs_port)),
@@ -123,10 +100,13 @@ class HostedVehicle:
 
             self.vehicle.start_ulog(UlogConfig(out / "vehicle.ulg", background=True))
         self.status_path = out / "vehicle_status.json"
-        self.estimate: RigidBodyState | None = None
         self.steps = 0
         self._next_tick = 0.0
         self._next_status = 0.0
+
+    @property
+    def estimate(self) -> RigidBodyState | None:
+        return self.flight.estimate
 
     def endpoints(self) -> dict:
         from firmware_models.vehicle import LINK_API, LINK_GCS
@@ -162,25 +142,12 @@ class HostedVehicle:
                 return 0.0
 
     def step(self, t_s: float, packets: list[SensorPacket], live: set[int]) -> list[RotorCommand]:
-        """One control period (as AssemblySim.step): estimate, vehicle (control when flying), the
-        commands for the live units (zero thrust when disarmed)."""
-        if self.flight is not None:
-            commands, out = self.flight.step(t_s, packets, time.time(), live)
-            self.estimate = self.flight.estimate
-            self.io.send(out)
-            self.steps += 1
-            return commands
-        self.vehicle.core.drive.packets = packets
-        self.vehicle.take_unit_batteries(t_s, packets)
-        est = self._estimate(t_s, packets)
-        if est is not None:
-            self.estimate = est
-            self.vehicle.set_state(est)
-        self.io.send(self.vehicle.tick(time.time(), t_s))
+        """One control period (as VehicleSim's): the coordinator of pieces, the followed piece's estimate,
+        the vehicle's tick; the commands for the live units (zero thrust when disarmed)."""
+        commands, out = self.flight.step(t_s, packets, time.time(), live)
+        self.io.send(out)
         self.steps += 1
-        thrusts = self.vehicle.rotor_thrusts_n()
-        return [RotorCommand(t_s, u, np.asarray(thrusts[self.model.unit_slots(u)], dtype=float))
-                for u in self.model.unit_ids if u in live]
+        return commands
 
     def _inject(self, unit: int, rotor: int | None, eta: float) -> None:
         """A failure injected on the vehicle: to that unit's motor path (a COMMAND_LONG with the next
@@ -194,12 +161,8 @@ class HostedVehicle:
             unit, 1, mavlink.MAV_CMD_INJECT_FAILURE, 0, FAILURE_UNIT_SYSTEM_MOTOR, kind, rotor or 0, 0, 0, 0, 0))
         t = self.vehicle.sim_s
         self.vehicle.report_event(event(t, EventKind.FAULT, unit=unit, rotor=rotor, eta=eta))
-        if self.scenario.faults_known and self.flight is not None:
+        if self.scenario.faults_known:
             self.flight.tell_fault(unit, rotor, eta, t)
-        elif self.scenario.faults_known:
-            told = self.coordinator.eta_believed.copy()
-            told[self.model.unit_slots(unit) if rotor is None else self.model.rotor_slot(unit, rotor)] = eta
-            self.coordinator.set_faults(told, t, "fault told to the coordinator")
 
     def _inject_sensor(self, sensor: str, kind: str, instance: int) -> int:
         """A sensor failure injected on the vehicle: a COMMAND_LONG to each named unit's firmware (its sensor
@@ -224,22 +187,6 @@ class HostedVehicle:
         """Commands for `unit` to go out with its next rotor command (then forgotten)."""
         return self._unit_commands.pop(unit, [])
 
-    def _estimate(self, t_s: float, packets: list[SensorPacket]) -> RigidBodyState | None:
-        est = self.coordinator.estimate(t_s, packets)
-        ekf = self.estimator
-        if ekf is None:
-            return est
-        if not ekf.initialised or not (self.estimate_ready or estimate_settled(ekf)):
-            return None
-        self.estimate_ready = True  # (once: a failsafe's dead reckoning later grows the sigma again)
-        if self.sensor_watch is not None:
-            self.vehicle.set_state(est)
-            self.sensor_watch.update(t_s)
-        if ekf.stats.position_resets > self.estimator_resets:
-            self.estimator_resets = ekf.stats.position_resets
-            self.vehicle.report_event(event(t_s, EventKind.ESTIMATOR_RESET, text="EKF reset on positions"))
-        return est
-
     def write_status(self) -> None:
         from mars_link.processes.vehicle_io import write_json_atomic
 
@@ -248,11 +195,10 @@ class HostedVehicle:
             "sysid": v.sysid, "sim_time_s": v.sim_s, "wall_time_s": time.time(), "armed": v.armed,
             "mode": list(v.mode), "phase": v.autopilot.phase.value, "landed": bool(v.landed),
             "estimate_position_ned_m": None if est is None else [float(x) for x in est.position_ned_m],
-            "eta_believed": [float(x) for x in (self.coordinator.eta_believed if self.flight is None
-                                                else self.flight.eta_believed())],
-            "pieces": None if self.flight is None else self.coordinator.pieces_final(),
+            "eta_believed": [float(x) for x in self.flight.eta_believed()],
+            "pieces": self.coordinator.pieces_final(),
             "statustext": [t for _, t in v.events[-50:]], "drops": v.drop_counts(), "stats": v.stats,
-            "estimator_resets": self.estimator_resets, "steps": self.steps, **self.io.counters(),
+            "estimator_resets": self.flight.estimator_resets, "steps": self.steps, **self.io.counters(),
             "ulog": v.ulog.status() if v.ulog is not None else getattr(self, "ulog_status", None),
             "endpoints": self.endpoints(),
         })

@@ -1,23 +1,36 @@
-"""The whole assembly as one MAVLink vehicle: the coordinator behind a PX4-persona endpoint.
+"""The whole assembly as one MAVLink vehicle: the coordinator of pieces behind a PX4-persona endpoint.
 
 Ground stations (MAVSDK, MAVProxy, QGroundControl) see one quadrotor-like system (default system id 1,
-component 1): they watch its position and attitude (the CoM estimate), arm it, take it off, send
-offboard position/velocity setpoints and land it as they would a single drone. The protocol side is
-the unit firmware's `Vehicle` (heartbeats, streams, commands with ACKs, parameters, offboard watchdog,
-untrusted-input counters), not a copy of it: `AssemblyVehicle` plugs a different flight core into
-that mode machine.
+component 1): they watch its position and attitude (the CoM estimate of the piece it follows), arm it,
+take it off, send offboard position/velocity setpoints and land it as they would a single drone. The
+protocol side is the unit firmware's `Vehicle` (heartbeats, streams, commands with ACKs, parameters,
+offboard watchdog, untrusted-input counters), not a copy of it: `AssemblyVehicle` plugs a different
+flight core into that mode machine.
 
-    AssemblyFlightCore   the Vehicle's guidance phases (UnitAutopilot: hold / takeoff ramp / go-to /
-                         velocity / land / return, PX4's speed limits) shape a reference that a
-                         `SetpointSource` hands to the assembly's Coordinator as its trajectory;
-                         the coordinator's controller and FTC allocator give the 4N rotor thrusts.
-    AssemblyVehicle      Vehicle + that core; STATUSTEXT for every coordinator event (faults,
-                         reallocations, reconfigurations); assembly parameters; MAV_CMD_INJECT_FAILURE
-                         names motors 1..4N (unit u rotor r = 4 (u - 1) + r).
-    AssemblySim          sans-IO lockstep wiring of JSBSim world, unit motor paths, estimator,
-                         coordinator and vehicle: `step(wall_time_s)` advances one control period
-                         and returns the MAVLink bytes to send. `mars_link.processes.realtime` paces it in
-                         real time behind UDP sockets.
+A docked assembly is a flight of one piece: the coordinator of pieces (mars_link.coordination.pieces) flies
+every flight, docked or not (free units assembling, a reconfiguration, a commanded separation).
+
+    AssemblyFlightCore  the Vehicle's guidance phases (UnitAutopilot: hold / takeoff ramp / go-to /
+                        velocity / land / return, PX4's speed limits) shape a reference that becomes the
+                        structure's mission (`SetpointSource`); the thrusts it hands the mode machine are
+                        the ones the pieces' coordinators (controller + FTC allocator) commanded.
+    AssemblyVehicle     Vehicle + that core; reports the piece it follows (the tracked unit's, else the one
+                        with the most units); STATUSTEXT for every coordinator and executor event (faults,
+                        reallocations, splits, docks, plans, a change of the followed piece); assembly
+                        parameters; MAV_CMD_INJECT_FAILURE names motors 1..4N (unit u rotor r = 4 (u - 1) + r).
+    VehicleFlight       sans-IO, one control period: the units' telemetry in; the coordinator of pieces;
+                        the followed piece's estimate (once settled) into the vehicle, its sensor guard
+                        watched (`VehicleSensorWatch`); the vehicle's tick; out go each unit's rotor command,
+                        with its latch setpoint, and the vehicle's frames. Used in process
+                        (mars_link.vehicles.vehicle_sim.VehicleSim, `mars-link vehicle`) and inside the SITL
+                        coordinator process (`sitl up --vehicle`, mars_link.processes.vehicle_host).
+
+What a ground station sees of a flight of pieces, in order: a landed vehicle; after arm and takeoff,
+free units take off and dock in the air layer by layer (Algorithm 3), then the structure flies to the
+takeoff setpoint and follows setpoints as one vehicle. A fault its detectors find (or a separation of the
+scenario) makes the coordinator pause the setpoints, split, move and dock the pieces, and return to the
+latest setpoint; setpoints sent meanwhile wait for that return. Nothing starts a manoeuvre while the
+vehicle is on the ground or landing.
 """
 
 from __future__ import annotations
@@ -30,21 +43,23 @@ import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.params import INT32, REAL32, ParamSpec, ParamStore, unit_param_specs
-from firmware_models.unit_controller import UnitAutopilot
+from firmware_models.unit_controller import Phase, UnitAutopilot
 from firmware_models.vehicle import LINK_API, LINK_GCS, LinkPolicy, Outgoing, Vehicle, VehicleConfig
 from firmware_models.vehicle_streams import SENSOR_BITS, StreamService
-from mars_link.core.events import EventKind, event
-from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel
-from mars_link.control.base import ControlOutput
-from mars_link.coordination.coordinator import Coordinator
-from mars_link.core.errors import UserInputError
-from mars_link.models.estimation_outdoor import estimate_settled
-from mars_link.core.messages import RotorCommand, wire_thrust, wire_time
 from mars_link.config.scenario import Scenario
+from mars_link.control.base import ControlOutput
+from mars_link.coordination.pieces import Piece, PiecesCoordinator
+from mars_link.core.assembly import ROTORS_PER_UNIT, AssemblyModel
+from mars_link.core.errors import UserInputError
+from mars_link.core.events import EventKind, event
+from mars_link.core.messages import RotorCommand, SensorPacket, wire_thrust, wire_time
+from mars_link.core.rotations import quat_to_rotmat
 from mars_link.core.state import RigidBodyState
-from mars_link.models.trajectories import Trajectory, TrajectoryPoint
 from mars_link.flight.events import event_text
-from mars_link.vehicles.vehicle_sensor_watch import VehicleSensorWatch, route_sensor_failure
+from mars_link.models.estimation_outdoor import estimate_settled
+from mars_link.models.trajectories import Trajectory, TrajectoryPoint
+from mars_link.reconfig.execution import units_text
+from mars_link.vehicles.vehicle_sensor_watch import VehicleSensorWatch
 
 DEFAULT_SYSID = 1
 #: coordinator event type -> STATUSTEXT severity
@@ -60,11 +75,10 @@ EVENT_SEVERITY = {
     "diverged": mavlink.MAV_SEVERITY_EMERGENCY,
     "estimator_reset": mavlink.MAV_SEVERITY_WARNING,
 }
-#: consecutive position updates with every unit gated out before the EKF is restarted on them
 
 
 class SetpointSource(Trajectory):
-    """The coordinator's trajectory: whatever reference the flight core set last (held between)."""
+    """The structure's mission: whatever reference the flight core set last (held between)."""
 
     duration_s = math.inf
 
@@ -75,51 +89,38 @@ class SetpointSource(Trajectory):
         return self.point
 
 
-class _CoordinatorDrive:
-    """Stands where UnitAutopilot keeps its 1x1 controller: the shaped reference goes to the
-    coordinator (controller + FTC allocation over all rotors) instead."""
+class PiecesDrive:
+    """Stands where UnitAutopilot keeps its 1x1 controller: the shaped reference becomes the structure's
+    mission (read by the coordinator of pieces at its next step), and the thrusts are the ones the pieces'
+    coordinators commanded this period, in the whole layout's rotor order."""
 
-    def __init__(self, coordinator: Coordinator, source: SetpointSource) -> None:
-        self.coordinator = coordinator
+    def __init__(self, pieces: PiecesCoordinator, source: SetpointSource, n_rotors: int) -> None:
+        self.pieces = pieces
         self.source = source
-        self.packets: list = []  # this control step's sensor packets (set by AssemblySim)
+        self.thrusts_n = np.zeros(n_rotors)
 
     def reset(self) -> None:
-        reset = getattr(self.coordinator.controller, "reset", None)
-        if reset is not None:
-            reset()
+        """Take-off: every piece's controller starts afresh (it ran, unheard, on the ground)."""
+        for piece in self.pieces.pieces.values():
+            reset = getattr(piece.coordinator.controller, "reset", None)
+            if reset is not None:
+                reset()
 
     def update(self, t_s: float, state: RigidBodyState, reference: TrajectoryPoint) -> ControlOutput:
         self.source.point = reference
-        self.coordinator.step(t_s, self.packets)
-        return ControlOutput(self.coordinator.last.thrusts_n)
+        return ControlOutput(self.thrusts_n.copy())
 
 
 class AssemblyFlightCore(UnitAutopilot):
-    """UnitAutopilot's guidance phases, flying the assembly through its coordinator."""
+    """UnitAutopilot's guidance phases, flying the structure through the coordinator of pieces."""
 
-    def __init__(self, coordinator: Coordinator, control_hz: float) -> None:
-        super().__init__(coordinator.model.vehicle, control_hz)
-        self.model = coordinator.model
-        start = TrajectoryPoint(np.zeros(3))
-        source = coordinator.trajectory if isinstance(coordinator.trajectory, SetpointSource) else SetpointSource(start)
-        coordinator.trajectory = source
-        self.drive = _CoordinatorDrive(coordinator, source)
+    def __init__(self, pieces: PiecesCoordinator, source: SetpointSource, model: AssemblyModel,
+                 control_hz: float) -> None:
+        super().__init__(model.vehicle, control_hz)
+        self.model = model
+        self.drive = PiecesDrive(pieces, source, model.n_rotors)
         self.controller = self.drive
-        self.zero = np.zeros(self.model.n_rotors)
-
-
-def vehicle_coordinator(scenario: Scenario, model: AssemblyModel, detector, eta: np.ndarray | None = None):
-    """The coordinator behind an assembly vehicle: it owns the estimator (`Coordinator.estimate`, read by
-    the vehicle every period, also while it does not fly); its reference is the vehicle's setpoint
-    (SetpointSource); the vehicle flies the position-loss failsafe itself (VehicleSensorWatch)."""
-    from mars_link.flight.build import make_coordinator, make_estimator
-
-    coordinator = make_coordinator(scenario, model, SetpointSource(TrajectoryPoint(np.zeros(3))),
-                                   make_estimator(scenario, model), detector, eta=eta)
-    coordinator.failsafe = None
-    coordinator.guard_events = False  # (the vehicle reports the guard's findings)
-    return coordinator
+        self.zero = np.zeros(model.n_rotors)
 
 
 def assembly_param_specs(sysid: int, model: AssemblyModel, ftc: str) -> list[ParamSpec]:
@@ -137,43 +138,65 @@ def assembly_param_specs(sysid: int, model: AssemblyModel, ftc: str) -> list[Par
     ]
 
 
-class AssemblyVehicle(Vehicle):
-    """The PX4-persona Vehicle flying an assembly: client links only (gcs, api), no rotor intake."""
+@dataclass
+class SimConfig:
+    """The vehicle's options (`mars-link vehicle`, `sitl up --vehicle`, multi-vehicle runs)."""
 
-    def __init__(self, coordinator: Coordinator, sysid: int = DEFAULT_SYSID, control_hz: float = 100.0,
-                 ftc: str = "none", params: dict[str, float] | None = None, wall_time_s: float = 0.0,
-                 signing_key: bytes | None = None, require_signing: bool = False, *,
-                 model: AssemblyModel | None = None, flight_core: UnitAutopilot | None = None) -> None:
-        """`signing_key`: signed clients get full control (control_policy); `require_signing`: unsigned
-        clients may only read. `model` and `flight_core` default to the coordinator's (one rigid body);
-        a flight of pieces gives the whole layout's and its own (mars_link.vehicles.pieces_vehicle)."""
-        model = model or coordinator.model
-        client = LinkPolicy(require_signing=require_signing, sign_outgoing=require_signing, unsigned_reads=True)
-        config = VehicleConfig(unit_id=sysid, vehicle=model.vehicle, control_hz=control_hz, signing_key=signing_key,
-                               links={LINK_GCS: client, LINK_API: client})
-        self.coordinator = coordinator
-        super().__init__(config, wall_time_s, flight_core=flight_core or AssemblyFlightCore(coordinator, control_hz))
-        specs = assembly_param_specs(sysid, model, ftc)
+    sysid: int = DEFAULT_SYSID
+    start_north_m: float = 0.0  # the start moved by this (and turned by start_yaw_deg about the origin)
+    start_east_m: float = 0.0
+    start_yaw_deg: float = 0.0
+    params: dict | None = None  # start-up parameter values (MIS_TAKEOFF_ALT, ...)
+    signing_key: bytes | None = None  # MAVLink signing on the client links (control_policy)
+    require_signing: bool = False  # unsigned clients may only read
+    map_path: str | None = None  # obstacle map: mission legs planned around it (mars_link.planning.mission_legs)
+    ulog_path: str | None = None  # set: the vehicle writes a ULog (.ulg) there (mars_link.logs)
+
+
+class AssemblyVehicle(Vehicle):
+    """The PX4-persona Vehicle flying an assembly (one piece or several): client links only (gcs, api),
+    no rotor intake; it follows the tracked piece."""
+
+    def __init__(self, pieces: PiecesCoordinator, model: AssemblyModel, source: SetpointSource,
+                 config: SimConfig, control_hz: float, ftc: str, wall_time_s: float,
+                 battery_failsafe: dict[str, float] | None = None) -> None:
+        """`config.signing_key`: signed clients get full control (control_policy); `config.require_signing`:
+        unsigned clients may only read; `battery_failsafe`: the scenario's packs' failsafe parameters."""
+        client = LinkPolicy(require_signing=config.require_signing, sign_outgoing=config.require_signing,
+                            unsigned_reads=True)
+        vc = VehicleConfig(unit_id=config.sysid, vehicle=model.vehicle, control_hz=control_hz,
+                           signing_key=config.signing_key, links={LINK_GCS: client, LINK_API: client})
+        self.pieces = pieces
+        super().__init__(vc, wall_time_s, flight_core=AssemblyFlightCore(pieces, source, model, control_hz))
+        specs = assembly_param_specs(config.sysid, model, ftc)
         fixed = {sp.name for sp in specs if sp.read_only}
-        for name in params or {}:
+        # the scenario's packs set the low-battery failsafe (COM_LOW_BAT_ACT, ...); the options may override it
+        params = {**(battery_failsafe or {}), **(config.params or {})}
+        for name in params:
             if name in fixed:
                 raise UserInputError(f"parameter {name} is read-only (it follows from the assembly and options)")
-        self.params = ParamStore(specs, params or {})
+        self.params = ParamStore(specs, params)
         self.model = model
         self.motor_count = model.n_rotors
         self.motor_commands_n = np.zeros(model.n_rotors)
-        self.on_failure = None  # callable(unit, rotor | None, eta): the motor path (set by AssemblySim)
+        self.on_failure = None  # callable(unit, rotor | None, eta): the motor path (set by the host)
         # callable(sensor, type, instance) -> MAV_RESULT: the units' sensor paths (vehicle_sensor_watch)
         self.on_sensor_failure = None
-        self.sensor_health = None  # the estimator's SensorGuard: SYS_STATUS health bits (vehicle_sensor_watch)
-        self._events_seen = 0
+        self.sensor_health = None  # the followed piece's SensorGuard: SYS_STATUS health bits (vehicle_sensor_watch)
         self._unit_batteries: dict = {}  # unit -> its last BatterySample report
         self._battery_t: float | None = None
+        self._seen = {"coordinator": 0, "executor": 0}
+        self.followed: tuple[int, ...] | None = None
+        self._follow_event: dict | None = None
         self.stream_service = AssemblyStreamService(self, wall_time_s)
 
     @property
     def core(self) -> AssemblyFlightCore:
         return self.autopilot
+
+    def believed_eta(self) -> np.ndarray:
+        """Every rotor's believed efficiency, the whole layout's rotor order (failure_detector_status)."""
+        return np.concatenate([self.pieces.eta_believed[u] for u in self.model.unit_ids])
 
     def rotor_thrusts_n(self) -> np.ndarray:
         """The 4N thrusts to command this step (zeros when disarmed or idle)."""
@@ -211,7 +234,7 @@ class AssemblyVehicle(Vehicle):
         return sum(SENSOR_BITS[s] for s in bad if s in SENSOR_BITS)
 
     def step_motors(self, dt_s: float) -> np.ndarray:
-        raise NotImplementedError("the assembly's rotors are driven by its units (AssemblySim)")
+        raise NotImplementedError("the assembly's rotors are driven by its units (VehicleFlight)")
 
     def take_unit_batteries(self, t_s: float, packets) -> None:
         """The units' battery reports -> the assembly's pack as BATTERY_STATUS/SYS_STATUS show it and its
@@ -246,11 +269,44 @@ class AssemblyVehicle(Vehicle):
         return super().tick(wall_time_s, sim_time_s)
 
     def new_events(self) -> list[dict]:
-        """The coordinator's events since the last call."""
-        events = self.coordinator.events
-        new = events[self._events_seen:]
-        self._events_seen = len(events)
+        """The coordinator's and the executor's events since the last call, in time order."""
+        new = []
+        for name, events in (("coordinator", self.pieces.events), ("executor", self.pieces.executor.events)):
+            new += events[self._seen[name]:]
+            self._seen[name] = len(events)
+        new.sort(key=lambda e: e["t_s"])
+        if self._follow_event is not None:  # (after the dock or split that made it)
+            new.append(self._follow_event)
+            self._follow_event = None
         return new
+
+    def follow(self, t_s: float) -> Piece:
+        """The piece the vehicle reports (the tracked one); a STATUSTEXT when it changes."""
+        piece = self.pieces.tracked_piece()
+        units = tuple(sorted(piece.units))
+        if units != self.followed:
+            if self.followed is not None:
+                self._follow_event = event(t_s, EventKind.FOLLOWING, units=list(units),
+                                           text=f"Following u{units_text(units)} ({len(units)} units)")
+            self.followed = units
+        return piece
+
+    def _land_detect(self, t: float) -> str | None:
+        """No landing while the coordinator manoeuvres: a rebuild on the ground sets the structure down on
+        purpose, and it takes off again by itself (PX4 would disarm the vehicle on the ground)."""
+        if self.pieces.executor.phase != "mission":
+            self.manual_service.touch_since_s = None
+            return None
+        return super()._land_detect(t)
+
+    def flying(self) -> bool:
+        """Armed and off the ground under a guidance phase (not landing): manoeuvres may start."""
+        phase = self.autopilot.phase
+        return self.armed and phase not in (Phase.IDLE, Phase.LAND) and not self.autopilot.landed
+
+    def drives_rotors(self) -> bool:
+        """Armed under a guidance phase: the pieces' thrusts go to the units (also taking off and landing)."""
+        return self.armed and self.autopilot.phase != Phase.IDLE
 
 
 class AssemblyStreamService(StreamService):
@@ -268,25 +324,24 @@ class AssemblyStreamService(StreamService):
         return super().message(mid)
 
 
-# ----------------------------------------------------------------------------- in-process wiring
-@dataclass
-class SimConfig:
-    sysid: int = DEFAULT_SYSID
-    start_north_m: float = 0.0
-    start_east_m: float = 0.0
-    start_yaw_deg: float = 0.0
-    params: dict | None = None  # start-up parameter values (MIS_TAKEOFF_ALT, ...)
-    signing_key: bytes | None = None  # MAVLink signing on the client links (control_policy)
-    require_signing: bool = False  # unsigned clients may only read
-    map_path: str | None = None  # obstacle map: mission legs planned around it (mars_link.planning.mission_legs)
-    ulog_path: str | None = None  # set: the vehicle writes a ULog (.ulg) there (mars_link.logs)
-
-
 def vehicle_scenario(scenario: Scenario) -> Scenario:
     """The scenario as the vehicle flies it: setpoints are for the CoM; the trajectory is unused."""
     s = copy.deepcopy(scenario)
     s.tracked = "com"
     return s
+
+
+def start_point(scenario: Scenario, model: AssemblyModel, trajectory: Trajectory, config: SimConfig) -> TrajectoryPoint:
+    """Where the structure's CoM starts: the scenario's start (under its trajectory's first point), turned
+    by `start_yaw_deg` about the origin and moved by `start_north_m`/`start_east_m` (several vehicles in
+    one air space)."""
+    from mars_link.flight.build import start_pose, yaw_quat
+
+    com, yaw = start_pose(scenario, model, trajectory)
+    turn = math.radians(config.start_yaw_deg)
+    moved = quat_to_rotmat(yaw_quat(turn)) @ np.asarray(com, dtype=float) + np.array(
+        [config.start_north_m, config.start_east_m, 0.0])
+    return TrajectoryPoint(moved, yaw_rad=yaw + turn)
 
 
 def attach_legs(vehicle: Vehicle, scenario: Scenario, map_path: str | None, believed_eta):
@@ -298,150 +353,117 @@ def attach_legs(vehicle: Vehicle, scenario: Scenario, map_path: str | None, beli
                                                   scenario.preset), believed_eta)
 
 
-class EngineSim:
-    """What the in-process vehicles share (`AssemblySim`, mars_link.vehicles.pieces_vehicle.PiecesSim): the engine
-    steps the world, the units and the vehicle's command source; a fault goes into a unit's motor path and
-    is told to the coordinator (`_tell`) only with `faults_known`. Subclasses set scenario, world, units,
-    vehicle, engine, model and events."""
+class VehicleFlight:
+    """One control period of the vehicle's flight (one piece or several); sans-IO. The followed piece's
+    coordinator leaves its sensor guard's findings and the position-loss failsafe to the vehicle
+    (`VehicleSensorWatch`: PX4's hold, then land, as flight modes)."""
+
+    def __init__(self, scenario: Scenario, model: AssemblyModel, config: SimConfig, wall_time_s: float,
+                 telemetry_timeout_s: float | None = None) -> None:
+        from mars_link.flight.build import make_pieces_coordinator, make_trajectory
+
+        self.scenario = scenario
+        self.model = model
+        trajectory = make_trajectory(scenario, model)  # (where the structure starts; its snap weighs plans)
+        self.source = SetpointSource(start_point(scenario, model, trajectory, config))
+        self.pieces, _ = make_pieces_coordinator(scenario, model, self.source, telemetry_timeout_s,
+                                                 plan_for=trajectory, vehicle=True)
+        self.pieces.manoeuvres_allowed = False
+        self.vehicle = AssemblyVehicle(self.pieces, model, self.source, config, scenario.sim.control_hz,
+                                       scenario.ftc, wall_time_s,
+                                       scenario.battery.failsafe if scenario.battery is not None else None)
+        self.estimate: RigidBodyState | None = None
+        self.estimate_ready = False  # the estimate has settled once (estimation_outdoor.estimate_settled)
+        self.estimator_resets = 0  # the followed piece's EKF restarts on the measured positions (after gated batches)
+        self.events: list[dict] = []  # the sensor guard's findings, the failsafe's and the estimator's resets
+        self.sensor_watch: VehicleSensorWatch | None = None
+        self._followed: Piece | None = None
+        self._resets_seen = 0
+        self.full_scale_n = model.vehicle.full_scale_thrust_n
+        self._take_over(self.vehicle.follow(0.0))
 
     @property
-    def t_s(self) -> float:
-        return self.world.t_s
+    def executor(self):
+        return self.pieces.executor
 
-    def handle(self, data: bytes, wall_time_s: float, link: str) -> list[Outgoing]:
-        return self.vehicle.handle(data, wall_time_s, link)
+    def eta_believed(self) -> np.ndarray:
+        return self.vehicle.believed_eta()
 
-    def inject(self, unit: int, rotor: int | None, eta: float) -> None:
-        """A fault in a unit's motor path; told to the coordinator only with `faults_known`."""
-        t = self.t_s
-        self.units.inject_failure(unit, rotor, eta)
-        ev = event(t, EventKind.FAULT, unit=unit, rotor=rotor, eta=eta)
-        self.events.append(ev)
-        self.vehicle.report_event(ev)
-        if self.scenario.faults_known:
-            self._tell(unit, rotor, eta, t)
+    def tell_fault(self, unit: int, rotor: int | None, eta: float, t_s: float) -> None:
+        """A fault told to the coordinator (`faults_known`)."""
+        told = self.eta_believed()
+        told[self.model.unit_slots(unit) if rotor is None else self.model.rotor_slot(unit, rotor)] = eta
+        self.pieces.set_faults(told, t_s, "fault told to the coordinator")
 
-    def _tell(self, unit: int, rotor: int | None, eta: float, t_s: float) -> None:
-        raise NotImplementedError
+    def _take_over(self, piece: Piece) -> None:
+        """The followed piece's sensor guard reports to the vehicle, whose flight modes fly the failsafe."""
+        if piece is self._followed:
+            return
+        self._followed = piece
+        c = piece.coordinator
+        c.failsafe = None
+        c.guard_events = False
+        ekf = c.estimator
+        self._resets_seen = 0 if ekf is None else ekf.stats.position_resets  # (a moved EKF keeps its count)
+        if c.guard is None:
+            return
+        if self.sensor_watch is None:
+            self.sensor_watch = VehicleSensorWatch(self.vehicle, c.guard, self.events)
+        else:
+            self.sensor_watch.watch(c.guard)
 
-    def step(self, wall_time_s: float) -> list[Outgoing]:
-        """One control period through the engine (faults due, sensing, units, vehicle and coordinator,
-        motors, physics); returns the vehicle's frames to send."""
-        self._wall_s = wall_time_s
-        self._out = []
-        self.engine.step()
-        return self._out
-
-    def unit_eta(self) -> list[float]:
-        return [float(x) for x in self.units.eta(self.model.unit_ids)]
-
-    def close(self) -> None:
-        self.vehicle.stop_ulog()
-        self.legs.close()
-        self.world.close()
-
-
-class AssemblySim(EngineSim):
-    """World (one JSBSim body), unit motor paths, estimator, coordinator and the assembly vehicle,
-    wired by direct calls in lockstep. Sans-IO: `handle(bytes, wall, link)` and `step(wall)` return
-    the frames to send; `t_s` is simulation time (scenario faults fire at their `t` from the start)."""
-
-    def __init__(self, scenario: Scenario, config: SimConfig | None = None, wall_time_s: float = 0.0) -> None:
-        from mars_link.flight.build import make_detector, make_unit, make_world
-        from mars_link.flight.engine import Engine, Flight, InProcessUnits
-
-        cfg = config or SimConfig()
-        self.scenario = s = vehicle_scenario(scenario)
-        self.model = model = s.model()
-        hz = s.sim.control_hz
-        self.control_dt_s = 1.0 / hz
-        self.eta_told = model.nominal_eta()
-        yaw = math.radians(cfg.start_yaw_deg)
-        self.world = make_world(s, model, s.sim.seed, np.array([cfg.start_north_m, cfg.start_east_m, 0.0]), yaw)
-        # the vehicle starts landed: ground contact at take-off is not a rotor fault
-        detector = make_detector(s, model, float(self.world.truth().position_ned_m[2]))
-        self.coordinator = vehicle_coordinator(s, model, detector, self.eta_told)
-        self.estimator = self.coordinator.estimator  # (the coordinator's; None: it flies on the truth)
-        self.units = InProcessUnits({u: make_unit(s, model, u) for u in model.unit_ids}, self.world)
-        params = {**(s.battery.failsafe if s.battery is not None else {}), **(cfg.params or {})}
-        self.vehicle = AssemblyVehicle(self.coordinator, cfg.sysid, hz, s.ftc, params, wall_time_s,
-                                       cfg.signing_key, cfg.require_signing)
-        self.vehicle.on_failure = self.inject
-        self.vehicle.on_sensor_failure = self.inject_sensor
-        self.legs = attach_legs(self.vehicle, s, cfg.map_path, self.eta_believed)
-        if cfg.ulog_path:
-            self.vehicle.start_ulog(cfg.ulog_path)
-        self.estimate: RigidBodyState | None = None
-        self.estimator_resets = 0  # the EKF's own restarts on the measured positions (after gated batches)
-        self.events: list[dict] = []  # faults (scenario and MAVLink), with coordinator.events = the record
-        self.sensor_watch = None
-        self.estimate_ready = False  # the estimate has settled once (estimation_outdoor.estimate_settled)
-        if self.estimator is not None:  # the coordinator's detector reads the guard's usable IMUs; the vehicle reports
-            self.sensor_watch = VehicleSensorWatch(self.vehicle, self.estimator, self.events)
-        # the engine's loop; the vehicle's flight modes stand in front of the coordinator, and it flies until stopped
-        flight = Flight(s, model, s.sim.seed, self.coordinator.trajectory, self.world, self.units, self.coordinator,
-                        sorted(s.faults, key=lambda f: f.t_s), duration_s=math.inf)
-        self.engine = Engine(flight, command_source=self._commands,
-                             on_fault=lambda f, t: self.inject(f.unit, f.rotor, f.eta))
-        self._wall_s = wall_time_s
-        self._out: list[Outgoing] = []
-
-    def _tell(self, unit: int, rotor: int | None, eta: float, t_s: float) -> None:
-        sl = self.model.unit_slots(unit) if rotor is None else self.model.rotor_slot(unit, rotor)
-        self.eta_told[sl] = eta
-        self.coordinator.set_faults(self.eta_told, t_s, "fault told to the coordinator")
-
-    def inject_sensor(self, sensor: str, kind: str, instance: int) -> int:
-        """A sensor failure injected on the vehicle: into the named units' sensor paths."""
-        units = route_sensor_failure(self.vehicle, self.units.vehicles, sensor, kind, instance)
-        if isinstance(units, int):
-            return units
-        for u in units:
-            self.units.vehicles[u].sensor_failures.inject(sensor, kind)
-        self.events.append(event(self.t_s, EventKind.SENSOR_FAULT, sensor=sensor, failure=kind,
-                                 unit=None if instance == 0 else units[0],
-                                 text=f"Sensor fault: {sensor} {kind}, " + ("all units" if instance == 0 else f"unit {units[0]}")))
-        return mavlink.MAV_RESULT_ACCEPTED
-
-    def _commands(self, t: float, packets) -> list[RotorCommand]:
-        """The engine's command source: estimate, the vehicle's tick (its coordinator runs when it flies),
-        and the rotor thrusts it decided, one RotorCommand per unit."""
-        self.vehicle.core.drive.packets = packets
-        self.vehicle.take_unit_batteries(t, packets)
-        est = self._estimate(t, packets)
-        if est is not None:
-            self.estimate = est
-            self.vehicle.set_state(est)
-        self._out = self.vehicle.tick(self._wall_s, t)
-        wired = wire_thrust(self.vehicle.rotor_thrusts_n(), self.model.vehicle.full_scale_thrust_n)
-        tw = wire_time(t)
-        return [RotorCommand(tw, u, wired[self.model.unit_slots(u)]) for u in self.model.unit_ids]
-
-    def _estimate(self, t: float, packets) -> RigidBodyState | None:
-        est = self.coordinator.estimate(t, packets)  # (the gps profile's fixes, barometers and magnetometers too)
-        ekf = self.estimator
-        if ekf is None:
+    def _followed_estimate(self, t_s: float, piece: Piece) -> RigidBodyState | None:
+        """The followed piece's estimate once its EKF has settled (None before); its guard watched and its
+        EKF's position resets reported."""
+        self._take_over(piece)
+        last = piece.coordinator.last
+        est = None if last is None else last.estimate
+        ekf = piece.coordinator.estimator
+        if ekf is None or est is None:
             return est
         if not ekf.initialised or not (self.estimate_ready or estimate_settled(ekf)):
             return None
         self.estimate_ready = True  # (once: a failsafe's dead reckoning later grows the sigma again)
         if self.sensor_watch is not None:
             self.vehicle.set_state(est)  # (the failsafe holds where the estimate says the assembly is)
-            self.sensor_watch.update(t)
-        if ekf.stats.position_resets > self.estimator_resets:  # e.g. after a touchdown shock
-            self.estimator_resets = ekf.stats.position_resets
-            ev = event(t, EventKind.ESTIMATOR_RESET, text="EKF reset on positions",
+            self.sensor_watch.update(t_s)
+        resets = ekf.stats.position_resets
+        if resets > self._resets_seen:  # e.g. after a touchdown shock
+            self.estimator_resets += resets - self._resets_seen
+            self._resets_seen = resets
+            ev = event(t_s, EventKind.ESTIMATOR_RESET, text="EKF reset on positions",
                        reason=f"{ekf.params.position_reset_after_batches} position updates gated")
             self.events.append(ev)
             self.vehicle.report_event(ev)
         return est
 
-    def eta_believed(self) -> np.ndarray:
-        return self.coordinator.eta_believed
+    def step(self, t_s: float, packets: list[SensorPacket], wall_time_s: float,
+             live: set[int] | None = None) -> tuple[list[RotorCommand], list[Outgoing]]:
+        """The coordinator of pieces (always: every piece's EKF and detector run, also on the ground), the
+        followed piece's estimate into the vehicle, the vehicle's tick (its guidance sets the mission for
+        the next period); the units' commands: the pieces' thrusts while the vehicle's guidance drives the
+        rotors, else zero, and every unit's latch setpoint (`live`: only for these units)."""
+        v = self.vehicle
+        v.take_unit_batteries(t_s, packets)
+        self.pieces.manoeuvres_allowed = v.flying()
+        self.pieces.rotors_driven = v.drives_rotors()  # (the units get zeros otherwise: rotor_thrusts_n)
+        if v.armed and v.autopilot.phase == Phase.TAKEOFF and self.executor.phase == "grounded":
+            self.executor.begin_take_off(t_s)  # free units: they take off when the vehicle does
+        commands = self.pieces.step(t_s, packets)
+        piece = v.follow(t_s)
+        est = self._followed_estimate(t_s, piece)
+        if est is not None:
+            self.estimate = est
+            # (the IMU logged is the followed piece's first unit's: its units are rigidly docked)
+            first = piece.units[0]
+            v.set_state(est, next((p.imu for p in packets if p.unit_id == first), None))
+        drive = v.autopilot.drive
+        drive.thrusts_n = np.zeros(self.model.n_rotors)
+        for c in commands:
+            drive.thrusts_n[self.model.unit_slots(c.unit_id)] = c.thrusts_n
+        out = v.tick(wall_time_s, t_s)
+        thrusts = wire_thrust(v.rotor_thrusts_n(), self.full_scale_n)  # zeros unless armed and flying
+        tw = wire_time(t_s)
+        return [RotorCommand(tw, u, thrusts[self.model.unit_slots(u)], self.pieces.latch_setpoint[u])
+                for u in self.model.unit_ids if live is None or u in live], out
 
-    def event_lists(self) -> list[list[dict]]:
-        """The run's event records: faults (scenario and MAVLink), the coordinator's."""
-        return [self.events, self.coordinator.events]
-
-    def truth(self) -> RigidBodyState:
-        return self.world.truth()

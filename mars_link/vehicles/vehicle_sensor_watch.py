@@ -46,11 +46,16 @@ class VehicleSensorWatch:
     def __init__(self, vehicle, guard, record: list[dict], params: PositionFailsafeParams | None = None) -> None:
         self.vehicle = vehicle
         self.guard = guard
-        self.record = record  # the run's event list (AssemblySim.events)
+        self.record = record  # the run's event list (VehicleFlight.events)
         self.params = params or PositionFailsafeParams()
         self.state = "normal"  # normal | hold | land
         self._supported_since: float | None = None
         vehicle.sensor_health = guard
+
+    def watch(self, guard) -> None:
+        """Another piece's guard from now on (the vehicle follows a piece a split or dock made)."""
+        self.guard = guard
+        self.vehicle.sensor_health = guard
 
     def _say(self, t_s: float, kind: str, text: str) -> None:
         ev = event(t_s, kind, text=text)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.vehicles.vehicle_sim import VehicleSim
 from mars_link.models.battery import FULL_CELL_V, PROPULSION, ocv_per_cell_v, soc_from_cell_v, thrust_scale
 from mars_link.flight.build import build_flight
 from mars_link.flight.engine import Engine
@@ -43,7 +43,7 @@ def test_pack_model_closed_forms() -> None:
     assert thrust_scale(2 * e, 4) == 1.0
 
 
-def _command_long(sim: AssemblySim, gcs, cmd: int, p1: float = 0.0, p7: float = 0.0) -> list:
+def _command_long(sim: VehicleSim, gcs, cmd: int, p1: float = 0.0, p7: float = 0.0) -> list:
     msg = mavlink.MAVLink_command_long_message(1, 1, cmd, 0, p1, 0, 0, 0, 0, 0, p7)
     return sim.handle(bytes(msg.pack(gcs)), sim.t_s, "api")
 
@@ -56,7 +56,7 @@ def test_long_hover_runs_the_pack_to_low_then_critical_and_the_vehicle_lands() -
     sc = scenario_from_dict({"name": "low", "assembly": {"layout": ["X"], "tracked": "com"},
                              "trajectory": {"kind": "hover"}, "sim": {"noise": False},
                              "battery": {"capacity_ah": 0.1, "initial_soc": 0.2, "com_low_bat_act": 2}})
-    sim = AssemblySim(sc)
+    sim = VehicleSim(sc)
     gcs, dec = mavlink.MAVLink(None, 245, 190), mavlink.MAVLink(None, 0, 0)
     got: list = []
     seen: dict[str, tuple[float, float]] = {}  # STATUSTEXT -> (sim time, truth altitude)

@@ -54,10 +54,10 @@ def test_battery_current_above_int16_is_clamped_not_raised() -> None:
 def test_the_3x2_assembly_vehicle_reports_a_high_draw_instead_of_crashing() -> None:
     """`mars-link vehicle` / `sitl up --vehicle`: the assembly's current is its units' sum (six units at 60 A
     each: 360 A, beyond the int16 centiamperes)."""
-    from mars_link.vehicles.assembly_vehicle import AssemblySim
+    from mars_link.vehicles.vehicle_sim import VehicleSim
     from mars_link.config.scenario import load_scenario
 
-    sim = AssemblySim(load_scenario("hover_3x2"), wall_time_s=0.0)
+    sim = VehicleSim(load_scenario("hover_3x2"), wall_time_s=0.0)
     try:
         v = sim.vehicle
         v.tick(0.0, 0.0)

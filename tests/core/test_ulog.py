@@ -7,7 +7,7 @@
   unit (the firmware's own state comes from the simulator, as in PX4 SITL), the fault as a logged
   string and in failure_detector_status, battery_status from the measured pack; and logging does not
   change the flight;
-- the assembly vehicle (AssemblySim, armed and taken off by COMMAND_LONG bytes): its estimate of the CoM
+- the assembly vehicle (VehicleSim, armed and taken off by COMMAND_LONG bytes): its estimate of the CoM
   in vehicle_local_position within the position sensor's noise of the truth, its setpoint, its 24 rotors
   in two actuator_outputs instances, the coordinator's events as logged strings;
 - a full disk (a real 16 KB tmpfs in a private mount namespace, else a file-size limit): the .ulg stops
@@ -232,14 +232,14 @@ def test_run_scenario_writes_unit_ulogs_on_request(tmp_path) -> None:
 
 # ----------------------------------------------------------------------------- the assembly vehicle
 def test_assembly_vehicle_ulog_estimate_within_sensor_noise(tmp_path) -> None:
-    from mars_link.vehicles.assembly_vehicle import AssemblySim, SimConfig
+    from mars_link.vehicles.vehicle_sim import SimConfig, VehicleSim
     from mars_link.config.scenario import FaultSpec, load_scenario
 
     scenario = load_scenario("hover_3x2")
     scenario.ftc = "qp"
     scenario.faults.append(FaultSpec(unit=2, rotor=2, eta=0.5, t_s=3.0))
     path = tmp_path / "vehicle.ulg"
-    sim = AssemblySim(scenario, SimConfig(ulog_path=str(path)))
+    sim = VehicleSim(scenario, SimConfig(ulog_path=str(path)))
     gcs = mavlink.MAVLink(None, 245, 190)
     truth: dict[int, np.ndarray] = {}
 

@@ -22,7 +22,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from mars_link.processes.udp_runner import free_udp_port, read_status, stop_unit
-from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.vehicles.vehicle_sim import VehicleSim
 from mars_link.processes.realtime import spawn_vehicle
 from mars_link.config.scenario import FaultSpec, load_scenario
 from test_mavproxy_unit import run_mavproxy  # the unit MAVProxy test's harness
@@ -49,7 +49,7 @@ def test_scenario_fault_is_reported_and_reallocated_without_sockets() -> None:
     scenario = load_scenario("hover_3x2")
     scenario.ftc = "qp"
     scenario.faults.append(FaultSpec(unit=2, rotor=2, eta=0.5, t_s=4.0))
-    sim = AssemblySim(scenario)
+    sim = VehicleSim(scenario)
     gcs = mavlink.MAVLink(None, 245, 190)
     dec = mavlink.MAVLink(None, 0, 0)
     got: list = []
@@ -81,10 +81,48 @@ def test_scenario_fault_is_reported_and_reallocated_without_sockets() -> None:
         assert "Fault: unit 2 rotor 2 eta 0.5" in texts
         # the coordinator's own event text (or "Reallocation: <reason>" where it has none)
         assert any(t.startswith("Realloc") for t in texts), texts
-        assert sim.unit_eta()[5] == 0.5 and sim.coordinator.eta_believed[5] == 0.5
+        assert sim.unit_eta()[5] == 0.5 and sim.eta_believed()[5] == 0.5
         assert z0 - sim.truth().position_ned_m[2] == pytest.approx(2.0, abs=0.1)  # still holding 2 m
     finally:
         sim.close()
+
+
+def test_start_offset_moves_and_turns_the_vehicle_docked_or_in_pieces() -> None:
+    """SimConfig's start offset (multi-vehicle runs): the docked 3x2 rests 3 m north and 2 m west of the
+    scenario's start, turned 90 deg, and takes off to 2 m above that spot; the free units of assemble_3x2
+    rest around the moved start."""
+    from mars_link.core.rotations import quat_to_euler
+    from mars_link.vehicles.vehicle_sim import SimConfig
+
+    offset = SimConfig(start_north_m=3.0, start_east_m=-2.0, start_yaw_deg=90.0)
+    sim = VehicleSim(load_scenario("hover_3x2"), offset)
+    gcs = mavlink.MAVLink(None, 245, 190)
+    try:
+        for _ in range(30):
+            sim.step(sim.t_s)
+        rest = sim.truth()
+        assert np.allclose(rest.position_ned_m[:2], (3.0, -2.0), atol=0.01)
+        assert math.degrees(quat_to_euler(rest.quaternion_wxyz)[2]) == pytest.approx(90.0, abs=0.5)
+        for cmd, p1, p7 in ((400, 1.0, 0.0), (22, 0.0, math.nan)):  # arm, takeoff (MIS_TAKEOFF_ALT)
+            sim.handle(bytes(mavlink.MAVLink_command_long_message(1, 1, cmd, 0, p1, 0, 0, 0, 0, 0, p7).pack(gcs)),
+                       sim.t_s, "api")
+        for _ in range(int(round(6.0 / sim.control_dt_s))):
+            sim.step(sim.t_s)
+        aloft = sim.truth()
+        assert np.linalg.norm(aloft.position_ned_m[:2] - rest.position_ned_m[:2]) < 0.05
+        assert rest.position_ned_m[2] - aloft.position_ned_m[2] == pytest.approx(2.0, abs=0.1)
+        assert math.degrees(quat_to_euler(aloft.quaternion_wxyz)[2]) == pytest.approx(90.0, abs=2.0)
+    finally:
+        sim.close()
+    free = VehicleSim(load_scenario("assemble_3x2"), offset)
+    try:
+        free.step(free.t_s)
+        rests = np.array([free.world.body_state(u).position_ned_m for u in range(1, 7)])
+        assert len(free.world.bodies) == 6 and np.allclose(rests.mean(axis=0)[:2], (3.0, -2.0), atol=0.01)
+        spread = rests.max(axis=0) - rests.min(axis=0)
+        assert spread[0] > spread[1]  # the 3x2's long side (east at yaw 0) lies north-south
+    finally:
+        free.close()
 
 
 # ----------------------------------------------------------------------------- MAVSDK
@@ -396,7 +434,7 @@ def test_undeclared_fault_is_detected_and_reported_without_sockets() -> None:
     scenario = load_scenario("hover_3x2")
     scenario.ftc, scenario.faults_known = "qp", False
     scenario.faults.append(FaultSpec(unit=2, rotor=2, eta=0.5, t_s=4.0))
-    sim = AssemblySim(scenario)
+    sim = VehicleSim(scenario)
     gcs, dec = mavlink.MAVLink(None, 245, 190), mavlink.MAVLink(None, 0, 0)
     texts: list[tuple[float, str]] = []
 
@@ -417,7 +455,7 @@ def test_undeclared_fault_is_detected_and_reported_without_sockets() -> None:
         d = sim.coordinator.detections
         assert [(x.unit, x.rotor) for x in d] == [(2, 2)] and abs(d[0].eta_estimated - 0.5) < 0.1
         assert 4.0 <= d[0].t_detected < 4.5
-        assert sim.coordinator.eta_believed[5] == pytest.approx(d[0].eta_estimated)
+        assert sim.eta_believed()[5] == pytest.approx(d[0].eta_estimated)
         after = [t for ts, t in texts if ts > d[0].t_detected]
         assert any(t.startswith("Realloc") for t in after), texts
         assert len(after) >= 2  # the detection itself, then the reallocation

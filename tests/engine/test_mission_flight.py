@@ -148,12 +148,12 @@ def test_pause_resume_set_current_and_mode_switch_start() -> None:
 
 
 def test_the_3x2_assembly_vehicle_flies_a_mission_through_its_own_core() -> None:
-    """`mars-link vehicle`'s sans-IO core (AssemblySim: JSBSim world, unit motor paths, EKF,
+    """`mars-link vehicle`'s sans-IO core (VehicleSim: JSBSim world, unit motor paths, EKF,
     coordinator): the same mission protocol and runner, the setpoints shaped for the coordinator."""
-    from mars_link.vehicles.assembly_vehicle import AssemblySim
+    from mars_link.vehicles.vehicle_sim import VehicleSim
     from mars_link.config.scenario import load_scenario
 
-    sim = AssemblySim(load_scenario("hover_3x2"))
+    sim = VehicleSim(load_scenario("hover_3x2"))
     gcs = R.MAVLink(None, 245, 190)
     dec = R.MAVLink(None, 0, 0)
     got: list = []

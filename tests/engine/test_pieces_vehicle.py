@@ -1,4 +1,4 @@
-"""The assembly MAVLink vehicle over a flight of pieces (mars_link.vehicles.pieces_vehicle): a ground station sees
+"""The assembly MAVLink vehicle over a flight of pieces (mars_link.vehicles.assembly_vehicle): a ground station sees
 one vehicle while free units assemble in the air, and while a fault it injects is found, the structure
 splits, docks into a better arrangement and returns to its setpoint. The vehicle's position is the
 piece with the most units, checked against that body's JSBSim truth; every split, dock and change of
@@ -22,7 +22,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from mars_link.processes.udp_runner import read_status
-from mars_link.vehicles.pieces_vehicle import PiecesSim
+from mars_link.vehicles.vehicle_sim import VehicleSim
 from mars_link.config.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parents[2]
@@ -32,7 +32,7 @@ CMD_ARM, CMD_TAKEOFF, CMD_LAND, CMD_INJECT_FAILURE = 400, 22, 21, 420
 class Gcs:
     """A ground station speaking MAVLink bytes to the in-process vehicle, lockstep."""
 
-    def __init__(self, sim: PiecesSim) -> None:
+    def __init__(self, sim: VehicleSim) -> None:
         self.sim = sim
         self.enc = mavlink.MAVLink(None, 245, 190)
         self.dec = mavlink.MAVLink(None, 0, 0)
@@ -66,7 +66,7 @@ class Gcs:
         return next(m for m in reversed(self.got) if m.get_type() == kind)
 
 
-def followed_truth(sim: PiecesSim) -> np.ndarray:
+def followed_truth(sim: VehicleSim) -> np.ndarray:
     return sim.truth().position_ned_m
 
 
@@ -91,7 +91,7 @@ def test_free_units_assemble_when_the_vehicle_takes_off_and_land_as_one() -> Non
     """assemble_3x2: six units rest apart until the ground station arms and takes off; then they dock
     in 3 layers (5 docks), the structure climbs to the takeoff setpoint above where the followed unit
     rested, and lands as one body."""
-    sim = PiecesSim(load_scenario("assemble_3x2"))
+    sim = VehicleSim(load_scenario("assemble_3x2"))
     gcs = Gcs(sim)
     try:
         gcs.run(2.0)
@@ -129,7 +129,7 @@ def test_a_fault_found_in_flight_reconfigures_under_the_vehicle() -> None:
     sc = load_scenario("docking_3x1")
     sc.faults, sc.faults_known, sc.sim.noise = [], False, True
     sc.reconfig.pop("at_s")  # planned from what the detectors find
-    sim = PiecesSim(sc)
+    sim = VehicleSim(sc)
     gcs = Gcs(sim)
     try:
         hold = take_off_ready_for_failures(gcs)
@@ -161,7 +161,7 @@ def test_six_faults_injected_the_vehicle_rebuilds_itself_on_the_ground_and_holds
     lift off and come down beside units 1-3, and the rebuilt body climbs back to the hold point."""
     sc = load_scenario("reconfig_plus_ground")
     sc.faults = []
-    sim = PiecesSim(sc)
+    sim = VehicleSim(sc)
     gcs = Gcs(sim)
     try:
         hold = take_off_ready_for_failures(gcs)
@@ -185,7 +185,7 @@ def test_six_faults_injected_the_vehicle_rebuilds_itself_on_the_ground_and_holds
 def test_no_manoeuvre_starts_on_the_ground() -> None:
     """A separation due while the vehicle is landed waits until it flies (it would split on the ground)."""
     sc = load_scenario("separate_3x2")
-    sim = PiecesSim(sc)
+    sim = VehicleSim(sc)
     gcs = Gcs(sim)
     try:
         t_sep = sc.separations[0].t_s

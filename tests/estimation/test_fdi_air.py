@@ -11,7 +11,7 @@ import math
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
-from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.vehicles.vehicle_sim import VehicleSim
 from mars_link.flight.runner import run_trial
 from mars_link.config.scenario import FaultSpec, load_scenario
 
@@ -66,7 +66,7 @@ def test_a_unit_dead_before_take_off_is_found_once_aloft(esc: bool) -> None:
     sc = load_scenario("hover_3x2")
     sc.ftc, sc.faults_known, sc.esc_telemetry = "hybrid", False, esc
     sc.faults.append(FaultSpec(unit=2, rotor=None, eta=0.0, t_s=0.0))
-    sim = AssemblySim(sc)
+    sim = VehicleSim(sc)
     gcs = mavlink.MAVLink(None, 245, 190)
     try:
         for _ in range(30):

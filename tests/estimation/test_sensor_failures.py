@@ -17,7 +17,7 @@ from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle import LINK_API, LINK_COORDINATOR, LINK_HIL, Vehicle, VehicleConfig
 from firmware_models.vehicle_streams import SENSOR_BITS
-from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.vehicles.vehicle_sim import VehicleSim
 from mars_link.flight.build import build_flight
 from mars_link.flight.engine import Engine
 from mars_link.flight.recorder import FlightRecorder
@@ -264,7 +264,7 @@ def test_assembly_vehicle_gps_off_on_every_unit_holds_then_lands() -> None:
     clears the GPS bit; the truth shows the assembly landed and disarmed."""
     sc = load_scenario("hover_3x2")
     sc.ftc = "qp"
-    sim = AssemblySim(sc)
+    sim = VehicleSim(sc)
     gcs, dec = mavlink.MAVLink(None, 245, 190), mavlink.MAVLink(None, 0, 0)
     got: list = []
 

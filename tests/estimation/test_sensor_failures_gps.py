@@ -14,7 +14,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
 from firmware_models.vehicle_streams import SENSOR_BITS
-from mars_link.vehicles.assembly_vehicle import AssemblySim
+from mars_link.vehicles.vehicle_sim import VehicleSim
 from mars_link.flight.build import build_flight
 from mars_link.flight.engine import Engine
 from mars_link.core.rotations import quat_to_rotmat, tilt_deg
@@ -169,7 +169,7 @@ def test_baro_off_over_mavlink_on_the_assembly_vehicle() -> None:
     ABSOLUTE_PRESSURE health bit; GPS off then: "GPS lost", GPS_RAW_INT without a fix, the failsafe holds."""
     sc = load_scenario("hover_3x2")
     sc.sensors, sc.ftc = PROFILES["gps"], "qp"
-    sim = AssemblySim(sc)
+    sim = VehicleSim(sc)
     gcs, dec = mavlink.MAVLink(None, 245, 190), mavlink.MAVLink(None, 0, 0)
     got: list = []
 

@@ -1,5 +1,5 @@
 """The geofence as a constraint of the leg planner (mars_link.planning.mission_legs): the 3x2 as `mars-link vehicle`
-flies it (AssemblySim, in process, JSBSim) takes a .plan whose straight legs would cross an exclusion
+flies it (VehicleSim, in process, JSBSim) takes a .plan whose straight legs would cross an exclusion
 zone and cut the corner of an L-shaped inclusion fence; the legs are planned around both, and every
 unit of the true assembly stays inside the inclusion and outside the exclusion all flight long."""
 
@@ -52,12 +52,12 @@ def test_fence_edges_become_walls_on_the_zone_boundaries() -> None:
 
 
 def test_the_3x2_plans_its_legs_around_the_fence(tmp_path: Path) -> None:
-    from mars_link.vehicles.assembly_vehicle import AssemblySim
+    from mars_link.vehicles.vehicle_sim import VehicleSim
     from mars_link.config.scenario import load_scenario
 
     path = tmp_path / "fence.plan"
     path.write_text(json.dumps(fence_plan()))
-    sim = AssemblySim(load_scenario("hover_3x2"))
+    sim = VehicleSim(load_scenario("hover_3x2"))
     sim.legs.wait_for_plans = True  # unpaced: the simulation waits for each plan
     inclusion, exclusion = shapely.Polygon(INCLUSION_L), shapely.Polygon(EXCLUSION)
     # the straight legs would not keep the fence

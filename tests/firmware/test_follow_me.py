@@ -87,10 +87,10 @@ def test_a_unit_follows_a_walking_target_at_the_configured_distance_and_height()
 
 
 def test_the_3x2_follows_a_walking_target() -> None:
-    from mars_link.vehicles.assembly_vehicle import AssemblySim
+    from mars_link.vehicles.vehicle_sim import VehicleSim
     from mars_link.config.scenario import load_scenario
 
-    sim = AssemblySim(load_scenario("hover_3x2"))
+    sim = VehicleSim(load_scenario("hover_3x2"))
     try:
         gcs, dec = R.MAVLink(None, 245, 190), R.MAVLink(None, 0, 0)
 

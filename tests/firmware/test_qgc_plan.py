@@ -17,12 +17,12 @@ from firmware_models.qgc_plan import load_plan, preload
 
 
 def test_a_qgc_plan_is_preloaded_and_flown_by_the_3x2(tmp_path: Path) -> None:
-    from mars_link.vehicles.assembly_vehicle import AssemblySim
+    from mars_link.vehicles.vehicle_sim import VehicleSim
     from mars_link.config.scenario import load_scenario
 
     path = tmp_path / "x.plan"
     path.write_text(json.dumps(qgc_plan_json()))
-    sim = AssemblySim(load_scenario("hover_3x2"))
+    sim = VehicleSim(load_scenario("hover_3x2"))
     try:
         preload(sim.vehicle, load_plan(path), str(path))
         m = sim.vehicle.mission
