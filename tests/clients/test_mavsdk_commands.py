@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from mars_link.processes.udp_runner import free_udp_port, read_status, stop_unit
+from mars_link.config.scenario import INTERACTIVE_SCENARIO, load_scenario
 from mars_link.core.assembly import vehicle_preset
 from mars_link.core.rotations import quat_to_euler
 
@@ -50,7 +51,7 @@ def _rally_items() -> list:
     return out
 
 
-async def _flights(api_port: int, status: Path, tlog: Path) -> dict:
+async def _flights(api_port: int, status: Path, tlog: Path, plant) -> dict:
     res: dict = {}
     async with autopilot(api_port) as system:
         telemetry, action, fence = TelemetryAsync(system), ActionAsync(system), GeofenceAsync(system)
@@ -131,8 +132,8 @@ async def _flights(api_port: int, status: Path, tlog: Path) -> dict:
             return truth()[2] < ground_z - 1.9 and await _flying_mode(telemetry, FlightMode.HOLD)
 
         await _until(up, 30.0, "2 m up, in HOLD, after the second takeoff")
-        unit = vehicle_preset("mars-ftcc")  # (a 3x2 of them hovers at the same share of its thrust)
-        hover = unit.unit_mass_kg * 9.80665 / (4 * unit.full_scale_thrust_n)
+        # the share of full thrust the plant hovers at (a 3x2 of its units at the same share as one unit)
+        hover = plant.unit_mass_kg * 9.80665 / (4 * plant.full_scale_thrust_n)
         # turn to face south (back into the fence: it took off at the rally point 6 m north), then nose down 6 deg
         await offboard.set_attitude(Attitude(0.0, 0.0, 180.0, hover))
         await offboard.start()
@@ -187,7 +188,10 @@ def test_mavsdk_goto_orbit_fence_manual_rally_attitude_land_and_logs(tmp_path: P
         proc, _ = spawn_vehicle(["--layout", "XXX,XXX", "--ftc", "qp", "--api-port", str(api), "--api-bind", "0",
                                  "--gcs-port", str(free_udp_port()), "--gcs-bind", "0", "--tlog", str(tlog)], status)
     try:
-        res = asyncio.run(_flights(api, status, tlog))
+        # the unit process flies mars-ftcc (its --preset default), `mars-link vehicle` the interactive scenario's plant
+        plant = (vehicle_preset("mars-ftcc") if vehicle == "unit"
+                 else load_scenario(INTERACTIVE_SCENARIO).model().vehicle)
+        res = asyncio.run(_flights(api, status, tlog, plant))
     finally:
         rc = stop_unit(proc)
     print(res)
