@@ -30,8 +30,10 @@ Two set-ups (`SitlSetup`):
            coordinator runs the `PiecesCoordinator` (latch setpoints in its rotor commands, controls[4])
            and ends the flight: instead of the first step not to be flown it sends the world
            MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, and the world, still waiting for that step's answers, ends
-           without stepping. Each step it logs the mission's clock, reference and tracked units
-           (pieces_steps.csv); the world logs every unit's centre (world_truth.csv).
+           without stepping. The world logs every unit's centre (world_truth.csv).
+Every set-up: the world runs the flight recorder on its truth (telemetry.csv, units.csv and the summary's
+figures, world_summary.json "recorder"), with the coordinator's record of each step when a coordinator
+runs (mars_link.processes.step_record says why there).
   free     --units N: N separate 1x1 bodies side by side on the ground, no coordinator; each unit
            flies itself (takeoff, offboard, land from MAVSDK/QGC/MAVProxy), the world paced to
            real time (--speed).
@@ -113,6 +115,7 @@ from mars_link.processes.engine_links import (
     shutdown_message,
 )
 from mars_link.processes.links import Link, Ports
+from mars_link.processes.step_record import StepRecordSender
 
 if TYPE_CHECKING:
     from mars_link.core.assembly import AssemblyModel
@@ -318,6 +321,13 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     wall0 = time.perf_counter()
     units = None
     truth_row = world.units_row if setup.pieces else world.truth_row if setup.docked else lambda: _poses_row(world)
+    from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
+    from mars_link.processes.step_record import StepRecords, WorldRecorder
+
+    # the flight recorder's time series (the rotors' are the units': the run's parent writes rotors.csv)
+    run_log = RunLog(out, world.model, rotor_log_hz=min(sc.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX,
+                     series=("telemetry", "units"))
+    records = StepRecords(COORDINATOR_SYSID) if setup.coordinated else None
     view, feed, reference, eta_at = _world_view(setup, world, out, mcap, foxglove)
     writer_pid = view.process.pid if view is not None and mcap else None
     try:
@@ -333,7 +343,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         vehicle = setup.model.vehicle
         units = HilUnits(world, link, setup.unit_ids, stop, pacer, vehicle.full_scale_thrust_n,
                          0.0 if vehicle.rotor_min_thrust_n is not None else -1.0,  # (as the units' intake)
-                         setup.coordinated, setup.pieces, feed, unit_timeout_s)
+                         setup.coordinated, setup.pieces, feed, unit_timeout_s, records)
         write_view = None if view is None else lambda t: view.write_step(
             t, world, feed.point(None if reference is None else reference.sample(t)), eta_at(t), [units.deaths, feed.events])
         logs = _WorldLogs(world, truth_log, truth_row, lambda t: _write_world_status(
@@ -341,7 +351,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         flight = Flight(sc, setup.model, seed, None, world, units, None, sorted(sc.faults, key=lambda f: f.t_s),
                         duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz)
         # (the coordinator is another process: its commands go to the units, the units' answers come here)
-        engine = Engine(flight, [logs], command_source=lambda t, telemetry: [])
+        recorder = WorldRecorder(flight, records, run_log)
+        engine = Engine(flight, [logs, recorder], command_source=lambda t, telemetry: [])
         loop = LoopMeter()  # the stepping loop alone (start-up excluded)
         idle = IdleMeter()  # the machine's idle cores over the loop: behind the wall clock, starved or at fault?
         try:
@@ -357,14 +368,17 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                    "cpu_s": time.process_time(), **loop.figures(), "realtime_class_left_at_s": units.valve.left_at_s,
                    "cores_idle_fraction": idle.fraction(), "force_integral_n2s": world.force_integral_n2s,
                    "latch_events": world.latch_events, "bodies": [list(b.units) for b in world.bodies],
-                   "logging": truth_log.status()}
+                   "logging": truth_log.status(), "recorder": recorder.figures()}
         packs = world.packs
         if packs is not None:  # the packs' truth at the end (unit id order)
             summary["batteries"] = {"soc": packs.soc.round(6).tolist(), "voltage_v": packs.voltage_v.round(4).tolist(),
                                     "drawn_c": packs.drawn_c.round(4).tolist()}
+        run_log.close()  # (its files' status in the summary: a full disk stopped them, or not)
+        summary["run_log"] = run_log.status()
         _write_world_summary(out, summary)
     finally:
         truth_log.close()
+        run_log.close()
         try:  # run.mcap before the link: a Zenoh session can take seconds to close, and the file must be
             if view is not None:  # whole when `sitl up` ends
                 view.finish(event_lists=[[] if units is None else units.deaths, feed.events])
@@ -654,26 +668,6 @@ class _UnitLoop:
 # ----------------------------------------------------------------------------- coordinator
 
 
-class _PiecesStepLog:
-    """Observer: what the summary of a flight of pieces needs each step (pieces_steps.csv): whether the
-    mission flies, its clock and reference, and which units carry the tracked point (the truth comes from
-    the world's log)."""
-
-    def __init__(self, log, coordinator) -> None:
-        self.log, self.coordinator = log, coordinator
-
-    def on_step(self, engine, v) -> bool:
-        executor = self.coordinator.executor
-        t = v.t_s
-        active = executor.mission_active(t)
-        mt = executor.mission_time(t)
-        ref = executor.mission.sample(mt).position_ned_m if active else (math.nan,) * 3
-        piece = self.coordinator.tracked_piece()
-        self.log.write(f"{t:.6f},{int(active)},{mt:.6f},{ref[0]:.9f},{ref[1]:.9f},{ref[2]:.9f},"
-                       f"{' '.join(str(u) for u in piece.units)},{len(self.coordinator.pieces)}\n")
-        return False
-
-
 class _ViewFeedSender:
     """Observer: after the commands, the world's view gets the coordinator's estimate, reference and new
     events (mars_link.processes.view_feed)."""
@@ -744,10 +738,6 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     link = Link(ports.open("coordinator"), COORDINATOR_SYSID, key=key)
     scale = model.vehicle.full_scale_thrust_n
     out.mkdir(parents=True, exist_ok=True)
-    # the coordinator's step record for the summary (its reference and mission clock; a full disk stops it)
-    pieces_log = SafeWriter.open(out / "pieces_steps.csv") if vehicle is None else None
-    if pieces_log:
-        pieces_log.write("t_s,mission,mission_t_s,ref_n_m,ref_e_m,ref_d_m,tracked_units,pieces\n")
     timing = SafeWriter.open(out / "coordinator_timing.csv") if timing_log else None
     px4 = commanders = None  # PX4's own interface ([units] interface = "px4-zenoh"): the commands go over rmw_zenoh
     if sc.unit_interface == "px4-zenoh":
@@ -770,14 +760,15 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         link.heartbeat(link.peers[WORLD_SYSID])
         linked = LinkedUnits(link, list(model.unit_ids), scale, stop, coordinator.unit_lost, unit_timeout_s,
                              None if hosted is not None else coordinator.finish_step, hosted, px4, commanders)
-        observers: list = [] if pieces_log is None else [_PiecesStepLog(pieces_log, coordinator)]
+        flight = Flight(sc, model, sc.sim.seed, trajectory, linked, linked, coordinator, sorted(sc.faults, key=lambda f: f.t_s),
+                        duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz,
+                        end_s=None if end_s is None else lambda: -math.inf if coordinator.failed is not None else end_s())
+        # each step's record to the world, whose flight recorder measures it on the truth (mars_link.processes.step_record)
+        observers: list = [StepRecordSender(link, linked.world, flight, WORLD_SYSID)]
         if view_feed:
             observers.append(_ViewFeedSender(link, linked.world, coordinator))
         if timing:
             observers.append(_TimingLog(timing, linked))
-        flight = Flight(sc, model, sc.sim.seed, trajectory, linked, linked, coordinator, sorted(sc.faults, key=lambda f: f.t_s),
-                        duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz,
-                        end_s=None if end_s is None else lambda: -math.inf if coordinator.failed is not None else end_s())
         commands = coordinator.commands if hosted is None else lambda t, packets: hosted.step(t, packets, linked.live)
         engine = Engine(flight, observers, command_source=commands)
         try:
@@ -807,8 +798,6 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         link.close()
         if timing:
             timing.close()
-        if pieces_log:
-            pieces_log.close()
         if hosted is not None:
             hosted.close()
     return 0
