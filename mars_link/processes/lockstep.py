@@ -14,7 +14,8 @@ The world steps only when every live unit has answered for step k; a unit that s
 no truth (sensor noise on): the unit uses it for its own telemetry and arming checks; the coordinator
 never sees it.
 
-Two set-ups (`SitlSetup`):
+Three set-ups (`SitlSetup`), each a world of bodies from a list (`build.make_bodies_world`: one body, one per
+piece of the start, one 1x1 body per free unit):
   docked   one rigid assembly (the scenario's layout or --layout ROWS) and a coordinator process; at
            the first step the coordinator arms every unit and switches it to OFFBOARD with
            COMMAND_LONGs on its link, in the same datagram as the first rotor command; each unit
@@ -288,29 +289,23 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     """Own the bodies, run the lockstep; `speed` > 0 paces sim time to that many x wall time. `start`
     (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory. `mcap`: run.mcap in
     `out`; `foxglove`: HOST:PORT of the live Foxglove view (mars_link.processes.view_feed says why the world hosts them)."""
-    world_start = start
-    from mars_link.flight.build import make_free_units_world, make_world, outdoor_profile, sensor_params
+    from mars_link.flight.build import docked_bodies, free_units_bodies, free_units_config, make_bodies_world, world_config
     from mars_link.flight.engine import Engine, Flight
-    from sitl.world import WorldConfig
 
     sc = setup.scenario
-    cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise, position_every(setup),
-                      environment=sc.environment if sc.environment.moves_air else None, sensors=sensor_params(sc),
-                      battery=sc.battery, outdoor=outdoor_profile(sc))
+    cfg = dataclasses.replace(world_config(sc, seed), position_every=position_every(setup))
+    world_model = setup.model
     if setup.pieces:  # one body per piece of the executor's start (the coordinator builds the same executor)
-        from mars_link.flight.build import make_executor, make_pieces_world, make_trajectory, world_config
+        from mars_link.flight.build import make_executor, make_trajectory, pieces_bodies
 
-        executor = make_executor(sc, setup.model, make_trajectory(sc, setup.model))[0]
-        cfg = dataclasses.replace(world_config(sc, seed), position_every=position_every(setup))
-        world = make_pieces_world(sc, setup.model, seed, executor, config=cfg)
-        columns = ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("n_m", "e_m", "d_m"))
+        bodies = pieces_bodies(setup.model, make_executor(sc, setup.model, make_trajectory(sc, setup.model))[0])
     elif setup.docked:
-        com, yaw = world_start or _start_pose(setup)
-        world = make_world(sc, setup.model, seed, com, yaw, config=cfg)
-        columns = "pos_n_m,pos_e_m,pos_d_m,qw,qx,qy,qz"
+        bodies = docked_bodies(setup.model, *(start or _start_pose(setup)))
     else:
-        world = make_free_units_world(sc, setup.model.vehicle, setup.free_units, seed, config=cfg)
-        columns = ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("pos_n_m", "pos_e_m", "pos_d_m", "qw", "qx", "qy", "qz"))
+        world_model, bodies = free_units_bodies(setup.model.vehicle, setup.free_units)
+        cfg = free_units_config(cfg)
+    world = make_bodies_world(sc, world_model, bodies, seed, cfg)
+    columns, truth_row = _truth_log(setup, world)
     stop = _Stop()
     link = Link(ports.open("world"), WORLD_SYSID, key=key)  # with a key: HIL both ways and the shutdown signed
     out.mkdir(parents=True, exist_ok=True)
@@ -320,7 +315,6 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     truth_log.write("t_s," + columns + "\n")
     wall0 = time.perf_counter()
     units = None
-    truth_row = world.units_row if setup.pieces else world.truth_row if setup.docked else lambda: _poses_row(world)
     from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
     from mars_link.processes.step_record import StepRecords, WorldRecorder
 
@@ -390,6 +384,17 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             world.close()
             link.close()
     return 0
+
+
+def _truth_log(setup: SitlSetup, world) -> tuple[str, object]:
+    """world_truth.csv's columns and its row of a step: a docked assembly's CoM and attitude; each unit's centre
+    in a flight of pieces; each free unit's centre and attitude (the formats its readers know)."""
+    if setup.pieces:
+        return ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("n_m", "e_m", "d_m")), world.units_row
+    if setup.docked:
+        return "pos_n_m,pos_e_m,pos_d_m,qw,qx,qy,qz", world.truth_row
+    return (",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("pos_n_m", "pos_e_m", "pos_d_m", "qw", "qx", "qy", "qz")),
+            lambda: _poses_row(world))
 
 
 def _poses_row(world) -> list[float]:
