@@ -236,10 +236,10 @@ class WorldRecorder:
 
     def on_step(self, engine, v) -> bool:
         self.last_step_t_s = v.t_s
+        record = None if self.records is None else self.records.pop(int(round(v.t_s * 1e6)))  # (taken, kept or not)
         if self.done:
             return False
-        t_us = int(round(v.t_s * 1e6))
-        self.coordinator.update(None if self.records is None else self.records.pop(t_us))
+        self.coordinator.update(record)
         self.steps += 1
         self.done = self.recorder.on_step(self.sink, dataclasses.replace(v, record=self.coordinator.last))
         return False
