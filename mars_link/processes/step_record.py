@@ -9,8 +9,9 @@ reference and estimate of the piece carrying the tracked point, each piece's uni
 units, a failed manoeuvre) comes to the world as the step's record, after the step's commands are out, as
 PX4's SITL logs its groundtruth beside the estimator: the world waits for it after the units' answers
 (`HilUnits.drive`), so the recorder sees the same step the in-process recorder sees. The record travels as
-MAVLink TUNNEL frames (a private payload type) carrying its JSON: float64 figures to the last bit, so the
-world's figures are the in-process ones.
+MAVLink TUNNEL frames of two private payload types: its figures every step in binary float64 (to the last
+bit, so the world's figures are the in-process ones; one frame for a docked flight) and, when it changes,
+its shape as JSON (phase, failure, lost units, the pieces' units, the tracked piece and offset).
 
 Without a coordinator (free units, an off-board computer) every body is a piece of its own that flies no
 mission: the recorder then logs the units and the tilt only.
@@ -21,14 +22,22 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import struct
 from types import SimpleNamespace
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-#: TUNNEL payload_type of a step record (the private range 32768..65535)
-STEP_RECORD_PAYLOAD_TYPE = 32901
+#: TUNNEL payload_types (the private range 32768..65535): a step's figures (binary, every step) and the
+#: flight's shape (JSON: phase, failure, lost units, the pieces' units, the tracked piece and offset), sent
+#: when it changes and at least every SHAPE_EVERY_S of sim time
+STEP_PAYLOAD_TYPE = 32901
+SHAPE_PAYLOAD_TYPE = 32902
+SHAPE_EVERY_S = 1.0
 _CHUNK_BYTES = 126  # TUNNEL payload (128) minus the frame's index and count
+_STEP_HEADER = struct.Struct("<qBBH")  # t_us, flags, shape number, pieces
+_MISSION, _POSITION_LOST, _RECORD, _ESTIMATE = 1, 2, 4, 8
+_SHAPE_KEYS = ("phase", "failed", "lost", "tracked", "offset_frd_m")
 
 
 # ----------------------------------------------------------------------------- the coordinator's side
@@ -62,29 +71,80 @@ def _floats(values) -> list[float]:
     return [float(x) for x in values]
 
 
-def step_record_messages(record: dict, target_system: int) -> list:
-    """A step record as TUNNEL frames (byte 0: the frame's index, byte 1: the step's frame count)."""
-    data = json.dumps(record, separators=(",", ":")).encode()
-    chunks = [data[i:i + _CHUNK_BYTES] for i in range(0, len(data), _CHUNK_BYTES)]
+def _tunnel_frames(payload_type: int, data: bytes, target_system: int) -> list:
+    """`data` as TUNNEL frames (byte 0: the frame's index, byte 1: the frame count)."""
+    chunks = [data[i:i + _CHUNK_BYTES] for i in range(0, len(data), _CHUNK_BYTES)] or [b""]
     if len(chunks) > 255:
-        raise ValueError(f"a step record of {len(data)} bytes does not fit 255 TUNNEL frames")
-    return [mavlink.MAVLink_tunnel_message(target_system, 1, STEP_RECORD_PAYLOAD_TYPE, 2 + len(c),
+        raise ValueError(f"{len(data)} bytes do not fit 255 TUNNEL frames")
+    return [mavlink.MAVLink_tunnel_message(target_system, 1, payload_type, 2 + len(c),
                                            list(bytes([i, len(chunks)]) + c.ljust(_CHUNK_BYTES, b"\0")))
             for i, c in enumerate(chunks)]
 
 
+def record_shape(record: dict) -> dict:
+    """What of a step record changes only with the flight's phases: sent when it changes."""
+    return {**{k: record[k] for k in _SHAPE_KEYS}, "pieces": [units for units, _ in record["pieces"]]}
+
+
+def record_figures(record: dict, shape_number: int) -> bytes:
+    """A step record's figures in binary (the rest is its shape, number `shape_number`): header, mission clock,
+    reference, estimate position and quaternion, each piece's reference; NaN where none. A docked flight's
+    fit one TUNNEL frame."""
+    rec = record["record"]
+    nan3 = [math.nan] * 3
+    flags = ((_MISSION if record["mission"] else 0) | (_POSITION_LOST if record["position_lost"] else 0)
+             | (_RECORD if rec is not None else 0) | (_ESTIMATE if rec is not None and rec["estimate_ned_m"] else 0))
+    values = [record["mission_t_s"]]
+    if rec is not None:
+        values += rec["reference_ned_m"] + (rec["estimate_ned_m"] or nan3) + (rec["estimate_wxyz"] or nan3 + [math.nan])
+    for _, reference in record["pieces"]:
+        values += reference or nan3
+    header = _STEP_HEADER.pack(record["t_us"], flags, shape_number, len(record["pieces"]))
+    return header + struct.pack(f"<{len(values)}d", *values)
+
+
+def join_record(shape: dict, data: bytes) -> dict:
+    """The step record of its shape (`record_shape`) and figures (`record_figures`)."""
+    t_us, flags, _, n_pieces = _STEP_HEADER.unpack_from(data)
+    values = struct.unpack_from(f"<{(len(data) - _STEP_HEADER.size) // 8}d", data, _STEP_HEADER.size)
+    record = {k: shape[k] for k in _SHAPE_KEYS}
+    record.update(t_us=t_us, mission=bool(flags & _MISSION), position_lost=bool(flags & _POSITION_LOST),
+                  mission_t_s=values[0], record=None)
+    k = 1
+    if flags & _RECORD:
+        estimate = flags & _ESTIMATE
+        record["record"] = {"reference_ned_m": list(values[1:4]), "estimate_ned_m": list(values[4:7]) if estimate else None,
+                            "estimate_wxyz": list(values[7:11]) if estimate else None}
+        k = 11
+    refs = [values[k + 3 * i:k + 3 * i + 3] for i in range(n_pieces)]
+    record["pieces"] = [[units, None if math.isnan(ref[0]) else list(ref)] for units, ref in zip(shape["pieces"], refs)]
+    return record
+
+
 class StepRecordSender:
-    """Observer of the coordinator's engine: the step's record to the world, after the step's commands."""
+    """Observer of the coordinator's engine: the step's record to the world, after the step's commands, in
+    one datagram: the flight's shape first when it changed (or SHAPE_EVERY_S passed), then the figures."""
 
     def __init__(self, link, world_address, flight, world_sysid: int) -> None:
         from mars_link.flight.recorder import pieces_of
 
         self.link, self.world_address, self.world_sysid = link, world_address, world_sysid
         self.coordinator = pieces_of(flight)
+        self.shape_sent: bytes | None = None
+        self.shape_number = 0
+        self.shape_due_s = -math.inf
 
     def on_step(self, engine, v) -> bool:
         record = step_record(self.coordinator, v.t_s, v.record)
-        self.link.send_bytes(self.link.pack(step_record_messages(record, self.world_sysid)), self.world_address)
+        text = json.dumps(record_shape(record), separators=(",", ":")).encode()
+        frames = []
+        if text != self.shape_sent or v.t_s >= self.shape_due_s:
+            if text != self.shape_sent:
+                self.shape_number = (self.shape_number + 1) % 256
+            self.shape_sent, self.shape_due_s = text, v.t_s + SHAPE_EVERY_S
+            frames += _tunnel_frames(SHAPE_PAYLOAD_TYPE, bytes([self.shape_number]) + text, self.world_sysid)
+        frames += _tunnel_frames(STEP_PAYLOAD_TYPE, record_figures(record, self.shape_number), self.world_sysid)
+        self.link.send_bytes(self.link.pack(frames), self.world_address)
         return False
 
 
@@ -95,33 +155,40 @@ class StepRecords:
 
     def __init__(self, coordinator_sysid: int) -> None:
         self.coordinator_sysid = coordinator_sysid
-        self.records: dict[int, dict] = {}
+        self.records: dict[int, dict | None] = {}  # (None: a step's figures that came without their shape)
         self.live = True
-        self._chunks: list[bytes] = []
+        self.shape: tuple[int, dict] | None = None  # (its number, the shape)
+        self._chunks: dict[int, list[bytes]] = {STEP_PAYLOAD_TYPE: [], SHAPE_PAYLOAD_TYPE: []}
 
     def take(self, m) -> bool:
         """A frame from the link; True if it was a step record's."""
-        if (m.get_type() != "TUNNEL" or m.payload_type != STEP_RECORD_PAYLOAD_TYPE
+        if (m.get_type() != "TUNNEL" or m.payload_type not in self._chunks
                 or m.get_srcSystem() != self.coordinator_sysid):
             return False
         payload = bytes(m.payload[:m.payload_length])
+        chunks = self._chunks[m.payload_type]
         if len(payload) < 2:
             return True
         index, count = payload[0], payload[1]
         if index == 0:
-            self._chunks = []
-        if index != len(self._chunks):  # (a frame of a step whose first frame was lost)
-            self._chunks = []
+            chunks.clear()
+        if index != len(chunks):  # (a frame of a message whose first frame was lost)
+            chunks.clear()
             return True
-        self._chunks.append(payload[2:])
+        chunks.append(payload[2:])
         if index + 1 == count:
+            data = b"".join(chunks)
+            chunks.clear()
             try:
-                record = json.loads(b"".join(self._chunks))
-                self.records[int(record["t_us"])] = record
-                self.live = True
-            except (ValueError, KeyError, TypeError):
+                if m.payload_type == SHAPE_PAYLOAD_TYPE:
+                    self.shape = (data[0], json.loads(data[1:]))
+                else:
+                    t_us, _, number, _ = _STEP_HEADER.unpack_from(data)
+                    self.records[t_us] = (join_record(self.shape[1], data)
+                                          if self.shape is not None and self.shape[0] == number else None)
+                    self.live = True
+            except (ValueError, KeyError, TypeError, IndexError, struct.error):
                 pass
-            self._chunks = []
         return True
 
     def awaited(self, t_us: int) -> bool:
@@ -129,7 +196,7 @@ class StepRecords:
         return self.live and t_us not in self.records
 
     def pop(self, t_us: int) -> dict | None:
-        """The step's record (None: none came), and the older ones dropped."""
+        """The step's record (None: none came, or without its shape), and the older ones dropped."""
         record = self.records.pop(t_us, None)
         for t in [t for t in self.records if t < t_us]:
             del self.records[t]
