@@ -9,6 +9,7 @@ firmware_models) never import it.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -360,40 +361,74 @@ UNIT_TIMEOUT_PERIODS = 5
 MAX_RECONFIG_S = 600.0
 
 
-def make_pieces_world(scenario: Scenario, model: AssemblyModel, seed: int, executor, config=None):
-    """The world of a flight of pieces: one body per piece of the executor's start, landed under its
-    reference's first point."""
+@dataclass(frozen=True)
+class BodyStart:
+    """One body of a world at its start, landed: its model (local unit ids 1..n), the world's unit ids it
+    carries in that order, where it stands (north, east) and its yaw."""
+
+    model: AssemblyModel
+    units: tuple[int, ...]
+    north_m: float
+    east_m: float
+    yaw_rad: float
+
+
+def make_bodies_world(scenario: Scenario, model: AssemblyModel, bodies: list[BodyStart], seed: int, config=None):
+    """The world of a list of bodies, each landed at its start: every set-up is one (a docked assembly: one
+    body; a flight of pieces: one per piece of its start; free units: one 1x1 body each). `model` names every
+    unit of the world and its rotor slots."""
     from sitl.physics import JsbsimBody
 
+    config = config or world_config(scenario, seed)
+    made = [(b.model, b.units, JsbsimBody(b.model, physics_hz=config.physics_hz, position_ned_m=(b.north_m, b.east_m, 0.0),
+                                          yaw_rad=b.yaw_rad)) for b in bodies]
+    return make_world(scenario, model, seed, bodies=made, config=config)
+
+
+def docked_bodies(model: AssemblyModel, com_start_ned_m: np.ndarray, yaw_rad: float) -> list[BodyStart]:
+    """A docked assembly: one body of `model`, its CoM landed under `com_start_ned_m`."""
+    return [BodyStart(model, tuple(model.unit_ids), float(com_start_ned_m[0]), float(com_start_ned_m[1]), yaw_rad)]
+
+
+def pieces_bodies(model: AssemblyModel, executor) -> list[BodyStart]:
+    """A flight of pieces: one body per piece of the executor's start, landed under its reference's first point."""
     bodies = []
     for shape in executor.shapes.values():
         start = executor.refs[shape.key].sample(0.0)
-        body_model = shape.model(model.vehicle)
-        bodies.append((body_model, tuple(shape.units_local_order()), JsbsimBody(
-            body_model, physics_hz=scenario.sim.physics_hz,
-            position_ned_m=(float(start.position_ned_m[0]), float(start.position_ned_m[1]), 0.0),
-            yaw_rad=start.yaw_rad)))
-    return make_world(scenario, model, seed, bodies=bodies, config=config)
+        bodies.append(BodyStart(shape.model(model.vehicle), tuple(shape.units_local_order()),
+                                float(start.position_ned_m[0]), float(start.position_ned_m[1]), start.yaw_rad))
+    return bodies
+
+
+def make_pieces_world(scenario: Scenario, model: AssemblyModel, seed: int, executor, config=None):
+    """The world of a flight of pieces (`pieces_bodies`)."""
+    return make_bodies_world(scenario, model, pieces_bodies(model, executor), seed, config)
 
 
 #: `sitl up --units N`: unit u stands this far east of unit u-1 on the ground
 FREE_UNIT_SPACING_M = 2.0
 
 
-def make_free_units_world(scenario: Scenario, vehicle, n_units: int, seed: int, config=None):
-    """N lone units (`sitl up --units N`), one 1x1 body each, side by side on the ground: a world of
-    several bodies whose model is the row of N units (unit ids 1..N, slots in that order). Each unit flies
-    itself on its truth: the sensor packets carry it (no sensor noise), as a lone unit's runner does."""
+def free_units_bodies(vehicle, n_units: int) -> tuple[AssemblyModel, list[BodyStart]]:
+    """N lone units (`sitl up --units N`), side by side on the ground: the world's model (the row of N units:
+    unit ids 1..N, slots in that order) and one 1x1 body each."""
+    one = AssemblyModel.from_layout(["X"], vehicle)
+    return (AssemblyModel.from_layout(["X" * n_units], vehicle),
+            [BodyStart(one, (u,), 0.0, (u - 1) * FREE_UNIT_SPACING_M, 0.0) for u in range(1, n_units + 1)])
+
+
+def free_units_config(config):
+    """A free units' world config: each unit flies itself on its truth, so the sensor packets carry it (no
+    sensor noise), as a lone unit's runner does."""
     import dataclasses
 
-    from sitl.physics import JsbsimBody
+    return dataclasses.replace(config, noise=False)
 
-    config = dataclasses.replace(config or world_config(scenario, seed), noise=False)
-    one = AssemblyModel.from_layout(["X"], vehicle)
-    bodies = [(one, (u,), JsbsimBody(one, physics_hz=config.physics_hz,
-                                     position_ned_m=(0.0, (u - 1) * FREE_UNIT_SPACING_M, 0.0), yaw_rad=0.0))
-              for u in range(1, n_units + 1)]
-    return make_world(scenario, AssemblyModel.from_layout(["X" * n_units], vehicle), seed, bodies=bodies, config=config)
+
+def make_free_units_world(scenario: Scenario, vehicle, n_units: int, seed: int, config=None):
+    """The world of N lone units (`free_units_bodies`, `free_units_config`)."""
+    model, bodies = free_units_bodies(vehicle, n_units)
+    return make_bodies_world(scenario, model, bodies, seed, free_units_config(config or world_config(scenario, seed)))
 
 
 def make_executor(scenario: Scenario, model: AssemblyModel, mission, plan_for: Trajectory | None = None,

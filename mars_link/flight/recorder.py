@@ -141,8 +141,8 @@ class FlightRecorder:
         return cmd
 
     def _watch_lost(self, t: float, coord) -> None:
-        """The truth of every lost unit until it touches the ground (`touchdown`, the same test as SITL's
-        world_truth.csv gets); one that stays up (in a body that flies on) is "airborne"."""
+        """The truth of every lost unit until it touches the ground (`touchdown`); one that stays up (in a
+        body that flies on) is "airborne"."""
         for u in coord.lost:
             rec = self.units_lost.get(u)
             if rec is None:
@@ -251,22 +251,3 @@ def touchdown(before: tuple, now: tuple, ground_down_m: float) -> dict:
     speed = float(np.linalg.norm((np.asarray(p1) - np.asarray(p0)) / (t1 - t0)))
     return {"fate": "landed" if speed <= LANDED_SPEED_MPS else "fell", "t_ground_s": round(float(t1), 6),
             "impact_speed_mps": round(speed, 4), "ground_ned_m": [round(float(x), 4) for x in p1]}
-
-
-def units_lost_from_truth(events: list[dict], truth, ground_down_m: float) -> list[dict]:
-    """`units_lost` of a run whose world wrote each unit's truth as columns (SITL's world_truth.csv: t_s,
-    u<id>_n_m, _e_m, _d_m, one row per control period): each `unit_lost` event's unit and its `touchdown`."""
-    out = []
-    for e in (e for e in events if e["type"] == "unit_lost"):
-        u = e["unit"]
-        rec = {"unit": u, "t_lost_s": e["t_s"], "reason": e.get("reason"), "fate": "airborne"}
-        if f"u{u}_d_m" in truth.dtype.names:
-            t = truth["t_s"]
-            pos = np.column_stack([truth[f"u{u}_n_m"], truth[f"u{u}_e_m"], truth[f"u{u}_d_m"]])
-            for k in np.flatnonzero(t > e["t_s"] + 1e-9):
-                found = touchdown((t[k - 1], pos[k - 1]), (t[k], pos[k]), ground_down_m)
-                if found:
-                    rec.update(found)
-                    break
-        out.append(rec)
-    return out

@@ -14,7 +14,7 @@ def print_summary(summary: dict, out: Path) -> None:
     verb = "vehicle" if summary.get("mode") == "vehicle" else "run"
     table = Table(title=f"mars-link {verb}: {summary['scenario']}", show_header=False)
     def fig(key: str, form: str) -> str:
-        """A summary figure, or "n/a" where this mode does not measure it (the SITL pieces: no body tilt)."""
+        """A summary figure, or "n/a" where the run does not measure it (a vehicle its clients fly: no error)."""
         value = summary.get(key)
         unknown = value is None or (isinstance(value, float) and math.isnan(value))  # (NaN: null in summary.json)
         return "n/a" if unknown else format(value, form)

@@ -33,6 +33,8 @@ UNIT_ROWS_MAX = 200_000
 #: and the keeping stride doubles, so memory stays flat however many trials or seconds are flown
 PLOT_ROWS_MAX = 4_000  # (a plot 880 px wide needs no more)
 PLOT_BYTES_MAX = 8 * 2**20  # per series: fewer rows for a large assembly's wide rotor rows
+#: the run's time series (files <name>.csv)
+SERIES = ("telemetry", "rotors", "units")
 
 
 class _PlotRows:
@@ -58,11 +60,14 @@ class RunLog:
     """CSV time series written as the flight goes (flushed), so a crash loses nothing flown."""
 
     def __init__(self, out_dir: Path | None, model: AssemblyModel, rotor_log_hz: float,
-                 plot_rows_max: int | None = None) -> None:
+                 plot_rows_max: int | None = None, series: tuple[str, ...] = SERIES) -> None:
         """`plot_rows_max`: keep in memory only the first trial's rows, at most that many (decimated);
-        None keeps every row (evaluations that read `telemetry_rows` whole)."""
+        None keeps every row (evaluations that read `telemetry_rows` whole). `series`: the files this log
+        writes (SITL: the world's recorder writes telemetry and units, the run's parent the rotors); a rotor
+        row is never due without "rotors"."""
         self.out_dir = out_dir
         self.model = model
+        self.series = series
         self.rotor_log_period_s = 1.0 / rotor_log_hz
         self._next_rotor_t = 0.0
         self._tel = self._rot = self._units = None
@@ -76,18 +81,21 @@ class RunLog:
         if out_dir is None:
             return
         out_dir.mkdir(parents=True, exist_ok=True)
-        self._tel = _safe_open(out_dir / "telemetry.csv")
-        self._tel.write(",".join(TELEMETRY_COLUMNS) + "\n")
         self._tel_format = ",".join(["%.6g"] * 18 + ["%.9f"] * 3 + ["%.6g", "%d"]) + "\n"
-        self._units = _safe_open(out_dir / "units.csv")
-        self._units.write(",".join(UNIT_COLUMNS) + "\n")
         self._unit_format = ",".join(["%.6g"] * len(UNIT_COLUMNS)) + "\n"
-        self._rot = _safe_open(out_dir / "rotors.csv")
+        if "telemetry" in series:
+            self._tel = _safe_open(out_dir / "telemetry.csv")
+            self._tel.write(",".join(TELEMETRY_COLUMNS) + "\n")
+        if "units" in series:
+            self._units = _safe_open(out_dir / "units.csv")
+            self._units.write(",".join(UNIT_COLUMNS) + "\n")
         cols = []
         for kind in ("cmd", "thrust", "eta"):
             cols += [f"{kind}_u{r.unit_id}r{r.index}" for r in model.rotors]
-        self._rot.write("trial,t_s," + ",".join(cols) + "\n")
         self._rot_format = ",".join(["%.5g"] * (2 + len(cols))) + "\n"  # (one % pass: no per-value call)
+        if "rotors" in series:
+            self._rot = _safe_open(out_dir / "rotors.csv")
+            self._rot.write("trial,t_s," + ",".join(cols) + "\n")
 
     def telemetry(self, row: list[float]) -> None:
         if self._bounded is None:
@@ -99,7 +107,7 @@ class RunLog:
 
     def rotor_due(self, t_s: float) -> bool:
         """Whether a rotors row is due at `t_s` (rows go at the rotor log rate)."""
-        return t_s + 1e-9 >= self._next_rotor_t
+        return t_s + 1e-9 >= self._next_rotor_t and "rotors" in self.series
 
     def rotors(self, trial: int, t_s: float, cmd, thrust, eta) -> None:
         if t_s + 1e-9 < self._next_rotor_t:
@@ -151,8 +159,8 @@ class RunLog:
         self.close()
         self._closed.clear()
         if self.out_dir is not None:
-            for name in ("telemetry.csv", "rotors.csv", "units.csv"):
-                (self.out_dir / name).unlink(missing_ok=True)
+            for name in self.series:
+                (self.out_dir / f"{name}.csv").unlink(missing_ok=True)
 
     def add_closed_logs(self, statuses: list[dict]) -> None:
         """Other logs of the run, closed (e.g. the units' .ulg: mars_link.logs): `status()` accounts for them."""

@@ -153,9 +153,10 @@ class HilUnits:
 
     def __init__(self, world, link: Link, unit_ids: list[int], stop, pacer: Pacer, scale_n: float,
                  control_min: float, coordinated: bool, latch_sensor: bool, feed=None,
-                 unit_timeout_s: float = WORLD_UNIT_TIMEOUT_S) -> None:
+                 unit_timeout_s: float = WORLD_UNIT_TIMEOUT_S, records=None) -> None:
         self.world, self.link, self.stop, self.pacer = world, link, stop, pacer
         self.scale_n, self.control_min, self.latch_sensor, self.feed = scale_n, control_min, latch_sensor, feed
+        self.records = records  # the coordinator's step records (step_record.StepRecords), awaited each step
         self.unit_timeout_s = unit_timeout_s
         self.live = set(unit_ids)
         self.deaths: list[dict] = []
@@ -200,7 +201,8 @@ class HilUnits:
         waiting = set(self.live)
         deadline = SilenceDeadline(self.unit_timeout_s)  # (time this process did not run is nobody's silence)
         t_us = usec(t)
-        while waiting and not (stop.requested or stop.ended):
+        records = self.records
+        while (waiting or records is not None and records.awaited(t_us)) and not (stop.requested or stop.ended):
             left = deadline.left_s()
             deadline.before_wait(min(left, STOP_POLL_S))
             msgs = link.receive(min(left, STOP_POLL_S))  # (a SIGTERM is seen within STOP_POLL_S)
@@ -211,7 +213,8 @@ class HilUnits:
                     stop.ended = True
                     break
                 if m.get_type() != "HIL_ACTUATOR_CONTROLS":
-                    if self.feed is not None and m.get_srcSystem() == COORDINATOR_SYSID:
+                    if m.get_srcSystem() == COORDINATOR_SYSID and not (records is not None and records.take(m)) \
+                            and self.feed is not None:
                         self.feed.take(m)
                     continue
                 if m.time_usec != t_us or m.get_srcSystem() not in waiting:
@@ -224,6 +227,10 @@ class HilUnits:
                 waiting.discard(m.get_srcSystem())
         if stop.requested or stop.ended:
             raise LinksEnded
+        if records is not None and records.awaited(t_us):  # (recorded without it; awaited again once one comes)
+            records.live = False
+            print(f"world: no step record from the coordinator for {self.unit_timeout_s:.1f} s at t={t:.2f}",
+                  file=sys.stderr)
         for unit in sorted(waiting):  # silent units are dead: motors off, the flight goes on
             self.kill(unit)
             self.deaths.append(unit_died(t, unit))

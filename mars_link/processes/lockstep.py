@@ -14,7 +14,8 @@ The world steps only when every live unit has answered for step k; a unit that s
 no truth (sensor noise on): the unit uses it for its own telemetry and arming checks; the coordinator
 never sees it.
 
-Two set-ups (`SitlSetup`):
+Three set-ups (`SitlSetup`), each a world of bodies from a list (`build.make_bodies_world`: one body, one per
+piece of the start, one 1x1 body per free unit):
   docked   one rigid assembly (the scenario's layout or --layout ROWS) and a coordinator process; at
            the first step the coordinator arms every unit and switches it to OFFBOARD with
            COMMAND_LONGs on its link, in the same datagram as the first rotor command; each unit
@@ -30,8 +31,10 @@ Two set-ups (`SitlSetup`):
            coordinator runs the `PiecesCoordinator` (latch setpoints in its rotor commands, controls[4])
            and ends the flight: instead of the first step not to be flown it sends the world
            MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN, and the world, still waiting for that step's answers, ends
-           without stepping. Each step it logs the mission's clock, reference and tracked units
-           (pieces_steps.csv); the world logs every unit's centre (world_truth.csv).
+           without stepping. The world logs every unit's centre (world_truth.csv).
+Every set-up: the world runs the flight recorder on its truth (telemetry.csv, units.csv and the summary's
+figures, world_summary.json "recorder"), with the coordinator's record of each step when a coordinator
+runs (mars_link.processes.step_record says why there).
   free     --units N: N separate 1x1 bodies side by side on the ground, no coordinator; each unit
            flies itself (takeoff, offboard, land from MAVSDK/QGC/MAVProxy), the world paced to
            real time (--speed).
@@ -113,6 +116,7 @@ from mars_link.processes.engine_links import (
     shutdown_message,
 )
 from mars_link.processes.links import Link, Ports
+from mars_link.processes.step_record import StepRecordSender
 
 if TYPE_CHECKING:
     from mars_link.core.assembly import AssemblyModel
@@ -285,29 +289,23 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     """Own the bodies, run the lockstep; `speed` > 0 paces sim time to that many x wall time. `start`
     (CoM NED, yaw) as the launcher computed it, else from the scenario's trajectory. `mcap`: run.mcap in
     `out`; `foxglove`: HOST:PORT of the live Foxglove view (mars_link.processes.view_feed says why the world hosts them)."""
-    world_start = start
-    from mars_link.flight.build import make_free_units_world, make_world, outdoor_profile, sensor_params
+    from mars_link.flight.build import docked_bodies, free_units_bodies, free_units_config, make_bodies_world, world_config
     from mars_link.flight.engine import Engine, Flight
-    from sitl.world import WorldConfig
 
     sc = setup.scenario
-    cfg = WorldConfig(sc.sim.physics_hz, sc.sim.control_hz, seed, sc.sim.noise, position_every(setup),
-                      environment=sc.environment if sc.environment.moves_air else None, sensors=sensor_params(sc),
-                      battery=sc.battery, outdoor=outdoor_profile(sc))
+    cfg = dataclasses.replace(world_config(sc, seed), position_every=position_every(setup))
+    world_model = setup.model
     if setup.pieces:  # one body per piece of the executor's start (the coordinator builds the same executor)
-        from mars_link.flight.build import make_executor, make_pieces_world, make_trajectory, world_config
+        from mars_link.flight.build import make_executor, make_trajectory, pieces_bodies
 
-        executor = make_executor(sc, setup.model, make_trajectory(sc, setup.model))[0]
-        cfg = dataclasses.replace(world_config(sc, seed), position_every=position_every(setup))
-        world = make_pieces_world(sc, setup.model, seed, executor, config=cfg)
-        columns = ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("n_m", "e_m", "d_m"))
+        bodies = pieces_bodies(setup.model, make_executor(sc, setup.model, make_trajectory(sc, setup.model))[0])
     elif setup.docked:
-        com, yaw = world_start or _start_pose(setup)
-        world = make_world(sc, setup.model, seed, com, yaw, config=cfg)
-        columns = "pos_n_m,pos_e_m,pos_d_m,qw,qx,qy,qz"
+        bodies = docked_bodies(setup.model, *(start or _start_pose(setup)))
     else:
-        world = make_free_units_world(sc, setup.model.vehicle, setup.free_units, seed, config=cfg)
-        columns = ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("pos_n_m", "pos_e_m", "pos_d_m", "qw", "qx", "qy", "qz"))
+        world_model, bodies = free_units_bodies(setup.model.vehicle, setup.free_units)
+        cfg = free_units_config(cfg)
+    world = make_bodies_world(sc, world_model, bodies, seed, cfg)
+    columns, truth_row = _truth_log(setup, world)
     stop = _Stop()
     link = Link(ports.open("world"), WORLD_SYSID, key=key)  # with a key: HIL both ways and the shutdown signed
     out.mkdir(parents=True, exist_ok=True)
@@ -317,7 +315,13 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     truth_log.write("t_s," + columns + "\n")
     wall0 = time.perf_counter()
     units = None
-    truth_row = world.units_row if setup.pieces else world.truth_row if setup.docked else lambda: _poses_row(world)
+    from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
+    from mars_link.processes.step_record import StepRecords, WorldRecorder
+
+    # the flight recorder's time series (the rotors' are the units': the run's parent writes rotors.csv)
+    run_log = RunLog(out, world.model, rotor_log_hz=min(sc.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX,
+                     series=("telemetry", "units"))
+    records = StepRecords(COORDINATOR_SYSID) if setup.coordinated else None
     view, feed, reference, eta_at = _world_view(setup, world, out, mcap, foxglove)
     writer_pid = view.process.pid if view is not None and mcap else None
     try:
@@ -333,7 +337,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         vehicle = setup.model.vehicle
         units = HilUnits(world, link, setup.unit_ids, stop, pacer, vehicle.full_scale_thrust_n,
                          0.0 if vehicle.rotor_min_thrust_n is not None else -1.0,  # (as the units' intake)
-                         setup.coordinated, setup.pieces, feed, unit_timeout_s)
+                         setup.coordinated, setup.pieces, feed, unit_timeout_s, records)
         write_view = None if view is None else lambda t: view.write_step(
             t, world, feed.point(None if reference is None else reference.sample(t)), eta_at(t), [units.deaths, feed.events])
         logs = _WorldLogs(world, truth_log, truth_row, lambda t: _write_world_status(
@@ -341,7 +345,8 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
         flight = Flight(sc, setup.model, seed, None, world, units, None, sorted(sc.faults, key=lambda f: f.t_s),
                         duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz)
         # (the coordinator is another process: its commands go to the units, the units' answers come here)
-        engine = Engine(flight, [logs], command_source=lambda t, telemetry: [])
+        recorder = WorldRecorder(flight, records, run_log)
+        engine = Engine(flight, [logs, recorder], command_source=lambda t, telemetry: [])
         loop = LoopMeter()  # the stepping loop alone (start-up excluded)
         idle = IdleMeter()  # the machine's idle cores over the loop: behind the wall clock, starved or at fault?
         try:
@@ -357,14 +362,17 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
                    "cpu_s": time.process_time(), **loop.figures(), "realtime_class_left_at_s": units.valve.left_at_s,
                    "cores_idle_fraction": idle.fraction(), "force_integral_n2s": world.force_integral_n2s,
                    "latch_events": world.latch_events, "bodies": [list(b.units) for b in world.bodies],
-                   "logging": truth_log.status()}
+                   "logging": truth_log.status(), "recorder": recorder.figures()}
         packs = world.packs
         if packs is not None:  # the packs' truth at the end (unit id order)
             summary["batteries"] = {"soc": packs.soc.round(6).tolist(), "voltage_v": packs.voltage_v.round(4).tolist(),
                                     "drawn_c": packs.drawn_c.round(4).tolist()}
+        run_log.close()  # (its files' status in the summary: a full disk stopped them, or not)
+        summary["run_log"] = run_log.status()
         _write_world_summary(out, summary)
     finally:
         truth_log.close()
+        run_log.close()
         try:  # run.mcap before the link: a Zenoh session can take seconds to close, and the file must be
             if view is not None:  # whole when `sitl up` ends
                 view.finish(event_lists=[[] if units is None else units.deaths, feed.events])
@@ -376,6 +384,17 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
             world.close()
             link.close()
     return 0
+
+
+def _truth_log(setup: SitlSetup, world) -> tuple[str, object]:
+    """world_truth.csv's columns and its row of a step: a docked assembly's CoM and attitude; each unit's centre
+    in a flight of pieces; each free unit's centre and attitude (the formats its readers know)."""
+    if setup.pieces:
+        return ",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("n_m", "e_m", "d_m")), world.units_row
+    if setup.docked:
+        return "pos_n_m,pos_e_m,pos_d_m,qw,qx,qy,qz", world.truth_row
+    return (",".join(f"u{u}_{c}" for u in setup.unit_ids for c in ("pos_n_m", "pos_e_m", "pos_d_m", "qw", "qx", "qy", "qz")),
+            lambda: _poses_row(world))
 
 
 def _poses_row(world) -> list[float]:
@@ -654,26 +673,6 @@ class _UnitLoop:
 # ----------------------------------------------------------------------------- coordinator
 
 
-class _PiecesStepLog:
-    """Observer: what the summary of a flight of pieces needs each step (pieces_steps.csv): whether the
-    mission flies, its clock and reference, and which units carry the tracked point (the truth comes from
-    the world's log)."""
-
-    def __init__(self, log, coordinator) -> None:
-        self.log, self.coordinator = log, coordinator
-
-    def on_step(self, engine, v) -> bool:
-        executor = self.coordinator.executor
-        t = v.t_s
-        active = executor.mission_active(t)
-        mt = executor.mission_time(t)
-        ref = executor.mission.sample(mt).position_ned_m if active else (math.nan,) * 3
-        piece = self.coordinator.tracked_piece()
-        self.log.write(f"{t:.6f},{int(active)},{mt:.6f},{ref[0]:.9f},{ref[1]:.9f},{ref[2]:.9f},"
-                       f"{' '.join(str(u) for u in piece.units)},{len(self.coordinator.pieces)}\n")
-        return False
-
-
 class _ViewFeedSender:
     """Observer: after the commands, the world's view gets the coordinator's estimate, reference and new
     events (mars_link.processes.view_feed)."""
@@ -742,10 +741,6 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
     link = Link(ports.open("coordinator"), COORDINATOR_SYSID, key=key)
     scale = model.vehicle.full_scale_thrust_n
     out.mkdir(parents=True, exist_ok=True)
-    # the coordinator's step record for the summary (its reference and mission clock; a full disk stops it)
-    pieces_log = SafeWriter.open(out / "pieces_steps.csv") if vehicle is None else None
-    if pieces_log:
-        pieces_log.write("t_s,mission,mission_t_s,ref_n_m,ref_e_m,ref_d_m,tracked_units,pieces\n")
     timing = SafeWriter.open(out / "coordinator_timing.csv") if timing_log else None
     px4 = commanders = None  # PX4's own interface ([units] interface = "px4-zenoh"): the commands go over rmw_zenoh
     if sc.unit_interface == "px4-zenoh":
@@ -768,14 +763,15 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         link.heartbeat(link.peers[WORLD_SYSID])
         linked = LinkedUnits(link, list(model.unit_ids), scale, stop, coordinator.unit_lost, unit_timeout_s,
                              None if hosted is not None else coordinator.finish_step, hosted, px4, commanders)
-        observers: list = [] if pieces_log is None else [_PiecesStepLog(pieces_log, coordinator)]
+        flight = Flight(sc, model, sc.sim.seed, trajectory, linked, linked, coordinator, sorted(sc.faults, key=lambda f: f.t_s),
+                        duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz,
+                        end_s=None if end_s is None else lambda: -math.inf if coordinator.failed is not None else end_s())
+        # each step's record to the world, whose flight recorder measures it on the truth (mars_link.processes.step_record)
+        observers: list = [StepRecordSender(link, linked.world, flight, WORLD_SYSID)]
         if view_feed:
             observers.append(_ViewFeedSender(link, linked.world, coordinator))
         if timing:
             observers.append(_TimingLog(timing, linked))
-        flight = Flight(sc, model, sc.sim.seed, trajectory, linked, linked, coordinator, sorted(sc.faults, key=lambda f: f.t_s),
-                        duration_s=math.inf if setup.steps is None else setup.steps / sc.sim.control_hz,
-                        end_s=None if end_s is None else lambda: -math.inf if coordinator.failed is not None else end_s())
         commands = coordinator.commands if hosted is None else lambda t, packets: hosted.step(t, packets, linked.live)
         engine = Engine(flight, observers, command_source=commands)
         try:
@@ -805,8 +801,6 @@ def run_coordinator(setup: SitlSetup, ports: Ports, out: Path, unit_timeout_s: f
         link.close()
         if timing:
             timing.close()
-        if pieces_log:
-            pieces_log.close()
         if hosted is not None:
             hosted.close()
     return 0

@@ -8,9 +8,10 @@ session hosted by this process (closed when the run ends, also on Ctrl-C) that t
 `run_sitl_scenario` flies a scenario that way (lockstep: the same flight as inproc for the same seed;
 the coordinator is not told the faults unless the scenario file sets [control] faults_known)
 and writes the inproc outputs: summary.json (mode "sitl", plus a "sitl" block: transport, dead units,
-drops, command age at the motor), telemetry.csv from the world's truth (estimate columns empty: the
-estimate lives in the coordinator process), rotors.csv and the force integral from the units' .tlogs
-(the coordinator's command in, what the unit drove its motors with out) and the plots.
+drops, command age at the motor) with the figures of the flight recorder the world ran live on its truth,
+telemetry.csv and units.csv (that recorder's, with the coordinator's reference and estimate of each step:
+mars_link.processes.step_record), rotors.csv and the force integral from the units' .tlogs (the
+coordinator's command in, what the unit drove its motors with out) and the plots.
 """
 
 from __future__ import annotations
@@ -462,17 +463,18 @@ def _scheduling_classes(out: Path, world: dict, coordinator: dict) -> dict:
     return {"world": world.get("scheduling"), "coordinator": coordinator.get("scheduling"), "units": sorted(units)}
 
 
-def _end_reason(scenario, trajectory, world: dict, metrics, coordinator_failed: str | None, failure: str | None,
-                judge_duration: bool) -> str | None:
+def _end_reason(scenario, trajectory, world: dict, divergence: dict | None, coordinator_failed: str | None,
+                failure: str | None, judge_duration: bool) -> str | None:
     """Why a SITL flight ended before its end (None: flown to the end). Whatever stopped it (a signal, a
     shutdown command, a dead process), a flight that did not reach its duration is not completed;
-    `judge_duration` False: the flight has no fixed duration to judge by (its coordinator ends a flight of
-    pieces; clients fly `sitl up --vehicle` until stopped)."""
+    `divergence`: the recorder's event, None if the flight did not diverge; `judge_duration` False: the
+    flight has no fixed duration to judge by (its coordinator ends a flight of pieces; clients fly
+    `sitl up --vehicle` until stopped)."""
     from mars_link.flight.metrics import ended_early_reason
 
     sim_t = float(world.get("sim_time_s", 0.0))
-    if metrics.diverged:
-        at = (metrics.divergence or {}).get("t_s")
+    if divergence is not None:
+        at = divergence.get("t_s")
         return "diverged" if at is None else f"diverged at {at:.2f} s"
     if coordinator_failed:
         return "the coordinator's mission failed"
@@ -487,38 +489,42 @@ def _end_reason(scenario, trajectory, world: dict, metrics, coordinator_failed: 
     return early or (f"{failure} at the end" if failure else None)
 
 
+def _figure(recorded: dict, name: str, unknown: float = math.nan) -> float:
+    """One of the world recorder's figures (JSON null: NaN, or `unknown`)."""
+    value = recorded.get(name)
+    return unknown if value is None else float(value)
+
+
 def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: LinkSpec, plots: bool = True,
                        realtime: bool = False, cpu_wake_latency: str | None = None, plot_format: str = "png",
                        failure: str | None = None, tracked: bool = True,
                        external_offboard: tuple[int, ...] = ()) -> dict:
     """summary.json of a SITL run, one body or several, with the in-process keys: the processes' figures become
     a `TrialResult` and go through the in-process `summarize` (mars_link.flight.metrics). The tracked point's
-    error and the tilt come from the world's truth log (the world's process owns the truth), the reference and
-    the mission's clock from the coordinator's step log (pieces_steps.csv; a docked flight without one, flown
-    by clients or an off-board computer, flies the scenario's trajectory from the start).
+    error, the tilt, the clearance, the mission's force and the lost units' fates are the world's: its process
+    ran the in-process flight recorder live on its truth, with the coordinator's record of each step
+    (world_summary.json "recorder"; mars_link.processes.step_record). rotors.csv and the force integral come
+    from the units' .tlogs (the coordinator's command in, what each unit drove its motors with out).
     `tracked` False (`sitl up --vehicle`: the clients' commands are the reference): no tracking error (null
-    figures, NaN reference columns), and stopping it is its end. `external_offboard`: the units an off-board
-    computer outside the run drove (not tracked either); the flight still ends at the run's duration."""
+    figures), and stopping it is its end. `external_offboard`: the units an off-board computer outside the
+    run drove (not tracked either); the flight still ends at the run's duration."""
     from mars_link.flight.build import make_trajectory
     from mars_link.flight.metrics import TrialResult, summarize
-    from mars_link.flight.recorder import units_lost_from_truth
     from mars_link.flight.run_log import PLOT_ROWS_MAX, ROTOR_LOG_HZ, RunLog
 
     model = scenario.model()
     trajectory = make_trajectory(scenario, model)
-    truth = _read_csv(out / "world_truth.csv")
     world = _read_json(out / "world_summary.json")
     coordinator = _read_json(out / "coordinator_summary.json")
-    steps = _read_steps(out / "pieces_steps.csv")
-    log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX)
+    recorded = world.get("recorder") or {}
+    log = RunLog(out, model, rotor_log_hz=min(scenario.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX,
+                 series=("rotors",))
     try:
-        track = _TruthOfBodies if any(n.endswith("_n_m") and n.startswith("u") for n in truth.dtype.names) else _TruthOfOne
-        unit_truth, metrics = track(scenario, model, truth, log).replay(steps, trajectory if tracked else None)
         force_integral = _write_rotor_log(log, scenario, model, out)
     finally:
         log.close()
     sim_t = float(world.get("sim_time_s", 0.0))
-    last_t = float(truth["t_s"][-1]) if len(truth) else -1.0
+    last_t = _figure(recorded, "last_step_t_s", -1.0)
     events = [event(f.t_s, EventKind.FAULT, unit=f.unit, rotor=f.rotor, eta=f.eta, text=f.event_text())
               for f in scenario.faults if f.t_s <= last_t + 1e-9]  # (the world applies them as they come due)
     events += [unit_died(d["t_s"], d["unit"]) for d in world.get("deaths", [])]
@@ -526,29 +532,30 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     events += foreign_traffic_events(out, model.unit_ids)
     events += sensor_fault_events(scenario.sensor_faults, scenario.sim.control_hz, last_t)
     events += coordinator.get("events", [])
-    if metrics.diverged and metrics.divergence:
-        events.append(metrics.divergence)
+    events += recorded.get("events", [])  # (the recorder's: a divergence, a failed manoeuvre)
     events.sort(key=lambda e: e.get("t_s", 0.0))
     kinds = [e["type"] for e in events]
-    no_rows = metrics.n == 0  # (nothing tracked: NaN figures, never a clean 0 m)
-    end_reason = _end_reason(scenario, trajectory, world, metrics, coordinator.get("failed"), failure,
+    divergence = recorded.get("divergence") if recorded.get("diverged") else None
+    end_reason = _end_reason(scenario, trajectory, world, divergence, coordinator.get("failed"), failure,
                              judge_duration=(tracked or bool(external_offboard)) and not scenario.has_pieces)
     begun = next((e["t_s"] for e in events if e["type"] == "reconfig_start"), None)
     reconfigured = "reconfig_done" in kinds
+    reasons = {e["unit"]: e.get("reason") for e in coordinator.get("events", []) if e["type"] == "unit_lost"}
     result = TrialResult(
-        seed=seed, completed=end_reason is None, end_reason=end_reason, diverged=metrics.diverged,
-        mean_error_m=math.nan if no_rows else metrics.mean_error_m, rmse_m=math.nan if no_rows else metrics.rmse_m,
-        max_error_m=math.nan if no_rows else metrics.max_error_m, sim_time_s=sim_t, wall_time_s=wall_s,
+        seed=seed, completed=end_reason is None, end_reason=end_reason, diverged=divergence is not None,
+        mean_error_m=_figure(recorded, "mean_error_m"), rmse_m=_figure(recorded, "rmse_m"),
+        max_error_m=_figure(recorded, "max_error_m"), sim_time_s=sim_t, wall_time_s=wall_s,
         force_integral_n2s=float(world.get("force_integral_n2s", force_integral)),
-        max_tilt_deg=math.nan if no_rows or not track.has_attitude else metrics.max_tilt_deg,
-        events=events, control_steps=metrics.n, detections=_detections(scenario, coordinator, world),
-        reconfigured=reconfigured,
+        max_tilt_deg=_figure(recorded, "max_tilt_deg"),
+        events=events, control_steps=int(recorded.get("control_steps", 0)),
+        detections=_detections(scenario, coordinator, world), reconfigured=reconfigured,
         reconfig_time_s=float(coordinator.get("shift_s", 0.0)) if reconfigured else (sim_t - begun if begun is not None else 0.0),
         plan=coordinator.get("plan"), assembled="assembly_done" in kinds,
-        min_clearance_m=math.nan,  # (the bodies' shapes are the world's: not in its truth log)
-        pieces_final=coordinator.get("pieces_final", []), mission_force_integral_n2s=math.nan,
-        units_lost=units_lost_from_truth(events, unit_truth, -model.vehicle.gear_depth_m),
-        unit_rows=log.unit_rows, telemetry_rows=log.telemetry_rows)
+        min_clearance_m=_figure(recorded, "min_clearance_m", math.inf),  # (JSON null: one body, never a gap)
+        pieces_final=coordinator.get("pieces_final", []),
+        mission_force_integral_n2s=_figure(recorded, "mission_force_integral_n2s"),
+        units_lost=[{**lost, "reason": reasons.get(lost["unit"], lost.get("reason"))}
+                    for lost in recorded.get("units_lost", [])])
     summary = summarize(scenario, [result], seed, mode="sitl-pieces" if scenario.has_pieces else "sitl")
     if not tracked:
         summary.update(mode="sitl-external-offboard" if external_offboard else "sitl-vehicle", mean_error_m=None,
@@ -579,6 +586,8 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
                     "coordinator: rotors.csv and world_truth.csv are the world's truth of what they drove; no tracking error"}
     from mars_link.flight.runner import write_plots_safely, write_summary
 
+    if plots:
+        _read_recorded_rows(log, out)
     if plots and log.telemetry_rows:
         from mars_link.flight.plots import write_flight_plots
 
@@ -588,121 +597,34 @@ def summarize_sitl_run(scenario, out: Path, seed: int, wall_s: float, link: Link
     return summary
 
 
-def _read_steps(path: Path) -> dict[float, tuple]:
-    """The coordinator's step log (pieces_steps.csv): t -> (mission flies, its clock, the reference, the units
-    carrying the tracked point, the number of pieces); {} without one (no coordinator ran)."""
-    steps: dict[float, tuple] = {}
-    if not path.exists():
-        return steps
-    with open(path, encoding="utf-8") as f:
-        next(f, None)
-        for line in f:
-            fields = line.rstrip("\n").split(",")
-            if len(fields) != 8:  # (a torn last line)
-                continue
-            t, mission, mission_t, rn, re, rd, tracked_units, n_pieces = fields
-            steps[round(float(t), 6)] = (mission == "1", float(mission_t), np.array([float(rn), float(re), float(rd)]),
-                                         [int(u) for u in tracked_units.split()], int(n_pieces))
-    return steps
+def _read_recorded_rows(log, out: Path) -> None:
+    """The world recorder's telemetry.csv and units.csv rows into `log` (its memory only), for the plots."""
+    from mars_link.flight.run_log import TELEMETRY_COLUMNS, UNIT_COLUMNS
 
-
-class _TruthOfOne:
-    """The world's truth log of one rigid body (t_s, pos_n_m.., qw..): the tracked point and the tilt at every
-    step, each unit's centre on the body (units.csv at UNIT_LOG_HZ, and the units' truth for `units_lost`)."""
-
-    has_attitude = True
-
-    def __init__(self, scenario, model, truth, log) -> None:
-        from mars_link.flight.build import tracked_offset
-
-        self.scenario, self.model, self.truth, self.log = scenario, model, truth, log
-        self.offset = tracked_offset(model, scenario)
-        self.unit_offsets = np.array([model.unit_position(u) for u in model.unit_ids])
-
-    def replay(self, steps: dict, trajectory):
-        from mars_link.core.rotations import quat_to_euler, quat_to_rotmat, tilt_deg
-        from mars_link.flight.metrics import TrackingMetrics
-        from mars_link.flight.run_log import UNIT_LOG_HZ
-
-        metrics = TrackingMetrics()
-        nan3 = [math.nan] * 3
-        centres_by_step = []
-        next_unit_t = 0.0
-        for row in self.truth:
-            t = float(row["t_s"])
-            pos = np.array([row["pos_n_m"], row["pos_e_m"], row["pos_d_m"]])
-            q = np.array([row["qw"], row["qx"], row["qy"], row["qz"]])
-            r = quat_to_rotmat(q)
-            tracked = pos + r @ self.offset
-            centres = pos + self.unit_offsets @ r.T
-            centres_by_step.append(centres)
-            roll, pitch, yaw = (math.degrees(a) for a in quat_to_euler(q))
-            step = steps.get(round(t, 6))
-            if trajectory is not None and (step is None or step[0]):  # the mission flies (or no coordinator said)
-                ref = trajectory.sample(t).position_ned_m if step is None else step[2]
-                err, _ = metrics.add(t, tracked, ref, q)
-            else:  # (clients fly it: no reference, the tilt still counts)
-                ref, err = nan3, math.nan
-                metrics.n += 1
-                metrics.max_tilt_deg = max(metrics.max_tilt_deg, tilt_deg(q))
-            mission_t = t if step is None else step[1]
-            self.log.telemetry([0, t, *ref, *tracked, roll, pitch, yaw, err, *nan3, *nan3, *pos, mission_t, 1])
-            if t + 1e-9 >= next_unit_t:  # units.csv: every unit's centre on the one body
-                next_unit_t = t + 1.0 / UNIT_LOG_HZ
-                self.log.units(0, [[t, u, *centres[k], *nan3, roll, pitch, yaw, len(self.unit_offsets)]
-                                   for k, u in enumerate(self.model.unit_ids)])
-            if metrics.diverged:
-                break
-        return _unit_columns(self.truth["t_s"][:len(centres_by_step)], self.model.unit_ids, centres_by_step), metrics
-
-
-class _TruthOfBodies:
-    """The world's truth log of several bodies (t_s, u<id>_n_m, _e_m, _d_m: each unit's centre): the tracked
-    point while the mission flies (the tracked unit's centre, else the mean of the units carrying it), and
-    units.csv. The log has no attitude: no tilt (NaN)."""
-
-    has_attitude = False
-
-    def __init__(self, scenario, model, truth, log) -> None:
-        self.scenario, self.model, self.truth, self.log = scenario, model, truth, log
-
-    def replay(self, steps: dict, trajectory):
-        from mars_link.flight.metrics import DIVERGENCE_ERROR_M, TrackingMetrics
-        from mars_link.flight.run_log import UNIT_LOG_HZ
-
-        metrics = TrackingMetrics()
-        nan3 = [math.nan] * 3
-        tracked_unit = self.scenario.tracked_unit()
-        for row in self.truth:
-            step = steps.get(round(float(row["t_s"]), 6))
-            if step is None or not step[0]:
-                continue
-            _, mission_t, ref, units, n_pieces = step
-            centres = [np.array([row[f"u{u}_n_m"], row[f"u{u}_e_m"], row[f"u{u}_d_m"]])
-                       for u in ([tracked_unit] if tracked_unit is not None else units)]
-            pos = np.mean(centres, axis=0)
-            err = float(np.linalg.norm(pos - ref))
-            metrics.add_error(err)
-            if not err < DIVERGENCE_ERROR_M and not metrics.diverged:
-                metrics.mark_diverged(float(row["t_s"]), err, math.nan, phase="mission")
-            self.log.telemetry([0, float(row["t_s"]), *ref, *pos, *nan3, err, *nan3, *nan3, *nan3, mission_t, n_pieces])
-        every = max(1, int(round(self.scenario.sim.control_hz / UNIT_LOG_HZ)))
-        unit_ids = sorted(int(n[1:-4]) for n in self.truth.dtype.names if n.startswith("u") and n.endswith("_n_m"))
-        for row in self.truth[::every]:  # (the world logs positions: velocity and attitude are not in units.csv here)
-            self.log.units(0, [[float(row["t_s"]), u, row[f"u{u}_n_m"], row[f"u{u}_e_m"], row[f"u{u}_d_m"], *nan3,
-                                *nan3, math.nan] for u in unit_ids])
-        return self.truth, metrics
-
-
-def _unit_columns(t_s, unit_ids, centres_by_step: list[np.ndarray]):
-    """Each unit's centre as the truth log of several bodies has it (t_s, u<id>_n_m, ...): for `units_lost`."""
-    names = ["t_s"] + [f"u{u}_{c}" for u in unit_ids for c in ("n_m", "e_m", "d_m")]
-    table = np.zeros(len(centres_by_step), dtype=[(n, float) for n in names])
-    table["t_s"] = t_s
-    for k, u in enumerate(unit_ids):
-        for j, c in enumerate(("n_m", "e_m", "d_m")):
-            table[f"u{u}_{c}"] = [centres[k][j] for centres in centres_by_step]
-    return table
+    for name, width, take in (("telemetry", len(TELEMETRY_COLUMNS), log.telemetry),
+                              ("units", len(UNIT_COLUMNS), None)):
+        path = out / f"{name}.csv"
+        if not path.exists():
+            continue
+        sample: list[list[float]] = []
+        with open(path, encoding="utf-8") as f:
+            next(f, None)
+            for line in f:
+                try:
+                    row = [float(x) for x in line.split(",")]
+                except ValueError:  # (a torn last line)
+                    continue
+                if len(row) != width:
+                    continue
+                if take is not None:
+                    take(row)
+                    continue
+                if sample and row[0] != sample[0][0]:  # units.csv: every unit's row of one time, then the next
+                    log.units(0, sample)
+                    sample = []
+                sample.append(row)
+        if sample:
+            log.units(0, sample)
 
 
 def foreign_traffic_events(out: Path, unit_ids) -> list[dict]:
@@ -718,12 +640,15 @@ def foreign_traffic_events(out: Path, unit_ids) -> list[dict]:
 
 def _logging_status(own: dict, world: dict, out: Path, scenario) -> dict:
     """summary.json "logging" for a SITL run: this process's logs and every child's (the world's truth
-    log, each unit's .tlog). A log stopped by a write error (or its size cap) is listed with its reason;
-    the flight went on, but figures computed from the truth log cover only what it holds."""
-    stopped = [own["stopped_reason"]] if own.get("stopped_reason") else []
+    log and its recorder's telemetry.csv and units.csv, each unit's .tlog). A log stopped by a write error
+    (or its size cap) is listed with its reason; the flight and its figures (measured live, not from the
+    logs) went on."""
+    recorded = world.get("run_log") or {}  # the world recorder's telemetry.csv and units.csv
+    own = {**own, "files": own.get("files", []) + recorded.get("files", [])}
+    stopped = [r for r in (own.get("stopped_reason"), recorded.get("stopped_reason")) if r]
     truth = world.get("logging") or {}
     if truth.get("stopped_reason"):
-        stopped.append(truth["stopped_reason"] + " (errors and tilt cover the flight up to there)")
+        stopped.append(truth["stopped_reason"])
     if world.get("mcap_stopped_reason"):  # the world's run.mcap writer
         stopped.append(world["mcap_stopped_reason"])
     for path in sorted(out.glob("command_age_unit*.json")):

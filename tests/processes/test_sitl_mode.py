@@ -54,6 +54,35 @@ def test_sitl_over_zenoh_matches_inproc_within_1mm_on_the_3x2_spiral(tmp_path: P
     assert len(ages) == 6 and all(len(x) == len(b) for x in ages)
 
 
+@pytest.mark.slow
+@pytest.mark.sitl
+def test_a_sitl_flight_that_diverges_is_recorded_to_its_divergence_as_in_process(tmp_path: Path) -> None:
+    """A 1x2 hover whose left rotors (1 and 2 of both units) fail at 1.5 s flips over. The world's flight
+    recorder (mars_link.processes.step_record) measures it on the truth with the coordinator's record of each
+    step: the divergence at the in-process step, the figures and telemetry.csv up to it, and nothing after
+    (the world flies on to its duration; the in-process flight ends there)."""
+    sc = load_scenario("hover_3x2")
+    sc.sim.duration_s = 3.0
+    sc = dataclasses.replace(sc, layout=["XX"], faults_known=False,
+                             faults=[FaultSpec(t_s=1.5, unit=u, rotor=r, eta=0.0) for u in (1, 2) for r in (1, 2)])
+    sitl = run_sitl_scenario(sc, tmp_path / "sitl", seed=5, link=LinkSpec("udp"), timeout_s=150, plots=False, view=())
+    inproc = run_scenario(sc, tmp_path / "inproc", seed=5, plots=False, mcap=False)
+
+    assert inproc["diverged"] and sitl["diverged"] and not sitl["completed"]
+    assert sitl["end_reason"] == inproc["end_reason"]  # "diverged at <the same time>"
+    assert sitl["sim_time_s"] == pytest.approx(3.0)  # (the world flew on; the record stopped)
+    hz = sc.sim.control_hz
+    diverged_step = round(inproc["sim_time_s"] * hz)  # (SITL's coordinator flies on: its later events are its own)
+    assert sorted((round(e["t_s"] * hz), e["type"]) for e in sitl["events"] if round(e["t_s"] * hz) <= diverged_step) == \
+        sorted((round(e["t_s"] * hz), e["type"]) for e in inproc["events"])
+    for figure in ("mean_error_m", "rmse_m", "max_error_m", "max_tilt_deg"):
+        assert sitl[figure] == pytest.approx(inproc[figure], abs=1e-3), figure
+    a = np.genfromtxt(tmp_path / "inproc" / "telemetry.csv", delimiter=",", names=True)
+    b = np.genfromtxt(tmp_path / "sitl" / "telemetry.csv", delimiter=",", names=True)
+    assert len(a) == len(b) < 3.0 * hz and b["t_s"][-1] == pytest.approx(a["t_s"][-1])
+    assert np.abs(a["error_m"] - b["error_m"]).max() < 1e-3 and b["error_m"][-1] > 0.5
+
+
 def test_bad_sitl_options_are_one_line_and_exit_2(tmp_path: Path, capsys) -> None:
     from mars_link.apps.cli import main
 
