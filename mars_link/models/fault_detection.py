@@ -605,7 +605,7 @@ class FaultDetector:
             imp[~d.any(axis=1)] = -np.inf  # already dead: nothing to explain
             groups.append((idx, d, imp, 0, units, 0.0))
         groups += self._unit_and_rotor_fits(A, g, groups, lo_all, hi_all, ridge)
-        best_k, best_h = max(((k, int(np.argmax(grp[2]))) for k, grp in enumerate(groups)),
+        best_k, best_h = max(((k, int(np.argmax(grp[2]))) for k, grp in enumerate(groups) if len(grp[2])),  # (a lone unit: no unit-and-rotor pairs)
                              key=lambda kh: groups[kh[0]][2][kh[1]])
         library_best = (groups[best_k][0][best_h], float(groups[best_k][2][best_h]), groups[best_k][4] is not None)
         n_library = len(groups)

@@ -158,3 +158,18 @@ def test_three_simultaneous_faults_are_identified_from_motion_within_two_seconds
     s, _ = fly(name, faults, seed, after_s=2.5)
     model = load_scenario(name).model()
     check(s, [model.rotor_slot(u, r) for u, r, _ in faults], within_s=2.0, false_max_s=0.3)
+
+
+def test_a_lone_unit_losing_a_rotor_is_named_not_a_crash() -> None:
+    """A 1x1 has no unit-and-rotor hypotheses (one unit): the detector's search over an empty group raised
+    ValueError mid-flight. Now it names the rotor; a quadrotor cannot fly on three, so the flight then ends."""
+    from mars_link.config.scenario import scenario_from_dict
+
+    sc = scenario_from_dict({"name": "lone", "assembly": {"layout": ["X"]},
+                             "trajectory": {"kind": "hover", "height_m": 1.0, "duration_s": 5.0},
+                             "control": {"faults_known": False},
+                             "sim": {"duration_s": 5.0, "noise": True}}, "test")
+    sc.faults = [FaultSpec(unit=1, rotor=1, eta=0.0, t_s=3.0)]
+    result = run_trial(sc, 1)
+    found = [e for e in result.events if e["type"] == "fault_detected"]
+    assert found and (found[0]["unit"], found[0]["rotor"]) == (1, 1) and found[0]["t_s"] - 3.0 < 0.5
