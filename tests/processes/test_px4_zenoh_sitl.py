@@ -193,9 +193,12 @@ def _take_over(client: OffboardComputer) -> None:
 
 
 def _stream(client: OffboardComputer, seconds: float) -> None:
-    """ActuatorMotors at about 50 Hz of wall time (the keep-alive goes on in its thread)."""
-    streamed_until = time.monotonic() + seconds
-    while time.monotonic() < streamed_until:
+    """ActuatorMotors at about 50 Hz of wall time (the keep-alive goes on in its thread) for `seconds` of
+    the unit's clock: a run paced to the wall clock falls behind it on a loaded machine, and a stream timed
+    on the wall clock then covered fewer of its steps (46 driven rows of rotors.csv where 50 were due)."""
+    start_us = client.unit_clock_us
+    give_up = time.monotonic() + HANG_S
+    while client.unit_clock_us - start_us < seconds * 1e6 and time.monotonic() < give_up:
         client.motors(CONTROLS)
         time.sleep(0.02)
 
