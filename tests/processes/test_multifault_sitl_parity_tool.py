@@ -1,0 +1,25 @@
+"""tools/multifault_sitl_parity.py (issue 41's cases, in process against lockstep SITL): its scenario copies
+and its answer to bad arguments. The flights themselves are offline work (docs/results/2026-12-sweeps.md)."""
+
+from __future__ import annotations
+
+from mars_link.config.scenario import load_scenario
+from tests.repo_files import load_script
+
+
+def test_the_esc_setting_goes_into_a_copy_of_the_bundled_case(tmp_path) -> None:
+    tool = load_script("tools/multifault_sitl_parity.py")
+    for case in tool.CASES:
+        bundled = load_scenario(case)
+        for esc in ("on", "off"):
+            copy = load_scenario(str(tool.scenario_file(case, esc, tmp_path)))
+            assert copy.esc_telemetry is (esc == "on")
+            assert copy.layout == bundled.layout and copy.faults == bundled.faults and not copy.faults_known
+
+
+def test_bad_arguments_are_one_line_and_exit_2(capsys) -> None:
+    tool = load_script("tools/multifault_sitl_parity.py")
+    assert tool.main(["--cases", "spiral_3x2"]) == 2
+    assert tool.main(["--esc", "maybe"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all(line.startswith("multifault_sitl_parity: ") for line in err)
