@@ -321,7 +321,7 @@ def run_world(setup: SitlSetup, ports: Ports, out: Path, seed: int, unit_timeout
     # the flight recorder's time series (the rotors' are the units': the run's parent writes rotors.csv)
     run_log = RunLog(out, world.model, rotor_log_hz=min(sc.sim.control_hz, ROTOR_LOG_HZ), plot_rows_max=PLOT_ROWS_MAX,
                      series=("telemetry", "units"))
-    records = StepRecords(COORDINATOR_SYSID) if setup.coordinated else None
+    records = StepRecords(COORDINATOR_SYSID, link.dropped) if setup.coordinated else None
     view, feed, reference, eta_at = _world_view(setup, world, out, mcap, foxglove)
     writer_pid = view.process.pid if view is not None and mcap else None
     try:

@@ -153,8 +153,10 @@ class StepRecords:
     """World side: the coordinator's step records as they come in, by step time (usec). `live` False once
     the coordinator has been silent past a step's deadline: the world then waits for no record."""
 
-    def __init__(self, coordinator_sysid: int) -> None:
+    def __init__(self, coordinator_sysid: int, dropped: dict[str, int] | None = None) -> None:
         self.coordinator_sysid = coordinator_sysid
+        # what was dropped, per reason (the world link's counters: world_summary.json "dropped")
+        self.dropped: dict[str, int] = {} if dropped is None else dropped
         self.records: dict[int, dict | None] = {}  # (None: a step's figures that came without their shape)
         self.live = True
         self.shape: tuple[int, dict] | None = None  # (its number, the shape)
@@ -168,12 +170,14 @@ class StepRecords:
         payload = bytes(m.payload[:m.payload_length])
         chunks = self._chunks[m.payload_type]
         if len(payload) < 2:
+            self._drop("step_record_malformed")
             return True
         index, count = payload[0], payload[1]
         if index == 0:
             chunks.clear()
         if index != len(chunks):  # (a frame of a message whose first frame was lost)
             chunks.clear()
+            self._drop("step_record_torn")
             return True
         chunks.append(payload[2:])
         if index + 1 == count:
@@ -188,8 +192,11 @@ class StepRecords:
                                           if self.shape is not None and self.shape[0] == number else None)
                     self.live = True
             except (ValueError, KeyError, TypeError, IndexError, struct.error):
-                pass
+                self._drop("step_record_malformed")
         return True
+
+    def _drop(self, reason: str) -> None:
+        self.dropped[reason] = self.dropped.get(reason, 0) + 1
 
     def awaited(self, t_us: int) -> bool:
         """Whether the world still waits for the record of step `t_us`."""
