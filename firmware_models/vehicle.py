@@ -100,6 +100,8 @@ FOREIGN_CONTROL_MESSAGES = frozenset({
     "MISSION_CLEAR_ALL", "MISSION_WRITE_PARTIAL_LIST", "MISSION_SET_CURRENT", "SET_POSITION_TARGET_LOCAL_NED",
     "SET_POSITION_TARGET_GLOBAL_INT", "SET_ATTITUDE_TARGET", "MANUAL_CONTROL", "PARAM_SET",
     "SET_ACTUATOR_CONTROL_TARGET"})
+#: the motors' commands while disarmed, as the ESCs see them (never written)
+_DISARMED_COMMANDS = np.zeros(4)
 FOREIGN_TRAFFIC_KEYS = 64  # distinct (link, sender, message) kept; beyond, only counted
 
 
@@ -339,7 +341,17 @@ class Vehicle:
         """The ESCs' telemetry at a HIL step, before its command: what the motors did over the last period."""
         if self.esc is None:
             return None
-        return self.esc.sample(t_s, self.motor_commands_n if self.armed else np.zeros(4), self.motors.eta)
+        return self.esc.sample(t_s, *self.esc_inputs())
+
+    def esc_inputs(self) -> tuple[np.ndarray, np.ndarray]:
+        """What the ESCs follow: the motors' commands (zeros while disarmed) and their efficiencies (eta).
+        Read-only: the in-process engine samples every unit's ESCs at once from these (mars_link.models.esc)."""
+        return (self.motor_commands_n if self.armed else _DISARMED_COMMANDS), self.motors.eta
+
+    def sensor_failure_due(self, t_s: float) -> bool:
+        """Whether a scheduled sensor failure comes due at `t_s` (this HIL step applies it)."""
+        due = self._scheduled_sensor_failures
+        return bool(due) and due[0][0] <= t_s + 1e-9
 
     def step_motors(self, dt_s: float) -> np.ndarray:
         """Produced rotor thrusts (N) after one physics step of dt_s (limits, eta, lag)."""

@@ -34,9 +34,6 @@ from mars_link.models.trajectories import Trajectory
 if TYPE_CHECKING:  # (a world process steps the engine without the coordinator's stack)
     from mars_link.coordination.coordinator import Coordinator
 
-#: a disarmed unit's motor commands, as its ESCs see them (firmware_models.vehicle.Vehicle._esc_sample)
-_ZERO_COMMANDS = np.zeros(4)
-
 
 class InProcessUnits:
     """The units of one flight, driven by direct calls in lockstep with the world."""
@@ -107,15 +104,14 @@ class InProcessUnits:
         due now; None: the units sample their own."""
         t = packets[0].t_s
         sensors, commands, etas = [], [], []
-        zeros = _ZERO_COMMANDS
         for p in packets:
             v = self.vehicles[p.unit_id]
-            due = v._scheduled_sensor_failures
-            if v.esc is None or (due and due[0][0] <= t + 1e-9) or p.t_s != t:
+            if v.esc is None or p.t_s != t or v.sensor_failure_due(t):
                 return None
             sensors.append(v.esc)
-            commands.append(v.motor_commands_n if v.armed else zeros)
-            etas.append(v.motors.eta)
+            command, eta = v.esc_inputs()
+            commands.append(command)
+            etas.append(eta)
         return sample_steady(sensors, t, np.array(commands), np.array(etas))
 
     def drive(self, commands: list[RotorCommand]) -> None:
