@@ -16,6 +16,11 @@ factor (RTF) means little; the figures are ratios of flights flown next to each 
 their order (earlier-then-this, this-then-earlier, ...), so a steady drift of the machine's speed
 favours neither side over the run; the ratio is the median of the pairs' ratios.
 
+Feature-matched (`--feature-matched`, on by default): the in-process comparison once more, this tree flying the
+same scenario with its units' ESC telemetry off (`[sensors] esc_telemetry = false`, a copy of the bundled file).
+Why: the earlier tree had no ESC model, and this tree's default flight samples every rotor's RPM and current at
+50 Hz (issue 41); the pair tells the cost of the restructuring from the cost of that added work.
+
 Where the figures come from: each flight's own summary.json. In process: `real_time_factor` (simulated
 time / wall time of the flight loop, start-up and plots excluded). Lockstep SITL (`--mode sitl
 --transport udp`): `sitl.world_real_time_factor` (the world's stepping loop, the processes' start-up
@@ -125,6 +130,16 @@ def fly(tree: Tree, scenario: str, scratch: Path, *, mode: str = "inproc", durat
     return Flight(tree.label, scenario, mode, rtf, float(whole), sim_s, wall, stages)
 
 
+def without_esc(tree: Tree, scenario: str, scratch: Path) -> str:
+    """A copy of `tree`'s bundled `scenario` with `[sensors] esc_telemetry = false`: the path to fly."""
+    text = (tree.root / "mars_link" / "scenarios" / f"{scenario}.toml").read_text(encoding="utf-8")
+    line = "esc_telemetry = false\n"
+    text = text.replace("[sensors]\n", "[sensors]\n" + line, 1) if "[sensors]\n" in text else text + "\n[sensors]\n" + line
+    path = scratch / f"{scenario}_no_esc.toml"
+    path.write_text(text, encoding="utf-8")
+    return str(path)
+
+
 def alternate(a: Tree | str, b: Tree | str, repeats: int, flight) -> list[tuple[Flight, Flight]]:
     """`repeats` pairs (a's flight, b's flight), flown a-b, b-a, a-b, ... (drift favours neither side)."""
     pairs = []
@@ -168,6 +183,8 @@ def main() -> None:
     ap.add_argument("--pair-duration", type=float, default=None,
                     help="assemble_3x2 against spiral_3x2: the spiral's length [simulated s] (assemble_3x2 docks "
                          "first; default: both whole)")
+    ap.add_argument("--feature-matched", action=argparse.BooleanOptionalAction, default=True,
+                    help="also fly the in-process comparison with this tree's ESC telemetry off (default: on)")
     ap.add_argument("--no-mcap", action="store_true", help="flights without run.mcap (default: as `mars-link run`)")
     ap.add_argument("--quick", action="store_true",
                     help="one pair each, short flights (in process 5 s, SITL 3 s, the spiral after docking 15 s)")
@@ -189,6 +206,12 @@ def main() -> None:
         print(f"in process: {args.scenario}, {args.inproc_duration:g} s", flush=True)
         inproc = alternate(old, new, args.repeats, lambda t: fly(t, args.scenario, scratch,
                                                                   duration_s=args.inproc_duration, mcap=mcap))
+        matched: list[tuple[Flight, Flight]] = []
+        if args.feature_matched:
+            no_esc = without_esc(new, args.scenario, scratch)
+            print(f"in process, this tree without ESC telemetry: {args.scenario}, {args.inproc_duration:g} s", flush=True)
+            matched = alternate(old, new, args.repeats, lambda t: fly(
+                t, args.scenario if t is old else no_esc, scratch, duration_s=args.inproc_duration, mcap=mcap))
         print(f"lockstep SITL (udp): {args.sitl_scenario}, {args.sitl_duration:g} s", flush=True)
         sitl = alternate(old, new, args.repeats, lambda t: fly(t, args.sitl_scenario, scratch, mode="sitl",
                                                                 duration_s=args.sitl_duration, mcap=mcap))
@@ -200,6 +223,11 @@ def main() -> None:
 
     r_in = ratio_figures(rec, "inproc_after_vs_before", inproc,
                          f"{args.scenario} in process, {args.inproc_duration:g} s: RTF of this tree / {args.before}'s")
+    r_matched = None
+    if matched:
+        r_matched = ratio_figures(rec, "inproc_no_esc_vs_before", matched,
+                                  f"{args.scenario} in process, {args.inproc_duration:g} s, this tree's ESC telemetry "
+                                  f"off: RTF of this tree / {args.before}'s")
     r_sitl = ratio_figures(rec, "sitl_after_vs_before", sitl,
                            f"{args.sitl_scenario} lockstep SITL (udp), {args.sitl_duration:g} s: the world loop's RTF "
                            f"of this tree / {args.before}'s")
@@ -222,8 +250,11 @@ def main() -> None:
           f"after {bare_after / 500:.0f}x)")
     print(f"{'comparison':<44}{'median ratio':>13}{'target':>9}  {'median':<12}pairs")
     for name, value, target, pairs in (("in process, this tree / before", r_in, 1.0, inproc),
+                                       ("  the same, this tree without ESC telemetry", r_matched, 1.0, matched),
                                        ("lockstep SITL world, this tree / before", r_sitl, 1.0, sitl),
                                        ("this tree: assemble_3x2 / spiral_3x2", r_pair, 0.5, pair)):
+        if value is None:
+            continue
         spread = ", ".join(f"{fb.rtf / fa.rtf:.3f}" for fa, fb in pairs)
         verdict = "meets it" if value >= target else "misses it"
         print(f"{name:<44}{value:>13.3f}{'>= ' + format(target, 'g'):>9}  {verdict:<12}{spread}")
