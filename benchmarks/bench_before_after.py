@@ -2,7 +2,8 @@
 both, flown alternately in one run, and (this tree only) `assemble_3x2` against `spiral_3x2` in process.
 
     python benchmarks/bench_before_after.py [--before COMMIT] [--repeats N] [--inproc-duration S]
-        [--sitl-scenario hover_3x2] [--sitl-duration S] [--pair-duration S] [--no-mcap] [--quick] [--json]
+        [--sitl-scenario hover_3x2] [--sitl-duration S] [--pair-duration S] [--no-feature-matched] [--no-mcap]
+        [--quick] [--json]
 
 Why flights as subprocesses: the earlier code has another package layout (before the restructuring of
 December 2026, `mars_link/cli.py`, `mars_link/runner.py`, ...), so it cannot be imported beside this tree.
@@ -16,8 +17,10 @@ factor (RTF) means little; the figures are ratios of flights flown next to each 
 their order (earlier-then-this, this-then-earlier, ...), so a steady drift of the machine's speed
 favours neither side over the run; the ratio is the median of the pairs' ratios.
 
-Feature-matched (`--feature-matched`, on by default): the in-process comparison once more, this tree flying the
-same scenario with its units' ESC telemetry off (`[sensors] esc_telemetry = false`, a copy of the bundled file).
+Feature-matched (`--feature-matched`, on by default): the in-process and lockstep comparisons once more, this tree
+flying the same scenarios with its units' ESC telemetry off (`[sensors] esc_telemetry = false`, a copy of the
+bundled file). In lockstep this tree's units still sign their MAVLink and write their ULog, which the earlier
+tree's did not.
 Why: the earlier tree had no ESC model, and this tree's default flight samples every rotor's RPM and current at
 50 Hz (issue 41); the pair tells the cost of the restructuring from the cost of that added work.
 
@@ -134,7 +137,10 @@ def without_esc(tree: Tree, scenario: str, scratch: Path) -> str:
     """A copy of `tree`'s bundled `scenario` with `[sensors] esc_telemetry = false`: the path to fly."""
     text = (tree.root / "mars_link" / "scenarios" / f"{scenario}.toml").read_text(encoding="utf-8")
     line = "esc_telemetry = false\n"
-    text = text.replace("[sensors]\n", "[sensors]\n" + line, 1) if "[sensors]\n" in text else text + "\n[sensors]\n" + line
+    if "[sensors]\n" in text:
+        text = text.replace("[sensors]\n", "[sensors]\n" + line, 1)
+    else:
+        text += "\n[sensors]\n" + line
     path = scratch / f"{scenario}_no_esc.toml"
     path.write_text(text, encoding="utf-8")
     return str(path)
@@ -215,6 +221,14 @@ def main() -> None:
         print(f"lockstep SITL (udp): {args.sitl_scenario}, {args.sitl_duration:g} s", flush=True)
         sitl = alternate(old, new, args.repeats, lambda t: fly(t, args.sitl_scenario, scratch, mode="sitl",
                                                                 duration_s=args.sitl_duration, mcap=mcap))
+        sitl_matched: list[tuple[Flight, Flight]] = []
+        if args.feature_matched:
+            no_esc = without_esc(new, args.sitl_scenario, scratch)
+            print(f"lockstep SITL (udp), this tree without ESC telemetry: {args.sitl_scenario}, "
+                  f"{args.sitl_duration:g} s", flush=True)
+            sitl_matched = alternate(old, new, args.repeats, lambda t: fly(
+                t, args.sitl_scenario if t is old else no_esc, scratch, mode="sitl", duration_s=args.sitl_duration,
+                mcap=mcap))
         length = "whole flights" if args.pair_duration is None else f"spiral {args.pair_duration:g} s (after docking)"
         print(f"this tree, in process: assemble_3x2 against spiral_3x2, {length}", flush=True)
         pair = alternate("spiral_3x2", "assemble_3x2", args.repeats,
@@ -231,6 +245,11 @@ def main() -> None:
     r_sitl = ratio_figures(rec, "sitl_after_vs_before", sitl,
                            f"{args.sitl_scenario} lockstep SITL (udp), {args.sitl_duration:g} s: the world loop's RTF "
                            f"of this tree / {args.before}'s")
+    r_sitl_matched = None
+    if sitl_matched:
+        r_sitl_matched = ratio_figures(rec, "sitl_no_esc_vs_before", sitl_matched,
+                                       f"{args.sitl_scenario} lockstep SITL (udp), {args.sitl_duration:g} s, this "
+                                       f"tree's ESC telemetry off: the world loop's RTF of this tree / {args.before}'s")
     r_pair = ratio_figures(rec, "assemble_vs_spiral", pair,
                            f"this tree in process, {length}: assemble_3x2's RTF / spiral_3x2's")
     for label, side in (("before", 0), ("after", 1)):
@@ -252,6 +271,8 @@ def main() -> None:
     for name, value, target, pairs in (("in process, this tree / before", r_in, 1.0, inproc),
                                        ("  the same, this tree without ESC telemetry", r_matched, 1.0, matched),
                                        ("lockstep SITL world, this tree / before", r_sitl, 1.0, sitl),
+                                       ("  the same, this tree without ESC telemetry", r_sitl_matched, 1.0,
+                                        sitl_matched),
                                        ("this tree: assemble_3x2 / spiral_3x2", r_pair, 0.5, pair)):
         if value is None:
             continue

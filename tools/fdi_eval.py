@@ -3,6 +3,7 @@
     python tools/fdi_eval.py [--out runs/fdi_eval] [--seeds 3] [--ftc qp] [--t-fault 10] [--false-alarm-seeds 5]
                              [--controller cascaded | mars-ftcc-paper] [--cases "{2,5};r2=0.5"] [--lost]
                              [--turbulence none|light|moderate|severe|W20] [--wind N,E,D] [--sensors mocap|rtk|gps]
+                             [--esc on|off]
 
 Every case is flown twice per seed with the in-process runner (JSBSim, sensor noise, EKF, cascaded
 controller): the faults act in the units' motor paths at `--t-fault` and are told to the coordinator
@@ -20,7 +21,8 @@ the controller flies on the true state, the detector reads the noise-free unit I
 `--turbulence` and `--wind` fly every flight in that air (scenario [environment]: Dryden turbulence of
 that severity, steady wind in m/s NED; the units' drag on): does the detector mistake the air for a
 rotor fault, and does it still find the real ones? `--sensors` flies every flight on that [sensors]
-profile (default mocap; gps: delayed GNSS, barometer and magnetometer in the EKF).
+profile (default mocap; gps: delayed GNSS, barometer and magnetometer in the EKF). `--esc off` flies the
+units without ESC telemetry ([sensors] esc_telemetry = false): the motion detector alone finds the faults.
 
 Writes fdi.md, fdi.json and fdi.png (detection delay and eta error per case; told vs detected error)
 to --out. Exit 0 when every case passed, 1 otherwise, 2 for bad arguments.
@@ -64,6 +66,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--turbulence", default="none", help="none | light | moderate | severe, or W20 in m/s")
     ap.add_argument("--wind", default="0,0,0", help="steady wind N,E,D in m/s (the air's velocity)")
     ap.add_argument("--sensors", default="mocap", help="[sensors] profile: mocap | rtk | gps")
+    ap.add_argument("--esc", default="on",
+                    help="the units' ESC telemetry (default on; off: the motion detector alone)")
     add_pool(ap)  # --workers / --scheduler: the flights go through the sweep's executor
     args = ap.parse_args(argv)
     args.environment = air_table(args.turbulence, args.wind)
@@ -72,6 +76,10 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     if args.sensors not in PROFILES:
         raise UserInputError(f"unknown --sensors profile {args.sensors!r} (known: {', '.join(PROFILES)})")
     args.sensor_table = None if args.sensors == "mocap" else {"profile": args.sensors}
+    if args.esc not in ("on", "off"):
+        raise UserInputError(f"--esc must be on or off, got {args.esc!r}")
+    if args.esc == "off":
+        args.sensor_table = {**(args.sensor_table or {}), "esc_telemetry": False}
     if not 1 <= args.seeds <= 100 or not 0 <= args.false_alarm_seeds <= 100:
         raise UserInputError("--seeds must be in 1..100 and --false-alarm-seeds in 0..100")
     if args.ftc not in FTC_CHOICES:
@@ -137,7 +145,7 @@ def summarize(trials: list[FdiTrial]) -> dict:
 def markdown(rows: list[dict], fa: dict, args: argparse.Namespace) -> str:
     air = "still air" if args.environment is None else (
         f"wind {args.wind} m/s NED, turbulence {args.turbulence}")
-    air += f", sensors {args.sensors}"
+    air += f", sensors {args.sensors}" + ("" if args.esc == "on" else ", no ESC telemetry")
     lines = [
         f"Faults at t = {args.t_fault:g} s, {args.seeds} seed(s), {args.controller}, ftc {args.ftc}, {air}; acceptance: delay < "
         f"{FDI_MAX_DELAY_S} s, eta error <= {FDI_MAX_ETA_ERROR}, detected/told error <= {FDI_MAX_ERROR_RATIO}.",
@@ -236,7 +244,7 @@ def main(argv: list[str] | None = None) -> int:
     (out / "fdi.md").write_text(table, encoding="utf-8")
     write_json(out / "fdi.json", {"cases": rows, "fault_free": fa, "ftc": args.ftc, "controller": args.controller,
                                   "t_fault_s": args.t_fault, "environment": args.environment,
-                                  "sensors": args.sensors})
+                                  "sensors": args.sensors, "esc_telemetry": args.esc == "on"})
     if not args.no_plot:
         plot(rows, out / "fdi.png")
         print(f"wrote {out / 'fdi.md'}, {out / 'fdi.json'}, {out / 'fdi.png'}")

@@ -467,7 +467,7 @@ def _fdi_tool():
     "argv, message",
     [(["--seeds", "0"], "--seeds"), (["--ftc", "magic"], "--ftc must be one of"),
      (["--t-fault", "nan"], "--t-fault"), (["--cases", "nothing"], "matches none of"),
-     (["--controller", "mars-ftcc-paper", "--ftc", "qp"], "flies --ftc paper")],
+     (["--controller", "mars-ftcc-paper", "--ftc", "qp"], "flies --ftc paper"), (["--esc", "maybe"], "--esc")],
 )
 def test_fdi_eval_bad_arguments_are_one_line_and_exit_2(argv, message, capsys):
     assert _fdi_tool().main(argv) == 2
@@ -489,7 +489,10 @@ def test_fdi_eval_report_and_plot_from_trials(tmp_path):
     args = tool.parse(["--seeds", "1"])
     text = tool.markdown(rows, {"flights": 2, "seeds": [1, 2], "false_alarms": 0}, args)
     assert "| T1 u2 r2=0.5 | qp | 0.07 / 0.07 | 0.000 | 0 | 0.0100 | 0.0110 | 1.10 | yes |" in text
-    assert "0 false alarm(s) in 2 flight(s)" in text
+    assert "0 false alarm(s) in 2 flight(s)" in text and "ESC" not in text
+    off = tool.parse(["--seeds", "1", "--esc", "off"])
+    assert off.sensor_table == {"esc_telemetry": False}
+    assert "sensors mocap, no ESC telemetry" in tool.markdown(rows, {"flights": 0, "seeds": [], "false_alarms": 0}, off)
     tool.plot(rows, tmp_path / "fdi.png")
     assert (tmp_path / "fdi.png").stat().st_size > 10_000
 
