@@ -163,6 +163,10 @@ class CascadedController(Controller):
         # thrust direction: body z (down) must point along -(wanted force); never ask to fly inverted
         fx, fy, fz = ax, ay, az - GRAVITY_MPS2  # force per unit mass, NED
         fz = min(fz, -0.2 * GRAVITY_MPS2)
+        if reference.max_tilt_rad is not None:  # (PX4's limitTilt: the horizontal share of the thrust, bounded)
+            horiz, most = math.hypot(fx, fy), -fz * math.tan(reference.max_tilt_rad)
+            if horiz > most:
+                fx, fy = fx * most / horiz, fy * most / horiz
         fn = math.sqrt(fx * fx + fy * fy + fz * fz)
         b3x, b3y, b3z = -fx / fn, -fy / fn, -fz / fn
 

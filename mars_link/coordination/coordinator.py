@@ -233,7 +233,7 @@ class Coordinator:
         out = self.controller.update(t_s, estimate, reference)
         thrusts = np.asarray(out.rotor_thrusts_n, dtype=float)
         if self.failsafe is not None and self.failsafe.state != "normal":
-            self._failsafe_motors(t_s, thrusts)
+            self._failsafe_motors(t_s, float(out.wrench_demand[0]))
             if self.failsafe.motors_off:
                 thrusts = np.zeros_like(thrusts)
         if self.motors_off:
@@ -297,11 +297,13 @@ class Coordinator:
         """The guard's standard deviation of the estimated height (m)."""
         return math.sqrt(max(float(self.guard.covariance[2, 2]), 0.0))
 
-    def _failsafe_motors(self, t_s: float, thrusts: np.ndarray) -> None:
-        """What the failsafe's land detector reads: the thrust asked and the IMUs' mean specific force."""
+    def _failsafe_motors(self, t_s: float, collective_n: float) -> None:
+        """What the failsafe's land detector reads: the controller's collective thrust (PX4's land detector
+        reads the thrust setpoint too: on the ground the rotors' sum also carries the moments the attitude
+        loop asks against the ground) and the IMUs' mean specific force."""
         imus = self.guard.usable_imus
         f_down = float(np.mean([s.accel_frd_mps2[2] for s in imus])) if imus else None
-        self.failsafe.observe(t_s, float(thrusts.sum()), f_down, self.model.mass_kg * GRAVITY_MPS2,
+        self.failsafe.observe(t_s, collective_n, f_down, self.model.mass_kg * GRAVITY_MPS2,
                               self._vertical_sigma_m())
         self.events += self.failsafe.events
         self.failsafe.events.clear()

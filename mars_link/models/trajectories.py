@@ -30,6 +30,9 @@ class TrajectoryPoint:
     jerk_ned_mps3: np.ndarray = field(default_factory=lambda: np.zeros(3))
     yaw_rad: float = 0.0
     yaw_rate_radps: float = 0.0
+    #: the steepest tilt the controller may ask for to follow this point (None: its own limits only). A
+    #: landing without a position sets PX4's MPC_TILTMAX_LND (mars_link.models.position_failsafe)
+    max_tilt_rad: float | None = None
 
 
 class Trajectory:
