@@ -133,6 +133,64 @@ def test_longer_gps_loss_on_the_gps_profile_holds_then_lands(air: str, held_ptp_
     assert tilt_deg(flight.world.truth().quaternion_wxyz) < 10.0  # upright, not tipped onto an edge
 
 
+LANDING_SCENARIO = """name = "hover_gps_lost"
+[assembly]
+layout = ["XXX", "XXX"]
+tracked = "com"
+[trajectory]
+kind = "hover"
+height_m = 2.0
+duration_s = 60.0
+[control]
+controller = "cascaded"
+ftc = "qp"
+faults_known = false
+[sensors]
+profile = "gps"
+[[sensor_faults]]
+t = 10.0
+sensor = "gps"
+type = "off"
+[sim]
+noise = true
+"""
+
+
+class TruthTilt:
+    """Observer: the truth's tilt [deg] at every step."""
+
+    def __init__(self) -> None:
+        self.rows: list[tuple[float, float]] = []
+
+    def on_step(self, engine, v) -> bool:
+        self.rows.append((v.t_s, tilt_deg(v.truth.quaternion_wxyz)))
+        return False
+
+
+@pytest.mark.parametrize("seed", [1, *(pytest.param(s, marks=pytest.mark.long) for s in (2, 3, 4, 5, 6, 7))])
+def test_a_landing_without_position_comes_down_level_and_disarms(seed: int, tmp_path) -> None:
+    """A 3x2 hovering at 2 m on the gps profile loses GNSS for good at 10 s: it holds, lands from 24.8 s and
+    turns its motors off upright. Before the landing's tilt limit (PX4's MPC_TILTMAX_LND, 12 degrees) and
+    the land detector's reading of the collective thrust, seeds 1, 4 and 7 turned over at rest on the
+    ground (80 degrees: the damping of a dead-reckoned velocity asked tens of degrees of a descent asking
+    little thrust) and seed 5 rested on an edge at 0.51 of the weight, never declared landed."""
+    path = tmp_path / "hover_gps_lost.toml"
+    path.write_text(LANDING_SCENARIO)
+    sc = load_scenario(str(path))
+    sc.sim.duration_s = 34.0
+    flight = build_flight(sc, seed)
+    tilt = TruthTilt()
+    engine = Engine(flight, [tilt])
+    engine.run()
+    events = sorted(engine.events + flight.coordinator.events, key=lambda e: e["t_s"])
+    land, landed = first(events, "failsafe_land"), first(events, "failsafe_landed")
+    assert land["t_s"] < landed["t_s"] < 32.0 and "motors off" in landed["text"]
+    landing = [deg for t, deg in tilt.rows if t >= land["t_s"]]
+    assert max(landing) < 10.0  # (seeds 1-7: at most 7.9)
+    assert np.all(flight.world.rotor_thrust_n < 1e-6)  # (the motors' lag runs down to zero)
+    assert tilt_deg(flight.world.truth().quaternion_wxyz) < 2.0  # flat on the ground
+
+
 def _hover(sensor: str, kind: str):
     sc = load_scenario("hover_3x2")
     sc.sensors = PROFILES["gps"]
