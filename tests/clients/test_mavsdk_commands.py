@@ -95,6 +95,13 @@ async def _flights(api_port: int, status: Path, tlog: Path, plant) -> dict:
         res["orbit_radius_m"] = (min(radii), max(radii))
         await action.hold()
 
+        async def still() -> bool:  # (the hold brakes the orbit's 1 m/s: the stick test starts at rest)
+            before = truth()
+            await asyncio.sleep(0.5)
+            return math.dist(before, truth()) < 0.02
+
+        await _until(still, 15.0, "the hold at rest after the orbit")
+
         # position mode: half stick forward moves north, centred sticks hold
         sticks = [0.0, 0.0, 0.5, 0.0]
 
