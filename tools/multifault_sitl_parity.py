@@ -7,7 +7,7 @@ Each bundled multi-fault scenario (noise on, faults not told: the coordinator's 
 flown twice per seed and ESC setting with `mars-link run`: in one process, and with `--mode sitl` (the world,
 every unit and the coordinator in processes of their own, MAVLink between them). The ESC setting is the
 scenario's `[sensors] esc_telemetry`, written into a copy of it in --out. Compared per flight: the belief
-events (`fault_detected`, `fault_retracted`, `unit_lost`: unit, rotor, time, eta) and summary.json's mean
+events (`fault_detected`, `fault_retracted`, `unit_lost`: unit, rotor, time, eta, onset) and summary.json's mean
 error and divergence. Prints a progress line per pair, then a markdown table per case and ESC setting;
 writes parity.md and parity.json to --out (parity.partial.jsonl as pairs finish, seed by seed). Exit 0 when every pair is equal, 1 otherwise, 2 for bad arguments.
 """
@@ -81,10 +81,15 @@ def fly(scenario: Path, seed: int, run_dir: Path, sitl: bool, transport: str) ->
     if not summary_path.is_file():
         return {"rc": proc.returncode, "error": (proc.stderr or proc.stdout)[-500:]}
     s = json.loads(summary_path.read_text(encoding="utf-8"))
-    events = [[e["type"], e.get("unit"), e.get("rotor"), e["t_s"], e.get("eta")]
-              for e in s.get("events", []) if e["type"] in BELIEF_EVENTS]
     return {"rc": proc.returncode, "mean_error_m": s.get("mean_error_m"), "diverged": s.get("diverged"),
-            "events": events}
+            "events": belief_events(s)}
+
+
+def belief_events(summary: dict) -> list[list]:
+    """The flight's beliefs as compared: type, unit, rotor, time, eta (`eta_estimated` in summary.json's
+    events) and onset."""
+    return [[e["type"], e.get("unit"), e.get("rotor"), e["t_s"], e.get("eta_estimated"), e.get("t_onset")]
+            for e in summary.get("events", []) if e["type"] in BELIEF_EVENTS]
 
 
 def markdown(rows: list[dict], args: argparse.Namespace) -> str:

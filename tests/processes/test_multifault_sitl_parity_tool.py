@@ -23,3 +23,14 @@ def test_bad_arguments_are_one_line_and_exit_2(capsys) -> None:
     assert tool.main(["--esc", "maybe"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and all(line.startswith("multifault_sitl_parity: ") for line in err)
+
+
+def test_a_belief_is_compared_with_its_eta_and_onset() -> None:
+    """summary.json names a belief's eta `eta_estimated`: two flights that differ only there are not equal."""
+    tool = load_script("tools/multifault_sitl_parity.py")
+    found = {"t_s": 15.06, "type": "fault_detected", "unit": 2, "rotor": 3, "eta_estimated": 0.0112, "t_onset": 15.0,
+             "text": "Fault found: Unit 2 rotor 3 eta 0.01"}
+    other = {**found, "eta_estimated": 0.0113}
+    assert tool.belief_events({"events": [found, {"t_s": 0.0, "type": "fault"}]}) == [
+        ["fault_detected", 2, 3, 15.06, 0.0112, 15.0]]
+    assert tool.belief_events({"events": [found]}) != tool.belief_events({"events": [other]})
