@@ -31,7 +31,9 @@ class TrajectoryPoint:
     yaw_rad: float = 0.0
     yaw_rate_radps: float = 0.0
     #: the steepest tilt the controller may ask for to follow this point (None: its own limits only). A
-    #: landing without a position sets PX4's MPC_TILTMAX_LND (mars_link.models.position_failsafe)
+    #: landing without a position sets PX4's MPC_TILTMAX_LND (mars_link.models.position_failsafe). The
+    #: cascaded controller bounds its thrust direction by it; paper 000's controller asks no tilt (its
+    #: position loop's corrections go to the mixer, saturated there) and has no use for it
     max_tilt_rad: float | None = None
 
 
