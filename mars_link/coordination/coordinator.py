@@ -319,12 +319,17 @@ class Coordinator:
         finding is an event, a detection record and a reallocation (for the periods to come)."""
         found, gone = self._esc_changes()
         if self._to_detect is not None:
+            if self.esc_monitor is not None:  # (the ESCs' samples as rows of the motion detector's isolation fit)
+                self.detector.rotor_evidence = self.esc_monitor.evidence_since
             t_s, thrusts, estimate, imus = self._to_detect
             self._to_detect = None
             motion = self.detector.update(t_s, thrusts, estimate, imus)
             found += [d for d in motion if not self._esc_overrules(d, t_s)] if self.esc_monitor else motion
             self._detector_untold |= bool(motion) and self.esc_monitor is not None
         self._detector_untold |= bool(found or gone) and self.esc_monitor is not None
+        if found and self.detector is not None and self.detector.isolating:
+            # the ESCs' findings during an alarm are known parts of the change it isolates (the rest is fitted)
+            self.detector.assume(self._esc_believed(self.detector.eta_estimate))
         if self._detector_untold and self.detector is not None and not self.detector.isolating:
             # the motion detector judges its residuals against what the ESCs see; told between its alarms
             # (telling restarts it: an alarm in progress would be lost)
@@ -373,15 +378,20 @@ class Coordinator:
             return [], []
         return self.esc_monitor.take_changes()
 
+    def _esc_believed(self, eta: np.ndarray) -> np.ndarray:
+        """`eta` with the ESC monitor's beliefs in place."""
+        out = np.array(eta, dtype=float)
+        for slot, belief in self.esc_monitor.beliefs().items():
+            out[slot] = belief
+        return out
+
     def _believed_eta(self, t_s: float) -> np.ndarray:
         """Every rotor's believed efficiency: the motion detector's, but where the ESC telemetry covers a rotor
         or believes it faulty, the ESC monitor's."""
         eta = self.eta_believed.copy() if self.detector is None else np.clip(self.detector.eta_estimate, 0.0, 1.0)
         if self.esc_monitor is None:
             return eta
-        esc = np.where(self.esc_monitor.covered(t_s), 1.0, eta)
-        for slot, belief in self.esc_monitor.beliefs().items():
-            esc[slot] = belief
+        esc = self._esc_believed(np.where(self.esc_monitor.covered(t_s), 1.0, eta))
         for uid in self.lost_units:  # (a lost unit stays failed whatever its last telemetry said)
             esc[self.model.unit_slots(uid)] = 0.0
         return esc
