@@ -90,6 +90,7 @@ class Coordinator:
         #: precedence on the rotors its telemetry covers (`_esc_step`); None: no ESC telemetry is used
         self.esc_monitor = None
         self._detector_untold = False  # the ESCs' beliefs changed since the motion detector was last told
+        self._motion_claims: dict[int, tuple[float, float]] = {}  # motion beliefs the ESCs still test: slot -> (eta, t)
         self.detections: list = []  # fault_detection.Detection, from residuals and lost units
         self.eta_believed = model.nominal_eta()
         self.events: list[dict] = []  # every event has "t_s", "type" and "text" (<= 50 chars, STATUSTEXT)
@@ -324,8 +325,11 @@ class Coordinator:
             t_s, thrusts, estimate, imus = self._to_detect
             self._to_detect = None
             motion = self.detector.update(t_s, thrusts, estimate, imus)
-            found += [d for d in motion if not self._esc_overrules(d, t_s)] if self.esc_monitor else motion
+            accepted = [d for d in motion if not self._esc_overrules(d, t_s)] if self.esc_monitor else motion
+            found += accepted
             self._detector_untold |= bool(motion) and self.esc_monitor is not None
+            self._claim(accepted)
+        gone += self._esc_refutes()
         self._detector_untold |= bool(found or gone) and self.esc_monitor is not None
         if found and self.detector is not None and self.detector.isolating:
             # the ESCs' findings during an alarm are known parts of the change it isolates (the rest is fitted)
@@ -364,6 +368,37 @@ class Coordinator:
             for d in found
         ) or "withdrawn " + ", ".join(f"unit {self.name_of(u)} rotor {r}" for u, r in gone)
         self.set_faults(self._believed_eta(t_s), t_s, f"detected: {what}")
+
+    def _claim(self, motion: list) -> None:
+        """The motion detector's rotor beliefs the ESC monitor tests from now on (`_esc_refutes`)."""
+        if self.esc_monitor is None:
+            return
+        for d in motion:
+            if d.rotor is None:
+                continue
+            slot = self.model.rotor_slot(d.unit, d.rotor)
+            if d.retracted or d.eta_estimated >= 1.0 - self.detector.params.min_change:
+                self._motion_claims.pop(slot, None)
+            else:
+                self._motion_claims[slot] = (float(d.eta_estimated), float(d.t_detected))
+
+    def _esc_refutes(self) -> list[tuple[int, int]]:
+        """Motion beliefs whose rotor's current since says healthy (the monitor's sequential test): withdrawn, and the
+        detector told at once (between its alarms). (unit, rotor) of each."""
+        if not self._motion_claims or self.detector is None or self.detector.isolating:
+            return []
+        beliefs = self.esc_monitor.beliefs()
+        for slot in [s for s in self._motion_claims if s in beliefs]:  # (the ESCs' own belief stands there)
+            del self._motion_claims[slot]
+        refuted, settled = self.esc_monitor.refuted(self._motion_claims)
+        for slot in refuted + settled:
+            del self._motion_claims[slot]
+        if not refuted:
+            return []
+        eta = self.detector.eta_estimate
+        eta[refuted] = 1.0
+        self.detector.set_model(self.model, eta)
+        return [(slot // ROTORS_PER_UNIT + 1, slot % ROTORS_PER_UNIT + 1) for slot in refuted]
 
     def _esc_overrules(self, d, t_s: float) -> bool:
         """A motion detection on rotors the ESC telemetry covers (or has a belief on): the ESCs' word stands."""

@@ -27,7 +27,8 @@ in hover, as much as the current's noise, so a 30 % propeller moves a sample by 
 above could only see losses beyond 2.8 times the load (such rotors are not counted as covered). What the samples
 tell together is kept instead: `evidence_since` gives each rotor's samples since a time as least-squares sums in
 noise units (the current residual normalised by its sigma), which the motion detector adds as rows of its
-isolation fit (a look-alike naming a rotor whose current says healthy loses there).
+isolation fit (a look-alike naming a rotor whose current says healthy loses there), and `refuted` runs a
+sequential probability ratio test of another source's belief against a healthy rotor on them.
 """
 
 from __future__ import annotations
@@ -65,6 +66,9 @@ class EscMonitorParams:
     # a rotor counts as covered (its motion findings left to the ESCs) only while its load test could see a loss
     # this large: on small motors the load current is near the current noise (modquad-cf2: a 70 % loss unseen)
     covered_max_margin: float = 0.3
+    # another source's belief is withdrawn when the samples since it make a healthy rotor this much likelier (log):
+    # e^-9.2 = 1e-4, the chance that a right belief is withdrawn
+    refute_log_odds: float = 9.2
     evidence_memory_s: float = 2.0  # `evidence_since` reaches this far back (the motion detector's window: 1.5 s)
 
 
@@ -149,6 +153,28 @@ class EscMonitor:
             return None
         d = self._sums - before
         return d[0], d[1], d[2], int(d[3].sum())
+
+    def refuted(self, claims: dict[int, tuple[float, float]]) -> tuple[list[int], list[int]]:
+        """A sequential probability ratio test of other sources' beliefs (slot -> (eta, since when)) against a
+        healthy rotor, on the rotor's load-current samples since the belief: log-likelihood ratio
+        sum[(x - eta L)^2 - (x - L)^2] / 2 in noise units = (1 - eta) (sum L x - (1 + eta) / 2 sum L^2).
+        Returns (the slots it refutes: ratio above `refute_log_odds`; the slots it settles: below minus that, or
+        no longer in memory). Why: a motion belief on a small motor's rotor that its current contradicts stood for
+        the rest of the flight (28 s on a 4x4 donut); one sample of that current tells little, a second of them a lot."""
+        refuted: list[int] = []
+        settled: list[int] = []
+        odds = self.params.refute_log_odds
+        for slot, (eta, since_s) in claims.items():
+            found = self.evidence_since(since_s)
+            if found is None:
+                settled.append(slot)
+                continue
+            ratio = (1.0 - eta) * (float(found[1][slot]) - 0.5 * (1.0 + eta) * float(found[0][slot]))
+            if ratio >= odds:
+                refuted.append(slot)
+            elif ratio <= -odds:
+                settled.append(slot)
+        return refuted, settled
 
     def covered(self, t_s: float) -> np.ndarray:
         """Per rotor: its unit's ESC telemetry is live (fresh and not stuck) and the rotor was judged lately

@@ -217,6 +217,33 @@ def test_monitor_withdraws_a_belief_that_later_readings_contradict() -> None:
     assert math.isfinite(t)
 
 
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_monitor_refutes_a_motion_belief_that_a_small_motors_current_contradicts(seed: int) -> None:
+    """A Crazyflie-sized rotor (modquad-cf2: its hover load current about the current noise) believed at 0.3 by
+    another source: healthy readings refute that within 2 s (the test's drift, 0.23 per sample, reaches 9.2 in about
+    40 samples), a rotor really at 0.3 settles it and is never refuted, and a belief older than the monitor's memory
+    is settled untested."""
+    model = AssemblyModel.from_layout(["X"], vehicle_preset("modquad-cf2"))
+    monitor, c = EscMonitor(model), MotorConstants.for_vehicle(model.vehicle)
+    hover = model.vehicle.unit_mass_kg * 9.81 / 4
+    assert 0.5 < float(c.load_current_a(hover)) / EscParams().current_noise_a < 1.5  # (the premise: load ~ noise)
+    for load, verdict in ((1.0, "refuted"), (0.3, "settled")):
+        rng = np.random.default_rng(seed)
+        t = _monitor_feed(monitor, c, 0.0 if load == 1.0 else 10.0, 100, 1.0, rng, hover_n=hover)
+        claims = {0: (0.3, t)}
+        refuted: list[int] = []
+        settled: list[int] = []
+        for _ in range(40):  # 2 s in steps of 0.05 s
+            t = _monitor_feed(monitor, c, t, 5, load, rng, hover_n=hover)
+            refuted, settled = monitor.refuted(claims)
+            if refuted or settled:
+                break
+        assert (refuted, settled) == (([0], []) if verdict == "refuted" else ([], [0])), (load, t - claims[0][1])
+    claimed_s = t
+    t = _monitor_feed(monitor, c, t, 300, 1.0, rng, hover_n=hover)  # 3 s of healthy readings: past the memory
+    assert monitor.refuted({0: (0.3, claimed_s)}) == ([], [0])
+
+
 def test_failed_esc_telemetry_makes_no_belief_and_its_unit_is_left_to_the_motion_detector() -> None:
     """Unit 2's ESC telemetry sticks and unit 4's stops at 2 s; at 3 s unit 6 loses rotor 1's propeller (its
     ESC sees it). Neither failed telemetry makes a belief, and their units are no longer covered (the motion
