@@ -90,6 +90,7 @@ class Coordinator:
         #: precedence on the rotors its telemetry covers (`_esc_step`); None: no ESC telemetry is used
         self.esc_monitor = None
         self._detector_untold = False  # the ESCs' beliefs changed since the motion detector was last told
+        self._motion_claims: dict[int, tuple[float, float]] = {}  # motion beliefs the ESCs still test: slot -> (eta, t)
         self.detections: list = []  # fault_detection.Detection, from residuals and lost units
         self.eta_believed = model.nominal_eta()
         self.events: list[dict] = []  # every event has "t_s", "type" and "text" (<= 50 chars, STATUSTEXT)
@@ -321,12 +322,20 @@ class Coordinator:
         finding is an event, a detection record and a reallocation (for the periods to come)."""
         found, gone = self._esc_changes()
         if self._to_detect is not None:
+            if self.esc_monitor is not None:  # (the ESCs' samples as rows of the motion detector's isolation fit)
+                self.detector.rotor_evidence = self.esc_monitor.evidence_since
             t_s, thrusts, estimate, imus = self._to_detect
             self._to_detect = None
             motion = self.detector.update(t_s, thrusts, estimate, imus)
-            found += [d for d in motion if not self._esc_overrules(d, t_s)] if self.esc_monitor else motion
+            accepted = [d for d in motion if not self._esc_overrules(d, t_s)] if self.esc_monitor else motion
+            found += accepted
             self._detector_untold |= bool(motion) and self.esc_monitor is not None
+            self._claim(accepted)
+        gone += self._esc_refutes()
         self._detector_untold |= bool(found or gone) and self.esc_monitor is not None
+        if found and self.detector is not None and self.detector.isolating:
+            # the ESCs' findings during an alarm are known parts of the change it isolates (the rest is fitted)
+            self.detector.assume(self._esc_believed(self.detector.eta_estimate))
         if self._detector_untold and self.detector is not None and not self.detector.isolating:
             # the motion detector judges its residuals against what the ESCs see; told between its alarms
             # (telling restarts it: an alarm in progress would be lost)
@@ -362,6 +371,37 @@ class Coordinator:
         ) or "withdrawn " + ", ".join(f"unit {self.name_of(u)} rotor {r}" for u, r in gone)
         self.set_faults(self._believed_eta(t_s), t_s, f"detected: {what}")
 
+    def _claim(self, motion: list) -> None:
+        """The motion detector's rotor beliefs the ESC monitor tests from now on (`_esc_refutes`)."""
+        if self.esc_monitor is None:
+            return
+        for d in motion:
+            if d.rotor is None:
+                continue
+            slot = self.model.rotor_slot(d.unit, d.rotor)
+            if d.retracted or d.eta_estimated >= 1.0 - self.detector.params.min_change:
+                self._motion_claims.pop(slot, None)
+            else:
+                self._motion_claims[slot] = (float(d.eta_estimated), float(d.t_detected))
+
+    def _esc_refutes(self) -> list[tuple[int, int]]:
+        """Motion beliefs whose rotor's current since says healthy (the monitor's sequential test): withdrawn, and the
+        detector told at once (between its alarms). (unit, rotor) of each."""
+        if not self._motion_claims or self.detector is None or self.detector.isolating:
+            return []
+        beliefs = self.esc_monitor.beliefs()
+        for slot in [s for s in self._motion_claims if s in beliefs]:  # (the ESCs' own belief stands there)
+            del self._motion_claims[slot]
+        refuted, settled = self.esc_monitor.refuted(self._motion_claims)
+        for slot in refuted + settled:
+            del self._motion_claims[slot]
+        if not refuted:
+            return []
+        eta = self.detector.eta_estimate
+        eta[refuted] = 1.0
+        self.detector.set_model(self.model, eta)
+        return [(slot // ROTORS_PER_UNIT + 1, slot % ROTORS_PER_UNIT + 1) for slot in refuted]
+
     def _esc_overrules(self, d, t_s: float) -> bool:
         """A motion detection on rotors the ESC telemetry covers (or has a belief on): the ESCs' word stands."""
         slots = np.arange(self.model.n_rotors)[self.model.unit_slots(d.unit)] if d.rotor is None \
@@ -375,15 +415,20 @@ class Coordinator:
             return [], []
         return self.esc_monitor.take_changes()
 
+    def _esc_believed(self, eta: np.ndarray) -> np.ndarray:
+        """`eta` with the ESC monitor's beliefs in place."""
+        out = np.array(eta, dtype=float)
+        for slot, belief in self.esc_monitor.beliefs().items():
+            out[slot] = belief
+        return out
+
     def _believed_eta(self, t_s: float) -> np.ndarray:
         """Every rotor's believed efficiency: the motion detector's, but where the ESC telemetry covers a rotor
         or believes it faulty, the ESC monitor's."""
         eta = self.eta_believed.copy() if self.detector is None else np.clip(self.detector.eta_estimate, 0.0, 1.0)
         if self.esc_monitor is None:
             return eta
-        esc = np.where(self.esc_monitor.covered(t_s), 1.0, eta)
-        for slot, belief in self.esc_monitor.beliefs().items():
-            esc[slot] = belief
+        esc = self._esc_believed(np.where(self.esc_monitor.covered(t_s), 1.0, eta))
         for uid in self.lost_units:  # (a lost unit stays failed whatever its last telemetry said)
             esc[self.model.unit_slots(uid)] = 0.0
         return esc

@@ -21,11 +21,20 @@ healthy one's aerodynamic load: its eta, whatever the speed). Judged only while 
 A unit whose samples stop (older than `stale_s`) or repeat exactly (a stuck ESC: real readings carry noise)
 is not covered, nor is a rotor commanded too little thrust to judge: those are left to the motion detector,
 and the ESCs' beliefs on them are kept as they were.
+
+On small motors one sample tells little: a Crazyflie-sized rotor (modquad-cf2) draws about 0.1 A of load current
+in hover, as much as the current's noise, so a 30 % propeller moves a sample by 0.7 sigma and the window test
+above could only see losses beyond 2.8 times the load (such rotors are not counted as covered). What the samples
+tell together is kept instead: `evidence_since` gives each rotor's samples since a time as least-squares sums in
+noise units (the current residual normalised by its sigma), which the motion detector adds as rows of its
+isolation fit (a look-alike naming a rotor whose current says healthy loses there), and `refuted` runs a
+sequential probability ratio test of another source's belief against a healthy rotor on them.
 """
 
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -57,6 +66,10 @@ class EscMonitorParams:
     # a rotor counts as covered (its motion findings left to the ESCs) only while its load test could see a loss
     # this large: on small motors the load current is near the current noise (modquad-cf2: a 70 % loss unseen)
     covered_max_margin: float = 0.3
+    # another source's belief is withdrawn when the samples since it make a healthy rotor this much likelier (log):
+    # e^-9.2 = 1e-4, the chance that a right belief is withdrawn
+    refute_log_odds: float = 9.2
+    evidence_memory_s: float = 2.0  # `evidence_since` reaches this far back (the motion detector's window: 1.5 s)
 
 
 class EscMonitor:
@@ -87,6 +100,11 @@ class EscMonitor:
         self._found: list[Detection] = []
         self._held: dict[int, list[Detection]] = {}  # unit -> dead rotors' reports waiting for the rest of it
         self._retracted: list[tuple[int, int]] = []
+        # running sums over every running rotor's judged samples, in the current noise's units: L^2, L x, x^2 and
+        # the count (L: the load current a healthy rotor draws, x: the measured one), and their past values
+        self._sums = np.zeros((4, n))
+        self._past: deque[tuple[float, np.ndarray]] = deque()
+        self._forgot_s = -math.inf  # the latest samples' time no longer in `_past`
 
     # ----------------------------------------------------------------- inputs
     def command(self, t_s: float, thrusts_n: np.ndarray) -> None:
@@ -119,6 +137,44 @@ class EscMonitor:
         if slots:
             self._judge(t_s, np.array(slots), np.array(rpm, dtype=float), np.array(current))
         self._release(t_s)
+
+    def evidence_since(self, t_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, int] | None:
+        """Each rotor's load-current samples since `t_s` as the sums a least-squares fit of its efficiency needs
+        (L the healthy load current, x the measured one, both over the current noise's sigma): sum L^2, sum L x,
+        sum x^2, and the samples in all; None when the memory does not reach back that far. Why: a 30 % propeller
+        on a small motor moves the current by less than its noise; one sample tells little, the samples since a
+        change tell the motion detector which of its look-alike explanations the ESCs agree with."""
+        before = self._sums  # (no sample since t_s: nothing)
+        for t, sums in self._past:  # (oldest first: the sums before the first samples at or after t_s)
+            if t >= t_s - 1e-9:
+                before = sums
+                break
+        if self._forgot_s >= t_s - 1e-9:
+            return None
+        d = self._sums - before
+        return d[0], d[1], d[2], int(d[3].sum())
+
+    def refuted(self, claims: dict[int, tuple[float, float]]) -> tuple[list[int], list[int]]:
+        """A sequential probability ratio test of other sources' beliefs (slot -> (eta, since when)) against a
+        healthy rotor, on the rotor's load-current samples since the belief: log-likelihood ratio
+        sum[(x - eta L)^2 - (x - L)^2] / 2 in noise units = (1 - eta) (sum L x - (1 + eta) / 2 sum L^2).
+        Returns (the slots it refutes: ratio above `refute_log_odds`; the slots it settles: below minus that, or
+        no longer in memory). Why: a motion belief on a small motor's rotor that its current contradicts stood for
+        the rest of the flight (28 s on a 4x4 donut); one sample of that current tells little, a second of them a lot."""
+        refuted: list[int] = []
+        settled: list[int] = []
+        odds = self.params.refute_log_odds
+        for slot, (eta, since_s) in claims.items():
+            found = self.evidence_since(since_s)
+            if found is None:
+                settled.append(slot)
+                continue
+            ratio = (1.0 - eta) * (float(found[1][slot]) - 0.5 * (1.0 + eta) * float(found[0][slot]))
+            if ratio >= odds:
+                refuted.append(slot)
+            elif ratio <= -odds:
+                settled.append(slot)
+        return refuted, settled
 
     def covered(self, t_s: float) -> np.ndarray:
         """Per rotor: its unit's ESC telemetry is live (fresh and not stuck) and the rotor was judged lately
@@ -166,6 +222,7 @@ class EscMonitor:
         # a running motor draws at least its no-load current: a dead ESC reports (next to) none
         stopped = slow | (current < 0.5 * c.no_load_current_a)
         self.last_load[slots] = np.where(slow, 0.0, load)
+        self._remember(t_s, slots[~stopped], load_a[~stopped], current[~stopped] - c.no_load_current_a)
         self._stops[slots] = np.where(stopped, self._stops[slots] + 1, 0)
         self._count[slots[stopped]] = 0
         run, run_load, run_a = slots[~stopped], load[~stopped], load_a[~stopped]
@@ -196,6 +253,19 @@ class EscMonitor:
         for j in run[full][steady & ~healthy & ~moved]:
             if self.kind[j] == "motor-stop":  # (running again, its load where it was believed: now a load belief)
                 self.kind[j] = "load"
+
+    def _remember(self, t_s: float, slots: np.ndarray, load_a: np.ndarray, measured_a: np.ndarray) -> None:
+        """Add running rotors' samples to the sums `evidence_since` reads, and keep their past values."""
+        sigma = self.esc.current_noise_a
+        if sigma <= 0.0:
+            return
+        if not self._past or self._past[-1][0] < t_s:
+            self._past.append((t_s, self._sums.copy()))  # (the sums before this instant's samples)
+        while self._past and self._past[0][0] < t_s - self.params.evidence_memory_s:
+            self._forgot_s = self._past.popleft()[0]
+        load, measured = load_a / sigma, measured_a / sigma
+        # (each slot once per sample: one unit's ESCs report once)
+        self._sums[:, slots] += np.vstack([load * load, load * measured, measured * measured, np.ones_like(load)])
 
     def _believe(self, t_s: float, slot: int, eta: float, kind: str) -> None:
         self.belief[slot], self.kind[slot] = float(np.clip(eta, 0.0, 1.0)), kind

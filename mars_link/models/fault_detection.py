@@ -18,6 +18,10 @@ Why this design (details in the class docstrings):
   reported with its look-alikes in `Detection.ambiguous_with`. A partial loss must also explain the
   momentum residual on its own (`moment_confirm_score`): in wind, vertical gusts on the body change
   the lift with no moment, and that is the air, not a rotor.
+* **Rotor evidence** (optional, `rotor_evidence`): each rotor's own ESC current samples since the onset
+  are rows of the same fit, and losses another source found meanwhile (a stopped motor) are taken as
+  known parts of the change (`assume`). A partial loss their rows confirm (no gust lowers a rotor's
+  current) needs no moment, but must then lead every different explanation, confirmed yet or not.
 * **Identifiability.** Rotor j enters through the column ``u_j (1, -y_j, x_j, k_q s_j)``. Different
   rotor sets with the same summed column are indistinguishable from wrench residuals alone while
   the thrusts are symmetric: in a 3x2, units {2,5}, {1,6} and {3,4} (pairs mirrored through the
@@ -34,6 +38,7 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 from itertools import combinations
+from typing import Callable
 
 import numpy as np
 
@@ -198,6 +203,7 @@ class _Episode:
     until_s: float
     next_check_s: float
     look_alikes: tuple[str, ...] = ()  # other explanations still within decide_margin of the belief
+    known_delta: np.ndarray | None = None  # losses another source found in the change (`FaultDetector.assume`)
 
 
 @dataclass
@@ -219,6 +225,8 @@ class FaultDetector:
     ambiguity is being resolved (zero otherwise).
     """
 
+    _momentum_normal: tuple[np.ndarray, np.ndarray]  # the last regression's momentum rows (A, g), `_regression`
+
     def __init__(
         self, model: AssemblyModel, params: FaultDetectorParams | None = None, ground_down_m: float | None = None
     ) -> None:
@@ -232,6 +240,10 @@ class FaultDetector:
         self._ground_down_m: float | None = None if ground_down_m is None else float(ground_down_m)
         self._ground_given = ground_down_m is not None  # (a learnt ground level is only a lower bound)
         self._aloft_since_s: float | None = None  # when `_airborne` last turned true (None: on the ground)
+        # per-rotor evidence of another sensor since a time (the ESC monitor's `evidence_since`: sums of L^2, L x,
+        # x^2 and the count, x = eta L + unit noise): rows of its own in the isolation fit. None: motion alone
+        self.rotor_evidence: Callable[[float], tuple[np.ndarray, np.ndarray, np.ndarray, int] | None] | None = None
+        self._evidence_normal: tuple[np.ndarray, np.ndarray] | None = None
         self.set_model(model)
 
     # ----------------------------------------------------------------- configuration
@@ -285,6 +297,7 @@ class FaultDetector:
         self._baseline_count = 0
         self._onset: float | None = None
         self._episode: _Episode | None = None
+        self._known_delta = np.zeros(self.n)  # losses of the change being isolated found by another source
         self._spread_cache: tuple[float, np.ndarray, dict[int, np.ndarray]] | None = None
         self._probe = np.zeros(self.n)
         self.last_fits: list[_Fit] = []
@@ -299,6 +312,33 @@ class FaultDetector:
     def eta_estimate(self) -> np.ndarray:
         """Current belief of every rotor's efficiency (slot order)."""
         return self.eta.copy()
+
+    def assume(self, eta: np.ndarray) -> None:
+        """Efficiencies another source found (the ESC telemetry: a stopped motor) while a change is being isolated:
+        known parts of that change, from its onset, so the fit explains only the rest. Why: four faults at once on
+        a 4x4 donut fit look-alike sets (two stopped rotors found by their ESCs, two 30 % propellers named on the
+        wrong units); told first, the two partial losses are all the fit has left to place. Outside an isolation
+        the caller restarts the detector on the new belief (`set_model`)."""
+        new = np.clip(np.asarray(eta, dtype=float), 0.0, 1.0)
+        changed = np.abs(new - self.eta) >= self.params.min_change
+        if not self.isolating or new.shape != (self.n,) or not changed.any():
+            return
+        self._known_delta[changed] += self.eta[changed] - new[changed]
+        self.eta[changed] = new[changed]
+        self._spread_cache = None
+
+    def _known_adjusted(self, A: np.ndarray, g: np.ndarray, c: float,
+                        known: np.ndarray | None) -> tuple[np.ndarray, float]:
+        """The normal equations' g and c with the known losses' share of the residual taken out (the fits then
+        explain the rest: r - Phi d_known); the momentum rows' likewise."""
+        if known is None or not known.any():
+            return g, c
+        a_mom, g_mom = self._momentum_normal
+        self._momentum_normal = (a_mom, g_mom - a_mom @ known)
+        if self._evidence_normal is not None:
+            s_ll, g_rotor = self._evidence_normal
+            self._evidence_normal = (s_ll, g_rotor - s_ll * known)
+        return g - A @ known, c - 2.0 * float(known @ g) + float(known @ A @ known)
 
     @property
     def isolating(self) -> bool:
@@ -509,8 +549,9 @@ class FaultDetector:
             m_sigma = np.maximum(m_sigma, p.measured_momentum_floor * spread[1:])
         return f_sigma, m_sigma
 
-    def _regression(self, onset: float) -> tuple[np.ndarray, np.ndarray, float, int]:
-        """Weighted normal equations (A, g, c, dof) of residual ~ Phi delta around a change at `onset`.
+    def _regression(self, onset: float, eta: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, float, int]:
+        """Weighted normal equations (A, g, c, dof) of residual ~ Phi delta around a change at `onset`, against the
+        efficiencies `eta` (default: the belief) before it.
 
         Nuisances projected out: a force offset, and a momentum offset before and another after the
         onset (so the unknown instant of the change inside its tick does not bias the fit).
@@ -523,15 +564,16 @@ class FaultDetector:
         thrust = np.array([k.thrust_n for k in ticks])
         integ = np.array([k.thrust_integral_ns for k in ticks])
         u_post = np.where(post[:, None], integ - integ[i_on], 0.0)
+        eta = self.eta if eta is None else eta
         n_imus = max(1, int(np.median([k.n_imus for k in ticks])))
         # force rows: F - thrust . eta = -(post * thrust) . delta + offset
-        f_res = np.array([k.force_n for k in ticks]) - thrust @ self.eta
+        f_res = np.array([k.force_n for k in ticks]) - thrust @ eta
         f_phi = -np.where(post[:, None], thrust, 0.0)
         f_res -= f_res.mean()
         f_phi -= f_phi.mean(axis=0)
         # momentum rows: J w + int w x Jw - B_mom diag(eta) int u = h0 - B_mom diag(int_post u) delta
         h = np.array([self.J @ k.omega + k.gyroscopic_integral for k in ticks])
-        m_res = h - integ @ (self.B_mom * self.eta).T
+        m_res = h - integ @ (self.B_mom * eta).T
         m_phi = -(self.B_mom[None, :, :] * u_post[:, None, :])  # (K, 3, n)
         for grp in (~post, post):
             if grp.any():
@@ -550,7 +592,22 @@ class FaultDetector:
         g = w_f * (f_phi.T @ f_res) + g_mom
         c = w_f * float(f_res @ f_res) + float(np.sum(m_res_w**2))
         dof = len(ticks) - 1 + 3 * (len(ticks) - 1 - int((~post).any()))
-        return A, g, c, dof
+        return self._with_rotor_evidence(onset, eta, A, g, c, dof)
+
+    def _with_rotor_evidence(self, onset: float, eta: np.ndarray, A: np.ndarray, g: np.ndarray, c: float,
+                             dof: int) -> tuple[np.ndarray, np.ndarray, float, int]:
+        """The normal equations with each rotor's own samples since `onset` added (`rotor_evidence`: x = (eta -
+        delta) L + unit noise, one row per sample): a look-alike that names a rotor whose current says healthy loses
+        what those samples cost it, the rotor whose current fell gains."""
+        found = self.rotor_evidence(onset) if self.rotor_evidence is not None else None
+        self._evidence_normal = None
+        if found is None or found[0].shape != (self.n,) or not found[3]:
+            return A, g, c, dof
+        s_ll, s_lx, s_xx, count = found
+        g_rotor = eta * s_ll - s_lx
+        self._evidence_normal = (s_ll, g_rotor)
+        c_rotor = float(np.sum(eta * eta * s_ll - 2.0 * eta * s_lx + s_xx))
+        return A + np.diag(s_ll), g + g_rotor, c + c_rotor, dof + count
 
     def _remember_noise(self, t_s: float) -> None:
         """Every `noise_window_s`, the spread of the last window into a slow average (`noise_memory_s`): the
@@ -765,12 +822,14 @@ class FaultDetector:
         if elapsed < p.min_isolation_s - 1e-9:
             return []
         early = elapsed < self._min_isolation_s(onset) - 1e-9  # noisy air: only an overwhelming unit loss now
-        A, g, c, dof = self._regression(onset)
+        A, g, c, dof = self._regression(onset, self.eta + self._known_delta)
+        g, c = self._known_adjusted(A, g, c, self._known_delta)
         noisy = self._noise_ratio(onset) ** 2
         fits = self._fits(A, g, c, dof)
         just_aloft = self._aloft_since_s is not None and onset - self._aloft_since_s < p.early_aloft_s
         if early and self._overwhelming(fits, noisy, rival_listed=False):  # list down to another place's best fit
             fits = self._fits(A, g, c, dof, p.decide_margin * noisy)
+        unconfirmed = [f for f in fits if not self._moment_confirmed(f, noisy)]
         fits = [f for f in fits if self._moment_confirmed(f, noisy)]
         if self._noise_var is None:  # just aloft, the air's level not yet measured: what came before the onset
             need = p.detect_score * self._early_noise_ratio(onset) ** 2
@@ -781,6 +840,7 @@ class FaultDetector:
         if not fits or fits[0].score < p.detect_score * noisy:
             if elapsed >= p.max_isolation_s:  # false alarm: resume watching (a new alarm dates itself anew)
                 self._onset = self._cusum_start = None
+                self._known_delta = np.zeros(self.n)  # (kept in the belief: the caller restarts on it)
                 self._cusum_loss = self._cusum_gain = 0.0
                 self._probe = np.zeros(self.n)
             return []
@@ -799,10 +859,17 @@ class FaultDetector:
         if just_aloft and not self._overwhelming(fits, noisy):
             if elapsed >= p.max_isolation_s:  # (the take-off's air, dismissed as a false alarm above is)
                 self._onset = self._cusum_start = None
+                self._known_delta = np.zeros(self.n)  # (kept in the belief: the caller restarts on it)
                 self._cusum_loss = self._cusum_gain = 0.0
                 self._probe = np.zeros(self.n)
             return []
         rivals = [f for f in fits[1:] if f.key != best.key and (best.spread or not f.spread)]
+        if self._evidence_normal is not None and best.units is None \
+                and self._moment_improvement(best) < p.moment_confirm_score * noisy:
+            # confirmed by the rotors' own samples alone: it must also lead the explanations they do not confirm yet
+            # (a few samples of a small motor's current: a healthy rotor's noise can confirm a look-alike first)
+            rivals = sorted(rivals + [f for f in unconfirmed if f.key != best.key and (best.spread or not f.spread)],
+                            key=lambda f: -f.score)
         margin = best.score - rivals[0].score if rivals else float("inf")
         if margin < p.decide_margin and elapsed < p.max_isolation_s:
             self._probe = self._probe_direction(best, [f for f in rivals if best.score - f.score < p.decide_margin][:3])
@@ -878,10 +945,24 @@ class FaultDetector:
 
     def _moment_confirmed(self, fit: _Fit, noisy: float = 1.0) -> bool:
         """Whole-unit hypotheses stand as they are (mirrored pairs are pure lift); a partial loss must
-        also explain the momentum residual on its own (`noisy`: the squared noise ratio, as for reports)."""
+        also explain the momentum residual on its own (`noisy`: the squared noise ratio, as for reports), or the
+        rotors' own evidence (`rotor_evidence`: their current fell, which no gust does) by as much."""
         if fit.units is not None:
             return True
-        return self._moment_improvement(fit) >= self.params.moment_confirm_score * noisy
+        score = self.params.moment_confirm_score
+        if self._moment_improvement(fit) >= score * noisy:
+            return True
+        each = self._rotor_improvements(fit)  # (each rotor named by its own samples too: one rotor whose current fell
+        # does not carry a partner whose current says healthy, a look-alike's rotor on a 4x4 donut)
+        return bool(each.sum() >= score and (each[list(fit.key)] >= 0.0).all())
+
+    def _rotor_improvements(self, fit: _Fit) -> np.ndarray:
+        """Per rotor, what the fit's loss explains of that rotor's own evidence rows (zeros without them)."""
+        if self._evidence_normal is None:
+            return np.zeros(self.n)
+        s_ll, g_rotor = self._evidence_normal
+        d = fit.delta
+        return 2.0 * d * g_rotor - s_ll * d * d
 
     def _probe_direction(self, best: _Fit, rivals: list[_Fit]) -> np.ndarray:
         """Thrust offsets in the null space of B diag(eta_est) that best separate best from rivals."""
@@ -918,7 +999,9 @@ class FaultDetector:
         believed = self.eta
         self.eta = ep.eta_before  # (the regression and the fits read the belief they refer to)
         try:
-            A, g, c, dof = self._regression(ep.onset_s)
+            known = ep.known_delta
+            A, g, c, dof = self._regression(ep.onset_s, None if known is None else ep.eta_before + known)
+            g, c = self._known_adjusted(A, g, c, known)
             noisy = self._noise_ratio(ep.onset_s) ** 2
             fits = [f for f in self._fits(A, g, c, dof) if self._moment_confirmed(f, noisy)]
             old = self._refit(A, g, ep.fit)
@@ -1011,7 +1094,9 @@ class FaultDetector:
         self._clean_from_s = onset  # (the air's level is measured again on residuals of the new belief)
         if self.params.verify_s > 0:
             self._episode = _Episode(onset, eta_before, fit, onset + self.params.verify_s,
-                                     t_s + self.params.verify_every_s)
+                                     t_s + self.params.verify_every_s,
+                                     known_delta=self._known_delta.copy() if self._known_delta.any() else None)
+        self._known_delta = np.zeros(self.n)
         return out
 
     def _restart_watch(self) -> None:
