@@ -130,7 +130,8 @@ def fly(tree: Tree, scenario: str, scratch: Path, *, mode: str = "inproc", durat
     rtf = float((s.get("sitl") or {}).get("world_real_time_factor") or whole) if mode == "sitl" else float(whole)
     steps = sim_s * float(s.get("physics_hz") or 500.0)
     stages = {k: 1e6 * float(v) / steps for k, v in (s.get("stage_time_s") or {}).items()} if mode == "inproc" else {}
-    return Flight(tree.label, scenario, mode, rtf, float(whole), sim_s, wall, stages)
+    label = Path(scenario).stem if scenario.endswith(".toml") else scenario  # (a scratch copy: its name, not its path)
+    return Flight(tree.label, label, mode, rtf, float(whole), sim_s, wall, stages)
 
 
 def without_esc(tree: Tree, scenario: str, scratch: Path) -> str:
