@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import statistics
 import subprocess
 import sys
 import time
@@ -81,8 +82,23 @@ def fly(scenario: Path, seed: int, run_dir: Path, sitl: bool, transport: str) ->
     if not summary_path.is_file():
         return {"rc": proc.returncode, "error": (proc.stderr or proc.stdout)[-500:]}
     s = json.loads(summary_path.read_text(encoding="utf-8"))
+    from mars_link.config.scenario import load_scenario
+
     return {"rc": proc.returncode, "mean_error_m": s.get("mean_error_m"), "diverged": s.get("diverged"),
-            "events": belief_events(s)}
+            "events": belief_events(s), "eta_errors": eta_errors(s, load_scenario(str(scenario)).faults)}
+
+
+def eta_errors(summary: dict, faults) -> list[list[float]]:
+    """Per scenario fault that a belief names (its unit and rotor, none for a whole unit, at or after the fault):
+    |eta believed - eta| of the first such belief and of the last."""
+    found = [e for e in summary.get("events", []) if e["type"] == "fault_detected"]
+    out = []
+    for fault in faults:
+        named = [e["eta_estimated"] for e in found
+                 if e.get("unit") == fault.unit and e.get("rotor") == fault.rotor and e["t_s"] >= fault.t_s - 1e-9]
+        if named:
+            out.append([abs(named[0] - fault.eta), abs(named[-1] - fault.eta)])
+    return out
 
 
 def belief_events(summary: dict) -> list[list]:
@@ -94,16 +110,23 @@ def belief_events(summary: dict) -> list[list]:
 
 def markdown(rows: list[dict], args: argparse.Namespace) -> str:
     lines = [f"In process against lockstep SITL ({args.transport}), seeds {args.seeds}, noise on, faults not told.", "",
-             "| case | ESC telemetry | pairs | equal | belief events per flight | largest mean-error difference [m] | diverged (in process / SITL) |",
-             "|---|---|---|---|---|---|---|"]
+             "| case | ESC telemetry | pairs | equal | belief events per flight | largest mean-error difference [m] "
+             "| diverged (in process / SITL) | eta error max, first / last belief | mean error, mean [m] |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for case in args.case_list:
         for esc in args.esc_list:
             rs = [r for r in rows if r["case"] == case and r["esc"] == esc]
             diffs = [r["mean_error_diff_m"] for r in rs if r["mean_error_diff_m"] is not None]
+            if not (rs and diffs):
+                lines.append(f"| {case} | {esc} | {len(rs)} | 0 | - | - | - | - | - |")
+                continue
+            errors = [e for r in rs for e in r["inproc"].get("eta_errors", [])]
+            eta = f"{max(e[0] for e in errors):.3f} / {max(e[1] for e in errors):.3f}" if errors else "-"
+            means = [r["inproc"]["mean_error_m"] for r in rs if r["inproc"].get("mean_error_m") is not None]
             lines.append(f"| {case} | {esc} | {len(rs)} | {sum(r['equal'] for r in rs)} "
                          f"| {min(r['n_events'] for r in rs)}-{max(r['n_events'] for r in rs)} "
                          f"| {max(diffs):.3g} | {sum(bool(r['diverged'][0]) for r in rs)} / "
-                         f"{sum(bool(r['diverged'][1]) for r in rs)} |" if rs and diffs else f"| {case} | {esc} | {len(rs)} | 0 | - | - | - |")
+                         f"{sum(bool(r['diverged'][1]) for r in rs)} | {eta} | {statistics.mean(means):.4f} |")
     return "\n".join(lines) + "\n"
 
 

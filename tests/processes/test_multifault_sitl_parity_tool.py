@@ -3,6 +3,8 @@ and its answer to bad arguments. The flights themselves are offline work (docs/r
 
 from __future__ import annotations
 
+import pytest
+
 from mars_link.config.scenario import load_scenario
 from tests.repo_files import load_script
 
@@ -34,3 +36,18 @@ def test_a_belief_is_compared_with_its_eta_and_onset() -> None:
     assert tool.belief_events({"events": [found, {"t_s": 0.0, "type": "fault"}]}) == [
         ["fault_detected", 2, 3, 15.06, 0.0112, 15.0]]
     assert tool.belief_events({"events": [found]}) != tool.belief_events({"events": [other]})
+
+
+def test_eta_errors_of_the_first_and_last_belief_naming_each_fault() -> None:
+    """multifault_3x2_unit_and_rotor: unit 3 dead and unit 5 rotor 2 at 0.3 at 15 s. A belief before the fault or
+    at another place names neither; a whole unit is named by a belief without a rotor."""
+    tool = load_script("tools/multifault_sitl_parity.py")
+    faults = load_scenario("multifault_3x2_unit_and_rotor").faults
+    events = [{"type": "fault_detected", "unit": 5, "rotor": 2, "t_s": 10.0, "eta_estimated": 0.9},
+              {"type": "fault_detected", "unit": 3, "rotor": None, "t_s": 15.08, "eta_estimated": 0.0},
+              {"type": "fault_detected", "unit": 5, "rotor": 2, "t_s": 15.1, "eta_estimated": 0.45},
+              {"type": "fault_detected", "unit": 4, "rotor": 2, "t_s": 15.2, "eta_estimated": 0.5},
+              {"type": "fault_detected", "unit": 5, "rotor": 2, "t_s": 15.9, "eta_estimated": 0.31}]
+    errors = tool.eta_errors({"events": events}, faults)
+    assert len(errors) == 2 and errors[0] == [0.0, 0.0]
+    assert errors[1][0] == pytest.approx(0.15) and errors[1][1] == pytest.approx(0.01)
