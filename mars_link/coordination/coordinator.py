@@ -322,8 +322,6 @@ class Coordinator:
         finding is an event, a detection record and a reallocation (for the periods to come)."""
         found, gone = self._esc_changes()
         if self._to_detect is not None:
-            if self.esc_monitor is not None:  # (the ESCs' samples as rows of the motion detector's isolation fit)
-                self.detector.rotor_evidence = self.esc_monitor.evidence_since
             t_s, thrusts, estimate, imus = self._to_detect
             self._to_detect = None
             motion = self.detector.update(t_s, thrusts, estimate, imus)
@@ -370,6 +368,13 @@ class Coordinator:
             for d in found
         ) or "withdrawn " + ", ".join(f"unit {self.name_of(u)} rotor {r}" for u, r in gone)
         self.set_faults(self._believed_eta(t_s), t_s, f"detected: {what}")
+
+    def attach_esc_monitor(self, monitor) -> None:
+        """The ESC telemetry's monitor beside the motion detector (None: no ESC telemetry). Its samples are rows
+        of the detector's isolation fit (`FaultDetector.rotor_evidence`)."""
+        self.esc_monitor = monitor
+        if self.detector is not None:
+            self.detector.rotor_evidence = None if monitor is None else monitor.evidence_since
 
     def _claim(self, motion: list) -> None:
         """The motion detector's rotor beliefs the ESC monitor tests from now on (`_esc_refutes`)."""

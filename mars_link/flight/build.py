@@ -258,7 +258,7 @@ def make_piece_coordinator(scenario: Scenario, piece: AssemblyModel, reference: 
                               estimator, detector, telemetry_timeout_s=telemetry_timeout_s)
     coordinator.unit_names = unit_names
     coordinator.eta_believed = np.asarray(eta, dtype=float).copy()
-    coordinator.esc_monitor = make_esc_monitor(scenario, piece) if detector is not None else None
+    coordinator.attach_esc_monitor(make_esc_monitor(scenario, piece) if detector is not None else None)
     if t_s > 0.0 and np.any(np.asarray(eta) < 1.0):  # a piece made in flight with faults (told or found): say so
         coordinator.set_faults(eta, t_s, "piece created")
     _follow_packs(scenario, piece, coordinator, unit_names)
@@ -297,7 +297,7 @@ def make_coordinator(scenario: Scenario, model: AssemblyModel, reference: Trajec
     eta = initial_eta(scenario, model) if eta is None else eta
     coordinator = Coordinator(model, reference, make_controller(scenario, model, eta), estimator, detector,
                               telemetry_timeout_s=telemetry_timeout_s)
-    coordinator.esc_monitor = make_esc_monitor(scenario, model)
+    coordinator.attach_esc_monitor(make_esc_monitor(scenario, model))
     _follow_packs(scenario, model, coordinator)
     if coordinator.guard is not None:  # a trajectory flight: position lost -> hold, then land
         from mars_link.models.position_failsafe import PositionFailsafe
